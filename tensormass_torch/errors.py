@@ -1,0 +1,35 @@
+"""Exceptions raised by tensormass_torch.
+
+Every bad input raises one of these with a message that names the problem; nothing is
+modified when they are raised.
+"""
+
+
+class TensorMassError(Exception):
+    """Base class of every error this package raises on purpose."""
+
+
+class MeshError(TensorMassError, ValueError):
+    """A mesh is malformed: wrong shapes or dtypes, bad indices, degenerate or inverted elements."""
+
+
+class MaterialError(TensorMassError, ValueError):
+    """A material parameter is out of range or a model name is unknown."""
+
+
+class SceneError(TensorMassError, ValueError):
+    """A scene (bodies, constraints, options) is inconsistent: mixed devices, every node fixed, ..."""
+
+
+class SolverError(TensorMassError, RuntimeError):
+    """A solve failed (no convergence, breakdown, NaN/inf). The state was left as it was.
+
+    Attributes:
+        status: per-object status strings, e.g. ``["converged", "not converged", ...]``.
+        report: the solver's report object (iterations, residuals) when one exists.
+    """
+
+    def __init__(self, message, status=None, report=None):
+        super().__init__(message)
+        self.status = status
+        self.report = report

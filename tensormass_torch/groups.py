@@ -1,0 +1,105 @@
+"""ElementGroup: the precomputed data of one set of elements with one model and one form.
+
+A model (one mesh, or a packed batch of bodies) holds one group per (element kind, model,
+form): a tetrahedral ``stvk`` body and a triangular ``hooke`` body in one batch give two groups
+over the same global nodes. A group stores only what its form needs:
+
+    stress form            shape vectors m [N, n, d], measures [N], young/poisson [N],
+                           tangent projectors [N, d, d] (membranes in 3-D only)
+    tensor form, hooke     vertex tensors [V, d, d], edges [Ed, 2], edge tensors [Ed, d, d]
+    tensor form, stvk      B [N, n, n, d, d], C [N, n, n, n, d], D [N, n, n, n, n]
+
+plus the gather plan of the paper (``index``, ``ForceIndex``, ``N_n``) over its items
+(elements, or edges for the hooke tensor form).
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from . import geometry
+from .materials import lame
+from .reference import tensor_form
+from .topology import GatherPlan
+
+FORMS = ("stress", "tensor")
+
+
+class ElementGroup(nn.Module):
+    """Elements of one kind, model and form.
+
+    Args:
+        rest: rest positions of all nodes ``[V, d]``.
+        elements: global node ids ``[N, n]`` (n = 4 tetrahedra, 3 triangles), positively oriented.
+        young, poisson: per-element parameters ``[N]``.
+        model: ``"hooke"`` or ``"stvk"``.
+        form: ``"stress"`` or ``"tensor"``.
+        measure_scale: per-element factor on the rest measure ``[N]`` (membrane thickness), or None.
+    """
+
+    def __init__(self, rest, elements, young, poisson, model, form, measure_scale=None):
+        super().__init__()
+        if form not in FORMS:
+            raise ValueError(f"unknown form {form!r}; known forms: {', '.join(FORMS)}")
+        self.model = model
+        self.form = form
+        self.nodes_per_element = elements.shape[1]
+        self.dim = rest.shape[1]
+        self.num_nodes = rest.shape[0]
+        self.kind = "tet" if self.nodes_per_element == 4 else "tri"
+        self.membrane = geometry.needs_projector(self.nodes_per_element, self.dim)
+
+        element_rest = geometry.element_nodes(rest, elements)
+        m, measure = geometry.shape_vectors(element_rest)
+        measure = measure.abs()  # orientation is checked by the mesh; the measure is a size
+        if measure_scale is not None:
+            measure = measure * measure_scale
+        proj = geometry.tangent_projectors(element_rest) if self.membrane else None
+        self.register_buffer("elements", elements)
+        self.register_buffer("measure", measure)
+
+        if form == "stress":
+            self.register_buffer("shape_vectors", m)
+            self.register_buffer("young", young)
+            self.register_buffer("poisson", poisson)
+            self.register_buffer("projector", proj)
+            self.plan = GatherPlan.build(elements, self.num_nodes)
+            return
+
+        lam, mu = self.lame(young, poisson)
+        lam, mu = lam.detach(), mu.detach()  # precomputed tensors carry no material gradient
+        if model == "hooke":
+            element_k = tensor_form.element_stiffness(m, measure, lam, mu, proj)
+            vertex_k, edges, edge_k = tensor_form.assemble_vertex_edge(element_k, elements, self.num_nodes)
+            self.register_buffer("vertex_k", vertex_k)
+            self.register_buffer("edges", edges)
+            self.register_buffer("edge_k", edge_k)
+            self.plan = GatherPlan.build(edges, self.num_nodes)
+        else:
+            b, c, d = tensor_form.stvk_tensors(m, measure, lam, mu, proj)
+            self.register_buffer("tensor_b", b)
+            self.register_buffer("tensor_c", c)
+            self.register_buffer("tensor_d", d)
+            self.plan = GatherPlan.build(elements, self.num_nodes)
+
+    def lame(self, young=None, poisson=None):
+        """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""
+        young = self.young if young is None else young
+        poisson = self.poisson if poisson is None else poisson
+        return lame(young, poisson, plane_stress=self.kind == "tri")
+
+    def _apply(self, fn, *args, **kwargs):
+        super()._apply(fn, *args, **kwargs)
+        # The plan's integer tensors follow the module's device (not its dtype).
+        self.plan = self.plan.to(self.elements.device)
+        return self
+
+    def buffer_bytes(self) -> int:
+        """Bytes held by this group's tensors (buffers and gather plan)."""
+        total = sum(b.numel() * b.element_size() for b in self.buffers())
+        p = self.plan
+        return total + sum(t.numel() * t.element_size() for t in (p.index, p.force_index, p.incidences))
+
+    def extra_repr(self) -> str:
+        return (f"kind={self.kind}, model={self.model}, form={self.form}, elements={self.elements.shape[0]}, "
+                f"dim={self.dim}, N_n={self.plan.num_slots}")

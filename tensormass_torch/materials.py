@@ -1,0 +1,89 @@
+"""Materials: Young's modulus, Poisson ratio, density and the constitutive model.
+
+Parameters are scalars or per-element tensors ``[N]`` (heterogeneous objects). Triangles are
+plane-stress membranes of the given ``thickness``: their rest measure is area x thickness.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Union
+
+import torch
+
+from .errors import MaterialError
+
+#: Constitutive models this build implements (``Material(model=...)``).
+MODELS = ("hooke", "stvk")
+
+Scalar = Union[float, int, torch.Tensor]
+
+
+def _check_range(name: str, value: Scalar, low: float, high: float, low_open=True, high_open=True):
+    """Raise MaterialError unless every entry of ``value`` lies in (low, high) and is finite."""
+    t = torch.as_tensor(value, dtype=torch.float64).detach()
+    if t.numel() == 0:
+        raise MaterialError(f"{name} is empty")
+    if not torch.isfinite(t).all():
+        raise MaterialError(f"{name} must be finite, got {value!r}")
+    below = (t <= low) if low_open else (t < low)
+    above = (t >= high) if high_open else (t > high)
+    bad = below | above
+    if bad.any():
+        lo = "(" if low_open else "["
+        hi = ")" if high_open else "]"
+        worst = t[bad].flatten()[0].item()
+        raise MaterialError(f"{name} must lie in {lo}{low}, {high}{hi}, got {worst!r}")
+
+
+@dataclass(frozen=True)
+class Material:
+    """An elastic material.
+
+    Args:
+        young: Young's modulus E in Pa, > 0; a float or a per-element tensor ``[N]``.
+        poisson: Poisson ratio nu in (-1, 0.5); float or ``[N]``.
+        density: mass density rho in kg/m^3 (kg/m^2 per unit thickness for membranes), > 0.
+        model: ``"hooke"`` (linear) or ``"stvk"`` (St Venant-Kirchhoff).
+        thickness: membrane thickness in m (triangles only), > 0.
+    """
+
+    young: Scalar
+    poisson: Scalar
+    density: Scalar = 1000.0
+    model: str = "hooke"
+    thickness: Scalar = 1.0
+
+    def __post_init__(self):
+        if not isinstance(self.model, str) or self.model not in MODELS:
+            raise MaterialError(f"unknown material model {self.model!r}; known models: {', '.join(MODELS)}")
+        _check_range("young", self.young, 0.0, math.inf)
+        _check_range("poisson", self.poisson, -1.0, 0.5)
+        _check_range("density", self.density, 0.0, math.inf)
+        _check_range("thickness", self.thickness, 0.0, math.inf)
+
+    def per_element(self, name: str, num_elements: int, like: torch.Tensor) -> torch.Tensor:
+        """Parameter ``name`` as a tensor ``[N]`` of ``like``'s dtype and device.
+
+        A tensor parameter keeps its autograd graph (gradients flow to material parameters).
+        """
+        value = getattr(self, name)
+        t = torch.as_tensor(value, dtype=like.dtype, device=like.device)
+        if t.dim() == 0:
+            return t.expand(num_elements)
+        if t.shape != (num_elements,):
+            raise MaterialError(f"{name} has shape {tuple(t.shape)}; expected a scalar or [{num_elements}]")
+        return t
+
+
+def lame(young: torch.Tensor, poisson: torch.Tensor, plane_stress: bool = False):
+    """Lamé constants (lam, mu) from E and nu; ``plane_stress`` gives lam = E nu / (1 - nu^2).
+
+    Shapes follow the inputs (``[N]``).
+    """
+    mu = young / (2.0 * (1.0 + poisson))
+    if plane_stress:
+        lam = young * poisson / (1.0 - poisson * poisson)
+    else:
+        lam = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+    return lam, mu

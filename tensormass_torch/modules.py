@@ -1,0 +1,132 @@
+"""TensorMass: the elastic force field of a mesh (or of a packed batch of meshes) as a module."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from . import ops
+from .errors import MaterialError, SceneError
+from .groups import FORMS, ElementGroup
+from .materials import Material
+from .topology import incidence_slots, padded_sum
+
+#: The form ``form="auto"`` picks for each model. Both forms agree to rounding; the stress form
+#: reads far fewer bytes per element (see benchmarks/), so it is the default for both models.
+AUTO_FORM = {"hooke": "stress", "stvk": "stress"}
+
+
+def _resolve_form(form: str, model: str) -> str:
+    if form == "auto":
+        return AUTO_FORM[model]
+    if form not in FORMS:
+        raise MaterialError(f"unknown form {form!r}; expected 'auto', 'stress' or 'tensor'")
+    return form
+
+
+class TensorMass(nn.Module):
+    """Tensor-Mass elastic forces, energy and force differentials of a mesh.
+
+    Args:
+        mesh: a ``TetMesh`` or ``TriMesh`` (rest shape).
+        material: a :class:`Material` (scalar or per-element ``[N]`` parameters).
+        form: ``"stress"``, ``"tensor"`` or ``"auto"`` (the faster, see ``AUTO_FORM``).
+
+    Positions ``x`` are ``[V, d]`` with d the mesh dimension; the module follows ``.to()``.
+    """
+
+    def __init__(self, mesh, material: Material, form: str = "auto"):
+        super().__init__()
+        self._build(mesh.vertices, [(mesh.elements, material, mesh.kind)], form)
+
+    @classmethod
+    def packed(cls, rest: torch.Tensor, parts: Sequence, form: str = "auto") -> "TensorMass":
+        """A model over concatenated nodes: ``rest [V, d]`` and parts ``(elements [N_i, n], material, kind)``
+        with global node ids. Parts of the same kind, model and form share one group (one launch)."""
+        self = cls.__new__(cls)
+        nn.Module.__init__(self)
+        self._build(rest, parts, form)
+        return self
+
+    def _build(self, rest, parts, form):
+        self.dim = rest.shape[1]
+        self.num_nodes = rest.shape[0]
+        self.register_buffer("rest", rest)
+        like = rest
+        grouped = {}
+        masses = []
+        for elements, material, kind in parts:
+            n_elem = elements.shape[0]
+            model_form = _resolve_form(form, material.model)
+            key = (kind, material.model, model_form)
+            young = material.per_element("young", n_elem, like)
+            poisson = material.per_element("poisson", n_elem, like)
+            density = material.per_element("density", n_elem, like)
+            scale = material.per_element("thickness", n_elem, like) if kind == "tri" else None
+            grouped.setdefault(key, []).append((elements, young, poisson, density, scale))
+        groups = []
+        for (kind, model, model_form), items in grouped.items():
+            elements = torch.cat([it[0] for it in items])
+            young = torch.cat([it[1] for it in items])
+            poisson = torch.cat([it[2] for it in items])
+            scale = torch.cat([it[4] for it in items]) if kind == "tri" else None
+            group = ElementGroup(rest, elements, young, poisson, model, model_form, scale)
+            groups.append(group)
+            density = torch.cat([it[3] for it in items])
+            masses.append((elements, density * group.measure.detach()))
+        self.groups = nn.ModuleList(groups)
+        self.register_buffer("mass", self._lumped_mass(masses))
+
+    def _lumped_mass(self, element_masses) -> torch.Tensor:
+        """Lumped masses ``[V]``: each element gives rho V_T / n to each of its n nodes."""
+        nodes = torch.cat([e.reshape(-1) for e, _ in element_masses])
+        shares = torch.cat([(m[:, None] / e.shape[1]).expand(e.shape).reshape(-1) for e, m in element_masses])
+        slots, num_slots, _ = incidence_slots(nodes, self.num_nodes)
+        return padded_sum(shares, nodes, slots, num_slots, self.num_nodes)
+
+    # ---------------------------------------------------------------- evaluation
+    def _check_positions(self, name: str, x: torch.Tensor):
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        if x.shape != (self.num_nodes, self.dim):
+            raise SceneError(f"{name} has shape {tuple(x.shape)}; expected [{self.num_nodes}, {self.dim}]")
+        if x.dtype != self.rest.dtype or x.device != self.rest.device:
+            raise SceneError(f"{name} is {x.dtype} on {x.device} but the model holds {self.rest.dtype} on "
+                             f"{self.rest.device}; move one with .to()")
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Elastic forces ``[V, d]`` at positions ``x [V, d]``."""
+        self._check_positions("x", x)
+        u = x - self.rest
+        total = None
+        for group in self.groups:
+            f = ops.forces(group, u)
+            total = f if total is None else total + f
+        return total
+
+    def energy(self, x: torch.Tensor) -> torch.Tensor:
+        """Elastic energy (0-dim tensor) at positions ``x [V, d]``."""
+        self._check_positions("x", x)
+        u = x - self.rest
+        return sum(ops.energy(group, u) for group in self.groups)
+
+    def dforce(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+        """(dF/dx) dx ``[V, d]``: the stiffness times ``dx [V, d]``, never assembled."""
+        self._check_positions("x", x)
+        self._check_positions("dx", dx)
+        u = x - self.rest
+        total = None
+        for group in self.groups:
+            f = ops.dforces(group, u, dx)
+            total = f if total is None else total + f
+        return total
+
+    def lumped_mass(self) -> torch.Tensor:
+        """Lumped nodal masses ``[V]``."""
+        return self.mass
+
+    def buffer_bytes(self) -> int:
+        """Bytes of precomputed data held (all groups, masses and rest positions)."""
+        own = sum(b.numel() * b.element_size() for b in (self.rest, self.mass))
+        return own + sum(g.buffer_bytes() for g in self.groups)

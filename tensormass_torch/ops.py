@@ -1,0 +1,80 @@
+"""Ops: the paper's kernels as functions, dispatched to the extension or the pure-torch reference.
+
+    element_forces(group, u)        kernel 1: partial forces of each item  [N, n, d]
+    node_gather(partial, plan, t)   kernel 2: per-node sums                 [V, d]
+    forces(group, u)                kernel 1 + kernel 2                     [V, d]
+    dforces(group, u, du)           the same pair with DForce(): (dF/du) du [V, d]
+    energy(group, u)                elastic energy                          scalar
+
+``u`` and ``du`` are global nodal displacements ``[V, d]``. Every function is differentiable
+through autograd on the reference path (double backward included).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from .reference import gather as ref_gather
+from .reference import stress_form, tensor_form
+from .topology import GatherPlan
+
+
+def _element_values(group, u):
+    return u[group.elements]
+
+
+def element_forces(group, u: torch.Tensor) -> torch.Tensor:
+    """Kernel 1: partial forces ``[N, n, d]`` of every item of ``group`` at displacements ``u [V, d]``."""
+    if group.form == "stress":
+        lam, mu = group.lame()
+        return stress_form.FORCES[group.model](_element_values(group, u), group.shape_vectors, group.measure,
+                                               lam, mu, group.projector)
+    if group.model == "hooke":
+        return tensor_form.hooke_edge_partial_forces(u, group.edges, group.edge_k)
+    return tensor_form.stvk_forces(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d)
+
+
+def element_dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
+    """Kernel 1 with DForce(): partial force differentials ``[N, n, d]`` along ``du [V, d]``."""
+    if group.form == "stress":
+        lam, mu = group.lame()
+        return stress_form.DFORCES[group.model](_element_values(group, u), _element_values(group, du),
+                                                group.shape_vectors, group.measure, lam, mu, group.projector)
+    if group.model == "hooke":
+        return tensor_form.hooke_edge_partial_forces(du, group.edges, group.edge_k)
+    return tensor_form.stvk_dforces(_element_values(group, u), _element_values(group, du),
+                                    group.tensor_b, group.tensor_c, group.tensor_d)
+
+
+def node_gather(partial: torch.Tensor, plan: GatherPlan, node_term: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Kernel 2: ``[N, n, d]`` partial forces -> ``[V, d]`` totals (+ ``node_term [V, d]``)."""
+    return ref_gather.node_gather(partial, plan.index, plan.force_index, plan.num_slots, plan.num_nodes, node_term)
+
+
+def _node_term(group, values):
+    """The vertex term of the hooke tensor form (-K_ii v_i), None for the other forms."""
+    if group.form == "tensor" and group.model == "hooke":
+        return tensor_form.hooke_vertex_forces(values, group.vertex_k)
+    return None
+
+
+def forces(group, u: torch.Tensor) -> torch.Tensor:
+    """Elastic forces of the group on every node ``[V, d]``."""
+    return node_gather(element_forces(group, u), group.plan, _node_term(group, u))
+
+
+def dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
+    """(dF/du) du on every node ``[V, d]``: the matrix-free product with the stiffness."""
+    return node_gather(element_dforces(group, u, du), group.plan, _node_term(group, du))
+
+
+def energy(group, u: torch.Tensor) -> torch.Tensor:
+    """Elastic energy of the group (0-dim tensor)."""
+    if group.form == "stress":
+        lam, mu = group.lame()
+        return stress_form.ENERGIES[group.model](_element_values(group, u), group.shape_vectors, group.measure,
+                                                 lam, mu, group.projector).sum()
+    if group.model == "hooke":  # W = 1/2 u^T K u = -1/2 u . F(u)
+        return -0.5 * (u * forces(group, u)).sum()
+    return tensor_form.stvk_energy(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d).sum()

@@ -1,0 +1,104 @@
+"""Stress form: element forces through grad U, the strain, the stress and P m_j.
+
+Shapes: N elements, n nodes per element, d dimensions.
+    u   nodal displacements per element  [N, n, d]
+    m   shape vectors                    [N, n, d]
+    vol rest measure                     [N]
+    lam, mu  Lamé constants              [N]
+    proj  tangent projector of membranes [N, d, d], or None (identity: tets, 2-D triangles)
+
+With grad U = sum_j u_j (x) m_j, the force of an element on its node j is
+f_j = -vol * P m_j, where P is the first Piola-Kirchhoff stress (sigma for ``hooke``).
+Membranes use strains projected on their rest plane, E_2D = P E P, which leaves this formula
+unchanged because the stress then lies in the plane too.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def displacement_gradient(u: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """grad U = sum_j u_j (x) m_j: ``[N, d, d]``."""
+    return torch.einsum("nja,njb->nab", u, m)
+
+
+def _sym(a: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (a + a.transpose(-1, -2))
+
+
+def _project(a: torch.Tensor, proj) -> torch.Tensor:
+    return a if proj is None else proj @ a @ proj
+
+
+def _trace(a: torch.Tensor) -> torch.Tensor:
+    return a.diagonal(dim1=-2, dim2=-1).sum(-1)
+
+
+def _isotropic(strain: torch.Tensor, lam: torch.Tensor, mu: torch.Tensor, proj) -> torch.Tensor:
+    """lam tr(strain) I_plane + 2 mu strain: ``[N, d, d]``."""
+    identity = torch.eye(strain.shape[-1], dtype=strain.dtype, device=strain.device) if proj is None else proj
+    return (lam * _trace(strain))[:, None, None] * identity + (2.0 * mu)[:, None, None] * strain
+
+
+def _nodal(stress: torch.Tensor, m: torch.Tensor, vol: torch.Tensor) -> torch.Tensor:
+    """f_j = -vol * stress m_j: ``[N, n, d]``."""
+    return -vol[:, None, None] * torch.einsum("nab,njb->nja", stress, m)
+
+
+def _energy_density(strain, lam, mu):
+    tr = _trace(strain)
+    return 0.5 * lam * tr * tr + mu * (strain * strain).sum((-1, -2))
+
+
+def hooke_strain(u, m, proj):
+    """Linear strain eps = sym(grad U), projected for membranes: ``[N, d, d]``."""
+    return _project(_sym(displacement_gradient(u, m)), proj)
+
+
+def green_strain(grad_u, proj):
+    """Green strain E = sym(grad U) + 1/2 grad U^T grad U (no I cancellation), projected."""
+    return _project(_sym(grad_u) + 0.5 * grad_u.transpose(-1, -2) @ grad_u, proj)
+
+
+def hooke_forces(u, m, vol, lam, mu, proj=None):
+    """Element forces of linear elasticity: ``[N, n, d]``."""
+    return _nodal(_isotropic(hooke_strain(u, m, proj), lam, mu, proj), m, vol)
+
+
+def hooke_energy(u, m, vol, lam, mu, proj=None):
+    """Element energies ``[N]``."""
+    return vol * _energy_density(hooke_strain(u, m, proj), lam, mu)
+
+
+def hooke_dforces(u, du, m, vol, lam, mu, proj=None):
+    """(dF/du) du per element: linear, so the forces of du. ``[N, n, d]``."""
+    return hooke_forces(du, m, vol, lam, mu, proj)
+
+
+def stvk_forces(u, m, vol, lam, mu, proj=None):
+    """Element forces of St Venant-Kirchhoff: f_j = -vol F S m_j. ``[N, n, d]``."""
+    grad_u = displacement_gradient(u, m)
+    second_pk = _isotropic(green_strain(grad_u, proj), lam, mu, proj)
+    first_pk = second_pk + grad_u @ second_pk  # F S with F = I + grad U
+    return _nodal(first_pk, m, vol)
+
+
+def stvk_energy(u, m, vol, lam, mu, proj=None):
+    """Element energies ``[N]``."""
+    return vol * _energy_density(green_strain(displacement_gradient(u, m), proj), lam, mu)
+
+
+def stvk_dforces(u, du, m, vol, lam, mu, proj=None):
+    """(dF/du) du per element: dP = dF S + F dS, dS = C : sym(F^T dF). ``[N, n, d]``."""
+    grad_u = displacement_gradient(u, m)
+    grad_du = displacement_gradient(du, m)
+    second_pk = _isotropic(green_strain(grad_u, proj), lam, mu, proj)
+    d_strain = _project(_sym(grad_du + grad_u.transpose(-1, -2) @ grad_du), proj)
+    d_second_pk = _isotropic(d_strain, lam, mu, proj)
+    d_first_pk = grad_du @ second_pk + d_second_pk + grad_u @ d_second_pk
+    return _nodal(d_first_pk, m, vol)
+
+
+FORCES = {"hooke": hooke_forces, "stvk": stvk_forces}
+DFORCES = {"hooke": hooke_dforces, "stvk": stvk_dforces}
+ENERGIES = {"hooke": hooke_energy, "stvk": stvk_energy}

@@ -1,0 +1,133 @@
+"""Tensor form: forces from precomputed Tensor-Mass tensors.
+
+``hooke`` (Cotin, Delingette, Ayache 2000): per element
+    K_jk = vol (lam m_j m_k^T + mu m_k m_j^T + mu (m_j . m_k) P)          [N, n, n, d, d]
+summed over the elements that share them into vertex tensors K_ii ``[V, d, d]`` and edge
+tensors K_ij ``[Ed, d, d]`` (i < j; K_ji = K_ij^T). F_i = -K_ii u_i - sum_j K_ij u_j.
+
+``stvk`` (Picinbono, Delingette, Ayache): per element
+    W = sum_jk u_j^T B_jk u_k + sum_jkl (u_j.u_k)(C_jkl.u_l) + sum_jklm D_jklm (u_j.u_k)(u_l.u_m)
+    B_jk   = K_jk / 2                                                      [N, n, n, d, d]
+    C_jkl  = vol (lam/2 (m_j.m_k) m_l + mu/2 ((m_l.m_j) m_k + (m_l.m_k) m_j))   [N, n, n, n, d]
+    D_jklm = vol (lam/8 (m_j.m_k)(m_l.m_m) + mu/8 ((m_j.m_m)(m_k.m_l) + (m_j.m_l)(m_k.m_m)))
+                                                                          [N, n, n, n, n]
+D is stored symmetrised over j<->k, l<->m and (jk)<->(lm) (it multiplies a product symmetric
+in those), which gives the compact force -dW/du_p below. P is the membrane's tangent projector
+(identity for tetrahedra and 2-D triangles); C and D need none since the m_j lie in the plane.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..topology import incidence_slots, padded_sum, unique_edges
+
+
+def _plane_identity(m: torch.Tensor, proj):
+    d = m.shape[-1]
+    if proj is None:
+        return torch.eye(d, dtype=m.dtype, device=m.device).expand(m.shape[0], d, d)
+    return proj
+
+
+def element_stiffness(m, vol, lam, mu, proj=None) -> torch.Tensor:
+    """Cotin's element tensors K_jk ``[N, n, n, d, d]``."""
+    dots = torch.einsum("nja,nka->njk", m, m)
+    plane = _plane_identity(m, proj)
+    k = lam[:, None, None, None, None] * torch.einsum("nja,nkb->njkab", m, m)
+    k = k + mu[:, None, None, None, None] * torch.einsum("nka,njb->njkab", m, m)
+    k = k + mu[:, None, None, None, None] * dots[:, :, :, None, None] * plane[:, None, None]
+    return vol[:, None, None, None, None] * k
+
+
+def assemble_vertex_edge(element_k: torch.Tensor, elements: torch.Tensor, num_nodes: int):
+    """Sum element tensors onto vertices and edges (deterministically).
+
+    Args:
+        element_k: ``[N, n, n, d, d]``; elements: ``[N, n]``.
+
+    Returns:
+        vertex_k: ``[V, d, d]``; edges: ``[Ed, 2]`` (i < j); edge_k: ``[Ed, d, d]`` mapping
+        u_j to the force on i.
+    """
+    n = elements.shape[1]
+    local = torch.arange(n, device=elements.device)
+    diag = element_k[:, local, local]  # [N, n, d, d]
+    flat_nodes = elements.reshape(-1)
+    slots, num_slots, _ = incidence_slots(flat_nodes, num_nodes)
+    vertex_k = padded_sum(diag.reshape(-1, *diag.shape[2:]), flat_nodes, slots, num_slots, num_nodes)
+
+    edges, pairs, element_edges = unique_edges(elements, num_nodes)
+    block = element_k[:, pairs[:, 0], pairs[:, 1]]  # K_ab, a < b locally: [N, P, d, d]
+    first_is_low = elements[:, pairs[:, 0]] < elements[:, pairs[:, 1]]
+    # An edge stores the block from its lower to its higher global node: K_ba = K_ab^T otherwise.
+    block = torch.where(first_is_low[:, :, None, None], block, block.transpose(-1, -2))
+    flat_edges = element_edges.reshape(-1)
+    slots, num_slots, _ = incidence_slots(flat_edges, edges.shape[0])
+    edge_k = padded_sum(block.reshape(-1, *block.shape[2:]), flat_edges, slots, num_slots, edges.shape[0])
+    return vertex_k, edges, edge_k
+
+
+def hooke_edge_partial_forces(u: torch.Tensor, edges: torch.Tensor, edge_k: torch.Tensor) -> torch.Tensor:
+    """Partial forces of each edge on its two nodes ``[Ed, 2, d]`` from displacements ``[V, d]``."""
+    on_low = -torch.einsum("eab,eb->ea", edge_k, u[edges[:, 1]])
+    on_high = -torch.einsum("eba,eb->ea", edge_k, u[edges[:, 0]])
+    return torch.stack([on_low, on_high], dim=1)
+
+
+def hooke_vertex_forces(u: torch.Tensor, vertex_k: torch.Tensor) -> torch.Tensor:
+    """The vertex term -K_ii u_i ``[V, d]``."""
+    return -torch.einsum("vab,vb->va", vertex_k, u)
+
+
+def stvk_tensors(m, vol, lam, mu, proj=None):
+    """Picinbono's element tensors (B, C, D) with the shapes of the module docstring."""
+    b = 0.5 * element_stiffness(m, vol, lam, mu, proj)
+    dots = torch.einsum("nja,nka->njk", m, m)  # [N, n, n]
+    c = 0.5 * lam[:, None, None, None, None] * dots[:, :, :, None, None] * m[:, None, None, :, :]
+    # mu/2 ((m_l.m_j) m_k + (m_l.m_k) m_j), indices [n, j, k, l, a]
+    c = c + 0.5 * mu[:, None, None, None, None] * (
+        dots.transpose(1, 2)[:, :, None, :, None] * m[:, None, :, None, :]
+        + dots[:, None, :, :, None] * m[:, :, None, None, :]
+    )
+    c = vol[:, None, None, None, None] * c
+    d = 0.125 * lam[:, None, None, None, None] * torch.einsum("njk,nlm->njklm", dots, dots)
+    d = d + 0.125 * mu[:, None, None, None, None] * (
+        torch.einsum("njm,nkl->njklm", dots, dots) + torch.einsum("njl,nkm->njklm", dots, dots)
+    )
+    d = vol[:, None, None, None, None] * d
+    return b, c, d
+
+
+def stvk_energy(u, b, c, d):
+    """Element energies ``[N]`` from displacements ``u [N, n, d]``."""
+    gram = torch.einsum("nja,nka->njk", u, u)
+    quadratic = torch.einsum("nja,njkab,nkb->n", u, b, u)
+    cubic = torch.einsum("njk,njkla,nla->n", gram, c, u)
+    quartic = torch.einsum("njklm,njk,nlm->n", d, gram, gram)
+    return quadratic + cubic + quartic
+
+
+def stvk_forces(u, b, c, d):
+    """Element forces -dW/du ``[N, n, d]``."""
+    gram = torch.einsum("nja,nka->njk", u, u)
+    c_dot_u = torch.einsum("npkla,nla->npk", c, u)  # sum_l C_pkl . u_l
+    grad = 2.0 * torch.einsum("npkab,nkb->npa", b, u)
+    grad = grad + 2.0 * torch.einsum("npk,nka->npa", c_dot_u, u) + torch.einsum("njk,njkpa->npa", gram, c)
+    grad = grad + 4.0 * torch.einsum("npklm,nlm,nka->npa", d, gram, u)
+    return -grad
+
+
+def stvk_dforces(u, du, b, c, d):
+    """(dF/du) du per element ``[N, n, d]``."""
+    gram = torch.einsum("nja,nka->njk", u, u)
+    d_gram = torch.einsum("nja,nka->njk", du, u)
+    d_gram = d_gram + d_gram.transpose(1, 2)
+    c_dot_u = torch.einsum("npkla,nla->npk", c, u)
+    c_dot_du = torch.einsum("npkla,nla->npk", c, du)
+    grad = 2.0 * torch.einsum("npkab,nkb->npa", b, du)
+    grad = grad + 2.0 * (torch.einsum("npk,nka->npa", c_dot_u, du) + torch.einsum("npk,nka->npa", c_dot_du, u))
+    grad = grad + torch.einsum("njk,njkpa->npa", d_gram, c)
+    d_times_gram = torch.einsum("npklm,nlm->npk", d, gram)
+    d_times_dgram = torch.einsum("npklm,nlm->npk", d, d_gram)
+    grad = grad + 4.0 * (torch.einsum("npk,nka->npa", d_times_gram, du) + torch.einsum("npk,nka->npa", d_times_dgram, u))
+    return -grad

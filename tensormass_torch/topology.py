@@ -1,0 +1,106 @@
+"""Topology precomputation for the paper's Algorithm 1.
+
+The element kernel writes the partial force of element e on its local node v to
+``PartialForce[ForceIndex[e, v], index[e, v]]``; the node kernel sums ``PartialForce[:, i]``.
+``ForceIndex[e, v]`` is the rank of (e, v) among the incidences of node ``index[e, v]`` (in
+element order), so every slot is written exactly once: no atomics, and the sum over slots has a
+fixed order, hence bitwise-reproducible results.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+def incidence_slots(targets: torch.Tensor, num_targets: int):
+    """Rank of each item among the items with the same target, in item order.
+
+    Args:
+        targets: target id of each item ``[M]`` (int64, in ``[0, num_targets)``).
+        num_targets: number of targets T.
+
+    Returns:
+        slots: ``[M]`` int64, slot of each item in its target's list.
+        num_slots: max number of items of one target (the paper's ``N_n``), a Python int.
+        counts: items per target ``[T]``.
+    """
+    counts = torch.bincount(targets, minlength=num_targets)
+    order = torch.argsort(targets, stable=True)
+    starts = torch.cumsum(counts, 0) - counts  # first position of each target in sorted order
+    position = torch.arange(targets.numel(), device=targets.device)
+    slots = torch.empty_like(targets)
+    slots[order] = position - starts[targets[order]]
+    num_slots = int(counts.max().item()) if targets.numel() else 0
+    return slots, num_slots, counts
+
+
+@dataclass
+class GatherPlan:
+    """How the partial forces of N items with n nodes each are summed onto V nodes.
+
+    Attributes:
+        index: item -> global node ids ``[N, n]`` (the paper's ``index``).
+        force_index: slot of each (item, local node) in its node's list ``[N, n]`` (``ForceIndex``).
+        num_slots: the paper's ``N_n``: max number of incidences of one node.
+        num_nodes: V.
+        incidences: number of incidences of each node ``[V]``.
+    """
+
+    index: torch.Tensor
+    force_index: torch.Tensor
+    num_slots: int
+    num_nodes: int
+    incidences: torch.Tensor
+
+    @classmethod
+    def build(cls, index: torch.Tensor, num_nodes: int) -> "GatherPlan":
+        """Plan for items ``index [N, n]`` over ``num_nodes`` nodes."""
+        flat = index.reshape(-1)
+        slots, num_slots, counts = incidence_slots(flat, num_nodes)
+        return cls(index, slots.view_as(index), num_slots, num_nodes, counts)
+
+    def to(self, device) -> "GatherPlan":
+        return GatherPlan(self.index.to(device), self.force_index.to(device), self.num_slots,
+                          self.num_nodes, self.incidences.to(device))
+
+    def partial_force_bytes(self, dim: int, itemsize: int) -> int:
+        """Size of the padded PartialForce buffer ``[N_n, V, dim]`` in bytes."""
+        return self.num_slots * self.num_nodes * dim * itemsize
+
+
+def unique_edges(elements: torch.Tensor, num_nodes: int):
+    """Unique undirected edges of elements and, for each local node pair, its edge id.
+
+    Args:
+        elements: ``[N, n]`` int64.
+        num_nodes: V.
+
+    Returns:
+        edges: ``[Ed, 2]`` with ``edges[:, 0] < edges[:, 1]``, sorted lexicographically.
+        pairs: local node pairs ``[P, 2]`` (a < b), P = n (n - 1) / 2.
+        element_edges: edge id of each (element, pair) ``[N, P]``.
+    """
+    n = elements.shape[1]
+    pairs = torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)], device=elements.device)
+    first = elements[:, pairs[:, 0]]
+    second = elements[:, pairs[:, 1]]
+    low = torch.minimum(first, second)
+    high = torch.maximum(first, second)
+    keys = low * num_nodes + high  # [N, P]
+    unique_keys, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
+    edges = torch.stack([unique_keys // num_nodes, unique_keys % num_nodes], dim=1)
+    return edges, pairs, inverse.view_as(keys)
+
+
+def padded_sum(values: torch.Tensor, targets: torch.Tensor, slots: torch.Tensor, num_slots: int,
+               num_targets: int) -> torch.Tensor:
+    """Deterministic scatter-sum through a padded ``[num_slots, T, ...]`` buffer.
+
+    values ``[M, ...]``, targets ``[M]``, slots ``[M]`` (from :func:`incidence_slots`)
+    -> sums ``[T, ...]``. Used for one-off assembly (masses, vertex/edge tensors) so that even
+    precomputation is bitwise reproducible on the GPU.
+    """
+    buffer = values.new_zeros((num_slots, num_targets) + tuple(values.shape[1:]))
+    buffer[slots, targets] = values
+    return buffer.sum(dim=0)
