@@ -5,6 +5,20 @@
     model = tm.TensorMass(mesh, tm.Material(young=1e5, poisson=0.3, density=1e3, model="stvk"))
     f = model(mesh.vertices)          # [V, 3] elastic forces
 """
+from ._backend import backend_info
+from .contact import Plane
 from .errors import MaterialError, MeshError, SceneError, SolverError, TensorMassError
+from .io import load_mesh, save_mesh
+from .materials import MODELS, Material
+from .mesh import Mesh, TetMesh, TriMesh, beam_mesh, beam_tri_mesh
+from .modules import TensorMass
+from .scene import Body, Simulator
+from .solver import solve_static
 
 __version__ = "0.1.0"
+
+__all__ = [
+    "backend_info", "Plane", "MaterialError", "MeshError", "SceneError", "SolverError", "TensorMassError",
+    "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh",
+    "TensorMass", "Body", "Simulator", "solve_static",
+]

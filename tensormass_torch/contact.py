@@ -1,0 +1,55 @@
+"""Penalty contact with planes: f = k max(0, d - n.x) n on every node, and its differential."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from .errors import SceneError
+
+
+@dataclass(frozen=True)
+class Plane:
+    """The half-space n.x >= offset, pushed back by a penalty of ``stiffness`` (N/m per node).
+
+    ``normal`` is normalised on use; the force on a node below the plane is
+    ``stiffness * (offset - n.x) * n`` (SOFA's ``PlaneForceField``).
+    """
+
+    normal: Sequence[float]
+    offset: float
+    stiffness: float
+
+    def __post_init__(self):
+        n = torch.as_tensor(self.normal, dtype=torch.float64)
+        if n.shape != (3,) or not torch.isfinite(n).all() or float(n.norm()) == 0.0:
+            raise SceneError(f"plane normal must be 3 finite numbers, not all zero; got {self.normal!r}")
+        if not (self.stiffness > 0 and torch.isfinite(torch.tensor(float(self.stiffness)))):
+            raise SceneError(f"plane stiffness must be positive and finite; got {self.stiffness!r}")
+
+
+class Planes:
+    """Planes stacked for evaluation: normals ``[P, 3]``, offsets ``[P]``, stiffness ``[P]``."""
+
+    def __init__(self, planes: Sequence[Plane], dtype, device):
+        normals = torch.tensor([list(p.normal) for p in planes], dtype=dtype, device=device).reshape(-1, 3)
+        self.normals = normals / normals.norm(dim=1, keepdim=True)
+        self.offsets = torch.tensor([float(p.offset) for p in planes], dtype=dtype, device=device)
+        self.stiffness = torch.tensor([float(p.stiffness) for p in planes], dtype=dtype, device=device)
+
+    def __len__(self):
+        return self.offsets.numel()
+
+    def penetration(self, x: torch.Tensor) -> torch.Tensor:
+        """max(0, d - n.x) per node and plane ``[V, P]``."""
+        return torch.clamp(self.offsets - x @ self.normals.T, min=0.0)
+
+    def forces(self, x: torch.Tensor) -> torch.Tensor:
+        """Penalty forces ``[V, 3]`` at positions ``x [V, 3]``."""
+        return (self.penetration(x) * self.stiffness) @ self.normals
+
+    def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+        """(df/dx) dx = -k n (n.dx) on nodes in contact ``[V, 3]``."""
+        active = (self.penetration(x) > 0).to(x.dtype)
+        return -((active * self.stiffness) * (dx @ self.normals.T)) @ self.normals

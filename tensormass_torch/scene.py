@@ -1,0 +1,200 @@
+"""Bodies and the Simulator: many objects packed into one batch, stepped by implicit Euler."""
+from __future__ import annotations
+
+import math
+from typing import Callable, List, Optional, Sequence
+
+import torch
+
+from .constraints import node_mask
+from .contact import Plane, Planes
+from .errors import SceneError
+from .materials import Material
+from .modules import TensorMass
+from .solver.implicit_euler import DynamicsSystem, StepOptions, StepReport, implicit_euler_step
+from .solver.segments import Segments
+
+
+class Body:
+    """One object of a scene: a mesh, its material, its constraints and initial velocity.
+
+    Args:
+        mesh: ``TetMesh`` or ``TriMesh`` (2-D triangle meshes are placed in the plane z = 0).
+        material: :class:`Material`.
+        fixed: nodes held at rest: bool mask ``[V]`` or indices ``[k]``.
+        prescribed: nodes that follow ``motion``: bool mask ``[V]`` or indices ``[k]``.
+        motion: ``motion(t) -> [k, 3]`` positions of the prescribed nodes (ascending node order) at
+            time t.
+        velocity: initial velocity ``[3]`` or ``[V, 3]``.
+        name: a label for reports.
+    """
+
+    def __init__(self, mesh, material: Material, fixed=None, prescribed=None,
+                 motion: Optional[Callable[[float], torch.Tensor]] = None, velocity=None, name: Optional[str] = None):
+        if not isinstance(material, Material):
+            raise SceneError(f"material must be a tm.Material, got {type(material).__name__}")
+        self.mesh = mesh
+        self.material = material
+        self.name = name
+        num_nodes = mesh.num_vertices
+        device = mesh.vertices.device
+        self.fixed = node_mask(fixed, num_nodes, "fixed", device)
+        self.prescribed = node_mask(prescribed, num_nodes, "prescribed", device)
+        if (motion is None) != (not bool(self.prescribed.any())):
+            raise SceneError("prescribed nodes and motion go together: give both or neither")
+        if bool((self.fixed & self.prescribed).any()):
+            raise SceneError("a node cannot be both fixed and prescribed")
+        self.motion = motion
+        if bool((self.fixed | self.prescribed).all()):
+            raise SceneError(f"every node of body {name or ''} is fixed or prescribed: nothing to simulate".replace("  ", " "))
+        used = torch.zeros(num_nodes, dtype=torch.bool, device=device)
+        used[mesh.elements.reshape(-1)] = True
+        massless = ~used & ~self.fixed & ~self.prescribed
+        if bool(massless.any()):
+            ids = torch.nonzero(massless).flatten()[:10].tolist()
+            raise SceneError(f"vertices {ids} belong to no element: they would have no mass; fix them or remove them")
+        self.velocity = velocity
+
+
+class Simulator:
+    """Implicit Euler simulation of several bodies as one packed batch.
+
+    All bodies share one set of kernels launches: nodes and elements are concatenated with
+    global ids, and the conjugate gradient keeps per-object scalars and convergence.
+
+    Args:
+        bodies: list of :class:`Body`.
+        dt: time step (> 0).
+        gravity: ``[3]`` acceleration.
+        rayleigh_mass, rayleigh_stiffness: Rayleigh damping r_M, r_K (>= 0).
+        planes: list of :class:`Plane` (penalty contact).
+        cg_tol, cg_max_iter, require_convergence, newton_iters, check_every: see ``StepOptions``.
+        form: element force form, ``"auto" | "stress" | "tensor"``.
+        device, dtype: where and in what precision to simulate (default: the meshes').
+    """
+
+    def __init__(self, bodies: Sequence[Body], dt: float = 0.01, gravity=(0.0, 0.0, -9.81),
+                 rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0, planes: Sequence[Plane] = (),
+                 cg_tol: float = 1e-6, cg_max_iter: int = 200, require_convergence: bool = True,
+                 newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None):
+        bodies = list(bodies)
+        if not bodies:
+            raise SceneError("a simulator needs at least one body")
+        for i, b in enumerate(bodies):
+            if not isinstance(b, Body):
+                raise SceneError(f"bodies[{i}] is a {type(b).__name__}, not a tm.Body")
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise SceneError(f"dt must be a positive finite number, got {dt!r}")
+        for name, value in (("rayleigh_mass", rayleigh_mass), ("rayleigh_stiffness", rayleigh_stiffness)):
+            if not (math.isfinite(value) and value >= 0):
+                raise SceneError(f"{name} must be >= 0 and finite, got {value!r}")
+        if newton_iters < 1:
+            raise SceneError(f"newton_iters must be >= 1, got {newton_iters}")
+        devices = {b.mesh.vertices.device for b in bodies}
+        if device is None and len(devices) > 1:
+            raise SceneError(f"bodies live on mixed devices {sorted(map(str, devices))}; pass device=")
+        dtypes = {b.mesh.vertices.dtype for b in bodies}
+        if dtype is None and len(dtypes) > 1:
+            raise SceneError(f"bodies have mixed dtypes {sorted(map(str, dtypes))}; pass dtype=")
+        self.device = torch.device(device) if device is not None else devices.pop()
+        self.dtype = dtype if dtype is not None else dtypes.pop()
+        gravity = torch.as_tensor(gravity, dtype=self.dtype, device=self.device)
+        if gravity.shape != (3,) or not bool(torch.isfinite(gravity).all()):
+            raise SceneError(f"gravity must be 3 finite numbers, got {gravity.tolist()}")
+
+        self.bodies = bodies
+        self.options = StepOptions(dt=float(dt), rayleigh_mass=float(rayleigh_mass),
+                                   rayleigh_stiffness=float(rayleigh_stiffness), cg_tol=cg_tol,
+                                   cg_max_iter=cg_max_iter, require_convergence=require_convergence,
+                                   newton_iters=newton_iters, check_every=check_every)
+        rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
+        offset = 0
+        for b in bodies:
+            verts = b.mesh.vertices.to(device=self.device, dtype=self.dtype)
+            if verts.shape[1] == 2:
+                verts = torch.cat([verts, verts.new_zeros(verts.shape[0], 1)], dim=1)
+            rest_parts.append(verts)
+            parts.append((b.mesh.elements.to(self.device) + offset, b.material, b.mesh.kind))
+            fixed.append(b.fixed.to(self.device))
+            prescribed.append(b.prescribed.to(self.device))
+            vel = torch.zeros_like(verts) if b.velocity is None else \
+                torch.as_tensor(b.velocity, dtype=self.dtype, device=self.device).expand_as(verts).clone()
+            vel[b.fixed.to(self.device)] = 0.0
+            velocities.append(vel)
+            offset += verts.shape[0]
+        rest = torch.cat(rest_parts)
+        self.ptr = [0]
+        for r in rest_parts:
+            self.ptr.append(self.ptr[-1] + r.shape[0])
+        self.model = TensorMass.packed(rest, parts, form=form)
+        self.fixed = torch.cat(fixed)
+        self.prescribed = torch.cat(prescribed)
+        self.segments = Segments.from_lengths([r.shape[0] for r in rest_parts], self.device)
+        mass = self.model.lumped_mass()
+        self.planes = Planes(planes, self.dtype, self.device) if planes else None
+        self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * gravity, self.segments,
+                                     self.fixed | self.prescribed, self.planes)
+        self.x = rest.clone()
+        self.v = torch.cat(velocities)
+        self.time = 0.0
+        self.steps_done = 0
+        self.last_report: Optional[StepReport] = None
+
+    @property
+    def num_bodies(self) -> int:
+        return len(self.bodies)
+
+    def _imposed_velocity(self, t_next: float):
+        """End-of-step velocities of prescribed nodes ``[V, 3]`` (zero on fixed nodes), or None."""
+        if not bool(self.prescribed.any()):
+            return None
+        target_v = torch.zeros_like(self.v)
+        h = self.options.dt
+        for i, b in enumerate(self.bodies):
+            if b.motion is None:
+                continue
+            nodes = torch.nonzero(b.prescribed.to(self.device)).flatten() + self.ptr[i]
+            goal = torch.as_tensor(b.motion(t_next), dtype=self.dtype, device=self.device)
+            if goal.shape != (nodes.numel(), 3):
+                raise SceneError(f"body {i}: motion(t) returned shape {tuple(goal.shape)}; expected [{nodes.numel()}, 3]")
+            target_v[nodes] = (goal - self.x[nodes]) / h
+        return target_v
+
+    def step(self, n: int = 1) -> StepReport:
+        """Advance ``n`` implicit Euler steps; returns the last step's report.
+
+        A failed step raises ``SolverError`` and leaves positions, velocities and time as they
+        were before that step.
+        """
+        report = self.last_report
+        for _ in range(int(n)):
+            imposed = self._imposed_velocity(self.time + self.options.dt)
+            x, v, report = implicit_euler_step(self.system, self.x, self.v, self.options, imposed)
+            self.x, self.v = x, v
+            self.time += self.options.dt
+            self.steps_done += 1
+            self.last_report = report
+        return report
+
+    def _range(self, i: int) -> slice:
+        if not -self.num_bodies <= i < self.num_bodies:
+            raise IndexError(f"body index {i} out of range for {self.num_bodies} bodies")
+        i = i % self.num_bodies
+        return slice(self.ptr[i], self.ptr[i + 1])
+
+    def positions(self, i: int) -> torch.Tensor:
+        """Current positions of body i ``[V_i, 3]`` (a view of the packed state)."""
+        return self.x[self._range(i)]
+
+    def velocities(self, i: int) -> torch.Tensor:
+        """Current velocities of body i ``[V_i, 3]``."""
+        return self.v[self._range(i)]
+
+    def displacements(self, i: int) -> torch.Tensor:
+        """Current displacements of body i from its rest shape ``[V_i, 3]``."""
+        s = self._range(i)
+        return self.x[s] - self.model.rest[s]
+
+    def kinetic_energy(self) -> torch.Tensor:
+        """Kinetic energy per body ``[B]``."""
+        return 0.5 * self.segments.sum(self.system.mass * self.v * self.v)
