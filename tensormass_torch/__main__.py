@@ -1,0 +1,6 @@
+"""``python -m tensormass_torch ...`` runs the ``tensormass`` command line."""
+import sys
+
+from .cli import main
+
+sys.exit(main())
