@@ -10,6 +10,6 @@ cd "$ROOT"
 
 bash "$ROOT/scripts/install.sh"
 
-# TODO(lead): the `run` subcommand does not exist yet; when it does, replace the line below with
-#   "$PYTHON" -m tensormass_torch run cantilever --out out/ "$@"
-"$PYTHON" -m tensormass_torch info
+
+
+"$PYTHON" -m tensormass_torch run cantilever --out out/ "$@"
