@@ -104,3 +104,22 @@ def padded_sum(values: torch.Tensor, targets: torch.Tensor, slots: torch.Tensor,
     buffer = values.new_zeros((num_slots, num_targets) + tuple(values.shape[1:]))
     buffer[slots, targets] = values
     return buffer.sum(dim=0)
+
+
+def node_element_lists(elements: torch.Tensor, num_nodes: int):
+    """Node -> incident elements as CSR lists (the alternative to the padded layout).
+
+    Args:
+        elements: ``[N, n]``; num_nodes: V.
+
+    Returns:
+        ptr: ``[V + 1]`` offsets; incidences of node i are ``ptr[i]:ptr[i+1]``.
+        element_ids: ``[N n]`` incident element of each entry, ascending per node.
+        local_ids: ``[N n]`` the node's local index in that element.
+    """
+    n = elements.shape[1]
+    flat = elements.reshape(-1)
+    order = torch.argsort(flat, stable=True)
+    counts = torch.bincount(flat, minlength=num_nodes)
+    ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+    return ptr, order // n, order % n

@@ -1,0 +1,53 @@
+"""Precomputation of the paper's Algorithm 1: index, ForceIndex, N_n, CSR node lists."""
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.reference.gather import node_gather, scatter_partial_forces
+from tensormass_torch.topology import GatherPlan, incidence_slots, node_element_lists, padded_sum
+
+
+def test_force_index_gives_each_incidence_its_own_slot():
+    mesh = tm.beam_mesh(3, 2, 2)
+    plan = GatherPlan.build(mesh.elements, mesh.num_vertices)
+    pairs = plan.force_index * mesh.num_vertices + plan.index
+    assert torch.unique(pairs).numel() == pairs.numel()  # no two writes to one slot: no atomics
+    counts = torch.bincount(mesh.elements.reshape(-1), minlength=mesh.num_vertices)
+    assert plan.num_slots == int(counts.max())
+    assert torch.equal(plan.incidences, counts)
+    # slots of node i are exactly 0 .. count_i - 1
+    for node in (0, 5, mesh.num_vertices - 1):
+        assert sorted(plan.force_index[plan.index == node].tolist()) == list(range(int(counts[node])))
+
+
+def test_incidence_slots_follow_item_order():
+    targets = torch.tensor([2, 0, 2, 1, 2, 0])
+    slots, num_slots, counts = incidence_slots(targets, 4)
+    assert slots.tolist() == [0, 0, 1, 0, 2, 1]
+    assert num_slots == 3 and counts.tolist() == [2, 1, 3, 0]
+
+
+def test_gather_equals_scatter_add():
+    mesh = tm.beam_mesh(2, 3, 2, dtype=torch.float64)
+    plan = GatherPlan.build(mesh.elements, mesh.num_vertices)
+    partial = torch.randn(mesh.num_elements, 4, 3, dtype=torch.float64)
+    total = node_gather(partial, plan.index, plan.force_index, plan.num_slots, plan.num_nodes)
+    expected = torch.zeros(mesh.num_vertices, 3, dtype=torch.float64).index_add_(
+        0, mesh.elements.reshape(-1), partial.reshape(-1, 3))
+    torch.testing.assert_close(total, expected)
+    padded = scatter_partial_forces(partial, plan.index, plan.force_index, plan.num_slots, plan.num_nodes)
+    assert padded.shape == (plan.num_slots, mesh.num_vertices, 3)
+    values = torch.randn(10, 2, dtype=torch.float64)
+    targets = torch.tensor([0, 1, 1, 3, 3, 3, 0, 2, 2, 1])
+    slots, n_slots, _ = incidence_slots(targets, 4)
+    torch.testing.assert_close(padded_sum(values, targets, slots, n_slots, 4),
+                               torch.zeros(4, 2, dtype=torch.float64).index_add_(0, targets, values))
+
+
+def test_node_element_lists():
+    mesh = tm.beam_mesh(2, 2, 1)
+    ptr, element_ids, local_ids = node_element_lists(mesh.elements, mesh.num_vertices)
+    assert ptr[-1] == mesh.num_elements * 4
+    for node in range(mesh.num_vertices):
+        entries = slice(int(ptr[node]), int(ptr[node + 1]))
+        assert torch.all(mesh.elements[element_ids[entries], local_ids[entries]] == node)
+        assert torch.all(element_ids[entries][1:] > element_ids[entries][:-1])
