@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from . import geometry
+from .errors import MaterialError
 from .materials import lame
 from .reference import tensor_form
 from .topology import GatherPlan
@@ -66,8 +67,11 @@ class ElementGroup(nn.Module):
             self.plan = GatherPlan.build(elements, self.num_nodes)
             return
 
+        if young.requires_grad or poisson.requires_grad:
+            # The tensors are precomputed once; a gradient would silently stop at them.
+            raise MaterialError("the tensor form precomputes its tensors, so no gradient reaches material "
+                                "parameters that require grad: use form='stress'")
         lam, mu = self.lame(young, poisson)
-        lam, mu = lam.detach(), mu.detach()  # precomputed tensors carry no material gradient
         if model == "hooke":
             element_k = tensor_form.element_stiffness(m, measure, lam, mu, proj)
             vertex_k, edges, edge_k = tensor_form.assemble_vertex_edge(element_k, elements, self.num_nodes)

@@ -49,3 +49,11 @@ def test_model_checks_positions():
         model(mesh.vertices[:5])
     with pytest.raises(tm.SceneError, match="float64"):
         model(mesh.vertices.double())
+
+
+def test_tensor_form_refuses_material_gradients():
+    young = torch.tensor(1e3, dtype=torch.float64, requires_grad=True)
+    mesh = tm.beam_mesh(1, 1, 1, dtype=torch.float64)
+    with pytest.raises(tm.MaterialError, match="form='stress'"):
+        tm.TensorMass(mesh, tm.Material(young, 0.3), form="tensor")
+    tm.TensorMass(mesh, tm.Material(young, 0.3), form="stress")
