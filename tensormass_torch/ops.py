@@ -6,8 +6,16 @@
     dforces(group, u, du)           the same pair with DForce(): (dF/du) du [V, d]
     energy(group, u)                elastic energy                          scalar
 
-``u`` and ``du`` are global nodal displacements ``[V, d]``. Every function is differentiable
-through autograd on the reference path (double backward included).
+``u`` and ``du`` are global nodal displacements ``[V, d]``.
+
+Dispatch: when ``_backend.use_extension(u.device)`` is true (the compiled extension is loaded,
+built for that device type, not forced off by ``TENSORMASS_BACKEND=torch``) and the group's data
+has u's dtype (float32/float64) and device, the compiled ops ``torch.ops.tensormass.*`` run
+(see ``native.py``); otherwise the pure-torch reference. Both paths are differentiable: the
+reference through autograd (double backward included), the ops through their registered
+autograd (first order everywhere; second order where the backward formulas are themselves ops
+with autograd, e.g. the energy Hessian of the hooke tensor form). ``energy`` always runs the
+reference (the hooke tensor form through ``forces``).
 """
 from __future__ import annotations
 
@@ -15,6 +23,7 @@ from typing import Optional
 
 import torch
 
+from . import _backend
 from .reference import gather as ref_gather
 from .reference import stress_form, tensor_form
 from .topology import GatherPlan
@@ -24,8 +33,30 @@ def _element_values(group, u):
     return u[group.elements]
 
 
+def _native(group, u: torch.Tensor):
+    """The module of the compiled ops when they should evaluate ``group`` at ``u``, else None."""
+    if not _backend.use_extension(u.device):
+        return None
+    from . import native
+
+    if not native.ensure_registered() or not native.supports(group, u):
+        return None
+    return native
+
+
+def _native_gather(partial: torch.Tensor):
+    if partial.dtype not in (torch.float32, torch.float64) or not _backend.use_extension(partial.device):
+        return None
+    from . import native
+
+    return native if native.ensure_registered() else None
+
+
 def element_forces(group, u: torch.Tensor) -> torch.Tensor:
     """Kernel 1: partial forces ``[N, n, d]`` of every item of ``group`` at displacements ``u [V, d]``."""
+    native = _native(group, u)
+    if native is not None:
+        return native.element_forces(group, u)
     if group.form == "stress":
         lam, mu = group.lame()
         return stress_form.FORCES[group.model](_element_values(group, u), group.shape_vectors, group.measure,
@@ -37,6 +68,9 @@ def element_forces(group, u: torch.Tensor) -> torch.Tensor:
 
 def element_dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
     """Kernel 1 with DForce(): partial force differentials ``[N, n, d]`` along ``du [V, d]``."""
+    native = _native(group, u)
+    if native is not None:
+        return native.element_dforces(group, u, du)
     if group.form == "stress":
         lam, mu = group.lame()
         return stress_form.DFORCES[group.model](_element_values(group, u), _element_values(group, du),
@@ -49,6 +83,9 @@ def element_dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
 
 def node_gather(partial: torch.Tensor, plan: GatherPlan, node_term: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Kernel 2: ``[N, n, d]`` partial forces -> ``[V, d]`` totals (+ ``node_term [V, d]``)."""
+    native = _native_gather(partial)
+    if native is not None and (node_term is None or node_term.dtype == partial.dtype):
+        return native.node_gather(partial, plan, node_term)
     return ref_gather.node_gather(partial, plan.index, plan.force_index, plan.num_slots, plan.num_nodes, node_term)
 
 
@@ -61,11 +98,17 @@ def _node_term(group, values):
 
 def forces(group, u: torch.Tensor) -> torch.Tensor:
     """Elastic forces of the group on every node ``[V, d]``."""
+    native = _native(group, u)
+    if native is not None:
+        return native.forces(group, u)
     return node_gather(element_forces(group, u), group.plan, _node_term(group, u))
 
 
 def dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
     """(dF/du) du on every node ``[V, d]``: the matrix-free product with the stiffness."""
+    native = _native(group, u)
+    if native is not None:
+        return native.dforces(group, u, du)
     return node_gather(element_dforces(group, u, du), group.plan, _node_term(group, du))
 
 

@@ -1,0 +1,30 @@
+// The CPU backend: a functor of kernels.h run over n items with at::parallel_for (OpenMP).
+// Each item is written by exactly one iteration, so the results do not depend on the
+// number of threads.
+#pragma once
+
+#include <ATen/Parallel.h>
+#include <c10/core/Device.h>
+
+#include <cstdint>
+
+namespace tensormass {
+
+struct CpuLauncher {
+  struct Guard {
+    explicit Guard(const c10::Device&) {}
+  };
+  // grain sizes (items per task)
+  static constexpr int64_t kElementBlock = 512;
+  static constexpr int64_t kNodeBlock = 2048;
+
+  template <class K>
+  static void run(int64_t n, const K& k, int64_t grain) {
+    if (n <= 0) return;
+    at::parallel_for(0, n, grain, [&](int64_t begin, int64_t end) {
+      for (int64_t i = begin; i < end; ++i) k(i);
+    });
+  }
+};
+
+}  // namespace tensormass

@@ -1,0 +1,35 @@
+// The CUDA backend: a functor of kernels.h run with one thread per item, on the current stream
+// (so that CUDA graphs and user streams work), with the launch checked.
+#pragma once
+
+#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+
+#include <cstdint>
+
+namespace tensormass {
+
+template <class K>
+__global__ void __launch_bounds__(256) for_each_item(const K k, int64_t n) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) k(i);
+}
+
+struct CudaLauncher {
+  using Guard = c10::cuda::CUDAGuard;
+  // threads per block: element kernels use many registers, node kernels few
+  static constexpr int64_t kElementBlock = 128;
+  static constexpr int64_t kNodeBlock = 256;
+
+  template <class K>
+  static void run(int64_t n, const K& k, int64_t block) {
+    if (n <= 0) return;
+    const int64_t grid = (n + block - 1) / block;
+    for_each_item<K><<<static_cast<unsigned int>(grid), static_cast<unsigned int>(block), 0,
+                       at::cuda::getCurrentCUDAStream()>>>(k, n);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+};
+
+}  // namespace tensormass

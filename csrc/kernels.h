@@ -1,0 +1,269 @@
+// Per-item kernel bodies shared by the CPU (at::parallel_for) and CUDA (one thread per item)
+// implementations: load one element (or edge, or node), call the element math of
+// element_math.h, write the result. Each body is a small functor with a host/device
+// `operator()(int64_t item)`; cpu/ and cuda/ only decide how the items are iterated.
+//
+// The paper's Algorithm 1, no atomics:
+//   kernel 1 (one thread per element e): partial force on each local node v written to
+//            PartialForce[ForceIndex[e][v]][index[e][v]]   (padded buffer [N_n, V, d])
+//            or, for the element-level ops, to out[e][v]    (compact [N, n, d]);
+//   kernel 2 (one thread per node i): TotalForce[i] = (node term) + sum_{s < incidences[i]}
+//            PartialForce[s][i]: every slot it reads was written once, in a fixed order, so
+//            the result is bitwise reproducible and the unused slots are never read (the
+//            buffer is allocated uninitialised).
+//
+// Layouts (all row-major contiguous, as the Python groups store them):
+//   u, du [V, D]; elements / force_index [N, NN] (int32 or int64); shape_vectors [N, NN, D];
+//   measure, lam, mu [N]; projector [N, D, D]; PartialForce [N_n, V, D]; out [V, D].
+// The per-element blocks (shape vectors, indices, projector) are contiguous per element, so a
+// thread reads its own contiguous bytes; on the GPU they are read with 16-byte vector loads when
+// aligned (see load_block). PartialForce [N_n, V, D] makes kernel 2 coalesced: the threads of a
+// warp read consecutive nodes of one slot.
+#pragma once
+
+#include <cstdint>
+
+#include "element_math.h"
+
+namespace tensormass {
+
+// Read-only load: through the read-only data cache on the GPU.
+template <typename T>
+TM_HD T ld(const T* p) {
+#if defined(__CUDA_ARCH__)
+  return __ldg(p);
+#else
+  return *p;
+#endif
+}
+
+struct Loader {
+  template <typename T>
+  TM_HD T operator()(const T* p) const { return ld(p); }
+};
+
+// Load K contiguous values starting at p into out. On the GPU, with 16-byte vector loads when
+// K * sizeof(T) is a multiple of 16 and p is 16-byte aligned (a runtime check, uniform across a
+// warp for the per-element blocks of contiguous tensors).
+template <int K, typename T>
+TM_HD void load_block(const T* p, T (&out)[K]) {
+#if defined(__CUDA_ARCH__)
+  if ((K * sizeof(T)) % 16 == 0 && (reinterpret_cast<uintptr_t>(p) & 15) == 0) {
+    constexpr int kPer = 16 / sizeof(T);
+    const int4* q = reinterpret_cast<const int4*>(p);
+    TM_UNROLL for (int i = 0; i < (K * (int)sizeof(T)) / 16; ++i) {
+      const int4 v = __ldg(q + i);
+      const T* t = reinterpret_cast<const T*>(&v);
+      TM_UNROLL for (int k = 0; k < kPer; ++k) out[i * kPer + k] = t[k];
+    }
+    return;
+  }
+#endif
+  TM_UNROLL for (int k = 0; k < K; ++k) out[k] = ld(p + k);
+}
+
+template <int NN, int D, typename T>
+TM_HD void load_matrix(const T* p, T (&out)[NN][D]) {
+  T flat[NN * D];
+  load_block<NN * D, T>(p, flat);
+  TM_UNROLL for (int j = 0; j < NN; ++j) {
+    TM_UNROLL for (int a = 0; a < D; ++a) out[j][a] = flat[j * D + a];
+  }
+}
+
+// Gather the D-vectors of the NN nodes idx[] from a [V, D] field.
+template <int NN, int D, typename S, typename I>
+TM_HD void gather_nodes(const S* field, const I (&idx)[NN], S (&out)[NN][D]) {
+  TM_UNROLL for (int j = 0; j < NN; ++j) {
+    const S* p = field + static_cast<int64_t>(idx[j]) * D;
+    TM_UNROLL for (int a = 0; a < D; ++a) out[j][a] = ld(p + a);
+  }
+}
+
+// Where kernel 1 writes: compact [N, NN, D] (element-level ops) or padded [N_n, V, D].
+template <int NN, int D, typename S, typename I, bool PADDED>
+struct Writer;
+
+template <int NN, int D, typename S, typename I>
+struct Writer<NN, D, S, I, false> {
+  S* out;
+  TM_HD void operator()(int64_t e, const I (&)[NN], const S (&f)[NN][D]) const {
+    S* p = out + e * (NN * D);
+    TM_UNROLL for (int j = 0; j < NN; ++j) {
+      TM_UNROLL for (int a = 0; a < D; ++a) p[j * D + a] = f[j][a];
+    }
+  }
+};
+
+template <int NN, int D, typename S, typename I>
+struct Writer<NN, D, S, I, true> {
+  S* out;                  // PartialForce [N_n, V, D]
+  const I* force_index;    // [N, NN]
+  int64_t num_nodes;       // V
+  TM_HD void operator()(int64_t e, const I (&idx)[NN], const S (&f)[NN][D]) const {
+    I slot[NN];
+    load_block<NN, I>(force_index + e * NN, slot);
+    TM_UNROLL for (int j = 0; j < NN; ++j) {
+      S* p = out + (static_cast<int64_t>(slot[j]) * num_nodes + static_cast<int64_t>(idx[j])) * D;
+      TM_UNROLL for (int a = 0; a < D; ++a) p[a] = f[j][a];
+    }
+  }
+};
+
+// ------------------------------------------------------------------ kernel 1, stress form
+
+template <typename S, typename I>
+struct StressInputs {
+  const S* u;              // [V, D]
+  const S* du;             // [V, D] (dforces only)
+  const I* elements;       // [N, NN]
+  const S* shape_vectors;  // [N, NN, D]
+  const S* measure;        // [N]
+  const S* lam;            // [N]
+  const S* mu;             // [N]
+  const S* projector;      // [N, D, D] (membranes only)
+};
+
+template <int MODEL, bool DFORCE, int NN, int D, typename S, typename I, bool PADDED>
+struct StressElementKernel {
+  static constexpr bool kMembrane = NN - 1 < D;
+  StressInputs<S, I> in;
+  Writer<NN, D, S, I, PADDED> write;
+
+  TM_HD void operator()(int64_t e) const {
+    I idx[NN];
+    load_block<NN, I>(in.elements + e * NN, idx);
+    S m[NN][D];
+    load_matrix<NN, D, S>(in.shape_vectors + e * (NN * D), m);
+    const S vol = ld(in.measure + e), lam = ld(in.lam + e), mu = ld(in.mu + e);
+    Plane<D, S, kMembrane> plane;
+    load_plane(e, plane);
+    S u[NN][D], f[NN][D];
+    gather_nodes<NN, D, S, I>(in.u, idx, u);
+    if (DFORCE) {
+      S du[NN][D];
+      gather_nodes<NN, D, S, I>(in.du, idx, du);
+      stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, f);
+    } else {
+      stress_forces<MODEL, NN, D, S, kMembrane>(u, m, vol, lam, mu, plane, f);
+    }
+    write(e, idx, f);
+  }
+
+ private:
+  TM_HD void load_plane(int64_t, Plane<D, S, false>&) const {}
+  TM_HD void load_plane(int64_t e, Plane<D, S, true>& plane) const {
+    load_matrix<D, D, S>(in.projector + e * (D * D), plane.p);
+  }
+};
+
+// ------------------------------------------------------------------ kernel 1, tensor form
+
+// hooke: one item per edge [Ed, 2] with tensor edge_k [Ed, D, D].
+template <int D, typename S, typename I, bool PADDED>
+struct TensorHookeEdgeKernel {
+  const S* u;       // [V, D]
+  const I* edges;   // [Ed, 2]
+  const S* edge_k;  // [Ed, D, D]
+  Writer<2, D, S, I, PADDED> write;
+
+  TM_HD void operator()(int64_t e) const {
+    I idx[2];
+    load_block<2, I>(edges + e * 2, idx);
+    S k[D][D];
+    load_matrix<D, D, S>(edge_k + e * (D * D), k);
+    S x[2][D], f[2][D];
+    gather_nodes<2, D, S, I>(u, idx, x);
+    tensor_hooke_edge<D, S>(k, x[0], x[1], f);
+    write(e, idx, f);
+  }
+};
+
+// stvk: one item per element with B [N, NN, NN, D, D], C [N, NN, NN, NN, D], D [N, NN, NN, NN, NN].
+template <bool DFORCE, int NN, int D, typename S, typename I, bool PADDED>
+struct TensorStvkKernel {
+  const S* u;         // [V, D]
+  const S* du;        // [V, D] (dforces only)
+  const I* elements;  // [N, NN]
+  const S* tb;
+  const S* tc;
+  const S* td;
+  Writer<NN, D, S, I, PADDED> write;
+
+  TM_HD void operator()(int64_t e) const {
+    I idx[NN];
+    load_block<NN, I>(elements + e * NN, idx);
+    S x[NN][D], f[NN][D];
+    gather_nodes<NN, D, S, I>(u, idx, x);
+    const S* b = tb + e * (NN * NN * D * D);
+    const S* c = tc + e * (NN * NN * NN * D);
+    const S* d = td + e * (NN * NN * NN * NN);
+    if (DFORCE) {
+      S dx[NN][D];
+      gather_nodes<NN, D, S, I>(du, idx, dx);
+      tensor_stvk_dforces<NN, D, S>(x, dx, b, c, d, Loader{}, f);
+    } else {
+      tensor_stvk_forces<NN, D, S>(x, b, c, d, Loader{}, f);
+    }
+    write(e, idx, f);
+  }
+};
+
+// ------------------------------------------------------------------ kernel 2
+
+// TotalForce[i] = sum_{s < incidences[i]} PartialForce[s][i] (+ node term -K_ii values_i).
+template <int D, typename S, typename I, bool NODE_TERM>
+struct GatherKernel {
+  const S* partial;     // [N_n, V, D]
+  const I* incidences;  // [V]
+  const S* vertex_k;    // [V, D, D] (NODE_TERM)
+  const S* values;      // [V, D]    (NODE_TERM)
+  const S* node_term;   // [V, D] added as is, or nullptr (!NODE_TERM)
+  S* out;               // [V, D]
+  int64_t num_nodes;
+
+  TM_HD void operator()(int64_t i) const {
+    S acc[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
+    const int64_t count = static_cast<int64_t>(ld(incidences + i));
+    const S* p = partial + i * D;
+    const int64_t stride = num_nodes * D;
+    for (int64_t s = 0; s < count; ++s) {
+      TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += ld(p + a);
+      p += stride;
+    }
+    if (NODE_TERM) {
+      S k[D][D];
+      load_matrix<D, D, S>(vertex_k + i * (D * D), k);
+      S v[D];
+      TM_UNROLL for (int a = 0; a < D; ++a) v[a] = ld(values + i * D + a);
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        S s = S(0);
+        TM_UNROLL for (int b = 0; b < D; ++b) s += k[a][b] * v[b];
+        acc[a] -= s;
+      }
+    } else if (node_term != nullptr) {
+      TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += ld(node_term + i * D + a);
+    }
+    TM_UNROLL for (int a = 0; a < D; ++a) out[i * D + a] = acc[a];
+  }
+};
+
+// Scatter compact partial forces [N, NN, D] into the padded buffer (the write of kernel 1 for
+// partial forces computed elsewhere, e.g. by the reference or by the element-level ops).
+template <int NN, int D, typename S, typename I>
+struct ScatterKernel {
+  const S* partial;  // [N, NN, D]
+  const I* index;    // [N, NN]
+  Writer<NN, D, S, I, true> write;
+
+  TM_HD void operator()(int64_t e) const {
+    I idx[NN];
+    load_block<NN, I>(index + e * NN, idx);
+    S f[NN][D];
+    load_matrix<NN, D, S>(partial + e * (NN * D), f);
+    write(e, idx, f);
+  }
+};
+
+}  // namespace tensormass

@@ -1,0 +1,73 @@
+// tensormass ops: the schemas (TORCH_LIBRARY) and the Python module tensormass_torch._C.
+//
+// Implementations: cpu/*.cpp (CPU) and cuda/*.cu (CUDA), both from ops_impl.h / kernels.h /
+// element_math.h. Fake (meta) kernels and autograd are registered in Python, in
+// tensormass_torch/native.py (imported on demand through set_python_module).
+//
+// Conventions: u, du [V, d] (float32 or float64, one dtype for all floating inputs); index
+// tensors (elements, edges, force_index, incidences) all int32 or all int64; every input
+// contiguous and on one device. `model`: 0 = hooke, 1 = stvk. A plan (force_index, num_slots,
+// incidences) must come from topology.GatherPlan over the same items: force_index < num_slots
+// and the slots of a node are 0 .. incidences[i]-1 (not re-checked here: it would cost a pass).
+//
+//   kernel 1 (element level)  *_element_forces / *_element_dforces -> [N, n, d]
+//   kernel 1 (padded, paper)  *_partial_forces / *_partial_dforces -> PartialForce [N_n, V, d]
+//                             (slots >= incidences[i] are left uninitialised)
+//   kernel 2                  gather_partial(PartialForce, incidences) -> [V, d]
+//                             node_gather(partial [N, n, d], index, force_index, ...) -> [V, d]
+//   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
+//                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
+#include <pybind11/pybind11.h>
+#include <torch/library.h>
+
+TORCH_LIBRARY(tensormass, m) {
+  m.set_python_module("tensormass_torch.native");
+  // ---- stress form
+  m.def("stress_element_forces(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
+        "Tensor mu, Tensor? projector, int model) -> Tensor");
+  m.def("stress_element_dforces(Tensor u, Tensor du, Tensor elements, Tensor shape_vectors, Tensor measure, "
+        "Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+  m.def("stress_partial_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, "
+        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+  m.def("stress_partial_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
+        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+  m.def("stress_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, Tensor incidences, "
+        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+  m.def("stress_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
+        "Tensor incidences, Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, "
+        "int model) -> Tensor");
+  // ---- tensor form, hooke (items are edges; linear, so dforces(du) = forces(du))
+  m.def("tensor_hooke_element_forces(Tensor u, Tensor edges, Tensor edge_k) -> Tensor");
+  m.def("tensor_hooke_partial_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, "
+        "Tensor edge_k) -> Tensor");
+  m.def("tensor_hooke_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, Tensor incidences, "
+        "Tensor edge_k, Tensor vertex_k) -> Tensor");
+  // ---- tensor form, stvk
+  m.def("tensor_stvk_element_forces(Tensor u, Tensor elements, Tensor tensor_b, Tensor tensor_c, "
+        "Tensor tensor_d) -> Tensor");
+  m.def("tensor_stvk_element_dforces(Tensor u, Tensor du, Tensor elements, Tensor tensor_b, Tensor tensor_c, "
+        "Tensor tensor_d) -> Tensor");
+  m.def("tensor_stvk_partial_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, "
+        "Tensor tensor_b, Tensor tensor_c, Tensor tensor_d) -> Tensor");
+  m.def("tensor_stvk_partial_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
+        "Tensor tensor_b, Tensor tensor_c, Tensor tensor_d) -> Tensor");
+  m.def("tensor_stvk_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, Tensor incidences, "
+        "Tensor tensor_b, Tensor tensor_c, Tensor tensor_d) -> Tensor");
+  m.def("tensor_stvk_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
+        "Tensor incidences, Tensor tensor_b, Tensor tensor_c, Tensor tensor_d) -> Tensor");
+  // ---- kernel 2
+  m.def("gather_partial(Tensor partial, Tensor incidences, Tensor? node_term) -> Tensor");
+  m.def("node_gather(Tensor partial, Tensor index, Tensor force_index, int num_slots, Tensor incidences, "
+        "Tensor? node_term) -> Tensor");
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "tensormass_torch._C: Tensor-Mass element kernels (the ops live in torch.ops.tensormass)";
+  m.def("has_cuda", []() {
+#ifdef TENSORMASS_WITH_CUDA
+    return true;
+#else
+    return false;
+#endif
+  }, "Whether the extension was built with its CUDA kernels.");
+}

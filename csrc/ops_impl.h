@@ -1,0 +1,658 @@
+// Host side of every op, written once for the CPU and CUDA: input checks, allocation and
+// compile-time dispatch (element kind, model, scalar type, index type) onto the per-item
+// functors of kernels.h. The backend is a template parameter `L` (a "launcher") that runs a
+// functor over n items: cpu/ops_cpu.cpp (at::parallel_for) and cuda/ops_cuda.cu (one thread
+// per item, on the current stream) instantiate these functions and register them.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <c10/util/Optional.h>
+
+#include <cstdint>
+#include <type_traits>
+
+#include "kernels.h"
+
+namespace tensormass {
+
+template <int V>
+using IC = std::integral_constant<int, V>;
+
+// ------------------------------------------------------------------ checks
+
+inline void check_float_tensor(const at::Tensor& t, const char* name, const at::Tensor& like,
+                               at::IntArrayRef shape) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device(), " but u is on ",
+              like.device());
+  TORCH_CHECK(t.scalar_type() == like.scalar_type(), "tensormass: ", name, " is ", t.scalar_type(),
+              " but u is ", like.scalar_type(), " (all floating inputs must have one dtype)");
+  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", t.sizes(), "; expected ", shape);
+  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
+}
+
+inline void check_index_tensor(const at::Tensor& t, const char* name, const at::Tensor& like,
+                               at::ScalarType index_type, at::IntArrayRef shape) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device(), " but u is on ",
+              like.device());
+  TORCH_CHECK(t.scalar_type() == index_type, "tensormass: ", name, " is ", t.scalar_type(), "; expected ",
+              index_type, " (index tensors must all be int32 or all int64)");
+  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", t.sizes(), "; expected ", shape);
+  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
+}
+
+inline void check_values(const at::Tensor& u, const char* name) {
+  TORCH_CHECK(u.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(u.dim() == 2, "tensormass: ", name, " must be [V, d], got shape ", u.sizes());
+  TORCH_CHECK(u.scalar_type() == at::kFloat || u.scalar_type() == at::kDouble, "tensormass: ", name,
+              " must be float32 or float64, got ", u.scalar_type());
+  TORCH_CHECK(u.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
+}
+
+inline at::ScalarType index_type_of(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.scalar_type() == at::kLong || t.scalar_type() == at::kInt, "tensormass: ", name,
+              " must be int64 or int32, got ", t.scalar_type());
+  return t.scalar_type();
+}
+
+// ------------------------------------------------------------------ compile-time dispatch
+
+template <class F>
+void dispatch_scalar(at::ScalarType t, F&& f) {
+  if (t == at::kDouble) {
+    f(double{});
+  } else if (t == at::kFloat) {
+    f(float{});
+  } else {
+    TORCH_CHECK(false, "tensormass: unsupported dtype ", t, " (float32 or float64)");
+  }
+}
+
+template <class F>
+void dispatch_index(at::ScalarType t, F&& f) {
+  if (t == at::kLong) {
+    f(int64_t{});
+  } else if (t == at::kInt) {
+    f(int32_t{});
+  } else {
+    TORCH_CHECK(false, "tensormass: unsupported index dtype ", t, " (int32 or int64)");
+  }
+}
+
+template <class F>
+void dispatch_model(int64_t model, F&& f) {
+  if (model == kHooke) {
+    f(IC<kHooke>{});
+  } else if (model == kStvk) {
+    f(IC<kStvk>{});
+  } else {
+    TORCH_CHECK(false, "tensormass: unknown model id ", model, " (0 = hooke, 1 = stvk)");
+  }
+}
+
+// Element kinds: (nodes per element, dimension) = (4, 3) tetrahedra, (3, 2) planar triangles,
+// (3, 3) membranes.
+template <class F>
+void dispatch_kind(int64_t nn, int64_t d, F&& f) {
+  if (nn == 4 && d == 3) {
+    f(IC<4>{}, IC<3>{});
+  } else if (nn == 3 && d == 2) {
+    f(IC<3>{}, IC<2>{});
+  } else if (nn == 3 && d == 3) {
+    f(IC<3>{}, IC<3>{});
+  } else {
+    TORCH_CHECK(false, "tensormass: unsupported element kind: ", nn, " nodes per element in dimension ", d,
+                " (tetrahedra in 3-D, triangles in 2-D or 3-D)");
+  }
+}
+
+template <class F>
+void dispatch_dim(int64_t d, F&& f) {
+  if (d == 3) {
+    f(IC<3>{});
+  } else if (d == 2) {
+    f(IC<2>{});
+  } else {
+    TORCH_CHECK(false, "tensormass: unsupported dimension ", d, " (2 or 3)");
+  }
+}
+
+template <class F>
+void dispatch_bool(bool b, F&& f) {
+  if (b) {
+    f(std::true_type{});
+  } else {
+    f(std::false_type{});
+  }
+}
+
+template <typename T>
+const T* ptr_or_null(const c10::optional<at::Tensor>& t) {
+  return (t.has_value() && t->defined()) ? t->data_ptr<T>() : nullptr;
+}
+
+// ------------------------------------------------------------------ argument bundles
+
+// The stress-form inputs, checked. `du` is undefined for forces.
+struct StressArgs {
+  at::Tensor u, du, elements, shape_vectors, measure, lam, mu;
+  c10::optional<at::Tensor> projector;
+  int64_t model;
+  int64_t num_elements, nodes_per_element, dim, num_nodes;
+  at::ScalarType index_type;
+
+  StressArgs(const at::Tensor& u_, const c10::optional<at::Tensor>& du_, const at::Tensor& elements_,
+             const at::Tensor& shape_vectors_, const at::Tensor& measure_, const at::Tensor& lam_,
+             const at::Tensor& mu_, const c10::optional<at::Tensor>& projector_, int64_t model_)
+      : u(u_), elements(elements_), shape_vectors(shape_vectors_), measure(measure_), lam(lam_), mu(mu_),
+        projector(projector_), model(model_) {
+    check_values(u, "u");
+    num_nodes = u.size(0);
+    dim = u.size(1);
+    index_type = index_type_of(elements, "elements");
+    TORCH_CHECK(elements.dim() == 2, "tensormass: elements must be [N, n], got shape ", elements.sizes());
+    num_elements = elements.size(0);
+    nodes_per_element = elements.size(1);
+    check_index_tensor(elements, "elements", u, index_type, {num_elements, nodes_per_element});
+    if (du_.has_value() && du_->defined()) {
+      du = *du_;
+      check_float_tensor(du, "du", u, u.sizes());
+    }
+    check_float_tensor(shape_vectors, "shape_vectors", u, {num_elements, nodes_per_element, dim});
+    check_float_tensor(measure, "measure", u, {num_elements});
+    check_float_tensor(lam, "lam", u, {num_elements});
+    check_float_tensor(mu, "mu", u, {num_elements});
+    dispatch_kind(nodes_per_element, dim, [](auto, auto) {});  // validates the kind
+    dispatch_model(model, [](auto) {});
+    const bool membrane = nodes_per_element - 1 < dim;
+    const bool has_projector = projector.has_value() && projector->defined();
+    TORCH_CHECK(has_projector == membrane, "tensormass: the projector must be given for membranes (triangles "
+                "in 3-D) and only for them (nodes per element ", nodes_per_element, ", dimension ", dim, ")");
+    if (has_projector) check_float_tensor(*projector, "projector", u, {num_elements, dim, dim});
+  }
+
+  template <typename S, typename I>
+  StressInputs<S, I> inputs() const {
+    StressInputs<S, I> in;
+    in.u = u.data_ptr<S>();
+    in.du = du.defined() ? du.data_ptr<S>() : nullptr;
+    in.elements = elements.data_ptr<I>();
+    in.shape_vectors = shape_vectors.data_ptr<S>();
+    in.measure = measure.data_ptr<S>();
+    in.lam = lam.data_ptr<S>();
+    in.mu = mu.data_ptr<S>();
+    in.projector = ptr_or_null<S>(projector);
+    return in;
+  }
+};
+
+inline void check_plan(const at::Tensor& u, const at::Tensor& force_index, int64_t num_slots,
+                       at::ScalarType index_type, at::IntArrayRef items_shape) {
+  check_index_tensor(force_index, "force_index", u, index_type, items_shape);
+  TORCH_CHECK(num_slots >= 0, "tensormass: num_slots must be >= 0, got ", num_slots);
+  TORCH_CHECK(items_shape[0] == 0 || num_slots > 0, "tensormass: num_slots is 0 but there are items");
+}
+
+inline void check_incidences(const at::Tensor& u, const at::Tensor& incidences, at::ScalarType index_type) {
+  check_index_tensor(incidences, "incidences", u, index_type, {u.size(0)});
+}
+
+// ------------------------------------------------------------------ kernel 1 launchers
+
+// Padded writers also need the slots and V.
+template <int NN, int D, typename S, typename I>
+void set_padded(Writer<NN, D, S, I, false>&, const at::Tensor&, int64_t) {}
+
+template <int NN, int D, typename S, typename I>
+void set_padded(Writer<NN, D, S, I, true>& w, const at::Tensor& force_index, int64_t num_nodes) {
+  w.force_index = force_index.data_ptr<I>();
+  w.num_nodes = num_nodes;
+}
+
+// Runs kernel 1 of the stress form into `out`: compact [N, n, d] (force_index undefined) or
+// padded [N_n, V, d].
+template <class L, bool DFORCE>
+void run_stress_kernel1(const StressArgs& a, const at::Tensor& force_index, at::Tensor& out) {
+  const bool padded = force_index.defined();
+  dispatch_scalar(a.u.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(a.index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_kind(a.nodes_per_element, a.dim, [&](auto nn_c, auto d_c) {
+        constexpr int NN = decltype(nn_c)::value;
+        constexpr int D = decltype(d_c)::value;
+        dispatch_model(a.model, [&](auto model_c) {
+          constexpr int MODEL = decltype(model_c)::value;
+          dispatch_bool(padded, [&](auto padded_c) {
+            constexpr bool PADDED = decltype(padded_c)::value;
+            StressElementKernel<MODEL, DFORCE, NN, D, S, I, PADDED> k;
+            k.in = a.inputs<S, I>();
+            k.write.out = out.data_ptr<S>();
+            set_padded(k.write, force_index, a.num_nodes);
+            L::run(a.num_elements, k, L::kElementBlock);
+          });
+        });
+      });
+    });
+  });
+}
+
+// Kernel 2: out [V, d] = sum of the used slots of partial [N_n, V, d] (+ node term).
+//   node term: `node_term` [V, d] added as is, or -vertex_k [V, d, d] @ values [V, d].
+template <class L>
+void run_gather(const at::Tensor& partial, const at::Tensor& incidences, const at::Tensor& node_term,
+                const at::Tensor& vertex_k, const at::Tensor& values, at::Tensor& out) {
+  const int64_t num_nodes = out.size(0);
+  dispatch_scalar(out.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(incidences.scalar_type(), [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_dim(out.size(1), [&](auto d_c) {
+        constexpr int D = decltype(d_c)::value;
+        dispatch_bool(vertex_k.defined(), [&](auto vt_c) {
+          constexpr bool VT = decltype(vt_c)::value;
+          GatherKernel<D, S, I, VT> k;
+          k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
+          k.incidences = incidences.data_ptr<I>();
+          k.vertex_k = VT ? vertex_k.data_ptr<S>() : nullptr;
+          k.values = VT ? values.data_ptr<S>() : nullptr;
+          k.node_term = node_term.defined() ? node_term.data_ptr<S>() : nullptr;
+          k.out = out.data_ptr<S>();
+          k.num_nodes = num_nodes;
+          L::run(num_nodes, k, L::kNodeBlock);
+        });
+      });
+    });
+  });
+}
+
+// ------------------------------------------------------------------ stress-form ops
+
+template <class L>
+at::Tensor stress_element_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
+                                 const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
+                                 const c10::optional<at::Tensor>& projector, int64_t model) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model);
+  typename L::Guard guard(u.device());
+  at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
+  run_stress_kernel1<L, false>(a, at::Tensor(), out);
+  return out;
+}
+
+template <class L>
+at::Tensor stress_element_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
+                                  const at::Tensor& shape_vectors, const at::Tensor& measure, const at::Tensor& lam,
+                                  const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model);
+  typename L::Guard guard(u.device());
+  at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
+  run_stress_kernel1<L, true>(a, at::Tensor(), out);
+  return out;
+}
+
+template <class L, bool DFORCE>
+at::Tensor stress_partial_impl(const StressArgs& a, const at::Tensor& force_index, int64_t num_slots) {
+  check_plan(a.u, force_index, num_slots, a.index_type, {a.num_elements, a.nodes_per_element});
+  typename L::Guard guard(a.u.device());
+  // Unused slots are left uninitialised: kernel 2 never reads them.
+  at::Tensor partial = at::empty({num_slots, a.num_nodes, a.dim}, a.u.options());
+  run_stress_kernel1<L, DFORCE>(a, force_index, partial);
+  return partial;
+}
+
+template <class L>
+at::Tensor stress_partial_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& force_index,
+                                 int64_t num_slots, const at::Tensor& shape_vectors, const at::Tensor& measure,
+                                 const at::Tensor& lam, const at::Tensor& mu,
+                                 const c10::optional<at::Tensor>& projector, int64_t model) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model);
+  return stress_partial_impl<L, false>(a, force_index, num_slots);
+}
+
+template <class L>
+at::Tensor stress_partial_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
+                                  const at::Tensor& force_index, int64_t num_slots, const at::Tensor& shape_vectors,
+                                  const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
+                                  const c10::optional<at::Tensor>& projector, int64_t model) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model);
+  return stress_partial_impl<L, true>(a, force_index, num_slots);
+}
+
+template <class L, bool DFORCE>
+at::Tensor stress_fused_impl(const StressArgs& a, const at::Tensor& force_index, int64_t num_slots,
+                             const at::Tensor& incidences) {
+  check_plan(a.u, force_index, num_slots, a.index_type, {a.num_elements, a.nodes_per_element});
+  check_incidences(a.u, incidences, a.index_type);
+  typename L::Guard guard(a.u.device());
+  at::Tensor partial = at::empty({num_slots, a.num_nodes, a.dim}, a.u.options());
+  run_stress_kernel1<L, DFORCE>(a, force_index, partial);
+  at::Tensor out = at::empty({a.num_nodes, a.dim}, a.u.options());
+  run_gather<L>(partial, incidences, at::Tensor(), at::Tensor(), at::Tensor(), out);
+  return out;
+}
+
+template <class L>
+at::Tensor stress_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& force_index,
+                         int64_t num_slots, const at::Tensor& incidences, const at::Tensor& shape_vectors,
+                         const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
+                         const c10::optional<at::Tensor>& projector, int64_t model) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model);
+  return stress_fused_impl<L, false>(a, force_index, num_slots, incidences);
+}
+
+template <class L>
+at::Tensor stress_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
+                          const at::Tensor& force_index, int64_t num_slots, const at::Tensor& incidences,
+                          const at::Tensor& shape_vectors, const at::Tensor& measure, const at::Tensor& lam,
+                          const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model);
+  return stress_fused_impl<L, true>(a, force_index, num_slots, incidences);
+}
+
+// ------------------------------------------------------------------ gather ops
+
+// Kernel 2 alone: partial [N_n, V, d] (only the slots below incidences[i] are read) -> [V, d].
+template <class L>
+at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidences,
+                          const c10::optional<at::Tensor>& node_term) {
+  TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N_n, V, d], got shape ", partial.sizes());
+  TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
+              "tensormass: partial must be float32 or float64, got ", partial.scalar_type());
+  TORCH_CHECK(partial.is_contiguous(), "tensormass: partial must be contiguous (call .contiguous())");
+  const int64_t num_nodes = partial.size(1), dim = partial.size(2);
+  index_type_of(incidences, "incidences");
+  TORCH_CHECK(incidences.device() == partial.device(), "tensormass: incidences is on ", incidences.device(),
+              " but partial is on ", partial.device());
+  TORCH_CHECK(incidences.sizes() == at::IntArrayRef({num_nodes}), "tensormass: incidences has shape ",
+              incidences.sizes(), "; expected [", num_nodes, "]");
+  TORCH_CHECK(incidences.is_contiguous(), "tensormass: incidences must be contiguous");
+  at::Tensor term;
+  if (node_term.has_value() && node_term->defined()) {
+    term = *node_term;
+    TORCH_CHECK(term.device() == partial.device() && term.scalar_type() == partial.scalar_type(),
+                "tensormass: node_term must have the dtype and device of partial");
+    TORCH_CHECK(term.sizes() == at::IntArrayRef({num_nodes, dim}), "tensormass: node_term has shape ",
+                term.sizes(), "; expected [", num_nodes, ", ", dim, "]");
+    TORCH_CHECK(term.is_contiguous(), "tensormass: node_term must be contiguous");
+  }
+  typename L::Guard guard(partial.device());
+  at::Tensor out = at::empty({num_nodes, dim}, partial.options());
+  run_gather<L>(partial, incidences, term, at::Tensor(), at::Tensor(), out);
+  return out;
+}
+
+// Kernel 2 on compact partial forces: partial [N, n, d] scattered to the padded buffer through
+// (force_index, index), then summed per node (+ node_term [V, d]).
+template <class L>
+at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const at::Tensor& force_index,
+                       int64_t num_slots, const at::Tensor& incidences, const c10::optional<at::Tensor>& node_term) {
+  TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N, n, d], got shape ", partial.sizes());
+  TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
+              "tensormass: partial must be float32 or float64, got ", partial.scalar_type());
+  TORCH_CHECK(partial.is_contiguous(), "tensormass: partial must be contiguous (call .contiguous())");
+  const int64_t n_items = partial.size(0), nn = partial.size(1), dim = partial.size(2);
+  const at::ScalarType index_type = index_type_of(index, "index");
+  const int64_t num_nodes = incidences.dim() == 1 ? incidences.size(0) : -1;
+  TORCH_CHECK(num_nodes >= 0, "tensormass: incidences must be [V], got shape ", incidences.sizes());
+  TORCH_CHECK(index.device() == partial.device() && force_index.device() == partial.device() &&
+                  incidences.device() == partial.device(),
+              "tensormass: index, force_index and incidences must be on the device of partial (", partial.device(),
+              ")");
+  TORCH_CHECK(index.scalar_type() == index_type && force_index.scalar_type() == index_type &&
+                  incidences.scalar_type() == index_type,
+              "tensormass: index, force_index and incidences must have one dtype (int32 or int64)");
+  TORCH_CHECK(index.sizes() == at::IntArrayRef({n_items, nn}) && force_index.sizes() == index.sizes(),
+              "tensormass: index and force_index must be [N, n] = ", at::IntArrayRef({n_items, nn}), ", got ",
+              index.sizes(), " and ", force_index.sizes());
+  TORCH_CHECK(index.is_contiguous() && force_index.is_contiguous() && incidences.is_contiguous(),
+              "tensormass: index, force_index and incidences must be contiguous");
+  TORCH_CHECK(num_slots >= 0 && (n_items == 0 || num_slots > 0), "tensormass: bad num_slots ", num_slots);
+  at::Tensor term;
+  if (node_term.has_value() && node_term->defined()) {
+    term = *node_term;
+    TORCH_CHECK(term.device() == partial.device() && term.scalar_type() == partial.scalar_type(),
+                "tensormass: node_term must have the dtype and device of partial");
+    TORCH_CHECK(term.sizes() == at::IntArrayRef({num_nodes, dim}), "tensormass: node_term has shape ",
+                term.sizes(), "; expected [", num_nodes, ", ", dim, "]");
+    TORCH_CHECK(term.is_contiguous(), "tensormass: node_term must be contiguous");
+  }
+  typename L::Guard guard(partial.device());
+  at::Tensor padded = at::empty({num_slots, num_nodes, dim}, partial.options());
+  dispatch_scalar(partial.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      auto launch = [&](auto nn_c, auto d_c) {
+        constexpr int NN = decltype(nn_c)::value;
+        constexpr int D = decltype(d_c)::value;
+        ScatterKernel<NN, D, S, I> k;
+        k.partial = partial.data_ptr<S>();
+        k.index = index.data_ptr<I>();
+        k.write.out = padded.data_ptr<S>();
+        k.write.force_index = force_index.data_ptr<I>();
+        k.write.num_nodes = num_nodes;
+        L::run(n_items, k, L::kNodeBlock);
+      };
+      // items: elements (4 or 3 nodes) or edges (2 nodes)
+      dispatch_dim(dim, [&](auto d_c) {
+        if (nn == 4) {
+          launch(IC<4>{}, d_c);
+        } else if (nn == 3) {
+          launch(IC<3>{}, d_c);
+        } else if (nn == 2) {
+          launch(IC<2>{}, d_c);
+        } else {
+          TORCH_CHECK(false, "tensormass: node_gather supports 2, 3 or 4 nodes per item, got ", nn);
+        }
+      });
+    });
+  });
+  at::Tensor out = at::empty({num_nodes, dim}, partial.options());
+  run_gather<L>(padded, incidences, term, at::Tensor(), at::Tensor(), out);
+  return out;
+}
+
+// ------------------------------------------------------------------ tensor form, hooke
+
+struct HookeTensorArgs {
+  at::Tensor u, edges, edge_k;
+  int64_t num_edges, dim;
+  at::ScalarType index_type;
+  HookeTensorArgs(const at::Tensor& u_, const at::Tensor& edges_, const at::Tensor& edge_k_)
+      : u(u_), edges(edges_), edge_k(edge_k_) {
+    check_values(u, "u");
+    dim = u.size(1);
+    index_type = index_type_of(edges, "edges");
+    TORCH_CHECK(edges.dim() == 2 && edges.size(1) == 2, "tensormass: edges must be [Ed, 2], got shape ",
+                edges.sizes());
+    num_edges = edges.size(0);
+    check_index_tensor(edges, "edges", u, index_type, {num_edges, 2});
+    check_float_tensor(edge_k, "edge_k", u, {num_edges, dim, dim});
+    dispatch_dim(dim, [](auto) {});
+  }
+};
+
+template <class L>
+void run_hooke_kernel1(const HookeTensorArgs& a, const at::Tensor& force_index, at::Tensor& out) {
+  dispatch_scalar(a.u.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(a.index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_dim(a.dim, [&](auto d_c) {
+        constexpr int D = decltype(d_c)::value;
+        dispatch_bool(force_index.defined(), [&](auto padded_c) {
+          constexpr bool PADDED = decltype(padded_c)::value;
+          TensorHookeEdgeKernel<D, S, I, PADDED> k;
+          k.u = a.u.data_ptr<S>();
+          k.edges = a.edges.data_ptr<I>();
+          k.edge_k = a.edge_k.data_ptr<S>();
+          k.write.out = out.data_ptr<S>();
+          set_padded(k.write, force_index, a.u.size(0));
+          L::run(a.num_edges, k, L::kElementBlock);
+        });
+      });
+    });
+  });
+}
+
+template <class L>
+at::Tensor tensor_hooke_element_forces(const at::Tensor& u, const at::Tensor& edges, const at::Tensor& edge_k) {
+  HookeTensorArgs a(u, edges, edge_k);
+  typename L::Guard guard(u.device());
+  at::Tensor out = at::empty({a.num_edges, 2, a.dim}, u.options());
+  run_hooke_kernel1<L>(a, at::Tensor(), out);
+  return out;
+}
+
+template <class L>
+at::Tensor tensor_hooke_partial_forces(const at::Tensor& u, const at::Tensor& edges, const at::Tensor& force_index,
+                                       int64_t num_slots, const at::Tensor& edge_k) {
+  HookeTensorArgs a(u, edges, edge_k);
+  check_plan(u, force_index, num_slots, a.index_type, {a.num_edges, 2});
+  typename L::Guard guard(u.device());
+  at::Tensor partial = at::empty({num_slots, u.size(0), a.dim}, u.options());
+  run_hooke_kernel1<L>(a, force_index, partial);
+  return partial;
+}
+
+// F = -K_ii u_i - sum_j K_ij u_j (linear: the dforces along du are tensor_hooke_forces(du)).
+template <class L>
+at::Tensor tensor_hooke_forces(const at::Tensor& u, const at::Tensor& edges, const at::Tensor& force_index,
+                               int64_t num_slots, const at::Tensor& incidences, const at::Tensor& edge_k,
+                               const at::Tensor& vertex_k) {
+  HookeTensorArgs a(u, edges, edge_k);
+  check_plan(u, force_index, num_slots, a.index_type, {a.num_edges, 2});
+  check_incidences(u, incidences, a.index_type);
+  check_float_tensor(vertex_k, "vertex_k", u, {u.size(0), a.dim, a.dim});
+  typename L::Guard guard(u.device());
+  at::Tensor partial = at::empty({num_slots, u.size(0), a.dim}, u.options());
+  run_hooke_kernel1<L>(a, force_index, partial);
+  at::Tensor out = at::empty({u.size(0), a.dim}, u.options());
+  run_gather<L>(partial, incidences, at::Tensor(), vertex_k, u, out);
+  return out;
+}
+
+// ------------------------------------------------------------------ tensor form, stvk
+
+struct StvkTensorArgs {
+  at::Tensor u, du, elements, tb, tc, td;
+  int64_t num_elements, nodes_per_element, dim;
+  at::ScalarType index_type;
+  StvkTensorArgs(const at::Tensor& u_, const c10::optional<at::Tensor>& du_, const at::Tensor& elements_,
+                 const at::Tensor& b, const at::Tensor& c, const at::Tensor& d)
+      : u(u_), elements(elements_), tb(b), tc(c), td(d) {
+    check_values(u, "u");
+    dim = u.size(1);
+    index_type = index_type_of(elements, "elements");
+    TORCH_CHECK(elements.dim() == 2, "tensormass: elements must be [N, n], got shape ", elements.sizes());
+    num_elements = elements.size(0);
+    const int64_t n = nodes_per_element = elements.size(1);
+    check_index_tensor(elements, "elements", u, index_type, {num_elements, n});
+    if (du_.has_value() && du_->defined()) {
+      du = *du_;
+      check_float_tensor(du, "du", u, u.sizes());
+    }
+    check_float_tensor(tb, "tensor_b", u, {num_elements, n, n, dim, dim});
+    check_float_tensor(tc, "tensor_c", u, {num_elements, n, n, n, dim});
+    check_float_tensor(td, "tensor_d", u, {num_elements, n, n, n, n});
+    dispatch_kind(n, dim, [](auto, auto) {});
+  }
+};
+
+template <class L, bool DFORCE>
+void run_stvk_tensor_kernel1(const StvkTensorArgs& a, const at::Tensor& force_index, at::Tensor& out) {
+  dispatch_scalar(a.u.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(a.index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_kind(a.nodes_per_element, a.dim, [&](auto nn_c, auto d_c) {
+        constexpr int NN = decltype(nn_c)::value;
+        constexpr int D = decltype(d_c)::value;
+        dispatch_bool(force_index.defined(), [&](auto padded_c) {
+          constexpr bool PADDED = decltype(padded_c)::value;
+          TensorStvkKernel<DFORCE, NN, D, S, I, PADDED> k;
+          k.u = a.u.data_ptr<S>();
+          k.du = a.du.defined() ? a.du.data_ptr<S>() : nullptr;
+          k.elements = a.elements.data_ptr<I>();
+          k.tb = a.tb.data_ptr<S>();
+          k.tc = a.tc.data_ptr<S>();
+          k.td = a.td.data_ptr<S>();
+          k.write.out = out.data_ptr<S>();
+          set_padded(k.write, force_index, a.u.size(0));
+          L::run(a.num_elements, k, L::kElementBlock);
+        });
+      });
+    });
+  });
+}
+
+template <class L>
+at::Tensor tensor_stvk_element_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& b,
+                                      const at::Tensor& c, const at::Tensor& d) {
+  StvkTensorArgs a(u, c10::nullopt, elements, b, c, d);
+  typename L::Guard guard(u.device());
+  at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
+  run_stvk_tensor_kernel1<L, false>(a, at::Tensor(), out);
+  return out;
+}
+
+template <class L>
+at::Tensor tensor_stvk_element_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
+                                       const at::Tensor& b, const at::Tensor& c, const at::Tensor& d) {
+  StvkTensorArgs a(u, du, elements, b, c, d);
+  typename L::Guard guard(u.device());
+  at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
+  run_stvk_tensor_kernel1<L, true>(a, at::Tensor(), out);
+  return out;
+}
+
+template <class L, bool DFORCE>
+at::Tensor tensor_stvk_padded_impl(const StvkTensorArgs& a, const at::Tensor& force_index, int64_t num_slots,
+                                   const at::Tensor* incidences) {
+  check_plan(a.u, force_index, num_slots, a.index_type, {a.num_elements, a.nodes_per_element});
+  if (incidences != nullptr) check_incidences(a.u, *incidences, a.index_type);
+  typename L::Guard guard(a.u.device());
+  at::Tensor partial = at::empty({num_slots, a.u.size(0), a.dim}, a.u.options());
+  run_stvk_tensor_kernel1<L, DFORCE>(a, force_index, partial);
+  if (incidences == nullptr) return partial;
+  at::Tensor out = at::empty({a.u.size(0), a.dim}, a.u.options());
+  run_gather<L>(partial, *incidences, at::Tensor(), at::Tensor(), at::Tensor(), out);
+  return out;
+}
+
+template <class L>
+at::Tensor tensor_stvk_partial_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& force_index,
+                                      int64_t num_slots, const at::Tensor& b, const at::Tensor& c,
+                                      const at::Tensor& d) {
+  StvkTensorArgs a(u, c10::nullopt, elements, b, c, d);
+  return tensor_stvk_padded_impl<L, false>(a, force_index, num_slots, nullptr);
+}
+
+template <class L>
+at::Tensor tensor_stvk_partial_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
+                                       const at::Tensor& force_index, int64_t num_slots, const at::Tensor& b,
+                                       const at::Tensor& c, const at::Tensor& d) {
+  StvkTensorArgs a(u, du, elements, b, c, d);
+  return tensor_stvk_padded_impl<L, true>(a, force_index, num_slots, nullptr);
+}
+
+template <class L>
+at::Tensor tensor_stvk_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& force_index,
+                              int64_t num_slots, const at::Tensor& incidences, const at::Tensor& b,
+                              const at::Tensor& c, const at::Tensor& d) {
+  StvkTensorArgs a(u, c10::nullopt, elements, b, c, d);
+  return tensor_stvk_padded_impl<L, false>(a, force_index, num_slots, &incidences);
+}
+
+template <class L>
+at::Tensor tensor_stvk_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
+                               const at::Tensor& force_index, int64_t num_slots, const at::Tensor& incidences,
+                               const at::Tensor& b, const at::Tensor& c, const at::Tensor& d) {
+  StvkTensorArgs a(u, du, elements, b, c, d);
+  return tensor_stvk_padded_impl<L, true>(a, force_index, num_slots, &incidences);
+}
+
+}  // namespace tensormass

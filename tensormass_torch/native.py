@@ -1,0 +1,531 @@
+"""The compiled ops ``torch.ops.tensormass.*``: fake kernels, autograd, and the group-level calls.
+
+The ops are defined in C++ (``csrc/ops.cpp``, CPU and CUDA implementations from one element-math
+header). This module gives them what torch needs on the Python side:
+
+* a fake (meta) kernel for each op (``torch.library.register_fake``), for torch.compile/export;
+* autograd (``torch.library.register_autograd``). Fast paths use the ops themselves:
+    - forces:  d(g . f(u))/du = dforces(u, g) (the stiffness is symmetric: f = -grad W);
+    - dforces: d(g . K(u) du)/d du = dforces(u, g);
+    - lam, mu: the forces are linear in (lam, mu), so the gradient per element is the dot of
+      the element's cotangent with its forces evaluated at (lam, mu) = (1, 0) and (0, 1);
+    - kernel 2 (gathers): the transposed gathers, exactly.
+  Every other gradient (to u in the element-level and padded ops, to u in stvk dforces, to the
+  geometry and to the Tensor-Mass tensors) goes through ``torch.func.vjp`` of the op's pure-torch
+  reference (``REFERENCE``, built from ``tensormass_torch.reference``), so every input that
+  requires grad gets a correct gradient. Backward formulas are made of differentiable ops, so
+  double backward works where the reference path does.
+* group-level functions (:func:`forces`, :func:`dforces`, ...) that ``tensormass_torch.ops``
+  calls when ``_backend.use_extension(device)`` says so.
+
+``REFERENCE[name]`` has the op's signature and computes the same output in tensor ops (the
+padded ``*_partial_*`` ops: the same values in the used slots, zeros elsewhere where the
+op leaves them uninitialised).
+"""
+from __future__ import annotations
+
+import threading
+from typing import Optional
+
+import torch
+
+from .reference import gather as ref_gather
+from .reference import stress_form, tensor_form
+
+__all__ = ["MODEL_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "element_forces",
+           "element_dforces", "node_gather", "forces", "dforces"]
+
+#: The ``model`` integer of the op schemas.
+MODEL_IDS = {"hooke": 0, "stvk": 1}
+MODEL_NAMES = {v: k for k, v in MODEL_IDS.items()}
+
+# ----------------------------------------------------------------------------------------------
+# Pure-torch reference of every op (same signature): the oracle of the tests and the path of
+# the non-fast gradients.
+# ----------------------------------------------------------------------------------------------
+
+
+def _model_name(model: int) -> str:
+    try:
+        return MODEL_NAMES[int(model)]
+    except KeyError:
+        raise ValueError(f"unknown model id {model!r} (0 = hooke, 1 = stvk)") from None
+
+
+def _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model):
+    return stress_form.FORCES[_model_name(model)](u[elements], m, vol, lam, mu, proj)
+
+
+def _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model):
+    return stress_form.DFORCES[_model_name(model)](u[elements], du[elements], m, vol, lam, mu, proj)
+
+
+def _scatter(partial, index, force_index, num_slots, num_nodes):
+    return ref_gather.scatter_partial_forces(partial, index, force_index, num_slots, num_nodes)
+
+
+def _gather(partial, index, force_index, num_slots, incidences, node_term=None):
+    return ref_gather.node_gather(partial, index, force_index, num_slots, incidences.shape[0], node_term)
+
+
+def _ref_stress_partial_forces(u, elements, force_index, num_slots, m, vol, lam, mu, proj, model):
+    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model)
+    return _scatter(f, elements, force_index, num_slots, u.shape[0])
+
+
+def _ref_stress_partial_dforces(u, du, elements, force_index, num_slots, m, vol, lam, mu, proj, model):
+    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model)
+    return _scatter(f, elements, force_index, num_slots, u.shape[0])
+
+
+def _ref_stress_forces(u, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model):
+    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model)
+    return _gather(f, elements, force_index, num_slots, incidences)
+
+
+def _ref_stress_dforces(u, du, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model):
+    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model)
+    return _gather(f, elements, force_index, num_slots, incidences)
+
+
+def _ref_tensor_hooke_element_forces(u, edges, edge_k):
+    return tensor_form.hooke_edge_partial_forces(u, edges, edge_k)
+
+
+def _ref_tensor_hooke_partial_forces(u, edges, force_index, num_slots, edge_k):
+    return _scatter(tensor_form.hooke_edge_partial_forces(u, edges, edge_k), edges, force_index, num_slots,
+                    u.shape[0])
+
+
+def _ref_tensor_hooke_forces(u, edges, force_index, num_slots, incidences, edge_k, vertex_k):
+    return _gather(tensor_form.hooke_edge_partial_forces(u, edges, edge_k), edges, force_index, num_slots,
+                   incidences, tensor_form.hooke_vertex_forces(u, vertex_k))
+
+
+def _ref_tensor_stvk_element_forces(u, elements, b, c, d):
+    return tensor_form.stvk_forces(u[elements], b, c, d)
+
+
+def _ref_tensor_stvk_element_dforces(u, du, elements, b, c, d):
+    return tensor_form.stvk_dforces(u[elements], du[elements], b, c, d)
+
+
+def _ref_tensor_stvk_partial_forces(u, elements, force_index, num_slots, b, c, d):
+    return _scatter(_ref_tensor_stvk_element_forces(u, elements, b, c, d), elements, force_index, num_slots,
+                    u.shape[0])
+
+
+def _ref_tensor_stvk_partial_dforces(u, du, elements, force_index, num_slots, b, c, d):
+    return _scatter(_ref_tensor_stvk_element_dforces(u, du, elements, b, c, d), elements, force_index,
+                    num_slots, u.shape[0])
+
+
+def _ref_tensor_stvk_forces(u, elements, force_index, num_slots, incidences, b, c, d):
+    return _gather(_ref_tensor_stvk_element_forces(u, elements, b, c, d), elements, force_index, num_slots,
+                   incidences)
+
+
+def _ref_tensor_stvk_dforces(u, du, elements, force_index, num_slots, incidences, b, c, d):
+    return _gather(_ref_tensor_stvk_element_dforces(u, du, elements, b, c, d), elements, force_index, num_slots,
+                   incidences)
+
+
+def _slot_mask(num_slots, incidences):
+    """``[N_n, V, 1]``: whether slot s of node i is used (s < incidences[i])."""
+    slots = torch.arange(num_slots, device=incidences.device)
+    return (slots[:, None] < incidences[None, :])[:, :, None]
+
+
+def _ref_gather_partial(partial, incidences, node_term):
+    total = torch.where(_slot_mask(partial.shape[0], incidences), partial, partial.new_zeros(())).sum(0)
+    return total if node_term is None else total + node_term
+
+
+def _ref_node_gather(partial, index, force_index, num_slots, incidences, node_term):
+    return _gather(partial, index, force_index, num_slots, incidences, node_term)
+
+
+REFERENCE = {
+    "stress_element_forces": _ref_stress_element_forces,
+    "stress_element_dforces": _ref_stress_element_dforces,
+    "stress_partial_forces": _ref_stress_partial_forces,
+    "stress_partial_dforces": _ref_stress_partial_dforces,
+    "stress_forces": _ref_stress_forces,
+    "stress_dforces": _ref_stress_dforces,
+    "tensor_hooke_element_forces": _ref_tensor_hooke_element_forces,
+    "tensor_hooke_partial_forces": _ref_tensor_hooke_partial_forces,
+    "tensor_hooke_forces": _ref_tensor_hooke_forces,
+    "tensor_stvk_element_forces": _ref_tensor_stvk_element_forces,
+    "tensor_stvk_element_dforces": _ref_tensor_stvk_element_dforces,
+    "tensor_stvk_partial_forces": _ref_tensor_stvk_partial_forces,
+    "tensor_stvk_partial_dforces": _ref_tensor_stvk_partial_dforces,
+    "tensor_stvk_forces": _ref_tensor_stvk_forces,
+    "tensor_stvk_dforces": _ref_tensor_stvk_dforces,
+    "gather_partial": _ref_gather_partial,
+    "node_gather": _ref_node_gather,
+}
+
+#: Every op of the library ``tensormass``.
+OPS = tuple(REFERENCE)
+
+# ----------------------------------------------------------------------------------------------
+# Fake kernels: output metadata only.
+# ----------------------------------------------------------------------------------------------
+
+
+def _fake_element(u, items, *_):
+    return u.new_empty((items.shape[0], items.shape[1], u.shape[1]))
+
+
+def _fake_element_d(u, du, items, *_):
+    return u.new_empty((items.shape[0], items.shape[1], u.shape[1]))
+
+
+def _fake_partial(u, items, force_index, num_slots, *_):
+    return u.new_empty((num_slots, u.shape[0], u.shape[1]))
+
+
+def _fake_partial_d(u, du, items, force_index, num_slots, *_):
+    return u.new_empty((num_slots, u.shape[0], u.shape[1]))
+
+
+def _fake_nodes(u, *_):
+    return u.new_empty(u.shape)
+
+
+def _fake_tensor_hooke_element(u, edges, edge_k):
+    return u.new_empty((edges.shape[0], 2, u.shape[1]))
+
+
+def _fake_gather_partial(partial, incidences, node_term):
+    return partial.new_empty((partial.shape[1], partial.shape[2]))
+
+
+def _fake_node_gather(partial, index, force_index, num_slots, incidences, node_term):
+    return partial.new_empty((incidences.shape[0], partial.shape[2]))
+
+
+FAKE = {
+    "stress_element_forces": _fake_element,
+    "stress_element_dforces": _fake_element_d,
+    "stress_partial_forces": _fake_partial,
+    "stress_partial_dforces": _fake_partial_d,
+    "stress_forces": _fake_nodes,
+    "stress_dforces": _fake_nodes,
+    "tensor_hooke_element_forces": _fake_tensor_hooke_element,
+    "tensor_hooke_partial_forces": _fake_partial,
+    "tensor_hooke_forces": _fake_nodes,
+    "tensor_stvk_element_forces": _fake_element,
+    "tensor_stvk_element_dforces": _fake_element_d,
+    "tensor_stvk_partial_forces": _fake_partial,
+    "tensor_stvk_partial_dforces": _fake_partial_d,
+    "tensor_stvk_forces": _fake_nodes,
+    "tensor_stvk_dforces": _fake_nodes,
+    "gather_partial": _fake_gather_partial,
+    "node_gather": _fake_node_gather,
+}
+
+# ----------------------------------------------------------------------------------------------
+# Autograd
+# ----------------------------------------------------------------------------------------------
+
+
+def _op(name):
+    return getattr(torch.ops.tensormass, name).default
+
+
+def _is_float(x) -> bool:
+    return isinstance(x, torch.Tensor) and x.is_floating_point()
+
+
+def _setup_context(ctx, inputs, output):
+    ctx.save_for_backward(*[x if isinstance(x, torch.Tensor) else None for x in inputs])
+    ctx.plain = [None if isinstance(x, torch.Tensor) else x for x in inputs]
+
+
+def _inputs(ctx):
+    return [t if t is not None else p for t, p in zip(ctx.saved_tensors, ctx.plain)]
+
+
+def _reference_vjp(name, inputs, wanted, cotangent):
+    """Gradients of ``REFERENCE[name]`` at ``inputs`` for the input positions ``wanted``."""
+    if not wanted:
+        return {}
+    ref = REFERENCE[name]
+
+    def fn(*diff):
+        args = list(inputs)
+        for pos, value in zip(wanted, diff):
+            args[pos] = value
+        return ref(*args)
+
+    _, vjp_fn = torch.func.vjp(fn, *[inputs[i] for i in wanted])
+    return dict(zip(wanted, vjp_fn(cotangent)))
+
+
+def _element_cotangent(name, inputs, grad):
+    """The cotangent of the element-level output ``[N, n, d]`` (the ops linear in (lam, mu))."""
+    if "_element_" in name:
+        return grad
+    u = inputs[0]
+    elements = inputs[2] if "dforces" in name else inputs[1]
+    if "_partial_" in name:
+        force_index = inputs[3] if "dforces" in name else inputs[2]
+        return grad[force_index, elements]
+    return grad[elements]
+
+
+def _lame_gradients(name, inputs, grad, need_lam, need_mu):
+    """d(grad . out)/d(lam, mu) ``[N]`` for the stress ops: out is linear in (lam, mu), so the
+    gradient per element is the dot of its cotangent with its output at (1, 0) and at (0, 1)."""
+    m, vol, lam, mu, proj, model = inputs[-6:]
+    g_e = _element_cotangent(name, inputs, grad)
+    ones, zeros = torch.ones_like(lam), torch.zeros_like(lam)
+
+    def at(a, b):
+        if "dforces" in name:
+            u, du, elements = inputs[0], inputs[1], inputs[2]
+            f = _op("stress_element_dforces")(u, du, elements, m, vol, a, b, proj, model)
+        else:
+            u, elements = inputs[0], inputs[1]
+            f = _op("stress_element_forces")(u, elements, m, vol, a, b, proj, model)
+        return (g_e * f).sum((1, 2))
+
+    return (at(ones, zeros) if need_lam else None), (at(zeros, ones) if need_mu else None)
+
+
+def _fast_gradients(name, inputs, grad, needs):
+    """The gradients computed by the ops themselves: {input position: gradient}."""
+    fast = {}
+    g = grad.contiguous()
+    if name in ("stress_forces", "stress_dforces", "tensor_stvk_forces", "tensor_stvk_dforces"):
+        dforce = name.endswith("dforces")
+        u_pos, du_pos = 0, 1
+        target = du_pos if dforce else u_pos  # d/du of f(u) and d/d(du) of K(u) du: both K(u) g
+        if needs[target]:
+            dname = name if dforce else name.replace("forces", "dforces")
+            args = list(inputs)
+            if not dforce:
+                args.insert(1, g)
+            else:
+                args[1] = g
+            fast[target] = _op(dname)(*args)
+        if dforce and needs[u_pos] and name == "stress_dforces" and int(inputs[-1]) == MODEL_IDS["hooke"]:
+            fast[u_pos] = None  # hooke: K does not depend on u
+    elif name == "tensor_hooke_forces":
+        if needs[0]:
+            args = list(inputs)
+            args[0] = g
+            fast[0] = _op(name)(*args)  # linear, K symmetric
+    elif name == "gather_partial":
+        partial, incidences = inputs[0], inputs[1]
+        if needs[0]:
+            mask = _slot_mask(partial.shape[0], incidences)
+            fast[0] = torch.where(mask, g.unsqueeze(0), g.new_zeros(()))
+        if needs[2]:
+            fast[2] = g
+    elif name == "node_gather":
+        index = inputs[1]
+        if needs[0]:
+            fast[0] = g[index]
+        if needs[5]:
+            fast[5] = g
+    if name.startswith("stress_"):
+        lam_pos, mu_pos = len(inputs) - 4, len(inputs) - 3
+        if needs[lam_pos] or needs[mu_pos]:
+            fast[lam_pos], fast[mu_pos] = _lame_gradients(name, inputs, g, needs[lam_pos], needs[mu_pos])
+    return fast
+
+
+def _make_backward(name):
+    def backward(ctx, grad):
+        inputs = _inputs(ctx)
+        needs = list(ctx.needs_input_grad)
+        fast = _fast_gradients(name, inputs, grad, needs)
+        wanted = [i for i, x in enumerate(inputs) if needs[i] and _is_float(x) and i not in fast]
+        slow = _reference_vjp(name, inputs, wanted, grad)
+        grads = []
+        for i in range(len(inputs)):
+            g = fast.get(i, slow.get(i))
+            grads.append(g if needs[i] else None)
+        return tuple(grads)
+
+    return backward
+
+
+# ----------------------------------------------------------------------------------------------
+# Registration
+# ----------------------------------------------------------------------------------------------
+
+_lock = threading.Lock()
+_registered = False
+
+
+def _ops_defined() -> bool:
+    try:
+        torch.ops.tensormass.stress_forces  # noqa: B018
+    except (AttributeError, RuntimeError):
+        return False
+    return True
+
+
+def _register():
+    global _registered
+    with _lock:
+        if _registered:
+            return
+        for name in OPS:
+            qualname = "tensormass::" + name
+            torch.library.register_fake(qualname, FAKE[name])
+            torch.library.register_autograd(qualname, _make_backward(name), setup_context=_setup_context)
+        _registered = True
+
+
+def available() -> bool:
+    """Whether the ops are defined (the extension is loaded) and registered here."""
+    if not _registered and _ops_defined():
+        _register()
+    return _registered
+
+
+def ensure_registered() -> bool:
+    """Load the extension (unless forced off) and register fake kernels and autograd once."""
+    from . import _backend
+
+    if _registered:
+        return True
+    if _backend.load_extension() is None:
+        return False
+    return available()
+
+
+# Imported by torch (set_python_module) or after _C: register now if the ops exist.
+if _ops_defined():
+    _register()
+
+# ----------------------------------------------------------------------------------------------
+# Group-level calls (tensormass_torch.ops dispatches here)
+# ----------------------------------------------------------------------------------------------
+
+_INT32_MAX = 2**31 - 1
+
+
+def _unchanged(cache, tensors) -> bool:
+    """Whether ``cache`` (tensors, versions, value) was made from these very tensors, unmodified."""
+    return (cache is not None and len(cache[0]) == len(tensors)
+            and all(a is b for a, b in zip(cache[0], tensors))
+            and cache[1] == tuple(t._version for t in tensors))
+
+
+def _plan_indices(plan):
+    """(index, force_index, incidences) of a GatherPlan, as int32 when every value fits (half
+    the index bytes the kernels read), cached on the plan while its tensors are unchanged."""
+    tensors = (plan.index, plan.force_index, plan.incidences)
+    cache = getattr(plan, "_native_indices", None)
+    if _unchanged(cache, tensors):
+        return cache[2]
+    small = (plan.num_nodes <= _INT32_MAX and plan.num_slots <= _INT32_MAX
+             and plan.index.numel() <= _INT32_MAX)
+    dtype = torch.int32 if small else torch.int64
+    value = tuple(t.to(dtype).contiguous() for t in tensors)
+    try:
+        plan._native_indices = (tensors, tuple(t._version for t in tensors), value)
+    except AttributeError:  # a plan type without a __dict__: no cache
+        pass
+    return value
+
+
+def _lame(group):
+    """(lam, mu) of a stress-form group; cached on the group while young/poisson are the same
+    unmodified tensors and need no gradient (then recomputed at every call, for autograd)."""
+    tensors = (group.young, group.poisson)
+    if any(t.requires_grad for t in tensors):
+        return group.lame()
+    cache = group.__dict__.get("_native_lame")
+    if _unchanged(cache, tensors):
+        return cache[2]
+    lam, mu = group.lame()
+    value = (lam.contiguous(), mu.contiguous())
+    group.__dict__["_native_lame"] = (tensors, tuple(t._version for t in tensors), value)
+    return value
+
+
+def _stress_args(group):
+    lam, mu = _lame(group)
+    proj = group.projector
+    return (group.shape_vectors.contiguous(), group.measure.contiguous(), lam.contiguous(), mu.contiguous(),
+            None if proj is None else proj.contiguous(), MODEL_IDS[group.model])
+
+
+def _stvk_tensors(group):
+    return group.tensor_b.contiguous(), group.tensor_c.contiguous(), group.tensor_d.contiguous()
+
+
+def supports(group, u: torch.Tensor) -> bool:
+    """Whether the ops can evaluate ``group`` at ``u`` (dtype and device of the group's data)."""
+    if u.dtype not in (torch.float32, torch.float64) or u.dim() != 2:
+        return False
+    if group.measure.dtype != u.dtype or group.measure.device != u.device:
+        return False
+    return group.model in MODEL_IDS and group.form in ("stress", "tensor")
+
+
+def element_forces(group, u: torch.Tensor) -> torch.Tensor:
+    """Kernel 1 at element level: ``[N, n, d]`` (edges ``[Ed, 2, d]`` for the hooke tensor form)."""
+    u = u.contiguous()
+    index, _, _ = _plan_indices(group.plan)
+    if group.form == "stress":
+        return torch.ops.tensormass.stress_element_forces(u, index, *_stress_args(group))
+    if group.model == "hooke":
+        return torch.ops.tensormass.tensor_hooke_element_forces(u, index, group.edge_k.contiguous())
+    return torch.ops.tensormass.tensor_stvk_element_forces(u, index, *_stvk_tensors(group))
+
+
+def element_dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
+    """Kernel 1 with DForce() at element level: ``[N, n, d]``."""
+    u, du = u.contiguous(), du.contiguous()
+    index, _, _ = _plan_indices(group.plan)
+    if group.form == "stress":
+        return torch.ops.tensormass.stress_element_dforces(u, du, index, *_stress_args(group))
+    if group.model == "hooke":
+        return torch.ops.tensormass.tensor_hooke_element_forces(du, index, group.edge_k.contiguous())
+    return torch.ops.tensormass.tensor_stvk_element_dforces(u, du, index, *_stvk_tensors(group))
+
+
+def node_gather(partial: torch.Tensor, plan, node_term: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Kernel 2 on compact partial forces ``[N, n, d]`` -> ``[V, d]`` (+ node_term)."""
+    index, force_index, incidences = _plan_indices(plan)
+    if node_term is not None:
+        node_term = node_term.contiguous()
+    return torch.ops.tensormass.node_gather(partial.contiguous(), index, force_index, plan.num_slots,
+                                            incidences, node_term)
+
+
+def forces(group, u: torch.Tensor) -> torch.Tensor:
+    """Fused kernels 1 + 2: elastic forces ``[V, d]``."""
+    u = u.contiguous()
+    plan = group.plan
+    index, force_index, incidences = _plan_indices(plan)
+    if group.form == "stress":
+        return torch.ops.tensormass.stress_forces(u, index, force_index, plan.num_slots, incidences,
+                                                  *_stress_args(group))
+    if group.model == "hooke":
+        return torch.ops.tensormass.tensor_hooke_forces(u, index, force_index, plan.num_slots, incidences,
+                                                        group.edge_k.contiguous(), group.vertex_k.contiguous())
+    return torch.ops.tensormass.tensor_stvk_forces(u, index, force_index, plan.num_slots, incidences,
+                                                   *_stvk_tensors(group))
+
+
+def dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
+    """Fused kernels 1 + 2 with DForce(): (dF/du) du ``[V, d]``."""
+    du = du.contiguous()
+    plan = group.plan
+    index, force_index, incidences = _plan_indices(plan)
+    if group.form == "stress":
+        return torch.ops.tensormass.stress_dforces(u.contiguous(), du, index, force_index, plan.num_slots,
+                                                   incidences, *_stress_args(group))
+    if group.model == "hooke":
+        return torch.ops.tensormass.tensor_hooke_forces(du, index, force_index, plan.num_slots, incidences,
+                                                        group.edge_k.contiguous(), group.vertex_k.contiguous())
+    return torch.ops.tensormass.tensor_stvk_dforces(u.contiguous(), du, index, force_index, plan.num_slots,
+                                                    incidences, *_stvk_tensors(group))
