@@ -12,7 +12,9 @@ hooke and stvk, stress form and tensor form. Ops timed (DESIGN.md section 2):
     forces   k1 + k2 in one op call (torch: ops.forces with TENSORMASS_BACKEND=torch)
     dforces  the same pair with DForce(): (dF/du) du
 
-Times: CUDA events around each call (CPU: perf_counter), after warm-up, median of --repeat.
+Times: CUDA events around each call (CPU: perf_counter), after warm-up, median of --repeat;
+on CUDA both with the L2 cache flushed before each call ("time", what the floor models) and
+back to back ("warm"); see ``timer``.
 Bytes (the floor counts what an op must move: each input read once, each output written once;
 see ``op_bytes``), divided by the copy bandwidth measured here (a large device-to-device copy:
 bandwidth = 2 x bytes / time, read + write) give the floor; `x floor` = time / floor.
@@ -50,15 +52,31 @@ T = None  # torch.ops.tensormass once loaded
 
 
 def timer(device, warmup, repeat):
-    cuda = torch.device(device).type == "cuda"
+    """run(fn, cold) -> median seconds of one call.
 
-    def run(fn):
+    CUDA: events around each call. A sleep kernel first keeps the GPU busy while the CPU queues
+    all the calls, so the events time the kernels back to back, not the Python launch overhead.
+    warm: calls back to back (the inputs of the beam's ops, ~30-50 MB, largely stay in the 50 MB
+    L2 of an H100, as they would between the products of one CG solve); cold: a 256 MB buffer
+    is rewritten before each call (not timed), so every byte comes from DRAM: the case the
+    copy-bandwidth floor models. CPU: perf_counter around each call (cold = warm).
+    """
+    cuda = torch.device(device).type == "cuda"
+    flush = torch.empty(64 << 20, dtype=torch.float32, device=device) if cuda else None
+
+    def run(fn, cold=False):
         for _ in range(warmup):
             fn()
         if cuda:
             torch.cuda.synchronize()
+            try:
+                torch.cuda._sleep(100_000_000)  # ~50 ms: time for the CPU to queue every call
+            except (AttributeError, RuntimeError):
+                pass
             pairs = []
             for _ in range(repeat):
+                if cold:
+                    flush.zero_()
                 start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
                 start.record()
                 fn()
@@ -83,7 +101,7 @@ def copy_bandwidth(device, run, nbytes=1 << 30):
         nbytes = min(nbytes, 1 << 28)
     src = torch.empty(nbytes // 4, dtype=torch.float32, device=device).fill_(1.0)
     dst = torch.empty_like(src)
-    seconds = run(lambda: dst.copy_(src))
+    seconds = run(lambda: dst.copy_(src), cold=True)
     return 2.0 * nbytes / seconds
 
 
@@ -195,11 +213,19 @@ def torch_ops(group, u, du):
 
 
 def git_commit():
+    """Short commit of the tree (+"-dirty" when it has changes), else $TENSORMASS_COMMIT (for a
+    copy of the tree without .git), else None."""
+    here = Path(__file__).resolve().parent
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent).stdout.strip() or None
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=here).stdout.strip()
+        if commit:
+            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                   text=True, cwd=here).stdout.strip()
+            return commit + ("-dirty" if dirty else "")
     except OSError:
-        return None
+        pass
+    return os.environ.get("TENSORMASS_COMMIT") or None
 
 
 def markdown(meta, rows):
@@ -210,17 +236,22 @@ def markdown(meta, rows):
         f"copy bandwidth {meta['copy_bandwidth_GBps']:.0f} GB/s; torch {meta['torch']}; commit {meta['commit']}; "
         f"{meta['date']}",
         "",
-        "| model | form | op | backend | time (us) | MB | floor (us) | x floor | x floor (incl. PF) | torch / ext |",
-        "|---|---|---|---|---:|---:|---:|---:|---:|---:|",
+        "time: median, L2 flushed before each call (cold); warm: back to back, L2 warm. x floor = time / "
+        "(MB / copy bandwidth); incl. PF: the floor of the fused ops counting the PartialForce round trip.",
+        "",
+        "| model | form | op | backend | time (us) | warm (us) | MB | floor (us) | x floor | x floor (incl. PF) "
+        "| torch / ext |",
+        "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         if "error" in r:
             lines.append(f"| {r['model']} | {r['form']} | {r['op']} | {r['backend']} | error: {r['error']} |"
-                         " | | | | |")
+                         " | | | | | |")
             continue
         speed = f"{r['torch_over_ext']:.1f}" if r.get("torch_over_ext") else ""
         lines.append(
-            f"| {r['model']} | {r['form']} | {r['op']} | {r['backend']} | {r['time_us']:.1f} | {r['bytes'] / 1e6:.1f} "
+            f"| {r['model']} | {r['form']} | {r['op']} | {r['backend']} | {r['time_us']:.1f} | {r['warm_us']:.1f} "
+            f"| {r['bytes'] / 1e6:.1f} "
             f"| {r['floor_us']:.1f} | {r['x_floor']:.2f} | {r['x_floor_incl_partial']:.2f} | {speed} |")
     return "\n".join(lines) + "\n"
 
@@ -287,14 +318,15 @@ def main(argv=None):
                 for op in ("k1", "k2", "forces", "dforces"):
                     row = {"model": model, "form": form, "op": op, "backend": backend}
                     try:
-                        seconds = run(fns[op])
+                        warm = run(fns[op])
+                        seconds = run(fns[op], cold=True) if cuda else warm
                     except Exception as exc:  # e.g. out of memory on the torch path: say so, go on
                         row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
                         rows.append(row)
                         continue
                     nbytes, with_partial = op_bytes(group, op, s, ix)
                     floor = nbytes / bandwidth
-                    row.update(time_us=seconds * 1e6, bytes=nbytes, bytes_incl_partial=with_partial,
+                    row.update(time_us=seconds * 1e6, warm_us=warm * 1e6, bytes=nbytes, bytes_incl_partial=with_partial,
                                floor_us=floor * 1e6, x_floor=seconds / floor,
                                x_floor_incl_partial=seconds / (with_partial / bandwidth), index_bytes=ix)
                     timed[(backend, op)] = seconds

@@ -22,6 +22,7 @@
 #pragma once
 
 #include <cstdint>
+#include <cstring>
 
 #include "element_math.h"
 
@@ -42,23 +43,29 @@ struct Loader {
   TM_HD T operator()(const T* p) const { return ld(p); }
 };
 
-// Load K contiguous values starting at p into out. On the GPU, with 16-byte vector loads when
-// K * sizeof(T) is a multiple of 16 and p is 16-byte aligned (a runtime check, uniform across a
-// warp for the per-element blocks of contiguous tensors).
+// Load 16 bytes (16 / sizeof(T) values) from a 16-byte aligned p: one vector load on the GPU.
+template <typename T>
+TM_HD void load16(const T* p, T* out) {
+#if defined(__CUDA_ARCH__)
+  const int4 v = __ldg(reinterpret_cast<const int4*>(p));
+  const T* t = reinterpret_cast<const T*>(&v);
+  TM_UNROLL for (int k = 0; k < int(16 / sizeof(T)); ++k) out[k] = t[k];
+#else
+  std::memcpy(out, p, 16);
+#endif
+}
+
+// Load K contiguous values starting at p into out: with 16-byte loads when K * sizeof(T) is a
+// multiple of 16 and p is 16-byte aligned (a runtime check, uniform across a warp for the
+// per-element blocks of contiguous tensors), else one value at a time. The same path runs on
+// the CPU (memcpy), so the CPU tests exercise its indexing.
 template <int K, typename T>
 TM_HD void load_block(const T* p, T (&out)[K]) {
-#if defined(__CUDA_ARCH__)
+  constexpr int kPer = int(16 / sizeof(T));
   if ((K * sizeof(T)) % 16 == 0 && (reinterpret_cast<uintptr_t>(p) & 15) == 0) {
-    constexpr int kPer = 16 / sizeof(T);
-    const int4* q = reinterpret_cast<const int4*>(p);
-    TM_UNROLL for (int i = 0; i < (K * (int)sizeof(T)) / 16; ++i) {
-      const int4 v = __ldg(q + i);
-      const T* t = reinterpret_cast<const T*>(&v);
-      TM_UNROLL for (int k = 0; k < kPer; ++k) out[i * kPer + k] = t[k];
-    }
+    TM_UNROLL for (int i = 0; i < K / kPer; ++i) load16<T>(p + i * kPer, out + i * kPer);
     return;
   }
-#endif
   TM_UNROLL for (int k = 0; k < K; ++k) out[k] = ld(p + k);
 }
 

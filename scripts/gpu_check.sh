@@ -10,6 +10,7 @@
 # next steps still run; the exit status is non-zero if any step failed.
 #
 #   OUT=/some/dir bash scripts/gpu_check.sh            # OUT defaults to ./out/gpu_check
+#   TENSORMASS_COMMIT=$(git rev-parse --short HEAD) ... # names the commit when the copy has no .git
 # Switches: PYTHON (python3), TORCH_CUDA_ARCH_LIST (9.0), MAX_JOBS (16), CUDA_HOME (/usr/local/cuda),
 #           GPU_CHECK_PYTEST_ARGS (extra pytest arguments), GPU_CHECK_BENCH_ARGS (extra benchmark
 #           arguments), GPU_CHECK_SKIP_BUILD=1 (use the extension already built),

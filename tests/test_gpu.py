@@ -46,7 +46,7 @@ pytestmark = pytest.mark.skipif(native is None, reason="needs a CUDA device and 
 needs_cuda = pytest.mark.skipif(DEVICE != "cuda", reason="dry run on the CPU: no streams or graphs")
 
 if native is not None:  # the helpers of the CPU tests
-    from test_native_ops import displacements, make_group, op_calls, rel, used_slots
+    from test_native_ops import displacements, make_group, op_calls, rel, tol, used_slots
 
 T = torch.ops.tensormass
 CASES = [pytest.param(k, m, f, id=f"{k}-{m}-{f}") for k in KINDS for m in MODELS for f in ("stress", "tensor")]
@@ -63,10 +63,6 @@ def to(args, device=None, dtype=None):
             a = a.contiguous()
         out.append(a)
     return out
-
-
-def tol(dtype):
-    return 1e-12 if dtype == torch.float64 else 3e-5
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
@@ -86,8 +82,8 @@ def test_cuda_ops_match_cpu_and_reference(kind, model, form, dtype, rng):
             cpu = used_slots(name, cpu_args, getattr(T, name)(*cpu_args))
             gpu = used_slots(name, gpu_args, getattr(T, name)(*gpu_args))
             assert gpu.device.type == DEVICE and gpu.dtype == dtype and gpu.shape == ref.shape, name
-            assert rel(gpu.cpu(), ref) < tol(dtype), (name, index_dtype, rel(gpu.cpu(), ref))
-            assert rel(gpu.cpu(), cpu) < tol(dtype), (name, index_dtype)
+            assert rel(gpu.cpu(), ref) < tol(dtype, group), (name, index_dtype, rel(gpu.cpu(), ref))
+            assert rel(gpu.cpu(), cpu) < tol(dtype, group), (name, index_dtype, rel(gpu.cpu(), cpu))
 
 
 @pytest.mark.parametrize("form", ("stress", "tensor"))
@@ -116,7 +112,7 @@ def test_cuda_bitwise_deterministic(model, form, rng):
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
 @pytest.mark.parametrize("kind,model,form", CASES)
 def test_cuda_model_matches_torch_backend(kind, model, form, dtype, rng, monkeypatch):
-    tm, _, scene = make_group(rng, kind, model, form, dtype)
+    tm, group, scene = make_group(rng, kind, model, form, dtype)
     tm = tm.to(DEVICE)
     u, du = displacements(rng, scene, dtype)
     x = (scene.rest.to(dtype) + u).to(DEVICE)
@@ -130,7 +126,7 @@ def test_cuda_model_matches_torch_backend(kind, model, form, dtype, rng, monkeyp
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
     ref = run()
     for a, b in zip(ext, ref):
-        assert a.device.type == DEVICE and rel(a, b) < tol(dtype)
+        assert a.device.type == DEVICE and rel(a, b) < tol(dtype, group)
 
 
 @pytest.mark.parametrize("kind,model,form", CASES)

