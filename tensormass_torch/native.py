@@ -267,7 +267,6 @@ def _element_cotangent(name, inputs, grad):
     """The cotangent of the element-level output ``[N, n, d]`` (the ops linear in (lam, mu))."""
     if "_element_" in name:
         return grad
-    u = inputs[0]
     elements = inputs[2] if "dforces" in name else inputs[1]
     if "_partial_" in name:
         force_index = inputs[3] if "dforces" in name else inputs[2]

@@ -44,8 +44,13 @@ def _native(group, u: torch.Tensor):
     return native
 
 
-def _native_gather(partial: torch.Tensor):
-    if partial.dtype not in (torch.float32, torch.float64) or not _backend.use_extension(partial.device):
+def _native_gather(partial: torch.Tensor, plan: GatherPlan, node_term):
+    """The module of the compiled ops when they should run this gather, else None."""
+    if (partial.dtype not in (torch.float32, torch.float64) or partial.dim() != 3
+            or partial.shape[1] not in (2, 3, 4) or partial.shape[2] not in (2, 3)
+            or plan.index.device != partial.device
+            or (node_term is not None and (node_term.dtype != partial.dtype or node_term.device != partial.device))
+            or not _backend.use_extension(partial.device)):
         return None
     from . import native
 
@@ -83,8 +88,8 @@ def element_dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
 
 def node_gather(partial: torch.Tensor, plan: GatherPlan, node_term: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Kernel 2: ``[N, n, d]`` partial forces -> ``[V, d]`` totals (+ ``node_term [V, d]``)."""
-    native = _native_gather(partial)
-    if native is not None and (node_term is None or node_term.dtype == partial.dtype):
+    native = _native_gather(partial, plan, node_term)
+    if native is not None:
         return native.node_gather(partial, plan, node_term)
     return ref_gather.node_gather(partial, plan.index, plan.force_index, plan.num_slots, plan.num_nodes, node_term)
 
