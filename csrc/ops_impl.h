@@ -10,6 +10,7 @@
 #include <c10/util/Optional.h>
 
 #include <cstdint>
+#include <string>
 #include <type_traits>
 
 #include "kernels.h"
@@ -21,31 +22,43 @@ using IC = std::integral_constant<int, V>;
 
 // ------------------------------------------------------------------ checks
 
+// "[a, b, c]". Error messages format shapes with this rather than streaming an IntArrayRef:
+// on the GPU machine (torch 2.11, CUDA build) streaming sizes() inside TORCH_CHECK crashed the
+// process (SIGSEGV) instead of raising, while the same message without it raised cleanly.
+inline std::string shape_str(at::IntArrayRef shape) {
+  std::string out = "[";
+  for (size_t i = 0; i < shape.size(); ++i) {
+    if (i) out += ", ";
+    out += std::to_string(shape[i]);
+  }
+  return out + "]";
+}
+
 inline void check_float_tensor(const at::Tensor& t, const char* name, const at::Tensor& like,
                                at::IntArrayRef shape) {
   TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
-  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device(), " but u is on ",
-              like.device());
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but u is on ",
+              like.device().str());
   TORCH_CHECK(t.scalar_type() == like.scalar_type(), "tensormass: ", name, " is ", t.scalar_type(),
               " but u is ", like.scalar_type(), " (all floating inputs must have one dtype)");
-  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", t.sizes(), "; expected ", shape);
+  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", shape_str(t.sizes()), "; expected ", shape_str(shape));
   TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
 }
 
 inline void check_index_tensor(const at::Tensor& t, const char* name, const at::Tensor& like,
                                at::ScalarType index_type, at::IntArrayRef shape) {
   TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
-  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device(), " but u is on ",
-              like.device());
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but u is on ",
+              like.device().str());
   TORCH_CHECK(t.scalar_type() == index_type, "tensormass: ", name, " is ", t.scalar_type(), "; expected ",
               index_type, " (index tensors must all be int32 or all int64)");
-  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", t.sizes(), "; expected ", shape);
+  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", shape_str(t.sizes()), "; expected ", shape_str(shape));
   TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
 }
 
 inline void check_values(const at::Tensor& u, const char* name) {
   TORCH_CHECK(u.defined(), "tensormass: ", name, " is undefined");
-  TORCH_CHECK(u.dim() == 2, "tensormass: ", name, " must be [V, d], got shape ", u.sizes());
+  TORCH_CHECK(u.dim() == 2, "tensormass: ", name, " must be [V, d], got shape ", shape_str(u.sizes()));
   TORCH_CHECK(u.scalar_type() == at::kFloat || u.scalar_type() == at::kDouble, "tensormass: ", name,
               " must be float32 or float64, got ", u.scalar_type());
   TORCH_CHECK(u.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
@@ -153,7 +166,7 @@ struct StressArgs {
     num_nodes = u.size(0);
     dim = u.size(1);
     index_type = index_type_of(elements, "elements");
-    TORCH_CHECK(elements.dim() == 2, "tensormass: elements must be [N, n], got shape ", elements.sizes());
+    TORCH_CHECK(elements.dim() == 2, "tensormass: elements must be [N, n], got shape ", shape_str(elements.sizes()));
     num_elements = elements.size(0);
     nodes_per_element = elements.size(1);
     check_index_tensor(elements, "elements", u, index_type, {num_elements, nodes_per_element});
@@ -358,16 +371,16 @@ at::Tensor stress_dforces(const at::Tensor& u, const at::Tensor& du, const at::T
 template <class L>
 at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidences,
                           const c10::optional<at::Tensor>& node_term) {
-  TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N_n, V, d], got shape ", partial.sizes());
+  TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N_n, V, d], got shape ", shape_str(partial.sizes()));
   TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
               "tensormass: partial must be float32 or float64, got ", partial.scalar_type());
   TORCH_CHECK(partial.is_contiguous(), "tensormass: partial must be contiguous (call .contiguous())");
   const int64_t num_nodes = partial.size(1), dim = partial.size(2);
   index_type_of(incidences, "incidences");
-  TORCH_CHECK(incidences.device() == partial.device(), "tensormass: incidences is on ", incidences.device(),
-              " but partial is on ", partial.device());
+  TORCH_CHECK(incidences.device() == partial.device(), "tensormass: incidences is on ", incidences.device().str(),
+              " but partial is on ", partial.device().str());
   TORCH_CHECK(incidences.sizes() == at::IntArrayRef({num_nodes}), "tensormass: incidences has shape ",
-              incidences.sizes(), "; expected [", num_nodes, "]");
+              shape_str(incidences.sizes()), "; expected [", num_nodes, "]");
   TORCH_CHECK(incidences.is_contiguous(), "tensormass: incidences must be contiguous");
   at::Tensor term;
   if (node_term.has_value() && node_term->defined()) {
@@ -375,7 +388,7 @@ at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidence
     TORCH_CHECK(term.device() == partial.device() && term.scalar_type() == partial.scalar_type(),
                 "tensormass: node_term must have the dtype and device of partial");
     TORCH_CHECK(term.sizes() == at::IntArrayRef({num_nodes, dim}), "tensormass: node_term has shape ",
-                term.sizes(), "; expected [", num_nodes, ", ", dim, "]");
+                shape_str(term.sizes()), "; expected [", num_nodes, ", ", dim, "]");
     TORCH_CHECK(term.is_contiguous(), "tensormass: node_term must be contiguous");
   }
   typename L::Guard guard(partial.device());
@@ -389,24 +402,24 @@ at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidence
 template <class L>
 at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const at::Tensor& force_index,
                        int64_t num_slots, const at::Tensor& incidences, const c10::optional<at::Tensor>& node_term) {
-  TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N, n, d], got shape ", partial.sizes());
+  TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N, n, d], got shape ", shape_str(partial.sizes()));
   TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
               "tensormass: partial must be float32 or float64, got ", partial.scalar_type());
   TORCH_CHECK(partial.is_contiguous(), "tensormass: partial must be contiguous (call .contiguous())");
   const int64_t n_items = partial.size(0), nn = partial.size(1), dim = partial.size(2);
   const at::ScalarType index_type = index_type_of(index, "index");
   const int64_t num_nodes = incidences.dim() == 1 ? incidences.size(0) : -1;
-  TORCH_CHECK(num_nodes >= 0, "tensormass: incidences must be [V], got shape ", incidences.sizes());
+  TORCH_CHECK(num_nodes >= 0, "tensormass: incidences must be [V], got shape ", shape_str(incidences.sizes()));
   TORCH_CHECK(index.device() == partial.device() && force_index.device() == partial.device() &&
                   incidences.device() == partial.device(),
-              "tensormass: index, force_index and incidences must be on the device of partial (", partial.device(),
+              "tensormass: index, force_index and incidences must be on the device of partial (", partial.device().str(),
               ")");
   TORCH_CHECK(index.scalar_type() == index_type && force_index.scalar_type() == index_type &&
                   incidences.scalar_type() == index_type,
               "tensormass: index, force_index and incidences must have one dtype (int32 or int64)");
   TORCH_CHECK(index.sizes() == at::IntArrayRef({n_items, nn}) && force_index.sizes() == index.sizes(),
-              "tensormass: index and force_index must be [N, n] = ", at::IntArrayRef({n_items, nn}), ", got ",
-              index.sizes(), " and ", force_index.sizes());
+              "tensormass: index and force_index must be [N, n] = [", n_items, ", ", nn, "], got ",
+              shape_str(index.sizes()), " and ", shape_str(force_index.sizes()));
   TORCH_CHECK(index.is_contiguous() && force_index.is_contiguous() && incidences.is_contiguous(),
               "tensormass: index, force_index and incidences must be contiguous");
   TORCH_CHECK(num_slots >= 0 && (n_items == 0 || num_slots > 0), "tensormass: bad num_slots ", num_slots);
@@ -416,7 +429,7 @@ at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const
     TORCH_CHECK(term.device() == partial.device() && term.scalar_type() == partial.scalar_type(),
                 "tensormass: node_term must have the dtype and device of partial");
     TORCH_CHECK(term.sizes() == at::IntArrayRef({num_nodes, dim}), "tensormass: node_term has shape ",
-                term.sizes(), "; expected [", num_nodes, ", ", dim, "]");
+                shape_str(term.sizes()), "; expected [", num_nodes, ", ", dim, "]");
     TORCH_CHECK(term.is_contiguous(), "tensormass: node_term must be contiguous");
   }
   typename L::Guard guard(partial.device());
@@ -467,7 +480,7 @@ struct HookeTensorArgs {
     dim = u.size(1);
     index_type = index_type_of(edges, "edges");
     TORCH_CHECK(edges.dim() == 2 && edges.size(1) == 2, "tensormass: edges must be [Ed, 2], got shape ",
-                edges.sizes());
+                shape_str(edges.sizes()));
     num_edges = edges.size(0);
     check_index_tensor(edges, "edges", u, index_type, {num_edges, 2});
     check_float_tensor(edge_k, "edge_k", u, {num_edges, dim, dim});
@@ -547,7 +560,7 @@ struct StvkTensorArgs {
     check_values(u, "u");
     dim = u.size(1);
     index_type = index_type_of(elements, "elements");
-    TORCH_CHECK(elements.dim() == 2, "tensormass: elements must be [N, n], got shape ", elements.sizes());
+    TORCH_CHECK(elements.dim() == 2, "tensormass: elements must be [N, n], got shape ", shape_str(elements.sizes()));
     num_elements = elements.size(0);
     const int64_t n = nodes_per_element = elements.size(1);
     check_index_tensor(elements, "elements", u, index_type, {num_elements, n});
