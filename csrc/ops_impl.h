@@ -22,9 +22,12 @@ using IC = std::integral_constant<int, V>;
 
 // ------------------------------------------------------------------ checks
 
-// "[a, b, c]". Error messages format shapes with this rather than streaming an IntArrayRef:
-// on the GPU machine (torch 2.11, CUDA build) streaming sizes() inside TORCH_CHECK crashed the
-// process (SIGSEGV) instead of raising, while the same message without it raised cleanly.
+// Error messages format shapes, dtypes and devices with these plain-string helpers instead of
+// streaming c10 types into TORCH_CHECK: on the GPU machine (torch 2.11, CUDA build) a check
+// streaming sizes() crashed the process (SIGSEGV) instead of raising, where the same check with
+// its message built from strings raised cleanly.
+inline const char* dtype_str(at::ScalarType t) { return c10::toString(t); }
+
 inline std::string shape_str(at::IntArrayRef shape) {
   std::string out = "[";
   for (size_t i = 0; i < shape.size(); ++i) {
@@ -39,8 +42,8 @@ inline void check_float_tensor(const at::Tensor& t, const char* name, const at::
   TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
   TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but u is on ",
               like.device().str());
-  TORCH_CHECK(t.scalar_type() == like.scalar_type(), "tensormass: ", name, " is ", t.scalar_type(),
-              " but u is ", like.scalar_type(), " (all floating inputs must have one dtype)");
+  TORCH_CHECK(t.scalar_type() == like.scalar_type(), "tensormass: ", name, " is ", dtype_str(t.scalar_type()),
+              " but u is ", dtype_str(like.scalar_type()), " (all floating inputs must have one dtype)");
   TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", shape_str(t.sizes()), "; expected ", shape_str(shape));
   TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
 }
@@ -50,8 +53,8 @@ inline void check_index_tensor(const at::Tensor& t, const char* name, const at::
   TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
   TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but u is on ",
               like.device().str());
-  TORCH_CHECK(t.scalar_type() == index_type, "tensormass: ", name, " is ", t.scalar_type(), "; expected ",
-              index_type, " (index tensors must all be int32 or all int64)");
+  TORCH_CHECK(t.scalar_type() == index_type, "tensormass: ", name, " is ", dtype_str(t.scalar_type()), "; expected ",
+              dtype_str(index_type), " (index tensors must all be int32 or all int64)");
   TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", shape_str(t.sizes()), "; expected ", shape_str(shape));
   TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
 }
@@ -60,14 +63,14 @@ inline void check_values(const at::Tensor& u, const char* name) {
   TORCH_CHECK(u.defined(), "tensormass: ", name, " is undefined");
   TORCH_CHECK(u.dim() == 2, "tensormass: ", name, " must be [V, d], got shape ", shape_str(u.sizes()));
   TORCH_CHECK(u.scalar_type() == at::kFloat || u.scalar_type() == at::kDouble, "tensormass: ", name,
-              " must be float32 or float64, got ", u.scalar_type());
+              " must be float32 or float64, got ", dtype_str(u.scalar_type()));
   TORCH_CHECK(u.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
 }
 
 inline at::ScalarType index_type_of(const at::Tensor& t, const char* name) {
   TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
   TORCH_CHECK(t.scalar_type() == at::kLong || t.scalar_type() == at::kInt, "tensormass: ", name,
-              " must be int64 or int32, got ", t.scalar_type());
+              " must be int64 or int32, got ", dtype_str(t.scalar_type()));
   return t.scalar_type();
 }
 
@@ -80,7 +83,7 @@ void dispatch_scalar(at::ScalarType t, F&& f) {
   } else if (t == at::kFloat) {
     f(float{});
   } else {
-    TORCH_CHECK(false, "tensormass: unsupported dtype ", t, " (float32 or float64)");
+    TORCH_CHECK(false, "tensormass: unsupported dtype ", dtype_str(t), " (float32 or float64)");
   }
 }
 
@@ -91,7 +94,7 @@ void dispatch_index(at::ScalarType t, F&& f) {
   } else if (t == at::kInt) {
     f(int32_t{});
   } else {
-    TORCH_CHECK(false, "tensormass: unsupported index dtype ", t, " (int32 or int64)");
+    TORCH_CHECK(false, "tensormass: unsupported index dtype ", dtype_str(t), " (int32 or int64)");
   }
 }
 
@@ -373,7 +376,7 @@ at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidence
                           const c10::optional<at::Tensor>& node_term) {
   TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N_n, V, d], got shape ", shape_str(partial.sizes()));
   TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
-              "tensormass: partial must be float32 or float64, got ", partial.scalar_type());
+              "tensormass: partial must be float32 or float64, got ", dtype_str(partial.scalar_type()));
   TORCH_CHECK(partial.is_contiguous(), "tensormass: partial must be contiguous (call .contiguous())");
   const int64_t num_nodes = partial.size(1), dim = partial.size(2);
   index_type_of(incidences, "incidences");
@@ -404,7 +407,7 @@ at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const
                        int64_t num_slots, const at::Tensor& incidences, const c10::optional<at::Tensor>& node_term) {
   TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N, n, d], got shape ", shape_str(partial.sizes()));
   TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
-              "tensormass: partial must be float32 or float64, got ", partial.scalar_type());
+              "tensormass: partial must be float32 or float64, got ", dtype_str(partial.scalar_type()));
   TORCH_CHECK(partial.is_contiguous(), "tensormass: partial must be contiguous (call .contiguous())");
   const int64_t n_items = partial.size(0), nn = partial.size(1), dim = partial.size(2);
   const at::ScalarType index_type = index_type_of(index, "index");
