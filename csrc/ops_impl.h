@@ -22,10 +22,11 @@ using IC = std::integral_constant<int, V>;
 
 // ------------------------------------------------------------------ checks
 
-// Error messages format shapes, dtypes and devices with these plain-string helpers instead of
-// streaming c10 types into TORCH_CHECK: on the GPU machine (torch 2.11, CUDA build) a check
-// streaming sizes() crashed the process (SIGSEGV) instead of raising, where the same check with
-// its message built from strings raised cleanly.
+// Error messages pass only strings to TORCH_CHECK (std::to_string for numbers, these helpers
+// for shapes, dtypes and devices): on the GPU machine (torch 2.11, CUDA build) every check that
+// streamed an integer (directly or inside sizes()) crashed the process with SIGSEGV instead of
+// raising, while checks whose message held only strings raised cleanly. Integer formatting
+// through an ostream there goes through locale facets that did not survive; to_string does not.
 inline const char* dtype_str(at::ScalarType t) { return c10::toString(t); }
 
 inline std::string shape_str(at::IntArrayRef shape) {
@@ -105,7 +106,7 @@ void dispatch_model(int64_t model, F&& f) {
   } else if (model == kStvk) {
     f(IC<kStvk>{});
   } else {
-    TORCH_CHECK(false, "tensormass: unknown model id ", model, " (0 = hooke, 1 = stvk)");
+    TORCH_CHECK(false, "tensormass: unknown model id ", std::to_string(model), " (0 = hooke, 1 = stvk)");
   }
 }
 
@@ -120,7 +121,7 @@ void dispatch_kind(int64_t nn, int64_t d, F&& f) {
   } else if (nn == 3 && d == 3) {
     f(IC<3>{}, IC<3>{});
   } else {
-    TORCH_CHECK(false, "tensormass: unsupported element kind: ", nn, " nodes per element in dimension ", d,
+    TORCH_CHECK(false, "tensormass: unsupported element kind: ", std::to_string(nn), " nodes per element in dimension ", std::to_string(d),
                 " (tetrahedra in 3-D, triangles in 2-D or 3-D)");
   }
 }
@@ -132,7 +133,7 @@ void dispatch_dim(int64_t d, F&& f) {
   } else if (d == 2) {
     f(IC<2>{});
   } else {
-    TORCH_CHECK(false, "tensormass: unsupported dimension ", d, " (2 or 3)");
+    TORCH_CHECK(false, "tensormass: unsupported dimension ", std::to_string(d), " (2 or 3)");
   }
 }
 
@@ -186,7 +187,7 @@ struct StressArgs {
     const bool membrane = nodes_per_element - 1 < dim;
     const bool has_projector = projector.has_value() && projector->defined();
     TORCH_CHECK(has_projector == membrane, "tensormass: the projector must be given for membranes (triangles "
-                "in 3-D) and only for them (nodes per element ", nodes_per_element, ", dimension ", dim, ")");
+                "in 3-D) and only for them (nodes per element ", std::to_string(nodes_per_element), ", dimension ", std::to_string(dim), ")");
     if (has_projector) check_float_tensor(*projector, "projector", u, {num_elements, dim, dim});
   }
 
@@ -208,7 +209,7 @@ struct StressArgs {
 inline void check_plan(const at::Tensor& u, const at::Tensor& force_index, int64_t num_slots,
                        at::ScalarType index_type, at::IntArrayRef items_shape) {
   check_index_tensor(force_index, "force_index", u, index_type, items_shape);
-  TORCH_CHECK(num_slots >= 0, "tensormass: num_slots must be >= 0, got ", num_slots);
+  TORCH_CHECK(num_slots >= 0, "tensormass: num_slots must be >= 0, got ", std::to_string(num_slots));
   TORCH_CHECK(items_shape[0] == 0 || num_slots > 0, "tensormass: num_slots is 0 but there are items");
 }
 
@@ -383,7 +384,7 @@ at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidence
   TORCH_CHECK(incidences.device() == partial.device(), "tensormass: incidences is on ", incidences.device().str(),
               " but partial is on ", partial.device().str());
   TORCH_CHECK(incidences.sizes() == at::IntArrayRef({num_nodes}), "tensormass: incidences has shape ",
-              shape_str(incidences.sizes()), "; expected [", num_nodes, "]");
+              shape_str(incidences.sizes()), "; expected [", std::to_string(num_nodes), "]");
   TORCH_CHECK(incidences.is_contiguous(), "tensormass: incidences must be contiguous");
   at::Tensor term;
   if (node_term.has_value() && node_term->defined()) {
@@ -391,7 +392,7 @@ at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidence
     TORCH_CHECK(term.device() == partial.device() && term.scalar_type() == partial.scalar_type(),
                 "tensormass: node_term must have the dtype and device of partial");
     TORCH_CHECK(term.sizes() == at::IntArrayRef({num_nodes, dim}), "tensormass: node_term has shape ",
-                shape_str(term.sizes()), "; expected [", num_nodes, ", ", dim, "]");
+                shape_str(term.sizes()), "; expected [", std::to_string(num_nodes), ", ", std::to_string(dim), "]");
     TORCH_CHECK(term.is_contiguous(), "tensormass: node_term must be contiguous");
   }
   typename L::Guard guard(partial.device());
@@ -421,18 +422,18 @@ at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const
                   incidences.scalar_type() == index_type,
               "tensormass: index, force_index and incidences must have one dtype (int32 or int64)");
   TORCH_CHECK(index.sizes() == at::IntArrayRef({n_items, nn}) && force_index.sizes() == index.sizes(),
-              "tensormass: index and force_index must be [N, n] = [", n_items, ", ", nn, "], got ",
+              "tensormass: index and force_index must be [N, n] = [", std::to_string(n_items), ", ", std::to_string(nn), "], got ",
               shape_str(index.sizes()), " and ", shape_str(force_index.sizes()));
   TORCH_CHECK(index.is_contiguous() && force_index.is_contiguous() && incidences.is_contiguous(),
               "tensormass: index, force_index and incidences must be contiguous");
-  TORCH_CHECK(num_slots >= 0 && (n_items == 0 || num_slots > 0), "tensormass: bad num_slots ", num_slots);
+  TORCH_CHECK(num_slots >= 0 && (n_items == 0 || num_slots > 0), "tensormass: bad num_slots ", std::to_string(num_slots));
   at::Tensor term;
   if (node_term.has_value() && node_term->defined()) {
     term = *node_term;
     TORCH_CHECK(term.device() == partial.device() && term.scalar_type() == partial.scalar_type(),
                 "tensormass: node_term must have the dtype and device of partial");
     TORCH_CHECK(term.sizes() == at::IntArrayRef({num_nodes, dim}), "tensormass: node_term has shape ",
-                shape_str(term.sizes()), "; expected [", num_nodes, ", ", dim, "]");
+                shape_str(term.sizes()), "; expected [", std::to_string(num_nodes), ", ", std::to_string(dim), "]");
     TORCH_CHECK(term.is_contiguous(), "tensormass: node_term must be contiguous");
   }
   typename L::Guard guard(partial.device());
@@ -461,7 +462,7 @@ at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const
         } else if (nn == 2) {
           launch(IC<2>{}, d_c);
         } else {
-          TORCH_CHECK(false, "tensormass: node_gather supports 2, 3 or 4 nodes per item, got ", nn);
+          TORCH_CHECK(false, "tensormass: node_gather supports 2, 3 or 4 nodes per item, got ", std::to_string(nn));
         }
       });
     });
