@@ -67,7 +67,9 @@ def main(argv=None):
     args = parser.parse_args(argv)
     scenes = {"sofa_beam": sofa, "paper_beam": paper_beam}
     device_name = torch.cuda.get_device_name() if torch.device(args.device).type == "cuda" else "cpu"
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    # The GPU machine's copy of the tree has no .git: scripts pass the commit in TENSORMASS_COMMIT.
+    commit = os.environ.get("TENSORMASS_COMMIT") or subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     records = []
     for scene in args.scenes.split(","):
         models = ["hooke"] if scene == "sofa_beam" else ["hooke", "stvk"]
