@@ -12,14 +12,20 @@ from .groups import FORMS, ElementGroup
 from .materials import Material
 from .topology import incidence_slots, padded_sum
 
-#: The form ``form="auto"`` picks for each model. Both forms agree to rounding; the stress form
-#: reads far fewer bytes per element (see benchmarks/), so it is the default for both models.
-AUTO_FORM = {"hooke": "stress", "stvk": "stress"}
+#: The form ``form="auto"`` picks for each model, measured (benchmarks/results/2026-11-22-h200,
+#: ops_bench): ``hooke`` in Cotin's vertex/edge tensors reads 23 MB instead of 30 MB on the
+#: 307,200-tet beam and runs its forces in 39 us instead of 65 us on an H200 (4x faster on the
+#: CPU extension, 5x on the torch path); ``stvk`` in Picinbono's element tensors reads 25x more
+#: than its stress form and is 11x slower, and loses precision under large motions in float32.
+AUTO_FORM = {"hooke": "tensor", "stvk": "stress"}
 
 
-def _resolve_form(form: str, model: str) -> str:
+def _resolve_form(form: str, material) -> str:
     if form == "auto":
-        return AUTO_FORM[model]
+        if any(isinstance(getattr(material, name), torch.Tensor) and getattr(material, name).requires_grad
+               for name in ("young", "poisson")):
+            return "stress"  # the tensor form precomputes: no gradient to material parameters
+        return AUTO_FORM[material.model]
     if form not in FORMS:
         raise MaterialError(f"unknown form {form!r}; expected 'auto', 'stress' or 'tensor'")
     return form
@@ -58,7 +64,7 @@ class TensorMass(nn.Module):
         masses = []
         for elements, material, kind in parts:
             n_elem = elements.shape[0]
-            model_form = _resolve_form(form, material.model)
+            model_form = _resolve_form(form, material)
             key = (kind, material.model, model_form)
             young = material.per_element("young", n_elem, like)
             poisson = material.per_element("poisson", n_elem, like)

@@ -57,3 +57,10 @@ def test_tensor_form_refuses_material_gradients():
     with pytest.raises(tm.MaterialError, match="form='stress'"):
         tm.TensorMass(mesh, tm.Material(young, 0.3), form="tensor")
     tm.TensorMass(mesh, tm.Material(young, 0.3), form="stress")
+
+
+def test_auto_form_is_stress_when_material_needs_gradients():
+    mesh = tm.beam_mesh(1, 1, 1, dtype=torch.float64)
+    assert tm.TensorMass(mesh, tm.Material(1e3, 0.3, model="hooke")).groups[0].form == "tensor"
+    young = torch.tensor(1e3, dtype=torch.float64, requires_grad=True)
+    assert tm.TensorMass(mesh, tm.Material(young, 0.3, model="hooke")).groups[0].form == "stress"
