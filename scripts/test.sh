@@ -4,13 +4,7 @@
 # "No tests collected" (pytest exit status 5) counts as a failure.
 set -euo pipefail
 
-PYTHON="${PYTHON:-python3}"
-if [[ "$PYTHON" == */* && "$PYTHON" != /* ]]; then PYTHON="$PWD/$PYTHON"; fi
-export PYTHON
-ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-cd "$ROOT"
-
-bash "$ROOT/scripts/install.sh"
+source "$(dirname "${BASH_SOURCE[0]}")/setup_env.sh"
 
 status=0
 "$PYTHON" -m pytest -q tests "$@" || status=$?
