@@ -256,6 +256,52 @@ struct GatherKernel {
   }
 };
 
+// Kernel 2 with the implicit-Euler system epilogue (the CG matvec of A = c_M M - c_K K):
+//   Ap[i] = free_i * (c_M m_i p_i - c_K sum_{s < incidences[i]} PartialForce[s][i])
+//   pAp[i] = sum_a p[i][a] Ap[i][a]       (per node; the per-object sum stays in torch)
+// PartialForce holds the partial force differentials (dF/du) p of kernel 1. The arithmetic
+// follows the torch expression (c_M m_i) p_i - c_K (K p)_i, then the projection, so that the
+// result equals the composed path to rounding (bitwise on the CPU).
+template <int D, typename S, typename I, bool HAS_FREE>
+struct SystemGatherKernel {
+  const S* partial;     // [N_n, V, D]
+  const I* incidences;  // [V]
+  const S* p;           // [V, D]
+  const S* mass;        // [V]
+  const S* free;        // [V] 0/1 (HAS_FREE)
+  S c_mass;
+  S c_stiff;
+  S* ap;                // [V, D]
+  S* p_dot_ap;          // [V]
+  int64_t num_nodes;
+
+  TM_HD void operator()(int64_t i) const {
+    S acc[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
+    const int64_t count = static_cast<int64_t>(ld(incidences + i));
+    const S* q = partial + i * D;
+    const int64_t stride = num_nodes * D;
+    for (int64_t s = 0; s < count; ++s) {
+      TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += ld(q + a);
+      q += stride;
+    }
+    const S m = c_mass * ld(mass + i);
+    S f = S(1);
+    if (HAS_FREE) f = ld(free + i);
+    S dot = S(0);
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      const S pa = ld(p + i * D + a);
+      const S mp = m * pa;
+      const S kp = c_stiff * acc[a];
+      S v = mp - kp;
+      if (HAS_FREE) v = v * f;
+      ap[i * D + a] = v;
+      dot += pa * v;
+    }
+    p_dot_ap[i] = dot;
+  }
+};
+
 // Scatter compact partial forces [N, NN, D] into the padded buffer (the write of kernel 1 for
 // partial forces computed elsewhere, e.g. by the reference or by the element-level ops).
 template <int NN, int D, typename S, typename I>

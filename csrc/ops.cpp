@@ -15,6 +15,8 @@
 //                             (slots >= incidences[i] are left uninitialised)
 //   kernel 2                  gather_partial(PartialForce, incidences) -> [V, d]
 //                             node_gather(partial [N, n, d], index, force_index, ...) -> [V, d]
+//                             gather_system(PartialForce, incidences, p, mass, free, c_M, c_K)
+//                               -> (Ap = free (c_M mass p - c_K K p) [V, d], p . Ap per node [V])
 //   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
 //                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
 #include <pybind11/pybind11.h>
@@ -59,6 +61,9 @@ TORCH_LIBRARY(tensormass, m) {
   m.def("gather_partial(Tensor partial, Tensor incidences, Tensor? node_term) -> Tensor");
   m.def("node_gather(Tensor partial, Tensor index, Tensor force_index, int num_slots, Tensor incidences, "
         "Tensor? node_term) -> Tensor");
+  // ---- kernel 2 + implicit-Euler system epilogue (the CG matvec; not differentiable)
+  m.def("gather_system(Tensor partial, Tensor incidences, Tensor p, Tensor mass, Tensor? free, float c_mass, "
+        "float c_stiff) -> (Tensor, Tensor)");
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

@@ -11,6 +11,7 @@
 
 #include <cstdint>
 #include <string>
+#include <tuple>
 #include <type_traits>
 
 #include "kernels.h"
@@ -470,6 +471,76 @@ at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const
   at::Tensor out = at::empty({num_nodes, dim}, partial.options());
   run_gather<L>(padded, incidences, term, at::Tensor(), at::Tensor(), out);
   return out;
+}
+
+// Kernel 2 with the implicit-Euler epilogue (SystemGatherKernel): from the padded partial force
+// differentials [N_n, V, d] of p, Ap = free * (c_mass * mass * p - c_stiff * K p) [V, d] and the
+// per-node dots p . Ap [V].
+inline void check_node_tensor(const at::Tensor& t, const char* name, const at::Tensor& partial,
+                              at::IntArrayRef shape) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.device() == partial.device(), "tensormass: ", name, " is on ", t.device().str(),
+              " but partial is on ", partial.device().str());
+  TORCH_CHECK(t.scalar_type() == partial.scalar_type(), "tensormass: ", name, " is ", dtype_str(t.scalar_type()),
+              " but partial is ", dtype_str(partial.scalar_type()), " (all floating inputs must have one dtype)");
+  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", shape_str(t.sizes()), "; expected ",
+              shape_str(shape));
+  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
+}
+
+template <class L>
+std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, const at::Tensor& incidences,
+                                                 const at::Tensor& p, const at::Tensor& mass,
+                                                 const c10::optional<at::Tensor>& free, double c_mass,
+                                                 double c_stiff) {
+  TORCH_CHECK(partial.defined(), "tensormass: partial is undefined");
+  TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N_n, V, d], got shape ", shape_str(partial.sizes()));
+  TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
+              "tensormass: partial must be float32 or float64, got ", dtype_str(partial.scalar_type()));
+  TORCH_CHECK(partial.is_contiguous(), "tensormass: partial must be contiguous (call .contiguous())");
+  const int64_t num_nodes = partial.size(1), dim = partial.size(2);
+  const at::ScalarType index_type = index_type_of(incidences, "incidences");
+  TORCH_CHECK(incidences.device() == partial.device(), "tensormass: incidences is on ", incidences.device().str(),
+              " but partial is on ", partial.device().str());
+  TORCH_CHECK(incidences.sizes() == at::IntArrayRef({num_nodes}), "tensormass: incidences has shape ",
+              shape_str(incidences.sizes()), "; expected [", std::to_string(num_nodes), "]");
+  TORCH_CHECK(incidences.is_contiguous(), "tensormass: incidences must be contiguous");
+  check_node_tensor(p, "p", partial, {num_nodes, dim});
+  check_node_tensor(mass, "mass", partial, {num_nodes});
+  at::Tensor fr;
+  if (free.has_value() && free->defined()) {
+    fr = *free;
+    check_node_tensor(fr, "free", partial, {num_nodes});
+  }
+  dispatch_dim(dim, [](auto) {});
+  typename L::Guard guard(partial.device());
+  at::Tensor ap = at::empty({num_nodes, dim}, partial.options());
+  at::Tensor p_dot_ap = at::empty({num_nodes}, partial.options());
+  dispatch_scalar(partial.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_dim(dim, [&](auto d_c) {
+        constexpr int D = decltype(d_c)::value;
+        dispatch_bool(fr.defined(), [&](auto free_c) {
+          constexpr bool HAS_FREE = decltype(free_c)::value;
+          SystemGatherKernel<D, S, I, HAS_FREE> k;
+          k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
+          k.incidences = incidences.data_ptr<I>();
+          k.p = p.data_ptr<S>();
+          k.mass = mass.data_ptr<S>();
+          k.free = HAS_FREE ? fr.data_ptr<S>() : nullptr;
+          k.c_mass = static_cast<S>(c_mass);
+          k.c_stiff = static_cast<S>(c_stiff);
+          k.ap = ap.data_ptr<S>();
+          k.p_dot_ap = p_dot_ap.data_ptr<S>();
+          k.num_nodes = num_nodes;
+          L::run(num_nodes, k, L::kNodeBlock);
+        });
+      });
+    });
+  });
+  return std::make_tuple(ap, p_dot_ap);
 }
 
 // ------------------------------------------------------------------ tensor form, hooke

@@ -36,6 +36,7 @@ template <class L>
 void register_gather_ops(torch::Library& m) {
   m.impl("gather_partial", &gather_partial<L>);
   m.impl("node_gather", &node_gather<L>);
+  m.impl("gather_system", &gather_system<L>);
 }
 
 }  // namespace tensormass

@@ -33,7 +33,7 @@ from .reference import gather as ref_gather
 from .reference import stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "element_forces",
-           "element_dforces", "node_gather", "forces", "dforces"]
+           "element_dforces", "node_gather", "forces", "dforces", "system_fusable", "system_matvec"]
 
 #: The ``model`` integer of the op schemas.
 MODEL_IDS = {"hooke": 0, "stvk": 1}
@@ -145,6 +145,15 @@ def _ref_node_gather(partial, index, force_index, num_slots, incidences, node_te
     return _gather(partial, index, force_index, num_slots, incidences, node_term)
 
 
+def _ref_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff):
+    """Kernel 2 + the implicit-Euler epilogue: Ap = free (c_mass mass p - c_stiff K p), p . Ap per node."""
+    kp = _ref_gather_partial(partial, incidences, None)
+    ap = (c_mass * mass.unsqueeze(-1)) * p - c_stiff * kp
+    if free is not None:
+        ap = ap * free.unsqueeze(-1)
+    return ap, (p * ap).sum(-1)
+
+
 REFERENCE = {
     "stress_element_forces": _ref_stress_element_forces,
     "stress_element_dforces": _ref_stress_element_dforces,
@@ -163,6 +172,7 @@ REFERENCE = {
     "tensor_stvk_dforces": _ref_tensor_stvk_dforces,
     "gather_partial": _ref_gather_partial,
     "node_gather": _ref_node_gather,
+    "gather_system": _ref_gather_system,
 }
 
 #: Every op of the library ``tensormass``.
@@ -205,6 +215,10 @@ def _fake_node_gather(partial, index, force_index, num_slots, incidences, node_t
     return partial.new_empty((incidences.shape[0], partial.shape[2]))
 
 
+def _fake_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff):
+    return (partial.new_empty((partial.shape[1], partial.shape[2])), partial.new_empty((partial.shape[1],)))
+
+
 FAKE = {
     "stress_element_forces": _fake_element,
     "stress_element_dforces": _fake_element_d,
@@ -223,6 +237,7 @@ FAKE = {
     "tensor_stvk_dforces": _fake_nodes,
     "gather_partial": _fake_gather_partial,
     "node_gather": _fake_node_gather,
+    "gather_system": _fake_gather_system,
 }
 
 # ----------------------------------------------------------------------------------------------
@@ -336,7 +351,21 @@ def _fast_gradients(name, inputs, grad, needs):
     return fast
 
 
+#: Ops without gradients (solver kernels, run under no grad): their backward raises.
+NOT_DIFFERENTIABLE = ("gather_system",)
+
+
+def _not_differentiable(name):
+    def backward(ctx, *grads):
+        raise RuntimeError(f"tensormass::{name} is not differentiable (a solver kernel): use the composed "
+                           "path (tensormass_torch.ops.system_matvec falls back to it when gradients are needed)")
+
+    return backward
+
+
 def _make_backward(name):
+    if name in NOT_DIFFERENTIABLE:
+        return _not_differentiable(name)
     def backward(ctx, grad):
         inputs = _inputs(ctx)
         needs = list(ctx.needs_input_grad)
@@ -374,6 +403,8 @@ def _register():
         if _registered:
             return
         for name in OPS:
+            if not hasattr(torch.ops.tensormass, name):  # an extension built before this op existed
+                continue
             qualname = "tensormass::" + name
             torch.library.register_fake(qualname, FAKE[name])
             torch.library.register_autograd(qualname, _make_backward(name), setup_context=_setup_context)
@@ -528,3 +559,36 @@ def dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
                                                         group.edge_k.contiguous(), group.vertex_k.contiguous())
     return torch.ops.tensormass.tensor_stvk_dforces(u.contiguous(), du, index, force_index, plan.num_slots,
                                                     incidences, *_stvk_tensors(group))
+
+
+def system_fusable(group) -> bool:
+    """Whether :func:`system_matvec` has a fused path for ``group``: kernel 1 through a padded
+    partial-dforce op (stress form, stvk tensor form; the hooke tensor form has a vertex term)."""
+    return (hasattr(torch.ops.tensormass, "gather_system")
+            and (group.form == "stress" or (group.form == "tensor" and group.model == "stvk")))
+
+
+def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
+                  c_mass: float, c_stiff: float):
+    """The CG matvec of implicit Euler for one group: kernel 1 (padded partial dforces along ``p``)
+    and kernel 2 with the system epilogue (``gather_system``). ``mass`` and ``free`` are ``[V]``
+    (``free`` float 0/1 or None). Returns (Ap ``[V, d]``, p . Ap per node ``[V]``)."""
+    u, p = u.contiguous(), p.contiguous()
+    plan = group.plan
+    index, force_index, incidences = _plan_indices(plan)
+    if group.form == "stress":
+        partial = torch.ops.tensormass.stress_partial_dforces(u, p, index, force_index, plan.num_slots,
+                                                              *_stress_args(group))
+    else:
+        partial = torch.ops.tensormass.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots,
+                                                                   *_stvk_tensors(group))
+    mass = mass.contiguous()
+    free = None if free is None else free.contiguous()
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (partial, p, mass, free)):
+        # gather_system has no gradient: the same arithmetic in differentiable ops
+        kp = torch.ops.tensormass.gather_partial(partial, incidences, None)
+        ap = (c_mass * mass.unsqueeze(-1)) * p - c_stiff * kp
+        if free is not None:
+            ap = ap * free.unsqueeze(-1)
+        return ap, (p * ap).sum(-1)
+    return torch.ops.tensormass.gather_system(partial, incidences, p, mass, free, float(c_mass), float(c_stiff))

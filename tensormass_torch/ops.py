@@ -5,6 +5,7 @@
     forces(group, u)                kernel 1 + kernel 2                     [V, d]
     dforces(group, u, du)           the same pair with DForce(): (dF/du) du [V, d]
     energy(group, u)                elastic energy                          scalar
+    system_matvec(groups, u, p, ...) implicit-Euler CG matvec: (Ap [V, d], p . Ap per node [V])
 
 ``u`` and ``du`` are global nodal displacements ``[V, d]``.
 
@@ -126,3 +127,38 @@ def energy(group, u: torch.Tensor) -> torch.Tensor:
     if group.model == "hooke":  # W = 1/2 u^T K u = -1/2 u . F(u)
         return -0.5 * (u * forces(group, u)).sum()
     return tensor_form.stvk_energy(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d).sum()
+
+
+def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
+                  c_mass: float, c_stiff: float):
+    """The CG matvec of implicit Euler, ``A p = c_mass M p - c_stiff K p`` projected on the free nodes.
+
+    Args:
+        groups: the model's element groups (``TensorMass.groups``); K p = sum of their ``dforces``.
+        u: displacements ``[V, d]`` (positions minus rest) where K is evaluated; p: ``[V, d]``.
+        mass: lumped masses ``[V]`` or ``[V, 1]``; free: ``[V]`` or ``[V, 1]`` float 0/1 mask, or None.
+    Returns:
+        (Ap ``[V, d]``, p . Ap per node ``[V]``) with ``Ap_i = free_i (c_mass m_i p_i - c_stiff (K p)_i)``.
+
+    Fused (kernel 1 = the group's padded partial-dforce op, kernel 2 = ``gather_system`` with the
+    mass term, subtraction, projection and per-node dot in its epilogue) when there is exactly one
+    group and the extension has its partial-dforce op for that device (stress form or stvk tensor
+    form) and mass/free share p's dtype and device; otherwise the composed reference below.
+    """
+    groups = list(groups)
+    mass_v = mass.reshape(-1)
+    free_v = None if free is None else free.reshape(-1)
+    if len(groups) == 1 and p.dtype == u.dtype and p.device == u.device and p.shape == u.shape:
+        native = _native(groups[0], u)
+        if (native is not None and native.system_fusable(groups[0])
+                and all(t is None or (t.dtype == u.dtype and t.device == u.device and t.shape[0] == u.shape[0])
+                        for t in (mass_v, free_v))):
+            return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff)
+    kp = None
+    for group in groups:
+        f = dforces(group, u, p)
+        kp = f if kp is None else kp + f
+    ap = (c_mass * mass_v.unsqueeze(-1)) * p - c_stiff * kp
+    if free_v is not None:
+        ap = ap * free_v.unsqueeze(-1)
+    return ap, (p * ap).sum(-1)

@@ -87,12 +87,37 @@ class DynamicsSystem:
         return df if self.planes is None else df + self.planes.dforces(x, dx)
 
 
+def _system_matvec(system: DynamicsSystem, x, mass_coef: float, stiffness_coef: float):
+    """p -> A p through ``ops.system_matvec`` (the fused kernel-2 epilogue where the extension has
+    it: mass term, subtraction and fixed-node projection in one pass), or None where the matvec
+    stays composed: contact planes (their ``-c_K planes.dforces`` term) or a model that is not a
+    ``TensorMass``. CG projects the product again (idempotent) and computes p . Ap itself."""
+    from .. import ops
+    from ..modules import TensorMass
+
+    model = system.model
+    if system.planes is not None or not isinstance(model, TensorMass):
+        return None
+    model._check_positions("x", x)
+    u = x - model.rest
+    free = system.free
+
+    def matvec(p):
+        return ops.system_matvec(model.groups, u, p, system.mass, free, mass_coef, stiffness_coef)[0]
+
+    return matvec
+
+
 def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions) -> CGResult:
     h = opts.dt
     mass_coef = 1.0 + h * opts.rayleigh_mass
     stiffness_coef = h * (h + opts.rayleigh_stiffness)
 
+    fused = _system_matvec(system, x, mass_coef, stiffness_coef)
+
     def matvec(p):
+        if fused is not None:
+            return fused(p)
         return mass_coef * system.mass * p - stiffness_coef * system.dforces(x, p)
 
     return batched_cg(matvec, rhs, system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
