@@ -22,7 +22,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from conftest import KINDS, MODELS, build_scene, large_deformation
+from conftest import CASES, DTYPES, FORMS, MODELS, build_scene, large_deformation, rel, tol
 from tensormass_torch import Material, TensorMass, ops
 
 
@@ -41,23 +41,9 @@ def _load():
 native = _load()
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C (with gather_system) is not built")
 
-FORMS = ("stress", "tensor")
-DTYPES = (torch.float64, torch.float32)
-CASES = [pytest.param(k, m, f, id=f"{k}-{m}-{f}") for k in KINDS for m in MODELS for f in FORMS]
 C_MASS, C_STIFF = 1.03, 0.0123
 
 
-def tol(dtype, group=None):
-    if dtype == torch.float64:
-        return 1e-12
-    if group is not None and group.form == "tensor" and group.model == "stvk":
-        return 5e-4
-    return 2e-5
-
-
-def rel(a, b) -> float:
-    a, b = a.double(), b.double()
-    return float(torch.linalg.norm(a - b) / torch.linalg.norm(b).clamp_min(1e-300))
 
 
 def make_case(seed, kind, model, form, dtype, device="cpu"):

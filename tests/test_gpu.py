@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import KINDS, MODELS
+from conftest import CASES, DTYPES, MODELS
 
 
 DEVICE = os.environ.get("TENSORMASS_GPU_TEST_DEVICE", "cuda")
@@ -49,8 +49,6 @@ if native is not None:  # the helpers of the CPU tests
     from test_native_ops import displacements, make_group, op_calls, rel, tol, used_slots
 
 T = torch.ops.tensormass
-CASES = [pytest.param(k, m, f, id=f"{k}-{m}-{f}") for k in KINDS for m in MODELS for f in ("stress", "tensor")]
-DTYPES = (torch.float64, torch.float32)
 
 
 def to(args, device=None, dtype=None):

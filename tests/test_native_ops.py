@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import KINDS, MODELS, build_scene, large_deformation
+from conftest import CASES, DTYPES, FORMS, KINDS, MODELS, build_scene, large_deformation, rel, tol
 from tensormass_torch import Material, TensorMass, ops
 from tensormass_torch.topology import GatherPlan
 
@@ -40,25 +40,8 @@ native = _load()
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C is not built")
 T = torch.ops.tensormass
 
-FORMS = ("stress", "tensor")
-DTYPES = (torch.float64, torch.float32)
-CASES = [pytest.param(k, m, f, id=f"{k}-{m}-{f}") for k in KINDS for m in MODELS for f in FORMS]
 
 
-def tol(dtype, group=None):
-    """Relative (norm-wise) tolerance of "equal to rounding". The stvk tensor form is a quartic
-    polynomial in the absolute displacements: with a rigid motion on top its float32 rounding
-    grows to ~3e-5 (see test_physics.py::test_float32_matches_float64), the others stay < 2e-6."""
-    if dtype == torch.float64:
-        return 1e-12
-    if group is not None and group.form == "tensor" and group.model == "stvk":
-        return 5e-4
-    return 2e-5
-
-
-def rel(a, b) -> float:
-    a, b = a.double(), b.double()
-    return float(torch.linalg.norm(a - b) / torch.linalg.norm(b).clamp_min(1e-300))
 
 
 def make_group(rng, kind, model, form, dtype=torch.float64, cells=None):
