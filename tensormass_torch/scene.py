@@ -129,6 +129,7 @@ class Simulator:
         self.model = TensorMass.packed(rest, parts, form=form)
         self.fixed = torch.cat(fixed)
         self.prescribed = torch.cat(prescribed)
+        self._has_prescribed = any(b.motion is not None for b in bodies)  # known once: no sync per step
         self.segments = Segments.from_lengths([r.shape[0] for r in rest_parts], self.device)
         mass = self.model.lumped_mass()
         self.planes = Planes(planes, self.dtype, self.device) if planes else None
@@ -146,7 +147,7 @@ class Simulator:
 
     def _imposed_velocity(self, t_next: float):
         """End-of-step velocities of prescribed nodes ``[V, 3]`` (zero on fixed nodes), or None."""
-        if not bool(self.prescribed.any()):
+        if not self._has_prescribed:
             return None
         target_v = torch.zeros_like(self.v)
         h = self.options.dt
