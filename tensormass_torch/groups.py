@@ -5,7 +5,9 @@ form): a tetrahedral ``stvk`` body and a triangular ``hooke`` body in one batch 
 over the same global nodes. A group stores only what its form needs:
 
     stress form            shape vectors m [N, n, d], measures [N], young/poisson [N],
-                           tangent projectors [N, d, d] (membranes in 3-D only)
+                           tangent projectors [N, d, d] (membranes in 3-D only);
+                           corotational adds the rest element nodes [N, n, 3] (QR frame,
+                           membranes) and rest normals [N, 3] (membranes, polar)
     tensor form, hooke     vertex tensors [V, d, d], edges [Ed, 2], edge tensors [Ed, d, d]
     tensor form, stvk      B [N, n, n, d, d], C [N, n, n, n, d], D [N, n, n, n, n]
 
@@ -38,7 +40,7 @@ class ElementGroup(nn.Module):
         measure_scale: per-element factor on the rest measure ``[N]`` (membrane thickness), or None.
     """
 
-    def __init__(self, rest, elements, young, poisson, model, form, measure_scale=None):
+    def __init__(self, rest, elements, young, poisson, model, form, measure_scale=None, rotation="polar"):
         super().__init__()
         if form not in FORMS:
             raise ValueError(f"unknown form {form!r}; known forms: {', '.join(FORMS)}")
@@ -59,6 +61,16 @@ class ElementGroup(nn.Module):
         self.register_buffer("elements", elements)
         self.register_buffer("measure", measure)
 
+        if model == "corotational" and form != "stress":
+            raise MaterialError("the corotational model has the stress form only")
+        self.rotation = rotation if model == "corotational" else None
+        if self.rotation == "qr" and self.dim != 3:
+            raise MaterialError("the QR rotation frame needs 3-D elements; use rotation='polar'")
+        if self.rotation == "qr" or (self.rotation == "polar" and self.membrane):
+            self.register_buffer("rest_elements", element_rest)
+        if self.rotation == "polar" and self.membrane:
+            normal = torch.linalg.cross(element_rest[:, 1] - element_rest[:, 0], element_rest[:, 2] - element_rest[:, 0])
+            self.register_buffer("rest_normals", normal / torch.linalg.vector_norm(normal, dim=1, keepdim=True))
         if form == "stress":
             self.register_buffer("shape_vectors", m)
             self.register_buffer("young", young)
@@ -105,5 +117,6 @@ class ElementGroup(nn.Module):
         return total + sum(t.numel() * t.element_size() for t in (p.index, p.force_index, p.incidences))
 
     def extra_repr(self) -> str:
-        return (f"kind={self.kind}, model={self.model}, form={self.form}, elements={self.elements.shape[0]}, "
+        return (f"kind={self.kind}, model={self.model}, form={self.form}, rotation={self.rotation}, "
+                f"elements={self.elements.shape[0]}, "
                 f"dim={self.dim}, N_n={self.plan.num_slots}")

@@ -14,7 +14,9 @@ import torch
 from .errors import MaterialError
 
 #: Constitutive models this build implements (``Material(model=...)``).
-MODELS = ("hooke", "stvk")
+MODELS = ("hooke", "stvk", "corotational")
+#: Rotation extraction of the corotational model: polar decomposition, or SOFA's QR frame.
+ROTATIONS = ("polar", "qr")
 
 Scalar = Union[float, int, torch.Tensor]
 
@@ -44,8 +46,10 @@ class Material:
         young: Young's modulus E in Pa, > 0; a float or a per-element tensor ``[N]``.
         poisson: Poisson ratio nu in (-1, 0.5); float or ``[N]``.
         density: mass density rho in kg/m^3 (kg/m^2 per unit thickness for membranes), > 0.
-        model: ``"hooke"`` (linear) or ``"stvk"`` (St Venant-Kirchhoff).
+        model: ``"hooke"`` (linear), ``"stvk"`` (St Venant-Kirchhoff) or ``"corotational"``
+            (linear in a per-element rotated frame; pure-torch path only for now).
         thickness: membrane thickness in m (triangles only), > 0.
+        rotation: corotational rotations by ``"polar"`` decomposition or SOFA's ``"qr"`` frame.
     """
 
     young: Scalar
@@ -53,10 +57,13 @@ class Material:
     density: Scalar = 1000.0
     model: str = "hooke"
     thickness: Scalar = 1.0
+    rotation: str = "polar"
 
     def __post_init__(self):
         if not isinstance(self.model, str) or self.model not in MODELS:
             raise MaterialError(f"unknown material model {self.model!r}; known models: {', '.join(MODELS)}")
+        if self.rotation not in ROTATIONS:
+            raise MaterialError(f"unknown rotation {self.rotation!r}; known: {', '.join(ROTATIONS)}")
         _check_range("young", self.young, 0.0, math.inf)
         _check_range("poisson", self.poisson, -1.0, 0.5)
         _check_range("density", self.density, 0.0, math.inf)

@@ -17,7 +17,7 @@ from .topology import incidence_slots, padded_sum
 #: 307,200-tet beam and runs its forces in 39 us instead of 65 us on an H200 (4x faster on the
 #: CPU extension, 5x on the torch path); ``stvk`` in Picinbono's element tensors reads 25x more
 #: than its stress form and is 11x slower, and loses precision under large motions in float32.
-AUTO_FORM = {"hooke": "tensor", "stvk": "stress"}
+AUTO_FORM = {"hooke": "tensor", "stvk": "stress", "corotational": "stress"}
 
 
 def _resolve_form(form: str, material) -> str:
@@ -65,19 +65,19 @@ class TensorMass(nn.Module):
         for elements, material, kind in parts:
             n_elem = elements.shape[0]
             model_form = _resolve_form(form, material)
-            key = (kind, material.model, model_form)
+            key = (kind, material.model, model_form, material.rotation if material.model == "corotational" else None)
             young = material.per_element("young", n_elem, like)
             poisson = material.per_element("poisson", n_elem, like)
             density = material.per_element("density", n_elem, like)
             scale = material.per_element("thickness", n_elem, like) if kind == "tri" else None
             grouped.setdefault(key, []).append((elements, young, poisson, density, scale))
         groups = []
-        for (kind, model, model_form), items in grouped.items():
+        for (kind, model, model_form, rotation), items in grouped.items():
             elements = torch.cat([it[0] for it in items])
             young = torch.cat([it[1] for it in items])
             poisson = torch.cat([it[2] for it in items])
             scale = torch.cat([it[4] for it in items]) if kind == "tri" else None
-            group = ElementGroup(rest, elements, young, poisson, model, model_form, scale)
+            group = ElementGroup(rest, elements, young, poisson, model, model_form, scale, rotation or "polar")
             groups.append(group)
             density = torch.cat([it[3] for it in items])
             masses.append((elements, density * group.measure.detach()))
@@ -119,14 +119,27 @@ class TensorMass(nn.Module):
 
     def dforce(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """(dF/dx) dx ``[V, d]``: the stiffness times ``dx [V, d]``, never assembled."""
-        self._check_positions("x", x)
         self._check_positions("dx", dx)
+        return self.tangent(x)(dx)
+
+    def tangent(self, x: torch.Tensor):
+        """The stiffness at ``x [V, d]`` as a function ``dx [V, d] -> (dF/dx) dx [V, d]``.
+
+        What the products share at one ``x`` (the corotational rotations) is computed once here,
+        so a solver calls this once per linearisation and the function once per CG iteration.
+        """
+        self._check_positions("x", x)
         u = x - self.rest
-        total = None
-        for group in self.groups:
-            f = ops.dforces(group, u, dx)
-            total = f if total is None else total + f
-        return total
+        states = [ops.linearize(group, u) for group in self.groups]
+
+        def apply(dx: torch.Tensor) -> torch.Tensor:
+            total = None
+            for group, state in zip(self.groups, states):
+                f = ops.dforces(group, u, dx, state)
+                total = f if total is None else total + f
+            return total
+
+        return apply
 
     def lumped_mass(self) -> torch.Tensor:
         """Lumped nodal masses ``[V]``."""

@@ -5,6 +5,8 @@
     forces(group, u)                kernel 1 + kernel 2                     [V, d]
     dforces(group, u, du)           the same pair with DForce(): (dF/du) du [V, d]
     energy(group, u)                elastic energy                          scalar
+    linearize(group, u)             per-element state of dforces at u (the corotational
+                                    rotations [N, d, d]; None for the other models)
     system_matvec(groups, u, p, ...) implicit-Euler CG matvec: (Ap [V, d], p . Ap per node [V])
 
 ``u`` and ``du`` are global nodal displacements ``[V, d]``.
@@ -26,12 +28,29 @@ import torch
 
 from . import _backend
 from .reference import gather as ref_gather
-from .reference import stress_form, tensor_form
+from .reference import corotational, stress_form, tensor_form
 from .topology import GatherPlan
 
 
 def _element_values(group, u):
     return u[group.elements]
+
+
+def linearize(group, u: torch.Tensor) -> Optional[torch.Tensor]:
+    """What ``dforces`` at ``u`` can reuse across calls: the corotational rotations ``[N, d, d]``
+    (computed once per implicit step, not per CG iteration); None for the other models."""
+    if group.model != "corotational":
+        return None
+    u_e = _element_values(group, u)
+    if group.rotation == "qr":
+        return corotational.qr_rotations(group.rest_elements + u_e, group.rest_elements)
+    F = corotational.deformation_gradient(u_e, group.shape_vectors, group.projector)
+    if not group.membrane:
+        return corotational.polar_rotations(F)
+    x_e = group.rest_elements + u_e  # a membrane's F maps its plane only: map the normals too
+    normal = torch.linalg.cross(x_e[:, 1] - x_e[:, 0], x_e[:, 2] - x_e[:, 0])
+    normal = normal / torch.linalg.vector_norm(normal, dim=1, keepdim=True)
+    return corotational.polar_rotations(F, group.rest_normals, normal)
 
 
 def _native(group, u: torch.Tensor):
@@ -63,6 +82,10 @@ def element_forces(group, u: torch.Tensor) -> torch.Tensor:
     native = _native(group, u)
     if native is not None:
         return native.element_forces(group, u)
+    if group.model == "corotational":
+        lam, mu = group.lame()
+        return corotational.forces(_element_values(group, u), group.shape_vectors, group.measure, lam, mu,
+                                   linearize(group, u), group.projector)
     if group.form == "stress":
         lam, mu = group.lame()
         return stress_form.FORCES[group.model](_element_values(group, u), group.shape_vectors, group.measure,
@@ -72,8 +95,16 @@ def element_forces(group, u: torch.Tensor) -> torch.Tensor:
     return tensor_form.stvk_forces(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d)
 
 
-def element_dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
-    """Kernel 1 with DForce(): partial force differentials ``[N, n, d]`` along ``du [V, d]``."""
+def element_dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Kernel 1 with DForce(): partial force differentials ``[N, n, d]`` along ``du [V, d]``.
+
+    ``state``: ``linearize(group, u)`` when the caller keeps it across calls (None: computed here).
+    """
+    if group.model == "corotational":
+        lam, mu = group.lame()
+        rotations = linearize(group, u) if state is None else state
+        return corotational.dforces(_element_values(group, du), group.shape_vectors, group.measure, lam, mu,
+                                    rotations, group.projector)
     native = _native(group, u)
     if native is not None:
         return native.element_dforces(group, u, du)
@@ -110,16 +141,23 @@ def forces(group, u: torch.Tensor) -> torch.Tensor:
     return node_gather(element_forces(group, u), group.plan, _node_term(group, u))
 
 
-def dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
-    """(dF/du) du on every node ``[V, d]``: the matrix-free product with the stiffness."""
+def dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(dF/du) du on every node ``[V, d]``: the matrix-free product with the stiffness.
+
+    ``state``: ``linearize(group, u)``, reused across calls at the same ``u`` (corotational).
+    """
     native = _native(group, u)
     if native is not None:
         return native.dforces(group, u, du)
-    return node_gather(element_dforces(group, u, du), group.plan, _node_term(group, du))
+    return node_gather(element_dforces(group, u, du, state), group.plan, _node_term(group, du))
 
 
 def energy(group, u: torch.Tensor) -> torch.Tensor:
-    """Elastic energy of the group (0-dim tensor)."""
+    """Elastic energy of the group (0-dim tensor); corotational: with the rotations at u held fixed."""
+    if group.model == "corotational":
+        lam, mu = group.lame()
+        return corotational.energy(_element_values(group, u), group.shape_vectors, group.measure, lam, mu,
+                                   linearize(group, u).detach(), group.projector).sum()
     if group.form == "stress":
         lam, mu = group.lame()
         return stress_form.ENERGIES[group.model](_element_values(group, u), group.shape_vectors, group.measure,
@@ -130,13 +168,14 @@ def energy(group, u: torch.Tensor) -> torch.Tensor:
 
 
 def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
-                  c_mass: float, c_stiff: float):
+                  c_mass: float, c_stiff: float, states=None):
     """The CG matvec of implicit Euler, ``A p = c_mass M p - c_stiff K p`` projected on the free nodes.
 
     Args:
         groups: the model's element groups (``TensorMass.groups``); K p = sum of their ``dforces``.
         u: displacements ``[V, d]`` (positions minus rest) where K is evaluated; p: ``[V, d]``.
         mass: lumped masses ``[V]`` or ``[V, 1]``; free: ``[V]`` or ``[V, 1]`` float 0/1 mask, or None.
+        states: ``[linearize(g, u) for g in groups]`` kept by the caller across CG iterations, or None.
     Returns:
         (Ap ``[V, d]``, p . Ap per node ``[V]``) with ``Ap_i = free_i (c_mass m_i p_i - c_stiff (K p)_i)``.
 
@@ -155,8 +194,8 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
                         for t in (mass_v, free_v))):
             return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff)
     kp = None
-    for group in groups:
-        f = dforces(group, u, p)
+    for i, group in enumerate(groups):
+        f = dforces(group, u, p, None if states is None else states[i])
         kp = f if kp is None else kp + f
     ap = (c_mass * mass_v.unsqueeze(-1)) * p - c_stiff * kp
     if free_v is not None:

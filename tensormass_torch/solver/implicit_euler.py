@@ -11,7 +11,7 @@ started from x' = x, is exactly the system above).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import List
 
 import torch
 
@@ -83,8 +83,14 @@ class DynamicsSystem:
 
     def dforces(self, x, dx):
         """(dF/dx) dx ``[V, d]`` of the elastic and contact forces."""
-        df = self.model.dforce(x, dx)
-        return df if self.planes is None else df + self.planes.dforces(x, dx)
+        return self.tangent(x)(dx)
+
+    def tangent(self, x):
+        """dx -> (dF/dx) dx at ``x``, with what the products share computed once."""
+        elastic = self.model.tangent(x)
+        if self.planes is None:
+            return elastic
+        return lambda dx: elastic(dx) + self.planes.dforces(x, dx)
 
 
 def _system_matvec(system: DynamicsSystem, x, mass_coef: float, stiffness_coef: float):
@@ -101,9 +107,10 @@ def _system_matvec(system: DynamicsSystem, x, mass_coef: float, stiffness_coef: 
     model._check_positions("x", x)
     u = x - model.rest
     free = system.free
+    states = [ops.linearize(group, u) for group in model.groups]  # once per solve, not per iteration
 
     def matvec(p):
-        return ops.system_matvec(model.groups, u, p, system.mass, free, mass_coef, stiffness_coef)[0]
+        return ops.system_matvec(model.groups, u, p, system.mass, free, mass_coef, stiffness_coef, states)[0]
 
     return matvec
 
@@ -114,11 +121,12 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions) -> CGResult:
     stiffness_coef = h * (h + opts.rayleigh_stiffness)
 
     fused = _system_matvec(system, x, mass_coef, stiffness_coef)
+    tangent = system.tangent(x) if fused is None else None
 
     def matvec(p):
         if fused is not None:
             return fused(p)
-        return mass_coef * system.mass * p - stiffness_coef * system.dforces(x, p)
+        return mass_coef * system.mass * p - stiffness_coef * tangent(p)
 
     return batched_cg(matvec, rhs, system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
                       check_every=opts.check_every)

@@ -71,14 +71,15 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
 
     def tangent(u):
         x = rest + u
+        stiffness = model.tangent(x)  # shared state (rotations) once per Newton step
 
         def matvec(p):
-            ap = -model.dforce(x, p)
+            ap = -stiffness(p)
             return ap if planes is None else ap - planes.dforces(x, p)
 
         return matvec
 
-    linear = all(g.model == "hooke" for g in model.groups) and planes is None
+    linear = all(g.model == "hooke" for g in model.groups) and planes is None  # corotational is not
     u = torch.zeros_like(rest)
     r = residual(u)
     for _ in range(max_newton):
