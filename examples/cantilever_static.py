@@ -1,6 +1,6 @@
 """Static cantilever under gravity: tip deflection against Euler-Bernoulli and Timoshenko.
 
-    python examples/cantilever_static.py [--cells 1 2 4] [--model hooke|stvk] [--dtype float64]
+    python examples/cantilever_static.py [--cells 1 2 4] [--model hooke|stvk|corotational] [--dtype float64]
 
 Prints the tip deflection for each refinement and its error against beam theory: P1 tetrahedra
 are too stiff in bending (locking), and the error falls as the mesh is refined.
@@ -25,7 +25,7 @@ def beam_theory(young, poisson, density, gravity, length, side):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", type=int, nargs="+", default=[1, 2, 4], help="cells across the section")
-    parser.add_argument("--model", default="hooke", choices=["hooke", "stvk"])
+    parser.add_argument("--model", default="hooke", choices=["hooke", "stvk", "corotational"])
     parser.add_argument("--dtype", default="float64", choices=["float32", "float64"])
     args = parser.parse_args(argv)
     dtype = getattr(torch, args.dtype)

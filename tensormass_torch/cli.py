@@ -63,6 +63,7 @@ def build_parser():
     info = sub.add_parser("info", help="print the backend report (tm.backend_info()) as JSON")
     info.set_defaults(func=_cmd_info)
 
+    from .materials import MODELS
     from .scenes import SCENES
 
     run = sub.add_parser("run", help="run a built-in scene and write its frames")
@@ -72,7 +73,7 @@ def build_parser():
     run.add_argument("--every", type=int, default=None, help="write a frame every N steps")
     run.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     run.add_argument("--dtype", default="float32", choices=["float32", "float64"])
-    run.add_argument("--model", default=None, choices=["hooke", "stvk"], help="material model")
+    run.add_argument("--model", default=None, choices=list(MODELS), help="material model")
     run.add_argument("--quiet", action="store_true", help="print nothing but errors")
     run.set_defaults(func=_cmd_run)
     return parser
