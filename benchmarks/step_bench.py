@@ -72,7 +72,7 @@ def main(argv=None):
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     records = []
     for scene in args.scenes.split(","):
-        models = ["hooke"] if scene == "sofa_beam" else ["hooke", "stvk"]
+        models = ["hooke", "corotational"] if scene == "sofa_beam" else ["hooke", "stvk"]
         for model in models:
             for backend in args.backends.split(","):
                 os.environ["TENSORMASS_BACKEND"] = backend

@@ -49,7 +49,8 @@ def sofa_beam(model: str = "hooke", device=None, dtype=torch.float32, scale: int
     nx, nyz = max(75 // scale, 1), max(15 // scale, 1)
     mesh = beam_mesh(nx, nyz, nyz, size=(19.0, 4.0, 4.0), origin=(0.0, 6.0, -2.0), dtype=dtype, device=device)
     density = 50.0 / (19.0 * 4.0 * 4.0)
-    material = Material(young=1000.0, poisson=0.3, density=density, model=model)
+    # SOFA's "large" method extracts rotations with its QR frame: the same here.
+    material = Material(young=1000.0, poisson=0.3, density=density, model=model, rotation="qr")
     body = Body(mesh, material, fixed=mesh.vertices[:, 0] <= 0.1, name="sofa-beam")
     sim = Simulator([body], dt=0.04, gravity=(0.0, -9.0, 0.0), rayleigh_mass=0.1, rayleigh_stiffness=0.1,
                     planes=[Plane((0.0, 1.0, 0.0), 2.0, 1e4)], cg_tol=1e-6, cg_max_iter=10,
