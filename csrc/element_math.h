@@ -16,12 +16,18 @@
 //     stvk        E = P (sym(grad U) + 1/2 grad U^T grad U) P, S = lam tr(E) P + 2 mu E,
 //                 f_j = -vol (I + grad U) S m_j
 //                 df_j = -vol (dG S + dS + G dS) m_j,  dS = C : P sym(dG + G^T dG) P
+//     corotational (SOFA's "large" QR frame, 3-D only; x0 the rest nodes, x = x0 + u)
+//                 frame(p): rows ex = p1 - p0, ez = ex x (p2 - p0), ey = ez x ex, normalised;
+//                 R = frame(x)^T frame(x0); eps' = P sym(R^T (P + grad U) - P) P,
+//                 f_j = -vol R sigma(eps') m_j;  df_j = -vol R sigma(P sym(R^T grad dU) P) m_j
+//                 (R held fixed in the differential, as SOFA does; R is recomputed per call)
 //   tensor form   hooke: per edge (i<j) f_i = -K u_j, f_j = -K^T u_i; per node -K_ii u_i
 //                 stvk:  Picinbono's B [n,n,d,d], C [n,n,n,d], D [n,n,n,n] (see tensor_form.py)
 // (P = I for tetrahedra and planar triangles.)
 #pragma once
 
 #include <cstdint>
+#include <math.h>
 
 #if defined(__CUDACC__) || defined(__HIPCC__)
 #define TM_HOST_DEVICE __host__ __device__
@@ -48,7 +54,7 @@
 namespace tensormass {
 
 // Model ids: the `model` integer of the op schemas (Python: tensormass_torch.native.MODEL_IDS).
-enum Model : int { kHooke = 0, kStvk = 1 };
+enum Model : int { kHooke = 0, kStvk = 1, kCorotational = 2 };
 
 // The tangent plane of an element: the identity (tetrahedra, planar triangles) or the rest
 // projector P of a membrane. Same interface, so the formulas are written once.
@@ -240,6 +246,91 @@ TM_HD void stress_dforces(const S (&u)[NN][D], const S (&du)[NN][D], const S (&m
   } else {
     stvk_dforces<NN, D, S, M>(u, du, m, vol, lam, mu, plane, f);
   }
+}
+
+// ------------------------------------------------------------------ corotational (QR frame)
+
+TM_HD float tm_sqrt(float x) { return sqrtf(x); }
+TM_HD double tm_sqrt(double x) { return sqrt(x); }
+
+template <typename S>
+TM_HD void cross3(const S (&a)[3], const S (&b)[3], S (&c)[3]) {
+  c[0] = a[1] * b[2] - a[2] * b[1];
+  c[1] = a[2] * b[0] - a[0] * b[2];
+  c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+// SOFA's frame of the nodes (p0, p1, p2): rows ex, ey, ez (normalised).
+template <typename S>
+TM_HD void qr_frame(const S (&p0)[3], const S (&p1)[3], const S (&p2)[3], S (&axes)[3][3]) {
+  S ex[3], e2[3], ey[3], ez[3];
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    ex[a] = p1[a] - p0[a];
+    e2[a] = p2[a] - p0[a];
+  }
+  cross3<S>(ex, e2, ez);
+  cross3<S>(ez, ex, ey);
+  const S nx = tm_sqrt(ex[0] * ex[0] + ex[1] * ex[1] + ex[2] * ex[2]);
+  const S ny = tm_sqrt(ey[0] * ey[0] + ey[1] * ey[1] + ey[2] * ey[2]);
+  const S nz = tm_sqrt(ez[0] * ez[0] + ez[1] * ez[1] + ez[2] * ez[2]);
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    axes[0][a] = ex[a] / nx;
+    axes[1][a] = ey[a] / ny;
+    axes[2][a] = ez[a] / nz;
+  }
+}
+
+// R = frame(x0 + u)^T frame(x0), from the first three nodes of the element.
+template <int NN, typename S>
+TM_HD void qr_rotation(const S (&u)[NN][3], const S (&x0)[NN][3], S (&r)[3][3]) {
+  S x[3][3];
+  TM_UNROLL for (int j = 0; j < 3; ++j) {
+    TM_UNROLL for (int a = 0; a < 3; ++a) x[j][a] = x0[j][a] + u[j][a];
+  }
+  S cur[3][3], rest[3][3];
+  qr_frame<S>(x[0], x[1], x[2], cur);
+  qr_frame<S>(x0[0], x0[1], x0[2], rest);
+  matmul_tn<3, S>(cur, rest, r);
+}
+
+// f_j = -vol R sigma(eps) m_j with eps = P sym(R^T g) P (g = R^T F - P already folded in by the
+// caller for forces, g = grad dU for dforces).
+template <int NN, typename S, bool M>
+TM_HD void corotational_nodal(const S (&r)[3][3], const S (&t)[3][3], const S (&m)[NN][3], S vol, S lam,
+                              S mu, const Plane<3, S, M>& plane, S (&f)[NN][3]) {
+  S e[3][3], s[3][3], rs[3][3];
+  sym<3, S>(t, e);
+  plane.project(e);
+  isotropic<3, S, M>(e, lam, mu, plane, s);
+  matmul<3, S>(r, s, rs);
+  nodal<NN, 3, S>(rs, m, vol, f);
+}
+
+template <int NN, typename S, bool M>
+TM_HD void corotational_forces(const S (&u)[NN][3], const S (&x0)[NN][3], const S (&m)[NN][3], S vol, S lam,
+                               S mu, const Plane<3, S, M>& plane, S (&f)[NN][3]) {
+  S r[3][3], g[3][3], t[3][3];
+  qr_rotation<NN, S>(u, x0, r);
+  displacement_gradient<NN, 3, S>(u, m, g);
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int b = 0; b < 3; ++b) g[a][b] += plane.id(a, b);  // F = P + grad U
+  }
+  matmul_tn<3, S>(r, g, t);  // R^T F
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int b = 0; b < 3; ++b) t[a][b] -= plane.id(a, b);
+  }
+  corotational_nodal<NN, S, M>(r, t, m, vol, lam, mu, plane, f);
+}
+
+template <int NN, typename S, bool M>
+TM_HD void corotational_dforces(const S (&u)[NN][3], const S (&du)[NN][3], const S (&x0)[NN][3],
+                                const S (&m)[NN][3], S vol, S lam, S mu, const Plane<3, S, M>& plane,
+                                S (&f)[NN][3]) {
+  S r[3][3], dg[3][3], t[3][3];
+  qr_rotation<NN, S>(u, x0, r);
+  displacement_gradient<NN, 3, S>(du, m, dg);
+  matmul_tn<3, S>(r, dg, t);  // R^T grad dU
+  corotational_nodal<NN, S, M>(r, t, m, vol, lam, mu, plane, f);
 }
 
 // ------------------------------------------------------------------ tensor form, hooke

@@ -129,6 +129,7 @@ struct StressInputs {
   const S* lam;            // [N]
   const S* mu;             // [N]
   const S* projector;      // [N, D, D] (membranes only)
+  const S* rest;           // [N, NN, D] rest element nodes (corotational only; D = 3)
 };
 
 template <int MODEL, bool DFORCE, int NN, int D, typename S, typename I, bool PADDED>
@@ -147,7 +148,18 @@ struct StressElementKernel {
     load_plane(e, plane);
     S u[NN][D], f[NN][D];
     gather_nodes<NN, D, S, I>(in.u, idx, u);
-    if (DFORCE) {
+    if constexpr (MODEL == kCorotational) {
+      static_assert(D == 3, "the corotational QR frame needs 3-D elements");
+      S x0[NN][D];
+      load_matrix<NN, D, S>(in.rest + e * (NN * D), x0);
+      if (DFORCE) {
+        S du[NN][D];
+        gather_nodes<NN, D, S, I>(in.du, idx, du);
+        corotational_dforces<NN, S, kMembrane>(u, du, x0, m, vol, lam, mu, plane, f);
+      } else {
+        corotational_forces<NN, S, kMembrane>(u, x0, m, vol, lam, mu, plane, f);
+      }
+    } else if (DFORCE) {
       S du[NN][D];
       gather_nodes<NN, D, S, I>(in.du, idx, du);
       stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, f);

@@ -6,7 +6,10 @@
 //
 // Conventions: u, du [V, d] (float32 or float64, one dtype for all floating inputs); index
 // tensors (elements, edges, force_index, incidences) all int32 or all int64; every input
-// contiguous and on one device. `model`: 0 = hooke, 1 = stvk. A plan (force_index, num_slots,
+// contiguous and on one device. `model`: 0 = hooke, 1 = stvk, 2 = corotational (SOFA's QR
+// frame, 3-D elements only: tetrahedra, membranes); the stress ops take `rest_elements`
+// [N, n, 3] (the rest element nodes) for model 2 only, and recompute each element's rotation
+// from u and them at every call (the differential holds it fixed, as SOFA does). A plan (force_index, num_slots,
 // incidences) must come from topology.GatherPlan over the same items: force_index < num_slots
 // and the slots of a node are 0 .. incidences[i]-1 (not re-checked here: it would cost a pass).
 //
@@ -26,18 +29,23 @@ TORCH_LIBRARY(tensormass, m) {
   m.set_python_module("tensormass_torch.native");
   // ---- stress form
   m.def("stress_element_forces(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
-        "Tensor mu, Tensor? projector, int model) -> Tensor");
+        "Tensor mu, Tensor? projector, int model, "
+        "Tensor? rest_elements=None) -> Tensor");
   m.def("stress_element_dforces(Tensor u, Tensor du, Tensor elements, Tensor shape_vectors, Tensor measure, "
-        "Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+        "Tensor lam, Tensor mu, Tensor? projector, int model, "
+        "Tensor? rest_elements=None) -> Tensor");
   m.def("stress_partial_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, "
-        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model, "
+        "Tensor? rest_elements=None) -> Tensor");
   m.def("stress_partial_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
-        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model, "
+        "Tensor? rest_elements=None) -> Tensor");
   m.def("stress_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, Tensor incidences, "
-        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model) -> Tensor");
+        "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model, "
+        "Tensor? rest_elements=None) -> Tensor");
   m.def("stress_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
         "Tensor incidences, Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, "
-        "int model) -> Tensor");
+        "int model, Tensor? rest_elements=None) -> Tensor");
   // ---- tensor form, hooke (items are edges; linear, so dforces(du) = forces(du))
   m.def("tensor_hooke_element_forces(Tensor u, Tensor edges, Tensor edge_k) -> Tensor");
   m.def("tensor_hooke_partial_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, "

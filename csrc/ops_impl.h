@@ -106,8 +106,11 @@ void dispatch_model(int64_t model, F&& f) {
     f(IC<kHooke>{});
   } else if (model == kStvk) {
     f(IC<kStvk>{});
+  } else if (model == kCorotational) {
+    f(IC<kCorotational>{});
   } else {
-    TORCH_CHECK(false, "tensormass: unknown model id ", std::to_string(model), " (0 = hooke, 1 = stvk)");
+    TORCH_CHECK(false, "tensormass: unknown model id ", std::to_string(model),
+                " (0 = hooke, 1 = stvk, 2 = corotational)");
   }
 }
 
@@ -159,12 +162,14 @@ struct StressArgs {
   at::Tensor u, du, elements, shape_vectors, measure, lam, mu;
   c10::optional<at::Tensor> projector;
   int64_t model;
+  at::Tensor rest;  // [N, n, 3] rest element nodes: given for the corotational model only
   int64_t num_elements, nodes_per_element, dim, num_nodes;
   at::ScalarType index_type;
 
   StressArgs(const at::Tensor& u_, const c10::optional<at::Tensor>& du_, const at::Tensor& elements_,
              const at::Tensor& shape_vectors_, const at::Tensor& measure_, const at::Tensor& lam_,
-             const at::Tensor& mu_, const c10::optional<at::Tensor>& projector_, int64_t model_)
+             const at::Tensor& mu_, const c10::optional<at::Tensor>& projector_, int64_t model_,
+             const c10::optional<at::Tensor>& rest_)
       : u(u_), elements(elements_), shape_vectors(shape_vectors_), measure(measure_), lam(lam_), mu(mu_),
         projector(projector_), model(model_) {
     check_values(u, "u");
@@ -190,6 +195,16 @@ struct StressArgs {
     TORCH_CHECK(has_projector == membrane, "tensormass: the projector must be given for membranes (triangles "
                 "in 3-D) and only for them (nodes per element ", std::to_string(nodes_per_element), ", dimension ", std::to_string(dim), ")");
     if (has_projector) check_float_tensor(*projector, "projector", u, {num_elements, dim, dim});
+    const bool has_rest = rest_.has_value() && rest_->defined();
+    if (model == kCorotational) {
+      TORCH_CHECK(dim == 3, "tensormass: the corotational model (QR frame) needs 3-D elements, got dimension ",
+                  std::to_string(dim));
+      TORCH_CHECK(has_rest, "tensormass: the corotational model needs rest_elements [N, n, 3]");
+      rest = *rest_;
+      check_float_tensor(rest, "rest_elements", u, {num_elements, nodes_per_element, dim});
+    } else {
+      TORCH_CHECK(!has_rest, "tensormass: rest_elements is for the corotational model (model 2) only");
+    }
   }
 
   template <typename S, typename I>
@@ -203,6 +218,7 @@ struct StressArgs {
     in.lam = lam.data_ptr<S>();
     in.mu = mu.data_ptr<S>();
     in.projector = ptr_or_null<S>(projector);
+    in.rest = rest.defined() ? rest.data_ptr<S>() : nullptr;
     return in;
   }
 };
@@ -230,6 +246,23 @@ void set_padded(Writer<NN, D, S, I, true>& w, const at::Tensor& force_index, int
   w.num_nodes = num_nodes;
 }
 
+// One instantiation of kernel 1 of the stress form (the corotational model exists in 3-D only).
+template <class L, int MODEL, bool DFORCE, int NN, int D, typename S, typename I>
+void launch_stress_kernel1(const StressArgs& a, bool padded, const at::Tensor& force_index, at::Tensor& out) {
+  if constexpr (MODEL == kCorotational && D != 3) {
+    TORCH_CHECK(false, "tensormass: the corotational model needs 3-D elements");  // checked in StressArgs
+  } else {
+    dispatch_bool(padded, [&](auto padded_c) {
+      constexpr bool PADDED = decltype(padded_c)::value;
+      StressElementKernel<MODEL, DFORCE, NN, D, S, I, PADDED> k;
+      k.in = a.template inputs<S, I>();
+      k.write.out = out.template data_ptr<S>();
+      set_padded(k.write, force_index, a.num_nodes);
+      L::run(a.num_elements, k, L::kElementBlock);
+    });
+  }
+}
+
 // Runs kernel 1 of the stress form into `out`: compact [N, n, d] (force_index undefined) or
 // padded [N_n, V, d].
 template <class L, bool DFORCE>
@@ -244,14 +277,7 @@ void run_stress_kernel1(const StressArgs& a, const at::Tensor& force_index, at::
         constexpr int D = decltype(d_c)::value;
         dispatch_model(a.model, [&](auto model_c) {
           constexpr int MODEL = decltype(model_c)::value;
-          dispatch_bool(padded, [&](auto padded_c) {
-            constexpr bool PADDED = decltype(padded_c)::value;
-            StressElementKernel<MODEL, DFORCE, NN, D, S, I, PADDED> k;
-            k.in = a.inputs<S, I>();
-            k.write.out = out.data_ptr<S>();
-            set_padded(k.write, force_index, a.num_nodes);
-            L::run(a.num_elements, k, L::kElementBlock);
-          });
+          launch_stress_kernel1<L, MODEL, DFORCE, NN, D, S, I>(a, padded, force_index, out);
         });
       });
     });
@@ -292,8 +318,9 @@ void run_gather(const at::Tensor& partial, const at::Tensor& incidences, const a
 template <class L>
 at::Tensor stress_element_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
                                  const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
-                                 const c10::optional<at::Tensor>& projector, int64_t model) {
-  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model);
+                                 const c10::optional<at::Tensor>& projector, int64_t model,
+                                 const c10::optional<at::Tensor>& rest_elements) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
   typename L::Guard guard(u.device());
   at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
   run_stress_kernel1<L, false>(a, at::Tensor(), out);
@@ -303,8 +330,9 @@ at::Tensor stress_element_forces(const at::Tensor& u, const at::Tensor& elements
 template <class L>
 at::Tensor stress_element_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
                                   const at::Tensor& shape_vectors, const at::Tensor& measure, const at::Tensor& lam,
-                                  const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model) {
-  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model);
+                                  const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model,
+                                 const c10::optional<at::Tensor>& rest_elements) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
   typename L::Guard guard(u.device());
   at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
   run_stress_kernel1<L, true>(a, at::Tensor(), out);
@@ -325,8 +353,9 @@ template <class L>
 at::Tensor stress_partial_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& force_index,
                                  int64_t num_slots, const at::Tensor& shape_vectors, const at::Tensor& measure,
                                  const at::Tensor& lam, const at::Tensor& mu,
-                                 const c10::optional<at::Tensor>& projector, int64_t model) {
-  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model);
+                                 const c10::optional<at::Tensor>& projector, int64_t model,
+                                 const c10::optional<at::Tensor>& rest_elements) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
   return stress_partial_impl<L, false>(a, force_index, num_slots);
 }
 
@@ -334,8 +363,9 @@ template <class L>
 at::Tensor stress_partial_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
                                   const at::Tensor& force_index, int64_t num_slots, const at::Tensor& shape_vectors,
                                   const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
-                                  const c10::optional<at::Tensor>& projector, int64_t model) {
-  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model);
+                                  const c10::optional<at::Tensor>& projector, int64_t model,
+                                 const c10::optional<at::Tensor>& rest_elements) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
   return stress_partial_impl<L, true>(a, force_index, num_slots);
 }
 
@@ -356,8 +386,9 @@ template <class L>
 at::Tensor stress_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& force_index,
                          int64_t num_slots, const at::Tensor& incidences, const at::Tensor& shape_vectors,
                          const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
-                         const c10::optional<at::Tensor>& projector, int64_t model) {
-  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model);
+                         const c10::optional<at::Tensor>& projector, int64_t model,
+                                 const c10::optional<at::Tensor>& rest_elements) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
   return stress_fused_impl<L, false>(a, force_index, num_slots, incidences);
 }
 
@@ -365,8 +396,9 @@ template <class L>
 at::Tensor stress_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
                           const at::Tensor& force_index, int64_t num_slots, const at::Tensor& incidences,
                           const at::Tensor& shape_vectors, const at::Tensor& measure, const at::Tensor& lam,
-                          const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model) {
-  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model);
+                          const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model,
+                                 const c10::optional<at::Tensor>& rest_elements) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
   return stress_fused_impl<L, true>(a, force_index, num_slots, incidences);
 }
 

@@ -5,7 +5,8 @@ header). This module gives them what torch needs on the Python side:
 
 * a fake (meta) kernel for each op (``torch.library.register_fake``), for torch.compile/export;
 * autograd (``torch.library.register_autograd``). Fast paths use the ops themselves:
-    - forces:  d(g . f(u))/du = dforces(u, g) (the stiffness is symmetric: f = -grad W);
+    - forces:  d(g . f(u))/du = dforces(u, g) (the stiffness is symmetric: f = -grad W), except
+      for the corotational model (f is not an energy gradient through R(u): reference vjp);
     - dforces: d(g . K(u) du)/d du = dforces(u, g);
     - lam, mu: the forces are linear in (lam, mu), so the gradient per element is the dot of
       the element's cotangent with its forces evaluated at (lam, mu) = (1, 0) and (0, 1);
@@ -30,13 +31,13 @@ from typing import Optional
 import torch
 
 from .reference import gather as ref_gather
-from .reference import stress_form, tensor_form
+from .reference import corotational, stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "element_forces",
            "element_dforces", "node_gather", "forces", "dforces", "system_fusable", "system_matvec"]
 
 #: The ``model`` integer of the op schemas.
-MODEL_IDS = {"hooke": 0, "stvk": 1}
+MODEL_IDS = {"hooke": 0, "stvk": 1, "corotational": 2}
 MODEL_NAMES = {v: k for k, v in MODEL_IDS.items()}
 
 # ----------------------------------------------------------------------------------------------
@@ -49,15 +50,28 @@ def _model_name(model: int) -> str:
     try:
         return MODEL_NAMES[int(model)]
     except KeyError:
-        raise ValueError(f"unknown model id {model!r} (0 = hooke, 1 = stvk)") from None
+        raise ValueError(f"unknown model id {model!r} (0 = hooke, 1 = stvk, 2 = corotational)") from None
 
 
-def _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model):
-    return stress_form.FORCES[_model_name(model)](u[elements], m, vol, lam, mu, proj)
+def _qr_rotations(u_e, rest):
+    if rest is None:
+        raise ValueError("the corotational model (model 2) needs rest_elements [N, n, 3]")
+    return corotational.qr_rotations(rest + u_e, rest)
 
 
-def _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model):
-    return stress_form.DFORCES[_model_name(model)](u[elements], du[elements], m, vol, lam, mu, proj)
+def _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest=None):
+    name = _model_name(model)
+    if name == "corotational":
+        u_e = u[elements]
+        return corotational.forces(u_e, m, vol, lam, mu, _qr_rotations(u_e, rest), proj)
+    return stress_form.FORCES[name](u[elements], m, vol, lam, mu, proj)
+
+
+def _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest=None):
+    name = _model_name(model)
+    if name == "corotational":
+        return corotational.dforces(du[elements], m, vol, lam, mu, _qr_rotations(u[elements], rest), proj)
+    return stress_form.DFORCES[name](u[elements], du[elements], m, vol, lam, mu, proj)
 
 
 def _scatter(partial, index, force_index, num_slots, num_nodes):
@@ -68,23 +82,25 @@ def _gather(partial, index, force_index, num_slots, incidences, node_term=None):
     return ref_gather.node_gather(partial, index, force_index, num_slots, incidences.shape[0], node_term)
 
 
-def _ref_stress_partial_forces(u, elements, force_index, num_slots, m, vol, lam, mu, proj, model):
-    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model)
+def _ref_stress_partial_forces(u, elements, force_index, num_slots, m, vol, lam, mu, proj, model, rest=None):
+    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest)
     return _scatter(f, elements, force_index, num_slots, u.shape[0])
 
 
-def _ref_stress_partial_dforces(u, du, elements, force_index, num_slots, m, vol, lam, mu, proj, model):
-    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model)
+def _ref_stress_partial_dforces(u, du, elements, force_index, num_slots, m, vol, lam, mu, proj, model,
+                                rest=None):
+    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest)
     return _scatter(f, elements, force_index, num_slots, u.shape[0])
 
 
-def _ref_stress_forces(u, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model):
-    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model)
+def _ref_stress_forces(u, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model, rest=None):
+    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest)
     return _gather(f, elements, force_index, num_slots, incidences)
 
 
-def _ref_stress_dforces(u, du, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model):
-    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model)
+def _ref_stress_dforces(u, du, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model,
+                       rest=None):
+    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest)
     return _gather(f, elements, force_index, num_slots, incidences)
 
 
@@ -292,17 +308,17 @@ def _element_cotangent(name, inputs, grad):
 def _lame_gradients(name, inputs, grad, need_lam, need_mu):
     """d(grad . out)/d(lam, mu) ``[N]`` for the stress ops: out is linear in (lam, mu), so the
     gradient per element is the dot of its cotangent with its output at (1, 0) and at (0, 1)."""
-    m, vol, lam, mu, proj, model = inputs[-6:]
+    m, vol, lam, mu, proj, model, rest = inputs[-7:]
     g_e = _element_cotangent(name, inputs, grad)
     ones, zeros = torch.ones_like(lam), torch.zeros_like(lam)
 
     def at(a, b):
         if "dforces" in name:
             u, du, elements = inputs[0], inputs[1], inputs[2]
-            f = _op("stress_element_dforces")(u, du, elements, m, vol, a, b, proj, model)
+            f = _op("stress_element_dforces")(u, du, elements, m, vol, a, b, proj, model, rest)
         else:
             u, elements = inputs[0], inputs[1]
-            f = _op("stress_element_forces")(u, elements, m, vol, a, b, proj, model)
+            f = _op("stress_element_forces")(u, elements, m, vol, a, b, proj, model, rest)
         return (g_e * f).sum((1, 2))
 
     return (at(ones, zeros) if need_lam else None), (at(zeros, ones) if need_mu else None)
@@ -312,11 +328,16 @@ def _fast_gradients(name, inputs, grad, needs):
     """The gradients computed by the ops themselves: {input position: gradient}."""
     fast = {}
     g = grad.contiguous()
+    # The stress ops end with (..., proj, model, rest_elements).
+    corot = name.startswith("stress_") and int(inputs[-2]) == MODEL_IDS["corotational"]
     if name in ("stress_forces", "stress_dforces", "tensor_stvk_forces", "tensor_stvk_dforces"):
         dforce = name.endswith("dforces")
         u_pos, du_pos = 0, 1
         target = du_pos if dforce else u_pos  # d/du of f(u) and d/d(du) of K(u) du: both K(u) g
-        if needs[target]:
+        # corotational: f(u) = -R(u) K (R(u)^T x - X) is not the gradient of an energy through R,
+        # so df/du != dforces (R fixed): its u-gradient goes through the reference (qr_rotations
+        # differentiated). dforces is linear in du with R(u) fixed and K symmetric: d/d(du) is fast.
+        if needs[target] and not (corot and not dforce):
             dname = name if dforce else name.replace("forces", "dforces")
             args = list(inputs)
             if not dforce:
@@ -324,7 +345,7 @@ def _fast_gradients(name, inputs, grad, needs):
             else:
                 args[1] = g
             fast[target] = _op(dname)(*args)
-        if dforce and needs[u_pos] and name == "stress_dforces" and int(inputs[-1]) == MODEL_IDS["hooke"]:
+        if dforce and needs[u_pos] and name == "stress_dforces" and int(inputs[-2]) == MODEL_IDS["hooke"]:
             fast[u_pos] = None  # hooke: K does not depend on u
     elif name == "tensor_hooke_forces":
         if needs[0]:
@@ -345,7 +366,7 @@ def _fast_gradients(name, inputs, grad, needs):
         if needs[5]:
             fast[5] = g
     if name.startswith("stress_"):
-        lam_pos, mu_pos = len(inputs) - 4, len(inputs) - 3
+        lam_pos, mu_pos = len(inputs) - 5, len(inputs) - 4
         if needs[lam_pos] or needs[mu_pos]:
             fast[lam_pos], fast[mu_pos] = _lame_gradients(name, inputs, g, needs[lam_pos], needs[mu_pos])
     return fast
@@ -368,7 +389,10 @@ def _make_backward(name):
         return _not_differentiable(name)
     def backward(ctx, grad):
         inputs = _inputs(ctx)
-        needs = list(ctx.needs_input_grad)
+        # the dispatcher drops trailing arguments equal to their defaults (rest_elements=None)
+        # from the autograd inputs, while setup_context sees them filled in
+        passed = len(ctx.needs_input_grad)
+        needs = list(ctx.needs_input_grad) + [False] * (len(inputs) - passed)
         fast = _fast_gradients(name, inputs, grad, needs)
         wanted = [i for i, x in enumerate(inputs) if needs[i] and _is_float(x) and i not in fast]
         slow = _reference_vjp(name, inputs, wanted, grad)
@@ -376,7 +400,7 @@ def _make_backward(name):
         for i in range(len(inputs)):
             g = fast.get(i, slow.get(i))
             grads.append(g if needs[i] else None)
-        return tuple(grads)
+        return tuple(grads[:passed])
 
     return backward
 
@@ -483,8 +507,9 @@ def _lame(group):
 def _stress_args(group):
     lam, mu = _lame(group)
     proj = group.projector
+    rest = group.rest_elements.contiguous() if group.model == "corotational" else None
     return (group.shape_vectors.contiguous(), group.measure.contiguous(), lam.contiguous(), mu.contiguous(),
-            None if proj is None else proj.contiguous(), MODEL_IDS[group.model])
+            None if proj is None else proj.contiguous(), MODEL_IDS[group.model], rest)
 
 
 def _stvk_tensors(group):
@@ -497,6 +522,10 @@ def supports(group, u: torch.Tensor) -> bool:
         return False
     if group.measure.dtype != u.dtype or group.measure.device != u.device:
         return False
+    if group.model == "corotational":
+        # Only SOFA's QR frame is in the ops (R recomputed per call from u and the rest nodes).
+        # rotation="polar" (an SVD per element) stays on the pure-torch reference path.
+        return group.rotation == "qr" and group.form == "stress" and u.shape[1] == 3
     return group.model in MODEL_IDS and group.form in ("stress", "tensor")
 
 
