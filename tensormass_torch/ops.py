@@ -100,14 +100,14 @@ def element_dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[to
 
     ``state``: ``linearize(group, u)`` when the caller keeps it across calls (None: computed here).
     """
+    native = _native(group, u)  # the native kernels recompute their (QR) rotations from u
+    if native is not None:
+        return native.element_dforces(group, u, du)
     if group.model == "corotational":
         lam, mu = group.lame()
         rotations = linearize(group, u) if state is None else state
         return corotational.dforces(_element_values(group, du), group.shape_vectors, group.measure, lam, mu,
                                     rotations, group.projector)
-    native = _native(group, u)
-    if native is not None:
-        return native.element_dforces(group, u, du)
     if group.form == "stress":
         lam, mu = group.lame()
         return stress_form.DFORCES[group.model](_element_values(group, u), _element_values(group, du),
