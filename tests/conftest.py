@@ -294,3 +294,18 @@ def rel(a, b) -> float:
     """||a - b|| / ||b|| in float64."""
     a, b = a.double(), b.double()
     return float(torch.linalg.norm(a - b) / torch.linalg.norm(b).clamp_min(1e-300))
+
+
+def load_native(*ops):
+    """``tensormass_torch.native`` when the compiled extension is built (and has ``ops``), else None."""
+    import importlib
+
+    try:
+        importlib.import_module("tensormass_torch._C")
+    except ImportError:
+        return None
+    from tensormass_torch import native
+
+    if not native.available() or not all(hasattr(torch.ops.tensormass, op) for op in ops):
+        return None
+    return native

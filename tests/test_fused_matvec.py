@@ -15,30 +15,17 @@ Skipped when the extension is not built.
 """
 from __future__ import annotations
 
-import importlib
 
 import numpy as np
 import pytest
 import torch
 
 import tensormass_torch as tm
-from conftest import CASES, DTYPES, FORMS, MODELS, build_scene, large_deformation, rel, tol
+from conftest import load_native, CASES, DTYPES, FORMS, MODELS, build_scene, large_deformation, rel, tol
 from tensormass_torch import Material, TensorMass, ops
 
 
-def _load():
-    try:
-        importlib.import_module("tensormass_torch._C")
-    except ImportError:
-        return None
-    from tensormass_torch import native
-
-    if not native.available() or not hasattr(torch.ops.tensormass, "gather_system"):
-        return None
-    return native
-
-
-native = _load()
+native = load_native("gather_system")
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C (with gather_system) is not built")
 
 C_MASS, C_STIFF = 1.03, 0.0123

@@ -22,23 +22,13 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import build_scene, large_deformation, rel
+from conftest import load_native, build_scene, large_deformation, rel
 from tensormass_torch import Material, TensorMass, ops
 from tensormass_torch.reference import corotational as co
 from tensormass_torch.reference import gather as ref_gather
 
 
-def _load():
-    try:
-        importlib.import_module("tensormass_torch._C")
-    except ImportError:
-        return None
-    from tensormass_torch import native
-
-    return native if native.available() else None
-
-
-native = _load()
+native = load_native()
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C is not built")
 T = torch.ops.tensormass if native is not None else None
 KINDS = ("tet", "tri3d")

@@ -15,28 +15,17 @@ Skipped when the extension is not built (the pure-torch path is tested everywher
 """
 from __future__ import annotations
 
-import importlib
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import CASES, DTYPES, FORMS, KINDS, MODELS, build_scene, large_deformation, rel, tol
+from conftest import load_native, CASES, DTYPES, FORMS, KINDS, MODELS, build_scene, large_deformation, rel, tol
 from tensormass_torch import Material, TensorMass, ops
 from tensormass_torch.topology import GatherPlan
 
 
-def _load():
-    try:
-        importlib.import_module("tensormass_torch._C")
-    except ImportError:
-        return None
-    from tensormass_torch import native
-
-    return native if native.available() else None
-
-
-native = _load()
+native = load_native()
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C is not built")
 T = torch.ops.tensormass
 
