@@ -31,6 +31,13 @@ pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C (wit
 C_MASS, C_STIFF = 1.03, 0.0123
 
 
+@pytest.fixture(autouse=True)
+def _extension_backend(monkeypatch):
+    """These tests check which path runs: they need the default dispatch even when the suite
+    runs under TENSORMASS_BACKEND=torch (a test that compares with torch sets it itself)."""
+    monkeypatch.setenv("TENSORMASS_BACKEND", "auto")
+
+
 
 
 def make_case(seed, kind, model, form, dtype, device="cpu"):
