@@ -230,6 +230,20 @@ struct TensorStvkKernel {
 
 // ------------------------------------------------------------------ kernel 2
 
+// Kernel 2's core: acc = sum of node i's used slots of PartialForce [N_n, V, D], in slot order
+// (the fixed order that makes the result bitwise reproducible).
+template <int D, typename S, typename I>
+TM_HD void sum_slots(const S* partial, const I* incidences, int64_t num_nodes, int64_t i, S (&acc)[D]) {
+  TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
+  const int64_t count = static_cast<int64_t>(ld(incidences + i));
+  const S* q = partial + i * D;
+  const int64_t stride = num_nodes * D;
+  for (int64_t s = 0; s < count; ++s) {
+    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += ld(q + a);
+    q += stride;
+  }
+}
+
 // TotalForce[i] = sum_{s < incidences[i]} PartialForce[s][i] (+ node term -K_ii values_i).
 template <int D, typename S, typename I, bool NODE_TERM>
 struct GatherKernel {
@@ -243,14 +257,7 @@ struct GatherKernel {
 
   TM_HD void operator()(int64_t i) const {
     S acc[D];
-    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
-    const int64_t count = static_cast<int64_t>(ld(incidences + i));
-    const S* p = partial + i * D;
-    const int64_t stride = num_nodes * D;
-    for (int64_t s = 0; s < count; ++s) {
-      TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += ld(p + a);
-      p += stride;
-    }
+    sum_slots<D, S, I>(partial, incidences, num_nodes, i, acc);
     if (NODE_TERM) {
       S k[D][D];
       load_matrix<D, D, S>(vertex_k + i * (D * D), k);
@@ -289,14 +296,7 @@ struct SystemGatherKernel {
 
   TM_HD void operator()(int64_t i) const {
     S acc[D];
-    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
-    const int64_t count = static_cast<int64_t>(ld(incidences + i));
-    const S* q = partial + i * D;
-    const int64_t stride = num_nodes * D;
-    for (int64_t s = 0; s < count; ++s) {
-      TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += ld(q + a);
-      q += stride;
-    }
+    sum_slots<D, S, I>(partial, incidences, num_nodes, i, acc);
     const S m = c_mass * ld(mass + i);
     S f = S(1);
     if (HAS_FREE) f = ld(free + i);
