@@ -276,39 +276,51 @@ struct GatherKernel {
 };
 
 // Kernel 2 with the implicit-Euler system epilogue (the CG matvec of A = c_M M - c_K K):
-//   Ap[i] = free_i * (c_M m_i p_i - c_K sum_{s < incidences[i]} PartialForce[s][i])
-//   pAp[i] = sum_a p[i][a] Ap[i][a]       (per node; the per-object sum stays in torch)
-// PartialForce holds the partial force differentials (dF/du) p of kernel 1. The arithmetic
-// follows the torch expression (c_M m_i) p_i - c_K (K p)_i, then the projection, so that the
-// result equals the composed path to rounding (bitwise on the CPU).
-template <int D, typename S, typename I, bool HAS_FREE>
+//   (K p)_i = sum_{s < incidences[i]} PartialForce[s][i]  (- K_ii p_i with a node stiffness)
+//   Ap[i] = free_i * (c_M m_i p_i - c_K (K p)_i),   pAp[i] = sum_a p[i][a] Ap[i][a]
+// PartialForce holds the partial force differentials (dF/du) p of kernel 1; the node stiffness
+// K_ii [V, D, D] is what acts on a node alone: the vertex term of the hooke tensor form, contact
+// penalties (k n n^T). The arithmetic follows the torch expression (c_M m_i) p_i - c_K (K p)_i,
+// then the projection, so that the result equals the composed path to rounding.
+template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
 struct SystemGatherKernel {
-  const S* partial;     // [N_n, V, D]
-  const I* incidences;  // [V]
-  const S* p;           // [V, D]
-  const S* mass;        // [V]
-  const S* free;        // [V] 0/1 (HAS_FREE)
+  const S* partial;         // [N_n, V, D]
+  const I* incidences;      // [V]
+  const S* p;               // [V, D]
+  const S* mass;            // [V]
+  const S* free;            // [V] 0/1 (HAS_FREE)
+  const S* node_stiffness;  // [V, D, D] (HAS_NODE_K)
   S c_mass;
   S c_stiff;
-  S* ap;                // [V, D]
-  S* p_dot_ap;          // [V]
+  S* ap;                    // [V, D]
+  S* p_dot_ap;              // [V]
   int64_t num_nodes;
 
   TM_HD void operator()(int64_t i) const {
     S acc[D];
     sum_slots<D, S, I>(partial, incidences, num_nodes, i, acc);
+    S pv[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = ld(p + i * D + a);
+    if (HAS_NODE_K) {
+      S k[D][D];
+      load_matrix<D, D, S>(node_stiffness + i * (D * D), k);
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        S s = S(0);
+        TM_UNROLL for (int b = 0; b < D; ++b) s += k[a][b] * pv[b];
+        acc[a] -= s;
+      }
+    }
     const S m = c_mass * ld(mass + i);
     S f = S(1);
     if (HAS_FREE) f = ld(free + i);
     S dot = S(0);
     TM_UNROLL for (int a = 0; a < D; ++a) {
-      const S pa = ld(p + i * D + a);
-      const S mp = m * pa;
+      const S mp = m * pv[a];
       const S kp = c_stiff * acc[a];
       S v = mp - kp;
       if (HAS_FREE) v = v * f;
       ap[i * D + a] = v;
-      dot += pa * v;
+      dot += pv[a] * v;
     }
     p_dot_ap[i] = dot;
   }

@@ -18,8 +18,12 @@
 //                             (slots >= incidences[i] are left uninitialised)
 //   kernel 2                  gather_partial(PartialForce, incidences) -> [V, d]
 //                             node_gather(partial [N, n, d], index, force_index, ...) -> [V, d]
-//                             gather_system(PartialForce, incidences, p, mass, free, c_M, c_K)
+//                             gather_system(PartialForce, incidences, p, mass, free, c_M, c_K,
+//                                           node_stiffness=None)
 //                               -> (Ap = free (c_M mass p - c_K K p) [V, d], p . Ap per node [V])
+//                               where (K p)_i = sum of node i's slots - node_stiffness_i p_i
+//                               (node_stiffness [V, d, d]: the hooke tensor form's vertex term K_ii,
+//                               contact penalties)
 //   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
 //                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
 #include <pybind11/pybind11.h>
@@ -71,7 +75,7 @@ TORCH_LIBRARY(tensormass, m) {
         "Tensor? node_term) -> Tensor");
   // ---- kernel 2 + implicit-Euler system epilogue (the CG matvec; not differentiable)
   m.def("gather_system(Tensor partial, Tensor incidences, Tensor p, Tensor mass, Tensor? free, float c_mass, "
-        "float c_stiff) -> (Tensor, Tensor)");
+        "float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

@@ -524,7 +524,8 @@ template <class L>
 std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, const at::Tensor& incidences,
                                                  const at::Tensor& p, const at::Tensor& mass,
                                                  const c10::optional<at::Tensor>& free, double c_mass,
-                                                 double c_stiff) {
+                                                 double c_stiff,
+                                                 const c10::optional<at::Tensor>& node_stiffness) {
   TORCH_CHECK(partial.defined(), "tensormass: partial is undefined");
   TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N_n, V, d], got shape ", shape_str(partial.sizes()));
   TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
@@ -544,6 +545,11 @@ std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, cons
     fr = *free;
     check_node_tensor(fr, "free", partial, {num_nodes});
   }
+  at::Tensor nk;
+  if (node_stiffness.has_value() && node_stiffness->defined()) {
+    nk = *node_stiffness;
+    check_node_tensor(nk, "node_stiffness", partial, {num_nodes, dim, dim});
+  }
   dispatch_dim(dim, [](auto) {});
   typename L::Guard guard(partial.device());
   at::Tensor ap = at::empty({num_nodes, dim}, partial.options());
@@ -555,19 +561,23 @@ std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, cons
       dispatch_dim(dim, [&](auto d_c) {
         constexpr int D = decltype(d_c)::value;
         dispatch_bool(fr.defined(), [&](auto free_c) {
+         dispatch_bool(nk.defined(), [&](auto node_k_c) {
           constexpr bool HAS_FREE = decltype(free_c)::value;
-          SystemGatherKernel<D, S, I, HAS_FREE> k;
+          constexpr bool HAS_NODE_K = decltype(node_k_c)::value;
+          SystemGatherKernel<D, S, I, HAS_FREE, HAS_NODE_K> k;
           k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
           k.incidences = incidences.data_ptr<I>();
           k.p = p.data_ptr<S>();
           k.mass = mass.data_ptr<S>();
           k.free = HAS_FREE ? fr.data_ptr<S>() : nullptr;
+          k.node_stiffness = HAS_NODE_K ? nk.data_ptr<S>() : nullptr;
           k.c_mass = static_cast<S>(c_mass);
           k.c_stiff = static_cast<S>(c_stiff);
           k.ap = ap.data_ptr<S>();
           k.p_dot_ap = p_dot_ap.data_ptr<S>();
           k.num_nodes = num_nodes;
           L::run(num_nodes, k, L::kNodeBlock);
+         });
         });
       });
     });

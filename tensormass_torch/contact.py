@@ -49,6 +49,12 @@ class Planes:
         """Penalty forces ``[V, 3]`` at positions ``x [V, 3]``."""
         return (self.penetration(x) * self.stiffness) @ self.normals
 
+    def node_stiffness(self, x: torch.Tensor) -> torch.Tensor:
+        """-(df/dx) per node ``[V, 3, 3]``: sum over the planes a node is below of k n n^T."""
+        active = (self.penetration(x) > 0).to(x.dtype) * self.stiffness  # [V, P]
+        outer = self.normals[:, :, None] * self.normals[:, None, :]  # [P, 3, 3]
+        return torch.einsum("vp,pab->vab", active, outer)
+
     def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """(df/dx) dx = -k n (n.dx) on nodes in contact ``[V, 3]``."""
         active = (self.penetration(x) > 0).to(x.dtype)

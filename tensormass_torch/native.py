@@ -161,13 +161,20 @@ def _ref_node_gather(partial, index, force_index, num_slots, incidences, node_te
     return _gather(partial, index, force_index, num_slots, incidences, node_term)
 
 
-def _ref_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff):
-    """Kernel 2 + the implicit-Euler epilogue: Ap = free (c_mass mass p - c_stiff K p), p . Ap per node."""
-    kp = _ref_gather_partial(partial, incidences, None)
+def _system_epilogue(kp, p, mass, free, c_mass, c_stiff, node_stiffness=None):
+    """Ap = free (c_mass mass p - c_stiff (kp - node_stiffness p)) ``[V, d]``, p . Ap per node ``[V]``."""
+    if node_stiffness is not None:
+        kp = kp - torch.einsum("vab,vb->va", node_stiffness, p)
     ap = (c_mass * mass.unsqueeze(-1)) * p - c_stiff * kp
     if free is not None:
         ap = ap * free.unsqueeze(-1)
     return ap, (p * ap).sum(-1)
+
+
+def _ref_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff, node_stiffness=None):
+    """Kernel 2 + the implicit-Euler epilogue (see ``_system_epilogue``)."""
+    return _system_epilogue(_ref_gather_partial(partial, incidences, None), p, mass, free, c_mass, c_stiff,
+                            node_stiffness)
 
 
 REFERENCE = {
@@ -231,7 +238,7 @@ def _fake_node_gather(partial, index, force_index, num_slots, incidences, node_t
     return partial.new_empty((incidences.shape[0], partial.shape[2]))
 
 
-def _fake_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff):
+def _fake_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff, node_stiffness=None):
     return (partial.new_empty((partial.shape[1], partial.shape[2])), partial.new_empty((partial.shape[1],)))
 
 
@@ -592,32 +599,38 @@ def dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
 
 def system_fusable(group) -> bool:
     """Whether :func:`system_matvec` has a fused path for ``group``: kernel 1 through a padded
-    partial-dforce op (stress form, stvk tensor form; the hooke tensor form has a vertex term)."""
-    return (hasattr(torch.ops.tensormass, "gather_system")
-            and (group.form == "stress" or (group.form == "tensor" and group.model == "stvk")))
+    partial-dforce op (stress form, both tensor forms; the hooke tensor form's vertex term goes
+    to ``gather_system`` as a node stiffness)."""
+    return hasattr(torch.ops.tensormass, "gather_system") and group.form in ("stress", "tensor")
 
 
 def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
-                  c_mass: float, c_stiff: float):
+                  c_mass: float, c_stiff: float, node_stiffness: Optional[torch.Tensor] = None):
     """The CG matvec of implicit Euler for one group: kernel 1 (padded partial dforces along ``p``)
     and kernel 2 with the system epilogue (``gather_system``). ``mass`` and ``free`` are ``[V]``
-    (``free`` float 0/1 or None). Returns (Ap ``[V, d]``, p . Ap per node ``[V]``)."""
+    (``free`` float 0/1 or None); ``node_stiffness`` ``[V, d, d]`` (contact penalties) or None.
+    Returns (Ap ``[V, d]``, p . Ap per node ``[V]``)."""
     u, p = u.contiguous(), p.contiguous()
     plan = group.plan
     index, force_index, incidences = _plan_indices(plan)
     if group.form == "stress":
         partial = torch.ops.tensormass.stress_partial_dforces(u, p, index, force_index, plan.num_slots,
                                                               *_stress_args(group))
+    elif group.model == "hooke":  # linear: the partial forces of p are its partial dforces
+        partial = torch.ops.tensormass.tensor_hooke_partial_forces(p, index, force_index, plan.num_slots,
+                                                                   group.edge_k.contiguous())
+        vertex_k = group.vertex_k.contiguous()
+        node_stiffness = vertex_k if node_stiffness is None else vertex_k + node_stiffness
     else:
         partial = torch.ops.tensormass.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots,
                                                                    *_stvk_tensors(group))
     mass = mass.contiguous()
     free = None if free is None else free.contiguous()
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (partial, p, mass, free)):
+    node_stiffness = None if node_stiffness is None else node_stiffness.contiguous()
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad
+                                       for t in (partial, p, mass, free, node_stiffness)):
         # gather_system has no gradient: the same arithmetic in differentiable ops
         kp = torch.ops.tensormass.gather_partial(partial, incidences, None)
-        ap = (c_mass * mass.unsqueeze(-1)) * p - c_stiff * kp
-        if free is not None:
-            ap = ap * free.unsqueeze(-1)
-        return ap, (p * ap).sum(-1)
-    return torch.ops.tensormass.gather_system(partial, incidences, p, mass, free, float(c_mass), float(c_stiff))
+        return _system_epilogue(kp, p, mass, free, c_mass, c_stiff, node_stiffness)
+    return torch.ops.tensormass.gather_system(partial, incidences, p, mass, free, float(c_mass), float(c_stiff),
+                                              node_stiffness)

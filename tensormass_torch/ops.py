@@ -168,7 +168,7 @@ def energy(group, u: torch.Tensor) -> torch.Tensor:
 
 
 def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
-                  c_mass: float, c_stiff: float, states=None):
+                  c_mass: float, c_stiff: float, states=None, node_stiffness: Optional[torch.Tensor] = None):
     """The CG matvec of implicit Euler, ``A p = c_mass M p - c_stiff K p`` projected on the free nodes.
 
     Args:
@@ -176,13 +176,16 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
         u: displacements ``[V, d]`` (positions minus rest) where K is evaluated; p: ``[V, d]``.
         mass: lumped masses ``[V]`` or ``[V, 1]``; free: ``[V]`` or ``[V, 1]`` float 0/1 mask, or None.
         states: ``[linearize(g, u) for g in groups]`` kept by the caller across CG iterations, or None.
+        node_stiffness: ``[V, d, d]`` stiffness acting on each node alone (contact penalties k n n^T),
+            subtracted from K p: ``(K p)_i -= node_stiffness_i p_i``; or None.
     Returns:
         (Ap ``[V, d]``, p . Ap per node ``[V]``) with ``Ap_i = free_i (c_mass m_i p_i - c_stiff (K p)_i)``.
 
     Fused (kernel 1 = the group's padded partial-dforce op, kernel 2 = ``gather_system`` with the
     mass term, subtraction, projection and per-node dot in its epilogue) when there is exactly one
-    group and the extension has its partial-dforce op for that device (stress form or stvk tensor
-    form) and mass/free share p's dtype and device; otherwise the composed reference below.
+    group and the extension has its partial-dforce op for that device (every form: the hooke tensor
+    form's vertex term joins the node stiffness) and mass/free share p's dtype and device;
+    otherwise the composed reference below.
     """
     groups = list(groups)
     mass_v = mass.reshape(-1)
@@ -191,12 +194,14 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
         native = _native(groups[0], u)
         if (native is not None and native.system_fusable(groups[0])
                 and all(t is None or (t.dtype == u.dtype and t.device == u.device and t.shape[0] == u.shape[0])
-                        for t in (mass_v, free_v))):
-            return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff)
+                        for t in (mass_v, free_v, node_stiffness))):
+            return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, node_stiffness)
     kp = None
     for i, group in enumerate(groups):
         f = dforces(group, u, p, None if states is None else states[i])
         kp = f if kp is None else kp + f
+    if node_stiffness is not None:
+        kp = kp - torch.einsum("vab,vb->va", node_stiffness, p)
     ap = (c_mass * mass_v.unsqueeze(-1)) * p - c_stiff * kp
     if free_v is not None:
         ap = ap * free_v.unsqueeze(-1)

@@ -68,7 +68,8 @@ class Simulator:
         gravity: ``[3]`` acceleration.
         rayleigh_mass, rayleigh_stiffness: Rayleigh damping r_M, r_K (>= 0).
         planes: list of :class:`Plane` (penalty contact).
-        cg_tol, cg_max_iter, require_convergence, newton_iters, check_every: see ``StepOptions``.
+        cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs: see
+            ``StepOptions``.
         form: element force form, ``"auto" | "stress" | "tensor"``.
         device, dtype: where and in what precision to simulate (default: the meshes').
     """
@@ -76,7 +77,8 @@ class Simulator:
     def __init__(self, bodies: Sequence[Body], dt: float = 0.01, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0, planes: Sequence[Plane] = (),
                  cg_tol: float = 1e-6, cg_max_iter: int = 200, require_convergence: bool = True,
-                 newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None):
+                 newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
+                 cuda_graphs: bool = True):
         bodies = list(bodies)
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -106,7 +108,8 @@ class Simulator:
         self.options = StepOptions(dt=float(dt), rayleigh_mass=float(rayleigh_mass),
                                    rayleigh_stiffness=float(rayleigh_stiffness), cg_tol=cg_tol,
                                    cg_max_iter=cg_max_iter, require_convergence=require_convergence,
-                                   newton_iters=newton_iters, check_every=check_every)
+                                   newton_iters=newton_iters, check_every=check_every,
+                                   cuda_graphs=bool(cuda_graphs))
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
         offset = 0
         for b in bodies:

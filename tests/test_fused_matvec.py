@@ -5,8 +5,9 @@
        c_M M p - c_K K p projected on the free nodes, for hooke/stvk, stress/tensor form, tets and
        triangles (2-D and 3-D membranes), with and without ``free``, float64 and float32,
        int32 and int64 incidences
-    2. ops.system_matvec dispatches to the fused path where it applies (one group, stress form or
-       stvk tensor form) and equals the composed path everywhere
+    2. ops.system_matvec dispatches to the fused path where it applies (one group; every form, the
+       hooke tensor form's vertex term as a node stiffness) and equals the composed path everywhere,
+       with and without a node stiffness (contact penalties)
     3. a Simulator step with the fused path = TENSORMASS_BACKEND=torch
     4. input checks, no gradient, opcheck
     5. CUDA = CPU (skipped without CUDA)
@@ -114,8 +115,7 @@ def test_system_matvec_dispatch(monkeypatch, kind, model, form, dtype, with_free
     real = native.system_matvec
     monkeypatch.setattr(native, "system_matvec", lambda *a: calls.append(1) or real(*a))
     ap, dot = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF)
-    fusable = form == "stress" or model == "stvk"
-    assert len(calls) == (1 if fusable else 0)
+    assert len(calls) == 1  # every form has a fused path
     exp_ap, exp_dot = unfused(group, u, p, mass, free)
     assert rel(ap, exp_ap) < tol(dtype, group)
     assert rel(dot, exp_dot) < tol(dtype, group)
@@ -128,6 +128,36 @@ def test_system_matvec_dispatch(monkeypatch, kind, model, form, dtype, with_free
     t_ap, t_dot = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF)
     assert rel(ap, t_ap) < tol(dtype, group)
     assert rel(dot, t_dot) < tol(dtype, group)
+
+
+def random_node_stiffness(u, seed):
+    """Symmetric positive semi-definite [V, d, d] blocks (as contact penalties k n n^T), zero on some nodes."""
+    g = torch.Generator().manual_seed(seed)
+    n = torch.randn(u.shape, generator=g, dtype=u.dtype)
+    k = torch.rand(u.shape[0], generator=g, dtype=u.dtype) * (torch.rand(u.shape[0], generator=g) > 0.5)
+    return (k[:, None, None] * n[:, :, None] * n[:, None, :]).to(u.device)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("kind,model,form", CASES)
+def test_node_stiffness(monkeypatch, kind, model, form, dtype):
+    _, group, u, p, mass, free = make_case(17, kind, model, form, dtype)
+    stiffness = random_node_stiffness(u, 3)
+    ap, dot = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF, node_stiffness=stiffness)
+    exp_ap = C_MASS * mass.unsqueeze(-1) * p - C_STIFF * (ops.dforces(group, u, p)
+                                                          - torch.einsum("vab,vb->va", stiffness, p))
+    exp_ap = exp_ap * free.unsqueeze(-1)
+    assert rel(ap, exp_ap) < tol(dtype, group)
+    assert rel(dot, (p * exp_ap).sum(-1)) < tol(dtype, group)
+    # the op against its reference on the same padded buffer
+    partial, inc = padded_partial_dforces(group, u, p, torch.int64)
+    op = torch.ops.tensormass.gather_system(partial, inc, p, mass, free, C_MASS, C_STIFF, stiffness)
+    ref = native.REFERENCE["gather_system"](partial, inc, p, mass, free, C_MASS, C_STIFF, stiffness)
+    for a, b in zip(op, ref):
+        assert rel(a, b) < tol(dtype)
+    monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
+    t_ap, _ = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF, node_stiffness=stiffness)
+    assert rel(ap, t_ap) < tol(dtype, group)
 
 
 def test_system_matvec_two_groups_is_composed(monkeypatch):
@@ -165,8 +195,10 @@ def test_opcheck():
     partial, inc = padded_partial_dforces(group, u, p, torch.int64)
     partial = torch.where(native._slot_mask(partial.shape[0], inc), partial, partial.new_zeros(()))
     for fr in (None, free):
-        torch.library.opcheck(torch.ops.tensormass.gather_system.default, (partial, inc, p, mass, fr, C_MASS, C_STIFF),
-                              test_utils=("test_schema", "test_faketensor", "test_aot_dispatch_static"))
+        for stiffness in (None, random_node_stiffness(u, 5)):
+            torch.library.opcheck(torch.ops.tensormass.gather_system.default,
+                                  (partial, inc, p, mass, fr, C_MASS, C_STIFF, stiffness),
+                                  test_utils=("test_schema", "test_faketensor", "test_aot_dispatch_static"))
 
 
 def test_input_checks():
@@ -183,6 +215,8 @@ def test_input_checks():
         G(partial, inc[:-1], p, mass, None, 1.0, 1.0)
     with pytest.raises(RuntimeError, match="partial must be"):
         G(partial[0], inc, p, mass, None, 1.0, 1.0)
+    with pytest.raises(RuntimeError, match="node_stiffness has shape"):
+        G(partial, inc, p, mass, None, 1.0, 1.0, torch.zeros(u.shape[0], 3, dtype=u.dtype))
 
 
 # --------------------------------------------------------------------- the solver
@@ -210,7 +244,7 @@ def test_simulator_step_matches_torch_backend(monkeypatch, model, form, dtype):
     monkeypatch.setattr(native, "system_matvec", lambda *a: fused_calls.append(1) or real_native(*a))
     x, v = run()
     assert calls, "the solver did not use ops.system_matvec"
-    assert bool(fused_calls) == (form == "stress" or model == "stvk")
+    assert fused_calls, "the solver did not use the fused matvec"
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
     x_t, v_t = run()
     t = 1e-10 if dtype == torch.float64 else 1e-4

@@ -1,24 +1,33 @@
-"""Conjugate gradient, batched over packed objects with per-object scalars.
+"""Conjugate gradient, batched over packed objects with per-object scalars, resident on the device.
 
-Each object has its own alpha, beta, residual and convergence flag: a stiff object that needs
-many iterations neither holds back (its neighbours stop updating once converged) nor pollutes
-(no scalar is shared) the others. The stopping rule, per object b:
+Each object has its own alpha, beta, residual and status: a stiff object that needs many
+iterations neither holds back (its neighbours stop updating once converged) nor pollutes (no
+scalar is shared) the others. The stopping rule, per object b:
 
     ||r_b|| <= tol * ||rhs_b||          (the residual ratio, not its square)
 
-tested after every iteration on the device; the host only looks every ``check_every``
-iterations to see whether all objects are done, so the iterates never depend on it.
-An object whose curvature p.Ap is not positive (an indefinite system, e.g. a compressed
-``stvk`` body at a large step) or whose scalars turn NaN/inf is stopped and flagged.
+tested after every iteration on the device (``cg_ops.cg_update``); an object also stops when its
+curvature p.Ap is not positive (an indefinite system, e.g. a compressed ``stvk`` body at a large
+step: "breakdown"), when its scalars turn NaN/inf ("non-finite") or at the iteration cap.
+
+An iteration is a fixed sequence of device work (the matvec, then ``cg_alpha``, ``cg_update``,
+``cg_direction`` on persistent buffers) with no host synchronisation; the host only looks every
+``check_every`` iterations to see whether any object is still active, so the iterates never
+depend on it. With a ``graph_key`` on a CUDA device, the ``check_every`` iterations are captured
+once in a CUDA graph and replayed: one launch instead of hundreds, no Python per iteration.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple, Union
 
 import torch
 
-from .segments import Segments
+from . import cg_ops
+from .cg_ops import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE, STATUS_WORDS, CGState
+from .segments import ChunkPlan, Segments
+
+Matvec = Callable[[torch.Tensor], Union[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]]
 
 
 @dataclass
@@ -45,65 +54,143 @@ class CGResult:
         return self.residual_norm / torch.clamp(self.rhs_norm, min=torch.finfo(self.rhs_norm.dtype).tiny)
 
 
-def batched_cg(matvec: Callable[[torch.Tensor], torch.Tensor], rhs: torch.Tensor, segments: Segments,
-               free: Optional[torch.Tensor] = None, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
-               max_iter: int = 200, check_every: int = 8) -> CGResult:
-    """Solve A x = rhs for every object at once.
-
-    Args:
-        matvec: p ``[V, d]`` -> A p ``[V, d]`` (A symmetric positive definite per object).
-        rhs: ``[V, d]``.
-        segments: the objects' node ranges.
-        free: ``[V, 1]`` mask (1 free, 0 constrained) or None. Constrained rows are projected out:
-            the solve runs on free nodes and leaves ``x0`` there.
-        x0: initial guess ``[V, d]`` (zeros by default).
-        tol: relative residual tolerance (>= 0); ``tol = 0`` runs exactly ``max_iter`` iterations.
-        max_iter: iteration cap (>= 0).
-        check_every: host check of "all objects done" every k iterations (>= 1).
-    """
+def _check_settings(tol, max_iter, check_every):
     if max_iter < 0 or tol < 0 or check_every < 1:
         raise ValueError(f"bad CG settings: max_iter={max_iter}, tol={tol}, check_every={check_every}")
 
-    def project(v):
-        return v if free is None else v * free
 
-    def apply(v):
-        return project(matvec(project(v)))
+class CGSolver:
+    """A batched CG over fixed packed objects, with its buffers (and CUDA graphs) kept across solves.
 
-    x = torch.zeros_like(rhs) if x0 is None else x0.clone()
-    b = project(rhs)
-    r = b - apply(x) if x0 is not None else b.clone()
-    rhs_sq = segments.dot(b, b)
-    rr = segments.dot(r, r)
-    threshold = (tol * tol) * rhs_sq
-    nonfinite = ~torch.isfinite(rr)
-    converged = (rr <= threshold) & ~nonfinite
-    breakdown = torch.zeros_like(converged)
-    active = ~converged & ~nonfinite
-    iterations = torch.zeros_like(segments.lengths)
-    p = r.clone()
-    for k in range(max_iter):
-        if k % check_every == 0 and not bool(active.any()):
-            break
-        ap = apply(p)
-        p_ap = segments.dot(p, ap)
-        newly_broken = active & ~(p_ap > 0)  # also catches NaN curvature
-        breakdown |= newly_broken & torch.isfinite(p_ap)
-        nonfinite |= newly_broken & ~torch.isfinite(p_ap)
-        active &= ~newly_broken
-        alpha = torch.where(active, rr / torch.where(active, p_ap, torch.ones_like(p_ap)), torch.zeros_like(rr))
-        x = x + segments.spread(alpha) * p
-        r = r - segments.spread(alpha) * ap
-        rr_new = segments.dot(r, r)
-        iterations = iterations + active.long()
-        bad = active & ~torch.isfinite(rr_new)
-        nonfinite |= bad
-        active &= ~bad
-        done = active & (rr_new <= threshold)
-        converged |= done
-        active &= ~done
-        beta = torch.where(active, rr_new / torch.where(active, rr, torch.ones_like(rr)), torch.zeros_like(rr))
-        p = r + segments.spread(beta) * p
-        rr = torch.where(active | done, rr_new, rr)
-    return CGResult(x, iterations, torch.sqrt(torch.clamp(rr, min=0)), torch.sqrt(rhs_sq), converged,
-                    breakdown, nonfinite)
+    Args:
+        segments: the objects' node ranges.
+        shape: ``(V, d)`` of the unknowns; dtype, device: theirs.
+        free: ``[V, 1]`` mask (1 free, 0 constrained) or None. Constrained rows are projected out:
+            the solve runs on free nodes and leaves ``x0`` there.
+        chunk_nodes: nodes per chunk (one GPU block) of the reductions and updates.
+        cuda_graphs: capture the iterations of solves that pass a ``graph_key`` (CUDA only).
+    """
+
+    def __init__(self, segments: Segments, shape, dtype, device, free: Optional[torch.Tensor] = None,
+                 chunk_nodes: int = 512, cuda_graphs: bool = True):
+        self.segments = segments.to(device)
+        self.plan = ChunkPlan.from_segments(self.segments, chunk_nodes)
+        self.state = CGState.empty(self.plan, tuple(shape), dtype, torch.device(device))
+        self.free = free
+        self.native = cg_ops.native_ops_for(self.state.x)
+        self.cuda_graphs = bool(cuda_graphs) and self.state.x.device.type == "cuda"
+        self._graphs: Dict[tuple, object] = {}
+        self.graph_replays = 0
+
+    def _project(self, v):
+        return v if self.free is None else v * self.free
+
+    def _apply(self, matvec: Matvec, v: torch.Tensor):
+        """(A v projected ``[V, d]``, v . Av per node ``[V]``); v is already projected."""
+        out = matvec(v)
+        if isinstance(out, tuple):  # a fused matvec: projected, with the per-node dot
+            return out
+        av = self._project(out)
+        return av, (v * av).sum(-1)
+
+    def _iterate(self, matvec: Matvec, max_iter: int):
+        s = self.state
+        ap, p_dot_ap = self._apply(matvec, s.p)
+        cg_ops.cg_alpha(p_dot_ap, self.plan, s, self.native)
+        cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
+        cg_ops.cg_direction(self.plan, s, self.native)
+
+    def _run(self, matvec: Matvec, count: int, max_iter: int, graph_key):
+        if graph_key is None or not self.cuda_graphs:
+            for _ in range(count):
+                self._iterate(matvec, max_iter)
+            return
+        key = (graph_key, count, max_iter)
+        graph = self._graphs.get(key)
+        if graph is None:  # first use: run eagerly (warms up every op), capture for the next time
+            for _ in range(count):
+                self._iterate(matvec, max_iter)
+            self._graphs[key] = self._capture(matvec, count, max_iter)
+            return
+        if graph is False:  # capture failed once: stay eager
+            for _ in range(count):
+                self._iterate(matvec, max_iter)
+            return
+        graph.replay()
+        self.graph_replays += 1
+
+    def _capture(self, matvec: Matvec, count: int, max_iter: int):
+        """A CUDA graph of ``count`` iterations on the persistent buffers (capturing runs nothing:
+        the buffers keep their values), or False when some op cannot be captured."""
+        graph = torch.cuda.CUDAGraph()
+        try:
+            with torch.cuda.graph(graph):
+                for _ in range(count):
+                    self._iterate(matvec, max_iter)
+        except Exception:  # noqa: BLE001 (an op that cannot be captured: the eager path is as correct)
+            return False
+        return graph
+
+    def solve(self, matvec: Matvec, rhs: torch.Tensor, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
+              max_iter: int = 200, check_every: int = 8, graph_key=None) -> CGResult:
+        """Solve A x = rhs for every object at once.
+
+        Args:
+            matvec: p ``[V, d]`` -> A p ``[V, d]`` (A symmetric positive definite per object), or a
+                fused matvec returning (A p projected on the free nodes, p . Ap per node ``[V]``).
+            rhs: ``[V, d]``; x0: initial guess ``[V, d]`` (zeros by default).
+            tol: relative residual tolerance (>= 0); ``tol = 0`` runs exactly ``max_iter`` iterations.
+            max_iter: iteration cap (>= 0); check_every: host check of "any object active" every k
+                iterations (>= 1).
+            graph_key: hashable; not None promises that ``matvec`` reads only tensors whose storage
+                stays the same for every solve with this key (its inputs are updated in place), so its
+                iterations may be captured once in a CUDA graph and replayed.
+        """
+        _check_settings(tol, max_iter, check_every)
+        s = self.state
+        b = self._project(rhs)
+        if x0 is None:
+            s.x.zero_()
+            s.r.copy_(b)
+        else:
+            s.x.copy_(x0)
+            s.r.copy_(b - self._apply(matvec, self._project(x0))[0])
+        rhs_sq = self.segments.dot(b, b)
+        rr = self.segments.dot(s.r, s.r)
+        s.rr.copy_(rr)
+        s.threshold.copy_((tol * tol) * rhs_sq)
+        status = torch.where(~torch.isfinite(rr), NONFINITE,
+                             torch.where(rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
+        s.status.copy_(status.to(torch.int32))
+        s.iterations.zero_()
+        s.alpha.zero_()
+        s.beta.zero_()
+        s.p.copy_(s.r)
+        done = 0
+        while done < max_iter and bool((s.status == ACTIVE).any()):
+            count = min(check_every, max_iter - done)
+            self._run(matvec, count, max_iter, graph_key)
+            done += count
+        status = s.status
+        return CGResult(s.x.clone(), s.iterations.long(), torch.sqrt(torch.clamp(s.rr, min=0)), torch.sqrt(rhs_sq),
+                        status == CONVERGED, status == BREAKDOWN, status == NONFINITE)
+
+
+def batched_cg(matvec: Matvec, rhs: torch.Tensor, segments: Segments, free: Optional[torch.Tensor] = None,
+               x0: Optional[torch.Tensor] = None, tol: float = 1e-6, max_iter: int = 200,
+               check_every: int = 8) -> CGResult:
+    """Solve A x = rhs for every object at once (a one-off :class:`CGSolver`; see its ``solve``).
+
+    Args:
+        matvec: p ``[V, d]`` -> A p ``[V, d]``, or (A p projected, p . Ap per node ``[V]``).
+        rhs: ``[V, d]``; segments: the objects' node ranges.
+        free: ``[V, 1]`` mask (1 free, 0 constrained) or None; x0: initial guess ``[V, d]``.
+        tol, max_iter, check_every: as :meth:`CGSolver.solve`.
+    """
+    _check_settings(tol, max_iter, check_every)
+    solver = CGSolver(segments, rhs.shape, rhs.dtype, rhs.device, free, cuda_graphs=False)
+    return solver.solve(matvec, rhs, x0, tol, max_iter, check_every)
+
+
+__all__ = ["CGResult", "CGSolver", "batched_cg", "STATUS_WORDS", "ACTIVE", "CONVERGED", "BREAKDOWN", "NONFINITE",
+           "CAPPED"]

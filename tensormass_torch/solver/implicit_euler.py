@@ -16,7 +16,7 @@ from typing import List
 import torch
 
 from ..errors import SolverError
-from .cg import CGResult, batched_cg
+from .cg import CGResult, CGSolver, batched_cg
 from .segments import Segments
 
 
@@ -31,7 +31,9 @@ class StepOptions:
         require_convergence: if False, a CG stopped by its cap is accepted (SOFA's fixed iteration
             budget); breakdowns and NaN/inf are always errors.
         newton_iters: linearisations per step (1 = Baraff-Witkin).
-        check_every: host convergence check period inside CG.
+        check_every: host convergence check period inside CG (the CG iterations between two
+            checks run as one CUDA graph on the GPU).
+        cuda_graphs: capture the CG iterations in CUDA graphs (CUDA devices only).
     """
 
     dt: float
@@ -42,6 +44,7 @@ class StepOptions:
     require_convergence: bool = True
     newton_iters: int = 1
     check_every: int = 8
+    cuda_graphs: bool = True
 
 
 @dataclass
@@ -75,6 +78,28 @@ class DynamicsSystem:
         self.segments = segments
         self.free = None if not bool(constrained.any()) else (~constrained).to(mass.dtype).unsqueeze(-1)
         self.planes = planes if planes is not None and len(planes) else None
+        self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
+        self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec
+
+    def cg_solver(self, like: torch.Tensor, cuda_graphs: bool) -> CGSolver:
+        """The batched CG over these objects (made once, on ``like``'s device and dtype)."""
+        cg = self._cg
+        if (cg is None or cg.state.x.dtype != like.dtype or cg.state.x.device != like.device
+                or cg.cuda_graphs != (cuda_graphs and like.device.type == "cuda")):
+            cg = self._cg = CGSolver(self.segments, like.shape, like.dtype, like.device, self.free,
+                                     cuda_graphs=cuda_graphs)
+        return cg
+
+    def system_matvec(self, mass_coef: float, stiffness_coef: float):
+        """The :class:`SystemMatvec` for these coefficients, or None when the model is not a TensorMass."""
+        from ..modules import TensorMass
+
+        if not isinstance(self.model, TensorMass):
+            return None
+        key = (float(mass_coef), float(stiffness_coef))
+        if key not in self._matvecs:
+            self._matvecs[key] = SystemMatvec(self, *key)
+        return self._matvecs[key]
 
     def forces(self, x):
         """All forces ``[V, d]``: elastic, external, contact."""
@@ -93,43 +118,70 @@ class DynamicsSystem:
         return lambda dx: elastic(dx) + self.planes.dforces(x, dx)
 
 
-def _system_matvec(system: DynamicsSystem, x, mass_coef: float, stiffness_coef: float):
-    """p -> A p through ``ops.system_matvec`` (the fused kernel-2 epilogue where the extension has
-    it: mass term, subtraction and fixed-node projection in one pass), or None where the matvec
-    stays composed: contact planes (their ``-c_K planes.dforces`` term) or a model that is not a
-    ``TensorMass``. CG projects the product again (idempotent) and computes p . Ap itself."""
-    from .. import ops
-    from ..modules import TensorMass
+class SystemMatvec:
+    """p -> (A p, p . Ap per node) for ``A = c_M M - c_K dF/dx`` through ``ops.system_matvec`` (the
+    fused kernel-2 epilogue where the extension has it: mass term, subtraction, contact
+    stiffness, fixed-node projection and per-node dot in one pass).
 
-    model = system.model
-    if system.planes is not None or not isinstance(model, TensorMass):
-        return None
-    model._check_positions("x", x)
-    u = x - model.rest
-    free = system.free
-    states = [ops.linearize(group, u) for group in model.groups]  # once per solve, not per iteration
+    What the product depends on (the displacements at the linearisation point, the corotational
+    rotations, the contact stiffness) lives in buffers that keep their storage from one solve to
+    the next, refreshed in place by :meth:`load`: the CG iterations can then be captured once in a
+    CUDA graph and replayed at every step.
+    """
 
-    def matvec(p):
-        return ops.system_matvec(model.groups, u, p, system.mass, free, mass_coef, stiffness_coef, states)[0]
+    def __init__(self, system: DynamicsSystem, mass_coef: float, stiffness_coef: float):
+        self.system = system
+        self.mass_coef = mass_coef
+        self.stiffness_coef = stiffness_coef
+        self.u = torch.zeros_like(system.model.rest)
+        self.states = None
+        self.node_stiffness = None
+        self.graph_key = ("system", mass_coef, stiffness_coef, id(self))
 
-    return matvec
+    def load(self, x: torch.Tensor) -> "SystemMatvec":
+        """Linearise at positions ``x [V, d]`` (rotations and contact stiffness computed once here)."""
+        from .. import ops
+
+        system = self.system
+        system.model._check_positions("x", x)
+        self.u.copy_(x - system.model.rest)
+        states = [ops.linearize(group, self.u) for group in system.model.groups]
+        if self.states is None or [s is None for s in states] != [s is None for s in self.states]:
+            self.states = [None if s is None else s.clone() for s in states]
+        else:
+            for dst, src in zip(self.states, states):
+                if src is not None:
+                    dst.copy_(src)
+        if system.planes is not None:
+            stiffness = system.planes.node_stiffness(x)
+            if self.node_stiffness is None:
+                self.node_stiffness = stiffness.clone()
+            else:
+                self.node_stiffness.copy_(stiffness)
+        return self
+
+    def __call__(self, p: torch.Tensor):
+        from .. import ops
+
+        system = self.system
+        return ops.system_matvec(system.model.groups, self.u, p, system.mass, system.free, self.mass_coef,
+                                 self.stiffness_coef, self.states, self.node_stiffness)
 
 
 def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions) -> CGResult:
     h = opts.dt
     mass_coef = 1.0 + h * opts.rayleigh_mass
     stiffness_coef = h * (h + opts.rayleigh_stiffness)
-
-    fused = _system_matvec(system, x, mass_coef, stiffness_coef)
-    tangent = system.tangent(x) if fused is None else None
-
-    def matvec(p):
-        if fused is not None:
-            return fused(p)
-        return mass_coef * system.mass * p - stiffness_coef * tangent(p)
-
-    return batched_cg(matvec, rhs, system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
-                      check_every=opts.check_every)
+    fused = system.system_matvec(mass_coef, stiffness_coef)
+    if fused is None:  # a model that is not a TensorMass: the composed product
+        tangent = system.tangent(x)
+        return batched_cg(lambda p: mass_coef * system.mass * p - stiffness_coef * tangent(p), rhs,
+                          system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
+                          check_every=opts.check_every)
+    fused.load(x)
+    cg = system.cg_solver(rhs, opts.cuda_graphs)
+    return cg.solve(fused, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
+                    graph_key=fused.graph_key)
 
 
 def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):

@@ -56,3 +56,46 @@ class Segments:
 
     def to(self, device) -> "Segments":
         return Segments(self.lengths.to(device), self.node_object.to(device))
+
+
+@dataclass
+class ChunkPlan:
+    """The objects' nodes cut into chunks of at most ``chunk_nodes`` nodes, each inside one object:
+    the unit of work (one GPU block) of the CG reductions and updates (``solver.cg_ops``).
+
+    Attributes:
+        chunk_start: node offsets ``[K + 1]``: chunk k owns nodes ``chunk_start[k]:chunk_start[k+1]``.
+        chunk_object: the object of each chunk ``[K]``.
+        object_chunk: chunk offsets ``[B + 1]``: object b owns chunks ``object_chunk[b]:object_chunk[b+1]``.
+        segments: the objects' node ranges (for the pure-torch reference).
+    """
+
+    chunk_start: torch.Tensor
+    chunk_object: torch.Tensor
+    object_chunk: torch.Tensor
+    segments: Segments
+
+    @classmethod
+    def from_segments(cls, segments: Segments, chunk_nodes: int = 512) -> "ChunkPlan":
+        if chunk_nodes < 1:
+            raise ValueError(f"chunk_nodes must be >= 1, got {chunk_nodes}")
+        lengths = segments.lengths.cpu()
+        if bool((lengths < 1).any()):
+            raise ValueError("every object needs at least one node")
+        per_object = (lengths + chunk_nodes - 1) // chunk_nodes
+        chunk_object = torch.repeat_interleave(torch.arange(lengths.numel()), per_object)
+        object_chunk = torch.cat([per_object.new_zeros(1), torch.cumsum(per_object, 0)])
+        object_start = torch.cat([lengths.new_zeros(1), torch.cumsum(lengths, 0)])
+        rank = torch.arange(chunk_object.numel()) - object_chunk[chunk_object]  # chunk index inside its object
+        start = object_start[chunk_object] + rank * chunk_nodes
+        chunk_start = torch.cat([start, object_start[-1:]])
+        device = segments.lengths.device
+        return cls(chunk_start.to(device), chunk_object.to(device), object_chunk.to(device), segments)
+
+    @property
+    def num_chunks(self) -> int:
+        return self.chunk_object.numel()
+
+    def tensors(self):
+        """``(chunk_start, chunk_object, object_chunk)``: the plan arguments of the CG ops."""
+        return self.chunk_start, self.chunk_object, self.object_chunk

@@ -1,0 +1,178 @@
+// The batched conjugate gradient's per-object scalar logic, written once for the CPU and CUDA
+// implementations of the CG ops (cpu/cg_cpu.cpp, cuda/cg_cuda.cu), and the host-side checks.
+//
+// The CG runs on packed objects: object b owns the contiguous nodes of its chunks. A chunk is a
+// contiguous node range inside one object (Python: solver.segments.ChunkPlan); every reduction
+// sums each chunk in a fixed order (into a double), then each object's chunk sums in chunk order,
+// so the results do not depend on thread counts or timing: deterministic, no atomics on values.
+// (On the GPU one atomic counter per object only elects which block does the final sum.)
+//
+// One iteration = matvec (kernel 1 + gather_system: Ap and p.Ap per node), then
+//   cg_alpha      p_ap_b = sum p.Ap;  alpha_b = rr_b / p_ap_b  (or the object stops: breakdown)
+//   cg_update     x += alpha p;  r -= alpha Ap;  rr_new_b = sum r.r;  beta_b = rr_new_b / rr_b
+//                 (or the object stops: converged, non-finite, iteration cap)
+//   cg_direction  p = r + beta p
+// Objects that are not active are skipped by every kernel: their iterates stay as they were.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+
+#include <cstdint>
+#include <string>
+
+#include "element_math.h"
+
+namespace tensormass {
+
+// Per-object CG status (Python: solver.cg.STATUS).
+enum CGStatus : int32_t { kActive = 0, kConverged = 1, kBreakdown = 2, kNonfinite = 3, kCapped = 4 };
+
+template <typename S>
+TM_HD bool finite_value(S v) {
+  return v - v == S(0);  // false for inf and NaN (no fast-math in this build)
+}
+
+// After the matvec: the step length, or the object stops on a curvature that is not positive
+// (an indefinite system) or not finite.
+template <typename S>
+TM_HD S cg_alpha_step(double p_ap_sum, S rr, int32_t& status) {
+  const S p_ap = static_cast<S>(p_ap_sum);
+  if (!(p_ap > S(0))) {  // also NaN
+    status = finite_value(p_ap) ? kBreakdown : kNonfinite;
+    return S(0);
+  }
+  return rr / p_ap;
+}
+
+// After the update of x and r: convergence (||r|| <= tol ||b||, i.e. r.r <= threshold), the
+// iteration cap, and the next direction's beta.
+template <typename S>
+TM_HD S cg_beta_step(double rr_new_sum, S& rr, S threshold, int64_t max_iter, int32_t& status,
+                     int32_t& iterations) {
+  const S rr_new = static_cast<S>(rr_new_sum);
+  iterations += 1;
+  if (!finite_value(rr_new)) {
+    status = kNonfinite;
+    return S(0);
+  }
+  const S rr_old = rr;
+  rr = rr_new;
+  if (rr_new <= threshold) {
+    status = kConverged;
+    return S(0);
+  }
+  if (iterations >= max_iter) {
+    status = kCapped;
+    return S(0);
+  }
+  return rr_new / rr_old;
+}
+
+// ------------------------------------------------------------------ host-side checks
+
+struct CGPlan {
+  const int64_t* chunk_start;   // [K + 1] node offsets
+  const int64_t* chunk_object;  // [K]
+  const int64_t* object_chunk;  // [B + 1] chunk offsets
+  int64_t num_chunks, num_objects, num_nodes;
+};
+
+inline std::string cg_shape_str(at::IntArrayRef shape) {
+  std::string out = "[";
+  for (size_t i = 0; i < shape.size(); ++i) out += (i ? ", " : "") + std::to_string(shape[i]);
+  return out + "]";
+}
+
+inline void cg_check(const at::Tensor& t, const char* name, const at::Tensor& like, at::ScalarType dtype,
+                     at::IntArrayRef shape) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but the CG state is on ",
+              like.device().str());
+  TORCH_CHECK(t.scalar_type() == dtype, "tensormass: ", name, " is ", c10::toString(t.scalar_type()), "; expected ",
+              c10::toString(dtype));
+  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", cg_shape_str(t.sizes()), "; expected ",
+              cg_shape_str(shape));
+  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous");
+}
+
+// Checks the chunk plan against B objects and V nodes (sizes only: the offsets are trusted, as
+// they come from solver.segments.ChunkPlan).
+inline CGPlan cg_plan(const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                      const at::Tensor& like, int64_t num_nodes) {
+  TORCH_CHECK(chunk_object.dim() == 1, "tensormass: chunk_object must be [K]");
+  TORCH_CHECK(object_chunk.dim() == 1 && object_chunk.size(0) >= 2, "tensormass: object_chunk must be [B + 1], B >= 1");
+  const int64_t k = chunk_object.size(0), b = object_chunk.size(0) - 1;
+  cg_check(chunk_start, "chunk_start", like, at::kLong, {k + 1});
+  cg_check(chunk_object, "chunk_object", like, at::kLong, {k});
+  cg_check(object_chunk, "object_chunk", like, at::kLong, {b + 1});
+  return CGPlan{chunk_start.data_ptr<int64_t>(), chunk_object.data_ptr<int64_t>(), object_chunk.data_ptr<int64_t>(),
+                k, b, num_nodes};
+}
+
+inline void cg_check_scalars(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t num_objects) {
+  cg_check(t, name, like, like.scalar_type(), {num_objects});
+}
+
+inline void cg_check_state(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t num_objects) {
+  cg_check(t, name, like, at::kInt, {num_objects});
+}
+
+inline void cg_check_values(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble, "tensormass: ", name,
+              " must be float32 or float64, got ", c10::toString(t.scalar_type()));
+  TORCH_CHECK(t.dim() >= 1 && t.is_contiguous(), "tensormass: ", name, " must be a contiguous [V] or [V, d] tensor");
+}
+
+// The checks of each op, written once for both backends; each returns the plan.
+inline CGPlan check_cg_alpha(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                             const at::Tensor& object_chunk, const at::Tensor& rr, const at::Tensor& status,
+                             const at::Tensor& alpha, const at::Tensor& scratch, const at::Tensor& counter) {
+  cg_check_values(p_dot_ap, "p_dot_ap");
+  TORCH_CHECK(p_dot_ap.dim() == 1, "tensormass: p_dot_ap must be [V] (p . Ap per node)");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p_dot_ap, p_dot_ap.size(0));
+  cg_check_scalars(rr, "rr", p_dot_ap, plan.num_objects);
+  cg_check_scalars(alpha, "alpha", p_dot_ap, plan.num_objects);
+  cg_check_state(status, "status", p_dot_ap, plan.num_objects);
+  cg_check(scratch, "scratch", p_dot_ap, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", p_dot_ap, plan.num_objects);
+  return plan;
+}
+
+inline CGPlan check_cg_update(const at::Tensor& x, const at::Tensor& r, const at::Tensor& p, const at::Tensor& ap,
+                              const at::Tensor& alpha, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                              const at::Tensor& object_chunk, const at::Tensor& threshold, int64_t max_iter,
+                              const at::Tensor& rr, const at::Tensor& status, const at::Tensor& beta,
+                              const at::Tensor& iterations, const at::Tensor& scratch, const at::Tensor& counter) {
+  cg_check_values(x, "x");
+  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, x, x.size(0));
+  cg_check(r, "r", x, x.scalar_type(), x.sizes());
+  cg_check(p, "p", x, x.scalar_type(), x.sizes());
+  cg_check(ap, "ap", x, x.scalar_type(), x.sizes());
+  cg_check_scalars(alpha, "alpha", x, plan.num_objects);
+  cg_check_scalars(threshold, "threshold", x, plan.num_objects);
+  cg_check_scalars(rr, "rr", x, plan.num_objects);
+  cg_check_scalars(beta, "beta", x, plan.num_objects);
+  cg_check_state(status, "status", x, plan.num_objects);
+  cg_check_state(iterations, "iterations", x, plan.num_objects);
+  cg_check(scratch, "scratch", x, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", x, plan.num_objects);
+  return plan;
+}
+
+inline CGPlan check_cg_direction(const at::Tensor& p, const at::Tensor& r, const at::Tensor& beta,
+                                 const at::Tensor& status, const at::Tensor& chunk_start,
+                                 const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
+  cg_check_values(p, "p");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p, p.size(0));
+  cg_check(r, "r", p, p.scalar_type(), p.sizes());
+  cg_check_scalars(beta, "beta", p, plan.num_objects);
+  cg_check_state(status, "status", p, plan.num_objects);
+  return plan;
+}
+
+// Values per node of a [V] or [V, d] tensor.
+inline int64_t values_per_node(const at::Tensor& t) { return t.size(0) ? t.numel() / t.size(0) : 1; }
+
+}  // namespace tensormass

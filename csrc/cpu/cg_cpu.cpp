@@ -1,0 +1,114 @@
+// CPU implementations of the CG ops (cg.h): chunks in parallel (at::parallel_for), then each
+// object's chunk sums in chunk order, so the results do not depend on the thread count.
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include "cg.h"
+
+namespace tensormass {
+namespace {
+
+template <typename S>
+double chunk_dot(const S* a, const S* b, int64_t begin, int64_t end) {
+  double acc = 0.0;
+  for (int64_t j = begin; j < end; ++j) acc += static_cast<double>(a[j]) * static_cast<double>(b[j]);
+  return acc;
+}
+
+double object_sum(const double* scratch, const int64_t* object_chunk, int64_t b) {
+  double acc = 0.0;
+  for (int64_t c = object_chunk[b]; c < object_chunk[b + 1]; ++c) acc += scratch[c];
+  return acc;
+}
+
+template <class F>
+void for_each_chunk(const CGPlan& plan, const int32_t* status, const F& f) {
+  at::parallel_for(0, plan.num_chunks, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t c = begin; c < end; ++c) {
+      if (status[plan.chunk_object[c]] == kActive) f(c, plan.chunk_start[c], plan.chunk_start[c + 1]);
+    }
+  });
+}
+
+void cg_alpha_cpu(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                  const at::Tensor& object_chunk, const at::Tensor& rr, at::Tensor status, at::Tensor alpha,
+                  at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_alpha(p_dot_ap, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch,
+                                     counter);
+  AT_DISPATCH_FLOATING_TYPES(p_dot_ap.scalar_type(), "cg_alpha", [&] {
+    const scalar_t* values = p_dot_ap.data_ptr<scalar_t>();
+    double* sums = scratch.data_ptr<double>();
+    int32_t* st = status.data_ptr<int32_t>();
+    for_each_chunk(plan, st, [&](int64_t c, int64_t begin, int64_t end) {
+      double acc = 0.0;
+      for (int64_t i = begin; i < end; ++i) acc += static_cast<double>(values[i]);
+      sums[c] = acc;
+    });
+    const scalar_t* rr_p = rr.data_ptr<scalar_t>();
+    scalar_t* alpha_p = alpha.data_ptr<scalar_t>();
+    for (int64_t b = 0; b < plan.num_objects; ++b) {
+      if (st[b] != kActive) continue;
+      alpha_p[b] = cg_alpha_step<scalar_t>(object_sum(sums, plan.object_chunk, b), rr_p[b], st[b]);
+    }
+  });
+}
+
+void cg_update_cpu(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Tensor& ap, const at::Tensor& alpha,
+                   const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                   const at::Tensor& threshold, int64_t max_iter, at::Tensor rr, at::Tensor status, at::Tensor beta,
+                   at::Tensor iterations, at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter,
+                                      rr, status, beta, iterations, scratch, counter);
+  const int64_t d = values_per_node(x);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cg_update", [&] {
+    scalar_t* x_p = x.data_ptr<scalar_t>();
+    scalar_t* r_p = r.data_ptr<scalar_t>();
+    const scalar_t* p_p = p.data_ptr<scalar_t>();
+    const scalar_t* ap_p = ap.data_ptr<scalar_t>();
+    const scalar_t* alpha_p = alpha.data_ptr<scalar_t>();
+    double* sums = scratch.data_ptr<double>();
+    int32_t* st = status.data_ptr<int32_t>();
+    for_each_chunk(plan, st, [&](int64_t c, int64_t begin, int64_t end) {
+      const scalar_t a = alpha_p[plan.chunk_object[c]];
+      for (int64_t j = begin * d; j < end * d; ++j) {
+        x_p[j] += a * p_p[j];
+        r_p[j] -= a * ap_p[j];
+      }
+      sums[c] = chunk_dot(r_p, r_p, begin * d, end * d);
+    });
+    scalar_t* rr_p = rr.data_ptr<scalar_t>();
+    scalar_t* beta_p = beta.data_ptr<scalar_t>();
+    const scalar_t* threshold_p = threshold.data_ptr<scalar_t>();
+    int32_t* it = iterations.data_ptr<int32_t>();
+    for (int64_t b = 0; b < plan.num_objects; ++b) {
+      if (st[b] != kActive) continue;
+      beta_p[b] = cg_beta_step<scalar_t>(object_sum(sums, plan.object_chunk, b), rr_p[b], threshold_p[b], max_iter,
+                                         st[b], it[b]);
+    }
+  });
+}
+
+void cg_direction_cpu(at::Tensor p, const at::Tensor& r, const at::Tensor& beta, const at::Tensor& status,
+                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
+  const CGPlan plan = check_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk);
+  const int64_t d = values_per_node(p);
+  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_direction", [&] {
+    scalar_t* p_p = p.data_ptr<scalar_t>();
+    const scalar_t* r_p = r.data_ptr<scalar_t>();
+    const scalar_t* beta_p = beta.data_ptr<scalar_t>();
+    for_each_chunk(plan, status.data_ptr<int32_t>(), [&](int64_t c, int64_t begin, int64_t end) {
+      const scalar_t bt = beta_p[plan.chunk_object[c]];
+      for (int64_t j = begin * d; j < end * d; ++j) p_p[j] = r_p[j] + bt * p_p[j];
+    });
+  });
+}
+
+}  // namespace
+}  // namespace tensormass
+
+TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
+  m.impl("cg_alpha", &tensormass::cg_alpha_cpu);
+  m.impl("cg_update", &tensormass::cg_update_cpu);
+  m.impl("cg_direction", &tensormass::cg_direction_cpu);
+}

@@ -1,0 +1,168 @@
+"""The three in-place steps of one batched CG iteration, after the matvec:
+
+    cg_alpha(p_dot_ap [V], plan, state)      p.Ap per object; alpha = rr / p.Ap, or the object
+                                            stops (breakdown: p.Ap <= 0; non-finite)
+    cg_update(ap [V, d], plan, state, ...)   x += alpha p; r -= alpha Ap; rr_new = r.r per object;
+                                            converged / non-finite / iteration cap; beta
+    cg_direction(plan, state)                p = r + beta p
+
+Each runs the compiled op ``torch.ops.tensormass.cg_*`` (csrc/cg.h: one GPU block per chunk of a
+:class:`ChunkPlan`, deterministic sums, no host synchronisation: capturable in a CUDA graph) when
+the extension serves the device, else the pure-torch reference below, which is the tests' oracle.
+Objects that are not active are left untouched by every step.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .. import _backend
+from .segments import ChunkPlan
+
+ACTIVE, CONVERGED, BREAKDOWN, NONFINITE, CAPPED = 0, 1, 2, 3, 4
+STATUS_WORDS = ("active", "converged", "breakdown", "non-finite", "not converged")
+
+_NATIVE = {}
+
+
+@dataclass
+class CGState:
+    """The iterates and per-object scalars of a batched CG, updated in place.
+
+    Attributes:
+        x, r, p: solution, residual, direction ``[V, d]``.
+        rr, alpha, beta, threshold: per object ``[B]`` (r.r, step, direction coefficient, tol^2 b.b).
+        status, iterations: ``[B]`` int32 (``ACTIVE`` ... ``CAPPED``; iterations done).
+        scratch: chunk sums ``[K]`` float64; counter: ``[B]`` int32, zero between calls (GPU only).
+    """
+
+    x: torch.Tensor
+    r: torch.Tensor
+    p: torch.Tensor
+    rr: torch.Tensor
+    alpha: torch.Tensor
+    beta: torch.Tensor
+    threshold: torch.Tensor
+    status: torch.Tensor
+    iterations: torch.Tensor
+    scratch: torch.Tensor
+    counter: torch.Tensor
+
+    @classmethod
+    def empty(cls, plan: ChunkPlan, shape, dtype, device) -> "CGState":
+        b = plan.segments.num_objects
+        vec = lambda: torch.zeros(shape, dtype=dtype, device=device)  # noqa: E731
+        obj = lambda: torch.zeros(b, dtype=dtype, device=device)  # noqa: E731
+        ints = lambda: torch.zeros(b, dtype=torch.int32, device=device)  # noqa: E731
+        return cls(vec(), vec(), vec(), obj(), obj(), obj(), obj(), ints(), ints(),
+                   torch.zeros(plan.num_chunks, dtype=torch.float64, device=device), ints())
+
+
+def _native_ops(device: torch.device):
+    """``torch.ops.tensormass`` when the extension has the CG ops for this device, else None."""
+    if not _backend.use_extension(device):
+        return None
+    key = device.type
+    if key not in _NATIVE:
+        from .. import native
+
+        ok = native.ensure_registered() and hasattr(torch.ops.tensormass, "cg_update")
+        if ok:
+            try:
+                torch.ops.tensormass.cg_update.default  # noqa: B018 (the schema is registered)
+                ok = torch._C._dispatch_has_kernel_for_dispatch_key(
+                    "tensormass::cg_update", "CUDA" if key == "cuda" else "CPU")
+            except (AttributeError, RuntimeError):
+                ok = False
+        if ok:
+            _register_fakes()
+        _NATIVE[key] = torch.ops.tensormass if ok else None
+    return _NATIVE[key]
+
+
+def _object_sums(values: torch.Tensor, plan: ChunkPlan) -> torch.Tensor:
+    """Per-object sums in float64 of per-node values ``[V]`` or ``[V, d]`` -> ``[B]``."""
+    return plan.segments.sum(values.to(torch.float64))
+
+
+# ---------------------------------------------------------------- pure-torch reference
+
+
+def _ref_alpha(p_dot_ap, plan: ChunkPlan, s: CGState):
+    active = s.status == ACTIVE
+    p_ap = _object_sums(p_dot_ap, plan).to(s.rr.dtype)
+    ok = p_ap > 0
+    stopped = active & ~ok
+    s.status.copy_(torch.where(stopped, torch.where(torch.isfinite(p_ap), BREAKDOWN, NONFINITE).to(torch.int32),
+                               s.status))
+    step = torch.where(ok, s.rr / torch.where(ok, p_ap, torch.ones_like(p_ap)), torch.zeros_like(p_ap))
+    s.alpha.copy_(torch.where(active, step, s.alpha))
+
+
+def _ref_update(ap, plan: ChunkPlan, s: CGState, max_iter: int):
+    active = s.status == ACTIVE
+    node_active = plan.segments.spread(active.to(s.x.dtype)) > 0
+    a = plan.segments.spread(s.alpha)
+    s.x.copy_(torch.where(node_active, s.x + a * s.p, s.x))
+    s.r.copy_(torch.where(node_active, s.r - a * ap, s.r))
+    rr_new = _object_sums(s.r * s.r, plan).to(s.rr.dtype)
+    iterations = s.iterations + active.to(torch.int32)
+    finite = torch.isfinite(rr_new)
+    converged = finite & (rr_new <= s.threshold)
+    capped = finite & ~converged & (iterations >= max_iter)
+    status = torch.where(~finite, NONFINITE, torch.where(converged, CONVERGED, torch.where(capped, CAPPED, ACTIVE)))
+    going = finite & ~converged & ~capped
+    beta = torch.where(going, rr_new / torch.where(going, s.rr, torch.ones_like(s.rr)), torch.zeros_like(rr_new))
+    s.beta.copy_(torch.where(active, beta, s.beta))
+    s.rr.copy_(torch.where(active & finite, rr_new, s.rr))
+    s.status.copy_(torch.where(active, status.to(torch.int32), s.status))
+    s.iterations.copy_(iterations)
+
+
+def _ref_direction(plan: ChunkPlan, s: CGState):
+    node_active = plan.segments.spread((s.status == ACTIVE).to(s.p.dtype)) > 0
+    s.p.copy_(torch.where(node_active, s.r + plan.segments.spread(s.beta) * s.p, s.p))
+
+
+# ---------------------------------------------------------------- the steps
+
+
+def cg_alpha(p_dot_ap: torch.Tensor, plan: ChunkPlan, s: CGState, native=None):
+    """Step 1 after the matvec: ``p_dot_ap [V]`` (p . Ap per node) -> ``s.alpha``, ``s.status``."""
+    if native is None:
+        return _ref_alpha(p_dot_ap, plan, s)
+    native.cg_alpha(p_dot_ap.contiguous(), *plan.tensors(), s.rr, s.status, s.alpha, s.scratch, s.counter)
+
+
+def cg_update(ap: torch.Tensor, plan: ChunkPlan, s: CGState, max_iter: int, native=None):
+    """Step 2: ``ap [V, d]`` -> ``s.x``, ``s.r``, ``s.rr``, ``s.beta``, ``s.status``, ``s.iterations``."""
+    if native is None:
+        return _ref_update(ap, plan, s, max_iter)
+    native.cg_update(s.x, s.r, s.p, ap.contiguous(), s.alpha, *plan.tensors(), s.threshold, int(max_iter), s.rr,
+                     s.status, s.beta, s.iterations, s.scratch, s.counter)
+
+
+def cg_direction(plan: ChunkPlan, s: CGState, native=None):
+    """Step 3: ``s.p = s.r + beta s.p`` on active objects."""
+    if native is None:
+        return _ref_direction(plan, s)
+    native.cg_direction(s.p, s.r, s.beta, s.status, *plan.tensors())
+
+
+def native_ops_for(x: torch.Tensor):
+    """The compiled CG ops for ``x``'s device and dtype, or None (pure-torch reference)."""
+    if x.dtype not in (torch.float32, torch.float64):
+        return None
+    return _native_ops(x.device)
+
+
+def _register_fakes():
+    """Fake kernels (the ops only mutate their inputs) for torch.compile and opcheck."""
+    if not hasattr(torch.library, "register_fake"):
+        return
+    for name in ("cg_alpha", "cg_update", "cg_direction"):
+        try:
+            torch.library.register_fake(f"tensormass::{name}")(lambda *args, **kwargs: None)
+        except (RuntimeError, ValueError, AttributeError):
+            pass  # the extension is not loaded, or the fake is registered already

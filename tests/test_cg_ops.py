@@ -1,0 +1,222 @@
+"""The device-resident CG: ``tensormass::cg_alpha / cg_update / cg_direction`` and ``CGSolver``.
+
+    1. each op = its pure-torch reference (solver.cg_ops), on objects in every status
+    2. the solver with the ops = the solver with the reference = a dense solve; results do not
+       depend on the chunk size
+    3. opcheck, input checks
+    4. CUDA: ops = CPU, graph replay = eager, bitwise run to run (skipped without CUDA)
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from conftest import load_native
+from tensormass_torch.solver import Segments
+from tensormass_torch.solver import cg_ops
+from tensormass_torch.solver.cg import CGSolver, batched_cg
+from tensormass_torch.solver.cg_ops import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE, CGState
+from tensormass_torch.solver.segments import ChunkPlan
+
+native = load_native("cg_update")
+needs_ext = pytest.mark.skipif(native is None, reason="tensormass_torch._C (with the CG ops) is not built")
+OPS = torch.ops.tensormass if native is not None else None
+LENGTHS = [7, 1, 12, 5, 9]
+
+
+def random_state(plan: ChunkPlan, dtype, device="cpu", seed=0):
+    g = torch.Generator().manual_seed(seed)
+    v = int(plan.segments.lengths.sum())
+    b = plan.segments.num_objects
+    s = CGState.empty(plan, (v, 3), dtype, device)
+    for t in (s.x, s.r, s.p):
+        t.copy_(torch.randn(v, 3, generator=g, dtype=dtype))
+    s.rr.copy_(torch.rand(b, generator=g, dtype=dtype) + 0.5)
+    s.alpha.copy_(torch.rand(b, generator=g, dtype=dtype))
+    s.beta.copy_(torch.rand(b, generator=g, dtype=dtype))
+    s.threshold.copy_(torch.rand(b, generator=g, dtype=dtype) * 1e-3)
+    s.iterations.copy_(torch.tensor([3, 0, 5, 9, 2], dtype=torch.int32)[:b])
+    s.status.copy_(torch.tensor([ACTIVE, CONVERGED, ACTIVE, ACTIVE, BREAKDOWN], dtype=torch.int32)[:b])
+    return s
+
+
+def clone_state(s: CGState) -> CGState:
+    return CGState(*[t.clone() for t in vars(s).values()])
+
+
+def assert_states_close(a: CGState, b: CGState, dtype):
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for name in ("x", "r", "p", "rr", "alpha", "beta"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=tol, atol=tol, msg=name)
+    assert torch.equal(a.status, b.status) and torch.equal(a.iterations, b.iterations)
+
+
+@needs_ext
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("chunk", [1, 4, 512])
+def test_ops_match_reference(dtype, chunk):
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), chunk)
+    s = random_state(plan, dtype)
+    v = s.x.shape[0]
+    g = torch.Generator().manual_seed(1)
+    p_dot_ap = torch.randn(v, generator=g, dtype=dtype).abs()
+    p_dot_ap[plan.segments.node_object == 2] *= -1  # object 2: negative curvature -> breakdown
+    p_dot_ap[plan.segments.node_object == 3] = float("nan")  # object 3: non-finite
+    ap = torch.randn(v, 3, generator=g, dtype=dtype)
+    ref, ext = clone_state(s), clone_state(s)
+    cg_ops.cg_alpha(p_dot_ap, plan, ref)
+    cg_ops.cg_alpha(p_dot_ap, plan, ext, OPS)
+    assert_states_close(ref, ext, dtype)
+    assert ref.status.tolist() == [ACTIVE, CONVERGED, BREAKDOWN, NONFINITE, BREAKDOWN]
+    for max_iter in (100, 4):  # object 0 has done 3: the cap of 4 stops it
+        ref_u, ext_u = clone_state(ref), clone_state(ext)
+        cg_ops.cg_update(ap, plan, ref_u, max_iter)
+        cg_ops.cg_update(ap, plan, ext_u, max_iter, OPS)
+        assert_states_close(ref_u, ext_u, dtype)
+        assert ref_u.status[0] == (ACTIVE if max_iter == 100 else CAPPED)
+        assert torch.equal(ref_u.x[plan.segments.node_object != 0], s.x[plan.segments.node_object != 0])
+        cg_ops.cg_direction(plan, ref_u)
+        cg_ops.cg_direction(plan, ext_u, OPS)
+        assert_states_close(ref_u, ext_u, dtype)
+    assert int(ext.counter.abs().sum()) == 0
+
+
+@needs_ext
+def test_update_detects_convergence_and_nonfinite_residual():
+    plan = ChunkPlan.from_segments(Segments.from_lengths([3, 3]), 2)
+    for native_ops in (None, OPS):
+        s = random_state(plan, torch.float64)
+        s.status.zero_()
+        s.alpha.fill_(1.0)
+        ap = s.r.clone()  # alpha 1: r -= ap makes r exactly 0 for object 0 ...
+        ap[3:] = float("inf")  # ... and non-finite for object 1
+        cg_ops.cg_update(ap, plan, s, 100, native_ops)
+        assert s.status.tolist() == [CONVERGED, NONFINITE]
+
+
+def spd_blocks(lengths, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    blocks = []
+    for n in lengths:
+        q = torch.randn(3 * n, 3 * n, generator=g, dtype=dtype)
+        blocks.append(q @ q.T + 3 * n * torch.eye(3 * n, dtype=dtype))
+    return torch.block_diag(*blocks)
+
+
+@pytest.mark.parametrize("backend", ["ext", "torch"])
+def test_solver_matches_dense_solve(monkeypatch, backend):
+    if backend == "ext" and native is None:
+        pytest.skip("extension not built")
+    monkeypatch.setenv("TENSORMASS_BACKEND", "auto" if backend == "ext" else "torch")
+    a = spd_blocks(LENGTHS, torch.float64)
+    rhs = torch.randn(sum(LENGTHS), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    matvec = lambda p: (a @ p.reshape(-1)).view_as(p)  # noqa: E731
+    seg = Segments.from_lengths(LENGTHS)
+    solver = CGSolver(seg, rhs.shape, rhs.dtype, rhs.device)
+    assert (solver.native is not None) == (backend == "ext")
+    res = solver.solve(matvec, rhs, tol=1e-12, max_iter=500)
+    exact = torch.linalg.solve(a, rhs.reshape(-1)).view_as(rhs)
+    assert bool(res.converged.all()) and float((res.solution - exact).abs().max()) < 1e-9
+    again = solver.solve(matvec, rhs, tol=1e-12, max_iter=500)  # buffers reused: same answer
+    assert torch.equal(again.solution, res.solution) and torch.equal(again.iterations, res.iterations)
+
+
+@needs_ext
+def test_native_and_reference_iterates_agree_for_any_chunk(monkeypatch):
+    a = spd_blocks(LENGTHS, torch.float64, seed=3)
+    rhs = torch.randn(sum(LENGTHS), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    matvec = lambda p: (a @ p.reshape(-1)).view_as(p)  # noqa: E731
+    seg = Segments.from_lengths(LENGTHS)
+    results = []
+    for chunk in (1, 5, 512):
+        solver = CGSolver(seg, rhs.shape, rhs.dtype, rhs.device, chunk_nodes=chunk)
+        results.append(solver.solve(matvec, rhs, tol=0.0, max_iter=6))
+    monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
+    results.append(batched_cg(matvec, rhs, seg, tol=0.0, max_iter=6))
+    for r in results[1:]:
+        assert float((r.solution - results[0].solution).abs().max()) < 1e-12
+        assert r.iterations.tolist() == [6] * len(LENGTHS)
+
+
+@needs_ext
+def test_opcheck():
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), 4)
+    s = random_state(plan, torch.float64)
+    p_dot_ap = torch.rand(s.x.shape[0], dtype=torch.float64)
+    utils = ("test_schema", "test_faketensor")
+    torch.library.opcheck(OPS.cg_alpha.default, (p_dot_ap, *plan.tensors(), s.rr, s.status, s.alpha, s.scratch,
+                                                 s.counter), test_utils=utils)
+    torch.library.opcheck(OPS.cg_update.default, (s.x, s.r, s.p, s.p.clone(), s.alpha, *plan.tensors(), s.threshold,
+                                                  50, s.rr, s.status, s.beta, s.iterations, s.scratch, s.counter),
+                          test_utils=utils)
+    torch.library.opcheck(OPS.cg_direction.default, (s.p, s.r, s.beta, s.status, *plan.tensors()), test_utils=utils)
+
+
+@needs_ext
+def test_input_checks():
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), 4)
+    s = random_state(plan, torch.float64)
+    with pytest.raises(RuntimeError, match="rr has shape"):
+        OPS.cg_alpha(s.x[:, 0].contiguous(), *plan.tensors(), s.rr[:2], s.status, s.alpha, s.scratch, s.counter)
+    with pytest.raises(RuntimeError, match="status is"):
+        OPS.cg_direction(s.p, s.r, s.beta, s.status.long(), *plan.tensors())
+    with pytest.raises(RuntimeError, match="ap has shape"):
+        OPS.cg_update(s.x, s.r, s.p, s.p[:2], s.alpha, *plan.tensors(), s.threshold, 5, s.rr, s.status, s.beta,
+                      s.iterations, s.scratch, s.counter)
+    with pytest.raises(ValueError, match="chunk_nodes"):
+        ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), 0)
+
+
+# --------------------------------------------------------------------- CUDA
+
+
+def _cuda_ready():
+    return native is not None and torch.cuda.is_available() and cg_ops.native_ops_for(
+        torch.zeros(1, device="cuda")) is not None
+
+
+needs_cuda = pytest.mark.skipif(not _cuda_ready(), reason="needs CUDA and the CUDA build of the extension")
+
+
+@needs_cuda
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("chunk", [1, 4, 512])
+def test_cuda_ops_match_cpu(dtype, chunk):
+    lengths = LENGTHS + [3000, 1]
+    plan = ChunkPlan.from_segments(Segments.from_lengths(lengths), chunk)
+    s = random_state(plan, dtype)
+    s.status.copy_(torch.tensor([ACTIVE, CONVERGED, ACTIVE, ACTIVE, BREAKDOWN, ACTIVE, ACTIVE], dtype=torch.int32))
+    s.iterations.zero_()
+    v = s.x.shape[0]
+    g = torch.Generator().manual_seed(7)
+    p_dot_ap = torch.rand(v, generator=g, dtype=dtype)
+    ap = torch.randn(v, 3, generator=g, dtype=dtype)
+    cpu, gpu = clone_state(s), CGState(*[t.cuda() for t in vars(s).values()])
+    gplan = ChunkPlan.from_segments(Segments.from_lengths(lengths, device="cuda"), chunk)
+    for _ in range(3):
+        cg_ops.cg_alpha(p_dot_ap, plan, cpu, OPS)
+        cg_ops.cg_update(ap, plan, cpu, 50, OPS)
+        cg_ops.cg_direction(plan, cpu, OPS)
+        cg_ops.cg_alpha(p_dot_ap.cuda(), gplan, gpu, OPS)
+        cg_ops.cg_update(ap.cuda(), gplan, gpu, 50, OPS)
+        cg_ops.cg_direction(gplan, gpu, OPS)
+    assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
+    assert int(gpu.counter.abs().sum()) == 0
+
+
+@needs_cuda
+def test_cuda_graph_replay_equals_eager_and_is_bitwise_reproducible():
+    lengths = [500, 2000, 37]
+    a = spd_blocks([n // 10 + 1 for n in lengths], torch.float64).cuda()
+    sizes = [n // 10 + 1 for n in lengths]
+    seg = Segments.from_lengths(sizes, device="cuda")
+    rhs = torch.randn(sum(sizes), 3, dtype=torch.float64, device="cuda")
+    matvec = lambda p: (a @ p.reshape(-1)).view_as(p)  # noqa: E731 (reads only a: capturable)
+    eager = CGSolver(seg, rhs.shape, rhs.dtype, rhs.device, cuda_graphs=False).solve(matvec, rhs, tol=1e-10,
+                                                                                     max_iter=300, check_every=4)
+    graphed = CGSolver(seg, rhs.shape, rhs.dtype, rhs.device)
+    runs = [graphed.solve(matvec, rhs, tol=1e-10, max_iter=300, check_every=4, graph_key="dense") for _ in range(3)]
+    assert graphed.graph_replays > 0
+    for r in runs:
+        assert torch.equal(r.solution, eager.solution) and torch.equal(r.iterations, eager.iterations)
+        assert bool(r.converged.all())
