@@ -172,6 +172,18 @@ inline CGPlan check_cg_direction(const at::Tensor& p, const at::Tensor& r, const
   return plan;
 }
 
+inline CGPlan check_cg_dot(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
+                           const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& out,
+                           const at::Tensor& scratch, const at::Tensor& counter) {
+  cg_check_values(a, "a");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, a, a.size(0));
+  cg_check(b, "b", a, a.scalar_type(), a.sizes());
+  cg_check_scalars(out, "out", a, plan.num_objects);
+  cg_check(scratch, "scratch", a, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", a, plan.num_objects);
+  return plan;
+}
+
 // Values per node of a [V] or [V, d] tensor.
 inline int64_t values_per_node(const at::Tensor& t) { return t.size(0) ? t.numel() / t.size(0) : 1; }
 

@@ -7,6 +7,7 @@
 //   cg_update(x!, r!, p, ap [V, d], alpha, plan, threshold [B], max_iter, rr!, status!, beta!,
 //             iterations!, scratch!, counter!)
 //   cg_direction(p!, r, beta, status, plan)
+//   cg_dot(a, b [V] or [V, d], plan, out! [B], scratch!, counter!)   per-object a . b
 // plan = (chunk_start [K + 1], chunk_object [K], object_chunk [B + 1]) int64; scratch [K] float64;
 // status, iterations, counter [B] int32 (counter all zero between calls).
 #include <torch/library.h>
@@ -19,4 +20,6 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
         "Tensor(d!) status, Tensor(e!) beta, Tensor(f!) iterations, Tensor(g!) scratch, Tensor(h!) counter) -> ()");
   m.def("cg_direction(Tensor(a!) p, Tensor r, Tensor beta, Tensor status, Tensor chunk_start, "
         "Tensor chunk_object, Tensor object_chunk) -> ()");
+  m.def("cg_dot(Tensor a, Tensor b, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
+        "Tensor(a!) out, Tensor(b!) scratch, Tensor(c!) counter) -> ()");
 }

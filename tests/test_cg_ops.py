@@ -35,8 +35,8 @@ def random_state(plan: ChunkPlan, dtype, device="cpu", seed=0):
     s.alpha.copy_(torch.rand(b, generator=g, dtype=dtype))
     s.beta.copy_(torch.rand(b, generator=g, dtype=dtype))
     s.threshold.copy_(torch.rand(b, generator=g, dtype=dtype) * 1e-3)
-    s.iterations.copy_(torch.tensor([3, 0, 5, 9, 2], dtype=torch.int32)[:b])
-    s.status.copy_(torch.tensor([ACTIVE, CONVERGED, ACTIVE, ACTIVE, BREAKDOWN], dtype=torch.int32)[:b])
+    s.iterations.copy_(torch.tensor([3, 0, 5, 9, 2], dtype=torch.int32).repeat(b)[:b])
+    s.status.copy_(torch.tensor([ACTIVE, CONVERGED, ACTIVE, ACTIVE, BREAKDOWN], dtype=torch.int32).repeat(b)[:b])
     return s
 
 

@@ -104,10 +104,28 @@ void cg_direction_cpu(at::Tensor p, const at::Tensor& r, const at::Tensor& beta,
   });
 }
 
+void cg_dot_cpu(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
+                const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor out, at::Tensor scratch,
+                at::Tensor counter) {
+  const CGPlan plan = check_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter);
+  const int64_t d = values_per_node(a);
+  AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "cg_dot", [&] {
+    const scalar_t* a_p = a.data_ptr<scalar_t>();
+    const scalar_t* b_p = b.data_ptr<scalar_t>();
+    double* sums = scratch.data_ptr<double>();
+    at::parallel_for(0, plan.num_chunks, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t c = begin; c < end; ++c) sums[c] = chunk_dot(a_p, b_p, plan.chunk_start[c] * d, plan.chunk_start[c + 1] * d);
+    });
+    scalar_t* out_p = out.data_ptr<scalar_t>();
+    for (int64_t o = 0; o < plan.num_objects; ++o) out_p[o] = static_cast<scalar_t>(object_sum(sums, plan.object_chunk, o));
+  });
+}
+
 }  // namespace
 }  // namespace tensormass
 
 TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
+  m.impl("cg_dot", &tensormass::cg_dot_cpu);
   m.impl("cg_alpha", &tensormass::cg_alpha_cpu);
   m.impl("cg_update", &tensormass::cg_update_cpu);
   m.impl("cg_direction", &tensormass::cg_direction_cpu);

@@ -115,6 +115,21 @@ __global__ void __launch_bounds__(kBlock) cg_direction_kernel(S* __restrict__ p,
   }
 }
 
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_dot_kernel(const S* __restrict__ a, const S* __restrict__ b, CGPlan plan,
+                                                        int64_t d, S* out, double* scratch, int32_t* counter) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+  double acc = 0.0;
+  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+    acc += static_cast<double>(a[j]) * static_cast<double>(b[j]);
+  }
+  const double chunk_total = block_sum(acc);
+  double total = 0.0;
+  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
+    out[object] = static_cast<S>(total);
+  }
+}
+
 unsigned int grid_of(const CGPlan& plan) { return static_cast<unsigned int>(plan.num_chunks); }
 
 void cg_alpha_cuda(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
@@ -163,10 +178,25 @@ void cg_direction_cuda(at::Tensor p, const at::Tensor& r, const at::Tensor& beta
   });
 }
 
+void cg_dot_cuda(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
+                 const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor out, at::Tensor scratch,
+                 at::Tensor counter) {
+  const CGPlan plan = check_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(a.device());
+  AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "cg_dot", [&] {
+    cg_dot_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        a.data_ptr<scalar_t>(), b.data_ptr<scalar_t>(), plan, values_per_node(a), out.data_ptr<scalar_t>(),
+        scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
 }  // namespace
 }  // namespace tensormass
 
 TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
+  m.impl("cg_dot", &tensormass::cg_dot_cuda);
   m.impl("cg_alpha", &tensormass::cg_alpha_cuda);
   m.impl("cg_update", &tensormass::cg_update_cuda);
   m.impl("cg_direction", &tensormass::cg_direction_cuda);

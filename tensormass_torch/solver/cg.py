@@ -76,6 +76,7 @@ class CGSolver:
         self.segments = segments.to(device)
         self.plan = ChunkPlan.from_segments(self.segments, chunk_nodes)
         self.state = CGState.empty(self.plan, tuple(shape), dtype, torch.device(device))
+        self.rhs_sq = torch.zeros_like(self.state.rr)
         self.free = free
         self.native = cg_ops.native_ops_for(self.state.x)
         self.cuda_graphs = bool(cuda_graphs) and self.state.x.device.type == "cuda"
@@ -131,8 +132,43 @@ class CGSolver:
             return False
         return graph
 
+    def start(self, matvec: Matvec, rhs: torch.Tensor, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
+              max_iter: int = 200):
+        """Set up a solve (residual, norms, per-object status) on the device, with no host
+        synchronisation: it can be part of a captured CUDA graph. Arguments as :meth:`solve`."""
+        _check_settings(tol, max_iter, 1)
+        s = self.state
+        b = self._project(rhs)
+        if x0 is None:
+            s.x.zero_()
+            s.r.copy_(b)
+        else:
+            s.x.copy_(x0)
+            s.r.copy_(b - self._apply(matvec, self._project(x0))[0])
+        cg_ops.object_dot(b, b, self.plan, self.rhs_sq, s, self.native)
+        cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
+        s.threshold.copy_((tol * tol) * self.rhs_sq)
+        status = torch.where(~torch.isfinite(s.rr), NONFINITE,
+                             torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
+        s.status.copy_(status.to(torch.int32))
+        s.iterations.zero_()
+        s.alpha.zero_()
+        s.beta.zero_()
+        s.p.copy_(s.r)
+
+    def any_active(self) -> bool:
+        """Whether some object is still iterating (a host synchronisation)."""
+        return bool((self.state.status == ACTIVE).any())
+
+    def result(self) -> CGResult:
+        """The outcome of the last solve (copies: the buffers are reused)."""
+        s = self.state
+        status = s.status
+        return CGResult(s.x.clone(), s.iterations.long(), torch.sqrt(torch.clamp(s.rr, min=0)),
+                        torch.sqrt(self.rhs_sq), status == CONVERGED, status == BREAKDOWN, status == NONFINITE)
+
     def solve(self, matvec: Matvec, rhs: torch.Tensor, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
-              max_iter: int = 200, check_every: int = 8, graph_key=None) -> CGResult:
+              max_iter: int = 200, check_every: int = 8, graph_key=None, done: int = 0) -> CGResult:
         """Solve A x = rhs for every object at once.
 
         Args:
@@ -145,35 +181,17 @@ class CGSolver:
             graph_key: hashable; not None promises that ``matvec`` reads only tensors whose storage
                 stays the same for every solve with this key (its inputs are updated in place), so its
                 iterations may be captured once in a CUDA graph and replayed.
+            done: iterations already run since a :meth:`start` made by the caller (then ``rhs`` and
+                ``x0`` are ignored and the solve goes on from the current state).
         """
         _check_settings(tol, max_iter, check_every)
-        s = self.state
-        b = self._project(rhs)
-        if x0 is None:
-            s.x.zero_()
-            s.r.copy_(b)
-        else:
-            s.x.copy_(x0)
-            s.r.copy_(b - self._apply(matvec, self._project(x0))[0])
-        rhs_sq = self.segments.dot(b, b)
-        rr = self.segments.dot(s.r, s.r)
-        s.rr.copy_(rr)
-        s.threshold.copy_((tol * tol) * rhs_sq)
-        status = torch.where(~torch.isfinite(rr), NONFINITE,
-                             torch.where(rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
-        s.status.copy_(status.to(torch.int32))
-        s.iterations.zero_()
-        s.alpha.zero_()
-        s.beta.zero_()
-        s.p.copy_(s.r)
-        done = 0
-        while done < max_iter and bool((s.status == ACTIVE).any()):
+        if done == 0:
+            self.start(matvec, rhs, x0, tol, max_iter)
+        while done < max_iter and self.any_active():
             count = min(check_every, max_iter - done)
             self._run(matvec, count, max_iter, graph_key)
             done += count
-        status = s.status
-        return CGResult(s.x.clone(), s.iterations.long(), torch.sqrt(torch.clamp(s.rr, min=0)), torch.sqrt(rhs_sq),
-                        status == CONVERGED, status == BREAKDOWN, status == NONFINITE)
+        return self.result()
 
 
 def batched_cg(matvec: Matvec, rhs: torch.Tensor, segments: Segments, free: Optional[torch.Tensor] = None,

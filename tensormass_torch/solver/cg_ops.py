@@ -67,7 +67,7 @@ def _native_ops(device: torch.device):
     if key not in _NATIVE:
         from .. import native
 
-        ok = native.ensure_registered() and hasattr(torch.ops.tensormass, "cg_update")
+        ok = native.ensure_registered() and hasattr(torch.ops.tensormass, "cg_dot")
         if ok:
             try:
                 torch.ops.tensormass.cg_update.default  # noqa: B018 (the schema is registered)
@@ -150,6 +150,15 @@ def cg_direction(plan: ChunkPlan, s: CGState, native=None):
     native.cg_direction(s.p, s.r, s.beta, s.status, *plan.tensors())
 
 
+def object_dot(a: torch.Tensor, b: torch.Tensor, plan: ChunkPlan, out: torch.Tensor, s: CGState, native=None):
+    """Per-object dot products of ``[V]`` or ``[V, d]`` fields into ``out [B]`` (in place; float64
+    sums in chunk order, no host synchronisation), using the state's scratch buffers."""
+    if native is None:
+        out.copy_(_object_sums(a * b, plan))
+        return
+    native.cg_dot(a.contiguous(), b.contiguous(), *plan.tensors(), out, s.scratch, s.counter)
+
+
 def native_ops_for(x: torch.Tensor):
     """The compiled CG ops for ``x``'s device and dtype, or None (pure-torch reference)."""
     if x.dtype not in (torch.float32, torch.float64):
@@ -161,7 +170,7 @@ def _register_fakes():
     """Fake kernels (the ops only mutate their inputs) for torch.compile and opcheck."""
     if not hasattr(torch.library, "register_fake"):
         return
-    for name in ("cg_alpha", "cg_update", "cg_direction"):
+    for name in ("cg_alpha", "cg_update", "cg_direction", "cg_dot"):
         try:
             torch.library.register_fake(f"tensormass::{name}")(lambda *args, **kwargs: None)
         except (RuntimeError, ValueError, AttributeError):

@@ -16,6 +16,7 @@ from typing import List
 import torch
 
 from ..errors import SolverError
+from . import cg_ops
 from .cg import CGResult, CGSolver, batched_cg
 from .segments import Segments
 
@@ -80,6 +81,7 @@ class DynamicsSystem:
         self.planes = planes if planes is not None and len(planes) else None
         self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
         self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec
+        self._step_graphs = {}  # step options -> StepGraphs (CUDA)
 
     def cg_solver(self, like: torch.Tensor, cuda_graphs: bool) -> CGSolver:
         """The batched CG over these objects (made once, on ``like``'s device and dtype)."""
@@ -194,6 +196,132 @@ def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):
         raise SolverError(f"{what} failed ({'; '.join(bad[:10])}); the state was not changed", status, result)
 
 
+def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity):
+    """The right-hand side ``[V, d]`` of the first linear system of a step, and the velocity change
+    of the constrained nodes ``[V, d]`` (None when there is none to impose)."""
+    h = opts.dt
+    # Constrained nodes take their imposed velocity exactly; CG solves for the free nodes only.
+    # With no imposed velocity, constrained nodes are fixed: they are at rest and stay there.
+    dv_imposed = None
+    if system.free is not None and imposed_velocity is not None:
+        dv_imposed = (1.0 - system.free) * (imposed_velocity - v)
+    mass_coef = 1.0 + h * opts.rayleigh_mass
+    stiffness_coef = h * (h + opts.rayleigh_stiffness)
+    tangent = system.tangent(x)
+    rhs = h * (system.forces(x) + tangent((h + opts.rayleigh_stiffness) * v) - opts.rayleigh_mass * system.mass * v)
+    if dv_imposed is not None:
+        rhs = rhs - (mass_coef * system.mass * dv_imposed - stiffness_coef * tangent(dv_imposed))
+    return rhs, dv_imposed
+
+
+def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
+    finite = torch.isfinite(norms)
+    if not bool(finite.all()):
+        status = ["ok" if ok else "non-finite" for ok in finite.tolist()]
+        bad = [i for i, ok in enumerate(finite.tolist()) if not ok]
+        raise SolverError(f"implicit Euler produced NaN/inf for objects {bad[:10]}; the state was not changed",
+                          status, report)
+
+
+class StepGraphs:
+    """One implicit Euler step (one linearisation) as device work on buffers that persist across
+    steps, captured in CUDA graphs after a first eager run and replayed from then on:
+
+        A: linearisation, right-hand side, CG set-up and its first ``check_every`` iterations
+        (host: "is any object still iterating?", replaying the CG graph until none is)
+        C: the new velocities and positions, and their per-object norms
+        (host: one look at the CG status and the norms; a failed step raises, state unchanged)
+
+    A step then costs a few graph launches and one or two host synchronisations, whatever the
+    number of kernels in it. Made by :func:`implicit_euler_step` when the device is CUDA, the
+    model is a ``TensorMass`` and ``newton_iters == 1``; any phase that cannot be captured runs
+    eagerly (same arithmetic).
+    """
+
+    def __init__(self, system: DynamicsSystem, opts: StepOptions, imposed: bool):
+        h = opts.dt
+        self.system, self.opts = system, opts
+        like = system.model.rest
+        self.x, self.v = torch.zeros_like(like), torch.zeros_like(like)
+        self.imposed = torch.zeros_like(like) if imposed else None
+        self.x_new, self.v_new = torch.zeros_like(like), torch.zeros_like(like)
+        self.dv_imposed = torch.zeros_like(like)
+        self.cg = system.cg_solver(like, cuda_graphs=True)
+        self.norms, self.v_norms = torch.zeros_like(self.cg.rhs_sq), torch.zeros_like(self.cg.rhs_sq)
+        self.matvec = system.system_matvec(1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness))
+        self.first = min(opts.check_every, opts.cg_max_iter)
+        self._graphs = {"A": None, "C": None}
+
+    def _phase_a(self):
+        opts = self.opts
+        rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed)
+        if dv_imposed is not None:
+            self.dv_imposed.copy_(dv_imposed)
+        self.matvec.load(self.x)
+        self.cg.start(self.matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter)
+        for _ in range(self.first):
+            self.cg._iterate(self.matvec, opts.cg_max_iter)
+
+    def _phase_c(self):
+        v_new = self.v + self.cg.state.x
+        if self.imposed is not None and self.system.free is not None:
+            v_new = v_new + self.dv_imposed
+        self.v_new.copy_(v_new)
+        self.x_new.copy_(self.x + self.opts.dt * self.v_new)
+        # |x|^2 + |v|^2 per object: NaN/inf anywhere in an object shows here
+        cg = self.cg
+        cg_ops.object_dot(self.x_new, self.x_new, cg.plan, self.norms, cg.state, cg.native)
+        cg_ops.object_dot(self.v_new, self.v_new, cg.plan, self.v_norms, cg.state, cg.native)
+        self.norms.add_(self.v_norms)
+
+    def _run(self, name, phase):
+        graph = self._graphs[name]
+        if graph is None:  # first step: eager (warms every op up), capture for the next one
+            phase()
+            graph = torch.cuda.CUDAGraph()
+            try:
+                with torch.cuda.graph(graph):
+                    phase()
+            except Exception:  # noqa: BLE001 (not capturable: the eager phase is as correct)
+                graph = False
+            self._graphs[name] = graph
+        elif graph is False:
+            phase()
+        else:
+            graph.replay()
+
+    def step(self, x, v, imposed_velocity=None):
+        self.x.copy_(x)
+        self.v.copy_(v)
+        if self.imposed is not None:
+            self.imposed.copy_(imposed_velocity)
+        opts = self.opts
+        report = StepReport()
+        self._run("A", self._phase_a)
+        result = self.cg.solve(self.matvec, None, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
+                               check_every=opts.check_every, graph_key=self.matvec.graph_key, done=self.first)
+        report.cg.append(result)
+        _raise_if_failed(result, opts, "implicit Euler CG")
+        self._run("C", self._phase_c)
+        _raise_if_nonfinite(self.system, self.norms, report)
+        return self.x_new.clone(), self.v_new.clone(), report
+
+
+def _step_graphs(system: DynamicsSystem, opts: StepOptions, imposed: bool):
+    """The system's :class:`StepGraphs` for these options, or None where they do not apply."""
+    from ..modules import TensorMass
+
+    if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
+            or system.model.rest.device.type != "cuda"):
+        return None
+    key = (opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness, opts.cg_tol, opts.cg_max_iter,
+           opts.require_convergence, opts.check_every, imposed)
+    graphs = system._step_graphs.get(key)
+    if graphs is None:
+        graphs = system._step_graphs[key] = StepGraphs(system, opts, imposed)
+    return graphs
+
+
 def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity=None):
     """One step from positions/velocities ``x, v [V, d]``.
 
@@ -205,20 +333,12 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         (x_new, v_new, StepReport). Raises SolverError, leaving inputs untouched, when a solve
         fails or the new state is not finite.
     """
+    graphs = _step_graphs(system, opts, imposed_velocity is not None)
+    if graphs is not None:
+        return graphs.step(x, v, imposed_velocity)
     h = opts.dt
     report = StepReport()
-    # Constrained nodes take their imposed velocity exactly; CG solves for the free nodes only.
-    # With no imposed velocity, constrained nodes are fixed: they are at rest and stay there.
-    dv_imposed = None
-    if system.free is not None and imposed_velocity is not None:
-        dv_imposed = (1.0 - system.free) * (imposed_velocity - v)
-
-    mass_coef = 1.0 + h * opts.rayleigh_mass
-    stiffness_coef = h * (h + opts.rayleigh_stiffness)
-    f = system.forces(x)
-    rhs = h * (f + system.dforces(x, (h + opts.rayleigh_stiffness) * v) - opts.rayleigh_mass * system.mass * v)
-    if dv_imposed is not None:
-        rhs = rhs - (mass_coef * system.mass * dv_imposed - stiffness_coef * system.dforces(x, dv_imposed))
+    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity)
     result = _solve(system, x, rhs, opts)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
@@ -234,10 +354,5 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         v_new = v_new + result.solution
 
     x_new = x + h * v_new
-    finite = torch.isfinite(system.segments.sum(x_new.abs() + v_new.abs()))
-    if not bool(finite.all()):
-        status = ["ok" if ok else "non-finite" for ok in finite.tolist()]
-        bad = [i for i, ok in enumerate(finite.tolist()) if not ok]
-        raise SolverError(f"implicit Euler produced NaN/inf for objects {bad[:10]}; the state was not changed",
-                          status, report)
+    _raise_if_nonfinite(system, system.segments.sum(x_new.abs() + v_new.abs()), report)
     return x_new, v_new, report
