@@ -8,12 +8,12 @@ lumped masses (3 x 3 diagonal blocks), P the projection on the free nodes; the i
 constrained dofs keeps A symmetric positive definite, and a right-hand side that is zero there
 gives the same iterates as the matrix-free CG with its projections.
 
-Assembly is exact for every model and form, and uses only the public ops: the items of a group
-(elements, or edges for the hooke tensor form) are coloured so that items of one colour share
-no node (``color_items``); then one call of ``ops.element_dforces`` per colour and local unit
-vector (a, k) gives column (a, k) of the stiffness block of every item of that colour. A node
-term (the vertex tensors of the hooke tensor form) is what ``ops.dforces`` adds to the gather
-of ``ops.element_dforces``: three calls along the unit fields E_k give its diagonal blocks.
+Assembly is exact for every model and form, through the ops: on a copy of each group whose
+items (elements, or edges for the hooke tensor form) own their nodes (``exploded``), one call of
+``ops.element_dforces`` per local unit vector (a, k) gives column (a, k) of the stiffness block
+of every item at once (n d calls). A node term (the vertex tensors of the hooke tensor form) is
+what ``ops.dforces`` adds to the gather of ``ops.element_dforces``: three calls along the unit
+fields E_k give its diagonal blocks.
 
 Layouts: torch sparse CSR (scalar, int32 indices where they fit) and BSR with 3 x 3 blocks;
 CG in torch ops with per-object scalars (``cg_fixed``) or CuPy's ``cupyx.scipy.sparse.linalg.cg``
@@ -22,68 +22,61 @@ CG in torch ops with per-object scalars (``cg_fixed``) or CuPy's ``cupyx.scipy.s
 from __future__ import annotations
 
 import contextlib
+import copy
 import warnings
-from typing import Callable, Dict, Optional, Sequence, Tuple
+from typing import Callable, Optional, Sequence
 
 import torch
 
 from tensormass_torch import ops
+from tensormass_torch.topology import GatherPlan
 
 
 # ---------------------------------------------------------------------------------------------
-# colouring and element blocks
+# element blocks
 # ---------------------------------------------------------------------------------------------
 
 
-def color_items(index: torch.Tensor, num_nodes: int, seed: int = 0) -> torch.Tensor:
-    """Colours ``[N]`` (int64, 0..C-1) of items ``index [N, n]`` such that two items sharing a
-    node never share a colour. Each colour is a maximal independent set built Luby-style (items
-    whose random priority is the largest among the candidates at all their nodes join, their
-    neighbours drop out, repeat), all in tensor ops on index's device."""
-    n_items, n = index.shape
-    device = index.device
-    flat = index.reshape(-1)
-    gen = torch.Generator(device="cpu").manual_seed(seed)
-    priority = torch.randperm(n_items, generator=gen).to(device)
-    colors = torch.full((n_items,), -1, dtype=torch.long, device=device)
-    color = 0
-    while bool((colors < 0).any()):
-        candidate = colors < 0
-        while bool(candidate.any()):
-            p = torch.where(candidate, priority, torch.full_like(priority, -1)).repeat_interleave(n)
-            node_max = torch.full((num_nodes,), -1, dtype=torch.long, device=device)
-            node_max.scatter_reduce_(0, flat, p, reduce="amax")
-            winners = candidate & (node_max[index].amax(dim=1) == priority)
-            colors[winners] = color
-            taken = torch.zeros(num_nodes, dtype=torch.bool, device=device)
-            taken[index[winners].reshape(-1)] = True
-            candidate &= ~taken[index].any(dim=1)
-        color += 1
-    return colors
-
-
-def element_blocks(group, u: torch.Tensor, colors: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Stiffness blocks ``[N, n d, n d]`` of the items of ``group`` at displacements ``u [V, d]``:
-    ``blocks[e, b*d + l, a*d + k]`` = d(partial force of item e on its node b, dim l) /
-    d(u of its node a, dim k). ``colors``: ``color_items(group.plan.index, V)`` (computed here
-    when None)."""
+def exploded(group):
+    """A copy of ``group`` whose items own their nodes: item e's local node a is node e n + a of
+    ``[N n, d]`` fields (nothing shared, so a unit vector at one local node of every item at
+    once gives every item's stiffness column). Everything else (material, shape vectors,
+    tensors, rest nodes) is the group's own; the group itself is not changed."""
     index = group.plan.index
     n_items, n = index.shape
-    V, d = u.shape
-    if colors is None:
-        colors = color_items(index, V)
-    state = ops.linearize(group, u)
-    blocks = u.new_zeros(n_items, n * d, n * d)
-    du = torch.zeros_like(u)
-    for c in range(int(colors.max()) + 1 if n_items else 0):
-        members = torch.nonzero(colors == c).flatten()
-        for a in range(n):
-            nodes = index[members, a]
-            for k in range(d):
-                du.zero_()
-                du[nodes, k] = 1.0
-                out = ops.element_dforces(group, u, du, state)
-                blocks[members, :, a * d + k] = out[members].reshape(-1, n * d)
+    ids = torch.arange(n_items * n, device=index.device).reshape(n_items, n)
+    copy_ = copy.copy(group)
+    copy_._buffers = dict(group._buffers)  # a shallow copy would share (and change) the original's
+    names = [k for k, b in group._buffers.items() if b is not None and b.shape == index.shape and torch.equal(b, index)]
+    if not names:
+        raise ValueError("cannot tell which buffer of the group holds its items")
+    for name in names:
+        copy_._buffers[name] = ids.to(group._buffers[name].dtype)
+    copy_.plan = GatherPlan.build(ids, n_items * n)
+    copy_.num_nodes = n_items * n
+    copy_.__dict__.pop("_native_lame", None)
+    return copy_
+
+
+def element_blocks(group, u: torch.Tensor, split=None) -> torch.Tensor:
+    """Stiffness blocks ``[N, n d, n d]`` of the items of ``group`` (elements, or edges for the
+    hooke tensor form) at displacements ``u [V, d]``: ``blocks[e, b*d + l, a*d + k]`` =
+    d(partial force of item e on its node b, dim l) / d(u of its node a, dim k), by n d calls
+    of ``ops.element_dforces`` on ``split = exploded(group)`` (made here when None)."""
+    index = group.plan.index
+    n_items, n = index.shape
+    d = u.shape[1]
+    split = exploded(group) if split is None else split
+    u_split = u[index].reshape(-1, d)
+    state = ops.linearize(split, u_split)
+    blocks = u.new_empty(n_items, n * d, n * d)
+    du = torch.zeros_like(u_split)
+    du_items = du.view(n_items, n, d)
+    for a in range(n):
+        for k in range(d):
+            du.zero_()
+            du_items[:, a, k] = 1.0
+            blocks[:, :, a * d + k] = ops.element_dforces(split, u_split, du, state).reshape(n_items, n * d)
     return blocks
 
 
@@ -124,20 +117,20 @@ class SystemMatrix:
         u: displacements ``[V, d]`` (positions minus ``model.rest``).
         mass: lumped masses ``[V]``. free: ``[V]`` bool (True: free node) or None (all free).
         c_mass, c_stiff: the coefficients c_M, c_K.
-        colors: per group, ``color_items`` of its items (kept by callers that reassemble).
+        splits: per group, ``exploded(group)`` (kept by callers that reassemble).
     Attributes:
         block_rows, block_cols: ``[M]`` node ids of the nonzero 3 x 3 blocks (sorted, unique).
         block_values: ``[M, d, d]``.
     """
 
-    def __init__(self, model, u, mass, free, c_mass: float, c_stiff: float, colors: Optional[Sequence] = None):
+    def __init__(self, model, u, mass, free, c_mass: float, c_stiff: float, splits: Optional[Sequence] = None):
         V, d = u.shape
         self.num_nodes, self.dim = V, d
         rows, cols, vals = [], [], []
         for g, group in enumerate(model.groups):
             index = group.plan.index
             n = index.shape[1]
-            blocks = element_blocks(group, u, None if colors is None else colors[g])
+            blocks = element_blocks(group, u, None if splits is None else splits[g])
             # [N, n(b), d(l), n(a), d(k)] -> per (b, a) node pair a 3 x 3 block
             blocks = blocks.reshape(-1, n, d, n, d).permute(0, 1, 3, 2, 4)
             rows.append(index[:, :, None].expand(-1, n, n).reshape(-1))
@@ -332,7 +325,7 @@ class AssembledStepper:
         if layout == "cupy" and sim.num_bodies != 1:
             raise ValueError("the CuPy alternative runs one object (its cg has one set of scalars)")
         self.reassemble = any(gr.model != "hooke" for gr in self.model.groups)
-        self.colors = [color_items(gr.plan.index, self.model.num_nodes) for gr in self.model.groups]
+        self.splits = [exploded(gr) for gr in self.model.groups]
         self.x, self.v = sim.x.clone(), sim.v.clone()
         self._matrix = None
         self.system = None
@@ -340,7 +333,7 @@ class AssembledStepper:
     def assemble(self, x) -> None:
         """A at positions x ``[V, 3]``: its block values, then the layout (and solver)."""
         self.system = SystemMatrix(self.model, x - self.model.rest, self.mass, self.free, self.c_mass,
-                                   self.c_stiff, self.colors)
+                                   self.c_stiff, self.splits)
         matrix = matrix_for("csr" if self.layout == "cupy" else self.layout, self.system)
         if self.layout == "cupy":
             solve = cupy_solver(matrix)

@@ -356,8 +356,6 @@ def copy_bandwidth(device, nbytes: int = 1 << 30) -> float:
     src = torch.ones(nbytes // 4, dtype=torch.float32, device=device)
     dst = torch.empty_like(src)
     seconds = time_call(lambda: dst.copy_(src), device, warmup=2, repeat=9 if is_cuda(device) else 5)
-    del src, dst
-    release(device)
     return 2.0 * nbytes / seconds
 
 
@@ -491,3 +489,11 @@ def last_cg_iterations(sim) -> Optional[int]:
 
 def parse_ints(text: str) -> List[int]:
     return [int(float(x)) for x in text.split(",") if x.strip()]
+
+
+def fill_defaults(args, normal: Dict[str, object], quick: Dict[str, object]) -> None:
+    """Options left at None take their --quick value (when ``args.quick``) or their normal one;
+    an option given on the command line wins in both cases."""
+    for name, value in normal.items():
+        if getattr(args, name) is None:
+            setattr(args, name, quick.get(name, value) if args.quick else value)
