@@ -35,7 +35,7 @@ from pathlib import Path
 
 import torch
 
-from common import metadata
+from common import Budget, metadata
 
 import tensormass_torch as tm
 from tensormass_torch import native as native_mod
@@ -252,6 +252,7 @@ def main(argv=None):
     parser.add_argument("--warmup", type=int, default=None)
     parser.add_argument("--repeat", type=int, default=None)
     parser.add_argument("--out", default=os.environ.get("OUT") or "benchmarks/results")
+    parser.add_argument("--budget-s", type=float, default=None, help="wall-clock limit: later (model, form) pairs skipped")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     cuda = device.type == "cuda"
@@ -283,8 +284,12 @@ def main(argv=None):
     })
     rows = []
     s = torch.empty((), dtype=dtype).element_size()
+    budget = Budget(args.budget_s)
     for model in args.models.split(","):
         for form in args.forms.split(","):
+            if budget.remaining() <= 0:
+                rows.append({"model": model, "form": form, "op": "all", "backend": "all", "error": "skipped: budget spent"})
+                continue
             mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model)
             group = tm.TensorMass(mesh, mat, form=form).groups[0]
             gen = torch.Generator(device="cpu").manual_seed(1)

@@ -16,7 +16,7 @@ import argparse
 import torch
 
 import common
-from common import Results, copy_bandwidth, metadata, record, release
+from common import Budget, Results, copy_bandwidth, metadata, record, release
 from measure import run_simulator
 from tensormass_torch.scenes import sofa_beam
 
@@ -50,17 +50,23 @@ def main(argv=None):
     parser.add_argument("--backends", default="extension,torch")
     parser.add_argument("--scenes", default="sofa_beam,paper_beam")
     parser.add_argument("--max-seconds", type=float, default=10.0, help="time limit of one measurement's steps")
+    parser.add_argument("--budget-s", type=float, default=None, help="wall-clock limit: later measurements are skipped")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     bandwidth = copy_bandwidth(device)
     meta = metadata(device, dtype="float32", copy_bandwidth_GBps={"device": bandwidth / 1e9}, argv=vars(args))
     results = Results(args.out, "step_bench", "Implicit Euler steps", meta, COLUMNS)
+    budget = Budget(args.budget_s)
     for scene in args.scenes.split(","):
         make, models = SCENES[scene]
         for model in models:
             for backend in args.backends.split(","):
                 rec = record(scene=scene, model=model, kind="tet", objects=1, backend=backend, device=device.type,
                              dtype="float32")
+                if budget.remaining() <= 0:
+                    rec["skipped"] = "budget spent"
+                    results.add(rec)
+                    continue
                 out = run_simulator(lambda: make(model, device, torch.float32), backend, device, args.steps,
                                     args.max_seconds)
                 sim = out.pop("_sim", None)
