@@ -126,9 +126,11 @@ def render(out: Path, meshes, snapshots, variants):
     twist = snapshots["twist"]
     written.append(r.render_png(out / "twist_180.png",
                                 [[(mesh, None), (mesh, twist[v][-1])] for v in pair],
-                                labels=[f"{v}: end turned 180 deg" for v in pair], window_size=(1200, 460)))
+                                labels=[f"{v}: end turned 180 deg" for v in pair], window_size=(1200, 460),
+                                zoom=1.5))
     frames = [[[(mesh, None), (mesh, twist[v][k])] for v in pair] for k in range(0, len(twist[pair[0]]), 2)]
-    written.append(r.render_gif(out / "twist.gif", frames, fps=4, window_size=(720, 280), labels=pair))
+    written.append(r.render_gif(out / "twist.gif", frames, fps=4, window_size=(720, 280), labels=pair,
+                               zoom=1.5))
     mesh = meshes["spin"]
     spin = snapshots["spin"]
     half = (len(spin[pair[0]]) - 1) // 2

@@ -130,7 +130,7 @@ def _bounds(surfaces) -> list:
     return [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]
 
 
-def _set_camera(plotter, camera, bounds):
+def _set_camera(plotter, camera, bounds, zoom):
     if isinstance(camera, str):
         if camera not in CAMERAS:
             raise SceneError(f"unknown camera {camera!r}; expected one of {', '.join(CAMERAS)} "
@@ -139,13 +139,15 @@ def _set_camera(plotter, camera, bounds):
     else:
         plotter.camera_position = camera
     plotter.reset_camera(bounds=bounds)
+    if zoom != 1.0:
+        plotter.camera.zoom(zoom)
 
 
 def _surfaces_of(pv, panels):
     return [[_surface(pv, mesh, positions) for mesh, positions in panel] for panel in panels]
 
 
-def _draw(pv, panels, surfaces, bounds, *, window_size, labels, colors, camera, show_edges) -> np.ndarray:
+def _draw(pv, panels, surfaces, bounds, *, window_size, labels, colors, camera, show_edges, zoom) -> np.ndarray:
     """Render one picture; returns its pixels ``[H, W, 3]`` uint8."""
     plotter = pv.Plotter(off_screen=True, shape=(1, len(panels)), window_size=list(window_size),
                          border=False)
@@ -163,7 +165,7 @@ def _draw(pv, panels, surfaces, bounds, *, window_size, labels, colors, camera, 
         if len(panels) > 1:
             plotter.link_views()  # one camera: the panels compare at the same scale
         plotter.subplot(0, 0)
-        _set_camera(plotter, camera, bounds)
+        _set_camera(plotter, camera, bounds, zoom)
         return np.asarray(plotter.screenshot(None, return_img=True))[..., :3].copy()
     finally:
         plotter.close()
@@ -174,8 +176,13 @@ def _check_window(window_size):
         raise SceneError(f"window_size must be (width, height) of at least 16 pixels, got {window_size!r}")
 
 
+def _check_zoom(zoom):
+    if not (isinstance(zoom, (int, float)) and zoom > 0 and np.isfinite(zoom)):
+        raise SceneError(f"zoom must be a positive number, got {zoom!r}")
+
+
 def render_png(path, panels, *, window_size=(1200, 500), labels: Optional[Sequence[str]] = None,
-               colors=None, camera="iso", show_edges: bool = True) -> Path:
+               colors=None, camera="iso", show_edges: bool = True, zoom: float = 1.0) -> Path:
     """Render ``panels`` side by side into the PNG file ``path``; returns its Path.
 
     Args:
@@ -190,6 +197,7 @@ def render_png(path, panels, *, window_size=(1200, 500), labels: Optional[Sequen
         camera: ``"iso"``, ``"xy"`` (looking down z), ``"xz"``, ``"yz"``, or a pyvista camera
             position ``[(position), (focal point), (view up)]``; zoomed to fit every panel.
         show_edges: draw element edges on deformed surfaces.
+        zoom: magnification after the camera is fitted (> 1 fills more of each panel).
 
     Raises:
         ImportError: pyvista is not installed (the message says how to install it).
@@ -197,10 +205,12 @@ def render_png(path, panels, *, window_size=(1200, 500), labels: Optional[Sequen
     """
     _check_panels(panels)
     _check_window(window_size)
+    _check_zoom(zoom)
     pv = _pyvista()
     surfaces = _surfaces_of(pv, panels)
     image = _draw(pv, panels, surfaces, _bounds([s for row in surfaces for s in row]),
-                  window_size=window_size, labels=labels, colors=colors, camera=camera, show_edges=show_edges)
+                  window_size=window_size, labels=labels, colors=colors, camera=camera, show_edges=show_edges,
+                  zoom=zoom)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     _image_module().fromarray(image).save(path, optimize=True)
@@ -217,7 +227,7 @@ def _image_module():
 
 def render_gif(path, frames, *, fps: float = 10.0, window_size=(1200, 500),
                labels: Optional[Sequence[str]] = None, colors=None, camera="iso",
-               show_edges: bool = True) -> Path:
+               show_edges: bool = True, zoom: float = 1.0) -> Path:
     """Render a sequence of ``frames`` (each a list of panels, as :func:`render_png` takes) into
     an animated GIF ``path`` that loops; returns its Path.
 
@@ -231,12 +241,13 @@ def render_gif(path, frames, *, fps: float = 10.0, window_size=(1200, 500),
     for k, panels in enumerate(frames):
         _check_panels(panels, f"frames[{k}]")
     _check_window(window_size)
+    _check_zoom(zoom)
     pv = _pyvista()
     Image = _image_module()
     all_surfaces = [_surfaces_of(pv, panels) for panels in frames]
     bounds = _bounds([s for surfaces in all_surfaces for row in surfaces for s in row])
     images = [Image.fromarray(_draw(pv, panels, surfaces, bounds, window_size=window_size, labels=labels,
-                                    colors=colors, camera=camera, show_edges=show_edges))
+                                    colors=colors, camera=camera, show_edges=show_edges, zoom=zoom))
               .convert("P", palette=Image.ADAPTIVE, colors=255)
               for panels, surfaces in zip(frames, all_surfaces)]
     path = Path(path)
