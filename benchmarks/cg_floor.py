@@ -70,7 +70,7 @@ def run_marginal(kind_model, target, backend, device, args):
     out = {"backend": backend}
     start = time.perf_counter()
     try:
-        with forced_backend(backend), torch.no_grad():
+        with forced_backend(backend):
             sim, _ = common.cantilever_sim("tet", model, target, device, torch.float32, args.high)
             out.update(sim_size(sim))
             warm_up(sim, device)

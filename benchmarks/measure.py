@@ -48,7 +48,7 @@ def run_simulator(make: Callable[[], object], backend: str, device, steps: int, 
     out: Dict[str, object] = {"backend": backend}
     start = time.perf_counter()
     try:
-        with forced_backend(mode), torch.no_grad():
+        with forced_backend(mode):  # no torch.no_grad(): timed as a user calls it
             sim = make()
             out.update(sim_size(sim))
             warm_up(sim, device, warmup)
@@ -106,6 +106,10 @@ def marginal_cg_ms(sim, device, low: int, high: int, steps: int, max_seconds: fl
             sim.options.cg_max_iter = budget
             sim.step(1)  # warm-up at this budget (a solver may specialise on it)
             sync(device)
+            ran = last_cg_iterations(sim)
+            if ran is not None and ran != budget:
+                raise RuntimeError(f"the step ran {ran} CG iterations with cg_max_iter={budget} and cg_tol=0: "
+                                   "the marginal time per iteration cannot be taken this way")
             one = time_call(lambda: sim.step(1), device, warmup=0, repeat=1)
             repeat = max(1, min(steps, int(max_seconds / max(one, 1e-9))))
             times[budget] = time_call(lambda: sim.step(1), device, warmup=0, repeat=repeat)
