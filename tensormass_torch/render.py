@@ -110,8 +110,10 @@ def _colors_for(colors, panel_index: int, panel) -> list:
     """One colour per entry of a panel: ``colors`` is None, one list for every panel, or one list per panel."""
     chosen, deformed = [], 0
     custom = None
-    if colors is not None:
-        custom = colors[panel_index] if isinstance(colors[0], (list, tuple)) else colors
+    if colors:
+        # an RGB triple is one colour, any other list or tuple is the colours of one panel
+        per_panel = isinstance(colors[0], (list, tuple)) and not all(isinstance(c, (int, float)) for c in colors[0])
+        custom = colors[panel_index] if per_panel else colors
     for j, (_, positions) in enumerate(panel):
         if custom is not None and j < len(custom) and custom[j] is not None:
             chosen.append(custom[j])

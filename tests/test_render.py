@@ -68,6 +68,15 @@ def test_png_of_a_2d_membrane(tmp_path):
     assert drawn_fraction(np.asarray(Image.open(path).convert("RGB"))) > 0.05
 
 
+def test_colors_are_used(tmp_path):
+    mesh = tm.beam_mesh(4, 1, 1, size=(1.0, 0.2, 0.2))
+    path = render.render_png(tmp_path / "red.png", [[(mesh, None), (mesh, mesh.vertices)]], window_size=(200, 120),
+                             colors=[None, (1.0, 0.0, 0.0)], show_edges=False)
+    pixels = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    red = (pixels[..., 0] > 100) & (pixels[..., 1] < 60) & (pixels[..., 2] < 60)
+    assert red.mean() > 0.02
+
+
 def test_gif_with_two_frames(tmp_path):
     mesh = tm.beam_mesh(4, 1, 1, size=(1.0, 0.1, 0.1))
     frames = [[[(mesh, None), (mesh, twisted(mesh, t))]] for t in (0.0, 0.5)]
