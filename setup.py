@@ -189,7 +189,7 @@ setup(
     python_requires=">=3.9",
     # torch is deliberately absent: the user's torch (CPU or CUDA build) must be kept as it is.
     install_requires=["numpy", "meshio"],
-    extras_require={"test": ["pytest"]},
+    extras_require={"test": ["pytest"], "render": ["pyvista"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
     entry_points={"console_scripts": ["tensormass = tensormass_torch.cli:main"]},

@@ -27,15 +27,15 @@ Writes ops_bench.md and ops_bench.json (device, date, git commit, torch version,
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import statistics
-import subprocess
 import time
 from pathlib import Path
 
 import torch
+
+from common import Budget, metadata
 
 import tensormass_torch as tm
 from tensormass_torch import native as native_mod
@@ -212,22 +212,6 @@ def torch_ops(group, u, du):
 # ---------------------------------------------------------------------------------------------
 
 
-def git_commit():
-    """Short commit of the tree (+"-dirty" when it has changes), else $TENSORMASS_COMMIT (for a
-    copy of the tree without .git), else None."""
-    here = Path(__file__).resolve().parent
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=here).stdout.strip()
-        if commit:
-            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                                   text=True, cwd=here).stdout.strip()
-            return commit + ("-dirty" if dirty else "")
-    except OSError:
-        pass
-    return os.environ.get("TENSORMASS_COMMIT") or None
-
-
 def markdown(meta, rows):
     lines = [
         f"### ops_bench: {meta['elements']:,} {meta['kind']} elements, {meta['nodes']:,} nodes, {meta['dtype']}, "
@@ -268,6 +252,7 @@ def main(argv=None):
     parser.add_argument("--warmup", type=int, default=None)
     parser.add_argument("--repeat", type=int, default=None)
     parser.add_argument("--out", default=os.environ.get("OUT") or "benchmarks/results")
+    parser.add_argument("--budget-s", type=float, default=None, help="wall-clock limit: later (model, form) pairs skipped")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     cuda = device.type == "cuda"
@@ -285,13 +270,8 @@ def main(argv=None):
     torch.manual_seed(0)
     mesh = tm.beam_mesh(*args.mesh, size=(1.0, 0.4, 0.25), dtype=dtype, device=device)
     bandwidth = copy_bandwidth(device, run)
-    meta = {
-        "device": str(device),
-        "device_name": torch.cuda.get_device_name(device) if cuda else "cpu (%d threads)" % torch.get_num_threads(),
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "commit": git_commit(),
-        "torch": torch.__version__,
-        "cuda": torch.version.cuda,
+    meta = metadata(device)  # device, device name, date, commit, versions, threads, backends
+    meta.update({
         "dtype": args.dtype,
         "mesh": list(args.mesh),
         "kind": "tet",
@@ -301,12 +281,15 @@ def main(argv=None):
         "warmup": warmup,
         "repeat": repeat,
         "timing": "CUDA events, median" if cuda else "perf_counter, median",
-        "backend_info": tm.backend_info(),
-    }
+    })
     rows = []
     s = torch.empty((), dtype=dtype).element_size()
+    budget = Budget(args.budget_s)
     for model in args.models.split(","):
         for form in args.forms.split(","):
+            if budget.remaining() <= 0:
+                rows.append({"model": model, "form": form, "op": "all", "backend": "all", "error": "skipped: budget spent"})
+                continue
             mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model)
             group = tm.TensorMass(mesh, mat, form=form).groups[0]
             gen = torch.Generator(device="cpu").manual_seed(1)

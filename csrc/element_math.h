@@ -16,11 +16,16 @@
 //     stvk        E = P (sym(grad U) + 1/2 grad U^T grad U) P, S = lam tr(E) P + 2 mu E,
 //                 f_j = -vol (I + grad U) S m_j
 //                 df_j = -vol (dG S + dS + G dS) m_j,  dS = C : P sym(dG + G^T dG) P
-//     corotational (SOFA's "large" QR frame, 3-D only; x0 the rest nodes, x = x0 + u)
+//     corotational  eps' = P sym(R^T (P + grad U) - P) P,  f_j = -vol R sigma(eps') m_j,
+//                 df_j = -vol R sigma(P sym(R^T grad dU) P) m_j   (R held fixed, as SOFA does)
+//                 with the element rotation R [D, D] (computed once per linearisation, or per call):
+//       QR frame  (SOFA's "large", 3-D only; x0 the rest nodes, x = x0 + u)
 //                 frame(p): rows ex = p1 - p0, ez = ex x (p2 - p0), ey = ez x ex, normalised;
-//                 R = frame(x)^T frame(x0); eps' = P sym(R^T (P + grad U) - P) P,
-//                 f_j = -vol R sigma(eps') m_j;  df_j = -vol R sigma(P sym(R^T grad dU) P) m_j
-//                 (R held fixed in the differential, as SOFA does; R is recomputed per call)
+//                 R = frame(x)^T frame(x0)
+//       polar     R = the closest proper rotation to F = P + grad U (the rotation factor of
+//                 F = R S; inverted elements: the singular vector of the smallest singular value
+//                 flipped); membranes map the rest normal n0 onto the current normal n first,
+//                 F + n n0^T (reference: corotational.polar_rotations, ops.linearize)
 //   tensor form   hooke: per edge (i<j) f_i = -K u_j, f_j = -K^T u_i; per node -K_ii u_i
 //                 stvk:  Picinbono's B [n,n,d,d], C [n,n,n,d], D [n,n,n,n] (see tensor_form.py)
 // (P = I for tetrahedra and planar triangles.)
@@ -248,16 +253,30 @@ TM_HD void stress_dforces(const S (&u)[NN][D], const S (&du)[NN][D], const S (&m
   }
 }
 
-// ------------------------------------------------------------------ corotational (QR frame)
+// ------------------------------------------------------------------ corotational rotations
 
 TM_HD float tm_sqrt(float x) { return sqrtf(x); }
 TM_HD double tm_sqrt(double x) { return sqrt(x); }
+TM_HD float tm_abs(float x) { return fabsf(x); }
+TM_HD double tm_abs(double x) { return fabs(x); }
 
 template <typename S>
 TM_HD void cross3(const S (&a)[3], const S (&b)[3], S (&c)[3]) {
   c[0] = a[1] * b[2] - a[2] * b[1];
   c[1] = a[2] * b[0] - a[0] * b[2];
   c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+template <typename S>
+TM_HD S dot3(const S (&a)[3], const S (&b)[3]) {
+  return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+
+// v / |v| (v != 0)
+template <typename S>
+TM_HD void normalize3(S (&v)[3]) {
+  const S inv = S(1) / tm_sqrt(dot3<S>(v, v));
+  TM_UNROLL for (int a = 0; a < 3; ++a) v[a] *= inv;
 }
 
 // SOFA's frame of the nodes (p0, p1, p2): rows ex, ey, ez (normalised).
@@ -293,44 +312,233 @@ TM_HD void qr_rotation(const S (&u)[NN][3], const S (&x0)[NN][3], S (&r)[3][3]) 
   matmul_tn<3, S>(cur, rest, r);
 }
 
-// f_j = -vol R sigma(eps) m_j with eps = P sym(R^T g) P (g = R^T F - P already folded in by the
-// caller for forces, g = grad dU for dforces).
-template <int NN, typename S, bool M>
-TM_HD void corotational_nodal(const S (&r)[3][3], const S (&t)[3][3], const S (&m)[NN][3], S vol, S lam,
-                              S mu, const Plane<3, S, M>& plane, S (&f)[NN][3]) {
-  S e[3][3], s[3][3], rs[3][3];
-  sym<3, S>(t, e);
+// ---- polar decomposition, 3 x 3
+//
+// Method: one-sided (Hestenes) Jacobi SVD of F, then R = U V^T built from the two largest
+// singular directions only.
+//   * One-sided Jacobi rotates the columns of B = F V (V accumulates the rotations) until they
+//     are orthogonal; it never forms F^T F, so the conditioning is that of F, not its square:
+//     nearly flat elements (tiny sigma_3) keep full accuracy in float32 too.
+//   * A fixed number of cyclic sweeps (3 rotations each) and selects instead of branches: every
+//     thread of a warp runs the same instructions, and the result is deterministic. Quadratic
+//     convergence: 4 sweeps reach double rounding on 3e5 random matrices (3 do not); float32
+//     uses 4, double 5 (one spare).
+//   * The columns are sorted by norm (a 3-comparator network), then u1 = b1/|b1|,
+//     u2 = b2 orthonormalised against u1, u3 = u1 x u2, v3 = v1 x v2: U and V are proper by
+//     construction, so R = U V^T is a proper rotation, and it is the closest one to F (Kabsch):
+//     when det F < 0 the sign goes to the smallest singular direction, exactly what the
+//     reference's SVD sign fix does. sigma_3 itself is never used, so its sign and accuracy do
+//     not matter; R is only ill-determined where the problem is (sigma_2 ~ sigma_3 with det F <
+//     0, or rank F < 2), and stays a finite proper rotation there.
+//   * F is scaled by 1 / max|F_ab| first (R(a F) = R(F) for a > 0): no overflow or underflow in
+//     the squared norms, whatever the element size. F = 0 gives R = I.
+template <typename S>
+struct PolarSweeps {
+  static constexpr int value = 5;
+};
+template <>
+struct PolarSweeps<float> {
+  static constexpr int value = 4;
+};
+
+// One Jacobi rotation of the columns P < Q of b (and of v): makes b_P . b_Q = 0.
+template <int P, int Q, typename S>
+TM_HD void jacobi_columns(S (&b)[3][3], S (&v)[3][3]) {
+  S alpha = S(0), beta = S(0), gamma = S(0);
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    alpha += b[a][P] * b[a][P];
+    beta += b[a][Q] * b[a][Q];
+    gamma += b[a][P] * b[a][Q];
+  }
+  // t = tan(theta), the smaller root of t^2 + 2 zeta t - 1 = 0 with zeta = (beta - alpha) / (2 gamma),
+  // written without dividing by gamma: t = sgn(h) gamma / (|h| + hypot(h, gamma)), h = (beta - alpha) / 2.
+  const S h = S(0.5) * (beta - alpha);
+  const S den = tm_abs(h) + tm_sqrt(h * h + gamma * gamma);
+  const S num = h >= S(0) ? gamma : -gamma;
+  const S t = den > S(0) ? num / den : S(0);
+  const S c = S(1) / tm_sqrt(S(1) + t * t);
+  const S s = c * t;
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    const S bp = b[a][P], bq = b[a][Q];
+    b[a][P] = c * bp - s * bq;
+    b[a][Q] = s * bp + c * bq;
+    const S vp = v[a][P], vq = v[a][Q];
+    v[a][P] = c * vp - s * vq;
+    v[a][Q] = s * vp + c * vq;
+  }
+}
+
+// Orders the columns P < Q of b and v (and their squared norms n) by decreasing norm.
+template <int P, int Q, typename S>
+TM_HD void order_columns(S (&b)[3][3], S (&v)[3][3], S (&n)[3]) {
+  const bool swap = n[P] < n[Q];
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    const S bp = b[a][P], bq = b[a][Q], vp = v[a][P], vq = v[a][Q];
+    b[a][P] = swap ? bq : bp;
+    b[a][Q] = swap ? bp : bq;
+    v[a][P] = swap ? vq : vp;
+    v[a][Q] = swap ? vp : vq;
+  }
+  const S np = n[P], nq = n[Q];
+  n[P] = swap ? nq : np;
+  n[Q] = swap ? np : nq;
+}
+
+// R = the closest proper rotation to f (the polar factor, sign-fixed for det f < 0); see above.
+template <typename S>
+TM_HD void polar_rotation(const S (&f)[3][3], S (&r)[3][3]) {
+  S scale = S(0);
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int k = 0; k < 3; ++k) scale = tm_abs(f[a][k]) > scale ? tm_abs(f[a][k]) : scale;
+  }
+  const bool zero = !(scale > S(0));
+  const S inv = zero ? S(1) : S(1) / scale;
+  S b[3][3], v[3][3];
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int k = 0; k < 3; ++k) {
+      v[a][k] = a == k ? S(1) : S(0);
+      b[a][k] = zero ? v[a][k] : f[a][k] * inv;
+    }
+  }
+  TM_UNROLL for (int sweep = 0; sweep < PolarSweeps<S>::value; ++sweep) {
+    jacobi_columns<0, 1, S>(b, v);
+    jacobi_columns<0, 2, S>(b, v);
+    jacobi_columns<1, 2, S>(b, v);
+  }
+  S n[3];
+  TM_UNROLL for (int k = 0; k < 3; ++k) n[k] = b[0][k] * b[0][k] + b[1][k] * b[1][k] + b[2][k] * b[2][k];
+  order_columns<0, 1, S>(b, v, n);
+  order_columns<1, 2, S>(b, v, n);
+  order_columns<0, 1, S>(b, v, n);
+  // n[0] >= |F / scale|_F^2 / 3 >= 1/3: u1 is well defined.
+  S u1[3], u2[3], u3[3], v1[3], v2[3], v3[3];
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    u1[a] = b[a][0];
+    u2[a] = b[a][1];
+    v1[a] = v[a][0];
+    v2[a] = v[a][1];
+  }
+  normalize3<S>(u1);
+  const S proj = dot3<S>(u1, u2);
+  TM_UNROLL for (int a = 0; a < 3; ++a) u2[a] -= proj * u1[a];
+  // rank F < 2: any unit vector orthogonal to u1 (u1 x the axis it is least aligned with)
+  const S w2 = dot3<S>(u2, u2);
+  const S ax = tm_abs(u1[0]), ay = tm_abs(u1[1]), az = tm_abs(u1[2]);
+  const int axis = (ax <= ay && ax <= az) ? 0 : (ay <= az ? 1 : 2);
+  S e[3] = {S(0), S(0), S(0)};
+  e[axis] = S(1);
+  S perp[3];
+  cross3<S>(u1, e, perp);
+  const bool degenerate = !(w2 > S(1e-30) * n[0]);
+  TM_UNROLL for (int a = 0; a < 3; ++a) u2[a] = degenerate ? perp[a] : u2[a];
+  normalize3<S>(u2);
+  cross3<S>(u1, u2, u3);
+  cross3<S>(v1, v2, v3);
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int k = 0; k < 3; ++k) r[a][k] = u1[a] * v1[k] + u2[a] * v2[k] + u3[a] * v3[k];
+  }
+}
+
+// 2 x 2: the rotation by angle atan2(f10 - f01, f00 + f11) maximises tr(R^T F) over SO(2), which
+// is the closest proper rotation (the SVD sign fix included). f00 + f11 = f10 - f01 = 0 (no
+// unique answer) gives R = I.
+template <typename S>
+TM_HD void polar_rotation(const S (&f)[2][2], S (&r)[2][2]) {
+  const S c = f[0][0] + f[1][1], s = f[1][0] - f[0][1];
+  const S scale = tm_abs(c) > tm_abs(s) ? tm_abs(c) : tm_abs(s);
+  const bool zero = !(scale > S(0));
+  const S cs = zero ? S(1) : c / scale, ss = zero ? S(0) : s / scale;
+  const S inv = S(1) / tm_sqrt(cs * cs + ss * ss);
+  r[0][0] = cs * inv;
+  r[0][1] = -ss * inv;
+  r[1][0] = ss * inv;
+  r[1][1] = cs * inv;
+}
+
+// Rotation methods: the `method` integer of tensormass::corotational_rotations.
+enum RotationMethod : int { kQr = 0, kPolar = 1 };
+
+// Whether the rotation of an element needs its rest nodes x0: the QR frame, and polar membranes
+// (their rest normal).
+template <int METHOD, bool M>
+struct RotationNeedsRest {
+  static constexpr bool value = METHOD == kQr || M;
+};
+
+// The rotation of one element at displacements u: METHOD kQr (3-D) or kPolar. F = P + grad U;
+// membranes (M) add n n0^T, n0 / n the unit normals of the rest / current triangle, so that F
+// maps the whole space (the reference's linearize does the same).
+template <int METHOD, int NN, int D, typename S, bool M>
+TM_HD void element_rotation(const S (&u)[NN][D], const S (&x0)[NN][D], const S (&m)[NN][D],
+                            const Plane<D, S, M>& plane, S (&r)[D][D]) {
+  if constexpr (METHOD == kQr) {
+    static_assert(D == 3, "the QR frame needs 3-D elements");
+    qr_rotation<NN, S>(u, x0, r);
+  } else {
+    S f[D][D];
+    displacement_gradient<NN, D, S>(u, m, f);
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      TM_UNROLL for (int b = 0; b < D; ++b) f[a][b] += plane.id(a, b);
+    }
+    if constexpr (M) {
+      S e1[3], e2[3], n[3], r1[3], r2[3], n0[3];
+      TM_UNROLL for (int a = 0; a < 3; ++a) {
+        e1[a] = (x0[1][a] + u[1][a]) - (x0[0][a] + u[0][a]);
+        e2[a] = (x0[2][a] + u[2][a]) - (x0[0][a] + u[0][a]);
+        r1[a] = x0[1][a] - x0[0][a];
+        r2[a] = x0[2][a] - x0[0][a];
+      }
+      cross3<S>(e1, e2, n);
+      cross3<S>(r1, r2, n0);
+      normalize3<S>(n);
+      normalize3<S>(n0);
+      TM_UNROLL for (int a = 0; a < 3; ++a) {
+        TM_UNROLL for (int b = 0; b < 3; ++b) f[a][b] += n[a] * n0[b];
+      }
+    }
+    polar_rotation<S>(f, r);
+  }
+}
+
+// ------------------------------------------------------------------ corotational forces
+
+// f_j = -vol R sigma(eps) m_j with eps = P sym(t) P (t = R^T F - P for forces, R^T grad dU for
+// dforces).
+template <int NN, int D, typename S, bool M>
+TM_HD void corotational_nodal(const S (&r)[D][D], const S (&t)[D][D], const S (&m)[NN][D], S vol, S lam,
+                              S mu, const Plane<D, S, M>& plane, S (&f)[NN][D]) {
+  S e[D][D], s[D][D], rs[D][D];
+  sym<D, S>(t, e);
   plane.project(e);
-  isotropic<3, S, M>(e, lam, mu, plane, s);
-  matmul<3, S>(r, s, rs);
-  nodal<NN, 3, S>(rs, m, vol, f);
+  isotropic<D, S, M>(e, lam, mu, plane, s);
+  matmul<D, S>(r, s, rs);
+  nodal<NN, D, S>(rs, m, vol, f);
 }
 
-template <int NN, typename S, bool M>
-TM_HD void corotational_forces(const S (&u)[NN][3], const S (&x0)[NN][3], const S (&m)[NN][3], S vol, S lam,
-                               S mu, const Plane<3, S, M>& plane, S (&f)[NN][3]) {
-  S r[3][3], g[3][3], t[3][3];
-  qr_rotation<NN, S>(u, x0, r);
-  displacement_gradient<NN, 3, S>(u, m, g);
-  TM_UNROLL for (int a = 0; a < 3; ++a) {
-    TM_UNROLL for (int b = 0; b < 3; ++b) g[a][b] += plane.id(a, b);  // F = P + grad U
+// Forces with the rotation r given.
+template <int NN, int D, typename S, bool M>
+TM_HD void corotational_forces(const S (&u)[NN][D], const S (&r)[D][D], const S (&m)[NN][D], S vol, S lam,
+                               S mu, const Plane<D, S, M>& plane, S (&f)[NN][D]) {
+  S g[D][D], t[D][D];
+  displacement_gradient<NN, D, S>(u, m, g);
+  TM_UNROLL for (int a = 0; a < D; ++a) {
+    TM_UNROLL for (int b = 0; b < D; ++b) g[a][b] += plane.id(a, b);  // F = P + grad U
   }
-  matmul_tn<3, S>(r, g, t);  // R^T F
-  TM_UNROLL for (int a = 0; a < 3; ++a) {
-    TM_UNROLL for (int b = 0; b < 3; ++b) t[a][b] -= plane.id(a, b);
+  matmul_tn<D, S>(r, g, t);  // R^T F
+  TM_UNROLL for (int a = 0; a < D; ++a) {
+    TM_UNROLL for (int b = 0; b < D; ++b) t[a][b] -= plane.id(a, b);
   }
-  corotational_nodal<NN, S, M>(r, t, m, vol, lam, mu, plane, f);
+  corotational_nodal<NN, D, S, M>(r, t, m, vol, lam, mu, plane, f);
 }
 
-template <int NN, typename S, bool M>
-TM_HD void corotational_dforces(const S (&u)[NN][3], const S (&du)[NN][3], const S (&x0)[NN][3],
-                                const S (&m)[NN][3], S vol, S lam, S mu, const Plane<3, S, M>& plane,
-                                S (&f)[NN][3]) {
-  S r[3][3], dg[3][3], t[3][3];
-  qr_rotation<NN, S>(u, x0, r);
-  displacement_gradient<NN, 3, S>(du, m, dg);
-  matmul_tn<3, S>(r, dg, t);  // R^T grad dU
-  corotational_nodal<NN, S, M>(r, t, m, vol, lam, mu, plane, f);
+// Differential along du with the rotation r given (held fixed).
+template <int NN, int D, typename S, bool M>
+TM_HD void corotational_dforces(const S (&du)[NN][D], const S (&r)[D][D], const S (&m)[NN][D], S vol, S lam,
+                                S mu, const Plane<D, S, M>& plane, S (&f)[NN][D]) {
+  S dg[D][D], t[D][D];
+  displacement_gradient<NN, D, S>(du, m, dg);
+  matmul_tn<D, S>(r, dg, t);  // R^T grad dU
+  corotational_nodal<NN, D, S, M>(r, t, m, vol, lam, mu, plane, f);
 }
 
 // ------------------------------------------------------------------ tensor form, hooke

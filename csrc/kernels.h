@@ -129,7 +129,8 @@ struct StressInputs {
   const S* lam;            // [N]
   const S* mu;             // [N]
   const S* projector;      // [N, D, D] (membranes only)
-  const S* rest;           // [N, NN, D] rest element nodes (corotational only; D = 3)
+  const S* rest;           // [N, NN, D] rest element nodes (corotational QR recomputed per call; D = 3)
+  const S* rotations;      // [N, D, D] element rotations (corotational; nullptr: QR frame from rest)
 };
 
 template <int MODEL, bool DFORCE, int NN, int D, typename S, typename I, bool PADDED>
@@ -149,15 +150,22 @@ struct StressElementKernel {
     S u[NN][D], f[NN][D];
     gather_nodes<NN, D, S, I>(in.u, idx, u);
     if constexpr (MODEL == kCorotational) {
-      static_assert(D == 3, "the corotational QR frame needs 3-D elements");
-      S x0[NN][D];
-      load_matrix<NN, D, S>(in.rest + e * (NN * D), x0);
+      // The rotations of the linearisation when given (9 loads, the CG path), else SOFA's QR
+      // frame recomputed from u and the rest nodes (a uniform branch: one pointer per launch).
+      S r[D][D];
+      if (in.rotations != nullptr) {
+        load_matrix<D, D, S>(in.rotations + e * (D * D), r);
+      } else if constexpr (D == 3) {
+        S x0[NN][D];
+        load_matrix<NN, D, S>(in.rest + e * (NN * D), x0);
+        qr_rotation<NN, S>(u, x0, r);
+      }
       if (DFORCE) {
         S du[NN][D];
         gather_nodes<NN, D, S, I>(in.du, idx, du);
-        corotational_dforces<NN, S, kMembrane>(u, du, x0, m, vol, lam, mu, plane, f);
+        corotational_dforces<NN, D, S, kMembrane>(du, r, m, vol, lam, mu, plane, f);
       } else {
-        corotational_forces<NN, S, kMembrane>(u, x0, m, vol, lam, mu, plane, f);
+        corotational_forces<NN, D, S, kMembrane>(u, r, m, vol, lam, mu, plane, f);
       }
     } else if (DFORCE) {
       S du[NN][D];
@@ -173,6 +181,39 @@ struct StressElementKernel {
   TM_HD void load_plane(int64_t, Plane<D, S, false>&) const {}
   TM_HD void load_plane(int64_t e, Plane<D, S, true>& plane) const {
     load_matrix<D, D, S>(in.projector + e * (D * D), plane.p);
+  }
+};
+
+// ------------------------------------------------------------------ corotational rotations
+
+// One item per element: its rotation R [D, D] at u (element_math.h: element_rotation), written
+// to out [N, D, D]. Reads the rest nodes only where the method needs them (QR, polar membranes).
+template <int METHOD, int NN, int D, typename S, typename I>
+struct RotationKernel {
+  static constexpr bool kMembrane = NN - 1 < D;
+  static constexpr bool kNeedsRest = RotationNeedsRest<METHOD, kMembrane>::value;
+  const S* u;              // [V, D]
+  const I* elements;       // [N, NN]
+  const S* shape_vectors;  // [N, NN, D] (polar)
+  const S* projector;      // [N, D, D] (polar membranes)
+  const S* rest;           // [N, NN, D] (QR, polar membranes)
+  S* out;                  // [N, D, D]
+
+  TM_HD void operator()(int64_t e) const {
+    I idx[NN];
+    load_block<NN, I>(elements + e * NN, idx);
+    S x[NN][D], x0[NN][D], m[NN][D];
+    gather_nodes<NN, D, S, I>(u, idx, x);
+    if constexpr (kNeedsRest) load_matrix<NN, D, S>(rest + e * (NN * D), x0);
+    if constexpr (METHOD == kPolar) load_matrix<NN, D, S>(shape_vectors + e * (NN * D), m);
+    Plane<D, S, kMembrane> plane;
+    if constexpr (kMembrane && METHOD == kPolar) load_matrix<D, D, S>(projector + e * (D * D), plane.p);
+    S r[D][D];
+    element_rotation<METHOD, NN, D, S, kMembrane>(x, x0, m, plane, r);
+    S* p = out + e * (D * D);
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      TM_UNROLL for (int b = 0; b < D; ++b) p[a * D + b] = r[a][b];
+    }
   }
 };
 

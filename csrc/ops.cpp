@@ -6,12 +6,10 @@
 //
 // Conventions: u, du [V, d] (float32 or float64, one dtype for all floating inputs); index
 // tensors (elements, edges, force_index, incidences) all int32 or all int64; every input
-// contiguous and on one device. `model`: 0 = hooke, 1 = stvk, 2 = corotational (SOFA's QR
-// frame, 3-D elements only: tetrahedra, membranes); the stress ops take `rest_elements`
-// [N, n, 3] (the rest element nodes) for model 2 only, and recompute each element's rotation
-// from u and them at every call (the differential holds it fixed, as SOFA does). A plan (force_index, num_slots,
-// incidences) must come from topology.GatherPlan over the same items: force_index < num_slots
-// and the slots of a node are 0 .. incidences[i]-1 (not re-checked here: it would cost a pass).
+// contiguous and on one device. `model`: 0 = hooke, 1 = stvk, 2 = corotational (see below).
+// A plan (force_index, num_slots, incidences) must come from topology.GatherPlan over the same
+// items: force_index < num_slots and the slots of a node are 0 .. incidences[i]-1 (not
+// re-checked here: it would cost a pass).
 //
 //   kernel 1 (element level)  *_element_forces / *_element_dforces -> [N, n, d]
 //   kernel 1 (padded, paper)  *_partial_forces / *_partial_dforces -> PartialForce [N_n, V, d]
@@ -26,6 +24,15 @@
 //                               contact penalties)
 //   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
 //                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
+//
+// Corotational (model 2): corotational_rotations(u, elements, shape_vectors, projector,
+// rest_elements, method) -> R [N, d, d] computes the element rotations once per linearisation
+// (method 0 = SOFA's QR frame, 3-D only; 1 = polar: the closest proper rotation to F, robust to
+// inverted and nearly flat elements; membranes map their rest normal onto the current one). The
+// stress ops end with `rest_elements` [N, n, 3] and `rotations` [N, d, d], both optional and for
+// model 2 only: given `rotations`, the kernels read R (9 numbers per element, the CG path);
+// otherwise they recompute SOFA's QR frame from u and `rest_elements` at every call. The
+// differential holds R fixed, as SOFA does.
 #include <pybind11/pybind11.h>
 #include <torch/library.h>
 
@@ -34,22 +41,25 @@ TORCH_LIBRARY(tensormass, m) {
   // ---- stress form
   m.def("stress_element_forces(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
         "Tensor mu, Tensor? projector, int model, "
-        "Tensor? rest_elements=None) -> Tensor");
+        "Tensor? rest_elements=None, Tensor? rotations=None) -> Tensor");
   m.def("stress_element_dforces(Tensor u, Tensor du, Tensor elements, Tensor shape_vectors, Tensor measure, "
         "Tensor lam, Tensor mu, Tensor? projector, int model, "
-        "Tensor? rest_elements=None) -> Tensor");
+        "Tensor? rest_elements=None, Tensor? rotations=None) -> Tensor");
   m.def("stress_partial_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, "
         "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model, "
-        "Tensor? rest_elements=None) -> Tensor");
+        "Tensor? rest_elements=None, Tensor? rotations=None) -> Tensor");
   m.def("stress_partial_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
         "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model, "
-        "Tensor? rest_elements=None) -> Tensor");
+        "Tensor? rest_elements=None, Tensor? rotations=None) -> Tensor");
   m.def("stress_forces(Tensor u, Tensor elements, Tensor force_index, int num_slots, Tensor incidences, "
         "Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, int model, "
-        "Tensor? rest_elements=None) -> Tensor");
+        "Tensor? rest_elements=None, Tensor? rotations=None) -> Tensor");
   m.def("stress_dforces(Tensor u, Tensor du, Tensor elements, Tensor force_index, int num_slots, "
         "Tensor incidences, Tensor shape_vectors, Tensor measure, Tensor lam, Tensor mu, Tensor? projector, "
-        "int model, Tensor? rest_elements=None) -> Tensor");
+        "int model, Tensor? rest_elements=None, Tensor? rotations=None) -> Tensor");
+  // ---- corotational: the element rotations at u, once per linearisation (0 = qr, 1 = polar)
+  m.def("corotational_rotations(Tensor u, Tensor elements, Tensor shape_vectors, Tensor? projector, "
+        "Tensor? rest_elements, int method) -> Tensor");
   // ---- tensor form, hooke (items are edges; linear, so dforces(du) = forces(du))
   m.def("tensor_hooke_element_forces(Tensor u, Tensor edges, Tensor edge_k) -> Tensor");
   m.def("tensor_hooke_partial_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, "

@@ -162,14 +162,15 @@ struct StressArgs {
   at::Tensor u, du, elements, shape_vectors, measure, lam, mu;
   c10::optional<at::Tensor> projector;
   int64_t model;
-  at::Tensor rest;  // [N, n, 3] rest element nodes: given for the corotational model only
+  at::Tensor rest;       // [N, n, 3] rest element nodes (corotational, QR recomputed per call)
+  at::Tensor rotations;  // [N, d, d] element rotations (corotational: used instead of rest)
   int64_t num_elements, nodes_per_element, dim, num_nodes;
   at::ScalarType index_type;
 
   StressArgs(const at::Tensor& u_, const c10::optional<at::Tensor>& du_, const at::Tensor& elements_,
              const at::Tensor& shape_vectors_, const at::Tensor& measure_, const at::Tensor& lam_,
              const at::Tensor& mu_, const c10::optional<at::Tensor>& projector_, int64_t model_,
-             const c10::optional<at::Tensor>& rest_)
+             const c10::optional<at::Tensor>& rest_, const c10::optional<at::Tensor>& rotations_)
       : u(u_), elements(elements_), shape_vectors(shape_vectors_), measure(measure_), lam(lam_), mu(mu_),
         projector(projector_), model(model_) {
     check_values(u, "u");
@@ -196,14 +197,21 @@ struct StressArgs {
                 "in 3-D) and only for them (nodes per element ", std::to_string(nodes_per_element), ", dimension ", std::to_string(dim), ")");
     if (has_projector) check_float_tensor(*projector, "projector", u, {num_elements, dim, dim});
     const bool has_rest = rest_.has_value() && rest_->defined();
-    if (model == kCorotational) {
-      TORCH_CHECK(dim == 3, "tensormass: the corotational model (QR frame) needs 3-D elements, got dimension ",
-                  std::to_string(dim));
-      TORCH_CHECK(has_rest, "tensormass: the corotational model needs rest_elements [N, n, 3]");
+    const bool has_rotations = rotations_.has_value() && rotations_->defined();
+    if (model == kCorotational && has_rotations) {
+      rotations = *rotations_;
+      check_float_tensor(rotations, "rotations", u, {num_elements, dim, dim});
+      if (has_rest) check_float_tensor(*rest_, "rest_elements", u, {num_elements, nodes_per_element, dim});
+    } else if (model == kCorotational) {
+      TORCH_CHECK(dim == 3, "tensormass: the corotational model without rotations recomputes SOFA's QR frame, "
+                  "which needs 3-D elements (got dimension ", std::to_string(dim), "); pass rotations [N, d, d]");
+      TORCH_CHECK(has_rest, "tensormass: the corotational model needs rotations [N, d, d] or rest_elements "
+                  "[N, n, 3] (QR frame recomputed from them)");
       rest = *rest_;
       check_float_tensor(rest, "rest_elements", u, {num_elements, nodes_per_element, dim});
     } else {
       TORCH_CHECK(!has_rest, "tensormass: rest_elements is for the corotational model (model 2) only");
+      TORCH_CHECK(!has_rotations, "tensormass: rotations is for the corotational model (model 2) only");
     }
   }
 
@@ -219,6 +227,7 @@ struct StressArgs {
     in.mu = mu.data_ptr<S>();
     in.projector = ptr_or_null<S>(projector);
     in.rest = rest.defined() ? rest.data_ptr<S>() : nullptr;
+    in.rotations = rotations.defined() ? rotations.data_ptr<S>() : nullptr;
     return in;
   }
 };
@@ -246,21 +255,17 @@ void set_padded(Writer<NN, D, S, I, true>& w, const at::Tensor& force_index, int
   w.num_nodes = num_nodes;
 }
 
-// One instantiation of kernel 1 of the stress form (the corotational model exists in 3-D only).
+// One instantiation of kernel 1 of the stress form.
 template <class L, int MODEL, bool DFORCE, int NN, int D, typename S, typename I>
 void launch_stress_kernel1(const StressArgs& a, bool padded, const at::Tensor& force_index, at::Tensor& out) {
-  if constexpr (MODEL == kCorotational && D != 3) {
-    TORCH_CHECK(false, "tensormass: the corotational model needs 3-D elements");  // checked in StressArgs
-  } else {
-    dispatch_bool(padded, [&](auto padded_c) {
-      constexpr bool PADDED = decltype(padded_c)::value;
-      StressElementKernel<MODEL, DFORCE, NN, D, S, I, PADDED> k;
-      k.in = a.template inputs<S, I>();
-      k.write.out = out.template data_ptr<S>();
-      set_padded(k.write, force_index, a.num_nodes);
-      L::run(a.num_elements, k, L::kElementBlock);
-    });
-  }
+  dispatch_bool(padded, [&](auto padded_c) {
+    constexpr bool PADDED = decltype(padded_c)::value;
+    StressElementKernel<MODEL, DFORCE, NN, D, S, I, PADDED> k;
+    k.in = a.template inputs<S, I>();
+    k.write.out = out.template data_ptr<S>();
+    set_padded(k.write, force_index, a.num_nodes);
+    L::run(a.num_elements, k, L::kElementBlock);
+  });
 }
 
 // Runs kernel 1 of the stress form into `out`: compact [N, n, d] (force_index undefined) or
@@ -319,8 +324,9 @@ template <class L>
 at::Tensor stress_element_forces(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
                                  const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
                                  const c10::optional<at::Tensor>& projector, int64_t model,
-                                 const c10::optional<at::Tensor>& rest_elements) {
-  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
+                                 const c10::optional<at::Tensor>& rest_elements,
+                                 const c10::optional<at::Tensor>& rotations) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements, rotations);
   typename L::Guard guard(u.device());
   at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
   run_stress_kernel1<L, false>(a, at::Tensor(), out);
@@ -331,8 +337,9 @@ template <class L>
 at::Tensor stress_element_dforces(const at::Tensor& u, const at::Tensor& du, const at::Tensor& elements,
                                   const at::Tensor& shape_vectors, const at::Tensor& measure, const at::Tensor& lam,
                                   const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model,
-                                 const c10::optional<at::Tensor>& rest_elements) {
-  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
+                                 const c10::optional<at::Tensor>& rest_elements,
+                                 const c10::optional<at::Tensor>& rotations) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements, rotations);
   typename L::Guard guard(u.device());
   at::Tensor out = at::empty({a.num_elements, a.nodes_per_element, a.dim}, u.options());
   run_stress_kernel1<L, true>(a, at::Tensor(), out);
@@ -354,8 +361,9 @@ at::Tensor stress_partial_forces(const at::Tensor& u, const at::Tensor& elements
                                  int64_t num_slots, const at::Tensor& shape_vectors, const at::Tensor& measure,
                                  const at::Tensor& lam, const at::Tensor& mu,
                                  const c10::optional<at::Tensor>& projector, int64_t model,
-                                 const c10::optional<at::Tensor>& rest_elements) {
-  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
+                                 const c10::optional<at::Tensor>& rest_elements,
+                                 const c10::optional<at::Tensor>& rotations) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements, rotations);
   return stress_partial_impl<L, false>(a, force_index, num_slots);
 }
 
@@ -364,8 +372,9 @@ at::Tensor stress_partial_dforces(const at::Tensor& u, const at::Tensor& du, con
                                   const at::Tensor& force_index, int64_t num_slots, const at::Tensor& shape_vectors,
                                   const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
                                   const c10::optional<at::Tensor>& projector, int64_t model,
-                                 const c10::optional<at::Tensor>& rest_elements) {
-  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
+                                 const c10::optional<at::Tensor>& rest_elements,
+                                 const c10::optional<at::Tensor>& rotations) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements, rotations);
   return stress_partial_impl<L, true>(a, force_index, num_slots);
 }
 
@@ -387,8 +396,9 @@ at::Tensor stress_forces(const at::Tensor& u, const at::Tensor& elements, const 
                          int64_t num_slots, const at::Tensor& incidences, const at::Tensor& shape_vectors,
                          const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
                          const c10::optional<at::Tensor>& projector, int64_t model,
-                                 const c10::optional<at::Tensor>& rest_elements) {
-  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
+                                 const c10::optional<at::Tensor>& rest_elements,
+                                 const c10::optional<at::Tensor>& rotations) {
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements, rotations);
   return stress_fused_impl<L, false>(a, force_index, num_slots, incidences);
 }
 
@@ -397,9 +407,76 @@ at::Tensor stress_dforces(const at::Tensor& u, const at::Tensor& du, const at::T
                           const at::Tensor& force_index, int64_t num_slots, const at::Tensor& incidences,
                           const at::Tensor& shape_vectors, const at::Tensor& measure, const at::Tensor& lam,
                           const at::Tensor& mu, const c10::optional<at::Tensor>& projector, int64_t model,
-                                 const c10::optional<at::Tensor>& rest_elements) {
-  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements);
+                                 const c10::optional<at::Tensor>& rest_elements,
+                                 const c10::optional<at::Tensor>& rotations) {
+  StressArgs a(u, du, elements, shape_vectors, measure, lam, mu, projector, model, rest_elements, rotations);
   return stress_fused_impl<L, true>(a, force_index, num_slots, incidences);
+}
+
+// ------------------------------------------------------------------ corotational rotations
+
+// The element rotations R [N, d, d] at u (once per linearisation; the stress ops read them back
+// through their `rotations` argument). method 0 = SOFA's QR frame (3-D, needs rest_elements),
+// 1 = polar (shape_vectors; membranes also need projector and rest_elements: their normals).
+template <class L>
+at::Tensor corotational_rotations(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
+                                  const c10::optional<at::Tensor>& projector,
+                                  const c10::optional<at::Tensor>& rest_elements, int64_t method) {
+  check_values(u, "u");
+  const int64_t dim = u.size(1);
+  const at::ScalarType index_type = index_type_of(elements, "elements");
+  TORCH_CHECK(elements.dim() == 2, "tensormass: elements must be [N, n], got shape ", shape_str(elements.sizes()));
+  const int64_t n_elem = elements.size(0), nn = elements.size(1);
+  check_index_tensor(elements, "elements", u, index_type, {n_elem, nn});
+  dispatch_kind(nn, dim, [](auto, auto) {});
+  TORCH_CHECK(method == kQr || method == kPolar, "tensormass: unknown rotation method ", std::to_string(method),
+              " (0 = qr, 1 = polar)");
+  check_float_tensor(shape_vectors, "shape_vectors", u, {n_elem, nn, dim});
+  const bool membrane = nn - 1 < dim;
+  const bool has_projector = projector.has_value() && projector->defined();
+  TORCH_CHECK(has_projector == membrane, "tensormass: the projector must be given for membranes (triangles "
+              "in 3-D) and only for them (nodes per element ", std::to_string(nn), ", dimension ", std::to_string(dim), ")");
+  if (has_projector) check_float_tensor(*projector, "projector", u, {n_elem, dim, dim});
+  const bool has_rest = rest_elements.has_value() && rest_elements->defined();
+  if (method == kQr) {
+    TORCH_CHECK(dim == 3, "tensormass: the QR rotation frame needs 3-D elements, got dimension ", std::to_string(dim));
+  }
+  if (method == kQr || membrane) {
+    TORCH_CHECK(has_rest, "tensormass: rest_elements [N, n, 3] is needed by the ",
+                method == kQr ? "QR frame" : "polar rotation of membranes (their rest normals)");
+  }
+  if (has_rest) check_float_tensor(*rest_elements, "rest_elements", u, {n_elem, nn, dim});
+  typename L::Guard guard(u.device());
+  at::Tensor out = at::empty({n_elem, dim, dim}, u.options());
+  dispatch_scalar(u.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_kind(nn, dim, [&](auto nn_c, auto d_c) {
+        constexpr int NN = decltype(nn_c)::value;
+        constexpr int D = decltype(d_c)::value;
+        auto launch = [&](auto method_c) {
+          constexpr int METHOD = decltype(method_c)::value;
+          RotationKernel<METHOD, NN, D, S, I> k;
+          k.u = u.data_ptr<S>();
+          k.elements = elements.data_ptr<I>();
+          k.shape_vectors = shape_vectors.data_ptr<S>();
+          k.projector = ptr_or_null<S>(projector);
+          k.rest = ptr_or_null<S>(rest_elements);
+          k.out = out.data_ptr<S>();
+          L::run(n_elem, k, L::kElementBlock);
+        };
+        if constexpr (D == 3) {
+          if (method == kQr) {
+            launch(IC<kQr>{});
+            return;
+          }
+        }
+        launch(IC<kPolar>{});
+      });
+    });
+  });
+  return out;
 }
 
 // ------------------------------------------------------------------ gather ops

@@ -17,6 +17,7 @@ void register_stress_ops(torch::Library& m) {
   m.impl("stress_partial_dforces", &stress_partial_dforces<L>);
   m.impl("stress_forces", &stress_forces<L>);
   m.impl("stress_dforces", &stress_dforces<L>);
+  m.impl("corotational_rotations", &corotational_rotations<L>);
 }
 
 template <class L>

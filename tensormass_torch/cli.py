@@ -1,94 +1,308 @@
 """The ``tensormass`` command line (also ``python -m tensormass_torch``).
 
-    tensormass info          backend report (tm.backend_info()) as JSON
-    tensormass run SCENE     run a built-in scene, write .vtu frames and a .pvd series
+    tensormass run SCENE         run a built-in scene or a .toml scene file; .vtu frames + .pvd series
+    tensormass bench [SCENE]     steps/s of one scene on one device (the full suite: benchmarks/)
+    tensormass convert IN OUT    convert a mesh file between meshio formats
+    tensormass info              backends, devices and build, as JSON
+
+Exit status: 0 on success, 2 for a usage error (bad flags, unknown scene name, bad
+``TENSORMASS_BACKEND``), 1 when the work itself fails (a bad scene file, a missing or broken
+mesh, a failed solve). Errors are one line on stderr: ``tensormass: error: ...``.
 """
+from __future__ import annotations
+
 import argparse
 import json
 import sys
+import time
+from pathlib import Path
+
+PROG = "tensormass"
+
+
+class UsageError(Exception):
+    """A command line that asks for something that does not exist (exit status 2)."""
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenes: a built-in name or a TOML file
+# ---------------------------------------------------------------------------------------------
+
+
+def _is_scene_file(scene: str) -> bool:
+    return scene.endswith(".toml") or Path(scene).is_file()
+
+
+def _check_device(device: str):
+    import torch
+
+    from .errors import SceneError
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise UsageError(f"--device: not a torch device: {device!r}") from None
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        raise SceneError(f"--device {device}: torch sees no CUDA device")
+
+
+def _load(args):
+    """The scene named by ``args.scene`` with the flags' overrides -> ``scenes.Scene``."""
+    import torch
+
+    from .scenes import SCENES
+
+    if args.device is not None:
+        _check_device(args.device)
+    if _is_scene_file(args.scene):
+        from .scene_file import load_scene
+
+        return load_scene(args.scene, device=args.device, dtype=args.dtype, model=args.model)
+    if args.scene not in SCENES:
+        raise UsageError(f"unknown scene {args.scene!r}: built-in scenes are {', '.join(sorted(SCENES))}, "
+                         "or give a .toml scene file")
+    kwargs = {"device": args.device or "cpu",
+              "dtype": {"float32": torch.float32, "float64": torch.float64}[args.dtype or "float32"]}
+    if args.model:
+        kwargs["model"] = args.model
+    return SCENES[args.scene](**kwargs)
+
+
+def _add_scene_arguments(parser, models):
+    parser.add_argument("--device", default=None,
+                        help="torch device, e.g. cpu, cuda, cuda:1 (default: the scene file's, else cpu)")
+    parser.add_argument("--dtype", default=None, choices=["float32", "float64"],
+                        help="precision (default: the scene file's, else float32)")
+    parser.add_argument("--model", default=None, choices=list(models), help="material model of every body")
+
+
+# ---------------------------------------------------------------------------------------------
+# Commands
+# ---------------------------------------------------------------------------------------------
 
 
 def _cmd_info(args):
-    from ._backend import backend_info
+    import platform
 
-    print(json.dumps(backend_info(), indent=2))
+    import torch
+
+    from . import __version__
+    from ._backend import backend_info, load_extension
+
+    info = backend_info()
+    devices = [{"index": i, "name": torch.cuda.get_device_name(i),
+                "capability": ".".join(map(str, torch.cuda.get_device_capability(i))),
+                "memory_gib": round(torch.cuda.get_device_properties(i).total_memory / 2**30, 1)}
+               for i in range(torch.cuda.device_count())] if torch.cuda.is_available() else []
+    module = load_extension() if info["mode"] != "torch" else None
+    info.update({
+        "version": __version__,
+        "python": platform.python_version(),
+        "cuda_devices": devices,
+        "build": {
+            "extension": getattr(module, "__file__", None),
+            "extension_cuda": bool(module.has_cuda()) if module is not None else False,
+            "torch_cuda": torch.version.cuda,
+            "openmp": torch.backends.openmp.is_available(),
+            "cpu_threads": torch.get_num_threads(),
+        },
+    })
+    print(json.dumps(info, indent=2))
     return 0
 
 
 def _cmd_run(args):
-    import time
+    from .output import FrameRenderer, FrameWriter
+    from .progress import ProgressLine
 
-    import torch
-
-    from .output import FrameWriter
-    from .scenes import SCENES
-
-    dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
-    kwargs = {"device": args.device, "dtype": dtype}
-    if args.model:
-        kwargs["model"] = args.model
-    scene = SCENES[args.scene](**kwargs)
+    if (args.png or args.gif) and not args.out:
+        raise UsageError("--png and --gif need --out (the folder the pictures go to)")
+    # Everything that can fail on bad input happens before the first file is written.
+    scene = _load(args)
     sim = scene.simulator
     steps = scene.steps if args.steps is None else args.steps
-    every = max(1, scene.output_every if args.every is None else args.every)
-    writer = FrameWriter(args.out, scene.name) if args.out else None
-    say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
-    say(f"{scene.description}; {steps} steps on {sim.device} ({args.dtype})")
-    if writer:
-        writer.write(sim)
-    start = time.perf_counter()
-    done = 0
-    while done < steps:
-        chunk = min(every, steps - done)
-        report = sim.step(chunk)
-        done += chunk
+    every = scene.output_every if args.every is None else args.every
+    render_options = getattr(scene, "render", {}) or {}
+    png = args.png or render_options.get("png", False)
+    gif = args.gif or render_options.get("gif", False)
+    writer = renderer = None
+    if args.out:
+        if png or gif:
+            renderer = FrameRenderer(args.out, scene.name, png=png, gif=gif,
+                                     window_size=render_options.get("window_size", (800, 600)))
+        writer = FrameWriter(args.out, scene.name)
+    say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
+    say(f"{scene.description}; {steps} steps on {sim.device} ({str(sim.dtype).replace('torch.', '')})")
+    progress = None if args.quiet else ProgressLine(steps)
+
+    def write_frame():
         if writer:
             writer.write(sim)
-        rate = done / (time.perf_counter() - start)
-        cg = report.cg[0]
-        say(f"step {done:5d}/{steps}  t = {sim.time:7.3f} s  {rate:8.2f} steps/s  "
-            f"CG {int(cg.iterations.max())} it, residual {float(cg.relative_residual.max()):.2e}")
+        if renderer:
+            renderer.write(sim)
+
+    write_frame()
+    for done in range(1, steps + 1):
+        sim.step(1)
+        if done % every == 0 or done == steps:
+            write_frame()
+        if progress:
+            progress.update(done, sim)
+    if progress:
+        progress.finish(steps, sim)
+    if renderer:
+        renderer.close()
     if writer:
-        say(f"wrote {writer.frame} frames to {args.out}/{scene.name}.pvd")
+        say(f"wrote {writer.frame} frames to {Path(args.out) / (scene.name + '.pvd')}")
+    if renderer and renderer.files:
+        say(f"rendered {len(renderer.files)} picture(s) to {args.out}")
     return 0
 
 
+def _synchronize(device):
+    import torch
+
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _cmd_bench(args):
+    import torch
+
+    scene = _load(args)
+    sim = scene.simulator
+    sim.step(args.warmup)
+    _synchronize(sim.device)
+    iterations = torch.zeros((), dtype=torch.float64, device=sim.device)
+    start = time.perf_counter()
+    for _ in range(args.steps):
+        report = sim.step(1)
+        # Summed on the device: reading it every step would synchronise every step.
+        iterations += report.cg_iterations.max()
+    _synchronize(sim.device)
+    elapsed = time.perf_counter() - start
+    elements = sum(b.mesh.num_elements for b in sim.bodies)
+    result = {
+        "scene": scene.name, "device": str(sim.device), "dtype": str(sim.dtype).replace("torch.", ""),
+        "models": sorted({b.material.model for b in sim.bodies}), "bodies": sim.num_bodies,
+        "elements": elements, "steps": args.steps, "seconds": elapsed,
+        "steps_per_s": args.steps / elapsed, "ms_per_step": 1e3 * elapsed / args.steps,
+        "cg_iterations_per_step": float(iterations) / args.steps,
+    }
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"{result['scene']} ({', '.join(result['models'])}, {sim.num_bodies} bodies, {elements} elements) "
+              f"on {result['device']} {result['dtype']}: {args.steps} steps in {elapsed:.3f} s = "
+              f"{result['steps_per_s']:.1f} steps/s ({result['ms_per_step']:.2f} ms/step), "
+              f"{result['cg_iterations_per_step']:.1f} CG iterations/step")
+    return 0
+
+
+_POINTLESS_FORMATS = (".mesh", ".meshb")  # medit stores no point data
+
+
+def _cmd_convert(args):
+    from .io import load_mesh, save_mesh
+
+    if not Path(args.input).is_file():
+        raise FileNotFoundError(f"mesh file not found: '{args.input}'")
+    mesh, point_data = load_mesh(args.input, orient=args.orient, with_point_data=True)
+    if point_data and args.output.lower().endswith(_POINTLESS_FORMATS):
+        if not args.quiet:
+            print(f"{PROG}: note: {args.output} cannot store point data; dropped {', '.join(point_data)}",
+                  file=sys.stderr)
+        point_data = {}
+    save_mesh(args.output, mesh, **point_data)
+    if not args.quiet:
+        print(f"{args.input} -> {args.output}: {mesh.num_vertices} vertices, {mesh.num_elements} "
+              f"{'tetrahedra' if mesh.kind == 'tet' else 'triangles'}", file=sys.stderr)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Parser and entry point
+# ---------------------------------------------------------------------------------------------
+
+
 def build_parser():
+    from .materials import MODELS
+    from .scenes import SCENES
+
     parser = argparse.ArgumentParser(
-        prog="tensormass",
+        prog=PROG,
         description="Tensor-Mass soft-body simulation with an implicit solver (PyTorch).",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    info = sub.add_parser("info", help="print the backend report (tm.backend_info()) as JSON")
+    scene_help = f"a built-in scene ({', '.join(sorted(SCENES))}) or a .toml scene file"
+
+    info = sub.add_parser("info", help="backends, devices and build, as JSON")
     info.set_defaults(func=_cmd_info)
 
-    from .materials import MODELS
-    from .scenes import SCENES
-
-    run = sub.add_parser("run", help="run a built-in scene and write its frames")
-    run.add_argument("scene", choices=sorted(SCENES), help="scene name")
-    run.add_argument("--out", default=None, help="output folder for .vtu frames and the .pvd series")
-    run.add_argument("--steps", type=int, default=None, help="number of steps (default: the scene's)")
-    run.add_argument("--every", type=int, default=None, help="write a frame every N steps")
-    run.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
-    run.add_argument("--dtype", default="float32", choices=["float32", "float64"])
-    run.add_argument("--model", default=None, choices=list(MODELS), help="material model")
-    run.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    run = sub.add_parser("run", help="run a scene and write its frames",
+                         description="Run a scene; with --out, write one .vtu per body and frame and a "
+                                     ".pvd series (ParaView), and optionally PNG frames / a GIF.")
+    run.add_argument("scene", metavar="SCENE", help=scene_help)
+    run.add_argument("--out", default=None, help="output folder (nothing is written without it)")
+    run.add_argument("--steps", type=_positive_int, default=None, help="number of steps (default: the scene's)")
+    run.add_argument("--every", type=_positive_int, default=None,
+                     help="write a frame every N steps (default: the scene's output_every)")
+    run.add_argument("--png", action="store_true", help="also render a PNG per frame (needs pyvista)")
+    run.add_argument("--gif", action="store_true", help="also render an animated GIF of the frames (needs pyvista)")
+    run.add_argument("--quiet", action="store_true", help="no progress line; print nothing but errors")
+    _add_scene_arguments(run, MODELS)
     run.set_defaults(func=_cmd_run)
+
+    bench = sub.add_parser("bench", help="steps/s of one scene (the full benchmark suite is in benchmarks/)",
+                           description="Time the implicit steps of one scene on one device and print steps/s. "
+                                       "This is a quick check; the full benchmark suite (kernels against the "
+                                       "copy floor, layouts, batches) is in the repository's benchmarks/ folder.")
+    bench.add_argument("scene", metavar="SCENE", nargs="?", default="cantilever", help=scene_help)
+    bench.add_argument("--steps", type=_positive_int, default=20, help="timed steps (default 20)")
+    bench.add_argument("--warmup", type=int, default=3, help="untimed steps first (default 3)")
+    bench.add_argument("--json", action="store_true", help="print the result as JSON")
+    _add_scene_arguments(bench, MODELS)
+    bench.set_defaults(func=_cmd_bench)
+
+    convert = sub.add_parser("convert", help="convert a mesh file (meshio formats: .vtu .vtk .msh .mesh ...)")
+    convert.add_argument("input", metavar="IN", help="mesh file to read")
+    convert.add_argument("output", metavar="OUT", help="mesh file to write; its extension picks the format")
+    convert.add_argument("--orient", action="store_true", help="flip inverted elements instead of failing")
+    convert.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    convert.set_defaults(func=_cmd_convert)
     return parser
+
+
+def _fail(message: str, status: int) -> int:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+    return status
 
 
 def main(argv=None):
     """Entry point of the ``tensormass`` console script; returns the exit status."""
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(argv)  # usage errors: argparse prints them and exits 2
+    from ._backend import BackendError
     from .errors import TensorMassError
 
     try:
         return args.func(args)
-    except TensorMassError as exc:  # bad input, a bad TENSORMASS_BACKEND value, a failed solve
-        print("tensormass: error: %s" % exc, file=sys.stderr)
-        return 2
+    except (UsageError, BackendError) as exc:  # asked for something that does not exist
+        return _fail(str(exc), 2)
+    except (TensorMassError, FileNotFoundError, ImportError) as exc:  # the work failed
+        return _fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__, 1)
+    except KeyboardInterrupt:
+        return _fail("interrupted", 130)
     except BrokenPipeError:  # e.g. `tensormass info | head`
         sys.stderr.close()
         return 0

@@ -6,7 +6,9 @@ header). This module gives them what torch needs on the Python side:
 * a fake (meta) kernel for each op (``torch.library.register_fake``), for torch.compile/export;
 * autograd (``torch.library.register_autograd``). Fast paths use the ops themselves:
     - forces:  d(g . f(u))/du = dforces(u, g) (the stiffness is symmetric: f = -grad W), except
-      for the corotational model (f is not an energy gradient through R(u): reference vjp);
+      for the corotational model with R recomputed inside the op (f is not an energy gradient
+      through R(u): reference vjp); with ``rotations`` given, R is an input: the u-gradient is
+      dforces(u, g, R) and R gets the reference vjp;
     - dforces: d(g . K(u) du)/d du = dforces(u, g);
     - lam, mu: the forces are linear in (lam, mu), so the gradient per element is the dot of
       the element's cotangent with its forces evaluated at (lam, mu) = (1, 0) and (0, 1);
@@ -33,12 +35,15 @@ import torch
 from .reference import gather as ref_gather
 from .reference import corotational, stress_form, tensor_form
 
-__all__ = ["MODEL_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "element_forces",
-           "element_dforces", "node_gather", "forces", "dforces", "system_fusable", "system_matvec"]
+__all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
+           "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
+           "system_matvec"]
 
 #: The ``model`` integer of the op schemas.
 MODEL_IDS = {"hooke": 0, "stvk": 1, "corotational": 2}
 MODEL_NAMES = {v: k for k, v in MODEL_IDS.items()}
+#: The ``method`` integer of ``corotational_rotations``.
+ROTATION_IDS = {"qr": 0, "polar": 1}
 
 # ----------------------------------------------------------------------------------------------
 # Pure-torch reference of every op (same signature): the oracle of the tests and the path of
@@ -59,18 +64,44 @@ def _qr_rotations(u_e, rest):
     return corotational.qr_rotations(rest + u_e, rest)
 
 
-def _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest=None):
+def _ref_corotational_rotations(u, elements, m, proj, rest, method):
+    """Element rotations ``[N, d, d]`` at u: method 0 = SOFA's QR frame, 1 = polar (membranes map
+    their rest normal onto the current one first, as ``ops.linearize``)."""
+    u_e = u[elements]
+    if int(method) == ROTATION_IDS["qr"]:
+        return _qr_rotations(u_e, rest)
+    if int(method) != ROTATION_IDS["polar"]:
+        raise ValueError(f"unknown rotation method {method!r} (0 = qr, 1 = polar)")
+    F = corotational.deformation_gradient(u_e, m, proj)
+    if proj is None:
+        return corotational.polar_rotations(F)
+    x_e = rest + u_e
+
+    def unit_normal(p):
+        n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        return n / torch.linalg.vector_norm(n, dim=1, keepdim=True)
+
+    return corotational.polar_rotations(F, unit_normal(rest), unit_normal(x_e))
+
+
+def _element_rotations(u_e, rest, rotations):
+    """The rotations the corotational stress ops use: those given, else SOFA's QR frame at u."""
+    return rotations if rotations is not None else _qr_rotations(u_e, rest)
+
+
+def _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest=None, rotations=None):
     name = _model_name(model)
     if name == "corotational":
         u_e = u[elements]
-        return corotational.forces(u_e, m, vol, lam, mu, _qr_rotations(u_e, rest), proj)
+        return corotational.forces(u_e, m, vol, lam, mu, _element_rotations(u_e, rest, rotations), proj)
     return stress_form.FORCES[name](u[elements], m, vol, lam, mu, proj)
 
 
-def _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest=None):
+def _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest=None, rotations=None):
     name = _model_name(model)
     if name == "corotational":
-        return corotational.dforces(du[elements], m, vol, lam, mu, _qr_rotations(u[elements], rest), proj)
+        return corotational.dforces(du[elements], m, vol, lam, mu,
+                                    _element_rotations(u[elements], rest, rotations), proj)
     return stress_form.DFORCES[name](u[elements], du[elements], m, vol, lam, mu, proj)
 
 
@@ -82,25 +113,27 @@ def _gather(partial, index, force_index, num_slots, incidences, node_term=None):
     return ref_gather.node_gather(partial, index, force_index, num_slots, incidences.shape[0], node_term)
 
 
-def _ref_stress_partial_forces(u, elements, force_index, num_slots, m, vol, lam, mu, proj, model, rest=None):
-    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest)
+def _ref_stress_partial_forces(u, elements, force_index, num_slots, m, vol, lam, mu, proj, model, rest=None,
+                               rotations=None):
+    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest, rotations)
     return _scatter(f, elements, force_index, num_slots, u.shape[0])
 
 
 def _ref_stress_partial_dforces(u, du, elements, force_index, num_slots, m, vol, lam, mu, proj, model,
-                                rest=None):
-    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest)
+                                rest=None, rotations=None):
+    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest, rotations)
     return _scatter(f, elements, force_index, num_slots, u.shape[0])
 
 
-def _ref_stress_forces(u, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model, rest=None):
-    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest)
+def _ref_stress_forces(u, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model, rest=None,
+                       rotations=None):
+    f = _ref_stress_element_forces(u, elements, m, vol, lam, mu, proj, model, rest, rotations)
     return _gather(f, elements, force_index, num_slots, incidences)
 
 
 def _ref_stress_dforces(u, du, elements, force_index, num_slots, incidences, m, vol, lam, mu, proj, model,
-                       rest=None):
-    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest)
+                       rest=None, rotations=None):
+    f = _ref_stress_element_dforces(u, du, elements, m, vol, lam, mu, proj, model, rest, rotations)
     return _gather(f, elements, force_index, num_slots, incidences)
 
 
@@ -184,6 +217,7 @@ REFERENCE = {
     "stress_partial_dforces": _ref_stress_partial_dforces,
     "stress_forces": _ref_stress_forces,
     "stress_dforces": _ref_stress_dforces,
+    "corotational_rotations": _ref_corotational_rotations,
     "tensor_hooke_element_forces": _ref_tensor_hooke_element_forces,
     "tensor_hooke_partial_forces": _ref_tensor_hooke_partial_forces,
     "tensor_hooke_forces": _ref_tensor_hooke_forces,
@@ -226,6 +260,10 @@ def _fake_nodes(u, *_):
     return u.new_empty(u.shape)
 
 
+def _fake_rotations(u, elements, *_):
+    return u.new_empty((elements.shape[0], u.shape[1], u.shape[1]))
+
+
 def _fake_tensor_hooke_element(u, edges, edge_k):
     return u.new_empty((edges.shape[0], 2, u.shape[1]))
 
@@ -249,6 +287,7 @@ FAKE = {
     "stress_partial_dforces": _fake_partial_d,
     "stress_forces": _fake_nodes,
     "stress_dforces": _fake_nodes,
+    "corotational_rotations": _fake_rotations,
     "tensor_hooke_element_forces": _fake_tensor_hooke_element,
     "tensor_hooke_partial_forces": _fake_partial,
     "tensor_hooke_forces": _fake_nodes,
@@ -315,17 +354,19 @@ def _element_cotangent(name, inputs, grad):
 def _lame_gradients(name, inputs, grad, need_lam, need_mu):
     """d(grad . out)/d(lam, mu) ``[N]`` for the stress ops: out is linear in (lam, mu), so the
     gradient per element is the dot of its cotangent with its output at (1, 0) and at (0, 1)."""
-    m, vol, lam, mu, proj, model, rest = inputs[-7:]
+    m, vol, lam, mu, proj, model, rest, rotations = inputs[-8:]
     g_e = _element_cotangent(name, inputs, grad)
     ones, zeros = torch.ones_like(lam), torch.zeros_like(lam)
+    # the rotations are an input here: held at their values (their own gradient is separate)
+    rotations = None if rotations is None else rotations.detach()
 
     def at(a, b):
         if "dforces" in name:
             u, du, elements = inputs[0], inputs[1], inputs[2]
-            f = _op("stress_element_dforces")(u, du, elements, m, vol, a, b, proj, model, rest)
+            f = _op("stress_element_dforces")(u, du, elements, m, vol, a, b, proj, model, rest, rotations)
         else:
             u, elements = inputs[0], inputs[1]
-            f = _op("stress_element_forces")(u, elements, m, vol, a, b, proj, model, rest)
+            f = _op("stress_element_forces")(u, elements, m, vol, a, b, proj, model, rest, rotations)
         return (g_e * f).sum((1, 2))
 
     return (at(ones, zeros) if need_lam else None), (at(zeros, ones) if need_mu else None)
@@ -335,16 +376,20 @@ def _fast_gradients(name, inputs, grad, needs):
     """The gradients computed by the ops themselves: {input position: gradient}."""
     fast = {}
     g = grad.contiguous()
-    # The stress ops end with (..., proj, model, rest_elements).
-    corot = name.startswith("stress_") and int(inputs[-2]) == MODEL_IDS["corotational"]
+    # The stress ops end with (..., proj, model, rest_elements, rotations).
+    corot = name.startswith("stress_") and int(inputs[-3]) == MODEL_IDS["corotational"]
+    # R recomputed inside the op from u (no rotations given) makes the forces depend on u through R
+    r_of_u = corot and inputs[-1] is None
     if name in ("stress_forces", "stress_dforces", "tensor_stvk_forces", "tensor_stvk_dforces"):
         dforce = name.endswith("dforces")
         u_pos, du_pos = 0, 1
         target = du_pos if dforce else u_pos  # d/du of f(u) and d/d(du) of K(u) du: both K(u) g
-        # corotational: f(u) = -R(u) K (R(u)^T x - X) is not the gradient of an energy through R,
-        # so df/du != dforces (R fixed): its u-gradient goes through the reference (qr_rotations
-        # differentiated). dforces is linear in du with R(u) fixed and K symmetric: d/d(du) is fast.
-        if needs[target] and not (corot and not dforce):
+        # corotational with R recomputed from u: f(u) = -R(u) K (R(u)^T x - X) is not the gradient
+        # of an energy through R, so df/du != dforces (R fixed): its u-gradient goes through the
+        # reference (qr_rotations differentiated). With R given, df/du is dforces(u, ., R), and R's
+        # own gradient is the reference vjp below. dforces is linear in du with R fixed and K
+        # symmetric: d/d(du) is fast.
+        if needs[target] and not (r_of_u and not dforce):
             dname = name if dforce else name.replace("forces", "dforces")
             args = list(inputs)
             if not dforce:
@@ -352,8 +397,9 @@ def _fast_gradients(name, inputs, grad, needs):
             else:
                 args[1] = g
             fast[target] = _op(dname)(*args)
-        if dforce and needs[u_pos] and name == "stress_dforces" and int(inputs[-2]) == MODEL_IDS["hooke"]:
-            fast[u_pos] = None  # hooke: K does not depend on u
+        if dforce and needs[u_pos] and name == "stress_dforces" and (
+                int(inputs[-3]) == MODEL_IDS["hooke"] or (corot and not r_of_u)):
+            fast[u_pos] = None  # K does not depend on u: hooke, corotational with R given
     elif name == "tensor_hooke_forces":
         if needs[0]:
             args = list(inputs)
@@ -373,7 +419,7 @@ def _fast_gradients(name, inputs, grad, needs):
         if needs[5]:
             fast[5] = g
     if name.startswith("stress_"):
-        lam_pos, mu_pos = len(inputs) - 5, len(inputs) - 4
+        lam_pos, mu_pos = len(inputs) - 6, len(inputs) - 5
         if needs[lam_pos] or needs[mu_pos]:
             fast[lam_pos], fast[mu_pos] = _lame_gradients(name, inputs, g, needs[lam_pos], needs[mu_pos])
     return fast
@@ -511,12 +557,24 @@ def _lame(group):
     return value
 
 
-def _stress_args(group):
+def _stress_args(group, u: Optional[torch.Tensor] = None, rotations: Optional[torch.Tensor] = None):
+    """The trailing arguments of the stress ops for ``group``. Corotational: the ``rotations``
+    ``[N, d, d]`` of the linearisation (computed at ``u`` when None), so no kernel recomputes R;
+    with neither, the rest nodes (the kernels then recompute SOFA's QR frame from u per call)."""
     lam, mu = _lame(group)
     proj = group.projector
-    rest = group.rest_elements.contiguous() if group.model == "corotational" else None
+    rest = None
+    if group.model == "corotational":
+        if rotations is None and u is not None:
+            rotations = corotational_rotations(group, u)
+        if rotations is None:
+            rest = group.rest_elements.contiguous()
+        else:
+            rotations = rotations.contiguous()
+    else:
+        rotations = None
     return (group.shape_vectors.contiguous(), group.measure.contiguous(), lam.contiguous(), mu.contiguous(),
-            None if proj is None else proj.contiguous(), MODEL_IDS[group.model], rest)
+            None if proj is None else proj.contiguous(), MODEL_IDS[group.model], rest, rotations)
 
 
 def _stvk_tensors(group):
@@ -530,29 +588,43 @@ def supports(group, u: torch.Tensor) -> bool:
     if group.measure.dtype != u.dtype or group.measure.device != u.device:
         return False
     if group.model == "corotational":
-        # Only SOFA's QR frame is in the ops (R recomputed per call from u and the rest nodes).
-        # rotation="polar" (an SVD per element) stays on the pure-torch reference path.
-        return group.rotation == "qr" and group.form == "stress" and u.shape[1] == 3
+        # both rotation methods (qr: 3-D; polar: tets, 2-D triangles, membranes)
+        return (group.rotation in ROTATION_IDS and group.form == "stress"
+                and (group.rotation == "polar" or u.shape[1] == 3))
     return group.model in MODEL_IDS and group.form in ("stress", "tensor")
 
 
-def element_forces(group, u: torch.Tensor) -> torch.Tensor:
-    """Kernel 1 at element level: ``[N, n, d]`` (edges ``[Ed, 2, d]`` for the hooke tensor form)."""
+def corotational_rotations(group, u: torch.Tensor) -> torch.Tensor:
+    """The element rotations ``[N, d, d]`` of a corotational group at displacements ``u [V, d]``
+    (``group.rotation``: "qr" or "polar"), computed once per linearisation."""
+    index, _, _ = _plan_indices(group.plan)
+    rest = getattr(group, "rest_elements", None)
+    proj = group.projector
+    return torch.ops.tensormass.corotational_rotations(
+        u.contiguous(), index, group.shape_vectors.contiguous(), None if proj is None else proj.contiguous(),
+        None if rest is None else rest.contiguous(), ROTATION_IDS[group.rotation])
+
+
+def element_forces(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Kernel 1 at element level: ``[N, n, d]`` (edges ``[Ed, 2, d]`` for the hooke tensor form).
+
+    ``rotations``: the corotational rotations at ``u`` ``[N, d, d]`` (computed here when None).
+    """
     u = u.contiguous()
     index, _, _ = _plan_indices(group.plan)
     if group.form == "stress":
-        return torch.ops.tensormass.stress_element_forces(u, index, *_stress_args(group))
+        return torch.ops.tensormass.stress_element_forces(u, index, *_stress_args(group, u, rotations))
     if group.model == "hooke":
         return torch.ops.tensormass.tensor_hooke_element_forces(u, index, group.edge_k.contiguous())
     return torch.ops.tensormass.tensor_stvk_element_forces(u, index, *_stvk_tensors(group))
 
 
-def element_dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
-    """Kernel 1 with DForce() at element level: ``[N, n, d]``."""
+def element_dforces(group, u: torch.Tensor, du: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Kernel 1 with DForce() at element level: ``[N, n, d]``; ``rotations`` as in :func:`element_forces`."""
     u, du = u.contiguous(), du.contiguous()
     index, _, _ = _plan_indices(group.plan)
     if group.form == "stress":
-        return torch.ops.tensormass.stress_element_dforces(u, du, index, *_stress_args(group))
+        return torch.ops.tensormass.stress_element_dforces(u, du, index, *_stress_args(group, u, rotations))
     if group.model == "hooke":
         return torch.ops.tensormass.tensor_hooke_element_forces(du, index, group.edge_k.contiguous())
     return torch.ops.tensormass.tensor_stvk_element_dforces(u, du, index, *_stvk_tensors(group))
@@ -567,14 +639,14 @@ def node_gather(partial: torch.Tensor, plan, node_term: Optional[torch.Tensor] =
                                             incidences, node_term)
 
 
-def forces(group, u: torch.Tensor) -> torch.Tensor:
-    """Fused kernels 1 + 2: elastic forces ``[V, d]``."""
+def forces(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Fused kernels 1 + 2: elastic forces ``[V, d]``; ``rotations`` as in :func:`element_forces`."""
     u = u.contiguous()
     plan = group.plan
     index, force_index, incidences = _plan_indices(plan)
     if group.form == "stress":
         return torch.ops.tensormass.stress_forces(u, index, force_index, plan.num_slots, incidences,
-                                                  *_stress_args(group))
+                                                  *_stress_args(group, u, rotations))
     if group.model == "hooke":
         return torch.ops.tensormass.tensor_hooke_forces(u, index, force_index, plan.num_slots, incidences,
                                                         group.edge_k.contiguous(), group.vertex_k.contiguous())
@@ -582,18 +654,19 @@ def forces(group, u: torch.Tensor) -> torch.Tensor:
                                                    *_stvk_tensors(group))
 
 
-def dforces(group, u: torch.Tensor, du: torch.Tensor) -> torch.Tensor:
-    """Fused kernels 1 + 2 with DForce(): (dF/du) du ``[V, d]``."""
-    du = du.contiguous()
+def dforces(group, u: torch.Tensor, du: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Fused kernels 1 + 2 with DForce(): (dF/du) du ``[V, d]``; ``rotations``: the corotational
+    rotations of the linearisation at ``u`` ``[N, d, d]`` (computed here when None)."""
+    u, du = u.contiguous(), du.contiguous()
     plan = group.plan
     index, force_index, incidences = _plan_indices(plan)
     if group.form == "stress":
-        return torch.ops.tensormass.stress_dforces(u.contiguous(), du, index, force_index, plan.num_slots,
-                                                   incidences, *_stress_args(group))
+        return torch.ops.tensormass.stress_dforces(u, du, index, force_index, plan.num_slots,
+                                                   incidences, *_stress_args(group, u, rotations))
     if group.model == "hooke":
         return torch.ops.tensormass.tensor_hooke_forces(du, index, force_index, plan.num_slots, incidences,
                                                         group.edge_k.contiguous(), group.vertex_k.contiguous())
-    return torch.ops.tensormass.tensor_stvk_dforces(u.contiguous(), du, index, force_index, plan.num_slots,
+    return torch.ops.tensormass.tensor_stvk_dforces(u, du, index, force_index, plan.num_slots,
                                                     incidences, *_stvk_tensors(group))
 
 
@@ -605,17 +678,20 @@ def system_fusable(group) -> bool:
 
 
 def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
-                  c_mass: float, c_stiff: float, node_stiffness: Optional[torch.Tensor] = None):
+                  c_mass: float, c_stiff: float, rotations: Optional[torch.Tensor] = None,
+                  node_stiffness: Optional[torch.Tensor] = None):
     """The CG matvec of implicit Euler for one group: kernel 1 (padded partial dforces along ``p``)
     and kernel 2 with the system epilogue (``gather_system``). ``mass`` and ``free`` are ``[V]``
-    (``free`` float 0/1 or None); ``node_stiffness`` ``[V, d, d]`` (contact penalties) or None.
+    (``free`` float 0/1 or None); ``rotations``: the corotational rotations of the linearisation
+    at ``u`` ``[N, d, d]``, kept across CG iterations (computed here when None);
+    ``node_stiffness`` ``[V, d, d]`` (contact penalties) or None.
     Returns (Ap ``[V, d]``, p . Ap per node ``[V]``)."""
     u, p = u.contiguous(), p.contiguous()
     plan = group.plan
     index, force_index, incidences = _plan_indices(plan)
     if group.form == "stress":
         partial = torch.ops.tensormass.stress_partial_dforces(u, p, index, force_index, plan.num_slots,
-                                                              *_stress_args(group))
+                                                              *_stress_args(group, u, rotations))
     elif group.model == "hooke":  # linear: the partial forces of p are its partial dforces
         partial = torch.ops.tensormass.tensor_hooke_partial_forces(p, index, force_index, plan.num_slots,
                                                                    group.edge_k.contiguous())

@@ -38,9 +38,16 @@ def _element_values(group, u):
 
 def linearize(group, u: torch.Tensor) -> Optional[torch.Tensor]:
     """What ``dforces`` at ``u`` can reuse across calls: the corotational rotations ``[N, d, d]``
-    (computed once per implicit step, not per CG iteration); None for the other models."""
+    (computed once per implicit step, not per CG iteration); None for the other models.
+
+    Through the extension's ``corotational_rotations`` op when it serves the group, else the
+    reference below (both: ``group.rotation`` "qr" = SOFA's frame, "polar" = closest rotation).
+    """
     if group.model != "corotational":
         return None
+    native = _native(group, u)
+    if native is not None:
+        return native.corotational_rotations(group, u)
     u_e = _element_values(group, u)
     if group.rotation == "qr":
         return corotational.qr_rotations(group.rest_elements + u_e, group.rest_elements)
@@ -80,7 +87,7 @@ def _native_gather(partial: torch.Tensor, plan: GatherPlan, node_term):
 def element_forces(group, u: torch.Tensor) -> torch.Tensor:
     """Kernel 1: partial forces ``[N, n, d]`` of every item of ``group`` at displacements ``u [V, d]``."""
     native = _native(group, u)
-    if native is not None:
+    if native is not None:  # corotational: R at u from the rotations op, then the force op with it
         return native.element_forces(group, u)
     if group.model == "corotational":
         lam, mu = group.lame()
@@ -100,9 +107,9 @@ def element_dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[to
 
     ``state``: ``linearize(group, u)`` when the caller keeps it across calls (None: computed here).
     """
-    native = _native(group, u)  # the native kernels recompute their (QR) rotations from u
+    native = _native(group, u)
     if native is not None:
-        return native.element_dforces(group, u, du)
+        return native.element_dforces(group, u, du, linearize(group, u) if state is None else state)
     if group.model == "corotational":
         lam, mu = group.lame()
         rotations = linearize(group, u) if state is None else state
@@ -136,7 +143,7 @@ def _node_term(group, values):
 def forces(group, u: torch.Tensor) -> torch.Tensor:
     """Elastic forces of the group on every node ``[V, d]``."""
     native = _native(group, u)
-    if native is not None:
+    if native is not None:  # corotational: as element_forces
         return native.forces(group, u)
     return node_gather(element_forces(group, u), group.plan, _node_term(group, u))
 
@@ -148,7 +155,7 @@ def dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[torch.Tens
     """
     native = _native(group, u)
     if native is not None:
-        return native.dforces(group, u, du)
+        return native.dforces(group, u, du, linearize(group, u) if state is None else state)
     return node_gather(element_dforces(group, u, du, state), group.plan, _node_term(group, du))
 
 
@@ -175,7 +182,9 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
         groups: the model's element groups (``TensorMass.groups``); K p = sum of their ``dforces``.
         u: displacements ``[V, d]`` (positions minus rest) where K is evaluated; p: ``[V, d]``.
         mass: lumped masses ``[V]`` or ``[V, 1]``; free: ``[V]`` or ``[V, 1]`` float 0/1 mask, or None.
-        states: ``[linearize(g, u) for g in groups]`` kept by the caller across CG iterations, or None.
+        states: ``[linearize(g, u) for g in groups]`` kept by the caller across CG iterations (the
+            corotational rotations ``[N, d, d]``, read by the kernels as they are), or None
+            (computed here).
         node_stiffness: ``[V, d, d]`` stiffness acting on each node alone (contact penalties k n n^T),
             subtracted from K p: ``(K p)_i -= node_stiffness_i p_i``; or None.
     Returns:
@@ -195,7 +204,8 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
         if (native is not None and native.system_fusable(groups[0])
                 and all(t is None or (t.dtype == u.dtype and t.device == u.device and t.shape[0] == u.shape[0])
                         for t in (mass_v, free_v, node_stiffness))):
-            return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, node_stiffness)
+            state = linearize(groups[0], u) if states is None else states[0]
+            return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness)
     kp = None
     for i, group in enumerate(groups):
         f = dforces(group, u, p, None if states is None else states[i])

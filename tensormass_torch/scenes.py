@@ -1,6 +1,7 @@
 """Built-in scenes: ready-made simulators for the command line, examples and benchmarks."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, Dict
 
@@ -59,4 +60,74 @@ def sofa_beam(model: str = "hooke", device=None, dtype=torch.float32, scale: int
                  description=f"SOFA GPU benchmark beam, {model}, {mesh.num_elements} tets, 10 CG iterations")
 
 
-SCENES: Dict[str, Callable[..., Scene]] = {"cantilever": cantilever, "sofa_beam": sofa_beam}
+def _smooth_ramp(s: float) -> float:
+    """0 -> 1 over s in [0, 1] with zero slope at both ends (s - sin(2 pi s) / 2 pi), clamped outside."""
+    s = min(max(s, 0.0), 1.0)
+    return s - math.sin(2.0 * math.pi * s) / (2.0 * math.pi)
+
+
+def twist(resolution: int = 2, model: str = "corotational", device=None, dtype=torch.float32,
+          angle: float = math.pi, steps: int = 100, dt: float = 0.01, rotation: str = "polar") -> Scene:
+    """A large-rotation test: a 1 m x 0.1 m x 0.1 m rubber-like beam along x, its section centred on
+    the x axis, clamped at x = 0 while the nodes of its far end (x = 1) are turned about the x axis
+    through ``angle`` (default 180 degrees) along a smooth ramp over the first 80 % of the run, then
+    held. No gravity; light mass damping so that the end state is close to static.
+
+    Exact behaviour: a twisted bar of unchanged volume, with the torsion energy
+    ``G J angle^2 / (2 L)`` (Saint-Venant, J = 0.1406 a^4 for a square section of side a) while the
+    twist rate is small. ``hooke`` measures strain in the fixed frame and pinches the middle of the
+    beam instead (its cross-section shrinks to a point at 180 degrees).
+
+    ``resolution`` cells across the section (10x along the length); ``steps`` of ``dt`` seconds.
+    """
+    n = int(resolution)
+    length, side = 1.0, 0.1
+    mesh = beam_mesh(10 * n, n, n, size=(length, side, side), origin=(0.0, -side / 2, -side / 2),
+                     dtype=dtype, device=device)
+    material = Material(young=5e6, poisson=0.3, density=1000.0, model=model, rotation=rotation)
+    clamped = mesh.vertices[:, 0] <= 1e-6
+    turned = mesh.vertices[:, 0] >= length - 1e-6
+    end_rest = mesh.vertices[turned].to(torch.float64)
+    ramp_time = 0.8 * steps * dt
+
+    def motion(t: float) -> torch.Tensor:
+        theta = angle * _smooth_ramp(t / ramp_time)
+        c, s = math.cos(theta), math.sin(theta)
+        y, z = end_rest[:, 1], end_rest[:, 2]
+        return torch.stack((end_rest[:, 0], c * y - s * z, s * y + c * z), dim=1)
+
+    body = Body(mesh, material, fixed=clamped, prescribed=turned, motion=motion, name="beam")
+    sim = Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), rayleigh_mass=1.0, cg_tol=1e-6, cg_max_iter=1000)
+    return Scene("twist", sim, steps=steps, output_every=max(1, steps // 20),
+                 description=f"twist through {math.degrees(angle):.0f} deg, {model}, {mesh.num_elements} tets, "
+                             f"dt {dt} s, {steps} steps")
+
+
+def spin(resolution: int = 2, model: str = "corotational", device=None, dtype=torch.float32,
+         angle: float = math.pi, steps: int = 100, dt: float = 0.01, rotation: str = "polar") -> Scene:
+    """A large-rotation test: a free 1 m x 0.1 m x 0.1 m rubber-like beam centred at the origin,
+    spinning about the z axis at the rate that turns it through ``angle`` (default 180 degrees) in
+    ``steps * dt`` seconds. No gravity, no damping, nothing fixed.
+
+    Exact behaviour: a rigid rotation at constant angular velocity (the centrifugal stretch is
+    ~1e-4): volume and kinetic energy unchanged, elastic energy ~0. ``hooke`` sees no strain in a
+    linearised rotation, so its nodes fly off along straight lines: the beam shears and grows
+    (volume x (1 + angle^2) at the end) and turns only atan(angle).
+    """
+    n = int(resolution)
+    length, side = 1.0, 0.1
+    mesh = beam_mesh(10 * n, n, n, size=(length, side, side), origin=(-length / 2, -side / 2, -side / 2),
+                     dtype=dtype, device=device)
+    material = Material(young=5e6, poisson=0.3, density=1000.0, model=model, rotation=rotation)
+    omega = angle / (steps * dt)
+    x = mesh.vertices
+    velocity = torch.stack((-omega * x[:, 1], omega * x[:, 0], torch.zeros_like(x[:, 2])), dim=1)
+    body = Body(mesh, material, velocity=velocity, name="beam")
+    sim = Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), cg_tol=1e-6, cg_max_iter=1000)
+    return Scene("spin", sim, steps=steps, output_every=max(1, steps // 20),
+                 description=f"free spin through {math.degrees(angle):.0f} deg about z, {model}, "
+                             f"{mesh.num_elements} tets, dt {dt} s, {steps} steps")
+
+
+SCENES: Dict[str, Callable[..., Scene]] = {"cantilever": cantilever, "sofa_beam": sofa_beam, "twist": twist,
+                                           "spin": spin}

@@ -1,0 +1,259 @@
+"""Off-screen pictures of bodies: PNG stills and animated GIFs, drawn with pyvista (VTK).
+
+pyvista is imported only when something is rendered, so the package imports without it
+(``pip install pyvista``, or ``pip install -e .[render]``).
+
+    from tensormass_torch.render import render_png, render_gif
+    render_png("twist.png", [[(mesh, None), (mesh, x_hooke)], [(mesh, None), (mesh, x_corot)]],
+               labels=["hooke", "corotational"])
+
+A *panel* is one sub-view: a list of ``(mesh, positions)`` pairs drawn together (``positions``
+``[V, 3]`` or ``[V, 2]``, a tensor or an array; ``None`` draws the rest shape). Panels are laid
+side by side and share one camera, so their scales compare.
+
+Headless Linux (no X server, no xvfb): the pip ``vtk`` wheels (9.4 and later) choose their
+OpenGL window at run time, trying X11, then EGL, then OSMesa. Without a ``DISPLAY`` this module
+asks for EGL directly (``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow``, unless you set that
+variable yourself), which renders on a GPU's EGL driver or, with no GPU, on Mesa's software
+rasteriser (Debian: ``libegl1 libegl-mesa0 libgl1-mesa-dri``). OSMesa is the other way
+(``VTK_DEFAULT_OPENGL_WINDOW=vtkOSMesaRenderWindow``) and needs ``libOSMesa`` (``libosmesa6``).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from .errors import SceneError
+
+#: Colours of the deformed entries of a panel, in order (rest shapes are drawn in REST_COLOR).
+PALETTE = ("#4878cf", "#d65f5f", "#6acc65", "#b47cc7", "#c4ad66", "#77bedb")
+REST_COLOR = "#b0b0b0"
+REST_OPACITY = 0.35
+CAMERAS = ("iso", "xy", "xz", "yz")
+INSTALL_HINT = "pip install pyvista   (or: pip install -e '.[render]')"
+
+
+def _pyvista():
+    """Import pyvista for off-screen use; ImportError with an install hint when it is missing."""
+    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if headless and "VTK_DEFAULT_OPENGL_WINDOW" not in os.environ:
+        # Skips VTK's X11 attempt (and its warning) on a machine with no X server.
+        os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkEGLRenderWindow"
+    try:
+        import pyvista
+    except ImportError as exc:
+        raise ImportError(f"rendering needs pyvista, which is not installed ({exc}): {INSTALL_HINT}") from exc
+    pyvista.OFF_SCREEN = True
+    return pyvista
+
+
+def boundary_faces(tets: torch.Tensor) -> torch.Tensor:
+    """Boundary triangles ``[F, 3]`` of a tet mesh ``tets [N, 4]``: the faces that belong to one tet only.
+
+    Each face keeps the winding of its tet's outward normal for positively oriented tets.
+    """
+    tets = torch.as_tensor(tets).long().cpu()
+    # The faces opposite nodes 0..3, wound so that their normals point away from that node.
+    local = torch.tensor([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+    faces = tets[:, local].reshape(-1, 3)  # [4N, 3]
+    keys = torch.sort(faces, dim=1).values
+    _, inverse, counts = torch.unique(keys, dim=0, return_inverse=True, return_counts=True)
+    return faces[counts[inverse] == 1]
+
+
+def _as_points(mesh, positions) -> np.ndarray:
+    """Positions ``[V, 3]`` float64 numpy (2-D meshes and positions get z = 0)."""
+    points = mesh.vertices if positions is None else positions
+    if isinstance(points, torch.Tensor):
+        points = points.detach().to("cpu", torch.float64).numpy()
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[0] != mesh.num_vertices or points.shape[1] not in (2, 3):
+        raise SceneError(f"positions have shape {tuple(points.shape)}; expected [{mesh.num_vertices}, 3] "
+                         f"or [{mesh.num_vertices}, 2] for this mesh")
+    if not np.isfinite(points).all():
+        raise SceneError("positions contain NaN or inf: nothing sensible to draw")
+    if points.shape[1] == 2:
+        points = np.concatenate([points, np.zeros((points.shape[0], 1))], axis=1)
+    return points
+
+
+def _surface(pv, mesh, positions):
+    """A pyvista PolyData of the body's surface: boundary faces of tets, or the triangles themselves."""
+    kind = getattr(mesh, "kind", None)
+    if kind == "tet":
+        triangles = boundary_faces(mesh.elements)
+    elif kind == "tri":
+        triangles = mesh.elements.long().cpu()
+    else:
+        raise SceneError(f"cannot draw a {type(mesh).__name__}: expected a TetMesh or a TriMesh")
+    tri = triangles.numpy()
+    faces = np.concatenate([np.full((tri.shape[0], 1), 3, dtype=np.int64), tri], axis=1).ravel()
+    return pv.PolyData(_as_points(mesh, positions), faces)
+
+
+def _check_panels(panels, what: str = "panels"):
+    if not isinstance(panels, (list, tuple)) or not panels:
+        raise SceneError(f"{what} must be a non-empty list of panels (each a list of (mesh, positions) pairs)")
+    for i, panel in enumerate(panels):
+        if not isinstance(panel, (list, tuple)) or not panel:
+            raise SceneError(f"{what}[{i}] must be a non-empty list of (mesh, positions) pairs")
+        for j, item in enumerate(panel):
+            if not (isinstance(item, (list, tuple)) and len(item) == 2):
+                raise SceneError(f"{what}[{i}][{j}] must be a (mesh, positions) pair")
+
+
+def _colors_for(colors, panel_index: int, panel) -> list:
+    """One colour per entry of a panel: ``colors`` is None, one list for every panel, or one list per panel."""
+    chosen, deformed = [], 0
+    custom = None
+    if colors:
+        # an RGB triple is one colour, any other list or tuple is the colours of one panel
+        per_panel = isinstance(colors[0], (list, tuple)) and not all(isinstance(c, (int, float)) for c in colors[0])
+        custom = colors[panel_index] if per_panel else colors
+    for j, (_, positions) in enumerate(panel):
+        if custom is not None and j < len(custom) and custom[j] is not None:
+            chosen.append(custom[j])
+        elif positions is None:
+            chosen.append(REST_COLOR)
+        else:
+            chosen.append(PALETTE[deformed % len(PALETTE)])
+            deformed += 1
+    return chosen
+
+
+def _bounds(surfaces) -> list:
+    """Union of the surfaces' bounds ``[xmin, xmax, ymin, ymax, zmin, zmax]``."""
+    lo = np.min([s.points.min(axis=0) for s in surfaces], axis=0)
+    hi = np.max([s.points.max(axis=0) for s in surfaces], axis=0)
+    return [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]
+
+
+def _set_camera(plotter, camera, bounds, zoom):
+    if isinstance(camera, str):
+        if camera not in CAMERAS:
+            raise SceneError(f"unknown camera {camera!r}; expected one of {', '.join(CAMERAS)} "
+                             "or a pyvista camera position")
+        getattr(plotter, "view_isometric" if camera == "iso" else f"view_{camera}")()
+    else:
+        plotter.camera_position = camera
+    plotter.reset_camera(bounds=bounds)
+    if zoom != 1.0:
+        plotter.camera.zoom(zoom)
+
+
+def _surfaces_of(pv, panels):
+    return [[_surface(pv, mesh, positions) for mesh, positions in panel] for panel in panels]
+
+
+def _draw(pv, panels, surfaces, bounds, *, window_size, labels, colors, camera, show_edges, zoom) -> np.ndarray:
+    """Render one picture; returns its pixels ``[H, W, 3]`` uint8."""
+    plotter = pv.Plotter(off_screen=True, shape=(1, len(panels)), window_size=list(window_size),
+                         border=False)
+    try:
+        plotter.set_background("white")
+        for i, (panel, panel_surfaces) in enumerate(zip(panels, surfaces)):
+            plotter.subplot(0, i)
+            for (_, positions), surface, color in zip(panel, panel_surfaces, _colors_for(colors, i, panel)):
+                rest = positions is None
+                plotter.add_mesh(surface, color=color, show_edges=show_edges and not rest,
+                                 edge_color="#303030", line_width=0.5,
+                                 opacity=REST_OPACITY if rest else 1.0, smooth_shading=False)
+            if labels is not None and i < len(labels) and labels[i]:
+                plotter.add_text(str(labels[i]), position="upper_edge", font_size=12, color="black")
+        if len(panels) > 1:
+            plotter.link_views()  # one camera: the panels compare at the same scale
+        plotter.subplot(0, 0)
+        _set_camera(plotter, camera, bounds, zoom)
+        return np.asarray(plotter.screenshot(None, return_img=True))[..., :3].copy()
+    finally:
+        plotter.close()
+
+
+def _check_window(window_size):
+    if len(window_size) != 2 or any(int(w) < 16 for w in window_size):
+        raise SceneError(f"window_size must be (width, height) of at least 16 pixels, got {window_size!r}")
+
+
+def _check_zoom(zoom):
+    if not (isinstance(zoom, (int, float)) and zoom > 0 and np.isfinite(zoom)):
+        raise SceneError(f"zoom must be a positive number, got {zoom!r}")
+
+
+def render_png(path, panels, *, window_size=(1200, 500), labels: Optional[Sequence[str]] = None,
+               colors=None, camera="iso", show_edges: bool = True, zoom: float = 1.0) -> Path:
+    """Render ``panels`` side by side into the PNG file ``path``; returns its Path.
+
+    Args:
+        path: output file (its folder is created).
+        panels: list of panels, each a list of ``(mesh, positions)`` pairs drawn together;
+            ``mesh`` a TetMesh (its boundary surface is drawn) or TriMesh, ``positions``
+            ``[V, 3]`` or ``[V, 2]`` (tensor or array) or None for the rest shape (drawn grey
+            and translucent).
+        window_size: ``(width, height)`` of the whole picture in pixels.
+        labels: one title per panel (or None).
+        colors: None (a palette), one colour per entry used in every panel, or one list per panel.
+        camera: ``"iso"``, ``"xy"`` (looking down z), ``"xz"``, ``"yz"``, or a pyvista camera
+            position ``[(position), (focal point), (view up)]``; zoomed to fit every panel.
+        show_edges: draw element edges on deformed surfaces.
+        zoom: magnification after the camera is fitted (> 1 fills more of each panel).
+
+    Raises:
+        ImportError: pyvista is not installed (the message says how to install it).
+        SceneError: malformed panels, positions of the wrong shape or non-finite, a bad camera.
+    """
+    _check_panels(panels)
+    _check_window(window_size)
+    _check_zoom(zoom)
+    pv = _pyvista()
+    surfaces = _surfaces_of(pv, panels)
+    image = _draw(pv, panels, surfaces, _bounds([s for row in surfaces for s in row]),
+                  window_size=window_size, labels=labels, colors=colors, camera=camera, show_edges=show_edges,
+                  zoom=zoom)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _image_module().fromarray(image).save(path, optimize=True)
+    return path
+
+
+def _image_module():
+    try:
+        from PIL import Image  # pillow is a dependency of pyvista
+    except ImportError as exc:
+        raise ImportError(f"writing images needs pillow ({exc}): pip install pillow") from exc
+    return Image
+
+
+def render_gif(path, frames, *, fps: float = 10.0, window_size=(1200, 500),
+               labels: Optional[Sequence[str]] = None, colors=None, camera="iso",
+               show_edges: bool = True, zoom: float = 1.0) -> Path:
+    """Render a sequence of ``frames`` (each a list of panels, as :func:`render_png` takes) into
+    an animated GIF ``path`` that loops; returns its Path.
+
+    The camera is fitted once to every frame's bounds, so the view holds still while the bodies
+    move. Options as :func:`render_png`; ``fps`` frames per second (> 0).
+    """
+    if not isinstance(frames, (list, tuple)) or not frames:
+        raise SceneError("frames must be a non-empty list, each frame a list of panels")
+    if not (fps > 0):
+        raise SceneError(f"fps must be > 0, got {fps!r}")
+    for k, panels in enumerate(frames):
+        _check_panels(panels, f"frames[{k}]")
+    _check_window(window_size)
+    _check_zoom(zoom)
+    pv = _pyvista()
+    Image = _image_module()
+    all_surfaces = [_surfaces_of(pv, panels) for panels in frames]
+    bounds = _bounds([s for surfaces in all_surfaces for row in surfaces for s in row])
+    images = [Image.fromarray(_draw(pv, panels, surfaces, bounds, window_size=window_size, labels=labels,
+                                    colors=colors, camera=camera, show_edges=show_edges, zoom=zoom))
+              .convert("P", palette=Image.ADAPTIVE, colors=255)
+              for panels, surfaces in zip(frames, all_surfaces)]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(1000.0 / fps)), loop=0,
+                   optimize=True)
+    return path

@@ -1,0 +1,506 @@
+"""Scene files: a simulation described in TOML, checked key by key, built into a ``scenes.Scene``.
+
+    scene = load_scene("scenes/drop.toml")      # -> FileScene (a scenes.Scene)
+    scene.simulator.step(scene.steps)
+
+The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is optional)::
+
+    name = "drop"                     # default: the file's stem
+    description = "..."
+    dt = 0.01                         # s
+    steps = 100
+    output_every = 5                  # a frame every N steps
+    gravity = [0, 0, -9.81]
+    device = "cpu"                    # or "cuda", "cuda:1"
+    dtype = "float32"                 # or "float64"
+
+    [solver]                          # Simulator options
+    cg_tol = 1e-4
+    cg_max_iter = 500
+    require_convergence = true
+    newton_iters = 1
+    check_every = 8
+    rayleigh_mass = 0.5
+    rayleigh_stiffness = 0.002
+    form = "auto"                     # "stress", "tensor"
+
+    [render]                          # off-screen pictures of the frames (pyvista)
+    png = false                       # one PNG per frame
+    gif = false                       # an animated GIF of all frames
+    window_size = [800, 600]
+
+    [[planes]]                        # penalty contact: the half-space n.x >= offset
+    normal = [0, 0, 1]
+    offset = -0.5
+    stiffness = 1e5
+
+    [[bodies]]
+    name = "beam"
+    mesh = { generator = "beam", cells = [20, 2, 2], size = [1, 0.1, 0.1] }
+    # mesh = { file = "meshes/liver.vtu" }      (relative to the scene file; any meshio format)
+    # generators: beam, tri_beam, sphere, capsule, rabbit (see MESH_GENERATORS);
+    # every mesh table also takes scale = s and translate = [dx, dy, dz] (applied in that order)
+    material = { model = "stvk", young = 5e6, poisson = 0.3, density = 1000 }
+    fixed = { box = [[-1, -1, -1], [0, 1, 1]] }  # or { nodes = [0, 1, 2] }
+    prescribed = { box = [[...], [...]], velocity = [0, 0, -0.1], stop = 1.0 }
+    velocity = [0, 0, 0]                         # initial velocity
+
+Every problem raises one ``SceneError`` whose message starts with the file and the key path,
+e.g. ``drop.toml: bodies[1].material.model: unknown model 'stvkk'; expected one of hooke, stvk,
+corotational``. Loading writes nothing.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+import torch
+
+from .contact import Plane
+from .errors import MaterialError, MeshError, SceneError
+from .materials import MODELS, ROTATIONS, Material
+from .mesh import Mesh, beam_mesh, beam_tri_mesh
+from .scene import Body, Simulator
+from .scenes import Scene
+
+__all__ = ["FileScene", "load_scene", "MESH_GENERATORS"]
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+FORMS = ("auto", "stress", "tensor")
+CUTS = ("alternating", "uniform")
+
+_REQUIRED = object()
+
+
+@dataclass
+class FileScene(Scene):
+    """A :class:`scenes.Scene` read from a file, with the file's rendering options.
+
+    Attributes:
+        path: the scene file.
+        render: ``{"png": bool, "gif": bool, "window_size": (w, h)}``.
+    """
+
+    path: Optional[Path] = None
+    render: Dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading typed values out of TOML tables, with the key path in every message
+# ---------------------------------------------------------------------------------------------
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _describe(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+class _Table:
+    """One TOML table under key path ``where``; every read is checked, unknown keys are errors."""
+
+    def __init__(self, data, where: str, fail: Callable[[str, str], SceneError]):
+        if not isinstance(data, dict):
+            raise fail(where, f"must be a table, got {_describe(data)}")
+        self.data = data
+        self.where = where
+        self.fail = fail
+        self.seen = set()
+
+    def path(self, key: str) -> str:
+        return f"{self.where}.{key}" if self.where else key
+
+    def has(self, key: str) -> bool:
+        self.seen.add(key)
+        return key in self.data
+
+    def error(self, key: str, message: str) -> SceneError:
+        return self.fail(self.path(key), message)
+
+    def get(self, key: str, kind: str, default=_REQUIRED):
+        """The value of ``key`` checked as ``kind`` (see ``_check``); ``default`` if absent."""
+        self.seen.add(key)
+        if key not in self.data:
+            if default is _REQUIRED:
+                raise self.fail(self.path(key), "missing (required)")
+            return default
+        return _check(self.data[key], kind, lambda msg: self.error(key, msg))
+
+    def table(self, key: str, required: bool = False) -> Optional["_Table"]:
+        self.seen.add(key)
+        if key not in self.data:
+            if required:
+                raise self.fail(self.path(key), "missing (required)")
+            return None
+        return _Table(self.data[key], self.path(key), self.fail)
+
+    def tables(self, key: str) -> List["_Table"]:
+        """An array of tables (``[[key]]``), each with its own path ``key[i]``."""
+        self.seen.add(key)
+        items = self.data.get(key, [])
+        if not isinstance(items, list):
+            raise self.error(key, f"must be an array of tables ([[{key}]]), got {_describe(items)}")
+        return [_Table(item, f"{self.path(key)}[{i}]", self.fail) for i, item in enumerate(items)]
+
+    def done(self) -> None:
+        """Raise on the first key that was never read (a typo, or an option that does not exist)."""
+        for key in self.data:
+            if key not in self.seen:
+                known = sorted(self.seen)
+                close = difflib.get_close_matches(key, known, n=1)
+                hint = f"did you mean '{close[0]}'? " if close else ""
+                raise self.fail(self.path(key), f"unknown key; {hint}expected one of {', '.join(known)}")
+
+
+def _check(value, kind: str, error: Callable[[str], SceneError]):
+    """``value`` checked as ``kind``; returns it converted (tuples for vectors)."""
+    if kind == "str":
+        if not isinstance(value, str):
+            raise error(f"must be a string, got {_describe(value)}")
+        return value
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise error(f"must be true or false, got {_describe(value)}")
+        return value
+    if kind in ("number", "positive", "nonnegative"):
+        if not _is_number(value) or not math.isfinite(value):
+            raise error(f"must be a finite number, got {_describe(value)}")
+        if kind == "positive" and not value > 0:
+            raise error(f"must be > 0, got {value!r}")
+        if kind == "nonnegative" and not value >= 0:
+            raise error(f"must be >= 0, got {value!r}")
+        return float(value)
+    if kind in ("int", "posint"):
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise error(f"must be an integer, got {_describe(value)}")
+        if kind == "posint" and value < 1:
+            raise error(f"must be >= 1, got {value}")
+        return value
+    if kind[:-1].endswith("vec"):  # vec2, vec3, posvec3, intvec3, posintvec2...
+        length = int(kind[-1])
+        if not isinstance(value, list) or len(value) != length:
+            raise error(f"must be a list of {length} numbers, got {_describe(value)}")
+        item = "posint" if "int" in kind and "pos" in kind else "int" if "int" in kind else \
+            "positive" if "pos" in kind else "number"
+        return tuple(_check(v, item, lambda msg, i=i: error(f"entry {i} {msg}")) for i, v in enumerate(value))
+    if kind == "box":
+        if not isinstance(value, list) or len(value) != 2:
+            raise error(f"must be two corners [[x0, y0, z0], [x1, y1, z1]], got {_describe(value)}")
+        lo, hi = (_check(c, "vec3", lambda msg, i=i: error(f"corner {i} {msg}")) for i, c in enumerate(value))
+        if any(a > b for a, b in zip(lo, hi)):
+            raise error(f"corner 0 must not exceed corner 1 on any axis, got {list(lo)} and {list(hi)}")
+        return lo, hi
+    if kind == "nodes":
+        if not isinstance(value, list) or not value:
+            raise error(f"must be a non-empty list of node indices, got {_describe(value)}")
+        for v in value:
+            if not isinstance(v, int) or isinstance(v, bool):
+                raise error(f"node indices must be integers, got {_describe(v)}")
+        return value
+    raise AssertionError(f"unknown kind {kind}")
+
+
+def _choice(table: _Table, key: str, choices, default=_REQUIRED, what: str = "value") -> str:
+    value = table.get(key, "str", default)
+    if value not in choices:
+        raise table.error(key, f"unknown {what} {value!r}; expected one of {', '.join(choices)}")
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+# Meshes
+# ---------------------------------------------------------------------------------------------
+
+
+def _beam(t: _Table) -> Mesh:
+    cells = t.get("cells", "posintvec3")
+    size = t.get("size", "posvec3", (1.0, 1.0, 1.0))
+    origin = t.get("origin", "vec3", (0.0, 0.0, 0.0))
+    cut = _choice(t, "cut", CUTS, "alternating", "cut")
+    return beam_mesh(*cells, size=size, origin=origin, cut=cut, dtype=torch.float64)
+
+
+def _tri_beam(t: _Table) -> Mesh:
+    cells = t.get("cells", "posintvec2")
+    size = t.get("size", "posvec2", (1.0, 1.0))
+    origin = t.get("origin", "vec2", (0.0, 0.0))
+    cut = _choice(t, "cut", CUTS, "alternating", "cut")
+    return beam_tri_mesh(*cells, size=size, origin=origin, cut=cut, dim=3, dtype=torch.float64)
+
+
+def _sphere(t: _Table) -> Mesh:
+    from . import meshgen
+
+    radius = t.get("radius", "positive")
+    center = t.get("center", "vec3", (0.0, 0.0, 0.0))
+    cell = t.get("cell", "positive", radius / 4)
+    return meshgen.sphere_mesh(radius, center=center, cell=cell)
+
+
+def _capsule(t: _Table) -> Mesh:
+    from . import meshgen
+
+    radius = t.get("radius", "positive")
+    length = t.get("length", "positive")
+    center = t.get("center", "vec3", (0.0, 0.0, 0.0))
+    cell = t.get("cell", "positive", radius / 3)
+    return meshgen.capsule_mesh(radius, length, center=center, cell=cell)
+
+
+def _rabbit(t: _Table) -> Mesh:
+    from . import meshgen
+
+    scale = t.get("size", "positive", 1.0)
+    cell = t.get("cell", "positive", 0.08 * scale)
+    origin = t.get("origin", "vec3", (0.0, 0.0, 0.0))
+    return meshgen.rabbit_mesh(size=scale, cell=cell, origin=origin)
+
+
+#: Mesh generators of scene files: ``mesh = { generator = NAME, ... }`` and their keys.
+MESH_GENERATORS: Dict[str, Callable[[_Table], Mesh]] = {
+    "beam": _beam,            # cells = [nx, ny, nz], size, origin, cut (tm.beam_mesh)
+    "tri_beam": _tri_beam,    # cells = [nx, ny], size, origin, cut (tm.beam_tri_mesh, a membrane at z = 0)
+    "sphere": _sphere,        # radius, center, cell (lattice spacing)
+    "capsule": _capsule,      # radius, length (of the axis, along x), center, cell
+    "rabbit": _rabbit,        # size (body length), origin (centre of the base), cell
+}
+
+
+def _mesh(t: _Table, base_dir: Path, device, dtype) -> Mesh:
+    has_file, has_generator = t.has("file"), t.has("generator")
+    if has_file == has_generator:
+        raise t.fail(t.where, "give exactly one of 'file' or 'generator'")
+    if has_file:
+        file = base_dir / t.get("file", "str")
+        orient = t.get("orient", "bool", False)
+        scale = t.get("scale", "positive", 1.0)
+        translate = t.get("translate", "vec3", (0.0, 0.0, 0.0))
+        t.done()
+        if not file.is_file():
+            raise t.error("file", f"mesh file not found: '{file}'")
+        from .io import load_mesh
+
+        try:
+            mesh = load_mesh(file, orient=orient)
+        except MeshError as exc:
+            raise t.error("file", str(exc)) from exc
+    else:
+        name = _choice(t, "generator", list(MESH_GENERATORS), what="generator")
+        scale = t.get("scale", "positive", 1.0)
+        translate = t.get("translate", "vec3", (0.0, 0.0, 0.0))
+        try:
+            mesh = MESH_GENERATORS[name](t)
+        except MeshError as exc:
+            raise t.fail(t.where, str(exc)) from exc
+        t.done()
+    mesh = mesh.to(device=device, dtype=dtype)
+    if scale != 1.0 or any(translate):
+        vertices = mesh.vertices * scale
+        if vertices.shape[1] == 2:
+            vertices = torch.cat([vertices, vertices.new_zeros(vertices.shape[0], 1)], dim=1)
+        vertices = vertices + torch.tensor(translate, dtype=dtype, device=device)
+        mesh = type(mesh)._trusted(vertices, mesh.elements)
+    return mesh
+
+
+# ---------------------------------------------------------------------------------------------
+# Bodies
+# ---------------------------------------------------------------------------------------------
+
+
+def _material(t: _Table, model_override: Optional[str]) -> Material:
+    model = _choice(t, "model", MODELS, "hooke", "model")
+    kwargs = dict(
+        young=t.get("young", "positive"),
+        poisson=t.get("poisson", "number"),
+        density=t.get("density", "positive", 1000.0),
+        thickness=t.get("thickness", "positive", 1.0),
+        rotation=_choice(t, "rotation", ROTATIONS, "polar", "rotation"),
+        model=model_override or model,
+    )
+    t.done()
+    try:
+        return Material(**kwargs)
+    except MaterialError as exc:
+        raise t.fail(t.where, str(exc)) from exc
+
+
+def _selection(t: _Table, mesh: Mesh, extra: Dict[str, str]):
+    """Nodes chosen by ``box`` or ``nodes`` -> bool mask ``[V]``, plus the ``extra`` keys' values."""
+    if t.has("box") == t.has("nodes"):
+        raise t.fail(t.where, "give exactly one of 'box' or 'nodes'")
+    values = {key: t.get(key, kind) if not isinstance(kind, tuple) else t.get(key, *kind)
+              for key, kind in extra.items()}
+    vertices = mesh.vertices
+    if vertices.shape[1] == 2:
+        vertices = torch.cat([vertices, vertices.new_zeros(vertices.shape[0], 1)], dim=1)
+    if t.has("box"):
+        lo, hi = t.get("box", "box")
+        lo_t = torch.tensor(lo, dtype=vertices.dtype, device=vertices.device)
+        hi_t = torch.tensor(hi, dtype=vertices.dtype, device=vertices.device)
+        # A box that touches a face of the mesh exactly must catch that face's nodes.
+        extent = float((vertices.max(0).values - vertices.min(0).values).norm())
+        slack = 1e-6 * max(extent, 1e-30)
+        mask = ((vertices >= lo_t - slack) & (vertices <= hi_t + slack)).all(dim=1)
+        if not bool(mask.any()):
+            bounds = [[round(float(c), 6) for c in vertices.min(0).values],
+                      [round(float(c), 6) for c in vertices.max(0).values]]
+            raise t.error("box", f"selects no node (box {[list(lo), list(hi)]}, mesh bounds {bounds})")
+    else:
+        nodes = t.get("nodes", "nodes")
+        bad = [n for n in nodes if not 0 <= n < mesh.num_vertices]
+        if bad:
+            raise t.error("nodes", f"node indices out of range [0, {mesh.num_vertices}): {bad[:10]}")
+        mask = torch.zeros(mesh.num_vertices, dtype=torch.bool, device=vertices.device)
+        mask[torch.tensor(nodes, device=vertices.device)] = True
+    t.done()
+    return mask, values
+
+
+class _LinearMotion:
+    """Prescribed nodes moving at a constant velocity until ``stop``: ``motion(t) -> [k, 3]``."""
+
+    def __init__(self, start: torch.Tensor, velocity, stop: float):
+        self.start = start
+        self.velocity = torch.tensor(velocity, dtype=start.dtype, device=start.device)
+        self.stop = stop
+
+    def __call__(self, t: float) -> torch.Tensor:
+        return self.start + self.velocity * min(t, self.stop)
+
+
+def _body(t: _Table, index: int, base_dir: Path, device, dtype, model_override) -> Body:
+    name = t.get("name", "str", f"body{index}")
+    mesh = _mesh(t.table("mesh", required=True), base_dir, device, dtype)
+    material = _material(t.table("material", required=True), model_override)
+    fixed = prescribed = motion = None
+    fixed_table = t.table("fixed")
+    if fixed_table is not None:
+        fixed, _ = _selection(fixed_table, mesh, {})
+    prescribed_table = t.table("prescribed")
+    if prescribed_table is not None:
+        prescribed, opts = _selection(prescribed_table, mesh,
+                                      {"velocity": "vec3", "stop": ("nonnegative", math.inf)})
+        start = mesh.vertices[prescribed]
+        if start.shape[1] == 2:
+            start = torch.cat([start, start.new_zeros(start.shape[0], 1)], dim=1)
+        motion = _LinearMotion(start, opts["velocity"], opts["stop"])
+    velocity = t.get("velocity", "vec3", None)
+    t.done()
+    try:
+        return Body(mesh, material, fixed=fixed, prescribed=prescribed, motion=motion,
+                    velocity=None if velocity is None else list(velocity), name=name)
+    except SceneError as exc:
+        raise t.fail(t.where, str(exc)) from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# The scene
+# ---------------------------------------------------------------------------------------------
+
+
+def _device(t: _Table, override) -> torch.device:
+    text = override if override is not None else t.get("device", "str", "cpu")
+    t.seen.add("device")
+    try:
+        device = torch.device(text)
+    except (RuntimeError, TypeError) as exc:
+        raise t.error("device", f"not a torch device: {text!r}") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise t.error("device", f"{text!r} requested but torch sees no CUDA device")
+    return device
+
+
+def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) -> FileScene:
+    """Read, check and build a TOML scene file.
+
+    Args:
+        path: the ``.toml`` file; mesh files in it are relative to its folder.
+        device, dtype: override the file's ``device`` / ``dtype`` (a torch device or string; a
+            torch dtype or ``"float32"`` / ``"float64"``).
+        model: override every body's material model (one of ``tm.MODELS``).
+
+    Returns:
+        a :class:`FileScene` holding the built :class:`Simulator`.
+
+    Raises:
+        SceneError: one line naming the file and the key path of the first problem (a TOML
+            syntax error, an unknown key, a wrong type, a missing mesh file, an unknown model,
+            a box selecting no node, ...). Nothing is written.
+    """
+    path = Path(path)
+
+    def fail(where: str, message: str) -> SceneError:
+        return SceneError(f"{path}: {where}: {message}" if where else f"{path}: {message}")
+
+    if not path.is_file():
+        raise SceneError(f"scene file not found: '{path}'")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: invalid TOML: {exc}") from exc
+    if model is not None and model not in MODELS:
+        raise SceneError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
+
+    top = _Table(data, "", fail)
+    name = top.get("name", "str", path.stem)
+    description = top.get("description", "str", "")
+    dt = top.get("dt", "positive", 0.01)
+    steps = top.get("steps", "posint", 100)
+    output_every = top.get("output_every", "posint", 10)
+    gravity = top.get("gravity", "vec3", (0.0, 0.0, -9.81))
+    torch_device = _device(top, device)
+    if dtype is None:
+        torch_dtype = DTYPES[_choice(top, "dtype", list(DTYPES), "float32", "dtype")]
+    else:
+        top.seen.add("dtype")
+        torch_dtype = DTYPES[dtype] if isinstance(dtype, str) else dtype
+
+    solver = top.table("solver") or _Table({}, "solver", fail)
+    options = dict(
+        cg_tol=solver.get("cg_tol", "positive", 1e-6),
+        cg_max_iter=solver.get("cg_max_iter", "posint", 200),
+        require_convergence=solver.get("require_convergence", "bool", True),
+        newton_iters=solver.get("newton_iters", "posint", 1),
+        check_every=solver.get("check_every", "posint", 8),
+        rayleigh_mass=solver.get("rayleigh_mass", "nonnegative", 0.0),
+        rayleigh_stiffness=solver.get("rayleigh_stiffness", "nonnegative", 0.0),
+        form=_choice(solver, "form", FORMS, "auto", "form"),
+    )
+    solver.done()
+
+    render_table = top.table("render") or _Table({}, "render", fail)
+    render = dict(png=render_table.get("png", "bool", False), gif=render_table.get("gif", "bool", False),
+                  window_size=render_table.get("window_size", "posintvec2", (800, 600)))
+    render_table.done()
+
+    planes = []
+    for plane in top.tables("planes"):
+        normal = plane.get("normal", "vec3")
+        if not any(normal):
+            raise plane.error("normal", "must not be the zero vector")
+        planes.append(Plane(normal, plane.get("offset", "number", 0.0), plane.get("stiffness", "positive")))
+        plane.done()
+
+    body_tables = top.tables("bodies")
+    top.done()  # every top-level key is known before the (possibly slow) meshes are built
+    if not body_tables:
+        raise fail("bodies", "a scene needs at least one [[bodies]] table")
+    bodies = [_body(b, i, path.parent, torch_device, torch_dtype, model) for i, b in enumerate(body_tables)]
+
+    try:
+        simulator = Simulator(bodies, dt=dt, gravity=gravity, planes=planes, device=torch_device,
+                              dtype=torch_dtype, **options)
+    except (SceneError, MaterialError, MeshError) as exc:
+        raise fail("", str(exc)) from exc
+    if not description:
+        tets = sum(b.mesh.num_elements for b in bodies)
+        description = f"{name}: {len(bodies)} bodies, {tets} elements, dt {dt:g} s, {steps} steps"
+    return FileScene(name, simulator, steps, output_every, description, path=path, render=render)

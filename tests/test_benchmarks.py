@@ -1,0 +1,152 @@
+"""The benchmark suite's own correctness: the assembled-matrix alternative is exact (its A p is the
+matrix-free product, its steps are the simulator's), the floor's byte count adds up, and every
+figure script runs end to end with --quick (tiny sizes, CPU) and writes its md/json (and png
+when matplotlib is installed)."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch import ops
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCH))
+
+import assembled  # noqa: E402
+import common  # noqa: E402
+
+HAS_MATPLOTLIB = importlib.util.find_spec("matplotlib") is not None
+
+# (kind, model, form, rotation): every model, both forms where they exist, both rotation frames
+CASES = [("tet", "hooke", "stress", "polar"), ("tet", "hooke", "tensor", "polar"),
+         ("tet", "stvk", "stress", "polar"), ("tet", "stvk", "tensor", "polar"),
+         ("tet", "corotational", "stress", "polar"), ("tet", "corotational", "stress", "qr"),
+         ("tri", "hooke", "tensor", "polar"), ("tri", "stvk", "stress", "polar"),
+         ("tri", "corotational", "stress", "qr")]
+
+
+def small_mesh(kind):
+    if kind == "tet":
+        return tm.beam_mesh(3, 2, 2, size=(1.0, 0.5, 0.4), dtype=torch.float64)
+    return tm.beam_tri_mesh(3, 2, size=(1.0, 0.6), dim=3, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("kind,model,form,rotation", CASES)
+def test_assembled_matrix_is_the_matrix_free_product(kind, model, form, rotation):
+    torch.manual_seed(0)
+    mesh = small_mesh(kind)
+    mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model, rotation=rotation)
+    model_ = tm.TensorMass(mesh, mat, form=form)
+    V = mesh.vertices.shape[0]
+    u = 0.05 * torch.randn(V, 3, dtype=torch.float64)  # a large deformation: K depends on u
+    if kind == "tri":
+        u = u * torch.tensor([1.0, 1.0, 0.3], dtype=torch.float64)
+    free = mesh.vertices[:, 0] > 1e-6
+    mass = model_.lumped_mass()
+    c_mass, c_stiff = 1.1, 0.02
+    system = assembled.SystemMatrix(model_, u, mass, free, c_mass, c_stiff)
+    p = torch.randn(V, 3, dtype=torch.float64)
+    p_free = p * free[:, None]
+    expected = ops.system_matvec(model_.groups, u, p_free, mass, free.double(), c_mass, c_stiff)[0]
+    scale = expected.abs().max()
+    for layout in ("csr", "bsr"):
+        got = assembled.sparse_matvec(assembled.matrix_for(layout, system))(p_free)
+        assert torch.allclose(got, expected, rtol=0, atol=1e-12 * scale), (layout, float((got - expected).abs().max()))
+    # constrained dofs: identity rows, so A p there is p itself
+    full = assembled.sparse_matvec(system.csr())(p)
+    assert torch.equal(full[~free], p[~free])
+
+
+def test_assembled_steps_are_the_simulator_steps():
+    """Two bodies of different stiffness, stvk (reassembled every step): the assembled CG with
+    per-object scalars gives the simulator's positions to rounding."""
+    meshes = [tm.beam_mesh(3, 2, 2, size=(1.0, 0.3, 0.3), dtype=torch.float64),
+              tm.beam_mesh(4, 2, 2, size=(1.0, 0.3, 0.3), dtype=torch.float64)]
+    bodies = [tm.Body(m, tm.Material(young=e, poisson=0.3, density=1000.0, model="stvk"),
+                      fixed=m.vertices[:, 0] <= 1e-6) for m, e in zip(meshes, (1e5, 3e5))]
+    sim = tm.Simulator(bodies, dt=0.01, gravity=(0, 0, -9.81), rayleigh_mass=0.1, rayleigh_stiffness=0.01,
+                       cg_tol=0.0, cg_max_iter=6, require_convergence=False)
+    stepper = assembled.AssembledStepper(sim, (0, 0, -9.81), "csr")
+    for _ in range(3):
+        sim.step(1)
+        stepper.step(1)
+    moved = (sim.x - sim.model.rest).abs().max()
+    assert moved > 1e-4
+    assert torch.allclose(stepper.x, sim.x, rtol=0, atol=1e-10 * moved)
+
+
+def test_cg_iteration_bytes_counts_the_stress_form_buffers():
+    mesh = tm.beam_mesh(2, 2, 1, dtype=torch.float32)
+    model = tm.TensorMass(mesh, tm.Material(young=1e5, poisson=0.3, density=1e3, model="stvk"), form="stress")
+    parts = common.cg_iteration_bytes(model)
+    N, V, s = mesh.elements.shape[0], mesh.vertices.shape[0], 4
+    assert parts["material"] == N * 4 * 3 * s + 3 * N * s   # shape vectors, measure, young, poisson
+    assert parts["indices"] == 2 * N * 4 * 4 + V * 4        # index + ForceIndex (int32), incidences
+    assert parts["partial_force"] == 2 * N * 4 * 3 * s
+    assert parts["u"] == V * 3 * s                          # stvk's DForce reads u
+    assert parts["total"] == sum(v for k, v in parts.items() if k != "total")
+
+
+def _check_outputs(out, name):
+    assert (out / f"{name}.md").read_text().startswith("# ")
+    data = json.loads((out / f"{name}.json").read_text())
+    assert data["meta"]["commit"] is None or isinstance(data["meta"]["commit"], str)
+    records = data["records"]
+    assert records and all(set(common.RECORD_FIELDS) <= set(r) for r in records)
+    if HAS_MATPLOTLIB:
+        assert (out / f"{name}.png").stat().st_size > 0
+    else:
+        assert "matplotlib is not installed" in (out / f"{name}.md").read_text()
+    return records
+
+
+def _ran(records, backend):
+    return [r for r in records if r["backend"] == backend and r.get("steps_per_s")]
+
+
+def test_figure2_quick(tmp_path, monkeypatch):
+    monkeypatch.setenv("TENSORMASS_COMMIT", "test123")
+    import figure2
+
+    figure2.main(["--quick", "--device", "cpu", "--kinds", "tet", "--models", "stvk", "--backends", "torch,csr",
+                  "--out", str(tmp_path)])
+    records = _check_outputs(tmp_path, "figure2")
+    assert json.loads((tmp_path / "figure2.json").read_text())["meta"]["commit"] == "test123"
+    assert _ran(records, "torch") and _ran(records, "csr")
+    assert all(r["cg_iterations"] == 5 for r in _ran(records, "torch"))
+
+
+def test_sofa_beam_quick(tmp_path):
+    import sofa_beam
+
+    sofa_beam.main(["--quick", "--device", "cpu", "--models", "hooke", "--backends", "torch,bsr", "--out", str(tmp_path)])
+    records = _check_outputs(tmp_path, "sofa_beam")
+    assert _ran(records, "torch")[0]["cg_iterations"] == 10
+    assert _ran(records, "bsr")[0]["assembly_ms"] > 0
+
+
+def test_batches_quick(tmp_path):
+    import batches
+
+    batches.main(["--quick", "--device", "cpu", "--backends", "torch,csr", "--out", str(tmp_path)])
+    records = _check_outputs(tmp_path, "batches")
+    runs = _ran(records, "torch")
+    assert {r["objects"] for r in runs} == {1, 4}
+    assert all(r["objects_steps_per_s"] == pytest.approx(r["objects"] * r["steps_per_s"]) for r in runs)
+
+
+def test_cg_floor_quick(tmp_path):
+    import cg_floor
+
+    cg_floor.main(["--quick", "--device", "cpu", "--elements", "48", "--models", "hooke", "--backends", "torch",
+                   "--out", str(tmp_path)])
+    records = _check_outputs(tmp_path, "cg_floor")
+    (rec,) = records
+    assert rec["bytes_per_cg_iteration"] > 0 and rec["floor_ms_per_cg_iteration"] > 0
+    assert rec["ms_per_cg_iteration"] is not None
