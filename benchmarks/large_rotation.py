@@ -127,19 +127,20 @@ def render(out: Path, meshes, snapshots, variants):
     written.append(r.render_png(out / "twist_180.png",
                                 [[(mesh, None), (mesh, twist[v][-1])] for v in pair],
                                 labels=[f"{v}: end turned 180 deg" for v in pair], window_size=(1200, 460),
-                                zoom=1.5))
+                                zoom=1.3))
     frames = [[[(mesh, None), (mesh, twist[v][k])] for v in pair] for k in range(0, len(twist[pair[0]]), 2)]
     written.append(r.render_gif(out / "twist.gif", frames, fps=4, window_size=(720, 280), labels=pair,
-                               zoom=1.5))
+                               zoom=1.3))
     mesh = meshes["spin"]
     spin = snapshots["spin"]
     half = (len(spin[pair[0]]) - 1) // 2
     panels, labels = [], []
-    for k, angle in ((half, 90), (-1, 180)):
+    for k, when in ((half, "0.5 s (rigid: 90 deg)"), (-1, "1 s (rigid: 180 deg)")):
         for v in pair:
             panels.append([(mesh, None), (mesh, spin[v][k])])
-            labels.append(f"{v}: spun {angle} deg")
-    written.append(r.render_png(out / "spin.png", panels, labels=labels, camera="xy", window_size=(1600, 420)))
+            labels.append(f"{v}\nt = {when}")
+    written.append(r.render_png(out / "spin.png", panels, labels=labels, camera="xy", window_size=(1600, 440),
+                                zoom=0.8))
     return written
 
 

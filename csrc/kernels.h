@@ -14,7 +14,8 @@
 //
 // Layouts (all row-major contiguous, as the Python groups store them):
 //   u, du [V, D]; elements / force_index [N, NN] (int32 or int64); shape_vectors [N, NN, D];
-//   measure, lam, mu [N]; projector [N, D, D]; PartialForce [N_n, V, D]; out [V, D].
+//   measure, lam, mu [N]; projector [N, D, D]; PartialForce [N_n, V, D]; out [V, D];
+//   corotational: rest element nodes [N, NN, 3], rotations [N, D, D].
 // The per-element blocks (shape vectors, indices, projector) are contiguous per element, so a
 // thread reads its own contiguous bytes; on the GPU they are read with 16-byte vector loads when
 // aligned (see load_block). PartialForce [N_n, V, D] makes kernel 2 coalesced: the threads of a

@@ -46,7 +46,7 @@ pytestmark = pytest.mark.skipif(native is None, reason="needs a CUDA device and 
 needs_cuda = pytest.mark.skipif(DEVICE != "cuda", reason="dry run on the CPU: no streams or graphs")
 
 if native is not None:  # the helpers of the CPU tests
-    from test_native_ops import displacements, make_group, op_calls, rel, tol, used_slots
+    from test_native_ops import displacements, make_group, op_calls, plan_indices, rel, tol, used_slots
 
 T = torch.ops.tensormass
 
@@ -191,3 +191,95 @@ def test_cuda_graph_capture_of_dforce(model, rng):
     graph.replay()
     torch.cuda.synchronize()
     assert torch.allclose(out, 2.0 * eager, rtol=1e-5, atol=1e-6 * float(eager.abs().max()))
+
+
+# ------------------------------------------------------------------ corotational (issue 4)
+#
+# The rotations op (qr, polar) and the stress ops reading the rotations of the linearisation, on
+# the device = the float64 reference on the CPU = the CPU extension; bitwise reproducible; opcheck.
+
+COROT_CASES = [("tet", "qr"), ("tri3d", "qr"), ("tet", "polar"), ("tri3d", "polar"), ("tri2d", "polar")]
+COROT_IDS = [f"{k}-{r}" for k, r in COROT_CASES]
+
+
+def corotational_calls(group, u, du, rotations, index_dtype):
+    """[(op name, args)]: the rotations op and the six stress ops with the rotations given."""
+    from test_native_corotational import METHOD
+
+    idx, fi, inc = plan_indices(group, index_dtype)
+    ns = group.plan.num_slots
+    lam, mu = group.lame()
+    s = (group.shape_vectors, group.measure, lam.contiguous(), mu.contiguous(), group.projector, 2, None, rotations)
+    rest = getattr(group, "rest_elements", None)
+    return [
+        ("corotational_rotations", (u, idx, group.shape_vectors, group.projector, rest, METHOD[group.rotation])),
+        ("stress_element_forces", (u, idx) + s),
+        ("stress_element_dforces", (u, du, idx) + s),
+        ("stress_partial_forces", (u, idx, fi, ns) + s),
+        ("stress_partial_dforces", (u, du, idx, fi, ns) + s),
+        ("stress_forces", (u, idx, fi, ns, inc) + s),
+        ("stress_dforces", (u, du, idx, fi, ns, inc) + s),
+    ]
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("kind,rot", COROT_CASES, ids=COROT_IDS)
+def test_cuda_corotational_matches_cpu_and_reference(kind, rot, dtype, rng):
+    from test_native_corotational import deformations, make_group as make_corotational, reference_rotations
+
+    _, group, scene = make_corotational(rng, kind, torch.float64, rot)
+    u = (deformations(rng, scene)[1] - scene.rest).contiguous()
+    du = torch.tensor(rng.standard_normal(u.shape))
+    rotations = reference_rotations(group, u)
+    for index_dtype in (torch.int64, torch.int32):
+        for name, args in corotational_calls(group, u, du, rotations, index_dtype):
+            ref_args = [a.long() if isinstance(a, torch.Tensor) and not a.is_floating_point() else a for a in args]
+            ref = native.REFERENCE[name](*ref_args)
+            cpu_args = to(args, dtype=dtype)
+            gpu_args = to(cpu_args, device=DEVICE)
+            cpu = used_slots(name, cpu_args, getattr(T, name)(*cpu_args))
+            gpu = used_slots(name, gpu_args, getattr(T, name)(*gpu_args))
+            assert gpu.device.type == DEVICE and gpu.dtype == dtype and gpu.shape == ref.shape, name
+            assert rel(gpu.cpu(), ref) < tol(dtype), (name, index_dtype, rel(gpu.cpu(), ref))
+            assert rel(gpu.cpu(), cpu) < tol(dtype), (name, index_dtype, rel(gpu.cpu(), cpu))
+
+
+@pytest.mark.parametrize("rot", ["qr", "polar"])
+def test_cuda_corotational_bitwise_deterministic_and_model_matches_torch(rot, rng, monkeypatch):
+    from test_native_corotational import make_group as make_corotational
+
+    tm, group, scene = make_corotational(rng, "tet", torch.float32, rot, cells=(20, 10, 8))  # 9,600 tets
+    u, du = displacements(rng, scene, torch.float32)
+    r = T.corotational_rotations(*to(corotational_calls(group, u, du, None, torch.int32)[0][1], device=DEVICE))
+    calls = [(name, to(args, device=DEVICE)) for name, args in corotational_calls(group, u, du, r, torch.int32)
+             if "_partial_" not in name]
+    first = [getattr(T, name)(*args) for name, args in calls]
+    for _ in range(2):
+        for (name, args), a in zip(calls, first):
+            assert torch.equal(getattr(T, name)(*args), a), name
+    tm = tm.to(DEVICE)
+    x = (scene.rest.float() + u).to(DEVICE)
+    dx = du.to(DEVICE)
+    monkeypatch.setenv("TENSORMASS_BACKEND", "extension")
+    ext = (tm(x), tm.dforce(x, dx))
+    monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
+    ref = (tm(x), tm.dforce(x, dx))
+    for a, b in zip(ext, ref):
+        assert a.device.type == DEVICE and rel(a, b) < tol(torch.float32)
+
+
+def test_cuda_corotational_opcheck():
+    from test_native_corotational import deformations, make_group as make_corotational
+
+    rng = np.random.default_rng(4)
+    for kind, rot in (("tet", "polar"), ("tri3d", "qr")):
+        _, group, scene = make_corotational(rng, kind, rot=rot, cells=(1, 1, 1) if kind == "tet" else (1, 2))
+        u = (0.5 * (deformations(rng, scene)[0] - scene.rest)).contiguous()
+        r = T.corotational_rotations(*corotational_calls(group, u, u, None, torch.int64)[0][1])
+        for name, args in corotational_calls(group, u, u.clone(), r, torch.int64):
+            if "_partial_" in name or name == "stress_forces":
+                continue
+            args = [a.detach().clone().requires_grad_(True) if isinstance(a, torch.Tensor) and a.is_floating_point()
+                    else a for a in to(args, device=DEVICE)]
+            torch.library.opcheck(getattr(T, name).default, tuple(args),
+                                  test_utils=("test_schema", "test_autograd_registration", "test_faketensor"))
