@@ -135,7 +135,8 @@ def test_native_and_reference_iterates_agree_for_any_chunk(monkeypatch):
     results.append(batched_cg(matvec, rhs, seg, tol=0.0, max_iter=6))
     for r in results[1:]:
         assert float((r.solution - results[0].solution).abs().max()) < 1e-12
-        assert r.iterations.tolist() == [6] * len(LENGTHS)
+        # 6 iterations, or 3 n for an object of n nodes: exact in 3 n, then converged to roundoff
+        assert r.iterations.tolist() == [min(6, 3 * n) for n in LENGTHS]
 
 
 @needs_ext

@@ -20,7 +20,7 @@ def _cuda_ready():
 pytestmark = pytest.mark.skipif(not _cuda_ready(), reason="needs CUDA and the CUDA build of the extension")
 
 
-def make_sim(model, cuda_graphs, cg_tol=1e-5, check_every=4):
+def make_sim(model, cuda_graphs, cg_tol=1e-5, check_every=4, cg_max_iter=200):
     bodies = []
     for k in range(3):
         mesh = tm.beam_mesh(6 + 2 * k, 2, 2, size=(0.6, 0.1, 0.1), origin=(0.0, 0.3 * k, 0.05), device="cuda")
@@ -35,7 +35,7 @@ def make_sim(model, cuda_graphs, cg_tol=1e-5, check_every=4):
         else:
             bodies.append(tm.Body(mesh, mat, fixed=fixed))
     return tm.Simulator(bodies, dt=0.01, gravity=(0, 0, -9.81), rayleigh_mass=0.1, rayleigh_stiffness=0.01,
-                        planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=cg_tol, cg_max_iter=200,
+                        planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=cg_tol, cg_max_iter=cg_max_iter,
                         check_every=check_every, cuda_graphs=cuda_graphs)
 
 
@@ -53,12 +53,12 @@ def test_graphed_steps_equal_eager_steps(model):
 
 
 def test_fixed_budget_step_is_one_graph():
-    sim = make_sim("hooke", True, cg_tol=0.0, check_every=1000)
+    sim = make_sim("hooke", True, cg_tol=0.0, check_every=1000, cg_max_iter=10)
     sim.options.require_convergence = False
     sim.step(4)
     (graphs,) = sim.system._step_graphs.values()
-    assert graphs.first == 200 and graphs.cg.graph_replays == 0  # all iterations inside graph A
-    assert int(sim.last_report.cg_iterations.max()) == 200
+    assert graphs.first == 10 and graphs.cg.graph_replays == 0  # all iterations inside graph A
+    assert int(sim.last_report.cg_iterations.max()) == 10
 
 
 def test_failed_graphed_step_keeps_state():

@@ -604,9 +604,9 @@ def test_cuda_matches_cpu(kind, rot, dtype, rng):
         return out
 
     cpu = run(group, u, du, mass)
+    ref = reference_rotations(group, u)  # before the move: groups move in place
     gg = group.to("cuda")
     gpu = run(gg, u.cuda(), du.cuda(), mass.cuda())
-    ref = reference_rotations(group, u)
     assert (gpu[0].cpu().double() - ref).abs().max() < TOL[dtype]
     for a, b in zip(gpu, cpu):
         assert a.device.type == "cuda" and rel(a.cpu(), b) < TOL[dtype]

@@ -147,6 +147,9 @@ class CGSolver:
             s.r.copy_(b - self._apply(matvec, self._project(x0))[0])
         cg_ops.object_dot(b, b, self.plan, self.rhs_sq, s, self.native)
         cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
+        # A tolerance below the dtype's epsilon means "to roundoff": iterating past it only
+        # underflows p.Ap to 0, which would read as a breakdown.
+        tol = max(float(tol), torch.finfo(rhs.dtype).eps)
         s.threshold.copy_((tol * tol) * self.rhs_sq)
         status = torch.where(~torch.isfinite(s.rr), NONFINITE,
                              torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
@@ -175,7 +178,8 @@ class CGSolver:
             matvec: p ``[V, d]`` -> A p ``[V, d]`` (A symmetric positive definite per object), or a
                 fused matvec returning (A p projected on the free nodes, p . Ap per node ``[V]``).
             rhs: ``[V, d]``; x0: initial guess ``[V, d]`` (zeros by default).
-            tol: relative residual tolerance (>= 0); ``tol = 0`` runs exactly ``max_iter`` iterations.
+            tol: relative residual tolerance (>= 0; below the dtype's epsilon it counts as epsilon):
+                ``tol = 0`` runs ``max_iter`` iterations unless the residual reaches roundoff first.
             max_iter: iteration cap (>= 0); check_every: host check of "any object active" every k
                 iterations (>= 1).
             graph_key: hashable; not None promises that ``matvec`` reads only tensors whose storage
