@@ -60,11 +60,12 @@ def _fmt(value, spec):
 
 
 def markdown(meta, summaries) -> str:
+    backend = meta["backend"]["cpu" if meta["device"] == "cpu" else "cuda"]
     lines = [
         "# Large rotations: hooke against corotational and stvk",
         "",
         f"{meta['date']}, commit {meta['commit']}, {meta['device']} ({meta['device_name']}), {meta['dtype']}, "
-        f"torch {meta['torch']}, backend {meta['backend']['cpu'] if meta['device'] == 'cpu' else meta['backend']['cuda']}; "
+        f"torch {meta['torch']}, backend {backend}; "
         f"beam 1 m x 0.1 m x 0.1 m, E = 5 MPa, nu = 0.3, rho = 1000 kg/m^3, resolution {meta['resolution']} "
         f"({summaries[0]['tets']} tets), {meta['steps']} implicit Euler steps over 1 s, CG tolerance 1e-6.",
         "",
