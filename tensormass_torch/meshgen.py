@@ -266,7 +266,7 @@ def _connected_part(x: torch.Tensor, tets: np.ndarray):
     return x[torch.from_numpy(used)], torch.from_numpy(remap.reshape(-1, 4).astype(np.int64))
 
 
-def tetrahedralize(shape: Shape, cell: float, *, snap: bool = True, min_volume_ratio: float = 0.1,
+def tetrahedralize(shape: Shape, cell: float, *, snap: bool = True, min_volume_ratio: float = 0.25,
                    snap_iterations: int = 4, dtype: Optional[torch.dtype] = None) -> TetMesh:
     """A tetrahedral mesh of the solid ``shape`` with lattice spacing ``cell``.
 

@@ -14,7 +14,7 @@ def check_clean(mesh, cell):
     """Valid, positive, no unused vertex, face-connected; returns the boundary node mask [V]."""
     tm.TetMesh(mesh.vertices, mesh.elements)  # validates again from scratch
     volumes = mesh.signed_measures()
-    assert float(volumes.min()) >= 0.1 * cell ** 3 / 6 * (1 - 1e-9)  # the snap's volume floor
+    assert float(volumes.min()) >= 0.25 * cell ** 3 / 6 * (1 - 1e-9)  # the snap's volume floor
     assert mesh.unused_vertices().numel() == 0
     tets = mesh.elements.numpy()
     assert _largest_component(tets).all()
