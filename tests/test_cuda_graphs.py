@@ -73,3 +73,13 @@ def test_failed_graphed_step_keeps_state():
     sim.v = v
     sim.step()  # and it goes on
     assert bool(torch.isfinite(sim.x).all())
+
+
+def test_torch_backend_on_cuda_runs_eagerly(monkeypatch):
+    """The pure-torch path is not captured (its reductions synchronise); it runs eagerly and leaves
+    torch's CUDA random generator usable (a failed capture would not)."""
+    monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
+    sim = make_sim("stvk", True)
+    sim.step(3)
+    assert not sim.system._step_graphs
+    torch.randn(4, device="cuda")

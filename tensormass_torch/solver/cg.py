@@ -79,7 +79,10 @@ class CGSolver:
         self.rhs_sq = torch.zeros_like(self.state.rr)
         self.free = free
         self.native = cg_ops.native_ops_for(self.state.x)
-        self.cuda_graphs = bool(cuda_graphs) and self.state.x.device.type == "cuda"
+        # Graphs only over the compiled ops: the pure-torch reference reduces with segment_reduce,
+        # which synchronises with the host and cannot be captured (a failed capture would leave
+        # torch's CUDA generator expecting a graph).
+        self.cuda_graphs = bool(cuda_graphs) and self.state.x.device.type == "cuda" and self.native is not None
         self._graphs: Dict[tuple, object] = {}
         self.graph_replays = 0
 

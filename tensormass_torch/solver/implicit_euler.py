@@ -312,7 +312,7 @@ def _step_graphs(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     from ..modules import TensorMass
 
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
-            or system.model.rest.device.type != "cuda"):
+            or system.model.rest.device.type != "cuda" or cg_ops.native_ops_for(system.model.rest) is None):
         return None
     key = (opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness, opts.cg_tol, opts.cg_max_iter,
            opts.require_convergence, opts.check_every, imposed)
