@@ -172,12 +172,15 @@ def skip_reason(args, estimator, budget, key, target, backend):
 
 def add_speedups(records):
     """x_ours on every row: its ms/step over ours (the device's extension) at the same size."""
-    ours = {(r["kind"], r["model"], r["elements"]): r["ms_per_step"] for r in records
-            if r["backend"] == "extension" and r.get("ms_per_step")}
+    # ours = the extension on the accelerator (the CPU extension rows are compared with it: their
+    # x_ours is the paper's GPU/CPU speedup), or on the CPU when the whole run is on the CPU
+    on_device = any(r["device"] != "cpu" for r in records)
+    ours = {(r["kind"], r["model"], r["elements"]): r for r in records
+            if r["backend"] == "extension" and r.get("ms_per_step") and (r["device"] != "cpu" or not on_device)}
     for r in records:
         base = ours.get((r["kind"], r["model"], r["elements"]))
-        if base and r.get("ms_per_step") and r["backend"] != "extension":
-            r["x_ours"] = r["ms_per_step"] / base
+        if base is not None and base is not r and r.get("ms_per_step"):
+            r["x_ours"] = r["ms_per_step"] / base["ms_per_step"]
 
 
 def draw(plt, records, meta):
@@ -185,7 +188,7 @@ def draw(plt, records, meta):
     series = sorted({(r["kind"], r["model"]) for r in records})
     for kind, model in series:
         rows = [r for r in records if r["kind"] == kind and r["model"] == model]
-        cpu = sorted((r["elements"], r["x_ours"]) for r in rows if r["backend"] == "cpu-extension" and r.get("x_ours"))
+        cpu = sorted((r["elements"], r["x_ours"]) for r in rows if r["backend"] == "extension" and r["device"] == "cpu" and r.get("x_ours"))
         style = "-" if kind == "tet" else "--"
         if cpu:
             left.plot(*zip(*cpu), style, marker="o", label=f"{kind} {model}")

@@ -47,8 +47,7 @@ class Material:
         poisson: Poisson ratio nu in (-1, 0.5); float or ``[N]``.
         density: mass density rho in kg/m^3 (kg/m^2 per unit thickness for membranes), > 0.
         model: ``"hooke"`` (linear), ``"stvk"`` (St Venant-Kirchhoff) or ``"corotational"``
-            (linear in a per-element rotated frame; native kernels for ``rotation="qr"``, the
-            pure-torch path for ``"polar"``).
+            (linear in a per-element rotated frame; native kernels for both rotations).
         thickness: membrane thickness in m (triangles only), > 0.
         rotation: corotational rotations by ``"polar"`` decomposition or SOFA's ``"qr"`` frame.
     """

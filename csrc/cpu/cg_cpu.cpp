@@ -2,6 +2,8 @@
 // object's chunk sums in chunk order, so the results do not depend on the thread count.
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+
+#include <algorithm>
 #include <torch/library.h>
 
 #include "cg.h"
@@ -22,9 +24,17 @@ double object_sum(const double* scratch, const int64_t* object_chunk, int64_t b)
   return acc;
 }
 
+// Chunks per task: at least ~32k values each, so that small systems run on the calling thread
+// (an OpenMP region costs more than a CG update of a few thousand values).
+inline int64_t chunk_grain(const CGPlan& plan, int64_t values_per_node) {
+  const int64_t values = plan.num_nodes * values_per_node;
+  const int64_t per_chunk = std::max<int64_t>(1, values / std::max<int64_t>(1, plan.num_chunks));
+  return std::max<int64_t>(1, (int64_t{1} << 15) / per_chunk);
+}
+
 template <class F>
-void for_each_chunk(const CGPlan& plan, const int32_t* status, const F& f) {
-  at::parallel_for(0, plan.num_chunks, 1, [&](int64_t begin, int64_t end) {
+void for_each_chunk(const CGPlan& plan, int64_t values_per_node, const int32_t* status, const F& f) {
+  at::parallel_for(0, plan.num_chunks, chunk_grain(plan, values_per_node), [&](int64_t begin, int64_t end) {
     for (int64_t c = begin; c < end; ++c) {
       if (status[plan.chunk_object[c]] == kActive) f(c, plan.chunk_start[c], plan.chunk_start[c + 1]);
     }
@@ -40,7 +50,7 @@ void cg_alpha_cpu(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, con
     const scalar_t* values = p_dot_ap.data_ptr<scalar_t>();
     double* sums = scratch.data_ptr<double>();
     int32_t* st = status.data_ptr<int32_t>();
-    for_each_chunk(plan, st, [&](int64_t c, int64_t begin, int64_t end) {
+    for_each_chunk(plan, 1, st, [&](int64_t c, int64_t begin, int64_t end) {
       double acc = 0.0;
       for (int64_t i = begin; i < end; ++i) acc += static_cast<double>(values[i]);
       sums[c] = acc;
@@ -69,7 +79,7 @@ void cg_update_cpu(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Te
     const scalar_t* alpha_p = alpha.data_ptr<scalar_t>();
     double* sums = scratch.data_ptr<double>();
     int32_t* st = status.data_ptr<int32_t>();
-    for_each_chunk(plan, st, [&](int64_t c, int64_t begin, int64_t end) {
+    for_each_chunk(plan, d, st, [&](int64_t c, int64_t begin, int64_t end) {
       const scalar_t a = alpha_p[plan.chunk_object[c]];
       for (int64_t j = begin * d; j < end * d; ++j) {
         x_p[j] += a * p_p[j];
@@ -97,7 +107,7 @@ void cg_direction_cpu(at::Tensor p, const at::Tensor& r, const at::Tensor& beta,
     scalar_t* p_p = p.data_ptr<scalar_t>();
     const scalar_t* r_p = r.data_ptr<scalar_t>();
     const scalar_t* beta_p = beta.data_ptr<scalar_t>();
-    for_each_chunk(plan, status.data_ptr<int32_t>(), [&](int64_t c, int64_t begin, int64_t end) {
+    for_each_chunk(plan, d, status.data_ptr<int32_t>(), [&](int64_t c, int64_t begin, int64_t end) {
       const scalar_t bt = beta_p[plan.chunk_object[c]];
       for (int64_t j = begin * d; j < end * d; ++j) p_p[j] = r_p[j] + bt * p_p[j];
     });
@@ -113,7 +123,7 @@ void cg_dot_cpu(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chun
     const scalar_t* a_p = a.data_ptr<scalar_t>();
     const scalar_t* b_p = b.data_ptr<scalar_t>();
     double* sums = scratch.data_ptr<double>();
-    at::parallel_for(0, plan.num_chunks, 1, [&](int64_t begin, int64_t end) {
+    at::parallel_for(0, plan.num_chunks, chunk_grain(plan, d), [&](int64_t begin, int64_t end) {
       for (int64_t c = begin; c < end; ++c) sums[c] = chunk_dot(a_p, b_p, plan.chunk_start[c] * d, plan.chunk_start[c + 1] * d);
     });
     scalar_t* out_p = out.data_ptr<scalar_t>();
