@@ -83,3 +83,18 @@ def test_many_objects_example():
     assert {b.material.model for b in sim.bodies} == {"hooke", "stvk"}  # 8 objects: two rounds of shapes
     assert len({float(b.material.young) for b in sim.bodies}) == 8
     assert torch.isfinite(sim.x).all() and float(sim.kinetic_energy().min()) > 0
+
+
+def test_every_builtin_scene_runs():
+    """Each scene of ``tm.scenes.SCENES`` (what ``tensormass run NAME`` runs) at its smallest size."""
+    import torch
+
+    from tensormass_torch.scenes import SCENES
+
+    smallest = {"cantilever": {"resolution": 1}, "sofa_beam": {"scale": 15}, "twist": {"resolution": 1},
+                "spin": {"resolution": 1}}
+    assert set(SCENES) <= set(smallest), f"add the new scene to this test: {sorted(set(SCENES) - set(smallest))}"
+    for name, make in SCENES.items():
+        scene = make(**smallest[name], dtype=torch.float64)
+        scene.simulator.step(2)
+        assert bool(torch.isfinite(scene.simulator.x).all()), name
