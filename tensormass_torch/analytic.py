@@ -298,8 +298,8 @@ def richardson(values: Sequence[float], hs: Sequence[float], order: float = None
         raise ValueError(f"richardson: {values.size} values but {hs.size} mesh sizes")
     need = 2 if order is not None else 3
     if values.size < need:
-        raise ValueError(f"richardson needs at least {need} refinements{' to estimate the order' if order is None else ''}, "
-                         f"got {values.size}")
+        purpose = " to estimate the order" if order is None else ""
+        raise ValueError(f"richardson needs at least {need} refinements{purpose}, got {values.size}")
     if not (np.all(np.isfinite(values)) and np.all(np.isfinite(hs)) and np.all(hs > 0)):
         raise ValueError("richardson: values must be finite and mesh sizes positive and finite")
     by_size = np.argsort(-hs)

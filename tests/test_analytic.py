@@ -299,4 +299,4 @@ def test_accuracy_script_quick(accuracy, tmp_path):
             # the measured frequency and decay are implicit Euler's exact ones for this mesh's mode
             assert abs(r["backward_euler_check"]) < 1e-6
             assert r["decay_per_period"] == pytest.approx(r["decay_backward_euler"], rel=1e-5)
-    assert set(data["meta"]["picks"]) == {"static", "frequency", "amplitude"}
+    assert set(data["meta"]["picks"]) == {"static", "frequency", "motion"}
