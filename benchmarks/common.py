@@ -381,7 +381,7 @@ _MATVEC_BUFFERS = {
     ("stress", "stvk"): ("shape_vectors", "measure", "young", "poisson", "projector"),
     ("stress", "corotational"): ("shape_vectors", "measure", "young", "poisson", "projector", "rest_elements",
                                  "rest_normals"),
-    ("tensor", "hooke"): ("edge_k", "vertex_k"),
+    ("tensor", "hooke"): ("edge_k",),
     ("tensor", "stvk"): ("tensor_b", "tensor_c", "tensor_d"),
 }
 
@@ -401,7 +401,7 @@ def cg_iteration_bytes(model, objects: int = 1, constrained: bool = True, planes
                      form's shape vectors [N, n, d], measure, young, poisson [N] (the extension
                      turns young/poisson into lam/mu, same size), projectors of membranes;
                      corotational adds the rest element nodes (QR frame); the hooke tensor
-                     form its edge [Ed, d, d] and vertex [V, d, d] tensors; the stvk tensor
+                     form its edge [Ed, d, d] tensors; the stvk tensor
                      form B, C, D
       partial_force  PartialForce written by kernel 1 and read by kernel 2: 2 N n d s (the
                      used slots only: the padding of the [N_n, V, d] buffer is not counted)

@@ -119,7 +119,7 @@ def op_bytes(group, op, s, ix):
       index, force_index (ForceIndex)      N n ix         each
       incidences                           V ix
       stress form   shape vectors N n d s, measure/lam/mu 3 N s, projector N d d s (membranes)
-      tensor hooke  edge tensors N d d s (k1), vertex tensors V d d s (fused)
+      tensor hooke  edge tensors N d d s (the edges act on differences: no vertex tensors)
       tensor stvk   B N n^2 d^2 s, C N n^3 d s, D N n^4 s
       PartialForce (used slots)            N n d s        (k1 output, k2 input)
       nodal output                         V d s
@@ -136,7 +136,7 @@ def op_bytes(group, op, s, ix):
         params = n_items * d * d * s
     else:
         params = n_items * (n * n * d * d + n ** 3 * d + n ** 4) * s
-    node_params = V * d * d * s if (group.form == "tensor" and group.model == "hooke") else 0
+    node_params = 0
     indices = 2 * n_items * n * ix
     values = field * (2 if op == "dforces" and not (group.form == "tensor" and group.model == "hooke") else 1)
     if op == "k1":
@@ -164,10 +164,10 @@ def extension_ops(group, u, du):
         fused = lambda: T.stress_forces(u, idx, fi, ns, inc, *sa)  # noqa: E731
         dfused = lambda: T.stress_dforces(u, du, idx, fi, ns, inc, *sa)  # noqa: E731
     elif group.model == "hooke":
-        ek, vk = group.edge_k.contiguous(), group.vertex_k.contiguous()
+        ek = group.edge_k.contiguous()
         k1 = lambda: T.tensor_hooke_partial_forces(u, idx, fi, ns, ek)  # noqa: E731
-        fused = lambda: T.tensor_hooke_forces(u, idx, fi, ns, inc, ek, vk)  # noqa: E731
-        dfused = lambda: T.tensor_hooke_forces(du, idx, fi, ns, inc, ek, vk)  # noqa: E731
+        fused = lambda: T.tensor_hooke_forces(u, idx, fi, ns, inc, ek)  # noqa: E731
+        dfused = lambda: T.tensor_hooke_forces(du, idx, fi, ns, inc, ek)  # noqa: E731
     else:
         tb = native_mod._stvk_tensors(group)
         k1 = lambda: T.tensor_stvk_partial_forces(u, idx, fi, ns, *tb)  # noqa: E731

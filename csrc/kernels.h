@@ -286,31 +286,19 @@ TM_HD void sum_slots(const S* partial, const I* incidences, int64_t num_nodes, i
   }
 }
 
-// TotalForce[i] = sum_{s < incidences[i]} PartialForce[s][i] (+ node term -K_ii values_i).
-template <int D, typename S, typename I, bool NODE_TERM>
+// TotalForce[i] = sum_{s < incidences[i]} PartialForce[s][i] (+ node_term[i]).
+template <int D, typename S, typename I>
 struct GatherKernel {
   const S* partial;     // [N_n, V, D]
   const I* incidences;  // [V]
-  const S* vertex_k;    // [V, D, D] (NODE_TERM)
-  const S* values;      // [V, D]    (NODE_TERM)
-  const S* node_term;   // [V, D] added as is, or nullptr (!NODE_TERM)
+  const S* node_term;   // [V, D] added as is, or nullptr
   S* out;               // [V, D]
   int64_t num_nodes;
 
   TM_HD void operator()(int64_t i) const {
     S acc[D];
     sum_slots<D, S, I>(partial, incidences, num_nodes, i, acc);
-    if (NODE_TERM) {
-      S k[D][D];
-      load_matrix<D, D, S>(vertex_k + i * (D * D), k);
-      S v[D];
-      TM_UNROLL for (int a = 0; a < D; ++a) v[a] = ld(values + i * D + a);
-      TM_UNROLL for (int a = 0; a < D; ++a) {
-        S s = S(0);
-        TM_UNROLL for (int b = 0; b < D; ++b) s += k[a][b] * v[b];
-        acc[a] -= s;
-      }
-    } else if (node_term != nullptr) {
+    if (node_term != nullptr) {
       TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += ld(node_term + i * D + a);
     }
     TM_UNROLL for (int a = 0; a < D; ++a) out[i * D + a] = acc[a];
@@ -321,9 +309,9 @@ struct GatherKernel {
 //   (K p)_i = sum_{s < incidences[i]} PartialForce[s][i]  (- K_ii p_i with a node stiffness)
 //   Ap[i] = free_i * (c_M m_i p_i - c_K (K p)_i),   pAp[i] = sum_a p[i][a] Ap[i][a]
 // PartialForce holds the partial force differentials (dF/du) p of kernel 1; the node stiffness
-// K_ii [V, D, D] is what acts on a node alone: the vertex term of the hooke tensor form, contact
-// penalties (k n n^T). The arithmetic follows the torch expression (c_M m_i) p_i - c_K (K p)_i,
-// then the projection, so that the result equals the composed path to rounding.
+// K_ii [V, D, D] is what acts on a node alone: contact penalties (k n n^T). The arithmetic
+// follows the torch expression (c_M m_i) p_i - c_K (K p)_i, then the projection, so that the
+// result equals the composed path to rounding.
 template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
 struct SystemGatherKernel {
   const S* partial;         // [N_n, V, D]

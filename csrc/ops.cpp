@@ -65,7 +65,7 @@ TORCH_LIBRARY(tensormass, m) {
   m.def("tensor_hooke_partial_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, "
         "Tensor edge_k) -> Tensor");
   m.def("tensor_hooke_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, Tensor incidences, "
-        "Tensor edge_k, Tensor vertex_k) -> Tensor");
+        "Tensor edge_k) -> Tensor");
   // ---- tensor form, stvk
   m.def("tensor_stvk_element_forces(Tensor u, Tensor elements, Tensor tensor_b, Tensor tensor_c, "
         "Tensor tensor_d) -> Tensor");

@@ -289,11 +289,10 @@ void run_stress_kernel1(const StressArgs& a, const at::Tensor& force_index, at::
   });
 }
 
-// Kernel 2: out [V, d] = sum of the used slots of partial [N_n, V, d] (+ node term).
-//   node term: `node_term` [V, d] added as is, or -vertex_k [V, d, d] @ values [V, d].
+// Kernel 2: out [V, d] = sum of the used slots of partial [N_n, V, d] (+ node_term [V, d]).
 template <class L>
 void run_gather(const at::Tensor& partial, const at::Tensor& incidences, const at::Tensor& node_term,
-                const at::Tensor& vertex_k, const at::Tensor& values, at::Tensor& out) {
+                at::Tensor& out) {
   const int64_t num_nodes = out.size(0);
   dispatch_scalar(out.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
@@ -301,18 +300,13 @@ void run_gather(const at::Tensor& partial, const at::Tensor& incidences, const a
       using I = decltype(i_tag);
       dispatch_dim(out.size(1), [&](auto d_c) {
         constexpr int D = decltype(d_c)::value;
-        dispatch_bool(vertex_k.defined(), [&](auto vt_c) {
-          constexpr bool VT = decltype(vt_c)::value;
-          GatherKernel<D, S, I, VT> k;
-          k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
-          k.incidences = incidences.data_ptr<I>();
-          k.vertex_k = VT ? vertex_k.data_ptr<S>() : nullptr;
-          k.values = VT ? values.data_ptr<S>() : nullptr;
-          k.node_term = node_term.defined() ? node_term.data_ptr<S>() : nullptr;
-          k.out = out.data_ptr<S>();
-          k.num_nodes = num_nodes;
-          L::run(num_nodes, k, L::kNodeBlock);
-        });
+        GatherKernel<D, S, I> k;
+        k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
+        k.incidences = incidences.data_ptr<I>();
+        k.node_term = node_term.defined() ? node_term.data_ptr<S>() : nullptr;
+        k.out = out.data_ptr<S>();
+        k.num_nodes = num_nodes;
+        L::run(num_nodes, k, L::kNodeBlock);
       });
     });
   });
@@ -387,7 +381,7 @@ at::Tensor stress_fused_impl(const StressArgs& a, const at::Tensor& force_index,
   at::Tensor partial = at::empty({num_slots, a.num_nodes, a.dim}, a.u.options());
   run_stress_kernel1<L, DFORCE>(a, force_index, partial);
   at::Tensor out = at::empty({a.num_nodes, a.dim}, a.u.options());
-  run_gather<L>(partial, incidences, at::Tensor(), at::Tensor(), at::Tensor(), out);
+  run_gather<L>(partial, incidences, at::Tensor(), out);
   return out;
 }
 
@@ -507,7 +501,7 @@ at::Tensor gather_partial(const at::Tensor& partial, const at::Tensor& incidence
   }
   typename L::Guard guard(partial.device());
   at::Tensor out = at::empty({num_nodes, dim}, partial.options());
-  run_gather<L>(partial, incidences, term, at::Tensor(), at::Tensor(), out);
+  run_gather<L>(partial, incidences, term, out);
   return out;
 }
 
@@ -578,7 +572,7 @@ at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const
     });
   });
   at::Tensor out = at::empty({num_nodes, dim}, partial.options());
-  run_gather<L>(padded, incidences, term, at::Tensor(), at::Tensor(), out);
+  run_gather<L>(padded, incidences, term, out);
   return out;
 }
 
@@ -725,20 +719,18 @@ at::Tensor tensor_hooke_partial_forces(const at::Tensor& u, const at::Tensor& ed
   return partial;
 }
 
-// F = -K_ii u_i - sum_j K_ij u_j (linear: the dforces along du are tensor_hooke_forces(du)).
+// F_i = -sum_j K_ij (u_j - u_i) (linear: the dforces along du are tensor_hooke_forces(du)).
 template <class L>
 at::Tensor tensor_hooke_forces(const at::Tensor& u, const at::Tensor& edges, const at::Tensor& force_index,
-                               int64_t num_slots, const at::Tensor& incidences, const at::Tensor& edge_k,
-                               const at::Tensor& vertex_k) {
+                               int64_t num_slots, const at::Tensor& incidences, const at::Tensor& edge_k) {
   HookeTensorArgs a(u, edges, edge_k);
   check_plan(u, force_index, num_slots, a.index_type, {a.num_edges, 2});
   check_incidences(u, incidences, a.index_type);
-  check_float_tensor(vertex_k, "vertex_k", u, {u.size(0), a.dim, a.dim});
   typename L::Guard guard(u.device());
   at::Tensor partial = at::empty({num_slots, u.size(0), a.dim}, u.options());
   run_hooke_kernel1<L>(a, force_index, partial);
   at::Tensor out = at::empty({u.size(0), a.dim}, u.options());
-  run_gather<L>(partial, incidences, at::Tensor(), vertex_k, u, out);
+  run_gather<L>(partial, incidences, at::Tensor(), out);
   return out;
 }
 
@@ -826,7 +818,7 @@ at::Tensor tensor_stvk_padded_impl(const StvkTensorArgs& a, const at::Tensor& fo
   run_stvk_tensor_kernel1<L, DFORCE>(a, force_index, partial);
   if (incidences == nullptr) return partial;
   at::Tensor out = at::empty({a.u.size(0), a.dim}, a.u.options());
-  run_gather<L>(partial, *incidences, at::Tensor(), at::Tensor(), at::Tensor(), out);
+  run_gather<L>(partial, *incidences, at::Tensor(), out);
   return out;
 }
 

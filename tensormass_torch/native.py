@@ -146,9 +146,9 @@ def _ref_tensor_hooke_partial_forces(u, edges, force_index, num_slots, edge_k):
                     u.shape[0])
 
 
-def _ref_tensor_hooke_forces(u, edges, force_index, num_slots, incidences, edge_k, vertex_k):
+def _ref_tensor_hooke_forces(u, edges, force_index, num_slots, incidences, edge_k):
     return _gather(tensor_form.hooke_edge_partial_forces(u, edges, edge_k), edges, force_index, num_slots,
-                   incidences, tensor_form.hooke_vertex_forces(u, vertex_k))
+                   incidences, None)
 
 
 def _ref_tensor_stvk_element_forces(u, elements, b, c, d):
@@ -649,7 +649,7 @@ def forces(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> 
                                                   *_stress_args(group, u, rotations))
     if group.model == "hooke":
         return torch.ops.tensormass.tensor_hooke_forces(u, index, force_index, plan.num_slots, incidences,
-                                                        group.edge_k.contiguous(), group.vertex_k.contiguous())
+                                                        group.edge_k.contiguous())
     return torch.ops.tensormass.tensor_stvk_forces(u, index, force_index, plan.num_slots, incidences,
                                                    *_stvk_tensors(group))
 
@@ -665,15 +665,14 @@ def dforces(group, u: torch.Tensor, du: torch.Tensor, rotations: Optional[torch.
                                                    incidences, *_stress_args(group, u, rotations))
     if group.model == "hooke":
         return torch.ops.tensormass.tensor_hooke_forces(du, index, force_index, plan.num_slots, incidences,
-                                                        group.edge_k.contiguous(), group.vertex_k.contiguous())
+                                                        group.edge_k.contiguous())
     return torch.ops.tensormass.tensor_stvk_dforces(u, du, index, force_index, plan.num_slots,
                                                     incidences, *_stvk_tensors(group))
 
 
 def system_fusable(group) -> bool:
     """Whether :func:`system_matvec` has a fused path for ``group``: kernel 1 through a padded
-    partial-dforce op (stress form, both tensor forms; the hooke tensor form's vertex term goes
-    to ``gather_system`` as a node stiffness)."""
+    partial-dforce op (stress form, both tensor forms)."""
     return hasattr(torch.ops.tensormass, "gather_system") and group.form in ("stress", "tensor")
 
 
@@ -695,8 +694,6 @@ def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, f
     elif group.model == "hooke":  # linear: the partial forces of p are its partial dforces
         partial = torch.ops.tensormass.tensor_hooke_partial_forces(p, index, force_index, plan.num_slots,
                                                                    group.edge_k.contiguous())
-        vertex_k = group.vertex_k.contiguous()
-        node_stiffness = vertex_k if node_stiffness is None else vertex_k + node_stiffness
     else:
         partial = torch.ops.tensormass.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots,
                                                                    *_stvk_tensors(group))

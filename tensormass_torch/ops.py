@@ -133,19 +133,12 @@ def node_gather(partial: torch.Tensor, plan: GatherPlan, node_term: Optional[tor
     return ref_gather.node_gather(partial, plan.index, plan.force_index, plan.num_slots, plan.num_nodes, node_term)
 
 
-def _node_term(group, values):
-    """The vertex term of the hooke tensor form (-K_ii v_i), None for the other forms."""
-    if group.form == "tensor" and group.model == "hooke":
-        return tensor_form.hooke_vertex_forces(values, group.vertex_k)
-    return None
-
-
 def forces(group, u: torch.Tensor) -> torch.Tensor:
     """Elastic forces of the group on every node ``[V, d]``."""
     native = _native(group, u)
     if native is not None:  # corotational: as element_forces
         return native.forces(group, u)
-    return node_gather(element_forces(group, u), group.plan, _node_term(group, u))
+    return node_gather(element_forces(group, u), group.plan)
 
 
 def dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -156,7 +149,7 @@ def dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[torch.Tens
     native = _native(group, u)
     if native is not None:
         return native.dforces(group, u, du, linearize(group, u) if state is None else state)
-    return node_gather(element_dforces(group, u, du, state), group.plan, _node_term(group, du))
+    return node_gather(element_dforces(group, u, du, state), group.plan)
 
 
 def energy(group, u: torch.Tensor) -> torch.Tensor:
@@ -193,7 +186,7 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
     Fused (kernel 1 = the group's padded partial-dforce op, kernel 2 = ``gather_system`` with the
     mass term, subtraction, projection and per-node dot in its epilogue) when there is exactly one
     group and the extension has its partial-dforce op for that device (every form: the hooke tensor
-    form's vertex term joins the node stiffness) and mass/free share p's dtype and device;
+    form included) and mass/free share p's dtype and device;
     otherwise the composed reference below.
     """
     groups = list(groups)

@@ -74,7 +74,7 @@ def padded_partial_dforces(group, u, p, index_dtype):
         partial = T.stress_partial_dforces(u, p, idx, fi, plan.num_slots, *args)
     elif group.model == "stvk":
         partial = T.tensor_stvk_partial_dforces(u, p, idx, fi, plan.num_slots, *native._stvk_tensors(group))
-    else:  # hooke tensor form: the edge part only (the vertex term -K_ii p_i is not in the partials)
+    else:  # hooke tensor form: the edges carry the whole product (differences, no vertex term)
         partial = T.tensor_hooke_partial_forces(p, idx, fi, plan.num_slots, group.edge_k.contiguous())
     return partial, inc
 
@@ -95,12 +95,8 @@ def test_op_matches_reference_and_unfused(kind, model, form, dtype, with_free, i
     assert rel(dot, ref_dot) < tol(dtype)
     if with_free:
         assert bool((ap[free == 0] == 0).all())
-    # = the unfused matvec of the solver (for the hooke tensor form add the vertex term it lacks)
+    # = the unfused matvec of the solver
     exp_ap, exp_dot = unfused(group, u, p, mass, free)
-    if form == "tensor" and model == "hooke":
-        vertex = -torch.einsum("vab,vb->va", group.vertex_k, p)
-        exp_ap = exp_ap + C_STIFF * vertex * (1 if free is None else free.unsqueeze(-1))
-        exp_dot = exp_dot + (p * C_STIFF * vertex * (1 if free is None else free.unsqueeze(-1))).sum(-1)
     assert rel(ap, exp_ap) < tol(dtype, group)
     assert rel(dot, exp_dot) < tol(dtype, group)
 

@@ -84,8 +84,8 @@ def op_calls(group, u, du, index_dtype=torch.int64, lam=None, mu=None):
         calls += [
             ("tensor_hooke_element_forces", (u, idx, group.edge_k)),
             ("tensor_hooke_partial_forces", (u, idx, fi, ns, group.edge_k)),
-            ("tensor_hooke_forces", (u, idx, fi, ns, inc, group.edge_k, group.vertex_k)),
-            ("tensor_hooke_forces", (du, idx, fi, ns, inc, group.edge_k, group.vertex_k)),
+            ("tensor_hooke_forces", (u, idx, fi, ns, inc, group.edge_k)),
+            ("tensor_hooke_forces", (du, idx, fi, ns, inc, group.edge_k)),
         ]
     else:
         t = (group.tensor_b, group.tensor_c, group.tensor_d)
