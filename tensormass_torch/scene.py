@@ -1,18 +1,31 @@
 """Bodies and the Simulator: many objects packed into one batch, stepped by implicit Euler."""
 from __future__ import annotations
 
+import dataclasses
 import math
+import warnings
 from typing import Callable, List, Optional, Sequence
 
 import torch
 
 from .constraints import node_mask
 from .contact import Plane, Planes
-from .errors import SceneError
+from .diagnostics import InversionCheck, InversionReport
+from .errors import SceneError, SolverError
 from .materials import Material
 from .modules import TensorMass
 from .solver.implicit_euler import DynamicsSystem, StepOptions, StepReport, implicit_euler_step
 from .solver.segments import Segments
+
+
+#: ``Simulator(check_inversion=...)`` values.
+INVERSION_CHECKS = ("off", "warn", "error")
+#: Deepest sub-stepping retry ``Simulator(substeps_on_failure=...)`` accepts (2^10 sub-steps).
+MAX_SUBSTEP_DEPTH = 10
+
+
+class InvertedElementsWarning(RuntimeWarning):
+    """A step left elements inverted (``Simulator(check_inversion="warn")``)."""
 
 
 class Body:
@@ -72,13 +85,21 @@ class Simulator:
             ``StepOptions``.
         form: element force form, ``"auto" | "stress" | "tensor"``.
         device, dtype: where and in what precision to simulate (default: the meshes').
+        check_inversion: inverted elements after each step: ``"off"`` (no check, no cost),
+            ``"warn"`` (counts per object in ``StepReport.inverted``, details in
+            ``last_inversion``, an ``InvertedElementsWarning`` when there are any) or ``"error"``
+            (a step that inverts an element raises ``SolverError`` naming the objects and
+            elements; the state is kept).
+        substeps_on_failure: when a step fails (``SolverError``), retry it as 2, 4, ..., 2^k
+            sub-steps of dt / 2^k, k up to this depth (0: no retry); ``StepReport.substeps`` says
+            how many were used. The state is kept if every retry fails.
     """
 
     def __init__(self, bodies: Sequence[Body], dt: float = 0.01, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0, planes: Sequence[Plane] = (),
                  cg_tol: float = 1e-6, cg_max_iter: int = 200, require_convergence: bool = True,
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
-                 cuda_graphs: bool = True):
+                 cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0):
         bodies = list(bodies)
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -92,6 +113,13 @@ class Simulator:
                 raise SceneError(f"{name} must be >= 0 and finite, got {value!r}")
         if newton_iters < 1:
             raise SceneError(f"newton_iters must be >= 1, got {newton_iters}")
+        if check_inversion not in INVERSION_CHECKS:
+            raise SceneError(f"check_inversion must be one of {', '.join(map(repr, INVERSION_CHECKS))}, "
+                             f"got {check_inversion!r}")
+        if isinstance(substeps_on_failure, bool) or not isinstance(substeps_on_failure, int) \
+                or not 0 <= substeps_on_failure <= MAX_SUBSTEP_DEPTH:
+            raise SceneError(f"substeps_on_failure must be an integer in [0, {MAX_SUBSTEP_DEPTH}] "
+                             f"(retries at dt / 2^k), got {substeps_on_failure!r}")
         devices = {b.mesh.vertices.device for b in bodies}
         if device is None and len(devices) > 1:
             raise SceneError(f"bodies live on mixed devices {sorted(map(str, devices))}; pass device=")
@@ -143,17 +171,22 @@ class Simulator:
         self.time = 0.0
         self.steps_done = 0
         self.last_report: Optional[StepReport] = None
+        self.check_inversion = check_inversion
+        self.substeps_on_failure = substeps_on_failure
+        # Built only when asked for: "off" costs nothing (no buffers, no work per step).
+        self._inversion = InversionCheck.for_simulator(self) if check_inversion != "off" else None
+        self.last_inversion: Optional[InversionReport] = None
 
     @property
     def num_bodies(self) -> int:
         return len(self.bodies)
 
-    def _imposed_velocity(self, t_next: float):
-        """End-of-step velocities of prescribed nodes ``[V, 3]`` (zero on fixed nodes), or None."""
+    def _imposed_velocity(self, x: torch.Tensor, t_next: float, h: float):
+        """End-of-step velocities ``[V, 3]`` taking the prescribed nodes from ``x [V, 3]`` to
+        ``motion(t_next)`` over a step of length h (zero on fixed nodes), or None."""
         if not self._has_prescribed:
             return None
         target_v = torch.zeros_like(self.v)
-        h = self.options.dt
         for i, b in enumerate(self.bodies):
             if b.motion is None:
                 continue
@@ -161,23 +194,81 @@ class Simulator:
             goal = torch.as_tensor(b.motion(t_next), dtype=self.dtype, device=self.device)
             if goal.shape != (nodes.numel(), 3):
                 raise SceneError(f"body {i}: motion(t) returned shape {tuple(goal.shape)}; expected [{nodes.numel()}, 3]")
-            target_v[nodes] = (goal - self.x[nodes]) / h
+            target_v[nodes] = (goal - x[nodes]) / h
         return target_v
+
+    def _check_inversion(self, x: torch.Tensor, t: float, report: StepReport):
+        """Measure inverted elements at ``x [V, 3]`` (time t) into ``report`` (``check_inversion``
+        on); "error" raises SolverError when any element is inverted."""
+        inversion = self._inversion(x)
+        report.inverted = inversion.inverted
+        if not bool((inversion.inverted > 0).any()):
+            return inversion
+        names = [b.name for b in self.bodies]
+        if self.check_inversion == "error":
+            status = ["inverted" if c else "ok" for c in inversion.inverted.tolist()]
+            raise SolverError(f"the step to t = {t:.6g} inverts elements ({inversion.describe(names)}); the state was not "
+                              "changed", status, report)
+        warnings.warn(f"inverted elements at t = {t:.6g}: {inversion.describe(names)}",
+                      InvertedElementsWarning, stacklevel=5)
+        return inversion
+
+    def _substep(self, x, v, t_end: float, opts: StepOptions):
+        """One implicit Euler step of length ``opts.dt`` from ``x, v [V, 3]``, ending at time
+        t_end (nothing committed): (x, v, report, inversion report or None)."""
+        imposed = self._imposed_velocity(x, t_end, opts.dt)
+        x_new, v_new, report = implicit_euler_step(self.system, x, v, opts, imposed)
+        inversion = self._check_inversion(x_new, t_end, report) if self._inversion is not None else None
+        return x_new, v_new, report, inversion
+
+    def _substeps(self, count: int):
+        """The step from the current state as ``count`` sub-steps of dt / count (nothing
+        committed): (x, v, report, inversion report or None)."""
+        opts = self.options if count == 1 else dataclasses.replace(self.options, dt=self.options.dt / count)
+        x, v = self.x, self.v
+        reports, inversion = [], None
+        for j in range(count):
+            # prescribed motions at the sub-step times; the last one ends exactly at time + dt
+            t_end = self.time + self.options.dt * ((j + 1) / count)
+            x, v, report, inversion = self._substep(x, v, t_end, opts)
+            reports.append(report)
+        if count == 1:
+            return x, v, reports[0], inversion
+        merged = StepReport(cg=[r for rep in reports for r in rep.cg], inverted=reports[-1].inverted,
+                            substeps=count)
+        return x, v, merged, inversion
+
+    def _advance(self):
+        """One step of dt, retried in sub-steps on failure up to ``substeps_on_failure`` halvings."""
+        try:
+            return self._substeps(1)
+        except SolverError as first:
+            if self.substeps_on_failure == 0:
+                raise
+            failure = first
+        for depth in range(1, self.substeps_on_failure + 1):
+            try:
+                return self._substeps(2 ** depth)
+            except SolverError as exc:
+                failure = exc
+        raise SolverError(f"step at t = {self.time:.6g} failed at dt = {self.options.dt:g} and in 2 to "
+                          f"{2 ** self.substeps_on_failure} sub-steps; last: {failure}", failure.status,
+                          failure.report) from failure
 
     def step(self, n: int = 1) -> StepReport:
         """Advance ``n`` implicit Euler steps; returns the last step's report.
 
-        A failed step raises ``SolverError`` and leaves positions, velocities and time as they
-        were before that step.
+        A failed step (after its sub-step retries, if any) raises ``SolverError`` and leaves
+        positions, velocities and time as they were before that step.
         """
         report = self.last_report
         for _ in range(int(n)):
-            imposed = self._imposed_velocity(self.time + self.options.dt)
-            x, v, report = implicit_euler_step(self.system, self.x, self.v, self.options, imposed)
+            x, v, report, inversion = self._advance()
             self.x, self.v = x, v
             self.time += self.options.dt
             self.steps_done += 1
             self.last_report = report
+            self.last_inversion = inversion
         return report
 
     def _range(self, i: int) -> slice:

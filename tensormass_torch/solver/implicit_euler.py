@@ -59,6 +59,14 @@ class StepReport:
         """Total CG iterations of each object over the step ``[B]``."""
         return sum(r.iterations for r in self.cg)
 
+    # -- filled by the Simulator (scene.py), never by implicit_euler_step --------------------
+    #: inverted elements per object ``[B]`` (int64) at the end of the step when the simulator's
+    #: ``check_inversion`` is on; None otherwise.
+    inverted: torch.Tensor | None = None
+    #: sub-steps the step took: 1, or 2^k after a failed step was retried at dt / 2^k
+    #: (``substeps_on_failure``); ``cg`` then holds every sub-step's solves.
+    substeps: int = 1
+
 
 class DynamicsSystem:
     """Everything the integrator needs about the packed objects.

@@ -1,0 +1,217 @@
+"""Diagnostics of a simulation's state: inverted elements and volume change per object, and an
+inventory of the tensors a scene allocates.
+
+Inversion is measured by each element's signed measure at the current positions against its
+rest measure (the ratio is 1 at rest, <= 0 once inverted):
+
+    tetrahedra     signed volume det[x1 - x0, x2 - x0, x3 - x0] / 6
+    triangles      signed area 0.5 (x1 - x0) x (x2 - x0) . n_rest (n_rest the unit rest normal):
+                   a membrane whose normal has flipped against its rest normal has a negative
+                   area; for 2-D triangles (placed in z = 0, rest normal +z) it is the signed
+                   planar area
+
+Per object: the number of inverted elements, the volume (area) ratio sum(current) / sum(rest)
+and the smallest element ratio. Everything stays on the device until a caller asks for element
+ids (``InversionReport.worst``) or a message.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Sequence
+
+import torch
+
+
+def signed_measures(x: torch.Tensor, elements: torch.Tensor, rest_normals: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Signed measures ``[N]`` of elements ``[N, n]`` at positions ``x [V, 3]``: volumes of tets
+    (n = 4), areas of triangles (n = 3) signed by ``rest_normals [N, 3]`` (unit)."""
+    nodes = x[elements]  # [N, n, 3]
+    e1, e2 = nodes[:, 1] - nodes[:, 0], nodes[:, 2] - nodes[:, 0]
+    normal = torch.linalg.cross(e1, e2)
+    if elements.shape[1] == 4:
+        return (normal * (nodes[:, 3] - nodes[:, 0])).sum(-1) / 6.0
+    return 0.5 * (normal * rest_normals).sum(-1)
+
+
+@dataclass
+class InversionReport:
+    """Inversion and volume change of each of B objects at one state.
+
+    Attributes:
+        inverted: inverted elements per object ``[B]`` int64 (signed measure <= 0).
+        volume_ratio: sum of signed measures / sum of rest measures per object ``[B]`` (areas for
+            triangle objects).
+        min_ratio: smallest element measure ratio per object ``[B]`` (< 0: inverted).
+        element_ratios: per object, the measure ratio of each of its elements ``[N_b]`` (element
+            ids are the object's own mesh ids).
+    """
+
+    inverted: torch.Tensor
+    volume_ratio: torch.Tensor
+    min_ratio: torch.Tensor
+    element_ratios: List[torch.Tensor]
+
+    def worst(self, k: int = 5) -> List[List[int]]:
+        """Per object, the ids of its (up to k) inverted elements, most inverted first."""
+        out = []
+        for ratios in self.element_ratios:
+            bad = torch.nonzero(ratios <= 0).flatten()
+            order = torch.argsort(ratios[bad])[:k]
+            out.append(bad[order].tolist())
+        return out
+
+    def describe(self, names: Optional[Sequence[Optional[str]]] = None, k: int = 5) -> str:
+        """One line per object with inverted elements: its count, worst ids and their ratios."""
+        lines = []
+        worst = self.worst(k)
+        for b, count in enumerate(self.inverted.tolist()):
+            if count == 0:
+                continue
+            label = f"object {b}" + (f" ({names[b]})" if names and names[b] else "")
+            ratios = self.element_ratios[b]
+            ids = ", ".join(f"{i} ({float(ratios[i]):+.3g})" for i in worst[b])
+            lines.append(f"{label}: {count} inverted elements, worst {ids}")
+        return "; ".join(lines)
+
+
+class InversionCheck:
+    """Inverted-element and volume measurement of packed objects (built once, applied per state).
+
+    Args:
+        rest: rest positions of all nodes ``[V, 3]``.
+        objects: per object, its elements ``[N_b, n]`` in global node ids (n = 4 or 3; one kind
+            per object).
+    """
+
+    def __init__(self, rest: torch.Tensor, objects: Sequence[torch.Tensor]):
+        self.num_objects = len(objects)
+        self.lengths = [int(e.shape[0]) for e in objects]
+        # Objects of one kind are measured together: one gather and one segmented sum per kind.
+        self.kinds = []
+        for n in (4, 3):
+            ids = [b for b, e in enumerate(objects) if e.shape[1] == n]
+            if not ids:
+                continue
+            elements = torch.cat([objects[b] for b in ids])
+            normals = None
+            if n == 3:
+                nodes = rest[elements]
+                normals = torch.linalg.cross(nodes[:, 1] - nodes[:, 0], nodes[:, 2] - nodes[:, 0])
+                normals = normals / torch.linalg.vector_norm(normals, dim=1, keepdim=True)
+            rest_measures = signed_measures(rest, elements, normals)
+            lengths = torch.tensor([self.lengths[b] for b in ids], device=rest.device)
+            rest_totals = torch.segment_reduce(rest_measures, "sum", lengths=lengths)
+            self.kinds.append((torch.tensor(ids, device=rest.device), ids, elements, normals, rest_measures,
+                               lengths, rest_totals))
+
+    @classmethod
+    def for_simulator(cls, sim) -> "InversionCheck":
+        """The check of a ``Simulator``'s bodies (element ids are each body's mesh ids)."""
+        objects = [b.mesh.elements.to(sim.device) + sim.ptr[i] for i, b in enumerate(sim.bodies)]
+        return cls(sim.model.rest, objects)
+
+    def __call__(self, x: torch.Tensor) -> InversionReport:
+        """The report at positions ``x [V, 3]``."""
+        like = x.new_zeros(self.num_objects)
+        inverted = torch.zeros(self.num_objects, dtype=torch.long, device=x.device)
+        volume_ratio, min_ratio = like.clone(), like.clone()
+        element_ratios: List[Optional[torch.Tensor]] = [None] * self.num_objects
+        for index, ids, elements, normals, rest_measures, lengths, rest_totals in self.kinds:
+            measures = signed_measures(x, elements, normals)
+            ratios = measures / rest_measures
+            counts = torch.segment_reduce((ratios <= 0).to(x.dtype), "sum", lengths=lengths)
+            inverted.index_copy_(0, index, counts.round().long())
+            volume_ratio.index_copy_(0, index, torch.segment_reduce(measures, "sum", lengths=lengths) / rest_totals)
+            min_ratio.index_copy_(0, index, torch.segment_reduce(ratios, "min", lengths=lengths))
+            for b, part in zip(ids, torch.split(ratios, [self.lengths[b] for b in ids])):
+                element_ratios[b] = part
+        return InversionReport(inverted, volume_ratio, min_ratio, element_ratios)
+
+
+def inversion_report(sim, x: Optional[torch.Tensor] = None) -> InversionReport:
+    """A one-off :class:`InversionReport` of a ``Simulator`` at ``x [V, 3]`` (default: its state)."""
+    return InversionCheck.for_simulator(sim)(sim.x if x is None else x)
+
+
+# ---------------------------------------------------------------------------------------------
+# what a scene allocates
+# ---------------------------------------------------------------------------------------------
+
+
+def allocations(sim) -> Dict[str, int]:
+    """Bytes of every tensor a ``Simulator`` holds, by name: ``model.*`` (rest, mass),
+    ``group<i>.<kind>.<model>.<form>.*`` (each element group's buffers, gather plan and the
+    extension's cached copies: int32 indices, Lame parameters), ``system.*`` (external forces,
+    free mask, segments, planes), ``solver.*`` (the CG's vectors and per-object scalars, the
+    linearisation buffers of each system matvec, the CUDA step buffers) and ``state.*``
+    (positions, velocities, constraint masks).
+
+    Each entry counts its tensor's whole storage; a tensor that shares its storage with one
+    listed before (a view, or the same tensor held twice) is not listed again. The solver's tensors appear after the first step."""
+    out: Dict[str, int] = {}
+    seen = set()
+
+    def add(name, t):
+        if not isinstance(t, torch.Tensor):
+            return
+        storage = t.untyped_storage()
+        key = (t.device, storage.data_ptr())
+        if storage.nbytes() and key in seen:
+            return
+        seen.add(key)
+        out[name] = storage.nbytes()  # what is allocated (a view's whole storage)
+
+    model = sim.model
+    add("model.rest", model.rest)
+    add("model.mass", model.mass)
+    for i, g in enumerate(model.groups):
+        prefix = f"group{i}.{g.kind}.{g.model}.{g.form}"
+        for name, buf in g.named_buffers():
+            add(f"{prefix}.{name}", buf)
+        for name in ("index", "force_index", "incidences"):
+            add(f"{prefix}.plan.{name}", getattr(g.plan, name, None))
+        cached = getattr(g.plan, "_native_indices", None)
+        for name, t in zip(("index", "force_index", "incidences"), cached[2] if cached else ()):
+            add(f"{prefix}.native.{name}", t)
+        cached = g.__dict__.get("_native_lame")
+        for name, t in zip(("lam", "mu"), cached[2] if cached else ()):
+            add(f"{prefix}.native.{name}", t)
+    system = sim.system
+    add("system.mass", system.mass)
+    add("system.external", system.external)
+    add("system.free", system.free)
+    add("system.segments.lengths", system.segments.lengths)
+    add("system.segments.node_object", system.segments.node_object)
+    if system.planes is not None:
+        for name in ("normals", "offsets", "stiffness"):
+            add(f"system.planes.{name}", getattr(system.planes, name))
+    cg = system._cg
+    if cg is not None:
+        for name, t in vars(cg.state).items():
+            add(f"solver.cg.{name}", t)
+        add("solver.cg.rhs_sq", cg.rhs_sq)
+    for k, matvec in enumerate(system._matvecs.values()):
+        add(f"solver.matvec{k}.u", matvec.u)
+        for j, s in enumerate(matvec.states or []):
+            add(f"solver.matvec{k}.state{j}", s)
+        add(f"solver.matvec{k}.node_stiffness", matvec.node_stiffness)
+    for k, graphs in enumerate(system._step_graphs.values()):
+        for name in ("x", "v", "imposed", "x_new", "v_new", "dv_imposed", "norms", "v_norms"):
+            add(f"solver.step_graphs{k}.{name}", getattr(graphs, name, None))
+    for name in ("x", "v", "fixed", "prescribed"):
+        add(f"state.{name}", getattr(sim, name))
+    return out
+
+
+def allocation_summary(sim) -> Dict[str, int]:
+    """``allocations(sim)`` summed by part: ``model`` (rest, mass, element groups), ``solver``
+    (system and solver buffers) and ``state`` (bytes)."""
+    parts = {"model": 0, "solver": 0, "state": 0}
+    for name, nbytes in allocations(sim).items():
+        head = name.split(".", 1)[0]
+        part = "model" if head == "model" or head.startswith("group") else "state" if head == "state" else "solver"
+        parts[part] += nbytes
+    return parts
+
+
+__all__ = ["InversionCheck", "InversionReport", "allocation_summary", "allocations", "inversion_report", "signed_measures"]

@@ -1,0 +1,228 @@
+"""Inverted-element detection (tets, membranes, 2-D triangles) against an independent numpy
+oracle; the Simulator's check_inversion modes; and what a minimal scene allocates against a
+full-featured one (issue 6)."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.diagnostics import InversionCheck, allocations, inversion_report
+from tensormass_torch.scene import InvertedElementsWarning
+
+DT = torch.float64
+
+
+def oracle_ratios(rest: np.ndarray, x: np.ndarray, elements: np.ndarray) -> np.ndarray:
+    """Signed measure ratios ``[N]`` (numpy): det for tets; for triangles the current area vector
+    projected on the rest unit normal, over the rest area."""
+    if elements.shape[1] == 4:
+        def vol(p):
+            q = p[elements]
+            return np.linalg.det(np.stack([q[:, k] - q[:, 0] for k in (1, 2, 3)], axis=1)) / 6.0
+        return vol(x) / vol(rest)
+    r, q = rest[elements], x[elements]
+    rest_area = np.cross(r[:, 1] - r[:, 0], r[:, 2] - r[:, 0])
+    normal = rest_area / np.linalg.norm(rest_area, axis=1, keepdims=True)
+    area = 0.5 * np.einsum("na,na->n", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), normal)
+    return area / (0.5 * np.linalg.norm(rest_area, axis=1))
+
+
+def three_bodies():
+    """A tet beam, a membrane (3-D triangles, tilted) and a 2-D triangle sheet, in one simulator."""
+    tet = tm.beam_mesh(3, 2, 2, size=(1.0, 0.5, 0.4), dtype=DT)
+    sheet = tm.beam_tri_mesh(3, 2, size=(1.0, 0.6), dim=3, dtype=DT)
+    tilt = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.0, -0.8, 0.6]], dtype=DT)
+    membrane = tm.TriMesh(sheet.vertices @ tilt.T + 2.0, sheet.elements)
+    planar = tm.beam_tri_mesh(2, 3, size=(0.5, 0.8), dim=2, dtype=DT)
+    mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model="stvk")
+    bodies = [tm.Body(tet, mat, name="beam"), tm.Body(membrane, mat, name="membrane"), tm.Body(planar, mat)]
+    return tm.Simulator(bodies, dt=0.01, gravity=(0.0, 0.0, 0.0), dtype=DT)
+
+
+def test_inversion_matches_the_numpy_oracle():
+    sim = three_bodies()
+    rest = sim.model.rest
+    check = InversionCheck.for_simulator(sim)
+    at_rest = check(rest)
+    assert at_rest.inverted.tolist() == [0, 0, 0]
+    torch.testing.assert_close(at_rest.volume_ratio, torch.ones(3, dtype=DT), rtol=1e-12, atol=0)
+    torch.testing.assert_close(at_rest.min_ratio, torch.ones(3, dtype=DT), rtol=1e-12, atol=0)
+
+    gen = torch.Generator().manual_seed(3)
+    x = rest + 0.25 * torch.randn(rest.shape, generator=gen, dtype=DT)  # large enough to invert some
+    report = check(x)
+    rest_np, x_np = rest.numpy(), x.numpy()
+    for b, body in enumerate(sim.bodies):
+        nodes = slice(sim.ptr[b], sim.ptr[b + 1])
+        ratios = oracle_ratios(rest_np[nodes], x_np[nodes], body.mesh.elements.numpy())
+        inverted = np.flatnonzero(ratios <= 0)
+        assert 0 < inverted.size < ratios.size, (b, inverted.size)  # the draw tests both outcomes
+        assert int(report.inverted[b]) == inverted.size
+        np.testing.assert_allclose(report.element_ratios[b].numpy(), ratios, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(float(report.min_ratio[b]), ratios.min(), rtol=1e-10)
+        worst = inverted[np.argsort(ratios[inverted])][:5].tolist()
+        assert report.worst(5)[b] == worst
+    # volume (area) ratio: sum of signed measures over the rest sum, for every kind
+    for b, body in enumerate(sim.bodies):
+        nodes = slice(sim.ptr[b], sim.ptr[b + 1])
+        e = body.mesh.elements.numpy()
+        ratios = oracle_ratios(rest_np[nodes], x_np[nodes], e)
+        rest_measure = oracle_measures(rest_np[nodes], e)
+        expected = float((ratios * rest_measure).sum() / rest_measure.sum())
+        assert abs(float(report.volume_ratio[b]) - expected) < 1e-12 * max(1.0, abs(expected))
+
+
+def oracle_measures(rest: np.ndarray, elements: np.ndarray) -> np.ndarray:
+    q = rest[elements]
+    if elements.shape[1] == 4:
+        return np.abs(np.linalg.det(np.stack([q[:, k] - q[:, 0] for k in (1, 2, 3)], axis=1))) / 6.0
+    return 0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1)
+
+
+def test_mirror_and_flip_invert_everything():
+    sim = three_bodies()
+    rest = sim.model.rest
+    mirrored = rest * torch.tensor([-1.0, 1.0, 1.0], dtype=DT)  # a reflection inverts every tet
+    report = inversion_report(sim, mirrored)
+    assert int(report.inverted[0]) == sim.bodies[0].mesh.num_elements
+    assert abs(float(report.volume_ratio[0]) + 1.0) < 1e-12
+    # the membrane's rest normal lies in the yz plane: mirrored in x, every normal turns to -n;
+    # the 2-D sheet (rest normal +z) mirrored in x has negative areas
+    for b in (1, 2):
+        assert int(report.inverted[b]) == sim.bodies[b].mesh.num_elements
+        assert abs(float(report.volume_ratio[b]) + 1.0) < 1e-12
+    planar = slice(sim.ptr[2], sim.ptr[3])
+    stretched = rest.clone()
+    stretched[planar] *= 2.0
+    assert abs(float(inversion_report(sim, stretched).volume_ratio[2]) - 4.0) < 1e-12
+
+
+def squashing_scene(check: str, push_to: float = -0.6):
+    """A hooke beam clamped at x = 0 whose far end is pushed through the clamp (to x = push_to)
+    in one step: elements must invert."""
+    mesh = tm.beam_mesh(2, 1, 1, size=(1.0, 0.3, 0.3), dtype=DT)
+    far = mesh.vertices[:, 0] >= 1.0 - 1e-9
+    goal = mesh.vertices[far].clone()
+    goal[:, 0] = push_to
+    body = tm.Body(mesh, tm.Material(young=1e4, poisson=0.3, density=1000.0, model="hooke"),
+                   fixed=mesh.vertices[:, 0] <= 1e-9, prescribed=far, motion=lambda t: goal, name="beam")
+    return tm.Simulator([body], dt=0.01, gravity=(0.0, 0.0, 0.0), dtype=DT, check_inversion=check)
+
+
+def oracle_count(sim) -> int:
+    mesh = sim.bodies[0].mesh
+    return int((oracle_ratios(mesh.vertices.numpy(), sim.x.numpy(), mesh.elements.numpy()) <= 0).sum())
+
+
+def test_check_inversion_off_costs_nothing():
+    sim = squashing_scene("off")
+    assert sim._inversion is None
+    report = sim.step()
+    assert report.inverted is None and sim.last_inversion is None
+    assert oracle_count(sim) > 0  # the scene does invert: "off" did not look
+
+
+def test_check_inversion_warn_records_counts():
+    sim = squashing_scene("warn")
+    with pytest.warns(InvertedElementsWarning, match=r"object 0 \(beam\): \d+ inverted elements, worst \d+"):
+        report = sim.step()
+    expected = oracle_count(sim)
+    assert expected > 0
+    assert report.inverted.tolist() == [expected]
+    assert sim.last_inversion.inverted.tolist() == [expected] and sim.steps_done == 1
+
+
+def test_check_inversion_warn_is_quiet_without_inversion():
+    sim = squashing_scene("warn", push_to=0.95)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InvertedElementsWarning)
+        report = sim.step()
+    assert report.inverted.tolist() == [0] and oracle_count(sim) == 0
+
+
+def test_check_inversion_error_keeps_the_state():
+    sim = squashing_scene("error")
+    x, v = sim.x.clone(), sim.v.clone()
+    with pytest.raises(tm.SolverError, match=r"inverts elements \(object 0 \(beam\): \d+ inverted") as info:
+        sim.step()
+    assert info.value.status == ["inverted"]
+    assert info.value.report.inverted.tolist()[0] > 0
+    assert torch.equal(sim.x, x) and torch.equal(sim.v, v) and sim.time == 0.0 and sim.steps_done == 0
+
+
+def test_bad_options_are_refused():
+    mesh = tm.beam_mesh(2, 1, 1, dtype=DT)
+    body = tm.Body(mesh, tm.Material(young=1e4, poisson=0.3), fixed=mesh.vertices[:, 0] <= 1e-9)
+    with pytest.raises(tm.SceneError, match="check_inversion"):
+        tm.Simulator([body], check_inversion="yes")
+    for bad in (-1, 1.5, True, 11):
+        with pytest.raises(tm.SceneError, match="substeps_on_failure"):
+            tm.Simulator([body], substeps_on_failure=bad)
+
+
+# --------------------------------------------------------------- leave out what a scene does not need
+
+#: Buffers a hooke tensor-form tet group may hold (the vertex tensors may or may not be stored).
+HOOKE_TENSOR_BUFFERS = {"elements", "measure", "edges", "edge_k", "vertex_k", "plan.index", "plan.force_index",
+                        "plan.incidences", "native.index", "native.force_index", "native.incidences"}
+
+
+def minimal_scene():
+    mesh = tm.beam_mesh(4, 2, 2, size=(1.0, 0.3, 0.3), dtype=DT)
+    return tm.Simulator([tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="hooke"))],
+                        dt=0.01, dtype=DT)
+
+
+def full_scene():
+    mesh = tm.beam_mesh(4, 2, 2, size=(1.0, 0.3, 0.3), dtype=DT)
+    sheet = tm.beam_tri_mesh(4, 2, size=(1.0, 0.5), dim=3, dtype=DT)
+    sheet = tm.TriMesh(sheet.vertices + torch.tensor([0.0, 0.0, 1.0], dtype=DT), sheet.elements)
+    far = mesh.vertices[:, 0] >= 1.0 - 1e-9
+    goal = mesh.vertices[far].clone()
+    bodies = [
+        tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="stvk"),
+                fixed=mesh.vertices[:, 0] <= 1e-9, prescribed=far, motion=lambda t: goal + 0.01 * t),
+        tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="corotational")),
+        tm.Body(sheet, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="corotational", thickness=0.01)),
+    ]
+    return tm.Simulator(bodies, dt=0.01, dtype=DT, rayleigh_mass=0.1, rayleigh_stiffness=0.01,
+                        planes=[tm.Plane((0.0, 0.0, 1.0), -0.5, 1e4)])
+
+
+def buffers_of(names, prefix):
+    return {n[len(prefix) + 1:] for n in names if n.startswith(prefix + ".")}
+
+
+def test_minimal_scene_allocates_only_what_it_needs():
+    sim = minimal_scene()
+    sim.step(2)
+    names = allocations(sim)
+    assert [(g.kind, g.model, g.form) for g in sim.model.groups] == [("tet", "hooke", "tensor")]
+    group = buffers_of(names, "group0.tet.hooke.tensor")
+    assert group <= HOOKE_TENSOR_BUFFERS, group - HOOKE_TENSOR_BUFFERS
+    assert {"edges", "edge_k"} <= group
+    assert sim.system.planes is None and sim.system.free is None
+    for forbidden in ("tensor_b", "tensor_c", "tensor_d", "rest_elements", "rest_normals", "projector", "planes",
+                      "node_stiffness", "shape_vectors", ".tri."):
+        assert not any(forbidden in n for n in names), forbidden
+    # no linearisation state for a model whose stiffness does not depend on x
+    assert all(s is None for m in sim.system._matvecs.values() for s in m.states)
+    # the solver holds one matvec (no damping: one coefficient pair) and one CG
+    assert len(sim.system._matvecs) == 1
+
+
+def test_full_scene_holds_what_the_minimal_one_leaves_out():
+    """The names the minimal-scene test looks for do appear when the features are on (so that
+    test can fail)."""
+    sim = full_scene()
+    sim.step(2)
+    names = allocations(sim)
+    kinds = {(g.kind, g.model) for g in sim.model.groups}
+    assert kinds == {("tet", "stvk"), ("tet", "corotational"), ("tri", "corotational")}
+    for wanted in ("projector", "rest_normals", "system.planes.normals", "node_stiffness", "system.free",
+                   ".tri.", "shape_vectors"):
+        assert any(wanted in n for n in names), wanted
