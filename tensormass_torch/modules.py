@@ -104,18 +104,12 @@ class TensorMass(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Elastic forces ``[V, d]`` at positions ``x [V, d]``."""
         self._check_positions("x", x)
-        u = x - self.rest
-        total = None
-        for group in self.groups:
-            f = ops.forces(group, u)
-            total = f if total is None else total + f
-        return total
+        return self.displacement_forces(x - self.rest)
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         """Elastic energy (0-dim tensor) at positions ``x [V, d]``."""
         self._check_positions("x", x)
-        u = x - self.rest
-        return sum(ops.energy(group, u) for group in self.groups)
+        return self.displacement_energy(x - self.rest)
 
     def dforce(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """(dF/dx) dx ``[V, d]``: the stiffness times ``dx [V, d]``, never assembled."""
@@ -129,7 +123,29 @@ class TensorMass(nn.Module):
         so a solver calls this once per linearisation and the function once per CG iteration.
         """
         self._check_positions("x", x)
-        u = x - self.rest
+        return self.displacement_tangent(x - self.rest)
+
+    # The same at displacements u = x - rest [V, d]. A solver that keeps u (rather than x) keeps
+    # its digits: in float32, x = rest + u rounds u to ~1e-7 of the body's size, a large
+    # relative error for the small displacements of a stiff body.
+
+    def displacement_forces(self, u: torch.Tensor) -> torch.Tensor:
+        """Elastic forces ``[V, d]`` at displacements ``u [V, d]`` from the rest shape."""
+        self._check_positions("u", u)
+        total = None
+        for group in self.groups:
+            f = ops.forces(group, u)
+            total = f if total is None else total + f
+        return total
+
+    def displacement_energy(self, u: torch.Tensor) -> torch.Tensor:
+        """Elastic energy (0-dim tensor) at displacements ``u [V, d]``."""
+        self._check_positions("u", u)
+        return sum(ops.energy(group, u) for group in self.groups)
+
+    def displacement_tangent(self, u: torch.Tensor):
+        """``dx -> (dF/dx) dx`` at displacements ``u [V, d]`` (see :meth:`tangent`)."""
+        self._check_positions("u", u)
         states = [ops.linearize(group, u) for group in self.groups]
 
         def apply(dx: torch.Tensor) -> torch.Tensor:

@@ -55,23 +55,23 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
     cg_tol = tol / 10.0 if cg_tol is None else cg_tol
     cg_max_iter = 10 * num_nodes * dim if cg_max_iter is None else cg_max_iter
 
+    # The model is evaluated at displacements, not at positions rest + u: in float32 the
+    # positions would round the small displacements of a stiff body (see TensorMass).
     def residual(u):
-        x = rest + u
-        r = model(x) + load
+        r = model.displacement_forces(u) + load
         if planes is not None:
-            r = r + planes.forces(x)
+            r = r + planes.forces(rest + u)
         return r * free
 
     def potential(u):
-        x = rest + u
-        value = model.energy(x) - (load * u).sum()
+        value = model.displacement_energy(u) - (load * u).sum()
         if planes is not None:  # penalty energy k/2 pen^2
-            value = value + 0.5 * (planes.stiffness * planes.penetration(x) ** 2).sum()
+            value = value + 0.5 * (planes.stiffness * planes.penetration(rest + u) ** 2).sum()
         return value
 
     def tangent(u):
         x = rest + u
-        stiffness = model.tangent(x)  # shared state (rotations) once per Newton step
+        stiffness = model.displacement_tangent(u)  # shared state (rotations) once per Newton step
 
         def matvec(p):
             ap = -stiffness(p)
@@ -92,10 +92,7 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
         du = result.solution
         step = 1.0
         if not linear:  # Armijo backtracking on the potential energy
-            p0 = potential(u)
-            slope = -(r * du).sum()
-            while step > 1e-4 and not bool(potential(u + step * du) <= p0 + 1e-4 * step * slope):
-                step *= 0.5
+            step = _line_search(potential, residual, u, du, r)
         u = u + step * du
         r = residual(u)
         if linear and bool(result.converged.all()):
@@ -105,3 +102,28 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
     raise SolverError(f"static solve did not converge in {max_newton} Newton steps "
                       f"(residual ratio {float(torch.linalg.vector_norm(r)) / load_norm:.3e} > {tol})",
                       ["not converged"])
+
+
+def _line_search(potential, residual, u, du, r) -> float:
+    """Armijo backtracking along ``du`` from ``u`` (residual ``r``) on the potential energy.
+
+    Near equilibrium the potential's decrease falls below its rounding (its value is a sum of
+    large terms: in float32 a change under ~1e-7 of it is invisible), and the sufficient-decrease
+    test would then reject every step. A trial whose change is within that rounding is judged by
+    the residual instead: accepted when it lowers the residual norm.
+    """
+    p0 = potential(u)
+    slope = -(r * du).sum()
+    eps = torch.finfo(u.dtype).eps
+    r0 = torch.linalg.vector_norm(r)
+    step = 1.0
+    while step > 1e-4:
+        trial = u + step * du
+        p = potential(trial)
+        if bool(p <= p0 + 1e-4 * step * slope):
+            return step
+        if float((p - p0).abs()) <= 16 * eps * max(float(p0.abs()), float(p.abs())):
+            if bool(torch.linalg.vector_norm(residual(trial)) < r0):
+                return step
+        step *= 0.5
+    return step
