@@ -5,10 +5,14 @@ Inversion is measured by each element's signed measure at the current positions 
 rest measure (the ratio is 1 at rest, <= 0 once inverted):
 
     tetrahedra     signed volume det[x1 - x0, x2 - x0, x3 - x0] / 6
-    triangles      signed area 0.5 (x1 - x0) x (x2 - x0) . n_rest (n_rest the unit rest normal):
-                   a membrane whose normal has flipped against its rest normal has a negative
-                   area; for 2-D triangles (placed in z = 0, rest normal +z) it is the signed
-                   planar area
+    triangles      signed area 0.5 (x1 - x0) x (x2 - x0) . R n_rest, with n_rest the element's
+                   unit rest normal and R the object's best-fit rotation (rest -> current, Kabsch):
+                   a membrane element whose normal has flipped against its rest normal, carried
+                   by the object's overall rotation, has a negative area. A triangle in 3-D has
+                   no orientation of its own (a flipped one is a rotated one), so without R a
+                   sheet turned over as a whole would count as inverted; with R only elements
+                   folded against the object's motion count. For 2-D triangles (placed in
+                   z = 0, R a rotation about z) it is the signed planar area.
 
 Per object: the number of inverted elements, the volume (area) ratio sum(current) / sum(rest)
 and the smallest element ratio. Everything stays on the device until a caller asks for element
@@ -74,6 +78,58 @@ class InversionReport:
         return "; ".join(lines)
 
 
+def best_rotations(rest: torch.Tensor, x: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """Per object, the rotation ``[B, 3, 3]`` that best maps its rest points onto its current
+    points (least squares about the centroids, Kabsch): ``rest, x [M, 3]`` stacked object by
+    object, ``lengths [B]`` points per object."""
+    def centred(p):
+        means = torch.segment_reduce(p, "sum", lengths=lengths, axis=0) / lengths[:, None].to(p.dtype)
+        return p - torch.repeat_interleave(means, lengths, dim=0)
+
+    a, b = centred(rest), centred(x)
+    cov = torch.segment_reduce((a[:, :, None] * b[:, None, :]).reshape(-1, 9), "sum", lengths=lengths, axis=0)
+    u, _, vh = torch.linalg.svd(cov.reshape(-1, 3, 3))
+    v = vh.transpose(1, 2)
+    # a proper rotation: flip the weakest axis when the best orthogonal map is a reflection
+    sign = torch.sign(torch.linalg.det(v @ u.transpose(1, 2)))
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    fix = torch.ones_like(v[:, 0])
+    fix[:, 2] = sign
+    return (v * fix[:, None, :]) @ u.transpose(1, 2)
+
+
+class _KindGroup:
+    """The objects of one element kind, measured together (one gather, segmented sums)."""
+
+    def __init__(self, rest: torch.Tensor, objects: Sequence[torch.Tensor], ids: List[int]):
+        self.ids = ids
+        self.index = torch.tensor(ids, device=rest.device)
+        self.element_counts = [int(objects[b].shape[0]) for b in ids]
+        self.lengths = torch.tensor(self.element_counts, device=rest.device)
+        self.elements = torch.cat([objects[b] for b in ids])
+        self.normals = None
+        if self.elements.shape[1] == 3:
+            corners = rest[self.elements]
+            normals = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            self.normals = normals / torch.linalg.vector_norm(normals, dim=1, keepdim=True)
+            # each object's nodes (for its best-fit rotation) and each element's object
+            nodes = [torch.unique(objects[b]) for b in ids]
+            self.nodes = torch.cat(nodes)
+            self.node_counts = torch.tensor([n.numel() for n in nodes], device=rest.device)
+            self.rest_nodes = rest[self.nodes]
+            self.element_object = torch.repeat_interleave(torch.arange(len(ids), device=rest.device), self.lengths)
+        self.rest_measures = signed_measures(rest, self.elements, self.normals)
+        self.rest_totals = torch.segment_reduce(self.rest_measures, "sum", lengths=self.lengths)
+
+    def measures(self, x: torch.Tensor) -> torch.Tensor:
+        """Signed measures ``[N_k]`` at positions ``x [V, 3]``."""
+        if self.normals is None:
+            return signed_measures(x, self.elements, None)
+        rotations = best_rotations(self.rest_nodes, x[self.nodes], self.node_counts)
+        normals = (rotations[self.element_object] @ self.normals[:, :, None])[:, :, 0]
+        return signed_measures(x, self.elements, normals)
+
+
 class InversionCheck:
     """Inverted-element and volume measurement of packed objects (built once, applied per state).
 
@@ -85,24 +141,11 @@ class InversionCheck:
 
     def __init__(self, rest: torch.Tensor, objects: Sequence[torch.Tensor]):
         self.num_objects = len(objects)
-        self.lengths = [int(e.shape[0]) for e in objects]
-        # Objects of one kind are measured together: one gather and one segmented sum per kind.
         self.kinds = []
         for n in (4, 3):
             ids = [b for b, e in enumerate(objects) if e.shape[1] == n]
-            if not ids:
-                continue
-            elements = torch.cat([objects[b] for b in ids])
-            normals = None
-            if n == 3:
-                nodes = rest[elements]
-                normals = torch.linalg.cross(nodes[:, 1] - nodes[:, 0], nodes[:, 2] - nodes[:, 0])
-                normals = normals / torch.linalg.vector_norm(normals, dim=1, keepdim=True)
-            rest_measures = signed_measures(rest, elements, normals)
-            lengths = torch.tensor([self.lengths[b] for b in ids], device=rest.device)
-            rest_totals = torch.segment_reduce(rest_measures, "sum", lengths=lengths)
-            self.kinds.append((torch.tensor(ids, device=rest.device), ids, elements, normals, rest_measures,
-                               lengths, rest_totals))
+            if ids:
+                self.kinds.append(_KindGroup(rest, objects, ids))
 
     @classmethod
     def for_simulator(cls, sim) -> "InversionCheck":
@@ -116,14 +159,15 @@ class InversionCheck:
         inverted = torch.zeros(self.num_objects, dtype=torch.long, device=x.device)
         volume_ratio, min_ratio = like.clone(), like.clone()
         element_ratios: List[Optional[torch.Tensor]] = [None] * self.num_objects
-        for index, ids, elements, normals, rest_measures, lengths, rest_totals in self.kinds:
-            measures = signed_measures(x, elements, normals)
-            ratios = measures / rest_measures
-            counts = torch.segment_reduce((ratios <= 0).to(x.dtype), "sum", lengths=lengths)
-            inverted.index_copy_(0, index, counts.round().long())
-            volume_ratio.index_copy_(0, index, torch.segment_reduce(measures, "sum", lengths=lengths) / rest_totals)
-            min_ratio.index_copy_(0, index, torch.segment_reduce(ratios, "min", lengths=lengths))
-            for b, part in zip(ids, torch.split(ratios, [self.lengths[b] for b in ids])):
+        for kind in self.kinds:
+            measures = kind.measures(x)
+            ratios = measures / kind.rest_measures
+            counts = torch.segment_reduce((ratios <= 0).to(x.dtype), "sum", lengths=kind.lengths)
+            inverted.index_copy_(0, kind.index, counts.round().long())
+            totals = torch.segment_reduce(measures, "sum", lengths=kind.lengths)
+            volume_ratio.index_copy_(0, kind.index, totals / kind.rest_totals)
+            min_ratio.index_copy_(0, kind.index, torch.segment_reduce(ratios, "min", lengths=kind.lengths))
+            for b, part in zip(kind.ids, torch.split(ratios, kind.element_counts)):
                 element_ratios[b] = part
         return InversionReport(inverted, volume_ratio, min_ratio, element_ratios)
 
@@ -214,4 +258,4 @@ def allocation_summary(sim) -> Dict[str, int]:
     return parts
 
 
-__all__ = ["InversionCheck", "InversionReport", "allocation_summary", "allocations", "inversion_report", "signed_measures"]
+__all__ = ["InversionCheck", "InversionReport", "allocation_summary", "allocations", "best_rotations", "inversion_report", "signed_measures"]

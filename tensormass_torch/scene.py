@@ -87,7 +87,8 @@ class Simulator:
         device, dtype: where and in what precision to simulate (default: the meshes').
         check_inversion: inverted elements after each step: ``"off"`` (no check, no cost),
             ``"warn"`` (counts per object in ``StepReport.inverted``, details in
-            ``last_inversion``, an ``InvertedElementsWarning`` when there are any) or ``"error"``
+            ``last_inversion``, an ``InvertedElementsWarning`` when an object's elements start
+            to invert) or ``"error"``
             (a step that inverts an element raises ``SolverError`` naming the objects and
             elements; the state is kept).
         substeps_on_failure: when a step fails (``SolverError``), retry it as 2, 4, ..., 2^k
@@ -176,6 +177,7 @@ class Simulator:
         # Built only when asked for: "off" costs nothing (no buffers, no work per step).
         self._inversion = InversionCheck.for_simulator(self) if check_inversion != "off" else None
         self.last_inversion: Optional[InversionReport] = None
+        self._inverted_before: Optional[List[bool]] = None  # objects with inverted elements ("warn")
 
     @property
     def num_bodies(self) -> int:
@@ -202,16 +204,24 @@ class Simulator:
         on); "error" raises SolverError when any element is inverted."""
         inversion = self._inversion(x)
         report.inverted = inversion.inverted
-        if not bool((inversion.inverted > 0).any()):
-            return inversion
-        names = [b.name for b in self.bodies]
-        if self.check_inversion == "error":
+        if self.check_inversion == "error" and bool((inversion.inverted > 0).any()):
             status = ["inverted" if c else "ok" for c in inversion.inverted.tolist()]
-            raise SolverError(f"the step to t = {t:.6g} inverts elements ({inversion.describe(names)}); the state was not "
-                              "changed", status, report)
-        warnings.warn(f"inverted elements at t = {t:.6g}: {inversion.describe(names)}",
-                      InvertedElementsWarning, stacklevel=5)
+            raise SolverError(f"the step to t = {t:.6g} inverts elements ({inversion.describe(self._names())}); "
+                              "the state was not changed", status, report)
         return inversion
+
+    def _names(self):
+        return [b.name for b in self.bodies]
+
+    def _warn_new_inversions(self, inversion: InversionReport):
+        """Warn when an object that had no inverted element has some now (once per episode, not
+        at every step of it)."""
+        now = [c > 0 for c in inversion.inverted.tolist()]
+        before = self._inverted_before or [False] * len(now)
+        self._inverted_before = now
+        if any(n and not b for n, b in zip(now, before)):
+            warnings.warn(f"inverted elements at t = {self.time:.6g}: {inversion.describe(self._names())}",
+                          InvertedElementsWarning, stacklevel=3)
 
     def _substep(self, x, v, t_end: float, opts: StepOptions):
         """One implicit Euler step of length ``opts.dt`` from ``x, v [V, 3]``, ending at time
@@ -269,6 +279,8 @@ class Simulator:
             self.steps_done += 1
             self.last_report = report
             self.last_inversion = inversion
+            if self.check_inversion == "warn":
+                self._warn_new_inversions(inversion)
         return report
 
     def _range(self, i: int) -> slice:

@@ -16,9 +16,18 @@ from tensormass_torch.scene import InvertedElementsWarning
 DT = torch.float64
 
 
+def kabsch(rest: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The proper rotation R ``[3, 3]`` minimising sum |R (X - cX) - (x - cx)|^2 (numpy)."""
+    a, b = rest - rest.mean(0), x - x.mean(0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+
+
 def oracle_ratios(rest: np.ndarray, x: np.ndarray, elements: np.ndarray) -> np.ndarray:
-    """Signed measure ratios ``[N]`` (numpy): det for tets; for triangles the current area vector
-    projected on the rest unit normal, over the rest area."""
+    """Signed measure ratios ``[N]`` (numpy) of one object: det for tets; for triangles the
+    current area vector projected on the rest unit normal turned by the object's best-fit
+    rotation, over the rest area."""
     if elements.shape[1] == 4:
         def vol(p):
             q = p[elements]
@@ -26,7 +35,8 @@ def oracle_ratios(rest: np.ndarray, x: np.ndarray, elements: np.ndarray) -> np.n
         return vol(x) / vol(rest)
     r, q = rest[elements], x[elements]
     rest_area = np.cross(r[:, 1] - r[:, 0], r[:, 2] - r[:, 0])
-    normal = rest_area / np.linalg.norm(rest_area, axis=1, keepdims=True)
+    used = np.unique(elements)
+    normal = rest_area / np.linalg.norm(rest_area, axis=1, keepdims=True) @ kabsch(rest[used], x[used]).T
     area = 0.5 * np.einsum("na,na->n", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), normal)
     return area / (0.5 * np.linalg.norm(rest_area, axis=1))
 
@@ -83,22 +93,36 @@ def oracle_measures(rest: np.ndarray, elements: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1)
 
 
-def test_mirror_and_flip_invert_everything():
+def test_mirror_inverts_tets_but_a_turned_over_sheet_is_not_inverted():
     sim = three_bodies()
     rest = sim.model.rest
     mirrored = rest * torch.tensor([-1.0, 1.0, 1.0], dtype=DT)  # a reflection inverts every tet
     report = inversion_report(sim, mirrored)
     assert int(report.inverted[0]) == sim.bodies[0].mesh.num_elements
     assert abs(float(report.volume_ratio[0]) + 1.0) < 1e-12
-    # the membrane's rest normal lies in the yz plane: mirrored in x, every normal turns to -n;
-    # the 2-D sheet (rest normal +z) mirrored in x has negative areas
+    # a flat sheet mirrored is the same sheet turned over (a rotation): nothing is inverted
     for b in (1, 2):
-        assert int(report.inverted[b]) == sim.bodies[b].mesh.num_elements
-        assert abs(float(report.volume_ratio[b]) + 1.0) < 1e-12
-    planar = slice(sim.ptr[2], sim.ptr[3])
+        assert int(report.inverted[b]) == 0
+        assert abs(float(report.volume_ratio[b]) - 1.0) < 1e-12
     stretched = rest.clone()
-    stretched[planar] *= 2.0
+    stretched[sim.ptr[2]:sim.ptr[3]] *= 2.0
     assert abs(float(inversion_report(sim, stretched).volume_ratio[2]) - 4.0) < 1e-12
+
+
+def test_folded_sheet_inverts_the_folded_half():
+    """A 2-D sheet folded in its plane along y = 0.6 (its upper quarter mirrored onto the rest):
+    the folded quarter's triangles are inverted, the others are not. (Folded exactly in half,
+    either half could be the inverted one: a sheet turned over is a rotated sheet.)"""
+    sheet = tm.beam_tri_mesh(2, 4, size=(0.5, 0.8), dim=2, dtype=DT)
+    sim = tm.Simulator([tm.Body(sheet, tm.Material(young=1e5, poisson=0.3))], dtype=DT)
+    x = sim.model.rest.clone()
+    upper = x[:, 1] > 0.6
+    x[upper, 1] = 1.2 - x[upper, 1]
+    report = inversion_report(sim, x)
+    centroid_y = sim.model.rest[sheet.elements][:, :, 1].mean(1)
+    expected = torch.nonzero(centroid_y > 0.6).flatten()
+    assert int(report.inverted[0]) == expected.numel() == sheet.num_elements // 4
+    assert sorted(report.worst(k=100)[0]) == expected.tolist()
 
 
 def squashing_scene(check: str, push_to: float = -0.6):
