@@ -170,3 +170,45 @@ def test_memory_is_flat_over_2000_steps_cuda():
     assert bool(torch.isfinite(sim.x).all())
     assert torch.cuda.memory_allocated() == allocated
     assert live_tensors() == tensors_before
+
+
+# ------------------------------------------------------------------ the stability benchmark's judge
+
+
+def load_stability_benchmark():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "stability.py"
+    spec = importlib.util.spec_from_file_location("stability_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_benchmark_judges_stable_degraded_failed():
+    bench = load_stability_benchmark()
+    calm = bench.run_case(bench.swinging_beam("corotational", "cpu", DT, young=1e4), 3)
+    assert calm["outcome"] == "stable" and calm["steps_done"] == 3
+    assert calm["energy_gain"] < 1e-3 and calm["energy_drift"] <= 0.0  # implicit Euler only dissipates
+    spun = bench.run_case(bench.spinning_beam("hooke", "cpu", DT, steps=10), 10)  # hooke grows when spun
+    assert spun["outcome"] == "degraded" and spun["volume_error"] > 0.05 and "volume error" in spun["note"]
+    crushed = bench.run_case(pushed_beam(), 2)  # CG cap below what a step needs
+    assert crushed["outcome"] == "failed" and crushed["steps_done"] == 0 and "not converged" in crushed["error"]
+
+
+def test_compressed_stvk_breakdown_is_reported_and_the_state_kept():
+    """stvk crushed to half its length loses positive definiteness: the CG meets negative
+    curvature, the step is refused as "breakdown" with the state of the step before."""
+    bench = load_stability_benchmark()
+    sim = bench.compressed_beam("stvk", "cpu", DT, squeeze=0.5, steps=25, cg_tol=1e-8, cg_max_iter=2000)
+    for _ in range(25):
+        x, v, t = sim.x.clone(), sim.v.clone(), sim.time
+        try:
+            sim.step()
+        except tm.SolverError as exc:
+            assert exc.status == ["breakdown"] and "breakdown" in str(exc)
+            assert torch.equal(sim.x, x) and torch.equal(sim.v, v) and sim.time == t
+            break
+    else:
+        pytest.fail("stvk crushed to half its length did not break down")
