@@ -59,7 +59,8 @@
 namespace tensormass {
 
 // Model ids: the `model` integer of the op schemas (Python: tensormass_torch.native.MODEL_IDS).
-enum Model : int { kHooke = 0, kStvk = 1, kCorotational = 2 };
+// kStvkDefinite: stvk's forces with a positive semi-definite tangent (see stvk_definite_dforces).
+enum Model : int { kHooke = 0, kStvk = 1, kCorotational = 2, kStvkDefinite = 3 };
 
 // The tangent plane of an element: the identity (tetrahedra, planar triangles) or the rest
 // projector P of a membrane. Same interface, so the formulas are written once.
@@ -207,8 +208,16 @@ TM_HD void stvk_forces(const S (&u)[NN][D], const S (&m)[NN][D], S vol, S lam, S
   nodal<NN, D, S>(gs, m, vol, f);
 }
 
-// stvk differential: df_j = -vol (dG S + dS + G dS) m_j, dS = C : P sym(dG + G^T dG) P
-template <int NN, int D, typename S, bool M>
+template <int D, typename S>
+TM_HD void positive_part(const S (&s)[D][D], S (&sp)[D][D]);
+
+// stvk differential: df_j = -vol (dG S + dS + G dS) m_j, dS = C : P sym(dG + G^T dG) P.
+// DEFINITE: the geometric term dG S uses S+, the positive part of S (its negative eigenvalues
+// set to 0). The material part (dS, G dS) is positive semi-definite whatever the strain, and
+// dG S+ is too (its quadratic form is vol sum (m_i . S+ m_j) du_i . du_j), so the implicit system
+// M - h^2 K stays positive definite under compression, where S has negative eigenvalues and the
+// exact tangent is indefinite (a CG breakdown). Forces and energy are unchanged.
+template <int NN, int D, typename S, bool M, bool DEFINITE = false>
 TM_HD void stvk_dforces(const S (&u)[NN][D], const S (&du)[NN][D], const S (&m)[NN][D], S vol, S lam,
                         S mu, const Plane<D, S, M>& plane, S (&f)[NN][D]) {
   S g[D][D], dg[D][D], s[D][D];
@@ -223,6 +232,13 @@ TM_HD void stvk_dforces(const S (&u)[NN][D], const S (&du)[NN][D], const S (&m)[
   sym<D, S>(t, de);
   plane.project(de);
   isotropic<D, S, M>(de, lam, mu, plane, ds);
+  if (DEFINITE) {
+    S sp[D][D];
+    positive_part<D, S>(s, sp);
+    TM_UNROLL for (int i = 0; i < D; ++i) {
+      TM_UNROLL for (int j = 0; j < D; ++j) s[i][j] = sp[i][j];
+    }
+  }
   S p[D][D], q[D][D];
   matmul<D, S>(dg, s, p);   // dG S
   matmul<D, S>(g, ds, q);   // G dS
@@ -248,8 +264,10 @@ TM_HD void stress_dforces(const S (&u)[NN][D], const S (&du)[NN][D], const S (&m
                           S mu, const Plane<D, S, M>& plane, S (&f)[NN][D]) {
   if (MODEL == kHooke) {
     hooke_forces<NN, D, S, M>(du, m, vol, lam, mu, plane, f);
+  } else if (MODEL == kStvkDefinite) {
+    stvk_dforces<NN, D, S, M, true>(u, du, m, vol, lam, mu, plane, f);
   } else {
-    stvk_dforces<NN, D, S, M>(u, du, m, vol, lam, mu, plane, f);
+    stvk_dforces<NN, D, S, M, false>(u, du, m, vol, lam, mu, plane, f);
   }
 }
 
@@ -453,6 +471,66 @@ TM_HD void polar_rotation(const S (&f)[2][2], S (&r)[2][2]) {
   r[0][1] = -ss * inv;
   r[1][0] = ss * inv;
   r[1][1] = cs * inv;
+}
+
+// ---- positive part of a symmetric matrix (stvk's definite tangent)
+//
+// S+ = (S + |S|) / 2 with |S| = sqrt(S^T S) = V diag(sigma) V^T from the one-sided Jacobi SVD
+// above (b = S V with orthogonal columns of norms sigma_k). |S| is unique even where V is not
+// (eigenvalues +l and -l), so S+ is exact up to the sweeps' rounding. 2 x 2: in closed form.
+template <typename S>
+TM_HD void positive_part3(const S (&s)[3][3], S (&sp)[3][3]) {
+  S scale = S(0);
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int k = 0; k < 3; ++k) scale = tm_abs(s[a][k]) > scale ? tm_abs(s[a][k]) : scale;
+  }
+  const bool zero = !(scale > S(0));
+  const S inv = zero ? S(1) : S(1) / scale;
+  S b[3][3], v[3][3];
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int k = 0; k < 3; ++k) {
+      v[a][k] = a == k ? S(1) : S(0);
+      b[a][k] = zero ? S(0) : s[a][k] * inv;
+    }
+  }
+  TM_UNROLL for (int sweep = 0; sweep < PolarSweeps<S>::value; ++sweep) {
+    jacobi_columns<0, 1, S>(b, v);
+    jacobi_columns<0, 2, S>(b, v);
+    jacobi_columns<1, 2, S>(b, v);
+  }
+  S sigma[3];
+  TM_UNROLL for (int k = 0; k < 3; ++k) sigma[k] = tm_sqrt(b[0][k] * b[0][k] + b[1][k] * b[1][k] + b[2][k] * b[2][k]);
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    TM_UNROLL for (int c = 0; c < 3; ++c) {
+      S abs_ac = S(0);
+      TM_UNROLL for (int k = 0; k < 3; ++k) abs_ac += sigma[k] * v[a][k] * v[c][k];
+      sp[a][c] = zero ? S(0) : S(0.5) * (s[a][c] + scale * abs_ac);
+    }
+  }
+}
+
+// 2 x 2: eigenvalues l+ >= l-; S+ = S (l- >= 0), 0 (l+ <= 0), else l+ (S - l- I) / (l+ - l-).
+template <typename S>
+TM_HD void positive_part2(const S (&s)[2][2], S (&sp)[2][2]) {
+  const S half_tr = S(0.5) * (s[0][0] + s[1][1]);
+  const S half_diff = S(0.5) * (s[0][0] - s[1][1]);
+  const S off = S(0.5) * (s[0][1] + s[1][0]);
+  const S rad = tm_sqrt(half_diff * half_diff + off * off);
+  const S lp = half_tr + rad, lm = half_tr - rad;
+  const S w = (lp > S(0) && lm < S(0)) ? lp / (lp - lm) : (lm >= S(0) ? S(1) : S(0));
+  const S shift = (lp > S(0) && lm < S(0)) ? lm : S(0);
+  TM_UNROLL for (int a = 0; a < 2; ++a) {
+    TM_UNROLL for (int c = 0; c < 2; ++c) sp[a][c] = w * (s[a][c] - (a == c ? shift : S(0)));
+  }
+}
+
+template <int D, typename S>
+TM_HD void positive_part(const S (&s)[D][D], S (&sp)[D][D]) {
+  if constexpr (D == 3) {
+    positive_part3<S>(s, sp);
+  } else {
+    positive_part2<S>(s, sp);
+  }
 }
 
 // Rotation methods: the `method` integer of tensormass::corotational_rotations.

@@ -108,9 +108,11 @@ void dispatch_model(int64_t model, F&& f) {
     f(IC<kStvk>{});
   } else if (model == kCorotational) {
     f(IC<kCorotational>{});
+  } else if (model == kStvkDefinite) {
+    f(IC<kStvkDefinite>{});
   } else {
     TORCH_CHECK(false, "tensormass: unknown model id ", std::to_string(model),
-                " (0 = hooke, 1 = stvk, 2 = corotational)");
+                " (0 = hooke, 1 = stvk, 2 = corotational, 3 = stvk with a definite tangent)");
   }
 }
 

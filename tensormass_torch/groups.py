@@ -38,14 +38,19 @@ class ElementGroup(nn.Module):
         model: ``"hooke"`` or ``"stvk"``.
         form: ``"stress"`` or ``"tensor"``.
         measure_scale: per-element factor on the rest measure ``[N]`` (membrane thickness), or None.
+        rotation: the corotational rotation method; tangent: ``"exact"`` or ``"definite"`` (stvk).
     """
 
-    def __init__(self, rest, elements, young, poisson, model, form, measure_scale=None, rotation="polar"):
+    def __init__(self, rest, elements, young, poisson, model, form, measure_scale=None, rotation="polar",
+                 tangent="exact"):
         super().__init__()
         if form not in FORMS:
             raise ValueError(f"unknown form {form!r}; known forms: {', '.join(FORMS)}")
+        if tangent == "definite" and form != "stress":
+            raise MaterialError("tangent='definite' has the stress form only; use form='stress' (or 'auto')")
         self.model = model
         self.form = form
+        self.tangent = tangent
         self.nodes_per_element = elements.shape[1]
         self.dim = rest.shape[1]
         self.num_nodes = rest.shape[0]
@@ -118,5 +123,6 @@ class ElementGroup(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"kind={self.kind}, model={self.model}, form={self.form}, rotation={self.rotation}, "
+                f"tangent={self.tangent}, "
                 f"elements={self.elements.shape[0]}, "
                 f"dim={self.dim}, N_n={self.plan.num_slots}")

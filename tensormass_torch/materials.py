@@ -17,6 +17,7 @@ from .errors import MaterialError
 MODELS = ("hooke", "stvk", "corotational")
 #: Rotation extraction of the corotational model: polar decomposition, or SOFA's QR frame.
 ROTATIONS = ("polar", "qr")
+TANGENTS = ("exact", "definite")
 
 Scalar = Union[float, int, torch.Tensor]
 
@@ -50,6 +51,12 @@ class Material:
             (linear in a per-element rotated frame; native kernels for both rotations).
         thickness: membrane thickness in m (triangles only), > 0.
         rotation: corotational rotations by ``"polar"`` decomposition or SOFA's ``"qr"`` frame.
+        tangent: ``"exact"`` or, for ``stvk`` only, ``"definite"``: the force differential (the
+            implicit solver's stiffness) uses the positive part of the second Piola-Kirchhoff
+            stress in its geometric term, so the linear system stays positive definite under
+            compression, where the exact tangent is indefinite and CG breaks down. Forces and
+            energy are unchanged; the step is a quasi-Newton step. (The hooke and corotational
+            tangents are positive semi-definite already.)
     """
 
     young: Scalar
@@ -58,12 +65,18 @@ class Material:
     model: str = "hooke"
     thickness: Scalar = 1.0
     rotation: str = "polar"
+    tangent: str = "exact"
 
     def __post_init__(self):
         if not isinstance(self.model, str) or self.model not in MODELS:
             raise MaterialError(f"unknown material model {self.model!r}; known models: {', '.join(MODELS)}")
         if self.rotation not in ROTATIONS:
             raise MaterialError(f"unknown rotation {self.rotation!r}; known: {', '.join(ROTATIONS)}")
+        if self.tangent not in TANGENTS:
+            raise MaterialError(f"unknown tangent {self.tangent!r}; known: {', '.join(TANGENTS)}")
+        if self.tangent == "definite" and self.model != "stvk":
+            raise MaterialError(f"tangent='definite' applies to the stvk model only (the {self.model} tangent is "
+                                "positive semi-definite already)")
         _check_range("young", self.young, 0.0, math.inf)
         _check_range("poisson", self.poisson, -1.0, 0.5)
         _check_range("density", self.density, 0.0, math.inf)

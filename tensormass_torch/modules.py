@@ -65,19 +65,21 @@ class TensorMass(nn.Module):
         for elements, material, kind in parts:
             n_elem = elements.shape[0]
             model_form = _resolve_form(form, material)
-            key = (kind, material.model, model_form, material.rotation if material.model == "corotational" else None)
+            key = (kind, material.model, model_form, material.rotation if material.model == "corotational" else None,
+                   material.tangent)
             young = material.per_element("young", n_elem, like)
             poisson = material.per_element("poisson", n_elem, like)
             density = material.per_element("density", n_elem, like)
             scale = material.per_element("thickness", n_elem, like) if kind == "tri" else None
             grouped.setdefault(key, []).append((elements, young, poisson, density, scale))
         groups = []
-        for (kind, model, model_form, rotation), items in grouped.items():
+        for (kind, model, model_form, rotation, tangent), items in grouped.items():
             elements = torch.cat([it[0] for it in items])
             young = torch.cat([it[1] for it in items])
             poisson = torch.cat([it[2] for it in items])
             scale = torch.cat([it[4] for it in items]) if kind == "tri" else None
-            group = ElementGroup(rest, elements, young, poisson, model, model_form, scale, rotation or "polar")
+            group = ElementGroup(rest, elements, young, poisson, model, model_form, scale, rotation or "polar",
+                                 tangent)
             groups.append(group)
             density = torch.cat([it[3] for it in items])
             masses.append((elements, density * group.measure.detach()))

@@ -39,8 +39,9 @@ __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
            "system_matvec"]
 
-#: The ``model`` integer of the op schemas.
-MODEL_IDS = {"hooke": 0, "stvk": 1, "corotational": 2}
+#: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
+#: see ``reference.stress_form.kernel_model``).
+MODEL_IDS = {"hooke": 0, "stvk": 1, "corotational": 2, "stvk_definite": 3}
 MODEL_NAMES = {v: k for k, v in MODEL_IDS.items()}
 #: The ``method`` integer of ``corotational_rotations``.
 ROTATION_IDS = {"qr": 0, "polar": 1}
@@ -55,7 +56,8 @@ def _model_name(model: int) -> str:
     try:
         return MODEL_NAMES[int(model)]
     except KeyError:
-        raise ValueError(f"unknown model id {model!r} (0 = hooke, 1 = stvk, 2 = corotational)") from None
+        raise ValueError(f"unknown model id {model!r} (0 = hooke, 1 = stvk, 2 = corotational, "
+                         "3 = stvk with a definite tangent)") from None
 
 
 def _qr_rotations(u_e, rest):
@@ -394,6 +396,8 @@ def _fast_gradients(name, inputs, grad, needs):
             args = list(inputs)
             if not dforce:
                 args.insert(1, g)
+                if name == "stress_forces" and int(inputs[-3]) == MODEL_IDS["stvk_definite"]:
+                    args[-3] = MODEL_IDS["stvk"]  # the forces' Jacobian is the exact tangent
             else:
                 args[1] = g
             fast[target] = _op(dname)(*args)
@@ -574,7 +578,7 @@ def _stress_args(group, u: Optional[torch.Tensor] = None, rotations: Optional[to
     else:
         rotations = None
     return (group.shape_vectors.contiguous(), group.measure.contiguous(), lam.contiguous(), mu.contiguous(),
-            None if proj is None else proj.contiguous(), MODEL_IDS[group.model], rest, rotations)
+            None if proj is None else proj.contiguous(), MODEL_IDS[stress_form.kernel_model(group)], rest, rotations)
 
 
 def _stvk_tensors(group):

@@ -95,7 +95,7 @@ def element_forces(group, u: torch.Tensor) -> torch.Tensor:
                                    linearize(group, u), group.projector)
     if group.form == "stress":
         lam, mu = group.lame()
-        return stress_form.FORCES[group.model](_element_values(group, u), group.shape_vectors, group.measure,
+        return stress_form.FORCES[stress_form.kernel_model(group)](_element_values(group, u), group.shape_vectors, group.measure,
                                                lam, mu, group.projector)
     if group.model == "hooke":
         return tensor_form.hooke_edge_partial_forces(u, group.edges, group.edge_k)
@@ -117,7 +117,7 @@ def element_dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[to
                                     rotations, group.projector)
     if group.form == "stress":
         lam, mu = group.lame()
-        return stress_form.DFORCES[group.model](_element_values(group, u), _element_values(group, du),
+        return stress_form.DFORCES[stress_form.kernel_model(group)](_element_values(group, u), _element_values(group, du),
                                                 group.shape_vectors, group.measure, lam, mu, group.projector)
     if group.model == "hooke":
         return tensor_form.hooke_edge_partial_forces(du, group.edges, group.edge_k)
@@ -160,7 +160,7 @@ def energy(group, u: torch.Tensor) -> torch.Tensor:
                                    linearize(group, u).detach(), group.projector).sum()
     if group.form == "stress":
         lam, mu = group.lame()
-        return stress_form.ENERGIES[group.model](_element_values(group, u), group.shape_vectors, group.measure,
+        return stress_form.ENERGIES[stress_form.kernel_model(group)](_element_values(group, u), group.shape_vectors, group.measure,
                                                  lam, mu, group.projector).sum()
     if group.model == "hooke":  # W = 1/2 u^T K u = -1/2 u . F(u)
         return -0.5 * (u * forces(group, u)).sum()

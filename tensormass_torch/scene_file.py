@@ -40,7 +40,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     # mesh = { file = "meshes/liver.vtu" }      (relative to the scene file; any meshio format)
     # generators: beam, tri_beam, sphere, capsule, rabbit (see MESH_GENERATORS);
     # every mesh table also takes scale = s and translate = [dx, dy, dz] (applied in that order)
-    material = { model = "stvk", young = 5e6, poisson = 0.3, density = 1000 }
+    material = { model = "stvk", young = 5e6, poisson = 0.3, density = 1000 }  # tangent = "definite"
     fixed = { box = [[-1, -1, -1], [0, 1, 1]] }  # or { nodes = [0, 1, 2] }
     prescribed = { box = [[...], [...]], velocity = [0, 0, -0.1], stop = 1.0 }
     velocity = [0, 0, 0]                         # initial velocity
@@ -62,7 +62,7 @@ import torch
 
 from .contact import Plane
 from .errors import MaterialError, MeshError, SceneError
-from .materials import MODELS, ROTATIONS, Material
+from .materials import MODELS, ROTATIONS, TANGENTS, Material
 from .mesh import Mesh, beam_mesh, beam_tri_mesh
 from .scene import Body, Simulator
 from .scenes import Scene
@@ -323,6 +323,7 @@ def _material(t: _Table, model_override: Optional[str]) -> Material:
         density=t.get("density", "positive", 1000.0),
         thickness=t.get("thickness", "positive", 1.0),
         rotation=_choice(t, "rotation", ROTATIONS, "polar", "rotation"),
+        tangent=_choice(t, "tangent", TANGENTS, "exact", "tangent"),
         model=model_override or model,
     )
     t.done()

@@ -99,6 +99,33 @@ def stvk_dforces(u, du, m, vol, lam, mu, proj=None):
     return _nodal(d_first_pk, m, vol)
 
 
-FORCES = {"hooke": hooke_forces, "stvk": stvk_forces}
-DFORCES = {"hooke": hooke_dforces, "stvk": stvk_dforces}
-ENERGIES = {"hooke": hooke_energy, "stvk": stvk_energy}
+def positive_part(sym: torch.Tensor) -> torch.Tensor:
+    """The positive part of symmetric matrices ``[..., d, d]``: negative eigenvalues set to 0."""
+    values, vectors = torch.linalg.eigh(sym)
+    return (vectors * torch.clamp(values, min=0.0).unsqueeze(-2)) @ vectors.transpose(-1, -2)
+
+
+def stvk_definite_dforces(u, du, m, vol, lam, mu, proj=None):
+    """stvk's force differential with S+ (the positive part of S) in its geometric term dF S: a
+    positive semi-definite tangent whatever the compression (``Material(tangent="definite")``).
+    ``[N, n, d]``."""
+    grad_u = displacement_gradient(u, m)
+    grad_du = displacement_gradient(du, m)
+    second_pk = _isotropic(green_strain(grad_u, proj), lam, mu, proj)
+    d_strain = _project(_sym(grad_du + grad_u.transpose(-1, -2) @ grad_du), proj)
+    d_second_pk = _isotropic(d_strain, lam, mu, proj)
+    d_first_pk = grad_du @ positive_part(second_pk) + d_second_pk + grad_u @ d_second_pk
+    return _nodal(d_first_pk, m, vol)
+
+
+# Keyed by the kernel model (``kernel_model``): "stvk_definite" = stvk with the definite tangent.
+FORCES = {"hooke": hooke_forces, "stvk": stvk_forces, "stvk_definite": stvk_forces}
+DFORCES = {"hooke": hooke_dforces, "stvk": stvk_dforces, "stvk_definite": stvk_definite_dforces}
+ENERGIES = {"hooke": hooke_energy, "stvk": stvk_energy, "stvk_definite": stvk_energy}
+
+
+def kernel_model(group) -> str:
+    """The model whose kernels evaluate ``group``: its model, or "stvk_definite" for stvk with
+    ``tangent="definite"``."""
+    return "stvk_definite" if group.model == "stvk" and getattr(group, "tangent", "exact") == "definite" \
+        else group.model
