@@ -150,3 +150,12 @@ def test_cg_floor_quick(tmp_path):
     (rec,) = records
     assert rec["bytes_per_cg_iteration"] > 0 and rec["floor_ms_per_cg_iteration"] > 0
     assert rec["ms_per_cg_iteration"] is not None
+
+
+def test_definite_tangent_quick(tmp_path):
+    import definite_tangent
+
+    definite_tangent.main(["--quick", "--device", "cpu", "--out", str(tmp_path)])
+    records = json.loads((tmp_path / "definite_tangent.json").read_text())["records"]
+    by = {(r["scene"], r["tangent"]): r for r in records}
+    assert by[("compressed", "exact")]["failed"] and not by[("compressed", "definite")]["failed"]

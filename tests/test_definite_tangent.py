@@ -134,3 +134,20 @@ def test_input_checks():
     scene = build_scene(np.random.default_rng(4), "tet")
     with pytest.raises(MaterialError, match="stress form only"):
         TensorMass(scene.mesh, Material(young=1.0, poisson=0.3, model="stvk", tangent="definite"), form="tensor")
+
+
+@pytest.mark.skipif(native is None or not torch.cuda.is_available(), reason="needs CUDA and the extension")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_cuda_matches_cpu(kind, dtype):
+    rng = np.random.default_rng(5)
+    scene = build_scene(rng, kind)
+    u = (-0.4 * scene.rest + 0.05 * torch.tensor(rng.standard_normal(scene.rest.shape))).to(dtype)
+    du = torch.tensor(rng.standard_normal(u.shape), dtype=dtype)
+    cpu_group = group_of(scene, "definite", dtype)
+    gpu_group = group_of(scene, "definite", dtype).to("cuda")
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    with torch.no_grad():
+        for a, b in ((ops.dforces(cpu_group, u, du), ops.dforces(gpu_group, u.cuda(), du.cuda())),
+                     (ops.forces(cpu_group, u), ops.forces(gpu_group, u.cuda()))):
+            assert b.device.type == "cuda" and rel(b.cpu(), a) < tol
