@@ -194,11 +194,16 @@ class CGSolver:
         _check_settings(tol, max_iter, check_every)
         if done == 0:
             self.start(matvec, rhs, x0, tol, max_iter)
+        self.finish(matvec, max_iter, check_every, graph_key, done)
+        return self.result()
+
+    def finish(self, matvec: Matvec, max_iter: int, check_every: int, graph_key=None, done: int = 0):
+        """Iterate from the current state until no object is active or ``max_iter`` iterations
+        have run (``done`` of them already), looking at the host every ``check_every``."""
         while done < max_iter and self.any_active():
             count = min(check_every, max_iter - done)
             self._run(matvec, count, max_iter, graph_key)
             done += count
-        return self.result()
 
 
 def batched_cg(matvec: Matvec, rhs: torch.Tensor, segments: Segments, free: Optional[torch.Tensor] = None,

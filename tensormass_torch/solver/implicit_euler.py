@@ -236,12 +236,14 @@ class StepGraphs:
     steps, captured in CUDA graphs after a first eager run and replayed from then on:
 
         A: linearisation, right-hand side, CG set-up and its first ``check_every`` iterations
-        (host: "is any object still iterating?", replaying the CG graph until none is)
-        C: the new velocities and positions, and their per-object norms
-        (host: one look at the CG status and the norms; a failed step raises, state unchanged)
+        (host, only when ``cg_max_iter > check_every``: "is any object still iterating?",
+        replaying the CG graph until none is)
+        C: the new velocities and positions, their per-object norms, and the step's summary
+        (CG status, iterations, residuals, norms) packed in one small buffer
+        (host: one copy of that buffer; a failed step raises and the state is unchanged)
 
-    A step then costs a few graph launches and one or two host synchronisations, whatever the
-    number of kernels in it. Made by :func:`implicit_euler_step` when the device is CUDA, the
+    A step then costs a few graph launches and one host synchronisation, whatever the number of
+    kernels in it; its report holds host tensors (already copied, so reading them costs nothing). Made by :func:`implicit_euler_step` when the device is CUDA, the
     model is a ``TensorMass`` and ``newton_iters == 1``; any phase that cannot be captured runs
     eagerly (same arithmetic).
     """
@@ -256,6 +258,8 @@ class StepGraphs:
         self.dv_imposed = torch.zeros_like(like)
         self.cg = system.cg_solver(like, cuda_graphs=True)
         self.norms, self.v_norms = torch.zeros_like(self.cg.rhs_sq), torch.zeros_like(self.cg.rhs_sq)
+        # status, iterations, r.r, b.b, |x|^2 + |v|^2 per object: what the host reads, in one copy
+        self.summary = torch.zeros(5, self.norms.numel(), dtype=torch.float64, device=like.device)
         self.matvec = system.system_matvec(1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness))
         self.first = min(opts.check_every, opts.cg_max_iter)
         self._graphs = {"A": None, "C": None}
@@ -281,6 +285,9 @@ class StepGraphs:
         cg_ops.object_dot(self.x_new, self.x_new, cg.plan, self.norms, cg.state, cg.native)
         cg_ops.object_dot(self.v_new, self.v_new, cg.plan, self.v_norms, cg.state, cg.native)
         self.norms.add_(self.v_norms)
+        s = cg.state
+        for row, values in enumerate((s.status, s.iterations, s.rr, cg.rhs_sq, self.norms)):
+            self.summary[row].copy_(values)
 
     def _run(self, name, phase):
         graph = self._graphs[name]
@@ -306,12 +313,15 @@ class StepGraphs:
         opts = self.opts
         report = StepReport()
         self._run("A", self._phase_a)
-        result = self.cg.solve(self.matvec, None, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
-                               check_every=opts.check_every, graph_key=self.matvec.graph_key, done=self.first)
+        self.cg.finish(self.matvec, opts.cg_max_iter, opts.check_every, self.matvec.graph_key, done=self.first)
+        self._run("C", self._phase_c)  # also after a failed solve: its output is then discarded
+        status, iterations, rr, rhs_sq, norms = self.summary.cpu()  # the step's one synchronisation
+        result = CGResult(self.cg.state.x.clone(), iterations.long(), torch.sqrt(torch.clamp(rr, min=0)),
+                          torch.sqrt(rhs_sq), status == cg_ops.CONVERGED, status == cg_ops.BREAKDOWN,
+                          status == cg_ops.NONFINITE)
         report.cg.append(result)
         _raise_if_failed(result, opts, "implicit Euler CG")
-        self._run("C", self._phase_c)
-        _raise_if_nonfinite(self.system, self.norms, report)
+        _raise_if_nonfinite(self.system, norms, report)
         return self.x_new.clone(), self.v_new.clone(), report
 
 
