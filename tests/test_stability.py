@@ -168,7 +168,9 @@ def test_memory_is_flat_over_2000_steps_cuda():
     sim.step(2000)
     torch.cuda.synchronize()
     assert bool(torch.isfinite(sim.x).all())
-    assert torch.cuda.memory_allocated() == allocated
+    # 64 KiB: the allocator's rounding of any one-off buffer; a leak of one [V, 3] state per step
+    # would add 2,000 x 512 B = 1 MiB
+    assert torch.cuda.memory_allocated() - allocated <= 64 * 2**10, (allocated, torch.cuda.memory_allocated())
     assert live_tensors() == tensors_before
 
 
