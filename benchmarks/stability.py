@@ -15,7 +15,8 @@ Cases (``CASES``; every one with hooke, stvk and corotational unless said):
       velocity v_z = v0 (x / L)^2, v0 = 0.02 sqrt(E / rho) (a tip swing of ~0.1 L))
   rotation     a free beam spinning about z through 180 deg in 1 s (a rigid motion)
   compression  the far end of the clamped beam pushed to x = L (1 - c) along a smooth ramp,
-               c = 0.5, 0.9 and 1.2 (through the clamp: inversion is forced)
+               c = 0.5, 0.9 and 1.2 (through the clamp: inversion is forced); also stvk with
+               ``tangent="definite"`` (row "stvk-definite": the positive semi-definite tangent)
   free_fall    a cube dropped from 0.5 m onto a penalty plane (k = 1e4 N/m per node)
   long_run     10,000 steps of a small cantilever under gravity (memory at start and end)
 A case that fails is run again with ``substeps_on_failure=4`` (a record "+substeps"): the
@@ -61,6 +62,15 @@ import tensormass_torch as tm  # noqa: E402
 from tensormass_torch.diagnostics import InversionCheck, allocation_summary  # noqa: E402
 
 MODELS = ("hooke", "stvk", "corotational")
+#: Row order of the outcome map: the models, then stvk with its positive semi-definite tangent.
+VARIANTS = MODELS + ("stvk-definite",)
+
+
+def material(variant: str, **params) -> "tm.Material":
+    """``"stvk-definite"``: stvk with ``tangent="definite"``; otherwise the model of that name."""
+    if variant == "stvk-definite":
+        return tm.Material(model="stvk", tangent="definite", **params)
+    return tm.Material(model=variant, **params)
 LENGTH, SIDE = 1.0, 0.2
 RHO = 1000.0
 
@@ -100,8 +110,8 @@ def swinging_beam(model, device, dtype, young=1e6, poisson=0.3, dt=0.01, density
     x = mesh.vertices
     velocity = torch.zeros_like(x)
     velocity[:, 2] = v0 * (x[:, 0] / LENGTH) ** 2
-    material = tm.Material(young=young, poisson=poisson, density=density, model=model)
-    body = tm.Body(mesh, material, fixed=x[:, 0] <= 1e-9, velocity=velocity, name="beam")
+    body = tm.Body(mesh, material(model, young=young, poisson=poisson, density=density), fixed=x[:, 0] <= 1e-9,
+                   velocity=velocity, name="beam")
     return tm.Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), device=device, dtype=dtype, **sim_kw)
 
 
@@ -133,7 +143,7 @@ def compressed_beam(model, device, dtype, squeeze=0.5, steps=100, dt=0.01, **sim
         goal[:, 0] = LENGTH * (1.0 - squeeze * smooth_ramp(t / ramp))
         return goal
 
-    body = tm.Body(mesh, tm.Material(young=1e6, poisson=0.3, density=RHO, model=model), fixed=x[:, 0] <= 1e-9,
+    body = tm.Body(mesh, material(model, young=1e6, poisson=0.3, density=RHO), fixed=x[:, 0] <= 1e-9,
                    prescribed=far, motion=motion, name="beam")
     return tm.Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), rayleigh_mass=1.0, device=device, dtype=dtype,
                         **sim_kw)
@@ -300,7 +310,7 @@ def cases(quick: bool) -> List[dict]:
         out.append(dict(case="rotation", parameter="deg turned", value=180, model=m, steps=spin_steps,
                         build=lambda m, d, t, **kw: spinning_beam(m, d, t, steps=spin_steps, **kw)))
     squeeze_steps = 25 if quick else 100
-    for m in models:
+    for m in models + ("stvk-definite",):  # the definite tangent: what it changes where stvk breaks down
         for c in ((0.5, 1.2) if quick else (0.5, 0.9, 1.2)):
             out.append(dict(case="compression", parameter="squeeze", value=c, model=m, steps=squeeze_steps,
                             judge_energy=False, judge_volume=False,
@@ -339,11 +349,11 @@ def run_sweep(args, results: common.Results, budget: common.Budget):
             deadline = None if c.get("memory") else time.monotonic() + max(share.remaining(), 1.0)
             measured = run_case(sim, c["steps"], c.get("judge_energy", True), c.get("judge_volume", True),
                                 memory=c.get("memory", False), deadline=deadline)
-            material = sim.bodies[0].material
+            mat = sim.bodies[0].material
             rec = common.record(**base, elements=sum(b.mesh.num_elements for b in sim.bodies),
-                                nodes=sim.model.num_nodes, young=float(torch.as_tensor(material.young, dtype=torch.float64).mean()),
-                                poisson=float(torch.as_tensor(material.poisson, dtype=torch.float64).mean()),
-                                density=float(torch.as_tensor(material.density, dtype=torch.float64).mean()), dt=sim.options.dt,
+                                nodes=sim.model.num_nodes, young=float(torch.as_tensor(mat.young, dtype=torch.float64).mean()),
+                                poisson=float(torch.as_tensor(mat.poisson, dtype=torch.float64).mean()),
+                                density=float(torch.as_tensor(mat.density, dtype=torch.float64).mean()), dt=sim.options.dt,
                                 substeps_on_failure=sim.substeps_on_failure, **measured)
             rec["case"] = c["case"] + label
             results.add(rec)
@@ -419,13 +429,13 @@ def draw(records, meta):
             rows = [r for r in shown if r["case"] == name]
             values = list(dict.fromkeys(r["value"] for r in rows))
             for r in rows:
-                ax.scatter(values.index(r["value"]), MODELS.index(r["model"]), s=160, c=colors[r["outcome"]],
+                ax.scatter(values.index(r["value"]), VARIANTS.index(r["model"]), s=160, c=colors[r["outcome"]],
                            edgecolors="k")
             ax.set_xticks(range(len(values)))
             ax.set_xticklabels([format(v, "g") for v in values], rotation=45, fontsize=7)
-            ax.set_yticks(range(len(MODELS)))
-            ax.set_yticklabels(MODELS if ax is axes[0][0] else [], fontsize=8)
-            ax.set_ylim(-0.6, len(MODELS) - 0.4)
+            ax.set_yticks(range(len(VARIANTS)))
+            ax.set_yticklabels(VARIANTS if ax is axes[0][0] else [], fontsize=8)
+            ax.set_ylim(-0.6, len(VARIANTS) - 0.4)
             ax.set_title(f"{name}\n({rows[0]['parameter']})", fontsize=9)
         for label, c in colors.items():
             axes[0][-1].scatter([], [], c=c, label=label, edgecolors="k")
