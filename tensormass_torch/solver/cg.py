@@ -67,12 +67,13 @@ class CGSolver:
         shape: ``(V, d)`` of the unknowns; dtype, device: theirs.
         free: ``[V, 1]`` mask (1 free, 0 constrained) or None. Constrained rows are projected out:
             the solve runs on free nodes and leaves ``x0`` there.
-        chunk_nodes: nodes per chunk (one GPU block) of the reductions and updates.
+        chunk_nodes: nodes per chunk (one GPU block) of the reductions and updates (None: from the
+            node count, ``ChunkPlan.auto_chunk_nodes``).
         cuda_graphs: capture the iterations of solves that pass a ``graph_key`` (CUDA only).
     """
 
     def __init__(self, segments: Segments, shape, dtype, device, free: Optional[torch.Tensor] = None,
-                 chunk_nodes: int = 512, cuda_graphs: bool = True):
+                 chunk_nodes: Optional[int] = None, cuda_graphs: bool = True):
         self.segments = segments.to(device)
         self.plan = ChunkPlan.from_segments(self.segments, chunk_nodes)
         self.state = CGState.empty(self.plan, tuple(shape), dtype, torch.device(device))
