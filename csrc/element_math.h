@@ -402,16 +402,16 @@ TM_HD void order_columns(S (&b)[3][3], S (&v)[3][3], S (&n)[3]) {
   n[Q] = swap ? np : nq;
 }
 
-// R = the closest proper rotation to f (the polar factor, sign-fixed for det f < 0); see above.
+// One-sided Jacobi SVD of f / scale (scale = max |f_ab|; f = 0 is taken as I): on return the
+// columns of b = (f / scale) v are orthogonal, v is orthogonal; returns scale (0 for f = 0).
 template <typename S>
-TM_HD void polar_rotation(const S (&f)[3][3], S (&r)[3][3]) {
+TM_HD S jacobi_svd3(const S (&f)[3][3], S (&b)[3][3], S (&v)[3][3]) {
   S scale = S(0);
   TM_UNROLL for (int a = 0; a < 3; ++a) {
     TM_UNROLL for (int k = 0; k < 3; ++k) scale = tm_abs(f[a][k]) > scale ? tm_abs(f[a][k]) : scale;
   }
   const bool zero = !(scale > S(0));
   const S inv = zero ? S(1) : S(1) / scale;
-  S b[3][3], v[3][3];
   TM_UNROLL for (int a = 0; a < 3; ++a) {
     TM_UNROLL for (int k = 0; k < 3; ++k) {
       v[a][k] = a == k ? S(1) : S(0);
@@ -423,6 +423,14 @@ TM_HD void polar_rotation(const S (&f)[3][3], S (&r)[3][3]) {
     jacobi_columns<0, 2, S>(b, v);
     jacobi_columns<1, 2, S>(b, v);
   }
+  return zero ? S(0) : scale;
+}
+
+// R = the closest proper rotation to f (the polar factor, sign-fixed for det f < 0); see above.
+template <typename S>
+TM_HD void polar_rotation(const S (&f)[3][3], S (&r)[3][3]) {
+  S b[3][3], v[3][3];
+  jacobi_svd3<S>(f, b, v);
   S n[3];
   TM_UNROLL for (int k = 0; k < 3; ++k) n[k] = b[0][k] * b[0][k] + b[1][k] * b[1][k] + b[2][k] * b[2][k];
   order_columns<0, 1, S>(b, v, n);
@@ -480,24 +488,9 @@ TM_HD void polar_rotation(const S (&f)[2][2], S (&r)[2][2]) {
 // (eigenvalues +l and -l), so S+ is exact up to the sweeps' rounding. 2 x 2: in closed form.
 template <typename S>
 TM_HD void positive_part3(const S (&s)[3][3], S (&sp)[3][3]) {
-  S scale = S(0);
-  TM_UNROLL for (int a = 0; a < 3; ++a) {
-    TM_UNROLL for (int k = 0; k < 3; ++k) scale = tm_abs(s[a][k]) > scale ? tm_abs(s[a][k]) : scale;
-  }
-  const bool zero = !(scale > S(0));
-  const S inv = zero ? S(1) : S(1) / scale;
   S b[3][3], v[3][3];
-  TM_UNROLL for (int a = 0; a < 3; ++a) {
-    TM_UNROLL for (int k = 0; k < 3; ++k) {
-      v[a][k] = a == k ? S(1) : S(0);
-      b[a][k] = zero ? S(0) : s[a][k] * inv;
-    }
-  }
-  TM_UNROLL for (int sweep = 0; sweep < PolarSweeps<S>::value; ++sweep) {
-    jacobi_columns<0, 1, S>(b, v);
-    jacobi_columns<0, 2, S>(b, v);
-    jacobi_columns<1, 2, S>(b, v);
-  }
+  const S scale = jacobi_svd3<S>(s, b, v);
+  const bool zero = !(scale > S(0));
   S sigma[3];
   TM_UNROLL for (int k = 0; k < 3; ++k) sigma[k] = tm_sqrt(b[0][k] * b[0][k] + b[1][k] * b[1][k] + b[2][k] * b[2][k]);
   TM_UNROLL for (int a = 0; a < 3; ++a) {
