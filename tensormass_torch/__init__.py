@@ -12,7 +12,8 @@ from .io import load_mesh, save_mesh
 from .materials import MODELS, Material
 from .mesh import Mesh, TetMesh, TriMesh, beam_mesh, beam_tri_mesh
 from .modules import TensorMass
-from .scene import Body, Simulator
+from .scene import Body, InvertedElementsWarning, Simulator
+from .scene_file import load_scene
 from .solver import solve_static
 
 __version__ = "0.1.0"
@@ -20,5 +21,5 @@ __version__ = "0.1.0"
 __all__ = [
     "backend_info", "Plane", "MaterialError", "MeshError", "SceneError", "SolverError", "TensorMassError",
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh",
-    "TensorMass", "Body", "Simulator", "solve_static",
+    "TensorMass", "Body", "Simulator", "InvertedElementsWarning", "load_scene", "solve_static",
 ]

@@ -53,7 +53,13 @@ from __future__ import annotations
 
 import difflib
 import math
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python < 3.11: the package still imports; reading a scene needs tomli
+    try:
+        import tomli as tomllib
+    except ModuleNotFoundError:
+        tomllib = None
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -443,6 +449,8 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
 
     if not path.is_file():
         raise SceneError(f"scene file not found: '{path}'")
+    if tomllib is None:
+        raise SceneError(f"{path}: reading scene files needs Python >= 3.11 (tomllib) or `pip install tomli`")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:

@@ -216,7 +216,10 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
     mass_coef = 1.0 + h * opts.rayleigh_mass
     stiffness_coef = h * (h + opts.rayleigh_stiffness)
     tangent = system.tangent(x)
-    rhs = h * (system.forces(x) + tangent((h + opts.rayleigh_stiffness) * v) - opts.rayleigh_mass * system.mass * v)
+    rhs = system.forces(x) + tangent((h + opts.rayleigh_stiffness) * v)
+    if opts.rayleigh_mass:  # no damping term without damping
+        rhs = rhs - opts.rayleigh_mass * system.mass * v
+    rhs = h * rhs
     if dv_imposed is not None:
         rhs = rhs - (mass_coef * system.mass * dv_imposed - stiffness_coef * tangent(dv_imposed))
     return rhs, dv_imposed
