@@ -24,6 +24,7 @@ set -uo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
+source "$ROOT/scripts/lib.sh"   # run_limited
 PYTHON="${PYTHON:-python3}"
 OUT="${OUT:-$ROOT/out/gpu_bench}"
 mkdir -p "$OUT"
@@ -60,20 +61,7 @@ run() {
         return 0
     fi
     local soft=$((share - 15)) hard=$((share + 20))
-    echo
-    echo "=== [gpu_bench] $name (budget ${soft}s, limit ${hard}s): $* --budget-s $soft"
-    local t0=$SECONDS
-    timeout --kill-after=10 "$hard" "$@" --budget-s "$soft" 2>&1 | tee "$OUT/$name.log"
-    local rc=${PIPESTATUS[0]}
-    local dt=$((SECONDS - t0))
-    if [[ $rc -eq 0 ]]; then
-        STATUS_LINES+=("| $name | ok | ${dt}s |")
-    else
-        local why="exit $rc"
-        if [[ $rc -eq 124 || $rc -eq 137 ]]; then why="time limit ${hard}s (partial results kept)"; fi
-        STATUS_LINES+=("| $name | FAILED ($why) | ${dt}s |")
-        FAILED+=("$name")
-    fi
+    run_limited gpu_bench "$name" "$hard" "partial results kept" "$@" --budget-s "$soft" || true
 }
 
 # ------------------------------------------------------------------ environment and build

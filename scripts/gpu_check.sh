@@ -21,6 +21,7 @@ set -uo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
+source "$ROOT/scripts/lib.sh"   # run_limited
 PYTHON="${PYTHON:-python3}"
 OUT="${OUT:-$ROOT/out/gpu_check}"
 mkdir -p "$OUT"
@@ -44,22 +45,7 @@ step() {
     local name="$1" reserve="$2"; shift 2
     local limit=$((DEADLINE - SECONDS - reserve))
     if ((limit < 10)); then limit=10; fi
-    echo
-    echo "=== [gpu_check] $name (time limit ${limit}s): $*"
-    local t0=$SECONDS
-    timeout --kill-after=10 "$limit" "$@" 2>&1 | tee "$OUT/$name.log"
-    local rc=${PIPESTATUS[0]}
-    local dt=$((SECONDS - t0))
-    if [[ $rc -eq 0 ]]; then
-        STATUS_LINES+=("| $name | ok | ${dt}s |")
-    else
-        local why="exit $rc"
-        if [[ $rc -eq 124 || $rc -eq 137 ]]; then why="time limit ${limit}s"; fi
-        STATUS_LINES+=("| $name | FAILED ($why) | ${dt}s |")
-        FAILED+=("$name")
-    fi
-    echo "=== [gpu_check] $name: exit $rc after ${dt}s"
-    return $rc
+    run_limited gpu_check "$name" "$limit" "" "$@"
 }
 
 # ---------------------------------------------------------------- 0. environment
