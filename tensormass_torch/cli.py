@@ -236,6 +236,7 @@ def _cmd_convert(args):
 
 
 def build_parser():
+    """The ``tensormass`` argument parser (sub-commands run, bench, convert, info)."""
     from .materials import MODELS
     from .scenes import SCENES
 

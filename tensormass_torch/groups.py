@@ -122,6 +122,7 @@ class ElementGroup(nn.Module):
         return total + sum(t.numel() * t.element_size() for t in (p.index, p.force_index, p.incidences))
 
     def extra_repr(self) -> str:
+        """What ``print(group)`` shows: kind, model, form, rotation, tangent, sizes."""
         return (f"kind={self.kind}, model={self.model}, form={self.form}, rotation={self.rotation}, "
                 f"tangent={self.tangent}, "
                 f"elements={self.elements.shape[0]}, "

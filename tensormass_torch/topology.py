@@ -61,6 +61,7 @@ class GatherPlan:
         return cls(index, slots.view_as(index), num_slots, num_nodes, counts)
 
     def to(self, device) -> "GatherPlan":
+        """The same plan with its index tensors on ``device``."""
         return GatherPlan(self.index.to(device), self.force_index.to(device), self.num_slots,
                           self.num_nodes, self.incidences.to(device))
 

@@ -309,6 +309,8 @@ class StepGraphs:
             graph.replay()
 
     def step(self, x, v, imposed_velocity=None):
+        """One step from ``x, v [V, d]`` (``imposed_velocity [V, d]`` or None, as
+        :func:`implicit_euler_step`): returns (x_new, v_new, StepReport) or raises SolverError."""
         self.x.copy_(x)
         self.v.copy_(v)
         if self.imposed is not None:

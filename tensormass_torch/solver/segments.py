@@ -56,6 +56,7 @@ class Segments:
         return per_object[self.node_object].unsqueeze(-1)
 
     def to(self, device) -> "Segments":
+        """The same ranges on ``device``."""
         return Segments(self.lengths.to(device), self.node_object.to(device))
 
 
