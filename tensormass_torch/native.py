@@ -33,6 +33,7 @@ from typing import Optional
 import torch
 
 from .reference import gather as ref_gather
+from .topology import sum_slots_in_order
 from .reference import corotational, stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
@@ -188,7 +189,7 @@ def _slot_mask(num_slots, incidences):
 
 
 def _ref_gather_partial(partial, incidences, node_term):
-    total = torch.where(_slot_mask(partial.shape[0], incidences), partial, partial.new_zeros(())).sum(0)
+    total = sum_slots_in_order(torch.where(_slot_mask(partial.shape[0], incidences), partial, partial.new_zeros(())))
     return total if node_term is None else total + node_term
 
 

@@ -104,7 +104,20 @@ def padded_sum(values: torch.Tensor, targets: torch.Tensor, slots: torch.Tensor,
     """
     buffer = values.new_zeros((num_slots, num_targets) + tuple(values.shape[1:]))
     buffer[slots, targets] = values
-    return buffer.sum(dim=0)
+    return sum_slots_in_order(buffer)
+
+
+def sum_slots_in_order(buffer: torch.Tensor) -> torch.Tensor:
+    """``buffer[0] + buffer[1] + ...`` over the first dimension ``[S, T, ...] -> [T, ...]``, added
+    slot after slot, as the kernels do: each target's sum then has the same order wherever the
+    target sits in the buffer (``buffer.sum(0)`` blocks its reduction by the buffer's size and
+    alignment, so an object summed alone and inside a batch could differ in the last bit)."""
+    if buffer.shape[0] == 0:
+        return buffer.new_zeros(buffer.shape[1:])
+    total = buffer[0].clone()
+    for slot in buffer[1:]:
+        total += slot
+    return total
 
 
 def node_element_lists(elements: torch.Tensor, num_nodes: int):

@@ -5,6 +5,8 @@ from typing import Optional
 
 import torch
 
+from ..topology import sum_slots_in_order
+
 
 def scatter_partial_forces(partial: torch.Tensor, index: torch.Tensor, force_index: torch.Tensor,
                            num_slots: int, num_nodes: int) -> torch.Tensor:
@@ -23,5 +25,5 @@ def node_gather(partial: torch.Tensor, index: torch.Tensor, force_index: torch.T
     partial ``[N, n, d]``, index/force_index ``[N, n]``, node_term ``[V, d]`` or None -> ``[V, d]``.
     Deterministic: every slot is written once and the slot sum has a fixed order.
     """
-    total = scatter_partial_forces(partial, index, force_index, num_slots, num_nodes).sum(dim=0)
+    total = sum_slots_in_order(scatter_partial_forces(partial, index, force_index, num_slots, num_nodes))
     return total if node_term is None else total + node_term
