@@ -6,6 +6,7 @@
 #               the C++ extension on all CPU threads and the pure-torch CPU path
 #   cg_floor    time per CG iteration against the memory floor, 10^3 .. 10^7 elements
 #   batches     1 .. 10,000 objects of 1k-5k tets against a Python loop
+#   gather_variants  kernel 2 layouts: padded PartialForce against CSR + segment_reduce and atomics
 #   step_bench  the paper's and SOFA's beams, extension vs pure torch (the earlier table)
 #   ops_bench   the element ops against the floor on the 307,200-tet beam
 # Each writes <name>.md/.json/.png (+ <name>.log) under $OUT; $OUT/gpu_bench.md gathers them
@@ -111,6 +112,7 @@ run sofa_beam 40 "$PYTHON" benchmarks/sofa_beam.py --device "$DEVICE" --out "$OU
 run figure2 165 "$PYTHON" benchmarks/figure2.py --device "$DEVICE" --out "$OUT" --cpu-threads "$NPROC" "${QUICK[@]}"
 run cg_floor 70 "$PYTHON" benchmarks/cg_floor.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
 run batches 75 "$PYTHON" benchmarks/batches.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
+run gather_variants 30 "$PYTHON" benchmarks/gather_variants.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
 if [[ "$DEVICE" == "cpu" ]]; then
     run step_bench 45 "$PYTHON" benchmarks/step_bench.py --device cpu --out "$OUT" --steps 1 --scenes sofa_beam \
         --backends extension

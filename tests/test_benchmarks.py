@@ -159,3 +159,13 @@ def test_definite_tangent_quick(tmp_path):
     records = json.loads((tmp_path / "definite_tangent.json").read_text())["records"]
     by = {(r["scene"], r["tangent"]): r for r in records}
     assert by[("compressed", "exact")]["failed"] and not by[("compressed", "definite")]["failed"]
+
+
+def test_gather_variants_quick(tmp_path):
+    pytest.importorskip("tensormass_torch._C")
+    import gather_variants
+
+    gather_variants.main(["--quick", "--device", "cpu", "--models", "hooke", "--repeat", "2", "--out", str(tmp_path)])
+    records = json.loads((tmp_path / "gather_variants.json").read_text())["records"]
+    assert {r["backend"] for r in records} == {"padded", "csr", "atomics"}
+    assert all(r["max_rel_diff"] < 1e-5 for r in records)  # the same forces, summed three ways
