@@ -91,8 +91,7 @@ class ElementGroup(nn.Module):
         lam, mu = self.lame(young, poisson)
         if model == "hooke":
             element_k = tensor_form.element_stiffness(m, measure, lam, mu, proj)
-            # the vertex tensors are not stored: the forces use differences (tensor_form docstring)
-            _, edges, edge_k = tensor_form.assemble_vertex_edge(element_k, elements, self.num_nodes)
+            edges, edge_k = tensor_form.assemble_edges(element_k, elements, self.num_nodes)
             self.register_buffer("edges", edges)
             self.register_buffer("edge_k", edge_k)
             self.plan = GatherPlan.build(edges, self.num_nodes)

@@ -221,3 +221,51 @@ def test_cuda_graph_replay_equals_eager_and_is_bitwise_reproducible():
     for r in runs:
         assert torch.equal(r.solution, eager.solution) and torch.equal(r.iterations, eager.iterations)
         assert bool(r.converged.all())
+
+
+def test_run_captured_runs_eagerly_then_replays(monkeypatch):
+    """The capture-and-replay bookkeeping shared by CGSolver and StepGraphs, with a stand-in for
+    torch.cuda's graphs (the real ones run in the CUDA tests)."""
+    from contextlib import contextmanager
+
+    from tensormass_torch.solver.cg import run_captured
+
+    class FakeGraph:
+        def __init__(self):
+            self.recorded = None
+
+        def replay(self):
+            self.recorded()
+
+    capturing = []
+
+    @contextmanager
+    def fake_capture(graph):
+        capturing.append(graph)
+        try:
+            yield
+        finally:
+            capturing.pop()
+
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", FakeGraph)
+    monkeypatch.setattr(torch.cuda, "graph", fake_capture)
+    calls = []
+
+    def work():
+        if capturing:  # what a capture records is replayed later
+            capturing[-1].recorded = lambda: calls.append("replayed")
+        else:
+            calls.append("eager")
+
+    graphs = {}
+    assert run_captured(graphs, "k", work) is False and calls == ["eager"]  # warm-up, then captured
+    assert run_captured(graphs, "k", work) is True and calls == ["eager", "replayed"]
+
+    def uncapturable():
+        if capturing:
+            raise RuntimeError("operation not permitted when stream is capturing")
+        calls.append("eager")
+
+    calls.clear()
+    assert run_captured(graphs, "u", uncapturable) is False and graphs["u"] is False
+    assert run_captured(graphs, "u", uncapturable) is False and calls == ["eager", "eager"]

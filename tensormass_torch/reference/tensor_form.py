@@ -2,11 +2,11 @@
 
 ``hooke`` (Cotin, Delingette, Ayache 2000): per element
     K_jk = vol (lam m_j m_k^T + mu m_k m_j^T + mu (m_j . m_k) P)          [N, n, n, d, d]
-summed over the elements that share them into vertex tensors K_ii ``[V, d, d]`` and edge
-tensors K_ij ``[Ed, d, d]`` (i < j; K_ji = K_ij^T). F_i = -K_ii u_i - sum_j K_ij u_j, evaluated as
-F_i = -sum_j K_ij (u_j - u_i): every row of an element's blocks sums to zero (sum_k m_k = 0), so
-K_ii = -sum_j K_ij exactly, and the differences keep float32's digits (the absolute form cancels
-large displacements against each other, 0.3-0.6 % errors in float32) and need no vertex tensors.
+summed over the elements that share them into Cotin's vertex tensors K_ii and edge tensors K_ij
+``[Ed, d, d]`` (i < j; K_ji = K_ij^T): F_i = -K_ii u_i - sum_j K_ij u_j. Every row of an element's
+blocks sums to zero (sum_k m_k = 0), so K_ii = -sum_j K_ij exactly and F_i = -sum_j K_ij (u_j - u_i):
+only the edge tensors are assembled, and the differences keep float32's digits (the absolute form
+cancels large displacements against each other: 0.3-0.6 % errors in float32).
 
 ``stvk`` (Picinbono, Delingette, Ayache): per element
     W = sum_jk u_j^T B_jk u_k + sum_jkl (u_j.u_k)(C_jkl.u_l) + sum_jklm D_jklm (u_j.u_k)(u_l.u_m)
@@ -42,23 +42,16 @@ def element_stiffness(m, vol, lam, mu, proj=None) -> torch.Tensor:
     return vol[:, None, None, None, None] * k
 
 
-def assemble_vertex_edge(element_k: torch.Tensor, elements: torch.Tensor, num_nodes: int):
-    """Sum element tensors onto vertices and edges (deterministically).
+def assemble_edges(element_k: torch.Tensor, elements: torch.Tensor, num_nodes: int):
+    """Sum element tensors onto edges (deterministically). The vertex tensors K_ii are not
+    assembled: the forces use K_ii = -sum_j K_ij (see the module docstring).
 
     Args:
         element_k: ``[N, n, n, d, d]``; elements: ``[N, n]``.
 
     Returns:
-        vertex_k: ``[V, d, d]``; edges: ``[Ed, 2]`` (i < j); edge_k: ``[Ed, d, d]`` mapping
-        u_j to the force on i.
+        edges: ``[Ed, 2]`` (i < j); edge_k: ``[Ed, d, d]`` mapping u_j to the force on i.
     """
-    n = elements.shape[1]
-    local = torch.arange(n, device=elements.device)
-    diag = element_k[:, local, local]  # [N, n, d, d]
-    flat_nodes = elements.reshape(-1)
-    slots, num_slots, _ = incidence_slots(flat_nodes, num_nodes)
-    vertex_k = padded_sum(diag.reshape(-1, *diag.shape[2:]), flat_nodes, slots, num_slots, num_nodes)
-
     edges, pairs, element_edges = unique_edges(elements, num_nodes)
     block = element_k[:, pairs[:, 0], pairs[:, 1]]  # K_ab, a < b locally: [N, P, d, d]
     first_is_low = elements[:, pairs[:, 0]] < elements[:, pairs[:, 1]]
@@ -67,7 +60,7 @@ def assemble_vertex_edge(element_k: torch.Tensor, elements: torch.Tensor, num_no
     flat_edges = element_edges.reshape(-1)
     slots, num_slots, _ = incidence_slots(flat_edges, edges.shape[0])
     edge_k = padded_sum(block.reshape(-1, *block.shape[2:]), flat_edges, slots, num_slots, edges.shape[0])
-    return vertex_k, edges, edge_k
+    return edges, edge_k
 
 
 def hooke_edge_partial_forces(u: torch.Tensor, edges: torch.Tensor, edge_k: torch.Tensor) -> torch.Tensor:

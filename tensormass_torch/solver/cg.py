@@ -106,35 +106,14 @@ class CGSolver:
         cg_ops.cg_direction(self.plan, s, self.native)
 
     def _run(self, matvec: Matvec, count: int, max_iter: int, graph_key):
-        if graph_key is None or not self.cuda_graphs:
+        def iterations():
             for _ in range(count):
                 self._iterate(matvec, max_iter)
-            return
-        key = (graph_key, count, max_iter)
-        graph = self._graphs.get(key)
-        if graph is None:  # first use: run eagerly (warms up every op), capture for the next time
-            for _ in range(count):
-                self._iterate(matvec, max_iter)
-            self._graphs[key] = self._capture(matvec, count, max_iter)
-            return
-        if graph is False:  # capture failed once: stay eager
-            for _ in range(count):
-                self._iterate(matvec, max_iter)
-            return
-        graph.replay()
-        self.graph_replays += 1
 
-    def _capture(self, matvec: Matvec, count: int, max_iter: int):
-        """A CUDA graph of ``count`` iterations on the persistent buffers (capturing runs nothing:
-        the buffers keep their values), or False when some op cannot be captured."""
-        graph = torch.cuda.CUDAGraph()
-        try:
-            with torch.cuda.graph(graph):
-                for _ in range(count):
-                    self._iterate(matvec, max_iter)
-        except Exception:  # noqa: BLE001 (an op that cannot be captured: the eager path is as correct)
-            return False
-        return graph
+        if graph_key is None or not self.cuda_graphs:
+            iterations()
+        elif run_captured(self._graphs, (graph_key, count, max_iter), iterations):
+            self.graph_replays += 1
 
     def start(self, matvec: Matvec, rhs: torch.Tensor, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
               max_iter: int = 200):
@@ -205,6 +184,30 @@ class CGSolver:
             count = min(check_every, max_iter - done)
             self._run(matvec, count, max_iter, graph_key)
             done += count
+
+
+def run_captured(graphs: dict, key, work: Callable[[], None]) -> bool:
+    """Run ``work`` (device work on buffers that keep their storage) through a CUDA graph kept in
+    ``graphs[key]``: the first time eagerly (which warms every op up), then captured; replayed
+    from the next call on. A capture that fails (an op that cannot be captured) is remembered as
+    False and the work stays eager: the same arithmetic. Capturing runs nothing, so the buffers
+    keep their values. Returns whether a graph was replayed."""
+    graph = graphs.get(key)
+    if graph is None:
+        work()
+        graph = torch.cuda.CUDAGraph()
+        try:
+            with torch.cuda.graph(graph):
+                work()
+        except Exception:  # noqa: BLE001 (not capturable: the eager path is as correct)
+            graph = False
+        graphs[key] = graph
+        return False
+    if graph is False:
+        work()
+        return False
+    graph.replay()
+    return True
 
 
 def batched_cg(matvec: Matvec, rhs: torch.Tensor, segments: Segments, free: Optional[torch.Tensor] = None,

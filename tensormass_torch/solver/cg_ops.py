@@ -67,14 +67,8 @@ def _native_ops(device: torch.device):
     if key not in _NATIVE:
         from .. import native
 
+        # use_extension said the extension is built for this device type: its CG ops come with it
         ok = native.ensure_registered() and hasattr(torch.ops.tensormass, "cg_dot")
-        if ok:
-            try:
-                torch.ops.tensormass.cg_update.default  # noqa: B018 (the schema is registered)
-                ok = torch._C._dispatch_has_kernel_for_dispatch_key(
-                    "tensormass::cg_update", "CUDA" if key == "cuda" else "CPU")
-            except (AttributeError, RuntimeError):
-                ok = False
         if ok:
             _register_fakes()
         _NATIVE[key] = torch.ops.tensormass if ok else None

@@ -17,7 +17,7 @@ import torch
 
 from ..errors import SolverError
 from . import cg_ops
-from .cg import CGResult, CGSolver, batched_cg
+from .cg import CGResult, CGSolver, batched_cg, run_captured
 from .segments import Segments
 
 
@@ -292,22 +292,6 @@ class StepGraphs:
         for row, values in enumerate((s.status, s.iterations, s.rr, cg.rhs_sq, self.norms)):
             self.summary[row].copy_(values)
 
-    def _run(self, name, phase):
-        graph = self._graphs[name]
-        if graph is None:  # first step: eager (warms every op up), capture for the next one
-            phase()
-            graph = torch.cuda.CUDAGraph()
-            try:
-                with torch.cuda.graph(graph):
-                    phase()
-            except Exception:  # noqa: BLE001 (not capturable: the eager phase is as correct)
-                graph = False
-            self._graphs[name] = graph
-        elif graph is False:
-            phase()
-        else:
-            graph.replay()
-
     def step(self, x, v, imposed_velocity=None):
         """One step from ``x, v [V, d]`` (``imposed_velocity [V, d]`` or None, as
         :func:`implicit_euler_step`): returns (x_new, v_new, StepReport) or raises SolverError."""
@@ -317,9 +301,9 @@ class StepGraphs:
             self.imposed.copy_(imposed_velocity)
         opts = self.opts
         report = StepReport()
-        self._run("A", self._phase_a)
+        run_captured(self._graphs, "A", self._phase_a)
         self.cg.finish(self.matvec, opts.cg_max_iter, opts.check_every, self.matvec.graph_key, done=self.first)
-        self._run("C", self._phase_c)  # also after a failed solve: its output is then discarded
+        run_captured(self._graphs, "C", self._phase_c)  # also after a failed solve: its output is discarded
         status, iterations, rr, rhs_sq, norms = self.summary.cpu()  # the step's one synchronisation
         result = CGResult(self.cg.state.x.clone(), iterations.long(), torch.sqrt(torch.clamp(rr, min=0)),
                           torch.sqrt(rhs_sq), status == cg_ops.CONVERGED, status == cg_ops.BREAKDOWN,
