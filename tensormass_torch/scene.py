@@ -14,7 +14,7 @@ from .diagnostics import InversionCheck, InversionReport
 from .errors import SceneError, SolverError
 from .materials import Material
 from .modules import TensorMass
-from .solver.implicit_euler import DynamicsSystem, StepOptions, StepReport, implicit_euler_step
+from .solver.implicit_euler import DynamicsSystem, StepOptions, StepReport, implicit_euler_step, step_graphs_for
 from .solver.segments import Segments
 
 
@@ -270,18 +270,60 @@ class Simulator:
 
         A failed step (after its sub-step retries, if any) raises ``SolverError`` and leaves
         positions, velocities and time as they were before that step.
+
+        On a CUDA device, when a whole step runs without a host decision (every CG iteration
+        inside the captured step: ``cg_max_iter <= check_every``; no prescribed motion; no
+        inversion check), consecutive steps are chained: up to 64 run back to back with ONE host
+        synchronisation, then every step's outcome is checked in order. Should one have failed, the
+        steps before it are committed (run again: the kernels are deterministic) and it is run on
+        its own, which raises (or retries in sub-steps) exactly as above.
         """
-        report = self.last_report
-        for _ in range(int(n)):
+        left = int(n)
+        while left > 0:
+            chain = self._chain_graphs() if left > 1 else None
+            if chain is not None:
+                count = min(left, chain.max_chain)
+                done = self._run_chain(chain, count)
+                left -= done
+                if done == count:
+                    continue
+            # One step on its own: the path that raises, retries in sub-steps and checks
+            # inversions (after a chained step failed, it runs that step again and fails the same).
             x, v, report, inversion = self._advance()
-            self.x, self.v = x, v
-            self.time += self.options.dt
-            self.steps_done += 1
-            self.last_report = report
-            self.last_inversion = inversion
+            self._commit(x, v, 1, report, inversion)
             if self.check_inversion == "warn":
                 self._warn_new_inversions(inversion)
-        return report
+            left -= 1
+        return self.last_report
+
+    def _commit(self, x, v, steps: int, report: StepReport, inversion):
+        self.x, self.v = x, v
+        for _ in range(steps):  # the same float sum as one step at a time
+            self.time += self.options.dt
+        self.steps_done += steps
+        self.last_report = report
+        self.last_inversion = inversion
+
+    def _chain_graphs(self):
+        """The step graphs that run several steps with one host synchronisation (CUDA, every CG
+        iteration inside the captured step, no prescribed motion, no inversion check), or None."""
+        if self._has_prescribed or self._inversion is not None:
+            return None
+        graphs = step_graphs_for(self.system, self.options, imposed=False)
+        return graphs if graphs is not None and graphs.chainable else None
+
+    def _run_chain(self, graphs, count: int) -> int:
+        """Up to ``count`` steps chained on the device; commits the steps before the first failed
+        one (if any) and returns how many were committed."""
+        summaries = graphs.run_steps(self.x, self.v, count)
+        ok = 0
+        while ok < count and not graphs.failure(summaries[ok]):
+            ok += 1
+        if 0 < ok < count:  # the state before the failed step: the good steps again (deterministic)
+            summaries = graphs.run_steps(self.x, self.v, ok)
+        if ok:
+            self._commit(graphs.x.clone(), graphs.v.clone(), ok, graphs.report_of(summaries[ok - 1]), None)
+        return ok
 
     def _range(self, i: int) -> slice:
         if not -self.num_bodies <= i < self.num_bodies:

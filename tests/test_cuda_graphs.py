@@ -83,3 +83,22 @@ def test_torch_backend_on_cuda_runs_eagerly(monkeypatch):
     sim.step(3)
     assert not sim.system._step_graphs
     torch.randn(4, device="cuda")
+
+
+@pytest.mark.parametrize("model", ["hooke", "corotational"])
+def test_chained_steps_equal_single_steps(model):
+    """sim.step(n) with a fixed CG budget chains the captured steps (one host sync per chain)."""
+    def fixed_budget():
+        sim = make_sim(model, True, cg_tol=0.0, check_every=1000, cg_max_iter=10)
+        sim.bodies[1].motion = None  # no prescribed motion: it would need the host every step
+        sim._has_prescribed = False
+        sim.options.require_convergence = False
+        return sim
+
+    chained, single = fixed_budget(), fixed_budget()
+    chained.step(20)
+    for _ in range(20):
+        single.step()
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    graphs = [g for g in chained.system._step_graphs.values() if g.chainable]
+    assert graphs and graphs[0]._graphs.get("C chained") not in (None, False)

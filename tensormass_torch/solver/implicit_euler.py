@@ -265,7 +265,14 @@ class StepGraphs:
         self.summary = torch.zeros(5, self.norms.numel(), dtype=torch.float64, device=like.device)
         self.matvec = system.system_matvec(1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness))
         self.first = min(opts.check_every, opts.cg_max_iter)
-        self._graphs = {"A": None, "C": None}
+        self._graphs = {}
+        # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
+        # ``ring`` (a device counter: the captured graph needs no host index), and the new state
+        # is copied back into x, v on the device, so steps follow each other with no host sync.
+        objects = self.norms.numel()
+        self.ring = torch.zeros(max(1, min(64, 2 ** 17 // max(objects, 1))), 5, objects, dtype=torch.float64,
+                                device=like.device)
+        self.ring_pos = torch.zeros(1, dtype=torch.long, device=like.device)
 
     def _phase_a(self):
         opts = self.opts
@@ -292,6 +299,60 @@ class StepGraphs:
         for row, values in enumerate((s.status, s.iterations, s.rr, cg.rhs_sq, self.norms)):
             self.summary[row].copy_(values)
 
+    def _phase_c_chained(self):
+        self._phase_c()
+        self.ring.index_copy_(0, self.ring_pos, self.summary.unsqueeze(0))
+        self.ring_pos.add_(1)
+        self.x.copy_(self.x_new)
+        self.v.copy_(self.v_new)
+
+    @property
+    def chainable(self) -> bool:
+        """Whether whole steps run with no host decision inside (every CG iteration is in graph
+        A: ``cg_max_iter <= check_every``) and no imposed velocity, so :meth:`run_steps` applies."""
+        return self.imposed is None and self.first >= self.opts.cg_max_iter
+
+    @property
+    def max_chain(self) -> int:
+        """The most steps one :meth:`run_steps` call takes (rows of the summary ring)."""
+        return self.ring.shape[0]
+
+    def run_steps(self, x, v, count: int) -> torch.Tensor:
+        """``count`` steps from ``x, v [V, d]`` back to back, with ONE host synchronisation at the
+        end (requires :attr:`chainable`; ``count <= max_chain``). The state after the last step
+        is left in ``self.x, self.v`` whatever happened: the caller checks each step's summary
+        (:meth:`failure`) before committing anything, and the kernels are deterministic, so
+        running the first k of these steps again gives the same state bit for bit.
+
+        Returns the summaries ``[count, 5, B]`` (float64, host): status, iterations, r.r, b.b,
+        |x|^2 + |v|^2 per object."""
+        if not self.chainable or not 1 <= count <= self.max_chain:
+            raise ValueError(f"run_steps: count must be in [1, {self.max_chain}] on chainable step graphs")
+        self.x.copy_(x)
+        self.v.copy_(v)
+        self.ring_pos.zero_()
+        for _ in range(count):
+            run_captured(self._graphs, "A", self._phase_a)
+            run_captured(self._graphs, "C chained", self._phase_c_chained)
+        return self.ring[:count].cpu()
+
+    def report_of(self, summary: torch.Tensor) -> StepReport:
+        """The :class:`StepReport` of the step whose summary ``[5, B]`` (host) is given; its CG
+        solution is the CG buffer (the last solve's)."""
+        status, iterations, rr, rhs_sq, _ = summary
+        result = CGResult(self.cg.state.x.clone(), iterations.long(), torch.sqrt(torch.clamp(rr, min=0)),
+                          torch.sqrt(rhs_sq), status == cg_ops.CONVERGED, status == cg_ops.BREAKDOWN,
+                          status == cg_ops.NONFINITE)
+        return StepReport(cg=[result])
+
+    def failure(self, summary: torch.Tensor) -> bool:
+        """Whether the step of this summary ``[5, B]`` failed (what :meth:`step` raises on)."""
+        status, norms = summary[0], summary[4]
+        bad = (status == cg_ops.BREAKDOWN) | (status == cg_ops.NONFINITE) | ~torch.isfinite(norms)
+        if self.opts.require_convergence:
+            bad |= status != cg_ops.CONVERGED
+        return bool(bad.any())
+
     def step(self, x, v, imposed_velocity=None):
         """One step from ``x, v [V, d]`` (``imposed_velocity [V, d]`` or None, as
         :func:`implicit_euler_step`): returns (x_new, v_new, StepReport) or raises SolverError."""
@@ -300,21 +361,17 @@ class StepGraphs:
         if self.imposed is not None:
             self.imposed.copy_(imposed_velocity)
         opts = self.opts
-        report = StepReport()
         run_captured(self._graphs, "A", self._phase_a)
         self.cg.finish(self.matvec, opts.cg_max_iter, opts.check_every, self.matvec.graph_key, done=self.first)
         run_captured(self._graphs, "C", self._phase_c)  # also after a failed solve: its output is discarded
-        status, iterations, rr, rhs_sq, norms = self.summary.cpu()  # the step's one synchronisation
-        result = CGResult(self.cg.state.x.clone(), iterations.long(), torch.sqrt(torch.clamp(rr, min=0)),
-                          torch.sqrt(rhs_sq), status == cg_ops.CONVERGED, status == cg_ops.BREAKDOWN,
-                          status == cg_ops.NONFINITE)
-        report.cg.append(result)
-        _raise_if_failed(result, opts, "implicit Euler CG")
-        _raise_if_nonfinite(self.system, norms, report)
+        summary = self.summary.cpu()  # the step's one synchronisation
+        report = self.report_of(summary)
+        _raise_if_failed(report.cg[0], opts, "implicit Euler CG")
+        _raise_if_nonfinite(self.system, summary[4], report)
         return self.x_new.clone(), self.v_new.clone(), report
 
 
-def _step_graphs(system: DynamicsSystem, opts: StepOptions, imposed: bool):
+def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     """The system's :class:`StepGraphs` for these options, or None where they do not apply."""
     from ..modules import TensorMass
 
@@ -340,7 +397,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         (x_new, v_new, StepReport). Raises SolverError, leaving inputs untouched, when a solve
         fails or the new state is not finite.
     """
-    graphs = _step_graphs(system, opts, imposed_velocity is not None)
+    graphs = step_graphs_for(system, opts, imposed_velocity is not None)
     if graphs is not None:
         return graphs.step(x, v, imposed_velocity)
     h = opts.dt

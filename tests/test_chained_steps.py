@@ -1,0 +1,120 @@
+"""Chained steps (Simulator.step(n) on the GPU: up to 64 steps with one host synchronisation,
+StepGraphs.run_steps) give the same states as one step at a time, bitwise, and a failed step in a
+chain raises with the state of the step before it. Run here on the CPU: the step graphs are built
+on the CPU and their phases run eagerly (the CUDA capture itself is tested in test_cuda_graphs.py)."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch import scene as scene_module
+from tensormass_torch.solver import cg_ops
+from tensormass_torch.solver import implicit_euler
+from tensormass_torch.solver.implicit_euler import StepGraphs
+
+pytestmark = pytest.mark.skipif(cg_ops.native_ops_for(torch.zeros(1)) is None,
+                                reason="needs the compiled CG ops of the extension")
+
+
+@pytest.fixture
+def graphs_on_cpu(monkeypatch):
+    """StepGraphs on the CPU, their phases run eagerly instead of captured."""
+    def cpu_step_graphs(system, opts, imposed):
+        key = (opts.dt, opts.cg_tol, opts.cg_max_iter, opts.check_every, opts.require_convergence, imposed)
+        if key not in system._step_graphs:
+            system._step_graphs[key] = StepGraphs(system, opts, imposed)
+        return system._step_graphs[key]
+
+    def eager(graphs, key, work):
+        work()
+        return False
+
+    monkeypatch.setattr(scene_module, "step_graphs_for", cpu_step_graphs)
+    monkeypatch.setattr(implicit_euler, "step_graphs_for", cpu_step_graphs)
+    monkeypatch.setattr(implicit_euler, "run_captured", eager)
+
+
+def make_sim(model="hooke", cg_max_iter=12, check_every=1000, tol=0.0, require=False):
+    bodies = []
+    for k in range(2):
+        mesh = tm.beam_mesh(6, 2, 2, size=(0.6, 0.1, 0.1), origin=(0.0, 0.3 * k, 0.02), dtype=torch.float64)
+        mat = tm.Material(young=3e4 * (k + 1), poisson=0.3, density=1000.0, model=model)
+        bodies.append(tm.Body(mesh, mat, fixed=mesh.vertices[:, 0] < 1e-9))
+    sim = tm.Simulator(bodies, dt=0.01, gravity=(0, 0, -9.81), planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)],
+                       cg_tol=tol, cg_max_iter=cg_max_iter, check_every=check_every)
+    sim.options.require_convergence = require
+    return sim
+
+
+@pytest.mark.parametrize("model", ["hooke", "stvk"])
+def test_chained_steps_equal_single_steps(graphs_on_cpu, model):
+    chained, single = make_sim(model), make_sim(model)
+    chained.step(9)
+    for _ in range(9):
+        single.step()
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    assert chained.time == single.time and chained.steps_done == single.steps_done == 9
+    (graphs,) = chained.system._step_graphs.values()
+    assert graphs.chainable and int(graphs.ring_pos) == 9  # the 9 steps ran as one chain
+    assert torch.equal(chained.last_report.cg_iterations, single.last_report.cg_iterations)
+    assert torch.equal(chained.last_report.cg[0].residual_norm, single.last_report.cg[0].residual_norm)
+
+
+def test_chains_longer_than_the_ring(graphs_on_cpu):
+    chained, single = make_sim(), make_sim()
+    (graphs,) = [implicit_euler.step_graphs_for(chained.system, chained.options, False)]
+    graphs.ring = graphs.ring[:4]  # chains of at most 4 steps
+    chained.step(10)
+    single.step(1)
+    for _ in range(9):
+        single.step(1)
+    assert torch.equal(chained.x, single.x) and chained.steps_done == 10
+
+
+def test_failure_inside_a_chain_commits_the_steps_before_it(graphs_on_cpu, monkeypatch):
+    """A step flagged as failed in the middle of a chain: the steps before it are committed (run
+    again), it runs on its own (which here succeeds), and the chain goes on: same states as steps
+    one at a time."""
+    chained, single = make_sim(), make_sim()
+    graphs = implicit_euler.step_graphs_for(chained.system, chained.options, False)
+    flagged = []
+    real_failure = StepGraphs.failure
+
+    def failure(self, summary):
+        calls = len(flagged)
+        flagged.append(calls)
+        return calls == 3 or real_failure(self, summary)  # the 4th step of the first chain
+
+    monkeypatch.setattr(StepGraphs, "failure", failure)
+    chained.step(8)
+    for _ in range(8):
+        single.step()
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    assert chained.steps_done == 8 and chained.time == single.time
+    assert graphs is implicit_euler.step_graphs_for(chained.system, chained.options, False)
+
+
+def test_failed_chain_raises_and_keeps_the_state(graphs_on_cpu):
+    sim = make_sim("stvk")
+    sim.step(3)
+    x, v, t = sim.x.clone(), sim.v.clone(), sim.time
+    sim.v = sim.v.clone()
+    sim.v[7, 2] = float("nan")
+    with pytest.raises(tm.SolverError):
+        sim.step(5)
+    assert torch.equal(sim.x, x) and sim.time == t and sim.steps_done == 3
+
+
+def test_not_converged_fixed_budget_raises_when_convergence_is_required(graphs_on_cpu):
+    sim = make_sim(cg_max_iter=2, tol=1e-12, require=True)
+    with pytest.raises(tm.SolverError, match="not converged"):
+        sim.step(4)
+    assert sim.steps_done == 0 and torch.equal(sim.x, sim.model.rest)
+
+
+def test_steps_that_need_host_checks_are_not_chained(graphs_on_cpu):
+    sim = make_sim(cg_max_iter=50, check_every=8, tol=1e-8)
+    sim.step(3)
+    (graphs,) = sim.system._step_graphs.values()
+    assert not graphs.chainable and int(graphs.ring_pos) == 0 and sim.steps_done == 3
