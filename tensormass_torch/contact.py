@@ -55,6 +55,16 @@ class Planes:
         outer = self.normals[:, :, None] * self.normals[:, None, :]  # [P, 3, 3]
         return torch.einsum("vp,pab->vab", active, outer)
 
+    def linearize(self, x: torch.Tensor):
+        """Forces ``[V, 3]`` and node stiffness ``[V, 3, 3]`` (as :meth:`forces`,
+        :meth:`node_stiffness`) at ``x [V, 3]`` from one evaluation of the penetrations: what
+        an implicit step needs (its force differential is ``-node_stiffness @ dx``)."""
+        depth = self.penetration(x)  # [V, P]
+        forces = (depth * self.stiffness) @ self.normals
+        active = (depth > 0).to(x.dtype) * self.stiffness
+        outer = self.normals[:, :, None] * self.normals[:, None, :]  # [P, 3, 3]
+        return forces, torch.einsum("vp,pab->vab", active, outer)
+
     def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """(df/dx) dx = -k n (n.dx) on nodes in contact ``[V, 3]``."""
         active = (self.penetration(x) > 0).to(x.dtype)

@@ -159,6 +159,28 @@ class TensorMass(nn.Module):
 
         return apply
 
+    @property
+    def is_linear(self) -> bool:
+        """Whether the forces are linear in the displacements (every group ``hooke``):
+        f(u) + (dF/du) w = f(u + w), one pass over the elements instead of two."""
+        return all(group.model == "hooke" for group in self.groups)
+
+    def linearized_forces(self, u: torch.Tensor, w: torch.Tensor, states=None) -> torch.Tensor:
+        """``f(u) + (dF/du)(u) w  [V, d]`` at displacements ``u [V, d]`` along ``w [V, d]``:
+        implicit Euler's right-hand side. One pass for a linear model (``f(u + w)``); otherwise the
+        forces and the product, sharing ``states`` (``[ops.linearize(g, u) for g in groups]``, the
+        corotational rotations; computed here when None)."""
+        self._check_positions("u", u)
+        if self.is_linear:
+            return self.displacement_forces(u + w)
+        if states is None:
+            states = [ops.linearize(group, u) for group in self.groups]
+        total = None
+        for group, state in zip(self.groups, states):
+            f = ops.forces(group, u, state) + ops.dforces(group, u, w, state)
+            total = f if total is None else total + f
+        return total
+
     def lumped_mass(self) -> torch.Tensor:
         """Lumped nodal masses ``[V]``."""
         return self.mass

@@ -146,15 +146,18 @@ class SystemMatvec:
         self.u = torch.zeros_like(system.model.rest)
         self.states = None
         self.node_stiffness = None
+        #: contact forces ``[V, d]`` at the loaded positions (None without planes)
+        self.contact_forces = None
         self.graph_key = ("system", mass_coef, stiffness_coef, id(self))
 
     def load(self, x: torch.Tensor) -> "SystemMatvec":
-        """Linearise at positions ``x [V, d]`` (rotations and contact stiffness computed once here)."""
+        """Linearise at positions ``x [V, d]``: rotations, contact forces and contact stiffness
+        computed once here, for the CG products and the right-hand side alike."""
         from .. import ops
 
         system = self.system
         system.model._check_positions("x", x)
-        self.u.copy_(x - system.model.rest)
+        torch.sub(x, system.model.rest, out=self.u)
         states = [ops.linearize(group, self.u) for group in system.model.groups]
         if self.states is None or [s is None for s in states] != [s is None for s in self.states]:
             self.states = [None if s is None else s.clone() for s in states]
@@ -163,12 +166,34 @@ class SystemMatvec:
                 if src is not None:
                     dst.copy_(src)
         if system.planes is not None:
-            stiffness = system.planes.node_stiffness(x)
+            self.contact_forces, stiffness = system.planes.linearize(x)
             if self.node_stiffness is None:
                 self.node_stiffness = stiffness.clone()
             else:
                 self.node_stiffness.copy_(stiffness)
         return self
+
+    def tangent(self, dx: torch.Tensor) -> torch.Tensor:
+        """(dF/dx) dx ``[V, d]`` at the loaded positions (elastic and contact), with the loaded
+        rotations."""
+        from .. import ops
+
+        total = None
+        for group, state in zip(self.system.model.groups, self.states):
+            f = ops.dforces(group, self.u, dx, state)
+            total = f if total is None else total + f
+        if self.node_stiffness is not None:
+            total = total - torch.einsum("vab,vb->va", self.node_stiffness, dx)
+        return total
+
+    def forces_along(self, w: torch.Tensor) -> torch.Tensor:
+        """All forces at the loaded positions plus the stiffness along ``w``: ``f(x) + (dF/dx) w
+        [V, d]`` (elastic, external and contact), one pass over the elements for a linear model."""
+        system = self.system
+        total = system.model.linearized_forces(self.u, w, self.states) + system.external
+        if self.contact_forces is not None:
+            total = total + self.contact_forces - torch.einsum("vab,vb->va", self.node_stiffness, w)
+        return total
 
     def __call__(self, p: torch.Tensor):
         from .. import ops
@@ -178,17 +203,23 @@ class SystemMatvec:
                                  self.stiffness_coef, self.states, self.node_stiffness)
 
 
-def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions) -> CGResult:
+def _coefficients(opts: StepOptions):
+    """(c_M, c_K) of the system matrix c_M M - c_K K."""
     h = opts.dt
-    mass_coef = 1.0 + h * opts.rayleigh_mass
-    stiffness_coef = h * (h + opts.rayleigh_stiffness)
-    fused = system.system_matvec(mass_coef, stiffness_coef)
+    return 1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness)
+
+
+def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None) -> CGResult:
+    """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x."""
+    mass_coef, stiffness_coef = _coefficients(opts)
+    fused = loaded if loaded is not None else system.system_matvec(mass_coef, stiffness_coef)
     if fused is None:  # a model that is not a TensorMass: the composed product
         tangent = system.tangent(x)
         return batched_cg(lambda p: mass_coef * system.mass * p - stiffness_coef * tangent(p), rhs,
                           system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
                           check_every=opts.check_every)
-    fused.load(x)
+    if loaded is None:
+        fused.load(x)
     cg = system.cg_solver(rhs, opts.cuda_graphs)
     return cg.solve(fused, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
                     graph_key=fused.graph_key)
@@ -204,19 +235,24 @@ def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):
         raise SolverError(f"{what} failed ({'; '.join(bad[:10])}); the state was not changed", status, result)
 
 
-def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity):
+def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, loaded=None):
     """The right-hand side ``[V, d]`` of the first linear system of a step, and the velocity change
-    of the constrained nodes ``[V, d]`` (None when there is none to impose)."""
+    of the constrained nodes ``[V, d]`` (None when there is none to impose). ``loaded``: the
+    SystemMatvec loaded at ``x`` (its rotations and contact terms are reused: computed once per
+    step), or None."""
     h = opts.dt
     # Constrained nodes take their imposed velocity exactly; CG solves for the free nodes only.
     # With no imposed velocity, constrained nodes are fixed: they are at rest and stay there.
     dv_imposed = None
     if system.free is not None and imposed_velocity is not None:
         dv_imposed = (1.0 - system.free) * (imposed_velocity - v)
-    mass_coef = 1.0 + h * opts.rayleigh_mass
-    stiffness_coef = h * (h + opts.rayleigh_stiffness)
-    tangent = system.tangent(x)
-    rhs = system.forces(x) + tangent((h + opts.rayleigh_stiffness) * v)
+    mass_coef, stiffness_coef = _coefficients(opts)
+    if loaded is not None:
+        tangent = loaded.tangent
+        rhs = loaded.forces_along((h + opts.rayleigh_stiffness) * v)
+    else:
+        tangent = system.tangent(x)
+        rhs = system.forces(x) + tangent((h + opts.rayleigh_stiffness) * v)
     if opts.rayleigh_mass:  # no damping term without damping
         rhs = rhs - opts.rayleigh_mass * system.mass * v
     rhs = h * rhs
@@ -252,7 +288,6 @@ class StepGraphs:
     """
 
     def __init__(self, system: DynamicsSystem, opts: StepOptions, imposed: bool):
-        h = opts.dt
         self.system, self.opts = system, opts
         like = system.model.rest
         self.x, self.v = torch.zeros_like(like), torch.zeros_like(like)
@@ -260,10 +295,10 @@ class StepGraphs:
         self.x_new, self.v_new = torch.zeros_like(like), torch.zeros_like(like)
         self.dv_imposed = torch.zeros_like(like)
         self.cg = system.cg_solver(like, cuda_graphs=True)
-        self.norms, self.v_norms = torch.zeros_like(self.cg.rhs_sq), torch.zeros_like(self.cg.rhs_sq)
-        # status, iterations, r.r, b.b, |x|^2 + |v|^2 per object: what the host reads, in one copy
+        self.norms = torch.zeros_like(self.cg.rhs_sq)
+        # status, iterations, r.r, b.b, |v|^2 per object: what the host reads, in one copy
         self.summary = torch.zeros(5, self.norms.numel(), dtype=torch.float64, device=like.device)
-        self.matvec = system.system_matvec(1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness))
+        self.matvec = system.system_matvec(*_coefficients(opts))
         self.first = min(opts.check_every, opts.cg_max_iter)
         self._graphs = {}
         # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
@@ -276,28 +311,25 @@ class StepGraphs:
 
     def _phase_a(self):
         opts = self.opts
-        rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed)
+        self.matvec.load(self.x)
+        rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
         if dv_imposed is not None:
             self.dv_imposed.copy_(dv_imposed)
-        self.matvec.load(self.x)
         self.cg.start(self.matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter)
         for _ in range(self.first):
             self.cg._iterate(self.matvec, opts.cg_max_iter)
 
     def _phase_c(self):
-        v_new = self.v + self.cg.state.x
+        torch.add(self.v, self.cg.state.x, out=self.v_new)
         if self.imposed is not None and self.system.free is not None:
-            v_new = v_new + self.dv_imposed
-        self.v_new.copy_(v_new)
-        self.x_new.copy_(self.x + self.opts.dt * self.v_new)
-        # |x|^2 + |v|^2 per object: NaN/inf anywhere in an object shows here
+            self.v_new.add_(self.dv_imposed)
+        torch.add(self.x, self.v_new, alpha=self.opts.dt, out=self.x_new)  # as the eager step
+        # |v_new|^2 per object: NaN/inf anywhere in an object's new state shows here (x_new is
+        # x, finite, plus dt v_new)
         cg = self.cg
-        cg_ops.object_dot(self.x_new, self.x_new, cg.plan, self.norms, cg.state, cg.native)
-        cg_ops.object_dot(self.v_new, self.v_new, cg.plan, self.v_norms, cg.state, cg.native)
-        self.norms.add_(self.v_norms)
+        cg_ops.object_dot(self.v_new, self.v_new, cg.plan, self.norms, cg.state, cg.native)
         s = cg.state
-        for row, values in enumerate((s.status, s.iterations, s.rr, cg.rhs_sq, self.norms)):
-            self.summary[row].copy_(values)
+        torch.stack((s.status, s.iterations, s.rr, cg.rhs_sq, self.norms), out=self.summary)
 
     def _phase_c_chained(self):
         self._phase_c()
@@ -325,7 +357,7 @@ class StepGraphs:
         running the first k of these steps again gives the same state bit for bit.
 
         Returns the summaries ``[count, 5, B]`` (float64, host): status, iterations, r.r, b.b,
-        |x|^2 + |v|^2 per object."""
+        |v|^2 per object."""
         if not self.chainable or not 1 <= count <= self.max_chain:
             raise ValueError(f"run_steps: count must be in [1, {self.max_chain}] on chainable step graphs")
         self.x.copy_(x)
@@ -402,14 +434,17 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         return graphs.step(x, v, imposed_velocity)
     h = opts.dt
     report = StepReport()
-    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity)
-    result = _solve(system, x, rhs, opts)
+    loaded = system.system_matvec(*_coefficients(opts))
+    if loaded is not None:
+        loaded.load(x)
+    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded)
+    result = _solve(system, x, rhs, opts, loaded)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
 
     for _ in range(opts.newton_iters - 1):
-        x_new = x + h * v_new
+        x_new = torch.add(x, v_new, alpha=h)
         residual = (system.mass * (v_new - v) - h * system.forces(x_new) + h * opts.rayleigh_mass * system.mass * v_new
                     - h * opts.rayleigh_stiffness * system.dforces(x_new, v_new))
         result = _solve(system, x_new, -residual, opts)
@@ -417,6 +452,6 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         _raise_if_failed(result, opts, "Newton iteration CG")
         v_new = v_new + result.solution
 
-    x_new = x + h * v_new
+    x_new = torch.add(x, v_new, alpha=h)
     _raise_if_nonfinite(system, system.segments.sum(x_new.abs() + v_new.abs()), report)
     return x_new, v_new, report
