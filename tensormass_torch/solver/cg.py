@@ -129,11 +129,14 @@ class CGSolver:
             s.x.copy_(x0)
             s.r.copy_(b - self._apply(matvec, self._project(x0))[0])
         cg_ops.object_dot(b, b, self.plan, self.rhs_sq, s, self.native)
-        cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
+        if x0 is None:  # r = b
+            s.rr.copy_(self.rhs_sq)
+        else:
+            cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
         # A tolerance below the dtype's epsilon means "to roundoff": iterating past it only
         # underflows p.Ap to 0, which would read as a breakdown.
         tol = max(float(tol), torch.finfo(rhs.dtype).eps)
-        s.threshold.copy_((tol * tol) * self.rhs_sq)
+        torch.mul(self.rhs_sq, tol * tol, out=s.threshold)
         status = torch.where(~torch.isfinite(s.rr), NONFINITE,
                              torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
         s.status.copy_(status.to(torch.int32))
