@@ -11,6 +11,9 @@
 //            PartialForce[s][i]: every slot it reads was written once, in a fixed order, so
 //            the result is bitwise reproducible and the unused slots are never read (the
 //            buffer is allocated uninitialised).
+// The hooke tensor form's CG matvec also has a one-kernel variant (NodeHookeSystemKernel): one
+// thread per node reads its slots' neighbours and edge tensors and sums the same terms in the
+// same slot order, bitwise equal to kernels 1 + 2, without the PartialForce round trip.
 //
 // Layouts (all row-major contiguous, as the Python groups store them):
 //   u, du [V, D]; elements / force_index [N, NN] (int32 or int64); shape_vectors [N, NN, D];
@@ -305,18 +308,15 @@ struct GatherKernel {
   }
 };
 
-// Kernel 2 with the implicit-Euler system epilogue (the CG matvec of A = c_M M - c_K K):
-//   (K p)_i = sum_{s < incidences[i]} PartialForce[s][i]  (- K_ii p_i with a node stiffness)
+// The implicit-Euler system epilogue of node i, shared by the CG matvec kernels (the padded
+// SystemGatherKernel and the node-centric NodeHookeSystemKernel), given acc = the stiffness
+// product's sum (K p)_i over the node's slots and pv = p_i:
+//   (K p)_i -= K_ii p_i  (node stiffness K_ii [V, D, D]: contact penalties k n n^T)
 //   Ap[i] = free_i * (c_M m_i p_i - c_K (K p)_i),   pAp[i] = sum_a p[i][a] Ap[i][a]
-// PartialForce holds the partial force differentials (dF/du) p of kernel 1; the node stiffness
-// K_ii [V, D, D] is what acts on a node alone: contact penalties (k n n^T). The arithmetic
-// follows the torch expression (c_M m_i) p_i - c_K (K p)_i, then the projection, so that the
-// result equals the composed path to rounding.
-template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
-struct SystemGatherKernel {
-  const S* partial;         // [N_n, V, D]
-  const I* incidences;      // [V]
-  const S* p;               // [V, D]
+// The arithmetic follows the torch expression (c_M m_i) p_i - c_K (K p)_i, then the projection,
+// so that the result equals the composed path to rounding.
+template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K>
+struct SystemEpilogue {
   const S* mass;            // [V]
   const S* free;            // [V] 0/1 (HAS_FREE)
   const S* node_stiffness;  // [V, D, D] (HAS_NODE_K)
@@ -324,13 +324,8 @@ struct SystemGatherKernel {
   S c_stiff;
   S* ap;                    // [V, D]
   S* p_dot_ap;              // [V]
-  int64_t num_nodes;
 
-  TM_HD void operator()(int64_t i) const {
-    S acc[D];
-    sum_slots<D, S, I>(partial, incidences, num_nodes, i, acc);
-    S pv[D];
-    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = ld(p + i * D + a);
+  TM_HD void operator()(int64_t i, const S (&pv)[D], S (&acc)[D]) const {
     if (HAS_NODE_K) {
       S k[D][D];
       load_matrix<D, D, S>(node_stiffness + i * (D * D), k);
@@ -353,6 +348,67 @@ struct SystemGatherKernel {
       dot += pv[a] * v;
     }
     p_dot_ap[i] = dot;
+  }
+};
+
+// Kernel 2 with the system epilogue (the CG matvec of A = c_M M - c_K K, two kernels):
+// (K p)_i = sum_{s < incidences[i]} PartialForce[s][i], where PartialForce holds the partial
+// force differentials (dF/du) p of kernel 1.
+template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
+struct SystemGatherKernel {
+  const S* partial;         // [N_n, V, D]
+  const I* incidences;      // [V]
+  const S* p;               // [V, D]
+  int64_t num_nodes;
+  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
+
+  TM_HD void operator()(int64_t i) const {
+    S acc[D];
+    sum_slots<D, S, I>(partial, incidences, num_nodes, i, acc);
+    S pv[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = ld(p + i * D + a);
+    epilogue(i, pv, acc);
+  }
+};
+
+// ------------------------------------------------------------------ node-centric hooke matvec
+
+// The CG matvec of the hooke tensor form in one kernel, one item per node: the product with the
+// stiffness is a sparse block product over the node graph,
+//   (K p)_i = sum_{s < incidences[i]} -Kdir[s][i] (p[neighbor[s][i]] - p_i),
+// with Kdir = K_e where i is the first node of edge e and K_e^T where it is the second, in the
+// slots of the padded plan (slot-major "ELL" arrays neighbor [N_n, V], node_k [N_n, V, D, D]: the
+// threads of a warp read consecutive nodes of one slot). Each term is tensor_hooke_edge's force
+// on its first node with (Kdir, p_i, p_j): for the second node of an edge, w' = p_i - p_j = -w
+// and -(K^T w') = K^T w exactly, so every term, and the sum in slot order, is bitwise the one
+// kernel 1 writes and kernel 2 adds; no PartialForce buffer is written or read back.
+template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
+struct NodeHookeSystemKernel {
+  const S* p;           // [V, D]
+  const I* neighbor;    // [N_n, V] the other node of the edge in each slot
+  const S* node_k;      // [N_n, V, D, D] Kdir of each slot
+  const I* incidences;  // [V]
+  int64_t num_nodes;
+  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
+
+  TM_HD void operator()(int64_t i) const {
+    S pv[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = ld(p + i * D + a);
+    S acc[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
+    const int64_t count = static_cast<int64_t>(ld(incidences + i));
+    for (int64_t s = 0; s < count; ++s) {
+      const int64_t at = s * num_nodes + i;
+      const int64_t j = static_cast<int64_t>(ld(neighbor + at));
+      S k[D][D];
+      load_matrix<D, D, S>(node_k + at * (D * D), k);
+      S pj[D];
+      TM_UNROLL for (int a = 0; a < D; ++a) pj[a] = ld(p + j * D + a);
+      S f[2][D];
+      tensor_hooke_edge<D, S>(k, pv, pj, f);  // f[1] is unused (dead code for the compiler)
+      TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
+    }
+    epilogue(i, pv, acc);
   }
 };
 

@@ -22,6 +22,12 @@
 //                               where (K p)_i = sum of node i's slots - node_stiffness_i p_i
 //                               (node_stiffness [V, d, d]: the hooke tensor form's vertex term K_ii,
 //                               contact penalties)
+//   node-centric matvec       hooke_node_system(p, neighbor [N_n, V], node_k [N_n, V, d, d], incidences,
+//                                               mass, free, c_M, c_K, node_stiffness=None)
+//                               -> (Ap, p . Ap) as gather_system, for the hooke tensor form in one
+//                               kernel: (K p)_i = sum_{s < incidences[i]} -node_k[s][i]
+//                               (p[neighbor[s][i]] - p_i) (node_k: the edge tensor K_e where i is
+//                               the edge's first node, K_e^T where it is its second; the plan's slots)
 //   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
 //                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
 //
@@ -86,6 +92,9 @@ TORCH_LIBRARY(tensormass, m) {
   // ---- kernel 2 + implicit-Euler system epilogue (the CG matvec; not differentiable)
   m.def("gather_system(Tensor partial, Tensor incidences, Tensor p, Tensor mass, Tensor? free, float c_mass, "
         "float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
+  // ---- the hooke tensor form's CG matvec in one kernel over the node graph (not differentiable)
+  m.def("hooke_node_system(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, Tensor? free, "
+        "float c_mass, float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

@@ -51,10 +51,10 @@ inline void check_float_tensor(const at::Tensor& t, const char* name, const at::
 }
 
 inline void check_index_tensor(const at::Tensor& t, const char* name, const at::Tensor& like,
-                               at::ScalarType index_type, at::IntArrayRef shape) {
+                               at::ScalarType index_type, at::IntArrayRef shape, const char* like_name = "u") {
   TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
-  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but u is on ",
-              like.device().str());
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but ", like_name,
+              " is on ", like.device().str());
   TORCH_CHECK(t.scalar_type() == index_type, "tensormass: ", name, " is ", dtype_str(t.scalar_type()), "; expected ",
               dtype_str(index_type), " (index tensors must all be int32 or all int64)");
   TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", shape_str(t.sizes()), "; expected ", shape_str(shape));
@@ -581,16 +581,45 @@ at::Tensor node_gather(const at::Tensor& partial, const at::Tensor& index, const
 // Kernel 2 with the implicit-Euler epilogue (SystemGatherKernel): from the padded partial force
 // differentials [N_n, V, d] of p, Ap = free * (c_mass * mass * p - c_stiff * K p) [V, d] and the
 // per-node dots p . Ap [V].
-inline void check_node_tensor(const at::Tensor& t, const char* name, const at::Tensor& partial,
-                              at::IntArrayRef shape) {
+inline void check_node_tensor(const at::Tensor& t, const char* name, const at::Tensor& like,
+                              at::IntArrayRef shape, const char* like_name = "partial") {
   TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
-  TORCH_CHECK(t.device() == partial.device(), "tensormass: ", name, " is on ", t.device().str(),
-              " but partial is on ", partial.device().str());
-  TORCH_CHECK(t.scalar_type() == partial.scalar_type(), "tensormass: ", name, " is ", dtype_str(t.scalar_type()),
-              " but partial is ", dtype_str(partial.scalar_type()), " (all floating inputs must have one dtype)");
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(),
+              " but ", like_name, " is on ", like.device().str());
+  TORCH_CHECK(t.scalar_type() == like.scalar_type(), "tensormass: ", name, " is ", dtype_str(t.scalar_type()),
+              " but ", like_name, " is ", dtype_str(like.scalar_type()), " (all floating inputs must have one dtype)");
   TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", shape_str(t.sizes()), "; expected ",
               shape_str(shape));
   TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
+}
+
+// The epilogue's pointers and coefficients (fr, nk: undefined when absent).
+template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K>
+void set_epilogue(SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K>& e, const at::Tensor& mass, const at::Tensor& fr,
+                  const at::Tensor& nk, double c_mass, double c_stiff, at::Tensor& ap, at::Tensor& p_dot_ap) {
+  e.mass = mass.data_ptr<S>();
+  e.free = HAS_FREE ? fr.data_ptr<S>() : nullptr;
+  e.node_stiffness = HAS_NODE_K ? nk.data_ptr<S>() : nullptr;
+  e.c_mass = static_cast<S>(c_mass);
+  e.c_stiff = static_cast<S>(c_stiff);
+  e.ap = ap.data_ptr<S>();
+  e.p_dot_ap = p_dot_ap.data_ptr<S>();
+}
+
+// The optional epilogue inputs, checked against `like` ([V, d]): free [V], node_stiffness [V, d, d].
+inline std::tuple<at::Tensor, at::Tensor> optional_epilogue_inputs(
+    const c10::optional<at::Tensor>& free, const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& like,
+    int64_t num_nodes, int64_t dim, const char* like_name) {
+  at::Tensor fr, nk;
+  if (free.has_value() && free->defined()) {
+    fr = *free;
+    check_node_tensor(fr, "free", like, {num_nodes}, like_name);
+  }
+  if (node_stiffness.has_value() && node_stiffness->defined()) {
+    nk = *node_stiffness;
+    check_node_tensor(nk, "node_stiffness", like, {num_nodes, dim, dim}, like_name);
+  }
+  return std::make_tuple(fr, nk);
 }
 
 template <class L>
@@ -613,16 +642,8 @@ std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, cons
   TORCH_CHECK(incidences.is_contiguous(), "tensormass: incidences must be contiguous");
   check_node_tensor(p, "p", partial, {num_nodes, dim});
   check_node_tensor(mass, "mass", partial, {num_nodes});
-  at::Tensor fr;
-  if (free.has_value() && free->defined()) {
-    fr = *free;
-    check_node_tensor(fr, "free", partial, {num_nodes});
-  }
-  at::Tensor nk;
-  if (node_stiffness.has_value() && node_stiffness->defined()) {
-    nk = *node_stiffness;
-    check_node_tensor(nk, "node_stiffness", partial, {num_nodes, dim, dim});
-  }
+  at::Tensor fr, nk;
+  std::tie(fr, nk) = optional_epilogue_inputs(free, node_stiffness, partial, num_nodes, dim, "partial");
   dispatch_dim(dim, [](auto) {});
   typename L::Guard guard(partial.device());
   at::Tensor ap = at::empty({num_nodes, dim}, partial.options());
@@ -641,14 +662,8 @@ std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, cons
           k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
           k.incidences = incidences.data_ptr<I>();
           k.p = p.data_ptr<S>();
-          k.mass = mass.data_ptr<S>();
-          k.free = HAS_FREE ? fr.data_ptr<S>() : nullptr;
-          k.node_stiffness = HAS_NODE_K ? nk.data_ptr<S>() : nullptr;
-          k.c_mass = static_cast<S>(c_mass);
-          k.c_stiff = static_cast<S>(c_stiff);
-          k.ap = ap.data_ptr<S>();
-          k.p_dot_ap = p_dot_ap.data_ptr<S>();
           k.num_nodes = num_nodes;
+          set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
           L::run(num_nodes, k, L::kNodeBlock);
          });
         });
@@ -734,6 +749,58 @@ at::Tensor tensor_hooke_forces(const at::Tensor& u, const at::Tensor& edges, con
   at::Tensor out = at::empty({u.size(0), a.dim}, u.options());
   run_gather<L>(partial, incidences, at::Tensor(), out);
   return out;
+}
+
+// The CG matvec of the hooke tensor form in one kernel (NodeHookeSystemKernel): from the node
+// graph's slot-major arrays neighbor [N_n, V] (int32/int64, as incidences) and node_k
+// [N_n, V, d, d] (Kdir of each slot; slots >= incidences[i] are never read), Ap [V, d] and the
+// per-node dots p . Ap [V], with the epilogue of gather_system. Bitwise equal to
+// tensor_hooke_partial_forces + gather_system over the same plan.
+template <class L>
+std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor,
+                                                     const at::Tensor& node_k, const at::Tensor& incidences,
+                                                     const at::Tensor& mass, const c10::optional<at::Tensor>& free,
+                                                     double c_mass, double c_stiff,
+                                                     const c10::optional<at::Tensor>& node_stiffness) {
+  check_values(p, "p");
+  const int64_t num_nodes = p.size(0), dim = p.size(1);
+  dispatch_dim(dim, [](auto) {});
+  const at::ScalarType index_type = index_type_of(neighbor, "neighbor");
+  TORCH_CHECK(neighbor.dim() == 2, "tensormass: neighbor must be [N_n, V], got shape ", shape_str(neighbor.sizes()));
+  const int64_t num_slots = neighbor.size(0);
+  check_index_tensor(neighbor, "neighbor", p, index_type, {num_slots, num_nodes}, "p");
+  check_index_tensor(incidences, "incidences", p, index_type, {num_nodes}, "p");
+  check_node_tensor(node_k, "node_k", p, {num_slots, num_nodes, dim, dim}, "p");
+  check_node_tensor(mass, "mass", p, {num_nodes}, "p");
+  at::Tensor fr, nk;
+  std::tie(fr, nk) = optional_epilogue_inputs(free, node_stiffness, p, num_nodes, dim, "p");
+  typename L::Guard guard(p.device());
+  at::Tensor ap = at::empty({num_nodes, dim}, p.options());
+  at::Tensor p_dot_ap = at::empty({num_nodes}, p.options());
+  dispatch_scalar(p.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_dim(dim, [&](auto d_c) {
+        constexpr int D = decltype(d_c)::value;
+        dispatch_bool(fr.defined(), [&](auto free_c) {
+         dispatch_bool(nk.defined(), [&](auto node_k_c) {
+          constexpr bool HAS_FREE = decltype(free_c)::value;
+          constexpr bool HAS_NODE_K = decltype(node_k_c)::value;
+          NodeHookeSystemKernel<D, S, I, HAS_FREE, HAS_NODE_K> k;
+          k.p = p.data_ptr<S>();
+          k.neighbor = neighbor.numel() ? neighbor.data_ptr<I>() : nullptr;
+          k.node_k = node_k.numel() ? node_k.data_ptr<S>() : nullptr;
+          k.incidences = incidences.data_ptr<I>();
+          k.num_nodes = num_nodes;
+          set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
+          L::run(num_nodes, k, L::kNodeBlock);
+         });
+        });
+      });
+    });
+  });
+  return std::make_tuple(ap, p_dot_ap);
 }
 
 // ------------------------------------------------------------------ tensor form, stvk

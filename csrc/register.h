@@ -38,6 +38,7 @@ void register_gather_ops(torch::Library& m) {
   m.impl("gather_partial", &gather_partial<L>);
   m.impl("node_gather", &node_gather<L>);
   m.impl("gather_system", &gather_system<L>);
+  m.impl("hooke_node_system", &hooke_node_system<L>);
 }
 
 }  // namespace tensormass

@@ -38,7 +38,7 @@ from .reference import corotational, stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
-           "system_matvec"]
+           "system_matvec", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS", "HOOKE_MATVEC_LAYOUT"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
 #: see ``reference.stress_form.kernel_model``).
@@ -213,6 +213,18 @@ def _ref_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff, node
                             node_stiffness)
 
 
+def _ref_hooke_node_system(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness=None):
+    """The node-centric hooke matvec: (K p)_i = sum over node i's used slots s of
+    ``-node_k[s, i] (p[neighbor[s, i]] - p_i)`` (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``;
+    unused slots are masked, whatever they hold), added slot after slot, then the system epilogue."""
+    used = _slot_mask(neighbor.shape[0], incidences)  # [N_n, V, 1]
+    others = torch.where(used[..., 0], neighbor, neighbor.new_zeros(())).long()
+    w = p[others] - p.unsqueeze(0)  # [N_n, V, d]
+    terms = -torch.einsum("svab,svb->sva", node_k, w)
+    kp = sum_slots_in_order(torch.where(used, terms, terms.new_zeros(())))
+    return _system_epilogue(kp, p, mass, free, c_mass, c_stiff, node_stiffness)
+
+
 REFERENCE = {
     "stress_element_forces": _ref_stress_element_forces,
     "stress_element_dforces": _ref_stress_element_dforces,
@@ -233,6 +245,7 @@ REFERENCE = {
     "gather_partial": _ref_gather_partial,
     "node_gather": _ref_node_gather,
     "gather_system": _ref_gather_system,
+    "hooke_node_system": _ref_hooke_node_system,
 }
 
 #: Every op of the library ``tensormass``.
@@ -283,6 +296,10 @@ def _fake_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff, nod
     return (partial.new_empty((partial.shape[1], partial.shape[2])), partial.new_empty((partial.shape[1],)))
 
 
+def _fake_hooke_node_system(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness=None):
+    return p.new_empty(p.shape), p.new_empty((p.shape[0],))
+
+
 FAKE = {
     "stress_element_forces": _fake_element,
     "stress_element_dforces": _fake_element_d,
@@ -303,6 +320,7 @@ FAKE = {
     "gather_partial": _fake_gather_partial,
     "node_gather": _fake_node_gather,
     "gather_system": _fake_gather_system,
+    "hooke_node_system": _fake_hooke_node_system,
 }
 
 # ----------------------------------------------------------------------------------------------
@@ -431,7 +449,7 @@ def _fast_gradients(name, inputs, grad, needs):
 
 
 #: Ops without gradients (solver kernels, run under no grad): their backward raises.
-NOT_DIFFERENTIABLE = ("gather_system",)
+NOT_DIFFERENTIABLE = ("gather_system", "hooke_node_system")
 
 
 def _not_differentiable(name):
@@ -675,6 +693,46 @@ def dforces(group, u: torch.Tensor, du: torch.Tensor, rotations: Optional[torch.
                                                     incidences, *_stvk_tensors(group))
 
 
+def hooke_node_graph(group):
+    """The node graph of a hooke tensor-form group in slot-major ("ELL") arrays, for
+    ``hooke_node_system``: (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``).
+
+    Slot s of node i is the slot the group's plan gives it (``force_index``): for edge e = (i, j)
+    (i = ``edges[e, 0]``), ``neighbor[fi[e, 0], i] = j`` with ``node_k = K_e`` and
+    ``neighbor[fi[e, 1], j] = i`` with ``node_k = K_e^T``. Unused slots hold zeros (never read).
+    neighbor has the plan's native index dtype (that of :func:`_plan_indices`), node_k edge_k's
+    dtype and device. Cached on the group while edge_k and the plan's indices are the same
+    unmodified tensors."""
+    index, force_index, _ = _plan_indices(group.plan)
+    edge_k = group.edge_k
+    tensors = (edge_k, index, force_index)
+    cache = group.__dict__.get("_native_node_graph")
+    if _unchanged(cache, tensors):
+        return cache[2]
+    plan = group.plan
+    num_slots, num_nodes, dim = plan.num_slots, plan.num_nodes, edge_k.shape[-1]
+    first, second = index[:, 0].long(), index[:, 1].long()
+    slot_first, slot_second = force_index[:, 0].long(), force_index[:, 1].long()
+    neighbor = index.new_zeros((num_slots, num_nodes))
+    neighbor[slot_first, first] = index[:, 1]
+    neighbor[slot_second, second] = index[:, 0]
+    node_k = edge_k.new_zeros((num_slots, num_nodes, dim, dim))
+    with torch.no_grad():
+        node_k[slot_first, first] = edge_k
+        node_k[slot_second, second] = edge_k.transpose(1, 2)
+    value = (neighbor, node_k)
+    group.__dict__["_native_node_graph"] = (tensors, tuple(t._version for t in tensors), value)
+    return value
+
+
+#: The layouts of the hooke tensor form's CG matvec in :func:`system_matvec`: "node" (one kernel
+#: over the node graph, ``hooke_node_system``) or "padded" (kernel 1 into PartialForce, then
+#: ``gather_system``). Both give bitwise the same result.
+HOOKE_MATVEC_LAYOUTS = ("node", "padded")
+#: The layout :func:`system_matvec` uses when its ``layout`` argument is None (benchmarks switch it).
+HOOKE_MATVEC_LAYOUT = "node"
+
+
 def system_fusable(group) -> bool:
     """Whether :func:`system_matvec` has a fused path for ``group``: kernel 1 through a padded
     partial-dforce op (stress form, both tensor forms)."""
@@ -683,14 +741,32 @@ def system_fusable(group) -> bool:
 
 def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                   c_mass: float, c_stiff: float, rotations: Optional[torch.Tensor] = None,
-                  node_stiffness: Optional[torch.Tensor] = None):
+                  node_stiffness: Optional[torch.Tensor] = None, layout: Optional[str] = None):
     """The CG matvec of implicit Euler for one group: kernel 1 (padded partial dforces along ``p``)
-    and kernel 2 with the system epilogue (``gather_system``). ``mass`` and ``free`` are ``[V]``
-    (``free`` float 0/1 or None); ``rotations``: the corotational rotations of the linearisation
-    at ``u`` ``[N, d, d]``, kept across CG iterations (computed here when None);
-    ``node_stiffness`` ``[V, d, d]`` (contact penalties) or None.
+    and kernel 2 with the system epilogue (``gather_system``); for the hooke tensor form with
+    ``layout`` "node" (the default, :data:`HOOKE_MATVEC_LAYOUT`) and no gradient wanted, one kernel
+    over the node graph instead (``hooke_node_system``, bitwise the same result). ``mass`` and
+    ``free`` are ``[V]`` (``free`` float 0/1 or None); ``rotations``: the corotational rotations of
+    the linearisation at ``u`` ``[N, d, d]``, kept across CG iterations (computed here when None);
+    ``node_stiffness`` ``[V, d, d]`` (contact penalties) or None; ``layout``: "node", "padded" or
+    None (the module default).
     Returns (Ap ``[V, d]``, p . Ap per node ``[V]``)."""
+    layout = HOOKE_MATVEC_LAYOUT if layout is None else layout
+    if layout not in HOOKE_MATVEC_LAYOUTS:
+        raise ValueError(f"unknown matvec layout {layout!r}; known: {', '.join(HOOKE_MATVEC_LAYOUTS)}")
     u, p = u.contiguous(), p.contiguous()
+    mass = mass.contiguous()
+    free = None if free is None else free.contiguous()
+    node_stiffness = None if node_stiffness is None else node_stiffness.contiguous()
+    hooke_tensor = group.form == "tensor" and group.model == "hooke"
+    wants_grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad
+        for t in (p, mass, free, node_stiffness, group.edge_k if hooke_tensor else None))
+    if hooke_tensor and layout == "node" and not wants_grad and hasattr(torch.ops.tensormass, "hooke_node_system"):
+        neighbor, node_k = hooke_node_graph(group)
+        _, _, incidences = _plan_indices(group.plan)
+        return torch.ops.tensormass.hooke_node_system(p, neighbor, node_k, incidences, mass, free, float(c_mass),
+                                                      float(c_stiff), node_stiffness)
     plan = group.plan
     index, force_index, incidences = _plan_indices(plan)
     if group.form == "stress":
@@ -702,9 +778,6 @@ def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, f
     else:
         partial = torch.ops.tensormass.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots,
                                                                    *_stvk_tensors(group))
-    mass = mass.contiguous()
-    free = None if free is None else free.contiguous()
-    node_stiffness = None if node_stiffness is None else node_stiffness.contiguous()
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad
                                        for t in (partial, p, mass, free, node_stiffness)):
         # gather_system has no gradient: the same arithmetic in differentiable ops
