@@ -17,6 +17,7 @@ neighbor [N_n, V], node_k [N_n, V, d, d]) in place of kernel 1 (padded partial f
     6. on CUDA (skipped without one; ``TENSORMASS_GPU_TEST_DEVICE=cpu`` dry-runs them on the CPU):
        node = padded bitwise on the device, = the CPU within rounding, run-to-run deterministic,
        capturable in a CUDA graph
+    7. benchmarks/node_system_bench.py --quick runs on the CPU
 
 Skipped when the extension is not built with ``hooke_node_system``.
 """
@@ -24,6 +25,8 @@ from __future__ import annotations
 
 import importlib
 import os
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -411,3 +414,17 @@ def test_cuda_graph_replays_the_node_matvec():
     torch.cuda.synchronize()
     twice = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, None, stiffness)
     assert torch.equal(captured[0], twice[0])
+
+
+# --------------------------------------------------------------------- the benchmark script
+
+
+def test_benchmark_script_quick(tmp_path, capsys):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import node_system_bench
+
+    rows = node_system_bench.main(["--quick", "--device", "cpu", "--repeat", "1", "--warmup", "1",
+                                   "--out", str(tmp_path)])
+    assert {r["layout"] for r in rows} == {"padded", "node"} and len(rows) == 6
+    assert all(r["bitwise"] == "yes" and r["us"] > 0 for r in rows)
+    assert "| sofa_beam |" in (tmp_path / "node_system_bench.md").read_text()
