@@ -323,9 +323,10 @@ struct SystemEpilogue {
   S c_mass;
   S c_stiff;
   S* ap;                    // [V, D]
-  S* p_dot_ap;              // [V]
+  S* p_dot_ap;              // [V], or nullptr (the CG step-length kernels use the returned dot)
 
-  TM_HD void operator()(int64_t i, const S (&pv)[D], S (&acc)[D]) const {
+  // Writes Ap_i (and p_dot_ap[i] when that buffer is given) and returns p_i . Ap_i.
+  TM_HD S operator()(int64_t i, const S (&pv)[D], S (&acc)[D]) const {
     if (HAS_NODE_K) {
       S k[D][D];
       load_matrix<D, D, S>(node_stiffness + i * (D * D), k);
@@ -347,7 +348,8 @@ struct SystemEpilogue {
       ap[i * D + a] = v;
       dot += pv[a] * v;
     }
-    p_dot_ap[i] = dot;
+    if (p_dot_ap != nullptr) p_dot_ap[i] = dot;
+    return dot;
   }
 };
 
@@ -356,19 +358,22 @@ struct SystemEpilogue {
 // force differentials (dF/du) p of kernel 1.
 template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
 struct SystemGatherKernel {
+  using Scalar = S;
   const S* partial;         // [N_n, V, D]
   const I* incidences;      // [V]
   const S* p;               // [V, D]
   int64_t num_nodes;
   SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
 
-  TM_HD void operator()(int64_t i) const {
+  // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh).
+  TM_HD S apply(int64_t i) const {
     S acc[D];
     sum_slots<D, S, I>(partial, incidences, num_nodes, i, acc);
     S pv[D];
     TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = ld(p + i * D + a);
-    epilogue(i, pv, acc);
+    return epilogue(i, pv, acc);
   }
+  TM_HD void operator()(int64_t i) const { apply(i); }
 };
 
 // ------------------------------------------------------------------ node-centric hooke matvec
@@ -384,6 +389,7 @@ struct SystemGatherKernel {
 // kernel 1 writes and kernel 2 adds; no PartialForce buffer is written or read back.
 template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
 struct NodeHookeSystemKernel {
+  using Scalar = S;
   const S* p;           // [V, D]
   const I* neighbor;    // [N_n, V] the other node of the edge in each slot
   const S* node_k;      // [N_n, V, D, D] Kdir of each slot
@@ -391,25 +397,38 @@ struct NodeHookeSystemKernel {
   int64_t num_nodes;
   SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
 
-  TM_HD void operator()(int64_t i) const {
+  // Slots are loaded kBatch at a time before any is used: a thread has only a few nodes' worth
+  // of parallelism (one node), so its loads must be in flight together, not one dependent chain
+  // (neighbor -> p_j) per slot; the terms are still added in slot order.
+  static constexpr int kBatch = 4;
+
+  // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh).
+  TM_HD S apply(int64_t i) const {
     S pv[D];
     TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = ld(p + i * D + a);
     S acc[D];
     TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
     const int64_t count = static_cast<int64_t>(ld(incidences + i));
-    for (int64_t s = 0; s < count; ++s) {
-      const int64_t at = s * num_nodes + i;
-      const int64_t j = static_cast<int64_t>(ld(neighbor + at));
-      S k[D][D];
-      load_matrix<D, D, S>(node_k + at * (D * D), k);
-      S pj[D];
-      TM_UNROLL for (int a = 0; a < D; ++a) pj[a] = ld(p + j * D + a);
-      S f[2][D];
-      tensor_hooke_edge<D, S>(k, pv, pj, f);  // f[1] is unused (dead code for the compiler)
-      TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
+    for (int64_t s0 = 0; s0 < count; s0 += kBatch) {
+      int64_t j[kBatch];
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        j[q] = s0 + q < count ? static_cast<int64_t>(ld(neighbor + (s0 + q) * num_nodes + i)) : i;
+      }
+      S k[kBatch][D][D], pj[kBatch][D];
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        if (s0 + q < count) load_matrix<D, D, S>(node_k + ((s0 + q) * num_nodes + i) * (D * D), k[q]);
+        TM_UNROLL for (int a = 0; a < D; ++a) pj[q][a] = ld(p + j[q] * D + a);
+      }
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        if (s0 + q >= count) break;
+        S f[2][D];
+        tensor_hooke_edge<D, S>(k[q], pv, pj[q], f);  // f[1] is unused (dead code for the compiler)
+        TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
+      }
     }
-    epilogue(i, pv, acc);
+    return epilogue(i, pv, acc);
   }
+  TM_HD void operator()(int64_t i) const { apply(i); }
 };
 
 // Scatter compact partial forces [N, NN, D] into the padded buffer (the write of kernel 1 for

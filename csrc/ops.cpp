@@ -28,6 +28,11 @@
 //                               kernel: (K p)_i = sum_{s < incidences[i]} -node_k[s][i]
 //                               (p[neighbor[s][i]] - p_i) (node_k: the edge tensor K_e where i is
 //                               the edge's first node, K_e^T where it is its second; the plan's slots)
+//   matvec + cg_alpha         gather_system_alpha / hooke_node_system_alpha(<the same inputs>, ap!,
+//                               chunk plan, rr, status!, alpha!, scratch!, counter!) -> ()
+//                               Ap into ap in place, then alpha per object as cg_alpha (cg_ops.cpp)
+//                               does, in the same kernel (one block per chunk): one launch fewer
+//                               per CG iteration; inactive objects are skipped
 //   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
 //                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
 //
@@ -95,6 +100,15 @@ TORCH_LIBRARY(tensormass, m) {
   // ---- the hooke tensor form's CG matvec in one kernel over the node graph (not differentiable)
   m.def("hooke_node_system(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, Tensor? free, "
         "float c_mass, float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
+  // ---- the two CG matvecs ending in the step length (cg_alpha fused; in place, for CUDA graphs)
+  m.def("gather_system_alpha(Tensor partial, Tensor incidences, Tensor p, Tensor mass, Tensor? free, "
+        "float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(a!) ap, Tensor chunk_start, "
+        "Tensor chunk_object, Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, "
+        "Tensor(d!) scratch, Tensor(e!) counter) -> ()");
+  m.def("hooke_node_system_alpha(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, "
+        "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(a!) ap, Tensor chunk_start, "
+        "Tensor chunk_object, Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, "
+        "Tensor(d!) scratch, Tensor(e!) counter) -> ()");
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

@@ -14,6 +14,7 @@
 #include <tuple>
 #include <type_traits>
 
+#include "cg.h"
 #include "kernels.h"
 
 namespace tensormass {
@@ -603,7 +604,7 @@ void set_epilogue(SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K>& e, const at::Tenso
   e.c_mass = static_cast<S>(c_mass);
   e.c_stiff = static_cast<S>(c_stiff);
   e.ap = ap.data_ptr<S>();
-  e.p_dot_ap = p_dot_ap.data_ptr<S>();
+  e.p_dot_ap = p_dot_ap.defined() ? p_dot_ap.data_ptr<S>() : nullptr;
 }
 
 // The optional epilogue inputs, checked against `like` ([V, d]): free [V], node_stiffness [V, d, d].
@@ -622,12 +623,14 @@ inline std::tuple<at::Tensor, at::Tensor> optional_epilogue_inputs(
   return std::make_tuple(fr, nk);
 }
 
-template <class L>
-std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, const at::Tensor& incidences,
-                                                 const at::Tensor& p, const at::Tensor& mass,
-                                                 const c10::optional<at::Tensor>& free, double c_mass,
-                                                 double c_stiff,
-                                                 const c10::optional<at::Tensor>& node_stiffness) {
+// The system gather's kernel, set up and handed to `launch` (a node loop, or the chunked loop
+// that ends in the CG step length); p_dot_ap may be undefined (then the dots are only returned
+// by the kernel's apply).
+template <class L, class Launch>
+void run_gather_system(const at::Tensor& partial, const at::Tensor& incidences, const at::Tensor& p,
+                       const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                       const c10::optional<at::Tensor>& node_stiffness, at::Tensor& ap, at::Tensor& p_dot_ap,
+                       const Launch& launch) {
   TORCH_CHECK(partial.defined(), "tensormass: partial is undefined");
   TORCH_CHECK(partial.dim() == 3, "tensormass: partial must be [N_n, V, d], got shape ", shape_str(partial.sizes()));
   TORCH_CHECK(partial.scalar_type() == at::kFloat || partial.scalar_type() == at::kDouble,
@@ -646,8 +649,8 @@ std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, cons
   std::tie(fr, nk) = optional_epilogue_inputs(free, node_stiffness, partial, num_nodes, dim, "partial");
   dispatch_dim(dim, [](auto) {});
   typename L::Guard guard(partial.device());
-  at::Tensor ap = at::empty({num_nodes, dim}, partial.options());
-  at::Tensor p_dot_ap = at::empty({num_nodes}, partial.options());
+  if (!ap.defined()) ap = at::empty({num_nodes, dim}, partial.options());
+  check_node_tensor(ap, "ap", partial, {num_nodes, dim});
   dispatch_scalar(partial.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
     dispatch_index(index_type, [&](auto i_tag) {
@@ -664,12 +667,24 @@ std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, cons
           k.p = p.data_ptr<S>();
           k.num_nodes = num_nodes;
           set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
-          L::run(num_nodes, k, L::kNodeBlock);
+          launch(k, num_nodes);
          });
         });
       });
     });
   });
+}
+
+template <class L>
+std::tuple<at::Tensor, at::Tensor> gather_system(const at::Tensor& partial, const at::Tensor& incidences,
+                                                 const at::Tensor& p, const at::Tensor& mass,
+                                                 const c10::optional<at::Tensor>& free, double c_mass,
+                                                 double c_stiff,
+                                                 const c10::optional<at::Tensor>& node_stiffness) {
+  at::Tensor ap;
+  at::Tensor p_dot_ap = at::empty({partial.dim() == 3 ? partial.size(1) : 0}, partial.options());
+  run_gather_system<L>(partial, incidences, p, mass, free, c_mass, c_stiff, node_stiffness, ap, p_dot_ap,
+                       [](const auto& k, int64_t n) { L::run(n, k, L::kNodeBlock); });
   return std::make_tuple(ap, p_dot_ap);
 }
 
@@ -756,12 +771,12 @@ at::Tensor tensor_hooke_forces(const at::Tensor& u, const at::Tensor& edges, con
 // [N_n, V, d, d] (Kdir of each slot; slots >= incidences[i] are never read), Ap [V, d] and the
 // per-node dots p . Ap [V], with the epilogue of gather_system. Bitwise equal to
 // tensor_hooke_partial_forces + gather_system over the same plan.
-template <class L>
-std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor,
-                                                     const at::Tensor& node_k, const at::Tensor& incidences,
-                                                     const at::Tensor& mass, const c10::optional<at::Tensor>& free,
-                                                     double c_mass, double c_stiff,
-                                                     const c10::optional<at::Tensor>& node_stiffness) {
+template <class L, class Launch>
+void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, const at::Tensor& node_k,
+                           const at::Tensor& incidences, const at::Tensor& mass,
+                           const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                           const c10::optional<at::Tensor>& node_stiffness, at::Tensor& ap, at::Tensor& p_dot_ap,
+                           const Launch& launch) {
   check_values(p, "p");
   const int64_t num_nodes = p.size(0), dim = p.size(1);
   dispatch_dim(dim, [](auto) {});
@@ -775,8 +790,8 @@ std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const 
   at::Tensor fr, nk;
   std::tie(fr, nk) = optional_epilogue_inputs(free, node_stiffness, p, num_nodes, dim, "p");
   typename L::Guard guard(p.device());
-  at::Tensor ap = at::empty({num_nodes, dim}, p.options());
-  at::Tensor p_dot_ap = at::empty({num_nodes}, p.options());
+  if (!ap.defined()) ap = at::empty({num_nodes, dim}, p.options());
+  check_node_tensor(ap, "ap", p, {num_nodes, dim}, "p");
   dispatch_scalar(p.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
     dispatch_index(index_type, [&](auto i_tag) {
@@ -794,13 +809,82 @@ std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const 
           k.incidences = incidences.data_ptr<I>();
           k.num_nodes = num_nodes;
           set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
-          L::run(num_nodes, k, L::kNodeBlock);
+          launch(k, num_nodes);
          });
         });
       });
     });
   });
+}
+
+template <class L>
+std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor,
+                                                     const at::Tensor& node_k, const at::Tensor& incidences,
+                                                     const at::Tensor& mass, const c10::optional<at::Tensor>& free,
+                                                     double c_mass, double c_stiff,
+                                                     const c10::optional<at::Tensor>& node_stiffness) {
+  at::Tensor ap;
+  at::Tensor p_dot_ap = at::empty({p.dim() >= 1 ? p.size(0) : 0}, p.options());
+  run_hooke_node_system<L>(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, ap,
+                           p_dot_ap, [](const auto& k, int64_t n) { L::run(n, k, L::kNodeBlock); });
   return std::make_tuple(ap, p_dot_ap);
+}
+
+// ------------------------------------------------------------------ matvecs ending in alpha
+//
+// The CG iteration's matvec fused with cg_alpha (one kernel fewer per iteration): Ap written into
+// `ap` [V, d] in place, then per object alpha = rr / sum p . Ap (or the object stops: breakdown /
+// non-finite), exactly as cg_alpha over the plan's chunks; objects that are not active are
+// skipped (their Ap is not computed). Arguments: those of gather_system / hooke_node_system, then
+// ap and cg_alpha's (chunk plan, rr, status, alpha, scratch, counter).
+
+template <class L>
+auto alpha_launch(const at::Tensor& like, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                  const at::Tensor& object_chunk, const at::Tensor& rr, at::Tensor& status, at::Tensor& alpha,
+                  at::Tensor& scratch, at::Tensor& counter) {
+  const CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, like, like.size(0));
+  cg_check_scalars(rr, "rr", like, plan.num_objects);
+  cg_check_scalars(alpha, "alpha", like, plan.num_objects);
+  cg_check_state(status, "status", like, plan.num_objects);
+  cg_check(scratch, "scratch", like, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", like, plan.num_objects);
+  TORCH_CHECK(plan.num_chunks == 0 || like.size(0) > 0, "tensormass: a chunk plan over no nodes");
+  return [=, &rr, &status, &alpha, &scratch, &counter](const auto& k, int64_t) {
+    using S = typename std::decay_t<decltype(k)>::Scalar;
+    L::run_alpha(plan, k, rr.data_ptr<S>(), status.data_ptr<int32_t>(), alpha.data_ptr<S>(),
+                 scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+  };
+}
+
+template <class L>
+void gather_system_alpha(const at::Tensor& partial, const at::Tensor& incidences, const at::Tensor& p,
+                         const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                         const c10::optional<at::Tensor>& node_stiffness, at::Tensor ap,
+                         const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                         const at::Tensor& rr, at::Tensor status, at::Tensor alpha, at::Tensor scratch,
+                         at::Tensor counter) {
+  check_values(p, "p");
+  TORCH_CHECK(ap.defined(), "tensormass: ap is undefined");
+  at::Tensor no_dots;
+  run_gather_system<L>(partial, incidences, p, mass, free, c_mass, c_stiff, node_stiffness, ap, no_dots,
+                       alpha_launch<L>(p, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch,
+                                       counter));
+}
+
+template <class L>
+void hooke_node_system_alpha(const at::Tensor& p, const at::Tensor& neighbor, const at::Tensor& node_k,
+                             const at::Tensor& incidences, const at::Tensor& mass,
+                             const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                             const c10::optional<at::Tensor>& node_stiffness, at::Tensor ap,
+                             const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                             const at::Tensor& object_chunk, const at::Tensor& rr, at::Tensor status,
+                             at::Tensor alpha, at::Tensor scratch, at::Tensor counter) {
+  check_values(p, "p");
+  TORCH_CHECK(ap.defined(), "tensormass: ap is undefined");
+  at::Tensor no_dots;
+  run_hooke_node_system<L>(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, ap,
+                           no_dots, alpha_launch<L>(p, chunk_start, chunk_object, object_chunk, rr, status, alpha,
+                                                    scratch, counter));
 }
 
 // ------------------------------------------------------------------ tensor form, stvk

@@ -39,6 +39,8 @@ void register_gather_ops(torch::Library& m) {
   m.impl("node_gather", &node_gather<L>);
   m.impl("gather_system", &gather_system<L>);
   m.impl("hooke_node_system", &hooke_node_system<L>);
+  m.impl("gather_system_alpha", &gather_system_alpha<L>);
+  m.impl("hooke_node_system_alpha", &hooke_node_system_alpha<L>);
 }
 
 }  // namespace tensormass

@@ -41,31 +41,39 @@ class Planes:
     def __len__(self):
         return self.offsets.numel()
 
+    # Elementwise products and small sums over the 3 coordinates / P planes rather than matrix
+    # products: x @ normals.T is a [V, 3] x [3, P] product that BLAS runs as a slow skinny GEMV
+    # (17 us for 19k nodes on an H100, against ~2 us for the elementwise form).
+
     def penetration(self, x: torch.Tensor) -> torch.Tensor:
         """max(0, d - n.x) per node and plane ``[V, P]``."""
-        return torch.clamp(self.offsets - x @ self.normals.T, min=0.0)
+        return torch.clamp(self.offsets - (x[:, None, :] * self.normals).sum(-1), min=0.0)
+
+    def _forces(self, depth: torch.Tensor) -> torch.Tensor:
+        return ((depth * self.stiffness)[:, :, None] * self.normals).sum(1)
+
+    def _node_stiffness(self, depth: torch.Tensor) -> torch.Tensor:
+        active = (depth > 0).to(depth.dtype) * self.stiffness  # [V, P]
+        outer = self.normals[:, :, None] * self.normals[:, None, :]  # [P, 3, 3]
+        return (active[:, :, None, None] * outer).sum(1)
 
     def forces(self, x: torch.Tensor) -> torch.Tensor:
         """Penalty forces ``[V, 3]`` at positions ``x [V, 3]``."""
-        return (self.penetration(x) * self.stiffness) @ self.normals
+        return self._forces(self.penetration(x))
 
     def node_stiffness(self, x: torch.Tensor) -> torch.Tensor:
         """-(df/dx) per node ``[V, 3, 3]``: sum over the planes a node is below of k n n^T."""
-        active = (self.penetration(x) > 0).to(x.dtype) * self.stiffness  # [V, P]
-        outer = self.normals[:, :, None] * self.normals[:, None, :]  # [P, 3, 3]
-        return torch.einsum("vp,pab->vab", active, outer)
+        return self._node_stiffness(self.penetration(x))
 
     def linearize(self, x: torch.Tensor):
         """Forces ``[V, 3]`` and node stiffness ``[V, 3, 3]`` (as :meth:`forces`,
         :meth:`node_stiffness`) at ``x [V, 3]`` from one evaluation of the penetrations: what
         an implicit step needs (its force differential is ``-node_stiffness @ dx``)."""
         depth = self.penetration(x)  # [V, P]
-        forces = (depth * self.stiffness) @ self.normals
-        active = (depth > 0).to(x.dtype) * self.stiffness
-        outer = self.normals[:, :, None] * self.normals[:, None, :]  # [P, 3, 3]
-        return forces, torch.einsum("vp,pab->vab", active, outer)
+        return self._forces(depth), self._node_stiffness(depth)
 
     def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """(df/dx) dx = -k n (n.dx) on nodes in contact ``[V, 3]``."""
         active = (self.penetration(x) > 0).to(x.dtype)
-        return -((active * self.stiffness) * (dx @ self.normals.T)) @ self.normals
+        along = (active * self.stiffness) * (dx[:, None, :] * self.normals).sum(-1)  # [V, P]
+        return -(along[:, :, None] * self.normals).sum(1)

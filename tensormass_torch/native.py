@@ -38,7 +38,8 @@ from .reference import corotational, stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
-           "system_matvec", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS", "HOOKE_MATVEC_LAYOUT"]
+           "system_matvec", "system_matvec_alpha", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS",
+           "HOOKE_MATVEC_LAYOUT"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
 #: see ``reference.stress_form.kernel_model``).
@@ -671,6 +672,14 @@ def forces(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> 
         return torch.ops.tensormass.stress_forces(u, index, force_index, plan.num_slots, incidences,
                                                   *_stress_args(group, u, rotations))
     if group.model == "hooke":
+        if (HOOKE_MATVEC_LAYOUT == "node" and hasattr(torch.ops.tensormass, "hooke_node_system")
+                and not (torch.is_grad_enabled() and (u.requires_grad or group.edge_k.requires_grad))):
+            # one kernel over the node graph (the system op with c_M = 0, c_K = -1 returns K u = the
+            # forces, bitwise the padded gather's sums); not differentiable, hence the condition
+            neighbor, node_k = hooke_node_graph(group)
+            no_mass = _zeros_like_nodes(group, u)
+            return torch.ops.tensormass.hooke_node_system(u, neighbor, node_k, incidences, no_mass, None, 0.0, -1.0,
+                                                          None)[0]
         return torch.ops.tensormass.tensor_hooke_forces(u, index, force_index, plan.num_slots, incidences,
                                                         group.edge_k.contiguous())
     return torch.ops.tensormass.tensor_stvk_forces(u, index, force_index, plan.num_slots, incidences,
@@ -691,6 +700,14 @@ def dforces(group, u: torch.Tensor, du: torch.Tensor, rotations: Optional[torch.
                                                         group.edge_k.contiguous())
     return torch.ops.tensormass.tensor_stvk_dforces(u, du, index, force_index, plan.num_slots,
                                                     incidences, *_stvk_tensors(group))
+
+
+def _zeros_like_nodes(group, u: torch.Tensor) -> torch.Tensor:
+    """Zeros ``[V]`` of u's dtype and device, kept on the group (a mass term of 0)."""
+    cached = group.__dict__.get("_node_zeros")
+    if cached is None or cached.dtype != u.dtype or cached.device != u.device or cached.shape[0] != u.shape[0]:
+        cached = group.__dict__["_node_zeros"] = torch.zeros(u.shape[0], dtype=u.dtype, device=u.device)
+    return cached
 
 
 def hooke_node_graph(group):
@@ -785,3 +802,45 @@ def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, f
         return _system_epilogue(kp, p, mass, free, c_mass, c_stiff, node_stiffness)
     return torch.ops.tensormass.gather_system(partial, incidences, p, mass, free, float(c_mass), float(c_stiff),
                                               node_stiffness)
+
+
+def system_matvec_alpha(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
+                        c_mass: float, c_stiff: float, rotations: Optional[torch.Tensor],
+                        node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, plan_tensors, cg_state) -> bool:
+    """:func:`system_matvec` fused with the CG step length (``gather_system_alpha`` /
+    ``hooke_node_system_alpha``): Ap into ``ap [V, d]`` in place and ``cg_state.alpha`` /
+    ``.status`` as ``cg_alpha`` would set them, one launch fewer per CG iteration. ``plan_tensors``:
+    (chunk_start, chunk_object, object_chunk) of the CG's chunk plan; ``cg_state``: its
+    ``CGState``. Returns False (nothing done) where the ops are missing or a gradient is wanted."""
+    ops_ns = torch.ops.tensormass
+    if not hasattr(ops_ns, "gather_system_alpha") or torch.is_grad_enabled() and any(
+            t is not None and t.requires_grad for t in (p, mass, free, node_stiffness)):
+        return False
+    u, p = u.contiguous(), p.contiguous()
+    mass = mass.contiguous()
+    free = None if free is None else free.contiguous()
+    node_stiffness = None if node_stiffness is None else node_stiffness.contiguous()
+    s = cg_state
+    cg_args = (*plan_tensors, s.rr, s.status, s.alpha, s.scratch, s.counter)
+    if group.form == "tensor" and group.model == "hooke" and HOOKE_MATVEC_LAYOUT == "node":
+        if group.edge_k.requires_grad and torch.is_grad_enabled():
+            return False
+        neighbor, node_k = hooke_node_graph(group)
+        _, _, incidences = _plan_indices(group.plan)
+        ops_ns.hooke_node_system_alpha(p, neighbor, node_k, incidences, mass, free, float(c_mass), float(c_stiff),
+                                       node_stiffness, ap, *cg_args)
+        return True
+    plan = group.plan
+    index, force_index, incidences = _plan_indices(plan)
+    if group.form == "stress":
+        partial = ops_ns.stress_partial_dforces(u, p, index, force_index, plan.num_slots,
+                                                *_stress_args(group, u, rotations))
+    elif group.model == "hooke":
+        partial = ops_ns.tensor_hooke_partial_forces(p, index, force_index, plan.num_slots, group.edge_k.contiguous())
+    else:
+        partial = ops_ns.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots, *_stvk_tensors(group))
+    if partial.requires_grad and torch.is_grad_enabled():
+        return False
+    ops_ns.gather_system_alpha(partial, incidences, p, mass, free, float(c_mass), float(c_stiff), node_stiffness, ap,
+                               *cg_args)
+    return True

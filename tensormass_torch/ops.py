@@ -8,6 +8,7 @@
     linearize(group, u)             per-element state of dforces at u (the corotational
                                     rotations [N, d, d]; None for the other models)
     system_matvec(groups, u, p, ...) implicit-Euler CG matvec: (Ap [V, d], p . Ap per node [V])
+    system_matvec_alpha(...)        the same into a buffer, ending in the CG step length (fused)
 
 ``u`` and ``du`` are global nodal displacements ``[V, d]``.
 
@@ -210,3 +211,27 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
     if free_v is not None:
         ap = ap * free_v.unsqueeze(-1)
     return ap, (p * ap).sum(-1)
+
+
+def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
+                        c_mass: float, c_stiff: float, states, node_stiffness: Optional[torch.Tensor],
+                        ap: torch.Tensor, plan, cg_state) -> bool:
+    """:func:`system_matvec` fused with the CG step length where the extension has it: A p into
+    ``ap [V, d]`` (in place) and, per object of the CG's chunk ``plan`` (``ChunkPlan``),
+    ``cg_state.alpha`` and ``.status`` exactly as ``solver.cg_ops.cg_alpha`` sets them (one
+    kernel instead of two per CG iteration). Returns False, having done nothing, where there is no
+    fused path (several groups, the pure-torch backend, a gradient wanted): then the caller runs
+    :func:`system_matvec` and ``cg_alpha``."""
+    groups = list(groups)
+    if len(groups) != 1 or p.dtype != u.dtype or p.device != u.device or p.shape != u.shape:
+        return False
+    native = _native(groups[0], u)
+    mass_v = mass.reshape(-1)
+    free_v = None if free is None else free.reshape(-1)
+    if (native is None or not native.system_fusable(groups[0])
+            or not all(t is None or (t.dtype == u.dtype and t.device == u.device and t.shape[0] == u.shape[0])
+                       for t in (mass_v, free_v, node_stiffness, ap))):
+        return False
+    state = linearize(groups[0], u) if states is None else states[0]
+    return native.system_matvec_alpha(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness, ap,
+                                      plan.tensors(), cg_state)

@@ -232,14 +232,14 @@ def test_simulator_step_matches_torch_backend(monkeypatch, model, form, dtype):
         sim.step(4)
         return sim.x.clone(), sim.v.clone()
 
-    calls = []
-    real = ops.system_matvec
-    monkeypatch.setattr(ops, "system_matvec", lambda *a: calls.append(1) or real(*a))
-    fused_calls = []
-    real_native = native.system_matvec
-    monkeypatch.setattr(native, "system_matvec", lambda *a: fused_calls.append(1) or real_native(*a))
+    calls, fused_calls = [], []
+    # the solver's matvec: ops.system_matvec, or its variant ending in the CG step length
+    for name in ("system_matvec", "system_matvec_alpha"):
+        real, real_native = getattr(ops, name), getattr(native, name)
+        monkeypatch.setattr(ops, name, lambda *a, real=real: calls.append(1) or real(*a))
+        monkeypatch.setattr(native, name, lambda *a, real=real_native: fused_calls.append(1) or real(*a))
     x, v = run()
-    assert calls, "the solver did not use ops.system_matvec"
+    assert calls, "the solver did not use ops.system_matvec(_alpha)"
     assert fused_calls, "the solver did not use the fused matvec"
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
     x_t, v_t = run()

@@ -428,3 +428,24 @@ def test_benchmark_script_quick(tmp_path, capsys):
     assert {r["layout"] for r in rows} == {"padded", "node"} and len(rows) == 6
     assert all(r["bitwise"] == "yes" and r["us"] > 0 for r in rows)
     assert "| sofa_beam |" in (tmp_path / "node_system_bench.md").read_text()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_forces_through_the_node_graph_equal_padded_forces(monkeypatch, kind, dtype):
+    """native.forces of the hooke tensor form runs the node op (c_M = 0, c_K = -1 gives K u):
+    bitwise the padded kernel 1 + gather; with a gradient wanted it keeps the differentiable op."""
+    group, u, *_ = make_case(11, kind, dtype)
+    real = torch.ops.tensormass.hooke_node_system
+    index, force_index, incidences = native._plan_indices(group.plan)
+    padded = torch.ops.tensormass.tensor_hooke_forces(u, index, force_index, group.plan.num_slots, incidences,
+                                                      group.edge_k.contiguous())
+    monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", "node")
+    got = native.forces(group, u)
+    assert torch.equal(got, padded)
+    neighbor, node_k = native.hooke_node_graph(group)
+    no_mass = torch.zeros(u.shape[0], dtype=dtype)
+    assert torch.equal(real(u, neighbor, node_k, incidences, no_mass, None, 0.0, -1.0, None)[0], got)
+    u_grad = u.clone().requires_grad_(True)
+    f = native.forces(group, u_grad)
+    assert f.requires_grad and torch.equal(f.detach(), padded)

@@ -1,5 +1,4 @@
-// CPU implementations of the CG ops (cg.h): chunks in parallel (at::parallel_for), then each
-// object's chunk sums in chunk order, so the results do not depend on the thread count.
+// CPU implementations of the CG ops (cg.h; the chunked reductions: cpu/cg_chunks.h).
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 
@@ -7,39 +6,10 @@
 #include <torch/library.h>
 
 #include "cg.h"
+#include "cpu/cg_chunks.h"
 
 namespace tensormass {
 namespace {
-
-template <typename S>
-double chunk_dot(const S* a, const S* b, int64_t begin, int64_t end) {
-  double acc = 0.0;
-  for (int64_t j = begin; j < end; ++j) acc += static_cast<double>(a[j]) * static_cast<double>(b[j]);
-  return acc;
-}
-
-double object_sum(const double* scratch, const int64_t* object_chunk, int64_t b) {
-  double acc = 0.0;
-  for (int64_t c = object_chunk[b]; c < object_chunk[b + 1]; ++c) acc += scratch[c];
-  return acc;
-}
-
-// Chunks per task: at least ~32k values each, so that small systems run on the calling thread
-// (an OpenMP region costs more than a CG update of a few thousand values).
-inline int64_t chunk_grain(const CGPlan& plan, int64_t values_per_node) {
-  const int64_t values = plan.num_nodes * values_per_node;
-  const int64_t per_chunk = std::max<int64_t>(1, values / std::max<int64_t>(1, plan.num_chunks));
-  return std::max<int64_t>(1, (int64_t{1} << 15) / per_chunk);
-}
-
-template <class F>
-void for_each_chunk(const CGPlan& plan, int64_t values_per_node, const int32_t* status, const F& f) {
-  at::parallel_for(0, plan.num_chunks, chunk_grain(plan, values_per_node), [&](int64_t begin, int64_t end) {
-    for (int64_t c = begin; c < end; ++c) {
-      if (status[plan.chunk_object[c]] == kActive) f(c, plan.chunk_start[c], plan.chunk_start[c + 1]);
-    }
-  });
-}
 
 void cg_alpha_cpu(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
                   const at::Tensor& object_chunk, const at::Tensor& rr, at::Tensor status, at::Tensor alpha,
@@ -55,12 +25,7 @@ void cg_alpha_cpu(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, con
       for (int64_t i = begin; i < end; ++i) acc += static_cast<double>(values[i]);
       sums[c] = acc;
     });
-    const scalar_t* rr_p = rr.data_ptr<scalar_t>();
-    scalar_t* alpha_p = alpha.data_ptr<scalar_t>();
-    for (int64_t b = 0; b < plan.num_objects; ++b) {
-      if (st[b] != kActive) continue;
-      alpha_p[b] = cg_alpha_step<scalar_t>(object_sum(sums, plan.object_chunk, b), rr_p[b], st[b]);
-    }
+    alpha_from_chunk_sums(plan, sums, rr.data_ptr<scalar_t>(), st, alpha.data_ptr<scalar_t>());
   });
 }
 

@@ -8,6 +8,8 @@
 
 #include <cstdint>
 
+#include "cpu/cg_chunks.h"
+
 namespace tensormass {
 
 struct CpuLauncher {
@@ -24,6 +26,13 @@ struct CpuLauncher {
     at::parallel_for(0, n, grain, [&](int64_t begin, int64_t end) {
       for (int64_t i = begin; i < end; ++i) k(i);
     });
+  }
+
+  // A node kernel with apply(i) -> p_i . Ap_i over the chunks of a CG plan, ending in alpha.
+  template <class K, typename S>
+  static void run_alpha(const CGPlan& plan, const K& k, const S* rr, int32_t* status, S* alpha, double* scratch,
+                        int32_t*) {
+    chunk_alpha_cpu<K, S>(plan, k, rr, status, alpha, scratch);
   }
 };
 

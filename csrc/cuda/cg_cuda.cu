@@ -1,8 +1,5 @@
-// CUDA implementations of the CG ops (cg.h). One block per chunk: the block sums its chunk in a
-// fixed pattern (strided per-thread sums, then a shuffle tree) into scratch[chunk]; the last
-// block of an object to finish (elected by an atomic ticket on counter[object]) sums the
-// object's chunk sums in the same fixed pattern, runs the scalar step and resets the ticket.
-// Which block is last changes from run to run; what it computes does not: deterministic.
+// CUDA implementations of the CG ops (cg.h). One block per chunk; the reductions (block sums,
+// the last block of an object doing the object's sum and its scalar step): cuda/cg_reduce.cuh.
 // Everything runs on the current stream with no host synchronisation, so an iteration can be
 // captured in a CUDA graph.
 #include <ATen/Dispatch.h>
@@ -12,48 +9,12 @@
 #include <torch/library.h>
 
 #include "cg.h"
+#include "cuda/cg_reduce.cuh"
 
 namespace tensormass {
 namespace {
 
-constexpr int kBlock = 256;
-
-// Sum over the block in a fixed order; the result is valid in thread 0.
-__device__ double block_sum(double v) {
-  __shared__ double warp_sums[kBlock / 32];
-  for (int offset = 16; offset > 0; offset >>= 1) v += __shfl_down_sync(0xffffffffu, v, offset);
-  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-  if (lane == 0) warp_sums[warp] = v;
-  __syncthreads();
-  if (warp == 0) {
-    v = lane < kBlock / 32 ? warp_sums[lane] : 0.0;
-    for (int offset = 16; offset > 0; offset >>= 1) v += __shfl_down_sync(0xffffffffu, v, offset);
-  }
-  return v;
-}
-
-// Publishes this block's chunk sum and says whether this block is the object's last; if so,
-// returns (in thread 0) the object's total over its chunks.
-__device__ bool object_total(const CGPlan& plan, int64_t chunk, int64_t object, double chunk_total, double* scratch,
-                             int32_t* counter, double& total) {
-  __shared__ bool is_last;
-  if (threadIdx.x == 0) {
-    scratch[chunk] = chunk_total;
-    __threadfence();
-    const int32_t chunks = static_cast<int32_t>(plan.object_chunk[object + 1] - plan.object_chunk[object]);
-    is_last = atomicAdd(counter + object, 1) == chunks - 1;
-  }
-  __syncthreads();
-  if (!is_last) return false;
-  __threadfence();
-  double acc = 0.0;
-  for (int64_t c = plan.object_chunk[object] + threadIdx.x; c < plan.object_chunk[object + 1]; c += kBlock) {
-    acc += __ldcg(scratch + c);
-  }
-  total = block_sum(acc);
-  if (threadIdx.x == 0) counter[object] = 0;
-  return true;
-}
+constexpr int kBlock = kReduceBlock;
 
 template <typename S>
 __global__ void __launch_bounds__(kBlock) cg_alpha_kernel(const S* __restrict__ p_dot_ap, CGPlan plan,

@@ -8,6 +8,8 @@
 
 #include <cstdint>
 
+#include "cuda/cg_reduce.cuh"
+
 namespace tensormass {
 
 template <class K>
@@ -29,6 +31,13 @@ struct CudaLauncher {
     for_each_item<K><<<static_cast<unsigned int>(grid), static_cast<unsigned int>(block), 0,
                        at::cuda::getCurrentCUDAStream()>>>(k, n);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
+
+  // A node kernel with apply(i) -> p_i . Ap_i over the chunks of a CG plan, ending in alpha.
+  template <class K, typename S>
+  static void run_alpha(const CGPlan& plan, const K& k, const S* rr, int32_t* status, S* alpha, double* scratch,
+                        int32_t* counter) {
+    launch_chunk_alpha<K, S>(plan, k, rr, status, alpha, scratch, counter);
   }
 };
 

@@ -164,7 +164,7 @@ def _register_fakes():
     """Fake kernels (the ops only mutate their inputs) for torch.compile and opcheck."""
     if not hasattr(torch.library, "register_fake"):
         return
-    for name in ("cg_alpha", "cg_update", "cg_direction", "cg_dot"):
+    for name in ("cg_alpha", "cg_update", "cg_direction", "cg_dot", "gather_system_alpha", "hooke_node_system_alpha"):
         try:
             torch.library.register_fake(f"tensormass::{name}")(lambda *args, **kwargs: None)
         except (RuntimeError, ValueError, AttributeError):

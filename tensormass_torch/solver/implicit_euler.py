@@ -148,6 +148,7 @@ class SystemMatvec:
         self.node_stiffness = None
         #: contact forces ``[V, d]`` at the loaded positions (None without planes)
         self.contact_forces = None
+        self._ap = None  # A p of matvec_alpha (kept: a CUDA graph replays into it)
         self.graph_key = ("system", mass_coef, stiffness_coef, id(self))
 
     def load(self, x: torch.Tensor) -> "SystemMatvec":
@@ -183,7 +184,7 @@ class SystemMatvec:
             f = ops.dforces(group, self.u, dx, state)
             total = f if total is None else total + f
         if self.node_stiffness is not None:
-            total = total - torch.einsum("vab,vb->va", self.node_stiffness, dx)
+            total = total - (self.node_stiffness * dx[:, None, :]).sum(-1)
         return total
 
     def forces_along(self, w: torch.Tensor) -> torch.Tensor:
@@ -192,8 +193,21 @@ class SystemMatvec:
         system = self.system
         total = system.model.linearized_forces(self.u, w, self.states) + system.external
         if self.contact_forces is not None:
-            total = total + self.contact_forces - torch.einsum("vab,vb->va", self.node_stiffness, w)
+            total = total + self.contact_forces - (self.node_stiffness * w[:, None, :]).sum(-1)
         return total
+
+    def matvec_alpha(self, p: torch.Tensor, plan, cg_state):
+        """A p into a buffer of this matvec and the CG step length (``cg_state.alpha``, ``.status``)
+        in one fused kernel: returns that buffer ``[V, d]``, or None where there is no fused path
+        (then nothing was done)."""
+        from .. import ops
+
+        system = self.system
+        if self._ap is None:
+            self._ap = torch.empty_like(self.u)
+        done = ops.system_matvec_alpha(system.model.groups, self.u, p, system.mass, system.free, self.mass_coef,
+                                       self.stiffness_coef, self.states, self.node_stiffness, self._ap, plan, cg_state)
+        return self._ap if done else None
 
     def __call__(self, p: torch.Tensor):
         from .. import ops
