@@ -54,9 +54,13 @@ void alpha_from_chunk_sums(const CGPlan& plan, const double* sums, const S* rr, 
 // A CG matvec that ends in the step length: node kernel k (k.apply(i) writes Ap_i and returns
 // p_i . Ap_i) over the nodes of the active objects' chunks, summed in node order per chunk (as
 // cg_alpha sums p_dot_ap), then alpha.
+// A node of a matvec costs about what 16 values of a CG update do (a dozen slots of a 3x3 product):
+// weighted so, the grain gives tasks of ~2k nodes, as the plain node kernels (kNodeBlock).
+constexpr int64_t kMatvecNodeWeight = 16;
+
 template <class K, typename S>
 void chunk_alpha_cpu(const CGPlan& plan, const K& k, const S* rr, int32_t* status, S* alpha, double* scratch) {
-  for_each_chunk(plan, 1, status, [&](int64_t c, int64_t begin, int64_t end) {
+  for_each_chunk(plan, kMatvecNodeWeight, status, [&](int64_t c, int64_t begin, int64_t end) {
     double acc = 0.0;
     for (int64_t i = begin; i < end; ++i) acc += static_cast<double>(k.apply(i));
     scratch[c] = acc;
