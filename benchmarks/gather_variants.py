@@ -15,8 +15,9 @@ Variants of one force evaluation (kernel 1 + kernel 2, stress form, float32):
                order of the additions, hence the last bits, changes from run to run)
 
 Only ``padded`` is a fused native op; ``csr`` and ``atomics`` pair the native kernel 1 with torch's
-reductions, what a user would assemble from the ops. A node-centric native kernel (one thread per
-node recomputing its elements) is not built. Writes gather_variants.md / .json.
+reductions, what a user would assemble from the ops. The node-centric kernel of the hooke tensor
+form (the CG product in one kernel over the node graph, tensormass::hooke_node_system) is timed by
+benchmarks/node_system_bench.py and in the step profile (profile_step.py). Writes gather_variants.md / .json.
 """
 from __future__ import annotations
 
