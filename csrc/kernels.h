@@ -359,6 +359,7 @@ struct SystemEpilogue {
 template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
 struct SystemGatherKernel {
   using Scalar = S;
+  using Index = I;
   const S* partial;         // [N_n, V, D]
   const I* incidences;      // [V]
   const S* p;               // [V, D]
@@ -390,6 +391,7 @@ struct SystemGatherKernel {
 template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
 struct NodeHookeSystemKernel {
   using Scalar = S;
+  using Index = I;
   const S* p;           // [V, D]
   const I* neighbor;    // [N_n, V] the other node of the edge in each slot
   const S* node_k;      // [N_n, V, D, D] Kdir of each slot

@@ -623,6 +623,31 @@ inline std::tuple<at::Tensor, at::Tensor> optional_epilogue_inputs(
   return std::make_tuple(fr, nk);
 }
 
+// The dispatch of the system kernels (K = SystemGatherKernel or NodeHookeSystemKernel): scalar S,
+// index I, dimension D and the epilogue's HAS_FREE / HAS_NODE_K (fr, nk defined or not); f gets
+// the kernel with its epilogue set, to fill in its own inputs and launch.
+template <template <int, typename, typename, bool, bool> class K, class F>
+void dispatch_system(at::ScalarType scalar, at::ScalarType index, int64_t dim, const at::Tensor& mass,
+                     const at::Tensor& fr, const at::Tensor& nk, double c_mass, double c_stiff, at::Tensor& ap,
+                     at::Tensor& p_dot_ap, const F& f) {
+  dispatch_scalar(scalar, [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_dim(dim, [&](auto d_c) {
+        constexpr int D = decltype(d_c)::value;
+        dispatch_bool(fr.defined(), [&](auto free_c) {
+          dispatch_bool(nk.defined(), [&](auto node_k_c) {
+            K<D, S, I, decltype(free_c)::value, decltype(node_k_c)::value> k;
+            set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
+            f(k);
+          });
+        });
+      });
+    });
+  });
+}
+
 // The system gather's kernel, set up and handed to `launch` (a node loop, or the chunked loop
 // that ends in the CG step length); p_dot_ap may be undefined (then the dots are only returned
 // by the kernel's apply).
@@ -651,27 +676,16 @@ void run_gather_system(const at::Tensor& partial, const at::Tensor& incidences, 
   typename L::Guard guard(partial.device());
   if (!ap.defined()) ap = at::empty({num_nodes, dim}, partial.options());
   check_node_tensor(ap, "ap", partial, {num_nodes, dim});
-  dispatch_scalar(partial.scalar_type(), [&](auto s_tag) {
-    using S = decltype(s_tag);
-    dispatch_index(index_type, [&](auto i_tag) {
-      using I = decltype(i_tag);
-      dispatch_dim(dim, [&](auto d_c) {
-        constexpr int D = decltype(d_c)::value;
-        dispatch_bool(fr.defined(), [&](auto free_c) {
-         dispatch_bool(nk.defined(), [&](auto node_k_c) {
-          constexpr bool HAS_FREE = decltype(free_c)::value;
-          constexpr bool HAS_NODE_K = decltype(node_k_c)::value;
-          SystemGatherKernel<D, S, I, HAS_FREE, HAS_NODE_K> k;
-          k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
-          k.incidences = incidences.data_ptr<I>();
-          k.p = p.data_ptr<S>();
-          k.num_nodes = num_nodes;
-          set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
-          launch(k, num_nodes);
-         });
-        });
-      });
-    });
+  dispatch_system<SystemGatherKernel>(partial.scalar_type(), index_type, dim, mass, fr, nk, c_mass, c_stiff, ap,
+                                      p_dot_ap, [&](auto& k) {
+    using Kernel = std::decay_t<decltype(k)>;
+    using S = typename Kernel::Scalar;
+    using I = typename Kernel::Index;
+    k.partial = partial.numel() ? partial.data_ptr<S>() : nullptr;
+    k.incidences = incidences.data_ptr<I>();
+    k.p = p.data_ptr<S>();
+    k.num_nodes = num_nodes;
+    launch(k, num_nodes);
   });
 }
 
@@ -792,28 +806,17 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
   typename L::Guard guard(p.device());
   if (!ap.defined()) ap = at::empty({num_nodes, dim}, p.options());
   check_node_tensor(ap, "ap", p, {num_nodes, dim}, "p");
-  dispatch_scalar(p.scalar_type(), [&](auto s_tag) {
-    using S = decltype(s_tag);
-    dispatch_index(index_type, [&](auto i_tag) {
-      using I = decltype(i_tag);
-      dispatch_dim(dim, [&](auto d_c) {
-        constexpr int D = decltype(d_c)::value;
-        dispatch_bool(fr.defined(), [&](auto free_c) {
-         dispatch_bool(nk.defined(), [&](auto node_k_c) {
-          constexpr bool HAS_FREE = decltype(free_c)::value;
-          constexpr bool HAS_NODE_K = decltype(node_k_c)::value;
-          NodeHookeSystemKernel<D, S, I, HAS_FREE, HAS_NODE_K> k;
-          k.p = p.data_ptr<S>();
-          k.neighbor = neighbor.numel() ? neighbor.data_ptr<I>() : nullptr;
-          k.node_k = node_k.numel() ? node_k.data_ptr<S>() : nullptr;
-          k.incidences = incidences.data_ptr<I>();
-          k.num_nodes = num_nodes;
-          set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
-          launch(k, num_nodes);
-         });
-        });
-      });
-    });
+  dispatch_system<NodeHookeSystemKernel>(p.scalar_type(), index_type, dim, mass, fr, nk, c_mass, c_stiff, ap,
+                                         p_dot_ap, [&](auto& k) {
+    using Kernel = std::decay_t<decltype(k)>;
+    using S = typename Kernel::Scalar;
+    using I = typename Kernel::Index;
+    k.p = p.data_ptr<S>();
+    k.neighbor = neighbor.numel() ? neighbor.data_ptr<I>() : nullptr;
+    k.node_k = node_k.numel() ? node_k.data_ptr<S>() : nullptr;
+    k.incidences = incidences.data_ptr<I>();
+    k.num_nodes = num_nodes;
+    launch(k, num_nodes);
   });
 }
 

@@ -145,10 +145,12 @@ class TensorMass(nn.Module):
         self._check_positions("u", u)
         return sum(ops.energy(group, u) for group in self.groups)
 
-    def displacement_tangent(self, u: torch.Tensor):
-        """``dx -> (dF/dx) dx`` at displacements ``u [V, d]`` (see :meth:`tangent`)."""
+    def displacement_tangent(self, u: torch.Tensor, states=None):
+        """``dx -> (dF/dx) dx`` at displacements ``u [V, d]`` (see :meth:`tangent`); ``states``:
+        ``[ops.linearize(g, u) for g in groups]`` when the caller has them (computed here when None)."""
         self._check_positions("u", u)
-        states = [ops.linearize(group, u) for group in self.groups]
+        if states is None:
+            states = [ops.linearize(group, u) for group in self.groups]
 
         def apply(dx: torch.Tensor) -> torch.Tensor:
             total = None

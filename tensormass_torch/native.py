@@ -672,8 +672,7 @@ def forces(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> 
         return torch.ops.tensormass.stress_forces(u, index, force_index, plan.num_slots, incidences,
                                                   *_stress_args(group, u, rotations))
     if group.model == "hooke":
-        if (HOOKE_MATVEC_LAYOUT == "node" and hasattr(torch.ops.tensormass, "hooke_node_system")
-                and not (torch.is_grad_enabled() and (u.requires_grad or group.edge_k.requires_grad))):
+        if _node_layout(group, HOOKE_MATVEC_LAYOUT, (u,), "hooke_node_system"):
             # one kernel over the node graph (the system op with c_M = 0, c_K = -1 returns K u = the
             # forces, bitwise the padded gather's sums); not differentiable, hence the condition
             neighbor, node_k = hooke_node_graph(group)
@@ -756,6 +755,38 @@ def system_fusable(group) -> bool:
     return hasattr(torch.ops.tensormass, "gather_system") and group.form in ("stress", "tensor")
 
 
+def _contiguous(*tensors):
+    return tuple(None if t is None else t.contiguous() for t in tensors)
+
+
+def _wants_grad(tensors) -> bool:
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
+
+
+def _node_layout(group, layout: str, inputs, op: str) -> bool:
+    """Whether the hooke tensor form's product runs over the node graph (op ``op``): layout
+    "node", the op compiled, no gradient wanted through ``inputs`` or the edge tensors."""
+    return (group.form == "tensor" and group.model == "hooke" and layout == "node"
+            and hasattr(torch.ops.tensormass, op) and not _wants_grad((*inputs, group.edge_k)))
+
+
+def _partial_dforces(group, u: torch.Tensor, p: torch.Tensor, rotations: Optional[torch.Tensor]):
+    """Kernel 1 of the CG product: the padded partial force differentials along ``p``
+    (PartialForce ``[N_n, V, d]``) and the plan's incidences ``[V]``."""
+    plan = group.plan
+    index, force_index, incidences = _plan_indices(plan)
+    if group.form == "stress":
+        partial = torch.ops.tensormass.stress_partial_dforces(u, p, index, force_index, plan.num_slots,
+                                                              *_stress_args(group, u, rotations))
+    elif group.model == "hooke":  # linear: the partial forces of p are its partial dforces
+        partial = torch.ops.tensormass.tensor_hooke_partial_forces(p, index, force_index, plan.num_slots,
+                                                                   group.edge_k.contiguous())
+    else:
+        partial = torch.ops.tensormass.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots,
+                                                                   *_stvk_tensors(group))
+    return partial, incidences
+
+
 def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                   c_mass: float, c_stiff: float, rotations: Optional[torch.Tensor] = None,
                   node_stiffness: Optional[torch.Tensor] = None, layout: Optional[str] = None):
@@ -771,30 +802,13 @@ def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, f
     layout = HOOKE_MATVEC_LAYOUT if layout is None else layout
     if layout not in HOOKE_MATVEC_LAYOUTS:
         raise ValueError(f"unknown matvec layout {layout!r}; known: {', '.join(HOOKE_MATVEC_LAYOUTS)}")
-    u, p = u.contiguous(), p.contiguous()
-    mass = mass.contiguous()
-    free = None if free is None else free.contiguous()
-    node_stiffness = None if node_stiffness is None else node_stiffness.contiguous()
-    hooke_tensor = group.form == "tensor" and group.model == "hooke"
-    wants_grad = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad
-        for t in (p, mass, free, node_stiffness, group.edge_k if hooke_tensor else None))
-    if hooke_tensor and layout == "node" and not wants_grad and hasattr(torch.ops.tensormass, "hooke_node_system"):
+    u, p, mass, free, node_stiffness = _contiguous(u, p, mass, free, node_stiffness)
+    if _node_layout(group, layout, (p, mass, free, node_stiffness), "hooke_node_system"):
         neighbor, node_k = hooke_node_graph(group)
         _, _, incidences = _plan_indices(group.plan)
         return torch.ops.tensormass.hooke_node_system(p, neighbor, node_k, incidences, mass, free, float(c_mass),
                                                       float(c_stiff), node_stiffness)
-    plan = group.plan
-    index, force_index, incidences = _plan_indices(plan)
-    if group.form == "stress":
-        partial = torch.ops.tensormass.stress_partial_dforces(u, p, index, force_index, plan.num_slots,
-                                                              *_stress_args(group, u, rotations))
-    elif group.model == "hooke":  # linear: the partial forces of p are its partial dforces
-        partial = torch.ops.tensormass.tensor_hooke_partial_forces(p, index, force_index, plan.num_slots,
-                                                                   group.edge_k.contiguous())
-    else:
-        partial = torch.ops.tensormass.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots,
-                                                                   *_stvk_tensors(group))
+    partial, incidences = _partial_dforces(group, u, p, rotations)
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad
                                        for t in (partial, p, mass, free, node_stiffness)):
         # gather_system has no gradient: the same arithmetic in differentiable ops
@@ -813,33 +827,21 @@ def system_matvec_alpha(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Ten
     (chunk_start, chunk_object, object_chunk) of the CG's chunk plan; ``cg_state``: its
     ``CGState``. Returns False (nothing done) where the ops are missing or a gradient is wanted."""
     ops_ns = torch.ops.tensormass
-    if not hasattr(ops_ns, "gather_system_alpha") or torch.is_grad_enabled() and any(
-            t is not None and t.requires_grad for t in (p, mass, free, node_stiffness)):
+    if not hasattr(ops_ns, "gather_system_alpha") or _wants_grad((p, mass, free, node_stiffness)):
         return False
-    u, p = u.contiguous(), p.contiguous()
-    mass = mass.contiguous()
-    free = None if free is None else free.contiguous()
-    node_stiffness = None if node_stiffness is None else node_stiffness.contiguous()
+    u, p, mass, free, node_stiffness = _contiguous(u, p, mass, free, node_stiffness)
     s = cg_state
     cg_args = (*plan_tensors, s.rr, s.status, s.alpha, s.scratch, s.counter)
     if group.form == "tensor" and group.model == "hooke" and HOOKE_MATVEC_LAYOUT == "node":
-        if group.edge_k.requires_grad and torch.is_grad_enabled():
+        if not _node_layout(group, "node", (), "hooke_node_system_alpha"):
             return False
         neighbor, node_k = hooke_node_graph(group)
         _, _, incidences = _plan_indices(group.plan)
         ops_ns.hooke_node_system_alpha(p, neighbor, node_k, incidences, mass, free, float(c_mass), float(c_stiff),
                                        node_stiffness, ap, *cg_args)
         return True
-    plan = group.plan
-    index, force_index, incidences = _plan_indices(plan)
-    if group.form == "stress":
-        partial = ops_ns.stress_partial_dforces(u, p, index, force_index, plan.num_slots,
-                                                *_stress_args(group, u, rotations))
-    elif group.model == "hooke":
-        partial = ops_ns.tensor_hooke_partial_forces(p, index, force_index, plan.num_slots, group.edge_k.contiguous())
-    else:
-        partial = ops_ns.tensor_stvk_partial_dforces(u, p, index, force_index, plan.num_slots, *_stvk_tensors(group))
-    if partial.requires_grad and torch.is_grad_enabled():
+    partial, incidences = _partial_dforces(group, u, p, rotations)
+    if _wants_grad((partial,)):
         return False
     ops_ns.gather_system_alpha(partial, incidences, p, mass, free, float(c_mass), float(c_stiff), node_stiffness, ap,
                                *cg_args)

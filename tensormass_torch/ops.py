@@ -169,6 +169,21 @@ def energy(group, u: torch.Tensor) -> torch.Tensor:
     return tensor_form.stvk_energy(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d).sum()
 
 
+def _fused_native(groups, u: torch.Tensor, p: torch.Tensor, node_tensors):
+    """The native module when the system matvec of ``groups`` has a fused path: one group the
+    extension serves with a fused matvec, p like u, and every node tensor (``[V, ...]`` or None)
+    of u's dtype and device; else None."""
+    if len(groups) != 1 or p.dtype != u.dtype or p.device != u.device or p.shape != u.shape:
+        return None
+    native = _native(groups[0], u)
+    if native is None or not native.system_fusable(groups[0]):
+        return None
+    if not all(t is None or (t.dtype == u.dtype and t.device == u.device and t.shape[0] == u.shape[0])
+               for t in node_tensors):
+        return None
+    return native
+
+
 def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                   c_mass: float, c_stiff: float, states=None, node_stiffness: Optional[torch.Tensor] = None):
     """The CG matvec of implicit Euler, ``A p = c_mass M p - c_stiff K p`` projected on the free nodes.
@@ -194,13 +209,10 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
     groups = list(groups)
     mass_v = mass.reshape(-1)
     free_v = None if free is None else free.reshape(-1)
-    if len(groups) == 1 and p.dtype == u.dtype and p.device == u.device and p.shape == u.shape:
-        native = _native(groups[0], u)
-        if (native is not None and native.system_fusable(groups[0])
-                and all(t is None or (t.dtype == u.dtype and t.device == u.device and t.shape[0] == u.shape[0])
-                        for t in (mass_v, free_v, node_stiffness))):
-            state = linearize(groups[0], u) if states is None else states[0]
-            return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness)
+    native = _fused_native(groups, u, p, (mass_v, free_v, node_stiffness))
+    if native is not None:
+        state = linearize(groups[0], u) if states is None else states[0]
+        return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness)
     kp = None
     for i, group in enumerate(groups):
         f = dforces(group, u, p, None if states is None else states[i])
@@ -223,14 +235,10 @@ def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Te
     fused path (several groups, the pure-torch backend, a gradient wanted): then the caller runs
     :func:`system_matvec` and ``cg_alpha``."""
     groups = list(groups)
-    if len(groups) != 1 or p.dtype != u.dtype or p.device != u.device or p.shape != u.shape:
-        return False
-    native = _native(groups[0], u)
     mass_v = mass.reshape(-1)
     free_v = None if free is None else free.reshape(-1)
-    if (native is None or not native.system_fusable(groups[0])
-            or not all(t is None or (t.dtype == u.dtype and t.device == u.device and t.shape[0] == u.shape[0])
-                       for t in (mass_v, free_v, node_stiffness, ap))):
+    native = _fused_native(groups, u, p, (mass_v, free_v, node_stiffness, ap))
+    if native is None:
         return False
     state = linearize(groups[0], u) if states is None else states[0]
     return native.system_matvec_alpha(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness, ap,

@@ -177,12 +177,7 @@ class SystemMatvec:
     def tangent(self, dx: torch.Tensor) -> torch.Tensor:
         """(dF/dx) dx ``[V, d]`` at the loaded positions (elastic and contact), with the loaded
         rotations."""
-        from .. import ops
-
-        total = None
-        for group, state in zip(self.system.model.groups, self.states):
-            f = ops.dforces(group, self.u, dx, state)
-            total = f if total is None else total + f
+        total = self.system.model.displacement_tangent(self.u, self.states)(dx)
         if self.node_stiffness is not None:
             total = total - (self.node_stiffness * dx[:, None, :]).sum(-1)
         return total
