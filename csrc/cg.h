@@ -68,6 +68,44 @@ TM_HD S cg_beta_step(double rr_new_sum, S& rr, S threshold, int64_t max_iter, in
   return rr_new / rr_old;
 }
 
+// The start of a solve from x0 = 0 (CGSolver.start): r = p = b, rr = b.b; the object is
+// non-finite, already converged (b.b <= tol^2 b.b, i.e. b = 0), capped (max_iter = 0) or active.
+template <typename S>
+TM_HD int32_t cg_start_status(S rr, S threshold, int64_t max_iter) {
+  if (!finite_value(rr)) return kNonfinite;
+  if (rr <= threshold) return kConverged;
+  return max_iter == 0 ? kCapped : kActive;
+}
+
+// The buffers of a whole CG solve run by one op (hooke_node_cg): the iterates [V, d], the
+// per-object scalars [B], and what only the GPU's persistent kernel uses: the scalars of the
+// other parity (an iteration reads one parity and writes the other, so that no block overwrites
+// a scalar another block may still read), the status after each step length, two counters of
+// active objects, and two sets of chunk sums.
+template <typename S>
+struct CGRun {
+  S* x;
+  S* r;
+  S* p;
+  S* ap;
+  const S* rhs;         // [V, d], or nullptr: go on from the current state (no start)
+  const S* free;        // [V] 0/1 projection of rhs, or nullptr
+  S tol_sq;             // start: threshold = tol^2 b.b
+  S* threshold;
+  S* rhs_sq;
+  S* rr;
+  S* alpha;
+  S* beta;
+  int32_t* status;
+  int32_t* iterations;
+  S* rr_swap;           // [B]            rr of the other parity
+  int32_t* work;        // [3B + 2]       status, iterations of the other parity; status after alpha; counters
+  double* sums;         // [2K]           p.Ap and r.r chunk sums
+  int64_t d;            // values per node
+  int64_t max_iter;
+  int64_t count;        // iterations to run at most (fewer when every object stops)
+};
+
 // ------------------------------------------------------------------ host-side checks
 
 struct CGPlan {

@@ -47,6 +47,13 @@ struct Loader {
   TM_HD T operator()(const T* p) const { return ld(p); }
 };
 
+// A plain (coherent) load, for values written during the same kernel by other blocks (the
+// persistent CG kernel's directions): the read-only cache of ld() may hold stale copies of them.
+struct CoherentLoader {
+  template <typename T>
+  TM_HD T operator()(const T* p) const { return *p; }
+};
+
 // Load 16 bytes (16 / sizeof(T) values) from a 16-byte aligned p: one vector load on the GPU.
 template <typename T>
 TM_HD void load16(const T* p, T* out) {
@@ -404,10 +411,12 @@ struct NodeHookeSystemKernel {
   // (neighbor -> p_j) per slot; the terms are still added in slot order.
   static constexpr int kBatch = 4;
 
-  // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh).
-  TM_HD S apply(int64_t i) const {
+  // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh);
+  // load_p reads p (CoherentLoader where p changes during the kernel: cg_persistent.cuh).
+  template <class LoadP = Loader>
+  TM_HD S apply(int64_t i, LoadP load_p = LoadP()) const {
     S pv[D];
-    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = ld(p + i * D + a);
+    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = load_p(p + i * D + a);
     S acc[D];
     TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
     const int64_t count = static_cast<int64_t>(ld(incidences + i));
@@ -419,7 +428,7 @@ struct NodeHookeSystemKernel {
       S k[kBatch][D][D], pj[kBatch][D];
       TM_UNROLL for (int q = 0; q < kBatch; ++q) {
         if (s0 + q < count) load_matrix<D, D, S>(node_k + ((s0 + q) * num_nodes + i) * (D * D), k[q]);
-        TM_UNROLL for (int a = 0; a < D; ++a) pj[q][a] = ld(p + j[q] * D + a);
+        TM_UNROLL for (int a = 0; a < D; ++a) pj[q][a] = load_p(p + j[q] * D + a);
       }
       TM_UNROLL for (int q = 0; q < kBatch; ++q) {
         if (s0 + q >= count) break;

@@ -33,6 +33,12 @@
 //                               Ap into ap in place, then alpha per object as cg_alpha (cg_ops.cpp)
 //                               does, in the same kernel (one block per chunk): one launch fewer
 //                               per CG iteration; inactive objects are skipped
+//   whole CG solve            hooke_node_cg(p!, <hooke_node_system's inputs>, ap!, x!, r!, rhs?, tol_sq,
+//                               chunk plan, threshold!, rhs_sq!, max_iter, count, rr!, status!, alpha!,
+//                               beta!, iterations!, rr_swap!, work!, sums!) -> ()
+//                               the start (when rhs is given) and up to count iterations of the CG
+//                               with hooke_node_system's matvec, stopping once no object is active:
+//                               one persistent kernel on the GPU; bitwise the op-by-op solve
 //   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
 //                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
 //
@@ -109,6 +115,13 @@ TORCH_LIBRARY(tensormass, m) {
         "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(a!) ap, Tensor chunk_start, "
         "Tensor chunk_object, Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, "
         "Tensor(d!) scratch, Tensor(e!) counter) -> ()");
+  // ---- a whole CG solve over the hooke node graph: one persistent kernel on the GPU (in place)
+  m.def("hooke_node_cg(Tensor(a!) p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, "
+        "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(b!) ap, Tensor(c!) x, "
+        "Tensor(d!) r, Tensor? rhs, float tol_sq, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
+        "Tensor(e!) threshold, Tensor(f!) rhs_sq, int max_iter, int count, Tensor(g!) rr, Tensor(h!) status, "
+        "Tensor(i!) alpha, Tensor(j!) beta, Tensor(k!) iterations, Tensor(l!) rr_swap, Tensor(m!) work, "
+        "Tensor(n!) sums) -> ()");
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

@@ -890,6 +890,74 @@ void hooke_node_system_alpha(const at::Tensor& p, const at::Tensor& neighbor, co
                                                     scratch, counter));
 }
 
+// ------------------------------------------------------------------ a whole CG solve in one op
+//
+// hooke_node_cg: up to `count` CG iterations whose matvec is hooke_node_system's (A = c_M M -
+// c_K K over the node graph, projected on `free`), preceded, when `rhs` is given, by the start
+// from x0 = 0 (x = 0, r = p = free * rhs, rhs_sq = b.b, threshold = tol_sq b.b, statuses); it
+// stops early once no object is active. On the GPU one persistent kernel (no launch and no host
+// round trip per iteration); on the CPU the CG ops' functions in a loop. Either way the result is
+// bitwise the op-by-op solve (hooke_node_system_alpha, cg_update, cg_direction) over the same
+// chunk plan. Buffers: the CG state (x, r, p [V, d]; threshold, rhs_sq, rr, alpha, beta [B];
+// status, iterations [B] int32), ap [V, d], and the persistent kernel's work: rr_swap [B],
+// work [3B + 2] int32, sums [2K] float64.
+template <class L>
+void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
+                   const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                   const c10::optional<at::Tensor>& node_stiffness, at::Tensor ap, at::Tensor x, at::Tensor r,
+                   const c10::optional<at::Tensor>& rhs, double tol_sq, const at::Tensor& chunk_start,
+                   const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor threshold,
+                   at::Tensor rhs_sq, int64_t max_iter, int64_t count, at::Tensor rr, at::Tensor status,
+                   at::Tensor alpha, at::Tensor beta, at::Tensor iterations, at::Tensor rr_swap, at::Tensor work,
+                   at::Tensor sums) {
+  check_values(p, "p");
+  TORCH_CHECK(ap.defined(), "tensormass: ap is undefined");
+  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
+  TORCH_CHECK(count >= 0, "tensormass: count must be >= 0, got ", std::to_string(count));
+  const CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p, p.size(0));
+  TORCH_CHECK(plan.num_chunks == 0 || p.size(0) > 0, "tensormass: a chunk plan over no nodes");
+  cg_check(x, "x", p, p.scalar_type(), p.sizes());
+  cg_check(r, "r", p, p.scalar_type(), p.sizes());
+  const bool start = rhs.has_value() && rhs->defined();
+  if (start) cg_check(*rhs, "rhs", p, p.scalar_type(), p.sizes());
+  for (const auto& named : {std::make_pair(&threshold, "threshold"), std::make_pair(&rhs_sq, "rhs_sq"),
+                            std::make_pair(&rr, "rr"), std::make_pair(&alpha, "alpha"), std::make_pair(&beta, "beta"),
+                            std::make_pair(&rr_swap, "rr_swap")}) {
+    cg_check_scalars(*named.first, named.second, p, plan.num_objects);
+  }
+  cg_check_state(status, "status", p, plan.num_objects);
+  cg_check_state(iterations, "iterations", p, plan.num_objects);
+  cg_check(work, "work", p, at::kInt, {3 * plan.num_objects + 2});
+  cg_check(sums, "sums", p, at::kDouble, {2 * plan.num_chunks});
+  at::Tensor no_dots;
+  run_hooke_node_system<L>(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, ap, no_dots,
+                           [&](const auto& k, int64_t) {
+    using S = typename std::decay_t<decltype(k)>::Scalar;
+    CGRun<S> s;
+    s.x = x.data_ptr<S>();
+    s.r = r.data_ptr<S>();
+    s.p = p.data_ptr<S>();
+    s.ap = ap.data_ptr<S>();
+    s.rhs = start ? rhs->data_ptr<S>() : nullptr;
+    s.free = k.epilogue.free;
+    s.tol_sq = static_cast<S>(tol_sq);
+    s.threshold = threshold.data_ptr<S>();
+    s.rhs_sq = rhs_sq.data_ptr<S>();
+    s.rr = rr.data_ptr<S>();
+    s.alpha = alpha.data_ptr<S>();
+    s.beta = beta.data_ptr<S>();
+    s.status = status.data_ptr<int32_t>();
+    s.iterations = iterations.data_ptr<int32_t>();
+    s.rr_swap = rr_swap.data_ptr<S>();
+    s.work = work.data_ptr<int32_t>();
+    s.sums = sums.data_ptr<double>();
+    s.d = p.size(1);
+    s.max_iter = max_iter;
+    s.count = count;
+    L::run_cg(plan, k, s);
+  });
+}
+
 // ------------------------------------------------------------------ tensor form, stvk
 
 struct StvkTensorArgs {

@@ -41,6 +41,7 @@ void register_gather_ops(torch::Library& m) {
   m.impl("hooke_node_system", &hooke_node_system<L>);
   m.impl("gather_system_alpha", &gather_system_alpha<L>);
   m.impl("hooke_node_system_alpha", &hooke_node_system_alpha<L>);
+  m.impl("hooke_node_cg", &hooke_node_cg<L>);
 }
 
 }  // namespace tensormass

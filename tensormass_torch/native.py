@@ -38,7 +38,7 @@ from .reference import corotational, stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
-           "system_matvec", "system_matvec_alpha", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS",
+           "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS",
            "HOOKE_MATVEC_LAYOUT"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
@@ -845,4 +845,35 @@ def system_matvec_alpha(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Ten
         return False
     ops_ns.gather_system_alpha(partial, incidences, p, mass, free, float(c_mass), float(c_stiff), node_stiffness, ap,
                                *cg_args)
+    return True
+
+
+def system_cg_serves(group, inputs=()) -> bool:
+    """Whether :func:`system_cg` solves ``group``'s systems in one op: the hooke tensor form over
+    the node graph (:data:`HOOKE_MATVEC_LAYOUT` "node"), ``hooke_node_cg`` compiled, no gradient
+    wanted through ``inputs``."""
+    return HOOKE_MATVEC_LAYOUT == "node" and _node_layout(group, "node", tuple(inputs), "hooke_node_cg")
+
+
+def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
+              c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
+              tol: float, plan_tensors, cg_state, max_iter: int, count: int) -> bool:
+    """A whole CG solve of the system of :func:`system_matvec` in one op (``hooke_node_cg``: one
+    persistent kernel on the GPU) on ``cg_state`` (``CGState``; its direction ``p`` is the
+    product's input): with ``rhs [V, d]`` the start from x0 = 0 (rhs projected on
+    ``free``, relative tolerance ``tol``), then up to ``count`` iterations, stopping once no
+    object is active;
+    ``ap [V, d]``: the product's buffer. Bitwise the op-by-op solve. Only for the hooke tensor form
+    over the node graph (:data:`HOOKE_MATVEC_LAYOUT` "node"); returns False, having done nothing,
+    for any other group, where the op is missing or a gradient is wanted."""
+    ops_ns = torch.ops.tensormass
+    s = cg_state
+    if not system_cg_serves(group, (s.p, mass, free, node_stiffness, rhs)):
+        return False
+    mass, free, node_stiffness, rhs = _contiguous(mass, free, node_stiffness, rhs)
+    neighbor, node_k = hooke_node_graph(group)
+    _, _, incidences = _plan_indices(group.plan)
+    ops_ns.hooke_node_cg(s.p, neighbor, node_k, incidences, mass, free, float(c_mass), float(c_stiff), node_stiffness,
+                         ap, s.x, s.r, rhs, float(tol) ** 2, *plan_tensors, s.threshold, s.rhs_sq, int(max_iter),
+                         int(count), s.rr, s.status, s.alpha, s.beta, s.iterations, s.rr_swap, s.work, s.sums)
     return True

@@ -9,6 +9,7 @@
                                     rotations [N, d, d]; None for the other models)
     system_matvec(groups, u, p, ...) implicit-Euler CG matvec: (Ap [V, d], p . Ap per node [V])
     system_matvec_alpha(...)        the same into a buffer, ending in the CG step length (fused)
+    system_cg(...)                  a whole CG solve of that system in one op, where there is one
 
 ``u`` and ``du`` are global nodal displacements ``[V, d]``.
 
@@ -243,3 +244,39 @@ def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Te
     state = linearize(groups[0], u) if states is None else states[0]
     return native.system_matvec_alpha(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness, ap,
                                       plan.tensors(), cg_state)
+
+
+def _system_cg_native(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
+                      node_stiffness: Optional[torch.Tensor], cg_state, rhs: Optional[torch.Tensor] = None):
+    """(native module, mass ``[V]``, free ``[V]`` or None) when :func:`system_cg` has its one-op
+    path for these inputs, else (None, ...)."""
+    mass_v = mass.reshape(-1)
+    free_v = None if free is None else free.reshape(-1)
+    native = _fused_native(groups, u, cg_state.p, (mass_v, free_v, node_stiffness, rhs))
+    if native is None or not native.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness, rhs)):
+        native = None
+    return native, mass_v, free_v
+
+
+def system_cg_serves(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
+                     node_stiffness: Optional[torch.Tensor], cg_state) -> bool:
+    """Whether :func:`system_cg` runs these systems' CG solves in one op (see there)."""
+    return _system_cg_native(list(groups), u, mass, free, node_stiffness, cg_state)[0] is not None
+
+
+def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
+              c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
+              tol: float, plan, cg_state, max_iter: int, count: int) -> bool:
+    """A CG solve of the :func:`system_matvec` system in ONE op where the extension has it (the
+    hooke tensor form over the node graph: one persistent kernel on the GPU, convergence decided
+    on the device): with ``rhs [V, d]``, the start from x0 = 0 (rhs projected on ``free``;
+    relative tolerance ``tol``, already clamped to the dtype's epsilon by the caller), then up to
+    ``count`` iterations on ``cg_state`` (a ``CGState`` over the chunk ``plan``), stopping once no
+    object is active; ``ap [V, d]``: the products' buffer. Bitwise what ``CGSolver`` computes op by
+    op. Returns False, having done nothing, where there is no such op (then the caller iterates)."""
+    groups = list(groups)
+    native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state, rhs)
+    if native is None:
+        return False
+    return native.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
+                            cg_state, max_iter, count)

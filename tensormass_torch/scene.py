@@ -272,8 +272,9 @@ class Simulator:
         positions, velocities and time as they were before that step.
 
         On a CUDA device, when a whole step runs without a host decision (every CG iteration
-        inside the captured step: ``cg_max_iter <= check_every``; no prescribed motion; no
-        inversion check), consecutive steps are chained: up to 64 run back to back with ONE host
+        inside the captured step: the whole CG is one op that stops on the device, as for the
+        hooke tensor form, or ``cg_max_iter <= check_every``; no prescribed motion; no inversion
+        check), consecutive steps are chained: up to 64 run back to back with ONE host
         synchronisation, then every step's outcome is checked in order. Should one have failed, the
         steps before it are committed (run again: the kernels are deterministic) and it is run on
         its own, which raises (or retries in sub-steps) exactly as above.

@@ -114,7 +114,24 @@ def test_not_converged_fixed_budget_raises_when_convergence_is_required(graphs_o
 
 
 def test_steps_that_need_host_checks_are_not_chained(graphs_on_cpu):
-    sim = make_sim(cg_max_iter=50, check_every=8, tol=1e-8)
+    """A CG that runs op by op (stvk) past check_every iterations needs the host: not chained."""
+    sim = make_sim("stvk", cg_max_iter=50, check_every=8, tol=1e-8)
     sim.step(3)
     (graphs,) = sim.system._step_graphs.values()
     assert not graphs.chainable and int(graphs.ring_pos) == 0 and sim.steps_done == 3
+
+
+def test_steps_with_a_tolerance_chain_where_the_cg_is_one_op(graphs_on_cpu):
+    """The hooke tensor form's CG is one op that stops on the device: steps with a tolerance and
+    a cap far past check_every chain, bitwise one step at a time, each stopping when converged."""
+    chained, single = make_sim(cg_max_iter=200, check_every=8, tol=1e-8, require=True), make_sim(
+        cg_max_iter=200, check_every=8, tol=1e-8, require=True)
+    chained.step(5)
+    for _ in range(5):
+        single.step()
+    (graphs,) = chained.system._step_graphs.values()
+    assert graphs.chainable and int(graphs.ring_pos) == 5
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    iterations = chained.last_report.cg_iterations
+    assert torch.equal(iterations, single.last_report.cg_iterations)
+    assert bool((iterations > 8).all() and (iterations < 200).all())  # past check_every, converged

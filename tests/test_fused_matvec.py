@@ -233,8 +233,8 @@ def test_simulator_step_matches_torch_backend(monkeypatch, model, form, dtype):
         return sim.x.clone(), sim.v.clone()
 
     calls, fused_calls = [], []
-    # the solver's matvec: ops.system_matvec, or its variant ending in the CG step length
-    for name in ("system_matvec", "system_matvec_alpha"):
+    # the solver's matvec: ops.system_matvec, its variant ending in the CG step length, or the one-op CG
+    for name in ("system_matvec", "system_matvec_alpha", "system_cg"):
         real, real_native = getattr(ops, name), getattr(native, name)
         monkeypatch.setattr(ops, name, lambda *a, real=real: calls.append(1) or real(*a))
         monkeypatch.setattr(native, name, lambda *a, real=real_native: fused_calls.append(1) or real(*a))

@@ -78,6 +78,7 @@ def test_fused_alpha_equals_matvec_then_cg_alpha(monkeypatch, device, dtype, mod
 @pytest.mark.parametrize("device", DEVICES)
 def test_cg_solve_with_fused_alpha_equals_unfused(monkeypatch, device):
     system, matvec, rhs = make_system("hooke", "tensor", torch.float64, device)
+    monkeypatch.setattr(type(matvec), "solves_in_one_op", lambda self, cg: False)  # iterations op by op
     fused = system.cg_solver(rhs, cuda_graphs=False).solve(matvec, rhs, tol=1e-9, max_iter=200)
     monkeypatch.setattr(type(matvec), "matvec_alpha", lambda self, p, plan, state: None)
     system._cg = None

@@ -68,4 +68,80 @@ void chunk_alpha_cpu(const CGPlan& plan, const K& k, const S* rr, int32_t* statu
   alpha_from_chunk_sums(plan, scratch, rr, status, alpha);
 }
 
+// cg_update: x += alpha p, r -= alpha Ap on the active objects' chunks, then each active object's
+// r.r, convergence, iteration cap and beta.
+template <typename S>
+void update_cpu(const CGPlan& plan, int64_t d, S* x, S* r, const S* p, const S* ap, const S* alpha,
+                const S* threshold, int64_t max_iter, S* rr, int32_t* status, S* beta, int32_t* iterations,
+                double* sums) {
+  for_each_chunk(plan, d, status, [&](int64_t c, int64_t begin, int64_t end) {
+    const S a = alpha[plan.chunk_object[c]];
+    for (int64_t j = begin * d; j < end * d; ++j) {
+      x[j] += a * p[j];
+      r[j] -= a * ap[j];
+    }
+    sums[c] = chunk_dot(r, r, begin * d, end * d);
+  });
+  for (int64_t b = 0; b < plan.num_objects; ++b) {
+    if (status[b] != kActive) continue;
+    beta[b] = cg_beta_step<S>(object_sum(sums, plan.object_chunk, b), rr[b], threshold[b], max_iter, status[b],
+                              iterations[b]);
+  }
+}
+
+// cg_direction: p = r + beta p on the active objects' chunks.
+template <typename S>
+void direction_cpu(const CGPlan& plan, int64_t d, S* p, const S* r, const S* beta, const int32_t* status) {
+  for_each_chunk(plan, d, status, [&](int64_t c, int64_t begin, int64_t end) {
+    const S bt = beta[plan.chunk_object[c]];
+    for (int64_t j = begin * d; j < end * d; ++j) p[j] = r[j] + bt * p[j];
+  });
+}
+
+// cg_dot: per-object a . b of [V, d] fields into out [B] (every chunk, active or not).
+template <typename S>
+void object_dots_cpu(const CGPlan& plan, int64_t d, const S* a, const S* b, S* out, double* sums) {
+  at::parallel_for(0, plan.num_chunks, chunk_grain(plan, d), [&](int64_t begin, int64_t end) {
+    for (int64_t c = begin; c < end; ++c) sums[c] = chunk_dot(a, b, plan.chunk_start[c] * d, plan.chunk_start[c + 1] * d);
+  });
+  for (int64_t o = 0; o < plan.num_objects; ++o) out[o] = static_cast<S>(object_sum(sums, plan.object_chunk, o));
+}
+
+// A whole CG solve (hooke_node_cg on the CPU): the start from x0 = 0 when s.rhs is given, then up
+// to s.count iterations, each the matvec ending in alpha (node kernel k), cg_update and
+// cg_direction, stopping early once no object is active. The same functions as the CG ops, in
+// the same order: bitwise the solve CGSolver runs op by op.
+template <class K, typename S>
+void cg_run_cpu(const CGPlan& plan, const K& k, const CGRun<S>& s) {
+  const int64_t d = s.d;
+  if (s.rhs != nullptr) {
+    at::parallel_for(0, plan.num_nodes, 2048, [&](int64_t begin, int64_t end) {
+      for (int64_t j = begin * d; j < end * d; ++j) {
+        const S b = s.free != nullptr ? s.rhs[j] * s.free[j / d] : s.rhs[j];
+        s.x[j] = S(0);
+        s.r[j] = b;
+        s.p[j] = b;
+      }
+    });
+    object_dots_cpu(plan, d, s.r, s.r, s.rhs_sq, s.sums);
+    for (int64_t b = 0; b < plan.num_objects; ++b) {
+      s.rr[b] = s.rhs_sq[b];
+      s.threshold[b] = s.rhs_sq[b] * s.tol_sq;
+      s.status[b] = cg_start_status(s.rr[b], s.threshold[b], s.max_iter);
+      s.iterations[b] = 0;
+      s.alpha[b] = S(0);
+      s.beta[b] = S(0);
+    }
+  }
+  for (int64_t t = 0; t < s.count; ++t) {
+    bool any_active = false;
+    for (int64_t b = 0; b < plan.num_objects && !any_active; ++b) any_active = s.status[b] == kActive;
+    if (!any_active) break;
+    chunk_alpha_cpu<K, S>(plan, k, s.rr, s.status, s.alpha, s.sums);
+    update_cpu<S>(plan, d, s.x, s.r, s.p, s.ap, s.alpha, s.threshold, s.max_iter, s.rr, s.status, s.beta,
+                  s.iterations, s.sums);
+    direction_cpu<S>(plan, d, s.p, s.r, s.beta, s.status);
+  }
+}
+
 }  // namespace tensormass

@@ -34,6 +34,12 @@ struct CpuLauncher {
                         int32_t*) {
     chunk_alpha_cpu<K, S>(plan, k, rr, status, alpha, scratch);
   }
+
+  // A whole CG solve with node kernel K as its matvec: the CG ops' functions in a loop.
+  template <class K, typename S>
+  static void run_cg(const CGPlan& plan, const K& k, const CGRun<S>& s) {
+    cg_run_cpu<K, S>(plan, k, s);
+  }
 };
 
 }  // namespace tensormass

@@ -8,6 +8,7 @@
 
 #include <cstdint>
 
+#include "cuda/cg_persistent.cuh"
 #include "cuda/cg_reduce.cuh"
 
 namespace tensormass {
@@ -38,6 +39,12 @@ struct CudaLauncher {
   static void run_alpha(const CGPlan& plan, const K& k, const S* rr, int32_t* status, S* alpha, double* scratch,
                         int32_t* counter) {
     launch_chunk_alpha<K, S>(plan, k, rr, status, alpha, scratch, counter);
+  }
+
+  // A whole CG solve with node kernel K as its matvec: one persistent kernel (cg_persistent.cuh).
+  template <class K, typename S>
+  static void run_cg(const CGPlan& plan, const K& k, const CGRun<S>& s) {
+    launch_persistent_cg<K, S>(plan, k, s);
   }
 };
 

@@ -77,7 +77,7 @@ class CGSolver:
         self.segments = segments.to(device)
         self.plan = ChunkPlan.from_segments(self.segments, chunk_nodes)
         self.state = CGState.empty(self.plan, tuple(shape), dtype, torch.device(device))
-        self.rhs_sq = torch.zeros_like(self.state.rr)
+        self.rhs_sq = self.state.rhs_sq
         self.free = free
         self.native = cg_ops.native_ops_for(self.state.x)
         # Graphs only over the compiled ops: the pure-torch reference reduces with segment_reduce,
@@ -110,10 +110,45 @@ class CGSolver:
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
         cg_ops.cg_direction(self.plan, s, self.native)
 
+    def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int) -> bool:
+        """The matvec's whole-solve op (``SystemMatvec.solve_in_one_op``: start when ``rhs`` is
+        given, then up to ``count`` iterations, one persistent kernel on the GPU) where it has
+        one and the compiled CG ops serve this solver; False (nothing done) otherwise."""
+        one_op = getattr(matvec, "solve_in_one_op", None) if self.native is not None else None
+        return one_op is not None and one_op(self, rhs, tol, max_iter, count)
+
+    def solves_in_one_op(self, matvec: Matvec) -> bool:
+        """Whether :meth:`begin` and the iterations run as one op for this matvec."""
+        serves = getattr(matvec, "solves_in_one_op", None) if self.native is not None else None
+        return serves is not None and serves(self)
+
+    def iterate(self, matvec: Matvec, count: int, max_iter: int):
+        """Up to ``count`` iterations from the current state (objects that stopped stay as they are)."""
+        if self._in_one_op(matvec, None, 0.0, max_iter, count):
+            return
+        for _ in range(count):
+            self._iterate(matvec, max_iter)
+
+    def begin(self, matvec: Matvec, rhs: torch.Tensor, tol: float, max_iter: int, count: int):
+        """:meth:`start` from x0 = 0 and up to ``count`` iterations: one op where the matvec has a
+        whole-solve op (then the device stops iterating once every object has stopped), else the
+        start's and the iterations' ops. No host synchronisation either way."""
+        _check_settings(tol, max_iter, 1)
+        if self._in_one_op(matvec, rhs, self._effective_tol(tol, rhs.dtype), max_iter, count):
+            return
+        self.start(matvec, rhs, None, tol, max_iter)
+        for _ in range(count):
+            self._iterate(matvec, max_iter)
+
+    @staticmethod
+    def _effective_tol(tol: float, dtype) -> float:
+        # A tolerance below the dtype's epsilon means "to roundoff": iterating past it only
+        # underflows p.Ap to 0, which would read as a breakdown.
+        return max(float(tol), torch.finfo(dtype).eps)
+
     def _run(self, matvec: Matvec, count: int, max_iter: int, graph_key):
         def iterations():
-            for _ in range(count):
-                self._iterate(matvec, max_iter)
+            self.iterate(matvec, count, max_iter)
 
         if graph_key is None or not self.cuda_graphs:
             iterations()
@@ -138,9 +173,7 @@ class CGSolver:
             s.rr.copy_(self.rhs_sq)
         else:
             cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
-        # A tolerance below the dtype's epsilon means "to roundoff": iterating past it only
-        # underflows p.Ap to 0, which would read as a breakdown.
-        tol = max(float(tol), torch.finfo(rhs.dtype).eps)
+        tol = self._effective_tol(tol, rhs.dtype)
         torch.mul(self.rhs_sq, tol * tol, out=s.threshold)
         status = torch.where(~torch.isfinite(s.rr), NONFINITE,
                              torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
@@ -181,7 +214,11 @@ class CGSolver:
         """
         _check_settings(tol, max_iter, check_every)
         if done == 0:
-            self.start(matvec, rhs, x0, tol, max_iter)
+            if x0 is None and self.solves_in_one_op(matvec):  # the whole solve, the device deciding when to stop
+                self.begin(matvec, rhs, tol, max_iter, max_iter)
+                done = max_iter
+            else:
+                self.start(matvec, rhs, x0, tol, max_iter)
         self.finish(matvec, max_iter, check_every, graph_key, done)
         return self.result()
 

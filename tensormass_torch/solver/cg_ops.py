@@ -32,9 +32,13 @@ class CGState:
 
     Attributes:
         x, r, p: solution, residual, direction ``[V, d]``.
-        rr, alpha, beta, threshold: per object ``[B]`` (r.r, step, direction coefficient, tol^2 b.b).
+        rr, alpha, beta, threshold, rhs_sq: per object ``[B]`` (r.r, step, direction coefficient,
+            tol^2 b.b, b.b).
         status, iterations: ``[B]`` int32 (``ACTIVE`` ... ``CAPPED``; iterations done).
         scratch: chunk sums ``[K]`` float64; counter: ``[B]`` int32, zero between calls (GPU only).
+        rr_swap ``[B]``, work ``[3B + 2]`` int32, sums ``[2K]`` float64: the buffers of a whole solve
+            in one op (``native.system_cg``: the persistent kernel's other parity of the scalars,
+            statuses after the step length, active counts, chunk sums).
     """
 
     x: torch.Tensor
@@ -48,6 +52,10 @@ class CGState:
     iterations: torch.Tensor
     scratch: torch.Tensor
     counter: torch.Tensor
+    rhs_sq: torch.Tensor
+    rr_swap: torch.Tensor
+    work: torch.Tensor
+    sums: torch.Tensor
 
     @classmethod
     def empty(cls, plan: ChunkPlan, shape, dtype, device) -> "CGState":
@@ -55,8 +63,11 @@ class CGState:
         vec = lambda: torch.zeros(shape, dtype=dtype, device=device)  # noqa: E731
         obj = lambda: torch.zeros(b, dtype=dtype, device=device)  # noqa: E731
         ints = lambda: torch.zeros(b, dtype=torch.int32, device=device)  # noqa: E731
+        k = plan.num_chunks
         return cls(vec(), vec(), vec(), obj(), obj(), obj(), obj(), ints(), ints(),
-                   torch.zeros(plan.num_chunks, dtype=torch.float64, device=device), ints())
+                   torch.zeros(k, dtype=torch.float64, device=device), ints(), obj(), obj(),
+                   torch.zeros(3 * b + 2, dtype=torch.int32, device=device),
+                   torch.zeros(2 * k, dtype=torch.float64, device=device))
 
 
 def _native_ops(device: torch.device):
@@ -164,7 +175,8 @@ def _register_fakes():
     """Fake kernels (the ops only mutate their inputs) for torch.compile and opcheck."""
     if not hasattr(torch.library, "register_fake"):
         return
-    for name in ("cg_alpha", "cg_update", "cg_direction", "cg_dot", "gather_system_alpha", "hooke_node_system_alpha"):
+    for name in ("cg_alpha", "cg_update", "cg_direction", "cg_dot", "gather_system_alpha", "hooke_node_system_alpha",
+                 "hooke_node_cg"):
         try:
             torch.library.register_fake(f"tensormass::{name}")(lambda *args, **kwargs: None)
         except (RuntimeError, ValueError, AttributeError):

@@ -204,6 +204,33 @@ class SystemMatvec:
                                        self.stiffness_coef, self.states, self.node_stiffness, self._ap, plan, cg_state)
         return self._ap if done else None
 
+    def _one_op_args(self, cg):
+        """The system's inputs to ``ops.system_cg`` when ``cg`` solves over this system's free mask."""
+        system = self.system
+        return cg.free is system.free, (system.model.groups, self.u, system.mass, system.free)
+
+    def solves_in_one_op(self, cg) -> bool:
+        """Whether :meth:`solve_in_one_op` runs ``cg``'s solves in one op (``ops.system_cg_serves``)."""
+        from .. import ops
+
+        same_free, args = self._one_op_args(cg)
+        return same_free and ops.system_cg_serves(*args, self.node_stiffness, cg.state)
+
+    def solve_in_one_op(self, cg, rhs, tol: float, max_iter: int, count: int) -> bool:
+        """With ``rhs [V, d]``: start ``cg`` (a ``CGSolver`` over this system's objects) from x0 = 0,
+        then (with or without rhs) up to ``count`` iterations, in ONE op (``ops.system_cg``: a
+        persistent kernel on the GPU, stopping on the device once every object has stopped).
+        Returns False, having done nothing, where there is no such op."""
+        from .. import ops
+
+        same_free, args = self._one_op_args(cg)
+        if not same_free:
+            return False
+        if self._ap is None:
+            self._ap = torch.empty_like(self.u)
+        return ops.system_cg(*args, self.mass_coef, self.stiffness_coef, self.node_stiffness, self._ap, rhs, tol,
+                             cg.plan, cg.state, max_iter, count)
+
     def __call__(self, p: torch.Tensor):
         from .. import ops
 
@@ -283,8 +310,9 @@ class StepGraphs:
     """One implicit Euler step (one linearisation) as device work on buffers that persist across
     steps, captured in CUDA graphs after a first eager run and replayed from then on:
 
-        A: linearisation, right-hand side, CG set-up and its first ``check_every`` iterations
-        (host, only when ``cg_max_iter > check_every``: "is any object still iterating?",
+        A: linearisation, right-hand side, CG set-up and its first ``check_every`` iterations, or
+        the whole CG where it is one op that stops on the device (``CGSolver.solves_in_one_op``)
+        (host, only when A leaves iterations to run: "is any object still iterating?",
         replaying the CG graph until none is)
         C: the new velocities and positions, their per-object norms, and the step's summary
         (CG status, iterations, residuals, norms) packed in one small buffer
@@ -308,7 +336,10 @@ class StepGraphs:
         # status, iterations, r.r, b.b, |v|^2 per object: what the host reads, in one copy
         self.summary = torch.zeros(5, self.norms.numel(), dtype=torch.float64, device=like.device)
         self.matvec = system.system_matvec(*_coefficients(opts))
-        self.first = min(opts.check_every, opts.cg_max_iter)
+        # Where the whole CG is one op that stops on the device, graph A holds all of it;
+        # otherwise its first check_every iterations, then the host looks.
+        self.first = (opts.cg_max_iter if self.cg.solves_in_one_op(self.matvec)
+                      else min(opts.check_every, opts.cg_max_iter))
         self._graphs = {}
         # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
         # ``ring`` (a device counter: the captured graph needs no host index), and the new state
@@ -324,9 +355,7 @@ class StepGraphs:
         rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
         if dv_imposed is not None:
             self.dv_imposed.copy_(dv_imposed)
-        self.cg.start(self.matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter)
-        for _ in range(self.first):
-            self.cg._iterate(self.matvec, opts.cg_max_iter)
+        self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first)
 
     def _phase_c(self):
         torch.add(self.v, self.cg.state.x, out=self.v_new)
@@ -350,7 +379,8 @@ class StepGraphs:
     @property
     def chainable(self) -> bool:
         """Whether whole steps run with no host decision inside (every CG iteration is in graph
-        A: ``cg_max_iter <= check_every``) and no imposed velocity, so :meth:`run_steps` applies."""
+        A: the whole CG is one op, or ``cg_max_iter <= check_every``) and no imposed velocity, so
+        :meth:`run_steps` applies."""
         return self.imposed is None and self.first >= self.opts.cg_max_iter
 
     @property

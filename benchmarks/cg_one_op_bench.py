@@ -1,0 +1,85 @@
+"""The CG solve of an implicit step in one op (persistent kernel) against the same CG op by op
+(matvec-alpha, cg_update, cg_direction per iteration, replayed from a CUDA graph), for several
+chunk sizes of the plan (chunks = the blocks of the reductions), on the SOFA beam and the paper's
+beam (hooke tensor form, float32, fixed iteration counts: tol = 0). Times are CUDA-event times of
+the solve alone (start + iterations), medians of repeated runs.
+
+    python benchmarks/cg_one_op_bench.py [--out DIR]        # on the GPU machine
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import common  # noqa: E402
+from step_bench import paper_beam, sofa  # noqa: E402
+
+from tensormass_torch.solver.cg import CGSolver  # noqa: E402
+
+SCENES = {"sofa_beam": sofa, "paper_beam": paper_beam}
+
+
+def event_time_us(work, repeats: int) -> float:
+    """Median CUDA-event time of ``work()`` in microseconds."""
+    times = []
+    for _ in range(repeats):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        work()
+        end.record()
+        end.synchronize()
+        times.append(start.elapsed_time(end) * 1e3)
+    return statistics.median(times)
+
+
+def measure(scene_name: str, iterations: int, chunk_nodes, repeats: int):
+    sim = SCENES[scene_name]("hooke", "cuda", torch.float32)
+    system = sim.system
+    x, rhs = sim.x, torch.randn_like(sim.x)
+    matvec = system.system_matvec(1.0, sim.options.dt ** 2).load(x)
+    cg = CGSolver(system.segments, rhs.shape, rhs.dtype, rhs.device, system.free, chunk_nodes=chunk_nodes)
+    assert cg.solves_in_one_op(matvec)
+
+    def one_op():
+        cg.begin(matvec, rhs, 0.0, iterations, iterations)
+
+    def op_by_op():
+        cg.start(matvec, rhs, None, 0.0, iterations)
+        cg._run(matvec, iterations, iterations, graph_key="bench")
+
+    for work in (one_op, op_by_op, one_op, op_by_op):  # warm-up (and the graph's capture)
+        work()
+    torch.cuda.synchronize()
+    return {"scene": scene_name, "nodes": int(x.shape[0]), "chunks": cg.plan.num_chunks,
+            "chunk_nodes": int(cg.plan.chunk_start[1] - cg.plan.chunk_start[0]), "cg_iterations": iterations,
+            "one_op_us": event_time_us(one_op, repeats), "op_by_op_us": event_time_us(op_by_op, repeats)}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--repeats", type=int, default=30)
+    args = ap.parse_args()
+    rows = []
+    for scene_name, iterations in (("sofa_beam", 10), ("paper_beam", 25)):
+        for chunk_nodes in (64, 128, 256, 512, None):
+            row = measure(scene_name, iterations, chunk_nodes, args.repeats)
+            row["chunk_setting"] = "auto" if chunk_nodes is None else chunk_nodes
+            rows.append(row)
+            print(f"{scene_name:10s} chunk {str(row['chunk_setting']):>5s} ({row['chunks']:5d} chunks): one op "
+                  f"{row['one_op_us']:8.1f} us, op by op {row['op_by_op_us']:8.1f} us, "
+                  f"{iterations} it", flush=True)
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+        with open(os.path.join(args.out, "cg_one_op.json"), "w") as fh:
+            json.dump({"meta": common.metadata("cuda"), "records": rows}, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
