@@ -1,22 +1,27 @@
 // A whole batched CG solve in ONE kernel launch (the GPU side of hooke_node_cg): a persistent,
 // cooperatively launched grid whose blocks walk the chunks of the plan, with grid-wide barriers
-// where the per-iteration launches were. Each iteration is three phases:
+// where the per-iteration launches were. Iteration t is two phases:
 //
-//   M  matvec: Ap and the chunk sums of p.Ap            (node kernel k)
-//   U  alpha (from the object's chunk sums), x += alpha p, r -= alpha Ap, chunk sums of r.r
-//   D  beta, convergence / cap, p = r + beta p; the count of objects still active
+//   M  the step before's beta (from its r.r chunk sums: convergence, cap, beta_{t-1}) and the
+//      matvec along the new direction p_t = r + beta_{t-1} p, formed on the fly wherever the
+//      node kernel reads p (the stored p is still the old one: other blocks read it); the chunk
+//      sums of p_t.Ap; the count of objects still active
+//   U  alpha, then on the block's own nodes p = p_t (stored now: no other block reads p in this
+//      phase), x += alpha p, r -= alpha Ap, and the chunk sums of r.r
 //
-// then, when no object is active, every block leaves the loop together (the count is read after
-// the barrier): convergence is decided on the device, with no host round trip. The optional
-// start phase (r = p = b, x = 0, b.b, thresholds, statuses) runs first.
+// cg_direction's work is thus split between M (read) and U (write), and one barrier per iteration
+// is saved (there were three phases: matvec, update, direction). When the count read after M's
+// barrier is zero, every block leaves the loop together: convergence is decided on the device,
+// with no host round trip. After the last iteration, a last beta step and direction (D). The
+// optional start phase (r = p = b, x = 0, b.b, thresholds, statuses) runs first.
 //
 // Every sum is taken in the pattern of the per-iteration kernels (cg_reduce.cuh: per thread
 // strided over the chunk, then block_sum; the object total strided over its chunk sums, then
-// block_sum), and the scalar steps are cg.h's, so the iterates are bitwise those of the
-// matvec-alpha / cg_update / cg_direction sequence. Where a per-object scalar is read by many
-// blocks in a phase, every block computes it from the chunk sums itself (deterministic: the same
-// value everywhere); the first chunk's block writes it, into the other parity of the scalars
-// (CGRun), never into the values other blocks may still be reading.
+// block_sum), the scalar steps are cg.h's and the direction is formed with cg_direction's
+// expression, so the iterates are bitwise those of the matvec-alpha / cg_update / cg_direction
+// sequence. Where a per-object scalar is needed by many blocks, every block computes it from the
+// chunk sums itself (deterministic: the same value everywhere); the first chunk's block writes
+// it, into the other parity of the scalars (CGRun), never into values other blocks may still read.
 #pragma once
 
 #include <cooperative_groups.h>
@@ -52,6 +57,11 @@ __device__ inline double object_chunk_total(const CGPlan& plan, int64_t object, 
   return block_total(acc);
 }
 
+// Resident blocks per SM the kernel is compiled for (a budget of 128 registers per thread: 3
+// blocks, 85 registers, made the matvec along r + beta p spill): 264 blocks on an H100, one wave
+// for the paper beam's 220 chunks of 256 nodes; larger plans loop over their chunks.
+constexpr int kPersistentBlocksPerSM = 2;
+
 // The per-object scalars of one parity.
 template <typename S>
 struct CGScalars {
@@ -60,12 +70,52 @@ struct CGScalars {
   int32_t* iterations;
 };
 
-// Resident blocks per SM the kernel is compiled for (a register budget of 85 per thread): with
-// 2 (98 registers), the SOFA beam's 304 chunks did not fit in one wave of an H100's 132 SMs.
-constexpr int kPersistentBlocksPerSM = 3;
+// p as the matvec of iteration t reads it: the stored p when fresh (the first iteration of a
+// call: its direction is already stored), else the new direction r + beta p, formed exactly as
+// cg_direction forms it. Plain loads: p and r change during the kernel.
+template <typename S>
+struct DirectionLoader {
+  const S* p;
+  const S* r;
+  S beta;
+  bool fresh;
+  TM_HD S operator()(const S* q) const { return fresh ? *q : r[q - p] + beta * *q; }
+};
+
+// An object's state after the beta step that ends an iteration (from the state before it, the
+// status after its step length and the chunk sums of r.r); beta is set when the step ran.
+template <typename S>
+struct BetaStep {
+  int32_t status;
+  S rr;
+  int32_t iterations;
+  S beta;
+  bool stepped;
+};
+
+template <typename S>
+__device__ BetaStep<S> beta_step(const CGPlan& plan, const CGRun<S>& s, const CGScalars<S>& before, int64_t b,
+                                 const int32_t* status_after_alpha, const double* sums_rr) {
+  BetaStep<S> out{before.status[b], before.rr[b], before.iterations[b], S(0), false};
+  if (out.status == kActive) out.status = status_after_alpha[b];
+  if (out.status != kActive) return out;  // stopped before or at its step length: carried over
+  out.beta = cg_beta_step<S>(object_chunk_total(plan, b, sums_rr), out.rr, s.threshold[b], s.max_iter, out.status,
+                             out.iterations);
+  out.stepped = true;
+  return out;
+}
+
+template <typename S>
+__device__ void write_scalars(const CGRun<S>& s, const CGScalars<S>& to, int64_t b, const BetaStep<S>& st) {
+  to.status[b] = st.status;
+  to.rr[b] = st.rr;
+  to.iterations[b] = st.iterations;
+  if (st.stepped) s.beta[b] = st.beta;
+}
 
 template <class K, typename S>
-__global__ void __launch_bounds__(kReduceBlock, kPersistentBlocksPerSM) persistent_cg_kernel(const K k, const CGPlan plan, const CGRun<S> s) {
+__global__ void __launch_bounds__(kReduceBlock, kPersistentBlocksPerSM) persistent_cg_kernel(const K k, const CGPlan plan,
+                                                                                       const CGRun<S> s) {
   namespace coop = cooperative_groups;
   coop::grid_group grid = coop::this_grid();
   const int64_t d = s.d, num_chunks = plan.num_chunks, num_objects = plan.num_objects;
@@ -76,6 +126,9 @@ __global__ void __launch_bounds__(kReduceBlock, kPersistentBlocksPerSM) persiste
   int32_t* active_count = s.work + 3 * num_objects;  // [2], one per parity
   const CGScalars<S> even{s.rr, s.status, s.iterations}, odd{s.rr_swap, s.work, s.work + num_objects};
 
+  // The first M counts the active objects into active_count[0]: zeroed here, before a barrier.
+  if (blockIdx.x == 0 && tid == 0) active_count[0] = 0;
+  if (s.rhs == nullptr) grid.sync();
   if (s.rhs != nullptr) {  // start from x0 = 0: r = p = projected b, and b.b per chunk
     for (int64_t c = blockIdx.x; c < num_chunks; c += gridDim.x) {
       double acc = 0.0;
@@ -109,99 +162,111 @@ __global__ void __launch_bounds__(kReduceBlock, kPersistentBlocksPerSM) persiste
   }
 
   int64_t done = 0;
+  bool stopped = false;  // every object stopped (read after M's barrier: the same in every block)
   while (done < s.count) {
-    const CGScalars<S> cur = (done & 1) ? odd : even, next = (done & 1) ? even : odd;
-    int32_t* next_active = active_count + ((done + 1) & 1);
-    // M: Ap, chunk sums of p.Ap (p read coherently: phase D of the last iteration wrote it)
-    if (blockIdx.x == 0 && tid == 0) *next_active = 0;
+    // The scalars before this iteration (written by the last M, or the caller's) and those the
+    // last iteration started from, for its beta step.
+    const CGScalars<S> now = (done & 1) ? odd : even, last = (done & 1) ? even : odd;
+    int32_t* now_active = active_count + (done & 1);
+    // M
+    if (blockIdx.x == 0 && tid == 0) active_count[(done + 1) & 1] = 0;  // counted by the next M
+    int64_t known = -1;
+    BetaStep<S> step{};
     for (int64_t c = blockIdx.x; c < num_chunks; c += gridDim.x) {
-      if (cur.status[plan.chunk_object[c]] != kActive) continue;
+      const int64_t b = plan.chunk_object[c];
+      if (b != known) {  // consecutive chunks of a block mostly share their object
+        if (done > 0) {
+          step = beta_step(plan, s, last, b, status_after_alpha, sums_rr);
+        } else {
+          step = BetaStep<S>{now.status[b], S(0), 0, S(0), false};
+        }
+        known = b;
+      }
+      if (tid == 0 && c == plan.object_chunk[b]) {
+        if (done > 0) write_scalars(s, now, b, step);
+        if (step.status == kActive) atomicAdd(now_active, 1);
+      }
+      if (step.status != kActive) continue;
+      const DirectionLoader<S> direction{s.p, s.r, step.beta, done == 0};
       double acc = 0.0;
       for (int64_t i = plan.chunk_start[c] + tid; i < plan.chunk_start[c + 1]; i += kReduceBlock) {
-        acc += static_cast<double>(k.apply(i, CoherentLoader()));
+        acc += static_cast<double>(k.apply(i, direction));
       }
       const double total = block_total(acc);
       if (tid == 0) sums_pap[c] = total;
     }
     grid.sync();
-    // U: alpha, x and r, chunk sums of r.r
-    int64_t known = -1;
-    S alpha = S(0);
+    if (*reinterpret_cast<volatile int32_t*>(now_active) == 0) {
+      stopped = true;
+      break;
+    }
+    // U
+    known = -1;
+    S alpha = S(0), beta = S(0);
     int32_t status = kActive;
     for (int64_t c = blockIdx.x; c < num_chunks; c += gridDim.x) {
       const int64_t b = plan.chunk_object[c];
-      if (cur.status[b] != kActive) continue;
-      if (b != known) {  // consecutive chunks of a block mostly share their object
+      if (now.status[b] != kActive) continue;
+      if (b != known) {
         status = kActive;
-        alpha = cg_alpha_step<S>(object_chunk_total(plan, b, sums_pap), cur.rr[b], status);
+        alpha = cg_alpha_step<S>(object_chunk_total(plan, b, sums_pap), now.rr[b], status);
+        beta = done > 0 ? s.beta[b] : S(0);
         known = b;
       }
       if (tid == 0 && c == plan.object_chunk[b]) {
         s.alpha[b] = alpha;
         status_after_alpha[b] = status;
       }
-      if (status != kActive) continue;
       double acc = 0.0;
       for (int64_t j = plan.chunk_start[c] * d + tid; j < plan.chunk_start[c + 1] * d; j += kReduceBlock) {
-        s.x[j] += alpha * s.p[j];
-        const S rj = s.r[j] - alpha * s.ap[j];
-        s.r[j] = rj;
-        acc += static_cast<double>(rj) * static_cast<double>(rj);
+        S pj = s.p[j];
+        const S rj = s.r[j];
+        if (done > 0) {  // the direction M read on the fly, stored now (also when alpha stops the object)
+          pj = rj + beta * pj;
+          s.p[j] = pj;
+        }
+        if (status != kActive) continue;
+        s.x[j] += alpha * pj;
+        const S r_new = rj - alpha * s.ap[j];
+        s.r[j] = r_new;
+        acc += static_cast<double>(r_new) * static_cast<double>(r_new);
       }
+      if (status != kActive) continue;
       const double total = block_total(acc);
       if (tid == 0) sums_rr[c] = total;
     }
     grid.sync();
-    // D: beta, the object's new status, p; the scalars into the other parity
-    known = -1;
-    S beta = S(0), rr = S(0);
-    int32_t iterations = 0;
-    for (int64_t c = blockIdx.x; c < num_chunks; c += gridDim.x) {
-      const int64_t b = plan.chunk_object[c];
-      const bool first = c == plan.object_chunk[b];
-      const int32_t before = cur.status[b];
-      const int32_t after_alpha = before == kActive ? status_after_alpha[b] : before;
-      if (after_alpha != kActive) {  // stopped before or at this step length: carried over
-        if (first && tid == 0) {
-          next.status[b] = after_alpha;
-          next.rr[b] = cur.rr[b];
-          next.iterations[b] = cur.iterations[b];
-        }
-        continue;
-      }
-      if (b != known) {
-        status = kActive;
-        rr = cur.rr[b];
-        iterations = cur.iterations[b];
-        beta = cg_beta_step<S>(object_chunk_total(plan, b, sums_rr), rr, s.threshold[b], s.max_iter, status,
-                               iterations);
-        known = b;
-      }
-      if (first && tid == 0) {
-        next.status[b] = status;
-        next.rr[b] = rr;
-        next.iterations[b] = iterations;
-        s.beta[b] = beta;
-        if (status == kActive) atomicAdd(next_active, 1);
-      }
-      if (status != kActive) continue;
-      for (int64_t j = plan.chunk_start[c] * d + tid; j < plan.chunk_start[c + 1] * d; j += kReduceBlock) {
-        s.p[j] = s.r[j] + beta * s.p[j];
-      }
-    }
-    grid.sync();
     ++done;
-    if (*reinterpret_cast<volatile int32_t*>(next_active) == 0) break;  // the same value in every block
   }
 
-  if (done & 1) {  // the scalars ended in the other parity: back into the caller's buffers
-    const CGScalars<S>& last = odd;
+  // D: the last iteration's beta step and direction (when the loop ended on the count; when it
+  // stopped, M made that step and no object needs a direction).
+  if (!stopped && done > 0) {
+    const CGScalars<S> now = (done & 1) ? odd : even, last = (done & 1) ? even : odd;
+    int64_t known = -1;
+    BetaStep<S> step{};
+    for (int64_t c = blockIdx.x; c < num_chunks; c += gridDim.x) {
+      const int64_t b = plan.chunk_object[c];
+      if (b != known) {
+        step = beta_step(plan, s, last, b, status_after_alpha, sums_rr);
+        known = b;
+      }
+      if (tid == 0 && c == plan.object_chunk[b]) write_scalars(s, now, b, step);
+      if (step.status != kActive) continue;
+      for (int64_t j = plan.chunk_start[c] * d + tid; j < plan.chunk_start[c + 1] * d; j += kReduceBlock) {
+        s.p[j] = s.r[j] + step.beta * s.p[j];
+      }
+    }
+  }
+
+  if (done & 1) {  // the scalars ended in the other parity: back into the caller's buffers (each
+                   // object's by the thread that wrote them)
     for (int64_t c = blockIdx.x; c < num_chunks; c += gridDim.x) {
       const int64_t b = plan.chunk_object[c];
       if (tid == 0 && c == plan.object_chunk[b]) {
-        s.rr[b] = last.rr[b];
-        s.status[b] = last.status[b];
-        s.iterations[b] = last.iterations[b];
+        s.rr[b] = odd.rr[b];
+        s.status[b] = odd.status[b];
+        s.iterations[b] = odd.iterations[b];
       }
     }
   }
