@@ -38,7 +38,8 @@ from .reference import corotational, stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
-           "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS",
+           "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "persistent_cg_fits",
+           "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS",
            "HOOKE_MATVEC_LAYOUT"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
@@ -848,11 +849,31 @@ def system_matvec_alpha(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Ten
     return True
 
 
-def system_cg_serves(group, inputs=()) -> bool:
+#: Blocks of the persistent CG kernel resident on each multiprocessor (``kPersistentBlocksPerSM``
+#: of csrc/cuda/cg_persistent.cuh: its launch bounds guarantee them).
+PERSISTENT_BLOCKS_PER_SM = 2
+
+
+def persistent_cg_fits(device: torch.device, num_chunks: int) -> bool:
+    """Whether a CG over ``num_chunks`` chunks runs as one op on ``device``: always on the CPU; on a
+    GPU when every chunk has its own resident block of the persistent kernel (one wave). Beyond
+    that the blocks loop over chunks with 16 warps per SM, too few to stream: on an H100 a CG
+    iteration over 5-10M elements took 1.53-1.58x its memory floor so, against 1.37-1.45x with
+    the per-iteration kernels on a full grid (whose launches cost nothing at that size)."""
+    if device.type != "cuda":
+        return True
+    sms = torch.cuda.get_device_properties(device).multi_processor_count
+    return num_chunks <= PERSISTENT_BLOCKS_PER_SM * sms
+
+
+def system_cg_serves(group, inputs=(), num_chunks: int = 0) -> bool:
     """Whether :func:`system_cg` solves ``group``'s systems in one op: the hooke tensor form over
     the node graph (:data:`HOOKE_MATVEC_LAYOUT` "node"), ``hooke_node_cg`` compiled, no gradient
-    wanted through ``inputs``."""
-    return HOOKE_MATVEC_LAYOUT == "node" and _node_layout(group, "node", tuple(inputs), "hooke_node_cg")
+    wanted through ``inputs``, and a plan of ``num_chunks`` chunks that fits
+    (:func:`persistent_cg_fits`) on the device of ``inputs[0]``."""
+    inputs = tuple(inputs)
+    return (HOOKE_MATVEC_LAYOUT == "node" and _node_layout(group, "node", inputs, "hooke_node_cg")
+            and (not inputs or persistent_cg_fits(inputs[0].device, num_chunks)))
 
 
 def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
@@ -868,7 +889,7 @@ def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: f
     for any other group, where the op is missing or a gradient is wanted."""
     ops_ns = torch.ops.tensormass
     s = cg_state
-    if not system_cg_serves(group, (s.p, mass, free, node_stiffness, rhs)):
+    if not system_cg_serves(group, (s.p, mass, free, node_stiffness, rhs), s.scratch.numel()):
         return False
     mass, free, node_stiffness, rhs = _contiguous(mass, free, node_stiffness, rhs)
     neighbor, node_k = hooke_node_graph(group)

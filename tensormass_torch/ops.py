@@ -253,7 +253,8 @@ def _system_cg_native(groups, u: torch.Tensor, mass: torch.Tensor, free: Optiona
     mass_v = mass.reshape(-1)
     free_v = None if free is None else free.reshape(-1)
     native = _fused_native(groups, u, cg_state.p, (mass_v, free_v, node_stiffness, rhs))
-    if native is None or not native.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness, rhs)):
+    if native is None or not native.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness, rhs),
+                                                     cg_state.scratch.numel()):
         native = None
     return native, mass_v, free_v
 

@@ -176,3 +176,15 @@ def test_bad_inputs_are_rejected():
     with pytest.raises(RuntimeError, match="max_iter must be >= 0"):
         call(max_iter=-2)
     assert_same(state_of(cg), before)  # nothing changed
+
+
+def test_gpu_plans_beyond_one_wave_iterate_op_by_op(monkeypatch):
+    """On a GPU the one-op path needs every chunk resident at once (a persistent block each)."""
+    class Props:
+        multi_processor_count = 132
+
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda device: Props())
+    cuda = torch.device("cuda", 0)
+    limit = native.PERSISTENT_BLOCKS_PER_SM * 132
+    assert native.persistent_cg_fits(cuda, limit) and not native.persistent_cg_fits(cuda, limit + 1)
+    assert native.persistent_cg_fits(torch.device("cpu"), 10 ** 9)
