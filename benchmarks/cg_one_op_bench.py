@@ -7,6 +7,9 @@ the one op (~60 us: benchmarks inside a captured step do not pay it). Chunkings 
 than the persistent kernel has resident blocks have no one-op path (native.persistent_cg_fits).
 
     python benchmarks/cg_one_op_bench.py [--out DIR]        # on the GPU machine
+    python benchmarks/cg_one_op_bench.py --slope            # time per iteration of the one op
+    ncu --clock-control none -k regex:persistent_cg -c 1 --section WarpStateStats \
+        --section SpeedOfLight python benchmarks/cg_one_op_bench.py --once
 """
 from __future__ import annotations
 
@@ -64,11 +67,42 @@ def measure(scene_name: str, iterations: int, chunk_nodes, repeats: int):
     return {**row, "one_op_us": event_time_us(one_op, repeats), "op_by_op_us": event_time_us(op_by_op, repeats)}
 
 
+def slope(scene_name: str, repeats: int, counts=(0, 10, 20, 40)):
+    """The one-op solve's time per iteration: (t(40 iterations) - t(20)) / 20, launch cancelled out."""
+    sim = SCENES[scene_name]("hooke", "cuda", torch.float32)
+    system = sim.system
+    rhs = torch.randn_like(sim.x)
+    matvec = system.system_matvec(1.0, sim.options.dt ** 2).load(sim.x)
+    cg = CGSolver(system.segments, rhs.shape, rhs.dtype, rhs.device, system.free)
+    times = {}
+    for count in counts:
+        work = lambda: cg.begin(matvec, rhs, 0.0, 1000, count)  # noqa: E731
+        work()
+        times[count] = event_time_us(work, repeats)
+    per_iteration = (times[counts[-1]] - times[counts[-2]]) / (counts[-1] - counts[-2])
+    print(f"{scene_name}: " + ", ".join(f"{c} it {t:.1f} us" for c, t in times.items())
+          + f"; {per_iteration:.1f} us per iteration", flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=None)
     ap.add_argument("--repeats", type=int, default=30)
+    ap.add_argument("--slope", action="store_true", help="time per iteration of the one-op solve only")
+    ap.add_argument("--once", action="store_true",
+                    help="one one-op solve of the SOFA beam, 10 iterations (for ncu -k regex:persistent_cg)")
     args = ap.parse_args()
+    if args.once:
+        sim = sofa("hooke", "cuda", torch.float32)
+        rhs = torch.randn_like(sim.x)
+        matvec = sim.system.system_matvec(1.0, sim.options.dt ** 2).load(sim.x)
+        CGSolver(sim.system.segments, rhs.shape, rhs.dtype, rhs.device, sim.system.free).begin(matvec, rhs, 0.0, 10, 10)
+        torch.cuda.synchronize()
+        return
+    if args.slope:
+        for scene_name in SCENES:
+            slope(scene_name, args.repeats)
+        return
     rows = []
     for scene_name, iterations in (("sofa_beam", 10), ("paper_beam", 25)):
         for chunk_nodes in (64, 128, 256, 512, None):
