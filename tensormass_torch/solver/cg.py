@@ -15,6 +15,11 @@ An iteration is a fixed sequence of device work (the matvec, then ``cg_alpha``, 
 ``check_every`` iterations to see whether any object is still active, so the iterates never
 depend on it. With a ``graph_key`` on a CUDA device, the ``check_every`` iterations are captured
 once in a CUDA graph and replayed: one launch instead of hundreds, no Python per iteration.
+
+Where the matvec has a whole-solve op (``SystemMatvec.solve_in_one_op``: the hooke tensor form,
+``ops.system_cg``), the start and every iteration run as that one op instead (on the GPU one
+persistent kernel that stops on the device once no object is active): bitwise the same iterates,
+and no host check at all.
 """
 from __future__ import annotations
 
