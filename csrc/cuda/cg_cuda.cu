@@ -10,30 +10,21 @@
 
 #include "cg.h"
 #include "cuda/cg_reduce.cuh"
+#include "kernels.h"
 
 namespace tensormass {
 namespace {
 
 constexpr int kBlock = kReduceBlock;
 
+// cg_alpha is the step-length end of the fused matvecs over a "kernel" that only reads the
+// per-node dots: the same sums, the same scalar step (chunk_alpha_kernel, cg_reduce.cuh).
 template <typename S>
-__global__ void __launch_bounds__(kBlock) cg_alpha_kernel(const S* __restrict__ p_dot_ap, CGPlan plan,
-                                                          const S* __restrict__ rr, int32_t* status, S* alpha,
-                                                          double* scratch, int32_t* counter) {
-  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
-  if (status[object] != kActive) return;
-  double acc = 0.0;
-  for (int64_t i = plan.chunk_start[chunk] + threadIdx.x; i < plan.chunk_start[chunk + 1]; i += kBlock) {
-    acc += static_cast<double>(p_dot_ap[i]);
-  }
-  const double chunk_total = block_sum(acc);
-  double total = 0.0;
-  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
-    int32_t st = status[object];
-    alpha[object] = cg_alpha_step<S>(total, rr[object], st);
-    status[object] = st;
-  }
-}
+struct NodeDots {
+  using Scalar = S;
+  const S* p_dot_ap;  // [V]
+  __device__ S apply(int64_t i) const { return ld(p_dot_ap + i); }
+};
 
 template <typename S>
 __global__ void __launch_bounds__(kBlock) cg_update_kernel(S* __restrict__ x, S* __restrict__ r,
@@ -101,10 +92,10 @@ void cg_alpha_cuda(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, co
   if (plan.num_chunks == 0) return;
   c10::cuda::CUDAGuard guard(p_dot_ap.device());
   AT_DISPATCH_FLOATING_TYPES(p_dot_ap.scalar_type(), "cg_alpha", [&] {
-    cg_alpha_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
-        p_dot_ap.data_ptr<scalar_t>(), plan, rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(),
-        alpha.data_ptr<scalar_t>(), scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    launch_chunk_alpha<NodeDots<scalar_t>, scalar_t>(plan, NodeDots<scalar_t>{p_dot_ap.data_ptr<scalar_t>()},
+                                                    rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(),
+                                                    alpha.data_ptr<scalar_t>(), scratch.data_ptr<double>(),
+                                                    counter.data_ptr<int32_t>());
   });
 }
 
