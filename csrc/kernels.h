@@ -47,13 +47,6 @@ struct Loader {
   TM_HD T operator()(const T* p) const { return ld(p); }
 };
 
-// A plain (coherent) load, for values written during the same kernel by other blocks (the
-// persistent CG kernel's directions): the read-only cache of ld() may hold stale copies of them.
-struct CoherentLoader {
-  template <typename T>
-  TM_HD T operator()(const T* p) const { return *p; }
-};
-
 // Load 16 bytes (16 / sizeof(T) values) from a 16-byte aligned p: one vector load on the GPU.
 template <typename T>
 TM_HD void load16(const T* p, T* out) {
@@ -412,7 +405,8 @@ struct NodeHookeSystemKernel {
   static constexpr int kBatch = 4;
 
   // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh);
-  // load_p reads p (CoherentLoader where p changes during the kernel: cg_persistent.cuh).
+  // load_p reads p (the persistent CG's DirectionLoader forms r + beta p with plain loads: p
+  // changes during that kernel, and the read-only cache of ld() may hold stale copies).
   template <class LoadP = Loader>
   TM_HD S apply(int64_t i, LoadP load_p = LoadP()) const {
     S pv[D];

@@ -248,21 +248,20 @@ def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Te
 
 def _system_cg_native(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                       node_stiffness: Optional[torch.Tensor], cg_state, rhs: Optional[torch.Tensor] = None):
-    """(native module, mass ``[V]``, free ``[V]`` or None) when :func:`system_cg` has its one-op
-    path for these inputs, else (None, ...)."""
+    """(native module or None, mass ``[V]``, free ``[V]`` or None): the module when the inputs
+    allow a fused path at all (``native.system_cg_serves`` says whether it has the one op)."""
     mass_v = mass.reshape(-1)
     free_v = None if free is None else free.reshape(-1)
-    native = _fused_native(groups, u, cg_state.p, (mass_v, free_v, node_stiffness, rhs))
-    if native is None or not native.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness, rhs),
-                                                     cg_state.scratch.numel()):
-        native = None
-    return native, mass_v, free_v
+    return _fused_native(groups, u, cg_state.p, (mass_v, free_v, node_stiffness, rhs)), mass_v, free_v
 
 
 def system_cg_serves(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                      node_stiffness: Optional[torch.Tensor], cg_state) -> bool:
     """Whether :func:`system_cg` runs these systems' CG solves in one op (see there)."""
-    return _system_cg_native(list(groups), u, mass, free, node_stiffness, cg_state)[0] is not None
+    groups = list(groups)
+    native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state)
+    return native is not None and native.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness),
+                                                          cg_state.scratch.numel())
 
 
 def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
@@ -279,5 +278,6 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state, rhs)
     if native is None:
         return False
+    # native.system_cg checks what it serves (and does nothing where it has no one op)
     return native.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
                             cg_state, max_iter, count)
