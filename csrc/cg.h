@@ -16,6 +16,7 @@
 #pragma once
 
 #include <ATen/core/Tensor.h>
+#include <c10/util/Optional.h>
 
 #include <cstdint>
 #include <string>
@@ -222,7 +223,122 @@ inline CGPlan check_cg_dot(const at::Tensor& a, const at::Tensor& b, const at::T
   return plan;
 }
 
+// ------------------------------------------------------------------ the end of an implicit Euler step
+//
+// euler_update (cg_ops.cpp): per value v_new = (v + dv) + dv_imposed, x_new = x + h v_new (and,
+// when `carry`, x = x_new, v = v_new: the next chained step starts there), the per-object
+// |v_new|^2 (summed as cg_dot sums) into norms, and the step's summary [5, B] float64 (status,
+// iterations, rr, rhs_sq, norms), also into row ring_pos of ring [R, 5, B] when given, ring_pos
+// then advanced by one.
+template <typename S>
+struct EulerUpdate {
+  S* x;
+  S* v;
+  const S* dv;
+  const S* dv_imposed;  // or nullptr
+  S h;
+  S* x_new;
+  S* v_new;
+  bool carry;
+  int64_t d;
+
+  // The update of value j; returns v_new[j].
+  TM_HD S operator()(int64_t j) const {
+    S vn = v[j] + dv[j];
+    if (dv_imposed != nullptr) vn += dv_imposed[j];
+    const S xn = x[j] + h * vn;
+    x_new[j] = xn;
+    v_new[j] = vn;
+    if (carry) {
+      x[j] = xn;
+      v[j] = vn;
+    }
+    return vn;
+  }
+};
+
+// The summary of a step and where it goes.
+template <typename S>
+struct StepSummary {
+  const int32_t* status;
+  const int32_t* iterations;
+  const S* rr;
+  const S* rhs_sq;
+  S* norms;
+  double* summary;     // [5, B]
+  double* ring;        // [R, 5, B] or nullptr
+  int64_t* ring_pos;   // [1]
+  int64_t ring_rows;
+
+  // Object b's column, its norm given (ring row `pos`, read before any object advanced it).
+  TM_HD void write(int64_t b, int64_t num_objects, double norm_sq, int64_t pos) const {
+    norms[b] = static_cast<S>(norm_sq);
+    const double column[5] = {static_cast<double>(status[b]), static_cast<double>(iterations[b]),
+                              static_cast<double>(rr[b]), static_cast<double>(rhs_sq[b]),
+                              static_cast<double>(norms[b])};
+    for (int k = 0; k < 5; ++k) {
+      summary[k * num_objects + b] = column[k];
+      if (ring != nullptr && pos >= 0 && pos < ring_rows) ring[(pos * 5 + k) * num_objects + b] = column[k];
+    }
+  }
+};
+
+inline CGPlan check_euler_update(const at::Tensor& x, const at::Tensor& v, const at::Tensor& dv,
+                                 const c10::optional<at::Tensor>& dv_imposed, const at::Tensor& x_new,
+                                 const at::Tensor& v_new, const at::Tensor& chunk_start,
+                                 const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                                 const at::Tensor& status, const at::Tensor& iterations, const at::Tensor& rr,
+                                 const at::Tensor& rhs_sq, const at::Tensor& norms, const at::Tensor& summary,
+                                 const at::Tensor& scratch, const at::Tensor& counter,
+                                 const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos) {
+  cg_check_values(x, "x");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, x, x.size(0));
+  for (const auto& named : {std::make_pair(&v, "v"), std::make_pair(&dv, "dv"), std::make_pair(&x_new, "x_new"),
+                            std::make_pair(&v_new, "v_new")}) {
+    cg_check(*named.first, named.second, x, x.scalar_type(), x.sizes());
+  }
+  if (dv_imposed.has_value() && dv_imposed->defined()) cg_check(*dv_imposed, "dv_imposed", x, x.scalar_type(), x.sizes());
+  const int64_t b = plan.num_objects;
+  cg_check_state(status, "status", x, b);
+  cg_check_state(iterations, "iterations", x, b);
+  cg_check_scalars(rr, "rr", x, b);
+  cg_check_scalars(rhs_sq, "rhs_sq", x, b);
+  cg_check_scalars(norms, "norms", x, b);
+  cg_check(summary, "summary", x, at::kDouble, {5, b});
+  cg_check(scratch, "scratch", x, at::kDouble, {plan.num_chunks});
+  cg_check(counter, "counter", x, at::kInt, {b + 1});
+  const bool has_ring = ring.has_value() && ring->defined();
+  TORCH_CHECK(has_ring == (ring_pos.has_value() && ring_pos->defined()), "tensormass: ring and ring_pos go together");
+  if (has_ring) {
+    TORCH_CHECK(ring->dim() == 3, "tensormass: ring must be [R, 5, B], got shape ", cg_shape_str(ring->sizes()));
+    cg_check(*ring, "ring", x, at::kDouble, {ring->size(0), 5, b});
+    cg_check(*ring_pos, "ring_pos", x, at::kLong, {1});
+  }
+  return plan;
+}
+
 // Values per node of a [V] or [V, d] tensor.
 inline int64_t values_per_node(const at::Tensor& t) { return t.size(0) ? t.numel() / t.size(0) : 1; }
+
+// The ops' structs over their tensors (checked by check_euler_update).
+template <typename S>
+inline EulerUpdate<S> euler_update_of(at::Tensor& x, at::Tensor& v, const at::Tensor& dv,
+                                      const c10::optional<at::Tensor>& dv_imposed, double h, at::Tensor& x_new,
+                               at::Tensor& v_new, bool carry) {
+  const bool imposed = dv_imposed.has_value() && dv_imposed->defined();
+  return EulerUpdate<S>{x.data_ptr<S>(), v.data_ptr<S>(), dv.data_ptr<S>(), imposed ? dv_imposed->data_ptr<S>() : nullptr,
+                        static_cast<S>(h), x_new.data_ptr<S>(), v_new.data_ptr<S>(), carry, values_per_node(x)};
+}
+
+template <typename S>
+inline StepSummary<S> step_summary_of(const at::Tensor& status, const at::Tensor& iterations, const at::Tensor& rr,
+                               const at::Tensor& rhs_sq, at::Tensor& norms, at::Tensor& summary,
+                               const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos) {
+  const bool has_ring = ring.has_value() && ring->defined();
+  return StepSummary<S>{status.data_ptr<int32_t>(), iterations.data_ptr<int32_t>(), rr.data_ptr<S>(),
+                        rhs_sq.data_ptr<S>(), norms.data_ptr<S>(), summary.data_ptr<double>(),
+                        has_ring ? ring->data_ptr<double>() : nullptr, has_ring ? ring_pos->data_ptr<int64_t>() : nullptr,
+                        has_ring ? ring->size(0) : 0};
+}
 
 }  // namespace tensormass

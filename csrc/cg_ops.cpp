@@ -8,6 +8,9 @@
 //             iterations!, scratch!, counter!)
 //   cg_direction(p!, r, beta, status, plan)
 //   cg_dot(a, b [V] or [V, d], plan, out! [B], scratch!, counter!)   per-object a . b
+//   euler_update(x!, v!, dv, dv_imposed?, h, x_new!, v_new!, plan, status, iterations, rr, rhs_sq,
+//                norms!, summary!, scratch!, counter! [B + 1], ring!?, ring_pos!?, carry)
+//                the end of an implicit Euler step after its CG (cg.h: EulerUpdate, StepSummary)
 // plan = (chunk_start [K + 1], chunk_object [K], object_chunk [B + 1]) int64; scratch [K] float64;
 // status, iterations, counter [B] int32 (counter all zero between calls).
 #include <torch/library.h>
@@ -22,4 +25,8 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
         "Tensor chunk_object, Tensor object_chunk) -> ()");
   m.def("cg_dot(Tensor a, Tensor b, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
         "Tensor(a!) out, Tensor(b!) scratch, Tensor(c!) counter) -> ()");
+  m.def("euler_update(Tensor(a!) x, Tensor(b!) v, Tensor dv, Tensor? dv_imposed, float h, Tensor(c!) x_new, "
+        "Tensor(d!) v_new, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, Tensor status, "
+        "Tensor iterations, Tensor rr, Tensor rhs_sq, Tensor(e!) norms, Tensor(f!) summary, Tensor(g!) scratch, "
+        "Tensor(h!) counter, Tensor(i!)? ring, Tensor(j!)? ring_pos, bool carry) -> ()");
 }

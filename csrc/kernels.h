@@ -388,21 +388,53 @@ struct SystemGatherKernel {
 // on its first node with (Kdir, p_i, p_j): for the second node of an edge, w' = p_i - p_j = -w
 // and -(K^T w') = K^T w exactly, so every term, and the sum in slot order, is bitwise the one
 // kernel 1 writes and kernel 2 adds; no PartialForce buffer is written or read back.
-template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
-struct NodeHookeSystemKernel {
-  using Scalar = S;
-  using Index = I;
-  const S* p;           // [V, D]
+//
+// HookeNodeGraph holds the graph and sums that product for any field w read through load_p
+// (f_i = sum_s -Kdir[s][i] (w_j - w_i), the elastic force of the displacements w): the matvec
+// reads p, the step's right-hand side (NodeHookeStepRhsKernel) reads (x - rest) + c v.
+template <int D, typename S, typename I>
+struct HookeNodeGraph {
   const I* neighbor;    // [N_n, V] the other node of the edge in each slot
   const S* node_k;      // [N_n, V, D, D] Kdir of each slot
   const I* incidences;  // [V]
   int64_t num_nodes;
-  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
 
   // Slots are loaded kBatch at a time before any is used: a thread has only a few nodes' worth
   // of parallelism (one node), so its loads must be in flight together, not one dependent chain
-  // (neighbor -> p_j) per slot; the terms are still added in slot order.
+  // (neighbor -> w_j) per slot; the terms are still added in slot order.
   static constexpr int kBatch = 4;
+
+  // wi = w_i (already loaded); load_p(field + j * D + a) reads w_j[a].
+  template <class LoadP>
+  TM_HD void add_forces(int64_t i, const S* field, const S (&wi)[D], const LoadP& load_p, S (&acc)[D]) const {
+    const int64_t count = static_cast<int64_t>(ld(incidences + i));
+    for (int64_t s0 = 0; s0 < count; s0 += kBatch) {
+      int64_t j[kBatch];
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        j[q] = s0 + q < count ? static_cast<int64_t>(ld(neighbor + (s0 + q) * num_nodes + i)) : i;
+      }
+      S k[kBatch][D][D], wj[kBatch][D];
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        if (s0 + q < count) load_matrix<D, D, S>(node_k + ((s0 + q) * num_nodes + i) * (D * D), k[q]);
+        TM_UNROLL for (int a = 0; a < D; ++a) wj[q][a] = load_p(field + j[q] * D + a);
+      }
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        if (s0 + q >= count) break;
+        S f[2][D];
+        tensor_hooke_edge<D, S>(k[q], wi, wj[q], f);  // f[1] is unused (dead code for the compiler)
+        TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
+      }
+    }
+  }
+};
+
+template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
+struct NodeHookeSystemKernel {
+  using Scalar = S;
+  using Index = I;
+  const S* p;  // [V, D]
+  HookeNodeGraph<D, S, I> graph;
+  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
 
   // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh);
   // load_p reads p (the persistent CG's DirectionLoader forms r + beta p with plain loads: p
@@ -413,27 +445,106 @@ struct NodeHookeSystemKernel {
     TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = load_p(p + i * D + a);
     S acc[D];
     TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
-    const int64_t count = static_cast<int64_t>(ld(incidences + i));
-    for (int64_t s0 = 0; s0 < count; s0 += kBatch) {
-      int64_t j[kBatch];
-      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
-        j[q] = s0 + q < count ? static_cast<int64_t>(ld(neighbor + (s0 + q) * num_nodes + i)) : i;
-      }
-      S k[kBatch][D][D], pj[kBatch][D];
-      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
-        if (s0 + q < count) load_matrix<D, D, S>(node_k + ((s0 + q) * num_nodes + i) * (D * D), k[q]);
-        TM_UNROLL for (int a = 0; a < D; ++a) pj[q][a] = load_p(p + j[q] * D + a);
-      }
-      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
-        if (s0 + q >= count) break;
-        S f[2][D];
-        tensor_hooke_edge<D, S>(k[q], pv, pj[q], f);  // f[1] is unused (dead code for the compiler)
-        TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
-      }
-    }
+    graph.add_forces(i, p, pv, load_p, acc);
     return epilogue(i, pv, acc);
   }
   TM_HD void operator()(int64_t i) const { apply(i); }
+};
+
+// ------------------------------------------------------------------ implicit Euler, per node
+
+// The displacement an implicit Euler step's right-hand side is taken at, w = (x - rest) + c v,
+// read through the pointer into x that the node graph computes (q = x + offset).
+template <typename S>
+struct StepDisplacementLoader {
+  const S* x;
+  const S* rest;
+  const S* v;
+  S c;
+  TM_HD S operator()(const S* q) const {
+    const int64_t o = q - x;
+    return (ld(x + o) - ld(rest + o)) + c * ld(v + o);
+  }
+};
+
+// Penalty planes n.x >= offset (contact.Planes): P planes of normals [P, 3], offsets [P] and
+// stiffness [P]; 3-D only.
+template <typename S>
+struct PenaltyPlanes {
+  const S* normals;
+  const S* offsets;
+  const S* stiffness;
+  int64_t count;
+
+  // The force on a node at x (sum of k (offset - n.x) n over the planes it is below) and its
+  // stiffness -(df/dx) (sum of k n n^T over those planes).
+  TM_HD void linearize(const S (&x)[3], S (&force)[3], S (&k)[3][3]) const {
+    TM_UNROLL for (int a = 0; a < 3; ++a) {
+      force[a] = S(0);
+      TM_UNROLL for (int b = 0; b < 3; ++b) k[a][b] = S(0);
+    }
+    for (int64_t q = 0; q < count; ++q) {
+      const S n[3] = {ld(normals + 3 * q), ld(normals + 3 * q + 1), ld(normals + 3 * q + 2)};
+      const S depth = ld(offsets + q) - (x[0] * n[0] + x[1] * n[1] + x[2] * n[2]);
+      if (!(depth > S(0))) continue;
+      const S kq = ld(stiffness + q);
+      TM_UNROLL for (int a = 0; a < 3; ++a) {
+        force[a] += depth * kq * n[a];
+        TM_UNROLL for (int b = 0; b < 3; ++b) k[a][b] += kq * n[a] * n[b];
+      }
+    }
+  }
+};
+
+// The right-hand side of an implicit Euler step of the hooke tensor form, one node per item
+// (what SystemMatvec.load + forces_along + the damping and h terms compose from a dozen torch
+// ops), at positions x and velocities v with w = (x - rest) + c_w v, c_w = h + r_K:
+//   rhs_i = h (f_i(w) + external_i + contact_i(x) - Kc_i (c_w v_i) - r_M m_i v_i)
+// where f(w) is the elastic force over the node graph (linear: f(u) + K c_w v in one pass) and
+// Kc_i the contact stiffness at x_i, which is also written (node_stiffness, for the CG
+// matvec), as are the displacements u = x - rest.
+template <int D, typename S, typename I, bool HAS_PLANES>
+struct NodeHookeStepRhsKernel {
+  using Scalar = S;
+  const S* x;         // [V, D]
+  const S* v;         // [V, D]
+  const S* rest;      // [V, D]
+  const S* mass;      // [V]
+  const S* external;  // [V, D]
+  HookeNodeGraph<D, S, I> graph;
+  PenaltyPlanes<S> planes;  // HAS_PLANES (D == 3)
+  S h, c_w, rayleigh_mass;
+  S* u;               // [V, D] out
+  S* rhs;             // [V, D] out
+  S* node_stiffness;  // [V, D, D] out (HAS_PLANES)
+
+  TM_HD void operator()(int64_t i) const {
+    const StepDisplacementLoader<S> load_w{x, rest, v, c_w};
+    S wi[D], vi[D], total[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      wi[a] = load_w(x + i * D + a);
+      vi[a] = ld(v + i * D + a);
+      total[a] = S(0);
+      u[i * D + a] = ld(x + i * D + a) - ld(rest + i * D + a);
+    }
+    graph.add_forces(i, x, wi, load_w, total);
+    TM_UNROLL for (int a = 0; a < D; ++a) total[a] += ld(external + i * D + a);
+    if constexpr (HAS_PLANES && D == 3) {
+      S xi[3], force[3], k[3][3];
+      TM_UNROLL for (int a = 0; a < 3; ++a) xi[a] = ld(x + i * 3 + a);
+      planes.linearize(xi, force, k);
+      TM_UNROLL for (int a = 0; a < 3; ++a) {
+        S kw = S(0);
+        TM_UNROLL for (int b = 0; b < 3; ++b) {
+          kw += k[a][b] * (c_w * vi[b]);
+          node_stiffness[i * 9 + a * 3 + b] = k[a][b];
+        }
+        total[a] += force[a] - kw;
+      }
+    }
+    const S damping = rayleigh_mass * ld(mass + i);
+    TM_UNROLL for (int a = 0; a < D; ++a) rhs[i * D + a] = h * (total[a] - damping * vi[a]);
+  }
 };
 
 // Scatter compact partial forces [N, NN, D] into the padded buffer (the write of kernel 1 for

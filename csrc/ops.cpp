@@ -39,6 +39,12 @@
 //                               the start (when rhs is given) and up to count iterations of the CG
 //                               with hooke_node_system's matvec, stopping once no object is active:
 //                               one persistent kernel on the GPU; bitwise the op-by-op solve
+//   step right-hand side      hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, mass, external,
+//                               plane_normals?, plane_offsets?, plane_stiffness?, h, w_coef, r_M, u!, rhs!,
+//                               node_stiffness!?) -> ()
+//                               implicit Euler's rhs = h (f((x - rest) + w_coef v) + external + contact(x)
+//                               - Kc(x) w_coef v - r_M mass v), u = x - rest and the contact stiffness
+//                               Kc [V, 3, 3] in one pass over the nodes (hooke tensor form, node graph)
 //   fused (kernel 1 + 2)      stress_forces, stress_dforces, tensor_hooke_forces,
 //                             tensor_stvk_forces, tensor_stvk_dforces -> [V, d]
 //
@@ -122,6 +128,10 @@ TORCH_LIBRARY(tensormass, m) {
         "Tensor(e!) threshold, Tensor(f!) rhs_sq, int max_iter, int count, Tensor(g!) rr, Tensor(h!) status, "
         "Tensor(i!) alpha, Tensor(j!) beta, Tensor(k!) iterations, Tensor(l!) rr_swap, Tensor(m!) work, "
         "Tensor(n!) sums) -> ()");
+  // ---- implicit Euler's right-hand side for the hooke tensor form, in one pass (in place)
+  m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, "
+        "Tensor mass, Tensor external, Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, "
+        "float h, float w_coef, float rayleigh_mass, Tensor(a!) u, Tensor(b!) rhs, Tensor(c!)? node_stiffness) -> ()");
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

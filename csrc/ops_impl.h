@@ -780,11 +780,33 @@ at::Tensor tensor_hooke_forces(const at::Tensor& u, const at::Tensor& edges, con
   return out;
 }
 
-// The CG matvec of the hooke tensor form in one kernel (NodeHookeSystemKernel): from the node
-// graph's slot-major arrays neighbor [N_n, V] (int32/int64, as incidences) and node_k
-// [N_n, V, d, d] (Kdir of each slot; slots >= incidences[i] are never read), Ap [V, d] and the
-// per-node dots p . Ap [V], with the epilogue of gather_system. Bitwise equal to
-// tensor_hooke_partial_forces + gather_system over the same plan.
+// The node graph of the hooke tensor form (HookeNodeGraph): the slot-major arrays neighbor
+// [N_n, V] (int32/int64, as incidences) and node_k [N_n, V, d, d] (Kdir of each slot; slots >=
+// incidences[i] are never read), checked against the [V, d] field `like`; returns the index type.
+inline at::ScalarType check_hooke_node_graph(const at::Tensor& like, const char* like_name, const at::Tensor& neighbor,
+                                             const at::Tensor& node_k, const at::Tensor& incidences) {
+  const int64_t num_nodes = like.size(0), dim = like.size(1);
+  const at::ScalarType index_type = index_type_of(neighbor, "neighbor");
+  TORCH_CHECK(neighbor.dim() == 2, "tensormass: neighbor must be [N_n, V], got shape ", shape_str(neighbor.sizes()));
+  const int64_t num_slots = neighbor.size(0);
+  check_index_tensor(neighbor, "neighbor", like, index_type, {num_slots, num_nodes}, like_name);
+  check_index_tensor(incidences, "incidences", like, index_type, {num_nodes}, like_name);
+  check_node_tensor(node_k, "node_k", like, {num_slots, num_nodes, dim, dim}, like_name);
+  return index_type;
+}
+
+template <int D, typename S, typename I>
+void set_hooke_node_graph(HookeNodeGraph<D, S, I>& graph, const at::Tensor& neighbor, const at::Tensor& node_k,
+                          const at::Tensor& incidences) {
+  graph.neighbor = neighbor.numel() ? neighbor.data_ptr<I>() : nullptr;
+  graph.node_k = node_k.numel() ? node_k.data_ptr<S>() : nullptr;
+  graph.incidences = incidences.data_ptr<I>();
+  graph.num_nodes = incidences.size(0);
+}
+
+// The CG matvec of the hooke tensor form in one kernel (NodeHookeSystemKernel) over the node
+// graph: Ap [V, d] and the per-node dots p . Ap [V], with the epilogue of gather_system. Bitwise
+// equal to tensor_hooke_partial_forces + gather_system over the same plan.
 template <class L, class Launch>
 void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, const at::Tensor& node_k,
                            const at::Tensor& incidences, const at::Tensor& mass,
@@ -794,12 +816,7 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
   check_values(p, "p");
   const int64_t num_nodes = p.size(0), dim = p.size(1);
   dispatch_dim(dim, [](auto) {});
-  const at::ScalarType index_type = index_type_of(neighbor, "neighbor");
-  TORCH_CHECK(neighbor.dim() == 2, "tensormass: neighbor must be [N_n, V], got shape ", shape_str(neighbor.sizes()));
-  const int64_t num_slots = neighbor.size(0);
-  check_index_tensor(neighbor, "neighbor", p, index_type, {num_slots, num_nodes}, "p");
-  check_index_tensor(incidences, "incidences", p, index_type, {num_nodes}, "p");
-  check_node_tensor(node_k, "node_k", p, {num_slots, num_nodes, dim, dim}, "p");
+  const at::ScalarType index_type = check_hooke_node_graph(p, "p", neighbor, node_k, incidences);
   check_node_tensor(mass, "mass", p, {num_nodes}, "p");
   at::Tensor fr, nk;
   std::tie(fr, nk) = optional_epilogue_inputs(free, node_stiffness, p, num_nodes, dim, "p");
@@ -810,12 +827,8 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
                                          p_dot_ap, [&](auto& k) {
     using Kernel = std::decay_t<decltype(k)>;
     using S = typename Kernel::Scalar;
-    using I = typename Kernel::Index;
     k.p = p.data_ptr<S>();
-    k.neighbor = neighbor.numel() ? neighbor.data_ptr<I>() : nullptr;
-    k.node_k = node_k.numel() ? node_k.data_ptr<S>() : nullptr;
-    k.incidences = incidences.data_ptr<I>();
-    k.num_nodes = num_nodes;
+    set_hooke_node_graph(k.graph, neighbor, node_k, incidences);
     launch(k, num_nodes);
   });
 }
@@ -831,6 +844,84 @@ std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const 
   run_hooke_node_system<L>(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, ap,
                            p_dot_ap, [](const auto& k, int64_t n) { L::run(n, k, L::kNodeBlock); });
   return std::make_tuple(ap, p_dot_ap);
+}
+
+// ------------------------------------------------------------------ implicit Euler's right-hand side
+//
+// hooke_node_step_rhs: the right-hand side of an implicit Euler step of the hooke tensor form in
+// one pass over the nodes (NodeHookeStepRhsKernel), at positions x and velocities v [V, d]:
+//   rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) (w_coef v) - r_M mass v)
+// (w_coef = h + r_K), and what the step's CG matvec needs: u = x - rest [V, d] and, with planes
+// (normals [P, 3], offsets [P], stiffness [P]; d = 3), the contact stiffness node_stiffness
+// [V, 3, 3]. Outputs in place (u, rhs, node_stiffness), so that a CUDA graph replays into them.
+template <class L>
+void hooke_node_step_rhs(const at::Tensor& x, const at::Tensor& v, const at::Tensor& rest, const at::Tensor& neighbor,
+                         const at::Tensor& node_k, const at::Tensor& incidences, const at::Tensor& mass,
+                         const at::Tensor& external, const c10::optional<at::Tensor>& plane_normals,
+                         const c10::optional<at::Tensor>& plane_offsets,
+                         const c10::optional<at::Tensor>& plane_stiffness, double h, double w_coef,
+                         double rayleigh_mass, at::Tensor u, at::Tensor rhs,
+                         const c10::optional<at::Tensor>& node_stiffness) {
+  check_values(x, "x");
+  const int64_t num_nodes = x.size(0), dim = x.size(1);
+  dispatch_dim(dim, [](auto) {});
+  const std::pair<const at::Tensor*, const char*> fields[] = {{&v, "v"}, {&rest, "rest"}, {&external, "external"},
+                                                              {&u, "u"}, {&rhs, "rhs"}};
+  for (const auto& named : fields) check_node_tensor(*named.first, named.second, x, {num_nodes, dim}, "x");
+  check_node_tensor(mass, "mass", x, {num_nodes}, "x");
+  const at::ScalarType index_type = check_hooke_node_graph(x, "x", neighbor, node_k, incidences);
+  const bool has_planes = plane_normals.has_value() && plane_normals->defined();
+  at::Tensor normals, offsets, stiffness, node_k_out;
+  if (has_planes) {
+    TORCH_CHECK(dim == 3, "tensormass: contact planes need 3-D positions, got d = ", std::to_string(dim));
+    normals = *plane_normals;
+    TORCH_CHECK(normals.dim() == 2, "tensormass: plane_normals must be [P, 3], got shape ", shape_str(normals.sizes()));
+    const int64_t count = normals.size(0);
+    check_node_tensor(normals, "plane_normals", x, {count, 3}, "x");
+    TORCH_CHECK(plane_offsets.has_value() && plane_offsets->defined() && plane_stiffness.has_value() &&
+                    plane_stiffness->defined() && node_stiffness.has_value() && node_stiffness->defined(),
+                "tensormass: plane_normals needs plane_offsets, plane_stiffness and node_stiffness");
+    offsets = *plane_offsets;
+    stiffness = *plane_stiffness;
+    node_k_out = *node_stiffness;
+    check_node_tensor(offsets, "plane_offsets", x, {count}, "x");
+    check_node_tensor(stiffness, "plane_stiffness", x, {count}, "x");
+    check_node_tensor(node_k_out, "node_stiffness", x, {num_nodes, 3, 3}, "x");
+  } else {
+    TORCH_CHECK(!(plane_offsets.has_value() && plane_offsets->defined()) &&
+                    !(plane_stiffness.has_value() && plane_stiffness->defined()),
+                "tensormass: plane_offsets and plane_stiffness need plane_normals");
+  }
+  typename L::Guard guard(x.device());
+  dispatch_scalar(x.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_dim(dim, [&](auto d_c) {
+        constexpr int D = decltype(d_c)::value;
+        dispatch_bool(has_planes, [&](auto planes_c) {
+          NodeHookeStepRhsKernel<D, S, I, decltype(planes_c)::value> k;
+          k.x = x.data_ptr<S>();
+          k.v = v.data_ptr<S>();
+          k.rest = rest.data_ptr<S>();
+          k.mass = mass.data_ptr<S>();
+          k.external = external.data_ptr<S>();
+          set_hooke_node_graph(k.graph, neighbor, node_k, incidences);
+          k.planes = PenaltyPlanes<S>{has_planes ? normals.data_ptr<S>() : nullptr,
+                                      has_planes ? offsets.data_ptr<S>() : nullptr,
+                                      has_planes ? stiffness.data_ptr<S>() : nullptr,
+                                      has_planes ? normals.size(0) : 0};
+          k.h = static_cast<S>(h);
+          k.c_w = static_cast<S>(w_coef);
+          k.rayleigh_mass = static_cast<S>(rayleigh_mass);
+          k.u = u.data_ptr<S>();
+          k.rhs = rhs.data_ptr<S>();
+          k.node_stiffness = has_planes ? node_k_out.data_ptr<S>() : nullptr;
+          L::run(num_nodes, k, L::kNodeBlock);
+        });
+      });
+    });
+  });
 }
 
 // ------------------------------------------------------------------ matvecs ending in alpha

@@ -898,3 +898,33 @@ def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: f
                          ap, s.x, s.r, rhs, float(tol) ** 2, *plan_tensors, s.threshold, s.rhs_sq, int(max_iter),
                          int(count), s.rr, s.status, s.alpha, s.beta, s.iterations, s.rr_swap, s.work, s.sums)
     return True
+
+
+def step_rhs_serves(group, inputs=()) -> bool:
+    """Whether :func:`step_rhs` computes ``group``'s step right-hand side in one op: the hooke
+    tensor form over the node graph (:data:`HOOKE_MATVEC_LAYOUT` "node"), ``hooke_node_step_rhs``
+    compiled, no gradient wanted through ``inputs``."""
+    return HOOKE_MATVEC_LAYOUT == "node" and _node_layout(group, "node", tuple(inputs), "hooke_node_step_rhs")
+
+
+def step_rhs(group, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass: torch.Tensor,
+             external: torch.Tensor, planes, h: float, w_coef: float, rayleigh_mass: float, u: torch.Tensor,
+             rhs: torch.Tensor, node_stiffness: Optional[torch.Tensor]) -> bool:
+    """Implicit Euler's right-hand side for the hooke tensor form in one pass over the nodes
+    (``hooke_node_step_rhs``): into ``rhs [V, d]``, ``h (f((x - rest) + w_coef v) + external +
+    contact(x) - Kc(x) (w_coef v) - r_M mass v)``, with ``u = x - rest`` into ``u [V, d]`` and,
+    with ``planes`` (``contact.Planes``, 3-D), the contact stiffness into ``node_stiffness
+    [V, 3, 3]``. ``mass`` ``[V]``. Returns False, having done nothing, where the op does not serve
+    the group (see :func:`step_rhs_serves`)."""
+    if not step_rhs_serves(group, (x, v, rest, mass, external)):
+        return False
+    x, v, rest, mass, external = _contiguous(x, v, rest, mass, external)
+    neighbor, node_k = hooke_node_graph(group)
+    _, _, incidences = _plan_indices(group.plan)
+    normals = offsets = stiffness = None
+    if planes is not None:
+        normals, offsets, stiffness = _contiguous(planes.normals, planes.offsets, planes.stiffness)
+    torch.ops.tensormass.hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, mass, external, normals,
+                                             offsets, stiffness, float(h), float(w_coef), float(rayleigh_mass), u,
+                                             rhs, node_stiffness)
+    return True

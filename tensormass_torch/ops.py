@@ -10,6 +10,7 @@
     system_matvec(groups, u, p, ...) implicit-Euler CG matvec: (Ap [V, d], p . Ap per node [V])
     system_matvec_alpha(...)        the same into a buffer, ending in the CG step length (fused)
     system_cg(...)                  a whole CG solve of that system in one op, where there is one
+    step_rhs(...)                   implicit Euler's right-hand side in one op, where there is one
 
 ``u`` and ``du`` are global nodal displacements ``[V, d]``.
 
@@ -281,3 +282,25 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     # native.system_cg checks what it serves (and does nothing where it has no one op)
     return native.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
                             cg_state, max_iter, count)
+
+
+def step_rhs(groups, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass: torch.Tensor,
+             external: torch.Tensor, planes, h: float, w_coef: float, rayleigh_mass: float, u: torch.Tensor,
+             rhs: torch.Tensor, node_stiffness: Optional[torch.Tensor]) -> bool:
+    """Implicit Euler's right-hand side in ONE op where the extension has it (one hooke tensor-form
+    group over the node graph):
+    ``rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) (w_coef v) - r_M M v)``
+    into ``rhs [V, d]``, ``u = x - rest`` into ``u [V, d]`` and the contact stiffness Kc into
+    ``node_stiffness [V, 3, 3]`` (with ``planes``, a ``contact.Planes``). ``x, v, rest, external``
+    ``[V, d]``, ``mass`` ``[V]`` or ``[V, 1]``. Returns False, having done nothing, where there is
+    no such op: then the caller composes it (``SystemMatvec.load`` + ``forces_along``), which is
+    also this op's reference in the tests."""
+    groups = list(groups)
+    mass_v = mass.reshape(-1)
+    native = _fused_native(groups, x, v, (rest, mass_v, external, u, rhs, node_stiffness))
+    if native is None or (planes is not None and (x.shape[1] != 3 or node_stiffness is None)):
+        return False
+    if planes is not None and (planes.normals.dtype != x.dtype or planes.normals.device != x.device):
+        return False
+    return native.step_rhs(groups[0], x, v, rest, mass_v, external, planes, h, w_coef, rayleigh_mass, u, rhs,
+                           node_stiffness)

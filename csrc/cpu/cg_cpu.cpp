@@ -62,10 +62,44 @@ void cg_dot_cpu(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chun
   });
 }
 
+void euler_update_cpu(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c10::optional<at::Tensor>& dv_imposed,
+                      double h, at::Tensor x_new, at::Tensor v_new, const at::Tensor& chunk_start,
+                      const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
+                      const at::Tensor& iterations, const at::Tensor& rr, const at::Tensor& rhs_sq, at::Tensor norms,
+                      at::Tensor summary, at::Tensor scratch, at::Tensor counter, const c10::optional<at::Tensor>& ring,
+                      const c10::optional<at::Tensor>& ring_pos, bool carry) {
+  const CGPlan plan = check_euler_update(x, v, dv, dv_imposed, x_new, v_new, chunk_start, chunk_object, object_chunk,
+                                         status, iterations, rr, rhs_sq, norms, summary, scratch, counter, ring,
+                                         ring_pos);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "euler_update", [&] {
+    const EulerUpdate<scalar_t> update = euler_update_of<scalar_t>(x, v, dv, dv_imposed, h, x_new, v_new, carry);
+    const StepSummary<scalar_t> out = step_summary_of<scalar_t>(status, iterations, rr, rhs_sq, norms, summary, ring,
+                                                                ring_pos);
+    double* sums = scratch.data_ptr<double>();
+    const int64_t d = update.d;
+    at::parallel_for(0, plan.num_chunks, chunk_grain(plan, d), [&](int64_t begin, int64_t end) {
+      for (int64_t c = begin; c < end; ++c) {
+        double acc = 0.0;  // in chunk_dot's order
+        for (int64_t j = plan.chunk_start[c] * d; j < plan.chunk_start[c + 1] * d; ++j) {
+          const scalar_t vn = update(j);
+          acc += static_cast<double>(vn) * static_cast<double>(vn);
+        }
+        sums[c] = acc;
+      }
+    });
+    const int64_t pos = out.ring_pos != nullptr ? *out.ring_pos : -1;
+    for (int64_t b = 0; b < plan.num_objects; ++b) {
+      out.write(b, plan.num_objects, object_sum(sums, plan.object_chunk, b), pos);
+    }
+    if (out.ring_pos != nullptr) *out.ring_pos = pos + 1;
+  });
+}
+
 }  // namespace
 }  // namespace tensormass
 
 TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
+  m.impl("euler_update", &tensormass::euler_update_cpu);
   m.impl("cg_dot", &tensormass::cg_dot_cpu);
   m.impl("cg_alpha", &tensormass::cg_alpha_cpu);
   m.impl("cg_update", &tensormass::cg_update_cpu);

@@ -82,6 +82,31 @@ __global__ void __launch_bounds__(kBlock) cg_dot_kernel(const S* __restrict__ a,
   }
 }
 
+// euler_update: one block per chunk; the object's last block writes its summary column (and ring
+// row); the block that finishes the last object advances ring_pos (counter[B] counts objects).
+template <typename S>
+__global__ void __launch_bounds__(kBlock) euler_update_kernel(const EulerUpdate<S> update, const StepSummary<S> out,
+                                                              CGPlan plan, double* scratch, int32_t* counter) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk], d = update.d;
+  double acc = 0.0;
+  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+    const S vn = update(j);
+    acc += static_cast<double>(vn) * static_cast<double>(vn);
+  }
+  const double chunk_total = block_sum(acc);
+  double total = 0.0;
+  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
+    const int64_t pos = out.ring_pos != nullptr ? *reinterpret_cast<volatile int64_t*>(out.ring_pos) : -1;
+    out.write(object, plan.num_objects, total, pos);
+    __threadfence();
+    const int32_t objects = static_cast<int32_t>(plan.num_objects);
+    if (atomicAdd(counter + plan.num_objects, 1) == objects - 1) {  // every object has read ring_pos
+      if (out.ring_pos != nullptr) *out.ring_pos = pos + 1;
+      counter[plan.num_objects] = 0;
+    }
+  }
+}
+
 unsigned int grid_of(const CGPlan& plan) { return static_cast<unsigned int>(plan.num_chunks); }
 
 void cg_alpha_cuda(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
@@ -144,10 +169,31 @@ void cg_dot_cuda(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chu
   });
 }
 
+void euler_update_cuda(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c10::optional<at::Tensor>& dv_imposed,
+                       double h, at::Tensor x_new, at::Tensor v_new, const at::Tensor& chunk_start,
+                       const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
+                       const at::Tensor& iterations, const at::Tensor& rr, const at::Tensor& rhs_sq, at::Tensor norms,
+                       at::Tensor summary, at::Tensor scratch, at::Tensor counter,
+                       const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos, bool carry) {
+  const CGPlan plan = check_euler_update(x, v, dv, dv_imposed, x_new, v_new, chunk_start, chunk_object, object_chunk,
+                                         status, iterations, rr, rhs_sq, norms, summary, scratch, counter, ring,
+                                         ring_pos);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(x.device());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "euler_update", [&] {
+    euler_update_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        euler_update_of<scalar_t>(x, v, dv, dv_imposed, h, x_new, v_new, carry),
+        step_summary_of<scalar_t>(status, iterations, rr, rhs_sq, norms, summary, ring, ring_pos), plan,
+        scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
 }  // namespace
 }  // namespace tensormass
 
 TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
+  m.impl("euler_update", &tensormass::euler_update_cuda);
   m.impl("cg_dot", &tensormass::cg_dot_cuda);
   m.impl("cg_alpha", &tensormass::cg_alpha_cuda);
   m.impl("cg_update", &tensormass::cg_update_cuda);

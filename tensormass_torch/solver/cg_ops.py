@@ -176,7 +176,7 @@ def _register_fakes():
     if not hasattr(torch.library, "register_fake"):
         return
     for name in ("cg_alpha", "cg_update", "cg_direction", "cg_dot", "gather_system_alpha", "hooke_node_system_alpha",
-                 "hooke_node_cg"):
+                 "hooke_node_cg", "hooke_node_step_rhs", "euler_update"):
         try:
             torch.library.register_fake(f"tensormass::{name}")(lambda *args, **kwargs: None)
         except (RuntimeError, ValueError, AttributeError):

@@ -149,6 +149,7 @@ class SystemMatvec:
         #: contact forces ``[V, d]`` at the loaded positions (None without planes)
         self.contact_forces = None
         self._ap = None  # A p of matvec_alpha (kept: a CUDA graph replays into it)
+        self._rhs = None  # the step's right-hand side of load_step (kept, as _ap)
         self.graph_key = ("system", mass_coef, stiffness_coef, id(self))
 
     def load(self, x: torch.Tensor) -> "SystemMatvec":
@@ -174,6 +175,38 @@ class SystemMatvec:
                 self.node_stiffness.copy_(stiffness)
         return self
 
+    def load_step(self, x: torch.Tensor, v: torch.Tensor, h: float, rayleigh_mass: float,
+                  rayleigh_stiffness: float) -> torch.Tensor:
+        """Linearise at positions ``x [V, d]`` (as :meth:`load`) and return implicit Euler's
+        right-hand side there for velocities ``v [V, d]``:
+        ``h (f(x) + (h + r_K) K v - r_M M v)`` ``[V, d]`` (K = dF/dx, contact included).
+
+        One op where the extension has it (``ops.step_rhs``: the hooke tensor form over the node
+        graph, one pass over the nodes instead of a dozen ops); then :attr:`contact_forces` is
+        not kept (only the stiffness, which the CG products read) and the returned tensor is a
+        buffer of this matvec, overwritten by the next call. Otherwise :meth:`load` and
+        :meth:`forces_along`, the op's reference."""
+        from .. import ops
+
+        system = self.system
+        w_coef = h + rayleigh_stiffness
+        if system.planes is not None and self.node_stiffness is None:
+            self.node_stiffness = torch.zeros(*x.shape, x.shape[-1], dtype=x.dtype, device=x.device)
+        if self._rhs is None:
+            self._rhs = torch.empty_like(self.u)
+        model = system.model
+        model._check_positions("x", x)
+        if ops.step_rhs(model.groups, x, v, model.rest, system.mass, system.external, system.planes, h, w_coef,
+                        rayleigh_mass, self.u, self._rhs, self.node_stiffness):
+            self.states = [None] * len(model.groups)  # the hooke tensor form keeps no per-element state
+            self.contact_forces = None
+            return self._rhs
+        self.load(x)
+        rhs = self.forces_along(w_coef * v)
+        if rayleigh_mass:  # no damping term without damping
+            rhs = rhs - rayleigh_mass * system.mass * v
+        return h * rhs
+
     def tangent(self, dx: torch.Tensor) -> torch.Tensor:
         """(dF/dx) dx ``[V, d]`` at the loaded positions (elastic and contact), with the loaded
         rotations."""
@@ -186,6 +219,8 @@ class SystemMatvec:
         """All forces at the loaded positions plus the stiffness along ``w``: ``f(x) + (dF/dx) w
         [V, d]`` (elastic, external and contact), one pass over the elements for a linear model."""
         system = self.system
+        if system.planes is not None and self.contact_forces is None:
+            raise RuntimeError("forces_along needs the contact forces of load(x); load_step does not keep them")
         total = system.model.linearized_forces(self.u, w, self.states) + system.external
         if self.contact_forces is not None:
             total = total + self.contact_forces - (self.node_stiffness * w[:, None, :]).sum(-1)
@@ -271,11 +306,11 @@ def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):
         raise SolverError(f"{what} failed ({'; '.join(bad[:10])}); the state was not changed", status, result)
 
 
-def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, loaded=None):
+def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, matvec=None):
     """The right-hand side ``[V, d]`` of the first linear system of a step, and the velocity change
-    of the constrained nodes ``[V, d]`` (None when there is none to impose). ``loaded``: the
-    SystemMatvec loaded at ``x`` (its rotations and contact terms are reused: computed once per
-    step), or None."""
+    of the constrained nodes ``[V, d]`` (None when there is none to impose). ``matvec``: the
+    step's SystemMatvec, loaded here at ``x`` (its rotations and contact terms are then reused
+    by the CG: computed once per step), or None."""
     h = opts.dt
     # Constrained nodes take their imposed velocity exactly; CG solves for the free nodes only.
     # With no imposed velocity, constrained nodes are fixed: they are at rest and stay there.
@@ -283,15 +318,15 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
     if system.free is not None and imposed_velocity is not None:
         dv_imposed = (1.0 - system.free) * (imposed_velocity - v)
     mass_coef, stiffness_coef = _coefficients(opts)
-    if loaded is not None:
-        tangent = loaded.tangent
-        rhs = loaded.forces_along((h + opts.rayleigh_stiffness) * v)
+    if matvec is not None:
+        tangent = matvec.tangent
+        rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.rayleigh_stiffness)
     else:
         tangent = system.tangent(x)
         rhs = system.forces(x) + tangent((h + opts.rayleigh_stiffness) * v)
-    if opts.rayleigh_mass:  # no damping term without damping
-        rhs = rhs - opts.rayleigh_mass * system.mass * v
-    rhs = h * rhs
+        if opts.rayleigh_mass:  # no damping term without damping
+            rhs = rhs - opts.rayleigh_mass * system.mass * v
+        rhs = h * rhs
     if dv_imposed is not None:
         rhs = rhs - (mass_coef * system.mass * dv_imposed - stiffness_coef * tangent(dv_imposed))
     return rhs, dv_imposed
@@ -348,33 +383,44 @@ class StepGraphs:
         self.ring = torch.zeros(max(1, min(64, 2 ** 17 // max(objects, 1))), 5, objects, dtype=torch.float64,
                                 device=like.device)
         self.ring_pos = torch.zeros(1, dtype=torch.long, device=like.device)
+        # euler_update's object counters, and one for the objects done (zero between calls)
+        self.update_counter = torch.zeros(objects + 1, dtype=torch.int32, device=like.device)
 
     def _phase_a(self):
         opts = self.opts
-        self.matvec.load(self.x)
         rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
         if dv_imposed is not None:
             self.dv_imposed.copy_(dv_imposed)
         self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first)
 
-    def _phase_c(self):
-        torch.add(self.v, self.cg.state.x, out=self.v_new)
-        if self.imposed is not None and self.system.free is not None:
-            self.v_new.add_(self.dv_imposed)
+    def _phase_c(self, chained: bool = False):
+        """The new state, its per-object |v|^2 (NaN/inf anywhere in an object's new state shows
+        there: x_new is x, finite, plus dt v_new) and the step's summary; ``chained``: also into
+        the ring's next row, and the new state back into x, v for the next step. One op where the
+        extension has it (``euler_update``), else the same arithmetic in torch ops."""
+        cg, s = self.cg, self.cg.state
+        dv_imposed = self.dv_imposed if self.imposed is not None and self.system.free is not None else None
+        native = cg.native
+        if native is not None and hasattr(native, "euler_update"):
+            ring = (self.ring, self.ring_pos) if chained else (None, None)
+            native.euler_update(self.x, self.v, s.x, dv_imposed, float(self.opts.dt), self.x_new, self.v_new,
+                                *cg.plan.tensors(), s.status, s.iterations, s.rr, cg.rhs_sq, self.norms, self.summary,
+                                s.scratch, self.update_counter, *ring, chained)
+            return
+        torch.add(self.v, s.x, out=self.v_new)
+        if dv_imposed is not None:
+            self.v_new.add_(dv_imposed)
         torch.add(self.x, self.v_new, alpha=self.opts.dt, out=self.x_new)  # as the eager step
-        # |v_new|^2 per object: NaN/inf anywhere in an object's new state shows here (x_new is
-        # x, finite, plus dt v_new)
-        cg = self.cg
-        cg_ops.object_dot(self.v_new, self.v_new, cg.plan, self.norms, cg.state, cg.native)
-        s = cg.state
+        cg_ops.object_dot(self.v_new, self.v_new, cg.plan, self.norms, s, native)
         torch.stack((s.status, s.iterations, s.rr, cg.rhs_sq, self.norms), out=self.summary)
+        if chained:
+            self.ring.index_copy_(0, self.ring_pos, self.summary.unsqueeze(0))
+            self.ring_pos.add_(1)
+            self.x.copy_(self.x_new)
+            self.v.copy_(self.v_new)
 
     def _phase_c_chained(self):
-        self._phase_c()
-        self.ring.index_copy_(0, self.ring_pos, self.summary.unsqueeze(0))
-        self.ring_pos.add_(1)
-        self.x.copy_(self.x_new)
-        self.v.copy_(self.v_new)
+        self._phase_c(chained=True)
 
     @property
     def chainable(self) -> bool:
@@ -474,9 +520,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     h = opts.dt
     report = StepReport()
     loaded = system.system_matvec(*_coefficients(opts))
-    if loaded is not None:
-        loaded.load(x)
-    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded)
+    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
     result = _solve(system, x, rhs, opts, loaded)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
