@@ -74,14 +74,18 @@ def slope(scene_name: str, repeats: int, counts=(0, 10, 20, 40)):
     rhs = torch.randn_like(sim.x)
     matvec = system.system_matvec(1.0, sim.options.dt ** 2).load(sim.x)
     cg = CGSolver(system.segments, rhs.shape, rhs.dtype, rhs.device, system.free)
-    times = {}
-    for count in counts:
-        work = lambda: cg.begin(matvec, rhs, 0.0, 1000, count)  # noqa: E731
-        work()
-        times[count] = event_time_us(work, repeats)
-    per_iteration = (times[counts[-1]] - times[counts[-2]]) / (counts[-1] - counts[-2])
-    print(f"{scene_name}: " + ", ".join(f"{c} it {t:.1f} us" for c, t in times.items())
-          + f"; {per_iteration:.1f} us per iteration", flush=True)
+    for cache in ("1", "0", "1"):  # the neighbour cache in shared memory on, off, on again (drift)
+        os.environ["TENSORMASS_NEIGHBOR_CACHE"] = cache
+        times = {}
+        for count in counts:
+            work = lambda: cg.begin(matvec, rhs, 0.0, 1000, count)  # noqa: E731
+            work()
+            times[count] = event_time_us(work, repeats)
+        per_iteration = (times[counts[-1]] - times[counts[-2]]) / (counts[-1] - counts[-2])
+        print(f"{scene_name} (neighbour cache {'on' if cache == '1' else 'off'}): "
+              + ", ".join(f"{c} it {t:.1f} us" for c, t in times.items())
+              + f"; {per_iteration:.1f} us per iteration", flush=True)
+    os.environ.pop("TENSORMASS_NEIGHBOR_CACHE")
 
 
 def main():

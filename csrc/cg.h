@@ -105,6 +105,8 @@ struct CGRun {
   int64_t d;            // values per node
   int64_t max_iter;
   int64_t count;        // iterations to run at most (fewer when every object stops)
+  bool cache_neighbors = true;  // GPU: keep the node graph's neighbours in shared memory (a
+                                // switch for benchmarks: TENSORMASS_NEIGHBOR_CACHE=0 turns it off)
 };
 
 // ------------------------------------------------------------------ host-side checks

@@ -404,15 +404,28 @@ struct HookeNodeGraph {
   // (neighbor -> w_j) per slot; the terms are still added in slot order.
   static constexpr int kBatch = 4;
 
+  // The neighbour in slot s of node i, read from the graph's arrays.
+  struct GlobalNeighbors {
+    const I* neighbor;
+    int64_t num_nodes;
+    TM_HD int64_t operator()(int64_t s, int64_t i) const { return static_cast<int64_t>(ld(neighbor + s * num_nodes + i)); }
+  };
+
   // wi = w_i (already loaded); load_p(field + j * D + a) reads w_j[a].
   template <class LoadP>
   TM_HD void add_forces(int64_t i, const S* field, const S (&wi)[D], const LoadP& load_p, S (&acc)[D]) const {
-    const int64_t count = static_cast<int64_t>(ld(incidences + i));
+    add_forces(i, static_cast<int64_t>(ld(incidences + i)), GlobalNeighbors{neighbor, num_nodes}, field, wi, load_p,
+               acc);
+  }
+
+  // The same with node i's slot count and neighbours given (neighbors(s, i): the persistent CG
+  // keeps them in shared memory across its iterations).
+  template <class Neighbors, class LoadP>
+  TM_HD void add_forces(int64_t i, int64_t count, const Neighbors& neighbors, const S* field, const S (&wi)[D],
+                        const LoadP& load_p, S (&acc)[D]) const {
     for (int64_t s0 = 0; s0 < count; s0 += kBatch) {
       int64_t j[kBatch];
-      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
-        j[q] = s0 + q < count ? static_cast<int64_t>(ld(neighbor + (s0 + q) * num_nodes + i)) : i;
-      }
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) j[q] = s0 + q < count ? neighbors(s0 + q, i) : i;
       S k[kBatch][D][D], wj[kBatch][D];
       TM_UNROLL for (int q = 0; q < kBatch; ++q) {
         if (s0 + q < count) load_matrix<D, D, S>(node_k + ((s0 + q) * num_nodes + i) * (D * D), k[q]);
@@ -446,6 +459,17 @@ struct NodeHookeSystemKernel {
     S acc[D];
     TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
     graph.add_forces(i, p, pv, load_p, acc);
+    return epilogue(i, pv, acc);
+  }
+
+  // apply with node i's slot count and neighbours given (HookeNodeGraph::add_forces).
+  template <class Neighbors, class LoadP>
+  TM_HD S apply(int64_t i, int64_t count, const Neighbors& neighbors, LoadP load_p) const {
+    S pv[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = load_p(p + i * D + a);
+    S acc[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
+    graph.add_forces(i, count, neighbors, p, pv, load_p, acc);
     return epilogue(i, pv, acc);
   }
   TM_HD void operator()(int64_t i) const { apply(i); }

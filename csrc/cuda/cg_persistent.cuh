@@ -30,6 +30,7 @@
 #include <c10/cuda/CUDAException.h>
 
 #include <cstdint>
+#include <cstdlib>
 
 #include "../cg.h"
 #include "../kernels.h"
@@ -61,6 +62,23 @@ __device__ inline double object_chunk_total(const CGPlan& plan, int64_t object, 
 // blocks, 85 registers, made the matvec along r + beta p spill): 264 blocks on an H100, one wave
 // for the paper beam's 220 chunks of 256 nodes; larger plans loop over their chunks.
 constexpr int kPersistentBlocksPerSM = 2;
+
+// Slots of each node's neighbour list kept in shared memory for the whole solve (32 KB a block):
+// the graph does not change between iterations, and its neighbour indices were the first of the
+// two dependent global loads of every slot batch (neighbour, then its p). Nodes with more slots
+// read the rest from the graph.
+constexpr int kCachedSlots = 32;
+
+// The neighbours of this thread's node: its column of the block's cache (cached[s * kReduceBlock]),
+// then the graph's arrays (G: HookeNodeGraph::GlobalNeighbors).
+template <class G>
+struct SharedNeighbors {
+  const int32_t* cached;
+  G graph;
+  __device__ int64_t operator()(int64_t s, int64_t i) const {
+    return s < kCachedSlots ? static_cast<int64_t>(cached[s * kReduceBlock]) : graph(s, i);
+  }
+};
 
 // The per-object scalars of one parity.
 template <typename S>
@@ -161,6 +179,24 @@ __global__ void __launch_bounds__(kReduceBlock, kPersistentBlocksPerSM) persiste
     grid.sync();
   }
 
+  // One chunk per block with at most a node per thread (the one-wave plans that
+  // native.persistent_cg_fits launches): each thread keeps its node's slot count in a register
+  // and its neighbours in its own column of shared memory (written and read by that thread only).
+  using Global = typename decltype(k.graph)::GlobalNeighbors;
+  __shared__ int32_t neighbor_cache[kCachedSlots * kReduceBlock];
+  const int64_t own_begin = plan.chunk_start[blockIdx.x];
+  const bool cached = s.cache_neighbors && num_chunks <= static_cast<int64_t>(gridDim.x) &&
+                      plan.chunk_start[blockIdx.x + 1] - own_begin <= kReduceBlock && plan.num_nodes <= INT32_MAX;
+  int64_t own_count = 0;
+  if (cached && own_begin + tid < plan.chunk_start[blockIdx.x + 1]) {
+    const Global graph{k.graph.neighbor, k.graph.num_nodes};
+    own_count = static_cast<int64_t>(ld(k.graph.incidences + own_begin + tid));
+    for (int64_t slot = 0; slot < own_count && slot < kCachedSlots; ++slot) {
+      neighbor_cache[slot * kReduceBlock + tid] = static_cast<int32_t>(graph(slot, own_begin + tid));
+    }
+  }
+  const SharedNeighbors<Global> own_neighbors{neighbor_cache + tid, Global{k.graph.neighbor, k.graph.num_nodes}};
+
   int64_t done = 0;
   bool stopped = false;  // every object stopped (read after M's barrier: the same in every block)
   while (done < s.count) {
@@ -189,8 +225,14 @@ __global__ void __launch_bounds__(kReduceBlock, kPersistentBlocksPerSM) persiste
       if (step.status != kActive) continue;
       const DirectionLoader<S> direction{s.p, s.r, step.beta, done == 0};
       double acc = 0.0;
-      for (int64_t i = plan.chunk_start[c] + tid; i < plan.chunk_start[c + 1]; i += kReduceBlock) {
-        acc += static_cast<double>(k.apply(i, direction));
+      if (cached) {  // c is the block's own chunk
+        if (own_begin + tid < plan.chunk_start[c + 1]) {
+          acc = static_cast<double>(k.apply(own_begin + tid, own_count, own_neighbors, direction));
+        }
+      } else {
+        for (int64_t i = plan.chunk_start[c] + tid; i < plan.chunk_start[c + 1]; i += kReduceBlock) {
+          acc += static_cast<double>(k.apply(i, direction));
+        }
       }
       const double total = block_total(acc);
       if (tid == 0) sums_pap[c] = total;
@@ -292,6 +334,8 @@ void launch_persistent_cg(const CGPlan& plan, const K& k, const CGRun<S>& s) {
   K kernel_k = k;
   CGPlan kernel_plan = plan;
   CGRun<S> kernel_s = s;
+  const char* cache_switch = std::getenv("TENSORMASS_NEIGHBOR_CACHE");  // read per launch: benchmarks flip it
+  kernel_s.cache_neighbors = !(cache_switch != nullptr && cache_switch[0] == '0');
   void* args[] = {&kernel_k, &kernel_plan, &kernel_s};
   C10_CUDA_CHECK(cudaLaunchCooperativeKernel(reinterpret_cast<const void*>(&persistent_cg_kernel<K, S>),
                                              dim3(grid), dim3(kReduceBlock), args, 0,
