@@ -29,6 +29,9 @@ def warm_up(sim, device, steps: int = 2) -> None:
     """Steps that pay the one-time costs (caches, allocator, graph capture) before timing. On
     the CPU one step with a single CG iteration: the same code paths at a fraction of the time."""
     if is_cuda(device):
+        # one step alone, then a chain: a single step and chained steps run different CUDA graphs
+        # (StepGraphs.step / run_steps), each captured the first time it runs
+        sim.step(1)
         sim.step(steps)
         sync(device)
         return
