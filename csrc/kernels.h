@@ -454,12 +454,8 @@ struct NodeHookeSystemKernel {
   // changes during that kernel, and the read-only cache of ld() may hold stale copies).
   template <class LoadP = Loader>
   TM_HD S apply(int64_t i, LoadP load_p = LoadP()) const {
-    S pv[D];
-    TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = load_p(p + i * D + a);
-    S acc[D];
-    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
-    graph.add_forces(i, p, pv, load_p, acc);
-    return epilogue(i, pv, acc);
+    using Global = typename HookeNodeGraph<D, S, I>::GlobalNeighbors;
+    return apply(i, static_cast<int64_t>(ld(graph.incidences + i)), Global{graph.neighbor, graph.num_nodes}, load_p);
   }
 
   // apply with node i's slot count and neighbours given (HookeNodeGraph::add_forces).
