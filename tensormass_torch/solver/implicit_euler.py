@@ -399,29 +399,15 @@ class StepGraphs:
 
     def _phase_c(self, chained: bool = False):
         """The new state, its per-object |v|^2 (NaN/inf anywhere in an object's new state shows
-        there: x_new is x, finite, plus dt v_new) and the step's summary; ``chained``: also into
-        the ring's next row, and the new state back into x, v for the next step. One op where the
-        extension has it (``euler_update``), else the same arithmetic in torch ops."""
+        there: x_new is x, finite, plus dt v_new) and the step's summary, in one op
+        (``euler_update``); ``chained``: also into the ring's next row, and the new state back
+        into x, v for the next step."""
         cg, s = self.cg, self.cg.state
         dv_imposed = self.dv_imposed if self.imposed is not None and self.system.free is not None else None
-        native = cg.native
-        if native is not None and hasattr(native, "euler_update"):
-            ring = (self.ring, self.ring_pos) if chained else (None, None)
-            native.euler_update(self.x, self.v, s.x, dv_imposed, float(self.opts.dt), self.x_new, self.v_new,
-                                *cg.plan.tensors(), s.status, s.iterations, s.rr, cg.rhs_sq, self.norms, self.summary,
-                                s.scratch, self.update_counter, *ring, chained)
-            return
-        torch.add(self.v, s.x, out=self.v_new)
-        if dv_imposed is not None:
-            self.v_new.add_(dv_imposed)
-        torch.add(self.x, self.v_new, alpha=self.opts.dt, out=self.x_new)  # as the eager step
-        cg_ops.object_dot(self.v_new, self.v_new, cg.plan, self.norms, s, native)
-        torch.stack((s.status, s.iterations, s.rr, cg.rhs_sq, self.norms), out=self.summary)
-        if chained:
-            self.ring.index_copy_(0, self.ring_pos, self.summary.unsqueeze(0))
-            self.ring_pos.add_(1)
-            self.x.copy_(self.x_new)
-            self.v.copy_(self.v_new)
+        ring = (self.ring, self.ring_pos) if chained else (None, None)
+        cg.native.euler_update(self.x, self.v, s.x, dv_imposed, float(self.opts.dt), self.x_new, self.v_new,
+                               *cg.plan.tensors(), s.status, s.iterations, s.rr, cg.rhs_sq, self.norms, self.summary,
+                               s.scratch, self.update_counter, *ring, chained)
 
     def _chained_steps(self, count: int):
         for _ in range(count):
@@ -503,7 +489,8 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     from ..modules import TensorMass
 
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
-            or system.model.rest.device.type != "cuda" or cg_ops.native_ops_for(system.model.rest) is None):
+            or system.model.rest.device.type != "cuda"
+            or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None
     key = (opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness, opts.cg_tol, opts.cg_max_iter,
            opts.require_convergence, opts.check_every, imposed)
