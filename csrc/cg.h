@@ -109,6 +109,41 @@ struct CGRun {
                                 // switch for benchmarks: TENSORMASS_NEIGHBOR_CACHE=0 turns it off)
 };
 
+// The buffers of a whole solve by the pipelined CG (hooke_node_solve; GPU: cuda/cg_pipelined.cuh):
+// the iterates and per-object scalars as CGRun's, and its own work: each node's r, w = A r and
+// s = A p in an exchange row of 4d values (two rows per node: one parity read, the other
+// written), the per-chunk sums of r.r and w.r (two parities), and counters.
+template <typename S>
+struct PipelinedSolve {
+  S* x;
+  S* r;
+  S* p;
+  const S* rhs;         // [V, d]
+  S tol_sq;
+  S* threshold;
+  S* rhs_sq;
+  S* rr;
+  S* alpha;
+  S* beta;
+  int32_t* status;
+  int32_t* iterations;
+  S* exchange;          // [2, V, 4d]
+  double* sums;         // [4K]: r.r then w.r per chunk, for each parity
+  int32_t* counters;    // [3]: active objects in the last three iterations (rotating)
+  int64_t max_iter;
+  int64_t chunk_slots;  // slots of the chunk with the most (sum of incidences over its nodes)
+};
+
+// Chronopoulos-Gear's step length from the reduction that also gave r.r: with
+// gamma = r.r, delta = w.r (w = A r) and the last step's beta and alpha, p.Ap = delta - beta
+// gamma / alpha_last (= delta on the first step), in double; the object stops where it is not
+// positive (breakdown) or not finite, as cg_alpha_step.
+template <typename S>
+TM_HD S cg_pipelined_alpha(double gamma, double delta, S beta, S alpha_last, bool first, S rr, int32_t& status) {
+  const double p_ap = first ? delta : delta - static_cast<double>(beta) * gamma / static_cast<double>(alpha_last);
+  return cg_alpha_step<S>(p_ap, rr, status);
+}
+
 // ------------------------------------------------------------------ host-side checks
 
 struct CGPlan {

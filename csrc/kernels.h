@@ -325,28 +325,41 @@ struct SystemEpilogue {
   S* ap;                    // [V, D]
   S* p_dot_ap;              // [V], or nullptr (the CG step-length kernels use the returned dot)
 
-  // Writes Ap_i (and p_dot_ap[i] when that buffer is given) and returns p_i . Ap_i.
-  TM_HD S operator()(int64_t i, const S (&pv)[D], S (&acc)[D]) const {
+  // Node i's inputs to the row: its own stiffness (HAS_NODE_K), c_M m_i and free_i (1 without).
+  TM_HD void load_node(int64_t i, S (&k_own)[D][D], S& m, S& f) const {
+    if (HAS_NODE_K) load_matrix<D, D, S>(node_stiffness + i * (D * D), k_own);
+    m = c_mass * ld(mass + i);
+    f = HAS_FREE ? ld(free + i) : S(1);
+  }
+
+  // (A p)_i from the stiffness sum acc = (K p)_i without the node's own stiffness k_own, m = c_M m_i,
+  // f = free_i: the arithmetic of every CG matvec of the hooke node graph (acc is updated).
+  static TM_HD void row(const S (&k_own)[D][D], S m, S f, S c_stiff_, const S (&pv)[D], S (&acc)[D], S (&out)[D]) {
     if (HAS_NODE_K) {
-      S k[D][D];
-      load_matrix<D, D, S>(node_stiffness + i * (D * D), k);
       TM_UNROLL for (int a = 0; a < D; ++a) {
         S s = S(0);
-        TM_UNROLL for (int b = 0; b < D; ++b) s += k[a][b] * pv[b];
+        TM_UNROLL for (int b = 0; b < D; ++b) s += k_own[a][b] * pv[b];
         acc[a] -= s;
       }
     }
-    const S m = c_mass * ld(mass + i);
-    S f = S(1);
-    if (HAS_FREE) f = ld(free + i);
-    S dot = S(0);
     TM_UNROLL for (int a = 0; a < D; ++a) {
       const S mp = m * pv[a];
-      const S kp = c_stiff * acc[a];
+      const S kp = c_stiff_ * acc[a];
       S v = mp - kp;
       if (HAS_FREE) v = v * f;
-      ap[i * D + a] = v;
-      dot += pv[a] * v;
+      out[a] = v;
+    }
+  }
+
+  // Writes Ap_i (and p_dot_ap[i] when that buffer is given) and returns p_i . Ap_i.
+  TM_HD S operator()(int64_t i, const S (&pv)[D], S (&acc)[D]) const {
+    S k_own[D][D], m, f, out[D];
+    load_node(i, k_own, m, f);
+    row(k_own, m, f, c_stiff, pv, acc, out);
+    S dot = S(0);
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      ap[i * D + a] = out[a];
+      dot += pv[a] * out[a];
     }
     if (p_dot_ap != nullptr) p_dot_ap[i] = dot;
     return dot;
@@ -445,6 +458,7 @@ template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
 struct NodeHookeSystemKernel {
   using Scalar = S;
   using Index = I;
+  static constexpr int kDim = D;
   const S* p;  // [V, D]
   HookeNodeGraph<D, S, I> graph;
   SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;

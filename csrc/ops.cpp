@@ -39,6 +39,13 @@
 //                               the start (when rhs is given) and up to count iterations of the CG
 //                               with hooke_node_system's matvec, stopping once no object is active:
 //                               one persistent kernel on the GPU; bitwise the op-by-op solve
+//   pipelined whole solve     hooke_node_solve(<hooke_node_system's graph and epilogue>, rhs, tol_sq, chunk
+//                               plan (<= 128 nodes a chunk), chunk_slots, max_iter, x!, r!, p!, threshold!,
+//                               rhs_sq!, rr!, status!, alpha!, beta!, iterations!, exchange!, sums!,
+//                               counters!) -> bool
+//                               a whole solve from x0 = 0 by Chronopoulos-Gear's CG (one reduction and
+//                               one grid barrier an iteration): GPU only; false (nothing done) where it
+//                               does not fit one wave, or on the CPU
 //   step right-hand side      hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, mass, external,
 //                               plane_normals?, plane_offsets?, plane_stiffness?, h, w_coef, r_M, u!, rhs!,
 //                               node_stiffness!?) -> ()
@@ -128,6 +135,13 @@ TORCH_LIBRARY(tensormass, m) {
         "Tensor(e!) threshold, Tensor(f!) rhs_sq, int max_iter, int count, Tensor(g!) rr, Tensor(h!) status, "
         "Tensor(i!) alpha, Tensor(j!) beta, Tensor(k!) iterations, Tensor(l!) rr_swap, Tensor(m!) work, "
         "Tensor(n!) sums) -> ()");
+  // ---- a whole CG solve from x0 = 0 by the pipelined CG (one grid barrier an iteration; GPU)
+  m.def("hooke_node_solve(Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, Tensor? free, "
+        "float c_mass, float c_stiff, Tensor? node_stiffness, Tensor rhs, float tol_sq, Tensor chunk_start, "
+        "Tensor chunk_object, Tensor object_chunk, int chunk_slots, int max_iter, Tensor(a!) x, Tensor(b!) r, "
+        "Tensor(c!) p, Tensor(d!) threshold, Tensor(e!) rhs_sq, Tensor(f!) rr, Tensor(g!) status, "
+        "Tensor(h!) alpha, Tensor(i!) beta, Tensor(j!) iterations, Tensor(k!) exchange, Tensor(l!) sums, "
+        "Tensor(m!) counters) -> bool");
   // ---- implicit Euler's right-hand side for the hooke tensor form, in one pass (in place)
   m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, "
         "Tensor mass, Tensor external, Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, "

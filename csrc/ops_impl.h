@@ -1049,6 +1049,73 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
   });
 }
 
+// hooke_node_solve: a whole CG solve from x0 = 0 of hooke_node_system's system (A = c_M M - c_K K
+// over the node graph, projected on `free`) by the pipelined CG (Chronopoulos-Gear: one
+// reduction an iteration; on the GPU one persistent kernel with one grid barrier an iteration,
+// cuda/cg_pipelined.cuh): the same iterates as CG in exact arithmetic, the same stopping rule
+// and statuses (relative tolerance tol_sq = tol^2 on r.r, max_iter, breakdown, non-finite), not
+// bitwise the two-reduction CG of hooke_node_cg. The plan's chunks must hold at most
+// SOLVE_CHUNK_NODES (128) nodes and chunk_slots slots (the sum of incidences over a chunk's
+// nodes): a chunk beyond that ends its object as non-finite. Returns whether it ran: false,
+// having changed nothing, where the solve does not fit the device in one wave (or on the CPU,
+// which has no such kernel); then the caller solves with hooke_node_cg. Buffers: the CG state
+// (x, r, p [V, d]; threshold, rhs_sq, rr, alpha, beta [B]; status, iterations [B] int32) and
+// the work: exchange [2, V, 4d], sums [4K] float64, counters [3] int32.
+template <class L>
+bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
+                      const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                      const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
+                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                      int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r, at::Tensor p,
+                      at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status, at::Tensor alpha,
+                      at::Tensor beta, at::Tensor iterations, at::Tensor exchange, at::Tensor sums,
+                      at::Tensor counters) {
+  check_values(rhs, "rhs");
+  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
+  TORCH_CHECK(chunk_slots >= 0, "tensormass: chunk_slots must be >= 0, got ", std::to_string(chunk_slots));
+  const CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, rhs, rhs.size(0));
+  TORCH_CHECK(plan.num_chunks == 0 || rhs.size(0) > 0, "tensormass: a chunk plan over no nodes");
+  cg_check(x, "x", rhs, rhs.scalar_type(), rhs.sizes());
+  cg_check(r, "r", rhs, rhs.scalar_type(), rhs.sizes());
+  cg_check(p, "p", rhs, rhs.scalar_type(), rhs.sizes());
+  for (const auto& named : {std::make_pair(&threshold, "threshold"), std::make_pair(&rhs_sq, "rhs_sq"),
+                            std::make_pair(&rr, "rr"), std::make_pair(&alpha, "alpha"), std::make_pair(&beta, "beta")}) {
+    cg_check_scalars(*named.first, named.second, rhs, plan.num_objects);
+  }
+  cg_check_state(status, "status", rhs, plan.num_objects);
+  cg_check_state(iterations, "iterations", rhs, plan.num_objects);
+  const int64_t dim = rhs.size(1);
+  cg_check(exchange, "exchange", rhs, rhs.scalar_type(), {2, rhs.size(0), 4 * dim});
+  cg_check(sums, "sums", rhs, at::kDouble, {4 * plan.num_chunks});
+  cg_check(counters, "counters", rhs, at::kInt, {3});
+  at::Tensor no_dots;
+  bool ran = false;
+  run_hooke_node_system<L>(rhs, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, r, no_dots,
+                           [&](const auto& k, int64_t) {
+    using S = typename std::decay_t<decltype(k)>::Scalar;
+    PipelinedSolve<S> s;
+    s.x = x.data_ptr<S>();
+    s.r = r.data_ptr<S>();
+    s.p = p.data_ptr<S>();
+    s.rhs = rhs.data_ptr<S>();
+    s.tol_sq = static_cast<S>(tol_sq);
+    s.threshold = threshold.data_ptr<S>();
+    s.rhs_sq = rhs_sq.data_ptr<S>();
+    s.rr = rr.data_ptr<S>();
+    s.alpha = alpha.data_ptr<S>();
+    s.beta = beta.data_ptr<S>();
+    s.status = status.data_ptr<int32_t>();
+    s.iterations = iterations.data_ptr<int32_t>();
+    s.exchange = exchange.data_ptr<S>();
+    s.sums = sums.data_ptr<double>();
+    s.counters = counters.data_ptr<int32_t>();
+    s.max_iter = max_iter;
+    s.chunk_slots = chunk_slots;
+    ran = L::run_solve(plan, k, s);
+  });
+  return ran;
+}
+
 // ------------------------------------------------------------------ tensor form, stvk
 
 struct StvkTensorArgs {

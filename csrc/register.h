@@ -42,6 +42,7 @@ void register_gather_ops(torch::Library& m) {
   m.impl("gather_system_alpha", &gather_system_alpha<L>);
   m.impl("hooke_node_system_alpha", &hooke_node_system_alpha<L>);
   m.impl("hooke_node_cg", &hooke_node_cg<L>);
+  m.impl("hooke_node_solve", &hooke_node_solve<L>);
   m.impl("hooke_node_step_rhs", &hooke_node_step_rhs<L>);
 }
 

@@ -39,7 +39,8 @@ from .reference import corotational, stress_form, tensor_form
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
            "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "persistent_cg_fits",
-           "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "HOOKE_MATVEC_LAYOUTS",
+           "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "system_solve", "solve_plan", "chunk_slots",
+           "PIPELINED_SOLVE", "SOLVE_CHUNK_NODES", "HOOKE_MATVEC_LAYOUTS",
            "HOOKE_MATVEC_LAYOUT"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
@@ -898,6 +899,72 @@ def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: f
                          ap, s.x, s.r, rhs, float(tol) ** 2, *plan_tensors, s.threshold, s.rhs_sq, int(max_iter),
                          int(count), s.rr, s.status, s.alpha, s.beta, s.iterations, s.rr_swap, s.work, s.sums)
     return True
+
+
+#: Whether whole CG solves on the GPU run as ``hooke_node_solve`` (the pipelined CG, one grid
+#: barrier an iteration) where it fits, before ``hooke_node_cg``. Benchmarks and the bitwise tests
+#: of hooke_node_cg switch it off.
+PIPELINED_SOLVE = True
+#: Nodes per chunk of the pipelined solve's plan (csrc/cuda/cg_pipelined.cuh kSolveChunkNodes).
+SOLVE_CHUNK_NODES = 128
+
+
+def solve_plan(plan):
+    """The chunk plan of :func:`system_solve` for the objects of ``plan`` (a ``ChunkPlan``): chunks
+    of at most :data:`SOLVE_CHUNK_NODES` nodes, one GPU block each. Cached on ``plan``."""
+    cached = plan.__dict__.get("_solve_plan")
+    if cached is None:
+        cached = plan.__dict__["_solve_plan"] = type(plan).from_segments(plan.segments, SOLVE_CHUNK_NODES)
+    return cached
+
+
+def chunk_slots(group, plan) -> int:
+    """The most slots of any chunk of ``plan`` (the sum of the node graph's incidences over its
+    nodes): the shared memory a block of the pipelined solve needs. A host synchronisation the
+    first time; cached on the group while the plan and its incidences are the same."""
+    _, _, incidences = _plan_indices(group.plan)
+    cache = group.__dict__.get("_solve_chunk_slots")
+    if cache is not None and cache[0] is plan and _unchanged(cache[1], (incidences,)):
+        return cache[2]
+    prefix = torch.zeros(incidences.numel() + 1, dtype=torch.int64, device=incidences.device)
+    torch.cumsum(incidences.long(), 0, out=prefix[1:])
+    starts = plan.chunk_start.to(incidences.device)
+    value = int((prefix[starts[1:]] - prefix[starts[:-1]]).max()) if plan.num_chunks else 0
+    group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), value)
+    return value
+
+
+def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float, c_stiff: float,
+                 node_stiffness: Optional[torch.Tensor], rhs: torch.Tensor, tol: float, plan, cg_state,
+                 max_iter: int) -> bool:
+    """A whole CG solve from x0 = 0 of :func:`system_matvec`'s system (rhs ``[V, d]`` projected on
+    ``free``; relative tolerance ``tol``; at most ``max_iter`` iterations) by the pipelined CG
+    (``hooke_node_solve``: Chronopoulos-Gear, one reduction and one grid barrier an iteration, one
+    persistent kernel) into ``cg_state`` (a ``CGState`` over ``plan``: x, r, p, the per-object
+    scalars and statuses). CG's iterates in exact arithmetic, rounded differently from
+    :func:`system_cg`'s. Returns False, having done nothing, where it does not serve: not a CUDA
+    tensor, :data:`PIPELINED_SOLVE` off, not the hooke node graph, a gradient wanted, or a system
+    too large for one wave of the kernel."""
+    s = cg_state
+    if not (PIPELINED_SOLVE and rhs.is_cuda and HOOKE_MATVEC_LAYOUT == "node"
+            and _node_layout(group, "node", (s.p, mass, free, node_stiffness, rhs), "hooke_node_solve")):
+        return False
+    fine = solve_plan(plan)
+    work = s.__dict__.get("_solve_work")
+    shape = (2, rhs.shape[0], 4 * rhs.shape[1])
+    if work is None or work[0] is not fine or work[1].shape != shape or work[1].dtype != rhs.dtype:
+        work = s.__dict__["_solve_work"] = (
+            fine, torch.zeros(shape, dtype=rhs.dtype, device=rhs.device),
+            torch.zeros(4 * fine.num_chunks, dtype=torch.float64, device=rhs.device),
+            torch.zeros(3, dtype=torch.int32, device=rhs.device))
+    _, exchange, sums, counters = work
+    mass, free, node_stiffness, rhs = _contiguous(mass, free, node_stiffness, rhs)
+    neighbor, node_k = hooke_node_graph(group)
+    _, _, incidences = _plan_indices(group.plan)
+    return bool(torch.ops.tensormass.hooke_node_solve(
+        neighbor, node_k, incidences, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs,
+        float(tol) ** 2, *fine.tensors(), chunk_slots(group, fine), int(max_iter), s.x, s.r, s.p, s.threshold,
+        s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, exchange, sums, counters))
 
 
 def step_rhs_serves(group, inputs=()) -> bool:

@@ -274,11 +274,18 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     relative tolerance ``tol``, already clamped to the dtype's epsilon by the caller), then up to
     ``count`` iterations on ``cg_state`` (a ``CGState`` over the chunk ``plan``), stopping once no
     object is active; ``ap [V, d]``: the products' buffer. Bitwise what ``CGSolver`` computes op by
-    op. Returns False, having done nothing, where there is no such op (then the caller iterates)."""
+    op, except a whole solve (``rhs`` given, ``count >= max_iter``) on the GPU where the pipelined
+    CG fits (``native.system_solve``: the same iterates in exact arithmetic, rounded otherwise).
+    Returns False, having done nothing, where there is no such op (then the caller iterates)."""
     groups = list(groups)
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state, rhs)
     if native is None:
         return False
+    # A whole solve on the GPU: the pipelined CG where it fits (one grid barrier an iteration)
+    if (rhs is not None and count >= max_iter
+            and native.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
+                                    cg_state, max_iter)):
+        return True
     # native.system_cg checks what it serves (and does nothing where it has no one op)
     return native.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
                             cg_state, max_iter, count)

@@ -21,6 +21,13 @@ pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(to
 FIELDS = ("x", "r", "p", "rr", "alpha", "beta", "threshold", "rhs_sq", "status", "iterations", "counter")
 
 
+@pytest.fixture(autouse=True)
+def _two_reduction_cg(monkeypatch):
+    """These tests are hooke_node_cg's: whole GPU solves would otherwise take the pipelined CG
+    (native.system_solve, tests/test_pipelined_solve.py), which is not bitwise the op-by-op CG."""
+    monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
+
+
 def make_system(dtype, device, contact=True, bodies=3, mass_coef=1.02):
     meshes = []
     for k in range(bodies):

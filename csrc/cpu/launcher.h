@@ -40,6 +40,13 @@ struct CpuLauncher {
   static void run_cg(const CGPlan& plan, const K& k, const CGRun<S>& s) {
     cg_run_cpu<K, S>(plan, k, s);
   }
+
+  // The pipelined CG is a GPU kernel (its point is one grid barrier an iteration); the CPU solves
+  // with run_cg: false, nothing done.
+  template <class K, typename S>
+  static bool run_solve(const CGPlan&, const K&, const PipelinedSolve<S>&) {
+    return false;
+  }
 };
 
 }  // namespace tensormass

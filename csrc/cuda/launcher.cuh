@@ -9,6 +9,7 @@
 #include <cstdint>
 
 #include "cuda/cg_persistent.cuh"
+#include "cuda/cg_pipelined.cuh"
 #include "cuda/cg_reduce.cuh"
 
 namespace tensormass {
@@ -45,6 +46,12 @@ struct CudaLauncher {
   template <class K, typename S>
   static void run_cg(const CGPlan& plan, const K& k, const CGRun<S>& s) {
     launch_persistent_cg<K, S>(plan, k, s);
+  }
+
+  // A whole solve by the pipelined CG (cg_pipelined.cuh); false where it does not fit one wave.
+  template <class K, typename S>
+  static bool run_solve(const CGPlan& plan, const K& k, const PipelinedSolve<S>& s) {
+    return launch_pipelined_cg<K, S>(plan, k, s);
   }
 };
 

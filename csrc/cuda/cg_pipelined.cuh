@@ -1,0 +1,378 @@
+// A whole CG solve over the hooke node graph in ONE kernel with ONE grid barrier an iteration
+// (hooke_node_solve): Chronopoulos and Gear's CG, whose two inner products r.r and w.r (w = A r)
+// come from the same reduction, on a persistent cooperative grid of one block per chunk.
+//
+// Where the time of a small system's CG iteration goes (benchmarks/cg_latency_probe.py, SOFA
+// beam, H100): not bytes (its 9 MB of node_k sit in L2) but chains of dependent L2 round trips
+// and barriers. So, against cg_persistent.cuh:
+//   - one grid barrier an iteration instead of two (the recurrence needs one reduction);
+//   - the block's part of the node graph (node_k, neighbours) sits in shared memory for the
+//     whole solve, read once;
+//   - each node's own state (x, p, s, r, w, its mass, projection and contact stiffness) stays in
+//     registers; only what neighbours read goes through memory: r, w and s in one exchange row of
+//     4d values (three 16-byte loads a neighbour), double-buffered across iterations;
+//   - two threads per node (kLanes), each walking half of its slots, their sums shuffled together;
+//   - the object's totals are read by the whole block at once, both dots in one block reduction.
+// Probe figures per iteration: 17.1 us (today's structure) -> 7.7 us.
+//
+// The recurrence (iteration i, from r_i, w_i = A r_i, s_{i-1}, p_{i-1}, x_i; gamma_i = r_i.r_i,
+// delta_i = w_i.r_i):
+//   beta_i = gamma_i / gamma_{i-1} (cg_beta_step: convergence, the cap; 0 on the first step)
+//   alpha_i = gamma_i / (delta_i - beta_i gamma_i / alpha_{i-1})  (cg_pipelined_alpha: breakdown)
+//   p_i = r_i + beta_i p_{i-1};  s_i = w_i + beta_i s_{i-1};  x_{i+1} = x_i + alpha_i p_i
+//   r_{i+1} = r_i - alpha_i s_i;  w_{i+1} = A r_{i+1}
+// In exact arithmetic these are CG's iterates (s_i = A p_i); in floating point they round
+// differently from the two-reduction CG of the other paths (not bitwise), and the statuses and
+// counts mean the same. A neighbour's r_{i+1} is formed on the fly from its exchange row with
+// the same expression (next_residual) its owner uses, so both agree bit for bit.
+#pragma once
+
+#include <cooperative_groups.h>
+
+#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAException.h>
+
+#include <cstdint>
+#include <cstring>
+#include <type_traits>
+
+#include "../cg.h"
+#include "../kernels.h"
+#include "cg_reduce.cuh"
+
+namespace tensormass {
+
+constexpr int kLanes = 2;                                // threads per node
+constexpr int kSolveChunkNodes = kReduceBlock / kLanes;  // nodes per chunk (Python: native.SOLVE_CHUNK_NODES)
+constexpr int kSolveSlotBatch = 8;                       // slots whose loads a lane has in flight at once
+
+template <typename S>
+__device__ inline S next_residual(S r, S w, S s, S alpha, S beta) {
+  return fma(-alpha, fma(beta, s, w), r);
+}
+
+// One node's exchange row: r [D], w [D], s [D], padding [D] (16-byte loads).
+template <int D, typename S>
+struct ExchangeRow {
+  static constexpr int kWidth = 4 * D;
+  using Vec = std::conditional_t<sizeof(S) == 4, float4, double2>;
+  static constexpr int kPerVec = 16 / sizeof(S);
+
+  __device__ static void load(const S* row, S (&r)[D], S (&w)[D], S (&s)[D]) {
+    S v[kWidth];
+    TM_UNROLL for (int q = 0; q < kWidth / kPerVec; ++q) {
+      const Vec chunk = reinterpret_cast<const Vec*>(row)[q];
+      memcpy(v + q * kPerVec, &chunk, sizeof(Vec));
+    }
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      r[a] = v[a];
+      w[a] = v[D + a];
+      s[a] = v[2 * D + a];
+    }
+  }
+
+  __device__ static void store(S* row, const S (&r)[D], const S (&w)[D], const S (&s)[D]) {
+    S v[kWidth];
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      v[a] = r[a];
+      v[D + a] = w[a];
+      v[2 * D + a] = s[a];
+      v[3 * D + a] = S(0);
+    }
+    TM_UNROLL for (int q = 0; q < kWidth / kPerVec; ++q) {
+      Vec chunk;
+      memcpy(&chunk, v + q * kPerVec, sizeof(Vec));
+      reinterpret_cast<Vec*>(row)[q] = chunk;
+    }
+  }
+};
+
+// The block's slots in shared memory: node_k [chunk_slots][D][D] then neighbours [chunk_slots].
+template <int D, typename S>
+struct SharedGraph {
+  const S* node_k;
+  const int32_t* neighbor;
+
+  // acc += the elastic force terms over this lane's slots of a node (its slots from `first`,
+  // `count` of them) along the field read by value(j, out[D]); wi: the node's own value.
+  template <class Value>
+  __device__ void add_forces(int first, int count, int lane, const S (&wi)[D], const Value& value,
+                             S (&acc)[D]) const {
+    for (int t0 = 0; t0 * kLanes < count; t0 += kSolveSlotBatch) {
+      int j[kSolveSlotBatch];
+      S wj[kSolveSlotBatch][D];
+      TM_UNROLL for (int q = 0; q < kSolveSlotBatch; ++q) {
+        const int s = lane + (t0 + q) * kLanes;
+        j[q] = s < count ? neighbor[first + s] : -1;
+      }
+      TM_UNROLL for (int q = 0; q < kSolveSlotBatch; ++q) {
+        if (j[q] >= 0) value(j[q], wj[q]);
+      }
+      TM_UNROLL for (int q = 0; q < kSolveSlotBatch; ++q) {
+        const int s = lane + (t0 + q) * kLanes;
+        if (s >= count) break;
+        S k[D][D], f[2][D];
+        load_matrix<D, D, S>(node_k + static_cast<int64_t>(first + s) * (D * D), k);
+        tensor_hooke_edge<D, S>(k, wi, wj[q], f);
+        TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
+      }
+    }
+  }
+};
+
+// The sum over a node's lanes (adjacent threads), in every lane.
+template <int D, typename S>
+__device__ inline void lanes_total(S (&acc)[D]) {
+  TM_UNROLL for (int o = kLanes / 2; o > 0; o >>= 1) {
+    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += __shfl_xor_sync(0xffffffffu, acc[a], o);
+  }
+}
+
+// Block sums of two values, the result in thread 0 (a fixed order).
+__device__ inline double2 block_sum_pair(double a, double b) {
+  __shared__ double2 warp_sums[kReduceBlock / 32];
+  for (int o = 16; o > 0; o >>= 1) {
+    a += __shfl_down_sync(0xffffffffu, a, o);
+    b += __shfl_down_sync(0xffffffffu, b, o);
+  }
+  if ((threadIdx.x & 31) == 0) warp_sums[threadIdx.x >> 5] = make_double2(a, b);
+  __syncthreads();
+  double2 t = make_double2(0.0, 0.0);
+  if (threadIdx.x < 32) {
+    t = threadIdx.x < kReduceBlock / 32 ? warp_sums[threadIdx.x] : t;
+    for (int o = 16; o > 0; o >>= 1) {
+      t.x += __shfl_down_sync(0xffffffffu, t.x, o);
+      t.y += __shfl_down_sync(0xffffffffu, t.y, o);
+    }
+  }
+  __syncthreads();  // warp_sums may be written again
+  return t;
+}
+
+// The object's totals over its chunk sums (gamma, delta of one parity), in every thread: the
+// whole block loads them at once (one L2 round trip), then one reduction of both.
+__device__ inline double2 object_totals(const CGPlan& plan, int64_t object, const double* gamma_sums,
+                                        const double* delta_sums) {
+  __shared__ double2 total;
+  double a = 0.0, b = 0.0;
+  for (int64_t c = plan.object_chunk[object] + threadIdx.x; c < plan.object_chunk[object + 1]; c += kReduceBlock) {
+    a += gamma_sums[c];
+    b += delta_sums[c];
+  }
+  const double2 t = block_sum_pair(a, b);
+  if (threadIdx.x == 0) total = t;
+  __syncthreads();
+  const double2 out = total;
+  __syncthreads();
+  return out;
+}
+
+template <class K, typename S>
+__global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k, const CGPlan plan,
+                                                                        const PipelinedSolve<S> s) {
+  constexpr int D = K::kDim;
+  constexpr int W = ExchangeRow<D, S>::kWidth;
+  using Row = ExchangeRow<D, S>;
+  namespace coop = cooperative_groups;
+  coop::grid_group grid = coop::this_grid();
+  const int64_t V = plan.num_nodes, K_chunks = plan.num_chunks;
+  const int tid = threadIdx.x, lane = tid % kLanes;
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+  const bool first_chunk = chunk == plan.object_chunk[object];
+  const int64_t begin = plan.chunk_start[chunk], end = plan.chunk_start[chunk + 1];
+  const int64_t i = begin + tid / kLanes;
+  const bool own = i < end;
+  const bool single_object = plan.num_objects == 1;
+  if (blockIdx.x == 0 && tid < 3) s.counters[tid] = 0;  // before the first barrier; counted after it
+
+  // The chunk's slots into shared memory: offsets by a scan of the slot counts.
+  extern __shared__ __align__(16) unsigned char solve_shared[];
+  S* shared_k = reinterpret_cast<S*>(solve_shared);
+  int32_t* shared_neighbor = reinterpret_cast<int32_t*>(shared_k + s.chunk_slots * (D * D));
+  __shared__ int32_t slot_offset[kSolveChunkNodes + 1];
+  const auto& graph = k.graph;
+  const int count = own ? static_cast<int>(ld(graph.incidences + i)) : 0;
+  if (tid < kSolveChunkNodes) slot_offset[tid + 1] = begin + tid < end ? static_cast<int32_t>(ld(graph.incidences + begin + tid)) : 0;
+  if (tid == 0) slot_offset[0] = 0;
+  __syncthreads();
+  if (tid == 0) {  // 128 adds: once per solve
+    for (int q = 1; q <= kSolveChunkNodes; ++q) slot_offset[q] += slot_offset[q - 1];
+  }
+  __syncthreads();
+  // A chunk beyond the layout the caller promised (more nodes or slots) solves nothing: its
+  // object's b.b is made NaN, so the object stops at the start as non-finite and says so.
+  const bool layout_ok = end - begin <= kSolveChunkNodes && slot_offset[kSolveChunkNodes] <= s.chunk_slots;
+  const int first = own ? slot_offset[i - begin] : 0;
+  if (own && layout_ok) {
+    for (int q = lane; q < count; q += kLanes) {
+      shared_neighbor[first + q] = static_cast<int32_t>(ld(graph.neighbor + q * V + i));
+      TM_UNROLL for (int e = 0; e < D * D; ++e) shared_k[(first + q) * (D * D) + e] = ld(graph.node_k + (q * V + i) * (D * D) + e);
+    }
+  }
+  __syncthreads();
+  const SharedGraph<D, S> shared{shared_k, shared_neighbor};
+
+  // The node's own constants and state, in registers for the whole solve.
+  S k_own[D][D], m_own = S(0), f_own = S(0);
+  S x[D], p[D], sv[D], r[D], w[D];
+  if (own) k.epilogue.load_node(i, k_own, m_own, f_own);
+  const S c_stiff = k.epilogue.c_stiff;
+  const S* rhs = s.rhs;
+  const S* free = k.epilogue.free;
+  auto projected_rhs = [=](int64_t j, S (&out)[D]) {
+    const S fj = free != nullptr ? free[j] : S(1);
+    TM_UNROLL for (int a = 0; a < D; ++a) out[a] = free != nullptr ? rhs[j * D + a] * fj : rhs[j * D + a];
+  };
+
+  // Start: x = p = s = 0, r_0 = projected rhs, w_0 = A r_0 (the neighbours' r_0 read from rhs).
+  double gamma_part = 0.0, delta_part = 0.0;
+  TM_UNROLL for (int a = 0; a < D; ++a) x[a] = p[a] = sv[a] = r[a] = w[a] = S(0);
+  if (own) {
+    projected_rhs(i, r);
+    S acc[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
+    if (layout_ok) shared.add_forces(first, count, lane, r, projected_rhs, acc);
+    lanes_total<D, S>(acc);
+    k.epilogue.row(k_own, m_own, f_own, c_stiff, r, acc, w);
+    if (lane == 0) {
+      Row::store(s.exchange + i * W, r, w, sv);
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        gamma_part += static_cast<double>(r[a]) * static_cast<double>(r[a]);
+        delta_part += static_cast<double>(w[a]) * static_cast<double>(r[a]);
+      }
+    }
+  }
+  {
+    const double2 t = block_sum_pair(gamma_part, delta_part);
+    if (tid == 0) {
+      s.sums[chunk] = layout_ok ? t.x : __longlong_as_double(0x7ff8000000000000LL);
+      s.sums[K_chunks + chunk] = t.y;
+    }
+  }
+  grid.sync();
+
+  // The object's scalars, the same in every block of the object (computed from the same sums).
+  int32_t status = kActive, iterations = 0;
+  S rr = S(0), alpha = S(0), beta = S(0), threshold = S(0);
+  for (int64_t it = 0;; ++it) {
+    const int parity = static_cast<int>(it & 1);
+    if (it > 0 && !single_object) {  // every object stopped in the last iteration: all leave together
+      if (*reinterpret_cast<volatile int32_t*>(s.counters + (it - 1) % 3) == 0) break;
+      if (blockIdx.x == 0 && tid == 0) s.counters[(it + 1) % 3] = 0;  // read two iterations ago
+    }
+    bool stepping = false;
+    if (it == 0 || status == kActive) {
+      const double2 totals = object_totals(plan, object, s.sums + parity * 2 * K_chunks,
+                                           s.sums + parity * 2 * K_chunks + K_chunks);
+      if (it == 0) {
+        rr = static_cast<S>(totals.x);
+        threshold = rr * s.tol_sq;
+        status = cg_start_status<S>(rr, threshold, s.max_iter);
+        if (first_chunk && tid == 0) {
+          s.rhs_sq[object] = rr;
+          s.threshold[object] = threshold;
+        }
+        beta = S(0);
+      } else {
+        beta = cg_beta_step<S>(totals.x, rr, threshold, s.max_iter, status, iterations);
+      }
+      if (status == kActive) {
+        alpha = cg_pipelined_alpha<S>(totals.x, totals.y, beta, alpha, it == 0, rr, status);
+        stepping = status == kActive;
+      }
+    }
+    if (single_object && !stepping) break;  // every block knows: the one object stopped
+    if (stepping) {
+      const S* row_in = s.exchange + parity * V * W;
+      S* row_out = s.exchange + (1 - parity) * V * W;
+      double g = 0.0, dl = 0.0;
+      if (own) {
+        S r_next[D], acc[D], w_next[D];
+        TM_UNROLL for (int a = 0; a < D; ++a) {
+          r_next[a] = next_residual(r[a], w[a], sv[a], alpha, beta);
+          acc[a] = S(0);
+        }
+        const S a_step = alpha, b_step = beta;
+        shared.add_forces(first, count, lane, r_next, [=](int64_t j, S (&out)[D]) {
+          S rj[D], wj[D], sj[D];
+          Row::load(row_in + j * W, rj, wj, sj);
+          TM_UNROLL for (int a = 0; a < D; ++a) out[a] = next_residual(rj[a], wj[a], sj[a], a_step, b_step);
+        }, acc);
+        lanes_total<D, S>(acc);
+        k.epilogue.row(k_own, m_own, f_own, c_stiff, r_next, acc, w_next);
+        TM_UNROLL for (int a = 0; a < D; ++a) {
+          p[a] = r[a] + beta * p[a];
+          x[a] += alpha * p[a];
+          sv[a] = fma(beta, sv[a], w[a]);
+          r[a] = r_next[a];
+          w[a] = w_next[a];
+        }
+        if (lane == 0) {
+          Row::store(row_out + i * W, r, w, sv);
+          TM_UNROLL for (int a = 0; a < D; ++a) {
+            g += static_cast<double>(r[a]) * static_cast<double>(r[a]);
+            dl += static_cast<double>(w[a]) * static_cast<double>(r[a]);
+          }
+        }
+      }
+      const double2 t = block_sum_pair(g, dl);
+      if (tid == 0) {
+        const int out = 1 - parity;
+        s.sums[out * 2 * K_chunks + chunk] = t.x;
+        s.sums[out * 2 * K_chunks + K_chunks + chunk] = t.y;
+        if (first_chunk && !single_object) atomicAdd(s.counters + it % 3, 1);
+      }
+    }
+    grid.sync();
+  }
+
+  // The solve's outcome: the iterates, and the object's scalars from its first chunk's block.
+  if (own && lane == 0) {
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      s.x[i * D + a] = x[a];
+      s.r[i * D + a] = r[a];
+      s.p[i * D + a] = p[a];
+    }
+  }
+  if (first_chunk && tid == 0) {
+    s.rr[object] = rr;
+    s.status[object] = status;
+    s.iterations[object] = iterations;
+    s.alpha[object] = alpha;
+    s.beta[object] = beta;
+  }
+}
+
+// Launches the pipelined solve: one block per chunk, all resident at once (a cooperative launch),
+// with the chunk's slots in dynamic shared memory. Returns false, having launched nothing, where
+// that does not fit on the device (too many chunks or slots): the caller solves another way.
+template <class K, typename S>
+bool launch_pipelined_cg(const CGPlan& plan, const K& k, const PipelinedSolve<S>& s) {
+  constexpr int D = K::kDim;
+  const auto* props = at::cuda::getCurrentDeviceProperties();
+  const size_t shared_bytes =
+      static_cast<size_t>(s.chunk_slots) * (D * D * sizeof(S) + sizeof(int32_t)) + 16;
+  if (plan.num_chunks == 0 || plan.num_nodes > INT32_MAX || s.chunk_slots > INT32_MAX / (D * D) ||
+      shared_bytes > props->sharedMemPerBlockOptin) {
+    return false;
+  }
+  const void* kernel = reinterpret_cast<const void*>(&pipelined_cg_kernel<K, S>);
+  static size_t shared_allowed = 0;  // per kernel instantiation
+  if (shared_bytes > shared_allowed) {
+    C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                        static_cast<int>(shared_bytes)));
+    shared_allowed = shared_bytes;
+  }
+  int blocks_per_sm = 0;
+  C10_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks_per_sm, kernel, kReduceBlock, shared_bytes));
+  if (static_cast<int64_t>(blocks_per_sm) * props->multiProcessorCount < plan.num_chunks) return false;
+  K kernel_k = k;
+  CGPlan kernel_plan = plan;
+  PipelinedSolve<S> kernel_s = s;
+  void* args[] = {&kernel_k, &kernel_plan, &kernel_s};
+  C10_CUDA_CHECK(cudaLaunchCooperativeKernel(kernel, dim3(static_cast<unsigned>(plan.num_chunks)), dim3(kReduceBlock),
+                                             args, shared_bytes, at::cuda::getCurrentCUDAStream()));
+  return true;
+}
+
+}  // namespace tensormass

@@ -1,0 +1,193 @@
+"""The pipelined whole CG solve (hooke_node_solve through native.system_solve: Chronopoulos-Gear's
+CG, one reduction and one grid barrier an iteration, one persistent kernel on the GPU).
+
+Its oracle is the two-reduction CG op by op (CGSolver.start + _iterate) in float64: the same
+iterates in exact arithmetic, so the solutions agree to rounding and the statuses (converged,
+capped, breakdown, b = 0) and iteration counts per object of a batch are the same. It runs where
+whole solves run (CGSolver.begin/solve, implicit steps); elsewhere (the CPU, a plan beyond one
+wave of the GPU) the op returns False having changed nothing; a chunk beyond the layout its
+caller promised ends its object as non-finite; bad inputs are rejected with nothing changed."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tensormass_torch import native, scenes
+from tensormass_torch.solver import cg_ops
+from tensormass_torch.solver.segments import ChunkPlan
+
+from test_cg_one_op import FIELDS, fresh_solver, make_system, op_by_op, state_of
+
+pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_solve"),
+                                reason="needs the extension with hooke_node_solve")
+gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="the pipelined solve is a GPU kernel")
+
+
+def pipelined(system, matvec, rhs, tol, max_iter):
+    """A whole solve through CGSolver.begin; asserts that it ran as the pipelined op."""
+    cg = fresh_solver(system, rhs)
+    cg.begin(matvec, rhs, tol, max_iter, max_iter)
+    assert "_solve_work" in cg.state.__dict__, "the solve did not take the pipelined op"
+    return state_of(cg)
+
+
+def reference(rhs, tol, max_iter, contact=False, mass_coef=1.02):
+    """The float64 two-reduction CG on the same system."""
+    system, matvec, _ = make_system(torch.float64, rhs.device, contact=contact, mass_coef=mass_coef)
+    return op_by_op(system, matvec, rhs.double(), tol, max_iter, (max_iter,))
+
+
+def rel(a, b):
+    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-300))
+
+
+@gpu
+@pytest.mark.parametrize("tol,max_iter", [(1e-8, 300), (0.0, 10), (0.0, 1)])
+def test_float64_matches_the_two_reduction_cg(tol, max_iter):
+    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False)
+    got = pipelined(system, matvec, rhs, tol, max_iter)
+    want = reference(rhs, tol, max_iter)
+    assert rel(got["x"], want["x"]) < 1e-9
+    assert rel(got["r"], want["r"]) < 1e-5
+    assert torch.equal(got["status"], want["status"])
+    assert torch.equal(got["iterations"], want["iterations"])
+    assert torch.allclose(got["rhs_sq"], want["rhs_sq"], rtol=1e-12)
+    assert torch.allclose(got["threshold"], want["threshold"], rtol=1e-12)
+
+
+@gpu
+@pytest.mark.parametrize("contact", [False, True])
+def test_float32_is_as_close_to_float64_as_the_two_reduction_cg(monkeypatch, contact):
+    """SOFA's budget (tol = 0, 10 iterations): both float32 solvers round; neither much worse."""
+    system64, _, rhs64 = make_system(torch.float64, "cuda", contact=contact)
+    system, matvec, _ = make_system(torch.float32, "cuda", contact=contact)
+    rhs = rhs64.float()
+    want = reference(rhs, 0.0, 10, contact=contact)
+    got = pipelined(system, matvec, rhs, 0.0, 10)
+    monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
+    plain = op_by_op(system, matvec, rhs, 0.0, 10, (10,))
+    err_pipelined, err_plain = rel(got["x"], want["x"]), rel(plain["x"], want["x"])
+    assert err_pipelined < max(10 * err_plain, 1e-5), (err_pipelined, err_plain)
+    assert got["status"].tolist() == [cg_ops.CAPPED] * 3 and got["iterations"].tolist() == [10] * 3
+
+
+@gpu
+def test_per_object_statuses_zero_rhs_and_breakdown():
+    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False)
+    rhs[system.segments.node_object == 1] = 0.0
+    got = pipelined(system, matvec, rhs, 1e-7, 600)
+    want = reference(rhs, 1e-7, 600)
+    assert got["status"].tolist() == [cg_ops.CONVERGED] * 3 and int(got["iterations"][1]) == 0
+    assert torch.equal(got["iterations"], want["iterations"])
+    assert float(got["x"][system.segments.node_object == 1].abs().max()) == 0.0
+    assert rel(got["x"], want["x"]) < 1e-9
+
+    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False, mass_coef=-1.0)  # indefinite
+    got = pipelined(system, matvec, rhs, 1e-8, 50)
+    want = reference(rhs, 1e-8, 50, mass_coef=-1.0)
+    assert torch.equal(got["status"], want["status"]) and bool((got["status"] == cg_ops.BREAKDOWN).any())
+    assert torch.equal(got["iterations"], want["iterations"])
+
+
+@gpu
+def test_solves_and_steps_take_it_and_the_switch_turns_it_off(monkeypatch):
+    system, matvec, rhs = make_system(torch.float32, "cuda")
+    result = system.cg_solver(rhs, cuda_graphs=False).solve(matvec, rhs, tol=1e-5, max_iter=300)
+    assert bool(result.converged.all()) and "_solve_work" in system._cg.state.__dict__
+    monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
+    cg = fresh_solver(system, rhs)
+    cg.begin(matvec, rhs, 1e-5, 300, 300)
+    assert "_solve_work" not in cg.state.__dict__
+    assert rel(cg.state.x, result.solution) < 1e-4
+
+
+def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
+    """hooke_node_solve on cg's state over ``plan`` with ``slots``; keyword changes replace arguments."""
+    group = system.model.groups[0]
+    neighbor, node_k = native.hooke_node_graph(group)
+    _, _, incidences = native._plan_indices(group.plan)
+    s = cg.state
+    args = dict(neighbor=neighbor, node_k=node_k, incidences=incidences, mass=system.mass.reshape(-1),
+                free=system.free.reshape(-1), c_mass=1.02, c_stiff=2e-4, node_stiffness=matvec.node_stiffness,
+                rhs=rhs, tol_sq=0.0, chunk_start=plan.chunk_start, chunk_object=plan.chunk_object,
+                object_chunk=plan.object_chunk, chunk_slots=slots, max_iter=10, x=s.x, r=s.r, p=s.p,
+                threshold=s.threshold, rhs_sq=s.rhs_sq, rr=s.rr, status=s.status, alpha=s.alpha, beta=s.beta,
+                iterations=s.iterations,
+                exchange=torch.zeros(2, rhs.shape[0], 4 * rhs.shape[1], dtype=rhs.dtype, device=rhs.device),
+                sums=torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=rhs.device),
+                counters=torch.zeros(3, dtype=torch.int32, device=rhs.device))
+    args.update(changes)
+    return torch.ops.tensormass.hooke_node_solve(*args.values())
+
+
+@gpu
+def test_a_plan_beyond_one_wave_is_not_run_and_changes_nothing():
+    sim = scenes.sofa_beam(device="cuda", scale=3).simulator  # 936 nodes: one chunk each is too many
+    system = sim.system
+    matvec = system.system_matvec(1.02, 2e-4).load(sim.x)
+    rhs = torch.randn_like(sim.x)
+    cg = fresh_solver(system, rhs)
+    plan = ChunkPlan.from_segments(system.segments, 1)
+    before = state_of(cg)
+    assert not direct_call(system, matvec, rhs, cg, plan, native.chunk_slots(system.model.groups[0], plan))
+    for k in FIELDS:
+        assert torch.equal(state_of(cg)[k], before[k]), k
+
+
+@gpu
+def test_a_chunk_beyond_the_promised_layout_ends_its_object_as_non_finite():
+    system, matvec, rhs = make_system(torch.float32, "cuda", contact=False)
+    cg = fresh_solver(system, rhs)
+    plan = native.solve_plan(cg.plan)
+    slots = native.chunk_slots(system.model.groups[0], plan)
+    assert direct_call(system, matvec, rhs, cg, plan, slots - 1)
+    status = cg.state.status.tolist()
+    assert cg_ops.NONFINITE in status, status  # the object of the chunk with the most slots
+    assert direct_call(system, matvec, rhs, cg, plan, slots)
+    assert cg.state.status.tolist() == [cg_ops.CAPPED] * 3
+
+
+def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
+    system, matvec, rhs = make_system(torch.float64, "cpu")
+    cg = fresh_solver(system, rhs)
+    before = state_of(cg)
+    plan = native.solve_plan(cg.plan)
+    assert not direct_call(system, matvec, rhs, cg, plan, native.chunk_slots(system.model.groups[0], plan))
+    assert not native.system_solve(system.model.groups[0], system.mass.reshape(-1), system.free.reshape(-1), 1.0,
+                                   1e-4, None, rhs, 1e-6, cg.plan, cg.state, 10)
+    for k in FIELDS:
+        assert torch.equal(state_of(cg)[k], before[k]), k
+
+
+def test_the_solve_plan_and_its_slots():
+    system, _, rhs = make_system(torch.float64, "cpu")
+    cg = fresh_solver(system, rhs)
+    plan = native.solve_plan(cg.plan)
+    assert native.solve_plan(cg.plan) is plan  # cached
+    sizes = plan.chunk_start[1:] - plan.chunk_start[:-1]
+    assert int(sizes.max()) <= native.SOLVE_CHUNK_NODES
+    group = system.model.groups[0]
+    _, _, incidences = native._plan_indices(group.plan)
+    want = max(int(incidences[a:b].sum()) for a, b in zip(plan.chunk_start[:-1].tolist(), plan.chunk_start[1:].tolist()))
+    assert native.chunk_slots(group, plan) == want
+
+
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def test_bad_inputs_are_rejected_with_nothing_changed(device):
+    system, matvec, rhs = make_system(torch.float32, device)
+    cg = fresh_solver(system, rhs)
+    plan = native.solve_plan(cg.plan)
+    slots = native.chunk_slots(system.model.groups[0], plan)
+    before = state_of(cg)
+    cases = [(dict(exchange=torch.zeros(2, rhs.shape[0], 3 * rhs.shape[1], device=device)), "exchange has shape"),
+             (dict(sums=torch.zeros(3, dtype=torch.float64, device=device)), "sums has shape"),
+             (dict(counters=torch.zeros(3, dtype=torch.int64, device=device)), "counters is Long"),
+             (dict(max_iter=-1), "max_iter must be >= 0"),
+             (dict(chunk_slots=-1), "chunk_slots must be >= 0"),
+             (dict(x=cg.state.x[:-1]), "x has shape"),
+             (dict(status=cg.state.status.float()), "status is Float")]
+    for change, message in cases:
+        with pytest.raises(RuntimeError, match=message):
+            direct_call(system, matvec, rhs, cg, plan, slots, **change)
+    for k in FIELDS:
+        assert torch.equal(state_of(cg)[k], before[k]), k
