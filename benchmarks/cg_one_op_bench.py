@@ -7,7 +7,7 @@ the one op (~60 us: benchmarks inside a captured step do not pay it). Chunkings 
 than the persistent kernel has resident blocks have no one-op path (native.persistent_cg_fits).
 
     python benchmarks/cg_one_op_bench.py [--out DIR]        # on the GPU machine
-    python benchmarks/cg_one_op_bench.py --slope            # time per iteration of the one op
+    python benchmarks/cg_one_op_bench.py --slope            # time per iteration: pipelined vs two-reduction
     ncu --clock-control none -k regex:persistent_cg -c 1 --section WarpStateStats \
         --section SpeedOfLight python benchmarks/cg_one_op_bench.py --once
 """
@@ -25,6 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
 from step_bench import paper_beam, sofa  # noqa: E402
 
+from tensormass_torch import native  # noqa: E402
 from tensormass_torch.solver.cg import CGSolver  # noqa: E402
 
 SCENES = {"sofa_beam": sofa, "paper_beam": paper_beam}
@@ -68,24 +69,28 @@ def measure(scene_name: str, iterations: int, chunk_nodes, repeats: int):
 
 
 def slope(scene_name: str, repeats: int, counts=(0, 10, 20, 40)):
-    """The one-op solve's time per iteration: (t(40 iterations) - t(20)) / 20, launch cancelled out."""
+    """The whole solve's time per iteration: (t(40 iterations) - t(20)) / 20, launch cancelled
+    out; for the pipelined CG (hooke_node_solve), then the two-reduction persistent CG
+    (hooke_node_cg) with its neighbour cache on and off, then the pipelined again (drift)."""
     sim = SCENES[scene_name]("hooke", "cuda", torch.float32)
     system = sim.system
     rhs = torch.randn_like(sim.x)
     matvec = system.system_matvec(1.0, sim.options.dt ** 2).load(sim.x)
     cg = CGSolver(system.segments, rhs.shape, rhs.dtype, rhs.device, system.free)
-    for cache in ("1", "0", "1"):  # the neighbour cache in shared memory on, off, on again (drift)
+    for pipelined, cache in ((True, "1"), (False, "1"), (False, "0"), (True, "1")):
+        native.PIPELINED_SOLVE = pipelined
         os.environ["TENSORMASS_NEIGHBOR_CACHE"] = cache
         times = {}
         for count in counts:
-            work = lambda: cg.begin(matvec, rhs, 0.0, 1000, count)  # noqa: E731
+            work = lambda: cg.begin(matvec, rhs, 0.0, count, count)  # noqa: E731 (a whole solve of count)
             work()
             times[count] = event_time_us(work, repeats)
         per_iteration = (times[counts[-1]] - times[counts[-2]]) / (counts[-1] - counts[-2])
-        print(f"{scene_name} (neighbour cache {'on' if cache == '1' else 'off'}): "
-              + ", ".join(f"{c} it {t:.1f} us" for c, t in times.items())
+        name = "pipelined CG" if pipelined else f"two-reduction CG, neighbour cache {'on' if cache == '1' else 'off'}"
+        print(f"{scene_name} ({name}): " + ", ".join(f"{c} it {t:.1f} us" for c, t in times.items())
               + f"; {per_iteration:.1f} us per iteration", flush=True)
     os.environ.pop("TENSORMASS_NEIGHBOR_CACHE")
+    native.PIPELINED_SOLVE = True
 
 
 def main():

@@ -1,12 +1,12 @@
 """Where a graphed SOFA-beam step spends its time: wall per step over 100 steps, then the CUDA
 kernels of 5 steps (torch.profiler table, to stdout).
 
-    python benchmarks/profile_step.py > profile.txt        # on the GPU machine
+    python benchmarks/profile_step.py [MODEL ...] > profile.txt   # on the GPU machine (hooke corotational)
 """
 import sys, time, torch
 sys.path.insert(0, "benchmarks")
 from tensormass_torch.scenes import sofa_beam
-for model in ("hooke", "corotational"):
+for model in sys.argv[1:] or ("hooke", "corotational"):
     sim = sofa_beam(model=model, device="cuda").simulator
     sim.options.cg_tol = 0.0
     sim.options.check_every = 1000

@@ -47,7 +47,9 @@ def test_float64_matches_the_two_reduction_cg(tol, max_iter):
     system, matvec, rhs = make_system(torch.float64, "cuda", contact=False)
     got = pipelined(system, matvec, rhs, tol, max_iter)
     want = reference(rhs, tol, max_iter)
-    assert rel(got["x"], want["x"]) < 1e-9
+    # converged solves agree to what the tolerance leaves (x differs by ~ cond * tol * rounding of the
+    # last steps); fixed budgets to rounding
+    assert rel(got["x"], want["x"]) < (1e-7 if tol else 1e-10)
     assert rel(got["r"], want["r"]) < 1e-5
     assert torch.equal(got["status"], want["status"])
     assert torch.equal(got["iterations"], want["iterations"])
