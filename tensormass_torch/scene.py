@@ -317,9 +317,7 @@ class Simulator:
         """Up to ``count`` steps chained on the device; commits the steps before the first failed
         one (if any) and returns how many were committed."""
         summaries = graphs.run_steps(self.x, self.v, count)
-        ok = 0
-        while ok < count and not graphs.failure(summaries[ok]):
-            ok += 1
+        ok = graphs.first_failure(summaries)
         if 0 < ok < count:  # the state before the failed step: the good steps again (deterministic)
             summaries = graphs.run_steps(self.x, self.v, ok)
         if ok:

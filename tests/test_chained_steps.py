@@ -1,4 +1,4 @@
-"""Chained steps (Simulator.step(n) on the GPU: up to 64 steps with one host synchronisation,
+"""Chained steps (Simulator.step(n) on the GPU: up to MAX_CHAIN steps with one host synchronisation,
 StepGraphs.run_steps) give the same states as one step at a time, bitwise, and a failed step in a
 chain raises with the state of the step before it. Run here on the CPU: the step graphs are built
 on the CPU and their phases run eagerly (the CUDA capture itself is tested in test_cuda_graphs.py)."""
@@ -78,21 +78,33 @@ def test_failure_inside_a_chain_commits_the_steps_before_it(graphs_on_cpu, monke
     one at a time."""
     chained, single = make_sim(), make_sim()
     graphs = implicit_euler.step_graphs_for(chained.system, chained.options, False)
-    flagged = []
-    real_failure = StepGraphs.failure
+    chains = []
+    real_first_failure = StepGraphs.first_failure
 
-    def failure(self, summary):
-        calls = len(flagged)
-        flagged.append(calls)
-        return calls == 3 or real_failure(self, summary)  # the 4th step of the first chain
+    def first_failure(self, summaries):
+        chains.append(summaries.shape[0])
+        found = real_first_failure(self, summaries)
+        return min(found, 3) if len(chains) == 1 else found  # the 4th step of the first chain
 
-    monkeypatch.setattr(StepGraphs, "failure", failure)
+    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
     chained.step(8)
     for _ in range(8):
         single.step()
     assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
     assert chained.steps_done == 8 and chained.time == single.time
     assert graphs is implicit_euler.step_graphs_for(chained.system, chained.options, False)
+    assert chains[0] == 8 and len(chains) == 2  # the first chain, then the rest after the lone step
+
+
+def test_first_failure_finds_the_first_failed_step(graphs_on_cpu):
+    sim = make_sim()
+    graphs = implicit_euler.step_graphs_for(sim.system, sim.options, False)
+    summaries = torch.zeros(6, 5, 3, dtype=torch.float64)
+    summaries[:, 0] = cg_ops.CAPPED
+    assert graphs.first_failure(summaries) == 6 and not graphs.failure(summaries[0])
+    summaries[4, 0, 2] = cg_ops.BREAKDOWN
+    summaries[5, 4, 0] = float("nan")
+    assert graphs.first_failure(summaries) == 4 and graphs.failure(summaries[4]) and graphs.failure(summaries[5])
 
 
 def test_failed_chain_raises_and_keeps_the_state(graphs_on_cpu):

@@ -50,7 +50,8 @@ def test_float64_matches_the_two_reduction_cg(tol, max_iter):
     # converged solves agree to what the tolerance leaves (x differs by ~ cond * tol * rounding of the
     # last steps); fixed budgets to rounding
     assert rel(got["x"], want["x"]) < (1e-7 if tol else 1e-10)
-    assert rel(got["r"], want["r"]) < 1e-5
+    # r against b: both converged r are below tol |b|, their difference too
+    assert float((got["r"] - want["r"]).norm()) < (tol if tol else 1e-10) * float(want["rhs_sq"].sum().sqrt())
     assert torch.equal(got["status"], want["status"])
     assert torch.equal(got["iterations"], want["iterations"])
     assert torch.allclose(got["rhs_sq"], want["rhs_sq"], rtol=1e-12)
@@ -82,7 +83,7 @@ def test_per_object_statuses_zero_rhs_and_breakdown():
     assert got["status"].tolist() == [cg_ops.CONVERGED] * 3 and int(got["iterations"][1]) == 0
     assert torch.equal(got["iterations"], want["iterations"])
     assert float(got["x"][system.segments.node_object == 1].abs().max()) == 0.0
-    assert rel(got["x"], want["x"]) < 1e-9
+    assert rel(got["x"], want["x"]) < 1e-7
 
     system, matvec, rhs = make_system(torch.float64, "cuda", contact=False, mass_coef=-1.0)  # indefinite
     got = pipelined(system, matvec, rhs, 1e-8, 50)

@@ -112,7 +112,10 @@ struct SharedGraph {
         const int s = lane + (t0 + q) * kLanes;
         if (s >= count) break;
         S k[D][D], f[2][D];
-        load_matrix<D, D, S>(node_k + static_cast<int64_t>(first + s) * (D * D), k);
+        const S* slot_k = node_k + (first + s) * (D * D);  // shared memory: plain loads (ld() is global-only)
+        TM_UNROLL for (int a = 0; a < D; ++a) {
+          TM_UNROLL for (int b = 0; b < D; ++b) k[a][b] = slot_k[a * D + b];
+        }
         tensor_hooke_edge<D, S>(k, wi, wj[q], f);
         TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
       }
@@ -227,12 +230,14 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
   // Start: x = p = s = 0, r_0 = projected rhs, w_0 = A r_0 (the neighbours' r_0 read from rhs).
   double gamma_part = 0.0, delta_part = 0.0;
   TM_UNROLL for (int a = 0; a < D; ++a) x[a] = p[a] = sv[a] = r[a] = w[a] = S(0);
+  S acc[D];
+  TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
   if (own) {
     projected_rhs(i, r);
-    S acc[D];
-    TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
     if (layout_ok) shared.add_forces(first, count, lane, r, projected_rhs, acc);
-    lanes_total<D, S>(acc);
+  }
+  lanes_total<D, S>(acc);  // by every thread: the shuffles take whole warps, a chunk's last may be part-empty
+  if (own) {
     k.epilogue.row(k_own, m_own, f_own, c_stiff, r, acc, w);
     if (lane == 0) {
       Row::store(s.exchange + i * W, r, w, sv);
@@ -286,19 +291,21 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
       const S* row_in = s.exchange + parity * V * W;
       S* row_out = s.exchange + (1 - parity) * V * W;
       double g = 0.0, dl = 0.0;
+      S r_next[D], w_next[D];
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        r_next[a] = next_residual(r[a], w[a], sv[a], alpha, beta);
+        acc[a] = S(0);
+      }
       if (own) {
-        S r_next[D], acc[D], w_next[D];
-        TM_UNROLL for (int a = 0; a < D; ++a) {
-          r_next[a] = next_residual(r[a], w[a], sv[a], alpha, beta);
-          acc[a] = S(0);
-        }
         const S a_step = alpha, b_step = beta;
         shared.add_forces(first, count, lane, r_next, [=](int64_t j, S (&out)[D]) {
           S rj[D], wj[D], sj[D];
           Row::load(row_in + j * W, rj, wj, sj);
           TM_UNROLL for (int a = 0; a < D; ++a) out[a] = next_residual(rj[a], wj[a], sj[a], a_step, b_step);
         }, acc);
-        lanes_total<D, S>(acc);
+      }
+      lanes_total<D, S>(acc);
+      if (own) {
         k.epilogue.row(k_own, m_own, f_own, c_stiff, r_next, acc, w_next);
         TM_UNROLL for (int a = 0; a < D; ++a) {
           p[a] = r[a] + beta * p[a];

@@ -341,6 +341,9 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
                           status, report)
 
 
+#: The most steps chained with one host synchronisation (rows of StepGraphs' summary ring, for
+#: small batches; fewer for large ones: the ring holds at most 2^17 object summaries).
+MAX_CHAIN = 512
 #: Chained steps captured in one CUDA graph (StepGraphs.run_steps).
 STEPS_PER_GRAPH = 8
 
@@ -383,9 +386,12 @@ class StepGraphs:
         # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
         # ``ring`` (a device counter: the captured graph needs no host index), and the new state
         # is copied back into x, v on the device, so steps follow each other with no host sync.
+        # The ring's rows bound a chain: the host's work between chains (one copy of the ring,
+        # the failure check) idles the GPU, so rows are many where they are cheap (a small batch:
+        # the SOFA beam lost ~50 us a step between chains of 64).
         objects = self.norms.numel()
-        self.ring = torch.zeros(max(1, min(64, 2 ** 17 // max(objects, 1))), 5, objects, dtype=torch.float64,
-                                device=like.device)
+        self.ring = torch.zeros(max(1, min(MAX_CHAIN, 2 ** 17 // max(objects, 1))), 5, objects,
+                                dtype=torch.float64, device=like.device)
         self.ring_pos = torch.zeros(1, dtype=torch.long, device=like.device)
         # euler_update's object counters, and one for the objects done (zero between calls)
         self.update_counter = torch.zeros(objects + 1, dtype=torch.int32, device=like.device)
@@ -460,11 +466,17 @@ class StepGraphs:
 
     def failure(self, summary: torch.Tensor) -> bool:
         """Whether the step of this summary ``[5, B]`` failed (what :meth:`step` raises on)."""
-        status, norms = summary[0], summary[4]
+        return self.first_failure(summary[None]) == 0
+
+    def first_failure(self, summaries: torch.Tensor) -> int:
+        """The index of the first failed step of ``summaries [n, 5, B]`` (host), or n if none
+        failed: one vectorised check (a chain's steps are checked together)."""
+        status, norms = summaries[:, 0], summaries[:, 4]
         bad = (status == cg_ops.BREAKDOWN) | (status == cg_ops.NONFINITE) | ~torch.isfinite(norms)
         if self.opts.require_convergence:
             bad |= status != cg_ops.CONVERGED
-        return bool(bad.any())
+        failed = bad.any(dim=1).nonzero()
+        return int(failed[0, 0]) if failed.numel() else summaries.shape[0]
 
     def step(self, x, v, imposed_velocity=None):
         """One step from ``x, v [V, d]`` (``imposed_velocity [V, d]`` or None, as
