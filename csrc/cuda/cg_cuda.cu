@@ -181,7 +181,6 @@ void euler_update_cuda(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c
   if (plan.num_chunks == 0) return;
   c10::cuda::CUDAGuard guard(x.device());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "euler_update", [&] {
-    prefer_shared_carveout(reinterpret_cast<const void*>(&euler_update_kernel<scalar_t>));
     euler_update_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
         euler_update_of<scalar_t>(x, v, dv, dv_imposed, h, x_new, v_new, carry),
         step_summary_of<scalar_t>(status, iterations, rr, rhs_sq, norms, summary, ring, ring_pos), plan,

@@ -10,27 +10,12 @@
 #include <c10/cuda/CUDAException.h>
 
 #include <cstdint>
-#include <cstdlib>
 
 #include "../cg.h"
 
 namespace tensormass {
 
 constexpr int kReduceBlock = 256;
-
-// A benchmark switch, read once: TENSORMASS_SMEM_CARVEOUT=1 asks the kernels that call this for
-// the largest shared-memory carveout (that of the pipelined CG), so that an SM need not be
-// reconfigured between a step's kernels (does it cost? benchmarks/step_gaps.py measures).
-inline void prefer_shared_carveout(const void* kernel) {
-  static const bool on = [] {
-    const char* v = std::getenv("TENSORMASS_SMEM_CARVEOUT");
-    return v != nullptr && v[0] == '1';
-  }();
-  if (on) {
-    C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributePreferredSharedMemoryCarveout,
-                                        cudaSharedmemCarveoutMaxShared));
-  }
-}
 
 // Sum over the block in a fixed order; the result is valid in thread 0.
 __device__ inline double block_sum(double v) {

@@ -30,7 +30,6 @@ struct CudaLauncher {
   static void run(int64_t n, const K& k, int64_t block) {
     if (n <= 0) return;
     const int64_t grid = (n + block - 1) / block;
-    prefer_shared_carveout(reinterpret_cast<const void*>(&for_each_item<K>));
     for_each_item<K><<<static_cast<unsigned int>(grid), static_cast<unsigned int>(block), 0,
                        at::cuda::getCurrentCUDAStream()>>>(k, n);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
