@@ -53,7 +53,10 @@ def test_float64_matches_the_two_reduction_cg(tol, max_iter):
     # r against b: both converged r are below tol |b|, their difference too
     assert float((got["r"] - want["r"]).norm()) < (tol if tol else 1e-10) * float(want["rhs_sq"].sum().sqrt())
     assert torch.equal(got["status"], want["status"])
-    assert torch.equal(got["iterations"], want["iterations"])
+    # a converged object may cross the threshold one iteration apart (r.r rounded differently
+    # right at it); a fixed budget runs the same count
+    slack = 1 if tol else 0
+    assert int((got["iterations"] - want["iterations"]).abs().max()) <= slack
     assert torch.allclose(got["rhs_sq"], want["rhs_sq"], rtol=1e-12)
     assert torch.allclose(got["threshold"], want["threshold"], rtol=1e-12)
 
