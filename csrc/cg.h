@@ -78,19 +78,14 @@ TM_HD int32_t cg_start_status(S rr, S threshold, int64_t max_iter) {
   return max_iter == 0 ? kCapped : kActive;
 }
 
-// The buffers of a whole CG solve run by one op (hooke_node_cg): the iterates [V, d], the
-// per-object scalars [B], and what only the GPU's persistent kernel uses: the scalars of the
-// other parity (an iteration reads one parity and writes the other, so that no block overwrites
-// a scalar another block may still read), the status after each step length, two counters of
-// active objects, and two sets of chunk sums.
+// What every whole-solve op writes: the iterates [V, d] and the per-object scalars [B], with the
+// start's inputs (the right-hand side and tolerance) and the cap.
 template <typename S>
-struct CGRun {
+struct CGIterates {
   S* x;
   S* r;
   S* p;
-  S* ap;
-  const S* rhs;         // [V, d], or nullptr: go on from the current state (no start)
-  const S* free;        // [V] 0/1 projection of rhs, or nullptr
+  const S* rhs;         // [V, d], or nullptr: go on from the current state (no start; hooke_node_cg)
   S tol_sq;             // start: threshold = tol^2 b.b
   S* threshold;
   S* rhs_sq;
@@ -99,38 +94,36 @@ struct CGRun {
   S* beta;
   int32_t* status;
   int32_t* iterations;
+  int64_t max_iter;
+};
+
+// The buffers of a whole CG solve run by one op (hooke_node_cg): the iterates and scalars, and
+// what only the GPU's persistent kernel uses: the scalars of the other parity (an iteration reads
+// one parity and writes the other, so that no block overwrites a scalar another block may still
+// read), the status after each step length, two counters of active objects, and two sets of
+// chunk sums.
+template <typename S>
+struct CGRun : CGIterates<S> {
+  S* ap;
+  const S* free;        // [V] 0/1 projection of rhs, or nullptr
   S* rr_swap;           // [B]            rr of the other parity
   int32_t* work;        // [3B + 2]       status, iterations of the other parity; status after alpha; counters
   double* sums;         // [2K]           p.Ap and r.r chunk sums
   int64_t d;            // values per node
-  int64_t max_iter;
   int64_t count;        // iterations to run at most (fewer when every object stops)
   bool cache_neighbors = true;  // GPU: keep the node graph's neighbours in shared memory (a
                                 // switch for benchmarks: TENSORMASS_NEIGHBOR_CACHE=0 turns it off)
 };
 
 // The buffers of a whole solve by the pipelined CG (hooke_node_solve; GPU: cuda/cg_pipelined.cuh):
-// the iterates and per-object scalars as CGRun's, and its own work: each node's r, w = A r and
-// s = A p in an exchange row of 4d values (two rows per node: one parity read, the other
-// written), the per-chunk sums of r.r and w.r (two parities), and counters.
+// the iterates and scalars, and its own work: each node's r, w = A r and s = A p in an exchange
+// row of 4d values (two rows per node: one parity read, the other written), the per-chunk sums
+// of r.r and w.r (two parities), and counters.
 template <typename S>
-struct PipelinedSolve {
-  S* x;
-  S* r;
-  S* p;
-  const S* rhs;         // [V, d]
-  S tol_sq;
-  S* threshold;
-  S* rhs_sq;
-  S* rr;
-  S* alpha;
-  S* beta;
-  int32_t* status;
-  int32_t* iterations;
+struct PipelinedSolve : CGIterates<S> {
   S* exchange;          // [2, V, 4d]
   double* sums;         // [4K]: r.r then w.r per chunk, for each parity
   int32_t* counters;    // [3]: active objects in the last three iterations (rotating)
-  int64_t max_iter;
   int64_t chunk_slots;  // slots of the chunk with the most (sum of incidences over its nodes)
 };
 

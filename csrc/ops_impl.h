@@ -982,6 +982,27 @@ void hooke_node_system_alpha(const at::Tensor& p, const at::Tensor& neighbor, co
 }
 
 // ------------------------------------------------------------------ a whole CG solve in one op
+
+// The iterates and per-object scalars of a whole-solve op, from its tensors (checked by the op).
+template <typename S>
+void set_cg_iterates(CGIterates<S>& s, const at::Tensor& x, const at::Tensor& r, const at::Tensor& p,
+                     const S* rhs, double tol_sq, const at::Tensor& threshold, const at::Tensor& rhs_sq,
+                     const at::Tensor& rr, const at::Tensor& alpha, const at::Tensor& beta, const at::Tensor& status,
+                     const at::Tensor& iterations, int64_t max_iter) {
+  s.x = x.data_ptr<S>();
+  s.r = r.data_ptr<S>();
+  s.p = p.data_ptr<S>();
+  s.rhs = rhs;
+  s.tol_sq = static_cast<S>(tol_sq);
+  s.threshold = threshold.data_ptr<S>();
+  s.rhs_sq = rhs_sq.data_ptr<S>();
+  s.rr = rr.data_ptr<S>();
+  s.alpha = alpha.data_ptr<S>();
+  s.beta = beta.data_ptr<S>();
+  s.status = status.data_ptr<int32_t>();
+  s.iterations = iterations.data_ptr<int32_t>();
+  s.max_iter = max_iter;
+}
 //
 // hooke_node_cg: up to `count` CG iterations whose matvec is hooke_node_system's (A = c_M M -
 // c_K K over the node graph, projected on `free`), preceded, when `rhs` is given, by the start
@@ -1025,25 +1046,14 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
                            [&](const auto& k, int64_t) {
     using S = typename std::decay_t<decltype(k)>::Scalar;
     CGRun<S> s;
-    s.x = x.data_ptr<S>();
-    s.r = r.data_ptr<S>();
-    s.p = p.data_ptr<S>();
+    set_cg_iterates<S>(s, x, r, p, start ? rhs->data_ptr<S>() : nullptr, tol_sq, threshold, rhs_sq, rr, alpha, beta,
+                       status, iterations, max_iter);
     s.ap = ap.data_ptr<S>();
-    s.rhs = start ? rhs->data_ptr<S>() : nullptr;
     s.free = k.epilogue.free;
-    s.tol_sq = static_cast<S>(tol_sq);
-    s.threshold = threshold.data_ptr<S>();
-    s.rhs_sq = rhs_sq.data_ptr<S>();
-    s.rr = rr.data_ptr<S>();
-    s.alpha = alpha.data_ptr<S>();
-    s.beta = beta.data_ptr<S>();
-    s.status = status.data_ptr<int32_t>();
-    s.iterations = iterations.data_ptr<int32_t>();
     s.rr_swap = rr_swap.data_ptr<S>();
     s.work = work.data_ptr<int32_t>();
     s.sums = sums.data_ptr<double>();
     s.d = p.size(1);
-    s.max_iter = max_iter;
     s.count = count;
     L::run_cg(plan, k, s);
   });
@@ -1094,22 +1104,11 @@ bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, cons
                            [&](const auto& k, int64_t) {
     using S = typename std::decay_t<decltype(k)>::Scalar;
     PipelinedSolve<S> s;
-    s.x = x.data_ptr<S>();
-    s.r = r.data_ptr<S>();
-    s.p = p.data_ptr<S>();
-    s.rhs = rhs.data_ptr<S>();
-    s.tol_sq = static_cast<S>(tol_sq);
-    s.threshold = threshold.data_ptr<S>();
-    s.rhs_sq = rhs_sq.data_ptr<S>();
-    s.rr = rr.data_ptr<S>();
-    s.alpha = alpha.data_ptr<S>();
-    s.beta = beta.data_ptr<S>();
-    s.status = status.data_ptr<int32_t>();
-    s.iterations = iterations.data_ptr<int32_t>();
+    set_cg_iterates<S>(s, x, r, p, rhs.data_ptr<S>(), tol_sq, threshold, rhs_sq, rr, alpha, beta, status, iterations,
+                       max_iter);
     s.exchange = exchange.data_ptr<S>();
     s.sums = sums.data_ptr<double>();
     s.counters = counters.data_ptr<int32_t>();
-    s.max_iter = max_iter;
     s.chunk_slots = chunk_slots;
     ran = L::run_solve(plan, k, s);
   });
