@@ -983,6 +983,27 @@ void hooke_node_system_alpha(const at::Tensor& p, const at::Tensor& neighbor, co
 
 // ------------------------------------------------------------------ a whole CG solve in one op
 
+// The checks every whole-solve op makes of its iterates [V, d] (like `like`), per-object scalars
+// [B] and cap; returns the chunk plan.
+inline CGPlan check_cg_iterates(const at::Tensor& like, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                                const at::Tensor& object_chunk, const at::Tensor& x, const at::Tensor& r,
+                                const at::Tensor& threshold, const at::Tensor& rhs_sq, const at::Tensor& rr,
+                                const at::Tensor& alpha, const at::Tensor& beta, const at::Tensor& status,
+                                const at::Tensor& iterations, int64_t max_iter) {
+  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
+  const CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, like, like.size(0));
+  TORCH_CHECK(plan.num_chunks == 0 || like.size(0) > 0, "tensormass: a chunk plan over no nodes");
+  cg_check(x, "x", like, like.scalar_type(), like.sizes());
+  cg_check(r, "r", like, like.scalar_type(), like.sizes());
+  for (const auto& named : {std::make_pair(&threshold, "threshold"), std::make_pair(&rhs_sq, "rhs_sq"),
+                            std::make_pair(&rr, "rr"), std::make_pair(&alpha, "alpha"), std::make_pair(&beta, "beta")}) {
+    cg_check_scalars(*named.first, named.second, like, plan.num_objects);
+  }
+  cg_check_state(status, "status", like, plan.num_objects);
+  cg_check_state(iterations, "iterations", like, plan.num_objects);
+  return plan;
+}
+
 // The iterates and per-object scalars of a whole-solve op, from its tensors (checked by the op).
 template <typename S>
 void set_cg_iterates(CGIterates<S>& s, const at::Tensor& x, const at::Tensor& r, const at::Tensor& p,
@@ -1024,21 +1045,12 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
                    at::Tensor sums) {
   check_values(p, "p");
   TORCH_CHECK(ap.defined(), "tensormass: ap is undefined");
-  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
   TORCH_CHECK(count >= 0, "tensormass: count must be >= 0, got ", std::to_string(count));
-  const CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p, p.size(0));
-  TORCH_CHECK(plan.num_chunks == 0 || p.size(0) > 0, "tensormass: a chunk plan over no nodes");
-  cg_check(x, "x", p, p.scalar_type(), p.sizes());
-  cg_check(r, "r", p, p.scalar_type(), p.sizes());
+  const CGPlan plan = check_cg_iterates(p, chunk_start, chunk_object, object_chunk, x, r, threshold, rhs_sq, rr, alpha,
+                                        beta, status, iterations, max_iter);
   const bool start = rhs.has_value() && rhs->defined();
   if (start) cg_check(*rhs, "rhs", p, p.scalar_type(), p.sizes());
-  for (const auto& named : {std::make_pair(&threshold, "threshold"), std::make_pair(&rhs_sq, "rhs_sq"),
-                            std::make_pair(&rr, "rr"), std::make_pair(&alpha, "alpha"), std::make_pair(&beta, "beta"),
-                            std::make_pair(&rr_swap, "rr_swap")}) {
-    cg_check_scalars(*named.first, named.second, p, plan.num_objects);
-  }
-  cg_check_state(status, "status", p, plan.num_objects);
-  cg_check_state(iterations, "iterations", p, plan.num_objects);
+  cg_check_scalars(rr_swap, "rr_swap", p, plan.num_objects);
   cg_check(work, "work", p, at::kInt, {3 * plan.num_objects + 2});
   cg_check(sums, "sums", p, at::kDouble, {2 * plan.num_chunks});
   at::Tensor no_dots;
@@ -1081,19 +1093,10 @@ bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, cons
                       at::Tensor beta, at::Tensor iterations, at::Tensor exchange, at::Tensor sums,
                       at::Tensor counters) {
   check_values(rhs, "rhs");
-  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
   TORCH_CHECK(chunk_slots >= 0, "tensormass: chunk_slots must be >= 0, got ", std::to_string(chunk_slots));
-  const CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, rhs, rhs.size(0));
-  TORCH_CHECK(plan.num_chunks == 0 || rhs.size(0) > 0, "tensormass: a chunk plan over no nodes");
-  cg_check(x, "x", rhs, rhs.scalar_type(), rhs.sizes());
-  cg_check(r, "r", rhs, rhs.scalar_type(), rhs.sizes());
+  const CGPlan plan = check_cg_iterates(rhs, chunk_start, chunk_object, object_chunk, x, r, threshold, rhs_sq, rr, alpha,
+                                        beta, status, iterations, max_iter);
   cg_check(p, "p", rhs, rhs.scalar_type(), rhs.sizes());
-  for (const auto& named : {std::make_pair(&threshold, "threshold"), std::make_pair(&rhs_sq, "rhs_sq"),
-                            std::make_pair(&rr, "rr"), std::make_pair(&alpha, "alpha"), std::make_pair(&beta, "beta")}) {
-    cg_check_scalars(*named.first, named.second, rhs, plan.num_objects);
-  }
-  cg_check_state(status, "status", rhs, plan.num_objects);
-  cg_check_state(iterations, "iterations", rhs, plan.num_objects);
   const int64_t dim = rhs.size(1);
   cg_check(exchange, "exchange", rhs, rhs.scalar_type(), {2, rhs.size(0), 4 * dim});
   cg_check(sums, "sums", rhs, at::kDouble, {4 * plan.num_chunks});
