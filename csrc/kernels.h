@@ -188,6 +188,116 @@ struct StressElementKernel {
   }
 };
 
+// ------------------------------------------------------------------ the tangent on the node graph
+//
+// The force differential of a stress-form group at u, held fixed for a whole CG solve, as 3x3
+// blocks on the edges of the mesh: with H_ij = d f_i / d u_j summed over the elements sharing
+// the edge (i, j), every row of an element's blocks sums to zero (sum_k m_k = 0), so
+//   (dF/du) p at node i = sum_j H_ij (p_j - p_i)
+// and the CG matvec is hooke_node_system's over the node graph with node_k = -H_ij in the slot
+// of (i -> j) and -H_ij^T in that of (j -> i) (the differentials are symmetric: H_ji = H_ij^T).
+// Built once per linearisation (the paper's two kernels, no atomics): kernel 1 per element
+// writes its pair blocks into a padded per-edge buffer, kernel 2 per edge sums its slots in
+// order and writes the two node_k slots. Every CG iteration then reads 9 values an edge and
+// direction instead of recomputing each element's differential.
+
+// The index of the local pair (a, b), a < b, in the order of topology.unique_edges:
+// (0,1), (0,2), ..., (1,2), ...
+template <int NN>
+TM_HD constexpr int pair_index(int a, int b) {
+  return a * (2 * NN - a - 1) / 2 + (b - a - 1);
+}
+
+// Kernel 1: one item per element. Column c of H_ab (a < b) is the differential on node a along
+// du = e_c at node b: the model's own dforces, (NN - 1) D evaluations (the same function the
+// element path of the CG calls, so both are one formula). Each block goes to
+// edge_partial[edge_slot[e][p]][element_edges[e][p]] oriented from the pair's lower global node
+// to its higher (transposed where idx[a] > idx[b]).
+template <int MODEL, int NN, int D, typename S, typename I>
+struct TangentElementKernel {
+  static constexpr bool kMembrane = NN - 1 < D;
+  static constexpr int kPairs = NN * (NN - 1) / 2;
+  StressInputs<S, I> in;   // rotations given for the corotational model
+  const I* element_edges;  // [N, P] the edge of each local pair
+  const I* edge_slots;     // [N, P] its slot among the edge's elements
+  int64_t num_edges;       // Ed
+  S* edge_partial;         // [N_es, Ed, D, D]
+
+  TM_HD void operator()(int64_t e) const {
+    I idx[NN], edge[kPairs], slot[kPairs];
+    load_block<NN, I>(in.elements + e * NN, idx);
+    load_block<kPairs, I>(element_edges + e * kPairs, edge);
+    load_block<kPairs, I>(edge_slots + e * kPairs, slot);
+    S m[NN][D];
+    load_matrix<NN, D, S>(in.shape_vectors + e * (NN * D), m);
+    const S vol = ld(in.measure + e), lam = ld(in.lam + e), mu = ld(in.mu + e);
+    Plane<D, S, kMembrane> plane;
+    load_plane(e, plane);
+    S u[NN][D], r[D][D];
+    gather_nodes<NN, D, S, I>(in.u, idx, u);
+    if constexpr (MODEL == kCorotational) load_matrix<D, D, S>(in.rotations + e * (D * D), r);
+    TM_UNROLL for (int b = 1; b < NN; ++b) {
+      TM_UNROLL for (int c = 0; c < D; ++c) {
+        S du[NN][D], f[NN][D];
+        TM_UNROLL for (int k = 0; k < NN; ++k) {
+          TM_UNROLL for (int x = 0; x < D; ++x) du[k][x] = (k == b && x == c) ? S(1) : S(0);
+        }
+        if constexpr (MODEL == kCorotational) {
+          corotational_dforces<NN, D, S, kMembrane>(du, r, m, vol, lam, mu, plane, f);
+        } else {
+          stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, f);
+        }
+        TM_UNROLL for (int a = 0; a < b; ++a) {
+          const int pair = pair_index<NN>(a, b);
+          const bool low_first = idx[a] < idx[b];
+          S* block = edge_partial + (static_cast<int64_t>(slot[pair]) * num_edges + static_cast<int64_t>(edge[pair])) * (D * D);
+          TM_UNROLL for (int x = 0; x < D; ++x) block[low_first ? x * D + c : c * D + x] = f[a][x];
+        }
+      }
+    }
+  }
+
+ private:
+  TM_HD void load_plane(int64_t, Plane<D, S, false>&) const {}
+  TM_HD void load_plane(int64_t e, Plane<D, S, true>& plane) const {
+    load_matrix<D, D, S>(in.projector + e * (D * D), plane.p);
+  }
+};
+
+// Kernel 2: one item per edge (i < j): H = the sum of its used slots in slot order, then
+// node_k[fi[g][0]][i] = -H and node_k[fi[g][1]][j] = -H^T (fi: the node graph's slots of the
+// edge, GatherPlan over the edges).
+template <int D, typename S, typename I>
+struct TangentEdgeKernel {
+  const S* edge_partial;    // [N_es, Ed, D, D]
+  const I* edge_counts;     // [Ed] elements of each edge
+  const I* edges;           // [Ed, 2]
+  const I* force_index;     // [Ed, 2]
+  int64_t num_edges, num_nodes;
+  S* node_k;                // [N_n, V, D, D]
+
+  TM_HD void operator()(int64_t g) const {
+    S h[D * D];
+    TM_UNROLL for (int q = 0; q < D * D; ++q) h[q] = S(0);
+    const int64_t count = static_cast<int64_t>(ld(edge_counts + g));
+    for (int64_t s = 0; s < count; ++s) {
+      const S* block = edge_partial + (s * num_edges + g) * (D * D);
+      TM_UNROLL for (int q = 0; q < D * D; ++q) h[q] += ld(block + q);
+    }
+    I ij[2], fi[2];
+    load_block<2, I>(edges + g * 2, ij);
+    load_block<2, I>(force_index + g * 2, fi);
+    S* low = node_k + (static_cast<int64_t>(fi[0]) * num_nodes + static_cast<int64_t>(ij[0])) * (D * D);
+    S* high = node_k + (static_cast<int64_t>(fi[1]) * num_nodes + static_cast<int64_t>(ij[1])) * (D * D);
+    TM_UNROLL for (int x = 0; x < D; ++x) {
+      TM_UNROLL for (int y = 0; y < D; ++y) {
+        low[x * D + y] = -h[x * D + y];
+        high[y * D + x] = -h[x * D + y];
+      }
+    }
+  }
+};
+
 // ------------------------------------------------------------------ corotational rotations
 
 // One item per element: its rotation R [D, D] at u (element_math.h: element_rotation), written

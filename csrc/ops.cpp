@@ -63,6 +63,13 @@
 // model 2 only: given `rotations`, the kernels read R (9 numbers per element, the CG path);
 // otherwise they recompute SOFA's QR frame from u and `rest_elements` at every call. The
 // differential holds R fixed, as SOFA does.
+//
+// The tangent on the node graph (stress form): stress_tangent_node_k(u, <stress inputs>, rotations?,
+// element_edges, edge_slots, num_edge_slots, edges, edge_counts, edge_force_index, num_slots,
+// node_k!, edge_partial!) -> () writes the group's force differential at u as the edge blocks of
+// the node graph (node_k [N_n, V, d, d]), so that hooke_node_system, hooke_node_cg and
+// hooke_node_solve run its CG products (once per linearisation instead of an element pass per
+// CG iteration).
 #include <pybind11/pybind11.h>
 #include <torch/library.h>
 
@@ -90,6 +97,11 @@ TORCH_LIBRARY(tensormass, m) {
   // ---- corotational: the element rotations at u, once per linearisation (0 = qr, 1 = polar)
   m.def("corotational_rotations(Tensor u, Tensor elements, Tensor shape_vectors, Tensor? projector, "
         "Tensor? rest_elements, int method) -> Tensor");
+  // ---- the differential at u as slot tensors of the node graph (in place; once per linearisation)
+  m.def("stress_tangent_node_k(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
+        "Tensor mu, Tensor? projector, int model, Tensor? rotations, Tensor element_edges, Tensor edge_slots, "
+        "int num_edge_slots, Tensor edges, Tensor edge_counts, Tensor edge_force_index, int num_slots, "
+        "Tensor(a!) node_k, Tensor(b!) edge_partial) -> ()");
   // ---- tensor form, hooke (items are edges; linear, so dforces(du) = forces(du))
   m.def("tensor_hooke_element_forces(Tensor u, Tensor edges, Tensor edge_k) -> Tensor");
   m.def("tensor_hooke_partial_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, "

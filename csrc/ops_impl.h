@@ -476,6 +476,74 @@ at::Tensor corotational_rotations(const at::Tensor& u, const at::Tensor& element
   return out;
 }
 
+// ------------------------------------------------------------------ the tangent on the node graph
+
+// stress_tangent_node_k: the force differential of a stress-form group at u as the node graph's
+// slot tensors (kernels.h TangentElementKernel, TangentEdgeKernel): node_k [N_n, V, d, d] (in
+// place; slots beyond a node's incidences are not written) such that hooke_node_system over
+// (neighbor, node_k, incidences) of the edge plan is this group's CG product. The edges: the
+// mesh's unique edges [Ed, 2] (i < j), element_edges / edge_slots [N, P] (the edge of each local
+// pair and its slot among the edge's elements: edge_counts [Ed], num_edge_slots the most), the
+// node graph's edge_force_index [Ed, 2] and num_slots. edge_partial [num_edge_slots, Ed, d, d]:
+// kernel 1's buffer. The corotational model needs its rotations (held fixed, as its dforces).
+template <class L>
+void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
+                           const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
+                           const c10::optional<at::Tensor>& projector, int64_t model,
+                           const c10::optional<at::Tensor>& rotations, const at::Tensor& element_edges,
+                           const at::Tensor& edge_slots, int64_t num_edge_slots, const at::Tensor& edges,
+                           const at::Tensor& edge_counts, const at::Tensor& edge_force_index, int64_t num_slots,
+                           at::Tensor node_k, at::Tensor edge_partial) {
+  TORCH_CHECK(model != kCorotational || (rotations.has_value() && rotations->defined()),
+              "tensormass: the corotational tangent needs the rotations of its linearisation [N, d, d]");
+  StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, c10::nullopt, rotations);
+  const int64_t n = a.nodes_per_element, pairs = n * (n - 1) / 2, d = a.dim, V = a.num_nodes;
+  TORCH_CHECK(edges.dim() == 2 && edges.size(1) == 2, "tensormass: edges must be [Ed, 2], got shape ",
+              shape_str(edges.sizes()));
+  const int64_t num_edges = edges.size(0);
+  check_index_tensor(edges, "edges", u, a.index_type, {num_edges, 2});
+  check_index_tensor(element_edges, "element_edges", u, a.index_type, {a.num_elements, pairs});
+  check_index_tensor(edge_slots, "edge_slots", u, a.index_type, {a.num_elements, pairs});
+  check_index_tensor(edge_counts, "edge_counts", u, a.index_type, {num_edges});
+  check_index_tensor(edge_force_index, "edge_force_index", u, a.index_type, {num_edges, 2});
+  TORCH_CHECK(num_edge_slots >= 0 && num_slots >= 0, "tensormass: num_edge_slots and num_slots must be >= 0");
+  TORCH_CHECK(a.num_elements == 0 || (num_edge_slots > 0 && num_slots > 0),
+              "tensormass: num_edge_slots or num_slots is 0 but there are elements");
+  check_float_tensor(node_k, "node_k", u, {num_slots, V, d, d});
+  check_float_tensor(edge_partial, "edge_partial", u, {num_edge_slots, num_edges, d, d});
+  typename L::Guard guard(u.device());
+  if (a.num_elements == 0) return;
+  dispatch_scalar(u.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(a.index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_kind(n, d, [&](auto nn_c, auto d_c) {
+        constexpr int NN = decltype(nn_c)::value;
+        constexpr int D = decltype(d_c)::value;
+        dispatch_model(model, [&](auto model_c) {
+          constexpr int MODEL = decltype(model_c)::value;
+          TangentElementKernel<MODEL, NN, D, S, I> k1;
+          k1.in = a.template inputs<S, I>();
+          k1.element_edges = element_edges.data_ptr<I>();
+          k1.edge_slots = edge_slots.data_ptr<I>();
+          k1.num_edges = num_edges;
+          k1.edge_partial = edge_partial.data_ptr<S>();
+          L::run(a.num_elements, k1, L::kElementBlock);
+        });
+        TangentEdgeKernel<D, S, I> k2;
+        k2.edge_partial = edge_partial.data_ptr<S>();
+        k2.edge_counts = edge_counts.data_ptr<I>();
+        k2.edges = edges.data_ptr<I>();
+        k2.force_index = edge_force_index.data_ptr<I>();
+        k2.num_edges = num_edges;
+        k2.num_nodes = V;
+        k2.node_k = node_k.data_ptr<S>();
+        L::run(num_edges, k2, L::kNodeBlock);
+      });
+    });
+  });
+}
+
 // ------------------------------------------------------------------ gather ops
 
 // Kernel 2 alone: partial [N_n, V, d] (only the slots below incidences[i] are read) -> [V, d].

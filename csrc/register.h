@@ -18,6 +18,7 @@ void register_stress_ops(torch::Library& m) {
   m.impl("stress_forces", &stress_forces<L>);
   m.impl("stress_dforces", &stress_dforces<L>);
   m.impl("corotational_rotations", &corotational_rotations<L>);
+  m.impl("stress_tangent_node_k", &stress_tangent_node_k<L>);
 }
 
 template <class L>

@@ -27,6 +27,7 @@ op leaves them uninitialised).
 """
 from __future__ import annotations
 
+import os
 import threading
 from typing import Optional
 
@@ -41,7 +42,7 @@ __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure
            "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "persistent_cg_fits",
            "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "system_solve", "solve_plan", "chunk_slots",
            "PIPELINED_SOLVE", "SOLVE_CHUNK_NODES", "HOOKE_MATVEC_LAYOUTS",
-           "HOOKE_MATVEC_LAYOUT"]
+           "HOOKE_MATVEC_LAYOUT", "NODE_TANGENT", "tangent_graph", "tangent_serves", "tangent_node_k"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
 #: see ``reference.stress_form.kernel_model``).
@@ -711,6 +712,16 @@ def _zeros_like_nodes(group, u: torch.Tensor) -> torch.Tensor:
     return cached
 
 
+def _edge_neighbors(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int) -> torch.Tensor:
+    """The node graph's neighbours ``[N_n, V]`` of edges ``[Ed, 2]`` with their slots
+    ``force_index [Ed, 2]``: slot ``force_index[e, 0]`` of ``edges[e, 0]`` holds ``edges[e, 1]`` and
+    the other way round; unused slots 0 (never read). edges' dtype."""
+    neighbor = edges.new_zeros((num_slots, num_nodes))
+    neighbor[force_index[:, 0].long(), edges[:, 0].long()] = edges[:, 1]
+    neighbor[force_index[:, 1].long(), edges[:, 1].long()] = edges[:, 0]
+    return neighbor
+
+
 def hooke_node_graph(group):
     """The node graph of a hooke tensor-form group in slot-major ("ELL") arrays, for
     ``hooke_node_system``: (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``).
@@ -731,9 +742,7 @@ def hooke_node_graph(group):
     num_slots, num_nodes, dim = plan.num_slots, plan.num_nodes, edge_k.shape[-1]
     first, second = index[:, 0].long(), index[:, 1].long()
     slot_first, slot_second = force_index[:, 0].long(), force_index[:, 1].long()
-    neighbor = index.new_zeros((num_slots, num_nodes))
-    neighbor[slot_first, first] = index[:, 1]
-    neighbor[slot_second, second] = index[:, 0]
+    neighbor = _edge_neighbors(index, force_index, num_slots, num_nodes)
     node_k = edge_k.new_zeros((num_slots, num_nodes, dim, dim))
     with torch.no_grad():
         node_k[slot_first, first] = edge_k
@@ -741,6 +750,110 @@ def hooke_node_graph(group):
     value = (neighbor, node_k)
     group.__dict__["_native_node_graph"] = (tensors, tuple(t._version for t in tensors), value)
     return value
+
+
+#: Whether the CG products of stress-form stvk and corotational groups run over the node graph
+#: with the differential at the linearisation as its slot tensors (:func:`tangent_node_k`, once
+#: per linearisation: 9 values an edge and direction a CG iteration instead of an element pass
+#: that recomputes each element's differential). Benchmarks switch it off to compare
+#: (``TENSORMASS_NODE_TANGENT=0`` in the environment, or this flag).
+NODE_TANGENT = os.environ.get("TENSORMASS_NODE_TANGENT", "1") != "0"
+
+
+def tangent_graph(group):
+    """The node graph of a stress-form group's tangent: (EdgeGraph with native index tensors,
+    neighbor ``[N_n, V]``, incidences ``[V]``), the graph's index dtype that of
+    :func:`_plan_indices` of the group's plan. Cached on the group while its elements are the same
+    unmodified tensor (the first call synchronises with the device: build it before a capture)."""
+    from .topology import EdgeGraph
+
+    elements = group.elements
+    cache = group.__dict__.get("_native_tangent_graph")
+    if _unchanged(cache, (elements,)):
+        return cache[2]
+    dtype = _plan_indices(group.plan)[0].dtype  # the elements' (every index tensor of the op has one dtype)
+    graph = EdgeGraph.build(elements.long(), group.num_nodes)
+    plan = graph.plan
+
+    def native(t):
+        return t.to(dtype).contiguous()
+
+    graph = type(graph)(native(graph.edges), native(graph.element_edges), native(graph.edge_slots),
+                        graph.num_edge_slots, native(graph.edge_counts),
+                        type(plan)(native(plan.index), native(plan.force_index), plan.num_slots, plan.num_nodes,
+                                   native(plan.incidences)))
+    plan = graph.plan
+    value = (graph, _edge_neighbors(plan.index, plan.force_index, plan.num_slots, plan.num_nodes),
+             plan.incidences)
+    group.__dict__["_native_tangent_graph"] = ((elements,), (elements._version,), value)
+    return value
+
+
+def tangent_serves(group, u: torch.Tensor, inputs=()) -> bool:
+    """Whether :func:`tangent_node_k` serves ``group`` at ``u``: :data:`NODE_TANGENT` on, a
+    stress-form stvk or corotational group the ops support, the op compiled, and no gradient wanted
+    through ``u``, ``inputs`` or the group's data (the node graph's products are not differentiable)."""
+    return (NODE_TANGENT and group.form == "stress" and group.model != "hooke"
+            and hasattr(torch.ops.tensormass, "stress_tangent_node_k") and supports(group, u)
+            and not _wants_grad((u, *inputs, group.shape_vectors, group.measure, group.young, group.poisson)))
+
+
+def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None,
+                   out: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The force differential of a stress-form group at displacements ``u [V, d]`` as the slot
+    tensors of its node graph (:func:`tangent_graph`): node_k ``[N_n, V, d, d]`` with -H_ij in the
+    slot of (i -> j), H_ij = d f_i / d u_j summed over the elements of the edge, so that
+    ``hooke_node_system`` over (neighbor, node_k, incidences) is :func:`system_matvec`'s product
+    at u. ``rotations``: the corotational rotations of the linearisation (computed at u when None).
+    Into ``out`` when it has the shape, dtype and device (the step's buffer: CUDA graphs replay
+    into it), else a new tensor. Requires :func:`tangent_serves`."""
+    graph, _, _ = tangent_graph(group)
+    plan = graph.plan
+    d = u.shape[1]
+    shape = (plan.num_slots, u.shape[0], d, d)
+    if out is None or tuple(out.shape) != shape or out.dtype != u.dtype or out.device != u.device:
+        out = u.new_zeros(shape)
+    work_shape = (graph.num_edge_slots, graph.edges.shape[0], d, d)
+    work = group.__dict__.get("_native_tangent_work")
+    if work is None or tuple(work.shape) != work_shape or work.dtype != u.dtype or work.device != u.device:
+        work = group.__dict__["_native_tangent_work"] = u.new_empty(work_shape)
+    index, _, _ = _plan_indices(group.plan)
+    m, vol, lam, mu, proj, model, _, rotations = _stress_args(group, u, rotations)
+    torch.ops.tensormass.stress_tangent_node_k(
+        u.contiguous(), index, m, vol, lam, mu, proj, model, rotations, graph.element_edges, graph.edge_slots,
+        graph.num_edge_slots, graph.edges, graph.edge_counts, plan.force_index, plan.num_slots, out, work)
+    return out
+
+
+def _ref_stress_tangent_node_k(u, elements, m, vol, lam, mu, proj, model, rotations, element_edges, edge_slots,
+                               num_edge_slots, edges, edge_counts, edge_force_index, num_slots):
+    """stress_tangent_node_k's reference: the element blocks H_ab from the reference element
+    dforces along unit displacements (n d of them), summed onto edges in slot order, written to
+    the node graph's slots ``[N_n, V, d, d]`` (zeros in unused slots)."""
+    n, d, num_nodes = elements.shape[1], u.shape[1], u.shape[0]
+    u_e = u[elements]
+    name = _model_name(model)
+    blocks = u.new_zeros((elements.shape[0], n, n, d, d))  # [N, a, b, x, c] = d f_a[x] / d u_b[c]
+    for b in range(n):
+        for c in range(d):
+            du_e = torch.zeros_like(u_e)
+            du_e[:, b, c] = 1
+            if name == "corotational":
+                f = corotational.dforces(du_e, m, vol, lam, mu, rotations, proj)
+            else:
+                f = stress_form.DFORCES[name](u_e, du_e, m, vol, lam, mu, proj)
+            blocks[:, :, b, :, c] = f
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
+    pair_blocks = torch.stack([blocks[:, a, b] for a, b in pairs], dim=1)  # [N, P, d, d]
+    low_first = torch.stack([elements[:, a] < elements[:, b] for a, b in pairs], dim=1)
+    pair_blocks = torch.where(low_first[..., None, None], pair_blocks, pair_blocks.transpose(-1, -2))
+    buffer = u.new_zeros((num_edge_slots, edges.shape[0], d, d))
+    buffer[edge_slots.long().reshape(-1), element_edges.long().reshape(-1)] = pair_blocks.reshape(-1, d, d)
+    h = sum_slots_in_order(buffer)  # [Ed, d, d]
+    node_k = u.new_zeros((num_slots, num_nodes, d, d))
+    node_k[edge_force_index[:, 0].long(), edges[:, 0].long()] = -h
+    node_k[edge_force_index[:, 1].long(), edges[:, 1].long()] = -h.transpose(1, 2)
+    return node_k
 
 
 #: The layouts of the hooke tensor form's CG matvec in :func:`system_matvec`: "node" (one kernel
@@ -772,6 +885,22 @@ def _node_layout(group, layout: str, inputs, op: str) -> bool:
             and hasattr(torch.ops.tensormass, op) and not _wants_grad((*inputs, group.edge_k)))
 
 
+def _node_graph(group, layout: str, inputs, op: str, node_k: Optional[torch.Tensor] = None):
+    """(neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``) of the group's CG
+    product over the node graph (op ``op``) where it runs there: a stress-form group's tangent
+    graph with ``node_k`` given (:func:`tangent_node_k` at the linearisation), or the hooke tensor
+    form's own graph (``layout`` "node"); no gradient wanted through ``inputs``. None otherwise."""
+    if node_k is not None:
+        if not hasattr(torch.ops.tensormass, op) or _wants_grad((*inputs, node_k)):
+            return None
+        _, neighbor, incidences = tangent_graph(group)
+        return neighbor, node_k, incidences
+    if not _node_layout(group, layout, inputs, op):
+        return None
+    neighbor, hooke_k = hooke_node_graph(group)
+    return neighbor, hooke_k, _plan_indices(group.plan)[2]
+
+
 def _partial_dforces(group, u: torch.Tensor, p: torch.Tensor, rotations: Optional[torch.Tensor]):
     """Kernel 1 of the CG product: the padded partial force differentials along ``p``
     (PartialForce ``[N_n, V, d]``) and the plan's incidences ``[V]``."""
@@ -791,7 +920,8 @@ def _partial_dforces(group, u: torch.Tensor, p: torch.Tensor, rotations: Optiona
 
 def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                   c_mass: float, c_stiff: float, rotations: Optional[torch.Tensor] = None,
-                  node_stiffness: Optional[torch.Tensor] = None, layout: Optional[str] = None):
+                  node_stiffness: Optional[torch.Tensor] = None, layout: Optional[str] = None,
+                  node_k: Optional[torch.Tensor] = None):
     """The CG matvec of implicit Euler for one group: kernel 1 (padded partial dforces along ``p``)
     and kernel 2 with the system epilogue (``gather_system``); for the hooke tensor form with
     ``layout`` "node" (the default, :data:`HOOKE_MATVEC_LAYOUT`) and no gradient wanted, one kernel
@@ -799,17 +929,17 @@ def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, f
     ``free`` are ``[V]`` (``free`` float 0/1 or None); ``rotations``: the corotational rotations of
     the linearisation at ``u`` ``[N, d, d]``, kept across CG iterations (computed here when None);
     ``node_stiffness`` ``[V, d, d]`` (contact penalties) or None; ``layout``: "node", "padded" or
-    None (the module default).
+    None (the module default); ``node_k``: the tangent of a stress-form group at u on its node
+    graph (:func:`tangent_node_k`), then the product runs over that graph (``hooke_node_system``).
     Returns (Ap ``[V, d]``, p . Ap per node ``[V]``)."""
     layout = HOOKE_MATVEC_LAYOUT if layout is None else layout
     if layout not in HOOKE_MATVEC_LAYOUTS:
         raise ValueError(f"unknown matvec layout {layout!r}; known: {', '.join(HOOKE_MATVEC_LAYOUTS)}")
     u, p, mass, free, node_stiffness = _contiguous(u, p, mass, free, node_stiffness)
-    if _node_layout(group, layout, (p, mass, free, node_stiffness), "hooke_node_system"):
-        neighbor, node_k = hooke_node_graph(group)
-        _, _, incidences = _plan_indices(group.plan)
-        return torch.ops.tensormass.hooke_node_system(p, neighbor, node_k, incidences, mass, free, float(c_mass),
-                                                      float(c_stiff), node_stiffness)
+    graph = _node_graph(group, layout, (p, mass, free, node_stiffness), "hooke_node_system", node_k)
+    if graph is not None:
+        return torch.ops.tensormass.hooke_node_system(p, *graph, mass, free, float(c_mass), float(c_stiff),
+                                                      node_stiffness)
     partial, incidences = _partial_dforces(group, u, p, rotations)
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad
                                        for t in (partial, p, mass, free, node_stiffness)):
@@ -822,25 +952,26 @@ def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, f
 
 def system_matvec_alpha(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                         c_mass: float, c_stiff: float, rotations: Optional[torch.Tensor],
-                        node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, plan_tensors, cg_state) -> bool:
+                        node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, plan_tensors, cg_state,
+                        node_k: Optional[torch.Tensor] = None) -> bool:
     """:func:`system_matvec` fused with the CG step length (``gather_system_alpha`` /
     ``hooke_node_system_alpha``): Ap into ``ap [V, d]`` in place and ``cg_state.alpha`` /
     ``.status`` as ``cg_alpha`` would set them, one launch fewer per CG iteration. ``plan_tensors``:
     (chunk_start, chunk_object, object_chunk) of the CG's chunk plan; ``cg_state``: its
-    ``CGState``. Returns False (nothing done) where the ops are missing or a gradient is wanted."""
+    ``CGState``; ``node_k``: as in :func:`system_matvec`. Returns False (nothing done) where the
+    ops are missing or a gradient is wanted."""
     ops_ns = torch.ops.tensormass
     if not hasattr(ops_ns, "gather_system_alpha") or _wants_grad((p, mass, free, node_stiffness)):
         return False
     u, p, mass, free, node_stiffness = _contiguous(u, p, mass, free, node_stiffness)
     s = cg_state
     cg_args = (*plan_tensors, s.rr, s.status, s.alpha, s.scratch, s.counter)
-    if group.form == "tensor" and group.model == "hooke" and HOOKE_MATVEC_LAYOUT == "node":
-        if not _node_layout(group, "node", (), "hooke_node_system_alpha"):
+    if node_k is not None or (group.form == "tensor" and group.model == "hooke" and HOOKE_MATVEC_LAYOUT == "node"):
+        graph = _node_graph(group, "node", (), "hooke_node_system_alpha", node_k)
+        if graph is None:
             return False
-        neighbor, node_k = hooke_node_graph(group)
-        _, _, incidences = _plan_indices(group.plan)
-        ops_ns.hooke_node_system_alpha(p, neighbor, node_k, incidences, mass, free, float(c_mass), float(c_stiff),
-                                       node_stiffness, ap, *cg_args)
+        ops_ns.hooke_node_system_alpha(p, *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, ap,
+                                       *cg_args)
         return True
     partial, incidences = _partial_dforces(group, u, p, rotations)
     if _wants_grad((partial,)):
@@ -867,19 +998,22 @@ def persistent_cg_fits(device: torch.device, num_chunks: int) -> bool:
     return num_chunks <= PERSISTENT_BLOCKS_PER_SM * sms
 
 
-def system_cg_serves(group, inputs=(), num_chunks: int = 0) -> bool:
-    """Whether :func:`system_cg` solves ``group``'s systems in one op: the hooke tensor form over
-    the node graph (:data:`HOOKE_MATVEC_LAYOUT` "node"), ``hooke_node_cg`` compiled, no gradient
-    wanted through ``inputs``, and a plan of ``num_chunks`` chunks that fits
-    (:func:`persistent_cg_fits`) on the device of ``inputs[0]``."""
+def system_cg_serves(group, inputs=(), num_chunks: int = 0, node_k: Optional[torch.Tensor] = None) -> bool:
+    """Whether :func:`system_cg` solves ``group``'s systems in one op: over a node graph (the hooke
+    tensor form's with :data:`HOOKE_MATVEC_LAYOUT` "node", or a stress-form group's tangent graph
+    with ``node_k`` given), ``hooke_node_cg`` compiled, no gradient wanted through ``inputs``, and
+    a plan of ``num_chunks`` chunks that fits (:func:`persistent_cg_fits`) on the device of
+    ``inputs[0]``."""
     inputs = tuple(inputs)
-    return (HOOKE_MATVEC_LAYOUT == "node" and _node_layout(group, "node", inputs, "hooke_node_cg")
+    return ((node_k is not None or HOOKE_MATVEC_LAYOUT == "node")
+            and _node_graph(group, "node", inputs, "hooke_node_cg", node_k) is not None
             and (not inputs or persistent_cg_fits(inputs[0].device, num_chunks)))
 
 
 def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
               c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
-              tol: float, plan_tensors, cg_state, max_iter: int, count: int) -> bool:
+              tol: float, plan_tensors, cg_state, max_iter: int, count: int,
+              node_k: Optional[torch.Tensor] = None) -> bool:
     """A whole CG solve of the system of :func:`system_matvec` in one op (``hooke_node_cg``: one
     persistent kernel on the GPU) on ``cg_state`` (``CGState``; its direction ``p`` is the
     product's input): with ``rhs [V, d]`` the start from x0 = 0 (rhs projected on
@@ -890,12 +1024,11 @@ def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: f
     for any other group, where the op is missing or a gradient is wanted."""
     ops_ns = torch.ops.tensormass
     s = cg_state
-    if not system_cg_serves(group, (s.p, mass, free, node_stiffness, rhs), s.scratch.numel()):
+    if not system_cg_serves(group, (s.p, mass, free, node_stiffness, rhs), s.scratch.numel(), node_k):
         return False
     mass, free, node_stiffness, rhs = _contiguous(mass, free, node_stiffness, rhs)
-    neighbor, node_k = hooke_node_graph(group)
-    _, _, incidences = _plan_indices(group.plan)
-    ops_ns.hooke_node_cg(s.p, neighbor, node_k, incidences, mass, free, float(c_mass), float(c_stiff), node_stiffness,
+    graph = _node_graph(group, "node", (), "hooke_node_cg", node_k)
+    ops_ns.hooke_node_cg(s.p, *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness,
                          ap, s.x, s.r, rhs, float(tol) ** 2, *plan_tensors, s.threshold, s.rhs_sq, int(max_iter),
                          int(count), s.rr, s.status, s.alpha, s.beta, s.iterations, s.rr_swap, s.work, s.sums)
     return True
@@ -918,11 +1051,14 @@ def solve_plan(plan):
     return cached
 
 
-def chunk_slots(group, plan) -> int:
+def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
     """The most slots of any chunk of ``plan`` (the sum of the node graph's incidences over its
-    nodes): the shared memory a block of the pipelined solve needs. A host synchronisation the
-    first time; cached on the group while the plan and its incidences are the same."""
-    _, _, incidences = _plan_indices(group.plan)
+    nodes): the shared memory a block of the pipelined solve needs. ``incidences``: the node
+    graph's ``[V]`` (that of the group's plan when None: the hooke tensor form). A host
+    synchronisation the first time; cached on the group while the plan and its incidences are the
+    same."""
+    if incidences is None:
+        _, _, incidences = _plan_indices(group.plan)
     cache = group.__dict__.get("_solve_chunk_slots")
     if cache is not None and cache[0] is plan and _unchanged(cache[1], (incidences,)):
         return cache[2]
@@ -936,18 +1072,20 @@ def chunk_slots(group, plan) -> int:
 
 def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float, c_stiff: float,
                  node_stiffness: Optional[torch.Tensor], rhs: torch.Tensor, tol: float, plan, cg_state,
-                 max_iter: int) -> bool:
+                 max_iter: int, node_k: Optional[torch.Tensor] = None) -> bool:
     """A whole CG solve from x0 = 0 of :func:`system_matvec`'s system (rhs ``[V, d]`` projected on
     ``free``; relative tolerance ``tol``; at most ``max_iter`` iterations) by the pipelined CG
     (``hooke_node_solve``: Chronopoulos-Gear, one reduction and one grid barrier an iteration, one
     persistent kernel) into ``cg_state`` (a ``CGState`` over ``plan``: x, r, p, the per-object
     scalars and statuses). CG's iterates in exact arithmetic, rounded differently from
     :func:`system_cg`'s. Returns False, having done nothing, where it does not serve: not a CUDA
-    tensor, :data:`PIPELINED_SOLVE` off, not the hooke node graph, a gradient wanted, or a system
-    too large for one wave of the kernel."""
+    tensor, :data:`PIPELINED_SOLVE` off, no node graph (``node_k``: as in :func:`system_matvec`), a
+    gradient wanted, or a system too large for one wave of the kernel."""
     s = cg_state
-    if not (PIPELINED_SOLVE and rhs.is_cuda and HOOKE_MATVEC_LAYOUT == "node"
-            and _node_layout(group, "node", (s.p, mass, free, node_stiffness, rhs), "hooke_node_solve")):
+    if not (PIPELINED_SOLVE and rhs.is_cuda and (node_k is not None or HOOKE_MATVEC_LAYOUT == "node")):
+        return False
+    graph = _node_graph(group, "node", (s.p, mass, free, node_stiffness, rhs), "hooke_node_solve", node_k)
+    if graph is None:
         return False
     fine = solve_plan(plan)
     work = s.__dict__.get("_solve_work")
@@ -959,12 +1097,10 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
             torch.zeros(3, dtype=torch.int32, device=rhs.device))
     _, exchange, sums, counters = work
     mass, free, node_stiffness, rhs = _contiguous(mass, free, node_stiffness, rhs)
-    neighbor, node_k = hooke_node_graph(group)
-    _, _, incidences = _plan_indices(group.plan)
     return bool(torch.ops.tensormass.hooke_node_solve(
-        neighbor, node_k, incidences, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs,
-        float(tol) ** 2, *fine.tensors(), chunk_slots(group, fine), int(max_iter), s.x, s.r, s.p, s.threshold,
-        s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, exchange, sums, counters))
+        *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs, float(tol) ** 2, *fine.tensors(),
+        chunk_slots(group, fine, graph[2]), int(max_iter), s.x, s.r, s.p, s.threshold, s.rhs_sq, s.rr, s.status,
+        s.alpha, s.beta, s.iterations, exchange, sums, counters))
 
 
 def step_rhs_serves(group, inputs=()) -> bool:

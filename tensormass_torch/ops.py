@@ -63,6 +63,20 @@ def linearize(group, u: torch.Tensor) -> Optional[torch.Tensor]:
     return corotational.polar_rotations(F, group.rest_normals, normal)
 
 
+def node_tangent(group, u: torch.Tensor, state: Optional[torch.Tensor] = None,
+                 out: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+    """The force differential of ``group`` at displacements ``u [V, d]`` as the slot tensors of
+    its node graph (``native.tangent_node_k``: once per linearisation; the CG products then run
+    over the graph instead of recomputing each element's differential), into ``out`` when it
+    fits; ``state``: ``linearize(group, u)``. None where that does not serve (not a stress-form
+    stvk or corotational group, the pure-torch backend, a gradient wanted, or
+    ``native.NODE_TANGENT`` off): the products then run element by element."""
+    native = _native(group, u)
+    if native is None or not native.tangent_serves(group, u):
+        return None
+    return native.tangent_node_k(group, u, state, out)
+
+
 def _native(group, u: torch.Tensor):
     """The module of the compiled ops when they should evaluate ``group`` at ``u``, else None."""
     if not _backend.use_extension(u.device):
@@ -171,6 +185,12 @@ def energy(group, u: torch.Tensor) -> torch.Tensor:
     return tensor_form.stvk_energy(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d).sum()
 
 
+def _tangent_of(tangents) -> Optional[torch.Tensor]:
+    """The one group's node-graph tangent of ``tangents`` (``[node_tangent(g, u) for g in
+    groups]``, or None): what the fused paths (one group) read."""
+    return None if tangents is None else tangents[0]
+
+
 def _fused_native(groups, u: torch.Tensor, p: torch.Tensor, node_tensors):
     """The native module when the system matvec of ``groups`` has a fused path: one group the
     extension serves with a fused matvec, p like u, and every node tensor (``[V, ...]`` or None)
@@ -187,7 +207,8 @@ def _fused_native(groups, u: torch.Tensor, p: torch.Tensor, node_tensors):
 
 
 def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
-                  c_mass: float, c_stiff: float, states=None, node_stiffness: Optional[torch.Tensor] = None):
+                  c_mass: float, c_stiff: float, states=None, node_stiffness: Optional[torch.Tensor] = None,
+                  tangents=None):
     """The CG matvec of implicit Euler, ``A p = c_mass M p - c_stiff K p`` projected on the free nodes.
 
     Args:
@@ -199,6 +220,8 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
             (computed here).
         node_stiffness: ``[V, d, d]`` stiffness acting on each node alone (contact penalties k n n^T),
             subtracted from K p: ``(K p)_i -= node_stiffness_i p_i``; or None.
+        tangents: ``[node_tangent(g, u) for g in groups]`` kept by the caller (the differential on
+            the node graph: the product then runs over it), or None (element by element).
     Returns:
         (Ap ``[V, d]``, p . Ap per node ``[V]``) with ``Ap_i = free_i (c_mass m_i p_i - c_stiff (K p)_i)``.
 
@@ -214,7 +237,8 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
     native = _fused_native(groups, u, p, (mass_v, free_v, node_stiffness))
     if native is not None:
         state = linearize(groups[0], u) if states is None else states[0]
-        return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness)
+        return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness,
+                                    node_k=_tangent_of(tangents))
     kp = None
     for i, group in enumerate(groups):
         f = dforces(group, u, p, None if states is None else states[i])
@@ -229,7 +253,7 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
 
 def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                         c_mass: float, c_stiff: float, states, node_stiffness: Optional[torch.Tensor],
-                        ap: torch.Tensor, plan, cg_state) -> bool:
+                        ap: torch.Tensor, plan, cg_state, tangents=None) -> bool:
     """:func:`system_matvec` fused with the CG step length where the extension has it: A p into
     ``ap [V, d]`` (in place) and, per object of the CG's chunk ``plan`` (``ChunkPlan``),
     ``cg_state.alpha`` and ``.status`` exactly as ``solver.cg_ops.cg_alpha`` sets them (one
@@ -244,7 +268,7 @@ def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Te
         return False
     state = linearize(groups[0], u) if states is None else states[0]
     return native.system_matvec_alpha(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness, ap,
-                                      plan.tensors(), cg_state)
+                                      plan.tensors(), cg_state, node_k=_tangent_of(tangents))
 
 
 def _system_cg_native(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
@@ -257,17 +281,17 @@ def _system_cg_native(groups, u: torch.Tensor, mass: torch.Tensor, free: Optiona
 
 
 def system_cg_serves(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
-                     node_stiffness: Optional[torch.Tensor], cg_state) -> bool:
+                     node_stiffness: Optional[torch.Tensor], cg_state, tangents=None) -> bool:
     """Whether :func:`system_cg` runs these systems' CG solves in one op (see there)."""
     groups = list(groups)
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state)
     return native is not None and native.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness),
-                                                          cg_state.scratch.numel())
+                                                          cg_state.scratch.numel(), _tangent_of(tangents))
 
 
 def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
               c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
-              tol: float, plan, cg_state, max_iter: int, count: int) -> bool:
+              tol: float, plan, cg_state, max_iter: int, count: int, tangents=None) -> bool:
     """A CG solve of the :func:`system_matvec` system in ONE op where the extension has it (the
     hooke tensor form over the node graph: one persistent kernel on the GPU, convergence decided
     on the device): with ``rhs [V, d]``, the start from x0 = 0 (rhs projected on ``free``;
@@ -282,13 +306,14 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     if native is None:
         return False
     # A whole solve on the GPU: the pipelined CG where it fits (one grid barrier an iteration)
+    node_k = _tangent_of(tangents)
     if (rhs is not None and count >= max_iter
             and native.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
-                                    cg_state, max_iter)):
+                                    cg_state, max_iter, node_k)):
         return True
     # native.system_cg checks what it serves (and does nothing where it has no one op)
     return native.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
-                            cg_state, max_iter, count)
+                            cg_state, max_iter, count, node_k)
 
 
 def step_rhs(groups, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass: torch.Tensor,

@@ -137,3 +137,35 @@ def node_element_lists(elements: torch.Tensor, num_nodes: int):
     counts = torch.bincount(flat, minlength=num_nodes)
     ptr = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
     return ptr, order // n, order % n
+
+
+@dataclass
+class EdgeGraph:
+    """The unique edges of a mesh's elements, for element data summed onto edges without atomics
+    (the tangent on the node graph: kernel 1 per element writes each local pair's block to
+    ``[edge_slots[e, p], element_edges[e, p]]``, kernel 2 per edge sums its slots in order).
+
+    Attributes:
+        edges: ``[Ed, 2]`` with ``edges[:, 0] < edges[:, 1]``, sorted (:func:`unique_edges`).
+        element_edges: the edge of each element's local pair ``[N, P]`` (pairs a < b in the order
+            of :func:`unique_edges`).
+        edge_slots: the rank of (element, pair) among its edge's elements ``[N, P]``.
+        num_edge_slots: the most elements of one edge.
+        edge_counts: elements of each edge ``[Ed]``.
+        plan: the gather plan over the edges (each node's slots: its edges in edge order).
+    """
+
+    edges: torch.Tensor
+    element_edges: torch.Tensor
+    edge_slots: torch.Tensor
+    num_edge_slots: int
+    edge_counts: torch.Tensor
+    plan: GatherPlan
+
+    @classmethod
+    def build(cls, elements: torch.Tensor, num_nodes: int) -> "EdgeGraph":
+        """The edge graph of ``elements [N, n]`` over ``num_nodes`` nodes."""
+        edges, _, element_edges = unique_edges(elements, num_nodes)
+        slots, num_edge_slots, counts = incidence_slots(element_edges.reshape(-1), edges.shape[0])
+        return cls(edges, element_edges, slots.view_as(element_edges), num_edge_slots, counts,
+                   GatherPlan.build(edges, num_nodes))

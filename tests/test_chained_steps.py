@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
+from tensormass_torch import native
 from tensormass_torch import scene as scene_module
 from tensormass_torch.solver import cg_ops
 from tensormass_torch.solver import implicit_euler
@@ -125,12 +126,26 @@ def test_not_converged_fixed_budget_raises_when_convergence_is_required(graphs_o
     assert sim.steps_done == 0 and torch.equal(sim.x, sim.model.rest)
 
 
-def test_steps_that_need_host_checks_are_not_chained(graphs_on_cpu):
-    """A CG that runs op by op (stvk) past check_every iterations needs the host: not chained."""
+def test_steps_that_need_host_checks_are_not_chained(graphs_on_cpu, monkeypatch):
+    """A CG that runs op by op (stvk element by element) past check_every iterations needs the
+    host: not chained."""
+    monkeypatch.setattr(native, "NODE_TANGENT", False)
     sim = make_sim("stvk", cg_max_iter=50, check_every=8, tol=1e-8)
     sim.step(3)
     (graphs,) = sim.system._step_graphs.values()
     assert not graphs.chainable and int(graphs.ring_pos) == 0 and sim.steps_done == 3
+
+
+def test_stvk_steps_chain_with_the_tangent_on_the_node_graph(graphs_on_cpu):
+    """With its differential on the node graph (native.NODE_TANGENT), stvk's CG is one op that
+    stops on the device: its steps chain, bitwise one step at a time."""
+    chained, single = (make_sim("stvk", cg_max_iter=50, check_every=8, tol=1e-8) for _ in range(2))
+    chained.step(3)
+    for _ in range(3):
+        single.step()
+    (graphs,) = chained.system._step_graphs.values()
+    assert graphs.chainable and int(graphs.ring_pos) == 3
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
 
 
 def test_steps_with_a_tolerance_chain_where_the_cg_is_one_op(graphs_on_cpu):

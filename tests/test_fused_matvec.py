@@ -109,7 +109,7 @@ def test_system_matvec_dispatch(monkeypatch, kind, model, form, dtype, with_free
     free = free if with_free else None
     calls = []
     real = native.system_matvec
-    monkeypatch.setattr(native, "system_matvec", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(native, "system_matvec", lambda *a, **k: calls.append(1) or real(*a, **k))
     ap, dot = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF)
     assert len(calls) == 1  # every form has a fused path
     exp_ap, exp_dot = unfused(group, u, p, mass, free)
@@ -159,7 +159,7 @@ def test_node_stiffness(monkeypatch, kind, model, form, dtype):
 def test_system_matvec_two_groups_is_composed(monkeypatch):
     _, group, u, p, mass, free = make_case(7, "tet", "stvk", "stress", torch.float64)
     calls = []
-    monkeypatch.setattr(native, "system_matvec", lambda *a: calls.append(1))
+    monkeypatch.setattr(native, "system_matvec", lambda *a, **k: calls.append(1))
     ap, dot = ops.system_matvec([group, group], u, p, mass, free, C_MASS, C_STIFF)
     assert not calls
     exp = (C_MASS * mass.unsqueeze(-1) * p - C_STIFF * 2 * ops.dforces(group, u, p)) * free.unsqueeze(-1)
@@ -236,8 +236,8 @@ def test_simulator_step_matches_torch_backend(monkeypatch, model, form, dtype):
     # the solver's matvec: ops.system_matvec, its variant ending in the CG step length, or the one-op CG
     for name in ("system_matvec", "system_matvec_alpha", "system_cg"):
         real, real_native = getattr(ops, name), getattr(native, name)
-        monkeypatch.setattr(ops, name, lambda *a, real=real: calls.append(1) or real(*a))
-        monkeypatch.setattr(native, name, lambda *a, real=real_native: fused_calls.append(1) or real(*a))
+        monkeypatch.setattr(ops, name, lambda *a, real=real, **k: calls.append(1) or real(*a, **k))
+        monkeypatch.setattr(native, name, lambda *a, real=real_native, **k: fused_calls.append(1) or real(*a, **k))
     x, v = run()
     assert calls, "the solver did not use ops.system_matvec(_alpha)"
     assert fused_calls, "the solver did not use the fused matvec"

@@ -381,7 +381,7 @@ def test_group_dispatch_matches_torch_backend(kind, rot, dtype, rng, monkeypatch
     free = (torch.tensor(rng.uniform(0, 1, u.shape[0])) > 0.2).to(dtype)
     fused, rotations_calls = [], []
     real_matvec, real_rot = native.system_matvec, native.corotational_rotations
-    monkeypatch.setattr(native, "system_matvec", lambda *a: fused.append(a[7]) or real_matvec(*a))
+    monkeypatch.setattr(native, "system_matvec", lambda *a, **k: fused.append(a[7]) or real_matvec(*a, **k))
     monkeypatch.setattr(native, "corotational_rotations", lambda *a: rotations_calls.append(1) or real_rot(*a))
 
     def run():
@@ -572,13 +572,15 @@ def test_simulator_matches_torch_backend(kind, rot, monkeypatch):
 
 def test_rotations_computed_per_step_not_per_cg_iteration(monkeypatch):
     """The rotations are computed once per step (the linearisation, shared by the forces, the
-    right-hand side's dforce and the CG system) while the CG products only read them."""
+    right-hand side's dforce and the CG system) while the CG products only read them (element by
+    element; on the node graph, the tangent reads them once: test_node_tangent.py)."""
+    monkeypatch.setattr(native, "NODE_TANGENT", False)
     rotations_calls, products = [], []
     real_rot = native.corotational_rotations
     monkeypatch.setattr(native, "corotational_rotations", lambda *a: rotations_calls.append(1) or real_rot(*a))
     for name in ("system_matvec", "system_matvec_alpha"):  # the CG's product, plain or ending in alpha
         real = getattr(native, name)
-        monkeypatch.setattr(native, name, lambda *a, real=real: products.append(a[7] is not None) or real(*a))
+        monkeypatch.setattr(native, name, lambda *a, real=real, **k: products.append(a[7] is not None) or real(*a, **k))
     _simulated("tet", "polar", "extension", monkeypatch, steps=2)
     assert len(products) > 10 and all(products)  # many CG products, each given the stored rotations
     assert len(rotations_calls) <= 2

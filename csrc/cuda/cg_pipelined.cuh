@@ -131,6 +131,32 @@ __device__ inline void lanes_total(S (&acc)[D]) {
   }
 }
 
+// The exclusive prefix sums of `value` over the block's threads (kReduceBlock of them), in every
+// thread: a warp scan by shuffles, then one of the warp totals.
+__device__ inline int32_t block_exclusive_scan(int32_t value) {
+  __shared__ int32_t warp_totals[kReduceBlock / 32];
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  int32_t inclusive = value;
+  for (int o = 1; o < 32; o <<= 1) {
+    const int32_t up = __shfl_up_sync(0xffffffffu, inclusive, o);
+    if (lane >= o) inclusive += up;
+  }
+  if (lane == 31) warp_totals[warp] = inclusive;
+  __syncthreads();
+  if (warp == 0) {
+    int32_t total = lane < kReduceBlock / 32 ? warp_totals[lane] : 0;
+    for (int o = 1; o < 32; o <<= 1) {
+      const int32_t up = __shfl_up_sync(0xffffffffu, total, o);
+      if (lane >= o) total += up;
+    }
+    if (lane < kReduceBlock / 32) warp_totals[lane] = total;  // inclusive over warps
+  }
+  __syncthreads();
+  const int32_t out = inclusive - value + (warp > 0 ? warp_totals[warp - 1] : 0);
+  __syncthreads();  // warp_totals may be written again
+  return out;
+}
+
 // Block sums of two values, the result in thread 0 (a fixed order).
 __device__ inline double2 block_sum_pair(double a, double b) {
   __shared__ double2 warp_sums[kReduceBlock / 32];
@@ -188,20 +214,20 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
   const bool single_object = plan.num_objects == 1;
   if (blockIdx.x == 0 && tid < 3) s.counters[tid] = 0;  // before the first barrier; counted after it
 
-  // The chunk's slots into shared memory: offsets by a scan of the slot counts.
+  // The chunk's slots into shared memory: each node's first slot by a scan of the slot counts.
   extern __shared__ __align__(16) unsigned char solve_shared[];
   S* shared_k = reinterpret_cast<S*>(solve_shared);
   int32_t* shared_neighbor = reinterpret_cast<int32_t*>(shared_k + s.chunk_slots * (D * D));
   __shared__ int32_t slot_offset[kSolveChunkNodes + 1];
   const auto& graph = k.graph;
   const int count = own ? static_cast<int>(ld(graph.incidences + i)) : 0;
-  if (tid < kSolveChunkNodes) slot_offset[tid + 1] = begin + tid < end ? static_cast<int32_t>(ld(graph.incidences + begin + tid)) : 0;
-  if (tid == 0) slot_offset[0] = 0;
-  __syncthreads();
-  if (tid == 0) {  // 128 adds: once per solve
-    for (int q = 1; q <= kSolveChunkNodes; ++q) slot_offset[q] += slot_offset[q - 1];
+  {
+    const int32_t mine = lane == 0 ? count : 0;  // counted once per node
+    const int32_t before = block_exclusive_scan(mine);
+    if (lane == 0) slot_offset[tid / kLanes] = before;
+    if (tid == kReduceBlock - 1) slot_offset[kSolveChunkNodes] = before + mine;
+    __syncthreads();
   }
-  __syncthreads();
   // A chunk beyond the layout the caller promised (more nodes or slots) solves nothing: its
   // object's b.b is made NaN, so the object stops at the start as non-finite and says so.
   const bool layout_ok = end - begin <= kSolveChunkNodes && slot_offset[kSolveChunkNodes] <= s.chunk_slots;

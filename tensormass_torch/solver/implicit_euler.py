@@ -145,6 +145,9 @@ class SystemMatvec:
         self.stiffness_coef = stiffness_coef
         self.u = torch.zeros_like(system.model.rest)
         self.states = None
+        #: the differential at the loaded positions on the node graph (``ops.node_tangent``, one
+        #: group: ``[node_k [N_n, V, d, d]]``), or None where the products run element by element
+        self.tangents = None
         self.node_stiffness = None
         #: contact forces ``[V, d]`` at the loaded positions (None without planes)
         self.contact_forces = None
@@ -173,7 +176,20 @@ class SystemMatvec:
                 self.node_stiffness = stiffness.clone()
             else:
                 self.node_stiffness.copy_(stiffness)
+        self._load_tangents()
         return self
+
+    def _load_tangents(self):
+        """The differential at ``self.u`` on the node graph, into the kept buffer (the fused paths
+        serve one group), where ``ops.node_tangent`` serves the group."""
+        from .. import ops
+
+        groups = self.system.model.groups
+        tangent = None
+        if len(groups) == 1:
+            state = None if self.states is None else self.states[0]
+            tangent = ops.node_tangent(groups[0], self.u, state, None if self.tangents is None else self.tangents[0])
+        self.tangents = None if tangent is None else [tangent]
 
     def load_step(self, x: torch.Tensor, v: torch.Tensor, h: float, rayleigh_mass: float,
                   rayleigh_stiffness: float) -> torch.Tensor:
@@ -199,6 +215,7 @@ class SystemMatvec:
         if ops.step_rhs(model.groups, x, v, model.rest, system.mass, system.external, system.planes, h, w_coef,
                         rayleigh_mass, self.u, self._rhs, self.node_stiffness):
             self.states = [None] * len(model.groups)  # the hooke tensor form keeps no per-element state
+            self.tangents = None  # its node graph is its own
             self.contact_forces = None
             return self._rhs
         self.load(x)
@@ -236,7 +253,8 @@ class SystemMatvec:
         if self._ap is None:
             self._ap = torch.empty_like(self.u)
         done = ops.system_matvec_alpha(system.model.groups, self.u, p, system.mass, system.free, self.mass_coef,
-                                       self.stiffness_coef, self.states, self.node_stiffness, self._ap, plan, cg_state)
+                                       self.stiffness_coef, self.states, self.node_stiffness, self._ap, plan, cg_state,
+                                       self.tangents)
         return self._ap if done else None
 
     def _one_op_args(self, cg):
@@ -249,7 +267,9 @@ class SystemMatvec:
         from .. import ops
 
         same_free, args = self._one_op_args(cg)
-        return same_free and ops.system_cg_serves(*args, self.node_stiffness, cg.state)
+        if self.tangents is None and self.states is None:  # not loaded yet: the graph it would have
+            self._load_tangents()
+        return same_free and ops.system_cg_serves(*args, self.node_stiffness, cg.state, self.tangents)
 
     def solve_in_one_op(self, cg, rhs, tol: float, max_iter: int, count: int) -> bool:
         """With ``rhs [V, d]``: start ``cg`` (a ``CGSolver`` over this system's objects) from x0 = 0,
@@ -264,14 +284,14 @@ class SystemMatvec:
         if self._ap is None:
             self._ap = torch.empty_like(self.u)
         return ops.system_cg(*args, self.mass_coef, self.stiffness_coef, self.node_stiffness, self._ap, rhs, tol,
-                             cg.plan, cg.state, max_iter, count)
+                             cg.plan, cg.state, max_iter, count, self.tangents)
 
     def __call__(self, p: torch.Tensor):
         from .. import ops
 
         system = self.system
         return ops.system_matvec(system.model.groups, self.u, p, system.mass, system.free, self.mass_coef,
-                                 self.stiffness_coef, self.states, self.node_stiffness)
+                                 self.stiffness_coef, self.states, self.node_stiffness, self.tangents)
 
 
 def _coefficients(opts: StepOptions):
