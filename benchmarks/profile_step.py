@@ -1,19 +1,33 @@
-"""Where a graphed SOFA-beam step spends its time: wall per step over 100 steps, then the CUDA
-kernels of 5 steps (torch.profiler table, to stdout).
+"""Where a graphed step spends its time: wall per step over 100 steps, then the CUDA kernels of 5
+steps (torch.profiler table, to stdout), for the SOFA beam or the paper's 307,200-tet beam.
 
-    python benchmarks/profile_step.py [MODEL ...] > profile.txt   # on the GPU machine (hooke corotational)
+    python benchmarks/profile_step.py [MODEL ...] > profile.txt        # SOFA beam (hooke corotational)
+    python benchmarks/profile_step.py paper_beam:stvk paper_beam:corotational
 """
-import sys, time, torch
-sys.path.insert(0, "benchmarks")
-from tensormass_torch.scenes import sofa_beam
-for model in sys.argv[1:] or ("hooke", "corotational"):
-    sim = sofa_beam(model=model, device="cuda").simulator
-    sim.options.cg_tol = 0.0
-    sim.options.check_every = 1000
-    sim.step(20); torch.cuda.synchronize()  # captures the graphs of 1 and 8 chained steps
-    t = time.perf_counter(); sim.step(100); torch.cuda.synchronize()
-    print(f"{model}: {(time.perf_counter() - t) / 100 * 1e3:.3f} ms/step", flush=True)
-    from torch.profiler import profile, ProfilerActivity
+import os
+import sys
+import time
+
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from step_bench import paper_beam, sofa  # noqa: E402
+
+SCENES = {"sofa_beam": sofa, "paper_beam": paper_beam}
+
+for spec in sys.argv[1:] or ("hooke", "corotational"):
+    scene, _, model = spec.rpartition(":")
+    scene = scene or "sofa_beam"
+    sim = SCENES[scene](model, "cuda", torch.float32)
+    steps = 100 if scene == "sofa_beam" else 20
+    sim.step(20 if scene == "sofa_beam" else 10)  # captures the graphs of 1 and 8 chained steps
+    torch.cuda.synchronize()
+    t = time.perf_counter()
+    sim.step(steps)
+    torch.cuda.synchronize()
+    print(f"{scene} {model}: {(time.perf_counter() - t) / steps * 1e3:.3f} ms/step", flush=True)
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        sim.step(5); torch.cuda.synchronize()
+        sim.step(5)
+        torch.cuda.synchronize()
     print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=25, max_name_column_width=60), flush=True)
