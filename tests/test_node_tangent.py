@@ -111,8 +111,9 @@ def simulate(model, node_tangent, device, monkeypatch, steps=4, **material):
     mesh = tm.beam_mesh(6, 2, 2, size=(0.6, 0.1, 0.1), dtype=torch.float64, device=device)
     body = tm.Body(mesh, tm.Material(young=2e4, poisson=0.35, density=1000.0, model=model, **material),
                    fixed=mesh.vertices[:, 0] < 1e-9)
+    # the plane's penalty acts on the bottom nodes from the start: contact in the products and rhs
     sim = tm.Simulator([body], dt=0.02, gravity=(0, 0, -9.81), form="stress", cg_tol=1e-10, cg_max_iter=400,
-                       device=device, dtype=torch.float64)
+                       planes=[tm.Plane((0.0, 0.0, 1.0), 0.001, 1e4)], device=device, dtype=torch.float64)
     sim.step(steps)
     matvec = next(iter(sim.system._matvecs.values()))
     return sim, matvec

@@ -153,6 +153,7 @@ class SystemMatvec:
         self.contact_forces = None
         self._ap = None  # A p of matvec_alpha (kept: a CUDA graph replays into it)
         self._rhs = None  # the step's right-hand side of load_step (kept, as _ap)
+        self._zero_mass = None  # [V, 1] zeros: forces_along's product over the node graph has no mass term
         self.graph_key = ("system", mass_coef, stiffness_coef, id(self))
 
     def load(self, x: torch.Tensor) -> "SystemMatvec":
@@ -238,6 +239,17 @@ class SystemMatvec:
         system = self.system
         if system.planes is not None and self.contact_forces is None:
             raise RuntimeError("forces_along needs the contact forces of load(x); load_step does not keep them")
+        if self.tangents is not None:
+            # (dF/dx) w over the node graph, the contact stiffness in its epilogue: one pass over
+            # the nodes instead of an element pass that recomputes each element's differential
+            from .. import ops
+
+            if self._zero_mass is None:
+                self._zero_mass = torch.zeros_like(system.mass)
+            stiffness_along, _ = ops.system_matvec(system.model.groups, self.u, w, self._zero_mass, None, 0.0, -1.0,
+                                                   self.states, self.node_stiffness, self.tangents)
+            total = ops.forces(system.model.groups[0], self.u, self.states[0]) + system.external + stiffness_along
+            return total if self.contact_forces is None else total + self.contact_forces
         total = system.model.linearized_forces(self.u, w, self.states) + system.external
         if self.contact_forces is not None:
             total = total + self.contact_forces - (self.node_stiffness * w[:, None, :]).sum(-1)
