@@ -208,20 +208,46 @@ TM_HD constexpr int pair_index(int a, int b) {
   return a * (2 * NN - a - 1) / 2 + (b - a - 1);
 }
 
+// A block of edge_partial: D x D values padded to a multiple of 16 bytes (12 for 3-D, 4 for
+// 2-D), so kernel 1 stores and kernel 2 loads it in 16-byte pieces (scattered 4-byte stores were
+// most of kernel 1's time: each touched its own 32-byte sector).
+template <int D, typename S>
+struct PaddedBlock {
+  static constexpr int kStride = D == 3 ? 12 : 4;  // 48 / 96 bytes (3-D), 16 / 32 (2-D)
+  static constexpr int kPer = int(16 / sizeof(S));
+
+  static TM_HD void store(S* dst, const S (&v)[kStride]) {
+#if defined(__CUDA_ARCH__)
+    TM_UNROLL for (int q = 0; q < kStride / kPer; ++q) {
+      int4 chunk;
+      memcpy(&chunk, v + q * kPer, 16);
+      reinterpret_cast<int4*>(dst)[q] = chunk;
+    }
+#else
+    std::memcpy(dst, v, sizeof(v));
+#endif
+  }
+
+  static TM_HD void load(const S* src, S (&v)[kStride]) {
+    TM_UNROLL for (int q = 0; q < kStride / kPer; ++q) load16<S>(src + q * kPer, v + q * kPer);
+  }
+};
+
 // Kernel 1: one item per element. Column c of H_ab (a < b) is the differential on node a along
 // du = e_c at node b: the model's own dforces, (NN - 1) D evaluations (the same function the
 // element path of the CG calls, so both are one formula). Each block goes to
 // edge_partial[edge_slot[e][p]][element_edges[e][p]] oriented from the pair's lower global node
-// to its higher (transposed where idx[a] > idx[b]).
+// to its higher (transposed where idx[a] > idx[b]), whole, once its D columns are known.
 template <int MODEL, int NN, int D, typename S, typename I>
 struct TangentElementKernel {
   static constexpr bool kMembrane = NN - 1 < D;
   static constexpr int kPairs = NN * (NN - 1) / 2;
+  using Block = PaddedBlock<D, S>;
   StressInputs<S, I> in;   // rotations given for the corotational model
   const I* element_edges;  // [N, P] the edge of each local pair
   const I* edge_slots;     // [N, P] its slot among the edge's elements
   int64_t num_edges;       // Ed
-  S* edge_partial;         // [N_es, Ed, D, D]
+  S* edge_partial;         // [N_es, Ed, Block::kStride]
 
   TM_HD void operator()(int64_t e) const {
     I idx[NN], edge[kPairs], slot[kPairs];
@@ -237,22 +263,28 @@ struct TangentElementKernel {
     gather_nodes<NN, D, S, I>(in.u, idx, u);
     if constexpr (MODEL == kCorotational) load_matrix<D, D, S>(in.rotations + e * (D * D), r);
     TM_UNROLL for (int b = 1; b < NN; ++b) {
+      S column[D][NN][D];  // column[c][a] = d f_a / d u_b[c]
       TM_UNROLL for (int c = 0; c < D; ++c) {
-        S du[NN][D], f[NN][D];
+        S du[NN][D];
         TM_UNROLL for (int k = 0; k < NN; ++k) {
           TM_UNROLL for (int x = 0; x < D; ++x) du[k][x] = (k == b && x == c) ? S(1) : S(0);
         }
         if constexpr (MODEL == kCorotational) {
-          corotational_dforces<NN, D, S, kMembrane>(du, r, m, vol, lam, mu, plane, f);
+          corotational_dforces<NN, D, S, kMembrane>(du, r, m, vol, lam, mu, plane, column[c]);
         } else {
-          stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, f);
+          stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, column[c]);
         }
-        TM_UNROLL for (int a = 0; a < b; ++a) {
-          const int pair = pair_index<NN>(a, b);
-          const bool low_first = idx[a] < idx[b];
-          S* block = edge_partial + (static_cast<int64_t>(slot[pair]) * num_edges + static_cast<int64_t>(edge[pair])) * (D * D);
-          TM_UNROLL for (int x = 0; x < D; ++x) block[low_first ? x * D + c : c * D + x] = f[a][x];
+      }
+      TM_UNROLL for (int a = 0; a < b; ++a) {
+        const int pair = pair_index<NN>(a, b);
+        const bool low_first = idx[a] < idx[b];
+        S v[Block::kStride];
+        TM_UNROLL for (int x = 0; x < D; ++x) {
+          TM_UNROLL for (int c = 0; c < D; ++c) v[x * D + c] = low_first ? column[c][a][x] : column[x][a][c];
         }
+        TM_UNROLL for (int q = D * D; q < Block::kStride; ++q) v[q] = S(0);
+        Block::store(edge_partial + (static_cast<int64_t>(slot[pair]) * num_edges + static_cast<int64_t>(edge[pair])) *
+                                        Block::kStride, v);
       }
     }
   }
@@ -269,7 +301,8 @@ struct TangentElementKernel {
 // edge, GatherPlan over the edges).
 template <int D, typename S, typename I>
 struct TangentEdgeKernel {
-  const S* edge_partial;    // [N_es, Ed, D, D]
+  using Block = PaddedBlock<D, S>;
+  const S* edge_partial;    // [N_es, Ed, Block::kStride]
   const I* edge_counts;     // [Ed] elements of each edge
   const I* edges;           // [Ed, 2]
   const I* force_index;     // [Ed, 2]
@@ -277,12 +310,13 @@ struct TangentEdgeKernel {
   S* node_k;                // [N_n, V, D, D]
 
   TM_HD void operator()(int64_t g) const {
-    S h[D * D];
-    TM_UNROLL for (int q = 0; q < D * D; ++q) h[q] = S(0);
+    S h[Block::kStride];
+    TM_UNROLL for (int q = 0; q < Block::kStride; ++q) h[q] = S(0);
     const int64_t count = static_cast<int64_t>(ld(edge_counts + g));
     for (int64_t s = 0; s < count; ++s) {
-      const S* block = edge_partial + (s * num_edges + g) * (D * D);
-      TM_UNROLL for (int q = 0; q < D * D; ++q) h[q] += ld(block + q);
+      S v[Block::kStride];
+      Block::load(edge_partial + (s * num_edges + g) * Block::kStride, v);
+      TM_UNROLL for (int q = 0; q < Block::kStride; ++q) h[q] += v[q];
     }
     I ij[2], fi[2];
     load_block<2, I>(edges + g * 2, ij);

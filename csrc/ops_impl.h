@@ -484,8 +484,8 @@ at::Tensor corotational_rotations(const at::Tensor& u, const at::Tensor& element
 // (neighbor, node_k, incidences) of the edge plan is this group's CG product. The edges: the
 // mesh's unique edges [Ed, 2] (i < j), element_edges / edge_slots [N, P] (the edge of each local
 // pair and its slot among the edge's elements: edge_counts [Ed], num_edge_slots the most), the
-// node graph's edge_force_index [Ed, 2] and num_slots. edge_partial [num_edge_slots, Ed, d, d]:
-// kernel 1's buffer. The corotational model needs its rotations (held fixed, as its dforces).
+// node graph's edge_force_index [Ed, 2] and num_slots. edge_partial [num_edge_slots, Ed, 12]
+// (3-D; [.., 4] in 2-D: each d x d block padded to 16 bytes): kernel 1's buffer. The corotational model needs its rotations (held fixed, as its dforces).
 template <class L>
 void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
                            const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
@@ -510,7 +510,7 @@ void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, cons
   TORCH_CHECK(a.num_elements == 0 || (num_edge_slots > 0 && num_slots > 0),
               "tensormass: num_edge_slots or num_slots is 0 but there are elements");
   check_float_tensor(node_k, "node_k", u, {num_slots, V, d, d});
-  check_float_tensor(edge_partial, "edge_partial", u, {num_edge_slots, num_edges, d, d});
+  check_float_tensor(edge_partial, "edge_partial", u, {num_edge_slots, num_edges, d == 3 ? 12 : 4});
   typename L::Guard guard(u.device());
   if (a.num_elements == 0) return;
   dispatch_scalar(u.scalar_type(), [&](auto s_tag) {

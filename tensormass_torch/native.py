@@ -813,7 +813,7 @@ def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = N
     shape = (plan.num_slots, u.shape[0], d, d)
     if out is None or tuple(out.shape) != shape or out.dtype != u.dtype or out.device != u.device:
         out = u.new_zeros(shape)
-    work_shape = (graph.num_edge_slots, graph.edges.shape[0], d, d)
+    work_shape = (graph.num_edge_slots, graph.edges.shape[0], 12 if d == 3 else 4)  # blocks padded to 16 bytes
     work = group.__dict__.get("_native_tangent_work")
     if work is None or tuple(work.shape) != work_shape or work.dtype != u.dtype or work.device != u.device:
         work = group.__dict__["_native_tangent_work"] = u.new_empty(work_shape)

@@ -160,7 +160,7 @@ def test_bad_inputs_are_rejected_with_nothing_changed(device):
     index = native._plan_indices(group.plan)[0]
     m, vol, lam, mu, proj, model, _, rotations = native._stress_args(group, u, None)
     node_k = torch.full((plan.num_slots, u.shape[0], 3, 3), 7.0, device=device)
-    work = torch.zeros(graph.num_edge_slots, graph.edges.shape[0], 3, 3, device=device)
+    work = torch.zeros(graph.num_edge_slots, graph.edges.shape[0], 12, device=device)
     args = dict(u=u, elements=index, shape_vectors=m, measure=vol, lam=lam, mu=mu, projector=proj, model=model,
                 rotations=rotations, element_edges=graph.element_edges, edge_slots=graph.edge_slots,
                 num_edge_slots=graph.num_edge_slots, edges=graph.edges, edge_counts=graph.edge_counts,
