@@ -135,6 +135,20 @@ struct StressInputs {
   const S* projector;      // [N, D, D] (membranes only)
   const S* rest;           // [N, NN, D] rest element nodes (corotational QR recomputed per call; D = 3)
   const S* rotations;      // [N, D, D] element rotations (corotational; nullptr: QR frame from rest)
+
+  // What every stress-form element kernel starts from: element e's node ids, shape vectors,
+  // measure, Lame parameters, tangent plane (the projector of a membrane) and displacements.
+  template <int NN, int D, bool M>
+  TM_HD void load_element(int64_t e, I (&idx)[NN], S (&m)[NN][D], S& vol, S& lam_e, S& mu_e,
+                          Plane<D, S, M>& plane, S (&u_e)[NN][D]) const {
+    load_block<NN, I>(elements + e * NN, idx);
+    load_matrix<NN, D, S>(shape_vectors + e * (NN * D), m);
+    vol = ld(measure + e);
+    lam_e = ld(lam + e);
+    mu_e = ld(mu + e);
+    if constexpr (M) load_matrix<D, D, S>(projector + e * (D * D), plane.p);
+    gather_nodes<NN, D, S, I>(u, idx, u_e);
+  }
 };
 
 template <int MODEL, bool DFORCE, int NN, int D, typename S, typename I, bool PADDED>
@@ -145,14 +159,9 @@ struct StressElementKernel {
 
   TM_HD void operator()(int64_t e) const {
     I idx[NN];
-    load_block<NN, I>(in.elements + e * NN, idx);
-    S m[NN][D];
-    load_matrix<NN, D, S>(in.shape_vectors + e * (NN * D), m);
-    const S vol = ld(in.measure + e), lam = ld(in.lam + e), mu = ld(in.mu + e);
+    S m[NN][D], vol, lam, mu, u[NN][D], f[NN][D];
     Plane<D, S, kMembrane> plane;
-    load_plane(e, plane);
-    S u[NN][D], f[NN][D];
-    gather_nodes<NN, D, S, I>(in.u, idx, u);
+    in.load_element(e, idx, m, vol, lam, mu, plane, u);
     if constexpr (MODEL == kCorotational) {
       // The rotations of the linearisation when given (9 loads, the CG path), else SOFA's QR
       // frame recomputed from u and the rest nodes (a uniform branch: one pointer per launch).
@@ -181,11 +190,6 @@ struct StressElementKernel {
     write(e, idx, f);
   }
 
- private:
-  TM_HD void load_plane(int64_t, Plane<D, S, false>&) const {}
-  TM_HD void load_plane(int64_t e, Plane<D, S, true>& plane) const {
-    load_matrix<D, D, S>(in.projector + e * (D * D), plane.p);
-  }
 };
 
 // ------------------------------------------------------------------ the tangent on the node graph
@@ -251,16 +255,11 @@ struct TangentElementKernel {
 
   TM_HD void operator()(int64_t e) const {
     I idx[NN], edge[kPairs], slot[kPairs];
-    load_block<NN, I>(in.elements + e * NN, idx);
+    S m[NN][D], vol, lam, mu, u[NN][D], r[D][D];
+    Plane<D, S, kMembrane> plane;
+    in.load_element(e, idx, m, vol, lam, mu, plane, u);
     load_block<kPairs, I>(element_edges + e * kPairs, edge);
     load_block<kPairs, I>(edge_slots + e * kPairs, slot);
-    S m[NN][D];
-    load_matrix<NN, D, S>(in.shape_vectors + e * (NN * D), m);
-    const S vol = ld(in.measure + e), lam = ld(in.lam + e), mu = ld(in.mu + e);
-    Plane<D, S, kMembrane> plane;
-    load_plane(e, plane);
-    S u[NN][D], r[D][D];
-    gather_nodes<NN, D, S, I>(in.u, idx, u);
     if constexpr (MODEL == kCorotational) load_matrix<D, D, S>(in.rotations + e * (D * D), r);
     TM_UNROLL for (int b = 1; b < NN; ++b) {
       S column[D][NN][D];  // column[c][a] = d f_a / d u_b[c]
@@ -289,11 +288,6 @@ struct TangentElementKernel {
     }
   }
 
- private:
-  TM_HD void load_plane(int64_t, Plane<D, S, false>&) const {}
-  TM_HD void load_plane(int64_t e, Plane<D, S, true>& plane) const {
-    load_matrix<D, D, S>(in.projector + e * (D * D), plane.p);
-  }
 };
 
 // Kernel 2: one item per edge (i < j): H = the sum of its used slots in slot order, then
