@@ -200,10 +200,12 @@ struct StressElementKernel {
 //   (dF/du) p at node i = sum_j H_ij (p_j - p_i)
 // and the CG matvec is hooke_node_system's over the node graph with node_k = -H_ij in the slot
 // of (i -> j) and -H_ij^T in that of (j -> i) (the differentials are symmetric: H_ji = H_ij^T).
-// Built once per linearisation (the paper's two kernels, no atomics): kernel 1 per element
-// writes its pair blocks into a padded per-edge buffer, kernel 2 per edge sums its slots in
-// order and writes the two node_k slots. Every CG iteration then reads 9 values an edge and
-// direction instead of recomputing each element's differential.
+// Built once per linearisation (the paper's element kernel and gather, no atomics): kernel 1 per
+// element writes its pair blocks into a padded per-edge buffer, kernel 2 per edge sums its slots
+// in order, kernel 3 per slot of the node graph copies its edge's sum into node_k (kernel 2
+// writing node_k itself made two scattered 36-byte stores an edge: partial sectors). Every CG
+// iteration then reads 9 values an edge and direction instead of recomputing each element's
+// differential.
 
 // The index of the local pair (a, b), a < b, in the order of topology.unique_edges:
 // (0,1), (0,2), ..., (1,2), ...
@@ -290,18 +292,15 @@ struct TangentElementKernel {
 
 };
 
-// Kernel 2: one item per edge (i < j): H = the sum of its used slots in slot order, then
-// node_k[fi[g][0]][i] = -H and node_k[fi[g][1]][j] = -H^T (fi: the node graph's slots of the
-// edge, GatherPlan over the edges).
+// Kernel 2: one item per edge: H = the sum of its used slots in slot order, stored into the
+// edge's slot-0 row of edge_partial (in place: no other item reads or writes that row), written
+// in edge order (whole blocks, consecutive edges side by side).
 template <int D, typename S, typename I>
 struct TangentEdgeKernel {
   using Block = PaddedBlock<D, S>;
-  const S* edge_partial;    // [N_es, Ed, Block::kStride]
+  S* edge_partial;          // [N_es, Ed, Block::kStride]; row 0 ends as the edges' sums
   const I* edge_counts;     // [Ed] elements of each edge
-  const I* edges;           // [Ed, 2]
-  const I* force_index;     // [Ed, 2]
-  int64_t num_edges, num_nodes;
-  S* node_k;                // [N_n, V, D, D]
+  int64_t num_edges;
 
   TM_HD void operator()(int64_t g) const {
     S h[Block::kStride];
@@ -312,16 +311,34 @@ struct TangentEdgeKernel {
       Block::load(edge_partial + (s * num_edges + g) * Block::kStride, v);
       TM_UNROLL for (int q = 0; q < Block::kStride; ++q) h[q] += v[q];
     }
-    I ij[2], fi[2];
-    load_block<2, I>(edges + g * 2, ij);
-    load_block<2, I>(force_index + g * 2, fi);
-    S* low = node_k + (static_cast<int64_t>(fi[0]) * num_nodes + static_cast<int64_t>(ij[0])) * (D * D);
-    S* high = node_k + (static_cast<int64_t>(fi[1]) * num_nodes + static_cast<int64_t>(ij[1])) * (D * D);
-    TM_UNROLL for (int x = 0; x < D; ++x) {
-      TM_UNROLL for (int y = 0; y < D; ++y) {
-        low[x * D + y] = -h[x * D + y];
-        high[y * D + x] = -h[x * D + y];
-      }
+    Block::store(edge_partial + g * Block::kStride, h);
+  }
+};
+
+// Kernel 3: one item per value (i, q) of a node's block, over the node's used slots s: node_k
+// [s][i] holds -H_g where i is the first node of the slot's edge g (slot_edge = g), -H_g^T where
+// it is the second (slot_edge = ~g). The D*D items of a node are consecutive, so each slot's
+// stores are side by side (a thread per slot made D*D strided stores and was as slow as the
+// scattered stores of kernel 2 it replaced; a thread per value of node_k spent its time in the
+// 64-bit division of its index by V). Slots beyond a node's incidences are not written.
+template <int D, typename S, typename I>
+struct TangentSlotKernel {
+  using Block = PaddedBlock<D, S>;
+  const S* edge_sums;       // [Ed, Block::kStride] (kernel 2's row 0)
+  const I* slot_edge;       // [N_n, V]
+  const I* incidences;      // [V]
+  int64_t num_nodes;
+  S* node_k;                // [N_n, V, D, D]
+
+  TM_HD void operator()(int64_t t) const {
+    const int64_t i = t / (D * D);
+    const int q = static_cast<int>(t - i * (D * D)), x = q / D, y = q - x * D;
+    const int64_t count = static_cast<int64_t>(ld(incidences + i));
+    for (int64_t s = 0; s < count; ++s) {
+      const int64_t code = static_cast<int64_t>(ld(slot_edge + s * num_nodes + i));
+      const bool first = code >= 0;
+      const S* h = edge_sums + (first ? code : -code - 1) * Block::kStride;
+      node_k[(s * num_nodes + i) * (D * D) + q] = -ld(h + (first ? q : y * D + x));
     }
   }
 };

@@ -65,8 +65,8 @@
 // differential holds R fixed, as SOFA does.
 //
 // The tangent on the node graph (stress form): stress_tangent_node_k(u, <stress inputs>, rotations?,
-// element_edges, edge_slots, num_edge_slots, edges, edge_counts, edge_force_index, num_slots,
-// node_k!, edge_partial!) -> () writes the group's force differential at u as the edge blocks of
+// element_edges, edge_slots, num_edge_slots, edge_counts, slot_edge, incidences, node_k!,
+// edge_partial!) -> () writes the group's force differential at u as the edge blocks of
 // the node graph (node_k [N_n, V, d, d]), so that hooke_node_system, hooke_node_cg and
 // hooke_node_solve run its CG products (once per linearisation instead of an element pass per
 // CG iteration).
@@ -100,7 +100,7 @@ TORCH_LIBRARY(tensormass, m) {
   // ---- the differential at u as slot tensors of the node graph (in place; once per linearisation)
   m.def("stress_tangent_node_k(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
         "Tensor mu, Tensor? projector, int model, Tensor? rotations, Tensor element_edges, Tensor edge_slots, "
-        "int num_edge_slots, Tensor edges, Tensor edge_counts, Tensor edge_force_index, int num_slots, "
+        "int num_edge_slots, Tensor edge_counts, Tensor slot_edge, Tensor incidences, "
         "Tensor(a!) node_k, Tensor(b!) edge_partial) -> ()");
   // ---- tensor form, hooke (items are edges; linear, so dforces(du) = forces(du))
   m.def("tensor_hooke_element_forces(Tensor u, Tensor edges, Tensor edge_k) -> Tensor");

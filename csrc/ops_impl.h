@@ -479,36 +479,40 @@ at::Tensor corotational_rotations(const at::Tensor& u, const at::Tensor& element
 // ------------------------------------------------------------------ the tangent on the node graph
 
 // stress_tangent_node_k: the force differential of a stress-form group at u as the node graph's
-// slot tensors (kernels.h TangentElementKernel, TangentEdgeKernel): node_k [N_n, V, d, d] (in
-// place; slots beyond a node's incidences are not written) such that hooke_node_system over
-// (neighbor, node_k, incidences) of the edge plan is this group's CG product. The edges: the
-// mesh's unique edges [Ed, 2] (i < j), element_edges / edge_slots [N, P] (the edge of each local
-// pair and its slot among the edge's elements: edge_counts [Ed], num_edge_slots the most), the
-// node graph's edge_force_index [Ed, 2] and num_slots. edge_partial [num_edge_slots, Ed, 12]
-// (3-D; [.., 4] in 2-D: each d x d block padded to 16 bytes): kernel 1's buffer. The corotational model needs its rotations (held fixed, as its dforces).
+// slot tensors (kernels.h TangentElementKernel, TangentEdgeKernel, TangentSlotKernel): node_k
+// [N_n, V, d, d] (in place; slots beyond a node's incidences [V] are not written) such that
+// hooke_node_system over (neighbor, node_k, incidences) of the edge plan is this group's CG
+// product. The edges (topology.EdgeGraph): element_edges / edge_slots [N, P] (the edge of each
+// local pair and its slot among the edge's elements: edge_counts [Ed], num_edge_slots the most)
+// and slot_edge [N_n, V] (the edge of each slot of the node graph: g, or ~g where the node is the
+// edge's second). edge_partial [num_edge_slots, Ed, 12] (3-D; [.., 4] in 2-D: each d x d block
+// padded to 16 bytes): kernels 1 and 2's buffer. The corotational model needs its rotations (held
+// fixed, as its dforces).
 template <class L>
 void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
                            const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
                            const c10::optional<at::Tensor>& projector, int64_t model,
                            const c10::optional<at::Tensor>& rotations, const at::Tensor& element_edges,
-                           const at::Tensor& edge_slots, int64_t num_edge_slots, const at::Tensor& edges,
-                           const at::Tensor& edge_counts, const at::Tensor& edge_force_index, int64_t num_slots,
-                           at::Tensor node_k, at::Tensor edge_partial) {
+                           const at::Tensor& edge_slots, int64_t num_edge_slots, const at::Tensor& edge_counts,
+                           const at::Tensor& slot_edge, const at::Tensor& incidences, at::Tensor node_k,
+                           at::Tensor edge_partial) {
   TORCH_CHECK(model != kCorotational || (rotations.has_value() && rotations->defined()),
               "tensormass: the corotational tangent needs the rotations of its linearisation [N, d, d]");
   StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, c10::nullopt, rotations);
   const int64_t n = a.nodes_per_element, pairs = n * (n - 1) / 2, d = a.dim, V = a.num_nodes;
-  TORCH_CHECK(edges.dim() == 2 && edges.size(1) == 2, "tensormass: edges must be [Ed, 2], got shape ",
-              shape_str(edges.sizes()));
-  const int64_t num_edges = edges.size(0);
-  check_index_tensor(edges, "edges", u, a.index_type, {num_edges, 2});
+  TORCH_CHECK(edge_counts.dim() == 1, "tensormass: edge_counts must be [Ed], got shape ",
+              shape_str(edge_counts.sizes()));
+  const int64_t num_edges = edge_counts.size(0);
+  check_index_tensor(edge_counts, "edge_counts", u, a.index_type, {num_edges});
   check_index_tensor(element_edges, "element_edges", u, a.index_type, {a.num_elements, pairs});
   check_index_tensor(edge_slots, "edge_slots", u, a.index_type, {a.num_elements, pairs});
-  check_index_tensor(edge_counts, "edge_counts", u, a.index_type, {num_edges});
-  check_index_tensor(edge_force_index, "edge_force_index", u, a.index_type, {num_edges, 2});
-  TORCH_CHECK(num_edge_slots >= 0 && num_slots >= 0, "tensormass: num_edge_slots and num_slots must be >= 0");
+  TORCH_CHECK(slot_edge.dim() == 2, "tensormass: slot_edge must be [N_n, V], got shape ", shape_str(slot_edge.sizes()));
+  const int64_t num_slots = slot_edge.size(0);
+  check_index_tensor(slot_edge, "slot_edge", u, a.index_type, {num_slots, V});
+  check_index_tensor(incidences, "incidences", u, a.index_type, {V});
+  TORCH_CHECK(num_edge_slots >= 0, "tensormass: num_edge_slots must be >= 0, got ", std::to_string(num_edge_slots));
   TORCH_CHECK(a.num_elements == 0 || (num_edge_slots > 0 && num_slots > 0),
-              "tensormass: num_edge_slots or num_slots is 0 but there are elements");
+              "tensormass: num_edge_slots or the slots of slot_edge are 0 but there are elements");
   check_float_tensor(node_k, "node_k", u, {num_slots, V, d, d});
   check_float_tensor(edge_partial, "edge_partial", u, {num_edge_slots, num_edges, d == 3 ? 12 : 4});
   typename L::Guard guard(u.device());
@@ -533,12 +537,15 @@ void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, cons
         TangentEdgeKernel<D, S, I> k2;
         k2.edge_partial = edge_partial.data_ptr<S>();
         k2.edge_counts = edge_counts.data_ptr<I>();
-        k2.edges = edges.data_ptr<I>();
-        k2.force_index = edge_force_index.data_ptr<I>();
         k2.num_edges = num_edges;
-        k2.num_nodes = V;
-        k2.node_k = node_k.data_ptr<S>();
         L::run(num_edges, k2, L::kNodeBlock);
+        TangentSlotKernel<D, S, I> k3;
+        k3.edge_sums = edge_partial.data_ptr<S>();
+        k3.slot_edge = slot_edge.data_ptr<I>();
+        k3.incidences = incidences.data_ptr<I>();
+        k3.num_nodes = V;
+        k3.node_k = node_k.data_ptr<S>();
+        L::run(V * d * d, k3, L::kNodeBlock);
       });
     });
   });

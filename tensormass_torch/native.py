@@ -781,7 +781,7 @@ def tangent_graph(group):
     graph = type(graph)(native(graph.edges), native(graph.element_edges), native(graph.edge_slots),
                         graph.num_edge_slots, native(graph.edge_counts),
                         type(plan)(native(plan.index), native(plan.force_index), plan.num_slots, plan.num_nodes,
-                                   native(plan.incidences)))
+                                   native(plan.incidences)), native(graph.slot_edge))
     plan = graph.plan
     value = (graph, _edge_neighbors(plan.index, plan.force_index, plan.num_slots, plan.num_nodes),
              plan.incidences)
@@ -821,15 +821,16 @@ def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = N
     m, vol, lam, mu, proj, model, _, rotations = _stress_args(group, u, rotations)
     torch.ops.tensormass.stress_tangent_node_k(
         u.contiguous(), index, m, vol, lam, mu, proj, model, rotations, graph.element_edges, graph.edge_slots,
-        graph.num_edge_slots, graph.edges, graph.edge_counts, plan.force_index, plan.num_slots, out, work)
+        graph.num_edge_slots, graph.edge_counts, graph.slot_edge, plan.incidences, out, work)
     return out
 
 
 def _ref_stress_tangent_node_k(u, elements, m, vol, lam, mu, proj, model, rotations, element_edges, edge_slots,
-                               num_edge_slots, edges, edge_counts, edge_force_index, num_slots):
+                               num_edge_slots, edge_counts, slot_edge, incidences):
     """stress_tangent_node_k's reference: the element blocks H_ab from the reference element
     dforces along unit displacements (n d of them), summed onto edges in slot order, written to
-    the node graph's slots ``[N_n, V, d, d]`` (zeros in unused slots)."""
+    the node graph's slots ``[N_n, V, d, d]`` (-H_g where slot_edge = g, -H_g^T where ~g; zeros in
+    unused slots)."""
     n, d, num_nodes = elements.shape[1], u.shape[1], u.shape[0]
     u_e = u[elements]
     name = _model_name(model)
@@ -847,13 +848,15 @@ def _ref_stress_tangent_node_k(u, elements, m, vol, lam, mu, proj, model, rotati
     pair_blocks = torch.stack([blocks[:, a, b] for a, b in pairs], dim=1)  # [N, P, d, d]
     low_first = torch.stack([elements[:, a] < elements[:, b] for a, b in pairs], dim=1)
     pair_blocks = torch.where(low_first[..., None, None], pair_blocks, pair_blocks.transpose(-1, -2))
-    buffer = u.new_zeros((num_edge_slots, edges.shape[0], d, d))
+    buffer = u.new_zeros((num_edge_slots, edge_counts.shape[0], d, d))
     buffer[edge_slots.long().reshape(-1), element_edges.long().reshape(-1)] = pair_blocks.reshape(-1, d, d)
     h = sum_slots_in_order(buffer)  # [Ed, d, d]
-    node_k = u.new_zeros((num_slots, num_nodes, d, d))
-    node_k[edge_force_index[:, 0].long(), edges[:, 0].long()] = -h
-    node_k[edge_force_index[:, 1].long(), edges[:, 1].long()] = -h.transpose(1, 2)
-    return node_k
+    code = slot_edge.long()
+    used = torch.arange(code.shape[0], device=code.device)[:, None] < incidences.long()[None, :]
+    first = code >= 0
+    g = torch.where(first, code, -code - 1)
+    blocks = torch.where(first[..., None, None], h[g], h[g].transpose(-1, -2))
+    return torch.where(used[..., None, None], -blocks, torch.zeros_like(blocks))  # [N_n, V, d, d]
 
 
 #: The layouts of the hooke tensor form's CG matvec in :func:`system_matvec`: "node" (one kernel

@@ -143,7 +143,8 @@ def node_element_lists(elements: torch.Tensor, num_nodes: int):
 class EdgeGraph:
     """The unique edges of a mesh's elements, for element data summed onto edges without atomics
     (the tangent on the node graph: kernel 1 per element writes each local pair's block to
-    ``[edge_slots[e, p], element_edges[e, p]]``, kernel 2 per edge sums its slots in order).
+    ``[edge_slots[e, p], element_edges[e, p]]``, kernel 2 per edge sums its slots in order,
+    kernel 3 per slot of the node graph copies its edge's sum there, through ``slot_edge``).
 
     Attributes:
         edges: ``[Ed, 2]`` with ``edges[:, 0] < edges[:, 1]``, sorted (:func:`unique_edges`).
@@ -153,6 +154,8 @@ class EdgeGraph:
         num_edge_slots: the most elements of one edge.
         edge_counts: elements of each edge ``[Ed]``.
         plan: the gather plan over the edges (each node's slots: its edges in edge order).
+        slot_edge: the edge in each slot of that node graph ``[N_n, V]``: g where the node is
+            ``edges[g, 0]``, ``~g = -g - 1`` where it is ``edges[g, 1]``; 0 in unused slots.
     """
 
     edges: torch.Tensor
@@ -161,11 +164,16 @@ class EdgeGraph:
     num_edge_slots: int
     edge_counts: torch.Tensor
     plan: GatherPlan
+    slot_edge: torch.Tensor
 
     @classmethod
     def build(cls, elements: torch.Tensor, num_nodes: int) -> "EdgeGraph":
         """The edge graph of ``elements [N, n]`` over ``num_nodes`` nodes."""
         edges, _, element_edges = unique_edges(elements, num_nodes)
         slots, num_edge_slots, counts = incidence_slots(element_edges.reshape(-1), edges.shape[0])
-        return cls(edges, element_edges, slots.view_as(element_edges), num_edge_slots, counts,
-                   GatherPlan.build(edges, num_nodes))
+        plan = GatherPlan.build(edges, num_nodes)
+        edge_ids = torch.arange(edges.shape[0], device=edges.device)
+        slot_edge = edges.new_zeros((plan.num_slots, num_nodes))
+        slot_edge[plan.force_index[:, 0], edges[:, 0]] = edge_ids
+        slot_edge[plan.force_index[:, 1], edges[:, 1]] = -edge_ids - 1
+        return cls(edges, element_edges, slots.view_as(element_edges), num_edge_slots, counts, plan, slot_edge)

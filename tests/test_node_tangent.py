@@ -49,8 +49,8 @@ def reference(group, u, state):
     index = native._plan_indices(group.plan)[0]
     m, vol, lam, mu, proj, model, _, rotations = native._stress_args(group, u, state)
     return native._ref_stress_tangent_node_k(u, index, m, vol, lam, mu, proj, model, rotations, graph.element_edges,
-                                             graph.edge_slots, graph.num_edge_slots, graph.edges, graph.edge_counts,
-                                             graph.plan.force_index, graph.plan.num_slots)
+                                             graph.edge_slots, graph.num_edge_slots, graph.edge_counts,
+                                             graph.slot_edge, graph.plan.incidences)
 
 
 def used_slots(group):
@@ -163,14 +163,15 @@ def test_bad_inputs_are_rejected_with_nothing_changed(device):
     work = torch.zeros(graph.num_edge_slots, graph.edges.shape[0], 12, device=device)
     args = dict(u=u, elements=index, shape_vectors=m, measure=vol, lam=lam, mu=mu, projector=proj, model=model,
                 rotations=rotations, element_edges=graph.element_edges, edge_slots=graph.edge_slots,
-                num_edge_slots=graph.num_edge_slots, edges=graph.edges, edge_counts=graph.edge_counts,
-                edge_force_index=plan.force_index, num_slots=plan.num_slots, node_k=node_k, edge_partial=work)
+                num_edge_slots=graph.num_edge_slots, edge_counts=graph.edge_counts, slot_edge=graph.slot_edge,
+                incidences=plan.incidences, node_k=node_k, edge_partial=work)
     cases = [(dict(rotations=None), "corotational tangent needs the rotations"),
              (dict(node_k=node_k[:, :-1]), "node_k has shape"),
              (dict(edge_partial=work[:-1]), "edge_partial has shape"),
              (dict(element_edges=graph.element_edges[:, :3].contiguous()), "element_edges has shape"),
-             (dict(edges=graph.edges.long()), "edges is Long"),
-             (dict(num_slots=-1), "must be >= 0")]
+             (dict(slot_edge=graph.slot_edge.long()), "slot_edge is Long"),
+             (dict(incidences=plan.incidences[:-1]), "incidences has shape"),
+             (dict(num_edge_slots=-1), "must be >= 0")]
     for change, message in cases:
         with pytest.raises(RuntimeError, match=message):
             torch.ops.tensormass.stress_tangent_node_k(**{**args, **change})
