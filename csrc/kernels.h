@@ -239,11 +239,13 @@ struct PaddedBlock {
   }
 };
 
-// Kernel 1: one item per element. Column c of H_ab (a < b) is the differential on node a along
-// du = e_c at node b: the model's own dforces, (NN - 1) D evaluations (the same function the
-// element path of the CG calls, so both are one formula). Each block goes to
-// edge_partial[edge_slot[e][p]][element_edges[e][p]] oriented from the pair's lower global node
-// to its higher (transposed where idx[a] > idx[b]), whole, once its D columns are known.
+// Kernel 1: NN - 1 items per element, one per column node b = 1 .. NN-1 (item e (NN - 1) + b - 1):
+// column c of H_ab (a < b) is the differential on node a along du = e_c at node b: the model's
+// own dforces, D evaluations an item (the same function the element path of the CG calls, so
+// both are one formula). Each block goes to edge_partial[edge_slot[e][p]][element_edges[e][p]]
+// oriented from the pair's lower global node to its higher (transposed where idx[a] > idx[b]),
+// whole. (One item an element, all (NN - 1) D evaluations, left 16 warps a multiprocessor at
+// 128 registers to hide its loads: 220 us on the paper beam.)
 template <int MODEL, int NN, int D, typename S, typename I>
 struct TangentElementKernel {
   static constexpr bool kMembrane = NN - 1 < D;
@@ -255,7 +257,21 @@ struct TangentElementKernel {
   int64_t num_edges;       // Ed
   S* edge_partial;         // [N_es, Ed, Block::kStride]
 
-  TM_HD void operator()(int64_t e) const {
+  TM_HD void operator()(int64_t t) const {
+    const int64_t e = t / (NN - 1);
+    const int b = 1 + static_cast<int>(t - e * (NN - 1));
+    // b known at compile time in each branch: the unit displacements fold into the arithmetic
+    if (b == 1) column_blocks<1>(e);
+    if constexpr (NN > 2) {
+      if (b == 2) column_blocks<2>(e);
+    }
+    if constexpr (NN > 3) {
+      if (b == 3) column_blocks<3>(e);
+    }
+  }
+
+  template <int B>
+  TM_HD void column_blocks(int64_t e) const {
     I idx[NN], edge[kPairs], slot[kPairs];
     S m[NN][D], vol, lam, mu, u[NN][D], r[D][D];
     Plane<D, S, kMembrane> plane;
@@ -263,33 +279,30 @@ struct TangentElementKernel {
     load_block<kPairs, I>(element_edges + e * kPairs, edge);
     load_block<kPairs, I>(edge_slots + e * kPairs, slot);
     if constexpr (MODEL == kCorotational) load_matrix<D, D, S>(in.rotations + e * (D * D), r);
-    TM_UNROLL for (int b = 1; b < NN; ++b) {
-      S column[D][NN][D];  // column[c][a] = d f_a / d u_b[c]
-      TM_UNROLL for (int c = 0; c < D; ++c) {
-        S du[NN][D];
-        TM_UNROLL for (int k = 0; k < NN; ++k) {
-          TM_UNROLL for (int x = 0; x < D; ++x) du[k][x] = (k == b && x == c) ? S(1) : S(0);
-        }
-        if constexpr (MODEL == kCorotational) {
-          corotational_dforces<NN, D, S, kMembrane>(du, r, m, vol, lam, mu, plane, column[c]);
-        } else {
-          stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, column[c]);
-        }
+    S column[D][NN][D];  // column[c][a] = d f_a / d u_B[c]
+    TM_UNROLL for (int c = 0; c < D; ++c) {
+      S du[NN][D];
+      TM_UNROLL for (int k = 0; k < NN; ++k) {
+        TM_UNROLL for (int x = 0; x < D; ++x) du[k][x] = (k == B && x == c) ? S(1) : S(0);
       }
-      TM_UNROLL for (int a = 0; a < b; ++a) {
-        const int pair = pair_index<NN>(a, b);
-        const bool low_first = idx[a] < idx[b];
-        S v[Block::kStride];
-        TM_UNROLL for (int x = 0; x < D; ++x) {
-          TM_UNROLL for (int c = 0; c < D; ++c) v[x * D + c] = low_first ? column[c][a][x] : column[x][a][c];
-        }
-        TM_UNROLL for (int q = D * D; q < Block::kStride; ++q) v[q] = S(0);
-        Block::store(edge_partial + (static_cast<int64_t>(slot[pair]) * num_edges + static_cast<int64_t>(edge[pair])) *
-                                        Block::kStride, v);
+      if constexpr (MODEL == kCorotational) {
+        corotational_dforces<NN, D, S, kMembrane>(du, r, m, vol, lam, mu, plane, column[c]);
+      } else {
+        stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, column[c]);
       }
     }
+    TM_UNROLL for (int a = 0; a < B; ++a) {
+      const int pair = pair_index<NN>(a, B);
+      const bool low_first = idx[a] < idx[B];
+      S v[Block::kStride];
+      TM_UNROLL for (int x = 0; x < D; ++x) {
+        TM_UNROLL for (int c = 0; c < D; ++c) v[x * D + c] = low_first ? column[c][a][x] : column[x][a][c];
+      }
+      TM_UNROLL for (int q = D * D; q < Block::kStride; ++q) v[q] = S(0);
+      Block::store(edge_partial + (static_cast<int64_t>(slot[pair]) * num_edges + static_cast<int64_t>(edge[pair])) *
+                                      Block::kStride, v);
+    }
   }
-
 };
 
 // Kernel 2: one item per edge: H = the sum of its used slots in slot order, stored into the
@@ -329,16 +342,27 @@ struct TangentSlotKernel {
   const I* incidences;      // [V]
   int64_t num_nodes;
   S* node_k;                // [N_n, V, D, D]
+  static constexpr int kBatch = 8;
 
   TM_HD void operator()(int64_t t) const {
     const int64_t i = t / (D * D);
     const int q = static_cast<int>(t - i * (D * D)), x = q / D, y = q - x * D;
     const int64_t count = static_cast<int64_t>(ld(incidences + i));
-    for (int64_t s = 0; s < count; ++s) {
-      const int64_t code = static_cast<int64_t>(ld(slot_edge + s * num_nodes + i));
-      const bool first = code >= 0;
-      const S* h = edge_sums + (first ? code : -code - 1) * Block::kStride;
-      node_k[(s * num_nodes + i) * (D * D) + q] = -ld(h + (first ? q : y * D + x));
+    // kBatch slots' loads in flight together (each value is two dependent loads: the slot's edge,
+    // then its sum), not one chain a slot
+    for (int64_t s0 = 0; s0 < count; s0 += kBatch) {
+      int64_t code[kBatch];
+      TM_UNROLL for (int b = 0; b < kBatch; ++b) {
+        code[b] = s0 + b < count ? static_cast<int64_t>(ld(slot_edge + (s0 + b) * num_nodes + i)) : 0;
+      }
+      S value[kBatch];
+      TM_UNROLL for (int b = 0; b < kBatch; ++b) {
+        const bool first = code[b] >= 0;
+        value[b] = ld(edge_sums + (first ? code[b] : -code[b] - 1) * Block::kStride + (first ? q : y * D + x));
+      }
+      TM_UNROLL for (int b = 0; b < kBatch; ++b) {
+        if (s0 + b < count) node_k[((s0 + b) * num_nodes + i) * (D * D) + q] = -value[b];
+      }
     }
   }
 };

@@ -532,7 +532,7 @@ void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, cons
           k1.edge_slots = edge_slots.data_ptr<I>();
           k1.num_edges = num_edges;
           k1.edge_partial = edge_partial.data_ptr<S>();
-          L::run(a.num_elements, k1, L::kElementBlock);
+          L::run(a.num_elements * (NN - 1), k1, L::kElementBlock);
         });
         TangentEdgeKernel<D, S, I> k2;
         k2.edge_partial = edge_partial.data_ptr<S>();
