@@ -239,16 +239,13 @@ struct PaddedBlock {
   }
 };
 
-// Kernel 1: NN items an element (item e NN + b). Item b = 1 .. NN-1, one per column node:
+// Kernel 1: NN - 1 items per element, one per column node b = 1 .. NN-1 (item e (NN - 1) + b - 1):
 // column c of H_ab (a < b) is the differential on node a along du = e_c at node b: the model's
 // own dforces, D evaluations an item (the same function the element path of the CG calls, so
 // both are one formula). Each block goes to edge_partial[edge_slot[e][p]][element_edges[e][p]]
 // oriented from the pair's lower global node to its higher (transposed where idx[a] > idx[b]),
 // whole. (One item an element, all (NN - 1) D evaluations, left 16 warps a multiprocessor at
-// 128 registers to hide its loads: 220 us on the paper beam.) Item b = 0: the element's forces
-// at u, where forces.out is given (the step's right-hand side needs them at the same u: this
-// saves a pass over the elements), into the group's padded PartialForce as the forces op writes
-// them, so that its gather gives the same sums.
+// 128 registers to hide its loads: 220 us on the paper beam.)
 template <int MODEL, int NN, int D, typename S, typename I>
 struct TangentElementKernel {
   static constexpr bool kMembrane = NN - 1 < D;
@@ -259,15 +256,10 @@ struct TangentElementKernel {
   const I* edge_slots;     // [N, P] its slot among the edge's elements
   int64_t num_edges;       // Ed
   S* edge_partial;         // [N_es, Ed, Block::kStride]
-  Writer<NN, D, S, I, true> forces;  // PartialForce [N_n, V, D] of the group's plan, or out = nullptr
 
   TM_HD void operator()(int64_t t) const {
-    const int64_t e = t / NN;
-    const int b = static_cast<int>(t - e * NN);
-    if (b == 0) {
-      if (forces.out != nullptr) element_forces(e);
-      return;
-    }
+    const int64_t e = t / (NN - 1);
+    const int b = 1 + static_cast<int>(t - e * (NN - 1));
     // b known at compile time in each branch: the unit displacements fold into the arithmetic
     if (b == 1) column_blocks<1>(e);
     if constexpr (NN > 2) {
@@ -276,21 +268,6 @@ struct TangentElementKernel {
     if constexpr (NN > 3) {
       if (b == 3) column_blocks<3>(e);
     }
-  }
-
-  TM_HD void element_forces(int64_t e) const {
-    I idx[NN];
-    S m[NN][D], vol, lam, mu, u[NN][D], f[NN][D];
-    Plane<D, S, kMembrane> plane;
-    in.load_element(e, idx, m, vol, lam, mu, plane, u);
-    if constexpr (MODEL == kCorotational) {
-      S r[D][D];
-      load_matrix<D, D, S>(in.rotations + e * (D * D), r);
-      corotational_forces<NN, D, S, kMembrane>(u, r, m, vol, lam, mu, plane, f);
-    } else {
-      stress_forces<MODEL, NN, D, S, kMembrane>(u, m, vol, lam, mu, plane, f);
-    }
-    forces(e, idx, f);
   }
 
   template <int B>

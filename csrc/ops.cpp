@@ -66,11 +66,10 @@
 //
 // The tangent on the node graph (stress form): stress_tangent_node_k(u, <stress inputs>, rotations?,
 // element_edges, edge_slots, num_edge_slots, edge_counts, slot_edge, incidences, node_k!,
-// edge_partial!, force_index, partial_forces!) -> () writes the group's force differential at u
-// as the edge blocks of the node graph (node_k [N_n, V, d, d]), so that hooke_node_system,
-// hooke_node_cg and hooke_node_solve run its CG products (once per linearisation instead of an
-// element pass per CG iteration); unless partial_forces is empty, also the element forces at u
-// into it (the group's PartialForce: gather_partial sums them).
+// edge_partial!) -> () writes the group's force differential at u as the edge blocks of
+// the node graph (node_k [N_n, V, d, d]), so that hooke_node_system, hooke_node_cg and
+// hooke_node_solve run its CG products (once per linearisation instead of an element pass per
+// CG iteration).
 #include <pybind11/pybind11.h>
 #include <torch/library.h>
 
@@ -102,7 +101,7 @@ TORCH_LIBRARY(tensormass, m) {
   m.def("stress_tangent_node_k(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
         "Tensor mu, Tensor? projector, int model, Tensor? rotations, Tensor element_edges, Tensor edge_slots, "
         "int num_edge_slots, Tensor edge_counts, Tensor slot_edge, Tensor incidences, "
-        "Tensor(a!) node_k, Tensor(b!) edge_partial, Tensor force_index, Tensor(c!) partial_forces) -> ()");
+        "Tensor(a!) node_k, Tensor(b!) edge_partial) -> ()");
   // ---- tensor form, hooke (items are edges; linear, so dforces(du) = forces(du))
   m.def("tensor_hooke_element_forces(Tensor u, Tensor edges, Tensor edge_k) -> Tensor");
   m.def("tensor_hooke_partial_forces(Tensor u, Tensor edges, Tensor force_index, int num_slots, "

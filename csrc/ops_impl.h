@@ -487,9 +487,7 @@ at::Tensor corotational_rotations(const at::Tensor& u, const at::Tensor& element
 // and slot_edge [N_n, V] (the edge of each slot of the node graph: g, or ~g where the node is the
 // edge's second). edge_partial [num_edge_slots, Ed, 12] (3-D; [.., 4] in 2-D: each d x d block
 // padded to 16 bytes): kernels 1 and 2's buffer. The corotational model needs its rotations (held
-// fixed, as its dforces). partial_forces [N_n', V, d] (the group's PartialForce, its slots
-// force_index [N, n]), or an empty tensor: kernel 1 also writes the element forces at u there
-// (gather_partial then gives stress_forces' result).
+// fixed, as its dforces).
 template <class L>
 void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, const at::Tensor& shape_vectors,
                            const at::Tensor& measure, const at::Tensor& lam, const at::Tensor& mu,
@@ -497,7 +495,7 @@ void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, cons
                            const c10::optional<at::Tensor>& rotations, const at::Tensor& element_edges,
                            const at::Tensor& edge_slots, int64_t num_edge_slots, const at::Tensor& edge_counts,
                            const at::Tensor& slot_edge, const at::Tensor& incidences, at::Tensor node_k,
-                           at::Tensor edge_partial, const at::Tensor& force_index, at::Tensor partial_forces) {
+                           at::Tensor edge_partial) {
   TORCH_CHECK(model != kCorotational || (rotations.has_value() && rotations->defined()),
               "tensormass: the corotational tangent needs the rotations of its linearisation [N, d, d]");
   StressArgs a(u, c10::nullopt, elements, shape_vectors, measure, lam, mu, projector, model, c10::nullopt, rotations);
@@ -517,13 +515,6 @@ void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, cons
               "tensormass: num_edge_slots or the slots of slot_edge are 0 but there are elements");
   check_float_tensor(node_k, "node_k", u, {num_slots, V, d, d});
   check_float_tensor(edge_partial, "edge_partial", u, {num_edge_slots, num_edges, d == 3 ? 12 : 4});
-  const bool with_forces = partial_forces.numel() > 0;
-  if (with_forces) {
-    TORCH_CHECK(partial_forces.dim() == 3, "tensormass: partial_forces must be [N_n, V, d] or empty, got shape ",
-                shape_str(partial_forces.sizes()));
-    check_float_tensor(partial_forces, "partial_forces", u, {partial_forces.size(0), V, d});
-    check_index_tensor(force_index, "force_index", u, a.index_type, {a.num_elements, n});
-  }
   typename L::Guard guard(u.device());
   if (a.num_elements == 0) return;
   dispatch_scalar(u.scalar_type(), [&](auto s_tag) {
@@ -541,10 +532,7 @@ void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, cons
           k1.edge_slots = edge_slots.data_ptr<I>();
           k1.num_edges = num_edges;
           k1.edge_partial = edge_partial.data_ptr<S>();
-          k1.forces.out = with_forces ? partial_forces.data_ptr<S>() : nullptr;
-          k1.forces.force_index = with_forces ? force_index.data_ptr<I>() : nullptr;
-          k1.forces.num_nodes = V;
-          L::run(a.num_elements * NN, k1, L::kElementBlock);
+          L::run(a.num_elements * (NN - 1), k1, L::kElementBlock);
         });
         TangentEdgeKernel<D, S, I> k2;
         k2.edge_partial = edge_partial.data_ptr<S>();

@@ -799,15 +799,14 @@ def tangent_serves(group, u: torch.Tensor, inputs=()) -> bool:
 
 
 def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None,
-                   out: Optional[torch.Tensor] = None, with_forces: bool = False):
+                   out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The force differential of a stress-form group at displacements ``u [V, d]`` as the slot
     tensors of its node graph (:func:`tangent_graph`): node_k ``[N_n, V, d, d]`` with -H_ij in the
     slot of (i -> j), H_ij = d f_i / d u_j summed over the elements of the edge, so that
     ``hooke_node_system`` over (neighbor, node_k, incidences) is :func:`system_matvec`'s product
     at u. ``rotations``: the corotational rotations of the linearisation (computed at u when None).
     Into ``out`` when it has the shape, dtype and device (the step's buffer: CUDA graphs replay
-    into it), else a new tensor. ``with_forces``: returns ``(node_k, forces [V, d])``, the elastic
-    forces at u from the same element pass (bitwise :func:`forces`). Requires :func:`tangent_serves`."""
+    into it), else a new tensor. Requires :func:`tangent_serves`."""
     graph, _, _ = tangent_graph(group)
     plan = graph.plan
     d = u.shape[1]
@@ -818,21 +817,12 @@ def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = N
     work = group.__dict__.get("_native_tangent_work")
     if work is None or tuple(work.shape) != work_shape or work.dtype != u.dtype or work.device != u.device:
         work = group.__dict__["_native_tangent_work"] = u.new_empty(work_shape)
-    index, force_index, incidences = _plan_indices(group.plan)
-    partial = u.new_empty(0)
-    if with_forces:  # the group's PartialForce, kept on the group as the work buffer
-        partial_shape = (group.plan.num_slots, u.shape[0], d)
-        partial = group.__dict__.get("_native_tangent_forces_work")
-        if partial is None or tuple(partial.shape) != partial_shape or partial.dtype != u.dtype \
-                or partial.device != u.device:
-            partial = group.__dict__["_native_tangent_forces_work"] = u.new_empty(partial_shape)
+    index, _, _ = _plan_indices(group.plan)
     m, vol, lam, mu, proj, model, _, rotations = _stress_args(group, u, rotations)
     torch.ops.tensormass.stress_tangent_node_k(
         u.contiguous(), index, m, vol, lam, mu, proj, model, rotations, graph.element_edges, graph.edge_slots,
-        graph.num_edge_slots, graph.edge_counts, graph.slot_edge, plan.incidences, out, work, force_index, partial)
-    if not with_forces:
-        return out
-    return out, torch.ops.tensormass.gather_partial(partial, incidences, None)
+        graph.num_edge_slots, graph.edge_counts, graph.slot_edge, plan.incidences, out, work)
+    return out
 
 
 def _ref_stress_tangent_node_k(u, elements, m, vol, lam, mu, proj, model, rotations, element_edges, edge_slots,

@@ -64,18 +64,17 @@ def linearize(group, u: torch.Tensor) -> Optional[torch.Tensor]:
 
 
 def node_tangent(group, u: torch.Tensor, state: Optional[torch.Tensor] = None,
-                 out: Optional[torch.Tensor] = None, with_forces: bool = False):
+                 out: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
     """The force differential of ``group`` at displacements ``u [V, d]`` as the slot tensors of
     its node graph (``native.tangent_node_k``: once per linearisation; the CG products then run
     over the graph instead of recomputing each element's differential), into ``out`` when it
-    fits; ``state``: ``linearize(group, u)``. ``with_forces``: ``(node_k, forces [V, d])``, the
-    elastic forces at u from the same pass over the elements (bitwise :func:`forces`). None where
-    that does not serve (not a stress-form stvk or corotational group, the pure-torch backend, a
-    gradient wanted, or ``native.NODE_TANGENT`` off): the products then run element by element."""
+    fits; ``state``: ``linearize(group, u)``. None where that does not serve (not a stress-form
+    stvk or corotational group, the pure-torch backend, a gradient wanted, or
+    ``native.NODE_TANGENT`` off): the products then run element by element."""
     native = _native(group, u)
     if native is None or not native.tangent_serves(group, u):
         return None
-    return native.tangent_node_k(group, u, state, out, with_forces)
+    return native.tangent_node_k(group, u, state, out)
 
 
 def _native(group, u: torch.Tensor):

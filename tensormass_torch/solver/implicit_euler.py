@@ -148,9 +148,6 @@ class SystemMatvec:
         #: the differential at the loaded positions on the node graph (``ops.node_tangent``, one
         #: group: ``[node_k [N_n, V, d, d]]``), or None where the products run element by element
         self.tangents = None
-        #: the elastic forces at the loaded positions from the tangent's element pass ``[V, d]``
-        #: (with :attr:`tangents`), else None
-        self.tangent_forces = None
         self.node_stiffness = None
         #: contact forces ``[V, d]`` at the loaded positions (None without planes)
         self.contact_forces = None
@@ -189,14 +186,11 @@ class SystemMatvec:
         from .. import ops
 
         groups = self.system.model.groups
-        loaded = None
+        tangent = None
         if len(groups) == 1:
             state = None if self.states is None else self.states[0]
-            # the forces at u come from the same element pass (forces_along needs them at this u)
-            loaded = ops.node_tangent(groups[0], self.u, state, None if self.tangents is None else self.tangents[0],
-                                      with_forces=True)
-        self.tangents = None if loaded is None else [loaded[0]]
-        self.tangent_forces = None if loaded is None else loaded[1]
+            tangent = ops.node_tangent(groups[0], self.u, state, None if self.tangents is None else self.tangents[0])
+        self.tangents = None if tangent is None else [tangent]
 
     def load_step(self, x: torch.Tensor, v: torch.Tensor, h: float, rayleigh_mass: float,
                   rayleigh_stiffness: float) -> torch.Tensor:
@@ -223,7 +217,6 @@ class SystemMatvec:
                         rayleigh_mass, self.u, self._rhs, self.node_stiffness):
             self.states = [None] * len(model.groups)  # the hooke tensor form keeps no per-element state
             self.tangents = None  # its node graph is its own
-            self.tangent_forces = None
             self.contact_forces = None
             return self._rhs
         self.load(x)
@@ -255,7 +248,7 @@ class SystemMatvec:
                 self._zero_mass = torch.zeros_like(system.mass)
             stiffness_along, _ = ops.system_matvec(system.model.groups, self.u, w, self._zero_mass, None, 0.0, -1.0,
                                                    self.states, self.node_stiffness, self.tangents)
-            total = self.tangent_forces + system.external + stiffness_along
+            total = ops.forces(system.model.groups[0], self.u, self.states[0]) + system.external + stiffness_along
             return total if self.contact_forces is None else total + self.contact_forces
         total = system.model.linearized_forces(self.u, w, self.states) + system.external
         if self.contact_forces is not None:
