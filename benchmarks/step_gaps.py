@@ -1,29 +1,34 @@
-"""The GPU timeline of chained SOFA-beam steps: each kernel's duration and the idle gap before it
+"""The GPU timeline of implicit Euler steps: each kernel's duration and the idle gap before it
 (torch.profiler's CUDA events), and the wall time per step, to see what a step costs besides its
-kernels.
+kernels. The SOFA beam runs chains (200 steps timed, 16 profiled); the paper's beam single steps
+(its stvk tangent breaks down after ~10-20 steps: 4 timed, 3 profiled, as profile_step.py).
 
-    python benchmarks/step_gaps.py [hooke]          # on the GPU machine
+    python benchmarks/step_gaps.py [hooke]                 # SOFA beam, on the GPU machine
+    python benchmarks/step_gaps.py paper_beam:stvk
 """
+import os
 import sys
 import time
 
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from tensormass_torch.scenes import sofa_beam
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from step_bench import paper_beam, sofa  # noqa: E402
 
-model = sys.argv[1] if len(sys.argv) > 1 else "hooke"
-sim = sofa_beam(model=model, device="cuda").simulator
-sim.options.cg_tol = 0.0
-sim.options.check_every = 1000
-sim.step(20)
+scene, _, model = (sys.argv[1] if len(sys.argv) > 1 else "hooke").rpartition(":")
+scene = scene or "sofa_beam"
+sim = {"sofa_beam": sofa, "paper_beam": paper_beam}[scene](model, "cuda", torch.float32)
+warm_up, timed, profiled = (20, 200, 16) if scene == "sofa_beam" else (3, 4, 3)
+sim.step(1)
+sim.step(warm_up)
 torch.cuda.synchronize()
 t = time.perf_counter()
-sim.step(200)
+sim.step(timed)
 torch.cuda.synchronize()
-print(f"{model}: {(time.perf_counter() - t) / 200 * 1e3:.4f} ms/step (200 chained steps)", flush=True)
+print(f"{scene} {model}: {(time.perf_counter() - t) / timed * 1e3:.4f} ms/step ({timed} steps in one call)", flush=True)
 with profile(activities=[ProfilerActivity.CUDA]) as prof:
-    sim.step(16)
+    sim.step(profiled)
     torch.cuda.synchronize()
 kernels = sorted((e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA),
                  key=lambda e: e.time_range.start)
@@ -38,5 +43,5 @@ for e in kernels:
     print(f"{e.name[:60]:60s} {end - start:8.1f} us  gap before {gap:8.1f} us")
     last_end = end
 span = kernels[-1].time_range.end - kernels[0].time_range.start
-print(f"16 steps: span {span:.1f} us, kernels {busy:.1f} us, gaps {gaps:.1f} us; per step {span / 16:.1f} / "
-      f"{busy / 16:.1f} / {gaps / 16:.1f} us")
+print(f"{profiled} steps: span {span:.1f} us, kernels {busy:.1f} us, gaps {gaps:.1f} us; per step "
+      f"{span / profiled:.1f} / {busy / profiled:.1f} / {gaps / profiled:.1f} us")
