@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from step_bench import sofa  # noqa: E402
+from step_bench import paper_beam, sofa  # noqa: E402
 
 from tensormass_torch import native  # noqa: E402
 
@@ -472,9 +472,10 @@ extern "C" __global__ void __launch_bounds__(256, MIN_BLOCKS) probe(
 """
 
 
-def scene_graph(device):
-    """The SOFA beam's node graph as CSR (node-major) arrays and the step's system coefficients."""
-    sim = sofa("hooke", device, torch.float32)
+def scene_graph(device, scene="sofa_beam"):
+    """The node graph of ``scene`` (the SOFA beam, or the paper's 307,200-tet beam) as CSR
+    (node-major) arrays and the step's system coefficients."""
+    sim = (paper_beam if scene == "paper_beam" else sofa)("hooke", device, torch.float32)
     system = sim.system
     group = system.model.groups[0]
     neighbor, node_k = native.hooke_node_graph(group)
@@ -535,14 +536,15 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=None)
     parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--scene", default="sofa_beam", choices=("sofa_beam", "paper_beam"))
     args = parser.parse_args(argv)
     import cupy as cp
 
     dev = "cuda"
-    g = scene_graph(dev)
+    g = scene_graph(dev, args.scene)
     V = g["V"]
     max_count = int(g["counts"].max())
-    print(f"SOFA beam graph: {V} nodes, {g['nbr'].numel()} slots, max {max_count} per node", flush=True)
+    print(f"{args.scene} graph: {V} nodes, {g['nbr'].numel()} slots, max {max_count} per node", flush=True)
     torch.manual_seed(0)
     b = torch.randn(V, 3, device=dev)
     x_ref, hist_ref = reference_cg(g, b, 10)
@@ -562,6 +564,12 @@ def main(argv=None):
         for ablate in ("nomatvec", "nobarrier"):
             variants.append(dict(alg="reg", lanes=lanes, ks=1, batch=8 if lanes > 1 else 4, ablate=ablate,
                                  min_blocks=3 if lanes == 4 else 1))
+    if args.scene == "paper_beam":  # 56k nodes: one wave at 256 nodes a block, or 2 lanes at 4 blocks an SM
+        variants = [dict(alg="std", lanes=1, ks=0, batch=4, ablate=a) for a in ("none", "nomatvec", "nobarrier")]
+        variants += [dict(alg="reg", lanes=1, ks=0, batch=b, ablate="none") for b in (4, 8)]
+        variants += [dict(alg="reg", lanes=1, ks=0, batch=4, ablate=a) for a in ("nomatvec", "nobarrier")]
+        variants += [dict(alg=a, lanes=2, ks=0, batch=b, ablate="none", min_blocks=4)
+                     for a in ("reg", "cg1") for b in (2, 4)]
     for var in variants:
         var.setdefault("bar", "coop")
         var.setdefault("min_blocks", 1)

@@ -328,30 +328,30 @@ struct TangentEdgeKernel {
   }
 };
 
-// Kernel 3: one item per value (i, q) of a node's block, over the node's used slots s: node_k
-// [s][i] holds -H_g where i is the first node of the slot's edge g (slot_edge = g), -H_g^T where
-// it is the second (slot_edge = ~g). The D*D items of a node are consecutive, so each slot's
-// stores are side by side. (On the paper beam: 38 us; one item per slot, D*D strided stores
-// each, 74 us; one item per value of node_k, 65 us.) Slots beyond a node's incidences are not
-// written.
+// Kernel 3: one item per value (r, q) of a row's block (the rows of the node graph,
+// HookeNodeGraph), over the row's used slots s: node_k [s][r] holds -H_g where the row's node is
+// the first node of the slot's edge g (slot_edge = g), -H_g^T where it is the second (slot_edge =
+// ~g). The D*D items of a row are consecutive, so each slot's stores are side by side. (On the
+// paper beam: 38 us; one item per slot, D*D strided stores each, 74 us; one item per value of
+// node_k, 65 us.) Slots beyond a row's incidences are not written.
 template <int D, typename S, typename I>
 struct TangentSlotKernel {
   using Block = PaddedBlock<D, S>;
   const S* edge_sums;       // [Ed, Block::kStride] (kernel 2's row 0)
-  const I* slot_edge;       // [N_n, V]
-  const I* incidences;      // [V]
+  const I* slot_edge;       // [N_n, V] by row
+  const I* incidences;      // [V] by row
   int64_t num_nodes;
-  S* node_k;                // [N_n, V, D, D]
+  S* node_k;                // [N_n, V, D, D] by row
 
   TM_HD void operator()(int64_t t) const {
-    const int64_t i = t / (D * D);
-    const int q = static_cast<int>(t - i * (D * D)), x = q / D, y = q - x * D;
-    const int64_t count = static_cast<int64_t>(ld(incidences + i));
+    const int64_t row = t / (D * D);
+    const int q = static_cast<int>(t - row * (D * D)), x = q / D, y = q - x * D;
+    const int64_t count = static_cast<int64_t>(ld(incidences + row));
     for (int64_t s = 0; s < count; ++s) {
-      const int64_t code = static_cast<int64_t>(ld(slot_edge + s * num_nodes + i));
+      const int64_t code = static_cast<int64_t>(ld(slot_edge + s * num_nodes + row));
       const bool first = code >= 0;
       const S* h = edge_sums + (first ? code : -code - 1) * Block::kStride;
-      node_k[(s * num_nodes + i) * (D * D) + q] = -ld(h + (first ? q : y * D + x));
+      node_k[(s * num_nodes + row) * (D * D) + q] = -ld(h + (first ? q : y * D + x));
     }
   }
 };
@@ -573,12 +573,23 @@ struct SystemGatherKernel {
 // HookeNodeGraph holds the graph and sums that product for any field w read through load_p
 // (f_i = sum_s -Kdir[s][i] (w_j - w_i), the elastic force of the displacements w): the matvec
 // reads p, the step's right-hand side (NodeHookeStepRhsKernel) reads (x - rest) + c v.
+//
+// The graph's arrays are stored by ROW: row r holds the slots of node row_node[r] (a permutation
+// of the nodes; nullptr: row r is node r). Rows are the nodes sorted by slot count within windows
+// of each object (native.node_graph_rows), so that the threads of a warp, which take consecutive
+// rows, walk as many slots each and read the slot arrays side by side: on the paper beam, whose
+// nodes alternate 10 and 26 slots, the node-ordered matvec idled half its lanes (a standalone
+// matvec 15.5 -> 11.0 us on an H100, benchmarks/node_k_layout_probe.py). Every result is per
+// node and its slots are summed in slot order, so the row order changes no value.
 template <int D, typename S, typename I>
 struct HookeNodeGraph {
-  const I* neighbor;    // [N_n, V] the other node of the edge in each slot
-  const S* node_k;      // [N_n, V, D, D] Kdir of each slot
-  const I* incidences;  // [V]
+  const I* neighbor;    // [N_n, V] by row: the other NODE of the edge in each slot
+  const S* node_k;      // [N_n, V, D, D] by row: Kdir of each slot
+  const I* incidences;  // [V] by row: the row's slot count
+  const I* row_node;    // [V] the node of each row, or nullptr (the identity)
   int64_t num_nodes;
+
+  TM_HD int64_t node_of(int64_t row) const { return row_node != nullptr ? static_cast<int64_t>(ld(row_node + row)) : row; }
 
   // Slots are loaded kBatch at a time before any is used: a thread has only a few nodes' worth
   // of parallelism (one node), so its loads must be in flight together, not one dependent chain
@@ -592,24 +603,25 @@ struct HookeNodeGraph {
     TM_HD int64_t operator()(int64_t s, int64_t i) const { return static_cast<int64_t>(ld(neighbor + s * num_nodes + i)); }
   };
 
-  // wi = w_i (already loaded); load_p(field + j * D + a) reads w_j[a].
+  // The forces of row `row` (node i, wi = w_i already loaded); load_p(field + j * D + a) reads w_j[a].
   template <class LoadP>
-  TM_HD void add_forces(int64_t i, const S* field, const S (&wi)[D], const LoadP& load_p, S (&acc)[D]) const {
-    add_forces(i, static_cast<int64_t>(ld(incidences + i)), GlobalNeighbors{neighbor, num_nodes}, field, wi, load_p,
-               acc);
+  TM_HD void add_forces(int64_t row, int64_t i, const S* field, const S (&wi)[D], const LoadP& load_p,
+                        S (&acc)[D]) const {
+    add_forces(row, i, static_cast<int64_t>(ld(incidences + row)), GlobalNeighbors{neighbor, num_nodes}, field, wi,
+               load_p, acc);
   }
 
-  // The same with node i's slot count and neighbours given (neighbors(s, i): the persistent CG
+  // The same with the row's slot count and neighbours given (neighbors(s, row): the persistent CG
   // keeps them in shared memory across its iterations).
   template <class Neighbors, class LoadP>
-  TM_HD void add_forces(int64_t i, int64_t count, const Neighbors& neighbors, const S* field, const S (&wi)[D],
-                        const LoadP& load_p, S (&acc)[D]) const {
+  TM_HD void add_forces(int64_t row, int64_t i, int64_t count, const Neighbors& neighbors, const S* field,
+                        const S (&wi)[D], const LoadP& load_p, S (&acc)[D]) const {
     for (int64_t s0 = 0; s0 < count; s0 += kBatch) {
       int64_t j[kBatch];
-      TM_UNROLL for (int q = 0; q < kBatch; ++q) j[q] = s0 + q < count ? neighbors(s0 + q, i) : i;
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) j[q] = s0 + q < count ? neighbors(s0 + q, row) : i;
       S k[kBatch][D][D], wj[kBatch][D];
       TM_UNROLL for (int q = 0; q < kBatch; ++q) {
-        if (s0 + q < count) load_matrix<D, D, S>(node_k + ((s0 + q) * num_nodes + i) * (D * D), k[q]);
+        if (s0 + q < count) load_matrix<D, D, S>(node_k + ((s0 + q) * num_nodes + row) * (D * D), k[q]);
         TM_UNROLL for (int a = 0; a < D; ++a) wj[q][a] = load_p(field + j[q] * D + a);
       }
       TM_UNROLL for (int q = 0; q < kBatch; ++q) {
@@ -631,26 +643,29 @@ struct NodeHookeSystemKernel {
   HookeNodeGraph<D, S, I> graph;
   SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
 
-  // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh);
-  // load_p reads p (the persistent CG's DirectionLoader forms r + beta p with plain loads: p
-  // changes during that kernel, and the read-only cache of ld() may hold stale copies).
+  // For the node i of row `row`: Ap_i, and p_i . Ap_i (returned): the CG step-length kernels call
+  // this over rows (cg_reduce.cuh); load_p reads p (the persistent CG's DirectionLoader forms
+  // r + beta p with plain loads: p changes during that kernel, and the read-only cache of ld()
+  // may hold stale copies).
   template <class LoadP = Loader>
-  TM_HD S apply(int64_t i, LoadP load_p = LoadP()) const {
+  TM_HD S apply(int64_t row, LoadP load_p = LoadP()) const {
     using Global = typename HookeNodeGraph<D, S, I>::GlobalNeighbors;
-    return apply(i, static_cast<int64_t>(ld(graph.incidences + i)), Global{graph.neighbor, graph.num_nodes}, load_p);
+    return apply(row, static_cast<int64_t>(ld(graph.incidences + row)), Global{graph.neighbor, graph.num_nodes},
+                 load_p);
   }
 
-  // apply with node i's slot count and neighbours given (HookeNodeGraph::add_forces).
+  // apply with the row's slot count and neighbours given (HookeNodeGraph::add_forces).
   template <class Neighbors, class LoadP>
-  TM_HD S apply(int64_t i, int64_t count, const Neighbors& neighbors, LoadP load_p) const {
+  TM_HD S apply(int64_t row, int64_t count, const Neighbors& neighbors, LoadP load_p) const {
+    const int64_t i = graph.node_of(row);
     S pv[D];
     TM_UNROLL for (int a = 0; a < D; ++a) pv[a] = load_p(p + i * D + a);
     S acc[D];
     TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
-    graph.add_forces(i, count, neighbors, p, pv, load_p, acc);
+    graph.add_forces(row, i, count, neighbors, p, pv, load_p, acc);
     return epilogue(i, pv, acc);
   }
-  TM_HD void operator()(int64_t i) const { apply(i); }
+  TM_HD void operator()(int64_t row) const { apply(row); }
 };
 
 // ------------------------------------------------------------------ implicit Euler, per node
@@ -720,7 +735,8 @@ struct NodeHookeStepRhsKernel {
   S* rhs;             // [V, D] out
   S* node_stiffness;  // [V, D, D] out (HAS_PLANES)
 
-  TM_HD void operator()(int64_t i) const {
+  TM_HD void operator()(int64_t row) const {
+    const int64_t i = graph.node_of(row);
     const StepDisplacementLoader<S> load_w{x, rest, v, c_w};
     S wi[D], vi[D], total[D];
     TM_UNROLL for (int a = 0; a < D; ++a) {
@@ -729,7 +745,7 @@ struct NodeHookeStepRhsKernel {
       total[a] = S(0);
       u[i * D + a] = ld(x + i * D + a) - ld(rest + i * D + a);
     }
-    graph.add_forces(i, x, wi, load_w, total);
+    graph.add_forces(row, i, x, wi, load_w, total);
     TM_UNROLL for (int a = 0; a < D; ++a) total[a] += ld(external + i * D + a);
     if constexpr (HAS_PLANES && D == 3) {
       S xi[3], force[3], k[3][3];

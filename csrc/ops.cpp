@@ -23,11 +23,13 @@
 //                               (node_stiffness [V, d, d]: the hooke tensor form's vertex term K_ii,
 //                               contact penalties)
 //   node-centric matvec       hooke_node_system(p, neighbor [N_n, V], node_k [N_n, V, d, d], incidences,
-//                                               mass, free, c_M, c_K, node_stiffness=None)
+//                                               row_node?, mass, free, c_M, c_K, node_stiffness=None)
 //                               -> (Ap, p . Ap) as gather_system, for the hooke tensor form in one
-//                               kernel: (K p)_i = sum_{s < incidences[i]} -node_k[s][i]
-//                               (p[neighbor[s][i]] - p_i) (node_k: the edge tensor K_e where i is
-//                               the edge's first node, K_e^T where it is its second; the plan's slots)
+//                               kernel: (K p)_i = sum_{s < incidences[r]} -node_k[s][r]
+//                               (p[neighbor[s][r]] - p_i) with i = row_node[r] (None: i = r; the
+//                               graph's arrays are stored by row, native.node_graph_rows) (node_k:
+//                               the edge tensor K_e where i is the edge's first node, K_e^T where it
+//                               is its second; the plan's slots)
 //   matvec + cg_alpha         gather_system_alpha / hooke_node_system_alpha(<the same inputs>, ap!,
 //                               chunk plan, rr, status!, alpha!, scratch!, counter!) -> ()
 //                               Ap into ap in place, then alpha per object as cg_alpha (cg_ops.cpp)
@@ -46,7 +48,7 @@
 //                               a whole solve from x0 = 0 by Chronopoulos-Gear's CG (one reduction and
 //                               one grid barrier an iteration): GPU only; false (nothing done) where it
 //                               does not fit one wave, or on the CPU
-//   step right-hand side      hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, mass, external,
+//   step right-hand side      hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, row_node?, mass, external,
 //                               plane_normals?, plane_offsets?, plane_stiffness?, h, w_coef, r_M, u!, rhs!,
 //                               node_stiffness!?) -> ()
 //                               implicit Euler's rhs = h (f((x - rest) + w_coef v) + external + contact(x)
@@ -129,33 +131,33 @@ TORCH_LIBRARY(tensormass, m) {
   m.def("gather_system(Tensor partial, Tensor incidences, Tensor p, Tensor mass, Tensor? free, float c_mass, "
         "float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
   // ---- the hooke tensor form's CG matvec in one kernel over the node graph (not differentiable)
-  m.def("hooke_node_system(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, Tensor? free, "
+  m.def("hooke_node_system(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, Tensor? free, "
         "float c_mass, float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
   // ---- the two CG matvecs ending in the step length (cg_alpha fused; in place, for CUDA graphs)
   m.def("gather_system_alpha(Tensor partial, Tensor incidences, Tensor p, Tensor mass, Tensor? free, "
         "float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(a!) ap, Tensor chunk_start, "
         "Tensor chunk_object, Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, "
         "Tensor(d!) scratch, Tensor(e!) counter) -> ()");
-  m.def("hooke_node_system_alpha(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, "
+  m.def("hooke_node_system_alpha(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, "
         "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(a!) ap, Tensor chunk_start, "
         "Tensor chunk_object, Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, "
         "Tensor(d!) scratch, Tensor(e!) counter) -> ()");
   // ---- a whole CG solve over the hooke node graph: one persistent kernel on the GPU (in place)
-  m.def("hooke_node_cg(Tensor(a!) p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, "
+  m.def("hooke_node_cg(Tensor(a!) p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, "
         "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(b!) ap, Tensor(c!) x, "
         "Tensor(d!) r, Tensor? rhs, float tol_sq, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
         "Tensor(e!) threshold, Tensor(f!) rhs_sq, int max_iter, int count, Tensor(g!) rr, Tensor(h!) status, "
         "Tensor(i!) alpha, Tensor(j!) beta, Tensor(k!) iterations, Tensor(l!) rr_swap, Tensor(m!) work, "
         "Tensor(n!) sums) -> ()");
   // ---- a whole CG solve from x0 = 0 by the pipelined CG (one grid barrier an iteration; GPU)
-  m.def("hooke_node_solve(Tensor neighbor, Tensor node_k, Tensor incidences, Tensor mass, Tensor? free, "
+  m.def("hooke_node_solve(Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, Tensor? free, "
         "float c_mass, float c_stiff, Tensor? node_stiffness, Tensor rhs, float tol_sq, Tensor chunk_start, "
         "Tensor chunk_object, Tensor object_chunk, int chunk_slots, int max_iter, Tensor(a!) x, Tensor(b!) r, "
         "Tensor(c!) p, Tensor(d!) threshold, Tensor(e!) rhs_sq, Tensor(f!) rr, Tensor(g!) status, "
         "Tensor(h!) alpha, Tensor(i!) beta, Tensor(j!) iterations, Tensor(k!) exchange, Tensor(l!) sums, "
         "Tensor(m!) counters) -> bool");
   // ---- implicit Euler's right-hand side for the hooke tensor form, in one pass (in place)
-  m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, "
+  m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, "
         "Tensor mass, Tensor external, Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, "
         "float h, float w_coef, float rayleigh_mass, Tensor(a!) u, Tensor(b!) rhs, Tensor(c!)? node_stiffness) -> ()");
 }

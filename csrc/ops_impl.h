@@ -859,7 +859,8 @@ at::Tensor tensor_hooke_forces(const at::Tensor& u, const at::Tensor& edges, con
 // [N_n, V] (int32/int64, as incidences) and node_k [N_n, V, d, d] (Kdir of each slot; slots >=
 // incidences[i] are never read), checked against the [V, d] field `like`; returns the index type.
 inline at::ScalarType check_hooke_node_graph(const at::Tensor& like, const char* like_name, const at::Tensor& neighbor,
-                                             const at::Tensor& node_k, const at::Tensor& incidences) {
+                                             const at::Tensor& node_k, const at::Tensor& incidences,
+                                             const c10::optional<at::Tensor>& row_node) {
   const int64_t num_nodes = like.size(0), dim = like.size(1);
   const at::ScalarType index_type = index_type_of(neighbor, "neighbor");
   TORCH_CHECK(neighbor.dim() == 2, "tensormass: neighbor must be [N_n, V], got shape ", shape_str(neighbor.sizes()));
@@ -867,15 +868,19 @@ inline at::ScalarType check_hooke_node_graph(const at::Tensor& like, const char*
   check_index_tensor(neighbor, "neighbor", like, index_type, {num_slots, num_nodes}, like_name);
   check_index_tensor(incidences, "incidences", like, index_type, {num_nodes}, like_name);
   check_node_tensor(node_k, "node_k", like, {num_slots, num_nodes, dim, dim}, like_name);
+  if (row_node.has_value() && row_node->defined()) {
+    check_index_tensor(*row_node, "row_node", like, index_type, {num_nodes}, like_name);
+  }
   return index_type;
 }
 
 template <int D, typename S, typename I>
 void set_hooke_node_graph(HookeNodeGraph<D, S, I>& graph, const at::Tensor& neighbor, const at::Tensor& node_k,
-                          const at::Tensor& incidences) {
+                          const at::Tensor& incidences, const c10::optional<at::Tensor>& row_node) {
   graph.neighbor = neighbor.numel() ? neighbor.data_ptr<I>() : nullptr;
   graph.node_k = node_k.numel() ? node_k.data_ptr<S>() : nullptr;
   graph.incidences = incidences.data_ptr<I>();
+  graph.row_node = row_node.has_value() && row_node->defined() ? row_node->data_ptr<I>() : nullptr;
   graph.num_nodes = incidences.size(0);
 }
 
@@ -884,14 +889,15 @@ void set_hooke_node_graph(HookeNodeGraph<D, S, I>& graph, const at::Tensor& neig
 // equal to tensor_hooke_partial_forces + gather_system over the same plan.
 template <class L, class Launch>
 void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, const at::Tensor& node_k,
-                           const at::Tensor& incidences, const at::Tensor& mass,
+                           const at::Tensor& incidences, const c10::optional<at::Tensor>& row_node,
+                           const at::Tensor& mass,
                            const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
                            const c10::optional<at::Tensor>& node_stiffness, at::Tensor& ap, at::Tensor& p_dot_ap,
                            const Launch& launch) {
   check_values(p, "p");
   const int64_t num_nodes = p.size(0), dim = p.size(1);
   dispatch_dim(dim, [](auto) {});
-  const at::ScalarType index_type = check_hooke_node_graph(p, "p", neighbor, node_k, incidences);
+  const at::ScalarType index_type = check_hooke_node_graph(p, "p", neighbor, node_k, incidences, row_node);
   check_node_tensor(mass, "mass", p, {num_nodes}, "p");
   at::Tensor fr, nk;
   std::tie(fr, nk) = optional_epilogue_inputs(free, node_stiffness, p, num_nodes, dim, "p");
@@ -903,7 +909,7 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
     using Kernel = std::decay_t<decltype(k)>;
     using S = typename Kernel::Scalar;
     k.p = p.data_ptr<S>();
-    set_hooke_node_graph(k.graph, neighbor, node_k, incidences);
+    set_hooke_node_graph(k.graph, neighbor, node_k, incidences, row_node);
     launch(k, num_nodes);
   });
 }
@@ -911,12 +917,13 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
 template <class L>
 std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor,
                                                      const at::Tensor& node_k, const at::Tensor& incidences,
+                                                     const c10::optional<at::Tensor>& row_node,
                                                      const at::Tensor& mass, const c10::optional<at::Tensor>& free,
                                                      double c_mass, double c_stiff,
                                                      const c10::optional<at::Tensor>& node_stiffness) {
   at::Tensor ap;
   at::Tensor p_dot_ap = at::empty({p.dim() >= 1 ? p.size(0) : 0}, p.options());
-  run_hooke_node_system<L>(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, ap,
+  run_hooke_node_system<L>(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, ap,
                            p_dot_ap, [](const auto& k, int64_t n) { L::run(n, k, L::kNodeBlock); });
   return std::make_tuple(ap, p_dot_ap);
 }
@@ -931,7 +938,8 @@ std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const 
 // [V, 3, 3]. Outputs in place (u, rhs, node_stiffness), so that a CUDA graph replays into them.
 template <class L>
 void hooke_node_step_rhs(const at::Tensor& x, const at::Tensor& v, const at::Tensor& rest, const at::Tensor& neighbor,
-                         const at::Tensor& node_k, const at::Tensor& incidences, const at::Tensor& mass,
+                         const at::Tensor& node_k, const at::Tensor& incidences,
+                         const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
                          const at::Tensor& external, const c10::optional<at::Tensor>& plane_normals,
                          const c10::optional<at::Tensor>& plane_offsets,
                          const c10::optional<at::Tensor>& plane_stiffness, double h, double w_coef,
@@ -944,7 +952,7 @@ void hooke_node_step_rhs(const at::Tensor& x, const at::Tensor& v, const at::Ten
                                                               {&u, "u"}, {&rhs, "rhs"}};
   for (const auto& named : fields) check_node_tensor(*named.first, named.second, x, {num_nodes, dim}, "x");
   check_node_tensor(mass, "mass", x, {num_nodes}, "x");
-  const at::ScalarType index_type = check_hooke_node_graph(x, "x", neighbor, node_k, incidences);
+  const at::ScalarType index_type = check_hooke_node_graph(x, "x", neighbor, node_k, incidences, row_node);
   const bool has_planes = plane_normals.has_value() && plane_normals->defined();
   at::Tensor normals, offsets, stiffness, node_k_out;
   if (has_planes) {
@@ -981,7 +989,7 @@ void hooke_node_step_rhs(const at::Tensor& x, const at::Tensor& v, const at::Ten
           k.rest = rest.data_ptr<S>();
           k.mass = mass.data_ptr<S>();
           k.external = external.data_ptr<S>();
-          set_hooke_node_graph(k.graph, neighbor, node_k, incidences);
+          set_hooke_node_graph(k.graph, neighbor, node_k, incidences, row_node);
           k.planes = PenaltyPlanes<S>{has_planes ? normals.data_ptr<S>() : nullptr,
                                       has_planes ? offsets.data_ptr<S>() : nullptr,
                                       has_planes ? stiffness.data_ptr<S>() : nullptr,
@@ -1042,7 +1050,8 @@ void gather_system_alpha(const at::Tensor& partial, const at::Tensor& incidences
 
 template <class L>
 void hooke_node_system_alpha(const at::Tensor& p, const at::Tensor& neighbor, const at::Tensor& node_k,
-                             const at::Tensor& incidences, const at::Tensor& mass,
+                             const at::Tensor& incidences, const c10::optional<at::Tensor>& row_node,
+                             const at::Tensor& mass,
                              const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
                              const c10::optional<at::Tensor>& node_stiffness, at::Tensor ap,
                              const at::Tensor& chunk_start, const at::Tensor& chunk_object,
@@ -1051,7 +1060,7 @@ void hooke_node_system_alpha(const at::Tensor& p, const at::Tensor& neighbor, co
   check_values(p, "p");
   TORCH_CHECK(ap.defined(), "tensormass: ap is undefined");
   at::Tensor no_dots;
-  run_hooke_node_system<L>(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, ap,
+  run_hooke_node_system<L>(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, ap,
                            no_dots, alpha_launch<L>(p, chunk_start, chunk_object, object_chunk, rr, status, alpha,
                                                     scratch, counter));
 }
@@ -1111,7 +1120,7 @@ void set_cg_iterates(CGIterates<S>& s, const at::Tensor& x, const at::Tensor& r,
 // work [3B + 2] int32, sums [2K] float64.
 template <class L>
 void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                   const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                   const c10::optional<at::Tensor>& row_node, const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
                    const c10::optional<at::Tensor>& node_stiffness, at::Tensor ap, at::Tensor x, at::Tensor r,
                    const c10::optional<at::Tensor>& rhs, double tol_sq, const at::Tensor& chunk_start,
                    const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor threshold,
@@ -1129,8 +1138,8 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
   cg_check(work, "work", p, at::kInt, {3 * plan.num_objects + 2});
   cg_check(sums, "sums", p, at::kDouble, {2 * plan.num_chunks});
   at::Tensor no_dots;
-  run_hooke_node_system<L>(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, ap, no_dots,
-                           [&](const auto& k, int64_t) {
+  run_hooke_node_system<L>(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, ap,
+                           no_dots, [&](const auto& k, int64_t) {
     using S = typename std::decay_t<decltype(k)>::Scalar;
     CGRun<S> s;
     set_cg_iterates<S>(s, x, r, p, start ? rhs->data_ptr<S>() : nullptr, tol_sq, threshold, rhs_sq, rr, alpha, beta,
@@ -1160,7 +1169,7 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
 // the work: exchange [2, V, 4d], sums [4K] float64, counters [3] int32.
 template <class L>
 bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                      const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                      const c10::optional<at::Tensor>& row_node, const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
                       const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
                       const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
                       int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r, at::Tensor p,
@@ -1178,8 +1187,8 @@ bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, cons
   cg_check(counters, "counters", rhs, at::kInt, {3});
   at::Tensor no_dots;
   bool ran = false;
-  run_hooke_node_system<L>(rhs, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness, r, no_dots,
-                           [&](const auto& k, int64_t) {
+  run_hooke_node_system<L>(rhs, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
+                           r, no_dots, [&](const auto& k, int64_t) {
     using S = typename std::decay_t<decltype(k)>::Scalar;
     PipelinedSolve<S> s;
     set_cg_iterates<S>(s, x, r, p, rhs.data_ptr<S>(), tol_sq, threshold, rhs_sq, rr, alpha, beta, status, iterations,

@@ -42,7 +42,8 @@ __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure
            "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "persistent_cg_fits",
            "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "system_solve", "solve_plan", "chunk_slots",
            "PIPELINED_SOLVE", "SOLVE_CHUNK_NODES", "HOOKE_MATVEC_LAYOUTS",
-           "HOOKE_MATVEC_LAYOUT", "NODE_TANGENT", "tangent_graph", "tangent_serves", "tangent_node_k"]
+           "HOOKE_MATVEC_LAYOUT", "NODE_TANGENT", "tangent_graph", "tangent_serves", "tangent_node_k",
+           "NODE_GRAPH_WINDOW", "set_objects", "node_graph_rows", "hooke_rows_graph"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
 #: see ``reference.stress_form.kernel_model``).
@@ -217,15 +218,19 @@ def _ref_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff, node
                             node_stiffness)
 
 
-def _ref_hooke_node_system(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness=None):
-    """The node-centric hooke matvec: (K p)_i = sum over node i's used slots s of
-    ``-node_k[s, i] (p[neighbor[s, i]] - p_i)`` (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``;
-    unused slots are masked, whatever they hold), added slot after slot, then the system epilogue."""
+def _ref_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
+                           node_stiffness=None):
+    """The node-centric hooke matvec: (K p)_i = sum over the used slots s of node i's row r of
+    ``-node_k[s, r] (p[neighbor[s, r]] - p_i)`` with i = ``row_node[r]`` (None: i = r) (neighbor
+    ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, all by row; unused slots are
+    masked, whatever they hold), added slot after slot, then the system epilogue."""
     used = _slot_mask(neighbor.shape[0], incidences)  # [N_n, V, 1]
     others = torch.where(used[..., 0], neighbor, neighbor.new_zeros(())).long()
-    w = p[others] - p.unsqueeze(0)  # [N_n, V, d]
+    nodes = torch.arange(p.shape[0], device=p.device) if row_node is None else row_node.long()
+    w = p[others] - p[nodes].unsqueeze(0)  # [N_n, V, d]
     terms = -torch.einsum("svab,svb->sva", node_k, w)
-    kp = sum_slots_in_order(torch.where(used, terms, terms.new_zeros(())))
+    kp_rows = sum_slots_in_order(torch.where(used, terms, terms.new_zeros(())))
+    kp = torch.empty_like(kp_rows).index_copy_(0, nodes, kp_rows)
     return _system_epilogue(kp, p, mass, free, c_mass, c_stiff, node_stiffness)
 
 
@@ -300,7 +305,8 @@ def _fake_gather_system(partial, incidences, p, mass, free, c_mass, c_stiff, nod
     return (partial.new_empty((partial.shape[1], partial.shape[2])), partial.new_empty((partial.shape[1],)))
 
 
-def _fake_hooke_node_system(p, neighbor, node_k, incidences, mass, free, c_mass, c_stiff, node_stiffness=None):
+def _fake_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
+                            node_stiffness=None):
     return p.new_empty(p.shape), p.new_empty((p.shape[0],))
 
 
@@ -678,9 +684,8 @@ def forces(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> 
         if _node_layout(group, HOOKE_MATVEC_LAYOUT, (u,), "hooke_node_system"):
             # one kernel over the node graph (the system op with c_M = 0, c_K = -1 returns K u = the
             # forces, bitwise the padded gather's sums); not differentiable, hence the condition
-            neighbor, node_k = hooke_node_graph(group)
             no_mass = _zeros_like_nodes(group, u)
-            return torch.ops.tensormass.hooke_node_system(u, neighbor, node_k, incidences, no_mass, None, 0.0, -1.0,
+            return torch.ops.tensormass.hooke_node_system(u, *hooke_rows_graph(group), no_mass, None, 0.0, -1.0,
                                                           None)[0]
         return torch.ops.tensormass.tensor_hooke_forces(u, index, force_index, plan.num_slots, incidences,
                                                         group.edge_k.contiguous())
@@ -722,6 +727,83 @@ def _edge_neighbors(edges: torch.Tensor, force_index: torch.Tensor, num_slots: i
     return neighbor
 
 
+#: The node graphs' rows (HookeNodeGraph, csrc/kernels.h): each object's nodes sorted by slot
+#: count, most first, within windows of this many nodes from the object's first node, so that a
+#: warp's threads (consecutive rows) walk as many slots each. 0 or 1: rows in node order.
+#: Benchmarks switch it (``TENSORMASS_NODE_GRAPH_WINDOW`` in the environment, or this flag).
+NODE_GRAPH_WINDOW = int(os.environ.get("TENSORMASS_NODE_GRAPH_WINDOW", "128"))
+
+
+def set_objects(model, object_starts) -> None:
+    """Tells the node graphs of ``model``'s groups (``model.groups``) where its objects start
+    (``object_starts``: the first node of each object and the node count, ``[B + 1]``, a sequence
+    or tensor; the solver's segments): their rows (:func:`node_graph_rows`) never mix two objects,
+    whose CG scalars differ. Without it a group's nodes are one object."""
+    starts = tuple(int(v) for v in (object_starts.tolist() if torch.is_tensor(object_starts) else object_starts))
+    for group in model.groups:
+        group.__dict__["_native_objects"] = starts
+
+
+def _objects_of(group):
+    return group.__dict__.get("_native_objects") or (0, group.num_nodes)
+
+
+def node_graph_rows(incidences: torch.Tensor, object_starts, window: int) -> Optional[torch.Tensor]:
+    """The rows of a node graph: ``row_node [V]`` (int64, on incidences' device), the node of each
+    row: each object's nodes (``object_starts`` ``[B + 1]``) cut into windows of ``window`` nodes
+    from its first, and within a window sorted by slot count (``incidences [V]``), most first, ties
+    in node order. None (rows in node order) where ``window`` <= 1."""
+    if window <= 1:
+        return None
+    counts = incidences.detach().cpu().long()
+    num_nodes = counts.numel()
+    starts = torch.tensor(object_starts, dtype=torch.long)
+    nodes = torch.arange(num_nodes)
+    obj = torch.searchsorted(starts[1:], nodes, right=True).clamp_(max=max(starts.numel() - 2, 0))
+    window_index = obj * (num_nodes // window + 2) + (nodes - starts[obj]) // window  # increasing in the node
+    by_count = torch.sort(-counts, stable=True).indices
+    rows = by_count[torch.sort(window_index[by_count], stable=True).indices]
+    return rows.to(incidences.device)
+
+
+def _graph_rows(group, name: str, incidences: torch.Tensor, index_dtype) -> Optional[torch.Tensor]:
+    """The row_node of the group's graph ``name`` of these (node-ordered) slot counts, cached on
+    the group."""
+    key = (_objects_of(group), NODE_GRAPH_WINDOW, index_dtype)
+    cache = group.__dict__.get("_native_rows_" + name)
+    if _unchanged(cache, (incidences,)) and cache[3] == key:
+        return cache[2]
+    rows = node_graph_rows(incidences, key[0], key[1])
+    if rows is not None:
+        rows = rows.to(index_dtype)
+    group.__dict__["_native_rows_" + name] = ((incidences,), (incidences._version,), rows, key)
+    return rows
+
+
+def _by_rows(rows: Optional[torch.Tensor], *tensors):
+    """The tensors (node along dim 1 for 2-D and more, else dim 0) reordered by rows."""
+    if rows is None:
+        return tensors
+    index = rows.long()
+    return tuple(t.index_select(1 if t.dim() >= 2 else 0, index).contiguous() for t in tensors)
+
+
+def hooke_rows_graph(group):
+    """The hooke tensor form's node graph by rows, as the ``hooke_node_*`` ops take it: (neighbor
+    ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, row_node ``[V]`` or None), from
+    :func:`hooke_node_graph` and :func:`node_graph_rows`; cached on the group like them."""
+    neighbor, node_k = hooke_node_graph(group)
+    incidences = _plan_indices(group.plan)[2]
+    key = (neighbor, node_k, incidences)
+    cache = group.__dict__.get("_native_hooke_rows")
+    rows = _graph_rows(group, "hooke", incidences, neighbor.dtype)
+    if _unchanged(cache, key) and cache[3] is rows:
+        return cache[2]
+    value = (*_by_rows(rows, neighbor, node_k, incidences), rows)
+    group.__dict__["_native_hooke_rows"] = (key, tuple(t._version for t in key), value, rows)
+    return value
+
+
 def hooke_node_graph(group):
     """The node graph of a hooke tensor-form group in slot-major ("ELL") arrays, for
     ``hooke_node_system``: (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``).
@@ -761,10 +843,24 @@ NODE_TANGENT = os.environ.get("TENSORMASS_NODE_TANGENT", "1") != "0"
 
 
 def tangent_graph(group):
-    """The node graph of a stress-form group's tangent: (EdgeGraph with native index tensors,
-    neighbor ``[N_n, V]``, incidences ``[V]``), the graph's index dtype that of
-    :func:`_plan_indices` of the group's plan. Cached on the group while its elements are the same
-    unmodified tensor (the first call synchronises with the device: build it before a capture)."""
+    """The node graph of a stress-form group's tangent: (EdgeGraph with native index tensors, and
+    by the rows of :func:`node_graph_rows`: neighbor ``[N_n, V]``, incidences ``[V]``, row_node
+    ``[V]`` or None, slot_edge ``[N_n, V]``), the graph's index dtype that of :func:`_plan_indices`
+    of the group's plan. Cached on the group while its elements are the same unmodified tensor
+    (the first call synchronises with the device: build it before a capture)."""
+    by_node = _tangent_edge_graph(group)
+    graph, neighbor, incidences = by_node
+    rows = _graph_rows(group, "tangent", incidences, neighbor.dtype)
+    cache = group.__dict__.get("_native_tangent_rows")
+    if cache is not None and cache[0] is by_node and cache[1] is rows:
+        return cache[2]
+    value = (graph, *_by_rows(rows, neighbor, incidences), rows, *_by_rows(rows, graph.slot_edge))
+    group.__dict__["_native_tangent_rows"] = (by_node, rows, value)
+    return value
+
+
+def _tangent_edge_graph(group):
+    """tangent_graph's (EdgeGraph, neighbor, incidences) in node order, cached on the group."""
     from .topology import EdgeGraph
 
     elements = group.elements
@@ -801,13 +897,14 @@ def tangent_serves(group, u: torch.Tensor, inputs=()) -> bool:
 def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None,
                    out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The force differential of a stress-form group at displacements ``u [V, d]`` as the slot
-    tensors of its node graph (:func:`tangent_graph`): node_k ``[N_n, V, d, d]`` with -H_ij in the
-    slot of (i -> j), H_ij = d f_i / d u_j summed over the elements of the edge, so that
-    ``hooke_node_system`` over (neighbor, node_k, incidences) is :func:`system_matvec`'s product
+    tensors of its node graph (:func:`tangent_graph`): node_k ``[N_n, V, d, d]`` by the graph's
+    rows, with -H_ij in the slot of (i -> j), H_ij = d f_i / d u_j summed over the elements of the
+    edge, so that ``hooke_node_system`` over (neighbor, node_k, incidences, row_node) is
+    :func:`system_matvec`'s product
     at u. ``rotations``: the corotational rotations of the linearisation (computed at u when None).
     Into ``out`` when it has the shape, dtype and device (the step's buffer: CUDA graphs replay
     into it), else a new tensor. Requires :func:`tangent_serves`."""
-    graph, _, _ = tangent_graph(group)
+    graph, _, incidences, _, slot_edge = tangent_graph(group)
     plan = graph.plan
     d = u.shape[1]
     shape = (plan.num_slots, u.shape[0], d, d)
@@ -821,7 +918,7 @@ def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = N
     m, vol, lam, mu, proj, model, _, rotations = _stress_args(group, u, rotations)
     torch.ops.tensormass.stress_tangent_node_k(
         u.contiguous(), index, m, vol, lam, mu, proj, model, rotations, graph.element_edges, graph.edge_slots,
-        graph.num_edge_slots, graph.edge_counts, graph.slot_edge, plan.incidences, out, work)
+        graph.num_edge_slots, graph.edge_counts, slot_edge, incidences, out, work)
     return out
 
 
@@ -889,19 +986,19 @@ def _node_layout(group, layout: str, inputs, op: str) -> bool:
 
 
 def _node_graph(group, layout: str, inputs, op: str, node_k: Optional[torch.Tensor] = None):
-    """(neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``) of the group's CG
+    """(neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, row_node ``[V]`` or
+    None: by rows, :func:`node_graph_rows`) of the group's CG
     product over the node graph (op ``op``) where it runs there: a stress-form group's tangent
     graph with ``node_k`` given (:func:`tangent_node_k` at the linearisation), or the hooke tensor
     form's own graph (``layout`` "node"); no gradient wanted through ``inputs``. None otherwise."""
     if node_k is not None:
         if not hasattr(torch.ops.tensormass, op) or _wants_grad((*inputs, node_k)):
             return None
-        _, neighbor, incidences = tangent_graph(group)
-        return neighbor, node_k, incidences
+        _, neighbor, incidences, rows, _ = tangent_graph(group)
+        return neighbor, node_k, incidences, rows
     if not _node_layout(group, layout, inputs, op):
         return None
-    neighbor, hooke_k = hooke_node_graph(group)
-    return neighbor, hooke_k, _plan_indices(group.plan)[2]
+    return hooke_rows_graph(group)
 
 
 def _partial_dforces(group, u: torch.Tensor, p: torch.Tensor, rotations: Optional[torch.Tensor]):
@@ -1125,12 +1222,11 @@ def step_rhs(group, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass: 
     if not step_rhs_serves(group, (x, v, rest, mass, external)):
         return False
     x, v, rest, mass, external = _contiguous(x, v, rest, mass, external)
-    neighbor, node_k = hooke_node_graph(group)
-    _, _, incidences = _plan_indices(group.plan)
+    graph = hooke_rows_graph(group)
     normals = offsets = stiffness = None
     if planes is not None:
         normals, offsets, stiffness = _contiguous(planes.normals, planes.offsets, planes.stiffness)
-    torch.ops.tensormass.hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, mass, external, normals,
+    torch.ops.tensormass.hooke_node_step_rhs(x, v, rest, *graph, mass, external, normals,
                                              offsets, stiffness, float(h), float(w_coef), float(rayleigh_mass), u,
                                              rhs, node_stiffness)
     return True

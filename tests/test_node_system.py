@@ -92,11 +92,16 @@ def padded_matvec(group, p, mass, free, stiffness, index_dtype):
     return T.gather_system(partial, incidences, p, mass, free, C_MASS, C_STIFF, stiffness)
 
 
-def node_matvec(group, p, mass, free, stiffness, index_dtype):
-    neighbor, node_k = node_graph(group, index_dtype)
-    incidences = group.plan.incidences.to(index_dtype).contiguous()
-    return torch.ops.tensormass.hooke_node_system(p, neighbor, node_k, incidences, mass, free, C_MASS, C_STIFF,
-                                                  stiffness)
+def node_matvec(group, p, mass, free, stiffness, index_dtype, by_rows=True):
+    """The op over the group's graph by rows (native.hooke_rows_graph), or in node order."""
+    if by_rows:
+        neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
+        rows = None if rows is None else rows.to(index_dtype)
+    else:
+        (neighbor, node_k), incidences, rows = native.hooke_node_graph(group), group.plan.incidences, None
+    return torch.ops.tensormass.hooke_node_system(p, neighbor.to(index_dtype), node_k,
+                                                  incidences.to(index_dtype).contiguous(), rows, mass, free, C_MASS,
+                                                  C_STIFF, stiffness)
 
 
 # --------------------------------------------------------------------- the node graph
@@ -140,6 +145,53 @@ def test_node_graph_is_cached_and_rebuilt_when_edge_k_changes():
     assert native.hooke_node_graph(group)[1] is not rebuilt[1]
 
 
+# --------------------------------------------------------------------- the graph's rows
+
+
+def test_rows_sort_each_window_of_each_object_by_slot_count():
+    counts = torch.tensor([5, 11, 5, 11, 7, 3, 3, 9, 2, 8, 8, 1], dtype=torch.int32)
+    starts = (0, 5, 12)  # objects [0, 5) and [5, 12)
+    rows = native.node_graph_rows(counts, starts, window=3)
+    # windows: [0, 3) [3, 5) of object 0, [5, 8) [8, 11) [11, 12) of object 1; most slots first,
+    # ties in node order
+    assert rows.tolist() == [1, 0, 2, 3, 4, 7, 5, 6, 9, 10, 8, 11]
+    assert native.node_graph_rows(counts, starts, window=1) is None
+    assert native.node_graph_rows(counts, starts, window=0) is None
+    one_object = native.node_graph_rows(counts, (0, 12), window=128)
+    assert torch.equal(one_object, torch.sort(-counts.long(), stable=True).indices)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_rows_change_no_value(kind, dtype):
+    group, p, mass, free, stiffness = make_case(12, kind, dtype)
+    neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
+    assert rows is not None and not torch.equal(rows.long(), torch.arange(p.shape[0]))  # a real permutation
+    assert torch.equal(torch.sort(rows.long()).values, torch.arange(p.shape[0]))
+    counts = group.plan.incidences
+    assert torch.equal(incidences.long(), counts[rows.long()].long())
+    assert bool((incidences[1:] <= incidences[:-1]).all())  # one window, one object: decreasing
+    for index_dtype in INDEX_DTYPES:
+        by_rows = node_matvec(group, p, mass, free, stiffness, index_dtype)
+        by_node = node_matvec(group, p, mass, free, stiffness, index_dtype, by_rows=False)
+        assert torch.equal(by_rows[0], by_node[0]) and torch.equal(by_rows[1], by_node[1])
+    ref = native.REFERENCE["hooke_node_system"](p, neighbor, node_k, incidences, rows, mass, free, C_MASS, C_STIFF,
+                                                stiffness)
+    assert rel(by_rows[0], ref[0]) < tol(dtype) and rel(by_rows[1], ref[1]) < tol(dtype)
+
+
+def test_rows_keep_to_their_object():
+    mesh = tm.beam_mesh(3, 1, 1, size=(0.3, 0.1, 0.1), dtype=torch.float64)
+    mat = tm.Material(young=2e4, poisson=0.3, density=1000.0, model="hooke")
+    sim = tm.Simulator([tm.Body(mesh, mat), tm.Body(mesh, mat), tm.Body(mesh, mat)], dt=0.01, form="tensor")
+    group = sim.system.model.groups[0]
+    rows = native.hooke_rows_graph(group)[3].long()
+    per_object = mesh.vertices.shape[0]
+    row_object = torch.arange(rows.numel()) // per_object
+    assert torch.equal(rows // per_object, row_object)  # each object's rows are its own nodes
+    assert not torch.equal(rows, torch.arange(rows.numel()))
+
+
 # --------------------------------------------------------------------- the op
 
 
@@ -171,8 +223,8 @@ def test_op_equals_reference_and_composed_matvec(monkeypatch, kind, dtype, with_
     neighbor, node_k = native.hooke_node_graph(group)
     incidences = group.plan.incidences
     f64 = [None if t is None else t.double() for t in (p, node_k, mass, free, stiffness)]
-    ref_ap, ref_dot = native.REFERENCE["hooke_node_system"](f64[0], neighbor, f64[1], incidences, f64[2], f64[3],
-                                                             C_MASS, C_STIFF, f64[4])
+    ref_ap, ref_dot = native.REFERENCE["hooke_node_system"](f64[0], neighbor, f64[1], incidences, None, f64[2],
+                                                             f64[3], C_MASS, C_STIFF, f64[4])
     assert rel(ap, ref_ap) < tol(dtype) and rel(dot, ref_dot) < tol(dtype)
     # the composed matvec (mass term - K p with K p from the torch reference of dforces)
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
@@ -191,11 +243,11 @@ def test_unused_slots_are_never_read():
     bad_neighbor = torch.where(unused, torch.full_like(neighbor, 2**30), neighbor)
     bad_k = torch.where(unused[..., None, None], torch.full_like(node_k, float("nan")), node_k)
     T = torch.ops.tensormass
-    got = T.hooke_node_system(p, bad_neighbor, bad_k, incidences, mass, free, C_MASS, C_STIFF, stiffness)
-    want = T.hooke_node_system(p, neighbor, node_k, incidences, mass, free, C_MASS, C_STIFF, stiffness)
+    got = T.hooke_node_system(p, bad_neighbor, bad_k, incidences, None, mass, free, C_MASS, C_STIFF, stiffness)
+    want = T.hooke_node_system(p, neighbor, node_k, incidences, None, mass, free, C_MASS, C_STIFF, stiffness)
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
-    ref = native.REFERENCE["hooke_node_system"](p, bad_neighbor, bad_k, incidences, mass, free, C_MASS, C_STIFF,
-                                                stiffness)
+    ref = native.REFERENCE["hooke_node_system"](p, bad_neighbor, bad_k, incidences, None, mass, free, C_MASS,
+                                                C_STIFF, stiffness)
     assert rel(got[0], ref[0]) < 1e-12 and bool(torch.isfinite(ref[0]).all())
 
 
@@ -259,18 +311,24 @@ def test_simulator_node_layout_equals_padded_bitwise(monkeypatch, dtype, contact
     calls = []
     real = native.hooke_node_graph
     monkeypatch.setattr(native, "hooke_node_graph", lambda g: calls.append(1) or real(g))
-    x, v = run_beam(dtype, contact)
+    x_rows, v_rows = run_beam(dtype, contact)
     assert calls, "the solver did not use the node layout"
+    # with the graph's rows in node order every sum is taken in the padded path's order; rows
+    # sorted by slot count (the default) change only the order of the CG's p . Ap sums
+    monkeypatch.setattr(native, "NODE_GRAPH_WINDOW", 0)
+    x, v = run_beam(dtype, contact)
     monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", "padded")
     n = len(calls)
     x_p, v_p = run_beam(dtype, contact)
     assert len(calls) == n
     assert torch.equal(x, x_p) and torch.equal(v, v_p)
+    # both solved to the CG tolerance (1e-10 in float64; with the stiff penalty, k = 1e4 on a light
+    # beam, the velocities differ by ~1e-10 there)
+    t = (1e-8 if contact else 1e-10) if dtype == torch.float64 else 1e-4
+    assert rel(x_rows, x) < t and rel(v_rows, v) < t
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
     x_t, v_t = run_beam(dtype, contact)
-    # the torch path is other arithmetic solved to the CG tolerance (1e-10): with the stiff penalty
-    # (k = 1e4 on a light beam) the velocities differ by ~2e-10 there
-    t = (1e-8 if contact else 1e-10) if dtype == torch.float64 else 1e-4
+    # the torch path is other arithmetic solved to the CG tolerance (with the penalty: ~2e-10)
     assert rel(x, x_t) < t and rel(v, v_t) < t
 
 
@@ -284,8 +342,8 @@ def test_input_checks():
     H = torch.ops.tensormass.hooke_node_system
 
     def call(**kw):
-        args = dict(p=p, neighbor=neighbor, node_k=node_k, incidences=inc, mass=mass, free=free, c_mass=1.0,
-                    c_stiff=1.0, node_stiffness=None)
+        args = dict(p=p, neighbor=neighbor, node_k=node_k, incidences=inc, row_node=None, mass=mass, free=free,
+                    c_mass=1.0, c_stiff=1.0, node_stiffness=None)
         args.update(kw)
         return H(*args.values())
 
@@ -298,6 +356,9 @@ def test_input_checks():
         (dict(neighbor=neighbor[:, :-1]), "neighbor has shape"),
         (dict(neighbor=neighbor[0]), r"neighbor must be \[N_n, V\]"),
         (dict(incidences=inc.long() if inc.dtype == torch.int32 else inc.int()), "incidences is"),
+        (dict(row_node=torch.arange(p.shape[0] - 1, dtype=inc.dtype)), "row_node has shape"),
+        (dict(row_node=torch.arange(p.shape[0], dtype=torch.int64 if inc.dtype == torch.int32 else torch.int32)),
+         "row_node is"),
         (dict(incidences=inc[:-1]), "incidences has shape"),
         (dict(mass=mass[:-1]), "mass has shape"),
         (dict(free=free.float()), "free is Float but p is Double"),
@@ -327,7 +388,7 @@ def test_opcheck():
     for fr in (None, free):
         for k in (None, stiffness):
             torch.library.opcheck(torch.ops.tensormass.hooke_node_system.default,
-                                  (p, neighbor, node_k, inc, mass, fr, C_MASS, C_STIFF, k),
+                                  (p, neighbor, node_k, inc, None, mass, fr, C_MASS, C_STIFF, k),
                                   test_utils=("test_schema", "test_faketensor", "test_aot_dispatch_static"))
 
 
@@ -448,7 +509,7 @@ def test_forces_through_the_node_graph_equal_padded_forces(monkeypatch, kind, dt
     assert torch.equal(got, padded)
     neighbor, node_k = native.hooke_node_graph(group)
     no_mass = torch.zeros(u.shape[0], dtype=dtype)
-    assert torch.equal(real(u, neighbor, node_k, incidences, no_mass, None, 0.0, -1.0, None)[0], got)
+    assert torch.equal(real(u, neighbor, node_k, incidences, None, no_mass, None, 0.0, -1.0, None)[0], got)
     u_grad = u.clone().requires_grad_(True)
     f = native.forces(group, u_grad)
     assert f.requires_grad and torch.equal(f.detach(), padded)

@@ -45,16 +45,16 @@ def make_group(kind, model, rotation, dtype, device, seed=0):
 
 
 def reference(group, u, state):
-    graph, _, _ = native.tangent_graph(group)
+    graph, _, incidences, _, slot_edge = native.tangent_graph(group)
     index = native._plan_indices(group.plan)[0]
     m, vol, lam, mu, proj, model, _, rotations = native._stress_args(group, u, state)
     return native._ref_stress_tangent_node_k(u, index, m, vol, lam, mu, proj, model, rotations, graph.element_edges,
                                              graph.edge_slots, graph.num_edge_slots, graph.edge_counts,
-                                             graph.slot_edge, graph.plan.incidences)
+                                             slot_edge, incidences)
 
 
 def used_slots(group):
-    graph, _, incidences = native.tangent_graph(group)
+    graph, _, incidences, _, _ = native.tangent_graph(group)
     return torch.arange(graph.plan.num_slots, device=incidences.device)[:, None] < incidences[None, :].long()
 
 
@@ -155,7 +155,7 @@ def test_the_tangent_is_written_into_the_buffer_given():
 @pytest.mark.parametrize("device", DEVICES)
 def test_bad_inputs_are_rejected_with_nothing_changed(device):
     group, u = make_group("tet", "corotational", "qr", torch.float32, device)
-    graph, _, _ = native.tangent_graph(group)
+    graph, _, incidences, _, slot_edge = native.tangent_graph(group)
     plan = graph.plan
     index = native._plan_indices(group.plan)[0]
     m, vol, lam, mu, proj, model, _, rotations = native._stress_args(group, u, None)
@@ -163,14 +163,14 @@ def test_bad_inputs_are_rejected_with_nothing_changed(device):
     work = torch.zeros(graph.num_edge_slots, graph.edges.shape[0], 12, device=device)
     args = dict(u=u, elements=index, shape_vectors=m, measure=vol, lam=lam, mu=mu, projector=proj, model=model,
                 rotations=rotations, element_edges=graph.element_edges, edge_slots=graph.edge_slots,
-                num_edge_slots=graph.num_edge_slots, edge_counts=graph.edge_counts, slot_edge=graph.slot_edge,
-                incidences=plan.incidences, node_k=node_k, edge_partial=work)
+                num_edge_slots=graph.num_edge_slots, edge_counts=graph.edge_counts, slot_edge=slot_edge,
+                incidences=incidences, node_k=node_k, edge_partial=work)
     cases = [(dict(rotations=None), "corotational tangent needs the rotations"),
              (dict(node_k=node_k[:, :-1]), "node_k has shape"),
              (dict(edge_partial=work[:-1]), "edge_partial has shape"),
              (dict(element_edges=graph.element_edges[:, :3].contiguous()), "element_edges has shape"),
-             (dict(slot_edge=graph.slot_edge.long()), "slot_edge is Long"),
-             (dict(incidences=plan.incidences[:-1]), "incidences has shape"),
+             (dict(slot_edge=slot_edge.long()), "slot_edge is Long"),
+             (dict(incidences=incidences[:-1]), "incidences has shape"),
              (dict(num_edge_slots=-1), "must be >= 0")]
     for change, message in cases:
         with pytest.raises(RuntimeError, match=message):

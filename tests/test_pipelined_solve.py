@@ -110,10 +110,9 @@ def test_solves_and_steps_take_it_and_the_switch_turns_it_off(monkeypatch):
 def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
     """hooke_node_solve on cg's state over ``plan`` with ``slots``; keyword changes replace arguments."""
     group = system.model.groups[0]
-    neighbor, node_k = native.hooke_node_graph(group)
-    _, _, incidences = native._plan_indices(group.plan)
+    neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
     s = cg.state
-    args = dict(neighbor=neighbor, node_k=node_k, incidences=incidences, mass=system.mass.reshape(-1),
+    args = dict(neighbor=neighbor, node_k=node_k, incidences=incidences, row_node=rows, mass=system.mass.reshape(-1),
                 free=system.free.reshape(-1), c_mass=1.02, c_stiff=2e-4, node_stiffness=matvec.node_stiffness,
                 rhs=rhs, tol_sq=0.0, chunk_start=plan.chunk_start, chunk_object=plan.chunk_object,
                 object_chunk=plan.object_chunk, chunk_slots=slots, max_iter=10, x=s.x, r=s.r, p=s.p,

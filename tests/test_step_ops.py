@@ -92,32 +92,32 @@ def _op_args(system, x, v, planes=True):
     (group,) = model.groups
     from tensormass_torch import native
 
-    neighbor, node_k = native.hooke_node_graph(group)
-    incidences = native._plan_indices(group.plan)[2]
+    neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
     p = system.planes
     u, rhs = torch.zeros_like(x), torch.zeros_like(x)
     stiffness = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)
     plane_args = (p.normals, p.offsets, p.stiffness) if planes else (None, None, None)
-    return [x, v, model.rest, neighbor, node_k, incidences, model.lumped_mass(), system.external, *plane_args,
+    return [x, v, model.rest, neighbor, node_k, incidences, rows, model.lumped_mass(), system.external, *plane_args,
             0.01, 0.02, 0.1, u, rhs, stiffness if planes else None]
 
 
 @pytest.mark.parametrize("bad,message", [
     (lambda a: a.__setitem__(1, a[1][:-1]), "v has shape"),
-    (lambda a: a.__setitem__(7, a[7].float()), "external is"),
-    (lambda a: a.__setitem__(14, a[14].t()), "u"),
-    (lambda a: a.__setitem__(16, None), "node_stiffness"),
-    (lambda a: a.__setitem__(9, a[9][:1]), "plane_offsets has shape"),
+    (lambda a: a.__setitem__(8, a[8].float()), "external is"),
+    (lambda a: a.__setitem__(15, a[15].t()), "u"),
+    (lambda a: a.__setitem__(17, None), "node_stiffness"),
+    (lambda a: a.__setitem__(10, a[10][:1]), "plane_offsets has shape"),
     (lambda a: a.__setitem__(4, a[4][:, :-1]), "node_k has shape"),
+    (lambda a: a.__setitem__(6, a[6][:-1]), "row_node has shape"),
 ])
 def test_step_rhs_bad_input_raises_and_writes_nothing(bad, message):
     system, x, v = _system()
     args = _op_args(system, x, v)
     bad(args)
-    outputs = [t.clone() if isinstance(t, torch.Tensor) else t for t in args[14:]]
+    outputs = [t.clone() if isinstance(t, torch.Tensor) else t for t in args[15:]]
     with pytest.raises(RuntimeError, match=message):
         torch.ops.tensormass.hooke_node_step_rhs(*args)
-    for before, after in zip(outputs, args[14:]):
+    for before, after in zip(outputs, args[15:]):
         if isinstance(before, torch.Tensor) and before.shape == after.shape:
             assert torch.equal(before, after)
 
@@ -126,8 +126,8 @@ def test_step_rhs_planes_need_3d():
     system, x, v = _system(planes=False, dim=2)
     args = _op_args(system, x, v, planes=False)
     planes = Planes([tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], torch.float64, "cpu")
-    args[8:11] = [planes.normals, planes.offsets, planes.stiffness]
-    args[16] = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)
+    args[9:12] = [planes.normals, planes.offsets, planes.stiffness]
+    args[17] = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)
     with pytest.raises(RuntimeError, match="contact planes need 3-D"):
         torch.ops.tensormass.hooke_node_step_rhs(*args)
 

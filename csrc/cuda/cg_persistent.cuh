@@ -180,7 +180,8 @@ __global__ void __launch_bounds__(kReduceBlock, kPersistentBlocksPerSM) persiste
   }
 
   // One chunk per block with at most a node per thread (the one-wave plans that
-  // native.persistent_cg_fits launches): each thread keeps its node's slot count in a register
+  // native.persistent_cg_fits launches; a thread takes the node graph's row, whose node is one of
+  // the object's, HookeNodeGraph): each thread keeps its row's slot count in a register
   // and its neighbours in its own column of shared memory (written and read by that thread only).
   using Global = typename decltype(k.graph)::GlobalNeighbors;
   __shared__ int32_t neighbor_cache[kCachedSlots * kReduceBlock];

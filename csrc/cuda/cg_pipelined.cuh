@@ -209,8 +209,8 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
   const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
   const bool first_chunk = chunk == plan.object_chunk[object];
   const int64_t begin = plan.chunk_start[chunk], end = plan.chunk_start[chunk + 1];
-  const int64_t i = begin + tid / kLanes;
-  const bool own = i < end;
+  const int64_t row = begin + tid / kLanes;  // of the node graph (HookeNodeGraph): the chunk's rows are its nodes
+  const bool own = row < end;
   const bool single_object = plan.num_objects == 1;
   if (blockIdx.x == 0 && tid < 3) s.counters[tid] = 0;  // before the first barrier; counted after it
 
@@ -220,7 +220,8 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
   int32_t* shared_neighbor = reinterpret_cast<int32_t*>(shared_k + s.chunk_slots * (D * D));
   __shared__ int32_t slot_offset[kSolveChunkNodes + 1];
   const auto& graph = k.graph;
-  const int count = own ? static_cast<int>(ld(graph.incidences + i)) : 0;
+  const int64_t i = own ? graph.node_of(row) : row;  // this thread's node
+  const int count = own ? static_cast<int>(ld(graph.incidences + row)) : 0;
   {
     const int32_t mine = lane == 0 ? count : 0;  // counted once per node
     const int32_t before = block_exclusive_scan(mine);
@@ -231,11 +232,11 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
   // A chunk beyond the layout the caller promised (more nodes or slots) solves nothing: its
   // object's b.b is made NaN, so the object stops at the start as non-finite and says so.
   const bool layout_ok = end - begin <= kSolveChunkNodes && slot_offset[kSolveChunkNodes] <= s.chunk_slots;
-  const int first = own ? slot_offset[i - begin] : 0;
+  const int first = own ? slot_offset[row - begin] : 0;
   if (own && layout_ok) {
     for (int q = lane; q < count; q += kLanes) {
-      shared_neighbor[first + q] = static_cast<int32_t>(ld(graph.neighbor + q * V + i));
-      TM_UNROLL for (int e = 0; e < D * D; ++e) shared_k[(first + q) * (D * D) + e] = ld(graph.node_k + (q * V + i) * (D * D) + e);
+      shared_neighbor[first + q] = static_cast<int32_t>(ld(graph.neighbor + q * V + row));
+      TM_UNROLL for (int e = 0; e < D * D; ++e) shared_k[(first + q) * (D * D) + e] = ld(graph.node_k + (q * V + row) * (D * D) + e);
     }
   }
   __syncthreads();

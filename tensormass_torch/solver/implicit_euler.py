@@ -15,6 +15,7 @@ from typing import List
 
 import torch
 
+from .. import native
 from ..errors import SolverError
 from . import cg_ops
 from .cg import CGResult, CGSolver, batched_cg, run_captured
@@ -85,6 +86,7 @@ class DynamicsSystem:
         self.mass = mass.unsqueeze(-1)
         self.external = external
         self.segments = segments
+        native.set_objects(model, segments.ptr)  # the node graphs' rows keep to one object each
         self.free = None if not bool(constrained.any()) else (~constrained).to(mass.dtype).unsqueeze(-1)
         self.planes = planes if planes is not None and len(planes) else None
         self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
