@@ -738,8 +738,14 @@ def set_objects(model, object_starts) -> None:
     """Tells the node graphs of ``model``'s groups (``model.groups``) where its objects start
     (``object_starts``: the first node of each object and the node count, ``[B + 1]``, a sequence
     or tensor; the solver's segments): their rows (:func:`node_graph_rows`) never mix two objects,
-    whose CG scalars differ. Without it a group's nodes are one object."""
+    whose CG scalars differ. Without it a group's nodes are one object. A model serves one set of
+    objects: telling it other ones raises (a solver of the first would get rows that mix them)."""
     starts = tuple(int(v) for v in (object_starts.tolist() if torch.is_tensor(object_starts) else object_starts))
+    for group in model.groups:
+        known = group.__dict__.get("_native_objects")
+        if known is not None and known != starts:
+            raise ValueError(f"this model's node graphs already serve objects starting at nodes {list(known[:-1])}; "
+                             f"objects starting at {list(starts[:-1])} need a model of their own")
     for group in model.groups:
         group.__dict__["_native_objects"] = starts
 

@@ -190,6 +190,10 @@ def test_rows_keep_to_their_object():
     row_object = torch.arange(rows.numel()) // per_object
     assert torch.equal(rows // per_object, row_object)  # each object's rows are its own nodes
     assert not torch.equal(rows, torch.arange(rows.numel()))
+    native.set_objects(sim.system.model, sim.segments.ptr)  # the same objects again: fine
+    with pytest.raises(ValueError, match="need a model of their own"):
+        native.set_objects(sim.system.model, [0, 3 * per_object])
+    assert native.hooke_rows_graph(group)[3] is not None and torch.equal(native.hooke_rows_graph(group)[3].long(), rows)
 
 
 # --------------------------------------------------------------------- the op
