@@ -786,12 +786,19 @@ def _graph_rows(group, name: str, incidences: torch.Tensor, index_dtype) -> Opti
     return rows
 
 
-def _by_rows(rows: Optional[torch.Tensor], *tensors):
-    """The tensors (node along dim 1 for 2-D and more, else dim 0) reordered by rows."""
-    if rows is None:
-        return tensors
-    index = rows.long()
-    return tuple(t.index_select(1 if t.dim() >= 2 else 0, index).contiguous() for t in tensors)
+def _by_rows(group, name: str, incidences: torch.Tensor, tensors):
+    """The node-ordered arrays ``tensors`` of the group's graph ``name`` (node along dim 1 for 2-D
+    and more, else dim 0; ``incidences [V]``: its slot counts) reordered by its rows, and the rows
+    (:func:`_graph_rows`); cached on the group while the tensors are unchanged and the rows the same."""
+    rows = _graph_rows(group, name, incidences, tensors[0].dtype)
+    cache = group.__dict__.get("_native_by_rows_" + name)
+    if _unchanged(cache, tensors) and cache[3] is rows:
+        return cache[2], rows
+    index = None if rows is None else rows.long()
+    value = tuple(t if index is None else t.index_select(1 if t.dim() >= 2 else 0, index).contiguous()
+                  for t in tensors)
+    group.__dict__["_native_by_rows_" + name] = (tensors, tuple(t._version for t in tensors), value, rows)
+    return value, rows
 
 
 def hooke_rows_graph(group):
@@ -800,14 +807,8 @@ def hooke_rows_graph(group):
     :func:`hooke_node_graph` and :func:`node_graph_rows`; cached on the group like them."""
     neighbor, node_k = hooke_node_graph(group)
     incidences = _plan_indices(group.plan)[2]
-    key = (neighbor, node_k, incidences)
-    cache = group.__dict__.get("_native_hooke_rows")
-    rows = _graph_rows(group, "hooke", incidences, neighbor.dtype)
-    if _unchanged(cache, key) and cache[3] is rows:
-        return cache[2]
-    value = (*_by_rows(rows, neighbor, node_k, incidences), rows)
-    group.__dict__["_native_hooke_rows"] = (key, tuple(t._version for t in key), value, rows)
-    return value
+    by_rows, rows = _by_rows(group, "hooke", incidences, (neighbor, node_k, incidences))
+    return (*by_rows, rows)
 
 
 def hooke_node_graph(group):
@@ -854,15 +855,10 @@ def tangent_graph(group):
     ``[V]`` or None, slot_edge ``[N_n, V]``), the graph's index dtype that of :func:`_plan_indices`
     of the group's plan. Cached on the group while its elements are the same unmodified tensor
     (the first call synchronises with the device: build it before a capture)."""
-    by_node = _tangent_edge_graph(group)
-    graph, neighbor, incidences = by_node
-    rows = _graph_rows(group, "tangent", incidences, neighbor.dtype)
-    cache = group.__dict__.get("_native_tangent_rows")
-    if cache is not None and cache[0] is by_node and cache[1] is rows:
-        return cache[2]
-    value = (graph, *_by_rows(rows, neighbor, incidences), rows, *_by_rows(rows, graph.slot_edge))
-    group.__dict__["_native_tangent_rows"] = (by_node, rows, value)
-    return value
+    graph, neighbor, incidences = _tangent_edge_graph(group)
+    (neighbor, row_incidences, slot_edge), rows = _by_rows(group, "tangent", incidences,
+                                                          (neighbor, incidences, graph.slot_edge))
+    return graph, neighbor, row_incidences, rows, slot_edge
 
 
 def _tangent_edge_graph(group):

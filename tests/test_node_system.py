@@ -78,12 +78,6 @@ def plan_arrays(group, index_dtype):
     return tuple(t.to(index_dtype).contiguous() for t in (plan.index, plan.force_index, plan.incidences))
 
 
-def node_graph(group, index_dtype):
-    """The node graph with the indices in ``index_dtype`` (the builder uses the plan's native one)."""
-    neighbor, node_k = native.hooke_node_graph(group)
-    return neighbor.to(index_dtype), node_k
-
-
 def padded_matvec(group, p, mass, free, stiffness, index_dtype):
     """The two-kernel path: tensor_hooke_partial_forces (kernel 1) + gather_system (kernel 2)."""
     index, force_index, incidences = plan_arrays(group, index_dtype)
