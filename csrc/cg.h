@@ -124,7 +124,10 @@ struct PipelinedSolve : CGIterates<S> {
   S* exchange;          // [2, V, 4d]
   double* sums;         // [4K]: r.r then w.r per chunk, for each parity
   int32_t* counters;    // [3]: active objects in the last three iterations (rotating)
-  int64_t chunk_slots;  // slots of the chunk with the most (sum of incidences over its nodes)
+  int64_t chunk_nodes;  // nodes of the chunk with the most: picks the layout (cuda/cg_pipelined.cuh)
+  int64_t chunk_slots;  // slots of the chunk with the most (sum of incidences over its nodes; shared layout)
+  int64_t max_slots;    // slots of the node with the most (N_n)
+  int64_t cached_neighbors = 0, cached_ks = 0;  // streamed layout: a node's first slots kept in shared memory
 };
 
 // Chronopoulos-Gear's step length from the reduction that also gave r.r: with

@@ -42,7 +42,8 @@
 //                               with hooke_node_system's matvec, stopping once no object is active:
 //                               one persistent kernel on the GPU; bitwise the op-by-op solve
 //   pipelined whole solve     hooke_node_solve(<hooke_node_system's graph and epilogue>, rhs, tol_sq, chunk
-//                               plan (<= 128 nodes a chunk), chunk_slots, max_iter, x!, r!, p!, threshold!,
+//                               plan, chunk_nodes (its largest chunk: <= 128 slots in shared memory, <= 256
+//                               streamed), chunk_slots, max_iter, x!, r!, p!, threshold!,
 //                               rhs_sq!, rr!, status!, alpha!, beta!, iterations!, exchange!, sums!,
 //                               counters!) -> bool
 //                               a whole solve from x0 = 0 by Chronopoulos-Gear's CG (one reduction and
@@ -152,7 +153,7 @@ TORCH_LIBRARY(tensormass, m) {
   // ---- a whole CG solve from x0 = 0 by the pipelined CG (one grid barrier an iteration; GPU)
   m.def("hooke_node_solve(Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, Tensor? free, "
         "float c_mass, float c_stiff, Tensor? node_stiffness, Tensor rhs, float tol_sq, Tensor chunk_start, "
-        "Tensor chunk_object, Tensor object_chunk, int chunk_slots, int max_iter, Tensor(a!) x, Tensor(b!) r, "
+        "Tensor chunk_object, Tensor object_chunk, int chunk_nodes, int chunk_slots, int max_iter, Tensor(a!) x, Tensor(b!) r, "
         "Tensor(c!) p, Tensor(d!) threshold, Tensor(e!) rhs_sq, Tensor(f!) rr, Tensor(g!) status, "
         "Tensor(h!) alpha, Tensor(i!) beta, Tensor(j!) iterations, Tensor(k!) exchange, Tensor(l!) sums, "
         "Tensor(m!) counters) -> bool");

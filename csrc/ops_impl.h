@@ -1160,11 +1160,14 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
 // reduction an iteration; on the GPU one persistent kernel with one grid barrier an iteration,
 // cuda/cg_pipelined.cuh): the same iterates as CG in exact arithmetic, the same stopping rule
 // and statuses (relative tolerance tol_sq = tol^2 on r.r, max_iter, breakdown, non-finite), not
-// bitwise the two-reduction CG of hooke_node_cg. The plan's chunks must hold at most
-// SOLVE_CHUNK_NODES (128) nodes and chunk_slots slots (the sum of incidences over a chunk's
-// nodes): a chunk beyond that ends its object as non-finite. Returns whether it ran: false,
-// having changed nothing, where the solve does not fit the device in one wave (or on the CPU,
-// which has no such kernel); then the caller solves with hooke_node_cg. Buffers: the CG state
+// bitwise the two-reduction CG of hooke_node_cg. The plan's chunks must hold at most chunk_nodes
+// nodes and chunk_slots slots (the sum of incidences over a chunk's nodes): a chunk beyond that
+// ends its object as non-finite. chunk_nodes picks the layout: <= SOLVE_CHUNK_NODES (128) the
+// chunks' slots may sit in shared memory, <= STREAM_CHUNK_NODES (256) they are read from the
+// graph each iteration (chunk_slots unused). Returns whether it ran: false, having changed
+// nothing, where the solve does not fit the device in one wave in either layout, or chunk_nodes
+// exceeds both (or on the CPU, which has no such kernel); then the caller solves with
+// hooke_node_cg. Buffers: the CG state
 // (x, r, p [V, d]; threshold, rhs_sq, rr, alpha, beta [B]; status, iterations [B] int32) and
 // the work: exchange [2, V, 4d], sums [4K] float64, counters [3] int32.
 template <class L>
@@ -1172,11 +1175,12 @@ bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, cons
                       const c10::optional<at::Tensor>& row_node, const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
                       const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
                       const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
-                      int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r, at::Tensor p,
+                      int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r, at::Tensor p,
                       at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status, at::Tensor alpha,
                       at::Tensor beta, at::Tensor iterations, at::Tensor exchange, at::Tensor sums,
                       at::Tensor counters) {
   check_values(rhs, "rhs");
+  TORCH_CHECK(chunk_nodes >= 1, "tensormass: chunk_nodes must be >= 1, got ", std::to_string(chunk_nodes));
   TORCH_CHECK(chunk_slots >= 0, "tensormass: chunk_slots must be >= 0, got ", std::to_string(chunk_slots));
   const CGPlan plan = check_cg_iterates(rhs, chunk_start, chunk_object, object_chunk, x, r, threshold, rhs_sq, rr, alpha,
                                         beta, status, iterations, max_iter);
@@ -1196,7 +1200,9 @@ bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, cons
     s.exchange = exchange.data_ptr<S>();
     s.sums = sums.data_ptr<double>();
     s.counters = counters.data_ptr<int32_t>();
+    s.chunk_nodes = chunk_nodes;
     s.chunk_slots = chunk_slots;
+    s.max_slots = neighbor.size(0);
     ran = L::run_solve(plan, k, s);
   });
   return ran;

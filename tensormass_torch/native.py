@@ -41,7 +41,7 @@ __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
            "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "persistent_cg_fits",
            "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "system_solve", "solve_plan", "chunk_slots",
-           "PIPELINED_SOLVE", "SOLVE_CHUNK_NODES", "HOOKE_MATVEC_LAYOUTS",
+           "PIPELINED_SOLVE", "PIPELINED_LAYOUTS", "SOLVE_CHUNK_NODES", "STREAM_CHUNK_NODES", "HOOKE_MATVEC_LAYOUTS",
            "HOOKE_MATVEC_LAYOUT", "NODE_TANGENT", "tangent_graph", "tangent_serves", "tangent_node_k",
            "NODE_GRAPH_WINDOW", "set_objects", "node_graph_rows", "hooke_rows_graph"]
 
@@ -1140,17 +1140,46 @@ def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: f
 #: barrier an iteration) where it fits, before ``hooke_node_cg``. Benchmarks and the bitwise tests
 #: of hooke_node_cg switch it off.
 PIPELINED_SOLVE = True
-#: Nodes per chunk of the pipelined solve's plan (csrc/cuda/cg_pipelined.cuh kSolveChunkNodes).
+#: The layouts of the pipelined solve's node graph, tried in this order (the first that fits one
+#: wave of the GPU runs; csrc/cuda/cg_pipelined.cuh): "shared", chunks of
+#: :data:`SOLVE_CHUNK_NODES` nodes whose slots sit in shared memory for the whole solve (small
+#: systems: latency is all); "streamed", chunks of :data:`STREAM_CHUNK_NODES` nodes whose slots are
+#: read from the graph every iteration (graphs beyond shared memory, up to ~67k nodes on an H100).
+#: Tests and benchmarks narrow it (``TENSORMASS_PIPELINED_LAYOUTS=shared`` in the environment, a
+#: comma-separated list, or this tuple).
+PIPELINED_LAYOUTS = ("shared", "streamed")
+#: Nodes per chunk of the pipelined solve's plan in each layout (csrc/cuda/cg_pipelined.cuh
+#: kSolveChunkNodes: two threads a node; kStreamChunkNodes: one).
 SOLVE_CHUNK_NODES = 128
+STREAM_CHUNK_NODES = 256
+_LAYOUT_CHUNK_NODES = {"shared": SOLVE_CHUNK_NODES, "streamed": STREAM_CHUNK_NODES}
 
 
-def solve_plan(plan):
-    """The chunk plan of :func:`system_solve` for the objects of ``plan`` (a ``ChunkPlan``): chunks
-    of at most :data:`SOLVE_CHUNK_NODES` nodes, one GPU block each. Cached on ``plan``."""
-    cached = plan.__dict__.get("_solve_plan")
-    if cached is None:
-        cached = plan.__dict__["_solve_plan"] = type(plan).from_segments(plan.segments, SOLVE_CHUNK_NODES)
-    return cached
+def _layouts_from_env() -> tuple:
+    text = os.environ.get("TENSORMASS_PIPELINED_LAYOUTS")
+    if text is None:
+        return PIPELINED_LAYOUTS
+    names = tuple(name.strip() for name in text.split(",") if name.strip())
+    unknown = [name for name in names if name not in _LAYOUT_CHUNK_NODES]
+    if unknown:
+        raise ValueError(f"TENSORMASS_PIPELINED_LAYOUTS: unknown layout(s) {unknown}; "
+                         f"known: {sorted(_LAYOUT_CHUNK_NODES)}")
+    return names
+
+
+PIPELINED_LAYOUTS = _layouts_from_env()
+
+
+def solve_plan(plan, layout: str = "shared"):
+    """The chunk plan of :func:`system_solve` in ``layout`` (see :data:`PIPELINED_LAYOUTS`) for the
+    objects of ``plan`` (a ``ChunkPlan``): chunks of at most :data:`SOLVE_CHUNK_NODES` ("shared")
+    or :data:`STREAM_CHUNK_NODES` ("streamed") nodes, one GPU block each. Cached on ``plan``."""
+    if layout not in _LAYOUT_CHUNK_NODES:
+        raise ValueError(f"layout must be one of {sorted(_LAYOUT_CHUNK_NODES)}, got {layout!r}")
+    plans = plan.__dict__.setdefault("_solve_plans", {})
+    if layout not in plans:
+        plans[layout] = type(plan).from_segments(plan.segments, _LAYOUT_CHUNK_NODES[layout])
+    return plans[layout]
 
 
 def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
@@ -1172,6 +1201,27 @@ def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
     return value
 
 
+class _SolveWork:
+    """The pipelined solve's work on one CG state, for one plan, graph (its ``incidences``), and
+    ``key`` (the right-hand side's shape and dtype, the layouts to try): the
+    exchange rows ``[2, V, 4d]``, the counters, the chunk sums of each layout tried, and what the
+    tries found (``layout``: the one that ran; ``misfits``: those that did not fit, not tried
+    again: each try is a launch attempt, on every step)."""
+
+    def __init__(self, plan, incidences: torch.Tensor, key, rhs: torch.Tensor):
+        self.plan, self.incidences, self.key = plan, incidences, key
+        self.exchange = torch.zeros((2, rhs.shape[0], 4 * rhs.shape[1]), dtype=rhs.dtype, device=rhs.device)
+        self.counters = torch.zeros(3, dtype=torch.int32, device=rhs.device)
+        self.sums = {}
+        self.layout = None
+        self.misfits = set()
+
+    def sums_of(self, layout: str, plan) -> torch.Tensor:
+        if layout not in self.sums:
+            self.sums[layout] = torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=self.exchange.device)
+        return self.sums[layout]
+
+
 def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float, c_stiff: float,
                  node_stiffness: Optional[torch.Tensor], rhs: torch.Tensor, tol: float, plan, cg_state,
                  max_iter: int, node_k: Optional[torch.Tensor] = None) -> bool:
@@ -1179,30 +1229,38 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
     ``free``; relative tolerance ``tol``; at most ``max_iter`` iterations) by the pipelined CG
     (``hooke_node_solve``: Chronopoulos-Gear, one reduction and one grid barrier an iteration, one
     persistent kernel) into ``cg_state`` (a ``CGState`` over ``plan``: x, r, p, the per-object
-    scalars and statuses). CG's iterates in exact arithmetic, rounded differently from
-    :func:`system_cg`'s. Returns False, having done nothing, where it does not serve: not a CUDA
-    tensor, :data:`PIPELINED_SOLVE` off, no node graph (``node_k``: as in :func:`system_matvec`), a
-    gradient wanted, or a system too large for one wave of the kernel."""
+    scalars and statuses), in the first of :data:`PIPELINED_LAYOUTS` that fits. CG's iterates in
+    exact arithmetic, rounded differently from :func:`system_cg`'s. Returns False, having done
+    nothing, where it does not serve: not a CUDA tensor, :data:`PIPELINED_SOLVE` off, no node graph
+    (``node_k``: as in :func:`system_matvec`), a gradient wanted, or a system too large for one
+    wave of the kernel in every layout."""
     s = cg_state
     if not (PIPELINED_SOLVE and rhs.is_cuda and (node_k is not None or HOOKE_MATVEC_LAYOUT == "node")):
         return False
     graph = _node_graph(group, "node", (s.p, mass, free, node_stiffness, rhs), "hooke_node_solve", node_k)
     if graph is None:
         return False
-    fine = solve_plan(plan)
+    key = (tuple(rhs.shape), rhs.dtype, PIPELINED_LAYOUTS)
     work = s.__dict__.get("_solve_work")
-    shape = (2, rhs.shape[0], 4 * rhs.shape[1])
-    if work is None or work[0] is not fine or work[1].shape != shape or work[1].dtype != rhs.dtype:
-        work = s.__dict__["_solve_work"] = (
-            fine, torch.zeros(shape, dtype=rhs.dtype, device=rhs.device),
-            torch.zeros(4 * fine.num_chunks, dtype=torch.float64, device=rhs.device),
-            torch.zeros(3, dtype=torch.int32, device=rhs.device))
-    _, exchange, sums, counters = work
+    if work is None or work.plan is not plan or work.incidences is not graph[2] or work.key != key:
+        work = s.__dict__["_solve_work"] = _SolveWork(plan, graph[2], key, rhs)
     mass, free, node_stiffness, rhs = _contiguous(mass, free, node_stiffness, rhs)
-    return bool(torch.ops.tensormass.hooke_node_solve(
-        *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs, float(tol) ** 2, *fine.tensors(),
-        chunk_slots(group, fine, graph[2]), int(max_iter), s.x, s.r, s.p, s.threshold, s.rhs_sq, s.rr, s.status,
-        s.alpha, s.beta, s.iterations, exchange, sums, counters))
+    for layout in ((work.layout,) if work.layout is not None else PIPELINED_LAYOUTS):
+        if layout in work.misfits:
+            continue
+        layout_plan = solve_plan(plan, layout)
+        slots = chunk_slots(group, layout_plan, graph[2]) if layout == "shared" else 0
+        ran = bool(torch.ops.tensormass.hooke_node_solve(
+            *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs, float(tol) ** 2,
+            *layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter), s.x, s.r, s.p, s.threshold,
+            s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, work.exchange, work.sums_of(layout, layout_plan),
+            work.counters))
+        if ran:
+            work.layout = layout
+            return True
+        work.layout = None
+        work.misfits.add(layout)
+    return False
 
 
 def step_rhs_serves(group, inputs=()) -> bool:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import tensormass_torch as tm
 from tensormass_torch import native, scenes
 from tensormass_torch.solver import cg_ops
 from tensormass_torch.solver.segments import ChunkPlan
@@ -23,11 +24,29 @@ pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(to
 gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="the pipelined solve is a GPU kernel")
 
 
+@pytest.fixture(params=["shared", "streamed", "streamed-uncached", "streamed-partly"])
+def layout(request, monkeypatch):
+    """Each layout of the pipelined solve's graph, alone (native.PIPELINED_LAYOUTS narrowed to it);
+    the streamed one also with none of its slots in shared memory, and with only each node's first
+    3 neighbours and Kdir blocks there (TENSORMASS_STREAM_CACHE_SLOTS): both paths in one node."""
+    name, _, cache = request.param.partition("-")
+    monkeypatch.setattr(native, "PIPELINED_LAYOUTS", (name,))
+    if cache:
+        monkeypatch.setenv("TENSORMASS_STREAM_CACHE_SLOTS", "0" if cache == "uncached" else "3")
+    return name
+
+
+def ran_layout(cg):
+    """The layout the pipelined op ran in on ``cg``'s state, or None where it did not run."""
+    work = cg.state.__dict__.get("_solve_work")
+    return None if work is None else work.layout
+
+
 def pipelined(system, matvec, rhs, tol, max_iter):
     """A whole solve through CGSolver.begin; asserts that it ran as the pipelined op."""
     cg = fresh_solver(system, rhs)
     cg.begin(matvec, rhs, tol, max_iter, max_iter)
-    assert "_solve_work" in cg.state.__dict__, "the solve did not take the pipelined op"
+    assert ran_layout(cg) is not None, "the solve did not take the pipelined op"
     return state_of(cg)
 
 
@@ -43,7 +62,7 @@ def rel(a, b):
 
 @gpu
 @pytest.mark.parametrize("tol,max_iter", [(1e-8, 300), (0.0, 10), (0.0, 1)])
-def test_float64_matches_the_two_reduction_cg(tol, max_iter):
+def test_float64_matches_the_two_reduction_cg(layout, tol, max_iter):
     system, matvec, rhs = make_system(torch.float64, "cuda", contact=False)
     got = pipelined(system, matvec, rhs, tol, max_iter)
     want = reference(rhs, tol, max_iter)
@@ -63,7 +82,7 @@ def test_float64_matches_the_two_reduction_cg(tol, max_iter):
 
 @gpu
 @pytest.mark.parametrize("contact", [False, True])
-def test_float32_is_as_close_to_float64_as_the_two_reduction_cg(monkeypatch, contact):
+def test_float32_is_as_close_to_float64_as_the_two_reduction_cg(monkeypatch, layout, contact):
     """SOFA's budget (tol = 0, 10 iterations): both float32 solvers round; neither much worse."""
     system64, _, rhs64 = make_system(torch.float64, "cuda", contact=contact)
     system, matvec, _ = make_system(torch.float32, "cuda", contact=contact)
@@ -78,13 +97,14 @@ def test_float32_is_as_close_to_float64_as_the_two_reduction_cg(monkeypatch, con
 
 
 @gpu
-def test_per_object_statuses_zero_rhs_and_breakdown():
+def test_per_object_statuses_zero_rhs_and_breakdown(layout):
     system, matvec, rhs = make_system(torch.float64, "cuda", contact=False)
     rhs[system.segments.node_object == 1] = 0.0
     got = pipelined(system, matvec, rhs, 1e-7, 600)
     want = reference(rhs, 1e-7, 600)
     assert got["status"].tolist() == [cg_ops.CONVERGED] * 3 and int(got["iterations"][1]) == 0
-    assert torch.equal(got["iterations"], want["iterations"])
+    # converged objects may cross the threshold an iteration apart (r.r rounded otherwise at it)
+    assert int((got["iterations"] - want["iterations"]).abs().max()) <= 1
     assert float(got["x"][system.segments.node_object == 1].abs().max()) == 0.0
     assert rel(got["x"], want["x"]) < 1e-7
 
@@ -99,7 +119,7 @@ def test_per_object_statuses_zero_rhs_and_breakdown():
 def test_solves_and_steps_take_it_and_the_switch_turns_it_off(monkeypatch):
     system, matvec, rhs = make_system(torch.float32, "cuda")
     result = system.cg_solver(rhs, cuda_graphs=False).solve(matvec, rhs, tol=1e-5, max_iter=300)
-    assert bool(result.converged.all()) and "_solve_work" in system._cg.state.__dict__
+    assert bool(result.converged.all()) and ran_layout(system._cg) == native.PIPELINED_LAYOUTS[0]
     monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
     cg = fresh_solver(system, rhs)
     cg.begin(matvec, rhs, 1e-5, 300, 300)
@@ -107,15 +127,20 @@ def test_solves_and_steps_take_it_and_the_switch_turns_it_off(monkeypatch):
     assert rel(cg.state.x, result.solution) < 1e-4
 
 
+def largest_chunk(plan):
+    return int((plan.chunk_start[1:] - plan.chunk_start[:-1]).max())
+
+
 def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
-    """hooke_node_solve on cg's state over ``plan`` with ``slots``; keyword changes replace arguments."""
+    """hooke_node_solve on cg's state over ``plan`` (promising its largest chunk) with ``slots``;
+    keyword changes replace arguments."""
     group = system.model.groups[0]
     neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
     s = cg.state
     args = dict(neighbor=neighbor, node_k=node_k, incidences=incidences, row_node=rows, mass=system.mass.reshape(-1),
                 free=system.free.reshape(-1), c_mass=1.02, c_stiff=2e-4, node_stiffness=matvec.node_stiffness,
                 rhs=rhs, tol_sq=0.0, chunk_start=plan.chunk_start, chunk_object=plan.chunk_object,
-                object_chunk=plan.object_chunk, chunk_slots=slots, max_iter=10, x=s.x, r=s.r, p=s.p,
+                object_chunk=plan.object_chunk, chunk_nodes=largest_chunk(plan), chunk_slots=slots, max_iter=10, x=s.x, r=s.r, p=s.p,
                 threshold=s.threshold, rhs_sq=s.rhs_sq, rr=s.rr, status=s.status, alpha=s.alpha, beta=s.beta,
                 iterations=s.iterations,
                 exchange=torch.zeros(2, rhs.shape[0], 4 * rhs.shape[1], dtype=rhs.dtype, device=rhs.device),
@@ -152,6 +177,51 @@ def test_a_chunk_beyond_the_promised_layout_ends_its_object_as_non_finite():
     assert cg.state.status.tolist() == [cg_ops.CAPPED] * 3
 
 
+@gpu
+def test_a_streamed_chunk_beyond_the_promised_nodes_ends_its_object_and_larger_ones_are_not_run():
+    sim = scenes.sofa_beam(device="cuda", scale=3).simulator  # 936 nodes, one object
+    system = sim.system
+    matvec = system.system_matvec(1.02, 2e-4).load(sim.x)
+    rhs = torch.randn_like(sim.x)
+    cg = fresh_solver(system, rhs)
+    plan = ChunkPlan.from_segments(system.segments, 2 * native.STREAM_CHUNK_NODES)
+    assert direct_call(system, matvec, rhs, cg, plan, 0, chunk_nodes=native.STREAM_CHUNK_NODES)
+    assert cg.state.status.tolist() == [cg_ops.NONFINITE]
+    before = state_of(cg)  # chunks larger than both layouts take: not run, nothing changed
+    assert not direct_call(system, matvec, rhs, cg, plan, 0)
+    for k in FIELDS:  # the NaN b.b too
+        torch.testing.assert_close(state_of(cg)[k], before[k], rtol=0, atol=0, equal_nan=True, msg=k)
+
+
+@gpu
+def test_a_graph_beyond_one_wave_in_shared_memory_streams():
+    """44,541 nodes: 348 chunks of 128 (more than an H100's 264 resident blocks), 174 of 256."""
+    mesh = tm.beam_mesh(100, 20, 20, size=(1.0, 0.2, 0.2), device="cuda")
+    body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="hooke"),
+                   fixed=mesh.vertices[:, 0] < 1e-9)
+    sim = tm.Simulator([body], dt=0.01, gravity=(0, 0, -9.81), form="tensor", device="cuda")
+    matvec = sim.system.system_matvec(1.0, 1e-4).load(sim.x)
+    rhs = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(5)).to("cuda")
+    cg = fresh_solver(sim.system, rhs)
+    if not native.persistent_cg_fits(rhs.device, native.solve_plan(cg.plan).num_chunks):
+        cg.begin(matvec, rhs, 1e-5, 400, 400)
+        work = cg.state.__dict__["_solve_work"]
+        assert work.layout == "streamed" and work.misfits == {"shared"}
+    else:  # a GPU with more multiprocessors: the shared layout's test case, streamed forced
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(native, "PIPELINED_LAYOUTS", ("streamed",))
+            cg.begin(matvec, rhs, 1e-5, 400, 400)
+        assert ran_layout(cg) == "streamed"
+    got = state_of(cg)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(native, "PIPELINED_SOLVE", False)
+        plain = fresh_solver(sim.system, rhs)
+        plain.begin(matvec, rhs, 1e-5, 400, 400)
+    assert got["status"].tolist() == [cg_ops.CONVERGED] == plain.state.status.tolist()
+    assert abs(int(got["iterations"][0]) - int(plain.state.iterations[0])) <= 2
+    assert rel(got["x"], plain.state.x) < 1e-4
+
+
 def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
     system, matvec, rhs = make_system(torch.float64, "cpu")
     cg = fresh_solver(system, rhs)
@@ -164,13 +234,18 @@ def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
         assert torch.equal(state_of(cg)[k], before[k]), k
 
 
-def test_the_solve_plan_and_its_slots():
+def test_the_solve_plans_and_their_slots():
     system, _, rhs = make_system(torch.float64, "cpu")
     cg = fresh_solver(system, rhs)
     plan = native.solve_plan(cg.plan)
     assert native.solve_plan(cg.plan) is plan  # cached
-    sizes = plan.chunk_start[1:] - plan.chunk_start[:-1]
-    assert int(sizes.max()) <= native.SOLVE_CHUNK_NODES
+    assert largest_chunk(plan) <= native.SOLVE_CHUNK_NODES
+    streamed = native.solve_plan(cg.plan, "streamed")
+    assert streamed is native.solve_plan(cg.plan, "streamed") and streamed is not plan
+    assert largest_chunk(streamed) <= native.STREAM_CHUNK_NODES
+    assert torch.equal(streamed.chunk_object, torch.arange(3))  # 54-90 nodes an object: one chunk each
+    with pytest.raises(ValueError, match="layout must be one of"):
+        native.solve_plan(cg.plan, "global")
     group = system.model.groups[0]
     _, _, incidences = native._plan_indices(group.plan)
     want = max(int(incidences[a:b].sum()) for a, b in zip(plan.chunk_start[:-1].tolist(), plan.chunk_start[1:].tolist()))
@@ -189,6 +264,7 @@ def test_bad_inputs_are_rejected_with_nothing_changed(device):
              (dict(counters=torch.zeros(3, dtype=torch.int64, device=device)), "counters is Long"),
              (dict(max_iter=-1), "max_iter must be >= 0"),
              (dict(chunk_slots=-1), "chunk_slots must be >= 0"),
+             (dict(chunk_nodes=0), "chunk_nodes must be >= 1"),
              (dict(x=cg.state.x[:-1]), "x has shape"),
              (dict(status=cg.state.status.float()), "status is Float")]
     for change, message in cases:

@@ -15,6 +15,17 @@
 //   - the object's totals are read by the whole block at once, both dots in one block reduction.
 // Probe figures per iteration: 17.1 us (today's structure) -> 7.7 us.
 //
+// Two layouts of the graph (the launcher takes the first that fits one wave):
+//   shared    the block's slots in shared memory, two threads a node, chunks of <= 128 nodes
+//             (kSolveChunkNodes): small systems, where latency is all;
+//   streamed  one thread a node, chunks of <= 256 nodes (kStreamChunkNodes): graphs whose slots
+//             exceed shared memory in one wave (the paper beam's 56k nodes: 220 blocks of 256 on
+//             an H100's 264 resident). Each node's first slots stay in its column of shared memory
+//             (as many as the SM's share holds: StreamedSlots), the rest are read from the graph's
+//             arrays by row every iteration. Against the two-barrier persistent CG that served
+//             these graphs, the update and both dots ride on the matvec's pass, one grid barrier
+//             of two goes, and most of the graph's bytes stay on chip.
+//
 // The recurrence (iteration i, from r_i, w_i = A r_i, s_{i-1}, p_{i-1}, x_i; gamma_i = r_i.r_i,
 // delta_i = w_i.r_i):
 //   beta_i = gamma_i / gamma_{i-1} (cg_beta_step: convergence, the cap; 0 on the first step)
@@ -32,7 +43,9 @@
 #include <ATen/cuda/CUDAContext.h>
 #include <c10/cuda/CUDAException.h>
 
+#include <algorithm>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <type_traits>
 
@@ -45,6 +58,7 @@ namespace tensormass {
 constexpr int kLanes = 2;                                // threads per node
 constexpr int kSolveChunkNodes = kReduceBlock / kLanes;  // nodes per chunk (Python: native.SOLVE_CHUNK_NODES)
 constexpr int kSolveSlotBatch = 8;                       // slots whose loads a lane has in flight at once
+constexpr int kStreamChunkNodes = kReduceBlock;          // nodes per chunk, streamed (Python: native.STREAM_CHUNK_NODES)
 
 template <typename S>
 __device__ inline S next_residual(S r, S w, S s, S alpha, S beta) {
@@ -123,10 +137,84 @@ struct SharedGraph {
   }
 };
 
-// The sum over a node's lanes (adjacent threads), in every lane.
-template <int D, typename S>
+// One node's slots in the streamed layout (one thread a node): its first cached_neighbors
+// neighbours and first cached_ks Kdir blocks in its own column of the block's shared memory, for
+// the whole solve; the rest read from the graph's arrays by row every iteration (slot s of the
+// row at neighbor[s * V], node_k[s * V]: consecutive rows are consecutive addresses, so a warp's
+// loads of a slot coalesce). The neighbours come first: each is the head of a dependent chain
+// (neighbour, then its exchange row). kBatch slots are in flight at once (the HookeNodeGraph
+// matvec's pattern: a thread has one node's parallelism, its loads must not be one chain).
+template <int D, typename S, typename I>
+struct StreamedSlots {
+  static constexpr int kBatch = 4;
+  static constexpr int kColumn = kStreamChunkNodes;  // the stride of a column in shared memory
+  const int32_t* cached_neighbor;  // slot s at [s * kColumn]
+  const S* cached_k;               // slot s, entry e at [(s * D * D + e) * kColumn]
+  int cached_neighbors, cached_ks;
+  const I* neighbor;  // the row's first slot in the graph
+  const S* node_k;    // the row's first slot's Kdir in the graph
+  int64_t stride;     // V: from one slot of a row to the next
+
+  __device__ int64_t neighbor_at(int s) const {
+    return s < cached_neighbors ? static_cast<int64_t>(cached_neighbor[s * kColumn])
+                                : static_cast<int64_t>(ld(neighbor + s * stride));
+  }
+
+  __device__ void k_at(int s, S (&k)[D][D]) const {
+    if (s < cached_ks) {
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        TM_UNROLL for (int b = 0; b < D; ++b) k[a][b] = cached_k[(s * (D * D) + a * D + b) * kColumn];
+      }
+    } else {
+      load_matrix<D, D, S>(node_k + s * stride * (D * D), k);
+    }
+  }
+
+  template <class Value>
+  __device__ void add_forces(int count, const S (&wi)[D], const Value& value, S (&acc)[D]) const {
+    for (int s0 = 0; s0 < count; s0 += kBatch) {
+      int64_t j[kBatch];
+      S k[kBatch][D][D], wj[kBatch][D];
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) j[q] = s0 + q < count ? neighbor_at(s0 + q) : -1;
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        if (j[q] < 0) continue;
+        value(j[q], wj[q]);
+        k_at(s0 + q, k[q]);
+      }
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        if (s0 + q >= count) break;
+        S f[2][D];
+        tensor_hooke_edge<D, S>(k[q], wi, wj[q], f);
+        TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
+      }
+    }
+  }
+};
+
+// A thread's share of its node's slots in either layout: in the block's shared memory (from the
+// node's first slot, every kLanes-th from its lane) or streamed from the graph's arrays by row.
+template <bool InShared, int D, typename S, typename I>
+struct NodeSlots {
+  SharedGraph<D, S> shared;
+  int first, lane;
+  StreamedSlots<D, S, I> streamed;
+
+  // acc += the elastic force terms over these slots along the field read by value(j, out[D]);
+  // wi: the node's own value; count: the node's slots.
+  template <class Value>
+  __device__ void add_forces(int count, const S (&wi)[D], const Value& value, S (&acc)[D]) const {
+    if constexpr (InShared) {
+      shared.add_forces(first, count, lane, wi, value, acc);
+    } else {
+      streamed.add_forces(count, wi, value, acc);
+    }
+  }
+};
+
+// The sum over a node's Lanes lanes (adjacent threads), in every lane.
+template <int Lanes, int D, typename S>
 __device__ inline void lanes_total(S (&acc)[D]) {
-  TM_UNROLL for (int o = kLanes / 2; o > 0; o >>= 1) {
+  TM_UNROLL for (int o = Lanes / 2; o > 0; o >>= 1) {
     TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += __shfl_xor_sync(0xffffffffu, acc[a], o);
   }
 }
@@ -196,51 +284,74 @@ __device__ inline double2 object_totals(const CGPlan& plan, int64_t object, cons
   return out;
 }
 
-template <class K, typename S>
+template <class K, typename S, bool InShared>
 __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k, const CGPlan plan,
                                                                         const PipelinedSolve<S> s) {
   constexpr int D = K::kDim;
+  constexpr int Lanes = InShared ? kLanes : 1;
+  constexpr int ChunkNodes = kReduceBlock / Lanes;
   constexpr int W = ExchangeRow<D, S>::kWidth;
   using Row = ExchangeRow<D, S>;
   namespace coop = cooperative_groups;
   coop::grid_group grid = coop::this_grid();
   const int64_t V = plan.num_nodes, K_chunks = plan.num_chunks;
-  const int tid = threadIdx.x, lane = tid % kLanes;
+  const int tid = threadIdx.x, lane = tid % Lanes;
   const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
   const bool first_chunk = chunk == plan.object_chunk[object];
   const int64_t begin = plan.chunk_start[chunk], end = plan.chunk_start[chunk + 1];
-  const int64_t row = begin + tid / kLanes;  // of the node graph (HookeNodeGraph): the chunk's rows are its nodes
+  const int64_t row = begin + tid / Lanes;  // of the node graph (HookeNodeGraph): the chunk's rows are its nodes
   const bool own = row < end;
   const bool single_object = plan.num_objects == 1;
   if (blockIdx.x == 0 && tid < 3) s.counters[tid] = 0;  // before the first barrier; counted after it
 
-  // The chunk's slots into shared memory: each node's first slot by a scan of the slot counts.
-  extern __shared__ __align__(16) unsigned char solve_shared[];
-  S* shared_k = reinterpret_cast<S*>(solve_shared);
-  int32_t* shared_neighbor = reinterpret_cast<int32_t*>(shared_k + s.chunk_slots * (D * D));
-  __shared__ int32_t slot_offset[kSolveChunkNodes + 1];
   const auto& graph = k.graph;
   const int64_t i = own ? graph.node_of(row) : row;  // this thread's node
   const int count = own ? static_cast<int>(ld(graph.incidences + row)) : 0;
-  {
-    const int32_t mine = lane == 0 ? count : 0;  // counted once per node
-    const int32_t before = block_exclusive_scan(mine);
-    if (lane == 0) slot_offset[tid / kLanes] = before;
-    if (tid == kReduceBlock - 1) slot_offset[kSolveChunkNodes] = before + mine;
-    __syncthreads();
-  }
   // A chunk beyond the layout the caller promised (more nodes or slots) solves nothing: its
   // object's b.b is made NaN, so the object stops at the start as non-finite and says so.
-  const bool layout_ok = end - begin <= kSolveChunkNodes && slot_offset[kSolveChunkNodes] <= s.chunk_slots;
-  const int first = own ? slot_offset[row - begin] : 0;
-  if (own && layout_ok) {
-    for (int q = lane; q < count; q += kLanes) {
-      shared_neighbor[first + q] = static_cast<int32_t>(ld(graph.neighbor + q * V + row));
-      TM_UNROLL for (int e = 0; e < D * D; ++e) shared_k[(first + q) * (D * D) + e] = ld(graph.node_k + (q * V + row) * (D * D) + e);
+  bool layout_ok = end - begin <= ChunkNodes;
+  // The shared layout: the chunk's slots into shared memory, each node's first slot by a scan of
+  // the slot counts (the streamed layout reads them from the graph: nothing to do).
+  extern __shared__ __align__(16) unsigned char solve_shared[];
+  __shared__ int32_t slot_offset[ChunkNodes + 1];
+  S* shared_k = reinterpret_cast<S*>(solve_shared);
+  int32_t* shared_neighbor = reinterpret_cast<int32_t*>(shared_k + s.chunk_slots * (D * D));
+  int first = 0;
+  if (InShared) {
+    {
+      const int32_t mine = lane == 0 ? count : 0;  // counted once per node
+      const int32_t before = block_exclusive_scan(mine);
+      if (lane == 0) slot_offset[tid / Lanes] = before;
+      if (tid == kReduceBlock - 1) slot_offset[ChunkNodes] = before + mine;
+      __syncthreads();
+    }
+    layout_ok = layout_ok && slot_offset[ChunkNodes] <= s.chunk_slots;
+    first = own ? slot_offset[row - begin] : 0;
+    if (own && layout_ok) {
+      for (int q = lane; q < count; q += Lanes) {
+        shared_neighbor[first + q] = static_cast<int32_t>(ld(graph.neighbor + q * V + row));
+        TM_UNROLL for (int e = 0; e < D * D; ++e) shared_k[(first + q) * (D * D) + e] = ld(graph.node_k + (q * V + row) * (D * D) + e);
+      }
+    }
+    __syncthreads();
+  }
+  // The streamed layout: each thread's first slots into its own columns of shared memory
+  // (neighbours [cached_neighbors][kStreamChunkNodes] int32, then Kdir [cached_ks][D * D][kStreamChunkNodes]).
+  const int column = tid / Lanes;
+  int32_t* column_neighbor = reinterpret_cast<int32_t*>(solve_shared) + column;
+  S* column_k = reinterpret_cast<S*>(reinterpret_cast<int32_t*>(solve_shared) + s.cached_neighbors * kStreamChunkNodes) + column;
+  if (!InShared && own && layout_ok) {
+    for (int q = 0; q < count && q < s.cached_neighbors; ++q) {
+      column_neighbor[q * kStreamChunkNodes] = static_cast<int32_t>(ld(graph.neighbor + q * V + row));
+    }
+    for (int q = 0; q < count && q < s.cached_ks; ++q) {
+      TM_UNROLL for (int e = 0; e < D * D; ++e) column_k[(q * (D * D) + e) * kStreamChunkNodes] = ld(graph.node_k + (q * V + row) * (D * D) + e);
     }
   }
-  __syncthreads();
-  const SharedGraph<D, S> shared{shared_k, shared_neighbor};
+  const NodeSlots<InShared, D, S, std::remove_cv_t<std::remove_pointer_t<decltype(graph.neighbor)>>> slots{
+      SharedGraph<D, S>{shared_k, shared_neighbor}, first, lane,
+      {column_neighbor, column_k, InShared ? 0 : static_cast<int>(s.cached_neighbors), InShared ? 0 : static_cast<int>(s.cached_ks),
+       graph.neighbor + row, graph.node_k + row * (D * D), V}};
 
   // The node's own constants and state, in registers for the whole solve.
   S k_own[D][D], m_own = S(0), f_own = S(0);
@@ -261,9 +372,9 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
   TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = S(0);
   if (own) {
     projected_rhs(i, r);
-    if (layout_ok) shared.add_forces(first, count, lane, r, projected_rhs, acc);
+    if (layout_ok) slots.add_forces(count, r, projected_rhs, acc);
   }
-  lanes_total<D, S>(acc);  // by every thread: the shuffles take whole warps, a chunk's last may be part-empty
+  lanes_total<Lanes, D, S>(acc);  // by every thread: the shuffles take whole warps, a chunk's last may be part-empty
   if (own) {
     k.epilogue.row(k_own, m_own, f_own, c_stiff, r, acc, w);
     if (lane == 0) {
@@ -325,13 +436,13 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
       }
       if (own) {
         const S a_step = alpha, b_step = beta;
-        shared.add_forces(first, count, lane, r_next, [=](int64_t j, S (&out)[D]) {
+        slots.add_forces(count, r_next, [=](int64_t j, S (&out)[D]) {
           S rj[D], wj[D], sj[D];
           Row::load(row_in + j * W, rj, wj, sj);
           TM_UNROLL for (int a = 0; a < D; ++a) out[a] = next_residual(rj[a], wj[a], sj[a], a_step, b_step);
         }, acc);
       }
-      lanes_total<D, S>(acc);
+      lanes_total<Lanes, D, S>(acc);
       if (own) {
         k.epilogue.row(k_own, m_own, f_own, c_stiff, r_next, acc, w_next);
         TM_UNROLL for (int a = 0; a < D; ++a) {
@@ -377,20 +488,19 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
   }
 }
 
-// Launches the pipelined solve: one block per chunk, all resident at once (a cooperative launch),
-// with the chunk's slots in dynamic shared memory. Returns false, having launched nothing, where
-// that does not fit on the device (too many chunks or slots): the caller solves another way.
-template <class K, typename S>
-bool launch_pipelined_cg(const CGPlan& plan, const K& k, const PipelinedSolve<S>& s) {
+// Launches the pipelined solve in one layout: one block per chunk, all resident at once (a
+// cooperative launch). Returns false, having launched nothing, where the device cannot hold every
+// block at once with shared_bytes of dynamic shared memory each.
+template <class K, typename S, bool InShared>
+bool launch_pipelined_layout(const CGPlan& plan, const K& k, const PipelinedSolve<S>& s, size_t shared_bytes) {
   constexpr int D = K::kDim;
-  const auto* props = at::cuda::getCurrentDeviceProperties();
-  const size_t shared_bytes =
-      static_cast<size_t>(s.chunk_slots) * (D * D * sizeof(S) + sizeof(int32_t)) + 16;
-  if (plan.num_chunks == 0 || plan.num_nodes > INT32_MAX || s.chunk_slots > INT32_MAX / (D * D) ||
-      shared_bytes > props->sharedMemPerBlockOptin) {
-    return false;
+  if (!InShared) {  // the columns streamed_cache chose
+    shared_bytes = static_cast<size_t>(kStreamChunkNodes) *
+                   (s.cached_neighbors * sizeof(int32_t) + s.cached_ks * D * D * sizeof(S));
   }
-  const void* kernel = reinterpret_cast<const void*>(&pipelined_cg_kernel<K, S>);
+  const auto* props = at::cuda::getCurrentDeviceProperties();
+  if (shared_bytes > props->sharedMemPerBlockOptin) return false;
+  const void* kernel = reinterpret_cast<const void*>(&pipelined_cg_kernel<K, S, InShared>);
   static size_t shared_allowed = 0;  // per kernel instantiation
   if (shared_bytes > shared_allowed) {
     C10_CUDA_CHECK(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
@@ -407,6 +517,52 @@ bool launch_pipelined_cg(const CGPlan& plan, const K& k, const PipelinedSolve<S>
   C10_CUDA_CHECK(cudaLaunchCooperativeKernel(kernel, dim3(static_cast<unsigned>(plan.num_chunks)), dim3(kReduceBlock),
                                              args, shared_bytes, at::cuda::getCurrentCUDAStream()));
   return true;
+}
+
+// The streamed layout's shared memory: as many of each node's first slots as fit the share of
+// an SM that each of the plan's blocks gets (the blocks must all be resident: ceil(chunks / SMs)
+// of them an SM), neighbours first (each heads a dependent chain), then Kdir blocks. On an H100
+// the paper beam's 220 blocks of 256 nodes (2 an SM) keep its 26 neighbours and 9 Kdir blocks a
+// node: two thirds of the graph's Kdir bytes stay on chip.
+template <class K, typename S>
+PipelinedSolve<S> streamed_cache(const CGPlan& plan, const K& k, PipelinedSolve<S> s) {
+  constexpr int D = K::kDim;
+  const auto* props = at::cuda::getCurrentDeviceProperties();
+  static int static_bytes = -1;  // per kernel instantiation
+  if (static_bytes < 0) {
+    cudaFuncAttributes attributes;
+    C10_CUDA_CHECK(cudaFuncGetAttributes(&attributes, pipelined_cg_kernel<K, S, false>));
+    static_bytes = static_cast<int>(attributes.sharedSizeBytes);
+  }
+  const int64_t sms = props->multiProcessorCount;
+  const int64_t blocks_per_sm = std::max<int64_t>(1, (plan.num_chunks + sms - 1) / sms);
+  const int64_t share = static_cast<int64_t>(props->sharedMemPerMultiprocessor) / blocks_per_sm -
+                        static_cast<int64_t>(props->reservedSharedMemPerBlock) - static_bytes;
+  const int64_t budget = std::max<int64_t>(0, std::min<int64_t>(share, static_cast<int64_t>(props->sharedMemPerBlockOptin) - static_bytes));
+  // A cap on the slots of each kind, for tests and benchmarks (read per launch):
+  // TENSORMASS_STREAM_CACHE_SLOTS=0 streams every slot.
+  int64_t slots = s.max_slots;
+  if (const char* cap = std::getenv("TENSORMASS_STREAM_CACHE_SLOTS")) slots = std::min<int64_t>(slots, std::max(0LL, std::atoll(cap)));
+  const int64_t neighbor_level = kStreamChunkNodes * sizeof(int32_t), k_level = kStreamChunkNodes * D * D * sizeof(S);
+  s.cached_neighbors = std::min<int64_t>(slots, budget / neighbor_level);
+  s.cached_ks = std::min<int64_t>(slots, (budget - s.cached_neighbors * neighbor_level) / k_level);
+  return s;
+}
+
+// Launches the pipelined solve in the first layout that fits one wave: shared (chunks of at most
+// kSolveChunkNodes nodes, their slots in shared memory), then streamed (chunks of at most
+// kStreamChunkNodes). Returns false, having launched nothing, where neither fits (too many chunks
+// or nodes, or chunks larger than both layouts take): the caller solves another way.
+template <class K, typename S>
+bool launch_pipelined_cg(const CGPlan& plan, const K& k, const PipelinedSolve<S>& s) {
+  constexpr int D = K::kDim;
+  if (plan.num_chunks == 0 || plan.num_nodes > INT32_MAX) return false;
+  if (s.chunk_nodes <= kSolveChunkNodes && s.chunk_slots <= INT32_MAX / (D * D)) {
+    const size_t shared_bytes = static_cast<size_t>(s.chunk_slots) * (D * D * sizeof(S) + sizeof(int32_t)) + 16;
+    if (launch_pipelined_layout<K, S, true>(plan, k, s, shared_bytes)) return true;
+  }
+  if (s.chunk_nodes > kStreamChunkNodes) return false;
+  return launch_pipelined_layout<K, S, false>(plan, k, streamed_cache(plan, k, s), 0);
 }
 
 }  // namespace tensormass
