@@ -160,8 +160,9 @@ struct StreamedSlots {
                                 : static_cast<int64_t>(ld(neighbor + s * stride));
   }
 
+  template <bool OnChip>
   __device__ void k_at(int s, S (&k)[D][D]) const {
-    if (s < cached_ks) {
+    if (OnChip || s < cached_ks) {
       TM_UNROLL for (int a = 0; a < D; ++a) {
         TM_UNROLL for (int b = 0; b < D; ++b) k[a][b] = cached_k[(s * (D * D) + a * D + b) * kColumn];
       }
@@ -170,19 +171,31 @@ struct StreamedSlots {
     }
   }
 
+  // acc += the elastic force terms over the node's `count` slots along the field read by
+  // value(j, out[D]); wi: the node's own value. The slots whose neighbour and Kdir are both on
+  // chip first, in a loop with no test of where they are, then the others (slot order kept).
   template <class Value>
   __device__ void add_forces(int count, const S (&wi)[D], const Value& value, S (&acc)[D]) const {
-    for (int s0 = 0; s0 < count; s0 += kBatch) {
+    const int on_chip = min(count, min(cached_neighbors, cached_ks));
+    add_range<true>(0, on_chip, wi, value, acc);
+    add_range<false>(on_chip, count, wi, value, acc);
+  }
+
+  template <bool OnChip, class Value>
+  __device__ void add_range(int first, int end, const S (&wi)[D], const Value& value, S (&acc)[D]) const {
+    for (int s0 = first; s0 < end; s0 += kBatch) {
       int64_t j[kBatch];
       S k[kBatch][D][D], wj[kBatch][D];
-      TM_UNROLL for (int q = 0; q < kBatch; ++q) j[q] = s0 + q < count ? neighbor_at(s0 + q) : -1;
+      TM_UNROLL for (int q = 0; q < kBatch; ++q) {
+        j[q] = s0 + q >= end ? -1 : OnChip ? static_cast<int64_t>(cached_neighbor[(s0 + q) * kColumn]) : neighbor_at(s0 + q);
+      }
       TM_UNROLL for (int q = 0; q < kBatch; ++q) {
         if (j[q] < 0) continue;
         value(j[q], wj[q]);
-        k_at(s0 + q, k[q]);
+        k_at<OnChip>(s0 + q, k[q]);
       }
       TM_UNROLL for (int q = 0; q < kBatch; ++q) {
-        if (s0 + q >= count) break;
+        if (s0 + q >= end) break;
         S f[2][D];
         tensor_hooke_edge<D, S>(k[q], wi, wj[q], f);
         TM_UNROLL for (int a = 0; a < D; ++a) acc[a] += f[0][a];
@@ -434,7 +447,12 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
         r_next[a] = next_residual(r[a], w[a], sv[a], alpha, beta);
         acc[a] = S(0);
       }
-      if (own) {
+      // The object's last step (its next beta step reaches the cap, if it does not converge or
+      // fail first: it stops either way) needs no w = A r: only r.r is read after it. Skipping
+      // that product saves one of the max_iter + 1 a fixed budget runs (one of 11 on the SOFA
+      // beam). The same in every thread of the block (one object's).
+      const bool last_step = iterations + 1 >= s.max_iter;
+      if (own && !last_step) {
         const S a_step = alpha, b_step = beta;
         slots.add_forces(count, r_next, [=](int64_t j, S (&out)[D]) {
           S rj[D], wj[D], sj[D];
@@ -444,7 +462,11 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
       }
       lanes_total<Lanes, D, S>(acc);
       if (own) {
-        k.epilogue.row(k_own, m_own, f_own, c_stiff, r_next, acc, w_next);
+        if (last_step) {
+          TM_UNROLL for (int a = 0; a < D; ++a) w_next[a] = S(0);
+        } else {
+          k.epilogue.row(k_own, m_own, f_own, c_stiff, r_next, acc, w_next);
+        }
         TM_UNROLL for (int a = 0; a < D; ++a) {
           p[a] = r[a] + beta * p[a];
           x[a] += alpha * p[a];
