@@ -258,8 +258,7 @@ __device__ inline int32_t block_exclusive_scan(int32_t value) {
   return out;
 }
 
-// Block sums of two values, the result in thread 0 (a fixed order). Callers put a grid barrier
-// between two calls (warp_sums is written again by the next: no block barrier at the end).
+// Block sums of two values, the result in thread 0 (a fixed order).
 __device__ inline double2 block_sum_pair(double a, double b) {
   __shared__ double2 warp_sums[kReduceBlock / 32];
   for (int o = 16; o > 0; o >>= 1) {
@@ -276,30 +275,26 @@ __device__ inline double2 block_sum_pair(double a, double b) {
       t.y += __shfl_down_sync(0xffffffffu, t.y, o);
     }
   }
+  __syncthreads();  // warp_sums may be written again
   return t;
 }
 
 // The object's totals over its chunk sums (gamma, delta of one parity), in every thread: the
-// first warp loads them and adds them up by shuffles, in a fixed order (the same value in every
-// block of the object); one block barrier hands the result on. No barrier after it: the next
-// write of `total` comes an iteration later, after a grid barrier.
+// whole block loads them at once (one L2 round trip), then one reduction of both.
 __device__ inline double2 object_totals(const CGPlan& plan, int64_t object, const double* gamma_sums,
                                         const double* delta_sums) {
   __shared__ double2 total;
-  if (threadIdx.x < 32) {
-    double a = 0.0, b = 0.0;
-    for (int64_t c = plan.object_chunk[object] + threadIdx.x; c < plan.object_chunk[object + 1]; c += 32) {
-      a += gamma_sums[c];
-      b += delta_sums[c];
-    }
-    for (int o = 16; o > 0; o >>= 1) {
-      a += __shfl_xor_sync(0xffffffffu, a, o);
-      b += __shfl_xor_sync(0xffffffffu, b, o);
-    }
-    if (threadIdx.x == 0) total = make_double2(a, b);
+  double a = 0.0, b = 0.0;
+  for (int64_t c = plan.object_chunk[object] + threadIdx.x; c < plan.object_chunk[object + 1]; c += kReduceBlock) {
+    a += gamma_sums[c];
+    b += delta_sums[c];
   }
+  const double2 t = block_sum_pair(a, b);
+  if (threadIdx.x == 0) total = t;
   __syncthreads();
-  return total;
+  const double2 out = total;
+  __syncthreads();
+  return out;
 }
 
 template <class K, typename S, bool InShared>
