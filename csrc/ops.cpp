@@ -42,8 +42,8 @@
 //                               with hooke_node_system's matvec, stopping once no object is active:
 //                               one persistent kernel on the GPU; bitwise the op-by-op solve
 //   pipelined whole solve     hooke_node_solve(<hooke_node_system's graph and epilogue>, rhs, tol_sq, chunk
-//                               plan, chunk_nodes (its largest chunk: <= 128 slots in shared memory, <= 256
-//                               streamed), chunk_slots, max_iter, x!, r!, p!, threshold!,
+//                               plan, chunk_nodes (its largest chunk: <= 128 nodes, the slots may sit in
+//                               shared memory; <= 256, streamed), chunk_slots, max_iter, x!, r!, p!, threshold!,
 //                               rhs_sq!, rr!, status!, alpha!, beta!, iterations!, exchange!, sums!,
 //                               counters!) -> bool
 //                               a whole solve from x0 = 0 by Chronopoulos-Gear's CG (one reduction and

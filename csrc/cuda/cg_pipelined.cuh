@@ -544,8 +544,8 @@ bool launch_pipelined_layout(const CGPlan& plan, const K& k, const PipelinedSolv
 // The streamed layout's shared memory: as many of each node's first slots as fit the share of
 // an SM that each of the plan's blocks gets (the blocks must all be resident: ceil(chunks / SMs)
 // of them an SM), neighbours first (each heads a dependent chain), then Kdir blocks. On an H100
-// the paper beam's 220 blocks of 256 nodes (2 an SM) keep its 26 neighbours and 9 Kdir blocks a
-// node: two thirds of the graph's Kdir bytes stay on chip.
+// the paper beam's 220 blocks of 256 nodes (2 an SM) keep each node's neighbours (26 at most) and
+// first 9 Kdir blocks: half of the graph's Kdir bytes (its nodes have 10 or 26 slots) stay on chip.
 template <class K, typename S>
 PipelinedSolve<S> streamed_cache(const CGPlan& plan, const K& k, PipelinedSolve<S> s) {
   constexpr int D = K::kDim;
