@@ -1140,14 +1140,6 @@ def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: f
 #: barrier an iteration) where it fits, before ``hooke_node_cg``. Benchmarks and the bitwise tests
 #: of hooke_node_cg switch it off.
 PIPELINED_SOLVE = True
-#: The layouts of the pipelined solve's node graph, tried in this order (the first that fits one
-#: wave of the GPU runs; csrc/cuda/cg_pipelined.cuh): "shared", chunks of
-#: :data:`SOLVE_CHUNK_NODES` nodes whose slots sit in shared memory for the whole solve (small
-#: systems: latency is all); "streamed", chunks of :data:`STREAM_CHUNK_NODES` nodes whose slots are
-#: read from the graph every iteration (graphs beyond shared memory, up to ~67k nodes on an H100).
-#: Tests and benchmarks narrow it (``TENSORMASS_PIPELINED_LAYOUTS=shared`` in the environment, a
-#: comma-separated list, or this tuple).
-PIPELINED_LAYOUTS = ("shared", "streamed")
 #: Nodes per chunk of the pipelined solve's plan in each layout (csrc/cuda/cg_pipelined.cuh
 #: kSolveChunkNodes: two threads a node; kStreamChunkNodes: one).
 SOLVE_CHUNK_NODES = 128
@@ -1155,10 +1147,10 @@ STREAM_CHUNK_NODES = 256
 _LAYOUT_CHUNK_NODES = {"shared": SOLVE_CHUNK_NODES, "streamed": STREAM_CHUNK_NODES}
 
 
-def _layouts_from_env() -> tuple:
+def _layouts_from_env(default: tuple) -> tuple:
     text = os.environ.get("TENSORMASS_PIPELINED_LAYOUTS")
     if text is None:
-        return PIPELINED_LAYOUTS
+        return default
     names = tuple(name.strip() for name in text.split(",") if name.strip())
     unknown = [name for name in names if name not in _LAYOUT_CHUNK_NODES]
     if unknown:
@@ -1167,7 +1159,14 @@ def _layouts_from_env() -> tuple:
     return names
 
 
-PIPELINED_LAYOUTS = _layouts_from_env()
+#: The layouts of the pipelined solve's node graph, tried in this order (the first that fits one
+#: wave of the GPU runs; csrc/cuda/cg_pipelined.cuh): "shared", chunks of
+#: :data:`SOLVE_CHUNK_NODES` nodes whose slots sit in shared memory for the whole solve (small
+#: systems: latency is all); "streamed", chunks of :data:`STREAM_CHUNK_NODES` nodes whose slots are
+#: read from the graph every iteration (graphs beyond shared memory, up to ~67k nodes on an H100).
+#: Tests and benchmarks narrow it (``TENSORMASS_PIPELINED_LAYOUTS=shared`` in the environment, a
+#: comma-separated list, or this tuple).
+PIPELINED_LAYOUTS = _layouts_from_env(("shared", "streamed"))
 
 
 def solve_plan(plan, layout: str = "shared"):
