@@ -1162,8 +1162,9 @@ def _layouts_from_env(default: tuple) -> tuple:
 #: The layouts of the pipelined solve's node graph, tried in this order (the first that fits one
 #: wave of the GPU runs; csrc/cuda/cg_pipelined.cuh): "shared", chunks of
 #: :data:`SOLVE_CHUNK_NODES` nodes whose slots sit in shared memory for the whole solve (small
-#: systems: latency is all); "streamed", chunks of :data:`STREAM_CHUNK_NODES` nodes whose slots are
-#: read from the graph every iteration (graphs beyond shared memory, up to ~67k nodes on an H100).
+#: systems: latency is all); "streamed", chunks of :data:`STREAM_CHUNK_NODES` nodes, each node's
+#: first slots in shared memory for the whole solve and the rest read from the graph every
+#: iteration (graphs beyond shared memory, up to ~67k nodes on an H100).
 #: Tests and benchmarks narrow it (``TENSORMASS_PIPELINED_LAYOUTS=shared`` in the environment, a
 #: comma-separated list, or this tuple).
 PIPELINED_LAYOUTS = _layouts_from_env(("shared", "streamed"))
