@@ -97,6 +97,86 @@ struct CGIterates {
   int64_t max_iter;
 };
 
+// ------------------------------------------------------------------ the end of an implicit Euler step
+//
+// euler_update (cg_ops.cpp): per value v_new = (v + dv) + dv_imposed, x_new = x + h v_new (and,
+// when `carry`, x = x_new, v = v_new: the next chained step starts there), the per-object
+// |v_new|^2 (summed as cg_dot sums) into norms, and the step's summary [5, B] float64 (status,
+// iterations, rr, rhs_sq, norms), also into row ring_pos of ring [R, 5, B] when given, ring_pos
+// then advanced by one.
+template <typename S>
+struct EulerUpdate {
+  S* x;
+  S* v;
+  const S* dv;
+  const S* dv_imposed;  // or nullptr
+  S h;
+  S* x_new;
+  S* v_new;
+  bool carry;
+  int64_t d;
+
+  // The update of value j; returns v_new[j].
+  TM_HD S operator()(int64_t j) const { return apply(j, dv[j]); }
+
+  // The same with value j of dv given (a solve that holds it: hooke_node_solve_step).
+  TM_HD S apply(int64_t j, S dv_j) const {
+    S vn = v[j] + dv_j;
+    if (dv_imposed != nullptr) vn += dv_imposed[j];
+    const S xn = x[j] + h * vn;
+    x_new[j] = xn;
+    v_new[j] = vn;
+    if (carry) {
+      x[j] = xn;
+      v[j] = vn;
+    }
+    return vn;
+  }
+};
+
+// The summary of a step and where it goes.
+template <typename S>
+struct StepSummary {
+  const int32_t* status;
+  const int32_t* iterations;
+  const S* rr;
+  const S* rhs_sq;
+  S* norms;
+  double* summary;     // [5, B]
+  double* ring;        // [R, 5, B] or nullptr
+  int64_t* ring_pos;   // [1]
+  int64_t ring_rows;
+
+  // Object b's column, its norm given (ring row `pos`, read before any object advanced it).
+  TM_HD void write(int64_t b, int64_t num_objects, double norm_sq, int64_t pos) const {
+    write_values(b, num_objects, status[b], iterations[b], rr[b], rhs_sq[b], norm_sq, pos);
+  }
+
+  // The same with the solve's outcome given (a solve that holds it: hooke_node_solve_step).
+  TM_HD void write_values(int64_t b, int64_t num_objects, int32_t status_b, int32_t iterations_b, S rr_b, S rhs_sq_b,
+                          double norm_sq, int64_t pos) const {
+    const S norm = static_cast<S>(norm_sq);
+    norms[b] = norm;
+    const double column[5] = {static_cast<double>(status_b), static_cast<double>(iterations_b),
+                              static_cast<double>(rr_b), static_cast<double>(rhs_sq_b), static_cast<double>(norm)};
+    for (int k = 0; k < 5; ++k) {
+      summary[k * num_objects + b] = column[k];
+      if (ring != nullptr && pos >= 0 && pos < ring_rows) ring[(pos * 5 + k) * num_objects + b] = column[k];
+    }
+  }
+};
+
+// The end of a step done by the solve that computed its dv (hooke_node_solve_step): the update,
+// the summary, and the object sums of |v_new|^2 (sums [K] float64 over the solve's chunks,
+// counter [B + 1] int32, zero between calls). update.x == nullptr: the solve ends there.
+template <typename S>
+struct StepEnd {
+  EulerUpdate<S> update{};
+  StepSummary<S> summary{};
+  double* sums = nullptr;
+  int32_t* counter = nullptr;
+};
+
 // The buffers of a whole CG solve run by one op (hooke_node_cg): the iterates and scalars, and
 // what only the GPU's persistent kernel uses: the scalars of the other parity (an iteration reads
 // one parity and writes the other, so that no block overwrites a scalar another block may still
@@ -128,6 +208,8 @@ struct PipelinedSolve : CGIterates<S> {
   int64_t chunk_slots;  // slots of the chunk with the most (sum of incidences over its nodes; shared layout)
   int64_t max_slots;    // slots of the node with the most (N_n)
   int64_t cached_neighbors = 0, cached_ks = 0;  // streamed layout: a node's first slots kept in shared memory
+  bool pair_rows = true;  // streamed layout: mirror rows share their slots' work (cuda/cg_pipelined.cuh NodeSlots)
+  StepEnd<S> end;       // the step's end, or none (end.update.x == nullptr)
 };
 
 // Chronopoulos-Gear's step length from the reduction that also gave r.r: with
@@ -256,65 +338,7 @@ inline CGPlan check_cg_dot(const at::Tensor& a, const at::Tensor& b, const at::T
   return plan;
 }
 
-// ------------------------------------------------------------------ the end of an implicit Euler step
-//
-// euler_update (cg_ops.cpp): per value v_new = (v + dv) + dv_imposed, x_new = x + h v_new (and,
-// when `carry`, x = x_new, v = v_new: the next chained step starts there), the per-object
-// |v_new|^2 (summed as cg_dot sums) into norms, and the step's summary [5, B] float64 (status,
-// iterations, rr, rhs_sq, norms), also into row ring_pos of ring [R, 5, B] when given, ring_pos
-// then advanced by one.
-template <typename S>
-struct EulerUpdate {
-  S* x;
-  S* v;
-  const S* dv;
-  const S* dv_imposed;  // or nullptr
-  S h;
-  S* x_new;
-  S* v_new;
-  bool carry;
-  int64_t d;
-
-  // The update of value j; returns v_new[j].
-  TM_HD S operator()(int64_t j) const {
-    S vn = v[j] + dv[j];
-    if (dv_imposed != nullptr) vn += dv_imposed[j];
-    const S xn = x[j] + h * vn;
-    x_new[j] = xn;
-    v_new[j] = vn;
-    if (carry) {
-      x[j] = xn;
-      v[j] = vn;
-    }
-    return vn;
-  }
-};
-
-// The summary of a step and where it goes.
-template <typename S>
-struct StepSummary {
-  const int32_t* status;
-  const int32_t* iterations;
-  const S* rr;
-  const S* rhs_sq;
-  S* norms;
-  double* summary;     // [5, B]
-  double* ring;        // [R, 5, B] or nullptr
-  int64_t* ring_pos;   // [1]
-  int64_t ring_rows;
-
-  // Object b's column, its norm given (ring row `pos`, read before any object advanced it).
-  TM_HD void write(int64_t b, int64_t num_objects, double norm_sq, int64_t pos) const {
-    norms[b] = static_cast<S>(norm_sq);
-    const double column[5] = {static_cast<double>(status[b]), static_cast<double>(iterations[b]),
-                              static_cast<double>(rr[b]), static_cast<double>(rhs_sq[b]),
-                              static_cast<double>(norms[b])};
-    for (int k = 0; k < 5; ++k) {
-      summary[k * num_objects + b] = column[k];
-      if (ring != nullptr && pos >= 0 && pos < ring_rows) ring[(pos * 5 + k) * num_objects + b] = column[k];
-    }
-  }
-};
+// ------------------------------------------------------------------ the end of an implicit Euler step: checks
 
 inline CGPlan check_euler_update(const at::Tensor& x, const at::Tensor& v, const at::Tensor& dv,
                                  const c10::optional<at::Tensor>& dv_imposed, const at::Tensor& x_new,

@@ -49,6 +49,11 @@
 //                               a whole solve from x0 = 0 by Chronopoulos-Gear's CG (one reduction and
 //                               one grid barrier an iteration): GPU only; false (nothing done) where it
 //                               does not fit one wave, or on the CPU
+//                             hooke_node_solve_step(<hooke_node_solve's arguments>, state_x!, state_v!,
+//                               dv_imposed?, h, x_new!, v_new!, norms!, summary!, end_sums!, end_counter!,
+//                               ring!?, ring_pos!?, carry) -> bool
+//                               the same solve, then euler_update with its solution as dv, in the same
+//                               kernel (the graphed step's last launch gone)
 //   step right-hand side      hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, row_node?, mass, external,
 //                               plane_normals?, plane_offsets?, plane_stiffness?, h, w_coef, r_M, u!, rhs!,
 //                               node_stiffness!?) -> ()
@@ -157,6 +162,14 @@ TORCH_LIBRARY(tensormass, m) {
         "Tensor(c!) p, Tensor(d!) threshold, Tensor(e!) rhs_sq, Tensor(f!) rr, Tensor(g!) status, "
         "Tensor(h!) alpha, Tensor(i!) beta, Tensor(j!) iterations, Tensor(k!) exchange, Tensor(l!) sums, "
         "Tensor(m!) counters) -> bool");
+  m.def("hooke_node_solve_step(Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, "
+        "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor rhs, float tol_sq, Tensor chunk_start, "
+        "Tensor chunk_object, Tensor object_chunk, int chunk_nodes, int chunk_slots, int max_iter, Tensor(a!) x, "
+        "Tensor(b!) r, Tensor(c!) p, Tensor(d!) threshold, Tensor(e!) rhs_sq, Tensor(f!) rr, Tensor(g!) status, "
+        "Tensor(h!) alpha, Tensor(i!) beta, Tensor(j!) iterations, Tensor(k!) exchange, Tensor(l!) sums, "
+        "Tensor(m!) counters, Tensor(n!) state_x, Tensor(o!) state_v, Tensor? dv_imposed, float h, Tensor(p!) x_new, "
+        "Tensor(q!) v_new, Tensor(r!) norms, Tensor(s!) summary, Tensor(t!) end_sums, Tensor(u!) end_counter, "
+        "Tensor(v!)? ring, Tensor(w!)? ring_pos, bool carry) -> bool");
   // ---- implicit Euler's right-hand side for the hooke tensor form, in one pass (in place)
   m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, "
         "Tensor mass, Tensor external, Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, "

@@ -1170,15 +1170,26 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
 // hooke_node_cg. Buffers: the CG state
 // (x, r, p [V, d]; threshold, rhs_sq, rr, alpha, beta [B]; status, iterations [B] int32) and
 // the work: exchange [2, V, 4d], sums [4K] float64, counters [3] int32.
+// The step's end handed to hooke_node_solve_step (euler_update's tensors; dv is the solve's x).
+struct StepEndTensors {
+  at::Tensor x, v;
+  c10::optional<at::Tensor> dv_imposed;
+  double h;
+  at::Tensor x_new, v_new, norms, summary, sums, counter;
+  c10::optional<at::Tensor> ring, ring_pos;
+  bool carry;
+};
+
 template <class L>
-bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                      const c10::optional<at::Tensor>& row_node, const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
-                      const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
-                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
-                      int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r, at::Tensor p,
-                      at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status, at::Tensor alpha,
-                      at::Tensor beta, at::Tensor iterations, at::Tensor exchange, at::Tensor sums,
-                      at::Tensor counters) {
+bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
+                          const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
+                          const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                          const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
+                          const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                          int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r,
+                          at::Tensor p, at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status,
+                          at::Tensor alpha, at::Tensor beta, at::Tensor iterations, at::Tensor exchange,
+                          at::Tensor sums, at::Tensor counters, StepEndTensors* end) {
   check_values(rhs, "rhs");
   TORCH_CHECK(chunk_nodes >= 1, "tensormass: chunk_nodes must be >= 1, got ", std::to_string(chunk_nodes));
   TORCH_CHECK(chunk_slots >= 0, "tensormass: chunk_slots must be >= 0, got ", std::to_string(chunk_slots));
@@ -1189,6 +1200,15 @@ bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, cons
   cg_check(exchange, "exchange", rhs, rhs.scalar_type(), {2, rhs.size(0), 4 * dim});
   cg_check(sums, "sums", rhs, at::kDouble, {4 * plan.num_chunks});
   cg_check(counters, "counters", rhs, at::kInt, {3});
+  if (end != nullptr) {  // euler_update's checks, with the solve's x as dv and its plan
+    cg_check(end->x, "state_x", rhs, rhs.scalar_type(), rhs.sizes());
+    cg_check(end->v, "state_v", rhs, rhs.scalar_type(), rhs.sizes());
+    cg_check(end->sums, "end_sums", rhs, at::kDouble, {plan.num_chunks});
+    cg_check(end->counter, "end_counter", rhs, at::kInt, {plan.num_objects + 1});
+    check_euler_update(end->x, end->v, x, end->dv_imposed, end->x_new, end->v_new, chunk_start, chunk_object,
+                       object_chunk, status, iterations, rr, rhs_sq, end->norms, end->summary, end->sums, end->counter,
+                       end->ring, end->ring_pos);
+  }
   at::Tensor no_dots;
   bool ran = false;
   run_hooke_node_system<L>(rhs, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
@@ -1203,9 +1223,59 @@ bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, cons
     s.chunk_nodes = chunk_nodes;
     s.chunk_slots = chunk_slots;
     s.max_slots = neighbor.size(0);
+    if (end != nullptr) {
+      s.end.update = euler_update_of<S>(end->x, end->v, x, end->dv_imposed, end->h, end->x_new, end->v_new, end->carry);
+      s.end.summary = step_summary_of<S>(status, iterations, rr, rhs_sq, end->norms, end->summary, end->ring,
+                                         end->ring_pos);
+      s.end.sums = end->sums.data_ptr<double>();
+      s.end.counter = end->counter.data_ptr<int32_t>();
+    }
     ran = L::run_solve(plan, k, s);
   });
   return ran;
+}
+
+template <class L>
+bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
+                      const c10::optional<at::Tensor>& row_node, const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                      const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
+                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                      int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r, at::Tensor p,
+                      at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status, at::Tensor alpha,
+                      at::Tensor beta, at::Tensor iterations, at::Tensor exchange, at::Tensor sums,
+                      at::Tensor counters) {
+  return run_hooke_node_solve<L>(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
+                                 rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots,
+                                 max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange,
+                                 sums, counters, nullptr);
+}
+
+// hooke_node_solve_step: hooke_node_solve, then the step's end as euler_update does it with the
+// solution as dv (v_new = v + dv (+ dv_imposed), x_new = x + h v_new; with `carry` also into x,
+// v; the object's |v_new|^2 into norms, the summary [5, B], ring row ring_pos, ring_pos
+// advanced), in the same kernel: one launch a step fewer. end_sums [K] float64 over the plan's
+// chunks and end_counter [B + 1] int32 (zero between calls) are its work. Returns whether it ran:
+// false, having changed nothing, where hooke_node_solve would (then neither is done).
+template <class L>
+bool hooke_node_solve_step(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
+                           const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
+                           const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+                           const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
+                           const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                           const at::Tensor& object_chunk, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
+                           at::Tensor x, at::Tensor r, at::Tensor p, at::Tensor threshold, at::Tensor rhs_sq,
+                           at::Tensor rr, at::Tensor status, at::Tensor alpha, at::Tensor beta, at::Tensor iterations,
+                           at::Tensor exchange, at::Tensor sums, at::Tensor counters, at::Tensor state_x,
+                           at::Tensor state_v, const c10::optional<at::Tensor>& dv_imposed, double h,
+                           at::Tensor x_new, at::Tensor v_new, at::Tensor norms, at::Tensor summary,
+                           at::Tensor end_sums, at::Tensor end_counter, const c10::optional<at::Tensor>& ring,
+                           const c10::optional<at::Tensor>& ring_pos, bool carry) {
+  StepEndTensors end{state_x, state_v, dv_imposed, h, x_new, v_new, norms, summary, end_sums, end_counter, ring,
+                     ring_pos, carry};
+  return run_hooke_node_solve<L>(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
+                                 rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots,
+                                 max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange,
+                                 sums, counters, &end);
 }
 
 // ------------------------------------------------------------------ tensor form, stvk

@@ -27,6 +27,7 @@ op leaves them uninitialised).
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 from typing import Optional
@@ -40,7 +41,8 @@ from .reference import corotational, stress_form, tensor_form
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
            "system_matvec", "system_matvec_alpha", "system_cg", "system_cg_serves", "persistent_cg_fits",
-           "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "system_solve", "solve_plan", "chunk_slots",
+           "PERSISTENT_BLOCKS_PER_SM", "hooke_node_graph", "system_solve", "solve_plan", "chunk_slots", "StepEnd",
+           "FUSED_STEP_END",
            "PIPELINED_SOLVE", "PIPELINED_LAYOUTS", "SOLVE_CHUNK_NODES", "STREAM_CHUNK_NODES", "HOOKE_MATVEC_LAYOUTS",
            "HOOKE_MATVEC_LAYOUT", "NODE_TANGENT", "tangent_graph", "tangent_serves", "tangent_node_k",
            "NODE_GRAPH_WINDOW", "set_objects", "node_graph_rows", "hooke_rows_graph"]
@@ -1201,6 +1203,35 @@ def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
     return value
 
 
+#: Whether a whole solve by the pipelined CG also ends the implicit Euler step when asked
+#: (``StepEnd``: ``hooke_node_solve_step``, one launch a step fewer); off, the step's end is its
+#: own op (``euler_update``). Tests compare the two.
+FUSED_STEP_END = True
+
+
+@dataclasses.dataclass
+class StepEnd:
+    """The end of an implicit Euler step for the solve that computes its ``dv`` to do in its own
+    kernel (:func:`system_solve`: ``hooke_node_solve_step``), as ``euler_update`` does it:
+    ``v_new = v + dv (+ dv_imposed)``, ``x_new = x + h v_new`` (all ``[V, d]``; ``carry``: also
+    into ``x, v``), each object's ``|v_new|^2`` into ``norms [B]``, the step's summary into
+    ``summary [5, B]`` float64 and, with a ``ring [R, 5, B]``, its row ``ring_pos [1]`` (then
+    advanced). ``done``: set by the solve that did it (else the caller runs ``euler_update``)."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    dv_imposed: Optional[torch.Tensor]
+    h: float
+    x_new: torch.Tensor
+    v_new: torch.Tensor
+    norms: torch.Tensor
+    summary: torch.Tensor
+    ring: Optional[torch.Tensor] = None
+    ring_pos: Optional[torch.Tensor] = None
+    carry: bool = False
+    done: bool = False
+
+
 class _SolveWork:
     """The pipelined solve's work on one CG state, for one plan, graph (its ``incidences``), and
     ``key`` (the right-hand side's shape and dtype, the layouts to try): the
@@ -1213,6 +1244,7 @@ class _SolveWork:
         self.exchange = torch.zeros((2, rhs.shape[0], 4 * rhs.shape[1]), dtype=rhs.dtype, device=rhs.device)
         self.counters = torch.zeros(3, dtype=torch.int32, device=rhs.device)
         self.sums = {}
+        self.end_work = {}
         self.layout = None
         self.misfits = set()
 
@@ -1221,10 +1253,19 @@ class _SolveWork:
             self.sums[layout] = torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=self.exchange.device)
         return self.sums[layout]
 
+    def end_work_of(self, layout: str, plan):
+        """The step end's chunk sums ``[K]`` float64 and object counters ``[B + 1]`` int32 (zero
+        between calls) in ``layout``."""
+        if layout not in self.end_work:
+            device = self.exchange.device
+            self.end_work[layout] = (torch.zeros(plan.num_chunks, dtype=torch.float64, device=device),
+                                     torch.zeros(plan.object_chunk.numel(), dtype=torch.int32, device=device))
+        return self.end_work[layout]
+
 
 def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float, c_stiff: float,
                  node_stiffness: Optional[torch.Tensor], rhs: torch.Tensor, tol: float, plan, cg_state,
-                 max_iter: int, node_k: Optional[torch.Tensor] = None) -> bool:
+                 max_iter: int, node_k: Optional[torch.Tensor] = None, step_end: Optional[StepEnd] = None) -> bool:
     """A whole CG solve from x0 = 0 of :func:`system_matvec`'s system (rhs ``[V, d]`` projected on
     ``free``; relative tolerance ``tol``; at most ``max_iter`` iterations) by the pipelined CG
     (``hooke_node_solve``: Chronopoulos-Gear, one reduction and one grid barrier an iteration, one
@@ -1233,7 +1274,8 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
     exact arithmetic, rounded differently from :func:`system_cg`'s. Returns False, having done
     nothing, where it does not serve: not a CUDA tensor, :data:`PIPELINED_SOLVE` off, no node graph
     (``node_k``: as in :func:`system_matvec`), a gradient wanted, or a system too large for one
-    wave of the kernel in every layout."""
+    wave of the kernel in every layout. ``step_end``: the implicit Euler step's end, done in the
+    same kernel (``hooke_node_solve_step``; its ``done`` set) where :data:`FUSED_STEP_END`."""
     s = cg_state
     if not (PIPELINED_SOLVE and rhs.is_cuda and (node_k is not None or HOOKE_MATVEC_LAYOUT == "node")):
         return False
@@ -1250,11 +1292,18 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
             continue
         layout_plan = solve_plan(plan, layout)
         slots = chunk_slots(group, layout_plan, graph[2]) if layout == "shared" else 0
-        ran = bool(torch.ops.tensormass.hooke_node_solve(
-            *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs, float(tol) ** 2,
-            *layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter), s.x, s.r, s.p, s.threshold,
-            s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, work.exchange, work.sums_of(layout, layout_plan),
-            work.counters))
+        args = (*graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs, float(tol) ** 2,
+                *layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter), s.x, s.r, s.p, s.threshold,
+                s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, work.exchange,
+                work.sums_of(layout, layout_plan), work.counters)
+        if step_end is not None and FUSED_STEP_END:
+            e = step_end
+            ran = bool(torch.ops.tensormass.hooke_node_solve_step(
+                *args, e.x, e.v, e.dv_imposed, float(e.h), e.x_new, e.v_new, e.norms, e.summary,
+                *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry)))
+            e.done = ran
+        else:
+            ran = bool(torch.ops.tensormass.hooke_node_solve(*args))
         if ran:
             work.layout = layout
             return True

@@ -6,7 +6,9 @@ iterates in exact arithmetic, so the solutions agree to rounding and the statuse
 capped, breakdown, b = 0) and iteration counts per object of a batch are the same. It runs where
 whole solves run (CGSolver.begin/solve, implicit steps); elsewhere (the CPU, a plan beyond one
 wave of the GPU) the op returns False having changed nothing; a chunk beyond the layout its
-caller promised ends its object as non-finite; bad inputs are rejected with nothing changed."""
+caller promised ends its object as non-finite; bad inputs are rejected with nothing changed. Where
+an implicit step asks (native.StepEnd), the same kernel also ends the step (hooke_node_solve_step):
+bitwise what euler_update after the solve gives."""
 from __future__ import annotations
 
 import pytest
@@ -24,15 +26,18 @@ pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(to
 gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="the pipelined solve is a GPU kernel")
 
 
-@pytest.fixture(params=["shared", "streamed", "streamed-uncached", "streamed-partly"])
+@pytest.fixture(params=["shared", "streamed", "streamed-uncached", "streamed-partly", "streamed-unpaired"])
 def layout(request, monkeypatch):
     """Each layout of the pipelined solve's graph, alone (native.PIPELINED_LAYOUTS narrowed to it);
-    the streamed one also with none of its slots in shared memory, and with only each node's first
-    3 neighbours and Kdir blocks there (TENSORMASS_STREAM_CACHE_SLOTS): both paths in one node."""
-    name, _, cache = request.param.partition("-")
+    the streamed one also with none of its slots in shared memory, with only each node's first 3
+    neighbours and Kdir blocks there (TENSORMASS_STREAM_CACHE_SLOTS): both paths in one node, and
+    with each thread walking its node's slots alone (TENSORMASS_STREAM_PAIRS=0)."""
+    name, _, variant = request.param.partition("-")
     monkeypatch.setattr(native, "PIPELINED_LAYOUTS", (name,))
-    if cache:
-        monkeypatch.setenv("TENSORMASS_STREAM_CACHE_SLOTS", "0" if cache == "uncached" else "3")
+    if variant == "unpaired":
+        monkeypatch.setenv("TENSORMASS_STREAM_PAIRS", "0")
+    elif variant:
+        monkeypatch.setenv("TENSORMASS_STREAM_CACHE_SLOTS", "0" if variant == "uncached" else "3")
     return name
 
 
@@ -127,6 +132,60 @@ def test_solves_and_steps_take_it_and_the_switch_turns_it_off(monkeypatch):
     assert rel(cg.state.x, result.solution) < 1e-4
 
 
+def step_sim(prescribed: bool):
+    """Two hooke beams on the GPU with contact, a fixed CG budget (chained steps) or, with a
+    prescribed tip (an imposed velocity), steps one at a time."""
+    bodies = []
+    for k in range(2):
+        mesh = tm.beam_mesh(6 + 2 * k, 2, 2, size=(0.6, 0.1, 0.1), origin=(0.0, 0.3 * k, 0.05), device="cuda")
+        mat = tm.Material(young=2e4 * (k + 1), poisson=0.3, density=1000.0, model="hooke")
+        fixed = mesh.vertices[:, 0] < 1e-9
+        if prescribed and k == 1:
+            tip = mesh.vertices[:, 0] > 0.6 - 1e-4
+            rest = mesh.vertices[tip].clone()
+            motion = lambda t, rest=rest: rest + torch.tensor([0.0, 0.05 * t, -0.1 * t], device="cuda")  # noqa: E731
+            bodies.append(tm.Body(mesh, mat, fixed=fixed, prescribed=tip, motion=motion))
+        else:
+            bodies.append(tm.Body(mesh, mat, fixed=fixed))
+    sim = tm.Simulator(bodies, dt=0.01, gravity=(0, 0, -9.81), rayleigh_mass=0.1, rayleigh_stiffness=0.01,
+                       planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=0.0 if not prescribed else 1e-5,
+                       cg_max_iter=10 if not prescribed else 200, check_every=1000, cuda_graphs=True)
+    sim.options.require_convergence = False
+    return sim
+
+
+@gpu
+@pytest.mark.parametrize("prescribed", [False, True])
+def test_the_step_end_in_the_solve_equals_euler_update_after_it(monkeypatch, layout, prescribed):
+    """Chained steps (a fixed budget) and single steps with an imposed velocity: the solve that
+    ends the step itself gives the states, statuses, iterations and residuals of the solve then
+    euler_update, bitwise; each object's |v_new|^2 to rounding (summed over other chunks)."""
+    runs = {}
+    for fused in (True, False):
+        monkeypatch.setattr(native, "FUSED_STEP_END", fused)
+        sim = step_sim(prescribed)
+        norms = []
+        for _ in range(3):
+            sim.step(1 if prescribed else 6)
+            (graphs,) = sim.system._step_graphs.values()
+            norms.append((graphs.summary if prescribed else graphs.ring[:6])[..., 4, :].clone())
+        work = graphs.cg.state.__dict__["_solve_work"]
+        assert work.layout == layout and bool(work.end_work) == fused  # the solve ran it, or not
+        assert graphs.chainable != prescribed
+        runs[fused] = sim, torch.stack(norms), graphs
+    (fused, fused_norms, fused_graphs), (plain, plain_norms, plain_graphs) = runs[True], runs[False]
+    assert torch.equal(fused.x, plain.x) and torch.equal(fused.v, plain.v)
+    assert fused.steps_done == plain.steps_done == (3 if prescribed else 18)
+    assert torch.equal(fused.last_report.cg_iterations, plain.last_report.cg_iterations)
+    assert torch.equal(fused.last_report.cg[0].residual_norm, plain.last_report.cg[0].residual_norm)
+    torch.testing.assert_close(fused_norms, plain_norms, rtol=1e-6, atol=0)
+    if prescribed:  # graph A ended the step: no graph C
+        assert "C" not in fused_graphs._graphs and "C" in plain_graphs._graphs
+    if not prescribed:  # the ring's rows and position advanced as euler_update advances them
+        assert int(fused_graphs.ring_pos) == int(plain_graphs.ring_pos) == 6
+        assert torch.equal(fused_graphs.ring[:6, :4], plain_graphs.ring[:6, :4])
+
+
 def largest_chunk(plan):
     return int((plan.chunk_start[1:] - plan.chunk_start[:-1]).max())
 
@@ -146,7 +205,23 @@ def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
                 exchange=torch.zeros(2, rhs.shape[0], 4 * rhs.shape[1], dtype=rhs.dtype, device=rhs.device),
                 sums=torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=rhs.device),
                 counters=torch.zeros(3, dtype=torch.int32, device=rhs.device))
+    end_args = {}
+    if "end" in changes:  # hooke_node_solve_step: the step's end after the solve
+        changes.pop("end")
+        like, objects = rhs, plan.object_chunk.numel() - 1
+        end_args = dict(state_x=torch.zeros_like(like), state_v=torch.zeros_like(like), dv_imposed=None, h=0.01,
+                        x_new=torch.zeros_like(like), v_new=torch.zeros_like(like),
+                        norms=torch.zeros(objects, dtype=like.dtype, device=like.device),
+                        summary=torch.zeros(5, objects, dtype=torch.float64, device=like.device),
+                        end_sums=torch.zeros(plan.num_chunks, dtype=torch.float64, device=like.device),
+                        end_counter=torch.zeros(objects + 1, dtype=torch.int32, device=like.device),
+                        ring=None, ring_pos=None, carry=False)
+        for key in list(changes):
+            if key in end_args:
+                end_args[key] = changes.pop(key)
     args.update(changes)
+    if end_args:
+        return torch.ops.tensormass.hooke_node_solve_step(*args.values(), *end_args.values())
     return torch.ops.tensormass.hooke_node_solve(*args.values())
 
 
@@ -194,6 +269,31 @@ def test_a_streamed_chunk_beyond_the_promised_nodes_ends_its_object_and_larger_o
 
 
 @gpu
+@pytest.mark.parametrize("window", [None, 0])
+def test_full_chunks_match_the_two_reduction_cg(monkeypatch, layout, window):
+    """936 nodes in one object: streamed chunks of 256 rows whose mirror rows pair up (the slots
+    of each pair halved between their threads), rows sorted by slot count or in node order
+    (NODE_GRAPH_WINDOW = 0); float64 against the two-reduction CG."""
+    if window is not None:
+        monkeypatch.setattr(native, "NODE_GRAPH_WINDOW", window)
+    sim = scenes.sofa_beam(device="cuda", dtype=torch.float64, scale=3).simulator
+    matvec = sim.system.system_matvec(1.02, 2e-4).load(sim.x)
+    rhs = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64).to("cuda")
+    for tol, max_iter in ((0.0, 30), (1e-9, 2000)):
+        cg = fresh_solver(sim.system, rhs)
+        cg.begin(matvec, rhs, tol, max_iter, max_iter)
+        assert ran_layout(cg) == layout
+        got = state_of(cg)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(native, "PIPELINED_SOLVE", False)
+            plain = fresh_solver(sim.system, rhs)
+            plain.begin(matvec, rhs, tol, max_iter, max_iter)
+        assert got["status"].tolist() == plain.state.status.tolist()
+        assert abs(int(got["iterations"][0]) - int(plain.state.iterations[0])) <= (1 if tol else 0)
+        assert rel(got["x"], plain.state.x) < (1e-7 if tol else 1e-10)
+
+
+@gpu
 def test_a_graph_beyond_one_wave_in_shared_memory_streams():
     """44,541 nodes: 348 chunks of 128 (more than an H100's 264 resident blocks), 174 of 256."""
     mesh = tm.beam_mesh(100, 20, 20, size=(1.0, 0.2, 0.2), device="cuda")
@@ -228,6 +328,10 @@ def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
     before = state_of(cg)
     plan = native.solve_plan(cg.plan)
     assert not direct_call(system, matvec, rhs, cg, plan, native.chunk_slots(system.model.groups[0], plan))
+    summary = torch.zeros(5, 3, dtype=torch.float64)
+    assert not direct_call(system, matvec, rhs, cg, plan, native.chunk_slots(system.model.groups[0], plan), end=True,
+                           summary=summary)
+    assert float(summary.abs().max()) == 0.0
     assert not native.system_solve(system.model.groups[0], system.mass.reshape(-1), system.free.reshape(-1), 1.0,
                                    1e-4, None, rhs, 1e-6, cg.plan, cg.state, 10)
     for k in FIELDS:
@@ -267,7 +371,17 @@ def test_bad_inputs_are_rejected_with_nothing_changed(device):
              (dict(chunk_nodes=0), "chunk_nodes must be >= 1"),
              (dict(x=cg.state.x[:-1]), "x has shape"),
              (dict(status=cg.state.status.float()), "status is Float")]
-    for change, message in cases:
+    objects = plan.object_chunk.numel() - 1
+    step_end_cases = [  # hooke_node_solve_step's own arguments
+        (dict(state_x=torch.zeros(3, 3, device=device)), "state_x has shape"),
+        (dict(state_v=torch.zeros_like(rhs).double()), "state_v is Double"),
+        (dict(end_sums=torch.zeros(plan.num_chunks + 1, dtype=torch.float64, device=device)), "end_sums has shape"),
+        (dict(end_counter=torch.zeros(objects, dtype=torch.int32, device=device)), "end_counter has shape"),
+        (dict(summary=torch.zeros(4, objects, dtype=torch.float64, device=device)), "summary has shape"),
+        (dict(ring=torch.zeros(2, 5, objects, dtype=torch.float64, device=device)), "ring and ring_pos go together"),
+        (dict(x_new=torch.zeros_like(rhs)[:, :2]), "x_new has shape")]
+    for change, message in cases + [(dict(end=True, **change), message) for change, message in cases[:2]] + [
+            (dict(end=True, **change), message) for change, message in step_end_cases]:
         with pytest.raises(RuntimeError, match=message):
             direct_call(system, matvec, rhs, cg, plan, slots, **change)
     for k in FIELDS:

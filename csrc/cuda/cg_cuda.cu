@@ -83,7 +83,7 @@ __global__ void __launch_bounds__(kBlock) cg_dot_kernel(const S* __restrict__ a,
 }
 
 // euler_update: one block per chunk; the object's last block writes its summary column (and ring
-// row); the block that finishes the last object advances ring_pos (counter[B] counts objects).
+// row): finish_step_summary.
 template <typename S>
 __global__ void __launch_bounds__(kBlock) euler_update_kernel(const EulerUpdate<S> update, const StepSummary<S> out,
                                                               CGPlan plan, double* scratch, int32_t* counter) {
@@ -93,18 +93,8 @@ __global__ void __launch_bounds__(kBlock) euler_update_kernel(const EulerUpdate<
     const S vn = update(j);
     acc += static_cast<double>(vn) * static_cast<double>(vn);
   }
-  const double chunk_total = block_sum(acc);
-  double total = 0.0;
-  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
-    const int64_t pos = out.ring_pos != nullptr ? *reinterpret_cast<volatile int64_t*>(out.ring_pos) : -1;
-    out.write(object, plan.num_objects, total, pos);
-    __threadfence();
-    const int32_t objects = static_cast<int32_t>(plan.num_objects);
-    if (atomicAdd(counter + plan.num_objects, 1) == objects - 1) {  // every object has read ring_pos
-      if (out.ring_pos != nullptr) *out.ring_pos = pos + 1;
-      counter[plan.num_objects] = 0;
-    }
-  }
+  finish_step_summary<S>(out, plan, chunk, object, block_sum(acc), scratch, counter,
+                         [&](int64_t pos, double total) { out.write(object, plan.num_objects, total, pos); });
 }
 
 unsigned int grid_of(const CGPlan& plan) { return static_cast<unsigned int>(plan.num_chunks); }

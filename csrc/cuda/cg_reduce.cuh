@@ -54,6 +54,28 @@ __device__ inline bool object_total(const CGPlan& plan, int64_t chunk, int64_t o
   return true;
 }
 
+// The end of an implicit Euler step's object sums (euler_update, hooke_node_solve_step): publishes
+// this block's chunk sum of |v_new|^2 (valid in thread 0); the object's last block calls
+// column(pos, total) in thread 0 to write its summary column, pos being the ring row (read
+// before any object advanced it; -1 without a ring), and the block that finishes the last object
+// advances ring_pos (counter[B] counts objects; zero again after).
+template <typename S, class Column>
+__device__ inline void finish_step_summary(const StepSummary<S>& out, const CGPlan& plan, int64_t chunk,
+                                           int64_t object, double chunk_total, double* scratch, int32_t* counter,
+                                           const Column& column) {
+  double total = 0.0;
+  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
+    const int64_t pos = out.ring_pos != nullptr ? *reinterpret_cast<volatile int64_t*>(out.ring_pos) : -1;
+    column(pos, total);
+    __threadfence();
+    const int32_t objects = static_cast<int32_t>(plan.num_objects);
+    if (atomicAdd(counter + plan.num_objects, 1) == objects - 1) {  // every object has read ring_pos
+      if (out.ring_pos != nullptr) *out.ring_pos = pos + 1;
+      counter[plan.num_objects] = 0;
+    }
+  }
+}
+
 // A CG matvec that ends in the step length: node kernel k (k.apply(i) writes Ap_i and returns
 // p_i . Ap_i) over the nodes of each chunk of an active object, then alpha as cg_alpha does,
 // summing in cg_alpha's pattern (so alpha is bitwise cg_alpha's). Objects that are not active

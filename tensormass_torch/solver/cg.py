@@ -115,12 +115,14 @@ class CGSolver:
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
         cg_ops.cg_direction(self.plan, s, self.native)
 
-    def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int) -> bool:
+    def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int,
+                   step_end=None) -> bool:
         """The matvec's whole-solve op (``SystemMatvec.solve_in_one_op``: start when ``rhs`` is
         given, then up to ``count`` iterations, one persistent kernel on the GPU) where it has
-        one and the compiled CG ops serve this solver; False (nothing done) otherwise."""
+        one and the compiled CG ops serve this solver; False (nothing done) otherwise.
+        ``step_end``: as :meth:`begin`."""
         one_op = getattr(matvec, "solve_in_one_op", None) if self.native is not None else None
-        return one_op is not None and one_op(self, rhs, tol, max_iter, count)
+        return one_op is not None and one_op(self, rhs, tol, max_iter, count, step_end)
 
     def solves_in_one_op(self, matvec: Matvec) -> bool:
         """Whether :meth:`begin` and the iterations run as one op for this matvec."""
@@ -134,12 +136,16 @@ class CGSolver:
         for _ in range(count):
             self._iterate(matvec, max_iter)
 
-    def begin(self, matvec: Matvec, rhs: torch.Tensor, tol: float, max_iter: int, count: int):
+    def begin(self, matvec: Matvec, rhs: torch.Tensor, tol: float, max_iter: int, count: int, step_end=None):
         """:meth:`start` from x0 = 0 and up to ``count`` iterations: one op where the matvec has a
         whole-solve op (then the device stops iterating once every object has stopped), else the
-        start's and the iterations' ops. No host synchronisation either way."""
+        start's and the iterations' ops. No host synchronisation either way.
+
+        ``step_end``: a ``native.StepEnd`` (the end of an implicit Euler step) that a whole solve
+        in one op may do in its own kernel; its ``done`` says whether it did (else the caller
+        does it after the solve)."""
         _check_settings(tol, max_iter, 1)
-        if self._in_one_op(matvec, rhs, self._effective_tol(tol, rhs.dtype), max_iter, count):
+        if self._in_one_op(matvec, rhs, self._effective_tol(tol, rhs.dtype), max_iter, count, step_end):
             return
         self.start(matvec, rhs, None, tol, max_iter)
         for _ in range(count):

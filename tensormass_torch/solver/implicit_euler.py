@@ -285,11 +285,12 @@ class SystemMatvec:
             self._load_tangents()
         return same_free and ops.system_cg_serves(*args, self.node_stiffness, cg.state, self.tangents)
 
-    def solve_in_one_op(self, cg, rhs, tol: float, max_iter: int, count: int) -> bool:
+    def solve_in_one_op(self, cg, rhs, tol: float, max_iter: int, count: int, step_end=None) -> bool:
         """With ``rhs [V, d]``: start ``cg`` (a ``CGSolver`` over this system's objects) from x0 = 0,
         then (with or without rhs) up to ``count`` iterations, in ONE op (``ops.system_cg``: a
-        persistent kernel on the GPU, stopping on the device once every object has stopped).
-        Returns False, having done nothing, where there is no such op."""
+        persistent kernel on the GPU, stopping on the device once every object has stopped;
+        ``step_end``: as ``CGSolver.begin``). Returns False, having done nothing, where there is
+        no such op."""
         from .. import ops
 
         same_free, args = self._one_op_args(cg)
@@ -298,7 +299,7 @@ class SystemMatvec:
         if self._ap is None:
             self._ap = torch.empty_like(self.u)
         return ops.system_cg(*args, self.mass_coef, self.stiffness_coef, self.node_stiffness, self._ap, rhs, tol,
-                             cg.plan, cg.state, max_iter, count, self.tangents)
+                             cg.plan, cg.state, max_iter, count, self.tangents, step_end)
 
     def __call__(self, p: torch.Tensor):
         from .. import ops
@@ -391,7 +392,8 @@ class StepGraphs:
         (host, only when A leaves iterations to run: "is any object still iterating?",
         replaying the CG graph until none is)
         C: the new velocities and positions, their per-object norms, and the step's summary
-        (CG status, iterations, residuals, norms) packed in one small buffer
+        (CG status, iterations, residuals, norms) packed in one small buffer; done by A's solve
+        in its own kernel where that is the pipelined CG (``native.StepEnd``)
         (host: one copy of that buffer; a failed step raises and the state is unchanged)
 
     A step then costs a few graph launches and one host synchronisation, whatever the number of
@@ -417,6 +419,7 @@ class StepGraphs:
         self.first = (opts.cg_max_iter if self.cg.solves_in_one_op(self.matvec)
                       else min(opts.check_every, opts.cg_max_iter))
         self._graphs = {}
+        self._a_ends_step = False  # whether graph A also does C (set when A first runs)
         # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
         # ``ring`` (a device counter: the captured graph needs no host index), and the new state
         # is copied back into x, v on the device, so steps follow each other with no host sync.
@@ -430,12 +433,21 @@ class StepGraphs:
         # euler_update's object counters, and one for the objects done (zero between calls)
         self.update_counter = torch.zeros(objects + 1, dtype=torch.int32, device=like.device)
 
-    def _phase_a(self):
+    def _dv_imposed(self):
+        return self.dv_imposed if self.imposed is not None and self.system.free is not None else None
+
+    def _phase_a(self, chained: bool = False) -> bool:
+        """Phase A; returns whether its solve also did phase C (a whole solve in one op that ends
+        the step in its own kernel: ``native.StepEnd``). ``chained``: as :meth:`_phase_c`."""
         opts = self.opts
         rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
         if dv_imposed is not None:
             self.dv_imposed.copy_(dv_imposed)
-        self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first)
+        ring = (self.ring, self.ring_pos) if chained else (None, None)
+        end = native.StepEnd(self.x, self.v, self._dv_imposed(), float(opts.dt), self.x_new, self.v_new, self.norms,
+                             self.summary, *ring, chained)
+        self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first, end)
+        return end.done
 
     def _phase_c(self, chained: bool = False):
         """The new state, its per-object |v|^2 (NaN/inf anywhere in an object's new state shows
@@ -443,16 +455,19 @@ class StepGraphs:
         (``euler_update``); ``chained``: also into the ring's next row, and the new state back
         into x, v for the next step."""
         cg, s = self.cg, self.cg.state
-        dv_imposed = self.dv_imposed if self.imposed is not None and self.system.free is not None else None
         ring = (self.ring, self.ring_pos) if chained else (None, None)
-        cg.native.euler_update(self.x, self.v, s.x, dv_imposed, float(self.opts.dt), self.x_new, self.v_new,
+        cg.native.euler_update(self.x, self.v, s.x, self._dv_imposed(), float(self.opts.dt), self.x_new, self.v_new,
                                *cg.plan.tensors(), s.status, s.iterations, s.rr, cg.rhs_sq, self.norms, self.summary,
                                s.scratch, self.update_counter, *ring, chained)
 
     def _chained_steps(self, count: int):
         for _ in range(count):
-            self._phase_a()
-            self._phase_c(chained=True)
+            if not self._phase_a(chained=True):
+                self._phase_c(chained=True)
+
+    def _single_phase_a(self):
+        # Graph A's outcome, remembered for its replays (which run no Python)
+        self._a_ends_step = self._phase_a()
 
     @property
     def chainable(self) -> bool:
@@ -520,9 +535,10 @@ class StepGraphs:
         if self.imposed is not None:
             self.imposed.copy_(imposed_velocity)
         opts = self.opts
-        run_captured(self._graphs, "A", self._phase_a)
+        run_captured(self._graphs, "A", self._single_phase_a)
         self.cg.finish(self.matvec, opts.cg_max_iter, opts.check_every, self.matvec.graph_key, done=self.first)
-        run_captured(self._graphs, "C", self._phase_c)  # also after a failed solve: its output is discarded
+        if not self._a_ends_step:  # also after a failed solve: its output is discarded
+            run_captured(self._graphs, "C", self._phase_c)
         summary = self.summary.cpu()  # the step's one synchronisation
         report = self.report_of(summary)
         _raise_if_failed(report.cg[0], opts, "implicit Euler CG")
