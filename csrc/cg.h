@@ -177,6 +177,26 @@ struct StepEnd {
   int32_t* counter = nullptr;
 };
 
+// The right-hand side a solve computes before itself (hooke_node_steps): at the state x, v of
+// its step end (EulerUpdate's x, v: each step's carried state), rhs = h (f((x - rest) + c_w v)
+// + external + contact(x) - Kc (c_w v) - r_M mass v) over the node graph, u = x - rest and the
+// contact stiffness Kc (which the solve's products then read), each node's slots summed in slot
+// order by one thread: hooke_node_step_rhs's values (NodeHookeStepRhsKernel), bitwise.
+// rest == nullptr: the solve's rhs is given.
+template <typename S>
+struct StepRhs {
+  const S* rest = nullptr;      // [V, d]
+  const S* external = nullptr;  // [V, d]
+  S h = S(0), c_w = S(0), rayleigh_mass = S(0);
+  const S* plane_normals = nullptr;  // [P, 3], offsets [P], stiffness [P] (PenaltyPlanes); P = 0: none
+  const S* plane_offsets = nullptr;
+  const S* plane_stiffness = nullptr;
+  int64_t planes = 0;
+  S* u = nullptr;               // [V, d] out
+  S* rhs = nullptr;             // [V, d] out: the solve's rhs
+  S* node_stiffness = nullptr;  // [V, 3, 3] out with planes: the solve's epilogue's contact stiffness
+};
+
 // The buffers of a whole CG solve run by one op (hooke_node_cg): the iterates and scalars, and
 // what only the GPU's persistent kernel uses: the scalars of the other parity (an iteration reads
 // one parity and writes the other, so that no block overwrites a scalar another block may still
@@ -210,6 +230,8 @@ struct PipelinedSolve : CGIterates<S> {
   int64_t cached_neighbors = 0, cached_ks = 0;  // streamed layout: a node's first slots kept in shared memory
   bool pair_rows = true;  // streamed layout: mirror rows share their slots' work (cuda/cg_pipelined.cuh NodeSlots)
   StepEnd<S> end;       // the step's end, or none (end.update.x == nullptr)
+  StepRhs<S> step_rhs;  // each step's right-hand side computed first, or none (step_rhs.rest == nullptr)
+  int64_t steps = 1;    // with step_rhs: implicit Euler steps run back to back (end.update.carry)
 };
 
 // Chronopoulos-Gear's step length from the reduction that also gave r.r: with

@@ -485,6 +485,7 @@ struct GatherKernel {
 // so that the result equals the composed path to rounding.
 template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K>
 struct SystemEpilogue {
+  static constexpr bool kHasNodeK = HAS_NODE_K;
   const S* mass;            // [V]
   const S* free;            // [V] 0/1 (HAS_FREE)
   const S* node_stiffness;  // [V, D, D] (HAS_NODE_K)
@@ -670,8 +671,14 @@ struct NodeHookeSystemKernel {
 
 // ------------------------------------------------------------------ implicit Euler, per node
 
-// The displacement an implicit Euler step's right-hand side is taken at, w = (x - rest) + c v,
-// read through the pointer into x that the node graph computes (q = x + offset).
+// The displacement an implicit Euler step's right-hand side is taken at, w = (x - rest) + c v
+// (one expression for every kernel that forms it: their right-hand sides agree bitwise).
+template <typename S>
+TM_HD S step_displacement(S x, S rest, S v, S c) {
+  return (x - rest) + c * v;
+}
+
+// step_displacement read through the pointer into x that the node graph computes (q = x + offset).
 template <typename S>
 struct StepDisplacementLoader {
   const S* x;
@@ -680,7 +687,7 @@ struct StepDisplacementLoader {
   S c;
   TM_HD S operator()(const S* q) const {
     const int64_t o = q - x;
-    return (ld(x + o) - ld(rest + o)) + c * ld(v + o);
+    return step_displacement(ld(x + o), ld(rest + o), ld(v + o), c);
   }
 };
 
@@ -713,6 +720,27 @@ struct PenaltyPlanes {
   }
 };
 
+// A node's own terms of implicit Euler's right-hand side, given its elastic force sum `total`
+// over the node graph (the force of w = (x - rest) + c_w v) and damping = r_M m_i:
+//   rhs = h (total + external + contact(x) - Kc (c_w v) - damping v)
+// and the contact stiffness Kc at x (HAS_PLANES, 3-D; `total` is updated). Shared by the
+// right-hand side's kernel and the solve that computes it itself (cuda/cg_pipelined.cuh).
+template <int D, typename S, bool HAS_PLANES>
+TM_HD void step_rhs_node(const PenaltyPlanes<S>& planes, S h, S c_w, S damping, const S (&x)[D], const S (&v)[D],
+                         const S (&external)[D], S (&total)[D], S (&k_contact)[D][D], S (&rhs)[D]) {
+  TM_UNROLL for (int a = 0; a < D; ++a) total[a] += external[a];
+  if constexpr (HAS_PLANES && D == 3) {
+    S force[3];
+    planes.linearize(x, force, k_contact);
+    TM_UNROLL for (int a = 0; a < 3; ++a) {
+      S kw = S(0);
+      TM_UNROLL for (int b = 0; b < 3; ++b) kw += k_contact[a][b] * (c_w * v[b]);
+      total[a] += force[a] - kw;
+    }
+  }
+  TM_UNROLL for (int a = 0; a < D; ++a) rhs[a] = h * (total[a] - damping * v[a]);
+}
+
 // The right-hand side of an implicit Euler step of the hooke tensor form, one node per item
 // (what SystemMatvec.load + forces_along + the damping and h terms compose from a dozen torch
 // ops), at positions x and velocities v with w = (x - rest) + c_w v, c_w = h + r_K:
@@ -738,30 +766,27 @@ struct NodeHookeStepRhsKernel {
   TM_HD void operator()(int64_t row) const {
     const int64_t i = graph.node_of(row);
     const StepDisplacementLoader<S> load_w{x, rest, v, c_w};
-    S wi[D], vi[D], total[D];
+    S wi[D], total[D];
     TM_UNROLL for (int a = 0; a < D; ++a) {
       wi[a] = load_w(x + i * D + a);
-      vi[a] = ld(v + i * D + a);
       total[a] = S(0);
       u[i * D + a] = ld(x + i * D + a) - ld(rest + i * D + a);
     }
     graph.add_forces(row, i, x, wi, load_w, total);
-    TM_UNROLL for (int a = 0; a < D; ++a) total[a] += ld(external + i * D + a);
-    if constexpr (HAS_PLANES && D == 3) {
-      S xi[3], force[3], k[3][3];
-      TM_UNROLL for (int a = 0; a < 3; ++a) xi[a] = ld(x + i * 3 + a);
-      planes.linearize(xi, force, k);
-      TM_UNROLL for (int a = 0; a < 3; ++a) {
-        S kw = S(0);
-        TM_UNROLL for (int b = 0; b < 3; ++b) {
-          kw += k[a][b] * (c_w * vi[b]);
-          node_stiffness[i * 9 + a * 3 + b] = k[a][b];
-        }
-        total[a] += force[a] - kw;
+    S xi[D], vi[D], external_i[D], k_contact[D][D], out[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      xi[a] = ld(x + i * D + a);
+      vi[a] = ld(v + i * D + a);
+      external_i[a] = ld(external + i * D + a);
+    }
+    step_rhs_node<D, S, HAS_PLANES>(planes, h, c_w, rayleigh_mass * ld(mass + i), xi, vi, external_i, total, k_contact,
+                                    out);
+    if constexpr (HAS_PLANES) {
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        TM_UNROLL for (int b = 0; b < D; ++b) node_stiffness[(i * D + a) * D + b] = k_contact[a][b];
       }
     }
-    const S damping = rayleigh_mass * ld(mass + i);
-    TM_UNROLL for (int a = 0; a < D; ++a) rhs[i * D + a] = h * (total[a] - damping * vi[a]);
+    TM_UNROLL for (int a = 0; a < D; ++a) rhs[i * D + a] = out[a];
   }
 };
 

@@ -54,6 +54,13 @@
 //                               ring!?, ring_pos!?, carry) -> bool
 //                               the same solve, then euler_update with its solution as dv, in the same
 //                               kernel (the graphed step's last launch gone)
+//                             hooke_node_steps(<hooke_node_solve's graph and epilogue without node_stiffness>,
+//                               rest, external, w_coef, r_M, plane_normals?, plane_offsets?, plane_stiffness?,
+//                               u!, rhs!, node_stiffness!?, <hooke_node_solve's tol_sq .. counters>, state_x!,
+//                               state_v!, h, x_new!, v_new!, norms!, summary!, end_sums!, end_counter!, ring!?,
+//                               ring_pos!?, carry, steps) -> bool
+//                               `steps` implicit Euler steps (no imposed velocity) in one kernel: each
+//                               hooke_node_step_rhs's rhs (and contact stiffness), then hooke_node_solve_step
 //   step right-hand side      hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, row_node?, mass, external,
 //                               plane_normals?, plane_offsets?, plane_stiffness?, h, w_coef, r_M, u!, rhs!,
 //                               node_stiffness!?) -> ()
@@ -170,6 +177,16 @@ TORCH_LIBRARY(tensormass, m) {
         "Tensor(m!) counters, Tensor(n!) state_x, Tensor(o!) state_v, Tensor? dv_imposed, float h, Tensor(p!) x_new, "
         "Tensor(q!) v_new, Tensor(r!) norms, Tensor(s!) summary, Tensor(t!) end_sums, Tensor(u!) end_counter, "
         "Tensor(v!)? ring, Tensor(w!)? ring_pos, bool carry) -> bool");
+  m.def("hooke_node_steps(Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, "
+        "Tensor? free, float c_mass, float c_stiff, Tensor rest, Tensor external, float w_coef, float rayleigh_mass, "
+        "Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, Tensor(a!) u, Tensor(b!) rhs, "
+        "Tensor(z!)? node_stiffness, float tol_sq, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
+        "int chunk_nodes, int chunk_slots, int max_iter, Tensor(c!) x, Tensor(d!) r, Tensor(e!) p, "
+        "Tensor(f!) threshold, Tensor(g!) rhs_sq, Tensor(h!) rr, Tensor(i!) status, Tensor(j!) alpha, "
+        "Tensor(k!) beta, Tensor(l!) iterations, Tensor(m!) exchange, Tensor(n!) sums, Tensor(o!) counters, "
+        "Tensor(p!) state_x, Tensor(q!) state_v, float h, Tensor(r!) x_new, Tensor(s!) v_new, Tensor(t!) norms, "
+        "Tensor(u!) summary, Tensor(v!) end_sums, Tensor(w!) end_counter, Tensor(x!)? ring, "
+        "Tensor(y!)? ring_pos, bool carry, int steps) -> bool");
   // ---- implicit Euler's right-hand side for the hooke tensor form, in one pass (in place)
   m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, "
         "Tensor mass, Tensor external, Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, "

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <ATen/core/Tensor.h>
+#include <ATen/MemoryOverlap.h>
 #include <ATen/ops/empty.h>
 #include <c10/util/Optional.h>
 
@@ -936,6 +937,40 @@ std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const 
 // (w_coef = h + r_K), and what the step's CG matvec needs: u = x - rest [V, d] and, with planes
 // (normals [P, 3], offsets [P], stiffness [P]; d = 3), the contact stiffness node_stiffness
 // [V, 3, 3]. Outputs in place (u, rhs, node_stiffness), so that a CUDA graph replays into them.
+// The contact planes of a step's right-hand side (normals [P, 3], offsets [P], stiffness [P];
+// 3-D) and the contact stiffness it writes (node_stiffness [V, 3, 3]), checked against x [V, d]:
+// all of them or none.
+struct StepPlanes {
+  bool given = false;
+  at::Tensor normals, offsets, stiffness, node_stiffness;
+
+  StepPlanes(const at::Tensor& x, const c10::optional<at::Tensor>& plane_normals,
+             const c10::optional<at::Tensor>& plane_offsets, const c10::optional<at::Tensor>& plane_stiffness,
+             const c10::optional<at::Tensor>& node_stiffness_out) {
+    given = plane_normals.has_value() && plane_normals->defined();
+    if (!given) {
+      TORCH_CHECK(!(plane_offsets.has_value() && plane_offsets->defined()) &&
+                      !(plane_stiffness.has_value() && plane_stiffness->defined()),
+                  "tensormass: plane_offsets and plane_stiffness need plane_normals");
+      return;
+    }
+    TORCH_CHECK(x.size(1) == 3, "tensormass: contact planes need 3-D positions, got d = ", std::to_string(x.size(1)));
+    normals = *plane_normals;
+    TORCH_CHECK(normals.dim() == 2, "tensormass: plane_normals must be [P, 3], got shape ", shape_str(normals.sizes()));
+    const int64_t count = normals.size(0);
+    check_node_tensor(normals, "plane_normals", x, {count, 3}, "x");
+    TORCH_CHECK(plane_offsets.has_value() && plane_offsets->defined() && plane_stiffness.has_value() &&
+                    plane_stiffness->defined() && node_stiffness_out.has_value() && node_stiffness_out->defined(),
+                "tensormass: plane_normals needs plane_offsets, plane_stiffness and node_stiffness");
+    offsets = *plane_offsets;
+    stiffness = *plane_stiffness;
+    node_stiffness = *node_stiffness_out;
+    check_node_tensor(offsets, "plane_offsets", x, {count}, "x");
+    check_node_tensor(stiffness, "plane_stiffness", x, {count}, "x");
+    check_node_tensor(node_stiffness, "node_stiffness", x, {x.size(0), 3, 3}, "x");
+  }
+};
+
 template <class L>
 void hooke_node_step_rhs(const at::Tensor& x, const at::Tensor& v, const at::Tensor& rest, const at::Tensor& neighbor,
                          const at::Tensor& node_k, const at::Tensor& incidences,
@@ -953,28 +988,10 @@ void hooke_node_step_rhs(const at::Tensor& x, const at::Tensor& v, const at::Ten
   for (const auto& named : fields) check_node_tensor(*named.first, named.second, x, {num_nodes, dim}, "x");
   check_node_tensor(mass, "mass", x, {num_nodes}, "x");
   const at::ScalarType index_type = check_hooke_node_graph(x, "x", neighbor, node_k, incidences, row_node);
-  const bool has_planes = plane_normals.has_value() && plane_normals->defined();
-  at::Tensor normals, offsets, stiffness, node_k_out;
-  if (has_planes) {
-    TORCH_CHECK(dim == 3, "tensormass: contact planes need 3-D positions, got d = ", std::to_string(dim));
-    normals = *plane_normals;
-    TORCH_CHECK(normals.dim() == 2, "tensormass: plane_normals must be [P, 3], got shape ", shape_str(normals.sizes()));
-    const int64_t count = normals.size(0);
-    check_node_tensor(normals, "plane_normals", x, {count, 3}, "x");
-    TORCH_CHECK(plane_offsets.has_value() && plane_offsets->defined() && plane_stiffness.has_value() &&
-                    plane_stiffness->defined() && node_stiffness.has_value() && node_stiffness->defined(),
-                "tensormass: plane_normals needs plane_offsets, plane_stiffness and node_stiffness");
-    offsets = *plane_offsets;
-    stiffness = *plane_stiffness;
-    node_k_out = *node_stiffness;
-    check_node_tensor(offsets, "plane_offsets", x, {count}, "x");
-    check_node_tensor(stiffness, "plane_stiffness", x, {count}, "x");
-    check_node_tensor(node_k_out, "node_stiffness", x, {num_nodes, 3, 3}, "x");
-  } else {
-    TORCH_CHECK(!(plane_offsets.has_value() && plane_offsets->defined()) &&
-                    !(plane_stiffness.has_value() && plane_stiffness->defined()),
-                "tensormass: plane_offsets and plane_stiffness need plane_normals");
-  }
+  const StepPlanes planes(x, plane_normals, plane_offsets, plane_stiffness, node_stiffness);
+  const bool has_planes = planes.given;
+  const at::Tensor &normals = planes.normals, &offsets = planes.offsets, &stiffness = planes.stiffness,
+                   &node_k_out = planes.node_stiffness;
   typename L::Guard guard(x.device());
   dispatch_scalar(x.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
@@ -1180,6 +1197,21 @@ struct StepEndTensors {
   bool carry;
 };
 
+// The right-hand side that hooke_node_steps computes before each solve (StepRhs).
+struct StepRhsTensors {
+  at::Tensor rest, external;
+  double w_coef, rayleigh_mass;
+  const StepPlanes& planes;  // its node_stiffness is the solve's
+  at::Tensor u;
+  int64_t steps;
+};
+
+inline void check_no_overlap(const at::Tensor& written, const char* written_name, const at::Tensor& other,
+                             const char* other_name) {
+  TORCH_CHECK(at::get_overlap_status(written, other) == at::MemOverlapStatus::No, "tensormass: ", written_name,
+              " shares memory with ", other_name, "; they must be separate tensors");
+}
+
 template <class L>
 bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
                           const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
@@ -1189,7 +1221,8 @@ bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, 
                           int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r,
                           at::Tensor p, at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status,
                           at::Tensor alpha, at::Tensor beta, at::Tensor iterations, at::Tensor exchange,
-                          at::Tensor sums, at::Tensor counters, StepEndTensors* end) {
+                          at::Tensor sums, at::Tensor counters, StepEndTensors* end,
+                          const StepRhsTensors* step_rhs = nullptr) {
   check_values(rhs, "rhs");
   TORCH_CHECK(chunk_nodes >= 1, "tensormass: chunk_nodes must be >= 1, got ", std::to_string(chunk_nodes));
   TORCH_CHECK(chunk_slots >= 0, "tensormass: chunk_slots must be >= 0, got ", std::to_string(chunk_slots));
@@ -1208,6 +1241,26 @@ bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, 
     check_euler_update(end->x, end->v, x, end->dv_imposed, end->x_new, end->v_new, chunk_start, chunk_object,
                        object_chunk, status, iterations, rr, rhs_sq, end->norms, end->summary, end->sums, end->counter,
                        end->ring, end->ring_pos);
+  }
+  if (step_rhs != nullptr) {  // hooke_node_step_rhs's checks, at the state the step end carries
+    TORCH_CHECK(end != nullptr, "tensormass: a solve that computes its right-hand side must end the step");
+    TORCH_CHECK(step_rhs->steps >= 1, "tensormass: steps must be >= 1, got ", std::to_string(step_rhs->steps));
+    TORCH_CHECK(step_rhs->steps == 1 || end->carry,
+                "tensormass: steps > 1 needs carry (each step starts from the state the last one carried)");
+    cg_check(step_rhs->rest, "rest", rhs, rhs.scalar_type(), rhs.sizes());
+    cg_check(step_rhs->external, "external", rhs, rhs.scalar_type(), rhs.sizes());
+    cg_check(step_rhs->u, "u", rhs, rhs.scalar_type(), rhs.sizes());
+    const std::pair<const at::Tensor*, const char*> read[] = {{&end->x, "state_x"}, {&end->v, "state_v"},
+                                                              {&step_rhs->rest, "rest"},
+                                                              {&step_rhs->external, "external"}};
+    for (const auto& named : read) {
+      check_no_overlap(step_rhs->u, "u", *named.first, named.second);
+      check_no_overlap(rhs, "rhs", *named.first, named.second);
+    }
+    check_no_overlap(rhs, "rhs", step_rhs->u, "u");
+    if (step_rhs->planes.given) {
+      for (const auto& named : read) check_no_overlap(step_rhs->planes.node_stiffness, "node_stiffness", *named.first, named.second);
+    }
   }
   at::Tensor no_dots;
   bool ran = false;
@@ -1229,6 +1282,23 @@ bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, 
                                          end->ring_pos);
       s.end.sums = end->sums.data_ptr<double>();
       s.end.counter = end->counter.data_ptr<int32_t>();
+    }
+    if (step_rhs != nullptr) {
+      s.step_rhs.rest = step_rhs->rest.data_ptr<S>();
+      s.step_rhs.external = step_rhs->external.data_ptr<S>();
+      s.step_rhs.h = static_cast<S>(end->h);
+      s.step_rhs.c_w = static_cast<S>(step_rhs->w_coef);
+      s.step_rhs.rayleigh_mass = static_cast<S>(step_rhs->rayleigh_mass);
+      if (step_rhs->planes.given) {
+        s.step_rhs.plane_normals = step_rhs->planes.normals.data_ptr<S>();
+        s.step_rhs.plane_offsets = step_rhs->planes.offsets.data_ptr<S>();
+        s.step_rhs.plane_stiffness = step_rhs->planes.stiffness.data_ptr<S>();
+        s.step_rhs.planes = step_rhs->planes.normals.size(0);
+        s.step_rhs.node_stiffness = step_rhs->planes.node_stiffness.data_ptr<S>();
+      }
+      s.step_rhs.u = step_rhs->u.data_ptr<S>();
+      s.step_rhs.rhs = rhs.data_ptr<S>();
+      s.steps = step_rhs->steps;
     }
     ran = L::run_solve(plan, k, s);
   });
@@ -1276,6 +1346,43 @@ bool hooke_node_solve_step(const at::Tensor& neighbor, const at::Tensor& node_k,
                                  rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots,
                                  max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange,
                                  sums, counters, &end);
+}
+
+// hooke_node_steps: `steps` implicit Euler steps of the hooke tensor form (no imposed
+// velocities) in one solve kernel on the GPU, each: the right-hand side as hooke_node_step_rhs
+// computes it (into rhs, u = x - rest and, with planes, node_stiffness, at state_x, state_v), then
+// hooke_node_solve_step's solve and end (with carry, the next step starts from the state it
+// wrote). Bitwise `steps` times hooke_node_step_rhs then hooke_node_solve_step: the graph in
+// shared memory, the launches and the gaps between them serve every step. Each step's summary
+// goes to ring row ring_pos (advanced), the last also into summary; steps > 1 needs carry.
+// Returns whether it ran: false, having changed nothing, where hooke_node_solve would.
+template <class L>
+bool hooke_node_steps(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
+                      const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
+                      const c10::optional<at::Tensor>& free, double c_mass, double c_stiff, const at::Tensor& rest,
+                      const at::Tensor& external, double w_coef, double rayleigh_mass,
+                      const c10::optional<at::Tensor>& plane_normals, const c10::optional<at::Tensor>& plane_offsets,
+                      const c10::optional<at::Tensor>& plane_stiffness, at::Tensor u, at::Tensor rhs,
+                      const c10::optional<at::Tensor>& node_stiffness, double tol_sq, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                      const at::Tensor& object_chunk, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
+                      at::Tensor x, at::Tensor r, at::Tensor p, at::Tensor threshold, at::Tensor rhs_sq,
+                      at::Tensor rr, at::Tensor status, at::Tensor alpha, at::Tensor beta, at::Tensor iterations,
+                      at::Tensor exchange, at::Tensor sums, at::Tensor counters, at::Tensor state_x,
+                      at::Tensor state_v, double h, at::Tensor x_new, at::Tensor v_new, at::Tensor norms,
+                      at::Tensor summary, at::Tensor end_sums, at::Tensor end_counter,
+                      const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos, bool carry,
+                      int64_t steps) {
+  StepEndTensors end{state_x, state_v, c10::nullopt, h, x_new, v_new, norms, summary, end_sums, end_counter, ring,
+                     ring_pos, carry};
+  check_values(rhs, "rhs");
+  const StepPlanes planes(rhs, plane_normals, plane_offsets, plane_stiffness, node_stiffness);
+  TORCH_CHECK(planes.given || !(node_stiffness.has_value() && node_stiffness->defined()),
+              "tensormass: node_stiffness is the contact planes' stiffness: it needs plane_normals");
+  const StepRhsTensors step_rhs{rest, external, w_coef, rayleigh_mass, planes, u, steps};
+  return run_hooke_node_solve<L>(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
+                                 rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots,
+                                 max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange,
+                                 sums, counters, &end, &step_rhs);
 }
 
 // ------------------------------------------------------------------ tensor form, stvk

@@ -45,6 +45,7 @@ void register_gather_ops(torch::Library& m) {
   m.impl("hooke_node_cg", &hooke_node_cg<L>);
   m.impl("hooke_node_solve", &hooke_node_solve<L>);
   m.impl("hooke_node_solve_step", &hooke_node_solve_step<L>);
+  m.impl("hooke_node_steps", &hooke_node_steps<L>);
   m.impl("hooke_node_step_rhs", &hooke_node_step_rhs<L>);
 }
 

@@ -1230,6 +1230,28 @@ class StepEnd:
     ring_pos: Optional[torch.Tensor] = None
     carry: bool = False
     done: bool = False
+    #: the step's right-hand side for the solve to compute first (``StepRhs``; the solve's rhs is
+    #: then its output), ``steps`` steps back to back (needs ``carry`` beyond one): one kernel
+    #: for all of them (``hooke_node_steps``) where it serves, else nothing is done
+    rhs: Optional["StepRhs"] = None
+    steps: int = 1
+
+
+@dataclasses.dataclass
+class StepRhs:
+    """What the solve needs to compute implicit Euler's right-hand side itself, at the state
+    ``StepEnd.x, StepEnd.v`` (``hooke_node_steps``), as :func:`step_rhs` does:
+    ``rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) (w_coef v) - r_M mass v)``,
+    ``u = x - rest`` into ``u [V, d]`` (``rest, external [V, d]``) and, with ``planes`` (a
+    ``contact.Planes``), Kc into the solve's ``node_stiffness [V, 3, 3]``, which its products
+    then read."""
+
+    rest: torch.Tensor
+    external: torch.Tensor
+    w_coef: float
+    rayleigh_mass: float
+    u: torch.Tensor
+    planes: Optional[object] = None
 
 
 class _SolveWork:
@@ -1275,9 +1297,14 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
     nothing, where it does not serve: not a CUDA tensor, :data:`PIPELINED_SOLVE` off, no node graph
     (``node_k``: as in :func:`system_matvec`), a gradient wanted, or a system too large for one
     wave of the kernel in every layout. ``step_end``: the implicit Euler step's end, done in the
-    same kernel (``hooke_node_solve_step``; its ``done`` set) where :data:`FUSED_STEP_END`."""
+    same kernel (``hooke_node_solve_step``; its ``done`` set) where :data:`FUSED_STEP_END`; with
+    its ``rhs`` (a :class:`StepRhs`), ``rhs`` is this solve's output: its ``steps`` steps, each
+    its right-hand side, solve and end, in one kernel (``hooke_node_steps``) where
+    :func:`steps_serve`, else nothing is done."""
     s = cg_state
     if not (PIPELINED_SOLVE and rhs.is_cuda and (node_k is not None or HOOKE_MATVEC_LAYOUT == "node")):
+        return False
+    if step_end is not None and step_end.rhs is not None and not steps_serve(group, node_stiffness, node_k, step_end):
         return False
     graph = _node_graph(group, "node", (s.p, mass, free, node_stiffness, rhs), "hooke_node_solve", node_k)
     if graph is None:
@@ -1292,11 +1319,21 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
             continue
         layout_plan = solve_plan(plan, layout)
         slots = chunk_slots(group, layout_plan, graph[2]) if layout == "shared" else 0
-        args = (*graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, rhs, float(tol) ** 2,
-                *layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter), s.x, s.r, s.p, s.threshold,
-                s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, work.exchange,
-                work.sums_of(layout, layout_plan), work.counters)
-        if step_end is not None and FUSED_STEP_END:
+        system = (*graph, mass, free, float(c_mass), float(c_stiff))
+        solve = (float(tol) ** 2, *layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter), s.x, s.r,
+                 s.p, s.threshold, s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, work.exchange,
+                 work.sums_of(layout, layout_plan), work.counters)
+        args = (*system, node_stiffness, rhs, *solve)
+        if step_end is not None and step_end.rhs is not None:
+            e, pass_ = step_end, step_end.rhs
+            planes = (None,) * 3 if pass_.planes is None else _contiguous(
+                pass_.planes.normals, pass_.planes.offsets, pass_.planes.stiffness)
+            ran = bool(torch.ops.tensormass.hooke_node_steps(
+                *system, pass_.rest, pass_.external, float(pass_.w_coef), float(pass_.rayleigh_mass), *planes,
+                pass_.u, rhs, node_stiffness, *solve, e.x, e.v, float(e.h), e.x_new, e.v_new, e.norms, e.summary,
+                *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry), int(e.steps)))
+            e.done = ran
+        elif step_end is not None and FUSED_STEP_END:
             e = step_end
             ran = bool(torch.ops.tensormass.hooke_node_solve_step(
                 *args, e.x, e.v, e.dv_imposed, float(e.h), e.x_new, e.v_new, e.norms, e.summary,
@@ -1310,6 +1347,33 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
         work.layout = None
         work.misfits.add(layout)
     return False
+
+
+#: Whether a solve that ends an implicit Euler step also computes its right-hand side where it
+#: can (``StepEnd.rhs``: ``hooke_node_steps``, chained steps in one kernel); off, the right-hand
+#: side is its own op (``hooke_node_step_rhs``) before each solve. Tests compare the two;
+#: benchmarks switch it (``TENSORMASS_SOLVE_STEP_RHS=0`` in the environment, or this flag).
+SOLVE_STEP_RHS = os.environ.get("TENSORMASS_SOLVE_STEP_RHS", "1") != "0"
+
+
+def steps_serve(group, node_stiffness: Optional[torch.Tensor], node_k: Optional[torch.Tensor],
+                step_end: StepEnd) -> bool:
+    """Whether ``hooke_node_steps`` serves these steps: :data:`SOLVE_STEP_RHS` and
+    :data:`FUSED_STEP_END` (its solve ends each step), the hooke tensor
+    form's own node graph (``node_k`` None; :func:`step_rhs_serves`), a contact stiffness buffer
+    exactly where there are planes (3-D, of the state's dtype and device), no imposed velocity,
+    and ``carry`` where the steps are more than one. (The solve may still not fit the device:
+    :func:`system_solve` says.)"""
+    e = step_end
+    planes = e.rhs.planes
+    if (planes is None) != (node_stiffness is None):
+        return False
+    if planes is not None and (e.x.shape[1] != 3 or planes.normals.dtype != e.x.dtype
+                               or planes.normals.device != e.x.device):
+        return False
+    return (SOLVE_STEP_RHS and FUSED_STEP_END and hasattr(torch.ops.tensormass, "hooke_node_steps") and node_k is None
+            and e.dv_imposed is None and (e.carry or e.steps == 1) and e.steps >= 1
+            and step_rhs_serves(group, (e.x, e.v, e.rhs.rest, e.rhs.external)))
 
 
 def step_rhs_serves(group, inputs=()) -> bool:

@@ -300,7 +300,8 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     object is active; ``ap [V, d]``: the products' buffer. Bitwise what ``CGSolver`` computes op by
     op, except a whole solve (``rhs`` given, ``count >= max_iter``) on the GPU where the pipelined
     CG fits (``native.system_solve``: the same iterates in exact arithmetic, rounded otherwise;
-    it also does ``step_end``, a ``native.StepEnd``, where given, and sets its ``done``).
+    it also does ``step_end``, a ``native.StepEnd``, where given, and sets its ``done``; a
+    ``step_end`` whose ``rhs`` is set leaves ``rhs`` to that solve: nothing else runs).
     Returns False, having done nothing, where there is no such op (then the caller iterates)."""
     groups = list(groups)
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state, rhs)
@@ -312,9 +313,20 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
             and native.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
                                     cg_state, max_iter, node_k, step_end)):
         return True
+    if step_end is not None and step_end.rhs is not None:  # rhs is the solve's to compute: nothing else can
+        return False
     # native.system_cg checks what it serves (and does nothing where it has no one op)
     return native.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
                             cg_state, max_iter, count, node_k)
+
+
+def step_rhs_serves(groups, u: torch.Tensor, node_tensors=()) -> bool:
+    """Whether :func:`step_rhs` is one op for ``groups`` with inputs like ``u [V, d]`` and
+    ``node_tensors`` (``[V, ...]``), no contact planes (what a solve that computes the step's
+    right-hand side itself serves: ``native.StepRhs``)."""
+    groups = list(groups)
+    native = _fused_native(groups, u, u, node_tensors)
+    return native is not None and native.step_rhs_serves(groups[0], (u, *node_tensors))
 
 
 def step_rhs(groups, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass: torch.Tensor,

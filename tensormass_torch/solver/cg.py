@@ -143,9 +143,12 @@ class CGSolver:
 
         ``step_end``: a ``native.StepEnd`` (the end of an implicit Euler step) that a whole solve
         in one op may do in its own kernel; its ``done`` says whether it did (else the caller
-        does it after the solve)."""
+        does it after the solve). With ``step_end.rhs`` set, ``rhs`` is that op's to compute: only
+        that op runs, or nothing (``done`` False)."""
         _check_settings(tol, max_iter, 1)
         if self._in_one_op(matvec, rhs, self._effective_tol(tol, rhs.dtype), max_iter, count, step_end):
+            return
+        if step_end is not None and step_end.rhs is not None:
             return
         self.start(matvec, rhs, None, tol, max_iter)
         for _ in range(count):

@@ -227,6 +227,27 @@ class SystemMatvec:
             rhs = rhs - rayleigh_mass * system.mass * v
         return h * rhs
 
+    def step_rhs_in_solve(self, h: float, rayleigh_mass: float, rayleigh_stiffness: float):
+        """What a solve needs to compute :meth:`load_step`'s right-hand side itself, at the state
+        its step end starts from (``native.StepRhs``: into :attr:`u`, :attr:`node_stiffness` with
+        planes, and the buffer returned with it: ``(StepRhs, rhs [V, d])``), where ``load_step``
+        would be one op; None otherwise. Leaves this matvec as ``load_step``'s op does (the solve
+        may still decline: then ``load_step`` runs as before)."""
+        from .. import ops
+
+        system, model = self.system, self.system.model
+        if len(model.groups) != 1 or not ops.step_rhs_serves(model.groups, self.u, (model.rest, system.external)):
+            return None
+        if system.planes is not None and self.node_stiffness is None:
+            self.node_stiffness = torch.zeros(*self.u.shape, self.u.shape[-1], dtype=self.u.dtype, device=self.u.device)
+        if self._rhs is None:
+            self._rhs = torch.empty_like(self.u)
+        self.states = [None]  # as load_step with its op: the hooke tensor form's own node graph
+        self.tangents = None
+        self.contact_forces = None
+        rest, external = (t.contiguous() for t in (model.rest, system.external))
+        return native.StepRhs(rest, external, h + rayleigh_stiffness, rayleigh_mass, self.u, system.planes), self._rhs
+
     def tangent(self, dx: torch.Tensor) -> torch.Tensor:
         """(dF/dx) dx ``[V, d]`` at the loaded positions (elastic and contact), with the loaded
         rotations."""
@@ -379,7 +400,8 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
 #: The most steps chained with one host synchronisation (rows of StepGraphs' summary ring, for
 #: small batches; fewer for large ones: the ring holds at most 2^17 object summaries).
 MAX_CHAIN = 512
-#: Chained steps captured in one CUDA graph (StepGraphs.run_steps).
+#: Chained steps captured in one CUDA graph (StepGraphs.run_steps): one kernel where the solve
+#: computes each step's right-hand side (``native.StepRhs``; 32 measured no faster, s12).
 STEPS_PER_GRAPH = 8
 
 
@@ -395,6 +417,10 @@ class StepGraphs:
         (CG status, iterations, residuals, norms) packed in one small buffer; done by A's solve
         in its own kernel where that is the pipelined CG (``native.StepEnd``)
         (host: one copy of that buffer; a failed step raises and the state is unchanged)
+
+    Where that solve also computes the right-hand side (``native.StepRhs``: the hooke tensor
+    form, no imposed velocity), a step is ONE kernel, and chained steps are one kernel for all the
+    steps of a graph.
 
     A step then costs a few graph launches and one host synchronisation, whatever the number of
     kernels in it; its report holds host tensors (already copied, so reading them costs nothing). Made by :func:`implicit_euler_step` when the device is CUDA, the
@@ -449,6 +475,25 @@ class StepGraphs:
         self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first, end)
         return end.done
 
+    def _steps_in_solve(self, count: int, chained: bool) -> bool:
+        """``count`` whole steps (right-hand side, solve, end) in ONE kernel where the solve
+        computes the right-hand side itself (``SystemMatvec.step_rhs_in_solve``; no imposed
+        velocity): bitwise ``count`` times phases A and C, without their launches. Returns
+        whether it ran (else nothing was done). ``chained``: as :meth:`_phase_c` (needed beyond
+        one step)."""
+        opts = self.opts
+        if self.imposed is not None:
+            return False
+        in_solve = self.matvec.step_rhs_in_solve(opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness)
+        if in_solve is None:
+            return False
+        step_rhs, rhs = in_solve
+        ring = (self.ring, self.ring_pos) if chained else (None, None)
+        end = native.StepEnd(self.x, self.v, None, float(opts.dt), self.x_new, self.v_new, self.norms, self.summary,
+                             *ring, chained, rhs=step_rhs, steps=count)
+        self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first, end)
+        return end.done
+
     def _phase_c(self, chained: bool = False):
         """The new state, its per-object |v|^2 (NaN/inf anywhere in an object's new state shows
         there: x_new is x, finite, plus dt v_new) and the step's summary, in one op
@@ -461,13 +506,15 @@ class StepGraphs:
                                s.scratch, self.update_counter, *ring, chained)
 
     def _chained_steps(self, count: int):
+        if self._steps_in_solve(count, chained=True):
+            return
         for _ in range(count):
             if not self._phase_a(chained=True):
                 self._phase_c(chained=True)
 
     def _single_phase_a(self):
         # Graph A's outcome, remembered for its replays (which run no Python)
-        self._a_ends_step = self._phase_a()
+        self._a_ends_step = self._steps_in_solve(1, chained=False) or self._phase_a()
 
     @property
     def chainable(self) -> bool:
