@@ -390,6 +390,17 @@ def _nbytes(t: Optional[torch.Tensor]) -> int:
     return 0 if t is None else t.numel() * t.element_size()
 
 
+def _edge_count(index: torch.Tensor, num_nodes: int) -> int:
+    """Distinct node pairs over the items of ``index [N, n]`` (the node graph's edges)."""
+    n = index.shape[1]
+    pairs = [torch.stack((index[:, a], index[:, b]), 1) for a in range(n) for b in range(a + 1, n)]
+    if not pairs:
+        return 0
+    both = torch.cat(pairs).long()
+    low, high = both.min(1).values, both.max(1).values
+    return int(torch.unique(low * num_nodes + high).numel())
+
+
 def cg_iteration_bytes(model, objects: int = 1, constrained: bool = True, planes: int = 0) -> Dict[str, int]:
     """Bytes one CG iteration of implicit Euler must move at the least (each read once, each
     write once), for a ``tm.TensorMass`` (e.g. ``sim.model``) of V nodes in d = 3 dimensions,
@@ -407,6 +418,11 @@ def cg_iteration_bytes(model, objects: int = 1, constrained: bool = True, planes
                      used slots only: the padding of the [N_n, V, d] buffer is not counted)
       p              the search direction read by kernel 1: V d s
       u              displacements read by DForce where K depends on u (stvk, corotational): V d s
+    A model whose differential the CG may take once per linearisation as the edge blocks of the
+    node graph (the hooke tensor form's own graph; stvk and corotational through
+    ``native.NODE_TANGENT``) is counted as that graph where it moves fewer bytes than the element
+    form: its E edges as items of n = 2 nodes, E d x d blocks as material, no u (the stvk tensor
+    form: B, C, D and u per iteration against one block an edge).
     Once per iteration:
       epilogue       mass [V] and free mask [V] read, A p [V, d] written, p . Ap per node [V]
                      written: (2 + d + 1) V s (free mask only when nodes are constrained)
@@ -425,13 +441,18 @@ def cg_iteration_bytes(model, objects: int = 1, constrained: bool = True, planes
         index = group.plan.index
         n_items, n = index.shape
         ix = 4 if (V <= 2**31 - 1 and index.numel() <= 2**31 - 1) else 8
-        parts["indices"] += 2 * n_items * n * ix + V * ix
         names = _MATVEC_BUFFERS.get((group.form, group.model), ())
-        parts["material"] += sum(_nbytes(getattr(group, name, None)) for name in names)
-        parts["partial_force"] += 2 * n_items * n * d * s
+        element_form = {"indices": 2 * n_items * n * ix + V * ix,
+                        "material": sum(_nbytes(getattr(group, name, None)) for name in names),
+                        "partial_force": 2 * n_items * n * d * s,
+                        "u": V * d * s if group.model in ("stvk", "corotational") else 0}
+        edges = _edge_count(index, V)
+        node_graph = {"indices": 2 * edges * 2 * ix + V * ix, "material": edges * d * d * s,
+                      "partial_force": 2 * edges * 2 * d * s, "u": 0}
+        counted = min(element_form, node_graph, key=lambda form: sum(form.values()))
+        for name, value in counted.items():
+            parts[name] += value
         parts["p"] += V * d * s
-        if group.model in ("stvk", "corotational"):
-            parts["u"] += V * d * s
     parts["epilogue"] = (1 + (1 if constrained else 0) + d + 1) * V * s
     parts["updates"] = 9 * V * d * s + V * s
     parts["segments"] = V * 4 if objects > 1 else 0

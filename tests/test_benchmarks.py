@@ -93,6 +93,20 @@ def test_cg_iteration_bytes_counts_the_stress_form_buffers():
     assert parts["total"] == sum(v for k, v in parts.items() if k != "total")
 
 
+def test_cg_iteration_bytes_counts_the_node_graph_where_it_is_smaller():
+    """The stvk tensor form's CG may run on the node graph's tangent (one d x d block an edge
+    instead of B, C, D and u): counted as the hooke tensor form's graph, whose items are the
+    edges."""
+    mesh = tm.beam_mesh(4, 2, 2, dtype=torch.float32)
+    material = dict(young=1e5, poisson=0.3, density=1e3)
+    stvk = common.cg_iteration_bytes(tm.TensorMass(mesh, tm.Material(model="stvk", **material), form="tensor"))
+    hooke_model = tm.TensorMass(mesh, tm.Material(model="hooke", **material), form="tensor")
+    hooke = common.cg_iteration_bytes(hooke_model)
+    edges = hooke_model.groups[0].plan.index.shape[0]
+    assert stvk == hooke and stvk["u"] == 0
+    assert hooke["material"] == edges * 3 * 3 * 4 and hooke["partial_force"] == 2 * edges * 2 * 3 * 4
+
+
 def _check_outputs(out, name):
     assert (out / f"{name}.md").read_text().startswith("# ")
     data = json.loads((out / f"{name}.json").read_text())
