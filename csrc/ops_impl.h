@@ -930,13 +930,7 @@ std::tuple<at::Tensor, at::Tensor> hooke_node_system(const at::Tensor& p, const 
 }
 
 // ------------------------------------------------------------------ implicit Euler's right-hand side
-//
-// hooke_node_step_rhs: the right-hand side of an implicit Euler step of the hooke tensor form in
-// one pass over the nodes (NodeHookeStepRhsKernel), at positions x and velocities v [V, d]:
-//   rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) (w_coef v) - r_M mass v)
-// (w_coef = h + r_K), and what the step's CG matvec needs: u = x - rest [V, d] and, with planes
-// (normals [P, 3], offsets [P], stiffness [P]; d = 3), the contact stiffness node_stiffness
-// [V, 3, 3]. Outputs in place (u, rhs, node_stiffness), so that a CUDA graph replays into them.
+
 // The contact planes of a step's right-hand side (normals [P, 3], offsets [P], stiffness [P];
 // 3-D) and the contact stiffness it writes (node_stiffness [V, 3, 3]), checked against x [V, d]:
 // all of them or none.
@@ -971,6 +965,12 @@ struct StepPlanes {
   }
 };
 
+// hooke_node_step_rhs: the right-hand side of an implicit Euler step of the hooke tensor form in
+// one pass over the nodes (NodeHookeStepRhsKernel), at positions x and velocities v [V, d]:
+//   rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) (w_coef v) - r_M mass v)
+// (w_coef = h + r_K), and what the step's CG matvec needs: u = x - rest [V, d] and, with planes
+// (normals [P, 3], offsets [P], stiffness [P]; d = 3), the contact stiffness node_stiffness
+// [V, 3, 3]. Outputs in place (u, rhs, node_stiffness), so that a CUDA graph replays into them.
 template <class L>
 void hooke_node_step_rhs(const at::Tensor& x, const at::Tensor& v, const at::Tensor& rest, const at::Tensor& neighbor,
                          const at::Tensor& node_k, const at::Tensor& incidences,
@@ -1259,7 +1259,9 @@ bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, 
     }
     check_no_overlap(rhs, "rhs", step_rhs->u, "u");
     if (step_rhs->planes.given) {
-      for (const auto& named : read) check_no_overlap(step_rhs->planes.node_stiffness, "node_stiffness", *named.first, named.second);
+      for (const auto& named : read) {
+        check_no_overlap(step_rhs->planes.node_stiffness, "node_stiffness", *named.first, named.second);
+      }
     }
   }
   at::Tensor no_dots;
