@@ -45,7 +45,8 @@ __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure
            "FUSED_STEP_END",
            "PIPELINED_SOLVE", "PIPELINED_LAYOUTS", "SOLVE_CHUNK_NODES", "STREAM_CHUNK_NODES", "HOOKE_MATVEC_LAYOUTS",
            "HOOKE_MATVEC_LAYOUT", "NODE_TANGENT", "tangent_graph", "tangent_serves", "tangent_node_k",
-           "NODE_GRAPH_WINDOW", "set_objects", "node_graph_rows", "hooke_rows_graph"]
+           "NODE_GRAPH_WINDOW", "set_objects", "node_graph_rows", "hooke_rows_graph", "StepRhs", "SOLVE_STEP_RHS",
+           "steps_serve"]
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
 #: see ``reference.stress_form.kernel_model``).
@@ -1325,13 +1326,13 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
                  work.sums_of(layout, layout_plan), work.counters)
         args = (*system, node_stiffness, rhs, *solve)
         if step_end is not None and step_end.rhs is not None:
-            e, pass_ = step_end, step_end.rhs
-            planes = (None,) * 3 if pass_.planes is None else _contiguous(
-                pass_.planes.normals, pass_.planes.offsets, pass_.planes.stiffness)
+            e, in_solve = step_end, step_end.rhs
+            planes = (None,) * 3 if in_solve.planes is None else _contiguous(
+                in_solve.planes.normals, in_solve.planes.offsets, in_solve.planes.stiffness)
             ran = bool(torch.ops.tensormass.hooke_node_steps(
-                *system, pass_.rest, pass_.external, float(pass_.w_coef), float(pass_.rayleigh_mass), *planes,
-                pass_.u, rhs, node_stiffness, *solve, e.x, e.v, float(e.h), e.x_new, e.v_new, e.norms, e.summary,
-                *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry), int(e.steps)))
+                *system, in_solve.rest, in_solve.external, float(in_solve.w_coef), float(in_solve.rayleigh_mass),
+                *planes, in_solve.u, rhs, node_stiffness, *solve, e.x, e.v, float(e.h), e.x_new, e.v_new, e.norms,
+                e.summary, *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry), int(e.steps)))
             e.done = ran
         elif step_end is not None and FUSED_STEP_END:
             e = step_end
@@ -1365,15 +1366,19 @@ def steps_serve(group, node_stiffness: Optional[torch.Tensor], node_k: Optional[
     and ``carry`` where the steps are more than one. (The solve may still not fit the device:
     :func:`system_solve` says.)"""
     e = step_end
-    planes = e.rhs.planes
-    if (planes is None) != (node_stiffness is None):
-        return False
-    if planes is not None and (e.x.shape[1] != 3 or planes.normals.dtype != e.x.dtype
-                               or planes.normals.device != e.x.device):
+    if (e.rhs.planes is None) != (node_stiffness is None) or not planes_serve(e.rhs.planes, e.x, node_stiffness):
         return False
     return (SOLVE_STEP_RHS and FUSED_STEP_END and hasattr(torch.ops.tensormass, "hooke_node_steps") and node_k is None
             and e.dv_imposed is None and (e.carry or e.steps == 1) and e.steps >= 1
             and step_rhs_serves(group, (e.x, e.v, e.rhs.rest, e.rhs.external)))
+
+
+def planes_serve(planes, x: torch.Tensor, node_stiffness: Optional[torch.Tensor]) -> bool:
+    """Whether the right-hand side's kernels take these contact ``planes`` (a ``contact.Planes``
+    or None) for positions ``x [V, d]``: none, or 3-D positions, a contact stiffness buffer and
+    planes of x's dtype and device."""
+    return planes is None or (x.shape[1] == 3 and node_stiffness is not None and planes.normals.dtype == x.dtype
+                              and planes.normals.device == x.device)
 
 
 def step_rhs_serves(group, inputs=()) -> bool:

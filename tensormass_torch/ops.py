@@ -343,9 +343,7 @@ def step_rhs(groups, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass:
     groups = list(groups)
     mass_v = mass.reshape(-1)
     native = _fused_native(groups, x, v, (rest, mass_v, external, u, rhs, node_stiffness))
-    if native is None or (planes is not None and (x.shape[1] != 3 or node_stiffness is None)):
-        return False
-    if planes is not None and (planes.normals.dtype != x.dtype or planes.normals.device != x.device):
+    if native is None or not native.planes_serve(planes, x, node_stiffness):
         return False
     return native.step_rhs(groups[0], x, v, rest, mass_v, external, planes, h, w_coef, rayleigh_mass, u, rhs,
                            node_stiffness)

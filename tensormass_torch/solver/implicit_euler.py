@@ -209,17 +209,12 @@ class SystemMatvec:
 
         system = self.system
         w_coef = h + rayleigh_stiffness
-        if system.planes is not None and self.node_stiffness is None:
-            self.node_stiffness = torch.zeros(*x.shape, x.shape[-1], dtype=x.dtype, device=x.device)
-        if self._rhs is None:
-            self._rhs = torch.empty_like(self.u)
+        self._node_rhs_buffers()
         model = system.model
         model._check_positions("x", x)
         if ops.step_rhs(model.groups, x, v, model.rest, system.mass, system.external, system.planes, h, w_coef,
                         rayleigh_mass, self.u, self._rhs, self.node_stiffness):
-            self.states = [None] * len(model.groups)  # the hooke tensor form keeps no per-element state
-            self.tangents = None  # its node graph is its own
-            self.contact_forces = None
+            self._loaded_by_node_rhs()
             return self._rhs
         self.load(x)
         rhs = self.forces_along(w_coef * v)
@@ -238,15 +233,26 @@ class SystemMatvec:
         system, model = self.system, self.system.model
         if len(model.groups) != 1 or not ops.step_rhs_serves(model.groups, self.u, (model.rest, system.external)):
             return None
-        if system.planes is not None and self.node_stiffness is None:
-            self.node_stiffness = torch.zeros(*self.u.shape, self.u.shape[-1], dtype=self.u.dtype, device=self.u.device)
-        if self._rhs is None:
-            self._rhs = torch.empty_like(self.u)
-        self.states = [None]  # as load_step with its op: the hooke tensor form's own node graph
-        self.tangents = None
-        self.contact_forces = None
+        self._node_rhs_buffers()
+        self._loaded_by_node_rhs()
         rest, external = (t.contiguous() for t in (model.rest, system.external))
         return native.StepRhs(rest, external, h + rayleigh_stiffness, rayleigh_mass, self.u, system.planes), self._rhs
+
+    def _node_rhs_buffers(self):
+        """The buffers the right-hand side's op writes besides u: the rhs ``[V, d]`` and, with
+        planes, the contact stiffness ``[V, d, d]`` (kept: CUDA graphs replay into them)."""
+        u = self.u
+        if self.system.planes is not None and self.node_stiffness is None:
+            self.node_stiffness = torch.zeros(*u.shape, u.shape[-1], dtype=u.dtype, device=u.device)
+        if self._rhs is None:
+            self._rhs = torch.empty_like(u)
+
+    def _loaded_by_node_rhs(self):
+        """This matvec as the right-hand side's op leaves it: the hooke tensor form keeps no
+        per-element state, its node graph is its own, and only the contact stiffness is kept."""
+        self.states = [None] * len(self.system.model.groups)
+        self.tangents = None
+        self.contact_forces = None
 
     def tangent(self, dx: torch.Tensor) -> torch.Tensor:
         """(dF/dx) dx ``[V, d]`` at the loaded positions (elastic and contact), with the loaded
@@ -423,9 +429,9 @@ class StepGraphs:
     steps of a graph.
 
     A step then costs a few graph launches and one host synchronisation, whatever the number of
-    kernels in it; its report holds host tensors (already copied, so reading them costs nothing). Made by :func:`implicit_euler_step` when the device is CUDA, the
-    model is a ``TensorMass`` and ``newton_iters == 1``; any phase that cannot be captured runs
-    eagerly (same arithmetic).
+    kernels in it; its report holds host tensors (already copied, so reading them costs nothing).
+    Made by :func:`implicit_euler_step` when the device is CUDA, the model is a ``TensorMass`` and
+    ``newton_iters == 1``; any phase that cannot be captured runs eagerly (same arithmetic).
     """
 
     def __init__(self, system: DynamicsSystem, opts: StepOptions, imposed: bool):
