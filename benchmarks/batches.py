@@ -78,7 +78,7 @@ class ObjectFactory:
         self.meshes = [tm.beam_mesh(*s, size=(0.1 * s[0] / s[2], 0.1 * s[1] / s[2], 0.1), dtype=torch.float32)
                        for s in shapes]
         self.fixed = [m.vertices[:, 0] <= 1e-6 for m in self.meshes]
-        self.materials = [tm.Material(young=e, poisson=0.3, density=1000.0, model="stvk") for e in YOUNG]
+        self.materials = [tm.Material(young=e, poisson=0.3, density=1000.0, model="stvk", tangent="exact") for e in YOUNG]
 
     def bodies(self, count):
         return [tm.Body(self.meshes[i % len(self.meshes)], self.materials[i % len(self.materials)],

@@ -83,7 +83,7 @@ def main(argv=None):
     mesh = tm.beam_mesh(*dims, size=(1.0, 0.4, 0.25), device=args.device)
     g = torch.Generator().manual_seed(0)
     for model in args.models.split(","):
-        mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model)
+        mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model, tangent="exact")
         (group,) = tm.TensorMass(mesh, mat, form="stress").groups
         u = (0.01 * torch.randn(mesh.vertices.shape, generator=g)).to(args.device).contiguous()
         funcs = variants(group, u)

@@ -290,7 +290,7 @@ def main(argv=None):
             if budget.remaining() <= 0:
                 rows.append({"model": model, "form": form, "op": "all", "backend": "all", "error": "skipped: budget spent"})
                 continue
-            mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model)
+            mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model, tangent="exact")
             group = tm.TensorMass(mesh, mat, form=form).groups[0]
             gen = torch.Generator(device="cpu").manual_seed(1)
             u = (1e-3 * torch.randn(mesh.vertices.shape, generator=gen, dtype=dtype)).to(device)

@@ -41,6 +41,13 @@ class Planes:
     def __len__(self):
         return self.offsets.numel()
 
+    def to(self, dtype=None, device=None) -> "Planes":
+        """These planes with their tensors in ``dtype`` on ``device`` (a copy; None keeps each)."""
+        other = Planes.__new__(Planes)
+        for name in ("normals", "offsets", "stiffness"):
+            setattr(other, name, getattr(self, name).to(dtype=dtype, device=device))
+        return other
+
     # Elementwise products and small sums over the 3 coordinates / P planes rather than matrix
     # products: x @ normals.T is a [V, 3] x [3, P] product that BLAS runs as a slow skinny GEMV
     # (17 us for 19k nodes on an H100, against ~2 us for the elementwise form).

@@ -17,7 +17,7 @@ from .errors import MaterialError
 MODELS = ("hooke", "stvk", "corotational")
 #: Rotation extraction of the corotational model: polar decomposition, or SOFA's QR frame.
 ROTATIONS = ("polar", "qr")
-TANGENTS = ("exact", "definite")
+TANGENTS = ("auto", "exact", "definite")
 
 Scalar = Union[float, int, torch.Tensor]
 
@@ -51,12 +51,13 @@ class Material:
             (linear in a per-element rotated frame; native kernels for both rotations).
         thickness: membrane thickness in m (triangles only), > 0.
         rotation: corotational rotations by ``"polar"`` decomposition or SOFA's ``"qr"`` frame.
-        tangent: ``"exact"`` or, for ``stvk`` only, ``"definite"``: the force differential (the
-            implicit solver's stiffness) uses the positive part of the second Piola-Kirchhoff
-            stress in its geometric term, so the linear system stays positive definite under
-            compression, where the exact tangent is indefinite and CG breaks down. Forces and
-            energy are unchanged; the step is a quasi-Newton step. (The hooke and corotational
-            tangents are positive semi-definite already.)
+        tangent: the force differential the solvers use (forces and energy never change):
+            ``"exact"``; ``"definite"`` (``stvk`` only): the positive part of the second
+            Piola-Kirchhoff stress in the geometric term, so the linear system stays positive
+            definite under compression, where the exact ``stvk`` tangent is indefinite and CG
+            breaks down (the step is then a quasi-Newton step); ``"auto"`` (default):
+            ``"definite"`` for ``stvk`` in the stress form, ``"exact"`` otherwise (the hooke and
+            corotational tangents are positive semi-definite already). See :meth:`tangent_for`.
     """
 
     young: Scalar
@@ -65,7 +66,7 @@ class Material:
     model: str = "hooke"
     thickness: Scalar = 1.0
     rotation: str = "polar"
-    tangent: str = "exact"
+    tangent: str = "auto"
 
     def __post_init__(self):
         if not isinstance(self.model, str) or self.model not in MODELS:
@@ -81,6 +82,15 @@ class Material:
         _check_range("poisson", self.poisson, -1.0, 0.5)
         _check_range("density", self.density, 0.0, math.inf)
         _check_range("thickness", self.thickness, 0.0, math.inf)
+
+    def tangent_for(self, form: str) -> str:
+        """The tangent the solvers use for this material evaluated in ``form`` (``"stress"`` or
+        ``"tensor"``): ``tangent`` itself unless it is ``"auto"``, which is ``"definite"`` for
+        ``stvk`` in the stress form (a compressed stvk body keeps a solvable implicit system) and
+        ``"exact"`` everywhere else (the tensor form has no definite tangent)."""
+        if self.tangent != "auto":
+            return self.tangent
+        return "definite" if self.model == "stvk" and form == "stress" else "exact"
 
     def per_element(self, name: str, num_elements: int, like: torch.Tensor) -> torch.Tensor:
         """Parameter ``name`` as a tensor ``[N]`` of ``like``'s dtype and device.

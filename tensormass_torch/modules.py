@@ -66,7 +66,7 @@ class TensorMass(nn.Module):
             n_elem = elements.shape[0]
             model_form = _resolve_form(form, material)
             key = (kind, material.model, model_form, material.rotation if material.model == "corotational" else None,
-                   material.tangent)
+                   material.tangent_for(model_form))
             young = material.per_element("young", n_elem, like)
             poisson = material.per_element("poisson", n_elem, like)
             density = material.per_element("density", n_elem, like)

@@ -14,7 +14,8 @@ from .diagnostics import InversionCheck, InversionReport
 from .errors import SceneError, SolverError
 from .materials import Material
 from .modules import TensorMass
-from .solver.implicit_euler import DynamicsSystem, StepOptions, StepReport, implicit_euler_step, step_graphs_for
+from .solver.implicit_euler import (DynamicsSystem, StepOptions, StepReport, auto_cg_max_iter, implicit_euler_step,
+                                    step_graphs_for)
 from .solver.segments import Segments
 
 
@@ -82,7 +83,9 @@ class Simulator:
         rayleigh_mass, rayleigh_stiffness: Rayleigh damping r_M, r_K (>= 0).
         planes: list of :class:`Plane` (penalty contact).
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs: see
-            ``StepOptions``.
+            ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
+            ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
+            converging solve is never cut short; the value used is ``sim.options.cg_max_iter``.
         form: element force form, ``"auto" | "stress" | "tensor"``.
         device, dtype: where and in what precision to simulate (default: the meshes').
         check_inversion: inverted elements after each step: ``"off"`` (no check, no cost),
@@ -98,7 +101,7 @@ class Simulator:
 
     def __init__(self, bodies: Sequence[Body], dt: float = 0.01, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0, planes: Sequence[Plane] = (),
-                 cg_tol: float = 1e-6, cg_max_iter: int = 200, require_convergence: bool = True,
+                 cg_tol: float = 1e-6, cg_max_iter: Optional[int] = None, require_convergence: bool = True,
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0):
         bodies = list(bodies)
@@ -112,6 +115,12 @@ class Simulator:
         for name, value in (("rayleigh_mass", rayleigh_mass), ("rayleigh_stiffness", rayleigh_stiffness)):
             if not (math.isfinite(value) and value >= 0):
                 raise SceneError(f"{name} must be >= 0 and finite, got {value!r}")
+        if cg_max_iter is not None and (isinstance(cg_max_iter, bool) or not isinstance(cg_max_iter, int)
+                                        or cg_max_iter < 1):
+            raise SceneError(f"cg_max_iter must be a positive integer or None (automatic), got {cg_max_iter!r}")
+        if not (isinstance(cg_tol, (int, float)) and not isinstance(cg_tol, bool) and math.isfinite(cg_tol)
+                and cg_tol >= 0):
+            raise SceneError(f"cg_tol must be a finite number >= 0, got {cg_tol!r}")
         if newton_iters < 1:
             raise SceneError(f"newton_iters must be >= 1, got {newton_iters}")
         if check_inversion not in INVERSION_CHECKS:
@@ -134,6 +143,9 @@ class Simulator:
             raise SceneError(f"gravity must be 3 finite numbers, got {gravity.tolist()}")
 
         self.bodies = bodies
+        if cg_max_iter is None:
+            free_dofs = [3 * int((~(b.fixed | b.prescribed)).sum()) for b in bodies]
+            cg_max_iter = auto_cg_max_iter(max(free_dofs))
         self.options = StepOptions(dt=float(dt), rayleigh_mass=float(rayleigh_mass),
                                    rayleigh_stiffness=float(rayleigh_stiffness), cg_tol=cg_tol,
                                    cg_max_iter=cg_max_iter, require_convergence=require_convergence,

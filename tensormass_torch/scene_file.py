@@ -329,7 +329,7 @@ def _material(t: _Table, model_override: Optional[str]) -> Material:
         density=t.get("density", "positive", 1000.0),
         thickness=t.get("thickness", "positive", 1.0),
         rotation=_choice(t, "rotation", ROTATIONS, "polar", "rotation"),
-        tangent=_choice(t, "tangent", TANGENTS, "exact", "tangent"),
+        tangent=_choice(t, "tangent", TANGENTS, "auto", "tangent"),
         model=model_override or model,
     )
     t.done()

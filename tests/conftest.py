@@ -120,9 +120,10 @@ def build_scene(rng: np.random.Generator, kind: str, cells=None, jitter: float =
 
 
 def random_material(rng: np.random.Generator, model: str, **overrides) -> Material:
-    """A random material (E in [1e3, 1e5], nu in [0.1, 0.45], rho in [500, 2000], t in [0.02, 0.2])."""
+    """A random material (E in [1e3, 1e5], nu in [0.1, 0.45], rho in [500, 2000], t in [0.02, 0.2])
+    with the exact tangent (the tests of the physics compare it with the energy's Hessian)."""
     params = dict(young=float(rng.uniform(1e3, 1e5)), poisson=float(rng.uniform(0.1, 0.45)),
-                  density=float(rng.uniform(500, 2000)), thickness=float(rng.uniform(0.02, 0.2)))
+                  density=float(rng.uniform(500, 2000)), thickness=float(rng.uniform(0.02, 0.2)), tangent="exact")
     params.update(overrides)
     return Material(model=model, **params)
 

@@ -32,7 +32,7 @@ def make_group(kind, model, rotation, dtype, device, seed=0):
         mesh = tm.beam_mesh(3, 2, 2, size=(0.3, 0.2, 0.2), dtype=dtype, device=device)
     else:
         mesh = tm.beam_tri_mesh(3, 2, size=(0.3, 0.2), dim=3 if kind == "tri3d" else 2, dtype=dtype, device=device)
-    extra = {"rotation": rotation} if rotation else {}
+    extra = {"rotation": rotation} if rotation else {"tangent": "exact"}
     if model == "stvk_definite":
         model, extra = "stvk", {"tangent": "definite"}
     material = tm.Material(young=1e4, poisson=0.3, density=1000.0, model=model, **extra)

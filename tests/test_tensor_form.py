@@ -32,7 +32,8 @@ def both_forms(scene, mat):
 
 def random_per_element_material(rng, model, n):
     return Material(young=t64(rng.uniform(1e3, 1e5, n)), poisson=t64(rng.uniform(0.05, 0.45, n)),
-                    density=t64(rng.uniform(500, 2000, n)), model=model, thickness=t64(rng.uniform(0.02, 0.2, n)))
+                    density=t64(rng.uniform(500, 2000, n)), model=model, thickness=t64(rng.uniform(0.02, 0.2, n)),
+                    tangent="exact")
 
 
 def lame_np(kind, young, poisson):

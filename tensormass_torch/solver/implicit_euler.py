@@ -22,6 +22,18 @@ from .cg import CGResult, CGSolver, batched_cg, run_captured
 from .segments import Segments
 
 
+def auto_cg_max_iter(free_dofs: int) -> int:
+    """The CG cap a simulator uses when none is given: 10 x the free degrees of freedom of its
+    largest object (at least 100).
+
+    CG reaches the exact solution in at most n iterations in exact arithmetic; in float32 the
+    loss of orthogonality on an ill-conditioned system (a nearly incompressible or a stiff body
+    at a large step) costs several times n (docs/solver-defaults.md). A converging solve stops at
+    its tolerance, so the cap never shortens it: it only bounds how long a hopeless solve runs
+    before it is reported as not converged."""
+    return max(100, 10 * int(free_dofs))
+
+
 @dataclass
 class StepOptions:
     """Settings of one implicit Euler step.
@@ -29,7 +41,8 @@ class StepOptions:
     Attributes:
         dt: time step h (> 0).
         rayleigh_mass, rayleigh_stiffness: r_M, r_K (>= 0).
-        cg_tol: per-object relative residual tolerance; cg_max_iter: iteration cap.
+        cg_tol: per-object relative residual tolerance; cg_max_iter: iteration cap (the
+            Simulator's default is :func:`auto_cg_max_iter`).
         require_convergence: if False, a CG stopped by its cap is accepted (SOFA's fixed iteration
             budget); breakdowns and NaN/inf are always errors.
         newton_iters: linearisations per step (1 = Baraff-Witkin).
@@ -358,14 +371,40 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None) -> CG
                     graph_key=fused.graph_key)
 
 
+#: What to do about each way a step's solve fails (the end of SolverError's message).
+_FAILURE_HINTS = {
+    "not converged": "raise cg_max_iter (None: automatic) or cg_tol, shorten dt, or pass "
+                     "require_convergence=False to accept a fixed CG budget",
+    "breakdown": "the system is not positive definite: inverted elements, or stvk with tangent='exact' under "
+                 "compression (the default tangent='auto' avoids that); shorten dt or set substeps_on_failure",
+    "non-finite": "NaN/inf: dt is too large for the stiffness or the state blew up; shorten dt or set "
+                  "substeps_on_failure",
+}
+
+
 def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):
     failed = result.breakdown | result.nonfinite
     if opts.require_convergence:
         failed = failed | ~result.converged
     if bool(failed.any()):
         status = result.status()
-        bad = [f"object {i}: {s}" for i, s in enumerate(status) if bool(failed[i])]
-        raise SolverError(f"{what} failed ({'; '.join(bad[:10])}); the state was not changed", status, result)
+        iterations = result.iterations.tolist()
+        residual = result.relative_residual.tolist()
+        bad = []
+        for i, word in enumerate(status):
+            if not bool(failed[i]):
+                continue
+            if word == "not converged":
+                word += (f": relative residual {residual[i]:.2e} > cg_tol {opts.cg_tol:g} after "
+                         f"{iterations[i]} iterations (cg_max_iter {opts.cg_max_iter})")
+            elif word == "breakdown":
+                word += f" at iteration {iterations[i]}"
+            bad.append(f"object {i}: {word}")
+        kinds = [word for word in _FAILURE_HINTS if any(s == word for s, f in zip(status, failed.tolist()) if f)]
+        hints = "; ".join(_FAILURE_HINTS[word] for word in kinds)
+        more = f"; and {len(bad) - 10} more objects" if len(bad) > 10 else ""
+        raise SolverError(f"{what} failed ({'; '.join(bad[:10])}{more}); the state was not changed. {hints}",
+                          status, result)
 
 
 def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, matvec=None):

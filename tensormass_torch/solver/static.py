@@ -1,6 +1,7 @@
 """Static equilibrium: Newton's method with CG on K du = -(f_int + f_ext)."""
 from __future__ import annotations
 
+import copy
 from typing import Optional, Sequence
 
 import torch
@@ -13,12 +14,19 @@ from .segments import Segments
 
 def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81), tol: float = 1e-6,
                  external: Optional[torch.Tensor] = None, max_newton: int = 50, cg_tol: Optional[float] = None,
-                 cg_max_iter: Optional[int] = None, planes=None) -> torch.Tensor:
+                 cg_max_iter: Optional[int] = None, planes=None, precision: str = "float64") -> torch.Tensor:
     """Displacement ``u [V, d]`` at static equilibrium of a :class:`TensorMass` model.
 
     Solves f_int(X + u) + M g + external (+ contact) = 0 on the free nodes by Newton's method, each
     step a CG solve of (-K) du = residual (one step for ``hooke``), with a backtracking line search
     on the potential energy for non-linear models.
+
+    The equilibrium residual is a difference of internal forces much larger than the load (in a
+    bent beam, by about its slenderness squared), so float32 resolves it only to about 1e-7 times
+    that ratio: 1e-2 of the load on the README's stvk beam, far above ``tol``. By default the
+    iterations therefore run on a float64 copy of the model and the result comes back in the
+    model's dtype; ``precision="model"`` keeps the model's dtype and, should the residual stop
+    falling above ``tol``, raises at once with the floor it reached.
 
     Args:
         model: a ``TensorMass``.
@@ -29,11 +37,54 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
         external: extra nodal forces ``[V, d]``.
         cg_tol, cg_max_iter: inner CG settings (default tol / 10 and 10 V).
         planes: ``contact.Planes`` or None.
+        precision: ``"float64"`` (default: Newton and CG in float64 whatever the model's dtype) or
+            ``"model"`` (in the model's dtype).
 
     Raises:
         SolverError when CG breaks down (the tangent stiffness is not positive definite: buckling,
         inverted elements) or Newton does not converge in ``max_newton`` steps.
     """
+    if precision not in PRECISIONS:
+        raise SceneError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
+    out_dtype = model.rest.dtype
+    if precision == "float64" and out_dtype != torch.float64:
+        model = _variant(model, torch.float64)
+        planes = None if planes is None else planes.to(dtype=torch.float64)
+        external = None if external is None else external.to(torch.float64)
+    u = _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, planes)
+    return u.to(out_dtype)
+
+
+#: ``solve_static(precision=...)`` values.
+PRECISIONS = ("float64", "model")
+#: Newton steps over which the residual must fall by STALL_FACTOR, else the solve has stalled.
+STALL_STEPS = 8
+STALL_FACTOR = 0.5
+
+
+def _variant(model, dtype, tangent: Optional[str] = None):
+    """``model`` in ``dtype`` with its stress-form stvk groups on ``tangent`` (None: as they are):
+    ``model`` itself where nothing changes, otherwise a copy, its buffers detached (the static
+    solve is not differentiated). Forces and energy are the same whatever the tangent."""
+    def changes(group):
+        return tangent is not None and group.model == "stvk" and group.form == "stress" and group.tangent != tangent
+
+    if model.rest.dtype == dtype and not any(changes(g) for g in model.groups):
+        return model
+    memo = {id(t): t.detach() for t in model.buffers() if t.requires_grad}
+    clone = copy.deepcopy(model, memo).to(dtype)
+    for group in clone.groups:
+        if changes(group):
+            group.tangent = tangent
+    return clone
+
+
+def _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, planes):
+    # Newton steps on the exact tangent (quadratic convergence); where it is indefinite (a
+    # compressed stvk body: CG breaks down) that step is taken on the definite tangent instead.
+    exact = _variant(model, model.rest.dtype, "exact")
+    definite = None
+    has_stvk = any(g.model == "stvk" and g.form == "stress" for g in model.groups)
     rest = model.rest
     num_nodes, dim = rest.shape
     gravity = torch.as_tensor(gravity, dtype=rest.dtype, device=rest.device)
@@ -58,20 +109,20 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
     # The model is evaluated at displacements, not at positions rest + u: in float32 the
     # positions would round the small displacements of a stiff body (see TensorMass).
     def residual(u):
-        r = model.displacement_forces(u) + load
+        r = exact.displacement_forces(u) + load
         if planes is not None:
             r = r + planes.forces(rest + u)
         return r * free
 
     def potential(u):
-        value = model.displacement_energy(u) - (load * u).sum()
+        value = exact.displacement_energy(u) - (load * u).sum()
         if planes is not None:  # penalty energy k/2 pen^2
             value = value + 0.5 * (planes.stiffness * planes.penetration(rest + u) ** 2).sum()
         return value
 
-    def tangent(u):
+    def tangent(on, u):
         x = rest + u
-        stiffness = model.displacement_tangent(u)  # shared state (rotations) once per Newton step
+        stiffness = on.displacement_tangent(u)  # shared state (rotations) once per Newton step
 
         def matvec(p):
             ap = -stiffness(p)
@@ -79,16 +130,27 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
 
         return matvec
 
+    def failed(result):
+        return bool(result.breakdown.any() | result.nonfinite.any())
+
     linear = all(g.model == "hooke" for g in model.groups) and planes is None  # corotational is not
     u = torch.zeros_like(rest)
     r = residual(u)
+    history = []
     for _ in range(max_newton):
-        if float(torch.linalg.vector_norm(r)) <= tol * load_norm:
+        ratio = float(torch.linalg.vector_norm(r)) / load_norm
+        if ratio <= tol:
             return u
-        result = batched_cg(tangent(u), r, segments, free, tol=cg_tol, max_iter=cg_max_iter)
-        if bool(result.breakdown.any() | result.nonfinite.any()):
-            raise SolverError(f"static solve: CG {result.status()[0]} (tangent stiffness not positive definite)",
-                              result.status(), result)
+        history.append(ratio)
+        if _stalled(history):
+            _raise_if_rounding(model, u, r, load, free, planes, tol)
+        result = batched_cg(tangent(exact, u), r, segments, free, tol=cg_tol, max_iter=cg_max_iter)
+        if failed(result) and has_stvk:
+            definite = definite or _variant(model, model.rest.dtype, "definite")
+            result = batched_cg(tangent(definite, u), r, segments, free, tol=cg_tol, max_iter=cg_max_iter)
+        if failed(result):
+            raise SolverError(f"static solve: CG {result.status()[0]} (tangent stiffness not positive definite: "
+                              "buckling, a body held too little, or inverted elements)", result.status(), result)
         du = result.solution
         step = 1.0
         if not linear:  # Armijo backtracking on the potential energy
@@ -102,6 +164,33 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
     raise SolverError(f"static solve did not converge in {max_newton} Newton steps "
                       f"(residual ratio {float(torch.linalg.vector_norm(r)) / load_norm:.3e} > {tol})",
                       ["not converged"])
+
+
+def _stalled(history) -> bool:
+    """Whether the residual ratios ``history`` have stopped falling: the best of the last
+    STALL_STEPS Newton steps is not STALL_FACTOR below the best before them."""
+    return len(history) > STALL_STEPS and min(history[-STALL_STEPS:]) > STALL_FACTOR * min(history[:-STALL_STEPS])
+
+
+def _raise_if_rounding(model, u, r, load, free, planes, tol: float):
+    """Raise when a stalled solve below float64 stalled on rounding: its residual ``r [V, d]`` at
+    ``u [V, d]`` differs from the float64 residual there by as much as it measures. A stall that
+    float64 shares (a slow non-linear solve) is left to max_newton."""
+    if u.dtype == torch.float64:
+        return
+    wide = _variant(model, torch.float64)
+    u64 = u.to(torch.float64)
+    r64 = wide.displacement_forces(u64) + load.to(torch.float64)
+    if planes is not None:
+        r64 = r64 + planes.to(dtype=torch.float64).forces(wide.rest + u64)
+    r64 = r64 * free.to(torch.float64)
+    noise = float(torch.linalg.vector_norm(r.to(torch.float64) - r64))
+    if noise > 0.5 * float(torch.linalg.vector_norm(r)):
+        floor = noise / float(torch.linalg.vector_norm(load * free))
+        raise SolverError(f"static solve stalled at a residual ratio of about {floor:.1e} > tol {tol:g}: in "
+                          f"{str(u.dtype).replace('torch.', '')} the internal forces cancel to the load only within "
+                          f"rounding; use precision='float64' (the default) or tol >= {2 * floor:.0e}",
+                          ["not converged"])
 
 
 def _line_search(potential, residual, u, du, r) -> float:
