@@ -3,9 +3,10 @@
 The package is pure Python plus one optional compiled extension, ``tensormass_torch._C``:
 
 * C++ sources ``csrc/**/*.cpp`` are always compiled (CPU kernels, OpenMP, -O3);
-* CUDA sources ``csrc/**/*.cu`` are added (one CUDAExtension) when the installed torch is a
-  CUDA build and a CUDA toolkit is found (``CUDA_HOME``); the macro ``TENSORMASS_WITH_CUDA``
-  is then defined for every translation unit;
+* CUDA sources ``csrc/**/*.cu`` are added (one CUDAExtension) as ``tensormass_torch/_build.py``
+  decides: when torch is a CUDA build, a matching CUDA toolkit is found (``CUDA_HOME``) and
+  there is a GPU to build for (a visible one, or ``TORCH_CUDA_ARCH_LIST``); the macro
+  ``TENSORMASS_WITH_CUDA`` is then defined for every translation unit;
 * with no sources under ``csrc/`` the package is pure Python and nothing is compiled.
 
 The extension is compiled against the torch that is importable here, so install with
@@ -17,7 +18,9 @@ Environment switches:
 
 * ``TENSORMASS_BUILD_EXT=0``       build no extension at all (pure Python, torch fallback);
 * ``TENSORMASS_BUILD_CUDA=0|1``    force the CUDA part off / on (on without a CUDA build of
-                                   torch and a toolkit is an error); unset = automatic;
+                                   torch and a toolkit is an error; on without a GPU or an
+                                   architecture list builds for _build.DEFAULT_ARCH_LIST);
+                                   unset = automatic;
 * ``MAX_JOBS``, ``TORCH_CUDA_ARCH_LIST``, ``CUDA_HOME``: read by ``torch.utils.cpp_extension``.
 """
 import glob
@@ -53,6 +56,18 @@ def _switch(name, allowed):
     return value
 
 
+def _build_rules():
+    """tensormass_torch/_build.py, loaded by its path: importing the package would need the
+    extension this script builds."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("tensormass_build", os.path.join(ROOT, PACKAGE, "_build.py"))
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up by name
+    spec.loader.exec_module(module)
+    return module
+
+
 def _sources(pattern):
     """Sorted source paths relative to ROOT (setuptools wants relative paths)."""
     return sorted(
@@ -64,7 +79,7 @@ def _sources(pattern):
 def _extension():
     """(ext_modules, cmdclass) for the build: ([], {}) for a pure-Python package."""
     build_ext = _switch("TENSORMASS_BUILD_EXT", ("", "0", "1", "auto"))
-    build_cuda = _switch("TENSORMASS_BUILD_CUDA", ("", "0", "1", "auto"))
+    _switch("TENSORMASS_BUILD_CUDA", ("", "0", "1", "auto"))
     if build_ext == "0":
         print("tensormass_torch: TENSORMASS_BUILD_EXT=0, building no extension")
         return [], {}
@@ -86,27 +101,17 @@ def _extension():
             "  or set TENSORMASS_BUILD_EXT=0 for a pure-Python install (torch fallback)." % exc
         )
 
-    # CUDA: automatic, or forced with TENSORMASS_BUILD_CUDA.
-    cuda_home = cpp_extension.CUDA_HOME  # None unless torch is a CUDA build and a toolkit exists
-    if build_cuda == "1":
-        if not torch.version.cuda:
-            sys.exit(
-                "error: TENSORMASS_BUILD_CUDA=1 but the installed torch %s is not a CUDA build "
-                "(torch.version.cuda is None)." % torch.__version__
-            )
-        if not cuda_home:
-            sys.exit(
-                "error: TENSORMASS_BUILD_CUDA=1 but no CUDA toolkit was found: set CUDA_HOME "
-                "to the toolkit matching torch's CUDA %s (nvcc must be at $CUDA_HOME/bin/nvcc)."
-                % torch.version.cuda
-            )
-        if not cu_sources:
-            sys.exit("error: TENSORMASS_BUILD_CUDA=1 but there are no csrc/**/*.cu sources.")
-        with_cuda = True
-    elif build_cuda == "0":
-        with_cuda = False
-    else:
-        with_cuda = bool(torch.version.cuda and cuda_home and cu_sources)
+    # CUDA: decided by tensormass_torch/_build.py from the machine's facts (see its rules).
+    choice = _build_rules().choose(_build_rules().machine_facts(bool(cu_sources)))
+    if choice.error:
+        sys.exit("error: " + choice.reason)
+    with_cuda = choice.with_cuda
+    if with_cuda:
+        # torch's extension builder reads the list from the environment; set it so that a
+        # machine without a GPU never reaches its own guess (which fails with no GPU to ask)
+        os.environ["TORCH_CUDA_ARCH_LIST"] = choice.arch_list
+    cuda_home = cpp_extension.CUDA_HOME
+    print("tensormass_torch: " + choice.reason)
 
     if sys.platform == "win32":
         cxx_flags, link_flags = ["/O2", "/openmp"], []
@@ -134,13 +139,6 @@ def _extension():
         )
         kind = "C++ + CUDA %s (CUDA_HOME=%s)" % (torch.version.cuda, cuda_home)
     else:
-        if cu_sources:
-            why = (
-                "TENSORMASS_BUILD_CUDA=0" if build_cuda == "0"
-                else "torch %s is not a CUDA build" % torch.__version__ if not torch.version.cuda
-                else "no CUDA toolkit found (set CUDA_HOME)"
-            )
-            print("tensormass_torch: skipping %d CUDA source(s): %s" % (len(cu_sources), why))
         if not cpp_sources:
             print("tensormass_torch: no C++ sources to build, building a pure-Python package")
             return [], {}
@@ -164,10 +162,10 @@ def _extension():
             try:
                 super().run()
             except Exception:
+                cuda_hint = "; to skip only the CUDA part set TENSORMASS_BUILD_CUDA=0" if with_cuda else ""
                 sys.stderr.write(
-                    "\ntensormass_torch: compiling %s failed (see above). To install without the "
-                    "extension (pure-torch fallback) set TENSORMASS_BUILD_EXT=0; to skip only the "
-                    "CUDA part set TENSORMASS_BUILD_CUDA=0.\n" % EXT_NAME
+                    "\ntensormass_torch: compiling %s failed (see above); to install without the "
+                    "extension (pure-torch fallback) set TENSORMASS_BUILD_EXT=0%s\n" % (EXT_NAME, cuda_hint)
                 )
                 raise
 
@@ -188,8 +186,8 @@ setup(
     packages=find_packages(include=[PACKAGE, PACKAGE + ".*"]),
     python_requires=">=3.9",
     # torch is deliberately absent: the user's torch (CPU or CUDA build) must be kept as it is.
-    install_requires=["numpy", "meshio"],
-    extras_require={"test": ["pytest"], "render": ["pyvista"]},
+    install_requires=["numpy", "meshio", "tqdm"],
+    extras_require={"test": ["pytest", "hypothesis"], "render": ["pyvista"], "mesh": ["tetgen", "pytetwild"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
     entry_points={"console_scripts": ["tensormass = tensormass_torch.cli:main"]},

@@ -35,7 +35,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     bodies = make_bodies(args.bodies, args.device, torch.float32)
     sim = tm.Simulator(bodies, dt=0.01, gravity=(0, 0, -9.81), rayleigh_mass=1.0,
-                       planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], cg_tol=1e-4, cg_max_iter=300)
+                       planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], cg_tol=1e-4)
     writer = None
     if args.out:
         from tensormass_torch.output import FrameWriter

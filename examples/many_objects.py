@@ -66,7 +66,7 @@ def main(argv=None):
     dtype = getattr(torch, args.dtype)
     bodies = make_bodies(args.objects, args.device, dtype)
     sim = tm.Simulator(bodies, dt=0.01, gravity=(0.0, 0.0, -9.81), rayleigh_mass=0.5,
-                       planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=1e-4, cg_max_iter=300,
+                       planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=1e-4,
                        device=args.device, dtype=dtype)
     writers = []
     if args.out:

@@ -45,7 +45,7 @@ def build(size, cell, model, young, tool_speed, press_time, device, dtype):
     body = tm.Body(mesh, material, prescribed=tool, motion=ToolPress(mesh.vertices[tool], tool_speed, press_time),
                    name="rabbit")
     sim = tm.Simulator([body], dt=0.01, gravity=(0.0, 0.0, -9.81), rayleigh_mass=1.0, rayleigh_stiffness=0.002,
-                       planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=1e-4, cg_max_iter=500)
+                       planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=1e-4)
     return sim, tool
 
 

@@ -5,7 +5,8 @@
 #   2. build tools for --no-build-isolation (setuptools>=64, wheel), only if missing;
 #   3. `pip install --no-build-isolation -e .` (compiles tensormass_torch._C against that torch
 #      when csrc/ has sources), skipped when nothing it depends on changed since the last run;
-#   4. test dependencies (pytest, meshio, numpy, pyvista for the off-screen rendering tests),
+#   4. test dependencies (pytest, meshio, numpy, tqdm, hypothesis for the fuzz tests, tetgen for
+#      tm.tetrahedralize, pyvista for the off-screen rendering tests),
 #      only if missing. pyvista's vtk wheel renders headless through EGL (Mesa's libEGL and
 #      llvmpipe on a machine without a GPU; see tensormass_torch/render.py).
 # Quiet when all goes well; on a failure prints pip's output and exits non-zero.
@@ -28,13 +29,19 @@ command -v "$PYTHON" >/dev/null 2>&1 || die "python not found: PYTHON=$PYTHON"
 LOG="$(mktemp "${TMPDIR:-/tmp}/tensormass-install.XXXXXX")"
 trap 'rm -f "$LOG"' EXIT
 
-# pip quietly; on failure show its output and stop.
+# pip quietly; on failure show its output and stop with one line saying what failed.
+# ON_PIP_FAILURE: a command run before stopping (install step 3 puts the previous build back).
+ON_PIP_FAILURE=""
 pip_q() {
     if ! "$PYTHON" -m pip install -q "$@" >"$LOG" 2>&1; then
         cat "$LOG" >&2
-        say "hint: if pip refuses with 'externally-managed-environment', use a virtual environment:"
-        say "      python3 -m venv .venv && PYTHON=.venv/bin/python bash scripts/$(basename "${0}")"
-        die "pip install $* failed (python: $PYTHON)"
+        [[ -z "$ON_PIP_FAILURE" ]] || eval "$ON_PIP_FAILURE"
+        if grep -q "externally-managed-environment" "$LOG"; then
+            die "pip refuses to install into this python ($PYTHON is externally managed): use a virtual environment, python3 -m venv .venv && PYTHON=.venv/bin/python bash scripts/$(basename "${0}")"
+        fi
+        local why
+        why="$(grep -E "^[[:space:]]*(error: |tensormass_torch: )" "$LOG" | tail -n 1 | sed 's/^[[:space:]]*//' || true)"
+        die "pip install $* failed (python: $PYTHON)${why:+: $why}"
     fi
 }
 
@@ -72,16 +79,23 @@ if v < (70, 1):  # bdist_wheel moved into setuptools in 70.1
 fi
 
 # 3. the package itself, editable, compiled against the torch above.
+# Whether the build compiles CUDA kernels, and for which GPUs (tensormass_torch/_build.py
+# decides from the machine: torch's CUDA, the toolkit, visible GPUs, TORCH_CUDA_ARCH_LIST).
+if ! cuda_choice="$("$PYTHON" "$ROOT/tensormass_torch/_build.py" "$ROOT" 2>"$LOG")"; then
+    cat "$LOG" >&2
+    die "could not decide how to build the CUDA kernels (see above)"
+fi
+CUDA_FINGERPRINT="$(sed -n 1p <<<"$cuda_choice")"
 # Fingerprint of everything the build depends on; the install is skipped when it is unchanged,
 # pip has the package installed from this tree and (when csrc/ has sources) the built extension
-# file is there.
+# file is there. The CUDA decision counts, not the switches behind it: forgetting a switch that
+# decides the same rebuilds nothing.
 STAMP="$ROOT/build/tensormass-install.stamp"
-fingerprint="$(TORCH_VERSION="$TORCH_VERSION" "$PYTHON" - <<'EOF'
+fingerprint="$(TORCH_VERSION="$TORCH_VERSION" CUDA_FINGERPRINT="$CUDA_FINGERPRINT" "$PYTHON" - <<'EOF'
 import glob, hashlib, os, sys
 h = hashlib.sha256()
-for item in (sys.executable, os.environ["TORCH_VERSION"],
-             os.environ.get("TENSORMASS_BUILD_EXT", ""), os.environ.get("TENSORMASS_BUILD_CUDA", ""),
-             os.environ.get("CUDA_HOME", ""), os.environ.get("TORCH_CUDA_ARCH_LIST", "")):
+for item in (sys.executable, os.environ["TORCH_VERSION"], os.environ.get("TENSORMASS_BUILD_EXT", ""),
+             os.environ["CUDA_FINGERPRINT"]):
     h.update(item.encode() + b"\0")
 files = ["setup.py", "pyproject.toml"] + sorted(
     p for p in glob.glob("csrc/**/*", recursive=True) if os.path.isfile(p))
@@ -118,10 +132,19 @@ if [[ "${TENSORMASS_REINSTALL:-0}" != "1" && -f "$STAMP" && "$(cat "$STAMP")" ==
     say "tensormass_torch already installed from $ROOT and up to date"
 else
     say "pip install --no-build-isolation -e . (this compiles tensormass_torch._C when csrc/ has sources)"
+    [[ "$want_ext" == 0 ]] || say "$(sed -n 2p <<<"$cuda_choice")"
     rm -f "$STAMP"
-    # A stale in-tree build would be imported even when no extension is built now.
-    rm -f "$ROOT"/tensormass_torch/_C*.so "$ROOT"/tensormass_torch/_C*.pyd
+    # The previous build is set aside, not deleted: a stale in-tree build would be imported even
+    # when no extension is built now, but a failed build must leave the working one in place.
+    KEPT="$ROOT/build/previous-extension"
+    rm -rf "$KEPT" && mkdir -p "$KEPT"
+    for f in "$ROOT"/tensormass_torch/_C*.so "$ROOT"/tensormass_torch/_C*.pyd; do
+        if [[ -e "$f" ]]; then mv "$f" "$KEPT/"; fi
+    done
+    ON_PIP_FAILURE='if compgen -G "$KEPT/*" >/dev/null; then mv "$KEPT"/* "$ROOT/tensormass_torch/"; say "the previous build of tensormass_torch._C was kept"; fi'
     pip_q --no-build-isolation -e "$ROOT"
+    ON_PIP_FAILURE=""
+    rm -rf "$KEPT"
     installed_here || die "tensormass_torch is not installed from $ROOT after the install"
     mkdir -p "$(dirname "$STAMP")"
     echo "$fingerprint" >"$STAMP"
@@ -130,7 +153,7 @@ fi
 # 4. test dependencies
 read -r -a missing <<<"$(py_out '
 import importlib
-for name in ("pytest", "meshio", "numpy", "pyvista"):
+for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen"):
     try:
         importlib.import_module(name)
     except Exception:

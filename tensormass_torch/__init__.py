@@ -7,7 +7,7 @@
 """
 from ._backend import backend_info
 from .contact import Plane
-from .errors import MaterialError, MeshError, SceneError, SolverError, TensorMassError
+from .errors import InvertedElementsError, MaterialError, MeshError, SceneError, SolverError, TensorMassError
 from .io import load_mesh, save_mesh
 from .materials import MODELS, Material
 from .mesh import Mesh, TetMesh, TriMesh, beam_mesh, beam_tri_mesh
@@ -15,11 +15,12 @@ from .modules import TensorMass
 from .scene import Body, InvertedElementsWarning, Simulator
 from .scene_file import load_scene
 from .solver import solve_static
+from .surface_mesh import tetrahedralize
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "backend_info", "Plane", "MaterialError", "MeshError", "SceneError", "SolverError", "TensorMassError",
+    "backend_info", "Plane", "InvertedElementsError", "MaterialError", "MeshError", "SceneError", "SolverError", "TensorMassError",
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh",
-    "TensorMass", "Body", "Simulator", "InvertedElementsWarning", "load_scene", "solve_static",
+    "TensorMass", "Body", "Simulator", "InvertedElementsWarning", "load_scene", "solve_static", "tetrahedralize",
 ]

@@ -24,6 +24,15 @@ class UsageError(Exception):
     """A command line that asks for something that does not exist (exit status 2)."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line, ``tensormass: error: ...`` (exit status 2),
+    as every other error of the command line; ``--help`` still prints the usage."""
+
+    def error(self, message):
+        command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
+        self.exit(2, f"{PROG}: error: {command}{message} (see {self.prog} --help)\n")
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -123,7 +132,7 @@ def _cmd_info(args):
 
 def _cmd_run(args):
     from .output import FrameRenderer, FrameWriter
-    from .progress import ProgressLine
+    from .progress import Progress
 
     if (args.png or args.gif) and not args.out:
         raise UsageError("--png and --gif need --out (the folder the pictures go to)")
@@ -143,7 +152,7 @@ def _cmd_run(args):
         writer = FrameWriter(args.out, scene.name)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
     say(f"{scene.description}; {steps} steps on {sim.device} ({str(sim.dtype).replace('torch.', '')})")
-    progress = None if args.quiet else ProgressLine(steps)
+    progress = None if args.quiet else Progress(steps, label=scene.name)
 
     def write_frame():
         if writer:
@@ -152,14 +161,17 @@ def _cmd_run(args):
             renderer.write(sim)
 
     write_frame()
+    stepping = 0.0  # wall time in sim.step alone: the rate shown leaves frame output out
     for done in range(1, steps + 1):
+        start = time.perf_counter()
         sim.step(1)
+        stepping += time.perf_counter() - start
         if done % every == 0 or done == steps:
             write_frame()
         if progress:
-            progress.update(done, sim)
+            progress.update(done, sim, stepping)
     if progress:
-        progress.finish(steps, sim)
+        progress.finish(steps, sim, stepping)
     if renderer:
         renderer.close()
     if writer:
@@ -240,7 +252,7 @@ def build_parser():
     from .materials import MODELS
     from .scenes import SCENES
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog=PROG,
         description="Tensor-Mass soft-body simulation with an implicit solver (PyTorch).",
     )

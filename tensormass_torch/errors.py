@@ -13,6 +13,18 @@ class MeshError(TensorMassError, ValueError):
     """A mesh is malformed: wrong shapes or dtypes, bad indices, degenerate or inverted elements."""
 
 
+class InvertedElementsError(MeshError):
+    """A mesh has inverted elements (negative measure).
+
+    Attributes:
+        ids: the inverted elements' ids, as the message lists them (a short text).
+    """
+
+    def __init__(self, message, ids: str = ""):
+        super().__init__(message)
+        self.ids = ids
+
+
 class MaterialError(TensorMassError, ValueError):
     """A material parameter is out of range or a model name is unknown."""
 

@@ -17,7 +17,7 @@ from typing import Dict, Union
 import numpy as np
 import torch
 
-from .errors import MeshError
+from .errors import InvertedElementsError, MeshError
 from .mesh import Mesh, TetMesh, TriMesh, _native_numpy
 
 __all__ = ["load_mesh", "save_mesh"]
@@ -156,6 +156,8 @@ def load_mesh(path: PathLike, *, orient: bool = False, with_point_data: bool = F
     try:
         mesh = cls(points, elements, orient=orient)
     except MeshError as exc:
+        if isinstance(exc, InvertedElementsError):
+            raise InvertedElementsError(f"'{path}': {exc}", exc.ids) from exc
         raise MeshError(f"'{path}': {exc}") from exc
     if with_point_data:
         return mesh, _user_point_data(data)

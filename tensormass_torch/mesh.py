@@ -24,7 +24,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .errors import MeshError
+from .errors import InvertedElementsError, MeshError
 
 __all__ = ["Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh"]
 
@@ -253,10 +253,11 @@ class Mesh:
         with torch.no_grad():
             inverted = (self.signed_measures() < 0).nonzero().flatten()
         if inverted.numel():
-            raise MeshError(
-                f"inverted elements (negative {self._measure_name}): {_format_ids(inverted)}; "
+            ids = _format_ids(inverted)
+            raise InvertedElementsError(
+                f"inverted elements (negative {self._measure_name}): {ids}; "
                 "pass orient=True to flip them, or build with check=False and call "
-                "mesh.reoriented()"
+                "mesh.reoriented()", ids
             )
 
     def _flip_negative(self, elements: torch.Tensor) -> torch.Tensor:

@@ -1,8 +1,10 @@
-"""A progress line for long runs: steps/s and the last CG report, without stalling the GPU.
+"""Progress of a run (a tqdm bar): steps, simulated time, steps/s of the simulation alone and the
+last CG report, without stalling the GPU.
 
-The solver's report holds device tensors; reading one (``.item()``) waits for the GPU. The line
-is therefore refreshed at most every ``interval`` seconds of wall time, and only then does it read
-the report: between refreshes, steps are queued back to back.
+The solver's report holds device tensors; reading one (``.item()``) waits for the GPU. The
+report is therefore read at most every ``interval`` seconds of wall time: between reads, steps
+are queued back to back. The steps/s shown count only the time spent stepping (the caller says
+how much), not the time spent writing or rendering frames.
 """
 from __future__ import annotations
 
@@ -10,62 +12,53 @@ import sys
 import time
 from typing import Optional, TextIO
 
+from tqdm import tqdm
 
-class ProgressLine:
-    """``step 40/100 [#####.....]  t 0.400 s  25.3 steps/s  CG 31 it, rel. residual 8.1e-05``.
 
-    On a terminal the line is redrawn in place (carriage return); elsewhere (a log file, a pipe)
-    each refresh is a new line.
+class Progress:
+    """``cantilever: 40%|####      | 40/100 [00:01<00:02, t=0.400 s, 25.3 steps/s, CG 31 it, res 8.1e-05]``.
 
     Args:
         total: steps the run will take.
         stream: where to write (default ``sys.stderr``).
-        interval: minimum seconds between refreshes.
+        interval: minimum seconds between two reads of the solver's report.
         clock: a ``time.perf_counter``-like function (tests pass a fake one).
+        label: the bar's prefix (the scene's name).
     """
 
     def __init__(self, total: int, stream: Optional[TextIO] = None, interval: float = 0.5,
-                 clock=time.perf_counter):
+                 clock=time.perf_counter, label: str = ""):
         self.total = int(total)
-        self.stream = stream if stream is not None else sys.stderr
         self.interval = float(interval)
         self.clock = clock
-        self.start = clock()
-        self.last_refresh = self.start
-        self.refreshes = 0  # how many times the report was read (each one a device sync)
-        self.in_place = bool(getattr(self.stream, "isatty", lambda: False)())
-        self._width = 0
+        self.last_read = clock()
+        self.reads = 0  # how many times the report was read (each one a device sync)
+        self.postfix = ""
+        self.bar = tqdm(total=self.total, desc=label or None, unit="step", file=stream or sys.stderr,
+                        mininterval=self.interval, dynamic_ncols=True, leave=True,
+                        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}{postfix}]")
 
-    def update(self, done: int, simulator) -> None:
-        """Note that ``done`` steps are finished; redraw if ``interval`` has passed."""
+    def update(self, done: int, simulator, stepping_seconds: float) -> None:
+        """``done`` steps are finished, ``stepping_seconds`` of wall time spent in them; the
+        postfix (which reads the report) is refreshed once ``interval`` has passed."""
         now = self.clock()
-        if now - self.last_refresh >= self.interval:
-            self.last_refresh = now
-            self._draw(done, simulator, now)
+        if now - self.last_read >= self.interval:
+            self.last_read = now
+            self._read(done, simulator, stepping_seconds)
+        self.bar.update(done - self.bar.n)
 
-    def finish(self, done: int, simulator) -> None:
-        """Draw the final state and end the line."""
-        self._draw(done, simulator, self.clock())
-        if self.in_place:
-            self.stream.write("\n")
-            self.stream.flush()
+    def finish(self, done: int, simulator, stepping_seconds: float) -> None:
+        """Show the final state and close the bar."""
+        self._read(done, simulator, stepping_seconds)
+        self.bar.update(done - self.bar.n)
+        self.bar.close()
 
-    def _draw(self, done: int, simulator, now: float) -> None:
-        self.refreshes += 1
-        elapsed = max(now - self.start, 1e-12)
-        bar_len = 20
-        filled = bar_len * done // max(self.total, 1)
-        text = (f"step {done}/{self.total} [{'#' * filled}{'.' * (bar_len - filled)}]  "
-                f"t {simulator.time:.3f} s  {done / elapsed:.1f} steps/s")
+    def _read(self, done: int, simulator, stepping_seconds: float) -> None:
+        self.reads += 1
+        text = f"t={simulator.time:.3f} s, {done / max(stepping_seconds, 1e-12):.1f} steps/s"
         report = simulator.last_report
         if report is not None and report.cg:
             cg = report.cg[-1]  # the last Newton iteration of the last step, worst object
-            text += (f"  CG {int(cg.iterations.max())} it, "
-                     f"rel. residual {float(cg.relative_residual.max()):.1e}")
-        if self.in_place:
-            pad = max(self._width - len(text), 0)
-            self._width = len(text)
-            self.stream.write("\r" + text + " " * pad)
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
+            text += f", CG {int(cg.iterations.max())} it, res {float(cg.relative_residual.max()):.1e}"
+        self.postfix = text
+        self.bar.set_postfix_str(text, refresh=False)

@@ -15,8 +15,8 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     dtype = "float32"                 # or "float64"
 
     [solver]                          # Simulator options
-    cg_tol = 1e-4
-    cg_max_iter = 500
+    cg_tol = 1e-4                     # relative residual (default 1e-6)
+    cg_max_iter = 500                 # default: 10 x the largest body's free degrees of freedom
     require_convergence = true
     newton_iters = 1
     check_every = 8
@@ -37,7 +37,10 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     [[bodies]]
     name = "beam"
     mesh = { generator = "beam", cells = [20, 2, 2], size = [1, 0.1, 0.1] }
-    # mesh = { file = "meshes/liver.vtu" }      (relative to the scene file; any meshio format)
+    # mesh = { file = "meshes/liver.vtu", orient = true }  (relative to the scene file; any meshio
+    #                                                         format; orient flips inverted elements)
+    # mesh = { surface = "meshes/liver.stl", max_volume = 1e-6 }  (a closed surface, tetrahedralised by
+    #                                          tm.tetrahedralize: method = "tetgen" | "ftetwild", options)
     # generators: beam, tri_beam, sphere, capsule, rabbit (see MESH_GENERATORS);
     # every mesh table also takes scale = s and translate = [dx, dy, dz] (applied in that order)
     material = { model = "stvk", young = 5e6, poisson = 0.3, density = 1000 }  # tangent = "definite"
@@ -67,7 +70,7 @@ from typing import Any, Callable, Dict, List, Optional
 import torch
 
 from .contact import Plane
-from .errors import MaterialError, MeshError, SceneError
+from .errors import InvertedElementsError, MaterialError, MeshError, SceneError
 from .materials import MODELS, ROTATIONS, TANGENTS, Material
 from .mesh import Mesh, beam_mesh, beam_tri_mesh
 from .scene import Body, Simulator
@@ -135,6 +138,11 @@ class _Table:
         self.seen.add(key)
         if key not in self.data:
             if default is _REQUIRED:
+                # A misspelt required key is an unknown key, not a missing one: name it.
+                unread = [k for k in self.data if k not in self.seen]
+                close = difflib.get_close_matches(key, unread, n=1)
+                if close:
+                    raise self.fail(self.path(close[0]), f"unknown key; did you mean '{key}'?")
                 raise self.fail(self.path(key), "missing (required)")
             return default
         return _check(self.data[key], kind, lambda msg: self.error(key, msg))
@@ -279,15 +287,36 @@ MESH_GENERATORS: Dict[str, Callable[[_Table], Mesh]] = {
 }
 
 
+#: Options of ``mesh = { surface = ... }`` by method, with their TOML kinds.
+SURFACE_OPTIONS = {
+    "tetgen": {"min_ratio": "positive", "min_dihedral": "nonnegative", "max_volume": "positive", "quality": "bool"},
+    "ftetwild": {"edge_length": "positive", "epsilon": "positive"},
+}
+
+
+def _surface(t: _Table, base_dir: Path) -> Mesh:
+    from .surface_mesh import METHODS, tetrahedralize
+
+    file = base_dir / t.get("surface", "str")
+    method = _choice(t, "method", list(METHODS), "tetgen", "method")
+    options = {key: t.get(key, kind) for key, kind in SURFACE_OPTIONS[method].items() if t.has(key)}
+    for other, keys in SURFACE_OPTIONS.items():
+        for key in keys:
+            if other != method and key not in SURFACE_OPTIONS[method] and key in t.data:
+                raise t.error(key, f"is an option of method '{other}', not of '{method}'")
+    return file, lambda: tetrahedralize(file, method=method, dtype=torch.float64, **options)
+
+
 def _mesh(t: _Table, base_dir: Path, device, dtype) -> Mesh:
-    has_file, has_generator = t.has("file"), t.has("generator")
-    if has_file == has_generator:
-        raise t.fail(t.where, "give exactly one of 'file' or 'generator'")
-    if has_file:
+    sources = [key for key in ("file", "generator", "surface") if t.has(key)]
+    if len(sources) != 1:
+        raise t.fail(t.where, "give exactly one of 'file' (a volume mesh), 'surface' (a closed triangle surface "
+                              f"to tetrahedralize) or 'generator'{'; got ' + ', '.join(sources) if sources else ''}")
+    scale = t.get("scale", "positive", 1.0)
+    translate = t.get("translate", "vec3", (0.0, 0.0, 0.0))
+    if sources == ["file"]:
         file = base_dir / t.get("file", "str")
         orient = t.get("orient", "bool", False)
-        scale = t.get("scale", "positive", 1.0)
-        translate = t.get("translate", "vec3", (0.0, 0.0, 0.0))
         t.done()
         if not file.is_file():
             raise t.error("file", f"mesh file not found: '{file}'")
@@ -295,12 +324,22 @@ def _mesh(t: _Table, base_dir: Path, device, dtype) -> Mesh:
 
         try:
             mesh = load_mesh(file, orient=orient)
+        except InvertedElementsError as exc:
+            raise t.error("file", f"'{file}' has inverted elements: {exc.ids}; add orient = true to this mesh "
+                                  "table to flip them") from exc
         except MeshError as exc:
             raise t.error("file", str(exc)) from exc
+    elif sources == ["surface"]:
+        file, build = _surface(t, base_dir)
+        t.done()
+        if not file.is_file():
+            raise t.error("surface", f"surface file not found: '{file}'")
+        try:
+            mesh = build()
+        except MeshError as exc:
+            raise t.error("surface", str(exc)) from exc
     else:
         name = _choice(t, "generator", list(MESH_GENERATORS), what="generator")
-        scale = t.get("scale", "positive", 1.0)
-        translate = t.get("translate", "vec3", (0.0, 0.0, 0.0))
         try:
             mesh = MESH_GENERATORS[name](t)
         except MeshError as exc:
@@ -475,7 +514,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
     solver = top.table("solver") or _Table({}, "solver", fail)
     options = dict(
         cg_tol=solver.get("cg_tol", "positive", 1e-6),
-        cg_max_iter=solver.get("cg_max_iter", "posint", 200),
+        cg_max_iter=solver.get("cg_max_iter", "posint", None),
         require_convergence=solver.get("require_convergence", "bool", True),
         newton_iters=solver.get("newton_iters", "posint", 1),
         check_every=solver.get("check_every", "posint", 8),

@@ -34,7 +34,7 @@ def cantilever(resolution: int = 2, model: str = "stvk", device=None, dtype=torc
     material = Material(young=5e6, poisson=0.3, density=1000.0, model=model)
     body = Body(mesh, material, fixed=mesh.vertices[:, 0] <= 1e-6, name="beam")
     sim = Simulator([body], dt=0.01, gravity=(0.0, 0.0, -9.81), rayleigh_mass=0.5, rayleigh_stiffness=0.002,
-                    cg_tol=1e-4, cg_max_iter=500)
+                    cg_tol=1e-4)
     return Scene("cantilever", sim, steps=100, output_every=5,
                  description=f"cantilever, {model}, {mesh.num_elements} tets, dt 0.01 s, 100 steps")
 
@@ -97,7 +97,7 @@ def twist(resolution: int = 2, model: str = "corotational", device=None, dtype=t
         return torch.stack((end_rest[:, 0], c * y - s * z, s * y + c * z), dim=1)
 
     body = Body(mesh, material, fixed=clamped, prescribed=turned, motion=motion, name="beam")
-    sim = Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), rayleigh_mass=1.0, cg_tol=1e-6, cg_max_iter=1000)
+    sim = Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), rayleigh_mass=1.0, cg_tol=1e-6)
     return Scene("twist", sim, steps=steps, output_every=max(1, steps // 20),
                  description=f"twist through {math.degrees(angle):.0f} deg, {model}, {mesh.num_elements} tets, "
                              f"dt {dt} s, {steps} steps")
@@ -123,7 +123,7 @@ def spin(resolution: int = 2, model: str = "corotational", device=None, dtype=to
     x = mesh.vertices
     velocity = torch.stack((-omega * x[:, 1], omega * x[:, 0], torch.zeros_like(x[:, 2])), dim=1)
     body = Body(mesh, material, velocity=velocity, name="beam")
-    sim = Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), cg_tol=1e-6, cg_max_iter=1000)
+    sim = Simulator([body], dt=dt, gravity=(0.0, 0.0, 0.0), cg_tol=1e-6)
     return Scene("spin", sim, steps=steps, output_every=max(1, steps // 20),
                  description=f"free spin through {math.degrees(angle):.0f} deg about z, {model}, "
                              f"{mesh.num_elements} tets, dt {dt} s, {steps} steps")
