@@ -12,6 +12,7 @@ mesh, a failed solve). Errors are one line on stderr: ``tensormass: error: ...``
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import sys
 import time
@@ -76,6 +77,8 @@ def _load(args):
     if _is_scene_file(args.scene):
         from .scene_file import load_scene
 
+        if args.resolution is not None:
+            raise UsageError("--resolution applies to built-in scenes; a scene file sets its mesh itself")
         return load_scene(args.scene, device=args.device, dtype=args.dtype, model=args.model)
     if args.scene not in SCENES:
         raise UsageError(f"unknown scene {args.scene!r}: built-in scenes are {', '.join(sorted(SCENES))}, "
@@ -84,6 +87,10 @@ def _load(args):
               "dtype": {"float32": torch.float32, "float64": torch.float64}[args.dtype or "float32"]}
     if args.model:
         kwargs["model"] = args.model
+    if args.resolution is not None:
+        if "resolution" not in inspect.signature(SCENES[args.scene]).parameters:
+            raise UsageError(f"--resolution: the scene {args.scene!r} has no resolution")
+        kwargs["resolution"] = args.resolution
     return SCENES[args.scene](**kwargs)
 
 
@@ -93,6 +100,8 @@ def _add_scene_arguments(parser, models):
     parser.add_argument("--dtype", default=None, choices=["float32", "float64"],
                         help="precision (default: the scene file's, else float32)")
     parser.add_argument("--model", default=None, choices=list(models), help="material model of every body")
+    parser.add_argument("--resolution", type=_positive_int, default=None,
+                        help="mesh resolution of a built-in scene (cantilever, twist, spin, paper_beam)")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -310,3 +310,17 @@ def load_native(*ops):
     if not native.available() or not all(hasattr(torch.ops.tensormass, op) for op in ops):
         return None
     return native
+
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load_script(folder: str, name: str):
+    """The module of the script ``REPO/folder/name.py`` (benchmarks and examples are scripts, not
+    packages), loaded by its path."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"{folder}_{name}", os.path.join(REPO, folder, f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

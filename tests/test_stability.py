@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
+from conftest import load_script
 
 DT = torch.float64
 #: CG iterations (tol 1e-8) of the scene below, measured: 27 at dt, 20-21 at dt/2, 14-15 at dt/4.
@@ -178,14 +179,7 @@ def test_memory_is_flat_over_2000_steps_cuda():
 
 
 def load_stability_benchmark():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "stability.py"
-    spec = importlib.util.spec_from_file_location("stability_benchmark", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks", "stability")
 
 
 def test_benchmark_judges_stable_degraded_failed():
