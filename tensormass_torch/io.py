@@ -84,9 +84,12 @@ def _reason(exc: BaseException, printed: str) -> str:
 def _read(meshio, path: Path):
     if not path.exists():
         raise FileNotFoundError(f"mesh file not found: '{path}'")
+    # ".msh" is gmsh here, as for writing: left to guess, meshio tries its ANSYS reader first,
+    # which loops forever on some files that are not ANSYS.
+    file_format = "gmsh" if path.name.lower().endswith(".msh") else None
     try:
         with _captured_output() as printed:
-            return meshio.read(str(path))
+            return meshio.read(str(path), file_format=file_format)
     # meshio raises many types (ReadError, KeyError, ValueError...) and, when no reader
     # accepts the file, prints the reason and calls sys.exit(1): SystemExit is caught too
     # (and only here, around the library call) so a bad file cannot end the program.

@@ -1,6 +1,7 @@
 """Writing simulation frames: one .vtu per body and frame, and a .pvd time series for ParaView."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import List, Tuple
 from xml.sax.saxutils import quoteattr
@@ -37,7 +38,11 @@ class FrameWriter:
         for time, part, file in self.entries:
             lines.append(f'    <DataSet timestep="{time:.9g}" part="{part}" file={quoteattr(file)}/>')
         lines += ["  </Collection>", "</VTKFile>", ""]
-        (self.out_dir / f"{self.name}.pvd").write_text("\n".join(lines))
+        # written beside, then renamed: the series always lists complete frames only
+        path = self.out_dir / f"{self.name}.pvd"
+        partial = path.with_name(f".{path.name}.partial")
+        partial.write_text("\n".join(lines))
+        os.replace(partial, path)
 
 
 class FrameRenderer:
