@@ -291,7 +291,8 @@ def system_cg_serves(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional
 
 def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
               c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
-              tol: float, plan, cg_state, max_iter: int, count: int, tangents=None, step_end=None) -> bool:
+              tol: float, plan, cg_state, max_iter: int, count: int, tangents=None, step_end=None,
+              pipelined: bool = True) -> bool:
     """A CG solve of the :func:`system_matvec` system in ONE op where the extension has it (the
     hooke tensor form over the node graph: one persistent kernel on the GPU, convergence decided
     on the device): with ``rhs [V, d]``, the start from x0 = 0 (rhs projected on ``free``;
@@ -301,7 +302,8 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     op, except a whole solve (``rhs`` given, ``count >= max_iter``) on the GPU where the pipelined
     CG fits (``native.system_solve``: the same iterates in exact arithmetic, rounded otherwise;
     it also does ``step_end``, a ``native.StepEnd``, where given, and sets its ``done``; a
-    ``step_end`` whose ``rhs`` is set leaves ``rhs`` to that solve: nothing else runs).
+    ``step_end`` whose ``rhs`` is set leaves ``rhs`` to that solve: nothing else runs;
+    ``pipelined=False`` never takes it).
     Returns False, having done nothing, where there is no such op (then the caller iterates)."""
     groups = list(groups)
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state, rhs)
@@ -309,7 +311,7 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
         return False
     # A whole solve on the GPU: the pipelined CG where it fits (one grid barrier an iteration)
     node_k = _tangent_of(tangents)
-    if (rhs is not None and count >= max_iter
+    if (pipelined and rhs is not None and count >= max_iter
             and native.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
                                     cg_state, max_iter, node_k, step_end)):
         return True

@@ -261,13 +261,20 @@ class Simulator:
         return x, v, merged, inversion
 
     def _advance(self):
-        """One step of dt, retried in sub-steps on failure up to ``substeps_on_failure`` halvings."""
+        """One step of dt; on a failed solve, retried with the classic CG where the pipelined one
+        ran (:meth:`_leave_pipelined`), then in sub-steps up to ``substeps_on_failure`` halvings."""
         try:
             return self._substeps(1)
         except SolverError as first:
-            if self.substeps_on_failure == 0:
-                raise
             failure = first
+        if self._leave_pipelined(failure):
+            try:
+                return self._substeps(1)
+            except SolverError as exc:  # a real failure: the classic CG fails it too
+                self.options = dataclasses.replace(self.options, pipelined=True)
+                failure = exc
+        if self.substeps_on_failure == 0:
+            raise failure
         for depth in range(1, self.substeps_on_failure + 1):
             try:
                 return self._substeps(2 ** depth)
@@ -276,6 +283,18 @@ class Simulator:
         raise SolverError(f"step at t = {self.time:.6g} failed at dt = {self.options.dt:g} and in 2 to "
                           f"{2 ** self.substeps_on_failure} sub-steps; last: {failure}", failure.status,
                           failure.report) from failure
+
+    def _leave_pipelined(self, failure: SolverError) -> bool:
+        """Whether to retry a step whose solve failed with the classic CG: on a CUDA device, where
+        the pipelined CG ran. In float32 its recurrences lose accuracy on an ill-conditioned
+        system (nearly incompressible rubber at a large step): it takes more iterations and can
+        meet a false breakdown where the classic CG converges. The switch is kept for the steps
+        that follow (``options.pipelined`` False) when the classic CG then succeeds."""
+        if not (self.options.pipelined and self.device.type == "cuda" and failure.status
+                and any(s in ("not converged", "breakdown", "non-finite") for s in failure.status)):
+            return False
+        self.options = dataclasses.replace(self.options, pipelined=False)
+        return True
 
     def step(self, n: int = 1) -> StepReport:
         """Advance ``n`` implicit Euler steps; returns the last step's report.

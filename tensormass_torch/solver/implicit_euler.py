@@ -49,6 +49,10 @@ class StepOptions:
         check_every: host convergence check period inside CG (the CG iterations between two
             checks run as one CUDA graph on the GPU).
         cuda_graphs: capture the CG iterations in CUDA graphs (CUDA devices only).
+        pipelined: whole solves on the GPU by the pipelined CG where it fits (one grid barrier an
+            iteration; the fastest); False: the classic CG. In float32 the pipelined recurrences
+            lose accuracy on ill-conditioned systems: more iterations, and at worst a false
+            breakdown, where the classic CG converges (the Simulator retries such a step so).
     """
 
     dt: float
@@ -60,6 +64,7 @@ class StepOptions:
     newton_iters: int = 1
     check_every: int = 8
     cuda_graphs: bool = True
+    pipelined: bool = True
 
 
 @dataclass
@@ -115,13 +120,14 @@ class DynamicsSystem:
                                      cuda_graphs=cuda_graphs)
         return cg
 
-    def system_matvec(self, mass_coef: float, stiffness_coef: float):
-        """The :class:`SystemMatvec` for these coefficients, or None when the model is not a TensorMass."""
+    def system_matvec(self, mass_coef: float, stiffness_coef: float, pipelined: bool = True):
+        """The :class:`SystemMatvec` for these coefficients and CG variant, or None when the model
+        is not a TensorMass."""
         from ..modules import TensorMass
 
         if not isinstance(self.model, TensorMass):
             return None
-        key = (float(mass_coef), float(stiffness_coef))
+        key = (float(mass_coef), float(stiffness_coef), bool(pipelined))
         if key not in self._matvecs:
             self._matvecs[key] = SystemMatvec(self, *key)
         return self._matvecs[key]
@@ -154,10 +160,12 @@ class SystemMatvec:
     CUDA graph and replayed at every step.
     """
 
-    def __init__(self, system: DynamicsSystem, mass_coef: float, stiffness_coef: float):
+    def __init__(self, system: DynamicsSystem, mass_coef: float, stiffness_coef: float, pipelined: bool = True):
         self.system = system
         self.mass_coef = mass_coef
         self.stiffness_coef = stiffness_coef
+        #: whole solves by the pipelined CG where it fits (``StepOptions.pipelined``)
+        self.pipelined = pipelined
         self.u = torch.zeros_like(system.model.rest)
         self.states = None
         #: the differential at the loaded positions on the node graph (``ops.node_tangent``, one
@@ -169,7 +177,7 @@ class SystemMatvec:
         self._ap = None  # A p of matvec_alpha (kept: a CUDA graph replays into it)
         self._rhs = None  # the step's right-hand side of load_step (kept, as _ap)
         self._zero_mass = None  # [V, 1] zeros: forces_along's product over the node graph has no mass term
-        self.graph_key = ("system", mass_coef, stiffness_coef, id(self))
+        self.graph_key = ("system", mass_coef, stiffness_coef, pipelined, id(self))
 
     def load(self, x: torch.Tensor) -> "SystemMatvec":
         """Linearise at positions ``x [V, d]``: rotations, contact forces and contact stiffness
@@ -339,7 +347,7 @@ class SystemMatvec:
         if self._ap is None:
             self._ap = torch.empty_like(self.u)
         return ops.system_cg(*args, self.mass_coef, self.stiffness_coef, self.node_stiffness, self._ap, rhs, tol,
-                             cg.plan, cg.state, max_iter, count, self.tangents, step_end)
+                             cg.plan, cg.state, max_iter, count, self.tangents, step_end, self.pipelined)
 
     def __call__(self, p: torch.Tensor):
         from .. import ops
@@ -358,7 +366,7 @@ def _coefficients(opts: StepOptions):
 def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None) -> CGResult:
     """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x."""
     mass_coef, stiffness_coef = _coefficients(opts)
-    fused = loaded if loaded is not None else system.system_matvec(mass_coef, stiffness_coef)
+    fused = loaded if loaded is not None else system.system_matvec(mass_coef, stiffness_coef, opts.pipelined)
     if fused is None:  # a model that is not a TensorMass: the composed product
         tangent = system.tangent(x)
         return batched_cg(lambda p: mass_coef * system.mass * p - stiffness_coef * tangent(p), rhs,
@@ -484,7 +492,7 @@ class StepGraphs:
         self.norms = torch.zeros_like(self.cg.rhs_sq)
         # status, iterations, r.r, b.b, |v|^2 per object: what the host reads, in one copy
         self.summary = torch.zeros(5, self.norms.numel(), dtype=torch.float64, device=like.device)
-        self.matvec = system.system_matvec(*_coefficients(opts))
+        self.matvec = system.system_matvec(*_coefficients(opts), opts.pipelined)
         # Where the whole CG is one op that stops on the device, graph A holds all of it;
         # otherwise its first check_every iterations, then the host looks.
         self.first = (opts.cg_max_iter if self.cg.solves_in_one_op(self.matvec)
@@ -647,7 +655,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None
     key = (opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness, opts.cg_tol, opts.cg_max_iter,
-           opts.require_convergence, opts.check_every, imposed)
+           opts.require_convergence, opts.check_every, opts.pipelined, imposed)
     graphs = system._step_graphs.get(key)
     if graphs is None:
         graphs = system._step_graphs[key] = StepGraphs(system, opts, imposed)
@@ -670,7 +678,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         return graphs.step(x, v, imposed_velocity)
     h = opts.dt
     report = StepReport()
-    loaded = system.system_matvec(*_coefficients(opts))
+    loaded = system.system_matvec(*_coefficients(opts), opts.pipelined)
     rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
     result = _solve(system, x, rhs, opts, loaded)
     report.cg.append(result)
