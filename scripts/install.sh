@@ -86,16 +86,16 @@ if ! cuda_choice="$("$PYTHON" "$ROOT/tensormass_torch/_build.py" "$ROOT" 2>"$LOG
     die "could not decide how to build the CUDA kernels (see above)"
 fi
 CUDA_FINGERPRINT="$(sed -n 1p <<<"$cuda_choice")"
-# Fingerprint of everything the build depends on; the install is skipped when it is unchanged,
-# pip has the package installed from this tree and (when csrc/ has sources) the built extension
-# file is there. The CUDA decision counts, not the switches behind it: forgetting a switch that
-# decides the same rebuilds nothing.
+# Fingerprint of everything else the build depends on. The install is skipped when it and the
+# CUDA decision are unchanged, pip has the package installed from this tree and (when csrc/ has
+# sources) the built extension file is there. The decision counts, not the switches behind it:
+# forgetting a switch that decides the same rebuilds nothing, and a CUDA build made for a
+# TORCH_CUDA_ARCH_LIST is kept when the list is later unset on a machine with no GPU ("soft").
 STAMP="$ROOT/build/tensormass-install.stamp"
-fingerprint="$(TORCH_VERSION="$TORCH_VERSION" CUDA_FINGERPRINT="$CUDA_FINGERPRINT" "$PYTHON" - <<'EOF'
+fingerprint="$(TORCH_VERSION="$TORCH_VERSION" "$PYTHON" - <<'EOF'
 import glob, hashlib, os, sys
 h = hashlib.sha256()
-for item in (sys.executable, os.environ["TORCH_VERSION"], os.environ.get("TENSORMASS_BUILD_EXT", ""),
-             os.environ["CUDA_FINGERPRINT"]):
+for item in (sys.executable, os.environ["TORCH_VERSION"], os.environ.get("TENSORMASS_BUILD_EXT", "")):
     h.update(item.encode() + b"\0")
 files = ["setup.py", "pyproject.toml"] + sorted(
     p for p in glob.glob("csrc/**/*", recursive=True) if os.path.isfile(p))
@@ -127,10 +127,19 @@ sys.exit(0 if here == os.path.realpath('$ROOT/tensormass_torch') else 1)
     fi
     return 0
 }
-if [[ "${TENSORMASS_REINSTALL:-0}" != "1" && -f "$STAMP" && "$(cat "$STAMP")" == "$fingerprint" ]] \
+up_to_date=0
+if [[ "${TENSORMASS_REINSTALL:-0}" != "1" && -f "$STAMP" && "$(sed -n 1p "$STAMP")" == "$fingerprint" ]] \
    && installed_here; then
-    say "tensormass_torch already installed from $ROOT and up to date"
-else
+    built_cuda="$(sed -n 2p "$STAMP")"
+    if [[ "$built_cuda" == "$CUDA_FINGERPRINT" ]]; then
+        up_to_date=1
+        say "tensormass_torch already installed from $ROOT and up to date"
+    elif [[ "$(sed -n 3p <<<"$cuda_choice")" == "soft" && "$built_cuda" == cuda=* ]]; then
+        up_to_date=1
+        say "tensormass_torch already installed from $ROOT; keeping its CUDA kernels for ${built_cuda#cuda=} (no GPU is visible and TORCH_CUDA_ARCH_LIST is unset: nothing asks for another build)"
+    fi
+fi
+if [[ "$up_to_date" == 0 ]]; then
     say "pip install --no-build-isolation -e . (this compiles tensormass_torch._C when csrc/ has sources)"
     [[ "$want_ext" == 0 ]] || say "$(sed -n 2p <<<"$cuda_choice")"
     rm -f "$STAMP"
@@ -147,7 +156,7 @@ else
     rm -rf "$KEPT"
     installed_here || die "tensormass_torch is not installed from $ROOT after the install"
     mkdir -p "$(dirname "$STAMP")"
-    echo "$fingerprint" >"$STAMP"
+    printf '%s\n%s\n' "$fingerprint" "$CUDA_FINGERPRINT" >"$STAMP"
 fi
 
 # 4. test dependencies

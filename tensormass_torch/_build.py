@@ -59,12 +59,15 @@ class BuildFacts:
 @dataclass(frozen=True)
 class CudaChoice:
     """The decision: ``with_cuda`` for ``arch_list``; ``error`` when a forced build cannot be;
-    ``reason``: one line for the build log."""
+    ``reason``: one line for the build log; ``soft``: CPU only for want of a GPU to build for
+    (no GPU visible, no architecture list), which keeps a CUDA build already made here: it was
+    asked for once, and nothing asks for another now."""
 
     with_cuda: bool
     arch_list: Optional[str]
     reason: str
     error: bool = False
+    soft: bool = False
 
     def fingerprint(self) -> str:
         """What a rebuild depends on: CUDA or not, and for which architectures."""
@@ -109,7 +112,7 @@ def choose(facts: BuildFacts) -> CudaChoice:
                                                    "no GPU visible and TORCH_CUDA_ARCH_LIST unset")
     return CudaChoice(False, None, "CUDA kernels not built: no GPU is visible and TORCH_CUDA_ARCH_LIST is unset "
                                    "(to build them for a GPU elsewhere, set TORCH_CUDA_ARCH_LIST, e.g. 9.0 for "
-                                   "an H100, and reinstall)")
+                                   "an H100, and reinstall)", soft=True)
 
 
 def nvcc_version(toolkit: Optional[str]) -> Optional[str]:
@@ -147,9 +150,10 @@ def has_cu_sources(root: str) -> bool:
     return False
 
 
-if __name__ == "__main__":  # scripts/install.sh: the decision's fingerprint and reason, one line each
+if __name__ == "__main__":  # scripts/install.sh: the decision's fingerprint, reason, soft/firm: a line each
     import sys
 
     choice = choose(machine_facts(has_cu_sources(sys.argv[1] if len(sys.argv) > 1 else ".")))
     print(choice.fingerprint())
     print(choice.reason)
+    print("soft" if choice.soft else "firm")

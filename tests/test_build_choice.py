@@ -47,6 +47,9 @@ def test_the_decision_over_every_combination(torch_cuda, toolkit, gpus, arch_lis
         assert choice.with_cuda and choice.arch_list == DEFAULT_ARCH_LIST
     else:  # nothing to run the kernels on and no list: CPU only, and the line says how to get CUDA
         assert not choice.with_cuda and "TORCH_CUDA_ARCH_LIST" in choice.reason
+        assert choice.soft  # a CUDA build made earlier for a list is kept
+        return
+    assert not choice.soft
 
 
 def test_a_toolkit_of_another_major_version_is_not_used():
@@ -78,7 +81,7 @@ def test_the_script_prints_the_decision_for_install_sh():
     out = subprocess.run([sys.executable, str(ROOT / "tensormass_torch" / "_build.py"), str(ROOT)],
                          capture_output=True, text=True, timeout=120, env={**os.environ, "TENSORMASS_BUILD_CUDA": "0"})
     assert out.returncode == 0, out.stderr
-    assert out.stdout.splitlines() == ["cpu", "CUDA kernels not built: TENSORMASS_BUILD_CUDA=0"]
+    assert out.stdout.splitlines() == ["cpu", "CUDA kernels not built: TENSORMASS_BUILD_CUDA=0", "firm"]
 
 
 def test_setup_py_stops_with_the_reason_when_forced_on_and_impossible():
