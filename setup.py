@@ -23,6 +23,7 @@ Environment switches:
                                    unset = automatic;
 * ``MAX_JOBS``, ``TORCH_CUDA_ARCH_LIST``, ``CUDA_HOME``: read by ``torch.utils.cpp_extension``.
 """
+import functools
 import glob
 import os
 import re
@@ -56,6 +57,7 @@ def _switch(name, allowed):
     return value
 
 
+@functools.lru_cache(maxsize=None)
 def _build_rules():
     """tensormass_torch/_build.py, loaded by its path: importing the package would need the
     extension this script builds."""
@@ -90,6 +92,11 @@ def _extension():
         print("tensormass_torch: no sources under csrc/, building a pure-Python package")
         return [], {}
 
+    # The toolkit torch's builder uses is read from CUDA_HOME when it is imported: set it first, so
+    # that an nvcc wrapper on PATH (whose folder has no headers) does not stand for the toolkit.
+    toolkit = _build_rules().find_toolkit()
+    if toolkit and not os.environ.get("CUDA_HOME"):
+        os.environ["CUDA_HOME"] = toolkit
     try:
         import torch
         from torch.utils import cpp_extension
@@ -123,7 +130,7 @@ def _extension():
     # No -std flag: BuildExtension adds the standard the installed torch's headers need
     # (C++17 for older torch, C++20 for torch >= 2.10); csrc/ is written as C++17.
     macros = [("TENSORMASS_WITH_CUDA", "1")] if with_cuda else []
-    include_dirs = [os.path.join(ROOT, "csrc")]
+    include_dirs = [os.path.join(ROOT, "csrc")] + (list(choice.include_dirs) if with_cuda else [])
 
     if with_cuda:
         nvcc_flags = ["-O3", "--expt-relaxed-constexpr"]

@@ -61,6 +61,41 @@ def test_a_toolkit_of_another_major_version_is_not_used():
     assert choose(facts(torch_cuda="13.2", toolkit_version="13.0", gpu_archs=("9.0",))).with_cuda
 
 
+def test_missing_math_headers_stop_the_cuda_build():
+    choice = choose(BuildFacts("", "2.15.0+cu132", "13.2", "/usr/local/cuda", "13.0", True, ("9.0",), None, (),
+                               ("cusparse.h",)))
+    assert not choice.with_cuda and "cusparse.h" in choice.reason
+    complete = choose(BuildFacts("", "2.15.0+cu132", "13.2", "/usr/local/cuda", "13.0", True, ("9.0",), None,
+                                 ("/site/nvidia/cu13/include",), ()))
+    assert complete.with_cuda and complete.include_dirs == ("/site/nvidia/cu13/include",)
+
+
+def test_math_headers_come_from_the_toolkit_or_the_nvidia_wheels(tmp_path):
+    toolkit, site = tmp_path / "cuda", tmp_path / "site"
+    (toolkit / "include").mkdir(parents=True)
+    (site / "nvidia" / "cu13" / "include").mkdir(parents=True)
+    for header in _build.MATH_HEADERS[:2]:
+        (toolkit / "include" / header).write_text("")
+    (site / "nvidia" / "cu13" / "include" / "cublasLt.h").write_text("")
+    extra, missing = _build.math_header_dirs(str(toolkit), str(site))
+    assert extra == (str(site / "nvidia" / "cu13" / "include"),) and missing == ("cusolverDn.h",)
+
+
+def test_an_nvcc_wrapper_on_path_is_not_the_toolkit(tmp_path, monkeypatch):
+    wrapper_bin, toolkit = tmp_path / "local" / "bin", tmp_path / "cuda-13.0"
+    wrapper_bin.mkdir(parents=True)
+    (wrapper_bin / "nvcc").write_text(f"#!/bin/sh\nexec {toolkit}/bin/nvcc \"$@\"\n")
+    (wrapper_bin / "nvcc").chmod(0o755)
+    monkeypatch.delenv("CUDA_HOME", raising=False)
+    monkeypatch.delenv("CUDA_PATH", raising=False)
+    monkeypatch.setenv("PATH", str(wrapper_bin))
+    found = _build.find_toolkit()
+    assert found != str(tmp_path / "local")  # the wrapper's folder has no headers
+    assert found is None or _build._is_toolkit(found)
+    monkeypatch.setenv("CUDA_HOME", "/somewhere")  # as the user says, even if wrong (the build then says so)
+    assert _build.find_toolkit() == "/somewhere"
+
+
 def test_several_gpus_build_for_each_architecture_once():
     choice = choose(facts(gpu_archs=("9.0", "8.6", "9.0")))
     assert choice.arch_list == "8.6;9.0"
