@@ -130,10 +130,15 @@ def _extension():
     # No -std flag: BuildExtension adds the standard the installed torch's headers need
     # (C++17 for older torch, C++20 for torch >= 2.10); csrc/ is written as C++17.
     macros = [("TENSORMASS_WITH_CUDA", "1")] if with_cuda else []
-    include_dirs = [os.path.join(ROOT, "csrc")] + (list(choice.include_dirs) if with_cuda else [])
+    include_dirs = [os.path.join(ROOT, "csrc")]
 
     if with_cuda:
-        nvcc_flags = ["-O3", "--expt-relaxed-constexpr"]
+        # Headers that complete the toolkit (torch's NVIDIA wheels) are searched after its own
+        # (-isystem comes after every -I): the wheels' runtime headers may be of a newer CUDA
+        # than nvcc, which refuses them.
+        for folder in choice.include_dirs:
+            cxx_flags = cxx_flags + ["-isystem", folder]
+        nvcc_flags = ["-O3", "--expt-relaxed-constexpr"] + [f for d in choice.include_dirs for f in ("-isystem", d)]
         if sys.platform != "win32":
             nvcc_flags += ["-Xcompiler", "-fopenmp"]
         ext = cpp_extension.CUDAExtension(
