@@ -202,6 +202,6 @@ setup(
     extras_require={"test": ["pytest", "hypothesis"], "render": ["pyvista"], "mesh": ["tetgen", "pytetwild"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
-    entry_points={"console_scripts": ["tensormass = tensormass_torch.cli:main"]},
+    entry_points={"console_scripts": ["tensormass = tensormass_torch.app.cli:main"]},
     zip_safe=False,
 )

@@ -11,7 +11,7 @@ tets (alternating cut). Gravity -9.81 z deflects the tip by 3.8 mm (0.4% of L: g
 linear, so hooke, stvk and corotational share one answer to ~1e-5). The section is wider than
 tall so that the first mode (bending in z) is not degenerate with bending in y.
 
-References (``tensormass_torch.analytic``):
+References (``tensormass_torch.physics.analytic``):
   static   tip deflection (mean of u_z over the tip face): Timoshenko (Cowper's shear
            coefficient) and the converged 3-D value, Richardson over the finest meshes of the
            hooke float64 "mesh" family (a clamped 3-D block differs from beam theory near the
@@ -65,7 +65,7 @@ import torch
 import common
 import tensormass_torch as tm
 from common import Budget, Results, metadata, record, release, sync
-from tensormass_torch import analytic
+from tensormass_torch.physics import analytic
 
 
 @dataclass(frozen=True)

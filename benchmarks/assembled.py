@@ -29,7 +29,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from tensormass_torch import ops
-from tensormass_torch.topology import GatherPlan
+from tensormass_torch.mesh.topology import GatherPlan
 
 
 # ---------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from step_bench import paper_beam, sofa  # noqa: E402
 
-from tensormass_torch import native  # noqa: E402
+from tensormass_torch.ops import native  # noqa: E402
 
 KERNEL = r"""
 #include <cooperative_groups.h>

@@ -25,7 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import common  # noqa: E402
 from step_bench import paper_beam, sofa  # noqa: E402
 
-from tensormass_torch import native  # noqa: E402
+from tensormass_torch.ops import native  # noqa: E402
 from tensormass_torch.solver.cg import CGSolver  # noqa: E402
 
 SCENES = {"sofa_beam": sofa, "paper_beam": paper_beam}

@@ -27,8 +27,8 @@ import torch
 
 import common
 import tensormass_torch as tm
-from tensormass_torch import native
-from tensormass_torch.topology import node_element_lists
+from tensormass_torch.ops import native
+from tensormass_torch.mesh.topology import node_element_lists
 
 COLUMNS = [("model", "model", None), ("elements", "elements", ",d"), ("backend", "variant", None),
            ("ms", "ms per force evaluation", ".4f"), ("x_padded", "x padded", ".2f"),

@@ -117,7 +117,7 @@ def markdown(meta, summaries) -> str:
 
 def render(out: Path, meshes, snapshots, variants):
     """Pictures of hooke against corotational (rest shape in grey); skipped without pyvista."""
-    from tensormass_torch import render as r
+    from tensormass_torch.app import render as r
 
     pair = [v for v in ("hooke", "corotational") if v in variants]
     if len(pair) < 2:

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import common  # noqa: E402
 import tensormass_torch as tm  # noqa: E402
-from tensormass_torch import native  # noqa: E402
+from tensormass_torch.ops import native  # noqa: E402
 
 LAYOUTS = ("padded", "node")
 
@@ -38,7 +38,7 @@ def build_scenes(device, quick):
     """[(name, simulator)] of the hooke scenes (tensor form): the SOFA beam, the paper's beam in
     tetrahedra and in membrane triangles."""
     elements = 3000 if quick else 307200
-    sofa = tm.scenes.sofa_beam("hooke", device=device, dtype=torch.float32, scale=5 if quick else 1).simulator
+    sofa = tm.sim.builtin.sofa_beam("hooke", device=device, dtype=torch.float32, scale=5 if quick else 1).simulator
     paper_tet, _ = common.cantilever_sim("tet", "hooke", elements, device)
     paper_tri, _ = common.cantilever_sim("tri", "hooke", elements, device)
     return [("sofa_beam", sofa), ("paper_beam_tet", paper_tet), ("paper_beam_tri", paper_tri)]

@@ -38,10 +38,10 @@ import torch
 from common import Budget, metadata
 
 import tensormass_torch as tm
-from tensormass_torch import native as native_mod
+from tensormass_torch.ops import native as native_mod
 from tensormass_torch import ops
-from tensormass_torch.reference import gather as ref_gather
-from tensormass_torch.reference import stress_form, tensor_form
+from tensormass_torch.ops.reference import gather as ref_gather
+from tensormass_torch.ops.reference import stress_form, tensor_form
 
 T = None  # torch.ops.tensormass once loaded
 

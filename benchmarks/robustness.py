@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.diagnostics import inversion_report
-from tensormass_torch.scenes import paper_beam
+from tensormass_torch.sim.diagnostics import inversion_report
+from tensormass_torch.sim.builtin import paper_beam
 
 #: The table's materials: name -> Material keyword arguments (besides the model).
 MATERIALS = {

@@ -3,7 +3,7 @@
     python benchmarks/sofa_beam.py --device cuda --out $OUT
     python benchmarks/sofa_beam.py --quick --out /tmp/sofa          # a 1/15-resolution beam, CPU
 
-Scene: ``tensormass_torch.scenes.sofa_beam`` (76 x 16 x 16 nodes, 101,250 tets, E = 1000,
+Scene: ``tensormass_torch.sim.builtin.sofa_beam`` (76 x 16 x 16 nodes, 101,250 tets, E = 1000,
 nu = 0.3, total mass 50, gravity -9 along y, dt = 0.04, r_M = r_K = 0.1, a contact plane, nodes
 with x <= 0.1 fixed) with SOFA's fixed budget of 10 CG iterations (tol 0, so every variant runs
 all 10). Models: hooke and corotational (SOFA's model, QR rotation frame).
@@ -25,7 +25,7 @@ import torch
 import common
 from common import Budget, Results, copy_bandwidth, is_cuda, metadata, record, release
 from measure import run_assembled, run_simulator, sim_size
-from tensormass_torch.scenes import sofa_beam
+from tensormass_torch.sim.builtin import sofa_beam
 
 SOFA_PUBLISHED = {"RTX 2070 (SOFA, CUDA)": 385.0, "i7-10750H (SOFA, CPU)": 9.0}
 TARGET_STEPS_PER_S = 10_000.0

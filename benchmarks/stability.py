@@ -24,7 +24,7 @@ effect of adaptive sub-stepping.
 
 Measured (every step): total energy (kinetic + elastic + gravity + plane penalty), the volume
 ratio of each body (sum of signed tet volumes / rest), the smallest element volume ratio and
-the inverted elements (``tensormass_torch.diagnostics``), CG iterations. Reported:
+the inverted elements (``tensormass_torch.sim.diagnostics``), CG iterations. Reported:
   energy_drift   (E_end - E_0) / E_ref, E_ref = the largest kinetic + elastic energy of the run
                  (implicit Euler dissipates: negative drift is its numerical damping)
   energy_gain    max_t (E_t - E_0) / E_ref: energy created (> 0 only when unstable)
@@ -35,7 +35,7 @@ volume_error > 5% (cases where the volume should be kept), or an element inverte
 otherwise. Energy is not judged where prescribed motion does work (compression).
 
 Footprint (``footprint.md``/``.json``): bytes per element of the model's buffers, of the
-solver's per-step buffers and of the state (``tensormass_torch.diagnostics.allocations``) and
+solver's per-step buffers and of the state (``tensormass_torch.sim.diagnostics.allocations``) and
 time per step at a fixed CG budget, for a minimal scene (one hooke tet body, no damping, no
 planes) and a full-featured one (stvk + corotational + membrane + planes + damping + prescribed).
 
@@ -59,7 +59,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
-from tensormass_torch.diagnostics import InversionCheck, allocation_summary  # noqa: E402
+from tensormass_torch.sim.diagnostics import InversionCheck, allocation_summary  # noqa: E402
 
 MODELS = ("hooke", "stvk", "corotational")
 #: Row order of the outcome map: the models, then stvk with its positive semi-definite tangent.
@@ -465,7 +465,7 @@ def main(argv=None):
     notes = [
         "Each run goes to its last step or its first failed step; measured after every step: total energy "
         "(kinetic + elastic + gravity + plane penalty), each body's volume ratio (sum of signed tet volumes / "
-        "rest), the smallest element volume ratio and the inverted elements (tensormass_torch.diagnostics), "
+        "rest), the smallest element volume ratio and the inverted elements (tensormass_torch.sim.diagnostics), "
         f"CG iterations (tolerance {args.cg_tol:g}, cap {args.cg_max_iter}: above it a step fails).",
         "",
         "- energy drift: (E_end - E_0) / E_ref, E_ref the largest kinetic + elastic energy of the run "
@@ -500,7 +500,7 @@ def main(argv=None):
                                        "nodes. full: the same beam as stvk (far end prescribed) and as corotational, "
                                        "a corotational membrane, Rayleigh damping, a floor plane. Bytes per element "
                                        "(all bodies' elements) of every tensor the simulator holds after a step "
-                                       "(tensormass_torch.diagnostics.allocations): model = rest, masses and the "
+                                       "(tensormass_torch.sim.diagnostics.allocations): model = rest, masses and the "
                                        "element groups (buffers, gather plans, the extension's cached int32 indices "
                                        "and Lame parameters); solver = system and CG buffers; state = x, v, masks. "
                                        "Time per step at a fixed budget of 20 CG iterations."])

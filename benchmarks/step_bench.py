@@ -18,7 +18,7 @@ import torch
 import common
 from common import Budget, Results, copy_bandwidth, metadata, record, release
 from measure import run_simulator
-from tensormass_torch.scenes import sofa_beam
+from tensormass_torch.sim.builtin import sofa_beam
 
 PAPER_BEAM_ELEMENTS = 307_200
 

@@ -1,5 +1,5 @@
 // Schemas of the CG ops (implementations: cpu/cg_cpu.cpp, cuda/cg_cuda.cu; the scalar logic and
-// the checks: cg.h; the pure-torch reference and the fake kernels: tensormass_torch/solver/cg_ops.py).
+// the checks: cg.h; the pure-torch reference and the fake kernels: tensormass_torch/ops/cg.py).
 // They update the CG state in place and return nothing, so that a fixed sequence of them (one
 // CG iteration) can be captured once in a CUDA graph and replayed with no host round trip.
 //

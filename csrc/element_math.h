@@ -8,7 +8,7 @@
 //   S   scalar type (float, double)
 //   M   membrane (triangles in 3-D): strains are projected on the rest plane, P E P
 //
-// The formulas are those of the pure-torch reference (tensormass_torch/reference/*.py), which is
+// The formulas are those of the pure-torch reference (tensormass_torch/ops/reference/*.py), which is
 // the oracle of the tests:
 //   stress form   grad U = sum_j u_j (x) m_j
 //     hooke       eps = P sym(grad U) P,                     sigma = lam tr(eps) P + 2 mu eps,
@@ -58,7 +58,7 @@
 
 namespace tensormass {
 
-// Model ids: the `model` integer of the op schemas (Python: tensormass_torch.native.MODEL_IDS).
+// Model ids: the `model` integer of the op schemas (Python: tensormass_torch.ops.native.MODEL_IDS).
 // kStvkDefinite: stvk's forces with a positive semi-definite tangent (see stvk_definite_dforces).
 enum Model : int { kHooke = 0, kStvk = 1, kCorotational = 2, kStvkDefinite = 3 };
 

@@ -2,7 +2,7 @@
 //
 // Implementations: cpu/*.cpp (CPU) and cuda/*.cu (CUDA), both from ops_impl.h / kernels.h /
 // element_math.h. Fake (meta) kernels and autograd are registered in Python, in
-// tensormass_torch/native.py (imported on demand through set_python_module).
+// tensormass_torch/ops/native.py (imported on demand through set_python_module).
 //
 // Conventions: u, du [V, d] (float32 or float64, one dtype for all floating inputs); index
 // tensors (elements, edges, force_index, incidences) all int32 or all int64; every input
@@ -89,7 +89,7 @@
 #include <torch/library.h>
 
 TORCH_LIBRARY(tensormass, m) {
-  m.set_python_module("tensormass_torch.native");
+  m.set_python_module("tensormass_torch.ops.native");
   // ---- stress form
   m.def("stress_element_forces(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
         "Tensor mu, Tensor? projector, int model, "

@@ -38,7 +38,7 @@ def main(argv=None):
                        planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], cg_tol=1e-4)
     writer = None
     if args.out:
-        from tensormass_torch.output import FrameWriter
+        from tensormass_torch.sim.output import FrameWriter
         writer = FrameWriter(args.out, "batch")
         writer.write(sim)
     start = time.perf_counter()

@@ -54,7 +54,7 @@ def main(argv=None):
         tm.save_mesh(file, tm.TetMesh(shapes[name], mesh.elements), displacement=shapes[name] - mesh.vertices)
     if not args.no_render:
         try:
-            from tensormass_torch.render import render_png
+            from tensormass_torch.app.render import render_png
 
             files.append(render_png(out / "figure1.png",
                                     [[(mesh, shapes["hooke"])], [(mesh, shapes["stvk"])], [(mesh, None)]],

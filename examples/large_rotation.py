@@ -24,7 +24,7 @@ import time
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.scenes import spin, twist
+from tensormass_torch.sim.builtin import spin, twist
 
 #: Variants compared: name -> (Material model, rotation, Newton iterations per step).
 VARIANTS = {

@@ -2,7 +2,7 @@
 
     python examples/many_objects.py [--objects 300] [--steps 50] [--device cuda] [--out out/many] [--gif]
 
-Shapes: boxes, balls, capsules and rabbit-like bodies (``tensormass_torch.meshgen``), each shape
+Shapes: boxes, balls, capsules and rabbit-like bodies (``tensormass_torch.mesh.implicit``), each shape
 meshed once and copied; every object has its own Young's modulus (1e4 to 1e6 Pa, log-uniform),
 Poisson ratio, density and model (hooke, stvk, corotational). They are packed into one batch: one
 kernel launch per op for all of them, and a CG with per-object scalars and convergence. Returns
@@ -14,7 +14,7 @@ import time
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import meshgen
+from tensormass_torch.mesh import implicit as meshgen
 
 SPACING = 0.5  # m between object centres on the grid
 
@@ -70,7 +70,8 @@ def main(argv=None):
                        device=args.device, dtype=dtype)
     writers = []
     if args.out:
-        from tensormass_torch.output import FrameRenderer, FrameWriter
+        from tensormass_torch.app.render import FrameRenderer
+        from tensormass_torch.sim.output import FrameWriter
 
         writers.append(FrameWriter(args.out, "many"))
         if args.gif:

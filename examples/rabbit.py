@@ -2,7 +2,7 @@
 
     python examples/rabbit.py [--size 0.3] [--cell 0.08] [--steps 60] [--model corotational] [--out out/rabbit] [--gif]
 
-The body is made by ``tensormass_torch.meshgen`` (smooth unions of ellipsoids, tetrahedralised
+The body is made by ``tensormass_torch.mesh.implicit`` (smooth unions of ellipsoids, tetrahedralised
 on a lattice: no mesh file, no download). It rests on a penalty floor at z = 0. The tool is a
 ball-shaped region over the back: the nodes inside it are prescribed and move down at
 ``--tool-speed`` for ``--press-time`` seconds, then hold, as a probe pushing into soft tissue
@@ -14,7 +14,7 @@ import time
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import meshgen
+from tensormass_torch.mesh import implicit as meshgen
 
 # The tool, in units of the body length: a ball over the back whose lower part cuts into it.
 TOOL_CENTER = (-0.05, 0.0, 0.56)
@@ -69,7 +69,8 @@ def main(argv=None):
                       getattr(torch, args.dtype))
     writers = []
     if args.out:
-        from tensormass_torch.output import FrameRenderer, FrameWriter
+        from tensormass_torch.app.render import FrameRenderer
+        from tensormass_torch.sim.output import FrameWriter
 
         writers.append(FrameWriter(args.out, "rabbit"))
         if args.gif:

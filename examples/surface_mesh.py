@@ -53,7 +53,8 @@ def main(argv=None):
                        planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], device=args.device)
     writer = renderer = None
     if args.out:
-        from tensormass_torch.output import FrameRenderer, FrameWriter
+        from tensormass_torch.app.render import FrameRenderer
+        from tensormass_torch.sim.output import FrameWriter
 
         writer = FrameWriter(args.out, "nut")
         writer.write(sim)

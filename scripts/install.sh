@@ -8,7 +8,7 @@
 #   4. test dependencies (pytest, meshio, numpy, tqdm, hypothesis for the fuzz tests, tetgen for
 #      tm.tetrahedralize, pyvista for the off-screen rendering tests),
 #      only if missing. pyvista's vtk wheel renders headless through EGL (Mesa's libEGL and
-#      llvmpipe on a machine without a GPU; see tensormass_torch/render.py).
+#      llvmpipe on a machine without a GPU; see tensormass_torch/app/render.py).
 # Quiet when all goes well; on a failure prints pip's output and exits non-zero.
 # Switches: PYTHON, TORCH_SPEC, TENSORMASS_BUILD_EXT, TENSORMASS_BUILD_CUDA, TENSORMASS_REINSTALL=1
 # (force step 3).

@@ -6,16 +6,17 @@
     f = model(mesh.vertices)          # [V, 3] elastic forces
 """
 from ._backend import backend_info
-from .contact import Plane
+from .physics.contact import Plane
 from .errors import InvertedElementsError, MaterialError, MeshError, SceneError, SolverError, TensorMassError
-from .io import load_mesh, save_mesh
-from .materials import MODELS, Material
-from .mesh import Mesh, TetMesh, TriMesh, beam_mesh, beam_tri_mesh
-from .modules import TensorMass
-from .scene import Body, InvertedElementsWarning, Simulator
-from .scene_file import load_scene
+from .mesh.io import load_mesh, save_mesh
+from .physics.materials import MODELS, Material
+from .mesh.meshes import Mesh, TetMesh, TriMesh
+from .mesh.beams import beam_mesh, beam_tri_mesh
+from .physics.tensor_mass import TensorMass
+from .sim.simulator import Body, InvertedElementsWarning, Simulator
+from .sim.scene_file import load_scene
 from .solver import solve_static
-from .surface_mesh import tetrahedralize
+from .mesh.surface import tetrahedralize
 
 __version__ = "0.1.0"
 

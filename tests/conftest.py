@@ -298,14 +298,14 @@ def rel(a, b) -> float:
 
 
 def load_native(*ops):
-    """``tensormass_torch.native`` when the compiled extension is built (and has ``ops``), else None."""
+    """``tensormass_torch.ops.native`` when the compiled extension is built (and has ``ops``), else None."""
     import importlib
 
     try:
         importlib.import_module("tensormass_torch._C")
     except ImportError:
         return None
-    from tensormass_torch import native
+    from tensormass_torch.ops import native
 
     if not native.available() or not all(hasattr(torch.ops.tensormass, op) for op in ops):
         return None

@@ -1,4 +1,4 @@
-"""Closed-form references (tensormass_torch.analytic) against numbers derived here independently,
+"""Closed-form references (tensormass_torch.physics.analytic) against numbers derived here independently,
 a simulation that approaches them, and a smoke run of benchmarks/accuracy.py.
 
 Independent derivations: deflections by the unit-load method (virtual work, integrated
@@ -17,7 +17,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import analytic
+from tensormass_torch.physics import analytic
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 

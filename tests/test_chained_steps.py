@@ -8,9 +8,9 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import native
-from tensormass_torch import scene as scene_module
-from tensormass_torch.solver import cg_ops
+from tensormass_torch.ops import native
+from tensormass_torch.sim import simulator as scene_module
+from tensormass_torch.ops import cg as cg_ops
 from tensormass_torch.solver import implicit_euler
 from tensormass_torch.solver.implicit_euler import StepGraphs
 

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.cli import main
-from tensormass_torch.progress import Progress
+from tensormass_torch.app.cli import main
+from tensormass_torch.app.progress import Progress
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 

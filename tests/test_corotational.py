@@ -4,9 +4,9 @@ import math
 import pytest
 import torch
 
-from tensormass_torch import geometry
-from tensormass_torch.reference import corotational as co
-from tensormass_torch.reference import stress_form as sf
+from tensormass_torch.mesh import geometry
+from tensormass_torch.ops.reference import corotational as co
+from tensormass_torch.ops.reference import stress_form as sf
 
 DT = torch.float64
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.solver import cg_ops
+from tensormass_torch.ops import cg as cg_ops
 
 
 def _cuda_ready():

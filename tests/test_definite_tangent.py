@@ -17,7 +17,7 @@ import torch
 import tensormass_torch as tm
 from conftest import KINDS, build_scene, large_deformation, load_native, rel
 from tensormass_torch import Material, MaterialError, TensorMass, ops
-from tensormass_torch.reference import stress_form
+from tensormass_torch.ops.reference import stress_form
 
 native = load_native("stress_dforces")
 

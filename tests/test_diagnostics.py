@@ -10,8 +10,8 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.diagnostics import InversionCheck, allocations, inversion_report
-from tensormass_torch.scene import InvertedElementsWarning
+from tensormass_torch.sim.diagnostics import InversionCheck, allocations, inversion_report
+from tensormass_torch.sim.simulator import InvertedElementsWarning
 
 DT = torch.float64
 

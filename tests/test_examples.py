@@ -86,10 +86,10 @@ def test_many_objects_example():
 
 
 def test_every_builtin_scene_runs():
-    """Each scene of ``tm.scenes.SCENES`` (what ``tensormass run NAME`` runs) at its smallest size."""
+    """Each scene of ``tm.sim.builtin.SCENES`` (what ``tensormass run NAME`` runs) at its smallest size."""
     import torch
 
-    from tensormass_torch.scenes import SCENES
+    from tensormass_torch.sim.builtin import SCENES
 
     smallest = {"cantilever": {"resolution": 1}, "sofa_beam": {"scale": 15}, "twist": {"resolution": 1},
                 "spin": {"resolution": 1}, "paper_beam": {"resolution": 1}}

@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
-from tensormass_torch.cli import main  # noqa: E402
+from tensormass_torch.app.cli import main  # noqa: E402
 
 FUZZ = settings(max_examples=300, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

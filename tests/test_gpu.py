@@ -8,7 +8,7 @@ GPU; the stream and graph tests are then skipped).
     1. every op on CUDA = the pure-torch reference (float64 on the CPU) = the CPU extension, for
        every model, element kind (tet, tri 2-D, tri 3-D membrane), form, dtype, index dtype
     2. bitwise identical from run to run (and on another stream), on a beam of ~10k tetrahedra
-    3. the model (ops.py dispatch) on CUDA = TENSORMASS_BACKEND=torch on CUDA
+    3. the model (ops.dispatch) on CUDA = TENSORMASS_BACKEND=torch on CUDA
     4. gradcheck (float64) and opcheck on CUDA
     5. launches go to the current stream: a CUDA graph of dforce replays to the eager result
 """
@@ -36,7 +36,7 @@ def _cuda_extension():
         return None
     if DEVICE == "cuda" and not C.has_cuda():
         return None
-    from tensormass_torch import native
+    from tensormass_torch.ops import native
 
     return native if native.available() else None
 

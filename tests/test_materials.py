@@ -3,7 +3,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.materials import lame
+from tensormass_torch.physics.materials import lame
 
 
 @pytest.mark.parametrize("kwargs, match", [

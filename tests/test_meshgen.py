@@ -6,8 +6,8 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import meshgen
-from tensormass_torch.meshgen import _boundary_nodes, _largest_component
+from tensormass_torch.mesh import implicit as meshgen
+from tensormass_torch.mesh.implicit import _boundary_nodes, _largest_component
 
 
 def check_clean(mesh, cell):

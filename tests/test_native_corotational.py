@@ -30,9 +30,10 @@ import pytest
 import torch
 
 from conftest import load_native, build_scene, large_deformation, rel
-from tensormass_torch import Material, TensorMass, geometry, ops
-from tensormass_torch.reference import corotational as co
-from tensormass_torch.reference import gather as ref_gather
+from tensormass_torch import Material, TensorMass, ops
+from tensormass_torch.mesh import geometry
+from tensormass_torch.ops.reference import corotational as co
+from tensormass_torch.ops.reference import gather as ref_gather
 
 
 native = load_native("corotational_rotations")

@@ -3,7 +3,7 @@
     1. every op = its pure-torch reference (native.REFERENCE), every model, element kind (tet,
        tri 2-D, tri 3-D membrane), form, dtype (float32, float64), int64 and int32 indices, on
        jittered meshes at large deformations with random per-element (lam, mu)
-    2. the group-level dispatch (ops.py): extension = TENSORMASS_BACKEND=torch; it really
+    2. the group-level dispatch (ops.dispatch): extension = TENSORMASS_BACKEND=torch; it really
        dispatches; forced torch never touches the extension
     3. gradcheck (float64) of every op: u, du, lam, mu, geometry and Tensor-Mass tensors; model-level
        autograd (forces, dforce, material gradients) through the extension
@@ -22,7 +22,7 @@ import torch
 
 from conftest import load_native, CASES, DTYPES, FORMS, KINDS, MODELS, build_scene, large_deformation, rel, tol
 from tensormass_torch import Material, TensorMass, ops
-from tensormass_torch.topology import GatherPlan
+from tensormass_torch.mesh.topology import GatherPlan
 
 
 native = load_native()

@@ -13,7 +13,8 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import native, ops
+from tensormass_torch import ops
+from tensormass_torch.ops import native
 
 pytestmark = pytest.mark.skipif(not native.ensure_registered()
                                 or not hasattr(torch.ops.tensormass, "stress_tangent_node_k"),

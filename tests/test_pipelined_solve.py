@@ -15,9 +15,10 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import native, scenes
-from tensormass_torch.solver import cg_ops
-from tensormass_torch.solver.segments import ChunkPlan
+from tensormass_torch.ops import native
+from tensormass_torch.sim import builtin as scenes
+from tensormass_torch.ops import cg as cg_ops
+from tensormass_torch.ops.segments import ChunkPlan
 
 from test_cg_one_op import FIELDS, fresh_solver, make_system, op_by_op, state_of
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import render
+from tensormass_torch.app import render
 
 if os.environ.get("CI"):
     import pyvista  # noqa: F401  (CI installs it: a missing install step must fail here)

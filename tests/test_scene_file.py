@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.scene_file import load_scene
+from tensormass_torch.sim.scene_file import load_scene
 
 SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
 SHIPPED = sorted(SCENES_DIR.glob("*.toml"))

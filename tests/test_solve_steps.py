@@ -12,8 +12,9 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch import native, scenes
-from tensormass_torch.solver import cg_ops
+from tensormass_torch.ops import native
+from tensormass_torch.sim import builtin as scenes
+from tensormass_torch.ops import cg as cg_ops
 
 from test_cg_one_op import make_system
 from test_pipelined_solve import layout  # noqa: F401  (the fixture)

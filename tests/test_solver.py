@@ -224,7 +224,7 @@ def test_plane_contact_holds_a_falling_body():
 
 
 def test_plane_dforce_is_the_derivative_of_its_force():
-    from tensormass_torch.contact import Planes
+    from tensormass_torch.physics.contact import Planes
     planes = Planes([tm.Plane((0.3, 0.2, 1.0), 0.1, 1e3), tm.Plane((1.0, 0, 0), -0.2, 5e2)], DT, "cpu")
     x = torch.rand(20, 3, dtype=DT) * 0.4 - 0.2
     dx = torch.randn(20, 3, dtype=DT)

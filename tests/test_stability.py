@@ -144,7 +144,7 @@ def test_live_tensor_census_sees_a_leak():
 
 
 # the membrane of the busy scene folds where it hits the plane: expected, and not what is tested
-@pytest.mark.filterwarnings("ignore::tensormass_torch.scene.InvertedElementsWarning")
+@pytest.mark.filterwarnings("ignore::tensormass_torch.sim.simulator.InvertedElementsWarning")
 def test_memory_is_flat_over_2000_steps_cpu():
     sim = busy_scene()
     sim.step(50)  # warm-up: every lazily made buffer exists now
@@ -160,7 +160,7 @@ def test_memory_is_flat_over_2000_steps_cpu():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.filterwarnings("ignore::tensormass_torch.scene.InvertedElementsWarning")
+@pytest.mark.filterwarnings("ignore::tensormass_torch.sim.simulator.InvertedElementsWarning")
 def test_memory_is_flat_over_2000_steps_cuda():
     sim = busy_scene("cuda")
     sim.step(50)

@@ -9,10 +9,10 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch import ops
-from tensormass_torch.contact import Planes
-from tensormass_torch.solver import cg_ops
+from tensormass_torch.physics.contact import Planes
+from tensormass_torch.ops import cg as cg_ops
 from tensormass_torch.solver.implicit_euler import DynamicsSystem
-from tensormass_torch.solver.segments import ChunkPlan, Segments
+from tensormass_torch.ops.segments import ChunkPlan, Segments
 
 pytestmark = pytest.mark.skipif(cg_ops.native_ops_for(torch.zeros(1)) is None
                                 or not hasattr(torch.ops.tensormass, "hooke_node_step_rhs"),
@@ -90,7 +90,7 @@ def test_step_rhs_float32_close_to_float64():
 def _op_args(system, x, v, planes=True):
     model = system.model
     (group,) = model.groups
-    from tensormass_torch import native
+    from tensormass_torch.ops import native
 
     neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
     p = system.planes

@@ -28,9 +28,9 @@ from typing import Callable, Dict, List, Optional, Tuple, Union
 
 import torch
 
-from . import cg_ops
-from .cg_ops import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE, STATUS_WORDS, CGState
-from .segments import ChunkPlan, Segments
+from ..ops import cg as cg_ops
+from ..ops.cg import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE, STATUS_WORDS, CGState
+from ..ops.segments import ChunkPlan, Segments
 
 Matvec = Callable[[torch.Tensor], Union[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]]
 

@@ -15,11 +15,11 @@ from typing import List
 
 import torch
 
-from .. import native
+from ..ops import native
 from ..errors import SolverError
-from . import cg_ops
+from ..ops import cg as cg_ops
 from .cg import CGResult, CGSolver, batched_cg, run_captured
-from .segments import Segments
+from ..ops.segments import Segments
 
 
 def auto_cg_max_iter(free_dofs: int) -> int:
@@ -78,7 +78,7 @@ class StepReport:
         """Total CG iterations of each object over the step ``[B]``."""
         return sum(r.iterations for r in self.cg)
 
-    # -- filled by the Simulator (scene.py), never by implicit_euler_step --------------------
+    # -- filled by the Simulator (sim.simulator), never by implicit_euler_step --------------------
     #: inverted elements per object ``[B]`` (int64) at the end of the step when the simulator's
     #: ``check_inversion`` is on; None otherwise.
     inverted: torch.Tensor | None = None
@@ -123,7 +123,7 @@ class DynamicsSystem:
     def system_matvec(self, mass_coef: float, stiffness_coef: float, pipelined: bool = True):
         """The :class:`SystemMatvec` for these coefficients and CG variant, or None when the model
         is not a TensorMass."""
-        from ..modules import TensorMass
+        from ..physics.tensor_mass import TensorMass
 
         if not isinstance(self.model, TensorMass):
             return None
@@ -648,7 +648,7 @@ class StepGraphs:
 
 def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     """The system's :class:`StepGraphs` for these options, or None where they do not apply."""
-    from ..modules import TensorMass
+    from ..physics.tensor_mass import TensorMass
 
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
             or system.model.rest.device.type != "cuda"

@@ -56,7 +56,7 @@ def _is_scene_file(scene: str) -> bool:
 def _check_device(device: str):
     import torch
 
-    from .errors import SceneError
+    from ..errors import SceneError
 
     try:
         parsed = torch.device(device)
@@ -70,12 +70,12 @@ def _load(args):
     """The scene named by ``args.scene`` with the flags' overrides -> ``scenes.Scene``."""
     import torch
 
-    from .scenes import SCENES
+    from ..sim.builtin import SCENES
 
     if args.device is not None:
         _check_device(args.device)
     if _is_scene_file(args.scene):
-        from .scene_file import load_scene
+        from ..sim.scene_file import load_scene
 
         if args.resolution is not None:
             raise UsageError("--resolution applies to built-in scenes; a scene file sets its mesh itself")
@@ -114,8 +114,8 @@ def _cmd_info(args):
 
     import torch
 
-    from . import __version__
-    from ._backend import backend_info, load_extension
+    from .. import __version__
+    from .._backend import backend_info, load_extension
 
     info = backend_info()
     devices = [{"index": i, "name": torch.cuda.get_device_name(i),
@@ -140,7 +140,8 @@ def _cmd_info(args):
 
 
 def _cmd_run(args):
-    from .output import FrameRenderer, FrameWriter
+    from .render import FrameRenderer
+    from ..sim.output import FrameWriter
     from .progress import Progress
 
     if (args.png or args.gif) and not args.out:
@@ -234,7 +235,7 @@ _POINTLESS_FORMATS = (".mesh", ".meshb")  # medit stores no point data
 
 
 def _cmd_convert(args):
-    from .io import load_mesh, save_mesh
+    from ..mesh.io import load_mesh, save_mesh
 
     if not Path(args.input).is_file():
         raise FileNotFoundError(f"mesh file not found: '{args.input}'")
@@ -258,8 +259,8 @@ def _cmd_convert(args):
 
 def build_parser():
     """The ``tensormass`` argument parser (sub-commands run, bench, convert, info)."""
-    from .materials import MODELS
-    from .scenes import SCENES
+    from ..physics.materials import MODELS
+    from ..sim.builtin import SCENES
 
     parser = _Parser(
         prog=PROG,
@@ -314,8 +315,8 @@ def _fail(message: str, status: int) -> int:
 def main(argv=None):
     """Entry point of the ``tensormass`` console script; returns the exit status."""
     args = build_parser().parse_args(argv)  # usage errors: argparse prints them and exits 2
-    from ._backend import BackendError
-    from .errors import TensorMassError
+    from .._backend import BackendError
+    from ..errors import TensorMassError
 
     try:
         return args.func(args)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-from ..topology import incidence_slots, padded_sum, unique_edges
+from ...mesh.topology import incidence_slots, padded_sum, unique_edges
 
 
 def _plane_identity(m: torch.Tensor, proj):

@@ -8,15 +8,14 @@ from typing import Callable, List, Optional, Sequence
 
 import torch
 
-from .constraints import node_mask
-from .contact import Plane, Planes
+from ..physics.constraints import node_mask
+from ..physics.contact import Plane, Planes
 from .diagnostics import InversionCheck, InversionReport
-from .errors import SceneError, SolverError
-from .materials import Material
-from .modules import TensorMass
-from .solver.implicit_euler import (DynamicsSystem, StepOptions, StepReport, auto_cg_max_iter, implicit_euler_step,
-                                    step_graphs_for)
-from .solver.segments import Segments
+from ..errors import SceneError, SolverError
+from ..physics.materials import Material
+from ..physics.tensor_mass import TensorMass
+from ..solver.implicit_euler import DynamicsSystem, StepOptions, StepReport, auto_cg_max_iter, implicit_euler_step, step_graphs_for
+from ..ops.segments import Segments
 
 
 #: ``Simulator(check_inversion=...)`` values.

@@ -11,7 +11,7 @@ from typing import Union
 
 import torch
 
-from .errors import MaterialError
+from ..errors import MaterialError
 
 #: Constitutive models this build implements (``Material(model=...)``).
 MODELS = ("hooke", "stvk", "corotational")

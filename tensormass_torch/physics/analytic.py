@@ -27,7 +27,7 @@ from typing import Sequence, Union
 import numpy as np
 import torch
 
-from .errors import MaterialError
+from ..errors import MaterialError
 
 __all__ = [
     "BETA1_CLAMPED_FREE", "BeamSection", "rectangular_section", "cowper_shear_coefficient",

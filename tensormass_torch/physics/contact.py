@@ -6,7 +6,7 @@ from typing import Sequence
 
 import torch
 
-from .errors import SceneError
+from ..errors import SceneError
 
 
 @dataclass(frozen=True)

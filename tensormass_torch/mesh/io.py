@@ -17,8 +17,8 @@ from typing import Dict, Union
 import numpy as np
 import torch
 
-from .errors import InvertedElementsError, MeshError
-from .mesh import Mesh, TetMesh, TriMesh, _native_numpy
+from ..errors import InvertedElementsError, MeshError
+from .meshes import Mesh, TetMesh, TriMesh, _native_numpy
 
 __all__ = ["load_mesh", "save_mesh"]
 

@@ -76,7 +76,7 @@ def _native_ops(device: torch.device):
         return None
     key = device.type
     if key not in _NATIVE:
-        from .. import native
+        from . import native
 
         # use_extension said the extension is built for this device type: its CG ops come with it
         ok = native.ensure_registered() and hasattr(torch.ops.tensormass, "cg_dot")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from .errors import SceneError
+from ..errors import SceneError
 
 
 def node_mask(nodes, num_nodes: int, name: str, device=None) -> torch.Tensor:

@@ -19,11 +19,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from . import geometry
-from .errors import MaterialError
+from ..mesh import geometry
+from ..errors import MaterialError
 from .materials import lame
-from .reference import tensor_form
-from .topology import GatherPlan
+from ..ops.reference import tensor_form
+from ..mesh.topology import GatherPlan
 
 FORMS = ("stress", "tensor")
 

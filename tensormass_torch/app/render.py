@@ -3,7 +3,7 @@
 pyvista is imported only when something is rendered, so the package imports without it
 (``pip install pyvista``, or ``pip install -e .[render]``).
 
-    from tensormass_torch.render import render_png, render_gif
+    from tensormass_torch.app.render import render_png, render_gif
     render_png("twist.png", [[(mesh, None), (mesh, x_hooke)], [(mesh, None), (mesh, x_corot)]],
                labels=["hooke", "corotational"])
 
@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import List, Optional, Sequence
 
 import numpy as np
 import torch
 
-from .errors import SceneError
+from ..errors import SceneError
 
 #: Colours of the deformed entries of a panel, in order (rest shapes are drawn in REST_COLOR).
 PALETTE = ("#4878cf", "#d65f5f", "#6acc65", "#b47cc7", "#c4ad66", "#77bedb")
@@ -257,3 +257,47 @@ def render_gif(path, frames, *, fps: float = 10.0, window_size=(1200, 500),
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(1000.0 / fps)), loop=0,
                    optimize=True)
     return path
+
+
+class FrameRenderer:
+    """Off-screen pictures of the frames: ``<out>/<name>_<frame>.png`` and/or ``<out>/<name>.gif``.
+
+    Every body of the simulator is drawn in one view. PNGs are written as frames arrive; the GIF
+    is written by :meth:`close` from the positions kept for each frame (CPU copies ``[V_i, 3]``).
+    pyvista is imported at construction, so a missing pyvista fails before any frame is
+    simulated or written.
+    """
+
+    def __init__(self, out_dir, name: str, *, png: bool = True, gif: bool = False,
+                 window_size=(800, 600), fps: float = 10.0):
+        _pyvista()  # fail now (ImportError with an install hint), not after the run
+        self.out_dir = Path(out_dir)
+        self.name = name
+        self.png, self.gif = png, gif
+        self.window_size = tuple(window_size)
+        self.fps = fps
+        self.frame = 0
+        self.frames: List[list] = []
+        self.files: List[Path] = []
+
+    def _panels(self, simulator) -> list:
+        return [[(body.mesh, simulator.positions(i).detach().cpu())
+                 for i, body in enumerate(simulator.bodies)]]
+
+    def write(self, simulator) -> None:
+        """Draw the current state of every body of ``simulator``."""
+        panels = self._panels(simulator)
+        if self.png:
+            file = self.out_dir / f"{self.name}_{self.frame:05d}.png"
+            self.files.append(render_png(file, panels, window_size=self.window_size))
+        if self.gif:
+            self.frames.append(panels)
+        self.frame += 1
+
+    def close(self) -> None:
+        """Write the GIF of every frame drawn so far (if asked for)."""
+        if self.gif and self.frames:
+            file = self.out_dir / f"{self.name}.gif"
+            self.files.append(render_gif(file, self.frames, fps=self.fps,
+                                                       window_size=self.window_size))
+            self.frames = []

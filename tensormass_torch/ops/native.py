@@ -15,7 +15,7 @@ header). This module gives them what torch needs on the Python side:
     - kernel 2 (gathers): the transposed gathers, exactly.
   Every other gradient (to u in the element-level and padded ops, to u in stvk dforces, to the
   geometry and to the Tensor-Mass tensors) goes through ``torch.func.vjp`` of the op's pure-torch
-  reference (``REFERENCE``, built from ``tensormass_torch.reference``), so every input that
+  reference (``REFERENCE``, built from ``tensormass_torch.ops.reference``), so every input that
   requires grad gets a correct gradient. Backward formulas are made of differentiable ops, so
   double backward works where the reference path does.
 * group-level functions (:func:`forces`, :func:`dforces`, ...) that ``tensormass_torch.ops``
@@ -35,7 +35,7 @@ from typing import Optional
 import torch
 
 from .reference import gather as ref_gather
-from .topology import sum_slots_in_order
+from ..mesh.topology import sum_slots_in_order
 from .reference import corotational, stress_form, tensor_form
 
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
@@ -533,7 +533,7 @@ def available() -> bool:
 
 def ensure_registered() -> bool:
     """Load the extension (unless forced off) and register fake kernels and autograd once."""
-    from . import _backend
+    from .. import _backend
 
     if _registered:
         return True
@@ -866,7 +866,7 @@ def tangent_graph(group):
 
 def _tangent_edge_graph(group):
     """tangent_graph's (EdgeGraph, neighbor, incidences) in node order, cached on the group."""
-    from .topology import EdgeGraph
+    from ..mesh.topology import EdgeGraph
 
     elements = group.elements
     cache = group.__dict__.get("_native_tangent_graph")

@@ -7,11 +7,11 @@ from typing import Callable, Dict
 
 import torch
 
-from .contact import Plane
-from .errors import SceneError
-from .materials import Material
-from .mesh import beam_mesh
-from .scene import Body, Simulator
+from ..physics.contact import Plane
+from ..errors import SceneError
+from ..physics.materials import Material
+from ..mesh.beams import beam_mesh
+from .simulator import Body, Simulator
 
 
 @dataclass

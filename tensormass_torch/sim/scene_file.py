@@ -69,12 +69,13 @@ from typing import Any, Callable, Dict, List, Optional
 
 import torch
 
-from .contact import Plane
-from .errors import InvertedElementsError, MaterialError, MeshError, SceneError
-from .materials import MODELS, ROTATIONS, TANGENTS, Material
-from .mesh import Mesh, beam_mesh, beam_tri_mesh
-from .scene import Body, Simulator
-from .scenes import Scene
+from ..physics.contact import Plane
+from ..errors import InvertedElementsError, MaterialError, MeshError, SceneError
+from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
+from ..mesh.meshes import Mesh
+from ..mesh.beams import beam_mesh, beam_tri_mesh
+from .simulator import Body, Simulator
+from .builtin import Scene
 
 __all__ = ["FileScene", "load_scene", "MESH_GENERATORS"]
 
@@ -250,7 +251,7 @@ def _tri_beam(t: _Table) -> Mesh:
 
 
 def _sphere(t: _Table) -> Mesh:
-    from . import meshgen
+    from ..mesh import implicit as meshgen
 
     radius = t.get("radius", "positive")
     center = t.get("center", "vec3", (0.0, 0.0, 0.0))
@@ -259,7 +260,7 @@ def _sphere(t: _Table) -> Mesh:
 
 
 def _capsule(t: _Table) -> Mesh:
-    from . import meshgen
+    from ..mesh import implicit as meshgen
 
     radius = t.get("radius", "positive")
     length = t.get("length", "positive")
@@ -269,7 +270,7 @@ def _capsule(t: _Table) -> Mesh:
 
 
 def _rabbit(t: _Table) -> Mesh:
-    from . import meshgen
+    from ..mesh import implicit as meshgen
 
     scale = t.get("size", "positive", 1.0)
     cell = t.get("cell", "positive", 0.08 * scale)
@@ -295,7 +296,7 @@ SURFACE_OPTIONS = {
 
 
 def _surface(t: _Table, base_dir: Path) -> Mesh:
-    from .surface_mesh import METHODS, tetrahedralize
+    from ..mesh.surface import METHODS, tetrahedralize
 
     file = base_dir / t.get("surface", "str")
     method = _choice(t, "method", list(METHODS), "tetgen", "method")
@@ -320,7 +321,7 @@ def _mesh(t: _Table, base_dir: Path, device, dtype) -> Mesh:
         t.done()
         if not file.is_file():
             raise t.error("file", f"mesh file not found: '{file}'")
-        from .io import load_mesh
+        from ..mesh.io import load_mesh
 
         try:
             mesh = load_mesh(file, orient=orient)

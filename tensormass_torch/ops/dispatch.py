@@ -17,7 +17,7 @@
 Dispatch: when ``_backend.use_extension(u.device)`` is true (the compiled extension is loaded,
 built for that device type, not forced off by ``TENSORMASS_BACKEND=torch``) and the group's data
 has u's dtype (float32/float64) and device, the compiled ops ``torch.ops.tensormass.*`` run
-(see ``native.py``); otherwise the pure-torch reference. Both paths are differentiable: the
+(see ``ops.native``); otherwise the pure-torch reference. Both paths are differentiable: the
 reference through autograd (double backward included), the ops through their registered
 autograd (first order everywhere; second order where the backward formulas are themselves ops
 with autograd, e.g. the energy Hessian of the hooke tensor form). ``energy`` always runs the
@@ -29,10 +29,10 @@ from typing import Optional
 
 import torch
 
-from . import _backend
+from .. import _backend
 from .reference import gather as ref_gather
 from .reference import corotational, stress_form, tensor_form
-from .topology import GatherPlan
+from ..mesh.topology import GatherPlan
 
 
 def _element_values(group, u):

@@ -25,8 +25,9 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 import torch
 
-from .errors import MeshError
-from .mesh import TetMesh, beam_mesh
+from ..errors import MeshError
+from .meshes import TetMesh
+from .beams import beam_mesh
 
 __all__ = [
     "Shape", "tetrahedralize", "sphere_shape", "capsule_shape", "ellipsoid_shape", "smooth_union",

@@ -5,7 +5,7 @@ from typing import Optional
 
 import torch
 
-from ..topology import sum_slots_in_order
+from ...mesh.topology import sum_slots_in_order
 
 
 def scatter_partial_forces(partial: torch.Tensor, index: torch.Tensor, force_index: torch.Tensor,

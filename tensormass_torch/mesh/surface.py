@@ -27,8 +27,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .errors import MeshError
-from .mesh import TetMesh, TriMesh
+from ..errors import MeshError
+from .meshes import TetMesh, TriMesh
 
 __all__ = ["tetrahedralize", "METHODS"]
 

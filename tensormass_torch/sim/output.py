@@ -1,0 +1,46 @@
+"""Writing simulation frames: one .vtu per body and frame, and a .pvd time series for ParaView
+(pictures of the frames: ``app.render.FrameRenderer``)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import List, Tuple
+from xml.sax.saxutils import quoteattr
+
+from ..mesh.io import save_mesh
+
+
+class FrameWriter:
+    """Writes ``<out>/<name>_<body>_<frame>.vtu`` files and ``<out>/<name>.pvd`` indexing them.
+
+    Each frame holds the deformed mesh with point data ``displacement`` and ``velocity`` ``[V, 3]``.
+    """
+
+    def __init__(self, out_dir, name: str):
+        self.out_dir = Path(out_dir)
+        self.name = name
+        self.entries: List[Tuple[float, int, str]] = []
+        self.frame = 0
+
+    def write(self, simulator) -> None:
+        """Write the current state of every body of ``simulator``."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        for i, body in enumerate(simulator.bodies):
+            mesh = type(body.mesh)(simulator.positions(i).detach(), body.mesh.elements, check=False)
+            file = f"{self.name}_{i}_{self.frame:05d}.vtu"
+            save_mesh(self.out_dir / file, mesh, displacement=simulator.displacements(i).detach(),
+                      velocity=simulator.velocities(i).detach())
+            self.entries.append((simulator.time, i, file))
+        self.frame += 1
+        self._write_pvd()
+
+    def _write_pvd(self) -> None:
+        lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
+        for time, part, file in self.entries:
+            lines.append(f'    <DataSet timestep="{time:.9g}" part="{part}" file={quoteattr(file)}/>')
+        lines += ["  </Collection>", "</VTKFile>", ""]
+        # written beside, then renamed: the series always lists complete frames only
+        path = self.out_dir / f"{self.name}.pvd"
+        partial = path.with_name(f".{path.name}.partial")
+        partial.write_text("\n".join(lines))
+        os.replace(partial, path)
