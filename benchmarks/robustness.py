@@ -14,7 +14,7 @@ the definite tangent, require_convergence on, so no step passes unconverged):
     python benchmarks/robustness.py --out benchmarks/results/robustness            # CPU, float32
     python benchmarks/robustness.py --only paper_beam --resolution 4 --device cuda --out DIR
 
-``tests/test_robustness.py`` runs the table in CI and asserts that every cell completes.
+``tests/solver/test_stiff_and_extreme_defaults.py`` runs the table in CI and asserts that every cell completes.
 """
 from __future__ import annotations
 

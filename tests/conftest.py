@@ -283,7 +283,7 @@ CASES = [pytest.param(k, m, f, id=f"{k}-{m}-{f}") for k in KINDS for m in MODELS
 def tol(dtype, group=None):
     """Relative (norm-wise) tolerance of "equal to rounding". The stvk tensor form is a quartic
     polynomial in the absolute displacements: with a rigid motion on top its float32 rounding
-    grows to ~3e-5 (see test_physics.py::test_float32_matches_float64), the others stay < 2e-6."""
+    grows to ~3e-5 (see physics/test_forces_energy_tangent.py::test_float32_matches_float64), the others stay < 2e-6."""
     if dtype == torch.float64:
         return 1e-12
     if group is not None and group.form == "tensor" and group.model == "stvk":

@@ -15,7 +15,7 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch import ops
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 sys.path.insert(0, str(BENCH))
 
 import assembled  # noqa: E402

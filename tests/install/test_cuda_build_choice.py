@@ -13,7 +13,7 @@ import pytest
 from tensormass_torch import _build
 from tensormass_torch._build import DEFAULT_ARCH_LIST, BuildFacts, choose
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def facts(switch="", torch_cuda="13.0", toolkit="/usr/local/cuda", toolkit_version="13.0", cu_sources=True,

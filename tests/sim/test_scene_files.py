@@ -9,7 +9,7 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch.sim.scene_file import load_scene
 
-SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
 SHIPPED = sorted(SCENES_DIR.glob("*.toml"))
 
 BEAM = """

@@ -1,7 +1,7 @@
 """Chained steps (Simulator.step(n) on the GPU: up to MAX_CHAIN steps with one host synchronisation,
 StepGraphs.run_steps) give the same states as one step at a time, bitwise, and a failed step in a
 chain raises with the state of the step before it. Run here on the CPU: the step graphs are built
-on the CPU and their phases run eagerly (the CUDA capture itself is tested in test_cuda_graphs.py)."""
+on the CPU and their phases run eagerly (the CUDA capture itself is tested in solver/test_cuda_graph_capture.py)."""
 from __future__ import annotations
 
 import pytest

@@ -14,7 +14,7 @@ import tensormass_torch as tm
 from tensormass_torch.app.cli import main
 from tensormass_torch.app.progress import Progress
 
-SCENES_DIR = Path(__file__).resolve().parent.parent / "scenes"
+SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
 
 SMALL_SCENE = """
 name = "bar"

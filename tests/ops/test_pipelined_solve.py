@@ -20,7 +20,7 @@ from tensormass_torch.sim import builtin as scenes
 from tensormass_torch.ops import cg as cg_ops
 from tensormass_torch.ops.segments import ChunkPlan
 
-from test_cg_one_op import FIELDS, fresh_solver, make_system, op_by_op, state_of
+from test_cg_solve_in_one_op import FIELDS, fresh_solver, make_system, op_by_op, state_of
 
 pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_solve"),
                                 reason="needs the extension with hooke_node_solve")

@@ -304,7 +304,7 @@ def run_beam(dtype, contact=False):
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
 def test_simulator_node_layout_equals_padded_bitwise(monkeypatch, dtype, contact):
     # the matvecs are compared here: the step's right-hand side is composed in both runs (its one
-    # op, hooke_node_step_rhs, only serves the node layout; tests/test_step_ops.py checks it)
+    # op, hooke_node_step_rhs, only serves the node layout; tests/ops/test_step_ops.py checks it)
     monkeypatch.setattr(native, "step_rhs_serves", lambda group, inputs=(): False)
     calls = []
     real = native.hooke_node_graph
@@ -482,7 +482,7 @@ def test_cuda_graph_replays_the_node_matvec():
 
 
 def test_benchmark_script_quick(tmp_path, capsys):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import node_system_bench
 
     rows = node_system_bench.main(["--quick", "--device", "cpu", "--repeat", "1", "--warmup", "1",

@@ -16,7 +16,7 @@ from tensormass_torch.ops import native
 from tensormass_torch.sim import builtin as scenes
 from tensormass_torch.ops import cg as cg_ops
 
-from test_cg_one_op import make_system
+from test_cg_solve_in_one_op import make_system
 from test_pipelined_solve import layout  # noqa: F401  (the fixture)
 
 pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_steps"),

@@ -574,7 +574,7 @@ def test_simulator_matches_torch_backend(kind, rot, monkeypatch):
 def test_rotations_computed_per_step_not_per_cg_iteration(monkeypatch):
     """The rotations are computed once per step (the linearisation, shared by the forces, the
     right-hand side's dforce and the CG system) while the CG products only read them (element by
-    element; on the node graph, the tangent reads them once: test_node_tangent.py)."""
+    element; on the node graph, the tangent reads them once: ops/test_node_tangent.py)."""
     monkeypatch.setattr(native, "NODE_TANGENT", False)
     rotations_calls, products = [], []
     real_rot = native.corotational_rotations

@@ -24,7 +24,7 @@ FIELDS = ("x", "r", "p", "rr", "alpha", "beta", "threshold", "rhs_sq", "status",
 @pytest.fixture(autouse=True)
 def _two_reduction_cg(monkeypatch):
     """These tests are hooke_node_cg's: whole GPU solves would otherwise take the pipelined CG
-    (native.system_solve, tests/test_pipelined_solve.py), which is not bitwise the op-by-op CG."""
+    (native.system_solve, tests/ops/test_pipelined_solve.py), which is not bitwise the op-by-op CG."""
     monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
 
 

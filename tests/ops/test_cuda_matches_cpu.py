@@ -46,7 +46,7 @@ pytestmark = pytest.mark.skipif(native is None, reason="needs a CUDA device and 
 needs_cuda = pytest.mark.skipif(DEVICE != "cuda", reason="dry run on the CPU: no streams or graphs")
 
 if native is not None:  # the helpers of the CPU tests
-    from test_native_ops import displacements, make_group, op_calls, plan_indices, rel, tol, used_slots
+    from test_element_ops import displacements, make_group, op_calls, plan_indices, rel, tol, used_slots
 
 T = torch.ops.tensormass
 
@@ -204,7 +204,7 @@ COROT_IDS = [f"{k}-{r}" for k, r in COROT_CASES]
 
 def corotational_calls(group, u, du, rotations, index_dtype):
     """[(op name, args)]: the rotations op and the six stress ops with the rotations given."""
-    from test_native_corotational import METHOD
+    from test_corotational_ops import METHOD
 
     idx, fi, inc = plan_indices(group, index_dtype)
     ns = group.plan.num_slots
@@ -225,7 +225,7 @@ def corotational_calls(group, u, du, rotations, index_dtype):
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
 @pytest.mark.parametrize("kind,rot", COROT_CASES, ids=COROT_IDS)
 def test_cuda_corotational_matches_cpu_and_reference(kind, rot, dtype, rng):
-    from test_native_corotational import deformations, make_group as make_corotational, reference_rotations
+    from test_corotational_ops import deformations, make_group as make_corotational, reference_rotations
 
     _, group, scene = make_corotational(rng, kind, torch.float64, rot)
     u = (deformations(rng, scene)[1] - scene.rest).contiguous()
@@ -246,7 +246,7 @@ def test_cuda_corotational_matches_cpu_and_reference(kind, rot, dtype, rng):
 
 @pytest.mark.parametrize("rot", ["qr", "polar"])
 def test_cuda_corotational_bitwise_deterministic_and_model_matches_torch(rot, rng, monkeypatch):
-    from test_native_corotational import make_group as make_corotational
+    from test_corotational_ops import make_group as make_corotational
 
     tm, group, scene = make_corotational(rng, "tet", torch.float32, rot, cells=(20, 10, 8))  # 9,600 tets
     u, du = displacements(rng, scene, torch.float32)
@@ -269,7 +269,7 @@ def test_cuda_corotational_bitwise_deterministic_and_model_matches_torch(rot, rn
 
 
 def test_cuda_corotational_opcheck():
-    from test_native_corotational import deformations, make_group as make_corotational
+    from test_corotational_ops import deformations, make_group as make_corotational
 
     rng = np.random.default_rng(4)
     for kind, rot in (("tet", "polar"), ("tri3d", "qr")):

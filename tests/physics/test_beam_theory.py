@@ -19,7 +19,7 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch.physics import analytic
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 
 E, NU, RHO, G = 1e8, 0.3, 1000.0, 9.81
 L, WIDTH, HEIGHT = 1.0, 0.3, 0.2

@@ -14,7 +14,7 @@ deformations and a fresh seed per parametrization.
     9. lumped mass
    10. float32 path
    11. gradients to the material parameters (stress form)
-(3., tensor form = stress form, is in test_tensor_form.py.)
+(3., tensor form = stress form, is in physics/test_tensor_form.py.)
 """
 from __future__ import annotations
 
@@ -507,7 +507,7 @@ def test_float32_matches_float64(model_name, form, kind, rng, make_scene, make_m
     With a rigid motion on top (here a rotation and a shift of up to half the size), the stvk
     tensor form loses one to two more digits (errors up to ~2e-4 seen): it is a quartic
     polynomial in the absolute displacements, whose rounding grows like (|u| / h)^3 (see
-    test_tensor_form.py::test_stvk_tensor_form_rounding_under_rigid_motion).
+    physics/test_tensor_form.py::test_stvk_tensor_form_rounding_under_rigid_motion).
     """
     scene = make_scene(kind)
     mat = make_material(model_name)
