@@ -31,7 +31,6 @@ import torch
 from tensormass_torch import ops
 from tensormass_torch.mesh.topology import GatherPlan
 
-
 # ---------------------------------------------------------------------------------------------
 # element blocks
 # ---------------------------------------------------------------------------------------------
@@ -167,9 +166,9 @@ class SystemMatrix:
         """Scalar CSR ``[V d, V d]`` (int32 indices where they fit)."""
         d = self.dim
         br, bc, bv = self.block_rows, self.block_cols, self.block_values
-        l = torch.arange(d, device=br.device)
-        rows = (br[:, None, None] * d + l[None, :, None]).expand(-1, d, d).reshape(-1)
-        cols = (bc[:, None, None] * d + l[None, None, :]).expand(-1, d, d).reshape(-1)
+        local = torch.arange(d, device=br.device)
+        rows = (br[:, None, None] * d + local[None, :, None]).expand(-1, d, d).reshape(-1)
+        cols = (bc[:, None, None] * d + local[None, None, :]).expand(-1, d, d).reshape(-1)
         n = self.num_nodes * d
         key = rows * n + cols
         order = torch.argsort(key)

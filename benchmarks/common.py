@@ -463,7 +463,8 @@ def cg_iteration_bytes(model, objects: int = 1, constrained: bool = True, planes
 
 def sim_cg_bytes(sim) -> Dict[str, int]:
     """``cg_iteration_bytes`` of a ``tm.Simulator``'s packed model."""
-    return cg_iteration_bytes(sim.model, objects=sim.num_bodies, constrained=bool(sim.fixed.any() or sim.prescribed.any()),
+    constrained = bool(sim.fixed.any() or sim.prescribed.any())
+    return cg_iteration_bytes(sim.model, objects=sim.num_bodies, constrained=constrained,
                               planes=len(sim.planes) if sim.planes is not None else 0)
 
 

@@ -12,9 +12,8 @@ from __future__ import annotations
 import time
 from typing import Callable, Dict, Optional
 
-import torch
-
 import assembled
+import torch
 from common import error_text, forced_backend, is_cuda, last_cg_iterations, release, sync, time_call, time_steps
 
 BACKEND_MODES = {"extension": "extension", "torch": "torch"}

@@ -90,9 +90,10 @@ def main(argv=None):
     for w in writers:
         getattr(w, "close", lambda: None)()
     u = sim.displacements(0)
+    ears = mesh.vertices[:, 2] >= mesh.vertices[:, 2].max() - 0.05 * args.size
     print(f"{args.steps} steps in {elapsed:.2f} s ({args.steps / elapsed:.1f} steps/s); tool pushed "
           f"{-float(u[tool, 2].mean()):.3f} m, lowest node z = {float(sim.positions(0)[:, 2].min()):+.4f} m, "
-          f"ear tips moved {float(u[mesh.vertices[:, 2] >= mesh.vertices[:, 2].max() - 0.05 * args.size].norm(dim=1).mean()):.3f} m")
+          f"ear tips moved {float(u[ears].norm(dim=1).mean()):.3f} m")
     return sim, tool
 
 

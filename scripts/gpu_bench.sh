@@ -108,18 +108,18 @@ fi
 # ------------------------------------------------------------------ the benchmarks
 # Shares of the default 440 s: 40 + 165 + 70 + 75 + 45 + 35 = 430. Each share is capped by what
 # is left, so a slow build or a slow step shortens the later ones instead of overrunning.
-run sofa_beam 40 "$PYTHON" benchmarks/sofa_beam.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
-run figure2 165 "$PYTHON" benchmarks/figure2.py --device "$DEVICE" --out "$OUT" --cpu-threads "$NPROC" "${QUICK[@]}"
-run cg_floor 70 "$PYTHON" benchmarks/cg_floor.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
-run batches 75 "$PYTHON" benchmarks/batches.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
-run gather_variants 30 "$PYTHON" benchmarks/gather_variants.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
+run sofa_beam 40 "$PYTHON" benchmarks/suite/sofa_beam.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
+run figure2 165 "$PYTHON" benchmarks/suite/figure2.py --device "$DEVICE" --out "$OUT" --cpu-threads "$NPROC" "${QUICK[@]}"
+run cg_floor 70 "$PYTHON" benchmarks/suite/cg_floor.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
+run batches 75 "$PYTHON" benchmarks/suite/batches.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
+run gather_variants 30 "$PYTHON" benchmarks/studies/gather_variants.py --device "$DEVICE" --out "$OUT" "${QUICK[@]}"
 if [[ "$DEVICE" == "cpu" ]]; then
-    run step_bench 45 "$PYTHON" benchmarks/step_bench.py --device cpu --out "$OUT" --steps 1 --scenes sofa_beam \
+    run step_bench 45 "$PYTHON" benchmarks/suite/step_bench.py --device cpu --out "$OUT" --steps 1 --scenes sofa_beam \
         --backends extension
-    run ops_bench 40 "$PYTHON" benchmarks/ops_bench.py --device cpu --out "$OUT" --mesh 8 4 4 --repeat 3
+    run ops_bench 40 "$PYTHON" benchmarks/suite/ops_bench.py --device cpu --out "$OUT" --mesh 8 4 4 --repeat 3
 else
-    run step_bench 45 "$PYTHON" benchmarks/step_bench.py --device "$DEVICE" --out "$OUT" --steps 10 --max-seconds 3
-    run ops_bench 35 "$PYTHON" benchmarks/ops_bench.py --device "$DEVICE" --out "$OUT" --repeat 30
+    run step_bench 45 "$PYTHON" benchmarks/suite/step_bench.py --device "$DEVICE" --out "$OUT" --steps 10 --max-seconds 3
+    run ops_bench 35 "$PYTHON" benchmarks/suite/ops_bench.py --device "$DEVICE" --out "$OUT" --repeat 30
 fi
 
 # ------------------------------------------------------------------ the report

@@ -4,7 +4,7 @@
 #      (pip install --no-build-isolation --no-deps -e .; python setup.py build_ext --inplace
 #      if pip cannot);
 #   2. run the test suite, GPU tests included (tests/test_gpu.py; junit xml kept);
-#   3. run the ops benchmark on the paper's 307,200-tet beam (benchmarks/ops_bench.py);
+#   3. run the ops benchmark on the paper's 307,200-tet beam (benchmarks/suite/ops_bench.py);
 #   4. write $OUT/gpu_check.md (environment, build, tests, benchmark) and print the table last.
 # The output of each step is also kept in $OUT/<step>.log. A failing step is reported and the
 # next steps still run; the exit status is non-zero if any step failed.
@@ -100,7 +100,7 @@ step tests 150 "$PYTHON" -m pytest -q -rs -p no:cacheprovider --junitxml="$OUT/p
 
 # ---------------------------------------------------------------- 3. benchmark
 # shellcheck disable=SC2086
-step benchmark 5 "$PYTHON" benchmarks/ops_bench.py --device "$DEVICE" --out "$OUT" ${GPU_CHECK_BENCH_ARGS:-}
+step benchmark 5 "$PYTHON" benchmarks/suite/ops_bench.py --device "$DEVICE" --out "$OUT" ${GPU_CHECK_BENCH_ARGS:-}
 
 # ---------------------------------------------------------------- 4. report
 {

@@ -6,22 +6,23 @@
     f = model(mesh.vertices)          # [V, 3] elastic forces
 """
 from ._backend import backend_info
-from .physics.contact import Plane
 from .errors import InvertedElementsError, MaterialError, MeshError, SceneError, SolverError, TensorMassError
-from .mesh.io import load_mesh, save_mesh
-from .physics.materials import MODELS, Material
-from .mesh.meshes import Mesh, TetMesh, TriMesh
 from .mesh.beams import beam_mesh, beam_tri_mesh
-from .physics.tensor_mass import TensorMass
-from .sim.simulator import Body, InvertedElementsWarning, Simulator
-from .sim.scene_file import load_scene
-from .solver import solve_static
+from .mesh.io import load_mesh, save_mesh
+from .mesh.meshes import Mesh, TetMesh, TriMesh
 from .mesh.surface import tetrahedralize
+from .physics.contact import Plane
+from .physics.materials import MODELS, Material
+from .physics.tensor_mass import TensorMass
+from .sim.scene_file import load_scene
+from .sim.simulator import Body, InvertedElementsWarning, Simulator
+from .solver import solve_static
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "backend_info", "Plane", "InvertedElementsError", "MaterialError", "MeshError", "SceneError", "SolverError", "TensorMassError",
+    "backend_info", "Plane", "InvertedElementsError", "MaterialError", "MeshError", "SceneError", "SolverError",
+    "TensorMassError",
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh",
     "TensorMass", "Body", "Simulator", "InvertedElementsWarning", "load_scene", "solve_static", "tetrahedralize",
 ]

@@ -320,7 +320,8 @@ def load_script(folder: str, name: str):
     packages), loaded by its path."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location(f"{folder}_{name}", os.path.join(REPO, folder, f"{name}.py"))
+    module_name = f"{folder}_{name}".replace("/", "_")
+    spec = importlib.util.spec_from_file_location(module_name, os.path.join(REPO, folder, f"{name}.py"))
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

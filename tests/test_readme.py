@@ -55,7 +55,8 @@ def _env(tmp_path):
 def _run(command, env, timeout=900):
     done = subprocess.run(["bash", "-c", command], cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=timeout)
-    assert done.returncode == 0, f"{command!r} failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    assert done.returncode == 0, (f"{command!r} failed ({done.returncode}):\n{done.stdout[-3000:]}\n"
+                                  f"{done.stderr[-3000:]}")
     return done
 
 

@@ -140,9 +140,9 @@ def _cmd_info(args):
 
 
 def _cmd_run(args):
-    from .render import FrameRenderer
     from ..sim.output import FrameWriter
     from .progress import Progress
+    from .render import FrameRenderer
 
     if (args.png or args.gif) and not args.out:
         raise UsageError("--png and --gif need --out (the folder the pictures go to)")

@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from ..errors import MeshError
-from .meshes import TetMesh
 from .beams import beam_mesh
+from .meshes import TetMesh
 
 __all__ = [
     "Shape", "tetrahedralize", "sphere_shape", "capsule_shape", "ellipsoid_shape", "smooth_union",

@@ -11,9 +11,22 @@ dispatched to the compiled extension (``torch.ops.tensormass.*``) or its pure-to
 
 Layers above (physics, solver) call this one; it calls only the mesh layer and the backend.
 """
-from .dispatch import (dforces, element_dforces, element_forces, energy, forces, linearize, node_gather,
-                       node_tangent, step_rhs, step_rhs_serves, system_cg, system_cg_serves, system_matvec,
-                       system_matvec_alpha)
+from .dispatch import (
+                       dforces,
+                       element_dforces,
+                       element_forces,
+                       energy,
+                       forces,
+                       linearize,
+                       node_gather,
+                       node_tangent,
+                       step_rhs,
+                       step_rhs_serves,
+                       system_cg,
+                       system_cg_serves,
+                       system_matvec,
+                       system_matvec_alpha,
+)
 
 __all__ = ["dforces", "element_dforces", "element_forces", "energy", "forces", "linearize", "node_gather",
            "node_tangent", "step_rhs", "step_rhs_serves", "system_cg", "system_cg_serves", "system_matvec",

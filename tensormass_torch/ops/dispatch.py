@@ -30,9 +30,9 @@ from typing import Optional
 import torch
 
 from .. import _backend
-from .reference import gather as ref_gather
-from .reference import corotational, stress_form, tensor_form
 from ..mesh.topology import GatherPlan
+from .reference import corotational, stress_form, tensor_form
+from .reference import gather as ref_gather
 
 
 def _element_values(group, u):
@@ -112,8 +112,9 @@ def element_forces(group, u: torch.Tensor) -> torch.Tensor:
                                    linearize(group, u), group.projector)
     if group.form == "stress":
         lam, mu = group.lame()
-        return stress_form.FORCES[stress_form.kernel_model(group)](_element_values(group, u), group.shape_vectors, group.measure,
-                                               lam, mu, group.projector)
+        element_forces_of = stress_form.FORCES[stress_form.kernel_model(group)]
+        return element_forces_of(_element_values(group, u), group.shape_vectors, group.measure, lam, mu,
+                                 group.projector)
     if group.model == "hooke":
         return tensor_form.hooke_edge_partial_forces(u, group.edges, group.edge_k)
     return tensor_form.stvk_forces(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d)
@@ -134,8 +135,9 @@ def element_dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[to
                                     rotations, group.projector)
     if group.form == "stress":
         lam, mu = group.lame()
-        return stress_form.DFORCES[stress_form.kernel_model(group)](_element_values(group, u), _element_values(group, du),
-                                                group.shape_vectors, group.measure, lam, mu, group.projector)
+        element_dforces_of = stress_form.DFORCES[stress_form.kernel_model(group)]
+        return element_dforces_of(_element_values(group, u), _element_values(group, du), group.shape_vectors,
+                                  group.measure, lam, mu, group.projector)
     if group.model == "hooke":
         return tensor_form.hooke_edge_partial_forces(du, group.edges, group.edge_k)
     return tensor_form.stvk_dforces(_element_values(group, u), _element_values(group, du),
@@ -178,8 +180,9 @@ def energy(group, u: torch.Tensor) -> torch.Tensor:
                                    linearize(group, u).detach(), group.projector).sum()
     if group.form == "stress":
         lam, mu = group.lame()
-        return stress_form.ENERGIES[stress_form.kernel_model(group)](_element_values(group, u), group.shape_vectors, group.measure,
-                                                 lam, mu, group.projector).sum()
+        element_energies_of = stress_form.ENERGIES[stress_form.kernel_model(group)]
+        return element_energies_of(_element_values(group, u), group.shape_vectors, group.measure, lam, mu,
+                                   group.projector).sum()
     if group.model == "hooke":  # W = 1/2 u^T K u = -1/2 u . F(u)
         return -0.5 * (u * forces(group, u)).sum()
     return tensor_form.stvk_energy(_element_values(group, u), group.tensor_b, group.tensor_c, group.tensor_d).sum()

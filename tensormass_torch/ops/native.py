@@ -34,9 +34,9 @@ from typing import Optional
 
 import torch
 
-from .reference import gather as ref_gather
 from ..mesh.topology import sum_slots_in_order
 from .reference import corotational, stress_form, tensor_form
+from .reference import gather as ref_gather
 
 __all__ = ["MODEL_IDS", "ROTATION_IDS", "OPS", "REFERENCE", "available", "ensure_registered", "corotational_rotations",
            "element_forces", "element_dforces", "node_gather", "forces", "dforces", "system_fusable",
@@ -933,7 +933,7 @@ def _ref_stress_tangent_node_k(u, elements, m, vol, lam, mu, proj, model, rotati
     dforces along unit displacements (n d of them), summed onto edges in slot order, written to
     the node graph's slots ``[N_n, V, d, d]`` (-H_g where slot_edge = g, -H_g^T where ~g; zeros in
     unused slots)."""
-    n, d, num_nodes = elements.shape[1], u.shape[1], u.shape[0]
+    n, d = elements.shape[1], u.shape[1]
     u_e = u[elements]
     name = _model_name(model)
     blocks = u.new_zeros((elements.shape[0], n, n, d, d))  # [N, a, b, x, c] = d f_a[x] / d u_b[c]

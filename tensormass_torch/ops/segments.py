@@ -83,7 +83,7 @@ class ChunkPlan:
         least 256 nodes (a block's 256 threads get one node each in the matvec; smaller chunks
         leave threads idle and multiply the blocks that meet at every reduction: on an H100 the
         SOFA beam's CG took 206 us with chunks of 256 against 227 us with 64, the paper beam's
-        722 against 1,029 us with ~120, benchmarks/cg_one_op_bench.py) and at most 4096 (the last
+        722 against 1,029 us with ~120, benchmarks/studies/cg_one_op_bench.py) and at most 4096 (the last
         block of an object sums its chunk sums: 10M nodes give 2,400 of them)."""
         return int(min(4096, max(256, -(-int(num_nodes) // 512))))
 

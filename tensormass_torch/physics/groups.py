@@ -19,11 +19,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..mesh import geometry
 from ..errors import MaterialError
-from .materials import lame
-from ..ops.reference import tensor_form
+from ..mesh import geometry
 from ..mesh.topology import GatherPlan
+from ..ops.reference import tensor_form
+from .materials import lame
 
 FORMS = ("stress", "tensor")
 
@@ -74,7 +74,8 @@ class ElementGroup(nn.Module):
         if self.rotation == "qr" or (self.rotation == "polar" and self.membrane):
             self.register_buffer("rest_elements", element_rest)
         if self.rotation == "polar" and self.membrane:
-            normal = torch.linalg.cross(element_rest[:, 1] - element_rest[:, 0], element_rest[:, 2] - element_rest[:, 0])
+            edges = element_rest[:, 1:3] - element_rest[:, :1]
+            normal = torch.linalg.cross(edges[:, 0], edges[:, 1])
             self.register_buffer("rest_normals", normal / torch.linalg.vector_norm(normal, dim=1, keepdim=True))
         if form == "stress":
             self.register_buffer("shape_vectors", m)

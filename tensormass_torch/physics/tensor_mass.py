@@ -8,9 +8,9 @@ from torch import nn
 
 from .. import ops
 from ..errors import MaterialError, SceneError
+from ..mesh.topology import incidence_slots, padded_sum
 from .groups import FORMS, ElementGroup
 from .materials import Material
-from ..mesh.topology import incidence_slots, padded_sum
 
 #: The form ``form="auto"`` picks for each model, measured (benchmarks/results/2026-11-22-h200,
 #: ops_bench): ``hooke`` in Cotin's vertex/edge tensors reads 23 MB instead of 30 MB on the

@@ -7,10 +7,10 @@ from typing import Callable, Dict
 
 import torch
 
-from ..physics.contact import Plane
 from ..errors import SceneError
-from ..physics.materials import Material
 from ..mesh.beams import beam_mesh
+from ..physics.contact import Plane
+from ..physics.materials import Material
 from .simulator import Body, Simulator
 
 

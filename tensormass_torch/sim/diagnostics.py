@@ -26,7 +26,8 @@ from typing import Dict, List, Optional, Sequence
 import torch
 
 
-def signed_measures(x: torch.Tensor, elements: torch.Tensor, rest_normals: Optional[torch.Tensor] = None) -> torch.Tensor:
+def signed_measures(x: torch.Tensor, elements: torch.Tensor,
+                    rest_normals: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Signed measures ``[N]`` of elements ``[N, n]`` at positions ``x [V, 3]``: volumes of tets
     (n = 4), areas of triangles (n = 3) signed by ``rest_normals [N, 3]`` (unit)."""
     nodes = x[elements]  # [N, n, 3]
@@ -191,7 +192,8 @@ def allocations(sim) -> Dict[str, int]:
     (positions, velocities, constraint masks).
 
     Each entry counts its tensor's whole storage; a tensor that shares its storage with one
-    listed before (a view, or the same tensor held twice) is not listed again. The solver's tensors appear after the first step."""
+    listed before (a view, or the same tensor held twice) is not listed again. The solver's tensors appear
+    after the first step."""
     out: Dict[str, int] = {}
     seen = set()
 
@@ -258,4 +260,5 @@ def allocation_summary(sim) -> Dict[str, int]:
     return parts
 
 
-__all__ = ["InversionCheck", "InversionReport", "allocation_summary", "allocations", "best_rotations", "inversion_report", "signed_measures"]
+__all__ = ["InversionCheck", "InversionReport", "allocation_summary", "allocations", "best_rotations",
+           "inversion_report", "signed_measures"]

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import difflib
 import math
+
 try:
     import tomllib
 except ModuleNotFoundError:  # Python < 3.11: the package still imports; reading a scene needs tomli
@@ -69,13 +70,13 @@ from typing import Any, Callable, Dict, List, Optional
 
 import torch
 
-from ..physics.contact import Plane
 from ..errors import InvertedElementsError, MaterialError, MeshError, SceneError
-from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
-from ..mesh.meshes import Mesh
 from ..mesh.beams import beam_mesh, beam_tri_mesh
-from .simulator import Body, Simulator
+from ..mesh.meshes import Mesh
+from ..physics.contact import Plane
+from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from .builtin import Scene
+from .simulator import Body, Simulator
 
 __all__ = ["FileScene", "load_scene", "MESH_GENERATORS"]
 

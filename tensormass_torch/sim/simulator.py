@@ -8,15 +8,21 @@ from typing import Callable, List, Optional, Sequence
 
 import torch
 
+from ..errors import SceneError, SolverError
+from ..ops.segments import Segments
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
-from .diagnostics import InversionCheck, InversionReport
-from ..errors import SceneError, SolverError
 from ..physics.materials import Material
 from ..physics.tensor_mass import TensorMass
-from ..solver.implicit_euler import DynamicsSystem, StepOptions, StepReport, auto_cg_max_iter, implicit_euler_step, step_graphs_for
-from ..ops.segments import Segments
-
+from ..solver.implicit_euler import (
+    DynamicsSystem,
+    StepOptions,
+    StepReport,
+    auto_cg_max_iter,
+    implicit_euler_step,
+    step_graphs_for,
+)
+from .diagnostics import InversionCheck, InversionReport
 
 #: ``Simulator(check_inversion=...)`` values.
 INVERSION_CHECKS = ("off", "warn", "error")
@@ -59,7 +65,8 @@ class Body:
             raise SceneError("a node cannot be both fixed and prescribed")
         self.motion = motion
         if bool((self.fixed | self.prescribed).all()):
-            raise SceneError(f"every node of body {name or ''} is fixed or prescribed: nothing to simulate".replace("  ", " "))
+            label = f"body {name} " if name else "the body "
+            raise SceneError(f"every node of {label}is fixed or prescribed: nothing to simulate")
         used = torch.zeros(num_nodes, dtype=torch.bool, device=device)
         used[mesh.elements.reshape(-1)] = True
         massless = ~used & ~self.fixed & ~self.prescribed
@@ -206,7 +213,8 @@ class Simulator:
             nodes = torch.nonzero(b.prescribed.to(self.device)).flatten() + self.ptr[i]
             goal = torch.as_tensor(b.motion(t_next), dtype=self.dtype, device=self.device)
             if goal.shape != (nodes.numel(), 3):
-                raise SceneError(f"body {i}: motion(t) returned shape {tuple(goal.shape)}; expected [{nodes.numel()}, 3]")
+                raise SceneError(f"body {i}: motion(t) returned shape {tuple(goal.shape)}; "
+                                 f"expected [{nodes.numel()}, 3]")
             target_v[nodes] = (goal - x[nodes]) / h
         return target_v
 

@@ -15,11 +15,11 @@ from typing import List
 
 import torch
 
-from ..ops import native
 from ..errors import SolverError
 from ..ops import cg as cg_ops
-from .cg import CGResult, CGSolver, batched_cg, run_captured
+from ..ops import native
 from ..ops.segments import Segments
+from .cg import CGResult, CGSolver, batched_cg, run_captured
 
 
 def auto_cg_max_iter(free_dofs: int) -> int:

@@ -6,10 +6,10 @@ from typing import Optional, Sequence
 
 import torch
 
-from ..physics.constraints import node_mask
 from ..errors import SceneError, SolverError
-from .cg import batched_cg
 from ..ops.segments import Segments
+from ..physics.constraints import node_mask
+from .cg import batched_cg
 
 
 def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81), tol: float = 1e-6,

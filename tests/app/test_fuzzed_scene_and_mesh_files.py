@@ -217,7 +217,8 @@ def test_mistakes_in_mesh_files(mistake, which, junk, suffix, tmp_path_factory):
         data = path.read_bytes()
         path.write_bytes(data[: which % max(len(data), 1)])
     else:
-        blocks = [] if mistake == "no_cells" else [(kind, cells.astype(float) + 0.5 if mistake == "float_cells" else cells)]
+        data = cells.astype(float) + 0.5 if mistake == "float_cells" else cells
+        blocks = [] if mistake == "no_cells" else [(kind, data)]
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             try:
                 meshio.write(str(path), meshio.Mesh(points, blocks))

@@ -16,7 +16,8 @@ import tensormass_torch as tm
 from tensormass_torch import ops
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-sys.path.insert(0, str(BENCH))
+for folder in (BENCH, BENCH / "suite", BENCH / "studies"):  # the shared modules and the scripts
+    sys.path.insert(0, str(folder))
 
 import assembled  # noqa: E402
 import common  # noqa: E402
@@ -139,7 +140,8 @@ def test_figure2_quick(tmp_path, monkeypatch):
 def test_sofa_beam_quick(tmp_path):
     import sofa_beam
 
-    sofa_beam.main(["--quick", "--device", "cpu", "--models", "hooke", "--backends", "torch,bsr", "--out", str(tmp_path)])
+    sofa_beam.main(["--quick", "--device", "cpu", "--models", "hooke", "--backends", "torch,bsr",
+                    "--out", str(tmp_path)])
     records = _check_outputs(tmp_path, "sofa_beam")
     assert _ran(records, "torch")[0]["cg_iterations"] == 10
     assert _ran(records, "bsr")[0]["assembly_ms"] > 0

@@ -6,9 +6,9 @@ import torch
 meshio = pytest.importorskip("meshio")
 
 from tensormass_torch.errors import MeshError  # noqa: E402
+from tensormass_torch.mesh.beams import beam_mesh, beam_tri_mesh  # noqa: E402
 from tensormass_torch.mesh.io import load_mesh, save_mesh  # noqa: E402
 from tensormass_torch.mesh.meshes import TetMesh, TriMesh  # noqa: E402
-from tensormass_torch.mesh.beams import beam_mesh, beam_tri_mesh
 
 FORMATS = ["vtu", "vtk", "msh", "mesh"]
 POINT_DATA_FORMATS = ["vtu", "vtk", "msh"]  # medit stores no point data

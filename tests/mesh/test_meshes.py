@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from tensormass_torch.errors import MeshError
-from tensormass_torch.mesh.meshes import Mesh, TetMesh, TriMesh
 from tensormass_torch.mesh.beams import beam_mesh, beam_tri_mesh
+from tensormass_torch.mesh.meshes import Mesh, TetMesh, TriMesh
 
 # The unit tet and two unit right triangles, all positively oriented.
 TET_V = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]

@@ -2,8 +2,8 @@
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.ops.reference.gather import node_gather, scatter_partial_forces
 from tensormass_torch.mesh.topology import GatherPlan, incidence_slots, node_element_lists, padded_sum
+from tensormass_torch.ops.reference.gather import node_gather, scatter_partial_forces
 
 
 def test_force_index_gives_each_incidence_its_own_slot():

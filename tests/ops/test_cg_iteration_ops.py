@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-
 from conftest import load_native
-from tensormass_torch.solver import Segments
+
 from tensormass_torch.ops import cg as cg_ops
-from tensormass_torch.solver.cg import CGSolver, batched_cg
 from tensormass_torch.ops.cg import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE, CGState
 from tensormass_torch.ops.segments import ChunkPlan
+from tensormass_torch.solver import Segments
+from tensormass_torch.solver.cg import CGSolver, batched_cg
 
 native = load_native("cg_update")
 needs_ext = pytest.mark.skipif(native is None, reason="tensormass_torch._C (with the CG ops) is not built")

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.ops import native
 from tensormass_torch.ops import cg as cg_ops
+from tensormass_torch.ops import native
 from tensormass_torch.solver.implicit_euler import SystemMatvec
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

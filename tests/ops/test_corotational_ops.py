@@ -28,16 +28,16 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import build_scene, large_deformation, load_native, rel
 
-from conftest import load_native, build_scene, large_deformation, rel
 from tensormass_torch import Material, TensorMass, ops
 from tensormass_torch.mesh import geometry
 from tensormass_torch.ops.reference import corotational as co
 from tensormass_torch.ops.reference import gather as ref_gather
 
-
 native = load_native("corotational_rotations")
-pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C is not built (or predates the rotations op)")
+pytestmark = pytest.mark.skipif(native is None,
+                                reason="tensormass_torch._C is not built (or predates the rotations op)")
 T = torch.ops.tensormass if native is not None else None
 TOL = {torch.float64: 1e-12, torch.float32: 2e-5}
 # (kind, rotation method): QR needs 3-D elements

@@ -20,9 +20,7 @@ import os
 import numpy as np
 import pytest
 import torch
-
 from conftest import CASES, DTYPES, MODELS
-
 
 DEVICE = os.environ.get("TENSORMASS_GPU_TEST_DEVICE", "cuda")
 
@@ -225,7 +223,8 @@ def corotational_calls(group, u, du, rotations, index_dtype):
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f64", "f32"])
 @pytest.mark.parametrize("kind,rot", COROT_CASES, ids=COROT_IDS)
 def test_cuda_corotational_matches_cpu_and_reference(kind, rot, dtype, rng):
-    from test_corotational_ops import deformations, make_group as make_corotational, reference_rotations
+    from test_corotational_ops import deformations, reference_rotations
+    from test_corotational_ops import make_group as make_corotational
 
     _, group, scene = make_corotational(rng, kind, torch.float64, rot)
     u = (deformations(rng, scene)[1] - scene.rest).contiguous()
@@ -269,7 +268,8 @@ def test_cuda_corotational_bitwise_deterministic_and_model_matches_torch(rot, rn
 
 
 def test_cuda_corotational_opcheck():
-    from test_corotational_ops import deformations, make_group as make_corotational
+    from test_corotational_ops import deformations
+    from test_corotational_ops import make_group as make_corotational
 
     rng = np.random.default_rng(4)
     for kind, rot in (("tet", "polar"), ("tri3d", "qr")):

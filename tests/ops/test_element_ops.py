@@ -15,15 +15,13 @@ Skipped when the extension is not built (the pure-torch path is tested everywher
 """
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch
+from conftest import CASES, DTYPES, FORMS, KINDS, MODELS, build_scene, large_deformation, load_native, rel, tol
 
-from conftest import load_native, CASES, DTYPES, FORMS, KINDS, MODELS, build_scene, large_deformation, rel, tol
 from tensormass_torch import Material, TensorMass, ops
 from tensormass_torch.mesh.topology import GatherPlan
-
 
 native = load_native()
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C is not built")

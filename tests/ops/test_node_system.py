@@ -17,7 +17,7 @@ neighbor [N_n, V], node_k [N_n, V, d, d]) in place of kernel 1 (padded partial f
     6. on CUDA (skipped without one; ``TENSORMASS_GPU_TEST_DEVICE=cpu`` dry-runs them on the CPU):
        node = padded bitwise on the device, = the CPU within rounding, run-to-run deterministic,
        capturable in a CUDA graph
-    7. benchmarks/node_system_bench.py --quick runs on the CPU
+    7. benchmarks/studies/node_system_bench.py --quick runs on the CPU
 
 Skipped when the extension is not built with ``hooke_node_system``.
 """
@@ -31,10 +31,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import DTYPES, KINDS, build_scene, load_native, rel, tol
 
 import tensormass_torch as tm
-from conftest import DTYPES, KINDS, build_scene, rel, tol
-from conftest import load_native
 from tensormass_torch import Material, TensorMass, ops
 
 native = load_native("hooke_node_system", "gather_system", "tensor_hooke_partial_forces")
@@ -482,7 +481,7 @@ def test_cuda_graph_replays_the_node_matvec():
 
 
 def test_benchmark_script_quick(tmp_path, capsys):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "studies"))
     import node_system_bench
 
     rows = node_system_bench.main(["--quick", "--device", "cpu", "--repeat", "1", "--warmup", "1",

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_cg_solve_in_one_op import FIELDS, fresh_solver, make_system, op_by_op, state_of
 
 import tensormass_torch as tm
-from tensormass_torch.ops import native
-from tensormass_torch.sim import builtin as scenes
 from tensormass_torch.ops import cg as cg_ops
+from tensormass_torch.ops import native
 from tensormass_torch.ops.segments import ChunkPlan
-
-from test_cg_solve_in_one_op import FIELDS, fresh_solver, make_system, op_by_op, state_of
+from tensormass_torch.sim import builtin as scenes
 
 pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_solve"),
                                 reason="needs the extension with hooke_node_solve")
@@ -353,7 +352,8 @@ def test_the_solve_plans_and_their_slots():
         native.solve_plan(cg.plan, "global")
     group = system.model.groups[0]
     _, _, incidences = native._plan_indices(group.plan)
-    want = max(int(incidences[a:b].sum()) for a, b in zip(plan.chunk_start[:-1].tolist(), plan.chunk_start[1:].tolist()))
+    starts = plan.chunk_start.tolist()
+    want = max(int(incidences[a:b].sum()) for a, b in zip(starts[:-1], starts[1:]))
     assert native.chunk_slots(group, plan) == want
 
 

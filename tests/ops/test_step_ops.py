@@ -9,10 +9,10 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch import ops
-from tensormass_torch.physics.contact import Planes
 from tensormass_torch.ops import cg as cg_ops
-from tensormass_torch.solver.implicit_euler import DynamicsSystem
 from tensormass_torch.ops.segments import ChunkPlan, Segments
+from tensormass_torch.physics.contact import Planes
+from tensormass_torch.solver.implicit_euler import DynamicsSystem
 
 pytestmark = pytest.mark.skipif(cg_ops.native_ops_for(torch.zeros(1)) is None
                                 or not hasattr(torch.ops.tensormass, "hooke_node_step_rhs"),

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 import tensormass_torch as tm
+from tensormass_torch.ops.segments import Segments
 from tensormass_torch.physics.contact import Planes
 from tensormass_torch.solver.implicit_euler import DynamicsSystem
-from tensormass_torch.ops.segments import Segments
 
 
 def _model(model, form="auto"):

@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_cg_solve_in_one_op import make_system
+from test_pipelined_solve import layout  # noqa: F401, F811  (the fixture)
 
 import tensormass_torch as tm
+from tensormass_torch.ops import cg as cg_ops
 from tensormass_torch.ops import native
 from tensormass_torch.sim import builtin as scenes
-from tensormass_torch.ops import cg as cg_ops
-
-from test_cg_solve_in_one_op import make_system
-from test_pipelined_solve import layout  # noqa: F401  (the fixture)
 
 pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_steps"),
                                 reason="needs the extension with hooke_node_steps")
@@ -80,7 +79,7 @@ def run(make, planes: bool, chained: bool, monkeypatch):
 @pytest.mark.parametrize("make", [beams, sofa_beam], ids=["two-beams", "sofa-beam"])
 @pytest.mark.parametrize("planes", [False, True], ids=["free", "plane"])
 @pytest.mark.parametrize("chained", [True, False], ids=["chained", "single"])
-def test_steps_in_the_solve_equal_the_rhs_op_then_the_solve(monkeypatch, layout, make, planes, chained):
+def test_steps_in_the_solve_equal_the_rhs_op_then_the_solve(monkeypatch, layout, make, planes, chained):  # noqa: F811
     runs = {}
     for in_solve in (True, False):
         monkeypatch.setattr(native, "SOLVE_STEP_RHS", in_solve)

@@ -16,15 +16,13 @@ Skipped when the extension is not built.
 """
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import torch
+from conftest import CASES, DTYPES, FORMS, MODELS, build_scene, large_deformation, load_native, rel, tol
 
 import tensormass_torch as tm
-from conftest import load_native, CASES, DTYPES, FORMS, MODELS, build_scene, large_deformation, rel, tol
 from tensormass_torch import Material, TensorMass, ops
-
 
 native = load_native("gather_system")
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C (with gather_system) is not built")

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.ops import native
 from tensormass_torch.ops import cg as cg_ops
+from tensormass_torch.ops import native
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass,

@@ -1,5 +1,5 @@
 """Closed-form references (tensormass_torch.physics.analytic) against numbers derived here independently,
-a simulation that approaches them, and a smoke run of benchmarks/accuracy.py.
+a simulation that approaches them, and a smoke run of benchmarks/studies/accuracy.py.
 
 Independent derivations: deflections by the unit-load method (virtual work, integrated
 numerically), the clamped-free root of 1 + cos b cosh b = 0 by bisection, Timoshenko frequencies
@@ -19,7 +19,7 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch.physics import analytic
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "studies"
 
 E, NU, RHO, G = 1e8, 0.3, 1000.0, 9.81
 L, WIDTH, HEIGHT = 1.0, 0.3, 0.2
@@ -241,7 +241,7 @@ def test_cantilever_deflection_approaches_timoshenko(load):
 
 
 # ---------------------------------------------------------------------------------------------
-# benchmarks/accuracy.py
+# benchmarks/studies/accuracy.py
 # ---------------------------------------------------------------------------------------------
 
 

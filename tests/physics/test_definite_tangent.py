@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import KINDS, build_scene, large_deformation, load_native, rel
 
 import tensormass_torch as tm
-from conftest import KINDS, build_scene, large_deformation, load_native, rel
 from tensormass_torch import Material, MaterialError, TensorMass, ops
 from tensormass_torch.ops.reference import stress_form
 

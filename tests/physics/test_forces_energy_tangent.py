@@ -23,9 +23,18 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import (
+    FORMS,
+    KINDS,
+    MODELS,
+    axis_rotation,
+    element_measures,
+    fem_stiffness,
+    per_element,
+    random_rotation,
+    rel_err,
+)
 
-from conftest import (FORMS, KINDS, MODELS, axis_rotation, element_measures, fem_stiffness, per_element,
-                      random_rotation, rel_err)
 from tensormass_torch import Material, TensorMass, TetMesh, TriMesh
 
 F64 = torch.float64

@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from conftest import FORMS, KINDS, MODELS, fem_stiffness, per_element, rel_err, shape_gradients
+
 from tensormass_torch import Material, MaterialError, TensorMass
-from tensormass_torch.physics.tensor_mass import AUTO_FORM
 from tensormass_torch.ops.reference import stress_form
+from tensormass_torch.physics.tensor_mass import AUTO_FORM
 
 F64 = torch.float64
 MODEL_KIND = [pytest.param(m, k, id=f"{m}-{k}") for m in MODELS for k in KINDS]

@@ -1,7 +1,7 @@
 """Scene files (TOML): every shipped scene runs, options reach the simulator, and each kind of
 mistake gives one SceneError line naming the file and the key path."""
-from pathlib import Path
 import textwrap
+from pathlib import Path
 
 import pytest
 import torch

@@ -14,9 +14,9 @@ import os
 
 import pytest
 import torch
+from conftest import load_script
 
 import tensormass_torch as tm
-from conftest import load_script
 
 DT = torch.float64
 #: CG iterations (tol 1e-8) of the scene below, measured: 27 at dt, 20-21 at dt/2, 14-15 at dt/4.
@@ -80,7 +80,8 @@ def test_inverting_step_is_retried_in_substeps():
                    fixed=mesh.vertices[:, 0] <= 1e-9, prescribed=far, motion=lambda t: goal)
     sim = tm.Simulator([body], dt=0.01, dtype=DT, check_inversion="error", substeps_on_failure=2)
     x = sim.x.clone()
-    with pytest.raises(tm.SolverError, match=r"2 to 4 sub-steps; last: the step to t = 0.0025 inverts elements \(object 0: \d+ inverted"):
+    with pytest.raises(tm.SolverError,
+                       match=r"2 to 4 sub-steps; last: the step to t = 0.0025 inverts elements \(object 0: \d+ inverted"):
         sim.step()
     assert torch.equal(sim.x, x) and sim.steps_done == 0
 
@@ -121,7 +122,8 @@ def busy_scene(device="cpu"):
     start = mesh.vertices[far].clone()
     bodies = [
         tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="stvk"),
-                fixed=mesh.vertices[:, 0] <= 1e-9, prescribed=far, motion=lambda t: start + 0.01 * torch.sin(torch.tensor(t))),
+                fixed=mesh.vertices[:, 0] <= 1e-9, prescribed=far,
+                motion=lambda t: start + 0.01 * torch.sin(torch.tensor(t))),
         tm.Body(sheet, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="corotational", thickness=0.01),
                 fixed=sheet.vertices[:, 0] <= 1e-9),
     ]
@@ -179,7 +181,7 @@ def test_memory_is_flat_over_2000_steps_cuda():
 
 
 def load_stability_benchmark():
-    return load_script("benchmarks", "stability")
+    return load_script("benchmarks/studies", "stability")
 
 
 def test_benchmark_judges_stable_degraded_failed():

@@ -122,5 +122,6 @@ def stvk_dforces(u, du, b, c, d):
     grad = grad + torch.einsum("njk,njkpa->npa", d_gram, c)
     d_times_gram = torch.einsum("npklm,nlm->npk", d, gram)
     d_times_dgram = torch.einsum("npklm,nlm->npk", d, d_gram)
-    grad = grad + 4.0 * (torch.einsum("npk,nka->npa", d_times_gram, du) + torch.einsum("npk,nka->npa", d_times_dgram, u))
+    grad = grad + 4.0 * (torch.einsum("npk,nka->npa", d_times_gram, du)
+                         + torch.einsum("npk,nka->npa", d_times_dgram, u))
     return -grad

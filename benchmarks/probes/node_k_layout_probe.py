@@ -15,7 +15,7 @@ slot_edge, incidences, edges; its nodes alternate 10 and 26 slots) or a 14-neigh
 Each variant is checked against a float64 product in NumPy before it is timed. A probe for
 deciding what to build, not a library path.
 
-    python benchmarks/node_k_layout_probe.py --graph paper_beam_graph.npz [--out FILE.json]   # GPU, cupy
+    python benchmarks/probes/node_k_layout_probe.py --graph paper_beam_graph.npz [--out FILE.json]   # GPU, cupy
 
 The .npz comes from the CPU: native.hooke_node_graph of step_bench.paper_beam("hooke", "cpu")'s
 group (neighbor, incidences), and slot_edge / edges from its plan (index, force_index).
@@ -132,7 +132,6 @@ def slots_of(edges, V):
 
 
 def main():
-    import cupy as cp
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=None)

@@ -1,8 +1,8 @@
 """Where a graphed step spends its time: wall per step over 100 steps, then the CUDA kernels of 5
 steps (torch.profiler table, to stdout), for the SOFA beam or the paper's 307,200-tet beam.
 
-    python benchmarks/profile_step.py [MODEL ...] > profile.txt        # SOFA beam (hooke corotational)
-    python benchmarks/profile_step.py paper_beam:stvk paper_beam:corotational
+    python benchmarks/probes/profile_step.py [MODEL ...] > profile.txt        # SOFA beam (hooke corotational)
+    python benchmarks/probes/profile_step.py paper_beam:stvk paper_beam:corotational
 """
 import os
 import sys
@@ -11,7 +11,7 @@ import time
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # common, measure
 from step_bench import paper_beam, sofa  # noqa: E402
 
 SCENES = {"sofa_beam": sofa, "paper_beam": paper_beam}

@@ -1,7 +1,7 @@
 """Time of one CG iteration against the memory floor, from 10^3 to 10^7 elements.
 
-    python benchmarks/cg_floor.py --device cuda --out $OUT
-    python benchmarks/cg_floor.py --quick --out /tmp/floor            # tiny sizes, CPU, seconds
+    python benchmarks/suite/cg_floor.py --device cuda --out $OUT
+    python benchmarks/suite/cg_floor.py --quick --out /tmp/floor            # tiny sizes, CPU, seconds
 
 Scene: the paper's beam at each size (``common.cantilever_sim``, tetrahedra), float32.
 Time of one CG iteration: the difference of whole implicit steps at two CG budgets (--low and
@@ -19,11 +19,13 @@ from it). Writes cg_floor.md, cg_floor.json, cg_floor.png under --out.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
-import torch
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
 import common
+import torch
 from common import Budget, Results, copy_bandwidth, error_text, forced_backend, metadata, record, release
 from measure import Estimator, marginal_cg_ms, run_assembled, sim_size, warm_up
 
@@ -92,7 +94,8 @@ def main(argv=None):
     meta = metadata(device, dtype="float32", cg_budgets=[args.low, args.high],
                     copy_bandwidth_GBps={"device": bandwidth / 1e9}, argv=vars(args))
     results = Results(args.out, "cg_floor", "Time per CG iteration against the memory floor", meta, COLUMNS,
-                      notes=[f"ms/CG it = (t(step at {args.high} CG it) - t(step at {args.low})) / {args.high - args.low}"
+                      notes=[f"ms/CG it = (t(step at {args.high} CG it) - t(step at {args.low})) / "
+                             f"{args.high - args.low}"
                              " (matrix-free); a solve / iterations (csr). floor = bytes / copy bandwidth "
                              f"({bandwidth / 1e9:.0f} GB/s); see common.cg_iteration_bytes for what is counted."])
     estimator = Estimator()

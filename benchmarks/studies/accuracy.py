@@ -1,9 +1,10 @@
 """Accuracy against run time (issue 6): a cantilever's static deflection and its first bending
 frequency, against references nobody can tune to, over the settings a user chooses.
 
-    python benchmarks/accuracy.py --out benchmarks/results/accuracy        # default: < 10 min, 2-core CPU
-    python benchmarks/accuracy.py --quick --out /tmp/acc                   # seconds
-    python benchmarks/accuracy.py --device cuda --out $OUT/accuracy --static-m 1,2,3,4,6,8,12 --dynamic-m 1,2,3,4,6
+    python benchmarks/studies/accuracy.py --out benchmarks/results/accuracy        # default: < 10 min, 2-core CPU
+    python benchmarks/studies/accuracy.py --quick --out /tmp/acc                   # seconds
+    python benchmarks/studies/accuracy.py --device cuda --out $OUT/accuracy --static-m 1,2,3,4,6,8,12 \
+        --dynamic-m 1,2,3,4,6
 
 The beam (``BEAM``): L = 1 m, width 0.3 m (y), height 0.2 m (z), E = 1e8 Pa, nu = 0.3,
 rho = 1000 kg/m^3, clamped on its face x = 0; ``m`` refines it as 10m x 3m x 2m cubic cells x 6
@@ -54,17 +55,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
+import common
 import numpy as np
 import torch
-
-import common
-import tensormass_torch as tm
 from common import Budget, Results, metadata, record, release, sync
+
+import tensormass_torch as tm
 from tensormass_torch.physics import analytic
 
 

@@ -1,7 +1,7 @@
 """The effect of stvk's definite tangent (``Material(tangent="definite")``): steps survived, CG
 iterations and speed against the exact tangent, on scenes that compress stvk.
 
-    python benchmarks/definite_tangent.py --device cuda --out $OUT [--quick]
+    python benchmarks/studies/definite_tangent.py --device cuda --out $OUT [--quick]
 
 Scenes: ``compressed`` (a 1 m beam whose free end is pushed 70 % of the way in over 0.2 s,
 dt 0.02, CG to 1e-6) and ``paper_beam`` (the 307,200-tet beam sagging under its weight, 25 CG
@@ -13,13 +13,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
+import common
 import torch
 
 import tensormass_torch as tm
-import common
 
 
 def compressed(tangent, device, dtype, quick):

@@ -1,6 +1,6 @@
 """Steps per second of whole implicit Euler steps on the benchmark scenes (DESIGN section 7).
 
-    python benchmarks/step_bench.py --device cuda --out $OUT      # all scenes, both backends
+    python benchmarks/suite/step_bench.py --device cuda --out $OUT      # all scenes, both backends
 
 Scenes: SOFA's GPU benchmark beam (101,250 tets, 10 CG iterations, contact plane) and the
 paper's 307,200-tet beam (25 CG iterations), each with the extension and the pure-torch path
@@ -12,12 +12,15 @@ it). Writes step_bench.md / step_bench.json under --out.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-import torch
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
 import common
+import torch
 from common import Budget, Results, copy_bandwidth, metadata, record, release
 from measure import run_simulator
+
 from tensormass_torch.sim.builtin import sofa_beam
 
 PAPER_BEAM_ELEMENTS = 307_200

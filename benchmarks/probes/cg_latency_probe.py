@@ -12,13 +12,12 @@ beam's node graph, timed per iteration, in variants of what the persistent CG co
 Each variant is checked against a float64 CG in torch (same iteration count) before it is timed.
 A probe for deciding what to build, not a library path.
 
-    python benchmarks/cg_latency_probe.py [--out DIR]   # on the GPU machine (needs cupy)
+    python benchmarks/probes/cg_latency_probe.py [--out DIR]   # on the GPU machine (needs cupy)
 """
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import sys
@@ -26,7 +25,7 @@ import sys
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # common, measure
 from step_bench import paper_beam, sofa  # noqa: E402
 
 from tensormass_torch.ops import native  # noqa: E402

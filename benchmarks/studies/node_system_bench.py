@@ -1,7 +1,7 @@
 """The hooke tensor form's CG matvec: the node-centric kernel against the padded two-kernel path.
 
-    python benchmarks/node_system_bench.py --device cuda              # SOFA beam + paper beams
-    python benchmarks/node_system_bench.py --device cpu --quick       # a smoke test (small beams)
+    python benchmarks/studies/node_system_bench.py --device cuda              # SOFA beam + paper beams
+    python benchmarks/studies/node_system_bench.py --device cpu --quick       # a smoke test (small beams)
 
 Variants of one matvec A p = free (c_M M p - c_K K p) with its per-node dots (float32):
 
@@ -25,9 +25,10 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # common, measure
 
 import common  # noqa: E402
+
 import tensormass_torch as tm  # noqa: E402
 from tensormass_torch.ops import native  # noqa: E402
 

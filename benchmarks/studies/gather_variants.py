@@ -1,8 +1,8 @@
 """Kernel 2 layouts compared (issue 5): the paper's padded PartialForce against the alternatives a
 user would write, on the same element forces in one run.
 
-    python benchmarks/gather_variants.py --device cuda --out $OUT       # the paper's beam
-    python benchmarks/gather_variants.py --device cpu --quick --out /tmp/g
+    python benchmarks/studies/gather_variants.py --device cuda --out $OUT       # the paper's beam
+    python benchmarks/studies/gather_variants.py --device cpu --quick --out /tmp/g
 
 Variants of one force evaluation (kernel 1 + kernel 2, stress form, float32):
 
@@ -17,18 +17,21 @@ Variants of one force evaluation (kernel 1 + kernel 2, stress form, float32):
 Only ``padded`` is a fused native op; ``csr`` and ``atomics`` pair the native kernel 1 with torch's
 reductions, what a user would assemble from the ops. The node-centric kernel of the hooke tensor
 form (the CG product in one kernel over the node graph, tensormass::hooke_node_system) is timed by
-benchmarks/node_system_bench.py and in the step profile (profile_step.py). Writes gather_variants.md / .json.
+benchmarks/studies/node_system_bench.py and in the step profile (profile_step.py). Writes gather_variants.md / .json.
 """
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
+import common
 import torch
 
-import common
 import tensormass_torch as tm
-from tensormass_torch.ops import native
 from tensormass_torch.mesh.topology import node_element_lists
+from tensormass_torch.ops import native
 
 COLUMNS = [("model", "model", None), ("elements", "elements", ",d"), ("backend", "variant", None),
            ("ms", "ms per force evaluation", ".4f"), ("x_padded", "x padded", ".2f"),
@@ -74,7 +77,8 @@ def main(argv=None):
         raise SystemExit("gather_variants: the compiled extension is needed (tensormass_torch._C)")
     dims = (8, 3, 2) if args.quick else (80, 32, 20)
     meta = common.metadata(args.device, dtype="float32")
-    results = common.Results(args.out, "gather_variants", "Kernel 2 layouts: padded PartialForce against CSR and atomics",
+    results = common.Results(args.out, "gather_variants",
+                             "Kernel 2 layouts: padded PartialForce against CSR and atomics",
                              meta, COLUMNS, notes=[
                                  "One force evaluation each (stress form): padded = tensormass::stress_forces "
                                  "(PartialForce [N_n, V, d], slot sums, no atomics); csr = stress_element_forces "

@@ -1,7 +1,7 @@
 """Time of the element ops against the memory floor: extension vs pure torch, in one run.
 
-    python benchmarks/ops_bench.py                     # CUDA if available: the paper's beam
-    python benchmarks/ops_bench.py --device cpu --mesh 20 10 8 --repeat 10
+    python benchmarks/suite/ops_bench.py                     # CUDA if available: the paper's beam
+    python benchmarks/suite/ops_bench.py --device cpu --mesh 20 10 8 --repeat 10
 
 Scene: the paper's beam ``tm.beam_mesh(80, 32, 20)`` (307,200 tetrahedra), float32, models
 hooke and stvk, stress form and tensor form. Ops timed (DESIGN.md section 2):
@@ -30,16 +30,18 @@ import argparse
 import json
 import os
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
 from common import Budget, metadata
 
 import tensormass_torch as tm
-from tensormass_torch.ops import native as native_mod
 from tensormass_torch import ops
+from tensormass_torch.ops import native as native_mod
 from tensormass_torch.ops.reference import gather as ref_gather
 from tensormass_torch.ops.reference import stress_form, tensor_form
 
@@ -252,7 +254,8 @@ def main(argv=None):
     parser.add_argument("--warmup", type=int, default=None)
     parser.add_argument("--repeat", type=int, default=None)
     parser.add_argument("--out", default=os.environ.get("OUT") or "benchmarks/results")
-    parser.add_argument("--budget-s", type=float, default=None, help="wall-clock limit: later (model, form) pairs skipped")
+    parser.add_argument("--budget-s", type=float, default=None,
+                        help="wall-clock limit: later (model, form) pairs skipped")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     cuda = device.type == "cuda"
@@ -288,7 +291,8 @@ def main(argv=None):
     for model in args.models.split(","):
         for form in args.forms.split(","):
             if budget.remaining() <= 0:
-                rows.append({"model": model, "form": form, "op": "all", "backend": "all", "error": "skipped: budget spent"})
+                rows.append({"model": model, "form": form, "op": "all", "backend": "all",
+                             "error": "skipped: budget spent"})
                 continue
             mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model, tangent="exact")
             group = tm.TensorMass(mesh, mat, form=form).groups[0]

@@ -1,6 +1,6 @@
 """Large rotations (issue 4): the twist and spin scenes with hooke, corotational (polar, qr) and stvk.
 
-    python benchmarks/large_rotation.py [--resolution 2] [--steps 100] [--device cpu] [--dtype float64]
+    python benchmarks/studies/large_rotation.py [--resolution 2] [--steps 100] [--device cpu] [--dtype float64]
                                         [--variants hooke corotational ...] [--out benchmarks/results/large_rotation]
                                         [--no-render]
 

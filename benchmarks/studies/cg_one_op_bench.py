@@ -6,10 +6,10 @@ the solve alone (start + iterations), medians of repeated runs; they include the
 the one op (~60 us: benchmarks inside a captured step do not pay it). Chunkings with more chunks
 than the persistent kernel has resident blocks have no one-op path (native.persistent_cg_fits).
 
-    python benchmarks/cg_one_op_bench.py [--out DIR]        # on the GPU machine
-    python benchmarks/cg_one_op_bench.py --slope            # time per iteration: pipelined vs two-reduction
+    python benchmarks/studies/cg_one_op_bench.py [--out DIR]        # on the GPU machine
+    python benchmarks/studies/cg_one_op_bench.py --slope            # time per iteration: pipelined vs two-reduction
     ncu --clock-control none -k regex:persistent_cg -c 1 --section WarpStateStats \
-        --section SpeedOfLight python benchmarks/cg_one_op_bench.py --once
+        --section SpeedOfLight python benchmarks/studies/cg_one_op_bench.py --once
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import sys
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # common, measure
 import common  # noqa: E402
 from step_bench import paper_beam, sofa  # noqa: E402
 

@@ -1,7 +1,7 @@
 """SOFA's GPU benchmark beam (DESIGN section 7): implicit Euler steps per second.
 
-    python benchmarks/sofa_beam.py --device cuda --out $OUT
-    python benchmarks/sofa_beam.py --quick --out /tmp/sofa          # a 1/15-resolution beam, CPU
+    python benchmarks/suite/sofa_beam.py --device cuda --out $OUT
+    python benchmarks/suite/sofa_beam.py --quick --out /tmp/sofa          # a 1/15-resolution beam, CPU
 
 Scene: ``tensormass_torch.sim.builtin.sofa_beam`` (76 x 16 x 16 nodes, 101,250 tets, E = 1000,
 nu = 0.3, total mass 50, gravity -9 along y, dt = 0.04, r_M = r_K = 0.1, a contact plane, nodes
@@ -19,12 +19,15 @@ Published (SOFA's own table): 385 steps/s on an RTX 2070, 9 steps/s on an i7-107
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-import torch
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
 import common
+import torch
 from common import Budget, Results, copy_bandwidth, is_cuda, metadata, record, release
 from measure import run_assembled, run_simulator, sim_size
+
 from tensormass_torch.sim.builtin import sofa_beam
 
 SOFA_PUBLISHED = {"RTX 2070 (SOFA, CUDA)": 385.0, "i7-10750H (SOFA, CPU)": 9.0}
@@ -47,8 +50,9 @@ def parse_args(argv=None):
     p.add_argument("--models", default="hooke,corotational")
     p.add_argument("--scale", type=int, default=None, help="divide the beam's resolution (sofa_beam(scale=)): 1")
     p.add_argument("--steps", type=int, default=None,
-                   help="timed steps on --device (1000, or --max-seconds: a sustained run, as SOFA's table; with 50 the "
-                        "first single steps and the host checks between chains weighed ~25%% of a 0.2 ms step)")
+                   help="timed steps on --device (1000, or --max-seconds: a sustained run, as SOFA's table; "
+                        "with 50 the first single steps and the host checks between chains weighed ~25%% of a "
+                        "0.2 ms step)")
     p.add_argument("--cpu-steps", type=int, default=None, help="timed steps of the CPU comparison (3)")
     p.add_argument("--backends", default="extension,torch,csr,bsr,cupy")
     p.add_argument("--cpu-backends", default="extension")

@@ -2,9 +2,9 @@
 its first failed step, with a table of outcomes; and what a minimal scene allocates against a
 full-featured one.
 
-    python benchmarks/stability.py --out benchmarks/results/stability            # < 10 min, 2-core CPU
-    python benchmarks/stability.py --quick --out /tmp/stability                  # about a minute
-    python benchmarks/stability.py --device cuda --dtype float32 --out $OUT/stability
+    python benchmarks/studies/stability.py --out benchmarks/results/stability            # < 10 min, 2-core CPU
+    python benchmarks/studies/stability.py --quick --out /tmp/stability                  # about a minute
+    python benchmarks/studies/stability.py --device cuda --dtype float32 --out $OUT/stability
 
 Cases (``CASES``; every one with hooke, stvk and corotational unless said):
   young        E = 1e2 .. 1e10 Pa (nu 0.3, dt 0.01 s)
@@ -51,11 +51,11 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Dict, List, Optional
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # common, measure
 import common  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
@@ -352,9 +352,11 @@ def run_sweep(args, results: common.Results, budget: common.Budget):
                                 memory=c.get("memory", False), deadline=deadline)
             mat = sim.bodies[0].material
             rec = common.record(**base, elements=sum(b.mesh.num_elements for b in sim.bodies),
-                                nodes=sim.model.num_nodes, young=float(torch.as_tensor(mat.young, dtype=torch.float64).mean()),
+                                nodes=sim.model.num_nodes,
+                                young=float(torch.as_tensor(mat.young, dtype=torch.float64).mean()),
                                 poisson=float(torch.as_tensor(mat.poisson, dtype=torch.float64).mean()),
-                                density=float(torch.as_tensor(mat.density, dtype=torch.float64).mean()), dt=sim.options.dt,
+                                density=float(torch.as_tensor(mat.density, dtype=torch.float64).mean()),
+                                dt=sim.options.dt,
                                 substeps_on_failure=sim.substeps_on_failure, **measured)
             rec["case"] = c["case"] + label
             results.add(rec)
@@ -482,7 +484,8 @@ def main(argv=None):
         "- a failed case is run again with substeps_on_failure=4 (case '+substeps'): the effect of adaptive "
         "sub-stepping",
         "",
-        "Scenes (benchmarks/stability.py docstring): young/poisson/dt/mass_ratio: a 144-tet beam 1 x 0.2 x 0.2 m "
+        "Scenes (benchmarks/studies/stability.py docstring): young/poisson/dt/mass_ratio: a 144-tet beam "
+        "1 x 0.2 x 0.2 m "
         "clamped at x = 0, no gravity, started swinging (tip speed 0.02 sqrt(E / rho)); rotation: a free "
         "40-tet beam spinning 180 deg in 1 s; compression: the clamped beam's far face pushed to "
         "x = L (1 - squeeze) over 0.8 s (mass damping 1/s); free_fall: a 48-tet cube dropped 0.5 m onto a plane "

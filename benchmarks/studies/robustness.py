@@ -11,8 +11,8 @@ the definite tangent, require_convergence on, so no step passes unconverged):
 * ``paper_beam``: the paper's beam (``tensormass run paper_beam``), stvk, 150 steps: per step the
   energy (kinetic + elastic + gravity's potential), inverted elements and CG iterations.
 
-    python benchmarks/robustness.py --out benchmarks/results/robustness            # CPU, float32
-    python benchmarks/robustness.py --only paper_beam --resolution 4 --device cuda --out DIR
+    python benchmarks/studies/robustness.py --out benchmarks/results/robustness            # CPU, float32
+    python benchmarks/studies/robustness.py --only paper_beam --resolution 4 --device cuda --out DIR
 
 ``tests/solver/test_stiff_and_extreme_defaults.py`` runs the table in CI and asserts that every cell completes.
 """
@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.sim.diagnostics import inversion_report
 from tensormass_torch.sim.builtin import paper_beam
+from tensormass_torch.sim.diagnostics import inversion_report
 
 #: The table's materials: name -> Material keyword arguments (besides the model).
 MATERIALS = {

@@ -3,8 +3,8 @@
 kernels. The SOFA beam runs chains (200 steps timed, 16 profiled); the paper's beam single steps
 (its stvk tangent breaks down after ~10-20 steps: 4 timed, 3 profiled, as profile_step.py).
 
-    python benchmarks/step_gaps.py [hooke]                 # SOFA beam, on the GPU machine
-    python benchmarks/step_gaps.py paper_beam:stvk
+    python benchmarks/studies/step_gaps.py [hooke]                 # SOFA beam, on the GPU machine
+    python benchmarks/studies/step_gaps.py paper_beam:stvk
 """
 import os
 import sys
@@ -13,7 +13,7 @@ import time
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # common, measure
 from step_bench import paper_beam, sofa  # noqa: E402
 
 scene, _, model = (sys.argv[1] if len(sys.argv) > 1 else "hooke").rpartition(":")

@@ -1,8 +1,8 @@
 """Figure 2 of the paper, reproduced: GPU / CPU speedup of whole implicit Euler steps against the
 element count, tetrahedra and triangles, hooke, stvk and corotational.
 
-    python benchmarks/figure2.py --device cuda --out $OUT          # the full figure
-    python benchmarks/figure2.py --quick --out /tmp/f2             # tiny sizes, seconds, any CPU
+    python benchmarks/suite/figure2.py --device cuda --out $OUT          # the full figure
+    python benchmarks/suite/figure2.py --quick --out /tmp/f2             # tiny sizes, seconds, any CPU
 
 Scene (``common.cantilever_sim``): the paper's beam (1 x 0.4 x 0.25 m, hexes x 6 tets; the
 307,200-tet size is its 80 x 32 x 20) or a rectangle of triangles (membrane, in-plane gravity),
@@ -29,10 +29,12 @@ figure2.md, figure2.json, figure2.png under --out.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-import torch
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
 import common
+import torch
 from common import Budget, Results, copy_bandwidth, is_cuda, metadata, record, release
 from measure import Estimator, run_assembled, run_simulator, sim_size
 
@@ -188,11 +190,13 @@ def draw(plt, records, meta):
     series = sorted({(r["kind"], r["model"]) for r in records})
     for kind, model in series:
         rows = [r for r in records if r["kind"] == kind and r["model"] == model]
-        cpu = sorted((r["elements"], r["x_ours"]) for r in rows if r["backend"] == "extension" and r["device"] == "cpu" and r.get("x_ours"))
+        cpu = sorted((r["elements"], r["x_ours"]) for r in rows
+                     if r["backend"] == "extension" and r["device"] == "cpu" and r.get("x_ours"))
         style = "-" if kind == "tet" else "--"
         if cpu:
             left.plot(*zip(*cpu), style, marker="o", label=f"{kind} {model}")
-        mine = sorted((r["elements"], r["steps_per_s"]) for r in rows if r["backend"] == "extension" and r.get("steps_per_s"))
+        mine = sorted((r["elements"], r["steps_per_s"]) for r in rows
+                      if r["backend"] == "extension" and r.get("steps_per_s"))
         if mine:
             right.plot(*zip(*mine), style, marker="o", label=f"{kind} {model}")
     if not left.get_lines():

@@ -1,8 +1,8 @@
 """Batches: 1 to 10,000 objects of 1k-5k tetrahedra in one Simulator, steps per second and
 objects x steps per second, against a Python loop over single-object simulators.
 
-    python benchmarks/batches.py --device cuda --out $OUT
-    python benchmarks/batches.py --quick --out /tmp/batches          # tiny objects, CPU, seconds
+    python benchmarks/suite/batches.py --device cuda --out $OUT
+    python benchmarks/suite/batches.py --quick --out /tmp/batches          # tiny objects, CPU, seconds
 
 Objects: small beams clamped at x = 0 under gravity, cycling through --shapes (hex counts; 6
 tets per hex: by default 1,200 / 2,160 / 3,024 / 4,032 / 4,800 tets) and five Young's moduli
@@ -22,11 +22,13 @@ Writes batches.md, batches.json, batches.png under --out.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
-import torch
-
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common, measure, assembled
 import common
+import torch
 from common import Budget, Results, copy_bandwidth, error_text, metadata, record, release
 from measure import Estimator, run_assembled, run_simulator, sim_size, warm_up
 
@@ -78,7 +80,8 @@ class ObjectFactory:
         self.meshes = [tm.beam_mesh(*s, size=(0.1 * s[0] / s[2], 0.1 * s[1] / s[2], 0.1), dtype=torch.float32)
                        for s in shapes]
         self.fixed = [m.vertices[:, 0] <= 1e-6 for m in self.meshes]
-        self.materials = [tm.Material(young=e, poisson=0.3, density=1000.0, model="stvk", tangent="exact") for e in YOUNG]
+        self.materials = [tm.Material(young=e, poisson=0.3, density=1000.0, model="stvk", tangent="exact")
+                          for e in YOUNG]
 
     def bodies(self, count):
         return [tm.Body(self.meshes[i % len(self.meshes)], self.materials[i % len(self.materials)],
@@ -152,7 +155,8 @@ def main(argv=None):
             elif estimator.step_seconds(key, size) > args.max_seconds:
                 why = f"time limit: one step estimated at {estimator.step_seconds(key, size):.1f} s"
             elif not budget.allows(estimator.wall_seconds(key, size)):
-                why = f"budget: estimated {estimator.wall_seconds(key, size):.0f} s > {max(budget.remaining(), 0):.0f} s left"
+                why = (f"budget: estimated {estimator.wall_seconds(key, size):.0f} s > "
+                       f"{max(budget.remaining(), 0):.0f} s left")
             elif backend == "csr" and source is None:
                 why = "no batched simulator ran (the matrix is assembled from its model)"
             if why:
