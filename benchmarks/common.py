@@ -1,5 +1,5 @@
 """What every benchmark script shares: timing, metadata, the record schema, writers, the copy
-bandwidth and the byte count of one CG iteration (the floor of DESIGN section 7).
+bandwidth and the byte count of one CG iteration (the floor: benchmarks/README.md, Method).
 
 Timing is CUDA-synchronised wall clock: ``sync`` before starting and before stopping the clock,
 so a measurement covers everything the GPU was asked to do, launches and host work included

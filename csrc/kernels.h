@@ -579,9 +579,9 @@ struct SystemGatherKernel {
 // of the nodes; nullptr: row r is node r). Rows are the nodes sorted by slot count within windows
 // of each object (native.node_graph_rows), so that the threads of a warp, which take consecutive
 // rows, walk as many slots each and read the slot arrays side by side: on the paper beam, whose
-// nodes alternate 10 and 26 slots, the node-ordered matvec idled half its lanes (a standalone
-// matvec 15.5 -> 11.0 us on an H100, benchmarks/node_k_layout_probe.py). Every result is per
-// node and its slots are summed in slot order, so the row order changes no value.
+// nodes alternate 10 and 26 slots, a node-ordered matvec idles half its lanes (docs/node-graph.md;
+// benchmarks/probes/node_k_layout_probe.py). Every result is per node and its slots are summed in
+// slot order, so the row order changes no value.
 template <int D, typename S, typename I>
 struct HookeNodeGraph {
   const I* neighbor;    // [N_n, V] by row: the other NODE of the edge in each slot

@@ -4,7 +4,7 @@
     python benchmarks/suite/ops_bench.py --device cpu --mesh 20 10 8 --repeat 10
 
 Scene: the paper's beam ``tm.beam_mesh(80, 32, 20)`` (307,200 tetrahedra), float32, models
-hooke and stvk, stress form and tensor form. Ops timed (DESIGN.md section 2):
+hooke and stvk, stress form and tensor form. Ops timed (the paper's kernels 1 and 2, docs/node-graph.md):
 
     k1       kernel 1: element partial forces written to PartialForce [N_n, V, d]
              (torch: the reference's element forces [N, n, d])

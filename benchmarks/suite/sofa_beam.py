@@ -1,4 +1,4 @@
-"""SOFA's GPU benchmark beam (DESIGN section 7): implicit Euler steps per second.
+"""SOFA's GPU benchmark beam (``tensormass run sofa_beam``): implicit Euler steps per second.
 
     python benchmarks/suite/sofa_beam.py --device cuda --out $OUT
     python benchmarks/suite/sofa_beam.py --quick --out /tmp/sofa          # a 1/15-resolution beam, CPU

@@ -1,4 +1,4 @@
-"""Steps per second of whole implicit Euler steps on the benchmark scenes (DESIGN section 7).
+"""Steps per second of whole implicit Euler steps on the benchmark scenes (benchmarks/README.md).
 
     python benchmarks/suite/step_bench.py --device cuda --out $OUT      # all scenes, both backends
 

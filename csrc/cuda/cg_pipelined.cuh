@@ -2,7 +2,7 @@
 // (hooke_node_solve): Chronopoulos and Gear's CG, whose two inner products r.r and w.r (w = A r)
 // come from the same reduction, on a persistent cooperative grid of one block per chunk.
 //
-// Where the time of a small system's CG iteration goes (benchmarks/cg_latency_probe.py, SOFA
+// Where the time of a small system's CG iteration goes (benchmarks/probes/cg_latency_probe.py, SOFA
 // beam, H100): not bytes (its 9 MB of node_k sit in L2) but chains of dependent L2 round trips
 // and barriers. So, against cg_persistent.cuh:
 //   - one grid barrier an iteration instead of two (the recurrence needs one reduction);
@@ -13,7 +13,7 @@
 //     4d values (three 16-byte loads a neighbour), double-buffered across iterations;
 //   - two threads per node (kLanes), each walking half of its slots, their sums shuffled together;
 //   - the object's totals are read by the whole block at once, both dots in one block reduction.
-// Probe figures per iteration: 17.1 us (today's structure) -> 7.7 us.
+// (The probe that chose this design and its figures: docs/pipelined-cg.md.)
 //
 // Two layouts of the graph (the launcher takes the first that fits one wave):
 //   shared    the block's slots in shared memory, two threads a node, chunks of <= 128 nodes
@@ -27,8 +27,7 @@
 //             of two goes, and most of the graph's bytes stay on chip. Mirror rows of a chunk
 //             share their slots' work (NodeSlots: the paper beam's 26- and 10-slot rows become
 //             18 slots a thread), and the node's CG vectors sit in shared memory, leaving the
-//             registers to the loads in flight (paper beam, H100: 1.95k steps/s without the pairs in
-//             this structure, 2.32-2.39k with them; 2.27-2.32k one thread a node in registers).
+//             registers to the loads in flight.
 //
 // Where an implicit step asks (hooke_node_solve_step), the kernel also ends the step: each
 // thread updates its node's velocity and position from its dv, and the object's last block
@@ -36,8 +35,7 @@
 // (hooke_node_steps, StepRhs): the right-hand side from the node graph it holds, each node's
 // slots in slot order by one thread (hooke_node_step_rhs's values, bitwise), and then run
 // several steps back to back, one grid barrier between them: the graph's shared memory, the
-// launches and the gaps between kernels serve every step (H100: SOFA beam 9.99k -> 10.5-10.8k
-// steps/s, paper beam 2.31k -> 2.39-2.42k in one build).
+// launches and the gaps between kernels serve every step.
 //
 // The recurrence (iteration i, from r_i, w_i = A r_i, s_{i-1}, p_{i-1}, x_i; gamma_i = r_i.r_i,
 // delta_i = w_i.r_i):

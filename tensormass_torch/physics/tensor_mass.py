@@ -12,11 +12,10 @@ from ..mesh.topology import incidence_slots, padded_sum
 from .groups import FORMS, ElementGroup
 from .materials import Material
 
-#: The form ``form="auto"`` picks for each model, measured (benchmarks/results/2026-11-22-h200,
-#: ops_bench): ``hooke`` in Cotin's vertex/edge tensors reads 23 MB instead of 30 MB on the
-#: 307,200-tet beam and runs its forces in 39 us instead of 65 us on an H200 (4x faster on the
-#: CPU extension, 5x on the torch path); ``stvk`` in Picinbono's element tensors reads 25x more
-#: than its stress form and is 11x slower, and loses precision under large motions in float32.
+#: The form ``form="auto"`` picks for each model: the one that reads fewer bytes per product.
+#: ``hooke`` in Cotin's vertex/edge tensors reads about 3/4 of its stress form; ``stvk`` in
+#: Picinbono's element tensors reads 25x its stress form and loses precision under large motions
+#: in float32 (the measurements: ``benchmarks/results/h200/ops_bench.md``, docs/physics.md).
 AUTO_FORM = {"hooke": "tensor", "stvk": "stress", "corotational": "stress"}
 
 

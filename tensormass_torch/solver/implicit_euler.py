@@ -454,7 +454,8 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
 #: small batches; fewer for large ones: the ring holds at most 2^17 object summaries).
 MAX_CHAIN = 512
 #: Chained steps captured in one CUDA graph (StepGraphs.run_steps): one kernel where the solve
-#: computes each step's right-hand side (``native.StepRhs``; 32 measured no faster, s12).
+#: computes each step's right-hand side (``native.StepRhs``). More steps a graph only lengthen
+#: the chain a failure must replay (docs/cuda-graphs.md).
 STEPS_PER_GRAPH = 8
 
 

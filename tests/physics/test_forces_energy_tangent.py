@@ -1,4 +1,4 @@
-"""Physics of the element forces (DESIGN.md sections 1 and 6), float64 on the CPU.
+"""Physics of the element forces (docs/physics.md, sections 2 and 5), float64 on the CPU.
 
 Parametrized over model (hooke, stvk) x form (stress, tensor) x element kind (tet, tri2d,
 tri3d) where it applies, on small jittered meshes (see conftest.py) with random large

@@ -1,9 +1,9 @@
-"""Tensor form = stress form (DESIGN.md sections 1 and 6), float64 on the CPU.
+"""Tensor form = stress form (docs/physics.md, sections 3 and 5), float64 on the CPU.
 
 The tensor form evaluates the models from precomputed Tensor-Mass tensors (Cotin's K_ii, K_ij on
 vertices and edges for hooke; Picinbono's B, C, D per element for stvk), the stress form from the
 shape vectors through F, E, S, P. Both must agree to rounding. The tensors themselves are checked
-against the formulas of DESIGN.md evaluated here from independently computed shape vectors, and
+against the formulas of docs/physics.md evaluated here from independently computed shape vectors, and
 Cotin's vertex/edge assembly against the P1 FEM stiffness of conftest.fem_stiffness.
 """
 from __future__ import annotations
@@ -88,18 +88,18 @@ def test_forms_agree_over_many_random_states(model_name, kind, rng, make_scene, 
 
 
 # ---------------------------------------------------------------------------------------------
-# The Tensor-Mass tensors against the formulas of DESIGN.md
+# The Tensor-Mass tensors against the formulas of docs/physics.md
 # ---------------------------------------------------------------------------------------------
 
 
 def design_polynomial_energy(m, vol, lam, mu, proj, u, model):
-    """Per-element energies ``[N]`` of DESIGN.md's Tensor-Mass formulas, evaluated here (numpy).
+    """Per-element energies ``[N]`` of the Tensor-Mass formulas of docs/physics.md, evaluated here (numpy).
 
     hooke: W = 1/2 sum_jk u_j^T K_jk u_k, K_jk = V (lam m_j m_k^T + mu m_k m_j^T + mu (m_j.m_k) P).
     stvk:  W = sum u_j^T B_jk u_k + sum (u_j.u_k)(C_jkl.u_l) + sum D_jklm (u_j.u_k)(u_l.u_m) with
            B = K / 2, C_jkl = V (lam/2 (m_j.m_k) m_l + mu/2 ((m_l.m_j) m_k + (m_l.m_k) m_j)),
            D_jklm = V (lam/8 (m_j.m_k)(m_l.m_m) + mu/4 (m_j.m_m)(m_k.m_l))  (not symmetrised).
-    P is the membrane's tangent projector (DESIGN writes I: a membrane's linear strain sees no
+    P is the membrane's tangent projector (the formula is written with I: a membrane's linear strain sees no
     normal displacement), C and D need none.
     """
     dots = np.einsum("nja,nka->njk", m, m)
@@ -120,7 +120,7 @@ def design_polynomial_energy(m, vol, lam, mu, proj, u, model):
 
 @pytest.mark.parametrize("model_name,kind", MODEL_KIND)
 def test_design_tensor_formulas_equal_continuum_energy(model_name, kind, rng, make_scene, deform):
-    """DESIGN.md's polynomial (evaluated here from independent shape vectors) equals, element by
+    """The polynomial of docs/physics.md (evaluated here from independent shape vectors) equals, element by
     element, the continuum energy V (lam/2 tr(E)^2 + mu tr(E^2)) of the stress form, and sums to
     the energy of both forms of the model."""
     scene = make_scene(kind)
