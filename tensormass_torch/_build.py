@@ -207,8 +207,9 @@ def has_cu_sources(root: str) -> bool:
 if __name__ == "__main__":  # scripts/install.sh: the decision's fingerprint, reason, soft/firm: a line each
     import sys
 
-    if find_toolkit() and not os.environ.get("CUDA_HOME"):  # as setup.py does, before torch reads it
-        os.environ["CUDA_HOME"] = find_toolkit()
+    toolkit = find_toolkit()
+    if toolkit and not os.environ.get("CUDA_HOME"):  # as setup.py does, before torch reads it
+        os.environ["CUDA_HOME"] = toolkit
     choice = choose(machine_facts(has_cu_sources(sys.argv[1] if len(sys.argv) > 1 else ".")))
     print(choice.fingerprint())
     print(choice.reason)

@@ -269,14 +269,15 @@ class Simulator:
 
     def _advance(self):
         """One step of dt; on a failed solve, retried with the classic CG where the pipelined one
-        ran (:meth:`_leave_pipelined`), then in sub-steps up to ``substeps_on_failure`` halvings."""
+        ran (:meth:`_classic_cg_may_solve`), then in sub-steps up to ``substeps_on_failure`` halvings."""
         try:
             return self._substeps(1)
         except SolverError as first:
             failure = first
-        if self._leave_pipelined(failure):
+        if self._classic_cg_may_solve(failure):
+            self.options = dataclasses.replace(self.options, pipelined=False)
             try:
-                return self._substeps(1)
+                return self._substeps(1)  # the classic CG stays for the steps that follow
             except SolverError as exc:  # a real failure: the classic CG fails it too
                 self.options = dataclasses.replace(self.options, pipelined=True)
                 failure = exc
@@ -291,17 +292,14 @@ class Simulator:
                           f"{2 ** self.substeps_on_failure} sub-steps; last: {failure}", failure.status,
                           failure.report) from failure
 
-    def _leave_pipelined(self, failure: SolverError) -> bool:
-        """Whether to retry a step whose solve failed with the classic CG: on a CUDA device, where
-        the pipelined CG ran. In float32 its recurrences lose accuracy on an ill-conditioned
-        system (nearly incompressible rubber at a large step): it takes more iterations and can
-        meet a false breakdown where the classic CG converges. The switch is kept for the steps
-        that follow (``options.pipelined`` False) when the classic CG then succeeds."""
-        if not (self.options.pipelined and self.device.type == "cuda" and failure.status
-                and any(s in ("not converged", "breakdown", "non-finite") for s in failure.status)):
-            return False
-        self.options = dataclasses.replace(self.options, pipelined=False)
-        return True
+    def _classic_cg_may_solve(self, failure: SolverError) -> bool:
+        """Whether a step whose solve failed is worth retrying with the classic CG: a solve's
+        failure on a CUDA device while the pipelined CG is chosen. In float32 its recurrences lose
+        accuracy on an ill-conditioned system (nearly incompressible rubber at a large step): it
+        takes more iterations and can meet a false breakdown where the classic CG converges.
+        (Where the pipelined CG did not serve the system, the retry fails as the step did.)"""
+        return bool(self.options.pipelined and self.device.type == "cuda" and failure.status
+                    and any(s in ("not converged", "breakdown", "non-finite") for s in failure.status))
 
     def step(self, n: int = 1) -> StepReport:
         """Advance ``n`` implicit Euler steps; returns the last step's report.
