@@ -420,7 +420,7 @@ def cg_iteration_bytes(model, objects: int = 1, constrained: bool = True, planes
       u              displacements read by DForce where K depends on u (stvk, corotational): V d s
     A model whose differential the CG may take once per linearisation as the edge blocks of the
     node graph (the hooke tensor form's own graph; stvk and corotational through
-    ``native.NODE_TANGENT``) is counted as that graph where it moves fewer bytes than the element
+    ``KernelVariants.node_tangent``) is counted as that graph where it moves fewer bytes than the element
     form: its E edges as items of n = 2 nodes, E d x d blocks as material, no u (the stvk tensor
     form: B, C, D and u per iteration against one block an edge).
     Once per iteration:

@@ -298,18 +298,44 @@ def rel(a, b) -> float:
 
 
 def load_native(*ops):
-    """``tensormass_torch.ops.native`` when the compiled extension is built (and has ``ops``), else None."""
+    """``tensormass_torch.ops.native`` (the group-level calls onto the compiled ops) when the
+    compiled extension is built, its op families registered (``library.available()``) and it has
+    ``ops``; else None. The ops' references: ``library.REGISTRY[name].reference``."""
     import importlib
 
     try:
         importlib.import_module("tensormass_torch._C")
     except ImportError:
         return None
-    from tensormass_torch.ops import native
+    from tensormass_torch.ops import library, native
 
-    if not native.available() or not all(hasattr(torch.ops.tensormass, op) for op in ops):
+    if not library.available() or not all(hasattr(torch.ops.tensormass, op) for op in ops):
         return None
     return native
+
+
+def reference(name: str):
+    """The pure-torch reference of the op ``tensormass::<name>`` (its oracle, the op's signature)."""
+    import importlib
+
+    from tensormass_torch.ops import library
+
+    for family in library.FAMILIES:  # each family module declares its ops (their references)
+        importlib.import_module(f"tensormass_torch.ops.{family}")
+    return library.REGISTRY[name].reference
+
+
+def with_variants(sim, base=None, **changes):
+    """``sim`` (a Simulator) with its steps' kernel variants ``base`` (a ``KernelVariants``; None:
+    the defaults) with ``changes``: through its step options (``StepOptions.variants``), which
+    the solver passes down to every op. Returns ``sim``."""
+    import dataclasses
+
+    from tensormass_torch.ops.variants import KernelVariants
+
+    variants = (KernelVariants() if base is None else base).replace(**changes)
+    sim.options = dataclasses.replace(sim.options, variants=variants)
+    return sim
 
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -28,7 +28,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # common, measure
 from step_bench import paper_beam, sofa  # noqa: E402
 
-from tensormass_torch.ops import native  # noqa: E402
+from tensormass_torch.ops import library, node_graph  # noqa: E402
 
 KERNEL = r"""
 #include <cooperative_groups.h>
@@ -477,8 +477,8 @@ def scene_graph(device, scene="sofa_beam"):
     sim = (paper_beam if scene == "paper_beam" else sofa)("hooke", device, torch.float32)
     system = sim.system
     group = system.model.groups[0]
-    neighbor, node_k = native.hooke_node_graph(group)
-    _, _, incidences = native._plan_indices(group.plan)
+    neighbor, node_k = node_graph.hooke_node_graph(group)
+    _, _, incidences = library.plan_indices(group.plan)
     V = neighbor.shape[1]
     counts = incidences.long()
     slot = torch.arange(neighbor.shape[0], device=device)[:, None].expand_as(neighbor)

@@ -17,7 +17,7 @@ deciding what to build, not a library path.
 
     python benchmarks/probes/node_k_layout_probe.py --graph paper_beam_graph.npz [--out FILE.json]   # GPU, cupy
 
-The .npz comes from the CPU: native.hooke_node_graph of step_bench.paper_beam("hooke", "cpu")'s
+The .npz comes from the CPU: node_graph.hooke_node_graph of step_bench.paper_beam("hooke", "cpu")'s
 group (neighbor, incidences), and slot_edge / edges from its plan (index, force_index).
 """
 from __future__ import annotations

@@ -4,7 +4,7 @@ chunk sizes of the plan (chunks = the blocks of the reductions), on the SOFA bea
 beam (hooke tensor form, float32, fixed iteration counts: tol = 0). Times are CUDA-event times of
 the solve alone (start + iterations), medians of repeated runs; they include the host's launch of
 the one op (~60 us: benchmarks inside a captured step do not pay it). Chunkings with more chunks
-than the persistent kernel has resident blocks have no one-op path (native.persistent_cg_fits).
+than the persistent kernel has resident blocks have no one-op path (solve.persistent_cg_fits).
 
     python benchmarks/studies/cg_one_op_bench.py [--out DIR]        # on the GPU machine
     python benchmarks/studies/cg_one_op_bench.py --slope            # time per iteration: pipelined vs two-reduction
@@ -25,7 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 import common  # noqa: E402
 from step_bench import paper_beam, sofa  # noqa: E402
 
-from tensormass_torch.ops import native  # noqa: E402
+from tensormass_torch.ops.variants import KernelVariants  # noqa: E402
 from tensormass_torch.solver.cg import CGSolver  # noqa: E402
 
 SCENES = {"sofa_beam": sofa, "paper_beam": paper_beam}
@@ -71,26 +71,24 @@ def measure(scene_name: str, iterations: int, chunk_nodes, repeats: int):
 def slope(scene_name: str, repeats: int, counts=(0, 10, 20, 40)):
     """The whole solve's time per iteration: (t(40 iterations) - t(20)) / 20, launch cancelled
     out; for the pipelined CG (hooke_node_solve), then the two-reduction persistent CG
-    (hooke_node_cg) with its neighbour cache on and off, then the pipelined again (drift)."""
+    (hooke_node_cg) with its neighbour cache on and off, then the pipelined again (drift): each
+    the solver's configuration (``pipelined``, ``KernelVariants.neighbor_cache``) of its matvec."""
     sim = SCENES[scene_name]("hooke", "cuda", torch.float32)
     system = sim.system
     rhs = torch.randn_like(sim.x)
-    matvec = system.system_matvec(1.0, sim.options.dt ** 2).load(sim.x)
     cg = CGSolver(system.segments, rhs.shape, rhs.dtype, rhs.device, system.free)
-    for pipelined, cache in ((True, "1"), (False, "1"), (False, "0"), (True, "1")):
-        native.PIPELINED_SOLVE = pipelined
-        os.environ["TENSORMASS_NEIGHBOR_CACHE"] = cache
+    for pipelined, cache in ((True, True), (False, True), (False, False), (True, True)):
+        variants = KernelVariants(neighbor_cache=cache)
+        matvec = system.system_matvec(1.0, sim.options.dt ** 2, pipelined, variants).load(sim.x)
         times = {}
         for count in counts:
             work = lambda: cg.begin(matvec, rhs, 0.0, count, count)  # noqa: E731 (a whole solve of count)
             work()
             times[count] = event_time_us(work, repeats)
         per_iteration = (times[counts[-1]] - times[counts[-2]]) / (counts[-1] - counts[-2])
-        name = "pipelined CG" if pipelined else f"two-reduction CG, neighbour cache {'on' if cache == '1' else 'off'}"
+        name = "pipelined CG" if pipelined else f"two-reduction CG, neighbour cache {'on' if cache else 'off'}"
         print(f"{scene_name} ({name}): " + ", ".join(f"{c} it {t:.1f} us" for c, t in times.items())
               + f"; {per_iteration:.1f} us per iteration", flush=True)
-    os.environ.pop("TENSORMASS_NEIGHBOR_CACHE")
-    native.PIPELINED_SOLVE = True
 
 
 def main():

@@ -31,7 +31,7 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch.mesh.topology import node_element_lists
-from tensormass_torch.ops import native
+from tensormass_torch.ops import library, stress
 
 COLUMNS = [("model", "model", None), ("elements", "elements", ",d"), ("backend", "variant", None),
            ("ms", "ms per force evaluation", ".4f"), ("x_padded", "x padded", ".2f"),
@@ -40,8 +40,8 @@ COLUMNS = [("model", "model", None), ("elements", "elements", ",d"), ("backend",
 
 def variants(group, u):
     """{name: () -> forces [V, d]} for ``group`` at ``u``."""
-    index, force_index, incidences = native._plan_indices(group.plan)
-    args = native._stress_args(group, u)
+    index, force_index, incidences = library.plan_indices(group.plan)
+    args = stress.stress_args(group, u)
     ops = torch.ops.tensormass
     elements = group.elements
     num_nodes, dim = u.shape
@@ -73,7 +73,7 @@ def main(argv=None):
     p.add_argument("--repeat", type=int, default=20)
     p.add_argument("--budget-s", type=float, default=None, help="accepted for gpu_bench.sh (the run is short)")
     args = p.parse_args(argv)
-    if not native.ensure_registered():
+    if not library.ensure_registered():
         raise SystemExit("gather_variants: the compiled extension is needed (tensormass_torch._C)")
     dims = (8, 3, 2) if args.quick else (80, 32, 20)
     meta = common.metadata(args.device, dtype="float32")

@@ -10,10 +10,11 @@ Variants of one matvec A p = free (c_M M p - c_K K p) with its per-node dots (fl
     node     hooke_node_system: one thread per node over the node graph (neighbor [N_n, V],
              node_k [N_n, V, 3, 3]), the same terms summed in the same order: bitwise the same result
 
-both through ``native.system_matvec(..., layout=...)``, as the solver calls it, with the scene's mass,
-free mask and contact node stiffness. Timing: on CUDA, events around ``--inner`` back-to-back calls
-(after ``--warmup`` calls), the median over ``--repeat`` samples, divided by ``--inner``; on the CPU
-the same with the wall clock. Prints a markdown table (``--out DIR`` also writes node_system_bench.md).
+both through ``native.system_matvec(..., variants=KernelVariants(hooke_matvec=...))``, as the solver
+calls it (with its ``StepOptions.variants``), with the scene's mass, free mask and contact node
+stiffness. Timing: on CUDA, events around ``--inner`` back-to-back calls (after ``--warmup``
+calls), the median over ``--repeat`` samples, divided by ``--inner``; on the CPU the same with
+the wall clock. Prints a markdown table (``--out DIR`` also writes node_system_bench.md).
 """
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # common, measure
 import common  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
-from tensormass_torch.ops import native  # noqa: E402
+from tensormass_torch.ops import library, native, node_graph  # noqa: E402
+from tensormass_torch.ops.variants import KernelVariants  # noqa: E402
 
 LAYOUTS = ("padded", "node")
 
@@ -91,10 +93,12 @@ def measure(name, sim, device, args):
     """The table rows of one scene: one per layout."""
     group, u, p, mass, free, c_mass, c_stiff, stiffness = matvec_case(sim)
     plan = group.plan
-    neighbor, node_k = native.hooke_node_graph(group)  # built once, cached on the group
+    neighbor, node_k = node_graph.hooke_node_graph(group)  # built once, cached on the group
 
     def call(layout):
-        return lambda: native.system_matvec(group, u, p, mass, free, c_mass, c_stiff, None, stiffness, layout=layout)
+        variants = KernelVariants(hooke_matvec=layout)
+        return lambda: native.system_matvec(group, u, p, mass, free, c_mass, c_stiff, None, stiffness,
+                                            variants=variants)
 
     with torch.no_grad():
         results = {layout: call(layout)() for layout in LAYOUTS}
@@ -144,7 +148,7 @@ def main(argv=None):
     for key, value in (quick if args.quick else normal).items():
         if getattr(args, key) is None:
             setattr(args, key, value)
-    if not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_system"):
+    if not library.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_system"):
         raise SystemExit("node_system_bench: the compiled extension with hooke_node_system is needed")
     if common.is_cuda(args.device) and not tm._C.has_cuda():
         raise SystemExit("node_system_bench: the extension was built without CUDA")

@@ -41,7 +41,9 @@ from common import Budget, metadata
 
 import tensormass_torch as tm
 from tensormass_torch import ops
-from tensormass_torch.ops import native as native_mod
+from tensormass_torch.ops import library
+from tensormass_torch.ops import stress as stress_family
+from tensormass_torch.ops import tensor_form as tensor_form_family
 from tensormass_torch.ops.reference import gather as ref_gather
 from tensormass_torch.ops.reference import stress_form, tensor_form
 
@@ -158,10 +160,10 @@ def op_bytes(group, op, s, ix):
 
 def extension_ops(group, u, du):
     """{op: callable} through torch.ops.tensormass (int32 indices, as the dispatch layer passes)."""
-    idx, fi, inc = native_mod._plan_indices(group.plan)
+    idx, fi, inc = library.plan_indices(group.plan)
     ns = group.plan.num_slots
     if group.form == "stress":
-        sa = native_mod._stress_args(group)
+        sa = stress_family.stress_args(group)
         k1 = lambda: T.stress_partial_forces(u, idx, fi, ns, *sa)  # noqa: E731
         fused = lambda: T.stress_forces(u, idx, fi, ns, inc, *sa)  # noqa: E731
         dfused = lambda: T.stress_dforces(u, du, idx, fi, ns, inc, *sa)  # noqa: E731
@@ -171,7 +173,7 @@ def extension_ops(group, u, du):
         fused = lambda: T.tensor_hooke_forces(u, idx, fi, ns, inc, ek)  # noqa: E731
         dfused = lambda: T.tensor_hooke_forces(du, idx, fi, ns, inc, ek)  # noqa: E731
     else:
-        tb = native_mod._stvk_tensors(group)
+        tb = tensor_form_family.stvk_tensors(group)
         k1 = lambda: T.tensor_stvk_partial_forces(u, idx, fi, ns, *tb)  # noqa: E731
         fused = lambda: T.tensor_stvk_forces(u, idx, fi, ns, inc, *tb)  # noqa: E731
         dfused = lambda: T.tensor_stvk_dforces(u, du, idx, fi, ns, inc, *tb)  # noqa: E731
@@ -266,7 +268,7 @@ def main(argv=None):
 
     backends = args.backends.split(",")
     if "extension" in backends:
-        if not native_mod.ensure_registered() or not tm._backend.use_extension(device):
+        if not library.ensure_registered() or not tm._backend.use_extension(device):
             raise SystemExit(f"the extension cannot run on {device}: {tm.backend_info()['reason']}")
         T = torch.ops.tensormass
 

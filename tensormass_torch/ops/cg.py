@@ -6,19 +6,24 @@
                                             converged / non-finite / iteration cap; beta
     cg_direction(plan, state)                p = r + beta p
 
-Each runs the compiled op ``torch.ops.tensormass.cg_*`` (csrc/cg.h: one GPU block per chunk of a
-:class:`ChunkPlan`, deterministic sums, no host synchronisation: capturable in a CUDA graph) when
-the extension serves the device, else the pure-torch reference below, which is the tests' oracle.
-Objects that are not active are left untouched by every step.
+Each runs the compiled op ``torch.ops.tensormass.cg_*`` (the cg family, ``csrc/cg/``: one GPU
+block per chunk of a :class:`ChunkPlan`, deterministic sums, no host synchronisation: capturable in
+a CUDA graph) when the extension serves the device, else the pure-torch reference below, which is
+the tests' oracle. Objects that are not active are left untouched by every step. The family also
+has ``cg_dot`` (per-object dot products) and ``euler_update`` (the end of an implicit Euler step
+after its solve). The ops write into their arguments and return nothing (fake kernels: none).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import torch
 
 from .. import _backend
-from .segments import ChunkPlan
+from . import library
+from .library import OpDef
+from .segments import ChunkPlan, Segments
 
 ACTIVE, CONVERGED, BREAKDOWN, NONFINITE, CAPPED = 0, 1, 2, 3, 4
 STATUS_WORDS = ("active", "converged", "breakdown", "non-finite", "not converged")
@@ -76,12 +81,8 @@ def _native_ops(device: torch.device):
         return None
     key = device.type
     if key not in _NATIVE:
-        from . import native
-
         # use_extension said the extension is built for this device type: its CG ops come with it
-        ok = native.ensure_registered() and hasattr(torch.ops.tensormass, "cg_dot")
-        if ok:
-            _register_fakes()
+        ok = library.ensure_registered() and hasattr(torch.ops.tensormass, "cg_dot")
         _NATIVE[key] = torch.ops.tensormass if ok else None
     return _NATIVE[key]
 
@@ -171,13 +172,97 @@ def native_ops_for(x: torch.Tensor):
     return _native_ops(x.device)
 
 
-def _register_fakes():
-    """Fake kernels (the ops only mutate their inputs) for torch.compile and opcheck."""
-    if not hasattr(torch.library, "register_fake"):
-        return
-    for name in ("cg_alpha", "cg_update", "cg_direction", "cg_dot", "gather_system_alpha", "hooke_node_system_alpha",
-                 "hooke_node_cg", "hooke_node_step_rhs", "euler_update"):
-        try:
-            torch.library.register_fake(f"tensormass::{name}")(lambda *args, **kwargs: None)
-        except (RuntimeError, ValueError, AttributeError):
-            pass  # the extension is not loaded, or the fake is registered already
+# ---------------------------------------------------------------- the ops' references (op signatures)
+
+
+def _op_state(**fields):
+    return SimpleNamespace(**fields)
+
+
+def _ref_cg_alpha(p_dot_ap, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch, counter):
+    _ref_alpha(p_dot_ap, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk),
+               _op_state(rr=rr, status=status, alpha=alpha))
+
+
+def _ref_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter, rr, status,
+                   beta, iterations, scratch, counter):
+    s = _op_state(x=x, r=r, p=p, alpha=alpha, threshold=threshold, rr=rr, status=status, beta=beta,
+                  iterations=iterations)
+    _ref_update(ap, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk), s, max_iter)
+
+
+def _ref_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk):
+    _ref_direction(ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk),
+                   _op_state(p=p, r=r, beta=beta, status=status))
+
+
+def _ref_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter):
+    out.copy_(_object_sums(a * b, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)))
+
+
+def _ref_euler_update(x, v, dv, dv_imposed, h, x_new, v_new, chunk_start, chunk_object, object_chunk, status,
+                      iterations, rr, rhs_sq, norms, summary, scratch, counter, ring=None, ring_pos=None,
+                      carry=False):
+    """v_new = v + dv (+ dv_imposed), x_new = x + h v_new (``carry``: also into x, v); per object
+    |v_new|^2 into norms ``[B]`` and the columns (status, iterations, rr, rhs_sq, norm) into
+    summary ``[5, B]`` float64 and, with a ring ``[R, 5, B]``, its row ring_pos[0] (if in range),
+    ring_pos then advanced by one."""
+    plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
+    vn = v + dv if dv_imposed is None else v + dv + dv_imposed
+    xn = x + h * vn
+    x_new.copy_(xn)
+    v_new.copy_(vn)
+    if carry:
+        x.copy_(xn)
+        v.copy_(vn)
+    norms.copy_(_object_sums(vn * vn, plan).to(norms.dtype))
+    columns = torch.stack([status.double(), iterations.double(), rr.double(), rhs_sq.double(), norms.double()])
+    summary.copy_(columns)
+    if ring_pos is not None:
+        pos = int(ring_pos[0])
+        if ring is not None and 0 <= pos < ring.shape[0]:
+            ring[pos].copy_(columns)
+        ring_pos.add_(1)
+
+
+def _example(name):
+    def example(device, dtype):
+        segments = Segments.from_lengths([3, 2], device=device)
+        plan = ChunkPlan.from_segments(segments, 2)
+        tensors = plan.tensors()
+        gen = torch.Generator().manual_seed(3)
+        s = CGState.empty(plan, (5, 3), dtype, device)
+        for t in (s.x, s.r, s.p):
+            t.copy_(torch.randn(t.shape, generator=gen))
+        s.rr.fill_(2.0)
+        s.alpha.fill_(0.5)
+        s.beta.fill_(0.25)
+        s.threshold.fill_(1e-12)
+        s.rhs_sq.fill_(4.0)
+        field = torch.randn((5, 3), generator=gen).to(device=device, dtype=dtype)
+        per_node = (field * field).sum(-1) + 0.1
+        if name == "cg_alpha":
+            return (per_node, *tensors, s.rr, s.status, s.alpha, s.scratch, s.counter), {}
+        if name == "cg_update":
+            return (s.x, s.r, s.p, field, s.alpha, *tensors, s.threshold, 10, s.rr, s.status, s.beta, s.iterations,
+                    s.scratch, s.counter), {}
+        if name == "cg_direction":
+            return (s.p, s.r, s.beta, s.status, *tensors), {}
+        if name == "cg_dot":
+            return (field, s.p, *tensors, s.rr, s.scratch, s.counter), {}
+        b = segments.num_objects
+        ring = torch.zeros((2, 5, b), dtype=torch.float64, device=device)
+        ring_pos = torch.zeros(1, dtype=torch.int64, device=device)
+        summary = torch.zeros((5, b), dtype=torch.float64, device=device)
+        counter = torch.zeros(b + 1, dtype=torch.int32, device=device)
+        return (s.x, s.r, field, None, 0.01, s.beta.new_zeros((5, 3)), s.beta.new_zeros((5, 3)), *tensors, s.status,
+                s.iterations, s.rr, s.rhs_sq, s.alpha, summary, s.scratch, counter, ring, ring_pos, True), {}
+
+    return example
+
+
+_REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_update": _ref_cg_update, "cg_direction": _ref_cg_direction,
+               "cg_dot": _ref_cg_dot, "euler_update": _ref_euler_update}
+OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
+                  scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())
+library.define(OPS, lambda: library.register(OPS))

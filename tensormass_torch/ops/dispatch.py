@@ -17,7 +17,10 @@
 Dispatch: when ``_backend.use_extension(u.device)`` is true (the compiled extension is loaded,
 built for that device type, not forced off by ``TENSORMASS_BACKEND=torch``) and the group's data
 has u's dtype (float32/float64) and device, the compiled ops ``torch.ops.tensormass.*`` run
-(see ``ops.native``); otherwise the pure-torch reference. Both paths are differentiable: the
+(``ops.native`` composes them per group; the op families ``ops.stress``, ``ops.tensor_form``,
+``ops.gather``, ``ops.node_graph``, ``ops.cg``, ``ops.solve`` define them); otherwise the
+pure-torch reference. ``variants`` (``ops.variants.KernelVariants``) picks among equivalent
+kernels; the solver passes its ``StepOptions.variants``. Both paths are differentiable: the
 reference through autograd (double backward included), the ops through their registered
 autograd (first order everywhere; second order where the backward formulas are themselves ops
 with autograd, e.g. the energy Hessian of the hooke tensor form). ``energy`` always runs the
@@ -31,8 +34,10 @@ import torch
 
 from .. import _backend
 from ..mesh.topology import GatherPlan
+from . import library
 from .reference import corotational, stress_form, tensor_form
 from .reference import gather as ref_gather
+from .variants import DEFAULT, KernelVariants
 
 
 def _element_values(group, u):
@@ -64,27 +69,30 @@ def linearize(group, u: torch.Tensor) -> Optional[torch.Tensor]:
 
 
 def node_tangent(group, u: torch.Tensor, state: Optional[torch.Tensor] = None,
-                 out: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+                 out: Optional[torch.Tensor] = None, variants: KernelVariants = DEFAULT) -> Optional[torch.Tensor]:
     """The force differential of ``group`` at displacements ``u [V, d]`` as the slot tensors of
-    its node graph (``native.tangent_node_k``: once per linearisation; the CG products then run
+    its node graph (``node_graph.tangent_node_k``: once per linearisation; the CG products then run
     over the graph instead of recomputing each element's differential), into ``out`` when it
     fits; ``state``: ``linearize(group, u)``. None where that does not serve (not a stress-form
     stvk or corotational group, the pure-torch backend, a gradient wanted, or
-    ``native.NODE_TANGENT`` off): the products then run element by element."""
-    native = _native(group, u)
-    if native is None or not native.tangent_serves(group, u):
+    ``variants.node_tangent`` off): the products then run element by element."""
+    if _native(group, u) is None:
         return None
-    return native.tangent_node_k(group, u, state, out)
+    from . import node_graph
+
+    if not node_graph.tangent_serves(group, u, variants=variants):
+        return None
+    return node_graph.tangent_node_k(group, u, state, out, variants)
 
 
 def _native(group, u: torch.Tensor):
     """The module of the compiled ops when they should evaluate ``group`` at ``u``, else None."""
     if not _backend.use_extension(u.device):
         return None
+    if not library.ensure_registered() or not library.supports(group, u):
+        return None
     from . import native
 
-    if not native.ensure_registered() or not native.supports(group, u):
-        return None
     return native
 
 
@@ -96,9 +104,11 @@ def _native_gather(partial: torch.Tensor, plan: GatherPlan, node_term):
             or (node_term is not None and (node_term.dtype != partial.dtype or node_term.device != partial.device))
             or not _backend.use_extension(partial.device)):
         return None
-    from . import native
+    if not library.ensure_registered():
+        return None
+    from . import gather
 
-    return native if native.ensure_registered() else None
+    return gather
 
 
 def element_forces(group, u: torch.Tensor) -> torch.Tensor:
@@ -211,7 +221,7 @@ def _fused_native(groups, u: torch.Tensor, p: torch.Tensor, node_tensors):
 
 def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                   c_mass: float, c_stiff: float, states=None, node_stiffness: Optional[torch.Tensor] = None,
-                  tangents=None):
+                  tangents=None, variants: KernelVariants = DEFAULT):
     """The CG matvec of implicit Euler, ``A p = c_mass M p - c_stiff K p`` projected on the free nodes.
 
     Args:
@@ -225,6 +235,7 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
             subtracted from K p: ``(K p)_i -= node_stiffness_i p_i``; or None.
         tangents: ``[node_tangent(g, u) for g in groups]`` kept by the caller (the differential on
             the node graph: the product then runs over it), or None (element by element).
+        variants: the kernel variants (``KernelVariants``).
     Returns:
         (Ap ``[V, d]``, p . Ap per node ``[V]``) with ``Ap_i = free_i (c_mass m_i p_i - c_stiff (K p)_i)``.
 
@@ -241,7 +252,7 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
     if native is not None:
         state = linearize(groups[0], u) if states is None else states[0]
         return native.system_matvec(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness,
-                                    node_k=_tangent_of(tangents))
+                                    node_k=_tangent_of(tangents), variants=variants)
     kp = None
     for i, group in enumerate(groups):
         f = dforces(group, u, p, None if states is None else states[i])
@@ -256,7 +267,7 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
 
 def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                         c_mass: float, c_stiff: float, states, node_stiffness: Optional[torch.Tensor],
-                        ap: torch.Tensor, plan, cg_state, tangents=None) -> bool:
+                        ap: torch.Tensor, plan, cg_state, tangents=None, variants: KernelVariants = DEFAULT) -> bool:
     """:func:`system_matvec` fused with the CG step length where the extension has it: A p into
     ``ap [V, d]`` (in place) and, per object of the CG's chunk ``plan`` (``ChunkPlan``),
     ``cg_state.alpha`` and ``.status`` exactly as ``solver.cg_ops.cg_alpha`` sets them (one
@@ -271,31 +282,36 @@ def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Te
         return False
     state = linearize(groups[0], u) if states is None else states[0]
     return native.system_matvec_alpha(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness, ap,
-                                      plan.tensors(), cg_state, node_k=_tangent_of(tangents))
+                                      plan.tensors(), cg_state, node_k=_tangent_of(tangents), variants=variants)
 
 
 def _system_cg_native(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                       node_stiffness: Optional[torch.Tensor], cg_state, rhs: Optional[torch.Tensor] = None):
     """(native module or None, mass ``[V]``, free ``[V]`` or None): the module when the inputs
-    allow a fused path at all (``native.system_cg_serves`` says whether it has the one op)."""
+    allow a fused path at all (``solve.system_cg_serves`` says whether it has the one op)."""
     mass_v = mass.reshape(-1)
     free_v = None if free is None else free.reshape(-1)
     return _fused_native(groups, u, cg_state.p, (mass_v, free_v, node_stiffness, rhs)), mass_v, free_v
 
 
 def system_cg_serves(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
-                     node_stiffness: Optional[torch.Tensor], cg_state, tangents=None) -> bool:
+                     node_stiffness: Optional[torch.Tensor], cg_state, tangents=None,
+                     variants: KernelVariants = DEFAULT) -> bool:
     """Whether :func:`system_cg` runs these systems' CG solves in one op (see there)."""
     groups = list(groups)
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state)
-    return native is not None and native.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness),
-                                                          cg_state.scratch.numel(), _tangent_of(tangents))
+    if native is None:
+        return False
+    from . import solve
+
+    return solve.system_cg_serves(groups[0], (cg_state.p, mass_v, free_v, node_stiffness), cg_state.scratch.numel(),
+                                  _tangent_of(tangents), variants)
 
 
 def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
               c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
               tol: float, plan, cg_state, max_iter: int, count: int, tangents=None, step_end=None,
-              pipelined: bool = True) -> bool:
+              pipelined: bool = True, variants: KernelVariants = DEFAULT) -> bool:
     """A CG solve of the :func:`system_matvec` system in ONE op where the extension has it (the
     hooke tensor form over the node graph: one persistent kernel on the GPU, convergence decided
     on the device): with ``rhs [V, d]``, the start from x0 = 0 (rhs projected on ``free``;
@@ -303,8 +319,8 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     ``count`` iterations on ``cg_state`` (a ``CGState`` over the chunk ``plan``), stopping once no
     object is active; ``ap [V, d]``: the products' buffer. Bitwise what ``CGSolver`` computes op by
     op, except a whole solve (``rhs`` given, ``count >= max_iter``) on the GPU where the pipelined
-    CG fits (``native.system_solve``: the same iterates in exact arithmetic, rounded otherwise;
-    it also does ``step_end``, a ``native.StepEnd``, where given, and sets its ``done``; a
+    CG fits (``solve.system_solve``: the same iterates in exact arithmetic, rounded otherwise;
+    it also does ``step_end``, a ``solve.StepEnd``, where given, and sets its ``done``; a
     ``step_end`` whose ``rhs`` is set leaves ``rhs`` to that solve: nothing else runs;
     ``pipelined=False`` never takes it).
     Returns False, having done nothing, where there is no such op (then the caller iterates)."""
@@ -312,31 +328,36 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state, rhs)
     if native is None:
         return False
+    from . import solve
+
     # A whole solve on the GPU: the pipelined CG where it fits (one grid barrier an iteration)
     node_k = _tangent_of(tangents)
     if (pipelined and rhs is not None and count >= max_iter
-            and native.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
-                                    cg_state, max_iter, node_k, step_end)):
+            and solve.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
+                                   cg_state, max_iter, node_k, step_end, variants)):
         return True
     if step_end is not None and step_end.rhs is not None:  # rhs is the solve's to compute: nothing else can
         return False
-    # native.system_cg checks what it serves (and does nothing where it has no one op)
-    return native.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
-                            cg_state, max_iter, count, node_k)
+    # solve.system_cg checks what it serves (and does nothing where it has no one op)
+    return solve.system_cg(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, ap, rhs, tol, plan.tensors(),
+                           cg_state, max_iter, count, node_k, variants)
 
 
-def step_rhs_serves(groups, u: torch.Tensor, node_tensors=()) -> bool:
+def step_rhs_serves(groups, u: torch.Tensor, node_tensors=(), variants: KernelVariants = DEFAULT) -> bool:
     """Whether :func:`step_rhs` is one op for ``groups`` with inputs like ``u [V, d]`` and
     ``node_tensors`` (``[V, ...]``), no contact planes (what a solve that computes the step's
-    right-hand side itself serves: ``native.StepRhs``)."""
+    right-hand side itself serves: ``solve.StepRhs``)."""
     groups = list(groups)
-    native = _fused_native(groups, u, u, node_tensors)
-    return native is not None and native.step_rhs_serves(groups[0], (u, *node_tensors))
+    if _fused_native(groups, u, u, node_tensors) is None:
+        return False
+    from . import node_graph
+
+    return node_graph.step_rhs_serves(groups[0], (u, *node_tensors), variants)
 
 
 def step_rhs(groups, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass: torch.Tensor,
              external: torch.Tensor, planes, h: float, w_coef: float, rayleigh_mass: float, u: torch.Tensor,
-             rhs: torch.Tensor, node_stiffness: Optional[torch.Tensor]) -> bool:
+             rhs: torch.Tensor, node_stiffness: Optional[torch.Tensor], variants: KernelVariants = DEFAULT) -> bool:
     """Implicit Euler's right-hand side in ONE op where the extension has it (one hooke tensor-form
     group over the node graph):
     ``rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) (w_coef v) - r_M M v)``
@@ -347,8 +368,11 @@ def step_rhs(groups, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass:
     also this op's reference in the tests."""
     groups = list(groups)
     mass_v = mass.reshape(-1)
-    native = _fused_native(groups, x, v, (rest, mass_v, external, u, rhs, node_stiffness))
-    if native is None or not native.planes_serve(planes, x, node_stiffness):
+    if _fused_native(groups, x, v, (rest, mass_v, external, u, rhs, node_stiffness)) is None:
         return False
-    return native.step_rhs(groups[0], x, v, rest, mass_v, external, planes, h, w_coef, rayleigh_mass, u, rhs,
-                           node_stiffness)
+    from . import node_graph
+
+    if not node_graph.planes_serve(planes, x, node_stiffness):
+        return False
+    return node_graph.step_rhs(groups[0], x, v, rest, mass_v, external, planes, h, w_coef, rayleigh_mass, u, rhs,
+                               node_stiffness, variants)

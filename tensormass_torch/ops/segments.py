@@ -107,6 +107,13 @@ class ChunkPlan:
         device = segments.lengths.device
         return cls(chunk_start.to(device), chunk_object.to(device), object_chunk.to(device), segments)
 
+    @classmethod
+    def from_tensors(cls, chunk_start: torch.Tensor, chunk_object: torch.Tensor,
+                     object_chunk: torch.Tensor) -> "ChunkPlan":
+        """The plan of the CG ops' arguments (``tensors()``), its segments recovered from them."""
+        starts = chunk_start[object_chunk.long()]
+        return cls(chunk_start, chunk_object, object_chunk, Segments.from_lengths(starts[1:] - starts[:-1]))
+
     @property
     def num_chunks(self) -> int:
         return self.chunk_object.numel()

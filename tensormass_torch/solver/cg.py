@@ -141,7 +141,7 @@ class CGSolver:
         whole-solve op (then the device stops iterating once every object has stopped), else the
         start's and the iterations' ops. No host synchronisation either way.
 
-        ``step_end``: a ``native.StepEnd`` (the end of an implicit Euler step) that a whole solve
+        ``step_end``: a ``solve.StepEnd`` (the end of an implicit Euler step) that a whole solve
         in one op may do in its own kernel; its ``done`` says whether it did (else the caller
         does it after the solve). With ``step_end.rhs`` set, ``rhs`` is that op's to compute: only
         that op runs, or nothing (``done`` False)."""

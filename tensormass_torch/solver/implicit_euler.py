@@ -17,8 +17,9 @@ import torch
 
 from ..errors import SolverError
 from ..ops import cg as cg_ops
-from ..ops import native
+from ..ops import node_graph, solve
 from ..ops.segments import Segments
+from ..ops.variants import DEFAULT, KernelVariants
 from .cg import CGResult, CGSolver, batched_cg, run_captured
 
 
@@ -53,6 +54,9 @@ class StepOptions:
             iteration; the fastest); False: the classic CG. In float32 the pipelined recurrences
             lose accuracy on ill-conditioned systems: more iterations, and at worst a false
             breakdown, where the classic CG converges (the Simulator retries such a step so).
+        variants: the kernel variants the ops run (``ops.variants.KernelVariants``: equivalent
+            kernels that differ in speed); the default reads the benchmarks' ``TENSORMASS_*``
+            variables once (``KernelVariants.from_env``).
     """
 
     dt: float
@@ -65,6 +69,7 @@ class StepOptions:
     check_every: int = 8
     cuda_graphs: bool = True
     pipelined: bool = True
+    variants: KernelVariants = field(default_factory=KernelVariants.from_env)
 
 
 @dataclass
@@ -104,7 +109,7 @@ class DynamicsSystem:
         self.mass = mass.unsqueeze(-1)
         self.external = external
         self.segments = segments
-        native.set_objects(model, segments.ptr)  # the node graphs' rows keep to one object each
+        node_graph.set_objects(model, segments.ptr)  # the node graphs' rows keep to one object each
         self.free = None if not bool(constrained.any()) else (~constrained).to(mass.dtype).unsqueeze(-1)
         self.planes = planes if planes is not None and len(planes) else None
         self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
@@ -120,14 +125,15 @@ class DynamicsSystem:
                                      cuda_graphs=cuda_graphs)
         return cg
 
-    def system_matvec(self, mass_coef: float, stiffness_coef: float, pipelined: bool = True):
-        """The :class:`SystemMatvec` for these coefficients and CG variant, or None when the model
-        is not a TensorMass."""
+    def system_matvec(self, mass_coef: float, stiffness_coef: float, pipelined: bool = True,
+                      variants: KernelVariants = DEFAULT):
+        """The :class:`SystemMatvec` for these coefficients, CG and kernel variants, or None when the
+        model is not a TensorMass."""
         from ..physics.tensor_mass import TensorMass
 
         if not isinstance(self.model, TensorMass):
             return None
-        key = (float(mass_coef), float(stiffness_coef), bool(pipelined))
+        key = (float(mass_coef), float(stiffness_coef), bool(pipelined), variants)
         if key not in self._matvecs:
             self._matvecs[key] = SystemMatvec(self, *key)
         return self._matvecs[key]
@@ -160,12 +166,15 @@ class SystemMatvec:
     CUDA graph and replayed at every step.
     """
 
-    def __init__(self, system: DynamicsSystem, mass_coef: float, stiffness_coef: float, pipelined: bool = True):
+    def __init__(self, system: DynamicsSystem, mass_coef: float, stiffness_coef: float, pipelined: bool = True,
+                 variants: KernelVariants = DEFAULT):
         self.system = system
         self.mass_coef = mass_coef
         self.stiffness_coef = stiffness_coef
         #: whole solves by the pipelined CG where it fits (``StepOptions.pipelined``)
         self.pipelined = pipelined
+        #: the kernel variants of every op this matvec runs (``StepOptions.variants``)
+        self.variants = variants
         self.u = torch.zeros_like(system.model.rest)
         self.states = None
         #: the differential at the loaded positions on the node graph (``ops.node_tangent``, one
@@ -177,7 +186,7 @@ class SystemMatvec:
         self._ap = None  # A p of matvec_alpha (kept: a CUDA graph replays into it)
         self._rhs = None  # the step's right-hand side of load_step (kept, as _ap)
         self._zero_mass = None  # [V, 1] zeros: forces_along's product over the node graph has no mass term
-        self.graph_key = ("system", mass_coef, stiffness_coef, pipelined, id(self))
+        self.graph_key = ("system", mass_coef, stiffness_coef, pipelined, variants, id(self))
 
     def load(self, x: torch.Tensor) -> "SystemMatvec":
         """Linearise at positions ``x [V, d]``: rotations, contact forces and contact stiffness
@@ -212,7 +221,8 @@ class SystemMatvec:
         tangent = None
         if len(groups) == 1:
             state = None if self.states is None else self.states[0]
-            tangent = ops.node_tangent(groups[0], self.u, state, None if self.tangents is None else self.tangents[0])
+            tangent = ops.node_tangent(groups[0], self.u, state, None if self.tangents is None else self.tangents[0],
+                                       self.variants)
         self.tangents = None if tangent is None else [tangent]
 
     def load_step(self, x: torch.Tensor, v: torch.Tensor, h: float, rayleigh_mass: float,
@@ -234,7 +244,7 @@ class SystemMatvec:
         model = system.model
         model._check_positions("x", x)
         if ops.step_rhs(model.groups, x, v, model.rest, system.mass, system.external, system.planes, h, w_coef,
-                        rayleigh_mass, self.u, self._rhs, self.node_stiffness):
+                        rayleigh_mass, self.u, self._rhs, self.node_stiffness, self.variants):
             self._loaded_by_node_rhs()
             return self._rhs
         self.load(x)
@@ -245,19 +255,20 @@ class SystemMatvec:
 
     def step_rhs_in_solve(self, h: float, rayleigh_mass: float, rayleigh_stiffness: float):
         """What a solve needs to compute :meth:`load_step`'s right-hand side itself, at the state
-        its step end starts from (``native.StepRhs``: into :attr:`u`, :attr:`node_stiffness` with
+        its step end starts from (``solve.StepRhs``: into :attr:`u`, :attr:`node_stiffness` with
         planes, and the buffer returned with it: ``(StepRhs, rhs [V, d])``), where ``load_step``
         would be one op; None otherwise. Leaves this matvec as ``load_step``'s op does (the solve
         may still decline: then ``load_step`` runs as before)."""
         from .. import ops
 
         system, model = self.system, self.system.model
-        if len(model.groups) != 1 or not ops.step_rhs_serves(model.groups, self.u, (model.rest, system.external)):
+        if len(model.groups) != 1 or not ops.step_rhs_serves(model.groups, self.u, (model.rest, system.external),
+                                                             self.variants):
             return None
         self._node_rhs_buffers()
         self._loaded_by_node_rhs()
         rest, external = (t.contiguous() for t in (model.rest, system.external))
-        return native.StepRhs(rest, external, h + rayleigh_stiffness, rayleigh_mass, self.u, system.planes), self._rhs
+        return solve.StepRhs(rest, external, h + rayleigh_stiffness, rayleigh_mass, self.u, system.planes), self._rhs
 
     def _node_rhs_buffers(self):
         """The buffers the right-hand side's op writes besides u: the rhs ``[V, d]`` and, with
@@ -297,7 +308,7 @@ class SystemMatvec:
             if self._zero_mass is None:
                 self._zero_mass = torch.zeros_like(system.mass)
             stiffness_along, _ = ops.system_matvec(system.model.groups, self.u, w, self._zero_mass, None, 0.0, -1.0,
-                                                   self.states, self.node_stiffness, self.tangents)
+                                                   self.states, self.node_stiffness, self.tangents, self.variants)
             total = ops.forces(system.model.groups[0], self.u, self.states[0]) + system.external + stiffness_along
             return total if self.contact_forces is None else total + self.contact_forces
         total = system.model.linearized_forces(self.u, w, self.states) + system.external
@@ -316,7 +327,7 @@ class SystemMatvec:
             self._ap = torch.empty_like(self.u)
         done = ops.system_matvec_alpha(system.model.groups, self.u, p, system.mass, system.free, self.mass_coef,
                                        self.stiffness_coef, self.states, self.node_stiffness, self._ap, plan, cg_state,
-                                       self.tangents)
+                                       self.tangents, self.variants)
         return self._ap if done else None
 
     def _one_op_args(self, cg):
@@ -331,7 +342,7 @@ class SystemMatvec:
         same_free, args = self._one_op_args(cg)
         if self.tangents is None and self.states is None:  # not loaded yet: the graph it would have
             self._load_tangents()
-        return same_free and ops.system_cg_serves(*args, self.node_stiffness, cg.state, self.tangents)
+        return same_free and ops.system_cg_serves(*args, self.node_stiffness, cg.state, self.tangents, self.variants)
 
     def solve_in_one_op(self, cg, rhs, tol: float, max_iter: int, count: int, step_end=None) -> bool:
         """With ``rhs [V, d]``: start ``cg`` (a ``CGSolver`` over this system's objects) from x0 = 0,
@@ -347,14 +358,14 @@ class SystemMatvec:
         if self._ap is None:
             self._ap = torch.empty_like(self.u)
         return ops.system_cg(*args, self.mass_coef, self.stiffness_coef, self.node_stiffness, self._ap, rhs, tol,
-                             cg.plan, cg.state, max_iter, count, self.tangents, step_end, self.pipelined)
+                             cg.plan, cg.state, max_iter, count, self.tangents, step_end, self.pipelined, self.variants)
 
     def __call__(self, p: torch.Tensor):
         from .. import ops
 
         system = self.system
         return ops.system_matvec(system.model.groups, self.u, p, system.mass, system.free, self.mass_coef,
-                                 self.stiffness_coef, self.states, self.node_stiffness, self.tangents)
+                                 self.stiffness_coef, self.states, self.node_stiffness, self.tangents, self.variants)
 
 
 def _coefficients(opts: StepOptions):
@@ -366,7 +377,8 @@ def _coefficients(opts: StepOptions):
 def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None) -> CGResult:
     """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x."""
     mass_coef, stiffness_coef = _coefficients(opts)
-    fused = loaded if loaded is not None else system.system_matvec(mass_coef, stiffness_coef, opts.pipelined)
+    fused = (loaded if loaded is not None
+             else system.system_matvec(mass_coef, stiffness_coef, opts.pipelined, opts.variants))
     if fused is None:  # a model that is not a TensorMass: the composed product
         tangent = system.tangent(x)
         return batched_cg(lambda p: mass_coef * system.mass * p - stiffness_coef * tangent(p), rhs,
@@ -454,7 +466,7 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
 #: small batches; fewer for large ones: the ring holds at most 2^17 object summaries).
 MAX_CHAIN = 512
 #: Chained steps captured in one CUDA graph (StepGraphs.run_steps): one kernel where the solve
-#: computes each step's right-hand side (``native.StepRhs``). More steps a graph only lengthen
+#: computes each step's right-hand side (``solve.StepRhs``). More steps a graph only lengthen
 #: the chain a failure must replay (docs/cuda-graphs.md).
 STEPS_PER_GRAPH = 8
 
@@ -469,10 +481,10 @@ class StepGraphs:
         replaying the CG graph until none is)
         C: the new velocities and positions, their per-object norms, and the step's summary
         (CG status, iterations, residuals, norms) packed in one small buffer; done by A's solve
-        in its own kernel where that is the pipelined CG (``native.StepEnd``)
+        in its own kernel where that is the pipelined CG (``solve.StepEnd``)
         (host: one copy of that buffer; a failed step raises and the state is unchanged)
 
-    Where that solve also computes the right-hand side (``native.StepRhs``: the hooke tensor
+    Where that solve also computes the right-hand side (``solve.StepRhs``: the hooke tensor
     form, no imposed velocity), a step is ONE kernel, and chained steps are one kernel for all the
     steps of a graph.
 
@@ -493,7 +505,7 @@ class StepGraphs:
         self.norms = torch.zeros_like(self.cg.rhs_sq)
         # status, iterations, r.r, b.b, |v|^2 per object: what the host reads, in one copy
         self.summary = torch.zeros(5, self.norms.numel(), dtype=torch.float64, device=like.device)
-        self.matvec = system.system_matvec(*_coefficients(opts), opts.pipelined)
+        self.matvec = system.system_matvec(*_coefficients(opts), opts.pipelined, opts.variants)
         # Where the whole CG is one op that stops on the device, graph A holds all of it;
         # otherwise its first check_every iterations, then the host looks.
         self.first = (opts.cg_max_iter if self.cg.solves_in_one_op(self.matvec)
@@ -518,13 +530,13 @@ class StepGraphs:
 
     def _phase_a(self, chained: bool = False) -> bool:
         """Phase A; returns whether its solve also did phase C (a whole solve in one op that ends
-        the step in its own kernel: ``native.StepEnd``). ``chained``: as :meth:`_phase_c`."""
+        the step in its own kernel: ``solve.StepEnd``). ``chained``: as :meth:`_phase_c`."""
         opts = self.opts
         rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
         if dv_imposed is not None:
             self.dv_imposed.copy_(dv_imposed)
         ring = (self.ring, self.ring_pos) if chained else (None, None)
-        end = native.StepEnd(self.x, self.v, self._dv_imposed(), float(opts.dt), self.x_new, self.v_new, self.norms,
+        end = solve.StepEnd(self.x, self.v, self._dv_imposed(), float(opts.dt), self.x_new, self.v_new, self.norms,
                              self.summary, *ring, chained)
         self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first, end)
         return end.done
@@ -543,7 +555,7 @@ class StepGraphs:
             return False
         step_rhs, rhs = in_solve
         ring = (self.ring, self.ring_pos) if chained else (None, None)
-        end = native.StepEnd(self.x, self.v, None, float(opts.dt), self.x_new, self.v_new, self.norms, self.summary,
+        end = solve.StepEnd(self.x, self.v, None, float(opts.dt), self.x_new, self.v_new, self.norms, self.summary,
                              *ring, chained, rhs=step_rhs, steps=count)
         self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first, end)
         return end.done
@@ -656,7 +668,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None
     key = (opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness, opts.cg_tol, opts.cg_max_iter,
-           opts.require_convergence, opts.check_every, opts.pipelined, imposed)
+           opts.require_convergence, opts.check_every, opts.pipelined, opts.variants, imposed)
     graphs = system._step_graphs.get(key)
     if graphs is None:
         graphs = system._step_graphs[key] = StepGraphs(system, opts, imposed)
@@ -679,7 +691,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         return graphs.step(x, v, imposed_velocity)
     h = opts.dt
     report = StepReport()
-    loaded = system.system_matvec(*_coefficients(opts), opts.pipelined)
+    loaded = system.system_matvec(*_coefficients(opts), opts.pipelined, opts.variants)
     rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
     result = _solve(system, x, rhs, opts, loaded)
     report.cg.append(result)

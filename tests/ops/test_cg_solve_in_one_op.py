@@ -11,24 +11,20 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch.ops import cg as cg_ops
-from tensormass_torch.ops import native
+from tensormass_torch.ops import library, solve
+from tensormass_torch.ops.variants import DEFAULT, KernelVariants
 from tensormass_torch.solver.implicit_euler import SystemMatvec
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_cg"),
+pytestmark = pytest.mark.skipif(not library.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_cg"),
                                 reason="needs the extension with hooke_node_cg")
 
 FIELDS = ("x", "r", "p", "rr", "alpha", "beta", "threshold", "rhs_sq", "status", "iterations", "counter")
 
 
-@pytest.fixture(autouse=True)
-def _two_reduction_cg(monkeypatch):
-    """These tests are hooke_node_cg's: whole GPU solves would otherwise take the pipelined CG
-    (native.system_solve, tests/ops/test_pipelined_solve.py), which is not bitwise the op-by-op CG."""
-    monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
-
-
-def make_system(dtype, device, contact=True, bodies=3, mass_coef=1.02):
+def make_scene(dtype, device, contact=True, bodies=3):
+    """(system, x, rhs): hooke beams (tensor form) of stiffnesses 1e4, 1e5, ..., the positions x
+    [V, 3] the matvecs are loaded at, and a right-hand side."""
     meshes = []
     for k in range(bodies):
         mesh = tm.beam_mesh(5 + 2 * k, 2, 2, size=(0.5, 0.1, 0.1), origin=(0.0, 0.3 * k, 0.01), dtype=dtype,
@@ -40,9 +36,28 @@ def make_system(dtype, device, contact=True, bodies=3, mass_coef=1.02):
                        dtype=dtype)
     gen = torch.Generator().manual_seed(3)
     x = sim.x + 0.01 * torch.randn(sim.x.shape, generator=gen, dtype=dtype).to(device)
-    matvec = sim.system.system_matvec(mass_coef, 2e-4).load(x)
     rhs = torch.randn(sim.x.shape, generator=gen, dtype=dtype).to(device)
-    return sim.system, matvec, rhs
+    return sim.system, x, rhs
+
+
+def matvec_at(system, x, mass_coef=1.02, pipelined=True, variants=DEFAULT):
+    """The system's matvec (c_M = mass_coef, c_K = 2e-4) loaded at x, with the CG (``pipelined``:
+    whole GPU solves by the pipelined CG where it fits; False: the classic CG) and kernel variants
+    given (as ``StepOptions`` pass them)."""
+    return system.system_matvec(mass_coef, 2e-4, pipelined, variants).load(x)
+
+
+def make_system(dtype, device, contact=True, bodies=3, mass_coef=1.02, pipelined=True, variants=DEFAULT):
+    """(system, matvec, rhs) of :func:`make_scene`, the matvec as :func:`matvec_at` gives it."""
+    system, x, rhs = make_scene(dtype, device, contact, bodies)
+    return system, matvec_at(system, x, mass_coef, pipelined, variants), rhs
+
+
+def classic_system(dtype, device, **changes):
+    """:func:`make_system` with the classic CG (``pipelined=False``): these tests are
+    hooke_node_cg's, and whole GPU solves would otherwise take the pipelined CG
+    (solve.system_solve, tests/ops/test_pipelined_solve.py), which is not bitwise the op-by-op CG."""
+    return make_system(dtype, device, pipelined=False, **changes)
 
 
 def fresh_solver(system, rhs, chunk_nodes=None):
@@ -84,7 +99,7 @@ def assert_same(got, want):
 @pytest.mark.parametrize("counts", [(0,), (1,), (3,), (2, 5), (1, 1, 1, 4), (60,)])
 @pytest.mark.parametrize("chunk_nodes", [None, 16])
 def test_one_op_equals_op_by_op(device, dtype, counts, chunk_nodes):
-    system, matvec, rhs = make_system(dtype, device)
+    system, matvec, rhs = classic_system(dtype, device)
     tol, max_iter = 1e-5, 40  # the objects stop at different iterations; the cap stops some
     got = in_one_op(system, matvec, rhs, tol, max_iter, counts, chunk_nodes)
     want = op_by_op(system, matvec, rhs, tol, max_iter, counts, chunk_nodes)
@@ -97,7 +112,7 @@ def test_one_op_equals_op_by_op(device, dtype, counts, chunk_nodes):
 @pytest.mark.parametrize("chunk_nodes", [1, 7, 4096])
 def test_chunkings_and_a_zero_rhs(device, chunk_nodes):
     """Objects over many chunks or one; an object with b = 0 is converged from the start."""
-    system, matvec, rhs = make_system(torch.float64, device, contact=False)
+    system, matvec, rhs = classic_system(torch.float64, device, contact=False)
     rhs[system.segments.node_object == 1] = 0.0
     got = in_one_op(system, matvec, rhs, 1e-7, 600, (600,), chunk_nodes)
     want = op_by_op(system, matvec, rhs, 1e-7, 600, (600,), chunk_nodes)
@@ -107,7 +122,7 @@ def test_chunkings_and_a_zero_rhs(device, chunk_nodes):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_breakdown_on_an_indefinite_system(device):
-    system, matvec, rhs = make_system(torch.float64, device, contact=False, mass_coef=-1.0)
+    system, matvec, rhs = classic_system(torch.float64, device, contact=False, mass_coef=-1.0)
     got = in_one_op(system, matvec, rhs, 1e-8, 50, (50,))
     want = op_by_op(system, matvec, rhs, 1e-8, 50, (50,))
     assert_same(got, want)
@@ -117,7 +132,7 @@ def test_breakdown_on_an_indefinite_system(device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_stops_once_no_object_is_active(device):
     """After convergence the op returns without touching the state: a later call changes nothing."""
-    system, matvec, rhs = make_system(torch.float64, device)
+    system, matvec, rhs = classic_system(torch.float64, device)
     cg = fresh_solver(system, rhs)
     cg.begin(matvec, rhs, 1e-6, 500, 500)
     assert bool((cg.state.status == cg_ops.CONVERGED).all())
@@ -128,7 +143,7 @@ def test_stops_once_no_object_is_active(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_solve_uses_one_op_and_matches(monkeypatch, device):
-    system, matvec, rhs = make_system(torch.float32, device)
+    system, matvec, rhs = classic_system(torch.float32, device)
     calls = []
     original = SystemMatvec.solve_in_one_op
     monkeypatch.setattr(SystemMatvec, "solve_in_one_op",
@@ -143,22 +158,22 @@ def test_solve_uses_one_op_and_matches(monkeypatch, device):
     assert bool(one.converged.all())
 
 
-def test_not_served_elsewhere(monkeypatch):
+def test_not_served_elsewhere():
     """Other models, the padded layout, a gradient wanted: no one-op path (the caller iterates)."""
-    system, matvec, rhs = make_system(torch.float64, "cpu")
+    system, x, rhs = make_scene(torch.float64, "cpu")
     cg = fresh_solver(system, rhs)
-    monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", "padded")
-    assert not cg.solves_in_one_op(matvec)
+    padded = matvec_at(system, x, pipelined=False, variants=KernelVariants(hooke_matvec="padded"))
+    assert not cg.solves_in_one_op(padded)
     before = state_of(cg)
-    assert not matvec.solve_in_one_op(cg, rhs, 1e-6, 10, 10)
+    assert not padded.solve_in_one_op(cg, rhs, 1e-6, 10, 10)
     assert_same(state_of(cg), before)
-    monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", "node")
+    matvec = matvec_at(system, x, pipelined=False, variants=KernelVariants(hooke_matvec="node"))
     assert cg.solves_in_one_op(matvec)
     assert not matvec.solve_in_one_op(cg, rhs.clone().requires_grad_(), 1e-6, 10, 10)
 
 
 def test_bad_inputs_are_rejected():
-    system, matvec, rhs = make_system(torch.float64, "cpu")
+    system, matvec, rhs = classic_system(torch.float64, "cpu")
     cg = fresh_solver(system, rhs)
     cg.start(matvec, rhs, None, 1e-6, 10)
     s = cg.state
@@ -166,8 +181,8 @@ def test_bad_inputs_are_rejected():
     before = state_of(cg)
 
     def call(state=s, rhs_=rhs, count=5, max_iter=10):
-        native.system_cg(group, system.mass.reshape(-1), system.free.reshape(-1), 1.0, 1e-4, matvec.node_stiffness,
-                         torch.empty_like(s.p), rhs_, 1e-6, cg.plan.tensors(), state, max_iter, count)
+        solve.system_cg(group, system.mass.reshape(-1), system.free.reshape(-1), 1.0, 1e-4, matvec.node_stiffness,
+                        torch.empty_like(s.p), rhs_, 1e-6, cg.plan.tensors(), state, max_iter, count)
 
     bad = lambda **kw: cg_ops.CGState(**{**s.__dict__, **kw})  # noqa: E731
     with pytest.raises(RuntimeError, match="work has shape"):
@@ -192,6 +207,6 @@ def test_gpu_plans_beyond_one_wave_iterate_op_by_op(monkeypatch):
 
     monkeypatch.setattr(torch.cuda, "get_device_properties", lambda device: Props())
     cuda = torch.device("cuda", 0)
-    limit = native.PERSISTENT_BLOCKS_PER_SM * 132
-    assert native.persistent_cg_fits(cuda, limit) and not native.persistent_cg_fits(cuda, limit + 1)
-    assert native.persistent_cg_fits(torch.device("cpu"), 10 ** 9)
+    limit = solve.PERSISTENT_BLOCKS_PER_SM * 132
+    assert solve.persistent_cg_fits(cuda, limit) and not solve.persistent_cg_fits(cuda, limit + 1)
+    assert solve.persistent_cg_fits(torch.device("cpu"), 10 ** 9)

@@ -1,7 +1,7 @@
 """The corotational model in the compiled ops (model id 2), both rotation methods.
 
     1. tensormass::corotational_rotations (method 0 = SOFA's QR frame, 1 = polar) = the reference
-       (native.REFERENCE, ops.linearize on the torch path), tets, membranes and (polar) 2-D
+       (library.REGISTRY[name].reference, ops.linearize on the torch path), tets, membranes and (polar) 2-D
        triangles, float64 and float32, at large deformations with large rotations (incl. 180
        degrees); polar on hard single elements against the closed form Q W^T of F = Q diag(s) W^T:
        rigid 180 degrees, nearly flat, inverted, inverted and nearly flat, needle-like
@@ -28,10 +28,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import build_scene, large_deformation, load_native, rel
+from conftest import build_scene, large_deformation, load_native, rel, with_variants
+from conftest import reference as op_reference
 
 from tensormass_torch import Material, TensorMass, ops
 from tensormass_torch.mesh import geometry
+from tensormass_torch.ops import stress
 from tensormass_torch.ops.reference import corotational as co
 from tensormass_torch.ops.reference import gather as ref_gather
 
@@ -84,8 +86,8 @@ def rest_of(group):
 def reference_rotations(group, u):
     """The reference rotations [N, d, d] in float64 (ops.linearize's torch path)."""
     proj = None if group.projector is None else group.projector.double()
-    return native.REFERENCE["corotational_rotations"](u.double(), group.plan.index, group.shape_vectors.double(),
-                                                      proj, rest_of(group), METHOD[group.rotation])
+    return op_reference("corotational_rotations")(u.double(), group.plan.index, group.shape_vectors.double(), proj,
+                                                  rest_of(group), METHOD[group.rotation])
 
 
 def reference(group, u, du):
@@ -255,7 +257,7 @@ def test_native_equals_reference(kind, rot, dtype, rng):
 
 @pytest.mark.parametrize("kind,rot", CASES, ids=CASE_IDS)
 def test_every_stress_op_equals_its_reference(kind, rot, rng):
-    """The six stress ops with model 2 and the rotations given = native.REFERENCE (padded: used slots);
+    """The six stress ops with model 2 and the rotations given = their references (padded: used slots);
     for the QR frame, also without them (R recomputed from rest_elements inside the kernel)."""
     _, group, scene = make_group(rng, kind, rot=rot)
     u = (deformations(rng, scene)[1] - scene.rest).contiguous()
@@ -279,7 +281,7 @@ def test_every_stress_op_equals_its_reference(kind, rot, rng):
             "stress_dforces": (u, du, idx, fidx, p.num_slots, inc, *s),
         }
         for name, args in calls.items():
-            a, b = getattr(T, name)(*args), native.REFERENCE[name](*args)
+            a, b = getattr(T, name)(*args), op_reference(name)(*args)
             if "_partial_" in name:
                 a, b = torch.where(mask, a, 0.0), torch.where(mask, b, 0.0)
             assert rel(a, b) < 1e-12, (name, [t is None for t in tail])
@@ -372,6 +374,16 @@ def test_input_checks(rng):
                torch.eye(3, dtype=torch.float64).expand(polar.elements.shape[0], 3, 3)) < 1e-15
 
 
+def count_rotations(monkeypatch, calls):
+    """Appends to ``calls`` at every computation of the rotations by the ops: through
+    ``native.corotational_rotations`` (ops.linearize's) and the stress family's own (its
+    ``stress_args``, where no rotations are given)."""
+    real = stress.corotational_rotations
+    counted = lambda *a: calls.append(1) or real(*a)
+    monkeypatch.setattr(native, "corotational_rotations", counted)
+    monkeypatch.setattr(stress, "corotational_rotations", counted)
+
+
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("kind,rot", CASES, ids=CASE_IDS)
 def test_group_dispatch_matches_torch_backend(kind, rot, dtype, rng, monkeypatch):
@@ -381,9 +393,9 @@ def test_group_dispatch_matches_torch_backend(kind, rot, dtype, rng, monkeypatch
     mass = torch.tensor(rng.uniform(0.5, 2.0, u.shape[0]), dtype=dtype)
     free = (torch.tensor(rng.uniform(0, 1, u.shape[0])) > 0.2).to(dtype)
     fused, rotations_calls = [], []
-    real_matvec, real_rot = native.system_matvec, native.corotational_rotations
+    real_matvec = native.system_matvec
     monkeypatch.setattr(native, "system_matvec", lambda *a, **k: fused.append(a[7]) or real_matvec(*a, **k))
-    monkeypatch.setattr(native, "corotational_rotations", lambda *a: rotations_calls.append(1) or real_rot(*a))
+    count_rotations(monkeypatch, rotations_calls)
 
     def run():
         state = ops.linearize(group, u)
@@ -425,7 +437,7 @@ def test_autograd_with_qr_recomputed_in_the_op(kind, rng):
     f = T.stress_forces(uu, p.index, p.force_index, p.num_slots, p.incidences, *tail(la, m_))
     got = torch.autograd.grad((g * f).sum(), (uu, la, m_))
     uu2, la2, m2 = (t.clone().requires_grad_(True) for t in (u, lam, mu))
-    f2 = native.REFERENCE["stress_forces"](uu2, p.index, p.force_index, p.num_slots, p.incidences, *tail(la2, m2))
+    f2 = op_reference("stress_forces")(uu2, p.index, p.force_index, p.num_slots, p.incidences, *tail(la2, m2))
     want = torch.autograd.grad((g * f2).sum(), (uu2, la2, m2))
     for a, b in zip(got, want):
         assert rel(a, b) < 1e-12
@@ -437,8 +449,8 @@ def test_autograd_with_qr_recomputed_in_the_op(kind, rng):
     got = torch.autograd.grad((g * df).sum(), (uu, dd))
     assert rel(got[1], kg) < 1e-12
     uu2, dd2 = u.clone().requires_grad_(True), du.clone().requires_grad_(True)
-    df2 = native.REFERENCE["stress_dforces"](uu2, dd2, p.index, p.force_index, p.num_slots, p.incidences,
-                                             *tail(lam, mu))
+    df2 = op_reference("stress_dforces")(uu2, dd2, p.index, p.force_index, p.num_slots, p.incidences,
+                                         *tail(lam, mu))
     want = torch.autograd.grad((g * df2).sum(), (uu2, dd2))
     for a, b in zip(got, want):
         assert rel(a, b) < 1e-12
@@ -469,7 +481,7 @@ def test_autograd_with_rotations_given(kind, rot, rng):
     kg = T.stress_dforces(u, g, *fused, *head, lam, mu, group.projector, 2, None, r)
     assert rel(got[0], kg) < 1e-12
     uu2, la2, m2, rr2 = (t.clone().requires_grad_(True) for t in (u, lam, mu, r))
-    f2 = native.REFERENCE["stress_forces"](uu2, *fused, *head, la2, m2, group.projector, 2, None, rr2)
+    f2 = op_reference("stress_forces")(uu2, *fused, *head, la2, m2, group.projector, 2, None, rr2)
     want = torch.autograd.grad((g * f2).sum(), (uu2, la2, m2, rr2))
     for a, b in zip(got, want):
         assert rel(a, b) < 1e-12
@@ -480,7 +492,7 @@ def test_autograd_with_rotations_given(kind, rot, rng):
     assert got[0] is None or got[0].abs().max() == 0
     assert rel(got[1], kg) < 1e-12
     rr2 = r.clone().requires_grad_(True)
-    df2 = native.REFERENCE["stress_dforces"](u, du, *fused, *head, lam, mu, group.projector, 2, None, rr2)
+    df2 = op_reference("stress_dforces")(u, du, *fused, *head, lam, mu, group.projector, 2, None, rr2)
     assert rel(got[2], torch.autograd.grad((g * df2).sum(), rr2)[0]) < 1e-12
     # gradcheck of the element ops, the rotations included
     args = (u.clone().requires_grad_(True), p.index, *head, lam.clone().requires_grad_(True), mu,
@@ -544,7 +556,9 @@ def test_opcheck(rng):
 # ------------------------------------------------------------------ 7. simulator
 
 
-def _simulated(kind, rot, backend, monkeypatch, steps=3):
+def _simulated(kind, rot, backend, monkeypatch, steps=3, **variants):
+    """The positions of a corotational beam after ``steps`` steps, with the kernel variants
+    ``KernelVariants(**variants)``, and its mesh."""
     import tensormass_torch as tm
 
     if kind == "tet":
@@ -555,7 +569,7 @@ def _simulated(kind, rot, backend, monkeypatch, steps=3):
     monkeypatch.setenv("TENSORMASS_BACKEND", backend)
     body = tm.Body(mesh, tm.Material(1e4, 0.3, 1000.0, "corotational", rotation=rot, thickness=0.01), fixed=fixed)
     sim = tm.Simulator([body], dt=0.01, cg_tol=1e-10, cg_max_iter=500)
-    sim.step(steps)
+    with_variants(sim, **variants).step(steps)
     return sim.positions(0), mesh
 
 
@@ -575,14 +589,12 @@ def test_rotations_computed_per_step_not_per_cg_iteration(monkeypatch):
     """The rotations are computed once per step (the linearisation, shared by the forces, the
     right-hand side's dforce and the CG system) while the CG products only read them (element by
     element; on the node graph, the tangent reads them once: ops/test_node_tangent.py)."""
-    monkeypatch.setattr(native, "NODE_TANGENT", False)
     rotations_calls, products = [], []
-    real_rot = native.corotational_rotations
-    monkeypatch.setattr(native, "corotational_rotations", lambda *a: rotations_calls.append(1) or real_rot(*a))
+    count_rotations(monkeypatch, rotations_calls)
     for name in ("system_matvec", "system_matvec_alpha"):  # the CG's product, plain or ending in alpha
         real = getattr(native, name)
         monkeypatch.setattr(native, name, lambda *a, real=real, **k: products.append(a[7] is not None) or real(*a, **k))
-    _simulated("tet", "polar", "extension", monkeypatch, steps=2)
+    _simulated("tet", "polar", "extension", monkeypatch, steps=2, node_tangent=False)
     assert len(products) > 10 and all(products)  # many CG products, each given the stored rotations
     assert len(rotations_calls) <= 2
 

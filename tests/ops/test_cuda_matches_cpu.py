@@ -20,7 +20,7 @@ import os
 import numpy as np
 import pytest
 import torch
-from conftest import CASES, DTYPES, MODELS
+from conftest import CASES, DTYPES, MODELS, reference
 
 DEVICE = os.environ.get("TENSORMASS_GPU_TEST_DEVICE", "cuda")
 
@@ -34,9 +34,9 @@ def _cuda_extension():
         return None
     if DEVICE == "cuda" and not C.has_cuda():
         return None
-    from tensormass_torch.ops import native
+    from tensormass_torch.ops import library, native
 
-    return native if native.available() else None
+    return native if library.available() else None
 
 
 native = _cuda_extension()
@@ -72,7 +72,7 @@ def test_cuda_ops_match_cpu_and_reference(kind, model, form, dtype, rng):
     for index_dtype in (torch.int64, torch.int32):
         for name, args in op_calls(group, u, du, index_dtype, lam, mu):
             ref_args = [a.long() if isinstance(a, torch.Tensor) and not a.is_floating_point() else a for a in args]
-            ref = native.REFERENCE[name](*ref_args)  # float64, CPU: the oracle
+            ref = reference(name)(*ref_args)  # float64, CPU: the oracle
             cpu_args = to(args, dtype=dtype)
             gpu_args = to(cpu_args, device=DEVICE)
             cpu = used_slots(name, cpu_args, getattr(T, name)(*cpu_args))
@@ -233,7 +233,7 @@ def test_cuda_corotational_matches_cpu_and_reference(kind, rot, dtype, rng):
     for index_dtype in (torch.int64, torch.int32):
         for name, args in corotational_calls(group, u, du, rotations, index_dtype):
             ref_args = [a.long() if isinstance(a, torch.Tensor) and not a.is_floating_point() else a for a in args]
-            ref = native.REFERENCE[name](*ref_args)
+            ref = reference(name)(*ref_args)
             cpu_args = to(args, dtype=dtype)
             gpu_args = to(cpu_args, device=DEVICE)
             cpu = used_slots(name, cpu_args, getattr(T, name)(*cpu_args))

@@ -1,8 +1,8 @@
 """The compiled ops (torch.ops.tensormass.*, CPU extension) against the pure-torch reference.
 
-    1. every op = its pure-torch reference (native.REFERENCE), every model, element kind (tet,
-       tri 2-D, tri 3-D membrane), form, dtype (float32, float64), int64 and int32 indices, on
-       jittered meshes at large deformations with random per-element (lam, mu)
+    1. every op = its pure-torch reference (library.REGISTRY[name].reference), every model,
+       element kind (tet, tri 2-D, tri 3-D membrane), form, dtype (float32, float64), int64 and
+       int32 indices, on jittered meshes at large deformations with random per-element (lam, mu)
     2. the group-level dispatch (ops.dispatch): extension = TENSORMASS_BACKEND=torch; it really
        dispatches; forced torch never touches the extension
     3. gradcheck (float64) of every op: u, du, lam, mu, geometry and Tensor-Mass tensors; model-level
@@ -22,6 +22,7 @@ from conftest import CASES, DTYPES, FORMS, KINDS, MODELS, build_scene, large_def
 
 from tensormass_torch import Material, TensorMass, ops
 from tensormass_torch.mesh.topology import GatherPlan
+from tensormass_torch.ops import library
 
 native = load_native()
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C is not built")
@@ -55,7 +56,7 @@ def stress_inputs(group, lam=None, mu=None):
     lam = lam0 if lam is None else lam
     mu = mu0 if mu is None else mu
     return (group.shape_vectors, group.measure, lam.contiguous(), mu.contiguous(), group.projector,
-            native.MODEL_IDS[group.model])
+            library.MODEL_IDS[group.model])
 
 
 def plan_indices(group, index_dtype):
@@ -135,7 +136,7 @@ def test_ops_match_reference(kind, model, form, dtype, rng):
         for name, args in op_calls(group, u, du, index_dtype, lam, mu):
             out = used_slots(name, args, getattr(T, name)(*args))
             ref_args = [a.long() if isinstance(a, torch.Tensor) and not a.is_floating_point() else a for a in args]
-            ref = native.REFERENCE[name](*ref_args)
+            ref = library.REGISTRY[name].reference(*ref_args)
             assert out.shape == ref.shape and out.dtype == ref.dtype, name
             assert rel(out, ref) < tol(dtype, group), (name, index_dtype, rel(out, ref))
             outputs.setdefault(index_dtype, []).append(out)

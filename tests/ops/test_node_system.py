@@ -1,6 +1,6 @@
 """The node-centric CG matvec of the hooke tensor form: ``tensormass::hooke_node_system``.
 
-One kernel, one thread per node, over the node graph's slot-major arrays (``native.hooke_node_graph``:
+One kernel, one thread per node, over the node graph's slot-major arrays (``node_graph.hooke_node_graph``:
 neighbor [N_n, V], node_k [N_n, V, d, d]) in place of kernel 1 (padded partial forces) + kernel 2
 (``gather_system``).
 
@@ -10,7 +10,8 @@ neighbor [N_n, V], node_k [N_n, V, d, d]) in place of kernel 1 (padded partial f
        float64; int32 and int64 indices; with and without free mask and node stiffness), = its
        float64 reference, = the composed matvec of ops.system_matvec under TENSORMASS_BACKEND=torch;
        unused slots are never read
-    3. ops.system_matvec takes the node path by default, the padded one on request, bitwise equal;
+    3. ops.system_matvec takes the node path by default, the padded one on request
+       (``KernelVariants(hooke_matvec="padded")``), bitwise equal;
        gradients fall back to the differentiable path
     4. a Simulator run with the node layout = with the padded layout, bitwise
     5. input checks, no gradient, opcheck
@@ -31,16 +32,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import DTYPES, KINDS, build_scene, load_native, rel, tol
+from conftest import DTYPES, KINDS, build_scene, load_native, reference, rel, tol, with_variants
 
 import tensormass_torch as tm
 from tensormass_torch import Material, TensorMass, ops
+from tensormass_torch.ops import library, node_graph, solve
+from tensormass_torch.ops.variants import DEFAULT, KernelVariants
 
 native = load_native("hooke_node_system", "gather_system", "tensor_hooke_partial_forces")
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C (with hooke_node_system) is not built")
 
 C_MASS, C_STIFF = 1.03, 0.0123
 INDEX_DTYPES = (torch.int64, torch.int32)
+#: the hooke tensor form's CG product over the node graph, and the padded two-kernel path
+NODE, PADDED = KernelVariants(hooke_matvec="node"), KernelVariants(hooke_matvec="padded")
 # (free mask, node stiffness)
 EPILOGUES = [pytest.param(f, k, id=f"{'free' if f else 'all-free'}-{'nodek' if k else 'no-nodek'}")
              for f in (False, True) for k in (False, True)]
@@ -86,12 +91,12 @@ def padded_matvec(group, p, mass, free, stiffness, index_dtype):
 
 
 def node_matvec(group, p, mass, free, stiffness, index_dtype, by_rows=True):
-    """The op over the group's graph by rows (native.hooke_rows_graph), or in node order."""
+    """The op over the group's graph by rows (node_graph.hooke_rows_graph), or in node order."""
     if by_rows:
-        neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
+        neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group)
         rows = None if rows is None else rows.to(index_dtype)
     else:
-        (neighbor, node_k), incidences, rows = native.hooke_node_graph(group), group.plan.incidences, None
+        (neighbor, node_k), incidences, rows = node_graph.hooke_node_graph(group), group.plan.incidences, None
     return torch.ops.tensormass.hooke_node_system(p, neighbor.to(index_dtype), node_k,
                                                   incidences.to(index_dtype).contiguous(), rows, mass, free, C_MASS,
                                                   C_STIFF, stiffness)
@@ -103,10 +108,10 @@ def node_matvec(group, p, mass, free, stiffness, index_dtype, by_rows=True):
 @pytest.mark.parametrize("kind", KINDS)
 def test_node_graph_holds_the_plan_slots(kind):
     group, *_ = make_case(1, kind, torch.float64)
-    neighbor, node_k = native.hooke_node_graph(group)
+    neighbor, node_k = node_graph.hooke_node_graph(group)
     plan, edges, edge_k = group.plan, group.edges, group.edge_k
     d = edge_k.shape[-1]
-    assert neighbor.shape == (plan.num_slots, plan.num_nodes) and neighbor.dtype == native._plan_indices(plan)[0].dtype
+    assert neighbor.shape == (plan.num_slots, plan.num_nodes) and neighbor.dtype == library.plan_indices(plan)[0].dtype
     assert node_k.shape == (plan.num_slots, plan.num_nodes, d, d) and node_k.dtype == edge_k.dtype
     expected_neighbor = torch.zeros(plan.num_slots, plan.num_nodes, dtype=torch.int64)
     expected_k = torch.zeros(plan.num_slots, plan.num_nodes, d, d, dtype=edge_k.dtype)
@@ -126,16 +131,16 @@ def test_node_graph_holds_the_plan_slots(kind):
 
 def test_node_graph_is_cached_and_rebuilt_when_edge_k_changes():
     group, *_ = make_case(2, "tet", torch.float64)
-    first = native.hooke_node_graph(group)
-    again = native.hooke_node_graph(group)
+    first = node_graph.hooke_node_graph(group)
+    again = node_graph.hooke_node_graph(group)
     assert first[0] is again[0] and first[1] is again[1]
     with torch.no_grad():
         group.edge_k.mul_(2.0)  # in place: a new version
-    rebuilt = native.hooke_node_graph(group)
+    rebuilt = node_graph.hooke_node_graph(group)
     assert rebuilt[1] is not first[1]
     assert torch.equal(rebuilt[1], 2.0 * first[1]) and torch.equal(rebuilt[0], first[0])
     group.edge_k = group.edge_k.clone()  # a new tensor
-    assert native.hooke_node_graph(group)[1] is not rebuilt[1]
+    assert node_graph.hooke_node_graph(group)[1] is not rebuilt[1]
 
 
 # --------------------------------------------------------------------- the graph's rows
@@ -144,13 +149,13 @@ def test_node_graph_is_cached_and_rebuilt_when_edge_k_changes():
 def test_rows_sort_each_window_of_each_object_by_slot_count():
     counts = torch.tensor([5, 11, 5, 11, 7, 3, 3, 9, 2, 8, 8, 1], dtype=torch.int32)
     starts = (0, 5, 12)  # objects [0, 5) and [5, 12)
-    rows = native.node_graph_rows(counts, starts, window=3)
+    rows = node_graph.node_graph_rows(counts, starts, window=3)
     # windows: [0, 3) [3, 5) of object 0, [5, 8) [8, 11) [11, 12) of object 1; most slots first,
     # ties in node order
     assert rows.tolist() == [1, 0, 2, 3, 4, 7, 5, 6, 9, 10, 8, 11]
-    assert native.node_graph_rows(counts, starts, window=1) is None
-    assert native.node_graph_rows(counts, starts, window=0) is None
-    one_object = native.node_graph_rows(counts, (0, 12), window=128)
+    assert node_graph.node_graph_rows(counts, starts, window=1) is None
+    assert node_graph.node_graph_rows(counts, starts, window=0) is None
+    one_object = node_graph.node_graph_rows(counts, (0, 12), window=128)
     assert torch.equal(one_object, torch.sort(-counts.long(), stable=True).indices)
 
 
@@ -158,7 +163,7 @@ def test_rows_sort_each_window_of_each_object_by_slot_count():
 @pytest.mark.parametrize("kind", KINDS)
 def test_rows_change_no_value(kind, dtype):
     group, p, mass, free, stiffness = make_case(12, kind, dtype)
-    neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
+    neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group)
     assert rows is not None and not torch.equal(rows.long(), torch.arange(p.shape[0]))  # a real permutation
     assert torch.equal(torch.sort(rows.long()).values, torch.arange(p.shape[0]))
     counts = group.plan.incidences
@@ -168,7 +173,7 @@ def test_rows_change_no_value(kind, dtype):
         by_rows = node_matvec(group, p, mass, free, stiffness, index_dtype)
         by_node = node_matvec(group, p, mass, free, stiffness, index_dtype, by_rows=False)
         assert torch.equal(by_rows[0], by_node[0]) and torch.equal(by_rows[1], by_node[1])
-    ref = native.REFERENCE["hooke_node_system"](p, neighbor, node_k, incidences, rows, mass, free, C_MASS, C_STIFF,
+    ref = reference("hooke_node_system")(p, neighbor, node_k, incidences, rows, mass, free, C_MASS, C_STIFF,
                                                 stiffness)
     assert rel(by_rows[0], ref[0]) < tol(dtype) and rel(by_rows[1], ref[1]) < tol(dtype)
 
@@ -178,15 +183,15 @@ def test_rows_keep_to_their_object():
     mat = tm.Material(young=2e4, poisson=0.3, density=1000.0, model="hooke")
     sim = tm.Simulator([tm.Body(mesh, mat), tm.Body(mesh, mat), tm.Body(mesh, mat)], dt=0.01, form="tensor")
     group = sim.system.model.groups[0]
-    rows = native.hooke_rows_graph(group)[3].long()
+    rows = node_graph.hooke_rows_graph(group)[3].long()
     per_object = mesh.vertices.shape[0]
     row_object = torch.arange(rows.numel()) // per_object
     assert torch.equal(rows // per_object, row_object)  # each object's rows are its own nodes
     assert not torch.equal(rows, torch.arange(rows.numel()))
-    native.set_objects(sim.system.model, sim.segments.ptr)  # the same objects again: fine
+    node_graph.set_objects(sim.system.model, sim.segments.ptr)  # the same objects again: fine
     with pytest.raises(ValueError, match="need a model of their own"):
-        native.set_objects(sim.system.model, [0, 3 * per_object])
-    assert native.hooke_rows_graph(group)[3] is not None and torch.equal(native.hooke_rows_graph(group)[3].long(), rows)
+        node_graph.set_objects(sim.system.model, [0, 3 * per_object])
+    assert node_graph.hooke_rows_graph(group)[3] is not None and torch.equal(node_graph.hooke_rows_graph(group)[3].long(), rows)
 
 
 # --------------------------------------------------------------------- the op
@@ -217,10 +222,10 @@ def test_op_equals_reference_and_composed_matvec(monkeypatch, kind, dtype, with_
     stiffness = stiffness if with_node_k else None
     ap, dot = node_matvec(group, p, mass, free, stiffness, torch.int64)
     # the float64 reference on the same graph
-    neighbor, node_k = native.hooke_node_graph(group)
+    neighbor, node_k = node_graph.hooke_node_graph(group)
     incidences = group.plan.incidences
     f64 = [None if t is None else t.double() for t in (p, node_k, mass, free, stiffness)]
-    ref_ap, ref_dot = native.REFERENCE["hooke_node_system"](f64[0], neighbor, f64[1], incidences, None, f64[2],
+    ref_ap, ref_dot = reference("hooke_node_system")(f64[0], neighbor, f64[1], incidences, None, f64[2],
                                                              f64[3], C_MASS, C_STIFF, f64[4])
     assert rel(ap, ref_ap) < tol(dtype) and rel(dot, ref_dot) < tol(dtype)
     # the composed matvec (mass term - K p with K p from the torch reference of dforces)
@@ -232,7 +237,7 @@ def test_op_equals_reference_and_composed_matvec(monkeypatch, kind, dtype, with_
 
 def test_unused_slots_are_never_read():
     group, p, mass, free, stiffness = make_case(5, "tet", torch.float64)
-    neighbor, node_k = native.hooke_node_graph(group)
+    neighbor, node_k = node_graph.hooke_node_graph(group)
     incidences = group.plan.incidences.to(neighbor.dtype)
     unused = torch.arange(neighbor.shape[0])[:, None] >= incidences[None, :]
     assert bool(unused.any())
@@ -243,7 +248,7 @@ def test_unused_slots_are_never_read():
     got = T.hooke_node_system(p, bad_neighbor, bad_k, incidences, None, mass, free, C_MASS, C_STIFF, stiffness)
     want = T.hooke_node_system(p, neighbor, node_k, incidences, None, mass, free, C_MASS, C_STIFF, stiffness)
     assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
-    ref = native.REFERENCE["hooke_node_system"](p, bad_neighbor, bad_k, incidences, None, mass, free, C_MASS,
+    ref = reference("hooke_node_system")(p, bad_neighbor, bad_k, incidences, None, mass, free, C_MASS,
                                                 C_STIFF, stiffness)
     assert rel(got[0], ref[0]) < 1e-12 and bool(torch.isfinite(ref[0]).all())
 
@@ -257,18 +262,21 @@ def test_system_matvec_uses_the_node_layout(monkeypatch, kind, dtype):
     group, p, mass, free, stiffness = make_case(6, kind, dtype)
     u = torch.zeros_like(p)
     calls = []
-    real = native.hooke_node_graph
-    monkeypatch.setattr(native, "hooke_node_graph", lambda g: calls.append(1) or real(g))
+    real = node_graph.hooke_node_graph
+    monkeypatch.setattr(node_graph, "hooke_node_graph", lambda g: calls.append(1) or real(g))
     ap, dot = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF, node_stiffness=stiffness)
     assert calls, "ops.system_matvec did not take the node layout"
-    pad = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, None, stiffness, layout="padded")
+    pad = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, None, stiffness, variants=PADDED)
     assert len(calls) == 1
     assert torch.equal(ap, pad[0]) and torch.equal(dot, pad[1])
-    monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", "padded")  # the module switch of the benchmarks
-    ap2, dot2 = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF, node_stiffness=stiffness)
+    # the benchmarks' switch: the variants of TENSORMASS_HOOKE_MATVEC=padded, passed down explicitly
+    padded = KernelVariants.from_env({"TENSORMASS_HOOKE_MATVEC": "padded"})
+    assert padded == PADDED
+    ap2, dot2 = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF, node_stiffness=stiffness,
+                                  variants=padded)
     assert len(calls) == 1 and torch.equal(ap, ap2) and torch.equal(dot, dot2)
-    with pytest.raises(ValueError, match="unknown matvec layout 'ell'"):
-        native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, layout="ell")
+    with pytest.raises(ValueError, match="unknown layout 'ell'"):
+        KernelVariants(hooke_matvec="ell")
 
 
 def test_gradients_take_the_differentiable_path():
@@ -287,7 +295,8 @@ def test_gradients_take_the_differentiable_path():
 # --------------------------------------------------------------------- the solver
 
 
-def run_beam(dtype, contact=False):
+def run_beam(dtype, contact=False, **variants):
+    """4 steps of a hooke beam (tensor form) with the kernel variants ``KernelVariants(**variants)``."""
     mesh = tm.beam_mesh(4, 1, 1, size=(0.4, 0.1, 0.1), dtype=dtype)
     mat = tm.Material(young=2e4, poisson=0.3, density=1000.0, model="hooke")
     fixed = mesh.vertices[:, 0] < 1e-9
@@ -295,7 +304,7 @@ def run_beam(dtype, contact=False):
     sim = tm.Simulator([tm.Body(mesh, mat, fixed=fixed)], dt=0.01, gravity=(0, 0, -9.81), rayleigh_mass=0.2,
                        rayleigh_stiffness=0.02, cg_tol=1e-10 if dtype == torch.float64 else 1e-5, cg_max_iter=500,
                        form="tensor", planes=planes)
-    sim.step(4)
+    with_variants(sim, **variants).step(4)
     return sim.x.clone(), sim.v.clone()
 
 
@@ -304,27 +313,40 @@ def run_beam(dtype, contact=False):
 def test_simulator_node_layout_equals_padded_bitwise(monkeypatch, dtype, contact):
     # the matvecs are compared here: the step's right-hand side is composed in both runs (its one
     # op, hooke_node_step_rhs, only serves the node layout; tests/ops/test_step_ops.py checks it)
-    monkeypatch.setattr(native, "step_rhs_serves", lambda group, inputs=(): False)
+    no_rhs_op = lambda group, inputs=(), variants=DEFAULT: False
+    monkeypatch.setattr(node_graph, "step_rhs_serves", no_rhs_op)
+    monkeypatch.setattr(solve, "step_rhs_serves", no_rhs_op)  # nor the solve's (hooke_node_steps, GPU)
     calls = []
-    real = native.hooke_node_graph
-    monkeypatch.setattr(native, "hooke_node_graph", lambda g: calls.append(1) or real(g))
+    real = node_graph.hooke_node_graph
+    monkeypatch.setattr(node_graph, "hooke_node_graph", lambda g: calls.append(1) or real(g))
     x_rows, v_rows = run_beam(dtype, contact)
     assert calls, "the solver did not use the node layout"
     # with the graph's rows in node order every sum is taken in the padded path's order; rows
     # sorted by slot count (the default) change only the order of the CG's p . Ap sums
-    monkeypatch.setattr(native, "NODE_GRAPH_WINDOW", 0)
-    x, v = run_beam(dtype, contact)
-    monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", "padded")
-    n = len(calls)
-    x_p, v_p = run_beam(dtype, contact)
-    assert len(calls) == n
+    x, v = run_beam(dtype, contact, node_graph_window=0)
+    # the padded variant's products never run over the node graph (the elastic forces may: they
+    # are not the CG product, and both layouts give them bitwise)
+    padded_graphs = []
+    real_graph_of = node_graph.node_graph_of
+
+    def graph_of(group, variants, *args, **kwargs):
+        graph = real_graph_of(group, variants, *args, **kwargs)
+        if variants.hooke_matvec == "padded":
+            padded_graphs.append(graph)
+        return graph
+
+    monkeypatch.setattr(node_graph, "node_graph_of", graph_of)
+    monkeypatch.setattr(native, "node_graph_of", graph_of)
+    monkeypatch.setattr(solve, "node_graph_of", graph_of)
+    x_p, v_p = run_beam(dtype, contact, hooke_matvec="padded", node_graph_window=0)
+    assert padded_graphs and all(graph is None for graph in padded_graphs)
     assert torch.equal(x, x_p) and torch.equal(v, v_p)
     # both solved to the CG tolerance (1e-10 in float64; with the stiff penalty, k = 1e4 on a light
     # beam, the velocities differ by ~1e-10 there)
     t = (1e-8 if contact else 1e-10) if dtype == torch.float64 else 1e-4
     assert rel(x_rows, x) < t and rel(v_rows, v) < t
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
-    x_t, v_t = run_beam(dtype, contact)
+    x_t, v_t = run_beam(dtype, contact, hooke_matvec="padded", node_graph_window=0)
     # the torch path is other arithmetic solved to the CG tolerance (with the penalty: ~2e-10)
     assert rel(x, x_t) < t and rel(v, v_t) < t
 
@@ -334,7 +356,7 @@ def test_simulator_node_layout_equals_padded_bitwise(monkeypatch, dtype, contact
 
 def test_input_checks():
     group, p, mass, free, stiffness = make_case(8, "tet", torch.float64)
-    neighbor, node_k = native.hooke_node_graph(group)
+    neighbor, node_k = node_graph.hooke_node_graph(group)
     inc = group.plan.incidences.to(neighbor.dtype)
     H = torch.ops.tensormass.hooke_node_system
 
@@ -380,7 +402,7 @@ def test_op_has_no_gradient():
 
 def test_opcheck():
     group, p, mass, free, stiffness = make_case(10, "tri3d", torch.float64)
-    neighbor, node_k = native.hooke_node_graph(group)
+    neighbor, node_k = node_graph.hooke_node_graph(group)
     inc = group.plan.incidences.to(neighbor.dtype)
     for fr in (None, free):
         for k in (None, stiffness):
@@ -445,9 +467,9 @@ def test_cuda_larger_beam_bitwise_and_deterministic():
     mass = (torch.rand(p.shape[0], generator=g) + 0.5).to(DEVICE)
     free = (torch.rand(p.shape[0], generator=g) > 0.1).float().to(DEVICE)
     u = torch.zeros_like(p)
-    node = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, layout="node")
-    pad = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, layout="padded")
-    again = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, layout="node")
+    node = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, variants=NODE)
+    pad = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, variants=PADDED)
+    again = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, variants=NODE)
     sync()
     for a, b, c in zip(node, pad, again):
         assert torch.equal(a, b) and torch.equal(a, c)
@@ -493,20 +515,19 @@ def test_benchmark_script_quick(tmp_path, capsys):
 
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_forces_through_the_node_graph_equal_padded_forces(monkeypatch, kind, dtype):
+def test_forces_through_the_node_graph_equal_padded_forces(kind, dtype):
     """native.forces of the hooke tensor form runs the node op (c_M = 0, c_K = -1 gives K u):
     bitwise the padded kernel 1 + gather; with a gradient wanted it keeps the differentiable op."""
     group, u, *_ = make_case(11, kind, dtype)
     real = torch.ops.tensormass.hooke_node_system
-    index, force_index, incidences = native._plan_indices(group.plan)
+    index, force_index, incidences = library.plan_indices(group.plan)
     padded = torch.ops.tensormass.tensor_hooke_forces(u, index, force_index, group.plan.num_slots, incidences,
                                                       group.edge_k.contiguous())
-    monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", "node")
-    got = native.forces(group, u)
+    got = native.forces(group, u, variants=NODE)
     assert torch.equal(got, padded)
-    neighbor, node_k = native.hooke_node_graph(group)
+    neighbor, node_k = node_graph.hooke_node_graph(group)
     no_mass = torch.zeros(u.shape[0], dtype=dtype)
     assert torch.equal(real(u, neighbor, node_k, incidences, None, no_mass, None, 0.0, -1.0, None)[0], got)
     u_grad = u.clone().requires_grad_(True)
-    f = native.forces(group, u_grad)
+    f = native.forces(group, u_grad, variants=NODE)
     assert f.requires_grad and torch.equal(f.detach(), padded)

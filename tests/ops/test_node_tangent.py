@@ -1,9 +1,9 @@
-"""The differential of a stress-form group on the node graph (native.tangent_node_k,
+"""The differential of a stress-form group on the node graph (node_graph.tangent_node_k,
 op stress_tangent_node_k): the element blocks H_ab = d f_a / d u_b summed onto edges once per
 linearisation, so that the CG products of stvk and corotational run over the node graph
 (hooke_node_system / hooke_node_cg / hooke_node_solve) instead of an element pass an iteration.
 
-Oracles: the op's pure-torch reference (native._ref_stress_tangent_node_k, from the reference
+Oracles: the op's pure-torch reference (library.REGISTRY["stress_tangent_node_k"].reference, from the reference
 element dforces along unit displacements), the element path's product (system_matvec without
 node_k: the element dforces, themselves checked against autograd elsewhere) and autograd's
 Jacobian-vector product of the forces; implicit steps with and without it agree to rounding."""
@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import with_variants
 
 import tensormass_torch as tm
 from tensormass_torch import ops
-from tensormass_torch.ops import native
+from tensormass_torch.ops import library, native, node_graph, stress
 
-pytestmark = pytest.mark.skipif(not native.ensure_registered()
+pytestmark = pytest.mark.skipif(not library.ensure_registered()
                                 or not hasattr(torch.ops.tensormass, "stress_tangent_node_k"),
                                 reason="needs the extension with stress_tangent_node_k")
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -46,16 +47,16 @@ def make_group(kind, model, rotation, dtype, device, seed=0):
 
 
 def reference(group, u, state):
-    graph, _, incidences, _, slot_edge = native.tangent_graph(group)
-    index = native._plan_indices(group.plan)[0]
-    m, vol, lam, mu, proj, model, _, rotations = native._stress_args(group, u, state)
-    return native._ref_stress_tangent_node_k(u, index, m, vol, lam, mu, proj, model, rotations, graph.element_edges,
-                                             graph.edge_slots, graph.num_edge_slots, graph.edge_counts,
-                                             slot_edge, incidences)
+    graph, _, incidences, _, slot_edge = node_graph.tangent_graph(group)
+    index = library.plan_indices(group.plan)[0]
+    m, vol, lam, mu, proj, model, _, rotations = stress.stress_args(group, u, state)
+    op_reference = library.REGISTRY["stress_tangent_node_k"].reference
+    return op_reference(u, index, m, vol, lam, mu, proj, model, rotations, graph.element_edges, graph.edge_slots,
+                        graph.num_edge_slots, graph.edge_counts, slot_edge, incidences)
 
 
 def used_slots(group):
-    graph, _, incidences, _, _ = native.tangent_graph(group)
+    graph, _, incidences, _, _ = node_graph.tangent_graph(group)
     return torch.arange(graph.plan.num_slots, device=incidences.device)[:, None] < incidences[None, :].long()
 
 
@@ -65,7 +66,7 @@ def used_slots(group):
 def test_the_op_matches_its_reference(kind, model, rotation, dtype, device):
     group, u = make_group(kind, model, rotation, dtype, device)
     state = ops.linearize(group, u)
-    got = native.tangent_node_k(group, u, state)
+    got = node_graph.tangent_node_k(group, u, state)
     want = reference(group, u, state)
     used = used_slots(group)
     scale = float(want[used].abs().max())
@@ -87,7 +88,7 @@ def test_the_node_graph_product_is_the_element_product(kind, model, rotation, de
     free = (torch.rand(u.shape[0], generator=gen) > 0.2).to(dtype).to(device)
     d = u.shape[1]
     node_stiffness = torch.randn(u.shape[0], d, d, generator=gen, dtype=dtype).to(device)
-    node_k = native.tangent_node_k(group, u, state)
+    node_k = node_graph.tangent_node_k(group, u, state)
     for stiffness in (None, node_stiffness):
         want = native.system_matvec(group, u, p, mass, free, 1.3, 0.7, state, stiffness)
         got = native.system_matvec(group, u, p, mass, free, 1.3, 0.7, state, stiffness, node_k=node_k)
@@ -101,21 +102,20 @@ def test_the_product_is_the_jacobian_of_the_forces(kind):
     group, u = make_group(kind, "stvk", None, torch.float64, "cpu")
     p = torch.randn(u.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     _, jvp = torch.autograd.functional.jvp(lambda v: ops.forces(group, v), u, p)  # reverse mode twice
-    node_k = native.tangent_node_k(group, u, None)
+    node_k = node_graph.tangent_node_k(group, u, None)
     zero_mass = torch.zeros(u.shape[0], dtype=torch.float64)
     ap, _ = native.system_matvec(group, u, p, zero_mass, None, 0.0, -1.0, None, None, node_k=node_k)
     assert float((ap - jvp).abs().max()) <= 1e-10 * float(jvp.abs().max())
 
 
-def simulate(model, node_tangent, device, monkeypatch, steps=4, **material):
-    monkeypatch.setattr(native, "NODE_TANGENT", node_tangent)
+def simulate(model, node_tangent, device, steps=4, **material):
     mesh = tm.beam_mesh(6, 2, 2, size=(0.6, 0.1, 0.1), dtype=torch.float64, device=device)
     body = tm.Body(mesh, tm.Material(young=2e4, poisson=0.35, density=1000.0, model=model, **material),
                    fixed=mesh.vertices[:, 0] < 1e-9)
     # the plane's penalty acts on the bottom nodes from the start: contact in the products and rhs
     sim = tm.Simulator([body], dt=0.02, gravity=(0, 0, -9.81), form="stress", cg_tol=1e-10, cg_max_iter=400,
                        planes=[tm.Plane((0.0, 0.0, 1.0), 0.001, 1e4)], device=device, dtype=torch.float64)
-    sim.step(steps)
+    with_variants(sim, node_tangent=node_tangent).step(steps)
     matvec = next(iter(sim.system._matvecs.values()))
     return sim, matvec
 
@@ -123,10 +123,10 @@ def simulate(model, node_tangent, device, monkeypatch, steps=4, **material):
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("model,material", [("stvk", {}), ("corotational", {"rotation": "qr"}),
                                             ("corotational", {"rotation": "polar"})])
-def test_steps_with_the_tangent_on_the_node_graph_match_the_element_path(model, material, device, monkeypatch):
-    with_graph, matvec = simulate(model, True, device, monkeypatch, **material)
+def test_steps_with_the_tangent_on_the_node_graph_match_the_element_path(model, material, device):
+    with_graph, matvec = simulate(model, True, device, **material)
     assert matvec.tangents is not None, "the steps did not take the node graph"
-    element, matvec = simulate(model, False, device, monkeypatch, **material)
+    element, matvec = simulate(model, False, device, **material)
     assert matvec.tangents is None
     scale = float((element.x - element.system.model.rest).abs().max())
     assert scale > 1e-4  # the beam sags
@@ -145,8 +145,8 @@ def test_no_tangent_where_a_gradient_is_wanted_or_for_hooke():
 
 def test_the_tangent_is_written_into_the_buffer_given():
     group, u = make_group("tet", "stvk", None, torch.float64, "cpu")
-    first = native.tangent_node_k(group, u, None)
-    again = native.tangent_node_k(group, 2 * u, None, out=first)
+    first = node_graph.tangent_node_k(group, u, None)
+    again = node_graph.tangent_node_k(group, 2 * u, None, out=first)
     assert again is first
     used = used_slots(group)
     want = reference(group, 2 * u, None)[used]
@@ -156,10 +156,10 @@ def test_the_tangent_is_written_into_the_buffer_given():
 @pytest.mark.parametrize("device", DEVICES)
 def test_bad_inputs_are_rejected_with_nothing_changed(device):
     group, u = make_group("tet", "corotational", "qr", torch.float32, device)
-    graph, _, incidences, _, slot_edge = native.tangent_graph(group)
+    graph, _, incidences, _, slot_edge = node_graph.tangent_graph(group)
     plan = graph.plan
-    index = native._plan_indices(group.plan)[0]
-    m, vol, lam, mu, proj, model, _, rotations = native._stress_args(group, u, None)
+    index = library.plan_indices(group.plan)[0]
+    m, vol, lam, mu, proj, model, _, rotations = stress.stress_args(group, u, None)
     node_k = torch.full((plan.num_slots, u.shape[0], 3, 3), 7.0, device=device)
     work = torch.zeros(graph.num_edge_slots, graph.edges.shape[0], 12, device=device)
     args = dict(u=u, elements=index, shape_vectors=m, measure=vol, lam=lam, mu=mu, projector=proj, model=model,

@@ -1,4 +1,4 @@
-"""The pipelined whole CG solve (hooke_node_solve through native.system_solve: Chronopoulos-Gear's
+"""The pipelined whole CG solve (hooke_node_solve through solve.system_solve: Chronopoulos-Gear's
 CG, one reduction and one grid barrier an iteration, one persistent kernel on the GPU).
 
 Its oracle is the two-reduction CG op by op (CGSolver.start + _iterate) in float64: the same
@@ -7,37 +7,51 @@ capped, breakdown, b = 0) and iteration counts per object of a batch are the sam
 whole solves run (CGSolver.begin/solve, implicit steps); elsewhere (the CPU, a plan beyond one
 wave of the GPU) the op returns False having changed nothing; a chunk beyond the layout its
 caller promised ends its object as non-finite; bad inputs are rejected with nothing changed. Where
-an implicit step asks (native.StepEnd), the same kernel also ends the step (hooke_node_solve_step):
-bitwise what euler_update after the solve gives."""
+an implicit step asks (solve.StepEnd), the same kernel also ends the step (hooke_node_solve_step):
+bitwise what euler_update after the solve gives.
+
+The switches are the solver's configuration, passed down explicitly: the matvec's ``pipelined``
+(``StepOptions.pipelined``; False: the classic CG) and kernel variants (``KernelVariants``: the
+layouts tried, the streamed layout's cache and pairing, the step end in the solve, the rows' window)."""
 from __future__ import annotations
 
 import pytest
 import torch
-from test_cg_solve_in_one_op import FIELDS, fresh_solver, make_system, op_by_op, state_of
+from conftest import with_variants
+from test_cg_solve_in_one_op import FIELDS, fresh_solver, make_scene, make_system, matvec_at, op_by_op, state_of
 
 import tensormass_torch as tm
 from tensormass_torch.ops import cg as cg_ops
-from tensormass_torch.ops import native
+from tensormass_torch.ops import library, node_graph, solve
 from tensormass_torch.ops.segments import ChunkPlan
+from tensormass_torch.ops.variants import PIPELINED_LAYOUTS, KernelVariants
 from tensormass_torch.sim import builtin as scenes
 
-pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_solve"),
+pytestmark = pytest.mark.skipif(not library.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_solve"),
                                 reason="needs the extension with hooke_node_solve")
 gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="the pipelined solve is a GPU kernel")
 
 
 @pytest.fixture(params=["shared", "streamed", "streamed-uncached", "streamed-partly", "streamed-unpaired"])
-def layout(request, monkeypatch):
-    """Each layout of the pipelined solve's graph, alone (native.PIPELINED_LAYOUTS narrowed to it);
-    the streamed one also with none of its slots in shared memory, with only each node's first 3
-    neighbours and Kdir blocks there (TENSORMASS_STREAM_CACHE_SLOTS): both paths in one node, and
-    with each thread walking its node's slots alone (TENSORMASS_STREAM_PAIRS=0)."""
+def layout_variants(request):
+    """The kernel variants of each layout of the pipelined solve's graph, alone
+    (``pipelined_layouts`` narrowed to it); the streamed one also with none of its slots in shared
+    memory, with only each node's first 3 neighbours and Kdir blocks there
+    (``stream_cache_slots``): both paths in one node, and with each thread walking its node's
+    slots alone (``stream_pairs=False``)."""
     name, _, variant = request.param.partition("-")
-    monkeypatch.setattr(native, "PIPELINED_LAYOUTS", (name,))
+    changes = {}
     if variant == "unpaired":
-        monkeypatch.setenv("TENSORMASS_STREAM_PAIRS", "0")
+        changes["stream_pairs"] = False
     elif variant:
-        monkeypatch.setenv("TENSORMASS_STREAM_CACHE_SLOTS", "0" if variant == "uncached" else "3")
+        changes["stream_cache_slots"] = 0 if variant == "uncached" else 3
+    return KernelVariants(pipelined_layouts=(name,), **changes)
+
+
+@pytest.fixture
+def layout(layout_variants):
+    """The name of the one layout of ``layout_variants``."""
+    (name,) = layout_variants.pipelined_layouts
     return name
 
 
@@ -67,8 +81,8 @@ def rel(a, b):
 
 @gpu
 @pytest.mark.parametrize("tol,max_iter", [(1e-8, 300), (0.0, 10), (0.0, 1)])
-def test_float64_matches_the_two_reduction_cg(layout, tol, max_iter):
-    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False)
+def test_float64_matches_the_two_reduction_cg(layout_variants, tol, max_iter):
+    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False, variants=layout_variants)
     got = pipelined(system, matvec, rhs, tol, max_iter)
     want = reference(rhs, tol, max_iter)
     # converged solves agree to what the tolerance leaves (x differs by ~ cond * tol * rounding of the
@@ -87,23 +101,23 @@ def test_float64_matches_the_two_reduction_cg(layout, tol, max_iter):
 
 @gpu
 @pytest.mark.parametrize("contact", [False, True])
-def test_float32_is_as_close_to_float64_as_the_two_reduction_cg(monkeypatch, layout, contact):
+def test_float32_is_as_close_to_float64_as_the_two_reduction_cg(layout_variants, contact):
     """SOFA's budget (tol = 0, 10 iterations): both float32 solvers round; neither much worse."""
     system64, _, rhs64 = make_system(torch.float64, "cuda", contact=contact)
-    system, matvec, _ = make_system(torch.float32, "cuda", contact=contact)
+    system, x, _ = make_scene(torch.float32, "cuda", contact=contact)
+    matvec = matvec_at(system, x, variants=layout_variants)
     rhs = rhs64.float()
     want = reference(rhs, 0.0, 10, contact=contact)
     got = pipelined(system, matvec, rhs, 0.0, 10)
-    monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
-    plain = op_by_op(system, matvec, rhs, 0.0, 10, (10,))
+    plain = op_by_op(system, matvec_at(system, x, pipelined=False), rhs, 0.0, 10, (10,))  # the classic CG
     err_pipelined, err_plain = rel(got["x"], want["x"]), rel(plain["x"], want["x"])
     assert err_pipelined < max(10 * err_plain, 1e-5), (err_pipelined, err_plain)
     assert got["status"].tolist() == [cg_ops.CAPPED] * 3 and got["iterations"].tolist() == [10] * 3
 
 
 @gpu
-def test_per_object_statuses_zero_rhs_and_breakdown(layout):
-    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False)
+def test_per_object_statuses_zero_rhs_and_breakdown(layout_variants):
+    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False, variants=layout_variants)
     rhs[system.segments.node_object == 1] = 0.0
     got = pipelined(system, matvec, rhs, 1e-7, 600)
     want = reference(rhs, 1e-7, 600)
@@ -113,7 +127,8 @@ def test_per_object_statuses_zero_rhs_and_breakdown(layout):
     assert float(got["x"][system.segments.node_object == 1].abs().max()) == 0.0
     assert rel(got["x"], want["x"]) < 1e-7
 
-    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False, mass_coef=-1.0)  # indefinite
+    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False, mass_coef=-1.0,
+                                      variants=layout_variants)  # indefinite
     got = pipelined(system, matvec, rhs, 1e-8, 50)
     want = reference(rhs, 1e-8, 50, mass_coef=-1.0)
     assert torch.equal(got["status"], want["status"]) and bool((got["status"] == cg_ops.BREAKDOWN).any())
@@ -121,13 +136,13 @@ def test_per_object_statuses_zero_rhs_and_breakdown(layout):
 
 
 @gpu
-def test_solves_and_steps_take_it_and_the_switch_turns_it_off(monkeypatch):
-    system, matvec, rhs = make_system(torch.float32, "cuda")
+def test_solves_and_steps_take_it_and_the_switch_turns_it_off():
+    system, x, rhs = make_scene(torch.float32, "cuda")
+    matvec = matvec_at(system, x)
     result = system.cg_solver(rhs, cuda_graphs=False).solve(matvec, rhs, tol=1e-5, max_iter=300)
-    assert bool(result.converged.all()) and ran_layout(system._cg) == native.PIPELINED_LAYOUTS[0]
-    monkeypatch.setattr(native, "PIPELINED_SOLVE", False)
+    assert bool(result.converged.all()) and ran_layout(system._cg) == PIPELINED_LAYOUTS[0]
     cg = fresh_solver(system, rhs)
-    cg.begin(matvec, rhs, 1e-5, 300, 300)
+    cg.begin(matvec_at(system, x, pipelined=False), rhs, 1e-5, 300, 300)  # the switch: the classic CG
     assert "_solve_work" not in cg.state.__dict__
     assert rel(cg.state.x, result.solution) < 1e-4
 
@@ -156,14 +171,13 @@ def step_sim(prescribed: bool):
 
 @gpu
 @pytest.mark.parametrize("prescribed", [False, True])
-def test_the_step_end_in_the_solve_equals_euler_update_after_it(monkeypatch, layout, prescribed):
+def test_the_step_end_in_the_solve_equals_euler_update_after_it(layout_variants, layout, prescribed):
     """Chained steps (a fixed budget) and single steps with an imposed velocity: the solve that
     ends the step itself gives the states, statuses, iterations and residuals of the solve then
     euler_update, bitwise; each object's |v_new|^2 to rounding (summed over other chunks)."""
     runs = {}
     for fused in (True, False):
-        monkeypatch.setattr(native, "FUSED_STEP_END", fused)
-        sim = step_sim(prescribed)
+        sim = with_variants(step_sim(prescribed), layout_variants, fused_step_end=fused)
         norms = []
         for _ in range(3):
             sim.step(1 if prescribed else 6)
@@ -194,7 +208,7 @@ def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
     """hooke_node_solve on cg's state over ``plan`` (promising its largest chunk) with ``slots``;
     keyword changes replace arguments."""
     group = system.model.groups[0]
-    neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
+    neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group)
     s = cg.state
     args = dict(neighbor=neighbor, node_k=node_k, incidences=incidences, row_node=rows, mass=system.mass.reshape(-1),
                 free=system.free.reshape(-1), c_mass=1.02, c_stiff=2e-4, node_stiffness=matvec.node_stiffness,
@@ -234,7 +248,7 @@ def test_a_plan_beyond_one_wave_is_not_run_and_changes_nothing():
     cg = fresh_solver(system, rhs)
     plan = ChunkPlan.from_segments(system.segments, 1)
     before = state_of(cg)
-    assert not direct_call(system, matvec, rhs, cg, plan, native.chunk_slots(system.model.groups[0], plan))
+    assert not direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan))
     for k in FIELDS:
         assert torch.equal(state_of(cg)[k], before[k]), k
 
@@ -243,8 +257,8 @@ def test_a_plan_beyond_one_wave_is_not_run_and_changes_nothing():
 def test_a_chunk_beyond_the_promised_layout_ends_its_object_as_non_finite():
     system, matvec, rhs = make_system(torch.float32, "cuda", contact=False)
     cg = fresh_solver(system, rhs)
-    plan = native.solve_plan(cg.plan)
-    slots = native.chunk_slots(system.model.groups[0], plan)
+    plan = solve.solve_plan(cg.plan)
+    slots = solve.chunk_slots(system.model.groups[0], plan)
     assert direct_call(system, matvec, rhs, cg, plan, slots - 1)
     status = cg.state.status.tolist()
     assert cg_ops.NONFINITE in status, status  # the object of the chunk with the most slots
@@ -259,8 +273,8 @@ def test_a_streamed_chunk_beyond_the_promised_nodes_ends_its_object_and_larger_o
     matvec = system.system_matvec(1.02, 2e-4).load(sim.x)
     rhs = torch.randn_like(sim.x)
     cg = fresh_solver(system, rhs)
-    plan = ChunkPlan.from_segments(system.segments, 2 * native.STREAM_CHUNK_NODES)
-    assert direct_call(system, matvec, rhs, cg, plan, 0, chunk_nodes=native.STREAM_CHUNK_NODES)
+    plan = ChunkPlan.from_segments(system.segments, 2 * solve.STREAM_CHUNK_NODES)
+    assert direct_call(system, matvec, rhs, cg, plan, 0, chunk_nodes=solve.STREAM_CHUNK_NODES)
     assert cg.state.status.tolist() == [cg_ops.NONFINITE]
     before = state_of(cg)  # chunks larger than both layouts take: not run, nothing changed
     assert not direct_call(system, matvec, rhs, cg, plan, 0)
@@ -270,24 +284,22 @@ def test_a_streamed_chunk_beyond_the_promised_nodes_ends_its_object_and_larger_o
 
 @gpu
 @pytest.mark.parametrize("window", [None, 0])
-def test_full_chunks_match_the_two_reduction_cg(monkeypatch, layout, window):
+def test_full_chunks_match_the_two_reduction_cg(layout_variants, layout, window):
     """936 nodes in one object: streamed chunks of 256 rows whose mirror rows pair up (the slots
     of each pair halved between their threads), rows sorted by slot count or in node order
-    (NODE_GRAPH_WINDOW = 0); float64 against the two-reduction CG."""
-    if window is not None:
-        monkeypatch.setattr(native, "NODE_GRAPH_WINDOW", window)
+    (``node_graph_window=0``); float64 against the two-reduction CG."""
+    variants = layout_variants if window is None else layout_variants.replace(node_graph_window=window)
     sim = scenes.sofa_beam(device="cuda", dtype=torch.float64, scale=3).simulator
-    matvec = sim.system.system_matvec(1.02, 2e-4).load(sim.x)
+    matvec = sim.system.system_matvec(1.02, 2e-4, variants=variants).load(sim.x)
+    classic = sim.system.system_matvec(1.02, 2e-4, pipelined=False, variants=variants).load(sim.x)
     rhs = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64).to("cuda")
     for tol, max_iter in ((0.0, 30), (1e-9, 2000)):
         cg = fresh_solver(sim.system, rhs)
         cg.begin(matvec, rhs, tol, max_iter, max_iter)
         assert ran_layout(cg) == layout
         got = state_of(cg)
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(native, "PIPELINED_SOLVE", False)
-            plain = fresh_solver(sim.system, rhs)
-            plain.begin(matvec, rhs, tol, max_iter, max_iter)
+        plain = fresh_solver(sim.system, rhs)
+        plain.begin(classic, rhs, tol, max_iter, max_iter)
         assert got["status"].tolist() == plain.state.status.tolist()
         assert abs(int(got["iterations"][0]) - int(plain.state.iterations[0])) <= (1 if tol else 0)
         assert rel(got["x"], plain.state.x) < (1e-7 if tol else 1e-10)
@@ -303,20 +315,17 @@ def test_a_graph_beyond_one_wave_in_shared_memory_streams():
     matvec = sim.system.system_matvec(1.0, 1e-4).load(sim.x)
     rhs = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(5)).to("cuda")
     cg = fresh_solver(sim.system, rhs)
-    if not native.persistent_cg_fits(rhs.device, native.solve_plan(cg.plan).num_chunks):
+    if not solve.persistent_cg_fits(rhs.device, solve.solve_plan(cg.plan).num_chunks):
         cg.begin(matvec, rhs, 1e-5, 400, 400)
         work = cg.state.__dict__["_solve_work"]
         assert work.layout == "streamed" and work.misfits == {"shared"}
     else:  # a GPU with more multiprocessors: the shared layout's test case, streamed forced
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(native, "PIPELINED_LAYOUTS", ("streamed",))
-            cg.begin(matvec, rhs, 1e-5, 400, 400)
+        streamed = sim.system.system_matvec(1.0, 1e-4, variants=KernelVariants(pipelined_layouts=("streamed",)))
+        cg.begin(streamed.load(sim.x), rhs, 1e-5, 400, 400)
         assert ran_layout(cg) == "streamed"
     got = state_of(cg)
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(native, "PIPELINED_SOLVE", False)
-        plain = fresh_solver(sim.system, rhs)
-        plain.begin(matvec, rhs, 1e-5, 400, 400)
+    plain = fresh_solver(sim.system, rhs)
+    plain.begin(sim.system.system_matvec(1.0, 1e-4, pipelined=False).load(sim.x), rhs, 1e-5, 400, 400)
     assert got["status"].tolist() == [cg_ops.CONVERGED] == plain.state.status.tolist()
     assert abs(int(got["iterations"][0]) - int(plain.state.iterations[0])) <= 2
     assert rel(got["x"], plain.state.x) < 1e-4
@@ -326,14 +335,14 @@ def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
     system, matvec, rhs = make_system(torch.float64, "cpu")
     cg = fresh_solver(system, rhs)
     before = state_of(cg)
-    plan = native.solve_plan(cg.plan)
-    assert not direct_call(system, matvec, rhs, cg, plan, native.chunk_slots(system.model.groups[0], plan))
+    plan = solve.solve_plan(cg.plan)
+    assert not direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan))
     summary = torch.zeros(5, 3, dtype=torch.float64)
-    assert not direct_call(system, matvec, rhs, cg, plan, native.chunk_slots(system.model.groups[0], plan), end=True,
+    assert not direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan), end=True,
                            summary=summary)
     assert float(summary.abs().max()) == 0.0
-    assert not native.system_solve(system.model.groups[0], system.mass.reshape(-1), system.free.reshape(-1), 1.0,
-                                   1e-4, None, rhs, 1e-6, cg.plan, cg.state, 10)
+    assert not solve.system_solve(system.model.groups[0], system.mass.reshape(-1), system.free.reshape(-1), 1.0,
+                                  1e-4, None, rhs, 1e-6, cg.plan, cg.state, 10)
     for k in FIELDS:
         assert torch.equal(state_of(cg)[k], before[k]), k
 
@@ -341,28 +350,28 @@ def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
 def test_the_solve_plans_and_their_slots():
     system, _, rhs = make_system(torch.float64, "cpu")
     cg = fresh_solver(system, rhs)
-    plan = native.solve_plan(cg.plan)
-    assert native.solve_plan(cg.plan) is plan  # cached
-    assert largest_chunk(plan) <= native.SOLVE_CHUNK_NODES
-    streamed = native.solve_plan(cg.plan, "streamed")
-    assert streamed is native.solve_plan(cg.plan, "streamed") and streamed is not plan
-    assert largest_chunk(streamed) <= native.STREAM_CHUNK_NODES
+    plan = solve.solve_plan(cg.plan)
+    assert solve.solve_plan(cg.plan) is plan  # cached
+    assert largest_chunk(plan) <= solve.SOLVE_CHUNK_NODES
+    streamed = solve.solve_plan(cg.plan, "streamed")
+    assert streamed is solve.solve_plan(cg.plan, "streamed") and streamed is not plan
+    assert largest_chunk(streamed) <= solve.STREAM_CHUNK_NODES
     assert torch.equal(streamed.chunk_object, torch.arange(3))  # 54-90 nodes an object: one chunk each
     with pytest.raises(ValueError, match="layout must be one of"):
-        native.solve_plan(cg.plan, "global")
+        solve.solve_plan(cg.plan, "global")
     group = system.model.groups[0]
-    _, _, incidences = native._plan_indices(group.plan)
+    _, _, incidences = library.plan_indices(group.plan)
     starts = plan.chunk_start.tolist()
     want = max(int(incidences[a:b].sum()) for a, b in zip(starts[:-1], starts[1:]))
-    assert native.chunk_slots(group, plan) == want
+    assert solve.chunk_slots(group, plan) == want
 
 
 @pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
 def test_bad_inputs_are_rejected_with_nothing_changed(device):
     system, matvec, rhs = make_system(torch.float32, device)
     cg = fresh_solver(system, rhs)
-    plan = native.solve_plan(cg.plan)
-    slots = native.chunk_slots(system.model.groups[0], plan)
+    plan = solve.solve_plan(cg.plan)
+    slots = solve.chunk_slots(system.model.groups[0], plan)
     before = state_of(cg)
     cases = [(dict(exchange=torch.zeros(2, rhs.shape[0], 3 * rhs.shape[1], device=device)), "exchange has shape"),
              (dict(sums=torch.zeros(3, dtype=torch.float64, device=device)), "sums has shape"),

@@ -90,9 +90,9 @@ def test_step_rhs_float32_close_to_float64():
 def _op_args(system, x, v, planes=True):
     model = system.model
     (group,) = model.groups
-    from tensormass_torch.ops import native
+    from tensormass_torch.ops import node_graph
 
-    neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
+    neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group)
     p = system.planes
     u, rhs = torch.zeros_like(x), torch.zeros_like(x)
     stiffness = torch.zeros(x.shape[0], 3, 3, dtype=x.dtype)

@@ -1,8 +1,8 @@
-"""Whole implicit Euler steps in one solve kernel (hooke_node_steps through native.StepRhs: each
+"""Whole implicit Euler steps in one solve kernel (hooke_node_steps through solve.StepRhs: each
 step's right-hand side, its pipelined CG and its end, chained steps back to back in one kernel).
 
 Its oracle is the same steps with the right-hand side as its own op (hooke_node_step_rhs, then
-hooke_node_solve_step: native.SOLVE_STEP_RHS off): bitwise the same states, summaries, ring rows,
+hooke_node_solve_step: ``KernelVariants(solve_step_rhs=False)``): bitwise the same states, summaries, ring rows,
 u, rhs and contact stiffness, in every layout, with and without contact planes, chained (a fixed
 CG budget) and one at a time (a tolerance). On the CPU the op returns False having changed
 nothing; bad inputs are rejected with nothing changed."""
@@ -10,15 +10,17 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import with_variants
 from test_cg_solve_in_one_op import make_system
-from test_pipelined_solve import layout  # noqa: F401, F811  (the fixture)
+from test_pipelined_solve import layout, layout_variants  # noqa: F401, F811  (the fixtures)
 
 import tensormass_torch as tm
 from tensormass_torch.ops import cg as cg_ops
-from tensormass_torch.ops import native
+from tensormass_torch.ops import library, node_graph, solve
+from tensormass_torch.ops.variants import KernelVariants
 from tensormass_torch.sim import builtin as scenes
 
-pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_steps"),
+pytestmark = pytest.mark.skipif(not library.ensure_registered() or not hasattr(torch.ops.tensormass, "hooke_node_steps"),
                                 reason="needs the extension with hooke_node_steps")
 gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="the pipelined solve is a GPU kernel")
 
@@ -54,24 +56,25 @@ def sofa_beam(planes: bool, converge: bool):
     return sim
 
 
-def run(make, planes: bool, chained: bool, monkeypatch):
-    """Steps of a fresh simulator: 3 chains of 6 (a fixed budget) or 4 single steps (a tolerance).
-    Returns the simulator, its step graphs and how often the right-hand side's own op ran."""
+def run(make, planes: bool, chained: bool, variants, monkeypatch):
+    """Steps of a fresh simulator with the kernel ``variants``: 3 chains of 6 (a fixed budget) or 4
+    single steps (a tolerance). Returns the simulator, its step graphs and how often the
+    right-hand side's own op ran."""
     calls = []
-    real = native.step_rhs
+    real = node_graph.step_rhs
 
     def counted(*args, **kwargs):
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(native, "step_rhs", counted)
-    sim = make(planes, converge=not chained)
+    monkeypatch.setattr(node_graph, "step_rhs", counted)
+    sim = with_variants(make(planes, converge=not chained), variants)
     rows = []
     for _ in range(3 if chained else 4):
         sim.step(6 if chained else 1)
         (graphs,) = sim.system._step_graphs.values()
         rows.append((graphs.ring[:6] if chained else graphs.summary).clone())
-    monkeypatch.setattr(native, "step_rhs", real)
+    monkeypatch.setattr(node_graph, "step_rhs", real)
     return sim, graphs, torch.stack(rows), len(calls)
 
 
@@ -79,11 +82,11 @@ def run(make, planes: bool, chained: bool, monkeypatch):
 @pytest.mark.parametrize("make", [beams, sofa_beam], ids=["two-beams", "sofa-beam"])
 @pytest.mark.parametrize("planes", [False, True], ids=["free", "plane"])
 @pytest.mark.parametrize("chained", [True, False], ids=["chained", "single"])
-def test_steps_in_the_solve_equal_the_rhs_op_then_the_solve(monkeypatch, layout, make, planes, chained):  # noqa: F811
+def test_steps_in_the_solve_equal_the_rhs_op_then_the_solve(monkeypatch, layout_variants, layout, make, planes,  # noqa: F811
+                                                            chained):
     runs = {}
     for in_solve in (True, False):
-        monkeypatch.setattr(native, "SOLVE_STEP_RHS", in_solve)
-        runs[in_solve] = run(make, planes, chained, monkeypatch)
+        runs[in_solve] = run(make, planes, chained, layout_variants.replace(solve_step_rhs=in_solve), monkeypatch)
     (sim, graphs, rows, calls), (plain, plain_graphs, plain_rows, plain_calls) = runs[True], runs[False]
     assert calls == 0 and plain_calls > 0  # the solve computed every right-hand side itself
     assert graphs.cg.state.__dict__["_solve_work"].layout == layout
@@ -113,10 +116,10 @@ def steps_call(system, matvec, device, **changes):
     group = system.model.groups[0]
     like = system.model.rest
     cg = CGSolver(system.segments, like.shape, like.dtype, device, system.free, cuda_graphs=False)
-    plan = native.solve_plan(cg.plan)
+    plan = solve.solve_plan(cg.plan)
     s = cg.state
     objects, planes = plan.object_chunk.numel() - 1, system.planes
-    neighbor, node_k, incidences, rows = native.hooke_rows_graph(group)
+    neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group)
     args = dict(neighbor=neighbor, node_k=node_k, incidences=incidences, row_node=rows, mass=system.mass.reshape(-1),
                 free=system.free.reshape(-1), c_mass=1.02, c_stiff=2e-4, rest=like,
                 external=system.external.contiguous(), w_coef=0.02, rayleigh_mass=0.1,
@@ -125,7 +128,7 @@ def steps_call(system, matvec, device, **changes):
                 node_stiffness=torch.zeros(like.shape[0], 3, 3, dtype=like.dtype, device=device), tol_sq=0.0,
                 chunk_start=plan.chunk_start, chunk_object=plan.chunk_object, object_chunk=plan.object_chunk,
                 chunk_nodes=int((plan.chunk_start[1:] - plan.chunk_start[:-1]).max()),
-                chunk_slots=native.chunk_slots(group, plan), max_iter=10, x=s.x, r=s.r, p=s.p,
+                chunk_slots=solve.chunk_slots(group, plan), max_iter=10, x=s.x, r=s.r, p=s.p,
                 threshold=s.threshold, rhs_sq=s.rhs_sq, rr=s.rr, status=s.status, alpha=s.alpha, beta=s.beta,
                 iterations=s.iterations,
                 exchange=torch.zeros(2, like.shape[0], 4 * like.shape[1], dtype=like.dtype, device=device),
@@ -178,9 +181,9 @@ def test_the_cpu_has_no_such_kernel_and_changes_nothing():
     assert_unchanged(args, written)
 
 
-def test_steps_serve_only_what_the_kernel_computes(monkeypatch):
-    """native.steps_serve: the switch, the graph, contact stiffness exactly with planes, no
-    imposed velocity, carry beyond one step."""
+def test_steps_serve_only_what_the_kernel_computes():
+    """solve.steps_serve: the switches (the variants given), the graph, contact stiffness exactly
+    with planes, no imposed velocity, carry beyond one step."""
     system, _, _ = make_system(torch.float32, "cpu")
     group, like = system.model.groups[0], system.model.rest
     stiffness = torch.zeros(like.shape[0], 3, 3)
@@ -188,21 +191,21 @@ def test_steps_serve_only_what_the_kernel_computes(monkeypatch):
     def end(**changes):
         fields = dict(x=like.clone(), v=torch.zeros_like(like), dv_imposed=None, h=0.01, x_new=like.clone(),
                       v_new=like.clone(), norms=torch.zeros(3), summary=torch.zeros(5, 3, dtype=torch.float64),
-                      carry=True, rhs=native.StepRhs(like, system.external, 0.02, 0.1, torch.zeros_like(like),
-                                                     system.planes), steps=3)
+                      carry=True, rhs=solve.StepRhs(like, system.external, 0.02, 0.1, torch.zeros_like(like),
+                                                    system.planes), steps=3)
         fields.update(changes)
-        return native.StepEnd(**fields)
+        return solve.StepEnd(**fields)
 
-    assert native.steps_serve(group, stiffness, None, end())
-    assert not native.steps_serve(group, None, None, end())  # planes without their stiffness buffer
-    assert not native.steps_serve(group, stiffness, torch.zeros(1), end())  # another tangent graph
-    assert not native.steps_serve(group, stiffness, None, end(dv_imposed=torch.zeros_like(like)))
-    assert not native.steps_serve(group, stiffness, None, end(carry=False))
-    assert native.steps_serve(group, stiffness, None, end(carry=False, steps=1))
-    no_planes = native.StepRhs(like, system.external, 0.02, 0.1, torch.zeros_like(like))
-    assert native.steps_serve(group, None, None, end(rhs=no_planes))
-    assert not native.steps_serve(group, stiffness, None, end(rhs=no_planes))
-    for switch in ("SOLVE_STEP_RHS", "FUSED_STEP_END"):  # either off: the step's parts run as their own ops
-        with monkeypatch.context() as patch:
-            patch.setattr(native, switch, False)
-            assert not native.steps_serve(group, stiffness, None, end())
+    assert solve.steps_serve(group, stiffness, None, end())
+    assert not solve.steps_serve(group, None, None, end())  # planes without their stiffness buffer
+    assert not solve.steps_serve(group, stiffness, torch.zeros(1), end())  # another tangent graph
+    assert not solve.steps_serve(group, stiffness, None, end(dv_imposed=torch.zeros_like(like)))
+    assert not solve.steps_serve(group, stiffness, None, end(carry=False))
+    assert solve.steps_serve(group, stiffness, None, end(carry=False, steps=1))
+    no_planes = solve.StepRhs(like, system.external, 0.02, 0.1, torch.zeros_like(like))
+    assert solve.steps_serve(group, None, None, end(rhs=no_planes))
+    assert not solve.steps_serve(group, stiffness, None, end(rhs=no_planes))
+    for switch in ("solve_step_rhs", "fused_step_end"):  # either off: the step's parts run as their own ops
+        assert not solve.steps_serve(group, stiffness, None, end(), KernelVariants(**{switch: False}))
+    # the right-hand side's op serves only the node layout
+    assert not solve.steps_serve(group, stiffness, None, end(), KernelVariants(hooke_matvec="padded"))

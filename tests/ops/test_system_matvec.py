@@ -1,7 +1,7 @@
 """The fused CG matvec of implicit Euler: ``tensormass::gather_system`` (kernel 2 + epilogue) and
 ``ops.system_matvec``.
 
-    1. the op = its pure-torch reference (native.REFERENCE) = the unfused matvec
+    1. the op = its pure-torch reference (library.REGISTRY[name].reference) = the unfused matvec
        c_M M p - c_K K p projected on the free nodes, for hooke/stvk, stress/tensor form, tets and
        triangles (2-D and 3-D membranes), with and without ``free``, float64 and float32,
        int32 and int64 incidences
@@ -19,10 +19,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import CASES, DTYPES, FORMS, MODELS, build_scene, large_deformation, load_native, rel, tol
+from conftest import CASES, DTYPES, FORMS, MODELS, build_scene, large_deformation, load_native, reference, rel, tol
 
 import tensormass_torch as tm
 from tensormass_torch import Material, TensorMass, ops
+from tensormass_torch.ops import library, solve, stress, tensor_form
 
 native = load_native("gather_system")
 pytestmark = pytest.mark.skipif(native is None, reason="tensormass_torch._C (with gather_system) is not built")
@@ -68,10 +69,10 @@ def padded_partial_dforces(group, u, p, index_dtype):
     idx, fi, inc = (t.to(index_dtype).contiguous() for t in (plan.index, plan.force_index, plan.incidences))
     T = torch.ops.tensormass
     if group.form == "stress":
-        args = native._stress_args(group)
+        args = stress.stress_args(group)
         partial = T.stress_partial_dforces(u, p, idx, fi, plan.num_slots, *args)
     elif group.model == "stvk":
-        partial = T.tensor_stvk_partial_dforces(u, p, idx, fi, plan.num_slots, *native._stvk_tensors(group))
+        partial = T.tensor_stvk_partial_dforces(u, p, idx, fi, plan.num_slots, *tensor_form.stvk_tensors(group))
     else:  # hooke tensor form: the edges carry the whole product (differences, no vertex term)
         partial = T.tensor_hooke_partial_forces(p, idx, fi, plan.num_slots, group.edge_k.contiguous())
     return partial, inc
@@ -88,7 +89,7 @@ def test_op_matches_reference_and_unfused(kind, model, form, dtype, with_free, i
     ap, dot = torch.ops.tensormass.gather_system(partial, inc, p, mass, free, C_MASS, C_STIFF)
     assert ap.shape == u.shape and dot.shape == (u.shape[0],) and ap.dtype == dtype and dot.dtype == dtype
     # the reference on the same padded buffer (unused slots are never read by either)
-    ref_ap, ref_dot = native.REFERENCE["gather_system"](partial, inc, p, mass, free, C_MASS, C_STIFF)
+    ref_ap, ref_dot = reference("gather_system")(partial, inc, p, mass, free, C_MASS, C_STIFF)
     torch.testing.assert_close(ap, ref_ap, rtol=1e-12 if dtype == torch.float64 else 1e-5, atol=0)
     assert rel(dot, ref_dot) < tol(dtype)
     if with_free:
@@ -146,7 +147,7 @@ def test_node_stiffness(monkeypatch, kind, model, form, dtype):
     # the op against its reference on the same padded buffer
     partial, inc = padded_partial_dforces(group, u, p, torch.int64)
     op = torch.ops.tensormass.gather_system(partial, inc, p, mass, free, C_MASS, C_STIFF, stiffness)
-    ref = native.REFERENCE["gather_system"](partial, inc, p, mass, free, C_MASS, C_STIFF, stiffness)
+    ref = reference("gather_system")(partial, inc, p, mass, free, C_MASS, C_STIFF, stiffness)
     for a, b in zip(op, ref):
         assert rel(a, b) < tol(dtype)
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
@@ -187,7 +188,7 @@ def test_op_has_no_gradient():
 def test_opcheck():
     _, group, u, p, mass, free = make_case(11, "tri2d", "stvk", "stress", torch.float64)
     partial, inc = padded_partial_dforces(group, u, p, torch.int64)
-    partial = torch.where(native._slot_mask(partial.shape[0], inc), partial, partial.new_zeros(()))
+    partial = torch.where(library.slot_mask(partial.shape[0], inc), partial, partial.new_zeros(()))
     for fr in (None, free):
         for stiffness in (None, random_node_stiffness(u, 5)):
             torch.library.opcheck(torch.ops.tensormass.gather_system.default,
@@ -232,10 +233,12 @@ def test_simulator_step_matches_torch_backend(monkeypatch, model, form, dtype):
 
     calls, fused_calls = [], []
     # the solver's matvec: ops.system_matvec, its variant ending in the CG step length, or the one-op CG
-    for name in ("system_matvec", "system_matvec_alpha", "system_cg"):
-        real, real_native = getattr(ops, name), getattr(native, name)
+    # (the group-level calls onto the compiled ops: native's products, the solve family's CG)
+    for name, fused_module in (("system_matvec", native), ("system_matvec_alpha", native), ("system_cg", solve)):
+        real, real_native = getattr(ops, name), getattr(fused_module, name)
         monkeypatch.setattr(ops, name, lambda *a, real=real, **k: calls.append(1) or real(*a, **k))
-        monkeypatch.setattr(native, name, lambda *a, real=real_native, **k: fused_calls.append(1) or real(*a, **k))
+        monkeypatch.setattr(fused_module, name,
+                            lambda *a, real=real_native, **k: fused_calls.append(1) or real(*a, **k))
     x, v = run()
     assert calls, "the solver did not use ops.system_matvec(_alpha)"
     assert fused_calls, "the solver did not use the fused matvec"
@@ -275,7 +278,7 @@ def test_cuda_matches_cpu(kind, model, form, dtype, with_free):
     for index_dtype in (torch.int32, torch.int64):
         partial, inc = padded_partial_dforces(g_cuda, u_c, p_c, index_dtype)
         op_ap, op_dot = torch.ops.tensormass.gather_system(partial, inc, p_c, mass_c, free_c, C_MASS, C_STIFF)
-        ref_ap, ref_dot = native.REFERENCE["gather_system"](partial, inc, p_c, mass_c, free_c, C_MASS, C_STIFF)
+        ref_ap, ref_dot = reference("gather_system")(partial, inc, p_c, mass_c, free_c, C_MASS, C_STIFF)
         assert rel(op_ap, ref_ap) < tol(dtype) and rel(op_dot, ref_dot) < tol(dtype)
         op_ap2, op_dot2 = torch.ops.tensormass.gather_system(partial, inc, p_c, mass_c, free_c, C_MASS, C_STIFF)
         assert torch.equal(op_ap, op_ap2) and torch.equal(op_dot, op_dot2)  # deterministic

@@ -9,15 +9,16 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch.ops import cg as cg_ops
-from tensormass_torch.ops import native
+from tensormass_torch.ops import library, native
+from tensormass_torch.ops.variants import DEFAULT, KernelVariants
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-pytestmark = pytest.mark.skipif(not native.ensure_registered() or not hasattr(torch.ops.tensormass,
-                                                                               "gather_system_alpha"),
+pytestmark = pytest.mark.skipif(not library.ensure_registered() or not hasattr(torch.ops.tensormass,
+                                                                                "gather_system_alpha"),
                                 reason="needs the extension with the fused matvec ops")
 
 
-def make_system(model, form, dtype, device):
+def make_system(model, form, dtype, device, variants=DEFAULT):
     bodies = []
     for k in range(3):
         mesh = tm.beam_mesh(5 + k, 2, 2, size=(0.5, 0.1, 0.1), origin=(0.0, 0.3 * k, 0.01), dtype=dtype, device=device)
@@ -27,7 +28,7 @@ def make_system(model, form, dtype, device):
                        form=form, device=device, dtype=dtype)
     gen = torch.Generator().manual_seed(7)
     x = sim.x + 0.01 * torch.randn(sim.x.shape, generator=gen, dtype=dtype).to(device)
-    matvec = sim.system.system_matvec(1.02, 2e-4).load(x)
+    matvec = sim.system.system_matvec(1.02, 2e-4, variants=variants).load(x)
     rhs = torch.randn(sim.x.shape, generator=gen, dtype=dtype).to(device)
     return sim.system, matvec, rhs
 
@@ -49,14 +50,12 @@ CASES = [("hooke", "tensor", "node"), ("hooke", "tensor", "padded"), ("stvk", "s
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("model,form,layout", CASES)
-@pytest.mark.parametrize("window", [0, native.NODE_GRAPH_WINDOW], ids=["node-order", "rows"])
-def test_fused_alpha_equals_matvec_then_cg_alpha(monkeypatch, device, dtype, model, form, layout, window):
+@pytest.mark.parametrize("window", [0, DEFAULT.node_graph_window], ids=["node-order", "rows"])
+def test_fused_alpha_equals_matvec_then_cg_alpha(device, dtype, model, form, layout, window):
     """Bitwise where the node graph's rows are in node order; with rows sorted by slot count the
-    fused alpha sums the chunk's p . Ap in row order (native.node_graph_rows): the same to rounding."""
-    if layout is not None:
-        monkeypatch.setattr(native, "HOOKE_MATVEC_LAYOUT", layout)
-    monkeypatch.setattr(native, "NODE_GRAPH_WINDOW", window)
-    system, matvec, rhs = make_system(model, form, dtype, device)
+    fused alpha sums the chunk's p . Ap in row order (node_graph.node_graph_rows): the same to rounding."""
+    variants = KernelVariants(node_graph_window=window, **({} if layout is None else {"hooke_matvec": layout}))
+    system, matvec, rhs = make_system(model, form, dtype, device, variants)
     cg = started(system, matvec, rhs)
     s = cg.state
     s.status[1] = cg_ops.CONVERGED  # an object that stopped: skipped by both

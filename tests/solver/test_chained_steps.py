@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import with_variants
 
 import tensormass_torch as tm
 from tensormass_torch.ops import cg as cg_ops
-from tensormass_torch.ops import native
 from tensormass_torch.sim import simulator as scene_module
 from tensormass_torch.solver import implicit_euler
 from tensormass_torch.solver.implicit_euler import StepGraphs
@@ -126,18 +126,17 @@ def test_not_converged_fixed_budget_raises_when_convergence_is_required(graphs_o
     assert sim.steps_done == 0 and torch.equal(sim.x, sim.model.rest)
 
 
-def test_steps_that_need_host_checks_are_not_chained(graphs_on_cpu, monkeypatch):
-    """A CG that runs op by op (stvk element by element) past check_every iterations needs the
-    host: not chained."""
-    monkeypatch.setattr(native, "NODE_TANGENT", False)
-    sim = make_sim("stvk", cg_max_iter=50, check_every=8, tol=1e-8)
+def test_steps_that_need_host_checks_are_not_chained(graphs_on_cpu):
+    """A CG that runs op by op (stvk element by element: ``node_tangent`` off) past check_every
+    iterations needs the host: not chained."""
+    sim = with_variants(make_sim("stvk", cg_max_iter=50, check_every=8, tol=1e-8), node_tangent=False)
     sim.step(3)
     (graphs,) = sim.system._step_graphs.values()
     assert not graphs.chainable and int(graphs.ring_pos) == 0 and sim.steps_done == 3
 
 
 def test_stvk_steps_chain_with_the_tangent_on_the_node_graph(graphs_on_cpu):
-    """With its differential on the node graph (native.NODE_TANGENT), stvk's CG is one op that
+    """With its differential on the node graph (``KernelVariants.node_tangent``), stvk's CG is one op that
     stops on the device: its steps chain, bitwise one step at a time."""
     chained, single = (make_sim("stvk", cg_max_iter=50, check_every=8, tol=1e-8) for _ in range(2))
     chained.step(3)

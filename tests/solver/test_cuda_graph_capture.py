@@ -48,7 +48,7 @@ def test_graphed_steps_equal_eager_steps(model):
         assert torch.equal(graphed.x, eager.x) and torch.equal(graphed.v, eager.v)
     assert float(graphed.x[:, 2].min()) < 0.05  # the beams came down to the plane
     graphs = list(graphed.system._step_graphs.values())
-    # graph C is not made where A's solve ends the step itself (the pipelined CG: native.StepEnd)
+    # graph C is not made where A's solve ends the step itself (the pipelined CG: solve.StepEnd)
     assert graphs and all(g._graphs["A"] not in (None, False)
                           and (g._a_ends_step or g._graphs["C"] not in (None, False)) for g in graphs), \
         "the step was not captured"

@@ -1,0 +1,109 @@
+// CPU implementations of the CG ops (common/cg.h, common/cg_checks.h; the chunked reductions:
+// common/cg_chunks.h).
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <torch/library.h>
+
+#include "common/cg.h"
+#include "common/cg_checks.h"
+#include "common/cg_chunks.h"
+
+namespace tensormass {
+namespace {
+
+void cg_alpha_cpu(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                  const at::Tensor& object_chunk, const at::Tensor& rr, at::Tensor status, at::Tensor alpha,
+                  at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_alpha(p_dot_ap, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch,
+                                     counter);
+  AT_DISPATCH_FLOATING_TYPES(p_dot_ap.scalar_type(), "cg_alpha", [&] {
+    const scalar_t* values = p_dot_ap.data_ptr<scalar_t>();
+    double* sums = scratch.data_ptr<double>();
+    int32_t* st = status.data_ptr<int32_t>();
+    for_each_chunk(plan, 1, st, [&](int64_t c, int64_t begin, int64_t end) {
+      double acc = 0.0;
+      for (int64_t i = begin; i < end; ++i) acc += static_cast<double>(values[i]);
+      sums[c] = acc;
+    });
+    alpha_from_chunk_sums(plan, sums, rr.data_ptr<scalar_t>(), st, alpha.data_ptr<scalar_t>());
+  });
+}
+
+void cg_update_cpu(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Tensor& ap, const at::Tensor& alpha,
+                   const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                   const at::Tensor& threshold, int64_t max_iter, at::Tensor rr, at::Tensor status, at::Tensor beta,
+                   at::Tensor iterations, at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter,
+                                      rr, status, beta, iterations, scratch, counter);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cg_update", [&] {
+    update_cpu<scalar_t>(plan, values_per_node(x), x.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(),
+                         p.data_ptr<scalar_t>(), ap.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
+                         threshold.data_ptr<scalar_t>(), max_iter, rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(),
+                         beta.data_ptr<scalar_t>(), iterations.data_ptr<int32_t>(), scratch.data_ptr<double>());
+  });
+}
+
+void cg_direction_cpu(at::Tensor p, const at::Tensor& r, const at::Tensor& beta, const at::Tensor& status,
+                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
+  const CGPlan plan = check_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk);
+  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_direction", [&] {
+    direction_cpu<scalar_t>(plan, values_per_node(p), p.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(),
+                            beta.data_ptr<scalar_t>(), status.data_ptr<int32_t>());
+  });
+}
+
+void cg_dot_cpu(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
+                const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor out, at::Tensor scratch,
+                at::Tensor counter) {
+  const CGPlan plan = check_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter);
+  AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "cg_dot", [&] {
+    object_dots_cpu<scalar_t>(plan, values_per_node(a), a.data_ptr<scalar_t>(), b.data_ptr<scalar_t>(),
+                              out.data_ptr<scalar_t>(), scratch.data_ptr<double>());
+  });
+}
+
+void euler_update_cpu(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c10::optional<at::Tensor>& dv_imposed,
+                      double h, at::Tensor x_new, at::Tensor v_new, const at::Tensor& chunk_start,
+                      const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
+                      const at::Tensor& iterations, const at::Tensor& rr, const at::Tensor& rhs_sq, at::Tensor norms,
+                      at::Tensor summary, at::Tensor scratch, at::Tensor counter, const c10::optional<at::Tensor>& ring,
+                      const c10::optional<at::Tensor>& ring_pos, bool carry) {
+  const CGPlan plan = check_euler_update(x, v, dv, dv_imposed, x_new, v_new, chunk_start, chunk_object, object_chunk,
+                                         status, iterations, rr, rhs_sq, norms, summary, scratch, counter, ring,
+                                         ring_pos);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "euler_update", [&] {
+    const EulerUpdate<scalar_t> update = euler_update_of<scalar_t>(x, v, dv, dv_imposed, h, x_new, v_new, carry);
+    const StepSummary<scalar_t> out = step_summary_of<scalar_t>(status, iterations, rr, rhs_sq, norms, summary, ring,
+                                                                ring_pos);
+    double* sums = scratch.data_ptr<double>();
+    const int64_t d = update.d;
+    at::parallel_for(0, plan.num_chunks, chunk_grain(plan, d), [&](int64_t begin, int64_t end) {
+      for (int64_t c = begin; c < end; ++c) {
+        double acc = 0.0;  // in chunk_dot's order
+        for (int64_t j = plan.chunk_start[c] * d; j < plan.chunk_start[c + 1] * d; ++j) {
+          const scalar_t vn = update(j);
+          acc += static_cast<double>(vn) * static_cast<double>(vn);
+        }
+        sums[c] = acc;
+      }
+    });
+    const int64_t pos = out.ring_pos != nullptr ? *out.ring_pos : -1;
+    for (int64_t b = 0; b < plan.num_objects; ++b) {
+      out.write(b, plan.num_objects, object_sum(sums, plan.object_chunk, b), pos);
+    }
+    if (out.ring_pos != nullptr) *out.ring_pos = pos + 1;
+  });
+}
+
+}  // namespace
+}  // namespace tensormass
+
+TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
+  m.impl("euler_update", &tensormass::euler_update_cpu);
+  m.impl("cg_dot", &tensormass::cg_dot_cpu);
+  m.impl("cg_alpha", &tensormass::cg_alpha_cpu);
+  m.impl("cg_update", &tensormass::cg_update_cpu);
+  m.impl("cg_direction", &tensormass::cg_direction_cpu);
+}

@@ -1,0 +1,193 @@
+// CUDA implementations of the CG ops (common/cg.h, common/cg_checks.h). One block per chunk; the
+// reductions (block sums, the last block of an object doing the object's sum and its scalar step):
+// common/cg_reduce.cuh.
+// Everything runs on the current stream with no host synchronisation, so an iteration can be
+// captured in a CUDA graph.
+#include <ATen/Dispatch.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAException.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <torch/library.h>
+
+#include "common/cg.h"
+#include "common/cg_checks.h"
+#include "common/cg_reduce.cuh"
+#include "common/kernel_io.h"
+
+namespace tensormass {
+namespace {
+
+constexpr int kBlock = kReduceBlock;
+
+// cg_alpha is the step-length end of the fused matvecs over a "kernel" that only reads the
+// per-node dots: the same sums, the same scalar step (chunk_alpha_kernel, cg_reduce.cuh).
+template <typename S>
+struct NodeDots {
+  using Scalar = S;
+  const S* p_dot_ap;  // [V]
+  __device__ S apply(int64_t i) const { return ld(p_dot_ap + i); }
+};
+
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_update_kernel(S* __restrict__ x, S* __restrict__ r,
+                                                           const S* __restrict__ p, const S* __restrict__ ap,
+                                                           const S* __restrict__ alpha, CGPlan plan, int64_t d,
+                                                           const S* __restrict__ threshold, int64_t max_iter, S* rr,
+                                                           int32_t* status, S* beta, int32_t* iterations,
+                                                           double* scratch, int32_t* counter) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+  if (status[object] != kActive) return;
+  const S a = alpha[object];
+  double acc = 0.0;
+  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+    x[j] += a * p[j];
+    const S rj = r[j] - a * ap[j];
+    r[j] = rj;
+    acc += static_cast<double>(rj) * static_cast<double>(rj);
+  }
+  const double chunk_total = block_sum(acc);
+  double total = 0.0;
+  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
+    int32_t st = status[object], it = iterations[object];
+    S rr_b = rr[object];
+    beta[object] = cg_beta_step<S>(total, rr_b, threshold[object], max_iter, st, it);
+    rr[object] = rr_b;
+    status[object] = st;
+    iterations[object] = it;
+  }
+}
+
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_direction_kernel(S* __restrict__ p, const S* __restrict__ r,
+                                                              const S* __restrict__ beta, const int32_t* status,
+                                                              CGPlan plan, int64_t d) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+  if (status[object] != kActive) return;
+  const S bt = beta[object];
+  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+    p[j] = r[j] + bt * p[j];
+  }
+}
+
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_dot_kernel(const S* __restrict__ a, const S* __restrict__ b, CGPlan plan,
+                                                        int64_t d, S* out, double* scratch, int32_t* counter) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+  double acc = 0.0;
+  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+    acc += static_cast<double>(a[j]) * static_cast<double>(b[j]);
+  }
+  const double chunk_total = block_sum(acc);
+  double total = 0.0;
+  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
+    out[object] = static_cast<S>(total);
+  }
+}
+
+// euler_update: one block per chunk; the object's last block writes its summary column (and ring
+// row): finish_step_summary.
+template <typename S>
+__global__ void __launch_bounds__(kBlock) euler_update_kernel(const EulerUpdate<S> update, const StepSummary<S> out,
+                                                              CGPlan plan, double* scratch, int32_t* counter) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk], d = update.d;
+  double acc = 0.0;
+  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+    const S vn = update(j);
+    acc += static_cast<double>(vn) * static_cast<double>(vn);
+  }
+  finish_step_summary<S>(out, plan, chunk, object, block_sum(acc), scratch, counter,
+                         [&](int64_t pos, double total) { out.write(object, plan.num_objects, total, pos); });
+}
+
+unsigned int grid_of(const CGPlan& plan) { return static_cast<unsigned int>(plan.num_chunks); }
+
+void cg_alpha_cuda(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                   const at::Tensor& object_chunk, const at::Tensor& rr, at::Tensor status, at::Tensor alpha,
+                   at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_alpha(p_dot_ap, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch,
+                                     counter);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(p_dot_ap.device());
+  AT_DISPATCH_FLOATING_TYPES(p_dot_ap.scalar_type(), "cg_alpha", [&] {
+    launch_chunk_alpha<NodeDots<scalar_t>, scalar_t>(plan, NodeDots<scalar_t>{p_dot_ap.data_ptr<scalar_t>()},
+                                                    rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(),
+                                                    alpha.data_ptr<scalar_t>(), scratch.data_ptr<double>(),
+                                                    counter.data_ptr<int32_t>());
+  });
+}
+
+void cg_update_cuda(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Tensor& ap, const at::Tensor& alpha,
+                    const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                    const at::Tensor& threshold, int64_t max_iter, at::Tensor rr, at::Tensor status, at::Tensor beta,
+                    at::Tensor iterations, at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter,
+                                      rr, status, beta, iterations, scratch, counter);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(x.device());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cg_update", [&] {
+    cg_update_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        x.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(), p.data_ptr<scalar_t>(), ap.data_ptr<scalar_t>(),
+        alpha.data_ptr<scalar_t>(), plan, values_per_node(x), threshold.data_ptr<scalar_t>(), max_iter,
+        rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), beta.data_ptr<scalar_t>(),
+        iterations.data_ptr<int32_t>(), scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
+void cg_direction_cuda(at::Tensor p, const at::Tensor& r, const at::Tensor& beta, const at::Tensor& status,
+                       const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
+  const CGPlan plan = check_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(p.device());
+  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_direction", [&] {
+    cg_direction_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        p.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), plan,
+        values_per_node(p));
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
+void cg_dot_cuda(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
+                 const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor out, at::Tensor scratch,
+                 at::Tensor counter) {
+  const CGPlan plan = check_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(a.device());
+  AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "cg_dot", [&] {
+    cg_dot_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        a.data_ptr<scalar_t>(), b.data_ptr<scalar_t>(), plan, values_per_node(a), out.data_ptr<scalar_t>(),
+        scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
+void euler_update_cuda(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c10::optional<at::Tensor>& dv_imposed,
+                       double h, at::Tensor x_new, at::Tensor v_new, const at::Tensor& chunk_start,
+                       const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
+                       const at::Tensor& iterations, const at::Tensor& rr, const at::Tensor& rhs_sq, at::Tensor norms,
+                       at::Tensor summary, at::Tensor scratch, at::Tensor counter,
+                       const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos, bool carry) {
+  const CGPlan plan = check_euler_update(x, v, dv, dv_imposed, x_new, v_new, chunk_start, chunk_object, object_chunk,
+                                         status, iterations, rr, rhs_sq, norms, summary, scratch, counter, ring,
+                                         ring_pos);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(x.device());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "euler_update", [&] {
+    euler_update_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        euler_update_of<scalar_t>(x, v, dv, dv_imposed, h, x_new, v_new, carry),
+        step_summary_of<scalar_t>(status, iterations, rr, rhs_sq, norms, summary, ring, ring_pos), plan,
+        scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
+}  // namespace
+}  // namespace tensormass
+
+TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
+  m.impl("euler_update", &tensormass::euler_update_cuda);
+  m.impl("cg_dot", &tensormass::cg_dot_cuda);
+  m.impl("cg_alpha", &tensormass::cg_alpha_cuda);
+  m.impl("cg_update", &tensormass::cg_update_cuda);
+  m.impl("cg_direction", &tensormass::cg_direction_cuda);
+}

@@ -1,0 +1,44 @@
+// Schemas of the CG ops (implementations: cpu.cpp, cuda.cu; the scalar logic: common/cg.h, the
+// checks: common/cg_checks.h). They update the CG state in place and return nothing, so that a
+// fixed sequence of them (one CG iteration) can be captured once in a CUDA graph and replayed with
+// no host round trip. The pure-torch reference and the fake kernels: the Python module named below
+// (set_python_module), imported when torch needs them.
+//
+// The chunk plan = (chunk_start [K + 1], chunk_object [K], object_chunk [B + 1]) int64 (Python:
+// solver.segments.ChunkPlan); scratch [K] float64; status, iterations, counter [B] int32 (counter
+// all zero between calls). Objects that are not active are skipped.
+#include <torch/library.h>
+
+TORCH_LIBRARY_FRAGMENT(tensormass, m) {
+  m.set_python_module("tensormass_torch.ops.cg");
+  // cg_alpha(p_dot_ap [V], <chunk plan>, rr [B], status!, alpha!, scratch!, counter!)
+  //   alpha = rr / the object's sum of p . Ap (or the object stops: breakdown, non-finite).
+  m.def("cg_alpha(Tensor p_dot_ap, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, Tensor rr, "
+        "Tensor(a!) status, Tensor(b!) alpha, Tensor(c!) scratch, Tensor(d!) counter) -> ()");
+  // cg_update(x!, r!, p, ap [V, d], alpha [B], <chunk plan>, threshold [B], max_iter, rr!, status!,
+  //           beta!, iterations!, scratch!, counter!)
+  //   x += alpha p, r -= alpha Ap, rr_new = r . r per object; the object stops (converged: rr_new <=
+  //   threshold, non-finite, the iteration cap) or beta = rr_new / rr.
+  m.def("cg_update(Tensor(a!) x, Tensor(b!) r, Tensor p, Tensor ap, Tensor alpha, Tensor chunk_start, "
+        "Tensor chunk_object, Tensor object_chunk, Tensor threshold, int max_iter, Tensor(c!) rr, "
+        "Tensor(d!) status, Tensor(e!) beta, Tensor(f!) iterations, Tensor(g!) scratch, Tensor(h!) counter) -> ()");
+  // cg_direction(p!, r, beta [B], status, <chunk plan>)
+  //   p = r + beta p.
+  m.def("cg_direction(Tensor(a!) p, Tensor r, Tensor beta, Tensor status, Tensor chunk_start, "
+        "Tensor chunk_object, Tensor object_chunk) -> ()");
+  // cg_dot(a, b [V] or [V, d], <chunk plan>, out! [B], scratch!, counter!)
+  //   per-object a . b (every object, active or not).
+  m.def("cg_dot(Tensor a, Tensor b, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
+        "Tensor(a!) out, Tensor(b!) scratch, Tensor(c!) counter) -> ()");
+  // euler_update(x!, v!, dv, dv_imposed?, h, x_new!, v_new!, <chunk plan>, status, iterations, rr, rhs_sq,
+  //              norms!, summary!, scratch!, counter! [B + 1], ring!?, ring_pos!?, carry)
+  //   the end of an implicit Euler step after its CG (common/cg.h: EulerUpdate, StepSummary):
+  //   v_new = (v + dv) + dv_imposed, x_new = x + h v_new (with carry also into x and v: the next
+  //   chained step starts there), the per-object |v_new|^2 into norms and the step's summary [5, B]
+  //   float64 (status, iterations, rr, rhs_sq, norms), also into row ring_pos of ring [R, 5, B] when
+  //   given, ring_pos [1] int64 then advanced by one.
+  m.def("euler_update(Tensor(a!) x, Tensor(b!) v, Tensor dv, Tensor? dv_imposed, float h, Tensor(c!) x_new, "
+        "Tensor(d!) v_new, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, Tensor status, "
+        "Tensor iterations, Tensor rr, Tensor rhs_sq, Tensor(e!) norms, Tensor(f!) summary, Tensor(g!) scratch, "
+        "Tensor(h!) counter, Tensor(i!)? ring, Tensor(j!)? ring_pos, bool carry) -> ()");
+}

@@ -1,0 +1,253 @@
+// The batched conjugate gradient's per-object scalar logic and the structs its kernels read,
+// written once for the CPU and CUDA implementations of the CG ops (cg/cpu.cpp, cg/cuda.cu) and of
+// the whole solves (solve/). The host-side checks: cg_checks.h.
+//
+// The CG runs on packed objects: object b owns the contiguous nodes of its chunks. A chunk is a
+// contiguous node range inside one object (Python: solver.segments.ChunkPlan); every reduction
+// sums each chunk in a fixed order (into a double), then each object's chunk sums in chunk order,
+// so the results do not depend on thread counts or timing: deterministic, no atomics on values.
+// (On the GPU one atomic counter per object only elects which block does the final sum.)
+//
+// One iteration = matvec (kernel 1 + gather_system: Ap and p.Ap per node), then
+//   cg_alpha      p_ap_b = sum p.Ap;  alpha_b = rr_b / p_ap_b  (or the object stops: breakdown)
+//   cg_update     x += alpha p;  r -= alpha Ap;  rr_new_b = sum r.r;  beta_b = rr_new_b / rr_b
+//                 (or the object stops: converged, non-finite, iteration cap)
+//   cg_direction  p = r + beta p
+// Objects that are not active are skipped by every kernel: their iterates stay as they were.
+#pragma once
+
+#include <cstdint>
+
+#include "common/element_math.h"
+
+namespace tensormass {
+
+// Per-object CG status (Python: solver.cg.STATUS).
+enum CGStatus : int32_t { kActive = 0, kConverged = 1, kBreakdown = 2, kNonfinite = 3, kCapped = 4 };
+
+template <typename S>
+TM_HD bool finite_value(S v) {
+  return v - v == S(0);  // false for inf and NaN (no fast-math in this build)
+}
+
+// After the matvec: the step length, or the object stops on a curvature that is not positive
+// (an indefinite system) or not finite.
+template <typename S>
+TM_HD S cg_alpha_step(double p_ap_sum, S rr, int32_t& status) {
+  const S p_ap = static_cast<S>(p_ap_sum);
+  if (!(p_ap > S(0))) {  // also NaN
+    status = finite_value(p_ap) ? kBreakdown : kNonfinite;
+    return S(0);
+  }
+  return rr / p_ap;
+}
+
+// After the update of x and r: convergence (||r|| <= tol ||b||, i.e. r.r <= threshold), the
+// iteration cap, and the next direction's beta.
+template <typename S>
+TM_HD S cg_beta_step(double rr_new_sum, S& rr, S threshold, int64_t max_iter, int32_t& status,
+                     int32_t& iterations) {
+  const S rr_new = static_cast<S>(rr_new_sum);
+  iterations += 1;
+  if (!finite_value(rr_new)) {
+    status = kNonfinite;
+    return S(0);
+  }
+  const S rr_old = rr;
+  rr = rr_new;
+  if (rr_new <= threshold) {
+    status = kConverged;
+    return S(0);
+  }
+  if (iterations >= max_iter) {
+    status = kCapped;
+    return S(0);
+  }
+  return rr_new / rr_old;
+}
+
+// The start of a solve from x0 = 0 (CGSolver.start): r = p = b, rr = b.b; the object is
+// non-finite, already converged (b.b <= tol^2 b.b, i.e. b = 0), capped (max_iter = 0) or active.
+template <typename S>
+TM_HD int32_t cg_start_status(S rr, S threshold, int64_t max_iter) {
+  if (!finite_value(rr)) return kNonfinite;
+  if (rr <= threshold) return kConverged;
+  return max_iter == 0 ? kCapped : kActive;
+}
+
+// What every whole-solve op writes: the iterates [V, d] and the per-object scalars [B], with the
+// start's inputs (the right-hand side and tolerance) and the cap.
+template <typename S>
+struct CGIterates {
+  S* x;
+  S* r;
+  S* p;
+  const S* rhs;         // [V, d], or nullptr: go on from the current state (no start; hooke_node_cg)
+  S tol_sq;             // start: threshold = tol^2 b.b
+  S* threshold;
+  S* rhs_sq;
+  S* rr;
+  S* alpha;
+  S* beta;
+  int32_t* status;
+  int32_t* iterations;
+  int64_t max_iter;
+};
+
+// ------------------------------------------------------------------ the end of an implicit Euler step
+//
+// euler_update (cg/schema.cpp): per value v_new = (v + dv) + dv_imposed, x_new = x + h v_new (and,
+// when `carry`, x = x_new, v = v_new: the next chained step starts there), the per-object
+// |v_new|^2 (summed as cg_dot sums) into norms, and the step's summary [5, B] float64 (status,
+// iterations, rr, rhs_sq, norms), also into row ring_pos of ring [R, 5, B] when given, ring_pos
+// then advanced by one.
+template <typename S>
+struct EulerUpdate {
+  S* x;
+  S* v;
+  const S* dv;
+  const S* dv_imposed;  // or nullptr
+  S h;
+  S* x_new;
+  S* v_new;
+  bool carry;
+  int64_t d;
+
+  // The update of value j; returns v_new[j].
+  TM_HD S operator()(int64_t j) const { return apply(j, dv[j]); }
+
+  // The same with value j of dv given (a solve that holds it: hooke_node_solve_step).
+  TM_HD S apply(int64_t j, S dv_j) const {
+    S vn = v[j] + dv_j;
+    if (dv_imposed != nullptr) vn += dv_imposed[j];
+    const S xn = x[j] + h * vn;
+    x_new[j] = xn;
+    v_new[j] = vn;
+    if (carry) {
+      x[j] = xn;
+      v[j] = vn;
+    }
+    return vn;
+  }
+};
+
+// The summary of a step and where it goes.
+template <typename S>
+struct StepSummary {
+  const int32_t* status;
+  const int32_t* iterations;
+  const S* rr;
+  const S* rhs_sq;
+  S* norms;
+  double* summary;     // [5, B]
+  double* ring;        // [R, 5, B] or nullptr
+  int64_t* ring_pos;   // [1]
+  int64_t ring_rows;
+
+  // Object b's column, its norm given (ring row `pos`, read before any object advanced it).
+  TM_HD void write(int64_t b, int64_t num_objects, double norm_sq, int64_t pos) const {
+    write_values(b, num_objects, status[b], iterations[b], rr[b], rhs_sq[b], norm_sq, pos);
+  }
+
+  // The same with the solve's outcome given (a solve that holds it: hooke_node_solve_step).
+  TM_HD void write_values(int64_t b, int64_t num_objects, int32_t status_b, int32_t iterations_b, S rr_b, S rhs_sq_b,
+                          double norm_sq, int64_t pos) const {
+    const S norm = static_cast<S>(norm_sq);
+    norms[b] = norm;
+    const double column[5] = {static_cast<double>(status_b), static_cast<double>(iterations_b),
+                              static_cast<double>(rr_b), static_cast<double>(rhs_sq_b), static_cast<double>(norm)};
+    for (int k = 0; k < 5; ++k) {
+      summary[k * num_objects + b] = column[k];
+      if (ring != nullptr && pos >= 0 && pos < ring_rows) ring[(pos * 5 + k) * num_objects + b] = column[k];
+    }
+  }
+};
+
+// The end of a step done by the solve that computed its dv (hooke_node_solve_step): the update,
+// the summary, and the object sums of |v_new|^2 (sums [K] float64 over the solve's chunks,
+// counter [B + 1] int32, zero between calls). update.x == nullptr: the solve ends there.
+template <typename S>
+struct StepEnd {
+  EulerUpdate<S> update{};
+  StepSummary<S> summary{};
+  double* sums = nullptr;
+  int32_t* counter = nullptr;
+};
+
+// The right-hand side a solve computes before itself (hooke_node_steps): at the state x, v of
+// its step end (EulerUpdate's x, v: each step's carried state), rhs = h (f((x - rest) + c_w v)
+// + external + contact(x) - Kc (c_w v) - r_M mass v) over the node graph, u = x - rest and the
+// contact stiffness Kc (which the solve's products then read), each node's slots summed in slot
+// order by one thread: hooke_node_step_rhs's values (NodeHookeStepRhsKernel), bitwise.
+// rest == nullptr: the solve's rhs is given.
+template <typename S>
+struct StepRhs {
+  const S* rest = nullptr;      // [V, d]
+  const S* external = nullptr;  // [V, d]
+  S h = S(0), c_w = S(0), rayleigh_mass = S(0);
+  const S* plane_normals = nullptr;  // [P, 3], offsets [P], stiffness [P] (PenaltyPlanes); P = 0: none
+  const S* plane_offsets = nullptr;
+  const S* plane_stiffness = nullptr;
+  int64_t planes = 0;
+  S* u = nullptr;               // [V, d] out
+  S* rhs = nullptr;             // [V, d] out: the solve's rhs
+  S* node_stiffness = nullptr;  // [V, 3, 3] out with planes: the solve's epilogue's contact stiffness
+};
+
+// The buffers of a whole CG solve run by one op (hooke_node_cg): the iterates and scalars, and
+// what only the GPU's persistent kernel uses: the scalars of the other parity (an iteration reads
+// one parity and writes the other, so that no block overwrites a scalar another block may still
+// read), the status after each step length, two counters of active objects, and two sets of
+// chunk sums.
+template <typename S>
+struct CGRun : CGIterates<S> {
+  S* ap;
+  const S* free;        // [V] 0/1 projection of rhs, or nullptr
+  S* rr_swap;           // [B]            rr of the other parity
+  int32_t* work;        // [3B + 2]       status, iterations of the other parity; status after alpha; counters
+  double* sums;         // [2K]           p.Ap and r.r chunk sums
+  int64_t d;            // values per node
+  int64_t count;        // iterations to run at most (fewer when every object stops)
+  bool cache_neighbors = true;  // GPU: keep the node graph's neighbours in shared memory (a
+                                // switch for benchmarks: TENSORMASS_NEIGHBOR_CACHE=0 turns it off)
+};
+
+// The buffers of a whole solve by the pipelined CG (hooke_node_solve; GPU: solve/cg_pipelined.cuh):
+// the iterates and scalars, and its own work: each node's r, w = A r and s = A p in an exchange
+// row of 4d values (two rows per node: one parity read, the other written), the per-chunk sums
+// of r.r and w.r (two parities), and counters.
+template <typename S>
+struct PipelinedSolve : CGIterates<S> {
+  S* exchange;          // [2, V, 4d]
+  double* sums;         // [4K]: r.r then w.r per chunk, for each parity
+  int32_t* counters;    // [3]: active objects in the last three iterations (rotating)
+  int64_t chunk_nodes;  // nodes of the chunk with the most: picks the layout (solve/cg_pipelined.cuh)
+  int64_t chunk_slots;  // slots of the chunk with the most (sum of incidences over its nodes; shared layout)
+  int64_t max_slots;    // slots of the node with the most (N_n)
+  int64_t cached_neighbors = 0, cached_ks = 0;  // streamed layout: a node's first slots kept in shared memory
+  bool pair_rows = true;  // streamed layout: mirror rows share their slots' work (solve/cg_pipelined.cuh NodeSlots)
+  int64_t cache_slots = -1;  // streamed layout: cap on a node's slots kept in shared memory (-1: none)
+  StepEnd<S> end;       // the step's end, or none (end.update.x == nullptr)
+  StepRhs<S> step_rhs;  // each step's right-hand side computed first, or none (step_rhs.rest == nullptr)
+  int64_t steps = 1;    // with step_rhs: implicit Euler steps run back to back (end.update.carry)
+};
+
+// Chronopoulos-Gear's step length from the reduction that also gave r.r: with
+// gamma = r.r, delta = w.r (w = A r) and the last step's beta and alpha, p.Ap = delta - beta
+// gamma / alpha_last (= delta on the first step), in double; the object stops where it is not
+// positive (breakdown) or not finite, as cg_alpha_step.
+template <typename S>
+TM_HD S cg_pipelined_alpha(double gamma, double delta, S beta, S alpha_last, bool first, S rr, int32_t& status) {
+  const double p_ap = first ? delta : delta - static_cast<double>(beta) * gamma / static_cast<double>(alpha_last);
+  return cg_alpha_step<S>(p_ap, rr, status);
+}
+
+// The chunk plan, as the kernels read it (checked by cg_plan, cg_checks.h).
+struct CGPlan {
+  const int64_t* chunk_start;   // [K + 1] node offsets
+  const int64_t* chunk_object;  // [K]
+  const int64_t* object_chunk;  // [B + 1] chunk offsets
+  int64_t num_chunks, num_objects, num_nodes;
+};
+
+}  // namespace tensormass

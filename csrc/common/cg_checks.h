@@ -1,0 +1,183 @@
+// The host-side checks of the CG ops (cg/) and of the whole solves (solve/), written once for both
+// backends: the chunk plan, each op's tensors, and the structs of cg.h over those tensors.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+#include <c10/util/Optional.h>
+
+#include <cstdint>
+#include <string>
+#include <utility>
+
+#include "common/cg.h"
+
+namespace tensormass {
+
+inline std::string cg_shape_str(at::IntArrayRef shape) {
+  std::string out = "[";
+  for (size_t i = 0; i < shape.size(); ++i) out += (i ? ", " : "") + std::to_string(shape[i]);
+  return out + "]";
+}
+
+inline void cg_check(const at::Tensor& t, const char* name, const at::Tensor& like, at::ScalarType dtype,
+                     at::IntArrayRef shape) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but the CG state is on ",
+              like.device().str());
+  TORCH_CHECK(t.scalar_type() == dtype, "tensormass: ", name, " is ", c10::toString(t.scalar_type()), "; expected ",
+              c10::toString(dtype));
+  TORCH_CHECK(t.sizes() == shape, "tensormass: ", name, " has shape ", cg_shape_str(t.sizes()), "; expected ",
+              cg_shape_str(shape));
+  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous");
+}
+
+// Checks the chunk plan against B objects and V nodes (sizes only: the offsets are trusted, as
+// they come from solver.segments.ChunkPlan).
+inline CGPlan cg_plan(const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                      const at::Tensor& like, int64_t num_nodes) {
+  TORCH_CHECK(chunk_object.dim() == 1, "tensormass: chunk_object must be [K]");
+  TORCH_CHECK(object_chunk.dim() == 1 && object_chunk.size(0) >= 2, "tensormass: object_chunk must be [B + 1], B >= 1");
+  const int64_t k = chunk_object.size(0), b = object_chunk.size(0) - 1;
+  cg_check(chunk_start, "chunk_start", like, at::kLong, {k + 1});
+  cg_check(chunk_object, "chunk_object", like, at::kLong, {k});
+  cg_check(object_chunk, "object_chunk", like, at::kLong, {b + 1});
+  return CGPlan{chunk_start.data_ptr<int64_t>(), chunk_object.data_ptr<int64_t>(), object_chunk.data_ptr<int64_t>(),
+                k, b, num_nodes};
+}
+
+inline void cg_check_scalars(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t num_objects) {
+  cg_check(t, name, like, like.scalar_type(), {num_objects});
+}
+
+inline void cg_check_state(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t num_objects) {
+  cg_check(t, name, like, at::kInt, {num_objects});
+}
+
+inline void cg_check_values(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.scalar_type() == at::kFloat || t.scalar_type() == at::kDouble, "tensormass: ", name,
+              " must be float32 or float64, got ", c10::toString(t.scalar_type()));
+  TORCH_CHECK(t.dim() >= 1 && t.is_contiguous(), "tensormass: ", name, " must be a contiguous [V] or [V, d] tensor");
+}
+
+// The checks of each op, written once for both backends; each returns the plan.
+inline CGPlan check_cg_alpha(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                             const at::Tensor& object_chunk, const at::Tensor& rr, const at::Tensor& status,
+                             const at::Tensor& alpha, const at::Tensor& scratch, const at::Tensor& counter) {
+  cg_check_values(p_dot_ap, "p_dot_ap");
+  TORCH_CHECK(p_dot_ap.dim() == 1, "tensormass: p_dot_ap must be [V] (p . Ap per node)");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p_dot_ap, p_dot_ap.size(0));
+  cg_check_scalars(rr, "rr", p_dot_ap, plan.num_objects);
+  cg_check_scalars(alpha, "alpha", p_dot_ap, plan.num_objects);
+  cg_check_state(status, "status", p_dot_ap, plan.num_objects);
+  cg_check(scratch, "scratch", p_dot_ap, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", p_dot_ap, plan.num_objects);
+  return plan;
+}
+
+inline CGPlan check_cg_update(const at::Tensor& x, const at::Tensor& r, const at::Tensor& p, const at::Tensor& ap,
+                              const at::Tensor& alpha, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                              const at::Tensor& object_chunk, const at::Tensor& threshold, int64_t max_iter,
+                              const at::Tensor& rr, const at::Tensor& status, const at::Tensor& beta,
+                              const at::Tensor& iterations, const at::Tensor& scratch, const at::Tensor& counter) {
+  cg_check_values(x, "x");
+  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, x, x.size(0));
+  cg_check(r, "r", x, x.scalar_type(), x.sizes());
+  cg_check(p, "p", x, x.scalar_type(), x.sizes());
+  cg_check(ap, "ap", x, x.scalar_type(), x.sizes());
+  cg_check_scalars(alpha, "alpha", x, plan.num_objects);
+  cg_check_scalars(threshold, "threshold", x, plan.num_objects);
+  cg_check_scalars(rr, "rr", x, plan.num_objects);
+  cg_check_scalars(beta, "beta", x, plan.num_objects);
+  cg_check_state(status, "status", x, plan.num_objects);
+  cg_check_state(iterations, "iterations", x, plan.num_objects);
+  cg_check(scratch, "scratch", x, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", x, plan.num_objects);
+  return plan;
+}
+
+inline CGPlan check_cg_direction(const at::Tensor& p, const at::Tensor& r, const at::Tensor& beta,
+                                 const at::Tensor& status, const at::Tensor& chunk_start,
+                                 const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
+  cg_check_values(p, "p");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p, p.size(0));
+  cg_check(r, "r", p, p.scalar_type(), p.sizes());
+  cg_check_scalars(beta, "beta", p, plan.num_objects);
+  cg_check_state(status, "status", p, plan.num_objects);
+  return plan;
+}
+
+inline CGPlan check_cg_dot(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
+                           const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& out,
+                           const at::Tensor& scratch, const at::Tensor& counter) {
+  cg_check_values(a, "a");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, a, a.size(0));
+  cg_check(b, "b", a, a.scalar_type(), a.sizes());
+  cg_check_scalars(out, "out", a, plan.num_objects);
+  cg_check(scratch, "scratch", a, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", a, plan.num_objects);
+  return plan;
+}
+
+// ------------------------------------------------------------------ the end of an implicit Euler step: checks
+
+inline CGPlan check_euler_update(const at::Tensor& x, const at::Tensor& v, const at::Tensor& dv,
+                                 const c10::optional<at::Tensor>& dv_imposed, const at::Tensor& x_new,
+                                 const at::Tensor& v_new, const at::Tensor& chunk_start,
+                                 const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                                 const at::Tensor& status, const at::Tensor& iterations, const at::Tensor& rr,
+                                 const at::Tensor& rhs_sq, const at::Tensor& norms, const at::Tensor& summary,
+                                 const at::Tensor& scratch, const at::Tensor& counter,
+                                 const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos) {
+  cg_check_values(x, "x");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, x, x.size(0));
+  for (const auto& named : {std::make_pair(&v, "v"), std::make_pair(&dv, "dv"), std::make_pair(&x_new, "x_new"),
+                            std::make_pair(&v_new, "v_new")}) {
+    cg_check(*named.first, named.second, x, x.scalar_type(), x.sizes());
+  }
+  if (dv_imposed.has_value() && dv_imposed->defined()) cg_check(*dv_imposed, "dv_imposed", x, x.scalar_type(), x.sizes());
+  const int64_t b = plan.num_objects;
+  cg_check_state(status, "status", x, b);
+  cg_check_state(iterations, "iterations", x, b);
+  cg_check_scalars(rr, "rr", x, b);
+  cg_check_scalars(rhs_sq, "rhs_sq", x, b);
+  cg_check_scalars(norms, "norms", x, b);
+  cg_check(summary, "summary", x, at::kDouble, {5, b});
+  cg_check(scratch, "scratch", x, at::kDouble, {plan.num_chunks});
+  cg_check(counter, "counter", x, at::kInt, {b + 1});
+  const bool has_ring = ring.has_value() && ring->defined();
+  TORCH_CHECK(has_ring == (ring_pos.has_value() && ring_pos->defined()), "tensormass: ring and ring_pos go together");
+  if (has_ring) {
+    TORCH_CHECK(ring->dim() == 3, "tensormass: ring must be [R, 5, B], got shape ", cg_shape_str(ring->sizes()));
+    cg_check(*ring, "ring", x, at::kDouble, {ring->size(0), 5, b});
+    cg_check(*ring_pos, "ring_pos", x, at::kLong, {1});
+  }
+  return plan;
+}
+
+// Values per node of a [V] or [V, d] tensor.
+inline int64_t values_per_node(const at::Tensor& t) { return t.size(0) ? t.numel() / t.size(0) : 1; }
+
+// The ops' structs over their tensors (checked by check_euler_update).
+template <typename S>
+inline EulerUpdate<S> euler_update_of(at::Tensor& x, at::Tensor& v, const at::Tensor& dv,
+                                      const c10::optional<at::Tensor>& dv_imposed, double h, at::Tensor& x_new,
+                               at::Tensor& v_new, bool carry) {
+  const bool imposed = dv_imposed.has_value() && dv_imposed->defined();
+  return EulerUpdate<S>{x.data_ptr<S>(), v.data_ptr<S>(), dv.data_ptr<S>(), imposed ? dv_imposed->data_ptr<S>() : nullptr,
+                        static_cast<S>(h), x_new.data_ptr<S>(), v_new.data_ptr<S>(), carry, values_per_node(x)};
+}
+
+template <typename S>
+inline StepSummary<S> step_summary_of(const at::Tensor& status, const at::Tensor& iterations, const at::Tensor& rr,
+                               const at::Tensor& rhs_sq, at::Tensor& norms, at::Tensor& summary,
+                               const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos) {
+  const bool has_ring = ring.has_value() && ring->defined();
+  return StepSummary<S>{status.data_ptr<int32_t>(), iterations.data_ptr<int32_t>(), rr.data_ptr<S>(),
+                        rhs_sq.data_ptr<S>(), norms.data_ptr<S>(), summary.data_ptr<double>(),
+                        has_ring ? ring->data_ptr<double>() : nullptr, has_ring ? ring_pos->data_ptr<int64_t>() : nullptr,
+                        has_ring ? ring->size(0) : 0};
+}
+
+}  // namespace tensormass

@@ -1,0 +1,231 @@
+// The node graph family's per-item kernels (the graph's CG matvec itself, NodeHookeSystemKernel, is
+// common/node_graph.h, as the solves share it): the tangent of a stress-form group on the node graph
+// (TangentElementKernel, TangentEdgeKernel, TangentSlotKernel) and implicit Euler's right-hand side
+// of the hooke tensor form (NodeHookeStepRhsKernel).
+#pragma once
+
+#include <cstdint>
+#include <cstring>
+
+#include "common/element_math.h"
+#include "common/kernel_io.h"
+#include "common/node_graph.h"
+#include "common/step_rhs.h"
+#include "common/stress_args.h"
+
+namespace tensormass {
+
+// ------------------------------------------------------------------ the tangent on the node graph
+//
+// The force differential of a stress-form group at u, held fixed for a whole CG solve, as 3x3
+// blocks on the edges of the mesh: with H_ij = d f_i / d u_j summed over the elements sharing
+// the edge (i, j), every row of an element's blocks sums to zero (sum_k m_k = 0), so
+//   (dF/du) p at node i = sum_j H_ij (p_j - p_i)
+// and the CG matvec is hooke_node_system's over the node graph with node_k = -H_ij in the slot
+// of (i -> j) and -H_ij^T in that of (j -> i) (the differentials are symmetric: H_ji = H_ij^T).
+// Built once per linearisation (the paper's element kernel and gather, no atomics): kernel 1 per
+// element writes its pair blocks into a padded per-edge buffer, kernel 2 per edge sums its slots
+// in order, kernel 3 per slot of the node graph copies its edge's sum into node_k (kernel 2
+// writing node_k itself made two scattered 36-byte stores an edge: partial sectors). Every CG
+// iteration then reads 9 values an edge and direction instead of recomputing each element's
+// differential.
+
+// The index of the local pair (a, b), a < b, in the order of topology.unique_edges:
+// (0,1), (0,2), ..., (1,2), ...
+template <int NN>
+TM_HD constexpr int pair_index(int a, int b) {
+  return a * (2 * NN - a - 1) / 2 + (b - a - 1);
+}
+
+// A block of edge_partial: D x D values padded to a multiple of 16 bytes (12 for 3-D, 4 for
+// 2-D), so kernel 1 stores and kernel 2 loads it in 16-byte pieces (scattered 4-byte stores were
+// most of kernel 1's time: each touched its own 32-byte sector).
+template <int D, typename S>
+struct PaddedBlock {
+  static constexpr int kStride = D == 3 ? 12 : 4;  // 48 / 96 bytes (3-D), 16 / 32 (2-D)
+  static constexpr int kPer = int(16 / sizeof(S));
+
+  static TM_HD void store(S* dst, const S (&v)[kStride]) {
+#if defined(__CUDA_ARCH__)
+    TM_UNROLL for (int q = 0; q < kStride / kPer; ++q) {
+      int4 chunk;
+      memcpy(&chunk, v + q * kPer, 16);
+      reinterpret_cast<int4*>(dst)[q] = chunk;
+    }
+#else
+    std::memcpy(dst, v, sizeof(v));
+#endif
+  }
+
+  static TM_HD void load(const S* src, S (&v)[kStride]) {
+    TM_UNROLL for (int q = 0; q < kStride / kPer; ++q) load16<S>(src + q * kPer, v + q * kPer);
+  }
+};
+
+// Kernel 1: NN - 1 items per element, one per column node b = 1 .. NN-1 (item e (NN - 1) + b - 1):
+// column c of H_ab (a < b) is the differential on node a along du = e_c at node b: the model's
+// own dforces, D evaluations an item (the same function the element path of the CG calls, so
+// both are one formula). Each block goes to edge_partial[edge_slot[e][p]][element_edges[e][p]]
+// oriented from the pair's lower global node to its higher (transposed where idx[a] > idx[b]),
+// whole. (One item an element, all (NN - 1) D evaluations, left 16 warps a multiprocessor at
+// 128 registers to hide its loads: 220 us on the paper beam.)
+template <int MODEL, int NN, int D, typename S, typename I>
+struct TangentElementKernel {
+  static constexpr bool kMembrane = NN - 1 < D;
+  static constexpr int kPairs = NN * (NN - 1) / 2;
+  using Block = PaddedBlock<D, S>;
+  StressInputs<S, I> in;   // rotations given for the corotational model
+  const I* element_edges;  // [N, P] the edge of each local pair
+  const I* edge_slots;     // [N, P] its slot among the edge's elements
+  int64_t num_edges;       // Ed
+  S* edge_partial;         // [N_es, Ed, Block::kStride]
+
+  TM_HD void operator()(int64_t t) const {
+    const int64_t e = t / (NN - 1);
+    const int b = 1 + static_cast<int>(t - e * (NN - 1));
+    // b known at compile time in each branch: the unit displacements fold into the arithmetic
+    if (b == 1) column_blocks<1>(e);
+    if constexpr (NN > 2) {
+      if (b == 2) column_blocks<2>(e);
+    }
+    if constexpr (NN > 3) {
+      if (b == 3) column_blocks<3>(e);
+    }
+  }
+
+  template <int B>
+  TM_HD void column_blocks(int64_t e) const {
+    I idx[NN], edge[kPairs], slot[kPairs];
+    S m[NN][D], vol, lam, mu, u[NN][D], r[D][D];
+    Plane<D, S, kMembrane> plane;
+    in.load_element(e, idx, m, vol, lam, mu, plane, u);
+    load_block<kPairs, I>(element_edges + e * kPairs, edge);
+    load_block<kPairs, I>(edge_slots + e * kPairs, slot);
+    if constexpr (MODEL == kCorotational) load_matrix<D, D, S>(in.rotations + e * (D * D), r);
+    S column[D][NN][D];  // column[c][a] = d f_a / d u_B[c]
+    TM_UNROLL for (int c = 0; c < D; ++c) {
+      S du[NN][D];
+      TM_UNROLL for (int k = 0; k < NN; ++k) {
+        TM_UNROLL for (int x = 0; x < D; ++x) du[k][x] = (k == B && x == c) ? S(1) : S(0);
+      }
+      if constexpr (MODEL == kCorotational) {
+        corotational_dforces<NN, D, S, kMembrane>(du, r, m, vol, lam, mu, plane, column[c]);
+      } else {
+        stress_dforces<MODEL, NN, D, S, kMembrane>(u, du, m, vol, lam, mu, plane, column[c]);
+      }
+    }
+    TM_UNROLL for (int a = 0; a < B; ++a) {
+      const int pair = pair_index<NN>(a, B);
+      const bool low_first = idx[a] < idx[B];
+      S v[Block::kStride];
+      TM_UNROLL for (int x = 0; x < D; ++x) {
+        TM_UNROLL for (int c = 0; c < D; ++c) v[x * D + c] = low_first ? column[c][a][x] : column[x][a][c];
+      }
+      TM_UNROLL for (int q = D * D; q < Block::kStride; ++q) v[q] = S(0);
+      Block::store(edge_partial + (static_cast<int64_t>(slot[pair]) * num_edges + static_cast<int64_t>(edge[pair])) *
+                                      Block::kStride, v);
+    }
+  }
+};
+
+// Kernel 2: one item per edge: H = the sum of its used slots in slot order, stored into the
+// edge's slot-0 row of edge_partial (in place: no other item reads or writes that row), written
+// in edge order (whole blocks, consecutive edges side by side).
+template <int D, typename S, typename I>
+struct TangentEdgeKernel {
+  using Block = PaddedBlock<D, S>;
+  S* edge_partial;          // [N_es, Ed, Block::kStride]; row 0 ends as the edges' sums
+  const I* edge_counts;     // [Ed] elements of each edge
+  int64_t num_edges;
+
+  TM_HD void operator()(int64_t g) const {
+    S h[Block::kStride];
+    TM_UNROLL for (int q = 0; q < Block::kStride; ++q) h[q] = S(0);
+    const int64_t count = static_cast<int64_t>(ld(edge_counts + g));
+    for (int64_t s = 0; s < count; ++s) {
+      S v[Block::kStride];
+      Block::load(edge_partial + (s * num_edges + g) * Block::kStride, v);
+      TM_UNROLL for (int q = 0; q < Block::kStride; ++q) h[q] += v[q];
+    }
+    Block::store(edge_partial + g * Block::kStride, h);
+  }
+};
+
+// Kernel 3: one item per value (r, q) of a row's block (the rows of the node graph,
+// HookeNodeGraph), over the row's used slots s: node_k [s][r] holds -H_g where the row's node is
+// the first node of the slot's edge g (slot_edge = g), -H_g^T where it is the second (slot_edge =
+// ~g). The D*D items of a row are consecutive, so each slot's stores are side by side. (On the
+// paper beam: 38 us; one item per slot, D*D strided stores each, 74 us; one item per value of
+// node_k, 65 us.) Slots beyond a row's incidences are not written.
+template <int D, typename S, typename I>
+struct TangentSlotKernel {
+  using Block = PaddedBlock<D, S>;
+  const S* edge_sums;       // [Ed, Block::kStride] (kernel 2's row 0)
+  const I* slot_edge;       // [N_n, V] by row
+  const I* incidences;      // [V] by row
+  int64_t num_nodes;
+  S* node_k;                // [N_n, V, D, D] by row
+
+  TM_HD void operator()(int64_t t) const {
+    const int64_t row = t / (D * D);
+    const int q = static_cast<int>(t - row * (D * D)), x = q / D, y = q - x * D;
+    const int64_t count = static_cast<int64_t>(ld(incidences + row));
+    for (int64_t s = 0; s < count; ++s) {
+      const int64_t code = static_cast<int64_t>(ld(slot_edge + s * num_nodes + row));
+      const bool first = code >= 0;
+      const S* h = edge_sums + (first ? code : -code - 1) * Block::kStride;
+      node_k[(s * num_nodes + row) * (D * D) + q] = -ld(h + (first ? q : y * D + x));
+    }
+  }
+};
+
+// The right-hand side of an implicit Euler step of the hooke tensor form, one node per item
+// (what SystemMatvec.load + forces_along + the damping and h terms compose from a dozen torch
+// ops), at positions x and velocities v with w = (x - rest) + c_w v, c_w = h + r_K:
+//   rhs_i = h (f_i(w) + external_i + contact_i(x) - Kc_i (c_w v_i) - r_M m_i v_i)
+// where f(w) is the elastic force over the node graph (linear: f(u) + K c_w v in one pass) and
+// Kc_i the contact stiffness at x_i, which is also written (node_stiffness, for the CG
+// matvec), as are the displacements u = x - rest.
+template <int D, typename S, typename I, bool HAS_PLANES>
+struct NodeHookeStepRhsKernel {
+  using Scalar = S;
+  const S* x;         // [V, D]
+  const S* v;         // [V, D]
+  const S* rest;      // [V, D]
+  const S* mass;      // [V]
+  const S* external;  // [V, D]
+  HookeNodeGraph<D, S, I> graph;
+  PenaltyPlanes<S> planes;  // HAS_PLANES (D == 3)
+  S h, c_w, rayleigh_mass;
+  S* u;               // [V, D] out
+  S* rhs;             // [V, D] out
+  S* node_stiffness;  // [V, D, D] out (HAS_PLANES)
+
+  TM_HD void operator()(int64_t row) const {
+    const int64_t i = graph.node_of(row);
+    const StepDisplacementLoader<S> load_w{x, rest, v, c_w};
+    S wi[D], total[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      wi[a] = load_w(x + i * D + a);
+      total[a] = S(0);
+      u[i * D + a] = ld(x + i * D + a) - ld(rest + i * D + a);
+    }
+    graph.add_forces(row, i, x, wi, load_w, total);
+    S xi[D], vi[D], external_i[D], k_contact[D][D], out[D];
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      xi[a] = ld(x + i * D + a);
+      vi[a] = ld(v + i * D + a);
+      external_i[a] = ld(external + i * D + a);
+    }
+    step_rhs_node<D, S, HAS_PLANES>(planes, h, c_w, rayleigh_mass * ld(mass + i), xi, vi, external_i, total, k_contact,
+                                    out);
+    if constexpr (HAS_PLANES) {
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        TM_UNROLL for (int b = 0; b < D; ++b) node_stiffness[(i * D + a) * D + b] = k_contact[a][b];
+      }
+    }
+    TM_UNROLL for (int a = 0; a < D; ++a) rhs[i * D + a] = out[a];
+  }
+};
+
+}  // namespace tensormass

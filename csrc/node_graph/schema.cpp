@@ -1,0 +1,58 @@
+// Schemas of the node graph ops: the hooke tensor form's CG matvec in one kernel over the node
+// graph, implicit Euler's right-hand side over it, and a stress-form group's tangent written as the
+// graph's slot tensors (the host side: ops.h and common/node_graph.h, the kernels: kernels.h and
+// common/; registered for the CPU and CUDA by cpu.cpp and cuda.cu). The conventions every op
+// follows: library.cpp; the chunk plan of the CG: cg/schema.cpp. Fake kernels and autograd: the
+// Python module named below (set_python_module), imported when torch needs them.
+//
+// The node graph (neighbor [N_n, V], node_k [N_n, V, d, d], incidences [V], row_node [V]?) holds the
+// slots of the plan's edges by row: row r holds the slots of node i = row_node[r] (None: i = r;
+// ops.node_graph.node_graph_rows), neighbor[s][r] the other node of slot s's edge and node_k[s][r] its
+// tensor: the edge tensor K_e where i is the edge's first node, K_e^T where it is its second.
+#include <torch/library.h>
+
+TORCH_LIBRARY_FRAGMENT(tensormass, m) {
+  m.set_python_module("tensormass_torch.ops.node_graph");
+  // hooke_node_system(p [V, d], neighbor, node_k, incidences, row_node?, mass [V], free [V]?, c_mass,
+  //                   c_stiff, node_stiffness [V, d, d]?) -> (Ap [V, d], p . Ap per node [V])
+  //   gather_system's matvec (gather/schema.cpp) for the hooke tensor form in one kernel, bitwise that
+  //   of tensor_hooke_partial_forces + gather_system over the same plan:
+  //   (K p)_i = sum_{s < incidences[r]} -node_k[s][r] (p[neighbor[s][r]] - p_i). Not differentiable.
+  m.def("hooke_node_system(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, Tensor? free, "
+        "float c_mass, float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
+  // hooke_node_system_alpha(<hooke_node_system's inputs>, ap!, chunk_start, chunk_object, object_chunk,
+  //                         rr, status!, alpha!, scratch!, counter!) -> ()
+  //   hooke_node_system's Ap into ap in place, then each object's step length as cg_alpha does, in the
+  //   same kernel (as gather_system_alpha). Objects that are not active are skipped.
+  m.def("hooke_node_system_alpha(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, "
+        "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(a!) ap, Tensor chunk_start, "
+        "Tensor chunk_object, Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, "
+        "Tensor(d!) scratch, Tensor(e!) counter) -> ()");
+  // stress_tangent_node_k(u [V, d], elements, shape_vectors, measure, lam, mu, projector?, model,
+  //                       rotations [N, d, d]?, element_edges [N, P], edge_slots [N, P], num_edge_slots,
+  //                       edge_counts [Ed], slot_edge [N_n, V], incidences [V], node_k!, edge_partial!) -> ()
+  //   writes a stress-form group's force differential at u (the stress ops' inputs,
+  //   stress/schema.cpp; the corotational model needs its rotations, held fixed) as the edge blocks of
+  //   the node graph, node_k [N_n, V, d, d] in place (slots beyond a row's incidences are not written),
+  //   so that hooke_node_system, hooke_node_cg and hooke_node_solve run its CG products (once per
+  //   linearisation instead of an element pass per CG iteration). The edges (topology.EdgeGraph):
+  //   element_edges / edge_slots, the edge of each local pair of an element and its slot among the
+  //   edge's elements (edge_counts, num_edge_slots the most); slot_edge, the edge g of each slot of the
+  //   node graph (~g where the row's node is the edge's second). edge_partial [num_edge_slots, Ed, 12]
+  //   ([.., 4] in 2-D) is the work buffer.
+  m.def("stress_tangent_node_k(Tensor u, Tensor elements, Tensor shape_vectors, Tensor measure, Tensor lam, "
+        "Tensor mu, Tensor? projector, int model, Tensor? rotations, Tensor element_edges, Tensor edge_slots, "
+        "int num_edge_slots, Tensor edge_counts, Tensor slot_edge, Tensor incidences, "
+        "Tensor(a!) node_k, Tensor(b!) edge_partial) -> ()");
+  // hooke_node_step_rhs(x, v, rest [V, d], neighbor, node_k, incidences, row_node?, mass [V],
+  //                     external [V, d], plane_normals [P, 3]?, plane_offsets [P]?, plane_stiffness [P]?,
+  //                     h, w_coef, rayleigh_mass, u!, rhs!, node_stiffness!?) -> ()
+  //   implicit Euler's right-hand side for the hooke tensor form in one pass over the nodes:
+  //   rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) w_coef v - rayleigh_mass mass v)
+  //   (w_coef = h + r_K), u = x - rest and, with the planes (all of them and node_stiffness, or none;
+  //   d = 3), the contact stiffness Kc [V, 3, 3] into node_stiffness. In place, so that a CUDA graph
+  //   replays it.
+  m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, "
+        "Tensor mass, Tensor external, Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, "
+        "float h, float w_coef, float rayleigh_mass, Tensor(a!) u, Tensor(b!) rhs, Tensor(c!)? node_stiffness) -> ()");
+}

@@ -1,0 +1,472 @@
+"""The node-graph op family (``csrc/node_graph/``): the hooke tensor form's CG product in one
+kernel over the node graph, that product ending in the CG step length, implicit Euler's
+right-hand side in one pass over the nodes, and a stress-form group's tangent written as the
+graph's slot tensors. Each op's pure-torch reference, fake kernel and example, and the graphs
+themselves (built and cached per group).
+
+The node graph of V nodes with at most N_n neighbours each ("ELL" arrays, stored by row):
+``neighbor [N_n, V]`` (slot s of row r: a neighbour of the row's node), ``node_k [N_n, V, d, d]``
+(the block of that neighbour: -d f_i / d u_j), ``incidences [V]`` (used slots of each row),
+``row_node [V]`` or None (the node of each row; None: row r is node r). Rows are each object's
+nodes sorted by slot count within windows (:func:`node_graph_rows`), so a warp's threads walk
+as many slots each.
+
+    hooke_node_system(p, graph, mass, free?, c_M, c_K, node_stiffness?) -> (Ap [V, d], p . Ap [V])
+        (K p)_i = sum_{s < incidences[r]} -node_k[s][r] (p[neighbor[s][r]] - p_i), i = row_node[r]
+    hooke_node_system_alpha(<the same>, ap!, chunk plan, rr, status!, alpha!, scratch!, counter!)
+    hooke_node_step_rhs(x, v, rest, graph, mass, external, planes?, h, w_coef, r_M, u!, rhs!,
+        node_stiffness!?)   rhs = h (f((x - rest) + w_coef v) + external + contact(x)
+                                  - Kc(x) w_coef v - r_M mass v), u = x - rest, Kc
+    stress_tangent_node_k(u, <stress inputs>, rotations?, edge graph, node_k!, edge_partial!)
+
+All are solver kernels: no gradient (the group-level calls fall back to the element ops when one
+is wanted).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from ..mesh.topology import sum_slots_in_order
+from . import cg as cg_family
+from . import library
+from .gather import system_epilogue
+from .library import OpDef, contiguous, model_name, plan_indices, slot_mask, supports, unchanged, wants_grad
+from .reference import corotational, stress_form
+from .stress import stress_args
+from .variants import DEFAULT, KernelVariants
+
+__all__ = ["hooke_node_graph", "hooke_rows_graph", "node_graph_rows", "set_objects", "tangent_graph",
+           "tangent_serves", "tangent_node_k", "graph_of_edges", "node_graph_of", "step_rhs_serves", "step_rhs",
+           "planes_serve"]
+
+# ---------------------------------------------------------------------------------------------
+# References
+# ---------------------------------------------------------------------------------------------
+
+
+def _ref_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
+                           node_stiffness=None):
+    """The node-centric hooke matvec: (K p)_i = sum over the used slots s of node i's row r of
+    ``-node_k[s, r] (p[neighbor[s, r]] - p_i)`` with i = ``row_node[r]`` (None: i = r) (neighbor
+    ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, all by row; unused slots are
+    masked, whatever they hold), added slot after slot, then the system epilogue."""
+    used = slot_mask(neighbor.shape[0], incidences)  # [N_n, V, 1]
+    others = torch.where(used[..., 0], neighbor, neighbor.new_zeros(())).long()
+    nodes = torch.arange(p.shape[0], device=p.device) if row_node is None else row_node.long()
+    w = p[others] - p[nodes].unsqueeze(0)  # [N_n, V, d]
+    terms = -torch.einsum("svab,svb->sva", node_k, w)
+    kp_rows = sum_slots_in_order(torch.where(used, terms, terms.new_zeros(())))
+    kp = torch.empty_like(kp_rows).index_copy_(0, nodes, kp_rows)
+    return system_epilogue(kp, p, mass, free, c_mass, c_stiff, node_stiffness)
+
+
+def _ref_hooke_node_system_alpha(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
+                                 node_stiffness, ap, chunk_start, chunk_object, object_chunk, rr, status, alpha,
+                                 scratch, counter):
+    product, p_dot_ap = _ref_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass,
+                                               c_stiff, node_stiffness)
+    ap.copy_(product)
+    cg_family._ref_cg_alpha(p_dot_ap, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch, counter)
+
+
+def plane_contact(x, normals, offsets, stiffness):
+    """Penalty planes n.x >= offset: the force on each node ``[V, 3]`` (sum of k (offset - n.x) n
+    over the planes it is below) and its stiffness -(df/dx) ``[V, 3, 3]`` (sum of k n n^T)."""
+    depth = offsets[None, :] - x @ normals.T  # [V, P]
+    below = depth > 0
+    weight = torch.where(below, stiffness[None, :], torch.zeros_like(depth))
+    force = (weight * depth) @ normals
+    k = torch.einsum("vp,pa,pb->vab", weight, normals, normals)
+    return force, k
+
+
+def _ref_hooke_node_step_rhs(x, v, rest, neighbor, node_k, incidences, row_node, mass, external, plane_normals,
+                             plane_offsets, plane_stiffness, h, w_coef, rayleigh_mass, u, rhs, node_stiffness):
+    w = (x - rest) + w_coef * v
+    total, _ = _ref_hooke_node_system(w, neighbor, node_k, incidences, row_node, torch.zeros_like(mass), None, 0.0,
+                                      -1.0)
+    total = total + external
+    if plane_normals is not None and x.shape[1] == 3:
+        force, k = plane_contact(x, plane_normals, plane_offsets, plane_stiffness)
+        total = total + force - torch.einsum("vab,vb->va", k, w_coef * v)
+        if node_stiffness is not None:
+            node_stiffness.copy_(k)
+    u.copy_(x - rest)
+    rhs.copy_(h * (total - (rayleigh_mass * mass)[:, None] * v))
+
+
+def _ref_stress_tangent_node_k(u, elements, m, vol, lam, mu, proj, model, rotations, element_edges, edge_slots,
+                               num_edge_slots, edge_counts, slot_edge, incidences, node_k=None, edge_partial=None):
+    """stress_tangent_node_k's reference: the element blocks H_ab from the reference element
+    dforces along unit displacements (n d of them), summed onto edges in slot order, written to
+    the node graph's slots ``[N_n, V, d, d]`` (-H_g where slot_edge = g, -H_g^T where ~g; zeros in
+    unused slots)."""
+    n, d = elements.shape[1], u.shape[1]
+    u_e = u[elements]
+    name = model_name(model)
+    blocks = u.new_zeros((elements.shape[0], n, n, d, d))  # [N, a, b, x, c] = d f_a[x] / d u_b[c]
+    for b in range(n):
+        for c in range(d):
+            du_e = torch.zeros_like(u_e)
+            du_e[:, b, c] = 1
+            if name == "corotational":
+                f = corotational.dforces(du_e, m, vol, lam, mu, rotations, proj)
+            else:
+                f = stress_form.DFORCES[name](u_e, du_e, m, vol, lam, mu, proj)
+            blocks[:, :, b, :, c] = f
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
+    pair_blocks = torch.stack([blocks[:, a, b] for a, b in pairs], dim=1)  # [N, P, d, d]
+    low_first = torch.stack([elements[:, a] < elements[:, b] for a, b in pairs], dim=1)
+    pair_blocks = torch.where(low_first[..., None, None], pair_blocks, pair_blocks.transpose(-1, -2))
+    buffer = u.new_zeros((num_edge_slots, edge_counts.shape[0], d, d))
+    buffer[edge_slots.long().reshape(-1), element_edges.long().reshape(-1)] = pair_blocks.reshape(-1, d, d)
+    h = sum_slots_in_order(buffer)  # [Ed, d, d]
+    code = slot_edge.long()
+    used = torch.arange(code.shape[0], device=code.device)[:, None] < incidences.long()[None, :]
+    first = code >= 0
+    g = torch.where(first, code, -code - 1)
+    blocks = torch.where(first[..., None, None], h[g], h[g].transpose(-1, -2))
+    value = torch.where(used[..., None, None], -blocks, torch.zeros_like(blocks))  # [N_n, V, d, d]
+    if node_k is not None:
+        node_k.copy_(value)
+    return value
+
+
+# ---------------------------------------------------------------------------------------------
+# Fake kernels, examples
+# ---------------------------------------------------------------------------------------------
+
+
+def _fake_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
+                            node_stiffness=None):
+    return p.new_empty(p.shape), p.new_empty((p.shape[0],))
+
+
+def _example(name):
+    def example(device, dtype):
+        ex = library.Example(device, dtype)
+        neighbor, node_k = graph_of_edges(ex.edges, ex.edge_force_index, ex.edge_slots, ex.num_nodes, ex.edge_k)
+        # rows keep to the objects of the cg family's example (nodes 0-2 and 3-4)
+        rows = node_graph_rows(ex.edge_incidences, (0, 3, ex.num_nodes), 4).to(torch.int32)
+        by_row = rows.long()
+        graph = (neighbor[:, by_row].contiguous(), node_k[:, by_row].contiguous(),
+                 ex.edge_incidences[by_row].contiguous(), rows)
+        system = (ex.du, *graph, ex.mass, ex.free, 1.5, 0.25, None)
+        if name == "hooke_node_system":
+            return system, {}
+        if name == "hooke_node_system_alpha":
+            alpha_args, _ = cg_family.OPS[0].example(device, dtype)
+            (_, *plan, rr, status, alpha, scratch, counter) = alpha_args
+            return (*system, torch.zeros_like(ex.du), *plan, rr, status, alpha, scratch, counter), {}
+        if name == "hooke_node_step_rhs":
+            x = ex.rest + ex.u
+            normals = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]], device=device, dtype=dtype)
+            offsets = torch.tensor([0.02, 0.01], device=device, dtype=dtype)
+            stiffness = torch.tensor([50.0, 20.0], device=device, dtype=dtype)
+            return (x, ex.du, ex.rest, *graph, ex.mass, 9.8 * ex.du, normals, offsets, stiffness, 0.01, 0.02, 0.1,
+                    torch.empty_like(x), torch.empty_like(x), x.new_empty((ex.num_nodes, 3, 3))), {}
+        from ..mesh.topology import EdgeGraph
+
+        edge_graph = EdgeGraph.build(ex.elements.long(), ex.num_nodes)
+
+        def i(t):
+            return t.to(device=device, dtype=torch.int32).contiguous()
+
+        plan = edge_graph.plan
+        node_k = torch.zeros((plan.num_slots, ex.num_nodes, 3, 3), device=device, dtype=dtype)
+        work = torch.zeros((edge_graph.num_edge_slots, edge_graph.edges.shape[0], 12), device=device, dtype=dtype)
+        return (ex.u, ex.elements, *ex.stress("stvk")[:6], None, i(edge_graph.element_edges), i(edge_graph.edge_slots),
+                edge_graph.num_edge_slots, i(edge_graph.edge_counts), i(edge_graph.slot_edge), i(plan.incidences),
+                node_k, work), {}
+
+    return example
+
+
+OPS = (
+    OpDef("hooke_node_system", _ref_hooke_node_system, _fake_hooke_node_system, differentiable=False,
+          example=_example("hooke_node_system")),
+    OpDef("hooke_node_system_alpha", _ref_hooke_node_system_alpha, None, differentiable=False, mutates=True,
+          example=_example("hooke_node_system_alpha"), scratch=("scratch", "counter")),
+    OpDef("hooke_node_step_rhs", _ref_hooke_node_step_rhs, None, differentiable=False, mutates=True,
+          example=_example("hooke_node_step_rhs")),
+    OpDef("stress_tangent_node_k", _ref_stress_tangent_node_k, None, differentiable=False, mutates=True,
+          example=_example("stress_tangent_node_k"), scratch=("edge_partial",)),
+)
+library.define(OPS, lambda: library.register(OPS))
+
+# ---------------------------------------------------------------------------------------------
+# The graphs of a group (cached on it)
+# ---------------------------------------------------------------------------------------------
+
+
+def _zeros_like_nodes(group, u: torch.Tensor) -> torch.Tensor:
+    """Zeros ``[V]`` of u's dtype and device, kept on the group (a mass term of 0)."""
+    cached = group.__dict__.get("_node_zeros")
+    if cached is None or cached.dtype != u.dtype or cached.device != u.device or cached.shape[0] != u.shape[0]:
+        cached = group.__dict__["_node_zeros"] = torch.zeros(u.shape[0], dtype=u.dtype, device=u.device)
+    return cached
+
+
+def _edge_neighbors(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int) -> torch.Tensor:
+    """The node graph's neighbours ``[N_n, V]`` of edges ``[Ed, 2]`` with their slots
+    ``force_index [Ed, 2]``: slot ``force_index[e, 0]`` of ``edges[e, 0]`` holds ``edges[e, 1]`` and
+    the other way round; unused slots 0 (never read). edges' dtype."""
+    neighbor = edges.new_zeros((num_slots, num_nodes))
+    neighbor[force_index[:, 0].long(), edges[:, 0].long()] = edges[:, 1]
+    neighbor[force_index[:, 1].long(), edges[:, 1].long()] = edges[:, 0]
+    return neighbor
+
+
+def set_objects(model, object_starts) -> None:
+    """Tells the node graphs of ``model``'s groups (``model.groups``) where its objects start
+    (``object_starts``: the first node of each object and the node count, ``[B + 1]``, a sequence
+    or tensor; the solver's segments): their rows (:func:`node_graph_rows`) never mix two objects,
+    whose CG scalars differ. Without it a group's nodes are one object. A model serves one set of
+    objects: telling it other ones raises (a solver of the first would get rows that mix them)."""
+    starts = tuple(int(v) for v in (object_starts.tolist() if torch.is_tensor(object_starts) else object_starts))
+    for group in model.groups:
+        known = group.__dict__.get("_native_objects")
+        if known is not None and known != starts:
+            raise ValueError(f"this model's node graphs already serve objects starting at nodes {list(known[:-1])}; "
+                             f"objects starting at {list(starts[:-1])} need a model of their own")
+    for group in model.groups:
+        group.__dict__["_native_objects"] = starts
+
+
+def _objects_of(group):
+    return group.__dict__.get("_native_objects") or (0, group.num_nodes)
+
+
+def node_graph_rows(incidences: torch.Tensor, object_starts, window: int) -> Optional[torch.Tensor]:
+    """The rows of a node graph: ``row_node [V]`` (int64, on incidences' device), the node of each
+    row: each object's nodes (``object_starts`` ``[B + 1]``) cut into windows of ``window`` nodes
+    from its first, and within a window sorted by slot count (``incidences [V]``), most first, ties
+    in node order. None (rows in node order) where ``window`` <= 1."""
+    if window <= 1:
+        return None
+    counts = incidences.detach().cpu().long()
+    num_nodes = counts.numel()
+    starts = torch.tensor(object_starts, dtype=torch.long)
+    nodes = torch.arange(num_nodes)
+    obj = torch.searchsorted(starts[1:], nodes, right=True).clamp_(max=max(starts.numel() - 2, 0))
+    window_index = obj * (num_nodes // window + 2) + (nodes - starts[obj]) // window  # increasing in the node
+    by_count = torch.sort(-counts, stable=True).indices
+    rows = by_count[torch.sort(window_index[by_count], stable=True).indices]
+    return rows.to(incidences.device)
+
+
+def _graph_rows(group, name: str, incidences: torch.Tensor, index_dtype, window: int) -> Optional[torch.Tensor]:
+    """The row_node of the group's graph ``name`` of these (node-ordered) slot counts in windows
+    of ``window`` nodes (:func:`node_graph_rows`), cached on the group."""
+    key = (_objects_of(group), int(window), index_dtype)
+    cache = group.__dict__.get("_native_rows_" + name)
+    if unchanged(cache, (incidences,)) and cache[3] == key:
+        return cache[2]
+    rows = node_graph_rows(incidences, key[0], key[1])
+    if rows is not None:
+        rows = rows.to(index_dtype)
+    group.__dict__["_native_rows_" + name] = ((incidences,), (incidences._version,), rows, key)
+    return rows
+
+
+def _by_rows(group, name: str, incidences: torch.Tensor, tensors, window: int):
+    """The node-ordered arrays ``tensors`` of the group's graph ``name`` (node along dim 1 for 2-D
+    and more, else dim 0; ``incidences [V]``: its slot counts) reordered by its rows, and the rows
+    (:func:`_graph_rows`); cached on the group while the tensors are unchanged and the rows the same."""
+    rows = _graph_rows(group, name, incidences, tensors[0].dtype, window)
+    cache = group.__dict__.get("_native_by_rows_" + name)
+    if unchanged(cache, tensors) and cache[3] is rows:
+        return cache[2], rows
+    index = None if rows is None else rows.long()
+    value = tuple(t if index is None else t.index_select(1 if t.dim() >= 2 else 0, index).contiguous()
+                  for t in tensors)
+    group.__dict__["_native_by_rows_" + name] = (tensors, tuple(t._version for t in tensors), value, rows)
+    return value, rows
+
+
+def hooke_rows_graph(group, window: int = DEFAULT.node_graph_window):
+    """The hooke tensor form's node graph by rows, as the ``hooke_node_*`` ops take it: (neighbor
+    ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, row_node ``[V]`` or None), from
+    :func:`hooke_node_graph` and :func:`node_graph_rows` (windows of ``window`` nodes); cached on
+    the group like them."""
+    neighbor, node_k = hooke_node_graph(group)
+    incidences = plan_indices(group.plan)[2]
+    by_rows, rows = _by_rows(group, "hooke", incidences, (neighbor, node_k, incidences), window)
+    return (*by_rows, rows)
+
+
+def graph_of_edges(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int,
+                   edge_k: torch.Tensor):
+    """The node graph in node order of edges ``[Ed, 2]`` with their slots ``force_index [Ed, 2]``
+    and blocks ``edge_k [Ed, d, d]``: (neighbor ``[N_n, V]`` of edges' dtype, node_k
+    ``[N_n, V, d, d]``); see :func:`hooke_node_graph`."""
+    dim = edge_k.shape[-1]
+    first, second = edges[:, 0].long(), edges[:, 1].long()
+    slot_first, slot_second = force_index[:, 0].long(), force_index[:, 1].long()
+    neighbor = _edge_neighbors(edges, force_index, num_slots, num_nodes)
+    node_k = edge_k.new_zeros((num_slots, num_nodes, dim, dim))
+    with torch.no_grad():
+        node_k[slot_first, first] = edge_k
+        node_k[slot_second, second] = edge_k.transpose(1, 2)
+    return neighbor, node_k
+
+
+def hooke_node_graph(group):
+    """The node graph of a hooke tensor-form group in slot-major ("ELL") arrays, for
+    ``hooke_node_system``: (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``).
+
+    Slot s of node i is the slot the group's plan gives it (``force_index``): for edge e = (i, j)
+    (i = ``edges[e, 0]``), ``neighbor[fi[e, 0], i] = j`` with ``node_k = K_e`` and
+    ``neighbor[fi[e, 1], j] = i`` with ``node_k = K_e^T``. Unused slots hold zeros (never read).
+    neighbor has the plan's native index dtype (that of :func:`_plan_indices`), node_k edge_k's
+    dtype and device. Cached on the group while edge_k and the plan's indices are the same
+    unmodified tensors."""
+    index, force_index, _ = plan_indices(group.plan)
+    edge_k = group.edge_k
+    tensors = (edge_k, index, force_index)
+    cache = group.__dict__.get("_native_node_graph")
+    if unchanged(cache, tensors):
+        return cache[2]
+    value = graph_of_edges(index, force_index, group.plan.num_slots, group.plan.num_nodes, edge_k)
+    group.__dict__["_native_node_graph"] = (tensors, tuple(t._version for t in tensors), value)
+    return value
+
+
+def tangent_graph(group, window: int = DEFAULT.node_graph_window):
+    """The node graph of a stress-form group's tangent: (EdgeGraph with native index tensors, and
+    by the rows of :func:`node_graph_rows`: neighbor ``[N_n, V]``, incidences ``[V]``, row_node
+    ``[V]`` or None, slot_edge ``[N_n, V]``), the graph's index dtype that of :func:`_plan_indices`
+    of the group's plan. Cached on the group while its elements are the same unmodified tensor
+    (the first call synchronises with the device: build it before a capture)."""
+    graph, neighbor, incidences = _tangent_edge_graph(group)
+    (neighbor, row_incidences, slot_edge), rows = _by_rows(group, "tangent", incidences,
+                                                          (neighbor, incidences, graph.slot_edge), window)
+    return graph, neighbor, row_incidences, rows, slot_edge
+
+
+def _tangent_edge_graph(group):
+    """tangent_graph's (EdgeGraph, neighbor, incidences) in node order, cached on the group."""
+    from ..mesh.topology import EdgeGraph
+
+    elements = group.elements
+    cache = group.__dict__.get("_native_tangent_graph")
+    if unchanged(cache, (elements,)):
+        return cache[2]
+    dtype = plan_indices(group.plan)[0].dtype  # the elements' (every index tensor of the op has one dtype)
+    graph = EdgeGraph.build(elements.long(), group.num_nodes)
+    plan = graph.plan
+
+    def native(t):
+        return t.to(dtype).contiguous()
+
+    graph = type(graph)(native(graph.edges), native(graph.element_edges), native(graph.edge_slots),
+                        graph.num_edge_slots, native(graph.edge_counts),
+                        type(plan)(native(plan.index), native(plan.force_index), plan.num_slots, plan.num_nodes,
+                                   native(plan.incidences)), native(graph.slot_edge))
+    plan = graph.plan
+    value = (graph, _edge_neighbors(plan.index, plan.force_index, plan.num_slots, plan.num_nodes),
+             plan.incidences)
+    group.__dict__["_native_tangent_graph"] = ((elements,), (elements._version,), value)
+    return value
+
+
+def tangent_serves(group, u: torch.Tensor, inputs=(), variants: KernelVariants = DEFAULT) -> bool:
+    """Whether :func:`tangent_node_k` serves ``group`` at ``u``: ``variants.node_tangent``, a
+    stress-form stvk or corotational group the ops support, the op compiled, and no gradient wanted
+    through ``u``, ``inputs`` or the group's data (the node graph's products are not differentiable)."""
+    return (variants.node_tangent and group.form == "stress" and group.model != "hooke"
+            and hasattr(torch.ops.tensormass, "stress_tangent_node_k") and supports(group, u)
+            and not wants_grad((u, *inputs, group.shape_vectors, group.measure, group.young, group.poisson)))
+
+
+def tangent_node_k(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None,
+                   out: Optional[torch.Tensor] = None, variants: KernelVariants = DEFAULT) -> torch.Tensor:
+    """The force differential of a stress-form group at displacements ``u [V, d]`` as the slot
+    tensors of its node graph (:func:`tangent_graph`): node_k ``[N_n, V, d, d]`` by the graph's
+    rows, with -H_ij in the slot of (i -> j), H_ij = d f_i / d u_j summed over the elements of the
+    edge, so that ``hooke_node_system`` over (neighbor, node_k, incidences, row_node) is
+    :func:`system_matvec`'s product
+    at u. ``rotations``: the corotational rotations of the linearisation (computed at u when None).
+    Into ``out`` when it has the shape, dtype and device (the step's buffer: CUDA graphs replay
+    into it), else a new tensor. The graph's rows: ``variants.node_graph_window``. Requires
+    :func:`tangent_serves`."""
+    graph, _, incidences, _, slot_edge = tangent_graph(group, variants.node_graph_window)
+    plan = graph.plan
+    d = u.shape[1]
+    shape = (plan.num_slots, u.shape[0], d, d)
+    if out is None or tuple(out.shape) != shape or out.dtype != u.dtype or out.device != u.device:
+        out = u.new_zeros(shape)
+    work_shape = (graph.num_edge_slots, graph.edges.shape[0], 12 if d == 3 else 4)  # blocks padded to 16 bytes
+    work = group.__dict__.get("_native_tangent_work")
+    if work is None or tuple(work.shape) != work_shape or work.dtype != u.dtype or work.device != u.device:
+        work = group.__dict__["_native_tangent_work"] = u.new_empty(work_shape)
+    index, _, _ = plan_indices(group.plan)
+    m, vol, lam, mu, proj, model, _, rotations = stress_args(group, u, rotations)
+    torch.ops.tensormass.stress_tangent_node_k(
+        u.contiguous(), index, m, vol, lam, mu, proj, model, rotations, graph.element_edges, graph.edge_slots,
+        graph.num_edge_slots, graph.edge_counts, slot_edge, incidences, out, work)
+    return out
+
+
+def _node_layout(group, layout: str, inputs, op: str) -> bool:
+    """Whether the hooke tensor form's product runs over the node graph (op ``op``): layout
+    "node", the op compiled, no gradient wanted through ``inputs`` or the edge tensors."""
+    return (group.form == "tensor" and group.model == "hooke" and layout == "node"
+            and hasattr(torch.ops.tensormass, op) and not wants_grad((*inputs, group.edge_k)))
+
+
+def node_graph_of(group, variants: KernelVariants, inputs, op: str, node_k: Optional[torch.Tensor] = None):
+    """(neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, row_node ``[V]`` or
+    None: by rows, :func:`node_graph_rows` in windows of ``variants.node_graph_window``) of the
+    group's CG product over the node graph (op ``op``) where it runs there: a stress-form group's
+    tangent graph with ``node_k`` given (:func:`tangent_node_k` at the linearisation), or the hooke
+    tensor form's own graph (``variants.hooke_matvec`` "node"); no gradient wanted through
+    ``inputs``. None otherwise."""
+    window = variants.node_graph_window
+    if node_k is not None:
+        if not hasattr(torch.ops.tensormass, op) or wants_grad((*inputs, node_k)):
+            return None
+        _, neighbor, incidences, rows, _ = tangent_graph(group, window)
+        return neighbor, node_k, incidences, rows
+    if not _node_layout(group, variants.hooke_matvec, inputs, op):
+        return None
+    return hooke_rows_graph(group, window)
+
+
+def planes_serve(planes, x: torch.Tensor, node_stiffness: Optional[torch.Tensor]) -> bool:
+    """Whether the right-hand side's kernels take these contact ``planes`` (a ``contact.Planes``
+    or None) for positions ``x [V, d]``: none, or 3-D positions, a contact stiffness buffer and
+    planes of x's dtype and device."""
+    return planes is None or (x.shape[1] == 3 and node_stiffness is not None and planes.normals.dtype == x.dtype
+                              and planes.normals.device == x.device)
+
+
+def step_rhs_serves(group, inputs=(), variants: KernelVariants = DEFAULT) -> bool:
+    """Whether :func:`step_rhs` computes ``group``'s step right-hand side in one op: the hooke
+    tensor form over the node graph (``variants.hooke_matvec`` "node"), ``hooke_node_step_rhs``
+    compiled, no gradient wanted through ``inputs``."""
+    return _node_layout(group, variants.hooke_matvec, tuple(inputs), "hooke_node_step_rhs")
+
+
+def step_rhs(group, x: torch.Tensor, v: torch.Tensor, rest: torch.Tensor, mass: torch.Tensor,
+             external: torch.Tensor, planes, h: float, w_coef: float, rayleigh_mass: float, u: torch.Tensor,
+             rhs: torch.Tensor, node_stiffness: Optional[torch.Tensor], variants: KernelVariants = DEFAULT) -> bool:
+    """Implicit Euler's right-hand side for the hooke tensor form in one pass over the nodes
+    (``hooke_node_step_rhs``): into ``rhs [V, d]``, ``h (f((x - rest) + w_coef v) + external +
+    contact(x) - Kc(x) (w_coef v) - r_M mass v)``, with ``u = x - rest`` into ``u [V, d]`` and,
+    with ``planes`` (``contact.Planes``, 3-D), the contact stiffness into ``node_stiffness
+    [V, 3, 3]``. ``mass`` ``[V]``. Returns False, having done nothing, where the op does not serve
+    the group (see :func:`step_rhs_serves`)."""
+    if not step_rhs_serves(group, (x, v, rest, mass, external), variants):
+        return False
+    x, v, rest, mass, external = contiguous(x, v, rest, mass, external)
+    graph = hooke_rows_graph(group, variants.node_graph_window)
+    normals = offsets = stiffness = None
+    if planes is not None:
+        normals, offsets, stiffness = contiguous(planes.normals, planes.offsets, planes.stiffness)
+    torch.ops.tensormass.hooke_node_step_rhs(x, v, rest, *graph, mass, external, normals,
+                                             offsets, stiffness, float(h), float(w_coef), float(rayleigh_mass), u,
+                                             rhs, node_stiffness)
+    return True

@@ -1,0 +1,459 @@
+"""The solve op family (``csrc/solve/``): whole CG solves over the node graph in one op.
+
+    hooke_node_cg         the start (with rhs) and up to ``count`` iterations of the classic CG
+                          with hooke_node_system's product: one persistent kernel on the GPU,
+                          bitwise the op-by-op solve
+    hooke_node_solve      a whole solve from x0 = 0 by the pipelined CG (Chronopoulos-Gear: one
+                          reduction and one grid barrier an iteration); GPU only: returns False,
+                          having done nothing, where it does not fit one wave, or on the CPU
+    hooke_node_solve_step the same solve, then euler_update with its solution as dv
+    hooke_node_steps      ``steps`` implicit Euler steps in one kernel: each hooke_node_step_rhs,
+                          then hooke_node_solve_step
+
+Each op's pure-torch reference (composed from the node-graph and cg families' references: CG's
+iterates in exact arithmetic), fake kernel and example, and the group-level wrappers the solver
+calls (:func:`system_cg`, :func:`system_solve`). The ops write into their arguments; the three
+pipelined ones return whether they ran (their fake kernels: True on a CUDA device, False
+elsewhere, as the CPU kernels do).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import torch
+
+from . import cg as cg_family
+from . import library
+from .cg import ACTIVE, CAPPED, CONVERGED, NONFINITE
+from .library import OpDef, contiguous, plan_indices, unchanged
+from .node_graph import _ref_hooke_node_step_rhs, _ref_hooke_node_system, node_graph_of, planes_serve, step_rhs_serves
+from .segments import ChunkPlan
+from .variants import DEFAULT, KernelVariants
+
+__all__ = ["system_cg", "system_cg_serves", "system_solve", "solve_plan", "chunk_slots", "persistent_cg_fits",
+           "StepEnd", "StepRhs", "steps_serve", "SOLVE_CHUNK_NODES", "STREAM_CHUNK_NODES"]
+
+# ---------------------------------------------------------------------------------------------
+# References
+# ---------------------------------------------------------------------------------------------
+
+
+def _ref_start(rhs, free, tol_sq, plan, s, max_iter):
+    """CG's start from x0 = 0 on the state ``s`` (as ``CGSolver.start``)."""
+    b = rhs if free is None else rhs * free[:, None]
+    s.x.zero_()
+    s.r.copy_(b)
+    s.rhs_sq.copy_(cg_family._object_sums(b * b, plan).to(s.rhs_sq.dtype))
+    s.rr.copy_(s.rhs_sq)
+    s.threshold.copy_(s.rhs_sq * tol_sq)
+    status = torch.where(~torch.isfinite(s.rr), NONFINITE,
+                         torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
+    s.status.copy_(status.to(torch.int32))
+    s.iterations.zero_()
+    s.alpha.zero_()
+    s.beta.zero_()
+    s.p.copy_(s.r)
+
+
+def _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, plan, s, max_iter, count):
+    """Up to ``count`` CG iterations with hooke_node_system's product, stopping once no object is
+    active."""
+    for _ in range(int(count)):
+        if not bool((s.status == ACTIVE).any()):
+            break
+        ap, p_dot_ap = _ref_hooke_node_system(s.p, *graph, mass, free, c_mass, c_stiff, node_stiffness)
+        cg_family._ref_alpha(p_dot_ap, plan, s)
+        cg_family._ref_update(ap, plan, s, max_iter)
+        cg_family._ref_direction(plan, s)
+
+
+def _state(x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations):
+    return cg_family._op_state(x=x, r=r, p=p, threshold=threshold, rhs_sq=rhs_sq, rr=rr, status=status, alpha=alpha,
+                               beta=beta, iterations=iterations)
+
+
+def _ref_hooke_node_cg(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, ap, x,
+                       r, rhs, tol_sq, chunk_start, chunk_object, object_chunk, threshold, rhs_sq, max_iter, count, rr,
+                       status, alpha, beta, iterations, rr_swap, work, sums, *variant):
+    plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
+    s = _state(x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations)
+    if rhs is not None:
+        _ref_start(rhs, free, tol_sq, plan, s, max_iter)
+    _ref_iterations((neighbor, node_k, incidences, row_node), mass, free, c_mass, c_stiff, node_stiffness, plan, s,
+                    max_iter, count)
+
+
+def _ref_solve(graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq, chunk_start, chunk_object,
+               object_chunk, max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations):
+    plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
+    s = _state(x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations)
+    _ref_start(rhs, free, tol_sq, plan, s, max_iter)
+    _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, plan, s, max_iter, max_iter)
+    return plan, s
+
+
+def _ref_hooke_node_solve(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, rhs,
+                          tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter, x, r, p,
+                          threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange, sums, counters, *variant):
+    _ref_solve((neighbor, node_k, incidences, row_node), mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq,
+               chunk_start, chunk_object, object_chunk, max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta,
+               iterations)
+    return True
+
+
+def _ref_hooke_node_solve_step(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
+                               rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter,
+                               x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange, sums,
+                               counters, state_x, state_v, dv_imposed, h, x_new, v_new, norms, summary, end_sums,
+                               end_counter, ring, ring_pos, carry, *variant):
+    _ref_solve((neighbor, node_k, incidences, row_node), mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq,
+               chunk_start, chunk_object, object_chunk, max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta,
+               iterations)
+    cg_family._ref_euler_update(state_x, state_v, x, dv_imposed, h, x_new, v_new, chunk_start, chunk_object,
+                                object_chunk, status, iterations, rr, rhs_sq, norms, summary, end_sums, end_counter,
+                                ring, ring_pos, carry)
+    return True
+
+
+def _ref_hooke_node_steps(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, rest, external, w_coef,
+                          rayleigh_mass, plane_normals, plane_offsets, plane_stiffness, u, rhs, node_stiffness, tol_sq,
+                          chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter, x, r, p,
+                          threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange, sums, counters, state_x,
+                          state_v, h, x_new, v_new, norms, summary, end_sums, end_counter, ring, ring_pos, carry,
+                          steps, *variant):
+    graph = (neighbor, node_k, incidences, row_node)
+    for _ in range(int(steps)):
+        _ref_hooke_node_step_rhs(state_x, state_v, rest, *graph, mass, external, plane_normals, plane_offsets,
+                                 plane_stiffness, h, w_coef, rayleigh_mass, u, rhs, node_stiffness)
+        _ref_hooke_node_solve_step(*graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq, chunk_start,
+                                   chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter, x, r, p, threshold,
+                                   rhs_sq, rr, status, alpha, beta, iterations, exchange, sums, counters, state_x,
+                                   state_v, None, h, x_new, v_new, norms, summary, end_sums, end_counter, ring,
+                                   ring_pos, carry)
+    return True
+
+
+def _fake_ran(*args, **kwargs):
+    """Whether a pipelined solve ran: the CPU kernels never do; on a GPU a traced graph assumes
+    the system fits one wave (the eager call reports it)."""
+    return args[0].device.type == "cuda"
+
+
+def _example(name):
+    def example(device, dtype):
+        ex = library.Example(device, dtype)
+        from .node_graph import OPS as graph_ops
+
+        system_args, _ = graph_ops[0].example(device, dtype)  # hooke_node_system's
+        p, *graph, mass, free, c_mass, c_stiff, node_stiffness = system_args
+        # one object (the example mesh is connected: CG's objects never share an edge), three chunks
+        plan = ChunkPlan.from_segments(cg_family.Segments.from_lengths([ex.num_nodes], device=device), 2)
+        s = cg_family.CGState.empty(plan, tuple(p.shape), dtype, device)
+        rhs = ex.du
+        b = plan.segments.num_objects
+        scalars = (s.threshold, s.rhs_sq)
+        rest = (s.rr, s.status, s.alpha, s.beta, s.iterations)
+        if name == "hooke_node_cg":
+            return (s.p, *graph, mass, free, c_mass, c_stiff, node_stiffness, torch.zeros_like(p), s.x, s.r, rhs, 1e-8,
+                    *plan.tensors(), *scalars, 20, 20, *rest, s.rr_swap, s.work, s.sums), {}
+        exchange = torch.zeros((2, p.shape[0], 4 * p.shape[1]), dtype=dtype, device=device)
+        counters = torch.zeros(3, dtype=torch.int32, device=device)
+        sums = torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=device)
+        solve = (1e-8, *plan.tensors(), SOLVE_CHUNK_NODES, 16, 20, s.x, s.r, s.p, *scalars, *rest, exchange, sums,
+                 counters)
+        if name == "hooke_node_solve":
+            return (*graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, *solve), {}
+        state_x, state_v = ex.rest + ex.u, 0.1 * ex.du
+        end = (torch.empty_like(p), torch.empty_like(p), torch.zeros(b, dtype=dtype, device=device),
+               torch.zeros((5, b), dtype=torch.float64, device=device),
+               torch.zeros(plan.num_chunks, dtype=torch.float64, device=device),
+               torch.zeros(b + 1, dtype=torch.int32, device=device), None, None, True)
+        if name == "hooke_node_solve_step":
+            return (*graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, *solve, state_x, state_v, None, 0.01,
+                    *end), {}
+        planes = (None, None, None)
+        return (*graph, mass, free, c_mass, c_stiff, ex.rest, 9.8 * ex.du, 0.02, 0.1, *planes, torch.empty_like(p),
+                torch.empty_like(p), None, *solve, state_x, state_v, 0.01, *end, 2), {}
+
+    return example
+
+
+#: The pipelined solves return whether they ran (a host-side launch decision: the system fits
+#: one wave of the GPU); torch's functionalization takes no mutating op with a non-tensor result.
+_RETURNS_BOOL = ("returns whether it ran (bool) and writes its arguments: torch's functionalization "
+                 "supports no mutating op with a non-tensor result")
+
+#: The pipelined solves' work buffers, and what Chronopoulos-Gear's recurrences hold otherwise
+#: than the classic CG of the references (p, alpha, beta): x, r, the statuses, iterations and
+#: residual norms are compared.
+_PIPELINED_SCRATCH = ("exchange", "sums", "counters", "end_sums", "end_counter", "p", "alpha", "beta")
+
+OPS = (
+    OpDef("hooke_node_cg", _ref_hooke_node_cg, None, differentiable=False, mutates=True,
+          example=_example("hooke_node_cg"), scratch=("ap", "rr_swap", "work", "sums")),
+    OpDef("hooke_node_solve", _ref_hooke_node_solve, _fake_ran, differentiable=False, mutates=True,
+          example=_example("hooke_node_solve"), scratch=_PIPELINED_SCRATCH, not_traceable=_RETURNS_BOOL),
+    OpDef("hooke_node_solve_step", _ref_hooke_node_solve_step, _fake_ran, differentiable=False, mutates=True,
+          example=_example("hooke_node_solve_step"), scratch=_PIPELINED_SCRATCH, not_traceable=_RETURNS_BOOL),
+    OpDef("hooke_node_steps", _ref_hooke_node_steps, _fake_ran, differentiable=False, mutates=True,
+          example=_example("hooke_node_steps"), scratch=_PIPELINED_SCRATCH, not_traceable=_RETURNS_BOOL),
+)
+library.define(OPS, lambda: library.register(OPS))
+
+# ---------------------------------------------------------------------------------------------
+# Group-level calls: the solver's whole solves
+# ---------------------------------------------------------------------------------------------
+
+
+#: Blocks of the persistent CG kernel resident on each multiprocessor (``kPersistentBlocksPerSM``
+#: of csrc/solve/cg_persistent.cuh: its launch bounds guarantee them).
+PERSISTENT_BLOCKS_PER_SM = 2
+
+
+def persistent_cg_fits(device: torch.device, num_chunks: int) -> bool:
+    """Whether a CG over ``num_chunks`` chunks runs as one op on ``device``: always on the CPU; on a
+    GPU when every chunk has its own resident block of the persistent kernel (one wave). Beyond
+    that the blocks loop over chunks with 16 warps per SM, too few to stream: on an H100 a CG
+    iteration over 5-10M elements took 1.53-1.58x its memory floor so, against 1.37-1.45x with
+    the per-iteration kernels on a full grid (whose launches cost nothing at that size)."""
+    if device.type != "cuda":
+        return True
+    sms = torch.cuda.get_device_properties(device).multi_processor_count
+    return num_chunks <= PERSISTENT_BLOCKS_PER_SM * sms
+
+
+def system_cg_serves(group, inputs=(), num_chunks: int = 0, node_k: Optional[torch.Tensor] = None,
+                     variants: KernelVariants = DEFAULT) -> bool:
+    """Whether :func:`system_cg` solves ``group``'s systems in one op: over a node graph (the hooke
+    tensor form's with ``variants.hooke_matvec`` "node", or a stress-form group's tangent graph
+    with ``node_k`` given), ``hooke_node_cg`` compiled, no gradient wanted through ``inputs``, and
+    a plan of ``num_chunks`` chunks that fits (:func:`persistent_cg_fits`) on the device of
+    ``inputs[0]``."""
+    inputs = tuple(inputs)
+    return (node_graph_of(group, variants, inputs, "hooke_node_cg", node_k) is not None
+            and (not inputs or persistent_cg_fits(inputs[0].device, num_chunks)))
+
+
+def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
+              c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
+              tol: float, plan_tensors, cg_state, max_iter: int, count: int,
+              node_k: Optional[torch.Tensor] = None, variants: KernelVariants = DEFAULT) -> bool:
+    """A whole CG solve of the system of :func:`system_matvec` in one op (``hooke_node_cg``: one
+    persistent kernel on the GPU) on ``cg_state`` (``CGState``; its direction ``p`` is the
+    product's input): with ``rhs [V, d]`` the start from x0 = 0 (rhs projected on
+    ``free``, relative tolerance ``tol``), then up to ``count`` iterations, stopping once no
+    object is active;
+    ``ap [V, d]``: the product's buffer. Bitwise the op-by-op solve. Only for the hooke tensor form
+    over the node graph (``variants.hooke_matvec`` "node") or a tangent graph; returns False, having done nothing,
+    for any other group, where the op is missing or a gradient is wanted."""
+    ops_ns = torch.ops.tensormass
+    s = cg_state
+    if not system_cg_serves(group, (s.p, mass, free, node_stiffness, rhs), s.scratch.numel(), node_k, variants):
+        return False
+    mass, free, node_stiffness, rhs = contiguous(mass, free, node_stiffness, rhs)
+    graph = node_graph_of(group, variants, (), "hooke_node_cg", node_k)
+    ops_ns.hooke_node_cg(s.p, *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness,
+                         ap, s.x, s.r, rhs, float(tol) ** 2, *plan_tensors, s.threshold, s.rhs_sq, int(max_iter),
+                         int(count), s.rr, s.status, s.alpha, s.beta, s.iterations, s.rr_swap, s.work, s.sums,
+                         variants.solve_flags)
+    return True
+
+
+#: Nodes per chunk of the pipelined solve's plan in each layout (csrc/solve/cg_pipelined.cuh
+#: kSolveChunkNodes: two threads a node; kStreamChunkNodes: one).
+SOLVE_CHUNK_NODES = 128
+STREAM_CHUNK_NODES = 256
+_LAYOUT_CHUNK_NODES = {"shared": SOLVE_CHUNK_NODES, "streamed": STREAM_CHUNK_NODES}
+
+
+def solve_plan(plan, layout: str = "shared"):
+    """The chunk plan of :func:`system_solve` in ``layout`` (see ``variants.PIPELINED_LAYOUTS``) for the
+    objects of ``plan`` (a ``ChunkPlan``): chunks of at most :data:`SOLVE_CHUNK_NODES` ("shared")
+    or :data:`STREAM_CHUNK_NODES` ("streamed") nodes, one GPU block each. Cached on ``plan``."""
+    if layout not in _LAYOUT_CHUNK_NODES:
+        raise ValueError(f"layout must be one of {sorted(_LAYOUT_CHUNK_NODES)}, got {layout!r}")
+    plans = plan.__dict__.setdefault("_solve_plans", {})
+    if layout not in plans:
+        plans[layout] = type(plan).from_segments(plan.segments, _LAYOUT_CHUNK_NODES[layout])
+    return plans[layout]
+
+
+def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
+    """The most slots of any chunk of ``plan`` (the sum of the node graph's incidences over its
+    nodes): the shared memory a block of the pipelined solve needs. ``incidences``: the node
+    graph's ``[V]`` (that of the group's plan when None: the hooke tensor form). A host
+    synchronisation the first time; cached on the group while the plan and its incidences are the
+    same."""
+    if incidences is None:
+        _, _, incidences = plan_indices(group.plan)
+    cache = group.__dict__.get("_solve_chunk_slots")
+    if cache is not None and cache[0] is plan and unchanged(cache[1], (incidences,)):
+        return cache[2]
+    prefix = torch.zeros(incidences.numel() + 1, dtype=torch.int64, device=incidences.device)
+    torch.cumsum(incidences.long(), 0, out=prefix[1:])
+    starts = plan.chunk_start.to(incidences.device)
+    value = int((prefix[starts[1:]] - prefix[starts[:-1]]).max()) if plan.num_chunks else 0
+    group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), value)
+    return value
+
+
+@dataclasses.dataclass
+class StepEnd:
+    """The end of an implicit Euler step for the solve that computes its ``dv`` to do in its own
+    kernel (:func:`system_solve`: ``hooke_node_solve_step``), as ``euler_update`` does it:
+    ``v_new = v + dv (+ dv_imposed)``, ``x_new = x + h v_new`` (all ``[V, d]``; ``carry``: also
+    into ``x, v``), each object's ``|v_new|^2`` into ``norms [B]``, the step's summary into
+    ``summary [5, B]`` float64 and, with a ``ring [R, 5, B]``, its row ``ring_pos [1]`` (then
+    advanced). ``done``: set by the solve that did it (else the caller runs ``euler_update``)."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    dv_imposed: Optional[torch.Tensor]
+    h: float
+    x_new: torch.Tensor
+    v_new: torch.Tensor
+    norms: torch.Tensor
+    summary: torch.Tensor
+    ring: Optional[torch.Tensor] = None
+    ring_pos: Optional[torch.Tensor] = None
+    carry: bool = False
+    done: bool = False
+    #: the step's right-hand side for the solve to compute first (``StepRhs``; the solve's rhs is
+    #: then its output), ``steps`` steps back to back (needs ``carry`` beyond one): one kernel
+    #: for all of them (``hooke_node_steps``) where it serves, else nothing is done
+    rhs: Optional["StepRhs"] = None
+    steps: int = 1
+
+
+@dataclasses.dataclass
+class StepRhs:
+    """What the solve needs to compute implicit Euler's right-hand side itself, at the state
+    ``StepEnd.x, StepEnd.v`` (``hooke_node_steps``), as :func:`step_rhs` does:
+    ``rhs = h (f((x - rest) + w_coef v) + external + contact(x) - Kc(x) (w_coef v) - r_M mass v)``,
+    ``u = x - rest`` into ``u [V, d]`` (``rest, external [V, d]``) and, with ``planes`` (a
+    ``contact.Planes``), Kc into the solve's ``node_stiffness [V, 3, 3]``, which its products
+    then read."""
+
+    rest: torch.Tensor
+    external: torch.Tensor
+    w_coef: float
+    rayleigh_mass: float
+    u: torch.Tensor
+    planes: Optional[object] = None
+
+
+class _SolveWork:
+    """The pipelined solve's work on one CG state, for one plan, graph (its ``incidences``), and
+    ``key`` (the right-hand side's shape and dtype, the layouts to try): the
+    exchange rows ``[2, V, 4d]``, the counters, the chunk sums of each layout tried, and what the
+    tries found (``layout``: the one that ran; ``misfits``: those that did not fit, not tried
+    again: each try is a launch attempt, on every step)."""
+
+    def __init__(self, plan, incidences: torch.Tensor, key, rhs: torch.Tensor):
+        self.plan, self.incidences, self.key = plan, incidences, key
+        self.exchange = torch.zeros((2, rhs.shape[0], 4 * rhs.shape[1]), dtype=rhs.dtype, device=rhs.device)
+        self.counters = torch.zeros(3, dtype=torch.int32, device=rhs.device)
+        self.sums = {}
+        self.end_work = {}
+        self.layout = None
+        self.misfits = set()
+
+    def sums_of(self, layout: str, plan) -> torch.Tensor:
+        if layout not in self.sums:
+            self.sums[layout] = torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=self.exchange.device)
+        return self.sums[layout]
+
+    def end_work_of(self, layout: str, plan):
+        """The step end's chunk sums ``[K]`` float64 and object counters ``[B + 1]`` int32 (zero
+        between calls) in ``layout``."""
+        if layout not in self.end_work:
+            device = self.exchange.device
+            self.end_work[layout] = (torch.zeros(plan.num_chunks, dtype=torch.float64, device=device),
+                                     torch.zeros(plan.object_chunk.numel(), dtype=torch.int32, device=device))
+        return self.end_work[layout]
+
+
+def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float, c_stiff: float,
+                 node_stiffness: Optional[torch.Tensor], rhs: torch.Tensor, tol: float, plan, cg_state,
+                 max_iter: int, node_k: Optional[torch.Tensor] = None, step_end: Optional[StepEnd] = None,
+                 variants: KernelVariants = DEFAULT) -> bool:
+    """A whole CG solve from x0 = 0 of :func:`system_matvec`'s system (rhs ``[V, d]`` projected on
+    ``free``; relative tolerance ``tol``; at most ``max_iter`` iterations) by the pipelined CG
+    (``hooke_node_solve``: Chronopoulos-Gear, one reduction and one grid barrier an iteration, one
+    persistent kernel) into ``cg_state`` (a ``CGState`` over ``plan``: x, r, p, the per-object
+    scalars and statuses), in the first of ``variants.pipelined_layouts`` that fits. CG's iterates
+    in exact arithmetic, rounded differently from :func:`system_cg`'s. Returns False, having done
+    nothing, where it does not serve: not a CUDA tensor, no node graph
+    (``node_k``: as in :func:`system_matvec`), a gradient wanted, or a system too large for one
+    wave of the kernel in every layout. ``step_end``: the implicit Euler step's end, done in the
+    same kernel (``hooke_node_solve_step``; its ``done`` set) where ``variants.fused_step_end``; with
+    its ``rhs`` (a :class:`StepRhs`), ``rhs`` is this solve's output: its ``steps`` steps, each
+    its right-hand side, solve and end, in one kernel (``hooke_node_steps``) where
+    :func:`steps_serve`, else nothing is done."""
+    s = cg_state
+    if not rhs.is_cuda:
+        return False
+    if step_end is not None and step_end.rhs is not None and not steps_serve(group, node_stiffness, node_k, step_end,
+                                                                               variants):
+        return False
+    graph = node_graph_of(group, variants, (s.p, mass, free, node_stiffness, rhs), "hooke_node_solve", node_k)
+    if graph is None:
+        return False
+    layouts = variants.pipelined_layouts
+    key = (tuple(rhs.shape), rhs.dtype, layouts)
+    work = s.__dict__.get("_solve_work")
+    if work is None or work.plan is not plan or work.incidences is not graph[2] or work.key != key:
+        work = s.__dict__["_solve_work"] = _SolveWork(plan, graph[2], key, rhs)
+    mass, free, node_stiffness, rhs = contiguous(mass, free, node_stiffness, rhs)
+    for layout in ((work.layout,) if work.layout is not None else layouts):
+        if layout in work.misfits:
+            continue
+        layout_plan = solve_plan(plan, layout)
+        slots = chunk_slots(group, layout_plan, graph[2]) if layout == "shared" else 0
+        system = (*graph, mass, free, float(c_mass), float(c_stiff))
+        solve = (float(tol) ** 2, *layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter), s.x, s.r,
+                 s.p, s.threshold, s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, work.exchange,
+                 work.sums_of(layout, layout_plan), work.counters)
+        kernel = (variants.solve_flags, variants.stream_cache_slots)
+        args = (*system, node_stiffness, rhs, *solve)
+        if step_end is not None and step_end.rhs is not None:
+            e, in_solve = step_end, step_end.rhs
+            planes = (None,) * 3 if in_solve.planes is None else contiguous(
+                in_solve.planes.normals, in_solve.planes.offsets, in_solve.planes.stiffness)
+            ran = bool(torch.ops.tensormass.hooke_node_steps(
+                *system, in_solve.rest, in_solve.external, float(in_solve.w_coef), float(in_solve.rayleigh_mass),
+                *planes, in_solve.u, rhs, node_stiffness, *solve, e.x, e.v, float(e.h), e.x_new, e.v_new, e.norms,
+                e.summary, *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry), int(e.steps),
+                *kernel))
+            e.done = ran
+        elif step_end is not None and variants.fused_step_end:
+            e = step_end
+            ran = bool(torch.ops.tensormass.hooke_node_solve_step(
+                *args, e.x, e.v, e.dv_imposed, float(e.h), e.x_new, e.v_new, e.norms, e.summary,
+                *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry), *kernel))
+            e.done = ran
+        else:
+            ran = bool(torch.ops.tensormass.hooke_node_solve(*args, *kernel))
+        if ran:
+            work.layout = layout
+            return True
+        work.layout = None
+        work.misfits.add(layout)
+    return False
+
+
+def steps_serve(group, node_stiffness: Optional[torch.Tensor], node_k: Optional[torch.Tensor],
+                step_end: StepEnd, variants: KernelVariants = DEFAULT) -> bool:
+    """Whether ``hooke_node_steps`` serves these steps: ``variants.solve_step_rhs`` and
+    ``variants.fused_step_end`` (its solve ends each step), the hooke tensor
+    form's own node graph (``node_k`` None; :func:`step_rhs_serves`), a contact stiffness buffer
+    exactly where there are planes (3-D, of the state's dtype and device), no imposed velocity,
+    and ``carry`` where the steps are more than one. (The solve may still not fit the device:
+    :func:`system_solve` says.)"""
+    e = step_end
+    if (e.rhs.planes is None) != (node_stiffness is None) or not planes_serve(e.rhs.planes, e.x, node_stiffness):
+        return False
+    return (variants.solve_step_rhs and variants.fused_step_end and hasattr(torch.ops.tensormass, "hooke_node_steps")
+            and node_k is None and e.dv_imposed is None and (e.carry or e.steps == 1) and e.steps >= 1
+            and step_rhs_serves(group, (e.x, e.v, e.rhs.rest, e.rhs.external), variants))
