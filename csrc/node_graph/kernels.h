@@ -67,8 +67,8 @@ struct PaddedBlock {
 // own dforces, D evaluations an item (the same function the element path of the CG calls, so
 // both are one formula). Each block goes to edge_partial[edge_slot[e][p]][element_edges[e][p]]
 // oriented from the pair's lower global node to its higher (transposed where idx[a] > idx[b]),
-// whole. (One item an element, all (NN - 1) D evaluations, left 16 warps a multiprocessor at
-// 128 registers to hide its loads: 220 us on the paper beam.)
+// whole. (One item an element, all (NN - 1) D evaluations, needs too many registers to keep
+// enough warps resident to hide its loads: docs/performance-history.md.)
 template <int MODEL, int NN, int D, typename S, typename I>
 struct TangentElementKernel {
   static constexpr bool kMembrane = NN - 1 < D;
@@ -154,9 +154,8 @@ struct TangentEdgeKernel {
 // Kernel 3: one item per value (r, q) of a row's block (the rows of the node graph,
 // HookeNodeGraph), over the row's used slots s: node_k [s][r] holds -H_g where the row's node is
 // the first node of the slot's edge g (slot_edge = g), -H_g^T where it is the second (slot_edge =
-// ~g). The D*D items of a row are consecutive, so each slot's stores are side by side. (On the
-// paper beam: 38 us; one item per slot, D*D strided stores each, 74 us; one item per value of
-// node_k, 65 us.) Slots beyond a row's incidences are not written.
+// ~g). The D*D items of a row are consecutive, so each slot's stores are side by side (the
+// layouts compared: docs/performance-history.md). Slots beyond a row's incidences are not written.
 template <int D, typename S, typename I>
 struct TangentSlotKernel {
   using Block = PaddedBlock<D, S>;

@@ -95,7 +95,7 @@ def _example(name):
         gen = torch.Generator().manual_seed(5)
         compact = torch.randn((ex.elements.shape[0], ex.elements.shape[1], ex.dim), generator=gen)
         compact = compact.to(device=device, dtype=dtype)
-        partial = _ref_node_scatter(compact, ex)
+        partial = library.scatter(compact, ex.elements.long(), ex.force_index.long(), ex.num_slots, ex.num_nodes)
         system = (partial, ex.incidences, ex.du, ex.mass, ex.free, 1.5, 0.25)
         if name == "gather_partial":
             return (partial, ex.incidences, None), {}
@@ -108,10 +108,6 @@ def _example(name):
         return (*system, None, torch.zeros_like(ex.du), *plan, rr, status, alpha, scratch, counter), {}
 
     return example
-
-
-def _ref_node_scatter(compact, ex):
-    return library.scatter(compact, ex.elements.long(), ex.force_index.long(), ex.num_slots, ex.num_nodes)
 
 
 OPS = (

@@ -214,9 +214,9 @@ PERSISTENT_BLOCKS_PER_SM = 2
 def persistent_cg_fits(device: torch.device, num_chunks: int) -> bool:
     """Whether a CG over ``num_chunks`` chunks runs as one op on ``device``: always on the CPU; on a
     GPU when every chunk has its own resident block of the persistent kernel (one wave). Beyond
-    that the blocks loop over chunks with 16 warps per SM, too few to stream: on an H100 a CG
-    iteration over 5-10M elements took 1.53-1.58x its memory floor so, against 1.37-1.45x with
-    the per-iteration kernels on a full grid (whose launches cost nothing at that size)."""
+    that the blocks loop over chunks with 16 warps per SM, too few to stream memory as well as the
+    per-iteration kernels on a full grid, whose launches cost nothing at that size
+    (docs/performance-history.md)."""
     if device.type != "cuda":
         return True
     sms = torch.cuda.get_device_properties(device).multi_processor_count
