@@ -161,9 +161,9 @@ inline int64_t values_per_node(const at::Tensor& t) { return t.size(0) ? t.numel
 
 // The ops' structs over their tensors (checked by check_euler_update).
 template <typename S>
-inline EulerUpdate<S> euler_update_of(at::Tensor& x, at::Tensor& v, const at::Tensor& dv,
-                                      const c10::optional<at::Tensor>& dv_imposed, double h, at::Tensor& x_new,
-                               at::Tensor& v_new, bool carry) {
+inline EulerUpdate<S> euler_update_of(const at::Tensor& x, const at::Tensor& v, const at::Tensor& dv,
+                                      const c10::optional<at::Tensor>& dv_imposed, double h, const at::Tensor& x_new,
+                                      const at::Tensor& v_new, bool carry) {
   const bool imposed = dv_imposed.has_value() && dv_imposed->defined();
   return EulerUpdate<S>{x.data_ptr<S>(), v.data_ptr<S>(), dv.data_ptr<S>(), imposed ? dv_imposed->data_ptr<S>() : nullptr,
                         static_cast<S>(h), x_new.data_ptr<S>(), v_new.data_ptr<S>(), carry, values_per_node(x)};
@@ -171,8 +171,9 @@ inline EulerUpdate<S> euler_update_of(at::Tensor& x, at::Tensor& v, const at::Te
 
 template <typename S>
 inline StepSummary<S> step_summary_of(const at::Tensor& status, const at::Tensor& iterations, const at::Tensor& rr,
-                               const at::Tensor& rhs_sq, at::Tensor& norms, at::Tensor& summary,
-                               const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos) {
+                                      const at::Tensor& rhs_sq, const at::Tensor& norms, const at::Tensor& summary,
+                                      const c10::optional<at::Tensor>& ring,
+                                      const c10::optional<at::Tensor>& ring_pos) {
   const bool has_ring = ring.has_value() && ring->defined();
   return StepSummary<S>{status.data_ptr<int32_t>(), iterations.data_ptr<int32_t>(), rr.data_ptr<S>(),
                         rhs_sq.data_ptr<S>(), norms.data_ptr<S>(), summary.data_ptr<double>(),

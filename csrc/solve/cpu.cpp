@@ -1,6 +1,7 @@
 // CPU implementations of the solve ops (ops.h). The CPU has no persistent kernel: hooke_node_cg runs
 // the CG ops' functions in a loop (common/cg_chunks.h: cg_run_cpu), bitwise the op-by-op solve, and
-// the pipelined solves (hooke_node_solve, _step, hooke_node_steps) return false, having done nothing.
+// the pipelined solves (hooke_node_solve, _step, hooke_node_steps) raise NotImplementedError, having
+// done nothing.
 #include <torch/library.h>
 
 #include "common/cg.h"
@@ -19,7 +20,7 @@ struct CpuSolveLauncher : CpuLauncher {
   }
 
   // The pipelined CG is a GPU kernel (its point is one grid barrier an iteration); the CPU solves
-  // with run_cg: false, nothing done.
+  // with run_cg: false, nothing done (the op raises).
   template <class K, typename S>
   static bool run_solve(const CGPlan&, const K&, const PipelinedSolve<S>&) {
     return false;

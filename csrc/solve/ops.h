@@ -8,9 +8,11 @@
 
 #include <ATen/core/Tensor.h>
 #include <ATen/MemoryOverlap.h>
+#include <ATen/core/List.h>
 #include <c10/util/Optional.h>
 #include <torch/library.h>
 
+#include <array>
 #include <cstdint>
 #include <string>
 #include <type_traits>
@@ -24,45 +26,122 @@
 
 namespace tensormass {
 
+// The packed arguments of the solve ops (schema.cpp names their members), unpacked once here:
+// the kernels see the same structs as before the packing.
+using OptionalTensorList = c10::List<c10::optional<at::Tensor>>;
+
+// `list` [N] of the tensors `names` (every one defined), or a clear error naming the argument.
+template <size_t N>
+std::array<at::Tensor, N> unpack_tensors(at::TensorList list, const char* what, const char* const (&names)[N]) {
+  std::string expected;
+  for (size_t i = 0; i < N; ++i) expected += std::string(i ? ", " : "") + names[i];
+  TORCH_CHECK(list.size() == N, "tensormass: ", what, " must be the ", std::to_string(N), " tensors [", expected,
+              "], got ", std::to_string(list.size()));
+  std::array<at::Tensor, N> out;
+  for (size_t i = 0; i < N; ++i) {
+    TORCH_CHECK(list[i].defined(), "tensormass: ", what, "[", std::to_string(i), "] (", names[i], ") is undefined");
+    out[i] = list[i];
+  }
+  return out;
+}
+
+// `list` [N] of the optional tensors `names`; those marked `required` must be given.
+template <size_t N>
+std::array<c10::optional<at::Tensor>, N> unpack_optional_tensors(const OptionalTensorList& list, const char* what,
+                                                                 const char* const (&names)[N],
+                                                                 const bool (&required)[N]) {
+  std::string expected;
+  for (size_t i = 0; i < N; ++i) expected += std::string(i ? ", " : "") + names[i] + (required[i] ? "" : "?");
+  TORCH_CHECK(list.size() == N, "tensormass: ", what, " must be the ", std::to_string(N), " tensors [", expected,
+              "], got ", std::to_string(list.size()));
+  std::array<c10::optional<at::Tensor>, N> out;
+  for (size_t i = 0; i < N; ++i) {
+    c10::optional<at::Tensor> value = list.get(i);
+    if (value.has_value() && !value->defined()) value = c10::nullopt;
+    TORCH_CHECK(!required[i] || value.has_value(), "tensormass: ", what, "[", std::to_string(i), "] (", names[i],
+                ") is None");
+    out[i] = value;
+  }
+  return out;
+}
+
+// system = [neighbor, node_k, incidences, row_node?, mass, free?]: hooke_node_system's graph and
+// epilogue (node_graph/schema.cpp).
+struct SystemTensors {
+  at::Tensor neighbor, node_k, incidences;
+  c10::optional<at::Tensor> row_node;
+  at::Tensor mass;
+  c10::optional<at::Tensor> free;
+
+  explicit SystemTensors(const OptionalTensorList& system) {
+    static const char* const names[] = {"neighbor", "node_k", "incidences", "row_node", "mass", "free"};
+    static const bool required[] = {true, true, true, false, true, false};
+    auto t = unpack_optional_tensors(system, "system", names, required);
+    neighbor = *t[0], node_k = *t[1], incidences = *t[2], row_node = t[3], mass = *t[4], free = t[5];
+  }
+};
+
+// plan = [chunk_start [K + 1], chunk_object [K], object_chunk [B + 1]]: the chunk plan.
+struct PlanTensors {
+  at::Tensor chunk_start, chunk_object, object_chunk;
+
+  explicit PlanTensors(at::TensorList plan) {
+    static const char* const names[] = {"chunk_start", "chunk_object", "object_chunk"};
+    auto t = unpack_tensors(plan, "plan", names);
+    chunk_start = t[0], chunk_object = t[1], object_chunk = t[2];
+  }
+};
+
+// cg = [x, r, p [V, d], threshold, rhs_sq, rr, alpha, beta [B], status, iterations [B] int32]:
+// the CG state (Python: ops.cg.CGState), written.
+struct CGTensors {
+  at::Tensor x, r, p, threshold, rhs_sq, rr, alpha, beta, status, iterations;
+
+  explicit CGTensors(at::TensorList cg) {
+    static const char* const names[] = {"x",  "r",     "p",    "threshold", "rhs_sq",
+                                        "rr", "alpha", "beta", "status",    "iterations"};
+    auto t = unpack_tensors(cg, "cg", names);
+    x = t[0], r = t[1], p = t[2], threshold = t[3], rhs_sq = t[4], rr = t[5], alpha = t[6], beta = t[7];
+    status = t[8], iterations = t[9];
+  }
+};
+
 // The checks every whole-solve op makes of its iterates [V, d] (like `like`), per-object scalars
 // [B] and cap; returns the chunk plan.
-inline CGPlan check_cg_iterates(const at::Tensor& like, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
-                                const at::Tensor& object_chunk, const at::Tensor& x, const at::Tensor& r,
-                                const at::Tensor& threshold, const at::Tensor& rhs_sq, const at::Tensor& rr,
-                                const at::Tensor& alpha, const at::Tensor& beta, const at::Tensor& status,
-                                const at::Tensor& iterations, int64_t max_iter) {
+inline CGPlan check_cg_iterates(const at::Tensor& like, const PlanTensors& plan_tensors, const CGTensors& cg,
+                                int64_t max_iter) {
   TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
-  const CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, like, like.size(0));
+  const CGPlan plan =
+      cg_plan(plan_tensors.chunk_start, plan_tensors.chunk_object, plan_tensors.object_chunk, like, like.size(0));
   TORCH_CHECK(plan.num_chunks == 0 || like.size(0) > 0, "tensormass: a chunk plan over no nodes");
-  cg_check(x, "x", like, like.scalar_type(), like.sizes());
-  cg_check(r, "r", like, like.scalar_type(), like.sizes());
-  for (const auto& named : {std::make_pair(&threshold, "threshold"), std::make_pair(&rhs_sq, "rhs_sq"),
-                            std::make_pair(&rr, "rr"), std::make_pair(&alpha, "alpha"), std::make_pair(&beta, "beta")}) {
+  cg_check(cg.x, "x", like, like.scalar_type(), like.sizes());
+  cg_check(cg.r, "r", like, like.scalar_type(), like.sizes());
+  cg_check(cg.p, "p", like, like.scalar_type(), like.sizes());
+  for (const auto& named : {std::make_pair(&cg.threshold, "threshold"), std::make_pair(&cg.rhs_sq, "rhs_sq"),
+                            std::make_pair(&cg.rr, "rr"), std::make_pair(&cg.alpha, "alpha"),
+                            std::make_pair(&cg.beta, "beta")}) {
     cg_check_scalars(*named.first, named.second, like, plan.num_objects);
   }
-  cg_check_state(status, "status", like, plan.num_objects);
-  cg_check_state(iterations, "iterations", like, plan.num_objects);
+  cg_check_state(cg.status, "status", like, plan.num_objects);
+  cg_check_state(cg.iterations, "iterations", like, plan.num_objects);
   return plan;
 }
 
 // The iterates and per-object scalars of a whole-solve op, from its tensors (checked by the op).
 template <typename S>
-void set_cg_iterates(CGIterates<S>& s, const at::Tensor& x, const at::Tensor& r, const at::Tensor& p,
-                     const S* rhs, double tol_sq, const at::Tensor& threshold, const at::Tensor& rhs_sq,
-                     const at::Tensor& rr, const at::Tensor& alpha, const at::Tensor& beta, const at::Tensor& status,
-                     const at::Tensor& iterations, int64_t max_iter) {
-  s.x = x.data_ptr<S>();
-  s.r = r.data_ptr<S>();
-  s.p = p.data_ptr<S>();
+void set_cg_iterates(CGIterates<S>& s, const CGTensors& cg, const S* rhs, double tol_sq, int64_t max_iter) {
+  s.x = cg.x.data_ptr<S>();
+  s.r = cg.r.data_ptr<S>();
+  s.p = cg.p.data_ptr<S>();
   s.rhs = rhs;
   s.tol_sq = static_cast<S>(tol_sq);
-  s.threshold = threshold.data_ptr<S>();
-  s.rhs_sq = rhs_sq.data_ptr<S>();
-  s.rr = rr.data_ptr<S>();
-  s.alpha = alpha.data_ptr<S>();
-  s.beta = beta.data_ptr<S>();
-  s.status = status.data_ptr<int32_t>();
-  s.iterations = iterations.data_ptr<int32_t>();
+  s.threshold = cg.threshold.data_ptr<S>();
+  s.rhs_sq = cg.rhs_sq.data_ptr<S>();
+  s.rr = cg.rr.data_ptr<S>();
+  s.alpha = cg.alpha.data_ptr<S>();
+  s.beta = cg.beta.data_ptr<S>();
+  s.status = cg.status.data_ptr<int32_t>();
+  s.iterations = cg.iterations.data_ptr<int32_t>();
   s.max_iter = max_iter;
 }
 
@@ -72,35 +151,36 @@ void set_cg_iterates(CGIterates<S>& s, const at::Tensor& x, const at::Tensor& r,
 // stops early once no object is active. On the GPU one persistent kernel (no launch and no host
 // round trip per iteration); on the CPU the CG ops' functions in a loop. Either way the result is
 // bitwise the op-by-op solve (hooke_node_system_alpha, cg_update, cg_direction) over the same
-// chunk plan. Buffers: the CG state (x, r, p [V, d]; threshold, rhs_sq, rr, alpha, beta [B];
-// status, iterations [B] int32), ap [V, d], and the persistent kernel's work: rr_swap [B],
-// work [3B + 2] int32, sums [2K] float64.
+// chunk plan. cg's p is the product's input. buffers = [ap [V, d], rr_swap [B], work [3B + 2]
+// int32, sums [2K] float64]: the product and the persistent kernel's work.
 template <class L>
-void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                   const c10::optional<at::Tensor>& row_node, const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
-                   const c10::optional<at::Tensor>& node_stiffness, at::Tensor ap, at::Tensor x, at::Tensor r,
-                   const c10::optional<at::Tensor>& rhs, double tol_sq, const at::Tensor& chunk_start,
-                   const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor threshold,
-                   at::Tensor rhs_sq, int64_t max_iter, int64_t count, at::Tensor rr, at::Tensor status,
-                   at::Tensor alpha, at::Tensor beta, at::Tensor iterations, at::Tensor rr_swap, at::Tensor work,
-                   at::Tensor sums, int64_t flags) {
+void hooke_node_cg(const OptionalTensorList& system_list, double c_mass, double c_stiff,
+                   const c10::optional<at::Tensor>& node_stiffness, const c10::optional<at::Tensor>& rhs,
+                   double tol_sq, at::TensorList plan_list, int64_t max_iter, int64_t count, at::TensorList cg_list,
+                   at::TensorList buffers, int64_t flags) {
+  const SystemTensors sys(system_list);
+  const PlanTensors plan_tensors(plan_list);
+  const CGTensors cg(cg_list);
+  static const char* const buffer_names[] = {"ap", "rr_swap", "work", "sums"};
+  const std::array<at::Tensor, 4> unpacked = unpack_tensors(buffers, "buffers", buffer_names);
+  at::Tensor ap = unpacked[0];  // the product's output (run_hooke_node_system writes it)
+  const at::Tensor &rr_swap = unpacked[1], &work = unpacked[2], &sums = unpacked[3];
+  const at::Tensor& p = cg.p;
   check_values(p, "p");
-  TORCH_CHECK(ap.defined(), "tensormass: ap is undefined");
   TORCH_CHECK(count >= 0, "tensormass: count must be >= 0, got ", std::to_string(count));
-  const CGPlan plan = check_cg_iterates(p, chunk_start, chunk_object, object_chunk, x, r, threshold, rhs_sq, rr, alpha,
-                                        beta, status, iterations, max_iter);
+  const CGPlan plan = check_cg_iterates(p, plan_tensors, cg, max_iter);
   const bool start = rhs.has_value() && rhs->defined();
   if (start) cg_check(*rhs, "rhs", p, p.scalar_type(), p.sizes());
+  cg_check(ap, "ap", p, p.scalar_type(), p.sizes());
   cg_check_scalars(rr_swap, "rr_swap", p, plan.num_objects);
   cg_check(work, "work", p, at::kInt, {3 * plan.num_objects + 2});
   cg_check(sums, "sums", p, at::kDouble, {2 * plan.num_chunks});
   at::Tensor no_dots;
-  run_hooke_node_system<L>(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, ap,
-                           no_dots, [&](const auto& k, int64_t) {
+  run_hooke_node_system<L>(p, sys.neighbor, sys.node_k, sys.incidences, sys.row_node, sys.mass, sys.free, c_mass,
+                           c_stiff, node_stiffness, ap, no_dots, [&](const auto& k, int64_t) {
     using S = typename std::decay_t<decltype(k)>::Scalar;
     CGRun<S> s;
-    set_cg_iterates<S>(s, x, r, p, start ? rhs->data_ptr<S>() : nullptr, tol_sq, threshold, rhs_sq, rr, alpha, beta,
-                       status, iterations, max_iter);
+    set_cg_iterates<S>(s, cg, start ? rhs->data_ptr<S>() : nullptr, tol_sq, max_iter);
     s.ap = ap.data_ptr<S>();
     s.free = k.epilogue.free;
     s.rr_swap = rr_swap.data_ptr<S>();
@@ -113,7 +193,20 @@ void hooke_node_cg(at::Tensor p, const at::Tensor& neighbor, const at::Tensor& n
   });
 }
 
-// The step's end handed to hooke_node_solve_step (euler_update's tensors; dv is the solve's x).
+// The pipelined solve's buffers = [exchange [2, V, 4d], sums [4K] float64, counters [3] int32].
+struct SolveBuffers {
+  at::Tensor exchange, sums, counters;
+
+  explicit SolveBuffers(at::TensorList buffers) {
+    static const char* const names[] = {"exchange", "sums", "counters"};
+    auto t = unpack_tensors(buffers, "buffers", names);
+    exchange = t[0], sums = t[1], counters = t[2];
+  }
+};
+
+// The step's end handed to hooke_node_solve_step (euler_update's tensors; dv is the solve's x):
+// step = [state_x, state_v, x_new, v_new [V, d], norms [B], summary [5, B] float64, end_sums [K]
+// float64, end_counter [B + 1] int32].
 struct StepEndTensors {
   at::Tensor x, v;
   c10::optional<at::Tensor> dv_imposed;
@@ -121,6 +214,15 @@ struct StepEndTensors {
   at::Tensor x_new, v_new, norms, summary, sums, counter;
   c10::optional<at::Tensor> ring, ring_pos;
   bool carry;
+
+  StepEndTensors(at::TensorList step, const c10::optional<at::Tensor>& dv_imposed_, double h_,
+                 const c10::optional<at::Tensor>& ring_, const c10::optional<at::Tensor>& ring_pos_, bool carry_)
+      : dv_imposed(dv_imposed_), h(h_), ring(ring_), ring_pos(ring_pos_), carry(carry_) {
+    static const char* const names[] = {"state_x", "state_v", "x_new", "v_new",
+                                        "norms",   "summary", "end_sums", "end_counter"};
+    auto t = unpack_tensors(step, "step", names);
+    x = t[0], v = t[1], x_new = t[2], v_new = t[3], norms = t[4], summary = t[5], sums = t[6], counter = t[7];
+  }
 };
 
 // The right-hand side that hooke_node_steps computes before each solve (StepRhs).
@@ -138,36 +240,41 @@ inline void check_no_overlap(const at::Tensor& written, const char* written_name
               " shares memory with ", other_name, "; they must be separate tensors");
 }
 
+// What every pipelined solve op takes: the system, its right-hand side and the chunk plan's promise.
+struct SolveInputs {
+  const SystemTensors& sys;
+  double c_mass, c_stiff;
+  const c10::optional<at::Tensor>& node_stiffness;
+  const at::Tensor& rhs;
+  double tol_sq;
+  const PlanTensors& plan;
+  int64_t chunk_nodes, chunk_slots, max_iter;
+};
+
+// The pipelined solve (ops below): checks every input, then launches the one kernel, which raises
+// NotImplementedError, having changed nothing, where the solve does not fit the device in one
+// wave in either layout (or on the CPU, which has no such kernel).
 template <class L>
-bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                          const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
-                          const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
-                          const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
-                          const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
-                          int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r,
-                          at::Tensor p, at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status,
-                          at::Tensor alpha, at::Tensor beta, at::Tensor iterations, at::Tensor exchange,
-                          at::Tensor sums, at::Tensor counters, int64_t flags, int64_t cache_slots,
-                          StepEndTensors* end, const StepRhsTensors* step_rhs = nullptr) {
+void run_hooke_node_solve(const SolveInputs& in, const CGTensors& cg, const SolveBuffers& buffers, int64_t flags,
+                          int64_t cache_slots, const StepEndTensors* end, const StepRhsTensors* step_rhs = nullptr) {
+  const at::Tensor& rhs = in.rhs;
   TORCH_CHECK(cache_slots >= -1, "tensormass: cache_slots must be >= -1, got ", std::to_string(cache_slots));
   check_values(rhs, "rhs");
-  TORCH_CHECK(chunk_nodes >= 1, "tensormass: chunk_nodes must be >= 1, got ", std::to_string(chunk_nodes));
-  TORCH_CHECK(chunk_slots >= 0, "tensormass: chunk_slots must be >= 0, got ", std::to_string(chunk_slots));
-  const CGPlan plan = check_cg_iterates(rhs, chunk_start, chunk_object, object_chunk, x, r, threshold, rhs_sq, rr, alpha,
-                                        beta, status, iterations, max_iter);
-  cg_check(p, "p", rhs, rhs.scalar_type(), rhs.sizes());
+  TORCH_CHECK(in.chunk_nodes >= 1, "tensormass: chunk_nodes must be >= 1, got ", std::to_string(in.chunk_nodes));
+  TORCH_CHECK(in.chunk_slots >= 0, "tensormass: chunk_slots must be >= 0, got ", std::to_string(in.chunk_slots));
+  const CGPlan plan = check_cg_iterates(rhs, in.plan, cg, in.max_iter);
   const int64_t dim = rhs.size(1);
-  cg_check(exchange, "exchange", rhs, rhs.scalar_type(), {2, rhs.size(0), 4 * dim});
-  cg_check(sums, "sums", rhs, at::kDouble, {4 * plan.num_chunks});
-  cg_check(counters, "counters", rhs, at::kInt, {3});
+  cg_check(buffers.exchange, "exchange", rhs, rhs.scalar_type(), {2, rhs.size(0), 4 * dim});
+  cg_check(buffers.sums, "sums", rhs, at::kDouble, {4 * plan.num_chunks});
+  cg_check(buffers.counters, "counters", rhs, at::kInt, {3});
   if (end != nullptr) {  // euler_update's checks, with the solve's x as dv and its plan
     cg_check(end->x, "state_x", rhs, rhs.scalar_type(), rhs.sizes());
     cg_check(end->v, "state_v", rhs, rhs.scalar_type(), rhs.sizes());
     cg_check(end->sums, "end_sums", rhs, at::kDouble, {plan.num_chunks});
     cg_check(end->counter, "end_counter", rhs, at::kInt, {plan.num_objects + 1});
-    check_euler_update(end->x, end->v, x, end->dv_imposed, end->x_new, end->v_new, chunk_start, chunk_object,
-                       object_chunk, status, iterations, rr, rhs_sq, end->norms, end->summary, end->sums, end->counter,
-                       end->ring, end->ring_pos);
+    check_euler_update(end->x, end->v, cg.x, end->dv_imposed, end->x_new, end->v_new, in.plan.chunk_start,
+                       in.plan.chunk_object, in.plan.object_chunk, cg.status, cg.iterations, cg.rr, cg.rhs_sq,
+                       end->norms, end->summary, end->sums, end->counter, end->ring, end->ring_pos);
   }
   if (step_rhs != nullptr) {  // hooke_node_step_rhs's checks, at the state the step end carries
     TORCH_CHECK(end != nullptr, "tensormass: a solve that computes its right-hand side must end the step");
@@ -191,26 +298,27 @@ bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, 
       }
     }
   }
-  at::Tensor no_dots;
+  at::Tensor no_dots, product = cg.r;  // the product's buffer (checked; the solve's kernel writes r)
   bool ran = false;
-  run_hooke_node_system<L>(rhs, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
-                           r, no_dots, [&](const auto& k, int64_t) {
+  const SystemTensors& sys = in.sys;
+  run_hooke_node_system<L>(rhs, sys.neighbor, sys.node_k, sys.incidences, sys.row_node, sys.mass, sys.free,
+                           in.c_mass, in.c_stiff, in.node_stiffness, product, no_dots, [&](const auto& k, int64_t) {
     using S = typename std::decay_t<decltype(k)>::Scalar;
     PipelinedSolve<S> s;
-    set_cg_iterates<S>(s, x, r, p, rhs.data_ptr<S>(), tol_sq, threshold, rhs_sq, rr, alpha, beta, status, iterations,
-                       max_iter);
-    s.exchange = exchange.data_ptr<S>();
-    s.sums = sums.data_ptr<double>();
-    s.counters = counters.data_ptr<int32_t>();
-    s.chunk_nodes = chunk_nodes;
-    s.chunk_slots = chunk_slots;
-    s.max_slots = neighbor.size(0);
+    set_cg_iterates<S>(s, cg, rhs.data_ptr<S>(), in.tol_sq, in.max_iter);
+    s.exchange = buffers.exchange.data_ptr<S>();
+    s.sums = buffers.sums.data_ptr<double>();
+    s.counters = buffers.counters.data_ptr<int32_t>();
+    s.chunk_nodes = in.chunk_nodes;
+    s.chunk_slots = in.chunk_slots;
+    s.max_slots = sys.neighbor.size(0);
     s.pair_rows = (flags & 2) != 0;
     s.cache_slots = cache_slots;
     if (end != nullptr) {
-      s.end.update = euler_update_of<S>(end->x, end->v, x, end->dv_imposed, end->h, end->x_new, end->v_new, end->carry);
-      s.end.summary = step_summary_of<S>(status, iterations, rr, rhs_sq, end->norms, end->summary, end->ring,
-                                         end->ring_pos);
+      s.end.update = euler_update_of<S>(end->x, end->v, cg.x, end->dv_imposed, end->h, end->x_new, end->v_new,
+                                        end->carry);
+      s.end.summary = step_summary_of<S>(cg.status, cg.iterations, cg.rr, cg.rhs_sq, end->norms, end->summary,
+                                         end->ring, end->ring_pos);
       s.end.sums = end->sums.data_ptr<double>();
       s.end.counter = end->counter.data_ptr<int32_t>();
     }
@@ -233,7 +341,11 @@ bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, 
     }
     ran = L::run_solve(plan, k, s);
   });
-  return ran;
+  TORCH_CHECK_NOT_IMPLEMENTED(ran, "tensormass: the pipelined solve does not fit one wave of this ",
+                              rhs.is_cuda() ? "GPU" : "device (the CPU has no pipelined kernel)", " (",
+                              std::to_string(plan.num_chunks), " chunks of at most ", std::to_string(in.chunk_nodes),
+                              " nodes and ", std::to_string(in.chunk_slots),
+                              " slots); nothing was changed: solve with hooke_node_cg");
 }
 
 // hooke_node_solve: a whole CG solve from x0 = 0 of hooke_node_system's system (A = c_M M - c_K K
@@ -245,54 +357,40 @@ bool run_hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, 
 // nodes and chunk_slots slots (the sum of incidences over a chunk's nodes): a chunk beyond that
 // ends its object as non-finite. chunk_nodes picks the layout: <= SOLVE_CHUNK_NODES (128) the
 // chunks' slots may sit in shared memory, <= STREAM_CHUNK_NODES (256) they are read from the
-// graph each iteration (chunk_slots unused). Returns whether it ran: false, having changed
-// nothing, where the solve does not fit the device in one wave in either layout, or chunk_nodes
-// exceeds both (or on the CPU, which has no such kernel); then the caller solves with
-// hooke_node_cg. Buffers: the CG state
-// (x, r, p [V, d]; threshold, rhs_sq, rr, alpha, beta [B]; status, iterations [B] int32) and
-// the work: exchange [2, V, 4d], sums [4K] float64, counters [3] int32.
+// graph each iteration (chunk_slots unused). Raises NotImplementedError, having changed nothing,
+// where the solve does not fit the device in one wave in either layout, or chunk_nodes exceeds
+// both, or on the CPU (no such kernel): the caller then solves with hooke_node_cg.
 template <class L>
-bool hooke_node_solve(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                      const c10::optional<at::Tensor>& row_node, const at::Tensor& mass, const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+void hooke_node_solve(const OptionalTensorList& system, double c_mass, double c_stiff,
                       const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
-                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
-                      int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter, at::Tensor x, at::Tensor r, at::Tensor p,
-                      at::Tensor threshold, at::Tensor rhs_sq, at::Tensor rr, at::Tensor status, at::Tensor alpha,
-                      at::Tensor beta, at::Tensor iterations, at::Tensor exchange, at::Tensor sums,
-                      at::Tensor counters, int64_t flags, int64_t cache_slots) {
-  return run_hooke_node_solve<L>(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
-                                 rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots,
-                                 max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange,
-                                 sums, counters, flags, cache_slots, nullptr);
+                      at::TensorList plan, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
+                      at::TensorList cg, at::TensorList buffers, int64_t flags, int64_t cache_slots) {
+  const SystemTensors sys(system);
+  const PlanTensors plan_tensors(plan);
+  const SolveInputs in{sys, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan_tensors, chunk_nodes, chunk_slots,
+                       max_iter};
+  run_hooke_node_solve<L>(in, CGTensors(cg), SolveBuffers(buffers), flags, cache_slots, nullptr);
 }
 
 // hooke_node_solve_step: hooke_node_solve, then the step's end as euler_update does it with the
 // solution as dv (v_new = v + dv (+ dv_imposed), x_new = x + h v_new; with `carry` also into x,
 // v; the object's |v_new|^2 into norms, the summary [5, B], ring row ring_pos, ring_pos
-// advanced), in the same kernel: one launch a step fewer. end_sums [K] float64 over the plan's
-// chunks and end_counter [B + 1] int32 (zero between calls) are its work. Returns whether it ran:
-// false, having changed nothing, where hooke_node_solve would (then neither is done).
+// advanced), in the same kernel: one launch a step fewer. step's end_sums [K] float64 over the
+// plan's chunks and end_counter [B + 1] int32 (zero between calls) are its work. Raises where
+// hooke_node_solve does (then neither is done).
 template <class L>
-bool hooke_node_solve_step(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                           const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
-                           const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
+void hooke_node_solve_step(const OptionalTensorList& system, double c_mass, double c_stiff,
                            const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
-                           const at::Tensor& chunk_start, const at::Tensor& chunk_object,
-                           const at::Tensor& object_chunk, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
-                           at::Tensor x, at::Tensor r, at::Tensor p, at::Tensor threshold, at::Tensor rhs_sq,
-                           at::Tensor rr, at::Tensor status, at::Tensor alpha, at::Tensor beta, at::Tensor iterations,
-                           at::Tensor exchange, at::Tensor sums, at::Tensor counters, at::Tensor state_x,
-                           at::Tensor state_v, const c10::optional<at::Tensor>& dv_imposed, double h,
-                           at::Tensor x_new, at::Tensor v_new, at::Tensor norms, at::Tensor summary,
-                           at::Tensor end_sums, at::Tensor end_counter, const c10::optional<at::Tensor>& ring,
-                           const c10::optional<at::Tensor>& ring_pos, bool carry, int64_t flags,
-                           int64_t cache_slots) {
-  StepEndTensors end{state_x, state_v, dv_imposed, h, x_new, v_new, norms, summary, end_sums, end_counter, ring,
-                     ring_pos, carry};
-  return run_hooke_node_solve<L>(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
-                                 rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots,
-                                 max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange,
-                                 sums, counters, flags, cache_slots, &end);
+                           at::TensorList plan, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
+                           at::TensorList cg, at::TensorList buffers, at::TensorList step,
+                           const c10::optional<at::Tensor>& dv_imposed, double h, const c10::optional<at::Tensor>& ring,
+                           const c10::optional<at::Tensor>& ring_pos, bool carry, int64_t flags, int64_t cache_slots) {
+  const SystemTensors sys(system);
+  const PlanTensors plan_tensors(plan);
+  const SolveInputs in{sys, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan_tensors, chunk_nodes, chunk_slots,
+                       max_iter};
+  const StepEndTensors end(step, dv_imposed, h, ring, ring_pos, carry);
+  run_hooke_node_solve<L>(in, CGTensors(cg), SolveBuffers(buffers), flags, cache_slots, &end);
 }
 
 // hooke_node_steps: `steps` implicit Euler steps of the hooke tensor form (no imposed
@@ -302,34 +400,39 @@ bool hooke_node_solve_step(const at::Tensor& neighbor, const at::Tensor& node_k,
 // wrote). Bitwise `steps` times hooke_node_step_rhs then hooke_node_solve_step: the graph in
 // shared memory, the launches and the gaps between them serve every step. Each step's summary
 // goes to ring row ring_pos (advanced), the last also into summary; steps > 1 needs carry.
-// Returns whether it ran: false, having changed nothing, where hooke_node_solve would.
+// loads = [rest, external [V, d], plane_normals? [P, 3], plane_offsets? [P], plane_stiffness? [P]],
+// rhs_out = [u, rhs [V, d]] (written), step_coefs = [h, w_coef, rayleigh_mass]. Raises where
+// hooke_node_solve does, having changed nothing.
 template <class L>
-bool hooke_node_steps(const at::Tensor& neighbor, const at::Tensor& node_k, const at::Tensor& incidences,
-                      const c10::optional<at::Tensor>& row_node, const at::Tensor& mass,
-                      const c10::optional<at::Tensor>& free, double c_mass, double c_stiff, const at::Tensor& rest,
-                      const at::Tensor& external, double w_coef, double rayleigh_mass,
-                      const c10::optional<at::Tensor>& plane_normals, const c10::optional<at::Tensor>& plane_offsets,
-                      const c10::optional<at::Tensor>& plane_stiffness, at::Tensor u, at::Tensor rhs,
-                      const c10::optional<at::Tensor>& node_stiffness, double tol_sq, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
-                      const at::Tensor& object_chunk, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
-                      at::Tensor x, at::Tensor r, at::Tensor p, at::Tensor threshold, at::Tensor rhs_sq,
-                      at::Tensor rr, at::Tensor status, at::Tensor alpha, at::Tensor beta, at::Tensor iterations,
-                      at::Tensor exchange, at::Tensor sums, at::Tensor counters, at::Tensor state_x,
-                      at::Tensor state_v, double h, at::Tensor x_new, at::Tensor v_new, at::Tensor norms,
-                      at::Tensor summary, at::Tensor end_sums, at::Tensor end_counter,
-                      const c10::optional<at::Tensor>& ring, const c10::optional<at::Tensor>& ring_pos, bool carry,
-                      int64_t steps, int64_t flags, int64_t cache_slots) {
-  StepEndTensors end{state_x, state_v, c10::nullopt, h, x_new, v_new, norms, summary, end_sums, end_counter, ring,
-                     ring_pos, carry};
+void hooke_node_steps(const OptionalTensorList& system, double c_mass, double c_stiff,
+                      const c10::optional<at::Tensor>& node_stiffness, const OptionalTensorList& loads,
+                      at::TensorList rhs_out, double tol_sq, at::TensorList plan, int64_t chunk_nodes,
+                      int64_t chunk_slots, int64_t max_iter, at::TensorList cg, at::TensorList buffers,
+                      at::TensorList step, at::ArrayRef<double> step_coefs, const c10::optional<at::Tensor>& ring,
+                      const c10::optional<at::Tensor>& ring_pos, bool carry, int64_t steps, int64_t flags,
+                      int64_t cache_slots) {
+  static const char* const load_names[] = {"rest", "external", "plane_normals", "plane_offsets", "plane_stiffness"};
+  static const bool load_required[] = {true, true, false, false, false};
+  const std::array<c10::optional<at::Tensor>, 5> load = unpack_optional_tensors(loads, "loads", load_names,
+                                                                                load_required);
+  const c10::optional<at::Tensor> &plane_normals = load[2], &plane_offsets = load[3], &plane_stiffness = load[4];
+  static const char* const out_names[] = {"u", "rhs"};
+  const std::array<at::Tensor, 2> outs = unpack_tensors(rhs_out, "rhs_out", out_names);
+  const at::Tensor &u = outs[0], &rhs = outs[1];
+  TORCH_CHECK(step_coefs.size() == 3, "tensormass: step_coefs must be [h, w_coef, rayleigh_mass], got ",
+              std::to_string(step_coefs.size()), " values");
+  const double h = step_coefs[0], w_coef = step_coefs[1], rayleigh_mass = step_coefs[2];
+  const SystemTensors sys(system);
+  const PlanTensors plan_tensors(plan);
+  const StepEndTensors end(step, c10::nullopt, h, ring, ring_pos, carry);
   check_values(rhs, "rhs");
   const StepPlanes planes(rhs, plane_normals, plane_offsets, plane_stiffness, node_stiffness);
   TORCH_CHECK(planes.given || !(node_stiffness.has_value() && node_stiffness->defined()),
               "tensormass: node_stiffness is the contact planes' stiffness: it needs plane_normals");
-  const StepRhsTensors step_rhs{rest, external, w_coef, rayleigh_mass, planes, u, steps};
-  return run_hooke_node_solve<L>(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
-                                 rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots,
-                                 max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange,
-                                 sums, counters, flags, cache_slots, &end, &step_rhs);
+  const StepRhsTensors step_rhs{*load[0], *load[1], w_coef, rayleigh_mass, planes, u, steps};
+  const SolveInputs in{sys, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan_tensors, chunk_nodes, chunk_slots,
+                       max_iter};
+  run_hooke_node_solve<L>(in, CGTensors(cg), SolveBuffers(buffers), flags, cache_slots, &end, &step_rhs);
 }
 
 // Registers the implementations of the solve ops of one backend (launcher L) under its

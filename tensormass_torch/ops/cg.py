@@ -62,6 +62,13 @@ class CGState:
     work: torch.Tensor
     sums: torch.Tensor
 
+    #: the state as the whole-solve ops take it (their ``cg`` list: csrc/solve/schema.cpp)
+    PACKED = ("x", "r", "p", "threshold", "rhs_sq", "rr", "alpha", "beta", "status", "iterations")
+
+    def packed(self):
+        """``[x, r, p, threshold, rhs_sq, rr, alpha, beta, status, iterations]``: the solve ops' ``cg``."""
+        return [getattr(self, name) for name in self.PACKED]
+
     @classmethod
     def empty(cls, plan: ChunkPlan, shape, dtype, device) -> "CGState":
         b = plan.segments.num_objects

@@ -162,12 +162,13 @@ def node_gather(partial: torch.Tensor, plan: GatherPlan, node_term: Optional[tor
     return ref_gather.node_gather(partial, plan.index, plan.force_index, plan.num_slots, plan.num_nodes, node_term)
 
 
-def forces(group, u: torch.Tensor, state: Optional[torch.Tensor] = None) -> torch.Tensor:
+def forces(group, u: torch.Tensor, state: Optional[torch.Tensor] = None,
+           variants: KernelVariants = DEFAULT) -> torch.Tensor:
     """Elastic forces of the group on every node ``[V, d]``; ``state``: ``linearize(group, u)``
     when the caller has it (the corotational rotations at u, then not computed again)."""
     native = _native(group, u)
     if native is not None:  # corotational: as element_forces
-        return native.forces(group, u, state)
+        return native.forces(group, u, state, variants)
     return node_gather(element_forces(group, u), group.plan)
 
 

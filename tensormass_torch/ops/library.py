@@ -15,6 +15,7 @@ it needs a fake kernel; :func:`ensure_registered` imports every family.
     REGISTRY                 name -> OpDef of every declared op
     ensure_registered()      load the extension and register every family once
     available()              whether the ops are defined and registered
+    pack(name, **named)      an op's positional arguments from its arguments' (and list members') names
 
 Shared helpers of the families: ``MODEL_IDS`` (the ``model`` integer of the schemas), the cached
 native index tensors of a gather plan (:func:`plan_indices`), and small tensor utilities.
@@ -30,7 +31,7 @@ import torch
 
 from .reference import gather as ref_gather
 
-__all__ = ["FAMILIES", "OpDef", "REGISTRY", "define", "register", "ensure_registered", "available", "MODEL_IDS",
+__all__ = ["FAMILIES", "OpDef", "REGISTRY", "define", "register", "ensure_registered", "available", "pack", "MODEL_IDS",
            "ROTATION_IDS", "model_name", "plan_indices", "unchanged", "contiguous", "wants_grad", "slot_mask", "op",
            "Example", "supports"]
 
@@ -72,8 +73,11 @@ class OpDef:
             between calls, or zero again after it): the reference need not reproduce them.
         defined: ``(args, output) -> output`` with the entries the op leaves unspecified zeroed
             (PartialForce's unused slots), or None: every entry is defined.
-        not_traceable: why the op cannot be traced by AOT autograd (``opcheck`` then runs its
-            schema, fake-tensor and autograd-registration tests only); empty where it can.
+        members: for each list argument (``Tensor[]``, ``Tensor?[]``, ``float[]``), the names of the
+            values it packs, in order (:func:`pack` builds the list from them; ``scratch`` may
+            name them).
+        devices: the device types the op has a kernel for; elsewhere it raises
+            ``NotImplementedError``, changing nothing.
     """
 
     name: str
@@ -85,8 +89,8 @@ class OpDef:
     example: Optional[Callable] = None
     scratch: Tuple[str, ...] = ()
     defined: Optional[Callable] = None
-    #: why ``opcheck``'s AOT-dispatch test does not apply (empty: it does)
-    not_traceable: str = ""
+    members: Dict[str, Tuple[str, ...]] = dataclasses.field(default_factory=dict)
+    devices: Tuple[str, ...] = ("cpu", "cuda")
 
 
 #: Every declared op: name -> OpDef.
@@ -99,6 +103,38 @@ _family_registrations = []
 def op(name: str):
     """The overload ``torch.ops.tensormass.<name>.default``."""
     return getattr(torch.ops.tensormass, name).default
+
+
+def pack(name: str, **named):
+    """The positional arguments of ``tensormass::<name>`` from its arguments by name, the values
+    of each list argument by their names (``OpDef.members``) instead of the list: e.g.
+    ``pack("hooke_node_solve", neighbor=..., node_k=..., ..., x=..., r=..., ...)``. Arguments with
+    a default may be left out (they then take it)."""
+    d = REGISTRY[name]
+    args, missing, defaulted = [], [], False
+    used = set()
+    for a in op(name)._schema.arguments:
+        if a.name in d.members:
+            members = d.members[a.name]
+            absent = [m for m in members if m not in named]
+            missing += absent
+            args.append([named.get(m) for m in members])
+            used.update(members)
+        elif a.name in named:
+            if defaulted:
+                raise TypeError(f"pack({name!r}): {a.name} given after an argument left to its default")
+            args.append(named[a.name])
+            used.add(a.name)
+        elif a.has_default_value():
+            defaulted = True
+        else:
+            missing.append(a.name)
+    unknown = sorted(set(named) - used)
+    if missing or unknown:
+        raise TypeError(f"pack({name!r}): " + "; ".join(
+            part for part in (f"missing {missing}" if missing else "", f"unknown {unknown}" if unknown else "")
+            if part))
+    return tuple(args)
 
 
 def _ops_defined() -> bool:

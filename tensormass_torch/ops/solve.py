@@ -4,17 +4,19 @@
                           with hooke_node_system's product: one persistent kernel on the GPU,
                           bitwise the op-by-op solve
     hooke_node_solve      a whole solve from x0 = 0 by the pipelined CG (Chronopoulos-Gear: one
-                          reduction and one grid barrier an iteration); GPU only: returns False,
-                          having done nothing, where it does not fit one wave, or on the CPU
+                          reduction and one grid barrier an iteration); GPU only: raises
+                          NotImplementedError, having done nothing, where it does not fit one
+                          wave, or on the CPU
     hooke_node_solve_step the same solve, then euler_update with its solution as dv
     hooke_node_steps      ``steps`` implicit Euler steps in one kernel: each hooke_node_step_rhs,
                           then hooke_node_solve_step
 
 Each op's pure-torch reference (composed from the node-graph and cg families' references: CG's
 iterates in exact arithmetic), fake kernel and example, and the group-level wrappers the solver
-calls (:func:`system_cg`, :func:`system_solve`). The ops write into their arguments; the three
-pipelined ones return whether they ran (their fake kernels: True on a CUDA device, False
-elsewhere, as the CPU kernels do).
+calls (:func:`system_cg`, :func:`system_solve`). The ops write into their arguments and return
+nothing (traceable by torch's functionalization). They take their many tensors packed in lists by
+what they are (``system``, ``plan``, ``cg``, ``buffers``, ``step``, ...; the members: :data:`SYSTEM`,
+:data:`PLAN`, ...); ``library.pack(name, **named)`` builds a call from the members' names.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import torch
 
 from . import cg as cg_family
 from . import library
-from .cg import ACTIVE, CAPPED, CONVERGED, NONFINITE
+from .cg import ACTIVE, CAPPED, CONVERGED, NONFINITE, CGState
 from .library import OpDef, contiguous, plan_indices, unchanged
 from .node_graph import _ref_hooke_node_step_rhs, _ref_hooke_node_system, node_graph_of, planes_serve, step_rhs_serves
 from .segments import ChunkPlan
@@ -68,76 +70,68 @@ def _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, plan, s,
         cg_family._ref_direction(plan, s)
 
 
-def _state(x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations):
-    return cg_family._op_state(x=x, r=r, p=p, threshold=threshold, rhs_sq=rhs_sq, rr=rr, status=status, alpha=alpha,
-                               beta=beta, iterations=iterations)
+#: The values each list argument of the solve ops packs, in order (csrc/solve/schema.cpp).
+SYSTEM = ("neighbor", "node_k", "incidences", "row_node", "mass", "free")
+PLAN = ("chunk_start", "chunk_object", "object_chunk")
+CG = CGState.PACKED
+CG_BUFFERS = ("ap", "rr_swap", "work", "sums")
+SOLVE_BUFFERS = ("exchange", "sums", "counters")
+STEP = ("state_x", "state_v", "x_new", "v_new", "norms", "summary", "end_sums", "end_counter")
+LOADS = ("rest", "external", "plane_normals", "plane_offsets", "plane_stiffness")
+RHS_OUT = ("u", "rhs")
+STEP_COEFS = ("h", "w_coef", "rayleigh_mass")
 
 
-def _ref_hooke_node_cg(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, ap, x,
-                       r, rhs, tol_sq, chunk_start, chunk_object, object_chunk, threshold, rhs_sq, max_iter, count, rr,
-                       status, alpha, beta, iterations, rr_swap, work, sums, *variant):
-    plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
-    s = _state(x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations)
+def _state(cg):
+    return cg_family._op_state(**dict(zip(CG, cg)))
+
+
+def _ref_hooke_node_cg(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, count, cg, buffers,
+                       flags=3):
+    *graph, mass, free = system
+    chunk_plan = ChunkPlan.from_tensors(*plan)
+    s = _state(cg)
     if rhs is not None:
-        _ref_start(rhs, free, tol_sq, plan, s, max_iter)
-    _ref_iterations((neighbor, node_k, incidences, row_node), mass, free, c_mass, c_stiff, node_stiffness, plan, s,
-                    max_iter, count)
+        _ref_start(rhs, free, tol_sq, chunk_plan, s, max_iter)
+    _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, chunk_plan, s, max_iter, count)
 
 
-def _ref_solve(graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq, chunk_start, chunk_object,
-               object_chunk, max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations):
-    plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
-    s = _state(x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations)
-    _ref_start(rhs, free, tol_sq, plan, s, max_iter)
-    _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, plan, s, max_iter, max_iter)
-    return plan, s
+def _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg):
+    *graph, mass, free = system
+    chunk_plan = ChunkPlan.from_tensors(*plan)
+    s = _state(cg)
+    _ref_start(rhs, free, tol_sq, chunk_plan, s, max_iter)
+    _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, chunk_plan, s, max_iter, max_iter)
+    return s
 
 
-def _ref_hooke_node_solve(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, rhs,
-                          tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter, x, r, p,
-                          threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange, sums, counters, *variant):
-    _ref_solve((neighbor, node_k, incidences, row_node), mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq,
-               chunk_start, chunk_object, object_chunk, max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta,
-               iterations)
-    return True
+def _ref_hooke_node_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, chunk_nodes, chunk_slots,
+                          max_iter, cg, buffers, flags=3, cache_slots=-1):
+    _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg)
 
 
-def _ref_hooke_node_solve_step(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness,
-                               rhs, tol_sq, chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter,
-                               x, r, p, threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange, sums,
-                               counters, state_x, state_v, dv_imposed, h, x_new, v_new, norms, summary, end_sums,
-                               end_counter, ring, ring_pos, carry, *variant):
-    _ref_solve((neighbor, node_k, incidences, row_node), mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq,
-               chunk_start, chunk_object, object_chunk, max_iter, x, r, p, threshold, rhs_sq, rr, status, alpha, beta,
-               iterations)
-    cg_family._ref_euler_update(state_x, state_v, x, dv_imposed, h, x_new, v_new, chunk_start, chunk_object,
-                                object_chunk, status, iterations, rr, rhs_sq, norms, summary, end_sums, end_counter,
-                                ring, ring_pos, carry)
-    return True
+def _ref_hooke_node_solve_step(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, chunk_nodes, chunk_slots,
+                               max_iter, cg, buffers, step, dv_imposed, h, ring, ring_pos, carry, flags=3,
+                               cache_slots=-1):
+    s = _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg)
+    state_x, state_v, x_new, v_new, norms, summary, end_sums, end_counter = step
+    cg_family._ref_euler_update(state_x, state_v, s.x, dv_imposed, h, x_new, v_new, *plan, s.status, s.iterations,
+                                s.rr, s.rhs_sq, norms, summary, end_sums, end_counter, ring, ring_pos, carry)
 
 
-def _ref_hooke_node_steps(neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, rest, external, w_coef,
-                          rayleigh_mass, plane_normals, plane_offsets, plane_stiffness, u, rhs, node_stiffness, tol_sq,
-                          chunk_start, chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter, x, r, p,
-                          threshold, rhs_sq, rr, status, alpha, beta, iterations, exchange, sums, counters, state_x,
-                          state_v, h, x_new, v_new, norms, summary, end_sums, end_counter, ring, ring_pos, carry,
-                          steps, *variant):
-    graph = (neighbor, node_k, incidences, row_node)
+def _ref_hooke_node_steps(system, c_mass, c_stiff, node_stiffness, loads, rhs_out, tol_sq, plan, chunk_nodes,
+                          chunk_slots, max_iter, cg, buffers, step, step_coefs, ring, ring_pos, carry, steps, flags=3,
+                          cache_slots=-1):
+    *graph, mass, _ = system
+    rest, external, *planes = loads
+    u, rhs = rhs_out
+    h, w_coef, rayleigh_mass = step_coefs
+    state_x, state_v = step[0], step[1]
     for _ in range(int(steps)):
-        _ref_hooke_node_step_rhs(state_x, state_v, rest, *graph, mass, external, plane_normals, plane_offsets,
-                                 plane_stiffness, h, w_coef, rayleigh_mass, u, rhs, node_stiffness)
-        _ref_hooke_node_solve_step(*graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, tol_sq, chunk_start,
-                                   chunk_object, object_chunk, chunk_nodes, chunk_slots, max_iter, x, r, p, threshold,
-                                   rhs_sq, rr, status, alpha, beta, iterations, exchange, sums, counters, state_x,
-                                   state_v, None, h, x_new, v_new, norms, summary, end_sums, end_counter, ring,
-                                   ring_pos, carry)
-    return True
-
-
-def _fake_ran(*args, **kwargs):
-    """Whether a pipelined solve ran: the CPU kernels never do; on a GPU a traced graph assumes
-    the system fits one wave (the eager call reports it)."""
-    return args[0].device.type == "cuda"
+        _ref_hooke_node_step_rhs(state_x, state_v, rest, *graph, mass, external, *planes, h, w_coef, rayleigh_mass, u,
+                                 rhs, node_stiffness)
+        _ref_hooke_node_solve_step(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, chunk_nodes,
+                                   chunk_slots, max_iter, cg, buffers, step, None, h, ring, ring_pos, carry)
 
 
 def _example(name):
@@ -147,57 +141,56 @@ def _example(name):
 
         system_args, _ = graph_ops[0].example(device, dtype)  # hooke_node_system's
         p, *graph, mass, free, c_mass, c_stiff, node_stiffness = system_args
+        system = [*graph, mass, free]
         # one object (the example mesh is connected: CG's objects never share an edge), three chunks
         plan = ChunkPlan.from_segments(cg_family.Segments.from_lengths([ex.num_nodes], device=device), 2)
         s = cg_family.CGState.empty(plan, tuple(p.shape), dtype, device)
         rhs = ex.du
         b = plan.segments.num_objects
-        scalars = (s.threshold, s.rhs_sq)
-        rest = (s.rr, s.status, s.alpha, s.beta, s.iterations)
         if name == "hooke_node_cg":
-            return (s.p, *graph, mass, free, c_mass, c_stiff, node_stiffness, torch.zeros_like(p), s.x, s.r, rhs, 1e-8,
-                    *plan.tensors(), *scalars, 20, 20, *rest, s.rr_swap, s.work, s.sums), {}
-        exchange = torch.zeros((2, p.shape[0], 4 * p.shape[1]), dtype=dtype, device=device)
-        counters = torch.zeros(3, dtype=torch.int32, device=device)
-        sums = torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=device)
-        solve = (1e-8, *plan.tensors(), SOLVE_CHUNK_NODES, 16, 20, s.x, s.r, s.p, *scalars, *rest, exchange, sums,
-                 counters)
+            return (system, c_mass, c_stiff, node_stiffness, rhs, 1e-8, plan.tensors(), 20, 20, s.packed(),
+                    [torch.zeros_like(p), s.rr_swap, s.work, s.sums]), {}
+        buffers = [torch.zeros((2, p.shape[0], 4 * p.shape[1]), dtype=dtype, device=device),
+                   torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=device),
+                   torch.zeros(3, dtype=torch.int32, device=device)]
+        solve = (1e-8, plan.tensors(), SOLVE_CHUNK_NODES, 16, 20, s.packed(), buffers)
         if name == "hooke_node_solve":
-            return (*graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, *solve), {}
+            return (system, c_mass, c_stiff, node_stiffness, rhs, *solve), {}
         state_x, state_v = ex.rest + ex.u, 0.1 * ex.du
-        end = (torch.empty_like(p), torch.empty_like(p), torch.zeros(b, dtype=dtype, device=device),
-               torch.zeros((5, b), dtype=torch.float64, device=device),
-               torch.zeros(plan.num_chunks, dtype=torch.float64, device=device),
-               torch.zeros(b + 1, dtype=torch.int32, device=device), None, None, True)
+        step = [state_x, state_v, torch.empty_like(p), torch.empty_like(p), torch.zeros(b, dtype=dtype, device=device),
+                torch.zeros((5, b), dtype=torch.float64, device=device),
+                torch.zeros(plan.num_chunks, dtype=torch.float64, device=device),
+                torch.zeros(b + 1, dtype=torch.int32, device=device)]
         if name == "hooke_node_solve_step":
-            return (*graph, mass, free, c_mass, c_stiff, node_stiffness, rhs, *solve, state_x, state_v, None, 0.01,
-                    *end), {}
-        planes = (None, None, None)
-        return (*graph, mass, free, c_mass, c_stiff, ex.rest, 9.8 * ex.du, 0.02, 0.1, *planes, torch.empty_like(p),
-                torch.empty_like(p), None, *solve, state_x, state_v, 0.01, *end, 2), {}
+            return (system, c_mass, c_stiff, node_stiffness, rhs, *solve, step, None, 0.01, None, None, True), {}
+        loads = [ex.rest, 9.8 * ex.du, None, None, None]
+        rhs_out = [torch.empty_like(p), torch.empty_like(p)]
+        return (system, c_mass, c_stiff, None, loads, rhs_out, *solve, step, [0.01, 0.02, 0.1], None, None, True,
+                2), {}
 
     return example
 
-
-#: The pipelined solves return whether they ran (a host-side launch decision: the system fits
-#: one wave of the GPU); torch's functionalization takes no mutating op with a non-tensor result.
-_RETURNS_BOOL = ("returns whether it ran (bool) and writes its arguments: torch's functionalization "
-                 "supports no mutating op with a non-tensor result")
 
 #: The pipelined solves' work buffers, and what Chronopoulos-Gear's recurrences hold otherwise
 #: than the classic CG of the references (p, alpha, beta): x, r, the statuses, iterations and
 #: residual norms are compared.
 _PIPELINED_SCRATCH = ("exchange", "sums", "counters", "end_sums", "end_counter", "p", "alpha", "beta")
+_SOLVE_MEMBERS = dict(system=SYSTEM, plan=PLAN, cg=CG, buffers=SOLVE_BUFFERS)
 
 OPS = (
     OpDef("hooke_node_cg", _ref_hooke_node_cg, None, differentiable=False, mutates=True,
-          example=_example("hooke_node_cg"), scratch=("ap", "rr_swap", "work", "sums")),
-    OpDef("hooke_node_solve", _ref_hooke_node_solve, _fake_ran, differentiable=False, mutates=True,
-          example=_example("hooke_node_solve"), scratch=_PIPELINED_SCRATCH, not_traceable=_RETURNS_BOOL),
-    OpDef("hooke_node_solve_step", _ref_hooke_node_solve_step, _fake_ran, differentiable=False, mutates=True,
-          example=_example("hooke_node_solve_step"), scratch=_PIPELINED_SCRATCH, not_traceable=_RETURNS_BOOL),
-    OpDef("hooke_node_steps", _ref_hooke_node_steps, _fake_ran, differentiable=False, mutates=True,
-          example=_example("hooke_node_steps"), scratch=_PIPELINED_SCRATCH, not_traceable=_RETURNS_BOOL),
+          example=_example("hooke_node_cg"), scratch=CG_BUFFERS,
+          members=dict(system=SYSTEM, plan=PLAN, cg=CG, buffers=CG_BUFFERS)),
+    OpDef("hooke_node_solve", _ref_hooke_node_solve, None, differentiable=False, mutates=True,
+          example=_example("hooke_node_solve"), scratch=_PIPELINED_SCRATCH, members=_SOLVE_MEMBERS,
+          devices=("cuda",)),
+    OpDef("hooke_node_solve_step", _ref_hooke_node_solve_step, None, differentiable=False, mutates=True,
+          example=_example("hooke_node_solve_step"), scratch=_PIPELINED_SCRATCH,
+          members=dict(_SOLVE_MEMBERS, step=STEP), devices=("cuda",)),
+    OpDef("hooke_node_steps", _ref_hooke_node_steps, None, differentiable=False, mutates=True,
+          example=_example("hooke_node_steps"), scratch=_PIPELINED_SCRATCH,
+          members=dict(_SOLVE_MEMBERS, loads=LOADS, rhs_out=RHS_OUT, step=STEP, step_coefs=STEP_COEFS),
+          devices=("cuda",)),
 )
 library.define(OPS, lambda: library.register(OPS))
 
@@ -253,9 +246,8 @@ def system_cg(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: f
         return False
     mass, free, node_stiffness, rhs = contiguous(mass, free, node_stiffness, rhs)
     graph = node_graph_of(group, variants, (), "hooke_node_cg", node_k)
-    ops_ns.hooke_node_cg(s.p, *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness,
-                         ap, s.x, s.r, rhs, float(tol) ** 2, *plan_tensors, s.threshold, s.rhs_sq, int(max_iter),
-                         int(count), s.rr, s.status, s.alpha, s.beta, s.iterations, s.rr_swap, s.work, s.sums,
+    ops_ns.hooke_node_cg([*graph, mass, free], float(c_mass), float(c_stiff), node_stiffness, rhs, float(tol) ** 2,
+                         list(plan_tensors), int(max_iter), int(count), s.packed(), [ap, s.rr_swap, s.work, s.sums],
                          variants.solve_flags)
     return True
 
@@ -411,36 +403,43 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
             continue
         layout_plan = solve_plan(plan, layout)
         slots = chunk_slots(group, layout_plan, graph[2]) if layout == "shared" else 0
-        system = (*graph, mass, free, float(c_mass), float(c_stiff))
-        solve = (float(tol) ** 2, *layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter), s.x, s.r,
-                 s.p, s.threshold, s.rhs_sq, s.rr, s.status, s.alpha, s.beta, s.iterations, work.exchange,
-                 work.sums_of(layout, layout_plan), work.counters)
+        system = ([*graph, mass, free], float(c_mass), float(c_stiff))
+        solve = (float(tol) ** 2, layout_plan.tensors(), _LAYOUT_CHUNK_NODES[layout], slots, int(max_iter),
+                 s.packed(), [work.exchange, work.sums_of(layout, layout_plan), work.counters])
         kernel = (variants.solve_flags, variants.stream_cache_slots)
-        args = (*system, node_stiffness, rhs, *solve)
-        if step_end is not None and step_end.rhs is not None:
-            e, in_solve = step_end, step_end.rhs
-            planes = (None,) * 3 if in_solve.planes is None else contiguous(
-                in_solve.planes.normals, in_solve.planes.offsets, in_solve.planes.stiffness)
-            ran = bool(torch.ops.tensormass.hooke_node_steps(
-                *system, in_solve.rest, in_solve.external, float(in_solve.w_coef), float(in_solve.rayleigh_mass),
-                *planes, in_solve.u, rhs, node_stiffness, *solve, e.x, e.v, float(e.h), e.x_new, e.v_new, e.norms,
-                e.summary, *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry), int(e.steps),
-                *kernel))
-            e.done = ran
-        elif step_end is not None and variants.fused_step_end:
-            e = step_end
-            ran = bool(torch.ops.tensormass.hooke_node_solve_step(
-                *args, e.x, e.v, e.dv_imposed, float(e.h), e.x_new, e.v_new, e.norms, e.summary,
-                *work.end_work_of(layout, layout_plan), e.ring, e.ring_pos, bool(e.carry), *kernel))
-            e.done = ran
-        else:
-            ran = bool(torch.ops.tensormass.hooke_node_solve(*args, *kernel))
+        try:
+            if step_end is not None and step_end.rhs is not None:
+                e, in_solve = step_end, step_end.rhs
+                planes = [None] * 3 if in_solve.planes is None else list(contiguous(
+                    in_solve.planes.normals, in_solve.planes.offsets, in_solve.planes.stiffness))
+                torch.ops.tensormass.hooke_node_steps(
+                    *system, node_stiffness, [in_solve.rest, in_solve.external, *planes], [in_solve.u, rhs], *solve,
+                    _step_list(e, work.end_work_of(layout, layout_plan)),
+                    [float(e.h), float(in_solve.w_coef), float(in_solve.rayleigh_mass)], e.ring, e.ring_pos,
+                    bool(e.carry), int(e.steps), *kernel)
+                e.done = True
+            elif step_end is not None and variants.fused_step_end:
+                e = step_end
+                torch.ops.tensormass.hooke_node_solve_step(
+                    *system, node_stiffness, rhs, *solve, _step_list(e, work.end_work_of(layout, layout_plan)),
+                    e.dv_imposed, float(e.h), e.ring, e.ring_pos, bool(e.carry), *kernel)
+                e.done = True
+            else:
+                torch.ops.tensormass.hooke_node_solve(*system, node_stiffness, rhs, *solve, *kernel)
+            ran = True
+        except NotImplementedError:  # does not fit one wave in this layout: nothing was changed
+            ran = False
         if ran:
             work.layout = layout
             return True
         work.layout = None
         work.misfits.add(layout)
     return False
+
+
+def _step_list(e: StepEnd, end_work):
+    """The solve ops' ``step`` list of ``e`` with its work (end sums, end counter)."""
+    return [e.x, e.v, e.x_new, e.v_new, e.norms, e.summary, *end_work]
 
 
 def steps_serve(group, node_stiffness: Optional[torch.Tensor], node_k: Optional[torch.Tensor],

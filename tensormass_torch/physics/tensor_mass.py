@@ -9,6 +9,7 @@ from torch import nn
 from .. import ops
 from ..errors import MaterialError, SceneError
 from ..mesh.topology import incidence_slots, padded_sum
+from ..ops.variants import DEFAULT, KernelVariants
 from .groups import FORMS, ElementGroup
 from .materials import Material
 
@@ -102,10 +103,11 @@ class TensorMass(nn.Module):
             raise SceneError(f"{name} is {x.dtype} on {x.device} but the model holds {self.rest.dtype} on "
                              f"{self.rest.device}; move one with .to()")
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Elastic forces ``[V, d]`` at positions ``x [V, d]``."""
+    def forward(self, x: torch.Tensor, variants: KernelVariants = DEFAULT) -> torch.Tensor:
+        """Elastic forces ``[V, d]`` at positions ``x [V, d]``; ``variants``: the kernels that
+        compute them (the solver's ``StepOptions.variants``; every variant gives the same forces)."""
         self._check_positions("x", x)
-        return self.displacement_forces(x - self.rest)
+        return self.displacement_forces(x - self.rest, variants)
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         """Elastic energy (0-dim tensor) at positions ``x [V, d]``."""
@@ -130,12 +132,12 @@ class TensorMass(nn.Module):
     # its digits: in float32, x = rest + u rounds u to ~1e-7 of the body's size, a large
     # relative error for the small displacements of a stiff body.
 
-    def displacement_forces(self, u: torch.Tensor) -> torch.Tensor:
+    def displacement_forces(self, u: torch.Tensor, variants: KernelVariants = DEFAULT) -> torch.Tensor:
         """Elastic forces ``[V, d]`` at displacements ``u [V, d]`` from the rest shape."""
         self._check_positions("u", u)
         total = None
         for group in self.groups:
-            f = ops.forces(group, u)
+            f = ops.forces(group, u, variants=variants)
             total = f if total is None else total + f
         return total
 

@@ -138,9 +138,13 @@ class DynamicsSystem:
             self._matvecs[key] = SystemMatvec(self, *key)
         return self._matvecs[key]
 
-    def forces(self, x):
-        """All forces ``[V, d]``: elastic, external, contact."""
-        f = self.model(x) + self.external
+    def forces(self, x, variants: KernelVariants = DEFAULT):
+        """All forces ``[V, d]``: elastic, external, contact; ``variants``: the kernels of the
+        elastic forces."""
+        from ..physics.tensor_mass import TensorMass
+
+        # another force model (any module x -> forces) has no kernel variants
+        f = (self.model(x, variants) if isinstance(self.model, TensorMass) else self.model(x)) + self.external
         return f if self.planes is None else f + self.planes.forces(x)
 
     def dforces(self, x, dx):
@@ -309,7 +313,8 @@ class SystemMatvec:
                 self._zero_mass = torch.zeros_like(system.mass)
             stiffness_along, _ = ops.system_matvec(system.model.groups, self.u, w, self._zero_mass, None, 0.0, -1.0,
                                                    self.states, self.node_stiffness, self.tangents, self.variants)
-            total = ops.forces(system.model.groups[0], self.u, self.states[0]) + system.external + stiffness_along
+            elastic = ops.forces(system.model.groups[0], self.u, self.states[0], self.variants)
+            total = elastic + system.external + stiffness_along
             return total if self.contact_forces is None else total + self.contact_forces
         total = system.model.linearized_forces(self.u, w, self.states) + system.external
         if self.contact_forces is not None:
@@ -444,7 +449,7 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
         rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.rayleigh_stiffness)
     else:
         tangent = system.tangent(x)
-        rhs = system.forces(x) + tangent((h + opts.rayleigh_stiffness) * v)
+        rhs = system.forces(x, opts.variants) + tangent((h + opts.rayleigh_stiffness) * v)
         if opts.rayleigh_mass:  # no damping term without damping
             rhs = rhs - opts.rayleigh_mass * system.mass * v
         rhs = h * rhs
@@ -700,7 +705,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
 
     for _ in range(opts.newton_iters - 1):
         x_new = torch.add(x, v_new, alpha=h)
-        residual = (system.mass * (v_new - v) - h * system.forces(x_new) + h * opts.rayleigh_mass * system.mass * v_new
+        residual = (system.mass * (v_new - v) - h * system.forces(x_new, opts.variants)
+                    + h * opts.rayleigh_mass * system.mass * v_new
                     - h * opts.rayleigh_stiffness * system.dforces(x_new, v_new))
         result = _solve(system, x_new, -residual, opts)
         report.cg.append(result)

@@ -206,7 +206,8 @@ def largest_chunk(plan):
 
 def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
     """hooke_node_solve on cg's state over ``plan`` (promising its largest chunk) with ``slots``;
-    keyword changes replace arguments."""
+    keyword changes replace arguments (by name: library.pack packs them). Raises
+    NotImplementedError where the solve does not fit one wave."""
     group = system.model.groups[0]
     neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group)
     s = cg.state
@@ -234,9 +235,8 @@ def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
             if key in end_args:
                 end_args[key] = changes.pop(key)
     args.update(changes)
-    if end_args:
-        return torch.ops.tensormass.hooke_node_solve_step(*args.values(), *end_args.values())
-    return torch.ops.tensormass.hooke_node_solve(*args.values())
+    name = "hooke_node_solve_step" if end_args else "hooke_node_solve"
+    getattr(torch.ops.tensormass, name)(*library.pack(name, **args, **end_args))
 
 
 @gpu
@@ -248,7 +248,8 @@ def test_a_plan_beyond_one_wave_is_not_run_and_changes_nothing():
     cg = fresh_solver(system, rhs)
     plan = ChunkPlan.from_segments(system.segments, 1)
     before = state_of(cg)
-    assert not direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan))
+    with pytest.raises(NotImplementedError, match="does not fit one wave"):
+        direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan))
     for k in FIELDS:
         assert torch.equal(state_of(cg)[k], before[k]), k
 
@@ -259,10 +260,10 @@ def test_a_chunk_beyond_the_promised_layout_ends_its_object_as_non_finite():
     cg = fresh_solver(system, rhs)
     plan = solve.solve_plan(cg.plan)
     slots = solve.chunk_slots(system.model.groups[0], plan)
-    assert direct_call(system, matvec, rhs, cg, plan, slots - 1)
+    direct_call(system, matvec, rhs, cg, plan, slots - 1)
     status = cg.state.status.tolist()
     assert cg_ops.NONFINITE in status, status  # the object of the chunk with the most slots
-    assert direct_call(system, matvec, rhs, cg, plan, slots)
+    direct_call(system, matvec, rhs, cg, plan, slots)
     assert cg.state.status.tolist() == [cg_ops.CAPPED] * 3
 
 
@@ -274,10 +275,11 @@ def test_a_streamed_chunk_beyond_the_promised_nodes_ends_its_object_and_larger_o
     rhs = torch.randn_like(sim.x)
     cg = fresh_solver(system, rhs)
     plan = ChunkPlan.from_segments(system.segments, 2 * solve.STREAM_CHUNK_NODES)
-    assert direct_call(system, matvec, rhs, cg, plan, 0, chunk_nodes=solve.STREAM_CHUNK_NODES)
+    direct_call(system, matvec, rhs, cg, plan, 0, chunk_nodes=solve.STREAM_CHUNK_NODES)
     assert cg.state.status.tolist() == [cg_ops.NONFINITE]
     before = state_of(cg)  # chunks larger than both layouts take: not run, nothing changed
-    assert not direct_call(system, matvec, rhs, cg, plan, 0)
+    with pytest.raises(NotImplementedError, match="does not fit one wave"):
+        direct_call(system, matvec, rhs, cg, plan, 0)
     for k in FIELDS:  # the NaN b.b too
         torch.testing.assert_close(state_of(cg)[k], before[k], rtol=0, atol=0, equal_nan=True, msg=k)
 
@@ -336,15 +338,50 @@ def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
     cg = fresh_solver(system, rhs)
     before = state_of(cg)
     plan = solve.solve_plan(cg.plan)
-    assert not direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan))
+    with pytest.raises(NotImplementedError, match="the CPU has no pipelined kernel"):
+        direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan))
     summary = torch.zeros(5, 3, dtype=torch.float64)
-    assert not direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan), end=True,
-                           summary=summary)
+    with pytest.raises(NotImplementedError, match="the CPU has no pipelined kernel"):
+        direct_call(system, matvec, rhs, cg, plan, solve.chunk_slots(system.model.groups[0], plan), end=True,
+                    summary=summary)
     assert float(summary.abs().max()) == 0.0
     assert not solve.system_solve(system.model.groups[0], system.mass.reshape(-1), system.free.reshape(-1), 1.0,
                                   1e-4, None, rhs, 1e-6, cg.plan, cg.state, 10)
     for k in FIELDS:
         assert torch.equal(state_of(cg)[k], before[k]), k
+
+
+def test_packed_arguments_name_what_is_missing():
+    """The solve ops take their tensors in lists (system, plan, cg, buffers, step): a list of the
+    wrong length or with a missing tensor is one error naming the list and its members."""
+    system, matvec, rhs = make_system(torch.float32, "cpu")
+    cg = fresh_solver(system, rhs)
+    plan = solve.solve_plan(cg.plan)
+    slots = solve.chunk_slots(system.model.groups[0], plan)
+    named = dict(zip(solve.SYSTEM, [*node_graph.hooke_rows_graph(system.model.groups[0]), system.mass.reshape(-1),
+                                    None]),
+                 c_mass=1.0, c_stiff=1e-4, node_stiffness=None, rhs=rhs, tol_sq=0.0, **dict(zip(solve.PLAN, plan.tensors())),
+                 chunk_nodes=largest_chunk(plan), chunk_slots=slots, max_iter=5, **dict(zip(solve.CG, cg.state.packed())),
+                 exchange=torch.zeros(2, rhs.shape[0], 4 * rhs.shape[1]),
+                 sums=torch.zeros(4 * plan.num_chunks, dtype=torch.float64), counters=torch.zeros(3, dtype=torch.int32))
+    args = list(library.pack("hooke_node_solve", **named))
+    before = state_of(cg)
+    for position, value, message in [
+            (0, args[0][:5], r"system must be the 6 tensors \[neighbor, node_k, incidences, row_node\?, mass, free\?\]"),
+            (0, [None] + args[0][1:], r"system\[0\] \(neighbor\) is None"),
+            (6, args[6][:2], r"plan must be the 3 tensors \[chunk_start, chunk_object, object_chunk\]"),
+            (10, args[10][:-1], "cg must be the 10 tensors"),
+            (11, args[11] + [rhs], r"buffers must be the 3 tensors \[exchange, sums, counters\], got 4")]:
+        call = list(args)
+        call[position] = value
+        with pytest.raises(RuntimeError, match=message):
+            torch.ops.tensormass.hooke_node_solve(*call)
+    for k in FIELDS:
+        assert torch.equal(state_of(cg)[k], before[k]), k
+    misnamed = dict(named)
+    misnamed["counter"] = misnamed.pop("counters")
+    with pytest.raises(TypeError, match=r"missing \['counters'\]; unknown \['counter'\]"):
+        library.pack("hooke_node_solve", **misnamed)
 
 
 def test_the_solve_plans_and_their_slots():
