@@ -21,7 +21,7 @@ from torch import nn
 
 from ..errors import MaterialError
 from ..mesh import geometry
-from ..mesh.topology import GatherPlan
+from ..mesh.topology import GatherPlan, incidence_slots, padded_sum, unique_edges
 from ..ops.reference import tensor_form
 from .materials import lame
 
@@ -102,6 +102,73 @@ class ElementGroup(nn.Module):
             self.register_buffer("tensor_c", c)
             self.register_buffer("tensor_d", d)
             self.plan = GatherPlan.build(elements, self.num_nodes)
+
+    # ---------------------------------------------------------------- topology changes
+    #: the buffers with one row per element, kept in step by :meth:`remove_rows`
+    PER_ELEMENT = ("elements", "measure", "element_mass", "element_ids", "shape_vectors", "young", "poisson",
+                   "projector", "rest_elements", "rest_normals", "tensor_b", "tensor_c", "tensor_d")
+
+    @property
+    def removable(self) -> bool:
+        """Whether :meth:`prepare_removals` ran (a group never cut holds none of its data)."""
+        return "element_ids" in self._buffers
+
+    def prepare_removals(self, element_ids: torch.Tensor, element_mass: torch.Tensor, young: torch.Tensor,
+                         poisson: torch.Tensor) -> None:
+        """What :meth:`remove_rows` needs, made at the first removal only (a scene that never
+        removes an element holds none of it): the model's ids of the rows and their lumped masses
+        ``[N]``; for the hooke tensor form also the parameters to form an element's tensors again
+        (``young, poisson [N]``) and the number of elements on each edge (an edge leaves with its
+        last)."""
+        self.register_buffer("element_ids", element_ids)
+        self.register_buffer("element_mass", element_mass)
+        if self.form == "tensor" and self.model == "hooke":
+            self.register_buffer("young", young)
+            self.register_buffer("poisson", poisson)
+            _, _, element_edges = unique_edges(self.elements, self.num_nodes)  # the edges' own order
+            counts = torch.bincount(element_edges.reshape(-1), minlength=self.edges.shape[0])
+            self.register_buffer("edge_elements", counts.to(torch.int32))
+
+    def remove_rows(self, rows: torch.Tensor, rest: torch.Tensor) -> None:
+        """Remove the elements in ``rows`` (local row ids ``[R]``, unique, in range: the caller
+        checks) in place, as if the group had been built without them: every per-element buffer
+        loses those rows (the others keep their order), the hooke tensor form subtracts their
+        element tensors (formed again from ``rest [V, d]``) from their edges, whose element counts
+        drop, and drops the edges left with no element; the gather plan follows. A fresh group of
+        the remaining elements holds the same data up to rounding in the edge sums (an edge's sum
+        taken in another order). Needs :meth:`prepare_removals` first."""
+        keep = torch.ones(self.elements.shape[0], dtype=torch.bool, device=self.elements.device)
+        keep[rows] = False
+        if self.form == "tensor" and self.model == "hooke":
+            self._subtract_edges(rows, rest)
+        for name in self.PER_ELEMENT:
+            value = getattr(self, name, None)
+            if isinstance(value, torch.Tensor):
+                setattr(self, name, value[keep])
+        if not (self.form == "tensor" and self.model == "hooke"):
+            self.plan = GatherPlan.build(self.elements, self.num_nodes)
+
+    @torch.no_grad()  # the tensor form holds no gradient (its constructor refuses one)
+    def _subtract_edges(self, rows: torch.Tensor, rest: torch.Tensor) -> None:
+        """The hooke tensor form's part of :meth:`remove_rows`: the removed elements' tensors off
+        their edges (summed per edge in a fixed order first), their counts down, the empty edges
+        out (``edges`` stays sorted: a fresh assembly's order)."""
+        elements = self.elements[rows]
+        element_rest = geometry.element_nodes(rest, elements)
+        m, _ = geometry.shape_vectors(element_rest)
+        proj = geometry.tangent_projectors(element_rest) if self.membrane else None
+        lam, mu = self.lame(self.young[rows], self.poisson[rows])
+        element_k = tensor_form.element_stiffness(m, self.measure[rows], lam, mu, proj)
+        edge_ids, blocks = tensor_form.edge_blocks(element_k, elements, self.edges, self.num_nodes)
+        flat = edge_ids.reshape(-1)
+        slots, num_slots, counts = incidence_slots(flat, self.edges.shape[0])
+        removed = padded_sum(blocks.reshape(-1, *blocks.shape[2:]), flat, slots, num_slots, self.edges.shape[0])
+        touched = counts > 0
+        self.edge_k[touched] -= removed[touched]
+        self.edge_elements -= counts.to(self.edge_elements.dtype)
+        alive = self.edge_elements > 0
+        self.edges, self.edge_k, self.edge_elements = self.edges[alive], self.edge_k[alive], self.edge_elements[alive]
+        self.plan = GatherPlan.build(self.edges, self.num_nodes)
 
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""

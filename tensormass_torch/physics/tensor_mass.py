@@ -7,7 +7,7 @@ import torch
 from torch import nn
 
 from .. import ops
-from ..errors import MaterialError, SceneError
+from ..errors import MaterialError, MeshError, SceneError
 from ..mesh.topology import incidence_slots, padded_sum
 from ..ops.variants import DEFAULT, KernelVariants
 from .groups import FORMS, ElementGroup
@@ -61,7 +61,7 @@ class TensorMass(nn.Module):
         self.register_buffer("rest", rest)
         like = rest
         grouped = {}
-        masses = []
+        first_id = 0
         for elements, material, kind in parts:
             n_elem = elements.shape[0]
             model_form = _resolve_form(form, material)
@@ -71,8 +71,10 @@ class TensorMass(nn.Module):
             poisson = material.per_element("poisson", n_elem, like)
             density = material.per_element("density", n_elem, like)
             scale = material.per_element("thickness", n_elem, like) if kind == "tri" else None
-            grouped.setdefault(key, []).append((elements, young, poisson, density, scale))
+            grouped.setdefault(key, []).append((elements, young, poisson, density, scale, first_id))
+            first_id += n_elem
         groups = []
+        masses = []
         for (kind, model, model_form, rotation, tangent), items in grouped.items():
             elements = torch.cat([it[0] for it in items])
             young = torch.cat([it[1] for it in items])
@@ -83,7 +85,10 @@ class TensorMass(nn.Module):
             groups.append(group)
             density = torch.cat([it[3] for it in items])
             masses.append((elements, density * group.measure.detach()))
+            # what a first removal needs to recover (held as references: nothing allocated here)
+            group.__dict__["_sources"] = [(it[5], it[0].shape[0], it[1], it[2], it[3]) for it in items]
         self.groups = nn.ModuleList(groups)
+        self.num_elements = first_id
         self.register_buffer("mass", self._lumped_mass(masses))
 
     def _lumped_mass(self, element_masses) -> torch.Tensor:
@@ -92,6 +97,89 @@ class TensorMass(nn.Module):
         shares = torch.cat([(m[:, None] / e.shape[1]).expand(e.shape).reshape(-1) for e, m in element_masses])
         slots, num_slots, _ = incidence_slots(nodes, self.num_nodes)
         return padded_sum(shares, nodes, slots, num_slots, self.num_nodes)
+
+    # ---------------------------------------------------------------- topology changes
+    def remove_elements(self, ids) -> torch.Tensor:
+        """Remove elements in place, the Tensor-Mass way: each group drops their rows (the hooke
+        tensor form subtracts their tensors from their edges) and the lumped masses lose their
+        shares; forces, products, energy and masses are then those of a model built from the
+        remaining elements (to rounding). Nodes left with no element keep mass 0 exactly.
+
+        Args:
+            ids: element ids ``[R]`` in the model's numbering (the parts' elements in order, as
+                built; ids stay those of the original elements after removals).
+
+        Returns:
+            the removed mass ``[V]`` (each node's lost share).
+
+        Raises:
+            MeshError: an id out of range, given twice or already removed (nothing changed).
+        """
+        ids = self._check_removal(ids)
+        removed = self.mass.new_zeros(self.num_nodes)
+        if ids.numel() == 0:
+            return removed
+        self._prepare_removals()
+        element_masses = []
+        for group in self.groups:
+            rows = torch.nonzero(torch.isin(group.element_ids, ids)).flatten()
+            if rows.numel() == 0:
+                continue
+            element_masses.append((group.elements[rows], group.element_mass[rows]))
+            group.remove_rows(rows, self.rest)
+            group.element_ids = group.element_ids[torch.isin(group.element_ids, ids, invert=True)]
+        removed = self._lumped_mass(element_masses)
+        with torch.no_grad():
+            self.removed[ids] = True
+            self.mass -= removed
+            # a node with no element left has no mass (not the rounding residue of the subtraction)
+            used = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.mass.device)
+            for group in self.groups:
+                used[group.elements.reshape(-1)] = True
+            self.mass[~used] = 0.0
+        return removed
+
+    def _check_removal(self, ids) -> torch.Tensor:
+        """``ids`` as a sorted int64 tensor on the model's device, or MeshError naming the problem."""
+        ids = torch.as_tensor(ids)
+        if ids.dim() != 1 or (ids.numel() and (ids.dtype.is_floating_point or ids.dtype == torch.bool)):
+            raise MeshError(f"element ids must be a 1-D integer sequence, got {ids.dtype} of shape {tuple(ids.shape)}")
+        ids = ids.to(device=self.rest.device, dtype=torch.int64)
+        if ids.numel() == 0:
+            return ids
+        low, high = int(ids.min()), int(ids.max())
+        if low < 0 or high >= self.num_elements:
+            bad = low if low < 0 else high
+            raise MeshError(f"element id {bad} out of range: the model has {self.num_elements} elements (0 .. "
+                            f"{self.num_elements - 1})")
+        ids, counts = torch.unique(ids, sorted=True, return_counts=True)
+        if bool((counts > 1).any()):
+            raise MeshError(f"element ids given twice: {ids[counts > 1][:8].tolist()}")
+        gone = ids[self.removed[ids]] if "removed" in self._buffers else ids[:0]
+        if gone.numel():
+            raise MeshError(f"elements already removed: {gone[:8].tolist()}")
+        return ids
+
+    def alive_elements(self) -> torch.Tensor:
+        """``[N]`` bool over the model's element ids: those not removed."""
+        if "removed" not in self._buffers:
+            return torch.ones(self.num_elements, dtype=torch.bool, device=self.rest.device)
+        return ~self.removed
+
+    def _prepare_removals(self) -> None:
+        """The data removals need, made at the first one (none before: a model never cut pays
+        nothing): the removed-element mask, and per group its rows' model ids, lumped masses and
+        (hooke tensor form) parameters and edge counts (``ElementGroup.prepare_removals``)."""
+        if "removed" in self._buffers:
+            return
+        like = self.rest
+        for group in self.groups:
+            sources = group.__dict__["_sources"]
+            ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
+            # the sources are as built: the model may have moved since (.to())
+            young, poisson, density = (torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4))
+            group.prepare_removals(ids, density * group.measure.detach(), young, poisson)
+        self.register_buffer("removed", torch.zeros(self.num_elements, dtype=torch.bool, device=like.device))
 
     # ---------------------------------------------------------------- evaluation
     def _check_positions(self, name: str, x: torch.Tensor):

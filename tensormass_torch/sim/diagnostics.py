@@ -102,8 +102,11 @@ def best_rotations(rest: torch.Tensor, x: torch.Tensor, lengths: torch.Tensor) -
 class _KindGroup:
     """The objects of one element kind, measured together (one gather, segmented sums)."""
 
-    def __init__(self, rest: torch.Tensor, objects: Sequence[torch.Tensor], ids: List[int]):
+    def __init__(self, rest: torch.Tensor, objects: Sequence[torch.Tensor], ids: List[int],
+                 alive: Optional[Sequence[torch.Tensor]] = None):
         self.ids = ids
+        # removed elements (Simulator.remove_elements) keep their ids but count for nothing
+        self.alive = None if alive is None else torch.cat([alive[b] for b in ids])
         self.index = torch.tensor(ids, device=rest.device)
         self.element_counts = [int(objects[b].shape[0]) for b in ids]
         self.lengths = torch.tensor(self.element_counts, device=rest.device)
@@ -120,15 +123,23 @@ class _KindGroup:
             self.rest_nodes = rest[self.nodes]
             self.element_object = torch.repeat_interleave(torch.arange(len(ids), device=rest.device), self.lengths)
         self.rest_measures = signed_measures(rest, self.elements, self.normals)
-        self.rest_totals = torch.segment_reduce(self.rest_measures, "sum", lengths=self.lengths)
+        self.rest_totals = torch.segment_reduce(self._counted(self.rest_measures), "sum", lengths=self.lengths)
+
+    def _counted(self, measures: torch.Tensor) -> torch.Tensor:
+        return measures if self.alive is None else torch.where(self.alive, measures, measures.new_zeros(()))
 
     def measures(self, x: torch.Tensor) -> torch.Tensor:
-        """Signed measures ``[N_k]`` at positions ``x [V, 3]``."""
+        """Signed measures ``[N_k]`` at positions ``x [V, 3]`` (0 for removed elements)."""
         if self.normals is None:
-            return signed_measures(x, self.elements, None)
+            return self._counted(signed_measures(x, self.elements, None))
         rotations = best_rotations(self.rest_nodes, x[self.nodes], self.node_counts)
         normals = (rotations[self.element_object] @ self.normals[:, :, None])[:, :, 0]
-        return signed_measures(x, self.elements, normals)
+        return self._counted(signed_measures(x, self.elements, normals))
+
+    def ratios(self, measures: torch.Tensor) -> torch.Tensor:
+        """Measure ratios to the rest ``[N_k]`` (1 for removed elements: never inverted)."""
+        ratios = measures / self.rest_measures
+        return ratios if self.alive is None else torch.where(self.alive, ratios, ratios.new_ones(()))
 
 
 class InversionCheck:
@@ -138,21 +149,25 @@ class InversionCheck:
         rest: rest positions of all nodes ``[V, 3]``.
         objects: per object, its elements ``[N_b, n]`` in global node ids (n = 4 or 3; one kind
             per object).
+        alive: per object ``[N_b]`` bool, the elements that count (removed ones keep their ids
+            in reports but are never inverted and add no volume), or None: all.
     """
 
-    def __init__(self, rest: torch.Tensor, objects: Sequence[torch.Tensor]):
+    def __init__(self, rest: torch.Tensor, objects: Sequence[torch.Tensor],
+                 alive: Optional[Sequence[torch.Tensor]] = None):
         self.num_objects = len(objects)
         self.kinds = []
         for n in (4, 3):
             ids = [b for b, e in enumerate(objects) if e.shape[1] == n]
             if ids:
-                self.kinds.append(_KindGroup(rest, objects, ids))
+                self.kinds.append(_KindGroup(rest, objects, ids, alive))
 
     @classmethod
     def for_simulator(cls, sim) -> "InversionCheck":
         """The check of a ``Simulator``'s bodies (element ids are each body's mesh ids)."""
         objects = [b.mesh.elements.to(sim.device) + sim.ptr[i] for i, b in enumerate(sim.bodies)]
-        return cls(sim.model.rest, objects)
+        alive = [sim.alive_elements(i) for i in range(len(sim.bodies))]
+        return cls(sim.model.rest, objects, None if all(bool(a.all()) for a in alive) else alive)
 
     def __call__(self, x: torch.Tensor) -> InversionReport:
         """The report at positions ``x [V, 3]``."""
@@ -162,7 +177,7 @@ class InversionCheck:
         element_ratios: List[Optional[torch.Tensor]] = [None] * self.num_objects
         for kind in self.kinds:
             measures = kind.measures(x)
-            ratios = measures / kind.rest_measures
+            ratios = kind.ratios(measures)
             counts = torch.segment_reduce((ratios <= 0).to(x.dtype), "sum", lengths=kind.lengths)
             inverted.index_copy_(0, kind.index, counts.round().long())
             totals = torch.segment_reduce(measures, "sum", lengths=kind.lengths)

@@ -8,7 +8,7 @@ from typing import Callable, List, Optional, Sequence
 
 import torch
 
-from ..errors import SceneError, SolverError
+from ..errors import MeshError, SceneError, SolverError
 from ..ops.segments import Segments
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
@@ -181,10 +181,15 @@ class Simulator:
         self.prescribed = torch.cat(prescribed)
         self._has_prescribed = any(b.motion is not None for b in bodies)  # known once: no sync per step
         self.segments = Segments.from_lengths([r.shape[0] for r in rest_parts], self.device)
-        mass = self.model.lumped_mass()
+        #: each body's first element in the model's numbering, and the element count ``[B + 1]``
+        self.element_ptr = [0]
+        for b in bodies:
+            self.element_ptr.append(self.element_ptr[-1] + b.mesh.elements.shape[0])
+        self.gravity = gravity
         self.planes = Planes(planes, self.dtype, self.device) if planes else None
-        self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * gravity, self.segments,
-                                     self.fixed | self.prescribed, self.planes)
+        #: the mass each body has lost to element removals ``[B]``
+        self.removed_mass = torch.zeros(len(bodies), dtype=self.dtype, device=self.device)
+        self._make_system()
         self.x = rest.clone()
         self.v = torch.cat(velocities)
         self.time = 0.0
@@ -200,6 +205,72 @@ class Simulator:
     @property
     def num_bodies(self) -> int:
         return len(self.bodies)
+
+    def _make_system(self):
+        """The integrator's view of the model (masses, gravity, constraints; its solver caches
+        and CUDA graphs start afresh). A node without mass (a vertex no element uses, or one whose
+        last element was removed) has no stiffness either: it leaves the system, held in place."""
+        mass = self.model.lumped_mass()
+        constrained = self.fixed | self.prescribed | (mass == 0)
+        self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * self.gravity, self.segments,
+                                     constrained, self.planes)
+
+    def _body_index(self, body) -> int:
+        """The index of ``body``: an index, a ``Body`` of this simulator or a body's name."""
+        if isinstance(body, Body):
+            for i, b in enumerate(self.bodies):
+                if b is body:
+                    return i
+            raise SceneError("this Body is not one of the simulator's bodies")
+        if isinstance(body, str):
+            names = [b.name for b in self.bodies]
+            if names.count(body) != 1:
+                raise SceneError(f"no body named {body!r}" if body not in names else f"two bodies are named {body!r}")
+            return names.index(body)
+        if isinstance(body, bool) or not isinstance(body, int) or not -self.num_bodies <= body < self.num_bodies:
+            raise SceneError(f"body must be a body index in [0, {self.num_bodies}), a tm.Body of this simulator or "
+                             f"a body name, got {body!r}")
+        return body % self.num_bodies
+
+    def remove_elements(self, body, ids) -> float:
+        """Remove elements of one body between steps (carving), in place: the model drops them
+        the Tensor-Mass way (``TensorMass.remove_elements``), the masses and gravity follow, and a
+        node left with no element leaves the system (its velocity zeroed, held in place). The
+        next step is that of a simulator built from the remaining elements at the same state.
+
+        Args:
+            body: a body index, a ``tm.Body`` of this simulator, or a body's name.
+            ids: element ids of that body's mesh (the original numbering: ids stay valid after
+                earlier removals).
+
+        Returns:
+            the mass removed (added to ``removed_mass[body]``).
+
+        Raises:
+            SceneError / MeshError: a bad body, an id out of range, given twice or already
+            removed; nothing is changed.
+        """
+        i = self._body_index(body)
+        count = self.element_ptr[i + 1] - self.element_ptr[i]
+        ids = torch.as_tensor(ids)
+        if ids.dim() == 1 and ids.numel() and not (ids.dtype.is_floating_point or ids.dtype == torch.bool):
+            low, high = int(ids.min()), int(ids.max())
+            if low < 0 or high >= count:
+                raise MeshError(f"element id {low if low < 0 else high} out of range: body {i} has {count} elements "
+                                f"(0 .. {count - 1})")
+            ids = ids.to(self.device) + self.element_ptr[i]
+        try:
+            removed = self.model.remove_elements(ids)
+        except MeshError as error:  # name the body's ids, not the model's
+            raise MeshError(f"body {i}: {error}".replace("elements already removed", "already removed")) from None
+        lost = float(removed.sum())
+        self.removed_mass[i] += lost
+        with torch.no_grad():
+            self.v[self.model.lumped_mass() == 0] = 0.0
+        self._make_system()
+        if self._inversion is not None:
+            self._inversion = InversionCheck.for_simulator(self)
+        return lost
 
     def _imposed_velocity(self, x: torch.Tensor, t_next: float, h: float):
         """End-of-step velocities ``[V, 3]`` taking the prescribed nodes from ``x [V, 3]`` to
@@ -340,6 +411,11 @@ class Simulator:
         self.steps_done += steps
         self.last_report = report
         self.last_inversion = inversion
+
+    def alive_elements(self, i: int) -> torch.Tensor:
+        """``[N_i]`` bool: which elements of body i's mesh remain (``remove_elements``)."""
+        i = self._body_index(i)
+        return self.model.alive_elements()[self.element_ptr[i]:self.element_ptr[i + 1]]
 
     def _chain_graphs(self):
         """The step graphs that run several steps with one host synchronisation (CUDA, every CG
