@@ -185,3 +185,13 @@ def test_gather_variants_quick(tmp_path):
     records = json.loads((tmp_path / "gather_variants.json").read_text())["records"]
     assert {r["backend"] for r in records} == {"padded", "csr", "atomics"}
     assert all(r["max_rel_diff"] < 1e-5 for r in records)  # the same forces, summed three ways
+
+
+def test_carving_quick(tmp_path):
+    import carving
+
+    carving.main(["--device", "cpu", "--quick", "--out", str(tmp_path)])
+    records = json.loads((tmp_path / "carving.json").read_text())["records"]
+    assert {r["model"] for r in records} == {"hooke", "corotational"}
+    assert all(r["remove_ms"] > 0 and r["rebuild_ms"] > 0 for r in records if r.get("removed"))
+    assert {r.get("removed_per_step") for r in records if r["steps_per_s"]} == {0, 10}

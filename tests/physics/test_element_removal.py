@@ -51,19 +51,17 @@ def backend(request, monkeypatch):
     return request.param
 
 
-@pytest.mark.parametrize("kind,dim,model_name,form,rotation", CASES,
-                         ids=[f"{k}{d}-{m}-{f}-{r}" for k, d, m, f, r in CASES])
-def test_removals_leave_the_model_of_the_remaining_elements(backend, kind, dim, model_name, form, rotation):
-    mesh = mesh_of(kind, dim)
+def check_removals(kind, dim, model_name, form, rotation, device="cpu"):
+    mesh = mesh_of(kind, dim).to(device=device)
     n = mesh.elements.shape[0]
-    young = torch.linspace(1e4, 3e4, n, dtype=torch.float64)  # per element: the rows must stay matched
+    young = torch.linspace(1e4, 3e4, n, dtype=torch.float64, device=device)  # per element: rows stay matched
     model = tm.TensorMass(mesh, material(model_name, rotation, young), form=form)
     gen = torch.Generator().manual_seed(5)
-    x = mesh.vertices + 0.02 * torch.randn(mesh.vertices.shape, generator=gen, dtype=torch.float64)
-    dx = torch.randn(mesh.vertices.shape, generator=gen, dtype=torch.float64)
-    alive = torch.ones(n, dtype=torch.bool)
+    x = mesh.vertices + 0.02 * torch.randn(mesh.vertices.shape, generator=gen, dtype=torch.float64).to(device)
+    dx = torch.randn(mesh.vertices.shape, generator=gen, dtype=torch.float64).to(device)
+    alive = torch.ones(n, dtype=torch.bool, device=device)
     for count in (1, 5, n // 3):  # removals one after another, ids in the original numbering
-        ids = torch.nonzero(alive).flatten()[torch.randperm(int(alive.sum()), generator=gen)[:count]]
+        ids = torch.nonzero(alive).flatten()[torch.randperm(int(alive.sum()), generator=gen)[:count].to(device)]
         model.remove_elements(ids)
         alive[ids] = False
         fresh = tm.TensorMass.packed(mesh.vertices, [(mesh.elements[alive], material(model_name, rotation,
@@ -71,6 +69,20 @@ def test_removals_leave_the_model_of_the_remaining_elements(backend, kind, dim, 
                                      form=form)
         assert_same(model, fresh, x, dx)
         assert torch.equal(model.alive_elements(), alive)
+
+
+CASE_IDS = [f"{k}{d}-{m}-{f}-{r}" for k, d, m, f, r in CASES]
+
+
+@pytest.mark.parametrize("kind,dim,model_name,form,rotation", CASES, ids=CASE_IDS)
+def test_removals_leave_the_model_of_the_remaining_elements(backend, kind, dim, model_name, form, rotation):
+    check_removals(kind, dim, model_name, form, rotation)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("kind,dim,model_name,form,rotation", CASES, ids=CASE_IDS)
+def test_removals_on_cuda_leave_the_model_of_the_remaining_elements(kind, dim, model_name, form, rotation):
+    check_removals(kind, dim, model_name, form, rotation, "cuda")
 
 
 def test_a_packed_batch_loses_elements_of_each_body_and_isolated_nodes_lose_all_mass():
@@ -123,7 +135,8 @@ def test_removing_nothing_changes_nothing_and_everything_leaves_no_force():
     assert float(model.lumped_mass().abs().max()) == 0.0
 
 
-def test_a_simulator_step_after_removals_is_that_of_a_simulator_of_the_remaining_elements():
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def test_a_simulator_step_after_removals_is_that_of_a_simulator_of_the_remaining_elements(device):
     """Two bodies in one batch lose elements between steps (one loses every element on a node:
     that node leaves the system); the next steps equal those of a simulator built from the
     remaining elements at the same state, and the mass is accounted for."""
@@ -136,25 +149,26 @@ def test_a_simulator_step_after_removals_is_that_of_a_simulator_of_the_remaining
         # a vertex no element uses must be fixed (tm.Body): the removals' isolated node is held as well
         holds = [f | torch.isin(torch.arange(m.num_vertices), m.unused_vertices()) for f, m in zip(fixed, meshes)]
         bodies = [tm.Body(m, mat, fixed=f, name=name) for m, mat, f, name in zip(meshes, materials, holds, "ab")]
-        return tm.Simulator(bodies, dt=0.01, cg_tol=1e-12, check_inversion="warn")
+        return tm.Simulator(bodies, dt=0.01, cg_tol=1e-12, check_inversion="warn", device=device)
 
     sim = simulator([beam, sheet])
     total = float(sim.model.lumped_mass().sum())
     sim.step(3)
     last = beam.num_vertices - 1  # the far corner: its elements all go
     corner = torch.nonzero((beam.elements == last).any(1)).flatten()
+    sim.step(2)  # a second run of steps: on CUDA the captured step graphs exist before the removal
     lost = sim.remove_elements("a", torch.cat([corner, torch.tensor([0, 9])]))
     lost += sim.remove_elements(1, [2, 3, 17])
     assert sim.alive_elements(0).sum() == beam.elements.shape[0] - corner.numel() - 2
-    kept = [tm.TetMesh(beam.vertices, beam.elements[sim.alive_elements(0)], check=False),
-            tm.TriMesh(sheet.vertices, sheet.elements[sim.alive_elements(1)], check=False)]
+    kept = [tm.TetMesh(beam.vertices, beam.elements[sim.alive_elements(0).cpu()], check=False),
+            tm.TriMesh(sheet.vertices, sheet.elements[sim.alive_elements(1).cpu()], check=False)]
     fresh = simulator(kept)
     fresh.x, fresh.v = sim.x.clone(), sim.v.clone()
     sim.step(3)
     fresh.step(3)
     torch.testing.assert_close(sim.x, fresh.x, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(sim.v, fresh.v, rtol=1e-12, atol=1e-12)
-    assert float(sim.v[beam.num_vertices - 1].abs().max()) == 0.0  # the isolated corner stays put
+    assert float(sim.v[last].abs().max()) == 0.0  # the isolated corner stays put
     torch.testing.assert_close(float(sim.model.lumped_mass().sum()) + lost, total, rtol=1e-13, atol=0)
     torch.testing.assert_close(float(sim.removed_mass.sum()), lost, rtol=1e-13, atol=0)
     assert int(sim.last_inversion.inverted.sum()) == 0
