@@ -132,11 +132,12 @@ class TensorMass(nn.Module):
         with torch.no_grad():
             self.removed[ids] = True
             self.mass -= removed
-            # a node with no element left has no mass (not the rounding residue of the subtraction)
-            used = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.mass.device)
-            for group in self.groups:
-                used[group.elements.reshape(-1)] = True
-            self.mass[~used] = 0.0
+            # a node with no element left has no mass (not the rounding residue of the subtraction);
+            # only the removed elements' nodes can be such (a node's items: its elements, or its
+            # edges in the hooke tensor form, which it has while it has an element)
+            nodes = torch.unique(torch.cat([e.reshape(-1) for e, _ in element_masses]))
+            items = sum(group.plan.incidences[nodes] for group in self.groups)
+            self.mass[nodes[items == 0]] = 0.0
         return removed
 
     def _check_removal(self, ids) -> torch.Tensor:
