@@ -6,6 +6,7 @@
     surface     tetrahedralize (closed surfaces through TetGen or fTetWild)
     io          load_mesh, save_mesh (meshio)
     topology    gather plans, incidence slots, edge graphs (what the ops index by)
+    cutting     cutting along a blade: the faces it crosses part, their nodes split
     geometry    rest shape vectors and measures of P1 elements
 
 It calls nothing of the package but its errors.

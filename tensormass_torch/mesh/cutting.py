@@ -1,0 +1,208 @@
+"""Cutting a mesh along a blade: faces the blade crosses become boundary, and the nodes on them
+are split so that the two sides part.
+
+A blade is a triangle surface in 3-D (``Blade``: vertices ``[B, 3]``, triangles ``[T, 3]``; a
+scalpel's edge swept between two poses is two triangles: :meth:`Blade.swept`). An interior face
+(a triangle shared by two tetrahedra, or an edge shared by two membrane triangles) is cut when
+the blade crosses the segment between its two elements' centroids, at the positions given (the
+deformed shape: a blade cuts where the body is now).
+
+Splitting: around each node, its elements fall into groups that stay connected through the faces
+(containing the node) that were not cut; the first group keeps the node, each other group gets a
+new node (a copy of it). Elements are never divided, so every element keeps n distinct nodes and
+its rest shape; a cut that separates a body into pieces leaves them unconnected. The topology is
+pure tensor work (label propagation, no Python loop over elements), on the mesh's device.
+
+    Blade                    the cutting surface
+    cut_faces(...)           which interior faces a blade crosses
+    split_nodes(...)         the elements re-pointed and the new nodes' parents
+    cut(mesh, blade, x)      both: the cut mesh, the new nodes' parents, the faces cut
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from ..errors import MeshError
+
+#: The faces of an element (local node ids): a tetrahedron's triangles, a triangle's edges.
+_FACES = {4: ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)), 3: ((1, 2), (0, 2), (0, 1))}
+
+
+@dataclass(frozen=True)
+class Blade:
+    """A cutting surface: ``vertices [B, 3]`` and ``triangles [T, 3]`` (int64)."""
+
+    vertices: torch.Tensor
+    triangles: torch.Tensor
+
+    def __post_init__(self):
+        v, t = self.vertices, self.triangles
+        if not isinstance(v, torch.Tensor) or v.dim() != 2 or v.shape[1] != 3 or not v.is_floating_point():
+            raise MeshError(f"blade vertices must be a float tensor [B, 3], got {getattr(v, 'shape', type(v))}")
+        if not bool(torch.isfinite(v).all()):
+            raise MeshError("blade vertices must be finite")
+        if not isinstance(t, torch.Tensor) or t.dim() != 2 or t.shape[1] != 3 or t.shape[0] == 0:
+            got = getattr(t, "shape", type(t))
+            raise MeshError(f"blade triangles must be an integer tensor [T >= 1, 3], got {got}")
+        if t.is_floating_point() or int(t.min()) < 0 or int(t.max()) >= v.shape[0]:
+            raise MeshError(f"blade triangles must index the {v.shape[0]} blade vertices")
+
+    @classmethod
+    def swept(cls, start_a, start_b, end_a, end_b, dtype=torch.float64, device=None) -> "Blade":
+        """The surface a straight edge sweeps from (start_a, start_b) to (end_a, end_b): two
+        triangles (a scalpel's edge between two poses)."""
+        vertices = torch.tensor([list(map(float, p)) for p in (start_a, start_b, end_b, end_a)], dtype=dtype,
+                                device=device)
+        return cls(vertices, torch.tensor([[0, 1, 2], [0, 2, 3]], device=device))
+
+    def to(self, like: torch.Tensor) -> "Blade":
+        return Blade(self.vertices.to(like), self.triangles.to(like.device))
+
+
+def interior_faces(elements: torch.Tensor):
+    """The faces two elements share: ``(first, second)`` element ids ``[F]`` each, and the faces'
+    node ids ``[F, n - 1]`` (sorted). Faces on the boundary (one element) are left out."""
+    n = elements.shape[1]
+    local = torch.tensor(_FACES[n], device=elements.device)  # [n, n - 1]
+    faces = torch.sort(elements[:, local], dim=-1).values.reshape(-1, n - 1)  # [N n, n - 1]
+    owner = torch.arange(elements.shape[0], device=elements.device).repeat_interleave(n)
+    keys, inverse = torch.unique(faces, dim=0, return_inverse=True)
+    order = torch.argsort(inverse, stable=True)
+    sorted_ids = inverse[order]
+    pair = sorted_ids[1:] == sorted_ids[:-1]  # a face met twice: shared by two elements
+    first, second = owner[order][:-1][pair], owner[order][1:][pair]
+    return first, second, keys[sorted_ids[1:][pair]]
+
+
+def _segments_cross(p: torch.Tensor, q: torch.Tensor, blade: Blade) -> torch.Tensor:
+    """``[F]`` bool: whether segment p -> q (``[F, 3]`` each) crosses a blade triangle
+    (Moller-Trumbore; touching the blade's plane exactly at an end does not count)."""
+    a = blade.vertices[blade.triangles[:, 0]]
+    e1 = blade.vertices[blade.triangles[:, 1]] - a
+    e2 = blade.vertices[blade.triangles[:, 2]] - a
+    d = (q - p)[:, None, :]  # [F, 1, 3]
+    h = torch.linalg.cross(d.expand(-1, e2.shape[0], -1), e2[None].expand(d.shape[0], -1, -1), dim=-1)
+    det = (e1[None] * h).sum(-1)  # [F, T]
+    ok = det.abs() > torch.finfo(det.dtype).eps * (d.norm(dim=-1) * e1.norm(dim=-1)[None] * e2.norm(dim=-1)[None])
+    inv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
+    s = p[:, None, :] - a[None]
+    u = inv * (s * h).sum(-1)
+    qv = torch.linalg.cross(s, e1[None].expand_as(s), dim=-1)
+    v = inv * (d * qv).sum(-1)
+    t = inv * (e2[None] * qv).sum(-1)
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < 1)
+    return hit.any(dim=1)
+
+
+def cut_faces(elements: torch.Tensor, x: torch.Tensor, blade: Blade):
+    """The interior faces ``blade`` crosses at positions ``x [V, 3]``: ``(first, second, faces)``
+    as :func:`interior_faces` gives them, those crossed only."""
+    first, second, faces = interior_faces(elements)
+    centroids = x[elements].mean(1)
+    blade = blade.to(x)
+    low, high = blade.vertices.min(0).values, blade.vertices.max(0).values
+    p, q = centroids[first], centroids[second]
+    # only segments whose box meets the blade's box can cross it
+    near = ((torch.minimum(p, q) <= high) & (torch.maximum(p, q) >= low)).all(1)
+    crossed = torch.zeros_like(near)
+    if bool(near.any()):
+        crossed[near] = _segments_cross(p[near], q[near], blade)
+    return first[crossed], second[crossed], faces[crossed]
+
+
+def split_nodes(elements: torch.Tensor, num_nodes: int, cut_first: torch.Tensor, cut_second: torch.Tensor):
+    """Elements re-pointed so that the faces between ``cut_first[k]`` and ``cut_second[k]`` no
+    longer join them, and the new nodes' parents.
+
+    Around each node, the elements that share a face not cut (a face holding the node) stay on
+    one copy of it: groups of incidences (element, node) joined through those faces, found by
+    propagating the smallest incidence id until nothing changes. The group holding the node's
+    first incidence keeps its id; every other group gets a new node, numbered from
+    ``num_nodes`` on in the order of the groups' smallest incidences.
+
+    Returns:
+        elements ``[N, n]`` (new ids where split) and parents ``[V_new]`` (the original node each
+        new node copies).
+    """
+    n, count = elements.shape[1], elements.shape[0]
+    device = elements.device
+    first, second, faces = interior_faces(elements)
+    cut = torch.zeros(first.shape[0], dtype=torch.bool, device=device)
+    if cut_first.numel():
+        # the cut faces among the interior ones, by their element pair (either order)
+        key = torch.minimum(first, second) * count + torch.maximum(first, second)
+        cut_key = torch.minimum(cut_first, cut_second) * count + torch.maximum(cut_first, cut_second)
+        cut = torch.isin(key, cut_key)
+    keep_first, keep_second, keep_faces = first[~cut], second[~cut], faces[~cut]
+    # each joined face links the incidence of each of its nodes in the two elements
+    def incidence(elements_of, nodes):  # [F, n - 1] incidence ids of `nodes` in elements `elements_of`
+        rows = elements[elements_of]  # [F, n]
+        slot = (rows[:, None, :] == nodes[:, :, None]).int().argmax(-1)  # [F, n - 1]
+        return elements_of[:, None] * n + slot
+
+    a = incidence(keep_first, keep_faces).reshape(-1)
+    b = incidence(keep_second, keep_faces).reshape(-1)
+    labels = torch.arange(count * n, device=device)
+    while True:  # smallest label over each joined pair, until stable (a group spans one node's star)
+        low = torch.minimum(labels[a], labels[b])
+        updated = labels.clone()
+        updated.scatter_reduce_(0, a, low, reduce="amin")
+        updated.scatter_reduce_(0, b, low, reduce="amin")
+        updated = updated[updated]  # pointer jumping: labels point at their group's smallest
+        if torch.equal(updated, labels):
+            break
+        labels = updated
+    flat = elements.reshape(-1)
+    # a group per (node, label); the node's first group (smallest label) keeps the node
+    groups, group_of = torch.unique(flat * (count * n) + labels, return_inverse=True)
+    group_node = groups // (count * n)
+    first_of_node = torch.ones_like(group_node, dtype=torch.bool)
+    first_of_node[1:] = group_node[1:] != group_node[:-1]
+    new_ids = torch.cumsum((~first_of_node).long(), 0) - 1 + num_nodes
+    group_id = torch.where(first_of_node, group_node, new_ids)
+    parents = torch.cat([torch.arange(num_nodes, device=device), group_node[~first_of_node]])
+    return group_id[group_of].reshape(count, n), parents
+
+
+@dataclass
+class CutResult:
+    """What :func:`cut` did: the cut mesh's ``elements [N, n]``, ``parents [V_new]`` (the original
+    node of every node; a new node copies its parent's rest position and state), the element
+    pairs whose shared face was cut (``cut_first, cut_second [C]``) and the node count before."""
+
+    elements: torch.Tensor
+    parents: torch.Tensor
+    cut_first: torch.Tensor
+    cut_second: torch.Tensor
+    num_old_nodes: int
+
+    @property
+    def new_nodes(self) -> int:
+        """How many nodes the cut added."""
+        return int(self.parents.shape[0]) - self.num_old_nodes
+
+
+def cut(elements: torch.Tensor, num_nodes: int, x: torch.Tensor, blade: Blade, removed: Optional[torch.Tensor] = None):
+    """Cut the mesh ``elements [N, n]`` over ``num_nodes`` nodes at positions ``x [V, 3]`` along
+    ``blade``: the faces it crosses part, and their nodes split (:func:`split_nodes`).
+    ``removed``: ``[N]`` bool, elements already gone (they join nothing and are left as they are).
+
+    Raises:
+        MeshError: the blade crosses no interior face (nothing would change).
+    """
+    if x.shape != (num_nodes, 3):
+        raise MeshError(f"positions must be [{num_nodes}, 3] to cut along a 3-D blade, got {tuple(x.shape)}")
+    alive = torch.ones(elements.shape[0], dtype=torch.bool, device=elements.device) if removed is None else ~removed
+    ids = torch.nonzero(alive).flatten()
+    first, second, _ = cut_faces(elements[ids], x, blade)
+    if first.numel() == 0:
+        raise MeshError("the blade crosses no interior face of the body: nothing to cut")
+    first, second = ids[first], ids[second]
+    live_elements, parents = split_nodes(elements[ids], num_nodes, torch.searchsorted(ids, first),
+                                         torch.searchsorted(ids, second))
+    out = elements.clone()
+    out[ids] = live_elements
+    return CutResult(out, parents, first, second, num_nodes)
