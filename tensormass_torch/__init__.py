@@ -8,6 +8,7 @@
 from ._backend import backend_info
 from .errors import InvertedElementsError, MaterialError, MeshError, SceneError, SolverError, TensorMassError
 from .mesh.beams import beam_mesh, beam_tri_mesh
+from .mesh.cutting import Blade
 from .mesh.io import load_mesh, save_mesh
 from .mesh.meshes import Mesh, TetMesh, TriMesh
 from .mesh.surface import tetrahedralize
@@ -23,6 +24,6 @@ __version__ = "0.1.0"
 __all__ = [
     "backend_info", "Plane", "InvertedElementsError", "MaterialError", "MeshError", "SceneError", "SolverError",
     "TensorMassError",
-    "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh",
+    "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh", "Blade",
     "TensorMass", "Body", "Simulator", "InvertedElementsWarning", "load_scene", "solve_static", "tetrahedralize",
 ]

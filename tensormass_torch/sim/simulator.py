@@ -9,6 +9,8 @@ from typing import Callable, List, Optional, Sequence
 import torch
 
 from ..errors import MeshError, SceneError, SolverError
+from ..mesh import cutting
+from ..mesh.cutting import Blade
 from ..ops.segments import Segments
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
@@ -111,6 +113,13 @@ class Simulator:
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0):
         bodies = list(bodies)
+        # what a topology change that rebuilds the simulator (cut) builds it again with
+        self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
+                               rayleigh_stiffness=rayleigh_stiffness, planes=planes, cg_tol=cg_tol,
+                               cg_max_iter=cg_max_iter, require_convergence=require_convergence,
+                               newton_iters=newton_iters, check_every=check_every, form=form, device=device,
+                               dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
+                               substeps_on_failure=substeps_on_failure)
         if not bodies:
             raise SceneError("a simulator needs at least one body")
         for i, b in enumerate(bodies):
@@ -411,6 +420,66 @@ class Simulator:
         self.steps_done += steps
         self.last_report = report
         self.last_inversion = inversion
+
+    def cut(self, body, blade: Blade) -> int:
+        """Cut one body along ``blade`` between steps, where the body is now: the faces the blade
+        crosses part and their nodes split (``mesh.cutting``), so that the sides move apart; a
+        cut through the whole section leaves pieces that fall on their own. The body's mesh gets
+        the new nodes (copies of their parents: rest position, state, fixed or prescribed), and
+        the simulator is built again around it (removed elements stay removed; positions,
+        velocities, time carried over).
+
+        Args:
+            body: a body index, a ``tm.Body`` of this simulator, or a body's name (3-D bodies).
+            blade: a ``tm.Blade`` (e.g. ``tm.Blade.swept(a0, b0, a1, b1)``: a scalpel's edge
+                between two poses).
+
+        Returns:
+            the number of nodes the cut added.
+
+        Raises:
+            MeshError: the blade crosses no interior face of the body (nothing changed).
+        """
+        i = self._body_index(body)
+        old = self.bodies[i]
+        if not isinstance(blade, Blade):
+            raise SceneError(f"blade must be a tm.Blade, got {type(blade).__name__}")
+        if old.mesh.vertices.shape[1] != 3:
+            raise SceneError(f"body {i} is 2-D: cutting needs a 3-D body (tetrahedra or membranes)")
+        elements = old.mesh.elements.to(self.device)
+        result = cutting.cut(elements, old.mesh.num_vertices, self.positions(i), blade,
+                             ~self.alive_elements(i))
+        parents = result.parents
+        mesh_parents = parents.to(old.mesh.vertices.device)
+        mesh = type(old.mesh)(old.mesh.vertices[mesh_parents], result.elements.to(old.mesh.vertices.device),
+                              check=False)
+        motion = None
+        if old.motion is not None:  # the prescribed nodes' copies follow their parents
+            old_ids = torch.nonzero(old.prescribed).flatten()
+            new_ids = torch.nonzero(old.prescribed[mesh_parents]).flatten()
+            pick = torch.searchsorted(old_ids, mesh_parents[new_ids])
+
+            def motion(t, follow=old.motion, pick=pick):
+                goal = torch.as_tensor(follow(t))
+                return goal[pick.to(goal.device)]
+        bodies = list(self.bodies)
+        bodies[i] = Body(mesh, old.material, fixed=old.fixed[mesh_parents], prescribed=old.prescribed[mesh_parents],
+                         motion=motion, name=old.name)
+        removed = [torch.nonzero(~self.alive_elements(k)).flatten() for k in range(self.num_bodies)]
+        states = [(self.positions(k), self.velocities(k)) for k in range(self.num_bodies)]
+        states[i] = (states[i][0][parents], states[i][1][parents])
+        kept = (self.time, self.steps_done, self.removed_mass.clone(), self.last_report, self.last_inversion)
+        self.__init__(bodies, **self._init_args)
+        for k, ids in enumerate(removed):
+            if ids.numel():
+                self.model.remove_elements(ids + self.element_ptr[k])
+        self._make_system()
+        if self._inversion is not None:
+            self._inversion = InversionCheck.for_simulator(self)
+        self.x = torch.cat([x for x, _ in states])
+        self.v = torch.cat([v for _, v in states])
+        self.time, self.steps_done, self.removed_mass, self.last_report, self.last_inversion = kept
+        return result.new_nodes
 
     def alive_elements(self, i: int) -> torch.Tensor:
         """``[N_i]`` bool: which elements of body i's mesh remain (``remove_elements``)."""

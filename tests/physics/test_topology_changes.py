@@ -1,8 +1,10 @@
-"""Element removal (``TensorMass.remove_elements``): the Tensor-Mass way (each group drops the
-rows, the hooke tensor form subtracts the removed elements' tensors from their edges, the lumped
-masses lose their shares), checked against a model built afresh from the remaining elements:
-forces, force differentials, energy and masses to 1e-12 in float64, for every model, form and
-element kind, on the CPU extension and the pure-torch path; bad ids raise and change nothing."""
+"""Topology changes: element removal (``TensorMass.remove_elements``, ``Simulator.remove_elements``:
+the Tensor-Mass way, each group drops the rows, the hooke tensor form subtracts the removed
+elements' tensors from their edges, the lumped masses lose their shares) checked against models
+and simulators built afresh from the remaining elements (forces, force differentials, energy,
+masses, steps to 1e-12 in float64, every model, form and element kind, the CPU extension, the
+pure-torch path and CUDA); bad ids raise and change nothing; and ``Simulator.cut`` (a blade
+through a body: its pieces part) against a simulator of the cut mesh."""
 from __future__ import annotations
 
 import pytest
@@ -200,3 +202,40 @@ def test_a_model_never_cut_holds_nothing_for_removals_and_one_moved_after_buildi
     # both hold float32 data widened: their float32 sums were rounded in another order
     torch.testing.assert_close(model.lumped_mass(), fresh.lumped_mass(), rtol=1e-6, atol=0)
     torch.testing.assert_close(model(x), fresh(x), rtol=1e-6, atol=1e-6 * float(fresh(x).abs().max()))
+
+
+def test_a_cut_through_the_section_lets_the_far_piece_fall_and_equals_a_simulator_of_the_cut_mesh():
+    """A clamped beam cut through its whole section between steps: the far piece falls freely
+    (no force holds it: its centre accelerates at g), the near one stays clamped; the step after
+    the cut is that of a simulator built from the cut mesh at the same state; removed elements
+    stay removed and positions, velocities and time carry over."""
+    mesh = tm.beam_mesh(6, 2, 2, size=(1.2, 0.4, 0.4), dtype=torch.float64)
+    mat = material("corotational", "polar")
+    fixed = mesh.vertices[:, 0] == 0
+    sim = tm.Simulator([tm.Body(mesh, mat, fixed=fixed, name="beam")], dt=0.01, cg_tol=1e-12, rayleigh_mass=0.0)
+    sim.step(2)
+    sim.remove_elements(0, [0, 1])
+    blade = tm.Blade.swept((0.61, -1, -1), (0.61, 2, -1), (0.61, -1, 2), (0.61, 2, 2))
+    before = sim.x.clone()
+    added = sim.cut("beam", blade)
+    assert added == 9 and sim.x.shape[0] == mesh.num_vertices + 9
+    cut_mesh = sim.bodies[0].mesh
+    torch.testing.assert_close(sim.x[:mesh.num_vertices], before)  # the old nodes where they were
+    assert sim.time == pytest.approx(0.02) and not bool(sim.alive_elements(0)[:2].any())
+    fresh = tm.Simulator([tm.Body(cut_mesh, mat, fixed=sim.bodies[0].fixed, name="beam")], dt=0.01, cg_tol=1e-12)
+    fresh.remove_elements(0, [0, 1])
+    fresh.x, fresh.v = sim.x.clone(), sim.v.clone()
+    mass = sim.model.lumped_mass()
+    far = torch.zeros(cut_mesh.num_vertices, dtype=torch.bool)
+    far[cut_mesh.elements[cut_mesh.vertices[cut_mesh.elements].mean(1)[:, 0] > 0.6].reshape(-1)] = True
+    centre_velocity = lambda v: (mass[far, None] * v[far]).sum(0) / mass[far].sum()  # noqa: E731
+    start = centre_velocity(sim.v)
+    sim.step(5)
+    fresh.step(5)
+    torch.testing.assert_close(sim.x, fresh.x, rtol=1e-12, atol=1e-12)
+    # the far piece's centre of mass falls at g: nothing holds it, its elastic forces sum to zero
+    # (implicit Euler: M dv = h (f + M g) with sum f = 0 over the piece, so dv_centre = h g a step)
+    torch.testing.assert_close(centre_velocity(sim.v) - start,
+                               torch.tensor([0.0, 0.0, -9.81 * 5 * 0.01], dtype=torch.float64), rtol=0, atol=1e-9)
+    with pytest.raises(MeshError, match="crosses no interior face"):
+        sim.cut(0, tm.Blade.swept((5, -1, -1), (5, 2, -1), (5, -1, 2), (5, 2, 2)))
