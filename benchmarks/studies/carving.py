@@ -9,7 +9,7 @@ elements nearest the beam's mid-plane x = 9.5: a local cut), the time of ``Tenso
 paid once by the first removal, is measured on its own; synchronised wall clock) against the time to build
 a ``TensorMass`` of the remaining elements, in the same run. Then the simulator's steps/s without
 removals and with 10 elements removed before every step (the integrator's caches and captured
-graphs are built again after each removal: the cost the issue's fixed capacities are to remove).
+graphs are built again after each removal: the cost that fixed capacities are to remove, docs/topology-changes.md).
 """
 from __future__ import annotations
 
