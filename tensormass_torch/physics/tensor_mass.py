@@ -103,7 +103,9 @@ class TensorMass(nn.Module):
         """Remove elements in place, the Tensor-Mass way: each group drops their rows (the hooke
         tensor form subtracts their tensors from their edges) and the lumped masses lose their
         shares; forces, products, energy and masses are then those of a model built from the
-        remaining elements (to rounding). Nodes left with no element keep mass 0 exactly.
+        remaining elements (to rounding). Nodes left with no element keep mass 0 exactly. The
+        model of a ``Simulator``: use ``sim.remove_elements``, which also updates the integrator
+        (masses, gravity, constraints).
 
         Args:
             ids: element ids ``[R]`` in the model's numbering (the parts' elements in order, as
