@@ -139,12 +139,13 @@ class ElementGroup(nn.Module):
         taken in another order). Needs :meth:`prepare_removals` first."""
         keep = torch.ones(self.elements.shape[0], dtype=torch.bool, device=self.elements.device)
         keep[rows] = False
+        keep = torch.nonzero(keep).flatten()  # one index for every buffer (a mask would sync per buffer)
         if self.form == "tensor" and self.model == "hooke":
             self._subtract_edges(rows, rest)
         for name in self.PER_ELEMENT:
             value = getattr(self, name, None)
             if isinstance(value, torch.Tensor):
-                setattr(self, name, value[keep])
+                setattr(self, name, value.index_select(0, keep))
         if not (self.form == "tensor" and self.model == "hooke"):
             self.plan = GatherPlan.build(self.elements, self.num_nodes)
 

@@ -31,6 +31,30 @@ def _resolve_form(form: str, material) -> str:
     return form
 
 
+def checked_element_ids(ids, alive: torch.Tensor, owner: str) -> torch.Tensor:
+    """Element ids to remove as a sorted int64 tensor on ``alive``'s device, or one MeshError
+    naming the problem: not 1-D integers, out of range of ``alive [N]`` (the elements of
+    ``owner``, a label for the message), given twice, or already removed."""
+    ids = torch.as_tensor(ids)
+    if ids.dim() != 1 or (ids.numel() and (ids.dtype.is_floating_point or ids.dtype == torch.bool)):
+        raise MeshError(f"element ids must be a 1-D integer sequence, got {ids.dtype} of shape {tuple(ids.shape)}")
+    ids = ids.to(device=alive.device, dtype=torch.int64)
+    if ids.numel() == 0:
+        return ids
+    count = alive.shape[0]
+    low, high = int(ids.min()), int(ids.max())
+    if low < 0 or high >= count:
+        raise MeshError(f"element id {low if low < 0 else high} out of range: {owner} has {count} elements "
+                        f"(0 .. {count - 1})")
+    ids, counts = torch.unique(ids, sorted=True, return_counts=True)
+    if bool((counts > 1).any()):
+        raise MeshError(f"element ids given twice: {ids[counts > 1][:8].tolist()}")
+    gone = ids[~alive[ids]]
+    if gone.numel():
+        raise MeshError(f"elements already removed: {gone[:8].tolist()}")
+    return ids
+
+
 class TensorMass(nn.Module):
     """Tensor-Mass elastic forces, energy and force differentials of a mesh.
 
@@ -128,8 +152,7 @@ class TensorMass(nn.Module):
             if rows.numel() == 0:
                 continue
             element_masses.append((group.elements[rows], group.element_mass[rows]))
-            group.remove_rows(rows, self.rest)
-            group.element_ids = group.element_ids[torch.isin(group.element_ids, ids, invert=True)]
+            group.remove_rows(rows, self.rest)  # element_ids lose the rows too (PER_ELEMENT)
         removed = self._lumped_mass(element_masses)
         with torch.no_grad():
             self.removed[ids] = True
@@ -143,25 +166,7 @@ class TensorMass(nn.Module):
         return removed
 
     def _check_removal(self, ids) -> torch.Tensor:
-        """``ids`` as a sorted int64 tensor on the model's device, or MeshError naming the problem."""
-        ids = torch.as_tensor(ids)
-        if ids.dim() != 1 or (ids.numel() and (ids.dtype.is_floating_point or ids.dtype == torch.bool)):
-            raise MeshError(f"element ids must be a 1-D integer sequence, got {ids.dtype} of shape {tuple(ids.shape)}")
-        ids = ids.to(device=self.rest.device, dtype=torch.int64)
-        if ids.numel() == 0:
-            return ids
-        low, high = int(ids.min()), int(ids.max())
-        if low < 0 or high >= self.num_elements:
-            bad = low if low < 0 else high
-            raise MeshError(f"element id {bad} out of range: the model has {self.num_elements} elements (0 .. "
-                            f"{self.num_elements - 1})")
-        ids, counts = torch.unique(ids, sorted=True, return_counts=True)
-        if bool((counts > 1).any()):
-            raise MeshError(f"element ids given twice: {ids[counts > 1][:8].tolist()}")
-        gone = ids[self.removed[ids]] if "removed" in self._buffers else ids[:0]
-        if gone.numel():
-            raise MeshError(f"elements already removed: {gone[:8].tolist()}")
-        return ids
+        return checked_element_ids(ids, self.alive_elements(), "the model")
 
     def alive_elements(self) -> torch.Tensor:
         """``[N]`` bool over the model's element ids: those not removed."""

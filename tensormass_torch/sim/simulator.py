@@ -8,14 +8,14 @@ from typing import Callable, List, Optional, Sequence
 
 import torch
 
-from ..errors import MeshError, SceneError, SolverError
+from ..errors import SceneError, SolverError
 from ..mesh import cutting
 from ..mesh.cutting import Blade
 from ..ops.segments import Segments
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
 from ..physics.materials import Material
-from ..physics.tensor_mass import TensorMass
+from ..physics.tensor_mass import TensorMass, checked_element_ids
 from ..solver.implicit_euler import (
     DynamicsSystem,
     StepOptions,
@@ -260,18 +260,8 @@ class Simulator:
             removed; nothing is changed.
         """
         i = self._body_index(body)
-        count = self.element_ptr[i + 1] - self.element_ptr[i]
-        ids = torch.as_tensor(ids)
-        if ids.dim() == 1 and ids.numel() and not (ids.dtype.is_floating_point or ids.dtype == torch.bool):
-            low, high = int(ids.min()), int(ids.max())
-            if low < 0 or high >= count:
-                raise MeshError(f"element id {low if low < 0 else high} out of range: body {i} has {count} elements "
-                                f"(0 .. {count - 1})")
-            ids = ids.to(self.device) + self.element_ptr[i]
-        try:
-            removed = self.model.remove_elements(ids)
-        except MeshError as error:  # name the body's ids, not the model's
-            raise MeshError(f"body {i}: {error}".replace("elements already removed", "already removed")) from None
+        ids = checked_element_ids(ids, self.alive_elements(i), f"body {i}")  # the body's ids in messages
+        removed = self.model.remove_elements(ids + self.element_ptr[i])
         lost = float(removed.sum())
         self.removed_mass[i] += lost
         with torch.no_grad():
