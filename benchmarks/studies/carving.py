@@ -1,15 +1,20 @@
-"""Carving cost: removing elements in place against rebuilding the model, and steps while carving.
+"""Carving cost: removing elements in place against rebuilding, and steps while carving.
 
-    python benchmarks/studies/carving.py [--device cuda] [--models hooke,corotational] [--counts 10,100,1000,10000]
-                                         [--scale 1] [--steps 50] [--out benchmarks/results/carving] [--quick]
+    python benchmarks/studies/carving.py [--device cuda] [--scenes sofa,paper] [--models hooke,corotational]
+                                         [--counts 10,100,1000,10000] [--scale 1] [--steps 50]
+                                         [--out benchmarks/results/carving] [--quick]
 
-On SOFA's beam (101,250 tets; ``--scale`` divides its resolution): for R removed elements (the R
-elements nearest the beam's mid-plane x = 9.5: a local cut), the time of ``TensorMass.remove_elements``
-(median of 3, each on a fresh copy of the model that has made what removals need: that set-up,
-paid once by the first removal, is measured on its own; synchronised wall clock) against the time to build
-a ``TensorMass`` of the remaining elements, in the same run. Then the simulator's steps/s without
-removals and with 10 elements removed before every step (the integrator's caches and captured
-graphs are built again after each removal: the cost that fixed capacities are to remove, docs/topology-changes.md).
+On SOFA's beam (101,250 tets; ``--scale`` divides its resolution) and the paper's beam (307,200
+tets, resolution 4 / scale), for R removed elements (the R elements nearest the beam's middle
+cross-section: a local cut): the time of ``TensorMass.remove_elements`` (median of 3, each on a
+fresh copy of the model that has made what removals need: that set-up, paid once by the first
+removal, is measured on its own) and of ``Simulator.remove_elements`` between steps (median of 3
+successive removals of R elements from a simulator whose step graphs are captured: model, masses,
+gravity and constraints updated in place), against, in the same run, building a ``TensorMass``
+of the remaining elements and building a ``Simulator`` of them up to its first step done (what a
+user would do without removals: node graph, captured graphs). Synchronised wall clock. Then the
+SOFA beam's steps/s without removals and with 10 elements removed before every step (one
+``sim.step()`` call per step in both).
 """
 from __future__ import annotations
 
@@ -27,10 +32,13 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch.sim import builtin
 
-COLUMNS = [("model", "model", None), ("form", "form", None), ("elements", "elements", None),
-           ("prepare_ms", "first removal's set-up ms", ".2f"), ("removed", "removed", None),
-           ("remove_ms", "remove ms", ".3f"), ("rebuild_ms", "rebuild ms", ".2f"),
-           ("speedup", "rebuild / remove", ".1f"), ("steps_per_s", "steps/s", ".1f"),
+COLUMNS = [("scene", "scene", None), ("model", "model", None), ("form", "form", None),
+           ("elements", "elements", None), ("prepare_ms", "first removal's set-up ms", ".2f"),
+           ("removed", "removed", None), ("remove_ms", "model: remove ms", ".3f"),
+           ("rebuild_ms", "model: rebuild ms", ".2f"), ("speedup", "rebuild / remove", ".1f"),
+           ("sim_remove_ms", "simulator: remove ms", ".3f"),
+           ("sim_rebuild_ms", "simulator: rebuild to a step ms", ".1f"),
+           ("sim_speedup", "rebuild / remove", ".0f"), ("steps_per_s", "steps/s", ".1f"),
            ("removed_per_step", "removed per step", None)]
 
 
@@ -56,67 +64,102 @@ def prepared(model):
     return model
 
 
+def scene_of(name, model_name, device, scale):
+    if name == "sofa":
+        return builtin.sofa_beam(model=model_name, device=device, scale=scale)
+    return builtin.paper_beam(resolution=max(4 // scale, 1), model=model_name, device=device)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default=common.default_device())
+    p.add_argument("--scenes", default="sofa,paper")
     p.add_argument("--models", default="hooke,corotational")
     p.add_argument("--counts", default="10,100,1000,10000")
     p.add_argument("--scale", type=int, default=1)
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--out", default="benchmarks/results/carving")
-    p.add_argument("--quick", action="store_true", help="the beam at 1/5 resolution, 10 and 100 removed, 5 steps")
+    p.add_argument("--quick", action="store_true", help="the beams at 1/5 resolution, 10 and 100 removed, 5 steps")
     args = p.parse_args(argv)
     if args.quick:
         args.scale, args.counts, args.steps = 5, "10,100", 5
     device = args.device
     results = common.Results(args.out, "carving", "Carving: in-place removal against a rebuild",
-                             common.metadata(device, scale=args.scale), COLUMNS,
-                             notes=["Removal: `TensorMass.remove_elements` of the R elements nearest x = 9.5, "
-                                    "median of 3 on fresh copies; rebuild: `TensorMass` of the remaining "
-                                    "elements; steps/s: `Simulator.step` with 10 elements removed before each "
-                                    "step, against none."])
-    for model_name in args.models.split(","):
-        scene = builtin.sofa_beam(model=model_name, device=device, scale=args.scale)
-        sim = scene.simulator
-        body = sim.bodies[0]
-        mesh, material = body.mesh, body.material
-        model = sim.model
-        form = model.groups[0].form
-        centroids = mesh.vertices[mesh.elements].mean(1)
-        order = torch.argsort((centroids[:, 0] - 9.5).abs())
-        n = mesh.elements.shape[0]
-        prepare_s = timed(lambda m: m._prepare_removals(), device, setup=lambda: copy.deepcopy(model))
-        results.add(common.record(scene="sofa_beam", model=model_name, kind=mesh.kind, elements=n, form=form,
-                                  device=str(device), prepare_ms=1e3 * prepare_s))
-        for count in common.parse_ints(args.counts):
-            if count >= n:
-                continue
-            ids = order[:count]
-            keep = torch.ones(n, dtype=torch.bool, device=mesh.elements.device)
-            keep[ids] = False
-            remove_s = timed(lambda m: m.remove_elements(ids), device, setup=lambda: prepared(model))
-            rebuild_s = timed(lambda _: tm.TensorMass.packed(model.rest, [(mesh.elements[keep], material, mesh.kind)],
-                                                             form=form), device)
-            results.add(common.record(scene="sofa_beam", model=model_name, kind=mesh.kind, elements=n, form=form,
-                                      device=str(device), removed=count, remove_ms=1e3 * remove_s,
-                                      rebuild_ms=1e3 * rebuild_s, speedup=rebuild_s / remove_s))
-        for per_step in (0, 10):
-            sim = builtin.sofa_beam(model=model_name, device=device, scale=args.scale).simulator
-            sim.step(3)  # warm-up: graphs captured
-            cursor = [0]
-
-            def step(k, sim=sim, per_step=per_step):
-                for _ in range(k):
-                    if per_step:
-                        sim.remove_elements(0, order[cursor[0]:cursor[0] + per_step])
-                        cursor[0] += per_step
-                    sim.step()
-
-            seconds = timed(lambda _: step(args.steps), device, repeat=1, warmup=0)
-            results.add(common.record(scene="sofa_beam", model=model_name, kind=mesh.kind, elements=n, form=form,
-                                      device=str(device), steps=args.steps, steps_per_s=args.steps / seconds,
-                                      removed_per_step=per_step))
+                             common.metadata(device, scale=args.scale),
+                             COLUMNS, notes=["Removal of the R elements nearest the beam's middle section; model: "
+                                             "`TensorMass.remove_elements` (median of 3 on fresh copies) against a "
+                                             "`TensorMass` of the remaining elements; simulator: "
+                                             "`Simulator.remove_elements` between steps (median of 3 successive "
+                                             "removals) against a `Simulator` of the remaining elements up to its "
+                                             "first step; steps/s: the SOFA beam, one `sim.step()` per step, with "
+                                             "10 elements removed before each step against none."])
+    for scene_name in args.scenes.split(","):
+        for model_name in args.models.split(","):
+            measure_scene(results, scene_name, model_name, device, args)
     results.finish()
+
+
+def measure_scene(results, scene_name, model_name, device, args):
+    scene = scene_of(scene_name, model_name, device, args.scale)
+    sim = scene.simulator
+    body = sim.bodies[0]
+    mesh, material = body.mesh, body.material
+    model = sim.model
+    form = model.groups[0].form
+    centroids = mesh.vertices[mesh.elements].mean(1)
+    middle = 0.5 * float(mesh.vertices[:, 0].min() + mesh.vertices[:, 0].max())
+    order = torch.argsort((centroids[:, 0] - middle).abs())
+    n = mesh.elements.shape[0]
+    same = dict(scene=scene.name, model=model_name, kind=mesh.kind, elements=n, form=form, device=str(device))
+    prepare_s = timed(lambda m: m._prepare_removals(), device, setup=lambda: copy.deepcopy(model))
+    results.add(common.record(**same, prepare_ms=1e3 * prepare_s))
+    init = dict(sim._init_args)
+    for count in common.parse_ints(args.counts):
+        if 3 * count >= n:
+            continue
+        ids = order[:count]
+        keep = torch.ones(n, dtype=torch.bool, device=mesh.elements.device)
+        keep[ids] = False
+        remove_s = timed(lambda m: m.remove_elements(ids), device, setup=lambda: prepared(model))
+        rebuild_s = timed(lambda _: tm.TensorMass.packed(model.rest, [(mesh.elements[keep], material, mesh.kind)],
+                                                         form=form), device)
+        # the simulator: three successive removals of `count` elements between steps
+        carved = scene_of(scene_name, model_name, device, args.scale).simulator
+        carved.step(3)  # graphs captured
+        carved.remove_elements(0, order[-1:])  # the first removal's set-up, not timed
+        chunks = iter(order[k * count:(k + 1) * count] for k in range(3))
+        sim_remove_s = timed(lambda _: carved.remove_elements(0, next(chunks)), device, warmup=0)
+        kept = tm.TetMesh(mesh.vertices, mesh.elements[keep], check=False)
+        holds = body.fixed.clone()
+        holds[kept.unused_vertices()] = True  # vertices left with no element: held (tm.Body asks it)
+
+        def rebuilt(_):
+            fresh = tm.Simulator([tm.Body(kept, material, fixed=holds, name=body.name)], **init)
+            fresh.step()
+
+        sim_rebuild_s = timed(rebuilt, device, repeat=1)
+        results.add(common.record(**same, removed=count, remove_ms=1e3 * remove_s, rebuild_ms=1e3 * rebuild_s,
+                                  speedup=rebuild_s / remove_s, sim_remove_ms=1e3 * sim_remove_s,
+                                  sim_rebuild_ms=1e3 * sim_rebuild_s, sim_speedup=sim_rebuild_s / sim_remove_s))
+    if scene_name != "sofa":
+        return
+    for per_step in (0, 10):
+        sim = scene_of(scene_name, model_name, device, args.scale).simulator
+        sim.step(3)  # warm-up: graphs captured
+        if per_step:
+            sim.remove_elements(0, order[-1:])  # the first removal's set-up
+        cursor = [0]
+
+        def step(k, sim=sim, per_step=per_step):
+            for _ in range(k):
+                if per_step:
+                    sim.remove_elements(0, order[cursor[0]:cursor[0] + per_step])
+                    cursor[0] += per_step
+                sim.step()
+
+        seconds = timed(lambda _: step(args.steps), device, repeat=1, warmup=0)
+        results.add(common.record(**same, steps=args.steps, steps_per_s=args.steps / seconds,
+                                  removed_per_step=per_step))
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ from .reference import corotational, stress_form
 from .stress import stress_args
 from .variants import DEFAULT, KernelVariants
 
-__all__ = ["hooke_node_graph", "hooke_rows_graph", "node_graph_rows", "set_objects", "tangent_graph",
+__all__ = ["edges_changed", "hooke_node_graph", "hooke_rows_graph", "node_graph_rows", "set_objects", "tangent_graph",
            "tangent_serves", "tangent_node_k", "graph_of_edges", "node_graph_of", "step_rhs_serves", "step_rhs",
            "planes_serve"]
 
@@ -332,6 +332,36 @@ def hooke_node_graph(group):
     value = graph_of_edges(index, force_index, group.plan.num_slots, group.plan.num_nodes, edge_k)
     group.__dict__["_native_node_graph"] = (tensors, tuple(t._version for t in tensors), value)
     return value
+
+
+@torch.no_grad()
+def edges_changed(group, edge_ids: torch.Tensor) -> None:
+    """A hooke tensor-form group's blocks ``edge_k`` changed in place at ``edge_ids [k]`` (a
+    topology change; its edges and plan the same): write them into the node graphs cached on the
+    group (:func:`hooke_node_graph`, :func:`hooke_rows_graph`) in place, since captured CUDA graphs
+    and packed solves read their storage, and keep the caches current. A graph not built yet is
+    built later from the new blocks."""
+    cache = group.__dict__.get("_native_node_graph")
+    if cache is None or cache[0][0] is not group.edge_k:
+        return
+    edge_k, index, force_index = cache[0]
+    neighbor, node_k = cache[2]
+    blocks = edge_k[edge_ids]
+    first, second = index[edge_ids].long().unbind(1)
+    slot_first, slot_second = force_index[edge_ids].long().unbind(1)
+    node_k[slot_first, first] = blocks
+    node_k[slot_second, second] = blocks.transpose(1, 2)
+    group.__dict__["_native_node_graph"] = (cache[0], tuple(t._version for t in cache[0]), cache[2])
+    by_rows = group.__dict__.get("_native_by_rows_hooke")
+    if by_rows is None or by_rows[0][1] is not node_k:
+        return
+    rows, rows_k = by_rows[3], by_rows[2][1]
+    if rows is not None:  # the graph by rows holds node i at row position[i]
+        position = torch.empty(rows.shape[0], dtype=torch.long, device=rows.device)
+        position[rows.long()] = torch.arange(rows.shape[0], device=rows.device)
+        rows_k[slot_first, position[first]] = blocks
+        rows_k[slot_second, position[second]] = blocks.transpose(1, 2)
+    group.__dict__["_native_by_rows_hooke"] = (by_rows[0], tuple(t._version for t in by_rows[0]), *by_rows[2:])
 
 
 def tangent_graph(group, window: int = DEFAULT.node_graph_window):

@@ -22,6 +22,7 @@ from torch import nn
 from ..errors import MaterialError
 from ..mesh import geometry
 from ..mesh.topology import GatherPlan, incidence_slots, padded_sum, unique_edges
+from ..ops import node_graph
 from ..ops.reference import tensor_form
 from .materials import lame
 
@@ -104,24 +105,11 @@ class ElementGroup(nn.Module):
             self.plan = GatherPlan.build(elements, self.num_nodes)
 
     # ---------------------------------------------------------------- topology changes
-    #: the buffers with one row per element, kept in step by :meth:`remove_rows`
-    PER_ELEMENT = ("elements", "measure", "element_mass", "element_ids", "shape_vectors", "young", "poisson",
-                   "projector", "rest_elements", "rest_normals", "tensor_b", "tensor_c", "tensor_d")
-
-    @property
-    def removable(self) -> bool:
-        """Whether :meth:`prepare_removals` ran (a group never cut holds none of its data)."""
-        return "element_ids" in self._buffers
-
-    def prepare_removals(self, element_ids: torch.Tensor, element_mass: torch.Tensor, young: torch.Tensor,
-                         poisson: torch.Tensor) -> None:
-        """What :meth:`remove_rows` needs, made at the first removal only (a scene that never
-        removes an element holds none of it): the model's ids of the rows and their lumped masses
-        ``[N]``; for the hooke tensor form also the parameters to form an element's tensors again
-        (``young, poisson [N]``) and the number of elements on each edge (an edge leaves with its
-        last)."""
-        self.register_buffer("element_ids", element_ids)
-        self.register_buffer("element_mass", element_mass)
+    def prepare_removals(self, young: torch.Tensor, poisson: torch.Tensor) -> None:
+        """What :meth:`remove_rows` needs beyond the group's own data, made at the first removal
+        only (a scene that never removes an element holds none of it): for the hooke tensor form
+        the parameters to form an element's tensors again (``young, poisson [N]``) and the number
+        of elements on each edge (an edge's blocks are exactly 0 once its last element is gone)."""
         if self.form == "tensor" and self.model == "hooke":
             self.register_buffer("young", young)
             self.register_buffer("poisson", poisson)
@@ -129,31 +117,35 @@ class ElementGroup(nn.Module):
             counts = torch.bincount(element_edges.reshape(-1), minlength=self.edges.shape[0])
             self.register_buffer("edge_elements", counts.to(torch.int32))
 
+    @torch.no_grad()  # a removal is not differentiable (the tensor form holds no gradient anyway)
     def remove_rows(self, rows: torch.Tensor, rest: torch.Tensor) -> None:
-        """Remove the elements in ``rows`` (local row ids ``[R]``, unique, in range: the caller
-        checks) in place, as if the group had been built without them: every per-element buffer
-        loses those rows (the others keep their order), the hooke tensor form subtracts their
-        element tensors (formed again from ``rest [V, d]``) from their edges, whose element counts
-        drop, and drops the edges left with no element; the gather plan follows. A fresh group of
-        the remaining elements holds the same data up to rounding in the edge sums (an edge's sum
-        taken in another order). Needs :meth:`prepare_removals` first."""
-        keep = torch.ones(self.elements.shape[0], dtype=torch.bool, device=self.elements.device)
-        keep[rows] = False
-        keep = torch.nonzero(keep).flatten()  # one index for every buffer (a mask would sync per buffer)
-        if self.form == "tensor" and self.model == "hooke":
-            self._subtract_edges(rows, rest)
-        for name in self.PER_ELEMENT:
-            value = getattr(self, name, None)
-            if isinstance(value, torch.Tensor):
-                setattr(self, name, value.index_select(0, keep))
-        if not (self.form == "tensor" and self.model == "hooke"):
-            self.plan = GatherPlan.build(self.elements, self.num_nodes)
+        """Remove the elements at ``rows`` (local row ids ``[R]``, unique, in range, alive: the
+        caller checks) in place. Every buffer keeps its storage and shape and the gather plan stays
+        as built, so whatever reads them (the node graphs, captured CUDA graphs, a packed solve)
+        stays valid; a removed row stays but contributes exactly nothing:
 
-    @torch.no_grad()  # the tensor form holds no gradient (its constructor refuses one)
+            stress form     shape vectors and measure 0: F = P, no strain; every force, product and
+                            energy term of the element is a product with m or the measure, so 0
+            stvk tensor     B, C, D 0 (the forces are polynomials in them)
+            hooke tensor    the element's blocks, formed again from ``rest [V, d]``, subtracted from
+                            its edges (summed per edge in a fixed order first); an edge left with no
+                            element holds exactly 0; the node graphs cached on the group follow
+
+        The forces are then those of a group built without the rows, exactly but for the edge sums
+        of the hooke tensor form (rounded in another order). A corotational element's rotation is
+        still computed from its current nodes: finite unless three of them are exactly collinear.
+        Needs :meth:`prepare_removals` first."""
+        if self.form == "stress":
+            self.shape_vectors.index_fill_(0, rows, 0.0)
+            self.measure.index_fill_(0, rows, 0.0)
+        elif self.model == "hooke":
+            self._subtract_edges(rows, rest)
+        else:
+            for tensor in (self.tensor_b, self.tensor_c, self.tensor_d):
+                tensor.index_fill_(0, rows, 0.0)
+
     def _subtract_edges(self, rows: torch.Tensor, rest: torch.Tensor) -> None:
-        """The hooke tensor form's part of :meth:`remove_rows`: the removed elements' tensors off
-        their edges (summed per edge in a fixed order first), their counts down, the empty edges
-        out (``edges`` stays sorted: a fresh assembly's order)."""
+        """The hooke tensor form's part of :meth:`remove_rows`."""
         elements = self.elements[rows]
         element_rest = geometry.element_nodes(rest, elements)
         m, _ = geometry.shape_vectors(element_rest)
@@ -165,13 +157,11 @@ class ElementGroup(nn.Module):
         touched, local = torch.unique(edge_ids.reshape(-1), sorted=True, return_inverse=True)
         slots, num_slots, counts = incidence_slots(local, touched.numel())
         removed = padded_sum(blocks.reshape(-1, *blocks.shape[2:]), local, slots, num_slots, touched.numel())
-        self.edge_k[touched] -= removed
-        self.edge_elements[touched] -= counts.to(self.edge_elements.dtype)
-        if bool((self.edge_elements[touched] == 0).any()):  # edges left with no element leave
-            alive = self.edge_elements > 0
-            self.edges, self.edge_k = self.edges[alive], self.edge_k[alive]
-            self.edge_elements = self.edge_elements[alive]
-            self.plan = GatherPlan.build(self.edges, self.num_nodes)
+        left = self.edge_elements[touched] - counts.to(self.edge_elements.dtype)
+        self.edge_elements[touched] = left
+        value = self.edge_k[touched] - removed
+        self.edge_k[touched] = torch.where((left == 0)[:, None, None], torch.zeros_like(value), value)
+        node_graph.edges_changed(self, touched)
 
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""

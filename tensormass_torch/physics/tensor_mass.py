@@ -42,16 +42,18 @@ def checked_element_ids(ids, alive: torch.Tensor, owner: str) -> torch.Tensor:
     if ids.numel() == 0:
         return ids
     count = alive.shape[0]
-    low, high = int(ids.min()), int(ids.max())
+    ids = torch.sort(ids).values
+    # every check from one host read (a removal between GPU steps waits for the device once)
+    twice = ids[1:] == ids[:-1]
+    gone = ~alive[ids.clamp(0, count - 1)]
+    low, high, num_twice, num_gone = torch.stack([ids[0], ids[-1], twice.sum(), gone.sum()]).tolist()
     if low < 0 or high >= count:
         raise MeshError(f"element id {low if low < 0 else high} out of range: {owner} has {count} elements "
                         f"(0 .. {count - 1})")
-    ids, counts = torch.unique(ids, sorted=True, return_counts=True)
-    if bool((counts > 1).any()):
-        raise MeshError(f"element ids given twice: {ids[counts > 1][:8].tolist()}")
-    gone = ids[~alive[ids]]
-    if gone.numel():
-        raise MeshError(f"elements already removed: {gone[:8].tolist()}")
+    if num_twice:
+        raise MeshError(f"element ids given twice: {torch.unique(ids[1:][twice])[:8].tolist()}")
+    if num_gone:
+        raise MeshError(f"elements already removed: {ids[gone][:8].tolist()}")
     return ids
 
 
@@ -124,12 +126,14 @@ class TensorMass(nn.Module):
 
     # ---------------------------------------------------------------- topology changes
     def remove_elements(self, ids) -> torch.Tensor:
-        """Remove elements in place, the Tensor-Mass way: each group drops their rows (the hooke
-        tensor form subtracts their tensors from their edges) and the lumped masses lose their
-        shares; forces, products, energy and masses are then those of a model built from the
-        remaining elements (to rounding). Nodes left with no element keep mass 0 exactly. The
-        model of a ``Simulator``: use ``sim.remove_elements``, which also updates the integrator
-        (masses, gravity, constraints).
+        """Remove elements in place, the Tensor-Mass way: each group zeroes their contribution
+        (``ElementGroup.remove_rows``: the hooke tensor form subtracts their tensors from their
+        edges) and the lumped masses lose their shares; forces, products, energy and masses are
+        then those of a model built from the remaining elements (to rounding). Nothing is
+        reallocated: every buffer, the gather plans and the node graphs keep their storage, so a
+        solver's caches and captured CUDA graphs stay valid. Nodes left with no element keep mass
+        0 exactly. The model of a ``Simulator``: use ``sim.remove_elements``, which also updates
+        the integrator (masses, gravity, constraints).
 
         Args:
             ids: element ids ``[R]`` in the model's numbering (the parts' elements in order, as
@@ -142,27 +146,29 @@ class TensorMass(nn.Module):
             MeshError: an id out of range, given twice or already removed (nothing changed).
         """
         ids = self._check_removal(ids)
-        removed = self.mass.new_zeros(self.num_nodes)
         if ids.numel() == 0:
-            return removed
+            return self.mass.new_zeros(self.num_nodes)
         self._prepare_removals()
-        element_masses = []
-        for group in self.groups:
-            rows = torch.nonzero(torch.isin(group.element_ids, ids)).flatten()
+        nodes, shares = [], []
+        group_of, row_of = self.element_group[ids], self.element_row[ids]
+        for g, group in enumerate(self.groups):
+            rows = row_of if len(self.groups) == 1 else row_of[group_of == g]
             if rows.numel() == 0:
                 continue
-            element_masses.append((group.elements[rows], group.element_mass[rows]))
-            group.remove_rows(rows, self.rest)  # element_ids lose the rows too (PER_ELEMENT)
-        removed = self._lumped_mass(element_masses)
+            group.remove_rows(rows, self.rest)
+            elements = group.elements[rows]
+            nodes.append(elements.reshape(-1))
+            shares.append((self.element_mass[ids if len(self.groups) == 1 else ids[group_of == g]]
+                           / elements.shape[1])[:, None].expand(elements.shape).reshape(-1))
+        nodes, shares = torch.cat(nodes), torch.cat(shares)
+        slots, num_slots, _ = incidence_slots(nodes, self.num_nodes)
+        removed = padded_sum(shares, nodes, slots, num_slots, self.num_nodes)  # deterministic sums
         with torch.no_grad():
             self.removed[ids] = True
+            self.node_elements.index_add_(0, nodes, torch.full_like(nodes, -1, dtype=self.node_elements.dtype))
             self.mass -= removed
-            # a node with no element left has no mass (not the rounding residue of the subtraction);
-            # only the removed elements' nodes can be such (a node's items: its elements, or its
-            # edges in the hooke tensor form, which it has while it has an element)
-            nodes = torch.unique(torch.cat([e.reshape(-1) for e, _ in element_masses]))
-            items = sum(group.plan.incidences[nodes] for group in self.groups)
-            self.mass[nodes[items == 0]] = 0.0
+            # a node with no element left has no mass (not the rounding residue of the subtraction)
+            self.mass.masked_fill_(self.node_elements == 0, 0.0)
         return removed
 
     def _check_removal(self, ids) -> torch.Tensor:
@@ -174,19 +180,37 @@ class TensorMass(nn.Module):
             return torch.ones(self.num_elements, dtype=torch.bool, device=self.rest.device)
         return ~self.removed
 
+    def isolated_nodes(self) -> torch.Tensor:
+        """``[V]`` bool: nodes whose every element was removed (mass 0, no stiffness)."""
+        if "removed" not in self._buffers:
+            return torch.zeros(self.num_nodes, dtype=torch.bool, device=self.rest.device)
+        return self.node_elements == 0
+
     def _prepare_removals(self) -> None:
         """The data removals need, made at the first one (none before: a model never cut pays
-        nothing): the removed-element mask, and per group its rows' model ids, lumped masses and
-        (hooke tensor form) parameters and edge counts (``ElementGroup.prepare_removals``)."""
+        nothing): over the model's element ids the removed mask, each element's group and row
+        and lumped mass ``[N]``; the alive elements on each node ``[V]``; per group what
+        ``ElementGroup.prepare_removals`` keeps."""
         if "removed" in self._buffers:
             return
         like = self.rest
-        for group in self.groups:
+        group_of, row_of, element_mass, node_elements = [], [], [], torch.zeros(self.num_nodes, dtype=torch.int32,
+                                                                                device=like.device)
+        for g, group in enumerate(self.groups):
             sources = group.__dict__["_sources"]
             ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
             # the sources are as built: the model may have moved since (.to())
             young, poisson, density = (torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4))
-            group.prepare_removals(ids, density * group.measure.detach(), young, poisson)
+            group.prepare_removals(young, poisson)
+            group_of.append(torch.full_like(ids, g))
+            row_of.append(torch.arange(ids.numel(), device=like.device))
+            element_mass.append((ids, density * group.measure.detach()))
+            node_elements += torch.bincount(group.elements.reshape(-1), minlength=self.num_nodes).to(torch.int32)
+        order = torch.argsort(torch.cat([ids for ids, _ in element_mass]))  # group rows -> model ids
+        self.register_buffer("element_group", torch.cat(group_of)[order])
+        self.register_buffer("element_row", torch.cat(row_of)[order])
+        self.register_buffer("element_mass", torch.cat([m for _, m in element_mass])[order])
+        self.register_buffer("node_elements", node_elements)
         self.register_buffer("removed", torch.zeros(self.num_elements, dtype=torch.bool, device=like.device))
 
     # ---------------------------------------------------------------- evaluation

@@ -218,11 +218,27 @@ class Simulator:
     def _make_system(self):
         """The integrator's view of the model (masses, gravity, constraints; its solver caches
         and CUDA graphs start afresh). A node without mass (a vertex no element uses, or one whose
-        last element was removed) has no stiffness either: it leaves the system, held in place."""
+        last element was removed) has no stiffness either: it leaves the system, held in place.
+        Once elements have been removed the system keeps a constraint mask even when nothing is
+        constrained, so that later removals update it in place."""
         mass = self.model.lumped_mass()
         constrained = self.fixed | self.prescribed | (mass == 0)
         self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * self.gravity, self.segments,
-                                     constrained, self.planes)
+                                     constrained, self.planes, keep_mask="removed" in self.model._buffers)
+
+    def _masses_changed(self):
+        """After the model lost elements in place: gravity follows the masses and nodes left with
+        no element leave the system (held, velocity 0), all in place (the solver's caches and
+        captured CUDA graphs read this storage), but for the first removal from a system built
+        without a constraint mask."""
+        isolated = self.model.isolated_nodes()
+        with torch.no_grad():
+            self.v.masked_fill_(isolated[:, None], 0.0)
+        if self.system.free is None:
+            self._make_system()
+            return
+        torch.mul(self.model.lumped_mass()[:, None], self.gravity, out=self.system.external)
+        self.system.free.masked_fill_(isolated[:, None], 0.0)
 
     def _body_index(self, body) -> int:
         """The index of ``body``: an index, a ``Body`` of this simulator or a body's name."""
@@ -246,6 +262,8 @@ class Simulator:
         the Tensor-Mass way (``TensorMass.remove_elements``), the masses and gravity follow, and a
         node left with no element leaves the system (its velocity zeroed, held in place). The
         next step is that of a simulator built from the remaining elements at the same state.
+        Nothing is rebuilt: the solver's caches and captured CUDA graphs stay valid (after the
+        first removal, which gives a system without constraints a constraint mask).
 
         Args:
             body: a body index, a ``tm.Body`` of this simulator, or a body's name.
@@ -264,9 +282,7 @@ class Simulator:
         removed = self.model.remove_elements(ids + self.element_ptr[i])
         lost = float(removed.sum())
         self.removed_mass[i] += lost
-        with torch.no_grad():
-            self.v[self.model.lumped_mass() == 0] = 0.0
-        self._make_system()
+        self._masses_changed()
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
         return lost

@@ -102,15 +102,19 @@ class DynamicsSystem:
         segments: the objects' node ranges.
         constrained: ``[V]`` bool, nodes whose velocity is imposed (fixed or prescribed).
         planes: ``contact.Planes`` or None.
+        keep_mask: keep the mask of free nodes (``free [V, 1]``) even when nothing is constrained,
+            for a caller that constrains nodes later in place (topology changes); without it such
+            a system has no mask (``free`` None) and its products skip the projection.
     """
 
-    def __init__(self, model, mass, external, segments: Segments, constrained, planes=None):
+    def __init__(self, model, mass, external, segments: Segments, constrained, planes=None, keep_mask: bool = False):
         self.model = model
         self.mass = mass.unsqueeze(-1)
         self.external = external
         self.segments = segments
         node_graph.set_objects(model, segments.ptr)  # the node graphs' rows keep to one object each
-        self.free = None if not bool(constrained.any()) else (~constrained).to(mass.dtype).unsqueeze(-1)
+        self.free = (None if not (keep_mask or bool(constrained.any()))
+                     else (~constrained).to(mass.dtype).unsqueeze(-1))
         self.planes = planes if planes is not None and len(planes) else None
         self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
         self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec

@@ -137,15 +137,31 @@ def test_removing_nothing_changes_nothing_and_everything_leaves_no_force():
     assert float(model.lumped_mass().abs().max()) == 0.0
 
 
-@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
-def test_a_simulator_step_after_removals_is_that_of_a_simulator_of_the_remaining_elements(device):
-    """Two bodies in one batch lose elements between steps (one loses every element on a node:
+def node_graph_storage(model):
+    """The storage of the node graphs cached on the model's groups (the hooke tensor form's)."""
+    return [t.data_ptr() for g in model.groups for key in ("_native_node_graph", "_native_by_rows_hooke")
+            if key in g.__dict__ for t in g.__dict__[key][2] if isinstance(t, torch.Tensor)]
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+SCENES = {  # body models: two groups (element-by-element products), or one (the node-graph paths)
+    "corotational+hooke": ("corotational", "hooke"), "hooke": ("hooke",), "corotational": ("corotational",),
+    "stvk": ("stvk",)}
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("scene", SCENES)
+def test_a_simulator_step_after_removals_is_that_of_a_simulator_of_the_remaining_elements(device, scene):
+    """Bodies in one batch lose elements between steps (the beam loses every element on a node:
     that node leaves the system); the next steps equal those of a simulator built from the
-    remaining elements at the same state, and the mass is accounted for."""
+    remaining elements at the same state, the mass is accounted for, and nothing was rebuilt:
+    the system, its solver caches (captured CUDA graphs) and the model's buffers are the same
+    storage."""
     beam, sheet = tm.beam_mesh(4, 2, 2, dtype=torch.float64), tm.beam_tri_mesh(5, 3, dim=3, dtype=torch.float64)
     sheet = tm.TriMesh(sheet.vertices + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), sheet.elements)
-    materials = [material("corotational", "polar"), material("hooke", "polar")]
-    fixed = [beam.vertices[:, 0] == 0, sheet.vertices[:, 0] == 0]
+    materials = [material(name, "polar") for name in SCENES[scene]]
+    meshes = [beam, sheet][:len(materials)]
+    fixed = [m.vertices[:, 0] == 0 for m in meshes]
 
     def simulator(meshes):
         # a vertex no element uses must be fixed (tm.Body): the removals' isolated node is held as well
@@ -153,21 +169,28 @@ def test_a_simulator_step_after_removals_is_that_of_a_simulator_of_the_remaining
         bodies = [tm.Body(m, mat, fixed=f, name=name) for m, mat, f, name in zip(meshes, materials, holds, "ab")]
         return tm.Simulator(bodies, dt=0.01, cg_tol=1e-12, check_inversion="warn", device=device)
 
-    sim = simulator([beam, sheet])
+    sim = simulator(meshes)
     total = float(sim.model.lumped_mass().sum())
     sim.step(3)
     last = beam.num_vertices - 1  # the far corner: its elements all go
     corner = torch.nonzero((beam.elements == last).any(1)).flatten()
     sim.step(2)  # a second run of steps: on CUDA the captured step graphs exist before the removal
     lost = sim.remove_elements("a", torch.cat([corner, torch.tensor([0, 9])]))
-    lost += sim.remove_elements(1, [2, 3, 17])
-    assert sim.alive_elements(0).sum() == beam.elements.shape[0] - corner.numel() - 2
-    kept = [tm.TetMesh(beam.vertices, beam.elements[sim.alive_elements(0).cpu()], check=False),
-            tm.TriMesh(sheet.vertices, sheet.elements[sim.alive_elements(1).cpu()], check=False)]
+    system, caches = sim.system, (sim.system._cg, dict(sim.system._matvecs), dict(sim.system._step_graphs))
+    storage = {name: t.data_ptr() for name, t in sim.model.named_buffers()}
+    graphs = node_graph_storage(sim.model)
+    lost += sim.remove_elements("a", [4, 20])
+    if len(meshes) == 2:
+        lost += sim.remove_elements(1, [2, 3, 17])
+    assert sim.alive_elements(0).sum() == beam.elements.shape[0] - corner.numel() - 4
+    assert sim.system is system and (system._cg, system._matvecs, system._step_graphs) == caches
+    assert {name: t.data_ptr() for name, t in sim.model.named_buffers()} == storage
+    kept = [type(m)(m.vertices, m.elements[sim.alive_elements(i).cpu()], check=False) for i, m in enumerate(meshes)]
     fresh = simulator(kept)
     fresh.x, fresh.v = sim.x.clone(), sim.v.clone()
     sim.step(3)
     fresh.step(3)
+    assert node_graph_storage(sim.model) == graphs  # updated in place, not built again
     torch.testing.assert_close(sim.x, fresh.x, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(sim.v, fresh.v, rtol=1e-12, atol=1e-12)
     assert float(sim.v[last].abs().max()) == 0.0  # the isolated corner stays put
@@ -192,7 +215,8 @@ def test_a_model_never_cut_holds_nothing_for_removals_and_one_moved_after_buildi
     mesh = tm.beam_mesh(2, 1, 1, dtype=torch.float32)
     model = tm.TensorMass(mesh, material("hooke", "polar"))
     names = {n for n, _ in model.named_buffers()}
-    assert not any(k in n for n in names for k in ("removed", "element_ids", "element_mass", "edge_elements"))
+    assert not any(k in n for n in names for k in ("removed", "element_group", "element_row", "element_mass",
+                                                   "node_elements", "edge_elements"))
     assert bool(model.alive_elements().all())
     model = model.to(torch.float64)  # its materials' tensors stay float32: the removal converts them
     model.remove_elements([0, 5])
