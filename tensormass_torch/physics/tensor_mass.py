@@ -145,7 +145,10 @@ class TensorMass(nn.Module):
         Raises:
             MeshError: an id out of range, given twice or already removed (nothing changed).
         """
-        ids = self._check_removal(ids)
+        return self._remove_checked(self._check_removal(ids))
+
+    def _remove_checked(self, ids: torch.Tensor) -> torch.Tensor:
+        """:meth:`remove_elements` of ids already checked (``checked_element_ids``)."""
         if ids.numel() == 0:
             return self.mass.new_zeros(self.num_nodes)
         self._prepare_removals()

@@ -279,7 +279,7 @@ class Simulator:
         """
         i = self._body_index(body)
         ids = checked_element_ids(ids, self.alive_elements(i), f"body {i}")  # the body's ids in messages
-        removed = self.model.remove_elements(ids + self.element_ptr[i])
+        removed = self.model._remove_checked(ids + self.element_ptr[i])  # checked once, as the body's ids
         lost = float(removed.sum())
         self.removed_mass[i] += lost
         self._masses_changed()
