@@ -15,6 +15,7 @@ from .mesh.surface import tetrahedralize
 from .physics.contact import Plane
 from .physics.materials import MODELS, Material
 from .physics.tensor_mass import TensorMass
+from .sim.scalpel import Scalpel
 from .sim.scene_file import load_scene
 from .sim.simulator import Body, InvertedElementsWarning, Simulator
 from .solver import solve_static
@@ -25,5 +26,6 @@ __all__ = [
     "backend_info", "Plane", "InvertedElementsError", "MaterialError", "MeshError", "SceneError", "SolverError",
     "TensorMassError",
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh", "Blade",
-    "TensorMass", "Body", "Simulator", "InvertedElementsWarning", "load_scene", "solve_static", "tetrahedralize",
+    "TensorMass", "Body", "Simulator", "Scalpel", "InvertedElementsWarning", "load_scene", "solve_static",
+    "tetrahedralize",
 ]

@@ -13,8 +13,8 @@ successive removals of R elements from a simulator whose step graphs are capture
 gravity and constraints updated in place), against, in the same run, building a ``TensorMass``
 of the remaining elements and building a ``Simulator`` of them up to its first step done (what a
 user would do without removals: node graph, captured graphs). Synchronised wall clock. Then the
-SOFA beam's steps/s without removals and with 10 elements removed before every step (one
-``sim.step()`` call per step in both).
+SOFA beam's steps/s without removals, with 10 elements removed before every step (one
+``sim.step()`` call per step in both), and with a scalpel crossing its middle over the steps.
 """
 from __future__ import annotations
 
@@ -92,7 +92,8 @@ def main(argv=None):
                                              "`Simulator.remove_elements` between steps (median of 3 successive "
                                              "removals) against a `Simulator` of the remaining elements up to its "
                                              "first step; steps/s: the SOFA beam, one `sim.step()` per step, with "
-                                             "10 elements removed before each step against none."])
+                                             "10 elements removed before each step against none, and a "
+                                             "scalpel across the middle over the steps."])
     for scene_name in args.scenes.split(","):
         for model_name in args.models.split(","):
             measure_scene(results, scene_name, model_name, device, args)
@@ -160,6 +161,18 @@ def measure_scene(results, scene_name, model_name, device, args):
         seconds = timed(lambda _: step(args.steps), device, repeat=1, warmup=0)
         results.add(common.record(**same, steps=args.steps, steps_per_s=args.steps / seconds,
                                   removed_per_step=per_step))
+    # a scalpel crossing the beam at its middle over the timed steps (edge along z, moving along y)
+    sim = scene_of(scene_name, model_name, device, args.scale).simulator
+    sim.step(3)
+    t0, t1 = sim.time, sim.time + args.steps * sim.options.dt
+    sim.add_scalpel(tm.Scalpel(0, times=[t0, t1], edges=[[[middle, 5.0, -3.0], [middle, 5.0, 3.0]],
+                                                         [[middle, 11.0, -3.0], [middle, 11.0, 3.0]]]))
+    nodes = sim.bodies[0].mesh.num_vertices
+    seconds = timed(lambda _: sim.step(args.steps), device, repeat=1, warmup=0)
+    added = sim.bodies[0].mesh.num_vertices - nodes
+    results.add(common.record(**same, steps=args.steps, steps_per_s=args.steps / seconds, removed_per_step=0,
+                              note=f"a scalpel across the middle over these steps: {added} nodes added "
+                                   "(each cut builds the simulator again)"))
 
 
 if __name__ == "__main__":

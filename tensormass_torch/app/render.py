@@ -281,8 +281,8 @@ class FrameRenderer:
         self.files: List[Path] = []
 
     def _panels(self, simulator) -> list:
-        return [[(body.mesh, simulator.positions(i).detach().cpu())
-                 for i, body in enumerate(simulator.bodies)]]
+        return [[(simulator.mesh(i), simulator.positions(i).detach().cpu())
+                 for i in range(simulator.num_bodies)]]
 
     def write(self, simulator) -> None:
         """Draw the current state of every body of ``simulator``."""

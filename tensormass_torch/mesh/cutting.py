@@ -17,6 +17,10 @@ pure tensor work (label propagation, no Python loop over elements), on the mesh'
     cut_faces(...)           which interior faces a blade crosses
     split_nodes(...)         the elements re-pointed and the new nodes' parents
     cut(mesh, blade, x)      both: the cut mesh, the new nodes' parents, the faces cut
+
+A cut that ends inside the body (a slit) splits no node along its front edge, where the elements
+stay joined around it; its faces stay parted for the cuts that follow (``cut(..., slit=)``), so a
+scalpel that cuts a strip per step separates the body once the strips cross it.
 """
 from __future__ import annotations
 
@@ -117,11 +121,12 @@ def split_nodes(elements: torch.Tensor, num_nodes: int, cut_first: torch.Tensor,
     """Elements re-pointed so that the faces between ``cut_first[k]`` and ``cut_second[k]`` no
     longer join them, and the new nodes' parents.
 
-    Around each node, the elements that share a face not cut (a face holding the node) stay on
-    one copy of it: groups of incidences (element, node) joined through those faces, found by
-    propagating the smallest incidence id until nothing changes. The group holding the node's
-    first incidence keeps its id; every other group gets a new node, numbered from
-    ``num_nodes`` on in the order of the groups' smallest incidences.
+    Around each node of a cut face, the elements that share a face not cut (a face holding the
+    node) stay on one copy of it: groups of incidences (element, node) joined through those
+    faces, found by propagating the smallest incidence id until nothing changes. The group
+    holding the node's first incidence keeps its id; every other group gets a new node, numbered
+    from ``num_nodes`` on in the order of the groups' smallest incidences. Nodes on no cut face
+    never split.
 
     Returns:
         elements ``[N, n]`` (new ids where split) and parents ``[V_new]`` (the original node each
@@ -161,9 +166,14 @@ def split_nodes(elements: torch.Tensor, num_nodes: int, cut_first: torch.Tensor,
     group_node = groups // (count * n)
     first_of_node = torch.ones_like(group_node, dtype=torch.bool)
     first_of_node[1:] = group_node[1:] != group_node[:-1]
-    new_ids = torch.cumsum((~first_of_node).long(), 0) - 1 + num_nodes
-    group_id = torch.where(first_of_node, group_node, new_ids)
-    parents = torch.cat([torch.arange(num_nodes, device=device), group_node[~first_of_node]])
+    # only the cut faces' nodes split: elsewhere elements that meet at a node or an edge alone
+    # (no face between them) stay as they are
+    on_cut = torch.zeros(num_nodes, dtype=torch.bool, device=device)
+    on_cut[faces[cut].reshape(-1)] = True
+    splits = ~first_of_node & on_cut[group_node]
+    new_ids = torch.cumsum(splits.long(), 0) - 1 + num_nodes
+    group_id = torch.where(splits, new_ids, group_node)
+    parents = torch.cat([torch.arange(num_nodes, device=device), group_node[splits]])
     return group_id[group_of].reshape(count, n), parents
 
 
@@ -171,13 +181,16 @@ def split_nodes(elements: torch.Tensor, num_nodes: int, cut_first: torch.Tensor,
 class CutResult:
     """What :func:`cut` did: the cut mesh's ``elements [N, n]``, ``parents [V_new]`` (the original
     node of every node; a new node copies its parent's rest position and state), the element
-    pairs whose shared face was cut (``cut_first, cut_second [C]``) and the node count before."""
+    pairs whose shared face this blade cut (``cut_first, cut_second [C]``), the node count before,
+    and ``slit [S, 2]``: the pairs cut so far (this blade's and the earlier ``slit``) whose
+    elements still share the face, for the next cut."""
 
     elements: torch.Tensor
     parents: torch.Tensor
     cut_first: torch.Tensor
     cut_second: torch.Tensor
     num_old_nodes: int
+    slit: torch.Tensor
 
     @property
     def new_nodes(self) -> int:
@@ -185,10 +198,20 @@ class CutResult:
         return int(self.parents.shape[0]) - self.num_old_nodes
 
 
-def cut(elements: torch.Tensor, num_nodes: int, x: torch.Tensor, blade: Blade, removed: Optional[torch.Tensor] = None):
+def still_joined(elements: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """``[P]`` bool: whether the element pairs ``pairs [P, 2]`` still share a face (n - 1 nodes)."""
+    a, b = elements[pairs[:, 0]], elements[pairs[:, 1]]
+    return (a[:, :, None] == b[:, None, :]).any(-1).sum(-1) == elements.shape[1] - 1
+
+
+def cut(elements: torch.Tensor, num_nodes: int, x: torch.Tensor, blade: Blade, removed: Optional[torch.Tensor] = None,
+        slit: Optional[torch.Tensor] = None):
     """Cut the mesh ``elements [N, n]`` over ``num_nodes`` nodes at positions ``x [V, 3]`` along
     ``blade``: the faces it crosses part, and their nodes split (:func:`split_nodes`).
     ``removed``: ``[N]`` bool, elements already gone (they join nothing and are left as they are).
+    ``slit``: element pairs ``[S, 2]`` whose face earlier cuts crossed but that still share it (a
+    cut that ends inside the body splits no node along its front): they stay parted, so that
+    successive cuts (a scalpel, step after step) add up to the cut of their whole surface.
 
     Raises:
         MeshError: the blade crosses no interior face (nothing would change).
@@ -201,8 +224,12 @@ def cut(elements: torch.Tensor, num_nodes: int, x: torch.Tensor, blade: Blade, r
     if first.numel() == 0:
         raise MeshError("the blade crosses no interior face of the body: nothing to cut")
     first, second = ids[first], ids[second]
-    live_elements, parents = split_nodes(elements[ids], num_nodes, torch.searchsorted(ids, first),
-                                         torch.searchsorted(ids, second))
+    pairs = torch.stack([first, second], 1)
+    if slit is not None and slit.numel():
+        slit = slit.to(device=elements.device, dtype=torch.int64)
+        pairs = torch.cat([pairs, slit[alive[slit].all(1)]])
+    live_elements, parents = split_nodes(elements[ids], num_nodes, torch.searchsorted(ids, pairs[:, 0].contiguous()),
+                                         torch.searchsorted(ids, pairs[:, 1].contiguous()))
     out = elements.clone()
     out[ids] = live_elements
-    return CutResult(out, parents, first, second, num_nodes)
+    return CutResult(out, parents, first, second, num_nodes, pairs[still_joined(out, pairs)])

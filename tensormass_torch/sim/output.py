@@ -26,7 +26,8 @@ class FrameWriter:
         """Write the current state of every body of ``simulator``."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
         for i, body in enumerate(simulator.bodies):
-            mesh = type(body.mesh)(simulator.positions(i).detach(), body.mesh.elements, check=False)
+            # the mesh as it is now: removed elements left out, split nodes apart (simulator.mesh)
+            mesh = type(body.mesh)(simulator.positions(i).detach(), simulator.mesh(i).elements, check=False)
             file = f"{self.name}_{i}_{self.frame:05d}.vtu"
             save_mesh(self.out_dir / file, mesh, displacement=simulator.displacements(i).detach(),
                       velocity=simulator.velocities(i).detach())

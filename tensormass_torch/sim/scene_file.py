@@ -48,6 +48,12 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     prescribed = { box = [[...], [...]], velocity = [0, 0, -0.1], stop = 1.0 }
     velocity = [0, 0, 0]                         # initial velocity
 
+    [[cuts]]                          # a scalpel (tm.Scalpel): a blade edge through keyframes,
+    body = "beam"                     # cutting this body (a name or index; default 0) as it moves
+    times = [0.1, 0.5]                # keyframe times (s), increasing
+    edges = [[[0.3, -1, -1], [0.3, -1, 1]],   # the edge's two end points at each keyframe
+             [[0.3, 1, -1], [0.3, 1, 1]]]
+
 Every problem raises one ``SceneError`` whose message starts with the file and the key path,
 e.g. ``drop.toml: bodies[1].material.model: unknown model 'stvkk'; expected one of hooke, stvk,
 corotational``. Loading writes nothing.
@@ -76,6 +82,7 @@ from ..mesh.meshes import Mesh
 from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from .builtin import Scene
+from .scalpel import Scalpel
 from .simulator import Body, Simulator
 
 __all__ = ["FileScene", "load_scene", "MESH_GENERATORS"]
@@ -454,6 +461,34 @@ def _body(t: _Table, index: int, base_dir: Path, device, dtype, model_override) 
 # ---------------------------------------------------------------------------------------------
 
 
+def _scalpel(t: _Table) -> Scalpel:
+    """A ``[[cuts]]`` table: body, times [K], edges [K, 2, 3]."""
+    t.seen.add("body")
+    body = t.data.get("body", 0)
+    if isinstance(body, bool) or not isinstance(body, (int, str)):
+        raise t.error("body", f"must be a body's name or index, got {_describe(body)}")
+    times = t.data.get("times")
+    t.seen.update(("times", "edges"))
+    if not isinstance(times, list) or len(times) < 2:
+        raise t.error("times", f"must be a list of at least 2 keyframe times, got {_describe(times)}")
+    times = [_check(v, "number", lambda msg, i=i: t.error("times", f"entry {i} {msg}")) for i, v in enumerate(times)]
+    edges = t.data.get("edges")
+    if not isinstance(edges, list) or len(edges) != len(times):
+        raise t.error("edges", f"must be a list of {len(times)} edges (one per time), each two points "
+                               f"[[x, y, z], [x, y, z]], got {_describe(edges)}")
+    points = []
+    for i, edge in enumerate(edges):
+        if not isinstance(edge, list) or len(edge) != 2:
+            raise t.error("edges", f"entry {i} must be two points [[x, y, z], [x, y, z]], got {_describe(edge)}")
+        points.append([_check(p, "vec3", lambda msg, i=i, j=j: t.error("edges", f"entry {i} point {j} {msg}"))
+                       for j, p in enumerate(edge)])
+    t.done()
+    try:
+        return Scalpel(body, times, points)
+    except SceneError as exc:
+        raise t.error("times", str(exc)) from exc
+
+
 def _device(t: _Table, override) -> torch.device:
     text = override if override is not None else t.get("device", "str", "cpu")
     t.seen.add("device")
@@ -539,6 +574,8 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         planes.append(Plane(normal, plane.get("offset", "number", 0.0), plane.get("stiffness", "positive")))
         plane.done()
 
+    cut_tables = top.tables("cuts")
+    scalpels = [_scalpel(c) for c in cut_tables]
     body_tables = top.tables("bodies")
     top.done()  # every top-level key is known before the (possibly slow) meshes are built
     if not body_tables:
@@ -550,6 +587,11 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
                               dtype=torch_dtype, **options)
     except (SceneError, MaterialError, MeshError) as exc:
         raise fail("", str(exc)) from exc
+    for table, scalpel in zip(cut_tables, scalpels):
+        try:
+            simulator.add_scalpel(scalpel)
+        except SceneError as exc:
+            raise table.error("body", str(exc)) from exc
     if not description:
         tets = sum(b.mesh.num_elements for b in bodies)
         description = f"{name}: {len(bodies)} bodies, {tets} elements, dt {dt:g} s, {steps} steps"

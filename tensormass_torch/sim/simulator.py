@@ -8,9 +8,10 @@ from typing import Callable, List, Optional, Sequence
 
 import torch
 
-from ..errors import SceneError, SolverError
+from ..errors import MeshError, SceneError, SolverError
 from ..mesh import cutting
 from ..mesh.cutting import Blade
+from ..mesh.meshes import Mesh
 from ..ops.segments import Segments
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
@@ -25,6 +26,7 @@ from ..solver.implicit_euler import (
     step_graphs_for,
 )
 from .diagnostics import InversionCheck, InversionReport
+from .scalpel import Scalpel
 
 #: ``Simulator(check_inversion=...)`` values.
 INVERSION_CHECKS = ("off", "warn", "error")
@@ -210,6 +212,10 @@ class Simulator:
         self._inversion = InversionCheck.for_simulator(self) if check_inversion != "off" else None
         self.last_inversion: Optional[InversionReport] = None
         self._inverted_before: Optional[List[bool]] = None  # objects with inverted elements ("warn")
+        #: the scalpels that cut before each step (:meth:`add_scalpel`)
+        self.scalpels: List[Scalpel] = []
+        # per body, the element pairs cuts parted that still share their face (``cutting.cut``'s slit)
+        self._slits: List[Optional[torch.Tensor]] = [None] * len(bodies)
 
     @property
     def num_bodies(self) -> int:
@@ -391,7 +397,8 @@ class Simulator:
         """Advance ``n`` implicit Euler steps; returns the last step's report.
 
         A failed step (after its sub-step retries, if any) raises ``SolverError`` and leaves
-        positions, velocities and time as they were before that step.
+        positions, velocities and time as they were before that step. The scalpels
+        (:meth:`add_scalpel`) cut before each step.
 
         On a CUDA device, when a whole step runs without a host decision (every CG iteration
         inside the captured step: the whole CG is one op that stops on the device, as for the
@@ -403,7 +410,9 @@ class Simulator:
         """
         left = int(n)
         while left > 0:
-            chain = self._chain_graphs() if left > 1 else None
+            if self.scalpels:
+                self._apply_scalpels()
+            chain = self._chain_graphs() if left > 1 and not self.scalpels else None
             if chain is not None:
                 count = min(left, chain.max_chain)
                 done = self._run_chain(chain, count)
@@ -427,7 +436,31 @@ class Simulator:
         self.last_report = report
         self.last_inversion = inversion
 
-    def cut(self, body, blade: Blade) -> int:
+    def add_scalpel(self, scalpel: Scalpel) -> None:
+        """Cut with ``scalpel`` from now on: before each step from t to t + dt, its body is cut
+        along the surface its edge sweeps from t - dt to t + dt (``Scalpel.blade``; strips that
+        overlap, ``sim.scalpel``; a sweep that crosses no face of the body cuts nothing). Steps
+        are then run one by one (no chaining).
+
+        Raises:
+            SceneError: not a ``tm.Scalpel``, or its body is not one of this simulator's 3-D bodies.
+        """
+        if not isinstance(scalpel, Scalpel):
+            raise SceneError(f"add_scalpel takes a tm.Scalpel, got {type(scalpel).__name__}")
+        i = self._body_index(scalpel.body)
+        if self.bodies[i].mesh.vertices.shape[1] != 3:
+            raise SceneError(f"body {i} is 2-D: cutting needs a 3-D body (tetrahedra or membranes)")
+        self.scalpels.append(scalpel)
+
+    def _apply_scalpels(self) -> None:
+        """The scalpels' cuts for the step from ``time`` to ``time + dt`` (sweeps from ``time - dt``:
+        strips that overlap, see ``sim.scalpel``)."""
+        for scalpel in self.scalpels:
+            blade = scalpel.blade(self.time - self.options.dt, self.time + self.options.dt)
+            if blade is not None:
+                self.cut(scalpel.body, blade, missing_ok=True)
+
+    def cut(self, body, blade: Blade, missing_ok: bool = False) -> int:
         """Cut one body along ``blade`` between steps, where the body is now: the faces the blade
         crosses part and their nodes split (``mesh.cutting``), so that the sides move apart; a
         cut through the whole section leaves pieces that fall on their own. The body's mesh gets
@@ -440,11 +473,15 @@ class Simulator:
             blade: a ``tm.Blade`` (e.g. ``tm.Blade.swept(a0, b0, a1, b1)``: a scalpel's edge
                 between two poses).
 
+            missing_ok: a blade that crosses no interior face of the body cuts nothing and
+                returns 0 (a scalpel in the air) instead of raising.
+
         Returns:
             the number of nodes the cut added.
 
         Raises:
-            MeshError: the blade crosses no interior face of the body (nothing changed).
+            MeshError: the blade crosses no interior face of the body (nothing changed), unless
+                ``missing_ok``.
         """
         i = self._body_index(body)
         old = self.bodies[i]
@@ -453,8 +490,13 @@ class Simulator:
         if old.mesh.vertices.shape[1] != 3:
             raise SceneError(f"body {i} is 2-D: cutting needs a 3-D body (tetrahedra or membranes)")
         elements = old.mesh.elements.to(self.device)
-        result = cutting.cut(elements, old.mesh.num_vertices, self.positions(i), blade,
-                             ~self.alive_elements(i))
+        try:
+            result = cutting.cut(elements, old.mesh.num_vertices, self.positions(i), blade,
+                                 ~self.alive_elements(i), self._slits[i])
+        except MeshError:
+            if missing_ok:
+                return 0
+            raise
         parents = result.parents
         mesh_parents = parents.to(old.mesh.vertices.device)
         mesh = type(old.mesh)(old.mesh.vertices[mesh_parents], result.elements.to(old.mesh.vertices.device),
@@ -474,7 +516,10 @@ class Simulator:
         removed = [torch.nonzero(~self.alive_elements(k)).flatten() for k in range(self.num_bodies)]
         states = [(self.positions(k), self.velocities(k)) for k in range(self.num_bodies)]
         states[i] = (states[i][0][parents], states[i][1][parents])
-        kept = (self.time, self.steps_done, self.removed_mass.clone(), self.last_report, self.last_inversion)
+        slits = list(self._slits)
+        slits[i] = result.slit
+        kept = (self.time, self.steps_done, self.removed_mass.clone(), self.last_report, self.last_inversion,
+                self.scalpels, slits)
         self.__init__(bodies, **self._init_args)
         for k, ids in enumerate(removed):
             if ids.numel():
@@ -484,8 +529,18 @@ class Simulator:
             self._inversion = InversionCheck.for_simulator(self)
         self.x = torch.cat([x for x, _ in states])
         self.v = torch.cat([v for _, v in states])
-        self.time, self.steps_done, self.removed_mass, self.last_report, self.last_inversion = kept
+        (self.time, self.steps_done, self.removed_mass, self.last_report, self.last_inversion, self.scalpels,
+         self._slits) = kept
         return result.new_nodes
+
+    def mesh(self, i) -> Mesh:
+        """Body i's mesh as it is now (its rest shape): the elements that remain after removals,
+        over its nodes (those cuts added included; a node left with no element stays, unused).
+        ``i``: a body index, a ``tm.Body`` of this simulator or a body's name."""
+        i = self._body_index(i)
+        mesh = self.bodies[i].mesh
+        alive = self.alive_elements(i).to(mesh.elements.device)
+        return mesh if bool(alive.all()) else type(mesh)(mesh.vertices, mesh.elements[alive], check=False)
 
     def alive_elements(self, i: int) -> torch.Tensor:
         """``[N_i]`` bool: which elements of body i's mesh remain (``remove_elements``)."""

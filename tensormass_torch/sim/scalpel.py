@@ -1,0 +1,79 @@
+"""A scalpel: a straight blade edge moving along a path, cutting a body as it goes.
+
+The path is keyframes of the edge (its two end points) over time, linear in between. Before each
+step from t to t + dt, the simulator cuts the body where it is then along the surface the edge
+sweeps from t - dt to t + dt (``Scalpel.blade``, a ``mesh.cutting.Blade`` of two triangles): the
+strips of consecutive steps overlap by one step, so that a face the body carries across the
+boundary between two strips is still cut (a face cut twice is cut once: after its nodes split it
+joins nothing; until then it is kept parted, ``cutting.cut``'s slit). Over a run the body is cut
+along the whole swept surface, a strip at a time. A body that moves across the blade faster than
+the blade moves along it can still slip a face between strips and keep a bridge: cut with a
+slower scalpel, or a smaller dt. Outside the keyframes' times the scalpel cuts nothing.
+
+    scalpel = tm.Scalpel("block", times=[0.1, 0.6], edges=[[[0.3, -1, 0], [0.3, -1, 1]],
+                                                            [[0.3, 1, 0], [0.3, 1, 1]]])
+    sim.add_scalpel(scalpel)       # sim.step() cuts before each step
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence, Union
+
+import torch
+
+from ..errors import SceneError
+from ..mesh.cutting import Blade
+
+
+class Scalpel:
+    """A blade edge cutting one body along a path.
+
+    Args:
+        body: the body cut: its index or name in the simulator.
+        times: keyframe times ``[K]``, K >= 2, strictly increasing (s).
+        edges: the edge's two end points at each keyframe ``[K, 2, 3]``.
+
+    Raises:
+        SceneError: times not increasing, shapes that do not match, non-finite values.
+    """
+
+    def __init__(self, body: Union[int, str], times: Sequence[float], edges):
+        if isinstance(body, bool) or not isinstance(body, (int, str)):
+            raise SceneError(f"a scalpel's body must be a body index or name, got {body!r}")
+        times = torch.as_tensor(times, dtype=torch.float64)
+        edges = torch.as_tensor(edges, dtype=torch.float64)
+        if times.dim() != 1 or times.numel() < 2:
+            raise SceneError(f"a scalpel's times must be a list of at least 2 keyframe times, got shape "
+                             f"{tuple(times.shape)}")
+        if edges.shape != (times.numel(), 2, 3):
+            raise SceneError(f"a scalpel's edges must be [K, 2, 3] (two end points per keyframe, K = "
+                             f"{times.numel()}), got shape {tuple(edges.shape)}")
+        if not bool(torch.isfinite(times).all() and torch.isfinite(edges).all()):
+            raise SceneError("a scalpel's times and edges must be finite")
+        if not bool((times[1:] > times[:-1]).all()):
+            raise SceneError(f"a scalpel's times must increase strictly, got {times.tolist()}")
+        self.body = body
+        self.times = times
+        self.edges = edges
+
+    def edge(self, t: float) -> torch.Tensor:
+        """The edge's end points at time t ``[2, 3]`` (float64), clamped to the first and last keyframes."""
+        t = min(max(float(t), float(self.times[0])), float(self.times[-1]))
+        k = min(int(torch.searchsorted(self.times, torch.tensor(t, dtype=torch.float64), right=True)) - 1,
+                self.times.numel() - 2)
+        s = (t - float(self.times[k])) / float(self.times[k + 1] - self.times[k])
+        return (1 - s) * self.edges[k] + s * self.edges[k + 1]
+
+    def blade(self, t0: float, t1: float) -> Optional[Blade]:
+        """The surface the edge sweeps from time t0 to t1 (within the keyframes' times), or None
+        where it sweeps nothing (outside them, or the edge stands still)."""
+        start, end = max(float(t0), float(self.times[0])), min(float(t1), float(self.times[-1]))
+        if end <= start:
+            return None
+        a, b = self.edge(start), self.edge(end)
+        if torch.equal(a, b):
+            return None
+        return Blade.swept(a[0], a[1], b[0], b[1])
+
+    def __repr__(self) -> str:
+        return (f"Scalpel(body={self.body!r}, times=[{float(self.times[0]):g} .. {float(self.times[-1]):g}], "
+                f"{self.times.numel()} keyframes)")
