@@ -10,20 +10,13 @@ the cut side by side (needs pyvista). The built-in scene ``tensormass run cut`` 
 """
 import argparse
 
-import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-
 import tensormass_torch as tm
+from tensormass_torch.mesh.topology import element_pieces
 
 
 def pieces(mesh) -> int:
     """Connected pieces of a mesh (elements joined through shared nodes)."""
-    e = mesh.elements.cpu().numpy()
-    rows = np.repeat(np.arange(len(e)), e.shape[1])
-    size = len(e) + mesh.num_vertices
-    graph = coo_matrix((np.ones(rows.size), (rows, e.reshape(-1) + len(e))), shape=(size, size))
-    return np.unique(connected_components(graph, directed=False)[1][:len(e)]).size
+    return int(element_pieces(mesh.elements, mesh.num_vertices).max()) + 1
 
 
 def main(argv=None):

@@ -177,3 +177,25 @@ class EdgeGraph:
         slot_edge[plan.force_index[:, 0], edges[:, 0]] = edge_ids
         slot_edge[plan.force_index[:, 1], edges[:, 1]] = -edge_ids - 1
         return cls(edges, element_edges, slots.view_as(element_edges), num_edge_slots, counts, plan, slot_edge)
+
+
+def element_pieces(elements: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """The connected piece of each element ``[N]`` (int64, numbered 0, 1, ... in the order of the
+    pieces' first elements): elements joined through shared nodes, as cuts and removals leave
+    them. Label propagation with pointer jumping, on the elements' device.
+
+    Args:
+        elements: ``[N, n]`` node ids; num_nodes: V.
+    """
+    count = elements.shape[0]
+    flat = elements.reshape(-1).long()
+    labels = torch.arange(count, device=elements.device)
+    while True:
+        at_node = torch.full((num_nodes,), count, dtype=torch.long, device=elements.device)
+        at_node.scatter_reduce_(0, flat, labels.repeat_interleave(elements.shape[1]), reduce="amin")
+        updated = at_node[elements.long()].min(1).values
+        updated = updated[updated]  # pointer jumping: each label points at its piece's smallest
+        if torch.equal(updated, labels):
+            break
+        labels = updated
+    return torch.unique(labels, return_inverse=True)[1]

@@ -9,6 +9,7 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch.errors import MeshError
 from tensormass_torch.mesh import cutting
+from tensormass_torch.mesh.topology import element_pieces
 
 
 def pieces(elements: torch.Tensor, num_nodes: int) -> int:
@@ -97,3 +98,14 @@ def test_bad_blades_raise():
         cutting.Blade(torch.zeros(3, 3), torch.tensor([[0, 1, 3]]))
     with pytest.raises(MeshError, match="must be finite"):
         cutting.Blade(torch.full((3, 3), float("nan")), torch.tensor([[0, 1, 2]]))
+
+
+def test_element_pieces_counts_what_a_cut_parts():
+    mesh = tm.beam_mesh(4, 1, 1, dtype=torch.float64)
+    pieces = element_pieces(mesh.elements, mesh.num_vertices)
+    assert torch.equal(pieces, torch.zeros_like(pieces))
+    result = cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices,
+                         tm.Blade.swept((0.51, -1, -1), (0.51, 2, -1), (0.51, -1, 2), (0.51, 2, 2)))
+    pieces = element_pieces(result.elements, result.parents.shape[0])
+    left = mesh.vertices[mesh.elements].mean(1)[:, 0] < 0.5
+    assert torch.equal(pieces, (~left).long())  # numbered in the order of their first elements
