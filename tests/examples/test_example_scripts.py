@@ -92,7 +92,7 @@ def test_every_builtin_scene_runs():
     from tensormass_torch.sim.builtin import SCENES
 
     smallest = {"cantilever": {"resolution": 1}, "sofa_beam": {"scale": 15}, "twist": {"resolution": 1},
-                "spin": {"resolution": 1}, "paper_beam": {"resolution": 1}}
+                "spin": {"resolution": 1}, "paper_beam": {"resolution": 1}, "cut": {"resolution": 1}}
     assert set(SCENES) <= set(smallest), f"add the new scene to this test: {sorted(set(SCENES) - set(smallest))}"
     for name, make in SCENES.items():
         scene = make(**smallest[name], dtype=torch.float64)
