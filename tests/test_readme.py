@@ -46,7 +46,10 @@ def _env(tmp_path):
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir(exist_ok=True)
     if not (bin_dir / "python").exists():
-        (bin_dir / "python").symlink_to(sys.executable)
+        # a script, not a symlink: a symlink to a virtual environment's python, outside that
+        # environment, starts the base python (its pyvenv.cfg is looked for beside the link)
+        (bin_dir / "python").write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} "$@"\n')
+        (bin_dir / "python").chmod(0o755)
     path = os.pathsep.join([str(bin_dir), sysconfig.get_path("scripts"), os.environ.get("PATH", "")])
     env = {k: v for k, v in os.environ.items() if k not in ("TENSORMASS_BACKEND",)}
     return {**env, "PATH": path, "PYTHON": sys.executable, "PYTHONUNBUFFERED": "1"}
