@@ -153,16 +153,16 @@ class TensorMass(nn.Module):
             return self.mass.new_zeros(self.num_nodes)
         self._prepare_removals()
         nodes, shares = [], []
-        group_of, row_of = self.element_group[ids], self.element_row[ids]
+        group_of = self.element_group[ids]
         for g, group in enumerate(self.groups):
-            rows = row_of if len(self.groups) == 1 else row_of[group_of == g]
-            if rows.numel() == 0:
+            picked = ids if len(self.groups) == 1 else ids[group_of == g]  # one group: no mask, no host read
+            if picked.numel() == 0:
                 continue
+            rows = self.element_row[picked]
             group.remove_rows(rows, self.rest)
             elements = group.elements[rows]
             nodes.append(elements.reshape(-1))
-            shares.append((self.element_mass[ids if len(self.groups) == 1 else ids[group_of == g]]
-                           / elements.shape[1])[:, None].expand(elements.shape).reshape(-1))
+            shares.append((self.element_mass[picked] / elements.shape[1])[:, None].expand(elements.shape).reshape(-1))
         nodes, shares = torch.cat(nodes), torch.cat(shares)
         slots, num_slots, _ = incidence_slots(nodes, self.num_nodes)
         removed = padded_sum(shares, nodes, slots, num_slots, self.num_nodes)  # deterministic sums
