@@ -345,22 +345,26 @@ def edges_changed(group, edge_ids: torch.Tensor) -> None:
     if cache is None or cache[0][0] is not group.edge_k:
         return
     edge_k, index, force_index = cache[0]
-    neighbor, node_k = cache[2]
     blocks = edge_k[edge_ids]
     first, second = index[edge_ids].long().unbind(1)
     slot_first, slot_second = force_index[edge_ids].long().unbind(1)
-    node_k[slot_first, first] = blocks
-    node_k[slot_second, second] = blocks.transpose(1, 2)
+
+    def write(node_k, row_of=None):  # row_of [V]: the row of each node (None: rows in node order)
+        at_first, at_second = (first, second) if row_of is None else (row_of[first], row_of[second])
+        node_k[slot_first, at_first] = blocks
+        node_k[slot_second, at_second] = blocks.transpose(1, 2)
+
+    node_k = cache[2][1]
+    write(node_k)
     group.__dict__["_native_node_graph"] = (cache[0], tuple(t._version for t in cache[0]), cache[2])
     by_rows = group.__dict__.get("_native_by_rows_hooke")
     if by_rows is None or by_rows[0][1] is not node_k:
         return
-    rows, rows_k = by_rows[3], by_rows[2][1]
-    if rows is not None:  # the graph by rows holds node i at row position[i]
-        position = torch.empty(rows.shape[0], dtype=torch.long, device=rows.device)
-        position[rows.long()] = torch.arange(rows.shape[0], device=rows.device)
-        rows_k[slot_first, position[first]] = blocks
-        rows_k[slot_second, position[second]] = blocks.transpose(1, 2)
+    rows = by_rows[3]
+    if rows is not None:  # a graph by rows of its own (else it is node_k itself, written above)
+        row_of = torch.empty(rows.shape[0], dtype=torch.long, device=rows.device)
+        row_of[rows.long()] = torch.arange(rows.shape[0], device=rows.device)
+        write(by_rows[2][1], row_of)
     group.__dict__["_native_by_rows_hooke"] = (by_rows[0], tuple(t._version for t in by_rows[0]), *by_rows[2:])
 
 

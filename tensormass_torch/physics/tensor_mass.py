@@ -197,22 +197,23 @@ class TensorMass(nn.Module):
         if "removed" in self._buffers:
             return
         like = self.rest
-        group_of, row_of, element_mass, node_elements = [], [], [], torch.zeros(self.num_nodes, dtype=torch.int32,
-                                                                                device=like.device)
+        element_group = torch.empty(self.num_elements, dtype=torch.long, device=like.device)
+        element_row = torch.empty_like(element_group)
+        element_mass = like.new_empty(self.num_elements)
+        node_elements = torch.zeros(self.num_nodes, dtype=torch.int32, device=like.device)
         for g, group in enumerate(self.groups):
             sources = group.__dict__["_sources"]
             ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
             # the sources are as built: the model may have moved since (.to())
             young, poisson, density = (torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4))
             group.prepare_removals(young, poisson)
-            group_of.append(torch.full_like(ids, g))
-            row_of.append(torch.arange(ids.numel(), device=like.device))
-            element_mass.append((ids, density * group.measure.detach()))
+            element_group[ids] = g
+            element_row[ids] = torch.arange(ids.numel(), device=like.device)
+            element_mass[ids] = density * group.measure.detach()
             node_elements += torch.bincount(group.elements.reshape(-1), minlength=self.num_nodes).to(torch.int32)
-        order = torch.argsort(torch.cat([ids for ids, _ in element_mass]))  # group rows -> model ids
-        self.register_buffer("element_group", torch.cat(group_of)[order])
-        self.register_buffer("element_row", torch.cat(row_of)[order])
-        self.register_buffer("element_mass", torch.cat([m for _, m in element_mass])[order])
+        self.register_buffer("element_group", element_group)
+        self.register_buffer("element_row", element_row)
+        self.register_buffer("element_mass", element_mass)
         self.register_buffer("node_elements", node_elements)
         self.register_buffer("removed", torch.zeros(self.num_elements, dtype=torch.bool, device=like.device))
 
