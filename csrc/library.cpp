@@ -10,9 +10,11 @@
 //   tensor_form/  the tensor form (hooke on edges, stvk on elements): forces and differentials
 //   gather/       kernel 2 (each node's sum of its slots) alone and as the CG matvec's epilogue
 //   node_graph/   the node graph: its CG matvec in one kernel, implicit Euler's right-hand side,
-//                 a stress-form group's tangent as the graph's slot tensors
+//                 a stress-form group's tangent as the graph's slot tensors, edges written again
+//                 after a removal
 //   cg/           the CG iteration's ops over the chunk plan, the end of an implicit Euler step
 //   solve/        whole CG solves over the node graph in one op
+//   topology/     element removal in place: the touched nodes' masses and hooke edges summed again
 // What several families share (checks, compile-time dispatch, element math, kernel loads and
 // writes, the shared kernels, the CPU and CUDA launchers, the CG's scalar logic): common/.
 //

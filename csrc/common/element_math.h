@@ -771,4 +771,95 @@ TM_HD void tensor_stvk_dforces(const S (&u)[NN][D], const S (&du)[NN][D], const 
   }
 }
 
+// ------------------------------------------------------------------ element tensors from the rest shape
+
+// The shape vectors m [NN][D] of an element from its rest nodes x0 [NN][D] (the gradients of its
+// barycentric coordinates: with the edges E = x0_j - x0_0 (j >= 1) and their Gram matrix
+// G = E E^T, m_j = (G^-1 E)_j and m_0 = -sum_j m_j, as mesh.geometry.shape_vectors), and the
+// tangent projector P = E^T G^-1 E (the identity for tetrahedra and planar triangles, the rest
+// plane's projector for membranes). G is 2x2 or 3x3, inverted through its adjugate.
+template <int NN, int D, typename S>
+TM_HD void rest_shape_vectors(const S (&x0)[NN][D], S (&m)[NN][D], S (&proj)[D][D]) {
+  constexpr int K = NN - 1;
+  S e[K][D];
+  TM_UNROLL for (int j = 0; j < K; ++j) {
+    TM_UNROLL for (int a = 0; a < D; ++a) e[j][a] = x0[j + 1][a] - x0[0][a];
+  }
+  S g[K][K];
+  TM_UNROLL for (int i = 0; i < K; ++i) {
+    TM_UNROLL for (int j = 0; j < K; ++j) {
+      S s = S(0);
+      TM_UNROLL for (int a = 0; a < D; ++a) s += e[i][a] * e[j][a];
+      g[i][j] = s;
+    }
+  }
+  S inv[K][K];
+  if (K == 2) {
+    const S det = g[0][0] * g[1][1] - g[0][1] * g[1][0];
+    inv[0][0] = g[1][1] / det;
+    inv[0][1] = -g[0][1] / det;
+    inv[1][0] = -g[1][0] / det;
+    inv[1][1] = g[0][0] / det;
+  } else {
+    // adjugate of a 3x3 (indices taken mod 3 so that the 2x2 instantiation compiles too)
+    S c[K][K];
+    TM_UNROLL for (int i = 0; i < K; ++i) {
+      TM_UNROLL for (int j = 0; j < K; ++j) {
+        const int i1 = (i + 1) % K, i2 = (i + 2) % K, j1 = (j + 1) % K, j2 = (j + 2) % K;
+        c[i][j] = g[i1][j1] * g[i2][j2] - g[i1][j2] * g[i2][j1];
+      }
+    }
+    S det = S(0);
+    TM_UNROLL for (int j = 0; j < K; ++j) det += g[0][j] * c[0][j];
+    TM_UNROLL for (int i = 0; i < K; ++i) {
+      TM_UNROLL for (int j = 0; j < K; ++j) inv[i][j] = c[j][i] / det;
+    }
+  }
+  TM_UNROLL for (int a = 0; a < D; ++a) m[0][a] = S(0);
+  TM_UNROLL for (int i = 0; i < K; ++i) {
+    TM_UNROLL for (int a = 0; a < D; ++a) {
+      S s = S(0);
+      TM_UNROLL for (int j = 0; j < K; ++j) s += inv[i][j] * e[j][a];
+      m[i + 1][a] = s;
+      m[0][a] -= s;
+    }
+  }
+  // P = E^T (G^-1 E) = sum_i e_i (x) m_{i+1}; exactly the identity where E is square
+  TM_UNROLL for (int a = 0; a < D; ++a) {
+    TM_UNROLL for (int b = 0; b < D; ++b) {
+      S s = S(0);
+      if (K == D) {
+        s = a == b ? S(1) : S(0);
+      } else {
+        TM_UNROLL for (int i = 0; i < K; ++i) s += e[i][a] * m[i + 1][b];
+      }
+      proj[a][b] = s;
+    }
+  }
+}
+
+// Lame constants (lam, mu) from E and nu; plane stress (lam = E nu / (1 - nu^2)) for triangles,
+// as physics.materials.lame with plane_stress = (kind == "tri").
+template <int NN, typename S>
+TM_HD void lame_of(S young, S poisson, S& lam, S& mu) {
+  mu = young / (S(2) * (S(1) + poisson));
+  lam = NN == 3 ? young * poisson / (S(1) - poisson * poisson)
+                : young * poisson / ((S(1) + poisson) * (S(1) - S(2) * poisson));
+}
+
+// Cotin's element tensor of the local pair (j, k):
+//   K_jk = vol (lam m_j (x) m_k + mu m_k (x) m_j + mu (m_j . m_k) P)     [D][D]
+// (reference: ops.reference.tensor_form.element_stiffness).
+template <int NN, int D, typename S>
+TM_HD void hooke_pair_tensor(const S (&m)[NN][D], const S (&proj)[D][D], S vol, S lam, S mu, int j, int k,
+                             S (&out)[D][D]) {
+  S dot = S(0);
+  TM_UNROLL for (int a = 0; a < D; ++a) dot += m[j][a] * m[k][a];
+  TM_UNROLL for (int a = 0; a < D; ++a) {
+    TM_UNROLL for (int b = 0; b < D; ++b) {
+      out[a][b] = vol * (lam * m[j][a] * m[k][b] + mu * m[k][a] * m[j][b] + mu * dot * proj[a][b]);
+    }
+  }
+}
+
 }  // namespace tensormass

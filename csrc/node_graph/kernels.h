@@ -227,4 +227,34 @@ struct NodeHookeStepRhsKernel {
   }
 };
 
+// ------------------------------------------------------------------ edges written into the graph
+
+// One listed edge an item (node_graph_write_edges): edge e = (i, j) writes its tensor K_e into the
+// slot of its first node and K_e^T into that of its second, at each node's row (row_of[i], or i
+// where rows are in node order). An edge listed twice writes the same values twice.
+template <int D, typename S, typename I, typename J>
+struct WriteEdgesKernel {
+  const J* edge_ids;     // [M]
+  const I* edges;        // [Ed, 2]
+  const I* force_index;  // [Ed, 2]
+  const S* edge_k;       // [Ed, D, D]
+  const I* row_of;       // [V] or nullptr
+  int64_t num_nodes;     // V (the graph's columns)
+  S* node_k;             // [N_n, V, D, D]
+
+  TM_HD void operator()(int64_t m) const {
+    const int64_t e = static_cast<int64_t>(edge_ids[m]);
+    const S* k = edge_k + e * (D * D);
+    TM_UNROLL for (int side = 0; side < 2; ++side) {
+      const int64_t node = static_cast<int64_t>(edges[e * 2 + side]);
+      const int64_t row = row_of == nullptr ? node : static_cast<int64_t>(row_of[node]);
+      const int64_t slot = static_cast<int64_t>(force_index[e * 2 + side]);
+      S* out = node_k + (slot * num_nodes + row) * (D * D);
+      TM_UNROLL for (int a = 0; a < D; ++a) {
+        TM_UNROLL for (int b = 0; b < D; ++b) out[a * D + b] = side == 0 ? k[a * D + b] : k[b * D + a];
+      }
+    }
+  }
+};
+
 }  // namespace tensormass

@@ -193,6 +193,51 @@ void stress_tangent_node_k(const at::Tensor& u, const at::Tensor& elements, cons
   });
 }
 
+// node_graph_write_edges: see schema.cpp.
+template <class L>
+void node_graph_write_edges(const at::Tensor& edge_ids, const at::Tensor& edges, const at::Tensor& force_index,
+                            const at::Tensor& edge_k, at::Tensor node_k, const c10::optional<at::Tensor>& row_of) {
+  TORCH_CHECK(edge_k.defined() && edge_k.dim() == 3, "tensormass: edge_k must be [Ed, d, d]");
+  TORCH_CHECK(edge_k.scalar_type() == at::kFloat || edge_k.scalar_type() == at::kDouble,
+              "tensormass: edge_k must be float32 or float64, got ", dtype_str(edge_k.scalar_type()));
+  TORCH_CHECK(edge_k.is_contiguous(), "tensormass: edge_k must be contiguous (call .contiguous())");
+  const int64_t num_edges = edge_k.size(0), dim = edge_k.size(1);
+  const at::ScalarType index_type = index_type_of(edges, "edges");
+  check_index_tensor(edges, "edges", edge_k, index_type, {num_edges, 2}, "edge_k");
+  check_index_tensor(force_index, "force_index", edge_k, index_type, {num_edges, 2}, "edge_k");
+  TORCH_CHECK(node_k.defined() && node_k.dim() == 4, "tensormass: node_k must be [N_n, V, d, d]");
+  check_node_tensor(node_k, "node_k", edge_k, {node_k.size(0), node_k.size(1), dim, dim}, "edge_k");
+  const at::ScalarType id_type = index_type_of(edge_ids, "edge_ids");
+  TORCH_CHECK(edge_ids.dim() == 1, "tensormass: edge_ids must be [M], got shape ", shape_str(edge_ids.sizes()));
+  TORCH_CHECK(edge_ids.device() == edge_k.device(), "tensormass: edge_ids is on ", edge_ids.device().str(),
+              " but edge_k is on ", edge_k.device().str());
+  TORCH_CHECK(edge_ids.is_contiguous(), "tensormass: edge_ids must be contiguous (call .contiguous())");
+  const bool by_rows = row_of.has_value() && row_of->defined();
+  if (by_rows) check_index_tensor(*row_of, "row_of", edge_k, index_type, {node_k.size(1)}, "edge_k");
+  typename L::Guard guard(edge_k.device());
+  dispatch_scalar(edge_k.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_index(id_type, [&](auto j_tag) {
+        using J = decltype(j_tag);
+        dispatch_dim(dim, [&](auto d_c) {
+          constexpr int D = decltype(d_c)::value;
+          WriteEdgesKernel<D, S, I, J> k;
+          k.edge_ids = edge_ids.data_ptr<J>();
+          k.edges = edges.data_ptr<I>();
+          k.force_index = force_index.data_ptr<I>();
+          k.edge_k = edge_k.data_ptr<S>();
+          k.row_of = by_rows ? row_of->data_ptr<I>() : nullptr;
+          k.num_nodes = node_k.size(1);
+          k.node_k = node_k.data_ptr<S>();
+          L::run(edge_ids.numel(), k, L::kNodeBlock);
+        });
+      });
+    });
+  });
+}
+
 // Registers the implementations of the node graph ops of one backend (launcher L) under its
 // TORCH_LIBRARY_IMPL (cpu.cpp, cuda.cu); the schemas: schema.cpp.
 template <class L>
@@ -201,6 +246,7 @@ void register_node_graph_ops(torch::Library& m) {
   m.impl("hooke_node_system_alpha", &hooke_node_system_alpha<L>);
   m.impl("hooke_node_step_rhs", &hooke_node_step_rhs<L>);
   m.impl("stress_tangent_node_k", &stress_tangent_node_k<L>);
+  m.impl("node_graph_write_edges", &node_graph_write_edges<L>);
 }
 
 }  // namespace tensormass

@@ -55,4 +55,13 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   m.def("hooke_node_step_rhs(Tensor x, Tensor v, Tensor rest, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, "
         "Tensor mass, Tensor external, Tensor? plane_normals, Tensor? plane_offsets, Tensor? plane_stiffness, "
         "float h, float w_coef, float rayleigh_mass, Tensor(a!) u, Tensor(b!) rhs, Tensor(c!)? node_stiffness) -> ()");
+  // node_graph_write_edges(edge_ids [M], edges [Ed, 2], force_index [Ed, 2], edge_k [Ed, d, d], node_k!,
+  //                        row_of [V]?) -> ()
+  //   after edge_k changed in place at edge_ids (a topology change: topology/schema.cpp), the graph's
+  //   blocks of those edges written again: node_k[force_index[e, 0]][r(i)] = K_e and
+  //   node_k[force_index[e, 1]][r(j)] = K_e^T for e = (i, j), r the row of a node (row_of, the inverse of
+  //   the graph's row_node; None: rows in node order). edge_ids may repeat an edge and have either index
+  //   type. The graph's storage is kept, so captured CUDA graphs that read it stay valid.
+  m.def("node_graph_write_edges(Tensor edge_ids, Tensor edges, Tensor force_index, Tensor edge_k, "
+        "Tensor(a!) node_k, Tensor? row_of) -> ()");
 }

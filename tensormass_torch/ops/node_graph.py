@@ -18,6 +18,8 @@ as many slots each.
         node_stiffness!?)   rhs = h (f((x - rest) + w_coef v) + external + contact(x)
                                   - Kc(x) w_coef v - r_M mass v), u = x - rest, Kc
     stress_tangent_node_k(u, <stress inputs>, rotations?, edge graph, node_k!, edge_partial!)
+    node_graph_write_edges(edge_ids, edges, force_index, edge_k, node_k!, row_of?)
+                            edges whose blocks changed (a removal) written again into a graph
 
 All are solver kernels: no gradient (the group-level calls fall back to the element ops when one
 is wanted).
@@ -28,6 +30,7 @@ from typing import Optional
 
 import torch
 
+from .. import _backend
 from ..mesh.topology import sum_slots_in_order
 from . import cg as cg_family
 from . import library
@@ -37,7 +40,8 @@ from .reference import corotational, stress_form
 from .stress import stress_args
 from .variants import DEFAULT, KernelVariants
 
-__all__ = ["edges_changed", "hooke_node_graph", "hooke_rows_graph", "node_graph_rows", "set_objects", "tangent_graph",
+__all__ = ["edges_changed", "has_cached_graph",
+           "hooke_node_graph", "hooke_rows_graph", "node_graph_rows", "set_objects", "tangent_graph",
            "tangent_serves", "tangent_node_k", "graph_of_edges", "node_graph_of", "step_rhs_serves", "step_rhs",
            "planes_serve"]
 
@@ -139,6 +143,18 @@ def _ref_stress_tangent_node_k(u, elements, m, vol, lam, mu, proj, model, rotati
 # ---------------------------------------------------------------------------------------------
 
 
+def _ref_node_graph_write_edges(edge_ids, edges, force_index, edge_k, node_k, row_of):
+    """The blocks of the edges ``edge_ids [M]`` written again into ``node_k`` (see the op's schema)."""
+    ids = edge_ids.long()
+    first, second = edges[ids].long().unbind(1)
+    slot_first, slot_second = force_index[ids].long().unbind(1)
+    if row_of is not None:
+        first, second = row_of.long()[first], row_of.long()[second]
+    blocks = edge_k[ids]
+    node_k[slot_first, first] = blocks
+    node_k[slot_second, second] = blocks.transpose(1, 2)
+
+
 def _fake_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
                             node_stiffness=None):
     return p.new_empty(p.shape), p.new_empty((p.shape[0],))
@@ -160,6 +176,12 @@ def _example(name):
             alpha_args, _ = cg_family.OPS[0].example(device, dtype)
             (_, *plan, rr, status, alpha, scratch, counter) = alpha_args
             return (*system, torch.zeros_like(ex.du), *plan, rr, status, alpha, scratch, counter), {}
+        if name == "node_graph_write_edges":
+            changed = 2.0 * ex.edge_k  # the edges' new blocks
+            edge_ids = torch.tensor([3, 0, 3], device=device)
+            row_of = torch.empty_like(rows)
+            row_of[by_row] = torch.arange(rows.shape[0], device=device, dtype=rows.dtype)
+            return (edge_ids, ex.edges, ex.edge_force_index, changed, graph[1].clone(), row_of), {}
         if name == "hooke_node_step_rhs":
             x = ex.rest + ex.u
             normals = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]], device=device, dtype=dtype)
@@ -191,6 +213,8 @@ OPS = (
           example=_example("hooke_node_system_alpha"), scratch=("scratch", "counter")),
     OpDef("hooke_node_step_rhs", _ref_hooke_node_step_rhs, None, differentiable=False, mutates=True,
           example=_example("hooke_node_step_rhs")),
+    OpDef("node_graph_write_edges", _ref_node_graph_write_edges, None, differentiable=False, mutates=True,
+          example=_example("node_graph_write_edges")),
     OpDef("stress_tangent_node_k", _ref_stress_tangent_node_k, None, differentiable=False, mutates=True,
           example=_example("stress_tangent_node_k"), scratch=("edge_partial",)),
 )
@@ -334,38 +358,47 @@ def hooke_node_graph(group):
     return value
 
 
+def has_cached_graph(group) -> bool:
+    """Whether a node graph of the hooke tensor-form ``group`` is cached (:func:`edges_changed`
+    has something to write)."""
+    cache = group.__dict__.get("_native_node_graph")
+    return cache is not None and cache[0][0] is group.edge_k
+
+
 @torch.no_grad()
 def edges_changed(group, edge_ids: torch.Tensor) -> None:
     """A hooke tensor-form group's blocks ``edge_k`` changed in place at ``edge_ids [k]`` (a
-    topology change; its edges and plan the same): write them into the node graphs cached on the
-    group (:func:`hooke_node_graph`, :func:`hooke_rows_graph`) in place, since captured CUDA graphs
-    and packed solves read their storage, and keep the caches current. A graph not built yet is
-    built later from the new blocks."""
-    cache = group.__dict__.get("_native_node_graph")
-    if cache is None or cache[0][0] is not group.edge_k:
+    topology change, repeats allowed; its edges and plan the same): write them into the node graphs
+    cached on the group (:func:`hooke_node_graph`, :func:`hooke_rows_graph`) in place
+    (``node_graph_write_edges``), since captured CUDA graphs and packed solves read their storage,
+    and keep the caches current. A graph not built yet is built later from the new blocks."""
+    if not has_cached_graph(group):
         return
+    cache = group.__dict__["_native_node_graph"]
     edge_k, index, force_index = cache[0]
-    blocks = edge_k[edge_ids]
-    first, second = index[edge_ids].long().unbind(1)
-    slot_first, slot_second = force_index[edge_ids].long().unbind(1)
-
-    def write(node_k, row_of=None):  # row_of [V]: the row of each node (None: rows in node order)
-        at_first, at_second = (first, second) if row_of is None else (row_of[first], row_of[second])
-        node_k[slot_first, at_first] = blocks
-        node_k[slot_second, at_second] = blocks.transpose(1, 2)
-
+    native = _backend.use_extension(edge_k.device) and hasattr(torch.ops.tensormass, "node_graph_write_edges")
+    write = torch.ops.tensormass.node_graph_write_edges if native else _ref_node_graph_write_edges
     node_k = cache[2][1]
-    write(node_k)
+    write(edge_ids, index, force_index, edge_k, node_k, None)
     group.__dict__["_native_node_graph"] = (cache[0], tuple(t._version for t in cache[0]), cache[2])
     by_rows = group.__dict__.get("_native_by_rows_hooke")
     if by_rows is None or by_rows[0][1] is not node_k:
         return
     rows = by_rows[3]
     if rows is not None:  # a graph by rows of its own (else it is node_k itself, written above)
-        row_of = torch.empty(rows.shape[0], dtype=torch.long, device=rows.device)
-        row_of[rows.long()] = torch.arange(rows.shape[0], device=rows.device)
-        write(by_rows[2][1], row_of)
+        write(edge_ids, index, force_index, edge_k, by_rows[2][1], _row_of(group, rows))
     group.__dict__["_native_by_rows_hooke"] = (by_rows[0], tuple(t._version for t in by_rows[0]), *by_rows[2:])
+
+
+def _row_of(group, rows: torch.Tensor) -> torch.Tensor:
+    """The row of each node ``[V]`` (the inverse of a graph's ``row_node``), cached on the group."""
+    cache = group.__dict__.get("_row_of")
+    if cache is not None and cache[0] is rows:
+        return cache[1]
+    row_of = torch.empty_like(rows)
+    row_of[rows.long()] = torch.arange(rows.shape[0], device=rows.device, dtype=rows.dtype)
+    group.__dict__["_row_of"] = (rows, row_of)
+    return row_of
 
 
 def tangent_graph(group, window: int = DEFAULT.node_graph_window):

@@ -21,8 +21,8 @@ from torch import nn
 
 from ..errors import MaterialError
 from ..mesh import geometry
-from ..mesh.topology import GatherPlan, incidence_slots, padded_sum, unique_edges
-from ..ops import node_graph
+from ..mesh.topology import GatherPlan, unique_edges
+from ..ops import node_graph, topology
 from ..ops.reference import tensor_form
 from .materials import lame
 
@@ -80,8 +80,8 @@ class ElementGroup(nn.Module):
             self.register_buffer("rest_normals", normal / torch.linalg.vector_norm(normal, dim=1, keepdim=True))
         if form == "stress":
             self.register_buffer("shape_vectors", m)
-            self.register_buffer("young", young)
-            self.register_buffer("poisson", poisson)
+            self.register_buffer("young", young.contiguous())
+            self.register_buffer("poisson", poisson.contiguous())
             self.register_buffer("projector", proj)
             self.plan = GatherPlan.build(elements, self.num_nodes)
             return
@@ -105,63 +105,55 @@ class ElementGroup(nn.Module):
             self.plan = GatherPlan.build(elements, self.num_nodes)
 
     # ---------------------------------------------------------------- topology changes
-    def prepare_removals(self, young: torch.Tensor, poisson: torch.Tensor) -> None:
+    def prepare_removals(self, young: torch.Tensor, poisson: torch.Tensor, ids: torch.Tensor) -> None:
         """What :meth:`remove_rows` needs beyond the group's own data, made at the first removal
         only (a scene that never removes an element holds none of it): for the hooke tensor form
-        the parameters to form an element's tensors again (``young, poisson [N]``) and the number
-        of elements on each edge (an edge's blocks are exactly 0 once its last element is gone)."""
+        the parameters to form an element's tensors again (``young, poisson [N]``), the edge of
+        each local pair of each element (``element_edges [N, P]``) and each edge's incidence list
+        (``edge_slots [S, Ed]``: the model ids ``ids [N]`` of its elements, in the order its
+        tensor was assembled, -1 past the last), index tensors of the elements' dtype."""
         if self.form == "tensor" and self.model == "hooke":
-            self.register_buffer("young", young)
-            self.register_buffer("poisson", poisson)
-            _, _, element_edges = unique_edges(self.elements, self.num_nodes)  # the edges' own order
-            counts = torch.bincount(element_edges.reshape(-1), minlength=self.edges.shape[0])
-            self.register_buffer("edge_elements", counts.to(torch.int32))
+            self.register_buffer("young", young.contiguous())
+            self.register_buffer("poisson", poisson.contiguous())
+            _, pairs, element_edges = unique_edges(self.elements.long(), self.num_nodes)  # the edges' own order
+            self.register_buffer("element_edges", element_edges.to(self.elements.dtype).contiguous())
+            items = ids.to(self.elements.dtype).repeat_interleave(pairs.shape[0])
+            self.register_buffer("edge_slots", topology.incidence_table(element_edges.reshape(-1), items,
+                                                                        self.edges.shape[0]))
 
     @torch.no_grad()  # a removal is not differentiable (the tensor form holds no gradient anyway)
-    def remove_rows(self, rows: torch.Tensor, rest: torch.Tensor) -> None:
-        """Remove the elements at ``rows`` (local row ids ``[R]``, unique, in range, alive: the
-        caller checks) in place. Every buffer keeps its storage and shape and the gather plan stays
-        as built, so whatever reads them (the node graphs, captured CUDA graphs, a packed solve)
-        stays valid; a removed row stays but contributes exactly nothing:
+    def remove_rows(self, rows: torch.Tensor, rest: torch.Tensor, removed: torch.Tensor,
+                    element_row: torch.Tensor) -> None:
+        """Remove the elements at ``rows`` (local row ids ``[R]`` of the elements' index dtype,
+        unique, in range, alive before, already flagged in the model's ``removed [N_model]``;
+        ``element_row [N_model]``: the row of each model id; the caller checks and flags) in
+        place. Every buffer keeps its storage and shape and the gather plan stays as built, so
+        whatever reads them (the node graphs, captured CUDA graphs, a packed solve) stays valid; a
+        removed row stays but contributes exactly nothing:
 
             stress form     shape vectors and measure 0: F = P, no strain; every force, product and
                             energy term of the element is a product with m or the measure, so 0
             stvk tensor     B, C, D 0 (the forces are polynomials in them)
-            hooke tensor    the element's blocks, formed again from ``rest [V, d]``, subtracted from
-                            its edges (summed per edge in a fixed order first); an edge left with no
-                            element holds exactly 0; the node graphs cached on the group follow
+            hooke tensor    each edge of the rows summed again from the elements left on it, their
+                            tensors formed again from ``rest [V, d]`` in the order of assembly (an
+                            edge left with no element holds exactly 0); the node graphs cached on
+                            the group follow
 
-        The forces are then those of a group built without the rows, exactly but for the edge sums
-        of the hooke tensor form (rounded in another order). A corotational element's rotation is
-        still computed from its current nodes: finite unless three of them are exactly collinear.
-        Needs :meth:`prepare_removals` first."""
+        The forces are then those of a group built without the rows (exactly, but for the edge
+        tensors of the hooke tensor form, formed by other code). A corotational element's
+        rotation is still computed from its current nodes: finite unless three of them are exactly
+        collinear. Needs :meth:`prepare_removals` first."""
         if self.form == "stress":
             self.shape_vectors.index_fill_(0, rows, 0.0)
             self.measure.index_fill_(0, rows, 0.0)
         elif self.model == "hooke":
-            self._subtract_edges(rows, rest)
+            topology.refresh_hooke_edges(rest, self.elements, rows, self.element_edges, self.edge_slots, element_row,
+                                         removed, self.measure, self.young, self.poisson, self.edge_k)
+            if node_graph.has_cached_graph(self):
+                node_graph.edges_changed(self, self.element_edges[rows].reshape(-1))
         else:
             for tensor in (self.tensor_b, self.tensor_c, self.tensor_d):
                 tensor.index_fill_(0, rows, 0.0)
-
-    def _subtract_edges(self, rows: torch.Tensor, rest: torch.Tensor) -> None:
-        """The hooke tensor form's part of :meth:`remove_rows`."""
-        elements = self.elements[rows]
-        element_rest = geometry.element_nodes(rest, elements)
-        m, _ = geometry.shape_vectors(element_rest)
-        proj = geometry.tangent_projectors(element_rest) if self.membrane else None
-        lam, mu = self.lame(self.young[rows], self.poisson[rows])
-        element_k = tensor_form.element_stiffness(m, self.measure[rows], lam, mu, proj)
-        edge_ids, blocks = tensor_form.edge_blocks(element_k, elements, self.edges, self.num_nodes)
-        # sums over the touched edges only (O(R), not O(edges)), each in a fixed order
-        touched, local = torch.unique(edge_ids.reshape(-1), sorted=True, return_inverse=True)
-        slots, num_slots, counts = incidence_slots(local, touched.numel())
-        removed = padded_sum(blocks.reshape(-1, *blocks.shape[2:]), local, slots, num_slots, touched.numel())
-        left = self.edge_elements[touched] - counts.to(self.edge_elements.dtype)
-        self.edge_elements[touched] = left
-        value = self.edge_k[touched] - removed
-        self.edge_k[touched] = torch.where((left == 0)[:, None, None], torch.zeros_like(value), value)
-        node_graph.edges_changed(self, touched)
 
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""

@@ -12,6 +12,7 @@ from typing import Union
 import torch
 
 from ..errors import MaterialError
+from ..ops.reference.stress_form import lame  # noqa: F401 (the materials' Lame constants, public here)
 
 #: Constitutive models this build implements (``Material(model=...)``).
 MODELS = ("hooke", "stvk", "corotational")
@@ -104,16 +105,3 @@ class Material:
         if t.shape != (num_elements,):
             raise MaterialError(f"{name} has shape {tuple(t.shape)}; expected a scalar or [{num_elements}]")
         return t
-
-
-def lame(young: torch.Tensor, poisson: torch.Tensor, plane_stress: bool = False):
-    """Lamé constants (lam, mu) from E and nu; ``plane_stress`` gives lam = E nu / (1 - nu^2).
-
-    Shapes follow the inputs (``[N]``).
-    """
-    mu = young / (2.0 * (1.0 + poisson))
-    if plane_stress:
-        lam = young * poisson / (1.0 - poisson * poisson)
-    else:
-        lam = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
-    return lam, mu

@@ -1,7 +1,7 @@
 """TensorMass: the elastic force field of a mesh (or of a packed batch of meshes) as a module."""
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Optional, Sequence
 
 import torch
 from torch import nn
@@ -9,6 +9,7 @@ from torch import nn
 from .. import ops
 from ..errors import MaterialError, MeshError, SceneError
 from ..mesh.topology import incidence_slots, padded_sum
+from ..ops import topology
 from ..ops.variants import DEFAULT, KernelVariants
 from .groups import FORMS, ElementGroup
 from .materials import Material
@@ -31,29 +32,29 @@ def _resolve_form(form: str, material) -> str:
     return form
 
 
-def checked_element_ids(ids, alive: torch.Tensor, owner: str) -> torch.Tensor:
-    """Element ids to remove as a sorted int64 tensor on ``alive``'s device, or one MeshError
-    naming the problem: not 1-D integers, out of range of ``alive [N]`` (the elements of
-    ``owner``, a label for the message), given twice, or already removed."""
+def checked_element_ids(ids, removed: Optional[torch.Tensor], count: int, owner: str) -> torch.Tensor:
+    """Element ids to remove as a sorted int64 CPU tensor, or one MeshError naming the problem:
+    not 1-D integers, out of range of the ``count`` elements of ``owner`` (a label for the
+    message), given twice, or already removed (``removed``: a CPU bool tensor ``[count]``, or None
+    where none is). Checked on the host, against the host's copy of the removed mask, so that a
+    removal between GPU steps waits for nothing (ids given on the GPU are read back once)."""
     ids = torch.as_tensor(ids)
     if ids.dim() != 1 or (ids.numel() and (ids.dtype.is_floating_point or ids.dtype == torch.bool)):
         raise MeshError(f"element ids must be a 1-D integer sequence, got {ids.dtype} of shape {tuple(ids.shape)}")
-    ids = ids.to(device=alive.device, dtype=torch.int64)
+    ids = torch.sort(ids.to(device="cpu", dtype=torch.int64)).values
     if ids.numel() == 0:
         return ids
-    count = alive.shape[0]
-    ids = torch.sort(ids).values
-    # every check from one host read (a removal between GPU steps waits for the device once)
-    twice = ids[1:] == ids[:-1]
-    gone = ~alive[ids.clamp(0, count - 1)]
-    low, high, num_twice, num_gone = torch.stack([ids[0], ids[-1], twice.sum(), gone.sum()]).tolist()
+    low, high = int(ids[0]), int(ids[-1])
     if low < 0 or high >= count:
         raise MeshError(f"element id {low if low < 0 else high} out of range: {owner} has {count} elements "
                         f"(0 .. {count - 1})")
-    if num_twice:
+    twice = ids[1:] == ids[:-1]
+    if bool(twice.any()):
         raise MeshError(f"element ids given twice: {torch.unique(ids[1:][twice])[:8].tolist()}")
-    if num_gone:
-        raise MeshError(f"elements already removed: {ids[gone][:8].tolist()}")
+    if removed is not None:
+        gone = removed[ids]
+        if bool(gone.any()):
+            raise MeshError(f"elements already removed: {ids[gone][:8].tolist()}")
     return ids
 
 
@@ -125,11 +126,12 @@ class TensorMass(nn.Module):
         return padded_sum(shares, nodes, slots, num_slots, self.num_nodes)
 
     # ---------------------------------------------------------------- topology changes
-    def remove_elements(self, ids) -> torch.Tensor:
-        """Remove elements in place, the Tensor-Mass way: each group zeroes their contribution
-        (``ElementGroup.remove_rows``: the hooke tensor form subtracts their tensors from their
-        edges) and the lumped masses lose their shares; forces, products, energy and masses are
-        then those of a model built from the remaining elements (to rounding). Nothing is
+    def remove_elements(self, ids) -> float:
+        """Remove elements in place, the Tensor-Mass way: each group drops their contribution
+        (``ElementGroup.remove_rows``: the hooke tensor form sums the edges they touched again
+        from the elements left on them) and the nodes they touched sum their lumped masses again
+        from the elements left; forces, products, energy and masses are then those of a model
+        built from the remaining elements (to rounding). Nothing is
         reallocated: every buffer, the gather plans and the node graphs keep their storage, so a
         solver's caches and captured CUDA graphs stay valid. Nodes left with no element keep mass
         0 exactly. The model of a ``Simulator``: use ``sim.remove_elements``, which also updates
@@ -140,42 +142,45 @@ class TensorMass(nn.Module):
                 built; ids stay those of the original elements after removals).
 
         Returns:
-            the removed mass ``[V]`` (each node's lost share).
+            the mass removed (the removed elements' total, from a host copy: no device read).
 
         Raises:
             MeshError: an id out of range, given twice or already removed (nothing changed).
         """
         return self._remove_checked(self._check_removal(ids))
 
-    def _remove_checked(self, ids: torch.Tensor) -> torch.Tensor:
-        """:meth:`remove_elements` of ids already checked (``checked_element_ids``)."""
+    def _remove_checked(self, ids: torch.Tensor) -> float:
+        """:meth:`remove_elements` of ids already checked (``checked_element_ids``: sorted int64 on
+        the CPU): the removed flags set, then each group's rows and the nodes they touch refreshed
+        (``ops.topology``), a few launches that never wait for the device. Returns the mass
+        removed (from the host's copy of the element masses)."""
         if ids.numel() == 0:
-            return self.mass.new_zeros(self.num_nodes)
+            return 0.0
         self._prepare_removals()
-        nodes, shares = [], []
-        group_of = self.element_group[ids]
+        index = self.element_row.dtype  # the ops' one index dtype (the elements')
+        on_device = ids.to(device=self.rest.device, dtype=index, non_blocking=True)
+        self.removed.index_fill_(0, on_device, True)  # first: the refreshes read the flags
         for g, group in enumerate(self.groups):
-            picked = ids if len(self.groups) == 1 else ids[group_of == g]  # one group: no mask, no host read
-            if picked.numel() == 0:
-                continue
+            if len(self.groups) == 1:
+                picked = on_device  # one group: no mask, no host read
+            else:
+                picked = on_device[self.element_group[on_device] == g]
+                if picked.numel() == 0:
+                    continue
             rows = self.element_row[picked]
-            group.remove_rows(rows, self.rest)
-            elements = group.elements[rows]
-            nodes.append(elements.reshape(-1))
-            shares.append((self.element_mass[picked] / elements.shape[1])[:, None].expand(elements.shape).reshape(-1))
-        nodes, shares = torch.cat(nodes), torch.cat(shares)
-        slots, num_slots, _ = incidence_slots(nodes, self.num_nodes)
-        removed = padded_sum(shares, nodes, slots, num_slots, self.num_nodes)  # deterministic sums
-        with torch.no_grad():
-            self.removed[ids] = True
-            self.node_elements.index_add_(0, nodes, torch.full_like(nodes, -1, dtype=self.node_elements.dtype))
-            self.mass -= removed
-            # a node with no element left has no mass (not the rounding residue of the subtraction)
-            self.mass.masked_fill_(self.node_elements == 0, 0.0)
-        return removed
+            elements = group.elements if group.elements.dtype == index else group.elements.to(index)
+            group.remove_rows(rows, self.rest, self.removed, self.element_row)
+            topology.refresh_nodes(elements, rows, self.node_slots, self.element_share, self.removed, self.mass,
+                                   self.node_elements)
+        self._removed_host[ids] = True
+        return float(self._element_mass_host[ids].sum())
 
     def _check_removal(self, ids) -> torch.Tensor:
-        return checked_element_ids(ids, self.alive_elements(), "the model")
+        return checked_element_ids(ids, self.removed_host(), self.num_elements, "the model")
+
+    def removed_host(self) -> Optional[torch.Tensor]:
+        """The host's copy of the removed mask ``[N]`` (CPU bool), or None before any removal."""
+        return self.__dict__.get("_removed_host")
 
     def alive_elements(self) -> torch.Tensor:
         """``[N]`` bool over the model's element ids: those not removed."""
@@ -191,31 +196,44 @@ class TensorMass(nn.Module):
 
     def _prepare_removals(self) -> None:
         """The data removals need, made at the first one (none before: a model never cut pays
-        nothing): over the model's element ids the removed mask, each element's group and row
-        and lumped mass ``[N]``; the alive elements on each node ``[V]``; per group what
-        ``ElementGroup.prepare_removals`` keeps."""
+        nothing): over the model's element ids ``[N]`` the removed flags, each element's group,
+        its row there and its share of mass on each of its nodes (``element_share``); each node's
+        incidence list (``node_slots [S, V]``: model element ids in the order the lumped masses
+        were summed, -1 past the last) and alive element count (``node_elements [V]`` int32); per
+        group what ``ElementGroup.prepare_removals`` keeps; on the host, the removed flags and the
+        element masses. Index tensors have the elements' dtype."""
         if "removed" in self._buffers:
             return
         like = self.rest
+        index = self.groups[0].elements.dtype
         element_group = torch.empty(self.num_elements, dtype=torch.long, device=like.device)
-        element_row = torch.empty_like(element_group)
+        element_row = torch.empty(self.num_elements, dtype=index, device=like.device)
         element_mass = like.new_empty(self.num_elements)
-        node_elements = torch.zeros(self.num_nodes, dtype=torch.int32, device=like.device)
+        element_share = like.new_empty(self.num_elements)
+        nodes, items = [], []
         for g, group in enumerate(self.groups):
             sources = group.__dict__["_sources"]
             ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
             # the sources are as built: the model may have moved since (.to())
             young, poisson, density = (torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4))
-            group.prepare_removals(young, poisson)
+            group.prepare_removals(young, poisson, ids.to(index))
             element_group[ids] = g
-            element_row[ids] = torch.arange(ids.numel(), device=like.device)
+            element_row[ids] = torch.arange(ids.numel(), device=like.device, dtype=index)
             element_mass[ids] = density * group.measure.detach()
-            node_elements += torch.bincount(group.elements.reshape(-1), minlength=self.num_nodes).to(torch.int32)
+            element_share[ids] = element_mass[ids] / group.nodes_per_element  # as _lumped_mass divides
+            nodes.append(group.elements.reshape(-1).long())
+            items.append(ids.to(index).repeat_interleave(group.nodes_per_element))
+        nodes = torch.cat(nodes)
         self.register_buffer("element_group", element_group)
         self.register_buffer("element_row", element_row)
-        self.register_buffer("element_mass", element_mass)
-        self.register_buffer("node_elements", node_elements)
+        self.register_buffer("element_share", element_share)
+        self.register_buffer("node_slots", topology.incidence_table(nodes, torch.cat(items), self.num_nodes))
+        self.register_buffer("node_elements", torch.bincount(nodes, minlength=self.num_nodes).to(torch.int32))
         self.register_buffer("removed", torch.zeros(self.num_elements, dtype=torch.bool, device=like.device))
+        # the host's copies (plain attributes: they stay on the CPU when the model moves), so that
+        # ids are checked and removed mass is counted without reading the device
+        self.__dict__["_removed_host"] = torch.zeros(self.num_elements, dtype=torch.bool)
+        self.__dict__["_element_mass_host"] = element_mass.to("cpu", torch.float64)
 
     # ---------------------------------------------------------------- evaluation
     def _check_positions(self, name: str, x: torch.Tensor):

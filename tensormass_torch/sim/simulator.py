@@ -284,9 +284,14 @@ class Simulator:
             removed; nothing is changed.
         """
         i = self._body_index(body)
-        ids = checked_element_ids(ids, self.alive_elements(i), f"body {i}")  # the body's ids in messages
-        removed = self.model._remove_checked(ids + self.element_ptr[i])  # checked once, as the body's ids
-        lost = float(removed.sum())
+        first, end = self.element_ptr[i], self.element_ptr[i + 1]
+        removed = self.model.removed_host()
+        ids = checked_element_ids(ids, None if removed is None else removed[first:end], end - first,
+                                  f"body {i}")  # the body's ids in messages
+        if ids.numel() == 0:
+            return 0.0
+        ids = ids + first  # checked once, as the body's ids
+        lost = self.model._remove_checked(ids)  # counted from the host's copy: no device read
         self.removed_mass[i] += lost
         self._masses_changed()
         if self._inversion is not None:

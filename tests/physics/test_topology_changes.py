@@ -106,7 +106,7 @@ def test_a_packed_batch_loses_elements_of_each_body_and_isolated_nodes_lose_all_
     x = rest + 0.01 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     assert_same(model, fresh, x, torch.ones_like(x))
     assert float(model.lumped_mass()[0]) == 0.0  # node 0 has no element left: no mass, exactly
-    torch.testing.assert_close(float(model.lumped_mass().sum() + removed.sum()), total, rtol=1e-13, atol=0)
+    torch.testing.assert_close(float(model.lumped_mass().sum()) + removed, total, rtol=1e-13, atol=0)
     assert bool((model.lumped_mass() >= 0).all())
 
 
@@ -130,7 +130,7 @@ def test_removing_nothing_changes_nothing_and_everything_leaves_no_force():
     mesh = tm.beam_mesh(2, 1, 1, dtype=torch.float64)
     model = tm.TensorMass(mesh, material("hooke", "polar"))
     f = model(mesh.vertices * 1.01)
-    assert float(model.remove_elements([]).abs().sum()) == 0.0
+    assert model.remove_elements([]) == 0.0
     torch.testing.assert_close(model(mesh.vertices * 1.01), f, rtol=0, atol=0)
     model.remove_elements(torch.arange(mesh.elements.shape[0]))
     assert float(model(mesh.vertices * 1.01).abs().max()) == 0.0

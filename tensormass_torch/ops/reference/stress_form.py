@@ -17,6 +17,19 @@ from __future__ import annotations
 import torch
 
 
+def lame(young: torch.Tensor, poisson: torch.Tensor, plane_stress: bool = False):
+    """Lamé constants (lam, mu) from E and nu; ``plane_stress`` gives lam = E nu / (1 - nu^2).
+
+    Shapes follow the inputs (``[N]``).
+    """
+    mu = young / (2.0 * (1.0 + poisson))
+    if plane_stress:
+        lam = young * poisson / (1.0 - poisson * poisson)
+    else:
+        lam = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+    return lam, mu
+
+
 def displacement_gradient(u: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
     """grad U = sum_j u_j (x) m_j: ``[N, d, d]``."""
     return torch.einsum("nja,njb->nab", u, m)

@@ -42,7 +42,7 @@ def element_stiffness(m, vol, lam, mu, proj=None) -> torch.Tensor:
     return vol[:, None, None, None, None] * k
 
 
-def _oriented_blocks(element_k: torch.Tensor, elements: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+def oriented_blocks(element_k: torch.Tensor, elements: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
     """The element tensors of each local pair (a < b) ``[N, P, d, d]`` as their edge stores them:
     from the lower to the higher global node (K_ba = K_ab^T where b's node is the lower)."""
     block = element_k[:, pairs[:, 0], pairs[:, 1]]  # K_ab, a < b locally
@@ -61,23 +61,11 @@ def assemble_edges(element_k: torch.Tensor, elements: torch.Tensor, num_nodes: i
         edges: ``[Ed, 2]`` (i < j); edge_k: ``[Ed, d, d]`` mapping u_j to the force on i.
     """
     edges, pairs, element_edges = unique_edges(elements, num_nodes)
-    block = _oriented_blocks(element_k, elements, pairs)
+    block = oriented_blocks(element_k, elements, pairs)
     flat_edges = element_edges.reshape(-1)
     slots, num_slots, _ = incidence_slots(flat_edges, edges.shape[0])
     edge_k = padded_sum(block.reshape(-1, *block.shape[2:]), flat_edges, slots, num_slots, edges.shape[0])
     return edges, edge_k
-
-
-def edge_blocks(element_k: torch.Tensor, elements: torch.Tensor, edges: torch.Tensor, num_nodes: int):
-    """Where the element tensors ``[N, n, n, d, d]`` of ``elements [N, n]`` sit among ``edges``
-    ``[Ed, 2]`` (sorted, i < j: :func:`assemble_edges`' edges, which must hold every pair of
-    these elements): their edge ids ``[N, P]`` and oriented blocks ``[N, P, d, d]``."""
-    n = elements.shape[1]
-    pairs = torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)], device=elements.device)
-    first, second = elements[:, pairs[:, 0]], elements[:, pairs[:, 1]]
-    keys = torch.minimum(first, second) * num_nodes + torch.maximum(first, second)
-    edge_keys = edges[:, 0] * num_nodes + edges[:, 1]
-    return torch.searchsorted(edge_keys, keys), _oriented_blocks(element_k, elements, pairs)
 
 
 def hooke_edge_partial_forces(u: torch.Tensor, edges: torch.Tensor, edge_k: torch.Tensor) -> torch.Tensor:
