@@ -101,19 +101,33 @@ def _segments_cross(p: torch.Tensor, q: torch.Tensor, blade: Blade) -> torch.Ten
     return hit.any(dim=1)
 
 
+def _near_blade(elements: torch.Tensor, x: torch.Tensor, blade: Blade) -> torch.Tensor:
+    """Ids of the elements whose centroid could end a segment that crosses ``blade``: within the
+    blade's box grown by twice the largest element radius (a centroid's distance to its nodes),
+    since two elements that share a face have centroids at most two radii apart."""
+    nodes = x[elements]  # [N, n, 3]
+    centroids = nodes.mean(1)
+    radius = float((nodes - centroids[:, None]).norm(dim=-1).max()) if elements.shape[0] else 0.0
+    low, high = blade.vertices.min(0).values - 2 * radius, blade.vertices.max(0).values + 2 * radius
+    return torch.nonzero(((centroids >= low) & (centroids <= high)).all(1)).flatten()
+
+
 def cut_faces(elements: torch.Tensor, x: torch.Tensor, blade: Blade):
     """The interior faces ``blade`` crosses at positions ``x [V, 3]``: ``(first, second, faces)``
-    as :func:`interior_faces` gives them, those crossed only."""
-    first, second, faces = interior_faces(elements)
-    centroids = x[elements].mean(1)
+    as :func:`interior_faces` gives them, those crossed only. Only the elements near the blade
+    are looked at (:func:`_near_blade`): the work follows the blade's size, not the mesh's."""
     blade = blade.to(x)
+    near = _near_blade(elements, x, blade)
+    first, second, faces = interior_faces(elements[near])
+    first, second = near[first], near[second]
+    centroids = x[elements[near]].mean(1)
     low, high = blade.vertices.min(0).values, blade.vertices.max(0).values
-    p, q = centroids[first], centroids[second]
+    p, q = centroids[torch.searchsorted(near, first)], centroids[torch.searchsorted(near, second)]
     # only segments whose box meets the blade's box can cross it
-    near = ((torch.minimum(p, q) <= high) & (torch.maximum(p, q) >= low)).all(1)
-    crossed = torch.zeros_like(near)
-    if bool(near.any()):
-        crossed[near] = _segments_cross(p[near], q[near], blade)
+    close = ((torch.minimum(p, q) <= high) & (torch.maximum(p, q) >= low)).all(1)
+    crossed = torch.zeros_like(close)
+    if bool(close.any()):
+        crossed[close] = _segments_cross(p[close], q[close], blade)
     return first[crossed], second[crossed], faces[crossed]
 
 
@@ -125,56 +139,68 @@ def split_nodes(elements: torch.Tensor, num_nodes: int, cut_first: torch.Tensor,
     node) stay on one copy of it: groups of incidences (element, node) joined through those
     faces, found by propagating the smallest incidence id until nothing changes. The group
     holding the node's first incidence keeps its id; every other group gets a new node, numbered
-    from ``num_nodes`` on in the order of the groups' smallest incidences. Nodes on no cut face
-    never split.
+    from ``num_nodes`` on in the order of (node, the group's smallest incidence). Nodes on no cut
+    face never split, so only the elements holding a cut face's node (their stars) are looked at:
+    the work follows the cut's size, not the mesh's. Pairs that do not share a face are ignored.
 
     Returns:
         elements ``[N, n]`` (new ids where split) and parents ``[V_new]`` (the original node each
         new node copies).
     """
-    n, count = elements.shape[1], elements.shape[0]
+    n = elements.shape[1]
     device = elements.device
-    first, second, faces = interior_faces(elements)
-    cut = torch.zeros(first.shape[0], dtype=torch.bool, device=device)
-    if cut_first.numel():
-        # the cut faces among the interior ones, by their element pair (either order)
-        key = torch.minimum(first, second) * count + torch.maximum(first, second)
-        cut_key = torch.minimum(cut_first, cut_second) * count + torch.maximum(cut_first, cut_second)
-        cut = torch.isin(key, cut_key)
+    parents = torch.arange(num_nodes, device=device)
+    if cut_first.numel() == 0:
+        return elements.clone(), parents
+    # the cut faces' nodes: those the two elements of a pair share (n - 1 of them: a face)
+    a, b = elements[cut_first], elements[cut_second]
+    shared = (a[:, :, None] == b[:, None, :]).any(-1)  # [C, n]
+    shared &= (shared.sum(1) == n - 1)[:, None]
+    on_cut = torch.zeros(num_nodes, dtype=torch.bool, device=device)
+    on_cut[a[shared]] = True
+    star = torch.nonzero(on_cut[elements].any(1)).flatten()  # sorted: local order = global order
+    local = elements[star]
+    first, second, faces = interior_faces(local)
+    k = star.shape[0]
+    key = torch.minimum(first, second) * k + torch.maximum(first, second)
+    pair_first, pair_second = torch.searchsorted(star, cut_first), torch.searchsorted(star, cut_second)
+    cut_key = torch.minimum(pair_first, pair_second) * k + torch.maximum(pair_first, pair_second)
+    cut = torch.isin(key, cut_key)
     keep_first, keep_second, keep_faces = first[~cut], second[~cut], faces[~cut]
+
     # each joined face links the incidence of each of its nodes in the two elements
     def incidence(elements_of, nodes):  # [F, n - 1] incidence ids of `nodes` in elements `elements_of`
-        rows = elements[elements_of]  # [F, n]
+        rows = local[elements_of]  # [F, n]
         slot = (rows[:, None, :] == nodes[:, :, None]).int().argmax(-1)  # [F, n - 1]
         return elements_of[:, None] * n + slot
 
-    a = incidence(keep_first, keep_faces).reshape(-1)
-    b = incidence(keep_second, keep_faces).reshape(-1)
-    labels = torch.arange(count * n, device=device)
+    ia = incidence(keep_first, keep_faces).reshape(-1)
+    ib = incidence(keep_second, keep_faces).reshape(-1)
+    labels = torch.arange(k * n, device=device)  # local incidence ids, in the global order
     while True:  # smallest label over each joined pair, until stable (a group spans one node's star)
-        low = torch.minimum(labels[a], labels[b])
+        low = torch.minimum(labels[ia], labels[ib])
         updated = labels.clone()
-        updated.scatter_reduce_(0, a, low, reduce="amin")
-        updated.scatter_reduce_(0, b, low, reduce="amin")
+        updated.scatter_reduce_(0, ia, low, reduce="amin")
+        updated.scatter_reduce_(0, ib, low, reduce="amin")
         updated = updated[updated]  # pointer jumping: labels point at their group's smallest
         if torch.equal(updated, labels):
             break
         labels = updated
-    flat = elements.reshape(-1)
-    # a group per (node, label); the node's first group (smallest label) keeps the node
-    groups, group_of = torch.unique(flat * (count * n) + labels, return_inverse=True)
-    group_node = groups // (count * n)
+    flat = local.reshape(-1)
+    # a group per (cut node, label); the node's first group (smallest label) keeps the node
+    mine = on_cut[flat]
+    groups, group_of = torch.unique(flat[mine] * (k * n) + labels[mine], return_inverse=True)
+    group_node = groups // (k * n)
     first_of_node = torch.ones_like(group_node, dtype=torch.bool)
     first_of_node[1:] = group_node[1:] != group_node[:-1]
-    # only the cut faces' nodes split: elsewhere elements that meet at a node or an edge alone
-    # (no face between them) stay as they are
-    on_cut = torch.zeros(num_nodes, dtype=torch.bool, device=device)
-    on_cut[faces[cut].reshape(-1)] = True
-    splits = ~first_of_node & on_cut[group_node]
+    splits = ~first_of_node
     new_ids = torch.cumsum(splits.long(), 0) - 1 + num_nodes
     group_id = torch.where(splits, new_ids, group_node)
-    parents = torch.cat([torch.arange(num_nodes, device=device), group_node[splits]])
-    return group_id[group_of].reshape(count, n), parents
+    flat = flat.clone()
+    flat[mine] = group_id[group_of]
+    out = elements.clone()
+    out[star] = flat.reshape(k, n)
+    return out, torch.cat([parents, group_node[splits]])
 
 
 @dataclass
