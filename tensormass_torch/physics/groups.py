@@ -80,8 +80,8 @@ class ElementGroup(nn.Module):
             self.register_buffer("rest_normals", normal / torch.linalg.vector_norm(normal, dim=1, keepdim=True))
         if form == "stress":
             self.register_buffer("shape_vectors", m)
-            self.register_buffer("young", young.contiguous())
-            self.register_buffer("poisson", poisson.contiguous())
+            self.register_buffer("young", young)
+            self.register_buffer("poisson", poisson)
             self.register_buffer("projector", proj)
             self.plan = GatherPlan.build(elements, self.num_nodes)
             return
