@@ -101,15 +101,17 @@ def _segments_cross(p: torch.Tensor, q: torch.Tensor, blade: Blade) -> torch.Ten
     return hit.any(dim=1)
 
 
-def _near_blade(elements: torch.Tensor, x: torch.Tensor, blade: Blade) -> torch.Tensor:
-    """Ids of the elements whose centroid could end a segment that crosses ``blade``: within the
-    blade's box grown by twice the largest element radius (a centroid's distance to its nodes),
-    since two elements that share a face have centroids at most two radii apart."""
+def _near_blade(elements: torch.Tensor, x: torch.Tensor, blade: Blade):
+    """The elements whose centroid could end a segment that crosses ``blade``: within the blade's
+    box grown by twice the largest element radius (a centroid's distance to its nodes), since two
+    elements that share a face have centroids at most two radii apart. Returns their ids ``[K]``
+    (sorted) and centroids ``[K, 3]``."""
     nodes = x[elements]  # [N, n, 3]
     centroids = nodes.mean(1)
     radius = float((nodes - centroids[:, None]).norm(dim=-1).max()) if elements.shape[0] else 0.0
     low, high = blade.vertices.min(0).values - 2 * radius, blade.vertices.max(0).values + 2 * radius
-    return torch.nonzero(((centroids >= low) & (centroids <= high)).all(1)).flatten()
+    near = torch.nonzero(((centroids >= low) & (centroids <= high)).all(1)).flatten()
+    return near, centroids[near]
 
 
 def cut_faces(elements: torch.Tensor, x: torch.Tensor, blade: Blade):
@@ -117,12 +119,11 @@ def cut_faces(elements: torch.Tensor, x: torch.Tensor, blade: Blade):
     as :func:`interior_faces` gives them, those crossed only. Only the elements near the blade
     are looked at (:func:`_near_blade`): the work follows the blade's size, not the mesh's."""
     blade = blade.to(x)
-    near = _near_blade(elements, x, blade)
-    first, second, faces = interior_faces(elements[near])
-    first, second = near[first], near[second]
-    centroids = x[elements[near]].mean(1)
+    near, centroids = _near_blade(elements, x, blade)
+    local_first, local_second, faces = interior_faces(elements[near])
+    first, second = near[local_first], near[local_second]
     low, high = blade.vertices.min(0).values, blade.vertices.max(0).values
-    p, q = centroids[torch.searchsorted(near, first)], centroids[torch.searchsorted(near, second)]
+    p, q = centroids[local_first], centroids[local_second]
     # only segments whose box meets the blade's box can cross it
     close = ((torch.minimum(p, q) <= high) & (torch.maximum(p, q) >= low)).all(1)
     crossed = torch.zeros_like(close)
