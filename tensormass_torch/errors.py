@@ -29,6 +29,12 @@ class MaterialError(TensorMassError, ValueError):
     """A material parameter is out of range or a model name is unknown."""
 
 
+class CapacityError(TensorMassError, RuntimeError):
+    """A topology change in place does not fit the room reserved for it (spare node rows, a
+    node's slots in a gather plan): nothing was changed. A ``Simulator`` answers by building
+    itself again with more room."""
+
+
 class SceneError(TensorMassError, ValueError):
     """A scene (bodies, constraints, options) is inconsistent: mixed devices, every node fixed, ..."""
 

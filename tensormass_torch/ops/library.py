@@ -355,6 +355,26 @@ def plan_indices(plan):
     return value
 
 
+@torch.no_grad()
+def refresh_plan_indices(plan):
+    """:func:`plan_indices` after the plan's tensors changed in place or grew (a topology change):
+    each native copy of the same shape is overwritten in place (captured CUDA graphs read it), one
+    that grew is made again; returns them."""
+    cache = getattr(plan, "_native_indices", None)
+    if cache is None:
+        return plan_indices(plan)
+    tensors = (plan.index, plan.force_index, plan.incidences)
+    value = []
+    for tensor, native in zip(tensors, cache[2]):
+        if native is not tensor and native.shape == tensor.shape:
+            native.copy_(tensor)
+        elif native is not tensor:
+            native = tensor.to(native.dtype).contiguous()
+        value.append(native)
+    plan._native_indices = (tensors, tuple(t._version for t in tensors), tuple(value))
+    return tuple(value)
+
+
 def supports(group, u: torch.Tensor) -> bool:
     """Whether the ops can evaluate ``group`` at ``u`` (dtype and device of the group's data)."""
     if u.dtype not in (torch.float32, torch.float64) or u.dim() != 2:

@@ -40,7 +40,7 @@ from .reference import corotational, stress_form
 from .stress import stress_args
 from .variants import DEFAULT, KernelVariants
 
-__all__ = ["edges_changed", "has_cached_graph",
+__all__ = ["edges_changed", "has_cached_graph", "topology_changed",
            "hooke_node_graph", "hooke_rows_graph", "node_graph_rows", "set_objects", "tangent_graph",
            "tangent_serves", "tangent_node_k", "graph_of_edges", "node_graph_of", "step_rhs_serves", "step_rhs",
            "planes_serve"]
@@ -388,6 +388,43 @@ def edges_changed(group, edge_ids: torch.Tensor) -> None:
     if rows is not None:  # a graph by rows of its own (else it is node_k itself, written above)
         write(edge_ids, index, force_index, edge_k, by_rows[2][1], _row_of(group, rows))
     group.__dict__["_native_by_rows_hooke"] = (by_rows[0], tuple(t._version for t in by_rows[0]), *by_rows[2:])
+
+
+@torch.no_grad()
+def topology_changed(group) -> None:
+    """A hooke tensor-form group's edges, slots and blocks changed or grew in place (a cut: its
+    plan's ``num_slots`` and node count the same): the native copies of its plan
+    (``library.refresh_plan_indices``) and the node graphs cached on the group (by node and by
+    rows, the same rows) written again in place, every edge (an emptied edge writes its zero
+    block), since captured CUDA graphs read their storage; the caches kept current. A graph not
+    built yet is built later from the new data."""
+    index, force_index, incidences = library.refresh_plan_indices(group.plan)
+    cache = group.__dict__.get("_native_node_graph")
+    if cache is None:
+        return
+    neighbor, node_k = cache[2]
+    edge_k = group.edge_k
+    first, second = index[:, 0].long(), index[:, 1].long()
+    slot_first, slot_second = force_index[:, 0].long(), force_index[:, 1].long()
+    neighbor[slot_first, first] = index[:, 1]
+    neighbor[slot_second, second] = index[:, 0]
+    node_k[slot_first, first] = edge_k
+    node_k[slot_second, second] = edge_k.transpose(1, 2)
+    tensors = (edge_k, index, force_index)
+    group.__dict__["_native_node_graph"] = (tensors, tuple(t._version for t in tensors), cache[2])
+    rows_cache = group.__dict__.get("_native_rows_hooke")
+    if rows_cache is not None and rows_cache[0][0] is incidences:
+        group.__dict__["_native_rows_hooke"] = ((incidences,), (incidences._version,), *rows_cache[2:])
+    by_rows = group.__dict__.get("_native_by_rows_hooke")
+    if by_rows is None or by_rows[0][1] is not node_k:
+        return
+    rows = by_rows[3]
+    if rows is not None:  # arrays of their own, in the rows' order
+        index = rows.long()
+        for source, target in zip((neighbor, node_k, incidences), by_rows[2]):
+            torch.index_select(source, 1 if source.dim() >= 2 else 0, index, out=target)
+    tensors = (neighbor, node_k, incidences)
+    group.__dict__["_native_by_rows_hooke"] = (tensors, tuple(t._version for t in tensors), *by_rows[2:])
 
 
 def _row_of(group, rows: torch.Tensor) -> torch.Tensor:

@@ -290,6 +290,22 @@ def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
     return value
 
 
+def chunk_slots_grew(group) -> bool:
+    """After the node graph of ``group`` gained slots in place (a cut): whether some chunk of the
+    plan :func:`chunk_slots` cached now holds more slots than the value cached, a launch
+    parameter that captured CUDA graphs hold (they must then be captured again). The cache keeps
+    the larger of the two. A host synchronisation; False where nothing was cached."""
+    cache = group.__dict__.get("_solve_chunk_slots")
+    if cache is None:
+        return False
+    plan, ((incidences,), _, _), before = cache
+    group.__dict__.pop("_solve_chunk_slots")
+    now = chunk_slots(group, plan, incidences)
+    if now <= before:
+        group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), before)
+    return now > before
+
+
 @dataclasses.dataclass
 class StepEnd:
     """The end of an implicit Euler step for the solve that computes its ``dv`` to do in its own

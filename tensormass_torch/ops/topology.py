@@ -30,7 +30,8 @@ from .library import OpDef
 from .reference import tensor_form
 from .reference.stress_form import lame
 
-__all__ = ["incidence_table", "refresh_nodes", "refresh_hooke_edges"]
+__all__ = ["incidence_table", "list_counts", "remove_from_lists", "append_slots", "refresh_nodes",
+           "refresh_hooke_edges"]
 
 
 def incidence_table(targets: torch.Tensor, items: torch.Tensor, num_targets: int) -> torch.Tensor:
@@ -41,6 +42,46 @@ def incidence_table(targets: torch.Tensor, items: torch.Tensor, num_targets: int
     table = torch.full((num_slots, num_targets), -1, dtype=items.dtype, device=items.device)
     table[slots, targets] = items
     return table
+
+
+def list_counts(table: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """How many ids the lists of ``targets [K]`` hold in ``table [S, T]`` (-1 past the last):
+    ``[K]`` int64."""
+    return (table[:, targets] >= 0).sum(0)
+
+
+@torch.no_grad()
+def remove_from_lists(table: torch.Tensor, targets: torch.Tensor, items: torch.Tensor):
+    """Take ``items[k]`` out of the list of ``targets[k]`` (``[R]`` each; every pair listed, each
+    once) in ``table [S, T]`` in place, the lists kept in order and packed from slot 0 (what a
+    table made without those items holds). Returns the lists touched: their targets ``[K]``
+    (sorted) and columns after ``[S, K]``."""
+    num_slots = table.shape[0]
+    touched, column = torch.unique(targets, return_inverse=True)
+    listed = table[:, touched]  # [S, K]
+    slot = (listed[:, column] == items.to(table.dtype)[None, :]).int().argmax(0)  # where each item sits
+    gone = torch.zeros_like(listed, dtype=torch.bool)
+    gone[slot, column] = True
+    keep = (listed >= 0) & ~gone
+    position = torch.where(keep, torch.cumsum(keep, 0) - 1, num_slots)  # the rest to a spill row
+    packed = torch.full((num_slots + 1, touched.numel()), -1, dtype=table.dtype, device=table.device)
+    packed.scatter_(0, position, listed)
+    packed = packed[:num_slots]
+    table[:, touched] = packed
+    return touched, packed
+
+
+def append_slots(counts: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """The slots of items appended to the lists of ``targets [M]`` that hold ``counts`` items
+    (``[M]``, each target's count, given per item) in the order given: ``counts + the item's
+    rank among the items of its target`` ``[M]`` int64. Nothing is written (the caller checks the
+    capacity first)."""
+    order = torch.argsort(targets, stable=True)
+    _, inverse, per_target = torch.unique(targets, return_inverse=True, return_counts=True)
+    starts = torch.cumsum(per_target, 0) - per_target
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(targets.numel(), device=targets.device) - starts[inverse[order]]
+    return counts.long() + rank
 
 
 # ---------------------------------------------------------------------------------------------

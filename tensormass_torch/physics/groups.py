@@ -19,10 +19,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..errors import MaterialError
+from ..errors import CapacityError, MaterialError
 from ..mesh import geometry
 from ..mesh.topology import GatherPlan, unique_edges
-from ..ops import node_graph, topology
+from ..ops import library, node_graph, topology
 from ..ops.reference import tensor_form
 from .materials import lame
 
@@ -154,6 +154,158 @@ class ElementGroup(nn.Module):
         else:
             for tensor in (self.tensor_b, self.tensor_c, self.tensor_d):
                 tensor.index_fill_(0, rows, 0.0)
+
+    # ---------------------------------------------------------------- cuts (elements re-pointed)
+    def reserve_slots(self, extra: int) -> None:
+        """Room for ``extra`` (>= 1) more items on each node of the gather plan (its
+        ``num_slots``; the gathers read a node's first ``incidences`` slots only): what cuts in
+        place need where a node gains items, the hooke tensor form's edges (a node split next to
+        it adds an edge). The last slot is kept empty: edges a cut leaves with no element write
+        their zero there (the sink slot of node 0). Before any graph of the group is built (the
+        node graphs take their slot count from it)."""
+        if self.form == "tensor" and self.model == "hooke" and extra > 0:
+            self.plan = GatherPlan(self.plan.index, self.plan.force_index, self.plan.num_slots + int(extra),
+                                   self.plan.num_nodes, self.plan.incidences)
+
+    def _node_items(self) -> torch.Tensor:
+        """The gather plan's lists ``[N_n, V]``: slot s of node i holds the item ``row * w + a``
+        (w: the plan's items' width, n or 2) whose ``force_index`` is s, -1 past the last; made
+        at the first cut."""
+        if "node_items" not in self._buffers:
+            flat = self.plan.index.reshape(-1).long()
+            items = torch.arange(flat.numel(), device=flat.device, dtype=self.elements.dtype)
+            table = torch.full((self.plan.num_slots, self.num_nodes), -1, dtype=items.dtype, device=flat.device)
+            table[self.plan.force_index.reshape(-1).long(), flat] = items
+            self.register_buffer("node_items", table)
+        return self.node_items
+
+    def _is_edge_form(self) -> bool:
+        return self.form == "tensor" and self.model == "hooke"
+
+    @torch.no_grad()
+    def cut_plan(self, rows: torch.Tensor, nodes: torch.Tensor, removed: torch.Tensor) -> dict:
+        """What re-pointing the elements at ``rows`` (``[M]``, ascending, alive) to ``nodes [M, n]``
+        takes, checked against the room there is before anything changes (:meth:`apply_cut` does
+        it; ``removed [N_model]``: the model's removed flags). Where a node id changes, the new
+        id must be a node no element was ever on (a cut's new node). The hooke tensor form: the
+        edges that gain a new node become new edge rows and the old edges left with no element
+        leave the plan; every node's edges must fit ``num_slots - 1``
+        (:meth:`reserve_slots`; one host read).
+
+        Raises:
+            CapacityError: a node would need more slots than the plan has.
+        """
+        old = self.elements[rows]
+        plan = {"rows": rows, "old": old, "nodes": nodes.to(self.elements.dtype), "changed": old != nodes}
+        if not self._is_edge_form():
+            return plan
+        pairs = self._pairs(rows.device)
+        changed = plan["changed"]
+        moved = changed[:, pairs[:, 0]] | changed[:, pairs[:, 1]]  # [M, P]: the pair's edge changes
+        a, b = nodes[:, pairs[:, 0]][moved].long(), nodes[:, pairs[:, 1]][moved].long()
+        keys = torch.minimum(a, b) * self.num_nodes + torch.maximum(a, b)
+        unique_keys, edge_of = torch.unique(keys, return_inverse=True)
+        edges = torch.stack([unique_keys // self.num_nodes, unique_keys % self.num_nodes], 1)  # [E', 2]
+        # the old edges the moved pairs leave, and those of them no alive element is left on
+        left, moving = torch.unique(self.element_edges[rows][moved].long(), return_counts=True)
+        listed = self.edge_slots[:, left].long()
+        alive = ((listed >= 0) & ~removed[listed.clamp(min=0)]).sum(0)
+        dead = left[alive == moving]
+        change = torch.zeros_like(self.plan.incidences)
+        change.index_add_(0, edges.reshape(-1), torch.ones_like(edges.reshape(-1), dtype=change.dtype))
+        dead_ends = self.edges[dead].reshape(-1).long()
+        change.index_add_(0, dead_ends, torch.full_like(dead_ends, -1, dtype=change.dtype))
+        need = int((self.plan.incidences + change).max()) if self.num_nodes else 0
+        if need > self.plan.num_slots - 1:
+            raise CapacityError(f"a node would have {need} edges; the plan has room for {self.plan.num_slots - 1}")
+        plan.update(moved=moved, edges=edges, edge_of=edge_of, dead=dead)
+        return plan
+
+    def _pairs(self, device) -> torch.Tensor:
+        n = self.nodes_per_element
+        return torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)], device=device)
+
+    def _edit_plan(self, gone_items, gone_nodes, new_items, new_nodes) -> None:
+        """The gather plan's lists edited in place: items ``gone_items [R]`` (``row * w + a``)
+        leave their nodes ``gone_nodes [R]`` (each list packed in order), ``new_items [A]`` join
+        ``new_nodes [A]`` after the items there (in the order given); ``force_index`` and
+        ``incidences`` follow, and the native copies of the plan (``library.refresh_plan_indices``)."""
+        table = self._node_items()
+        force_index, incidences = self.plan.force_index.view(-1), self.plan.incidences
+        if gone_items.numel():
+            touched, lists = topology.remove_from_lists(table, gone_nodes, gone_items)
+            used = lists >= 0
+            slot_of = torch.arange(lists.shape[0], device=lists.device)[:, None].expand_as(lists)
+            force_index[lists[used].long()] = slot_of[used].to(force_index.dtype)
+            incidences[touched] = used.sum(0).to(incidences.dtype)
+        if new_items.numel():
+            slots = topology.append_slots(incidences[new_nodes], new_nodes)
+            table[slots, new_nodes] = new_items.to(table.dtype)
+            force_index[new_items.long()] = slots.to(force_index.dtype)
+            incidences.index_add_(0, new_nodes, torch.ones_like(new_nodes, dtype=incidences.dtype))
+        library.refresh_plan_indices(self.plan)
+
+    @torch.no_grad()
+    def apply_cut(self, plan: dict, ids: torch.Tensor, rest: torch.Tensor, removed: torch.Tensor,
+                  element_row: torch.Tensor) -> None:
+        """Re-point the elements as :meth:`cut_plan` planned (``ids [M]``: their model ids; ``rest``
+        ``[V, d]`` already holding the new nodes' rest positions). Element data (shape vectors,
+        measures, tensors B, C, D) are per element and unchanged: the rest shape is the same. Only
+        sums over nodes or edges change, in place:
+
+            element plans   each moved incidence leaves its node's list (the list packed in order)
+                            and joins the new node's (in element order): the slots of a group
+                            built from the new elements
+            hooke tensor    an edge that gains a new node is a new edge row (edges, edge_k,
+                            edge_slots grow; its slots appended at both ends); an old edge sums
+                            its remaining elements again, and one left with none leaves its
+                            nodes' lists (its row stays, a zero edge of node 0's sink slot); the
+                            node graphs cached on the group are written again in place
+                            (``node_graph.topology_changed``)
+
+        Forces, products and energy are then those of a group built from the new elements (to
+        rounding: edge tensors summed in another order of edges). Needs :meth:`prepare_removals`.
+        The caches of the stress forms' tangent graph are dropped (built again at the next use)."""
+        rows, old, nodes, changed = plan["rows"], plan["old"], plan["nodes"], plan["changed"]
+        self._node_items()  # the plan's lists, made (at the first cut) from the plan before it changes
+        if not self._is_edge_form():
+            n = self.nodes_per_element
+            items = (rows.long()[:, None] * n + torch.arange(n, device=rows.device))[changed]
+            self.elements[rows] = nodes  # the plan's index (the same tensor)
+            self._edit_plan(items, old[changed].long(), items, nodes[changed].long())
+            for name in ("_native_tangent_graph", "_native_rows_tangent", "_native_by_rows_tangent"):
+                self.__dict__.pop(name, None)
+            return
+        moved, edge_of, edges, dead = plan["moved"], plan["edge_of"], plan["edges"], plan["dead"]
+        old_edges = self.element_edges[rows]
+        moved_ids = ids.to(self.edge_slots.dtype)[:, None].expand_as(moved)[moved]
+        topology.remove_from_lists(self.edge_slots, old_edges[moved].long(), moved_ids)
+        # the old edges of the rows summed again without the moved pairs (element_edges still old)
+        topology.refresh_hooke_edges(rest, self.elements, rows, self.element_edges, self.edge_slots, element_row,
+                                     removed, self.measure, self.young, self.poisson, self.edge_k)
+        first_new, sink = self.edges.shape[0], self.plan.num_slots - 1
+        lists = torch.full((self.edge_slots.shape[0], edges.shape[0]), -1, dtype=self.edge_slots.dtype,
+                           device=edges.device)
+        # each new edge's elements in id order (ids ascending, an element once per edge)
+        lists[topology.append_slots(torch.zeros_like(edge_of), edge_of), edge_of] = moved_ids
+        self.edge_slots = torch.cat([self.edge_slots, lists], 1)
+        self.edges = torch.cat([self.edges, edges.to(self.edges.dtype)])
+        self.edge_k = torch.cat([self.edge_k, self.edge_k.new_zeros((edges.shape[0],) + self.edge_k.shape[1:])])
+        new_edges = old_edges.clone()
+        new_edges[moved] = (edge_of + first_new).to(old_edges.dtype)
+        self.element_edges[rows] = new_edges
+        # the plan (the object kept: its caches follow it) over the grown edges
+        self.plan.index = self.edges
+        self.plan.force_index = torch.cat([self.plan.force_index, self.plan.force_index.new_full(edges.shape, sink)])
+        dead_items = (dead[:, None] * 2 + torch.arange(2, device=dead.device)).reshape(-1)
+        new_items = torch.arange(2 * first_new, 2 * (first_new + edges.shape[0]), device=edges.device)
+        self._edit_plan(dead_items, self.edges[dead].reshape(-1).long(), new_items, edges.reshape(-1))
+        self.edges[dead] = 0  # a zero edge (0, 0) in node 0's sink slot: its partial forces, 0, never read
+        self.plan.force_index[dead] = sink
+        self.elements[rows] = nodes
+        topology.refresh_hooke_edges(rest, self.elements, rows, self.element_edges, self.edge_slots, element_row,
+                                     removed, self.measure, self.young, self.poisson, self.edge_k)
+        node_graph.topology_changed(self)
 
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""

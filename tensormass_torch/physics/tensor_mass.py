@@ -189,9 +189,13 @@ class TensorMass(nn.Module):
         return ~self.removed
 
     def isolated_nodes(self) -> torch.Tensor:
-        """``[V]`` bool: nodes whose every element was removed (mass 0, no stiffness)."""
+        """``[V]`` bool: nodes on no element (none ever, or every one removed or re-pointed):
+        mass 0, no stiffness."""
         if "removed" not in self._buffers:
-            return torch.zeros(self.num_nodes, dtype=torch.bool, device=self.rest.device)
+            used = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.rest.device)
+            for group in self.groups:
+                used[group.elements.reshape(-1).long()] = True
+            return ~used
         return self.node_elements == 0
 
     def _prepare_removals(self) -> None:
@@ -234,6 +238,59 @@ class TensorMass(nn.Module):
         # ids are checked and removed mass is counted without reading the device
         self.__dict__["_removed_host"] = torch.zeros(self.num_elements, dtype=torch.bool)
         self.__dict__["_element_mass_host"] = element_mass.to("cpu", torch.float64)
+
+    @torch.no_grad()
+    def repoint_elements(self, ids, nodes: torch.Tensor, new_nodes: torch.Tensor, parents: torch.Tensor) -> None:
+        """Re-point elements to new nodes in place (a cut: ``mesh.cutting`` says which): elements
+        ``ids [M]`` (model ids, one group's, alive) get the node ids ``nodes [M, n]``; where an id
+        changes it is one of ``new_nodes [K]``, rows no element uses yet (spare rows, or nodes
+        whose elements were all removed or re-pointed), each a copy of ``parents [K]`` (its rest
+        position). Per group, :meth:`ElementGroup.cut_plan` and :meth:`ElementGroup.apply_cut`;
+        the lumped masses of the nodes left and joined summed again from their lists (as
+        :meth:`remove_elements` does). Forces, products, energy and masses are then those of a
+        model built from the new elements (to rounding). Nothing is reallocated but the hooke
+        tensor form's edge arrays, which grow by the edges the new nodes bring (the node graphs,
+        a solver's buffers and captured CUDA graphs keep their storage).
+
+        Raises:
+            MeshError: ids not of one group, or not alive (nothing changed).
+            CapacityError: a node would need more slots than its group's plan has (nothing
+                changed; :meth:`reserve_slots` gives room).
+        """
+        ids = checked_element_ids(ids, self.removed_host(), self.num_elements, "the model").to(self.rest.device)
+        if ids.numel() == 0:
+            return
+        self._prepare_removals()
+        index = self.element_row.dtype
+        ids = ids.to(index)
+        groups = torch.unique(self.element_group[ids])
+        if groups.numel() != 1:
+            raise MeshError(f"elements re-pointed together must be of one group, got groups {groups.tolist()}")
+        group = self.groups[int(groups[0])]
+        nodes = torch.as_tensor(nodes, device=self.rest.device)
+        if nodes.shape != (ids.numel(), group.nodes_per_element):
+            raise MeshError(f"nodes must be [{ids.numel()}, {group.nodes_per_element}], got {tuple(nodes.shape)}")
+        rows = self.element_row[ids]
+        plan = group.cut_plan(rows, nodes, self.removed)  # checks the room: raises before anything changes
+        self.rest[new_nodes] = self.rest[parents]
+        old, changed = plan["old"], plan["changed"]
+        moved = ids[:, None].expand_as(changed)[changed].to(self.node_slots.dtype)
+        topology.remove_from_lists(self.node_slots, old[changed].long(), moved)
+        targets = plan["nodes"][changed].long()
+        slots = topology.append_slots(topology.list_counts(self.node_slots, targets), targets)
+        self.node_slots[slots, targets] = moved
+        group.apply_cut(plan, ids, self.rest, self.removed, self.element_row)
+        both = torch.cat([old, plan["nodes"]]).to(index)
+        topology.refresh_nodes(both, torch.arange(both.shape[0], device=both.device, dtype=index), self.node_slots,
+                               self.element_share, self.removed, self.mass, self.node_elements)
+
+    def reserve_slots(self, extra: Optional[int] = None) -> None:
+        """Room for ``extra`` more slots per node in the groups whose nodes gain items when cut (the
+        hooke tensor form's edges: :meth:`ElementGroup.reserve_slots`); None: half the group's
+        slots, at least 8 (a node next to a cut gains an edge per neighbour split). Before the
+        first solve (the node graphs take their slot count from the plans)."""
+        for group in self.groups:
+            group.reserve_slots(max(8, group.plan.num_slots // 2) if extra is None else extra)
 
     # ---------------------------------------------------------------- evaluation
     def _check_positions(self, name: str, x: torch.Tensor):

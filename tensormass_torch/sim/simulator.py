@@ -8,10 +8,11 @@ from typing import Callable, List, Optional, Sequence
 
 import torch
 
-from ..errors import MeshError, SceneError, SolverError
+from ..errors import CapacityError, MeshError, SceneError, SolverError
 from ..mesh import cutting
 from ..mesh.cutting import Blade
 from ..mesh.meshes import Mesh
+from ..ops import solve
 from ..ops.segments import Segments
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
@@ -32,6 +33,22 @@ from .scalpel import Scalpel
 INVERSION_CHECKS = ("off", "warn", "error")
 #: Deepest sub-stepping retry ``Simulator(substeps_on_failure=...)`` accepts (2^10 sub-steps).
 MAX_SUBSTEP_DEPTH = 10
+
+
+def _spare_rows(spare_nodes, count: int) -> List[int]:
+    """``Simulator(spare_nodes=...)`` as one count per body (>= 0), or one SceneError."""
+    values = [spare_nodes] * count if isinstance(spare_nodes, int) and not isinstance(spare_nodes, bool) \
+        else list(spare_nodes) if isinstance(spare_nodes, (list, tuple)) else None
+    if values is None or len(values) != count or any(isinstance(v, bool) or not isinstance(v, int) or v < 0
+                                                      for v in values):
+        raise SceneError(f"spare_nodes must be an integer >= 0 or one per body ({count}), got {spare_nodes!r}")
+    return values
+
+
+#: Spare node rows a cut that finds no room reserves per body: at least this many, at least
+#: ``1 / SPARE_FRACTION`` of the body's nodes, at least twice what the cut needs.
+MIN_SPARE_NODES = 256
+SPARE_FRACTION = 8
 
 
 class InvertedElementsWarning(RuntimeWarning):
@@ -107,13 +124,20 @@ class Simulator:
         substeps_on_failure: when a step fails (``SolverError``), retry it as 2, 4, ..., 2^k
             sub-steps of dt / 2^k, k up to this depth (0: no retry); ``StepReport.substeps`` says
             how many were used. The state is kept if every retry fails.
+        spare_nodes: node rows reserved after each body's nodes (an int for every body, or one
+            per body) for the nodes cuts add: while they last (and the plans' slots do) a cut
+            runs in place, keeping the solver's caches and captured CUDA graphs. 0 (default):
+            the first cut builds the simulator again with room (see :meth:`cut`). Spare rows
+            are part of ``x``, ``v`` (held, no mass); ``positions(i)`` and the other per-body
+            views show a body's nodes only.
     """
 
     def __init__(self, bodies: Sequence[Body], dt: float = 0.01, gravity=(0.0, 0.0, -9.81),
                  rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0, planes: Sequence[Plane] = (),
                  cg_tol: float = 1e-6, cg_max_iter: Optional[int] = None, require_convergence: bool = True,
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
-                 cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0):
+                 cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
+                 spare_nodes=0):
         bodies = list(bodies)
         # what a topology change that rebuilds the simulator (cut) builds it again with
         self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
@@ -122,6 +146,7 @@ class Simulator:
                                newton_iters=newton_iters, check_every=check_every, form=form, device=device,
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
                                substeps_on_failure=substeps_on_failure)
+        spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
         for i, b in enumerate(bodies):
@@ -170,24 +195,30 @@ class Simulator:
                                    cuda_graphs=bool(cuda_graphs))
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
         offset = 0
-        for b in bodies:
+        for b, room in zip(bodies, spare):
             verts = b.mesh.vertices.to(device=self.device, dtype=self.dtype)
             if verts.shape[1] == 2:
                 verts = torch.cat([verts, verts.new_zeros(verts.shape[0], 1)], dim=1)
-            rest_parts.append(verts)
+            no = torch.zeros(room, dtype=torch.bool, device=self.device)
+            # spare rows: copies of the body's first node (no element: no mass, held)
+            rest_parts.append(torch.cat([verts, verts[:1].expand(room, -1)]))
             parts.append((b.mesh.elements.to(self.device) + offset, b.material, b.mesh.kind))
-            fixed.append(b.fixed.to(self.device))
-            prescribed.append(b.prescribed.to(self.device))
+            fixed.append(torch.cat([b.fixed.to(self.device), no]))
+            prescribed.append(torch.cat([b.prescribed.to(self.device), no]))
             vel = torch.zeros_like(verts) if b.velocity is None else \
                 torch.as_tensor(b.velocity, dtype=self.dtype, device=self.device).expand_as(verts).clone()
             vel[b.fixed.to(self.device)] = 0.0
-            velocities.append(vel)
-            offset += verts.shape[0]
+            velocities.append(torch.cat([vel, vel.new_zeros(room, 3)]))
+            offset += verts.shape[0] + room
         rest = torch.cat(rest_parts)
         self.ptr = [0]
         for r in rest_parts:
             self.ptr.append(self.ptr[-1] + r.shape[0])
+        #: each body's node count (its first rows; the spare rows follow, up to the next ``ptr``)
+        self.used_nodes = [b.mesh.num_vertices for b in bodies]
         self.model = TensorMass.packed(rest, parts, form=form)
+        if any(spare):
+            self.model.reserve_slots()
         self.fixed = torch.cat(fixed)
         self.prescribed = torch.cat(prescribed)
         self._has_prescribed = any(b.motion is not None for b in bodies)  # known once: no sync per step
@@ -229,8 +260,9 @@ class Simulator:
         constrained, so that later removals update it in place."""
         mass = self.model.lumped_mass()
         constrained = self.fixed | self.prescribed | (mass == 0)
+        keep_mask = "removed" in self.model._buffers or self.ptr[-1] > sum(self.used_nodes)
         self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * self.gravity, self.segments,
-                                     constrained, self.planes, keep_mask="removed" in self.model._buffers)
+                                     constrained, self.planes, keep_mask=keep_mask)
 
     def _masses_changed(self):
         """After the model lost elements in place: gravity follows the masses and nodes left with
@@ -469,9 +501,14 @@ class Simulator:
         """Cut one body along ``blade`` between steps, where the body is now: the faces the blade
         crosses part and their nodes split (``mesh.cutting``), so that the sides move apart; a
         cut through the whole section leaves pieces that fall on their own. The body's mesh gets
-        the new nodes (copies of their parents: rest position, state, fixed or prescribed), and
-        the simulator is built again around it (removed elements stay removed; positions,
-        velocities, time carried over).
+        the new nodes (copies of their parents: rest position, state, fixed or prescribed).
+
+        In place where there is room (the body's spare rows, ``Simulator(spare_nodes=)``, and
+        its plans' slots): the model re-points the elements (``TensorMass.repoint_elements``) and
+        the solver's caches and captured CUDA graphs stay (but for a stress-form body, whose
+        tangent graph is built again). Otherwise the simulator is built again around the cut
+        body with spare rows for the cuts to come (``MIN_SPARE_NODES``, ``SPARE_FRACTION``;
+        removed elements stay removed; positions, velocities, time carried over).
 
         Args:
             body: a body index, a ``tm.Body`` of this simulator, or a body's name (3-D bodies).
@@ -502,8 +539,16 @@ class Simulator:
             if missing_ok:
                 return 0
             raise
-        parents = result.parents
-        mesh_parents = parents.to(old.mesh.vertices.device)
+        if not self._cut_in_place(i, elements, result):
+            self._rebuild_with_room(i, result)
+        self._slits[i] = result.slit
+        return result.new_nodes
+
+    @staticmethod
+    def _cut_body(old: Body, result) -> Body:
+        """Body ``old`` after the cut ``result``: its mesh with the new nodes (copies of their
+        parents: rest position, fixed or prescribed; the prescribed copies follow their parents)."""
+        mesh_parents = result.parents.to(old.mesh.vertices.device)
         mesh = type(old.mesh)(old.mesh.vertices[mesh_parents], result.elements.to(old.mesh.vertices.device),
                               check=False)
         motion = None
@@ -515,28 +560,75 @@ class Simulator:
             def motion(t, follow=old.motion, pick=pick):
                 goal = torch.as_tensor(follow(t))
                 return goal[pick.to(goal.device)]
+        return Body(mesh, old.material, fixed=old.fixed[mesh_parents], prescribed=old.prescribed[mesh_parents],
+                    motion=motion, name=old.name)
+
+    def _cut_in_place(self, i: int, elements: torch.Tensor, result) -> bool:
+        """The cut ``result`` of body i (its elements before: ``elements``) done in place, in the
+        body's spare rows: the model re-points the elements (``TensorMass.repoint_elements``),
+        the new nodes take their parents' state and constraints, masses and gravity follow.
+        False, having changed nothing, where there is no room (spare rows, a plan's slots)."""
+        used, first = self.used_nodes[i], self.ptr[i]
+        added = result.new_nodes
+        if used + added > self.ptr[i + 1] - first:
+            return False
+        changed = torch.nonzero((result.elements != elements).any(1)).flatten()
+        if changed.numel() == 0:  # faces parted along a slit's front, no node split yet
+            return True
+        new_nodes = torch.arange(first + used, first + used + added, device=self.device)
+        parents = result.parents[used:].to(self.device) + first
+        try:
+            self.model.repoint_elements(changed + self.element_ptr[i], result.elements[changed] + first, new_nodes,
+                                        parents)
+        except CapacityError:
+            return False
+        with torch.no_grad():
+            self.x[new_nodes] = self.x[parents]
+            self.v[new_nodes] = self.v[parents]
+        self.fixed[new_nodes] = self.fixed[parents]
+        self.prescribed[new_nodes] = self.prescribed[parents]
+        self.bodies[i] = self._cut_body(self.bodies[i], result)
+        self.used_nodes[i] = used + added
+        if any(not g._is_edge_form() for g in self.model.groups) or any(
+                solve.chunk_slots_grew(g) for g in self.model.groups):
+            # a stress form's tangent graph is built again (or a captured launch needs more
+            # shared memory): a new integrator view, its CUDA graphs captured again
+            self._make_system()
+        else:
+            torch.mul(self.model.lumped_mass()[:, None], self.gravity, out=self.system.external)
+            free = ~(self.fixed | self.prescribed)[new_nodes]
+            self.system.free[new_nodes] = free.to(self.system.free.dtype)[:, None]
+        if self._inversion is not None:
+            self._inversion = InversionCheck.for_simulator(self)
+        return True
+
+    def _rebuild_with_room(self, i: int, result) -> None:
+        """The simulator built again around body i cut (``result``), with spare rows for the cuts
+        to come (removed elements stay removed; positions, velocities, time carried over)."""
+        parents = result.parents
         bodies = list(self.bodies)
-        bodies[i] = Body(mesh, old.material, fixed=old.fixed[mesh_parents], prescribed=old.prescribed[mesh_parents],
-                         motion=motion, name=old.name)
+        bodies[i] = self._cut_body(bodies[i], result)
         removed = [torch.nonzero(~self.alive_elements(k)).flatten() for k in range(self.num_bodies)]
         states = [(self.positions(k), self.velocities(k)) for k in range(self.num_bodies)]
         states[i] = (states[i][0][parents], states[i][1][parents])
-        slits = list(self._slits)
-        slits[i] = result.slit
+        spare = [self.ptr[k + 1] - self.ptr[k] - self.used_nodes[k] for k in range(self.num_bodies)]
+        spare[i] = max(MIN_SPARE_NODES, bodies[i].mesh.num_vertices // SPARE_FRACTION, 2 * result.new_nodes,
+                       2 * spare[i])
         kept = (self.time, self.steps_done, self.removed_mass.clone(), self.last_report, self.last_inversion,
-                self.scalpels, slits)
-        self.__init__(bodies, **self._init_args)
+                self.scalpels, self._slits)
+        self.__init__(bodies, **self._init_args, spare_nodes=spare)
         for k, ids in enumerate(removed):
             if ids.numel():
                 self.model.remove_elements(ids + self.element_ptr[k])
         self._make_system()
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
-        self.x = torch.cat([x for x, _ in states])
-        self.v = torch.cat([v for _, v in states])
+        with torch.no_grad():
+            for k, (x, v) in enumerate(states):
+                self.x[self._range(k)] = x
+                self.v[self._range(k)] = v
         (self.time, self.steps_done, self.removed_mass, self.last_report, self.last_inversion, self.scalpels,
          self._slits) = kept
-        return result.new_nodes
 
     def mesh(self, i) -> Mesh:
         """Body i's mesh as it is now (its rest shape): the elements that remain after removals,
@@ -575,7 +667,7 @@ class Simulator:
         if not -self.num_bodies <= i < self.num_bodies:
             raise IndexError(f"body index {i} out of range for {self.num_bodies} bodies")
         i = i % self.num_bodies
-        return slice(self.ptr[i], self.ptr[i + 1])
+        return slice(self.ptr[i], self.ptr[i] + self.used_nodes[i])
 
     def positions(self, i: int) -> torch.Tensor:
         """Current positions of body i ``[V_i, 3]`` (a view of the packed state)."""
