@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_topology_changes import BACKENDS, CASE_IDS, CASES, DEVICES, assert_same, material, mesh_of
 
 import tensormass_torch as tm
 from tensormass_torch.errors import CapacityError, SceneError
 from tensormass_torch.mesh import cutting
-
-from test_topology_changes import BACKENDS, CASES, CASE_IDS, DEVICES, assert_same, material, mesh_of
 
 CASES_3D = [(case, name) for case, name in zip(CASES, CASE_IDS) if case[1] == 3]
 
