@@ -276,34 +276,43 @@ def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
     nodes): the shared memory a block of the pipelined solve needs. ``incidences``: the node
     graph's ``[V]`` (that of the group's plan when None: the hooke tensor form). A host
     synchronisation the first time; cached on the group while the plan and its incidences are the
-    same."""
+    same. A group with slots reserved for cuts (``group.reserved_slots``) gets a quarter more, so
+    that the chunks a cut fills (its new nodes in spare rows, the nodes next to it) seldom
+    outgrow what captured launches were given (:func:`chunk_slots_grew`)."""
     if incidences is None:
         _, _, incidences = plan_indices(group.plan)
     cache = group.__dict__.get("_solve_chunk_slots")
     if cache is not None and cache[0] is plan and unchanged(cache[1], (incidences,)):
         return cache[2]
+    value = _chunk_need(plan, incidences)
+    if getattr(group, "reserved_slots", 0):
+        value += value // 4
+    group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), value)
+    return value
+
+
+def _chunk_need(plan, incidences: torch.Tensor) -> int:
+    """The most slots of a chunk of ``plan`` (sum of ``incidences [V]`` over its nodes); a host read."""
     prefix = torch.zeros(incidences.numel() + 1, dtype=torch.int64, device=incidences.device)
     torch.cumsum(incidences.long(), 0, out=prefix[1:])
     starts = plan.chunk_start.to(incidences.device)
-    value = int((prefix[starts[1:]] - prefix[starts[:-1]]).max()) if plan.num_chunks else 0
-    group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), value)
-    return value
+    return int((prefix[starts[1:]] - prefix[starts[:-1]]).max()) if plan.num_chunks else 0
 
 
 def chunk_slots_grew(group) -> bool:
     """After the node graph of ``group`` gained slots in place (a cut): whether some chunk of the
     plan :func:`chunk_slots` cached now holds more slots than the value cached, a launch
-    parameter that captured CUDA graphs hold (they must then be captured again). The cache keeps
-    the larger of the two. A host synchronisation; False where nothing was cached."""
+    parameter that captured CUDA graphs hold (they must then be captured again; the value is then
+    computed again at the next solve). A host synchronisation; False where nothing was cached."""
     cache = group.__dict__.get("_solve_chunk_slots")
     if cache is None:
         return False
     plan, ((incidences,), _, _), before = cache
-    group.__dict__.pop("_solve_chunk_slots")
-    now = chunk_slots(group, plan, incidences)
-    if now <= before:
-        group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), before)
-    return now > before
+    if _chunk_need(plan, incidences) > before:
+        group.__dict__.pop("_solve_chunk_slots")  # computed again at the next solve
+        return True
+    group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), before)
+    return False
 
 
 @dataclasses.dataclass

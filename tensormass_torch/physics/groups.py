@@ -56,6 +56,8 @@ class ElementGroup(nn.Module):
         self.dim = rest.shape[1]
         self.num_nodes = rest.shape[0]
         self.kind = "tet" if self.nodes_per_element == 4 else "tri"
+        #: slots added to the plan for cuts in place (:meth:`reserve_slots`)
+        self.reserved_slots = 0
         self.membrane = geometry.needs_projector(self.nodes_per_element, self.dim)
 
         element_rest = geometry.element_nodes(rest, elements)
@@ -164,6 +166,7 @@ class ElementGroup(nn.Module):
         their zero there (the sink slot of node 0). Before any graph of the group is built (the
         node graphs take their slot count from it)."""
         if self.form == "tensor" and self.model == "hooke" and extra > 0:
+            self.reserved_slots = int(extra)
             self.plan = GatherPlan(self.plan.index, self.plan.force_index, self.plan.num_slots + int(extra),
                                    self.plan.num_nodes, self.plan.incidences)
 
