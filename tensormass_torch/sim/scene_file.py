@@ -47,6 +47,8 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     fixed = { box = [[-1, -1, -1], [0, 1, 1]] }  # or { nodes = [0, 1, 2] }
     prescribed = { box = [[...], [...]], velocity = [0, 0, -0.1], stop = 1.0 }
     velocity = [0, 0, 0]                         # initial velocity
+    spare_nodes = 512                 # rows for the nodes cuts add, cut in place while they last
+                                      # (default: 0, or room for a body a [[cuts]] table names)
 
     [[cuts]]                          # a scalpel (tm.Scalpel): a blade edge through keyframes,
     body = "beam"                     # cutting this body (a name or index; default 0) as it moves
@@ -83,7 +85,7 @@ from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from .builtin import Scene
 from .scalpel import Scalpel
-from .simulator import Body, Simulator
+from .simulator import MIN_SPARE_NODES, SPARE_FRACTION, Body, Simulator
 
 __all__ = ["FileScene", "load_scene", "MESH_GENERATORS"]
 
@@ -461,6 +463,14 @@ def _body(t: _Table, index: int, base_dir: Path, device, dtype, model_override) 
 # ---------------------------------------------------------------------------------------------
 
 
+def _spare_nodes(t: _Table):
+    """A ``[[bodies]]`` table's ``spare_nodes`` (an integer >= 0), or None where it has none."""
+    value = t.get("spare_nodes", "int", None)
+    if value is not None and value < 0:
+        raise t.error("spare_nodes", f"must be >= 0, got {value}")
+    return value
+
+
 def _scalpel(t: _Table) -> Scalpel:
     """A ``[[cuts]]`` table: body, times [K], edges [K, 2, 3]."""
     t.seen.add("body")
@@ -580,11 +590,17 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
     top.done()  # every top-level key is known before the (possibly slow) meshes are built
     if not body_tables:
         raise fail("bodies", "a scene needs at least one [[bodies]] table")
+    spare = [_spare_nodes(b) for b in body_tables]
     bodies = [_body(b, i, path.parent, torch_device, torch_dtype, model) for i, b in enumerate(body_tables)]
+    # a body a scalpel cuts gets room for cuts in place from the start (unless the file says)
+    targets = {scalpel.body for scalpel in scalpels}
+    spare = [(max(MIN_SPARE_NODES, b.mesh.num_vertices // SPARE_FRACTION)
+              if {i, i - len(bodies), b.name} & targets else 0) if room is None else room
+             for i, (b, room) in enumerate(zip(bodies, spare))]
 
     try:
         simulator = Simulator(bodies, dt=dt, gravity=gravity, planes=planes, device=torch_device,
-                              dtype=torch_dtype, **options)
+                              dtype=torch_dtype, spare_nodes=spare, **options)
     except (SceneError, MaterialError, MeshError) as exc:
         raise fail("", str(exc)) from exc
     for table, scalpel in zip(cut_tables, scalpels):

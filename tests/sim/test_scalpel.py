@@ -72,9 +72,25 @@ def test_a_scene_file_scalpel_cuts_its_body():
     scene = load_scene("scenes/cut.toml", dtype="float64")
     sim = scene.simulator
     assert len(sim.scalpels) == 1 and sim.scalpels[0].body == "ball"
+    assert sim.ptr[1] - sim.used_nodes[0] == tm.sim.simulator.MIN_SPARE_NODES  # room for cuts from the start
+    model = sim.model
     sim.step(scene.steps)
     mesh = sim.mesh("ball")
     assert pieces(mesh.elements, mesh.num_vertices) == 2
+    assert sim.model is model  # every cut in place
+
+
+def test_a_scene_file_sets_a_body_s_spare_rows_and_refuses_bad_ones(tmp_path):
+    body = ('[[bodies]]\nname = "b"\nmesh = { generator = "beam", cells = [4, 1, 1] }\n'
+            'material = { model = "hooke", young = 1e4, poisson = 0.3, density = 1.0 }\nfixed = { nodes = [0] }\n')
+    path = tmp_path / "room.toml"
+    path.write_text(body + "spare_nodes = 7\n")
+    sim = load_scene(path).simulator
+    assert sim.ptr[1] - sim.used_nodes[0] == 7
+    for value, message in (("-1", "must be >= 0"), ("2.5", "must be an integer"), ('"x"', "must be an integer")):
+        path.write_text(body + f"spare_nodes = {value}\n")
+        with pytest.raises(tm.SceneError, match=r"bodies\[0\]\.spare_nodes: " + message):
+            load_scene(path)
 
 
 @pytest.mark.parametrize("cut,message", [
