@@ -22,7 +22,7 @@ from torch import nn
 from ..errors import CapacityError, MaterialError
 from ..mesh import geometry
 from ..mesh.topology import GatherPlan, unique_edges
-from ..ops import library, node_graph, topology
+from ..ops import library, node_graph, solve, topology
 from ..ops.reference import tensor_form
 from .materials import lame
 
@@ -182,7 +182,7 @@ class ElementGroup(nn.Module):
             self.register_buffer("node_items", table)
         return self.node_items
 
-    def _is_edge_form(self) -> bool:
+    def _edge_plan(self) -> bool:
         return self.form == "tensor" and self.model == "hooke"
 
     @torch.no_grad()
@@ -200,7 +200,7 @@ class ElementGroup(nn.Module):
         """
         old = self.elements[rows]
         plan = {"rows": rows, "old": old, "nodes": nodes.to(self.elements.dtype), "changed": old != nodes}
-        if not self._is_edge_form():
+        if not self._edge_plan():
             return plan
         pairs = self._pairs(rows.device)
         changed = plan["changed"]
@@ -250,7 +250,7 @@ class ElementGroup(nn.Module):
 
     @torch.no_grad()
     def apply_cut(self, plan: dict, ids: torch.Tensor, rest: torch.Tensor, removed: torch.Tensor,
-                  element_row: torch.Tensor) -> None:
+                  element_row: torch.Tensor) -> bool:
         """Re-point the elements as :meth:`cut_plan` planned (``ids [M]``: their model ids; ``rest``
         ``[V, d]`` already holding the new nodes' rest positions). Element data (shape vectors,
         measures, tensors B, C, D) are per element and unchanged: the rest shape is the same. Only
@@ -268,17 +268,21 @@ class ElementGroup(nn.Module):
 
         Forces, products and energy are then those of a group built from the new elements (to
         rounding: edge tensors summed in another order of edges). Needs :meth:`prepare_removals`.
-        The caches of the stress forms' tangent graph are dropped (built again at the next use)."""
+
+        Returns:
+            whether solves captured before must be captured again: the stress forms' tangent
+            graph dropped (built again at its next use), or a chunk of the pipelined solve grown
+            past the slots its launches were given (``solve.chunk_slots_grew``)."""
         rows, old, nodes, changed = plan["rows"], plan["old"], plan["nodes"], plan["changed"]
         self._node_items()  # the plan's lists, made (at the first cut) from the plan before it changes
-        if not self._is_edge_form():
+        if not self._edge_plan():
             n = self.nodes_per_element
             items = (rows.long()[:, None] * n + torch.arange(n, device=rows.device))[changed]
             self.elements[rows] = nodes  # the plan's index (the same tensor)
             self._edit_plan(items, old[changed].long(), items, nodes[changed].long())
-            for name in ("_native_tangent_graph", "_native_rows_tangent", "_native_by_rows_tangent"):
-                self.__dict__.pop(name, None)
-            return
+            dropped = [self.__dict__.pop(name, None) for name in ("_native_tangent_graph", "_native_rows_tangent",
+                                                                  "_native_by_rows_tangent")]
+            return dropped[0] is not None
         moved, edge_of, edges, dead = plan["moved"], plan["edge_of"], plan["edges"], plan["dead"]
         old_edges = self.element_edges[rows]
         moved_ids = ids.to(self.edge_slots.dtype)[:, None].expand_as(moved)[moved]
@@ -309,6 +313,7 @@ class ElementGroup(nn.Module):
         topology.refresh_hooke_edges(rest, self.elements, rows, self.element_edges, self.edge_slots, element_row,
                                      removed, self.measure, self.young, self.poisson, self.edge_k)
         node_graph.topology_changed(self)
+        return solve.chunk_slots_grew(self)
 
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""

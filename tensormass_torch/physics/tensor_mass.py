@@ -240,7 +240,7 @@ class TensorMass(nn.Module):
         self.__dict__["_element_mass_host"] = element_mass.to("cpu", torch.float64)
 
     @torch.no_grad()
-    def repoint_elements(self, ids, nodes: torch.Tensor, new_nodes: torch.Tensor, parents: torch.Tensor) -> None:
+    def repoint_elements(self, ids, nodes: torch.Tensor, new_nodes: torch.Tensor, parents: torch.Tensor) -> bool:
         """Re-point elements to new nodes in place (a cut: ``mesh.cutting`` says which): elements
         ``ids [M]`` (model ids, one group's, alive) get the node ids ``nodes [M, n]``; where an id
         changes it is one of ``new_nodes [K]``, rows no element uses yet (spare rows, or nodes
@@ -252,6 +252,9 @@ class TensorMass(nn.Module):
         tensor form's edge arrays, which grow by the edges the new nodes bring (the node graphs,
         a solver's buffers and captured CUDA graphs keep their storage).
 
+        Returns:
+            whether solves captured before must be captured again (:meth:`ElementGroup.apply_cut`).
+
         Raises:
             MeshError: ids not of one group, or not alive (nothing changed).
             CapacityError: a node would need more slots than its group's plan has (nothing
@@ -259,7 +262,7 @@ class TensorMass(nn.Module):
         """
         ids = checked_element_ids(ids, self.removed_host(), self.num_elements, "the model").to(self.rest.device)
         if ids.numel() == 0:
-            return
+            return False
         self._prepare_removals()
         index = self.element_row.dtype
         ids = ids.to(index)
@@ -279,10 +282,11 @@ class TensorMass(nn.Module):
         targets = plan["nodes"][changed].long()
         slots = topology.append_slots(topology.list_counts(self.node_slots, targets), targets)
         self.node_slots[slots, targets] = moved
-        group.apply_cut(plan, ids, self.rest, self.removed, self.element_row)
+        stale = group.apply_cut(plan, ids, self.rest, self.removed, self.element_row)
         both = torch.cat([old, plan["nodes"]]).to(index)
         topology.refresh_nodes(both, torch.arange(both.shape[0], device=both.device, dtype=index), self.node_slots,
                                self.element_share, self.removed, self.mass, self.node_elements)
+        return stale
 
     def reserve_slots(self, extra: Optional[int] = None) -> None:
         """Room for ``extra`` more slots per node in the groups whose nodes gain items when cut (the

@@ -12,7 +12,6 @@ from ..errors import CapacityError, MeshError, SceneError, SolverError
 from ..mesh import cutting
 from ..mesh.cutting import Blade
 from ..mesh.meshes import Mesh
-from ..ops import solve
 from ..ops.segments import Segments
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
@@ -578,8 +577,8 @@ class Simulator:
         new_nodes = torch.arange(first + used, first + used + added, device=self.device)
         parents = result.parents[used:].to(self.device) + first
         try:
-            self.model.repoint_elements(changed + self.element_ptr[i], result.elements[changed] + first, new_nodes,
-                                        parents)
+            stale = self.model.repoint_elements(changed + self.element_ptr[i], result.elements[changed] + first,
+                                                new_nodes, parents)
         except CapacityError:
             return False
         with torch.no_grad():
@@ -589,10 +588,7 @@ class Simulator:
         self.prescribed[new_nodes] = self.prescribed[parents]
         self.bodies[i] = self._cut_body(self.bodies[i], result)
         self.used_nodes[i] = used + added
-        if any(not g._is_edge_form() for g in self.model.groups) or any(
-                solve.chunk_slots_grew(g) for g in self.model.groups):
-            # a stress form's tangent graph is built again (or a captured launch needs more
-            # shared memory): a new integrator view, its CUDA graphs captured again
+        if stale:  # a new integrator view: its CUDA graphs captured again
             self._make_system()
         else:
             torch.mul(self.model.lumped_mass()[:, None], self.gravity, out=self.system.external)
