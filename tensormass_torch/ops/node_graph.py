@@ -225,6 +225,11 @@ library.define(OPS, lambda: library.register(OPS))
 # ---------------------------------------------------------------------------------------------
 
 
+def _stamped(tensors, *value):
+    """A cache entry (tensors, their versions now, *value), as :func:`library.unchanged` reads it."""
+    return (tuple(tensors), tuple(t._version for t in tensors), *value)
+
+
 def _zeros_like_nodes(group, u: torch.Tensor) -> torch.Tensor:
     """Zeros ``[V]`` of u's dtype and device, kept on the group (a mass term of 0)."""
     cached = group.__dict__.get("_node_zeros")
@@ -291,7 +296,7 @@ def _graph_rows(group, name: str, incidences: torch.Tensor, index_dtype, window:
     rows = node_graph_rows(incidences, key[0], key[1])
     if rows is not None:
         rows = rows.to(index_dtype)
-    group.__dict__["_native_rows_" + name] = ((incidences,), (incidences._version,), rows, key)
+    group.__dict__["_native_rows_" + name] = _stamped((incidences,), rows, key)
     return rows
 
 
@@ -306,7 +311,7 @@ def _by_rows(group, name: str, incidences: torch.Tensor, tensors, window: int):
     index = None if rows is None else rows.long()
     value = tuple(t if index is None else t.index_select(1 if t.dim() >= 2 else 0, index).contiguous()
                   for t in tensors)
-    group.__dict__["_native_by_rows_" + name] = (tensors, tuple(t._version for t in tensors), value, rows)
+    group.__dict__["_native_by_rows_" + name] = _stamped(tensors, value, rows)
     return value, rows
 
 
@@ -354,7 +359,7 @@ def hooke_node_graph(group):
     if unchanged(cache, tensors):
         return cache[2]
     value = graph_of_edges(index, force_index, group.plan.num_slots, group.plan.num_nodes, edge_k)
-    group.__dict__["_native_node_graph"] = (tensors, tuple(t._version for t in tensors), value)
+    group.__dict__["_native_node_graph"] = _stamped(tensors, value)
     return value
 
 
@@ -380,14 +385,14 @@ def edges_changed(group, edge_ids: torch.Tensor) -> None:
     write = torch.ops.tensormass.node_graph_write_edges if native else _ref_node_graph_write_edges
     node_k = cache[2][1]
     write(edge_ids, index, force_index, edge_k, node_k, None)
-    group.__dict__["_native_node_graph"] = (cache[0], tuple(t._version for t in cache[0]), cache[2])
+    group.__dict__["_native_node_graph"] = _stamped(cache[0], cache[2])
     by_rows = group.__dict__.get("_native_by_rows_hooke")
     if by_rows is None or by_rows[0][1] is not node_k:
         return
     rows = by_rows[3]
     if rows is not None:  # a graph by rows of its own (else it is node_k itself, written above)
         write(edge_ids, index, force_index, edge_k, by_rows[2][1], _row_of(group, rows))
-    group.__dict__["_native_by_rows_hooke"] = (by_rows[0], tuple(t._version for t in by_rows[0]), *by_rows[2:])
+    group.__dict__["_native_by_rows_hooke"] = _stamped(by_rows[0], *by_rows[2:])
 
 
 @torch.no_grad()
@@ -411,10 +416,10 @@ def topology_changed(group) -> None:
     node_k[slot_first, first] = edge_k
     node_k[slot_second, second] = edge_k.transpose(1, 2)
     tensors = (edge_k, index, force_index)
-    group.__dict__["_native_node_graph"] = (tensors, tuple(t._version for t in tensors), cache[2])
+    group.__dict__["_native_node_graph"] = _stamped(tensors, cache[2])
     rows_cache = group.__dict__.get("_native_rows_hooke")
     if rows_cache is not None and rows_cache[0][0] is incidences:
-        group.__dict__["_native_rows_hooke"] = ((incidences,), (incidences._version,), *rows_cache[2:])
+        group.__dict__["_native_rows_hooke"] = _stamped((incidences,), *rows_cache[2:])
     by_rows = group.__dict__.get("_native_by_rows_hooke")
     if by_rows is None or by_rows[0][1] is not node_k:
         return
@@ -424,7 +429,7 @@ def topology_changed(group) -> None:
         for source, target in zip((neighbor, node_k, incidences), by_rows[2]):
             torch.index_select(source, 1 if source.dim() >= 2 else 0, index, out=target)
     tensors = (neighbor, node_k, incidences)
-    group.__dict__["_native_by_rows_hooke"] = (tensors, tuple(t._version for t in tensors), *by_rows[2:])
+    group.__dict__["_native_by_rows_hooke"] = _stamped(tensors, *by_rows[2:])
 
 
 def _row_of(group, rows: torch.Tensor) -> torch.Tensor:
@@ -472,7 +477,7 @@ def _tangent_edge_graph(group):
     plan = graph.plan
     value = (graph, _edge_neighbors(plan.index, plan.force_index, plan.num_slots, plan.num_nodes),
              plan.incidences)
-    group.__dict__["_native_tangent_graph"] = ((elements,), (elements._version,), value)
+    group.__dict__["_native_tangent_graph"] = _stamped((elements,), value)
     return value
 
 

@@ -210,7 +210,8 @@ class ElementGroup(nn.Module):
         unique_keys, edge_of = torch.unique(keys, return_inverse=True)
         edges = torch.stack([unique_keys // self.num_nodes, unique_keys % self.num_nodes], 1)  # [E', 2]
         # the old edges the moved pairs leave, and those of them no alive element is left on
-        left, moving = torch.unique(self.element_edges[rows][moved].long(), return_counts=True)
+        old_edges = self.element_edges[rows]
+        left, moving = torch.unique(old_edges[moved].long(), return_counts=True)
         listed = self.edge_slots[:, left].long()
         alive = ((listed >= 0) & ~removed[listed.clamp(min=0)]).sum(0)
         dead = left[alive == moving]
@@ -221,7 +222,7 @@ class ElementGroup(nn.Module):
         need = int((self.plan.incidences + change).max()) if self.num_nodes else 0
         if need > self.plan.num_slots - 1:
             raise CapacityError(f"a node would have {need} edges; the plan has room for {self.plan.num_slots - 1}")
-        plan.update(moved=moved, edges=edges, edge_of=edge_of, dead=dead)
+        plan.update(moved=moved, edges=edges, edge_of=edge_of, dead=dead, old_edges=old_edges)
         return plan
 
     def _pairs(self, device) -> torch.Tensor:
@@ -283,8 +284,7 @@ class ElementGroup(nn.Module):
             dropped = [self.__dict__.pop(name, None) for name in ("_native_tangent_graph", "_native_rows_tangent",
                                                                   "_native_by_rows_tangent")]
             return dropped[0] is not None
-        moved, edge_of, edges, dead = plan["moved"], plan["edge_of"], plan["edges"], plan["dead"]
-        old_edges = self.element_edges[rows]
+        moved, edge_of, edges, dead, old_edges = (plan[k] for k in ("moved", "edge_of", "edges", "dead", "old_edges"))
         moved_ids = ids.to(self.edge_slots.dtype)[:, None].expand_as(moved)[moved]
         topology.remove_from_lists(self.edge_slots, old_edges[moved].long(), moved_ids)
         # the old edges of the rows summed again without the moved pairs (element_edges still old)
