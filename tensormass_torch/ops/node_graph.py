@@ -326,6 +326,15 @@ def hooke_rows_graph(group, window: int = DEFAULT.node_graph_window):
     return (*by_rows, rows)
 
 
+def row_nodes_of(group, incidences: torch.Tensor) -> Optional[torch.Tensor]:
+    """The node of each row ``[V]`` where ``incidences`` is the hooke graph's by rows
+    (:func:`hooke_rows_graph`, in the rows' order); None where it is in node order."""
+    by_rows = group.__dict__.get("_native_by_rows_hooke")
+    if by_rows is not None and by_rows[3] is not None and by_rows[2][2] is incidences:
+        return by_rows[3]
+    return None
+
+
 def graph_of_edges(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int,
                    edge_k: torch.Tensor):
     """The node graph in node order of edges ``[Ed, 2]`` with their slots ``force_index [Ed, 2]``
@@ -396,25 +405,32 @@ def edges_changed(group, edge_ids: torch.Tensor) -> None:
 
 
 @torch.no_grad()
-def topology_changed(group) -> None:
-    """A hooke tensor-form group's edges, slots and blocks changed or grew in place (a cut: its
-    plan's ``num_slots`` and node count the same): the native copies of its plan
-    (``library.refresh_plan_indices``) and the node graphs cached on the group (by node and by
-    rows, the same rows) written again in place, every edge (an emptied edge writes its zero
-    block), since captured CUDA graphs read their storage; the caches kept current. A graph not
-    built yet is built later from the new data."""
+def topology_changed(group, edge_ids: torch.Tensor, nodes: torch.Tensor) -> None:
+    """A hooke tensor-form group's edges changed or grew in place (a cut: its plan's ``num_slots``
+    and node count the same): the edges ``edge_ids [k]`` (their ends, slots or blocks; new and
+    emptied edges included) and the nodes ``nodes [m]`` (their ``incidences``). The native copies
+    of its plan (``library.refresh_plan_indices``) and the node graphs cached on the group (by
+    node and by rows, the same rows) are written in place at those edges and nodes (an emptied
+    edge writes its zero block into node 0's sink slot), since captured CUDA graphs read their
+    storage; the caches kept current. Slots past a node's ``incidences`` may keep what was there:
+    nothing reads them. A graph not built yet is built later from the new data."""
     index, force_index, incidences = library.refresh_plan_indices(group.plan)
     cache = group.__dict__.get("_native_node_graph")
     if cache is None:
         return
     neighbor, node_k = cache[2]
     edge_k = group.edge_k
-    first, second = index[:, 0].long(), index[:, 1].long()
-    slot_first, slot_second = force_index[:, 0].long(), force_index[:, 1].long()
-    neighbor[slot_first, first] = index[:, 1]
-    neighbor[slot_second, second] = index[:, 0]
-    node_k[slot_first, first] = edge_k
-    node_k[slot_second, second] = edge_k.transpose(1, 2)
+    native = _backend.use_extension(edge_k.device) and hasattr(torch.ops.tensormass, "node_graph_write_edges")
+    write = torch.ops.tensormass.node_graph_write_edges if native else _ref_node_graph_write_edges
+    ids = edge_ids.long()
+    ends, slots = index[ids].long(), force_index[ids].long()
+
+    def write_neighbors(target, column):  # each end lists the other, in its slot
+        target[slots[:, 0], column[ends[:, 0]]] = index[ids, 1].to(target.dtype)
+        target[slots[:, 1], column[ends[:, 1]]] = index[ids, 0].to(target.dtype)
+
+    write_neighbors(neighbor, torch.arange(neighbor.shape[1], device=ids.device))
+    write(edge_ids, index, force_index, edge_k, node_k, None)
     tensors = (edge_k, index, force_index)
     group.__dict__["_native_node_graph"] = _stamped(tensors, cache[2])
     rows_cache = group.__dict__.get("_native_rows_hooke")
@@ -425,9 +441,11 @@ def topology_changed(group) -> None:
         return
     rows = by_rows[3]
     if rows is not None:  # arrays of their own, in the rows' order
-        index = rows.long()
-        for source, target in zip((neighbor, node_k, incidences), by_rows[2]):
-            torch.index_select(source, 1 if source.dim() >= 2 else 0, index, out=target)
+        row_of = _row_of(group, rows)
+        row_neighbor, row_node_k, row_incidences = by_rows[2]
+        write_neighbors(row_neighbor, row_of.long())
+        write(edge_ids, index, force_index, edge_k, row_node_k, row_of)
+        row_incidences[row_of[nodes.long()].long()] = incidences[nodes.long()]
     tensors = (neighbor, node_k, incidences)
     group.__dict__["_native_by_rows_hooke"] = _stamped(tensors, *by_rows[2:])
 

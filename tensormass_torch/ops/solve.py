@@ -29,7 +29,14 @@ from . import cg as cg_family
 from . import library
 from .cg import ACTIVE, CAPPED, CONVERGED, NONFINITE, CGState
 from .library import OpDef, contiguous, plan_indices, unchanged
-from .node_graph import _ref_hooke_node_step_rhs, _ref_hooke_node_system, node_graph_of, planes_serve, step_rhs_serves
+from .node_graph import (
+    _ref_hooke_node_step_rhs,
+    _ref_hooke_node_system,
+    node_graph_of,
+    planes_serve,
+    row_nodes_of,
+    step_rhs_serves,
+)
 from .segments import ChunkPlan
 from .variants import DEFAULT, KernelVariants
 
@@ -291,27 +298,41 @@ def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
     return value
 
 
-def _chunk_need(plan, incidences: torch.Tensor) -> int:
-    """The most slots of a chunk of ``plan`` (sum of ``incidences [V]`` over its nodes); a host read."""
+def _chunk_need(plan, incidences: torch.Tensor, starts: Optional[torch.Tensor] = None) -> int:
+    """The most slots of a chunk of ``plan`` (sum of ``incidences [V]`` over its nodes; ``starts``:
+    the plan's ``chunk_start`` on the device of ``incidences``, when the caller has it); a host
+    read where ``incidences`` is on the device."""
     prefix = torch.zeros(incidences.numel() + 1, dtype=torch.int64, device=incidences.device)
     torch.cumsum(incidences.long(), 0, out=prefix[1:])
-    starts = plan.chunk_start.to(incidences.device)
+    starts = plan.chunk_start.to(incidences.device) if starts is None else starts
     return int((prefix[starts[1:]] - prefix[starts[:-1]]).max()) if plan.num_chunks else 0
 
 
-def chunk_slots_grew(group) -> bool:
+def chunk_slots_grew(group, incidences: Optional[torch.Tensor] = None) -> bool:
     """After the node graph of ``group`` gained slots in place (a cut): whether some chunk of the
     plan :func:`chunk_slots` cached now holds more slots than the value cached, a launch
     parameter that captured CUDA graphs hold (they must then be captured again; the value is then
-    computed again at the next solve). A host synchronisation; False where nothing was cached."""
+    computed again at the next solve). ``incidences``: the node graph's ``[V]`` now, on the host
+    (no device read; the plan's chunk starts read once and kept), or None: the cached device
+    tensor, read (a host synchronisation). False where nothing was cached."""
     cache = group.__dict__.get("_solve_chunk_slots")
     if cache is None:
         return False
-    plan, ((incidences,), _, _), before = cache
-    if _chunk_need(plan, incidences) > before:
+    plan, ((cached,), _, _), before = cache
+    starts = None
+    if incidences is not None:  # in node order: in the rows' order where the graph is by rows
+        kept = group.__dict__.get("_solve_chunk_starts")
+        if kept is None or kept[0] is not plan or kept[1] is not cached:
+            rows = row_nodes_of(group, cached)
+            kept = (plan, cached, plan.chunk_start.to(incidences.device),
+                    None if rows is None else rows.to(incidences.device, torch.int64))
+            group.__dict__["_solve_chunk_starts"] = kept
+        starts = kept[2]
+        incidences = incidences if kept[3] is None else incidences[kept[3]]
+    if _chunk_need(plan, cached if incidences is None else incidences, starts) > before:
         group.__dict__.pop("_solve_chunk_slots")  # computed again at the next solve
         return True
-    group.__dict__["_solve_chunk_slots"] = (plan, ((incidences,), (incidences._version,), None), before)
+    group.__dict__["_solve_chunk_slots"] = (plan, ((cached,), (cached._version,), None), before)
     return False
 
 

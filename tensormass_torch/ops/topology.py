@@ -30,7 +30,7 @@ from .library import OpDef
 from .reference import tensor_form
 from .reference.stress_form import lame
 
-__all__ = ["incidence_table", "list_counts", "remove_from_lists", "append_slots", "refresh_nodes",
+__all__ = ["incidence_table", "list_counts", "remove_from_lists", "append_slots", "upload", "refresh_nodes",
            "refresh_hooke_edges"]
 
 
@@ -82,6 +82,24 @@ def append_slots(counts: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     rank = torch.empty_like(order)
     rank[order] = torch.arange(targets.numel(), device=targets.device) - starts[inverse[order]]
     return counts.long() + rank
+
+
+def upload(tensors: dict, device: torch.device) -> dict:
+    """Host integer tensors (name -> tensor) on ``device``, each of its dtype and shape, with one
+    copy: packed into one int64 buffer, pinned where the device is CUDA so that the copy is queued
+    behind the device's work instead of waiting for it. On the CPU the tensors themselves. What a
+    change planned on the host (a cut) sends to the device."""
+    device = torch.device(device)
+    if device.type == "cpu":
+        return dict(tensors)
+    names = list(tensors)
+    sizes = [tensors[k].numel() for k in names]
+    packed = torch.empty(sum(sizes), dtype=torch.int64, pin_memory=device.type == "cuda")
+    if names:
+        torch.cat([tensors[k].reshape(-1).to(torch.int64) for k in names], out=packed)
+    on_device = packed.to(device, non_blocking=True)
+    return {k: part.view(tensors[k].shape).to(tensors[k].dtype)
+            for k, part in zip(names, on_device.split(sizes))}
 
 
 # ---------------------------------------------------------------------------------------------

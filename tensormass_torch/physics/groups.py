@@ -169,40 +169,61 @@ class ElementGroup(nn.Module):
             self.reserved_slots = int(extra)
             self.plan = GatherPlan(self.plan.index, self.plan.force_index, self.plan.num_slots + int(extra),
                                    self.plan.num_nodes, self.plan.incidences)
-
-    def _node_items(self) -> torch.Tensor:
-        """The gather plan's lists ``[N_n, V]``: slot s of node i holds the item ``row * w + a``
-        (w: the plan's items' width, n or 2) whose ``force_index`` is s, -1 past the last; made
-        at the first cut."""
-        if "node_items" not in self._buffers:
-            flat = self.plan.index.reshape(-1).long()
-            items = torch.arange(flat.numel(), device=flat.device, dtype=self.elements.dtype)
-            table = torch.full((self.plan.num_slots, self.num_nodes), -1, dtype=items.dtype, device=flat.device)
-            table[self.plan.force_index.reshape(-1).long(), flat] = items
-            self.register_buffer("node_items", table)
-        return self.node_items
+            self.__dict__.pop("_cut_tables", None)
 
     def _edge_plan(self) -> bool:
         return self.form == "tensor" and self.model == "hooke"
 
+    def _plans_on_a_copy(self) -> bool:
+        """Whether cuts are planned on host copies of the tables (:meth:`cut_tables`): on an
+        accelerator, so that a cut reads nothing back from it."""
+        return self.elements.device.type != "cpu"
+
+    def cut_tables(self) -> dict:
+        """The integer tables a cut reads and edits, on the host, by name: ``elements [N, n]``, the
+        gather plan's ``force_index`` and ``incidences [V]``, its lists ``node_items [N_n, V]``
+        (slot s of node i holds the item ``row * w + a``, w the width of the plan's items, n or 2,
+        whose ``force_index`` is s; -1 past the last) and, for the hooke tensor form, ``edges
+        [Ed, 2]``, ``edge_slots [S, Ed]`` and ``element_edges [N, P]``. On the CPU the group's own
+        tensors (and ``node_items``); on an accelerator copies, made at the first cut (one device
+        read) and kept equal to the group's by each cut, which is planned on them and written to
+        the device once (:meth:`edit_cut`, :meth:`write_cut`). Needs :meth:`prepare_removals`."""
+        tables = self.__dict__.get("_cut_tables")
+        if tables is None:
+            copy = (lambda t: t.to("cpu", copy=True)) if self._plans_on_a_copy() else (lambda t: t)
+            tables = {"elements": copy(self.elements), "force_index": copy(self.plan.force_index),
+                      "incidences": copy(self.plan.incidences)}
+            if self._edge_plan():
+                tables.update(edges=copy(self.edges), edge_slots=copy(self.edge_slots),
+                              element_edges=copy(self.element_edges))
+            index = tables["edges" if self._edge_plan() else "elements"]
+            flat = index.reshape(-1).long()
+            items = torch.arange(flat.numel(), dtype=index.dtype)
+            node_items = torch.full((self.plan.num_slots, self.num_nodes), -1, dtype=index.dtype)
+            node_items[tables["force_index"].reshape(-1).long(), flat] = items
+            tables["node_items"] = node_items
+            self.__dict__["_cut_tables"] = tables
+        return tables
+
     @torch.no_grad()
     def cut_plan(self, rows: torch.Tensor, nodes: torch.Tensor, removed: torch.Tensor) -> dict:
         """What re-pointing the elements at ``rows`` (``[M]``, ascending, alive) to ``nodes [M, n]``
-        takes, checked against the room there is before anything changes (:meth:`apply_cut` does
-        it; ``removed [N_model]``: the model's removed flags). Where a node id changes, the new
-        id must be a node no element was ever on (a cut's new node). The hooke tensor form: the
-        edges that gain a new node become new edge rows and the old edges left with no element
-        leave the plan; every node's edges must fit ``num_slots - 1``
-        (:meth:`reserve_slots`; one host read).
+        takes, checked against the room there is before anything changes (host tensors, read
+        from :meth:`cut_tables`; ``removed [N_model]``: the model's removed flags, on the host).
+        Where a node id changes, the new id must be a node no element was ever on (a cut's new
+        node). The hooke tensor form: the edges that gain a new node become new edge rows and
+        the old edges left with no element leave the plan; every node's edges must fit
+        ``num_slots - 1`` (:meth:`reserve_slots`).
 
         Raises:
             CapacityError: a node would need more slots than the plan has.
         """
-        old = self.elements[rows]
-        plan = {"rows": rows, "old": old, "nodes": nodes.to(self.elements.dtype), "changed": old != nodes}
+        tables = self.cut_tables()
+        old = tables["elements"][rows]
+        plan = {"rows": rows, "old": old, "nodes": nodes.to(old.dtype), "changed": old != nodes}
         if not self._edge_plan():
             return plan
-        pairs = self._pairs(rows.device)
+        pairs = self._pairs()
         changed = plan["changed"]
         moved = changed[:, pairs[:, 0]] | changed[:, pairs[:, 1]]  # [M, P]: the pair's edge changes
         a, b = nodes[:, pairs[:, 0]][moved].long(), nodes[:, pairs[:, 1]][moved].long()
@@ -210,110 +231,177 @@ class ElementGroup(nn.Module):
         unique_keys, edge_of = torch.unique(keys, return_inverse=True)
         edges = torch.stack([unique_keys // self.num_nodes, unique_keys % self.num_nodes], 1)  # [E', 2]
         # the old edges the moved pairs leave, and those of them no alive element is left on
-        old_edges = self.element_edges[rows]
+        old_edges = tables["element_edges"][rows]
         left, moving = torch.unique(old_edges[moved].long(), return_counts=True)
-        listed = self.edge_slots[:, left].long()
+        listed = tables["edge_slots"][:, left].long()
         alive = ((listed >= 0) & ~removed[listed.clamp(min=0)]).sum(0)
         dead = left[alive == moving]
-        change = torch.zeros_like(self.plan.incidences)
+        incidences = tables["incidences"]
+        change = torch.zeros_like(incidences)
         change.index_add_(0, edges.reshape(-1), torch.ones_like(edges.reshape(-1), dtype=change.dtype))
-        dead_ends = self.edges[dead].reshape(-1).long()
+        dead_ends = tables["edges"][dead].reshape(-1).long()
         change.index_add_(0, dead_ends, torch.full_like(dead_ends, -1, dtype=change.dtype))
-        need = int((self.plan.incidences + change).max()) if self.num_nodes else 0
+        need = int((incidences + change).max()) if self.num_nodes else 0
         if need > self.plan.num_slots - 1:
             raise CapacityError(f"a node would have {need} edges; the plan has room for {self.plan.num_slots - 1}")
         plan.update(moved=moved, edges=edges, edge_of=edge_of, dead=dead, old_edges=old_edges)
         return plan
 
-    def _pairs(self, device) -> torch.Tensor:
+    def _pairs(self) -> torch.Tensor:
         n = self.nodes_per_element
-        return torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)], device=device)
+        return torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)])
 
-    def _edit_plan(self, gone_items, gone_nodes, new_items, new_nodes) -> None:
-        """The gather plan's lists edited in place: items ``gone_items [R]`` (``row * w + a``)
-        leave their nodes ``gone_nodes [R]`` (each list packed in order), ``new_items [A]`` join
-        ``new_nodes [A]`` after the items there (in the order given); ``force_index`` and
-        ``incidences`` follow, and the native copies of the plan (``library.refresh_plan_indices``)."""
-        table = self._node_items()
-        force_index, incidences = self.plan.force_index.view(-1), self.plan.incidences
+    def _edit_lists(self, tables, gone_items, gone_nodes, new_items, new_nodes):
+        """The gather plan's lists edited (in ``tables``): items ``gone_items [R]`` (``row * w +
+        a``) leave their nodes ``gone_nodes [R]`` (each list packed in order), ``new_items [A]``
+        join ``new_nodes [A]`` after the items there (in the order given); ``force_index`` and
+        ``incidences`` follow. Returns the nodes whose ``incidences`` changed and the (flat)
+        items whose ``force_index`` did."""
+        table, incidences = tables["node_items"], tables["incidences"]
+        force_index = tables["force_index"].view(-1)
+        nodes, items = [new_nodes], [new_items]
         if gone_items.numel():
             touched, lists = topology.remove_from_lists(table, gone_nodes, gone_items)
             used = lists >= 0
-            slot_of = torch.arange(lists.shape[0], device=lists.device)[:, None].expand_as(lists)
+            slot_of = torch.arange(lists.shape[0])[:, None].expand_as(lists)
             force_index[lists[used].long()] = slot_of[used].to(force_index.dtype)
             incidences[touched] = used.sum(0).to(incidences.dtype)
+            nodes.append(touched)
+            items.append(lists[used].long())
         if new_items.numel():
             slots = topology.append_slots(incidences[new_nodes], new_nodes)
             table[slots, new_nodes] = new_items.to(table.dtype)
             force_index[new_items.long()] = slots.to(force_index.dtype)
             incidences.index_add_(0, new_nodes, torch.ones_like(new_nodes, dtype=incidences.dtype))
-        library.refresh_plan_indices(self.plan)
+        return torch.unique(torch.cat(nodes)), torch.unique(torch.cat(items).long())
 
     @torch.no_grad()
-    def apply_cut(self, plan: dict, ids: torch.Tensor, rest: torch.Tensor, removed: torch.Tensor,
-                  element_row: torch.Tensor) -> bool:
-        """Re-point the elements as :meth:`cut_plan` planned (``ids [M]``: their model ids; ``rest``
-        ``[V, d]`` already holding the new nodes' rest positions). Element data (shape vectors,
-        measures, tensors B, C, D) are per element and unchanged: the rest shape is the same. Only
-        sums over nodes or edges change, in place:
+    def edit_cut(self, plan: dict, ids: torch.Tensor, element_row: torch.Tensor, removed: torch.Tensor) -> dict:
+        """The tables of :meth:`cut_tables` edited as :meth:`cut_plan` planned (``ids [M]``: the
+        elements' model ids; ``element_row``, ``removed``: the model's, on the host); returns the
+        host tensors :meth:`write_cut` needs on the device (by name; on an accelerator, the
+        tables' changed parts too). Element data (shape vectors, measures, tensors B, C, D) are
+        per element and unchanged: the rest shape is the same. Only sums over nodes or edges
+        change:
 
             element plans   each moved incidence leaves its node's list (the list packed in order)
                             and joins the new node's (in element order): the slots of a group
                             built from the new elements
-            hooke tensor    an edge that gains a new node is a new edge row (edges, edge_k,
-                            edge_slots grow; its slots appended at both ends); an old edge sums
-                            its remaining elements again, and one left with none leaves its
-                            nodes' lists (its row stays, a zero edge of node 0's sink slot); the
-                            node graphs cached on the group are written again in place
-                            (``node_graph.topology_changed``)
+            hooke tensor    an edge that gains a new node is a new edge row (edges, edge_slots
+                            grow; its elements listed in id order, its slots appended at both
+                            ends); an old edge keeps the elements that stay, and one left with
+                            none leaves its nodes' lists (its row stays, a zero edge (0, 0) in
+                            node 0's sink slot, the plan's last)
+        """
+        tables = self.cut_tables()
+        rows, old, nodes, changed = plan["rows"], plan["old"], plan["nodes"], plan["changed"]
+        copy = tables["elements"] is not self.elements
+        if not self._edge_plan():
+            n = self.nodes_per_element
+            items = (rows.long()[:, None] * n + torch.arange(n))[changed]
+            tables["elements"][rows] = nodes
+            changed_nodes, changed_items = self._edit_lists(tables, items, old[changed].long(), items,
+                                                            nodes[changed].long())
+            sends = {}
+            if copy:
+                sends.update(rows=rows, nodes=nodes, incidence_nodes=changed_nodes,
+                             incidences=tables["incidences"][changed_nodes], items=changed_items,
+                             force_index=tables["force_index"].view(-1)[changed_items])
+            return sends
+        moved, edge_of, edges, dead, old_edges = (plan[k] for k in ("moved", "edge_of", "edges", "dead", "old_edges"))
+        slots_dtype = tables["edge_slots"].dtype
+        moved_ids = ids.to(slots_dtype)[:, None].expand_as(moved)[moved]
+        left, _ = topology.remove_from_lists(tables["edge_slots"], old_edges[moved].long(), moved_ids)
+        first_new, sink = tables["edges"].shape[0], self.plan.num_slots - 1
+        lists = torch.full((tables["edge_slots"].shape[0], edges.shape[0]), -1, dtype=slots_dtype)
+        # each new edge's elements in id order (ids ascending, an element once per edge)
+        lists[topology.append_slots(torch.zeros_like(edge_of), edge_of), edge_of] = moved_ids
+        tables["edge_slots"] = torch.cat([tables["edge_slots"], lists], 1)
+        tables["edges"] = torch.cat([tables["edges"], edges.to(tables["edges"].dtype)])
+        new_edges = old_edges.clone()
+        new_edges[moved] = (edge_of + first_new).to(old_edges.dtype)
+        tables["element_edges"][rows] = new_edges
+        force_index = tables["force_index"]
+        tables["force_index"] = torch.cat([force_index, force_index.new_full(edges.shape, sink)])
+        dead_items = (dead[:, None] * 2 + torch.arange(2)).reshape(-1)
+        new_items = torch.arange(2 * first_new, 2 * (first_new + edges.shape[0]))
+        changed_nodes, changed_items = self._edit_lists(tables, dead_items, tables["edges"][dead].reshape(-1).long(),
+                                                        new_items, edges.reshape(-1))
+        tables["edges"][dead] = 0  # a zero edge (0, 0) in node 0's sink slot: its partial forces, 0, never read
+        tables["force_index"][dead] = sink
+        tables["elements"][rows] = nodes
+        # the rows whose edges are summed again: the cut's, and for each old edge the moved pairs
+        # left that keeps an alive element, one such element (its row names the edge)
+        listed = tables["edge_slots"][:, left].long()
+        alive = (listed >= 0) & ~removed[listed.clamp(min=0)]
+        witness = listed.gather(0, alive.int().argmax(0, keepdim=True))[0][alive.any(0)]
+        refresh_rows = torch.unique(torch.cat([rows.long(), element_row[witness].long()])).to(rows.dtype)
+        changed_items = torch.unique(torch.cat([changed_items, dead_items]))
+        # the edges the node graphs take again: those whose slots moved (new and emptied ones
+        # included) and those summed again
+        graph_edges = torch.unique(torch.cat([changed_items // 2, tables["element_edges"][refresh_rows.long()]
+                                              .reshape(-1).long()]))
+        sends = {"refresh_rows": refresh_rows, "dead": dead, "graph_edges": graph_edges.to(rows.dtype),
+                 "incidence_nodes": changed_nodes}
+        if copy:
+            sends.update(slot_edges=left, slot_lists=tables["edge_slots"][:, left], new_lists=lists,
+                         new_edges=edges.to(tables["edges"].dtype), rows=rows, element_edges=new_edges, nodes=nodes,
+                         incidences=tables["incidences"][changed_nodes], items=changed_items,
+                         force_index=tables["force_index"].view(-1)[changed_items])
+        return sends
+
+    @torch.no_grad()
+    def write_cut(self, sent: dict, rest: torch.Tensor, removed: torch.Tensor, element_row: torch.Tensor) -> bool:
+        """The device side of a cut :meth:`edit_cut` made on the tables: ``sent`` its tensors on
+        the group's device (``ops.topology.upload``; ``rest [V, d]`` already holding the new
+        nodes' rest positions, ``removed``, ``element_row``: the model's). Writes the changed
+        parts of the tables where they are copies, then the sums: the hooke tensor form's edges
+        of the cut's rows (and of one alive element of each edge the cut left) summed again
+        (``ops.topology.refresh_hooke_edges``; new edges' tensors grow), emptied edges zeroed,
+        the node graphs cached on the group written again in place where they changed
+        (``node_graph.topology_changed``); the plans' native copies overwritten in place.
 
         Forces, products and energy are then those of a group built from the new elements (to
-        rounding: edge tensors summed in another order of edges). Needs :meth:`prepare_removals`.
+        rounding: edge tensors summed in another order of edges).
 
         Returns:
             whether solves captured before must be captured again: the stress forms' tangent
             graph dropped (built again at its next use), or a chunk of the pipelined solve grown
             past the slots its launches were given (``solve.chunk_slots_grew``)."""
-        rows, old, nodes, changed = plan["rows"], plan["old"], plan["nodes"], plan["changed"]
-        self._node_items()  # the plan's lists, made (at the first cut) from the plan before it changes
+        tables = self.cut_tables()
+        copy = tables["elements"] is not self.elements
+        if copy:
+            self.elements.index_copy_(0, sent["rows"], sent["nodes"])
         if not self._edge_plan():
-            n = self.nodes_per_element
-            items = (rows.long()[:, None] * n + torch.arange(n, device=rows.device))[changed]
-            self.elements[rows] = nodes  # the plan's index (the same tensor)
-            self._edit_plan(items, old[changed].long(), items, nodes[changed].long())
+            if copy:
+                self.plan.force_index.view(-1).index_copy_(0, sent["items"], sent["force_index"])
+                self.plan.incidences.index_copy_(0, sent["incidence_nodes"], sent["incidences"])
+            library.refresh_plan_indices(self.plan)
             dropped = [self.__dict__.pop(name, None) for name in ("_native_tangent_graph", "_native_rows_tangent",
                                                                   "_native_by_rows_tangent")]
             return dropped[0] is not None
-        moved, edge_of, edges, dead, old_edges = (plan[k] for k in ("moved", "edge_of", "edges", "dead", "old_edges"))
-        moved_ids = ids.to(self.edge_slots.dtype)[:, None].expand_as(moved)[moved]
-        topology.remove_from_lists(self.edge_slots, old_edges[moved].long(), moved_ids)
-        # the old edges of the rows summed again without the moved pairs (element_edges still old)
-        topology.refresh_hooke_edges(rest, self.elements, rows, self.element_edges, self.edge_slots, element_row,
-                                     removed, self.measure, self.young, self.poisson, self.edge_k)
-        first_new, sink = self.edges.shape[0], self.plan.num_slots - 1
-        lists = torch.full((self.edge_slots.shape[0], edges.shape[0]), -1, dtype=self.edge_slots.dtype,
-                           device=edges.device)
-        # each new edge's elements in id order (ids ascending, an element once per edge)
-        lists[topology.append_slots(torch.zeros_like(edge_of), edge_of), edge_of] = moved_ids
-        self.edge_slots = torch.cat([self.edge_slots, lists], 1)
-        self.edges = torch.cat([self.edges, edges.to(self.edges.dtype)])
-        self.edge_k = torch.cat([self.edge_k, self.edge_k.new_zeros((edges.shape[0],) + self.edge_k.shape[1:])])
-        new_edges = old_edges.clone()
-        new_edges[moved] = (edge_of + first_new).to(old_edges.dtype)
-        self.element_edges[rows] = new_edges
-        # the plan (the object kept: its caches follow it) over the grown edges
-        self.plan.index = self.edges
-        self.plan.force_index = torch.cat([self.plan.force_index, self.plan.force_index.new_full(edges.shape, sink)])
-        dead_items = (dead[:, None] * 2 + torch.arange(2, device=dead.device)).reshape(-1)
-        new_items = torch.arange(2 * first_new, 2 * (first_new + edges.shape[0]), device=edges.device)
-        self._edit_plan(dead_items, self.edges[dead].reshape(-1).long(), new_items, edges.reshape(-1))
-        self.edges[dead] = 0  # a zero edge (0, 0) in node 0's sink slot: its partial forces, 0, never read
-        self.plan.force_index[dead] = sink
-        self.elements[rows] = nodes
-        topology.refresh_hooke_edges(rest, self.elements, rows, self.element_edges, self.edge_slots, element_row,
-                                     removed, self.measure, self.young, self.poisson, self.edge_k)
-        node_graph.topology_changed(self)
-        return solve.chunk_slots_grew(self)
+        if copy:
+            self.edge_slots.index_copy_(1, sent["slot_edges"], sent["slot_lists"])
+            self.edge_slots = torch.cat([self.edge_slots, sent["new_lists"]], 1)
+            self.edges = torch.cat([self.edges, sent["new_edges"]])
+            self.element_edges.index_copy_(0, sent["rows"], sent["element_edges"])
+            force_index = self.plan.force_index
+            force_index = torch.cat([force_index, force_index.new_empty(sent["new_edges"].shape)])
+            force_index.view(-1).index_copy_(0, sent["items"], sent["force_index"])
+            self.plan.force_index = force_index
+            self.plan.incidences.index_copy_(0, sent["incidence_nodes"], sent["incidences"])
+        else:
+            self.edge_slots, self.edges = tables["edge_slots"], tables["edges"]
+            self.plan.force_index = tables["force_index"]
+        self.edges.index_fill_(0, sent["dead"], 0)
+        grown = self.edges.shape[0] - self.edge_k.shape[0]
+        self.edge_k = torch.cat([self.edge_k, self.edge_k.new_zeros((grown,) + self.edge_k.shape[1:])])
+        self.edge_k.index_fill_(0, sent["dead"], 0)
+        self.plan.index = self.edges  # the plan (the object kept: its caches follow it) over the grown edges
+        topology.refresh_hooke_edges(rest, self.elements, sent["refresh_rows"], self.element_edges, self.edge_slots,
+                                     element_row, removed, self.measure, self.young, self.poisson, self.edge_k)
+        node_graph.topology_changed(self, sent["graph_edges"], sent["incidence_nodes"])
+        return solve.chunk_slots_grew(self, tables["incidences"])
 
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""
@@ -325,6 +413,7 @@ class ElementGroup(nn.Module):
         super()._apply(fn, *args, **kwargs)
         # The plan's integer tensors follow the module's device (not its dtype).
         self.plan = self.plan.to(self.elements.device)
+        self.__dict__.pop("_cut_tables", None)  # made again from the moved tensors at the next cut
         return self
 
     def buffer_bytes(self) -> int:

@@ -239,53 +239,89 @@ class TensorMass(nn.Module):
         self.__dict__["_removed_host"] = torch.zeros(self.num_elements, dtype=torch.bool)
         self.__dict__["_element_mass_host"] = element_mass.to("cpu", torch.float64)
 
+    def _cut_tables(self) -> dict:
+        """The model's integer tables a cut reads and edits, on the host: ``node_slots``,
+        ``element_group``, ``element_row`` (the model's own on the CPU; on an accelerator copies
+        made at the first cut and kept equal by each cut: see ``ElementGroup.cut_tables``)."""
+        tables = self.__dict__.get("_cut_host")
+        if tables is None:
+            on_copy = any(group._plans_on_a_copy() for group in self.groups)
+            copy = (lambda t: t.to("cpu", copy=True)) if on_copy else (lambda t: t)
+            tables = {name: copy(getattr(self, name)) for name in ("node_slots", "element_group", "element_row")}
+            self.__dict__["_cut_host"] = tables
+        return tables
+
+    def _apply(self, fn, *args, **kwargs):
+        super()._apply(fn, *args, **kwargs)
+        self.__dict__.pop("_cut_host", None)  # made again from the moved tensors at the next cut
+        return self
+
     @torch.no_grad()
     def repoint_elements(self, ids, nodes: torch.Tensor, new_nodes: torch.Tensor, parents: torch.Tensor) -> bool:
         """Re-point elements to new nodes in place (a cut: ``mesh.cutting`` says which): elements
         ``ids [M]`` (model ids, one group's, alive) get the node ids ``nodes [M, n]``; where an id
         changes it is one of ``new_nodes [K]``, rows no element uses yet (spare rows, or nodes
         whose elements were all removed or re-pointed), each a copy of ``parents [K]`` (its rest
-        position). Per group, :meth:`ElementGroup.cut_plan` and :meth:`ElementGroup.apply_cut`;
-        the lumped masses of the nodes left and joined summed again from their lists (as
-        :meth:`remove_elements` does). Forces, products, energy and masses are then those of a
-        model built from the new elements (to rounding). Nothing is reallocated but the hooke
-        tensor form's edge arrays, which grow by the edges the new nodes bring (the node graphs,
-        a solver's buffers and captured CUDA graphs keep their storage).
+        position). Per group, :meth:`ElementGroup.cut_plan`, :meth:`ElementGroup.edit_cut` and
+        :meth:`ElementGroup.write_cut`; the lumped masses of the nodes left and joined summed
+        again from their lists (as :meth:`remove_elements` does). Forces, products, energy and
+        masses are then those of a model built from the new elements (to rounding). Nothing is
+        reallocated but the hooke tensor form's edge arrays, which grow by the edges the new
+        nodes bring (the node graphs, a solver's buffers and captured CUDA graphs keep their
+        storage).
+
+        The cut is planned on the host (on copies of the integer tables where the model is on an
+        accelerator: ``ElementGroup.cut_tables``), so it reads nothing from the device; what the
+        device needs is sent in one copy (``ops.topology.upload``) and written by a few launches.
+        Give ``ids``, ``nodes``, ``new_nodes`` and ``parents`` on the CPU for no device read at all.
 
         Returns:
-            whether solves captured before must be captured again (:meth:`ElementGroup.apply_cut`).
+            whether solves captured before must be captured again (:meth:`ElementGroup.write_cut`).
 
         Raises:
             MeshError: ids not of one group, or not alive (nothing changed).
             CapacityError: a node would need more slots than its group's plan has (nothing
                 changed; :meth:`reserve_slots` gives room).
         """
-        ids = checked_element_ids(ids, self.removed_host(), self.num_elements, "the model").to(self.rest.device)
+        ids = checked_element_ids(ids, self.removed_host(), self.num_elements, "the model")
         if ids.numel() == 0:
             return False
         self._prepare_removals()
-        index = self.element_row.dtype
-        ids = ids.to(index)
-        groups = torch.unique(self.element_group[ids])
+        tables = self._cut_tables()
+        groups = torch.unique(tables["element_group"][ids])
         if groups.numel() != 1:
             raise MeshError(f"elements re-pointed together must be of one group, got groups {groups.tolist()}")
         group = self.groups[int(groups[0])]
-        nodes = torch.as_tensor(nodes, device=self.rest.device)
+        nodes = torch.as_tensor(nodes).to("cpu")
         if nodes.shape != (ids.numel(), group.nodes_per_element):
             raise MeshError(f"nodes must be [{ids.numel()}, {group.nodes_per_element}], got {tuple(nodes.shape)}")
-        rows = self.element_row[ids]
-        plan = group.cut_plan(rows, nodes, self.removed)  # checks the room: raises before anything changes
-        self.rest[new_nodes] = self.rest[parents]
+        index = tables["element_row"].dtype
+        rows = tables["element_row"][ids]
+        removed = self._removed_host
+        plan = group.cut_plan(rows, nodes, removed)  # checks the room: raises before anything changes
+        node_slots = tables["node_slots"]
         old, changed = plan["old"], plan["changed"]
-        moved = ids[:, None].expand_as(changed)[changed].to(self.node_slots.dtype)
-        topology.remove_from_lists(self.node_slots, old[changed].long(), moved)
+        moved = ids[:, None].expand_as(changed)[changed].to(node_slots.dtype)
+        touched, _ = topology.remove_from_lists(node_slots, old[changed].long(), moved)
         targets = plan["nodes"][changed].long()
-        slots = topology.append_slots(topology.list_counts(self.node_slots, targets), targets)
-        self.node_slots[slots, targets] = moved
-        stale = group.apply_cut(plan, ids, self.rest, self.removed, self.element_row)
+        slots = topology.append_slots(topology.list_counts(node_slots, targets), targets)
+        node_slots[slots, targets] = moved
+        sends = {f"group_{k}": v for k, v in group.edit_cut(plan, ids, tables["element_row"], removed).items()}
         both = torch.cat([old, plan["nodes"]]).to(index)
-        topology.refresh_nodes(both, torch.arange(both.shape[0], device=both.device, dtype=index), self.node_slots,
-                               self.element_share, self.removed, self.mass, self.node_elements)
+        sends.update(new_nodes=torch.as_tensor(new_nodes).to("cpu", torch.int64),
+                     parents=torch.as_tensor(parents).to("cpu", torch.int64), both=both,
+                     both_rows=torch.arange(both.shape[0], dtype=index))
+        if node_slots is not self.node_slots:
+            columns = torch.unique(torch.cat([touched, targets]))
+            sends.update(slot_nodes=columns, slot_lists=node_slots[:, columns])
+        sent = topology.upload(sends, self.rest.device)
+        self.rest.index_copy_(0, sent["new_nodes"], self.rest[sent["parents"]])
+        if node_slots is not self.node_slots:
+            self.node_slots.index_copy_(1, sent["slot_nodes"], sent["slot_lists"])
+        stale = group.write_cut({k[6:]: v for k, v in sent.items() if k.startswith("group_")}, self.rest,
+                                self.removed, self.element_row)
+        topology.refresh_nodes(sent["both"], sent["both_rows"], self.node_slots, self.element_share, self.removed,
+                               self.mass, self.node_elements)
         return stale
 
     def reserve_slots(self, extra: Optional[int] = None) -> None:

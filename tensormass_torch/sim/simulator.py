@@ -13,6 +13,7 @@ from ..mesh import cutting
 from ..mesh.cutting import Blade
 from ..mesh.meshes import Mesh
 from ..ops.segments import Segments
+from ..ops.topology import upload
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
 from ..physics.materials import Material
@@ -246,6 +247,7 @@ class Simulator:
         self.scalpels: List[Scalpel] = []
         # per body, the element pairs cuts parted that still share their face (``cutting.cut``'s slit)
         self._slits: List[Optional[torch.Tensor]] = [None] * len(bodies)
+        self._host_meshes: dict = {}  # body -> (its mesh's elements on the device, a host copy)
 
     @property
     def num_bodies(self) -> int:
@@ -530,10 +532,14 @@ class Simulator:
             raise SceneError(f"blade must be a tm.Blade, got {type(blade).__name__}")
         if old.mesh.vertices.shape[1] != 3:
             raise SceneError(f"body {i} is 2-D: cutting needs a 3-D body (tetrahedra or membranes)")
-        elements = old.mesh.elements.to(self.device)
+        # the cut is found on the host: the body's elements and removed flags kept there, its
+        # positions read once
+        elements = self._host_elements(i)
+        removed = self.model.removed_host()
+        removed = None if removed is None else removed[self.element_ptr[i]:self.element_ptr[i + 1]]
         try:
-            result = cutting.cut(elements, old.mesh.num_vertices, self.positions(i), blade,
-                                 ~self.alive_elements(i), self._slits[i])
+            result = cutting.cut(elements, old.mesh.num_vertices, self.positions(i).to("cpu"), blade, removed,
+                                 self._slits[i])
         except MeshError:
             if missing_ok:
                 return 0
@@ -543,30 +549,50 @@ class Simulator:
         self._slits[i] = result.slit
         return result.new_nodes
 
+    def _host_elements(self, i: int) -> torch.Tensor:
+        """Body i's elements ``[N_i, n]`` on the host: its mesh's, or a copy kept with the mesh."""
+        elements = self.bodies[i].mesh.elements
+        if elements.device.type == "cpu":
+            return elements
+        kept = self._host_meshes.get(i)
+        if kept is None or kept[0] is not elements:
+            kept = self._host_meshes[i] = (elements, elements.to("cpu"))
+        return kept[1]
+
     @staticmethod
-    def _cut_body(old: Body, result) -> Body:
+    def _cut_body(old: Body, result, changed: Optional[torch.Tensor] = None) -> Body:
         """Body ``old`` after the cut ``result``: its mesh with the new nodes (copies of their
-        parents: rest position, fixed or prescribed; the prescribed copies follow their parents)."""
-        mesh_parents = result.parents.to(old.mesh.vertices.device)
-        mesh = type(old.mesh)(old.mesh.vertices[mesh_parents], result.elements.to(old.mesh.vertices.device),
-                              check=False)
+        parents: rest position, fixed or prescribed; the prescribed copies follow their parents).
+        ``changed``: the ids of the elements the cut re-pointed (host), or None: any."""
+        device = old.mesh.vertices.device
+        new_parents = result.parents[result.num_old_nodes:].to(device)
+        vertices = torch.cat([old.mesh.vertices, old.mesh.vertices[new_parents]])
+        if changed is None or device.type == "cpu":
+            elements = result.elements.to(device)
+        else:  # the rows that changed written into a copy on the device
+            elements = old.mesh.elements.clone()
+            elements[changed.to(device)] = result.elements[changed].to(device, elements.dtype)
+        mesh = type(old.mesh)(vertices, elements, check=False)
+        fixed = torch.cat([old.fixed, old.fixed[new_parents]])
+        prescribed = torch.cat([old.prescribed, old.prescribed[new_parents]])
         motion = None
         if old.motion is not None:  # the prescribed nodes' copies follow their parents
+            mesh_parents = result.parents.to(device)
             old_ids = torch.nonzero(old.prescribed).flatten()
-            new_ids = torch.nonzero(old.prescribed[mesh_parents]).flatten()
+            new_ids = torch.nonzero(prescribed).flatten()
             pick = torch.searchsorted(old_ids, mesh_parents[new_ids])
 
             def motion(t, follow=old.motion, pick=pick):
                 goal = torch.as_tensor(follow(t))
                 return goal[pick.to(goal.device)]
-        return Body(mesh, old.material, fixed=old.fixed[mesh_parents], prescribed=old.prescribed[mesh_parents],
-                    motion=motion, name=old.name)
+        return Body(mesh, old.material, fixed=fixed, prescribed=prescribed, motion=motion, name=old.name)
 
     def _cut_in_place(self, i: int, elements: torch.Tensor, result) -> bool:
-        """The cut ``result`` of body i (its elements before: ``elements``) done in place, in the
-        body's spare rows: the model re-points the elements (``TensorMass.repoint_elements``),
-        the new nodes take their parents' state and constraints, masses and gravity follow.
-        False, having changed nothing, where there is no room (spare rows, a plan's slots)."""
+        """The cut ``result`` of body i (its elements before: ``elements``, like the result's on
+        the host) done in place, in the body's spare rows: the model re-points the elements
+        (``TensorMass.repoint_elements``), the new nodes take their parents' state and
+        constraints, masses and gravity follow. False, having changed nothing, where there is no
+        room (spare rows, a plan's slots)."""
         used, first = self.used_nodes[i], self.ptr[i]
         added = result.new_nodes
         if used + added > self.ptr[i + 1] - first:
@@ -574,19 +600,21 @@ class Simulator:
         changed = torch.nonzero((result.elements != elements).any(1)).flatten()
         if changed.numel() == 0:  # faces parted along a slit's front, no node split yet
             return True
-        new_nodes = torch.arange(first + used, first + used + added, device=self.device)
-        parents = result.parents[used:].to(self.device) + first
+        new_nodes = torch.arange(first + used, first + used + added)
+        parents = result.parents[used:] + first
         try:
             stale = self.model.repoint_elements(changed + self.element_ptr[i], result.elements[changed] + first,
                                                 new_nodes, parents)
         except CapacityError:
             return False
+        sent = upload({"new_nodes": new_nodes, "parents": parents}, self.device)
+        new_nodes, parents = sent["new_nodes"], sent["parents"]
         with torch.no_grad():
             self.x[new_nodes] = self.x[parents]
             self.v[new_nodes] = self.v[parents]
         self.fixed[new_nodes] = self.fixed[parents]
         self.prescribed[new_nodes] = self.prescribed[parents]
-        self.bodies[i] = self._cut_body(self.bodies[i], result)
+        self.bodies[i] = self._cut_body(self.bodies[i], result, changed)
         self.used_nodes[i] = used + added
         if stale:  # a new integrator view: its CUDA graphs captured again
             self._make_system()

@@ -14,6 +14,8 @@ from test_topology_changes import BACKENDS, CASE_IDS, CASES, DEVICES, assert_sam
 import tensormass_torch as tm
 from tensormass_torch.errors import CapacityError, SceneError
 from tensormass_torch.mesh import cutting
+from tensormass_torch.ops import node_graph
+from tensormass_torch.physics.groups import ElementGroup
 
 CASES_3D = [(case, name) for case, name in zip(CASES, CASE_IDS) if case[1] == 3]
 
@@ -21,6 +23,16 @@ CASES_3D = [(case, name) for case, name in zip(CASES, CASE_IDS) if case[1] == 3]
 @pytest.fixture(params=BACKENDS)
 def backend(request, monkeypatch):
     monkeypatch.setenv("TENSORMASS_BACKEND", request.param)
+    return request.param
+
+
+@pytest.fixture(params=["own tables", "host copies"])
+def planned_on(request, monkeypatch):
+    """Where a cut is planned: the model's own tables (a model on the CPU) or host copies of
+    them (a model on an accelerator: ``ElementGroup.cut_tables``), made here on the CPU too so
+    that that path is checked on every machine."""
+    if request.param == "host copies":
+        monkeypatch.setattr(ElementGroup, "_plans_on_a_copy", lambda self: True)
     return request.param
 
 
@@ -55,7 +67,7 @@ class Used:
 
 
 @pytest.mark.parametrize("case", [c for c, _ in CASES_3D], ids=[n for _, n in CASES_3D])
-def test_cuts_in_place_leave_the_model_of_the_cut_mesh(backend, case):
+def test_cuts_in_place_leave_the_model_of_the_cut_mesh(backend, planned_on, case):
     kind, dim, model_name, form, rotation = case
     mesh = mesh_of(kind, dim)
     count, spare = mesh.elements.shape[0], 40
@@ -116,7 +128,7 @@ def node_graph_storage(model):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("scene", SCENES)
-def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(device, scene):
+def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(device, planned_on, scene):
     """Bodies with spare rows cut between steps (through, then a slit), with removals between:
     the steps after each cut equal those of a simulator built from the cut meshes at the same
     state; nothing was rebuilt (the model, and for the hooke tensor form the integrator with its
@@ -163,6 +175,13 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
             torch.testing.assert_close(sim.velocities(i), fresh.velocities(i), rtol=1e-12, atol=1e-12)
     if scene == "hooke":
         assert node_graph_storage(model) == graphs  # written in place, not built again
+        group = model.groups[0]  # its node graph in node order, as one built from its edges now
+        neighbor, node_k = group.__dict__["_native_node_graph"][2]
+        fresh_neighbor, fresh_node_k = node_graph.graph_of_edges(group.edges, group.plan.force_index,
+                                                                 group.plan.num_slots, group.num_nodes, group.edge_k)
+        read = torch.arange(neighbor.shape[0], device=neighbor.device)[:, None] < group.plan.incidences[None, :]
+        assert torch.equal(neighbor[read], fresh_neighbor.to(neighbor.dtype)[read])
+        assert torch.equal(node_k[read], fresh_node_k[read])
 
 
 def test_a_cut_with_no_room_builds_the_simulator_again_with_room_and_the_next_cuts_run_in_place():
