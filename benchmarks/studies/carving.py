@@ -2,7 +2,7 @@
 
     python benchmarks/studies/carving.py [--device cuda] [--scenes sofa,paper] [--models hooke,corotational]
                                          [--counts 10,100,1000,10000] [--scale 1] [--steps 50]
-                                         [--out benchmarks/results/carving] [--quick]
+                                         [--cut-depths 0.25,0.5,1] [--out benchmarks/results/carving] [--quick]
 
 On SOFA's beam (101,250 tets; ``--scale`` divides its resolution) and the paper's beam (307,200
 tets, resolution 4 / scale), for R removed elements (the R elements nearest the beam's middle
@@ -15,6 +15,9 @@ of the remaining elements and building a ``Simulator`` of them up to its first s
 user would do without removals: node graph, captured graphs). Synchronised wall clock. Then the
 SOFA beam's steps/s without removals, with 10 elements removed before every step (one
 ``sim.step()`` call per step in both), and with a scalpel crossing its middle over the steps.
+Cuts: one ``Simulator.cut`` across the middle section, from the top down through each of
+``--cut-depths`` of the height (in place, in spare rows, after a small untimed cut; the elements
+it re-points counted) against a simulator of the cut mesh up to its first step.
 """
 from __future__ import annotations
 
@@ -37,8 +40,10 @@ COLUMNS = [("scene", "scene", None), ("model", "model", None), ("form", "form", 
            ("removed", "removed", None), ("remove_ms", "model: remove ms", ".3f"),
            ("rebuild_ms", "model: rebuild ms", ".2f"), ("speedup", "rebuild / remove", ".1f"),
            ("sim_remove_ms", "simulator: remove ms", ".3f"),
+           ("cut_elements", "cut: elements re-pointed", None), ("cut_nodes", "cut: nodes added", None),
+           ("cut_ms", "simulator: cut ms", ".3f"),
            ("sim_rebuild_ms", "simulator: rebuild to a step ms", ".1f"),
-           ("sim_speedup", "rebuild / remove", ".0f"), ("steps_per_s", "steps/s", ".1f"),
+           ("sim_speedup", "rebuild / change", ".0f"), ("steps_per_s", "steps/s", ".1f"),
            ("removed_per_step", "removed per step", None)]
 
 
@@ -76,13 +81,15 @@ def main(argv=None):
     p.add_argument("--scenes", default="sofa,paper")
     p.add_argument("--models", default="hooke,corotational")
     p.add_argument("--counts", default="10,100,1000,10000")
+    p.add_argument("--cut-depths", default="0.25,0.5,1", help="cuts down from the top through these fractions "
+                   "of the beam's height")
     p.add_argument("--scale", type=int, default=1)
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--out", default="benchmarks/results/carving")
     p.add_argument("--quick", action="store_true", help="the beams at 1/5 resolution, 10 and 100 removed, 5 steps")
     args = p.parse_args(argv)
     if args.quick:
-        args.scale, args.counts, args.steps = 5, "10,100", 5
+        args.scale, args.counts, args.steps, args.cut_depths = 5, "10,100", 5, "0.5"
     device = args.device
     results = common.Results(args.out, "carving", "Carving: in-place removal against a rebuild",
                              common.metadata(device, scale=args.scale),
@@ -142,6 +149,8 @@ def measure_scene(results, scene_name, model_name, device, args):
         results.add(common.record(**same, removed=count, remove_ms=1e3 * remove_s, rebuild_ms=1e3 * rebuild_s,
                                   speedup=rebuild_s / remove_s, sim_remove_ms=1e3 * sim_remove_s,
                                   sim_rebuild_ms=1e3 * sim_rebuild_s, sim_speedup=sim_rebuild_s / sim_remove_s))
+    for depth in (float(d) for d in args.cut_depths.split(",") if d):
+        measure_cut(results, same, scene_name, model_name, device, args, middle, depth)
     if scene_name != "sofa":
         return
     for per_step in (0, 10):
@@ -176,6 +185,49 @@ def measure_scene(results, scene_name, model_name, device, args):
                               note=f"a scalpel across the middle over these steps: {added} nodes added, cuts in "
                                    f"place (the first step's cut, untimed, {1e3 * first:.0f} ms, built the "
                                    "simulator again with spare rows)"))
+
+
+def measure_cut(results, same, scene_name, model_name, device, args, middle, depth):
+    """A cut across the beam's middle section from the top down through ``depth`` of its height
+    (``Simulator.cut`` in place, in spare rows, between steps whose graphs are captured; a
+    small cut near the free end before it, untimed, makes what cuts in place keep) against a
+    simulator of the cut mesh up to its first step."""
+    scene = scene_of(scene_name, model_name, device, args.scale)
+    init, bodies = dict(scene.simulator._init_args), scene.simulator.bodies
+    sim = tm.Simulator(bodies, **init, spare_nodes=4096)
+    sim.step(3)
+    vertices = bodies[0].mesh.vertices
+    bottom, top = float(vertices[:, 1].min()), float(vertices[:, 1].max())
+    z0, z1 = float(vertices[:, 2].min()) - 1.0, float(vertices[:, 2].max()) + 1.0
+    layers = torch.unique(vertices[:, 0])
+    near_end = float(layers[-2:].mean())  # between the last two layers of nodes
+    shallow = top - 0.3 * (top - bottom)
+    sim.cut(0, tm.Blade.swept((near_end, top + 1, z0), (near_end, top + 1, z1), (near_end, shallow, z0),
+                              (near_end, shallow, z1)))
+    sim.step()
+    before = sim.bodies[0].mesh
+    lowest = top - depth * (top - bottom) - (0.01 * (top - bottom) if depth >= 1 else 0.0)
+    # off the middle by a tenth of a cell: a plane through the cells' centres passes through
+    # centroids, and a segment that only touches the blade is not cut
+    x = middle + 0.1 * float(layers[1] - layers[0])
+    blade = tm.Blade.swept((x, top + 1, z0), (x, top + 1, z1), (x, lowest, z0), (x, lowest, z1))
+    cut_s = timed(lambda _: sim.cut(0, blade), device, repeat=1, warmup=0)
+    after = sim.bodies[0].mesh
+    changed = int((after.elements.to(before.elements.device) != before.elements).any(1).sum())
+    added = after.num_vertices - before.num_vertices
+    alive = [torch.nonzero(~sim.alive_elements(k)).flatten() for k in range(sim.num_bodies)]
+
+    def rebuilt(_):
+        fresh = tm.Simulator(sim.bodies, **init)
+        for k, ids in enumerate(alive):
+            if ids.numel():
+                fresh.remove_elements(k, ids)
+        fresh.step()
+
+    rebuild_s = timed(rebuilt, device, repeat=1)
+    results.add(common.record(**same, cut_elements=changed, cut_nodes=added, cut_ms=1e3 * cut_s,
+                              sim_rebuild_ms=1e3 * rebuild_s, sim_speedup=rebuild_s / cut_s,
+                              note=f"a cut down through {depth:g} of the height at the middle, in place"))
 
 
 if __name__ == "__main__":

@@ -195,3 +195,5 @@ def test_carving_quick(tmp_path):
     assert {r["model"] for r in records} == {"hooke", "corotational"}
     assert all(r["remove_ms"] > 0 and r["rebuild_ms"] > 0 for r in records if r.get("removed"))
     assert {r.get("removed_per_step") for r in records if r["steps_per_s"]} == {0, 10}
+    cuts = [r for r in records if r.get("cut_ms")]
+    assert len(cuts) == 4 and all(r["cut_elements"] > 0 and r["cut_nodes"] > 0 for r in cuts)
