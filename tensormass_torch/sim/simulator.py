@@ -12,6 +12,7 @@ from ..errors import CapacityError, MeshError, SceneError, SolverError
 from ..mesh import cutting
 from ..mesh.cutting import Blade
 from ..mesh.meshes import Mesh
+from ..ops import node_graph
 from ..ops.segments import Segments
 from ..ops.topology import upload
 from ..physics.constraints import node_mask
@@ -602,11 +603,17 @@ class Simulator:
             return True
         new_nodes = torch.arange(first + used, first + used + added)
         parents = result.parents[used:] + first
+        edges = [g.edges for g in self.model.groups if g.form == "tensor" and g.model == "hooke"]
         try:
             stale = self.model.repoint_elements(changed + self.element_ptr[i], result.elements[changed] + first,
                                                 new_nodes, parents)
         except CapacityError:
             return False
+        # a cut that adds edges moves a hooke tensor-form group's edge arrays (edges, edge_k, the
+        # plan's native copies): captured launches that read them must be captured again
+        moved = any(g.edges is not e for g, e in zip([g for g in self.model.groups if g.form == "tensor"
+                                                      and g.model == "hooke"], edges))
+        stale = stale or (moved and self._captures_read_edges())
         sent = upload({"new_nodes": new_nodes, "parents": parents}, self.device)
         new_nodes, parents = sent["new_nodes"], sent["parents"]
         with torch.no_grad():
@@ -625,6 +632,14 @@ class Simulator:
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
         return True
+
+    def _captures_read_edges(self) -> bool:
+        """Whether the integrator's captured launches may read a hooke tensor-form group's edge
+        arrays: unless the model is one such group whose step and products all run over its node
+        graph (written in place by a cut), as on a GPU with the default kernels."""
+        groups, variants = self.model.groups, self.options.variants
+        return not (len(groups) == 1 and variants.hooke_matvec == "node"
+                    and node_graph.step_rhs_serves(groups[0], (), variants))
 
     def _rebuild_with_room(self, i: int, result) -> None:
         """The simulator built again around body i cut (``result``), with spare rows for the cuts

@@ -1,0 +1,357 @@
+"""The cutting op (``ops.cutting``: ``cutting_cut_mesh``, ``cut_mesh``) computes what
+``mesh.cutting.cut`` computes, bit for bit (elements, parents, the pairs cut, the slit): on
+tetrahedra and membranes in 3-D, float64 and float32, int32 and int64 elements, cuts through a
+section and partial ones, with removed elements, a second cut after the first's slit, random blades,
+deformed positions, blades laid exactly through nodes and centroids (where the rounding of each
+step decides), a large mesh whose reach the op must measure twice, and the SOFA beam; whatever the
+number of threads and the build of torch's kernels. A blade that misses returns the mesh as it
+was; bad arguments raise naming them; ``opcheck`` passes; ``cut_mesh`` brings CUDA results back
+to CUDA. Pairs that share no face are ignored (where ``cut`` may take one for another pair)."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.errors import MeshError
+from tensormass_torch.mesh import cutting
+from tensormass_torch.ops import cutting as ops_cutting
+from tensormass_torch.ops import library
+
+pytestmark = pytest.mark.skipif(not library.ensure_registered(), reason="the compiled extension is not available")
+FIELDS = ("elements", "parents", "cut_first", "cut_second", "slit")
+DTYPES = [torch.float64, torch.float32]
+DTYPE_IDS = ["float64", "float32"]
+
+
+def op(*args):
+    return library.op("cutting_cut_mesh")(*args)
+
+
+def tet_mesh():
+    return tm.beam_mesh(5, 3, 3, size=(1.0, 0.6, 0.6), dtype=torch.float64)
+
+
+def membrane():
+    return tm.beam_tri_mesh(8, 5, size=(1.0, 0.6), dim=3, dtype=torch.float64)
+
+
+MESHES = {"tet": tet_mesh, "tet_uniform": lambda: tm.beam_mesh(4, 3, 2, size=(1.0, 0.6, 0.4), cut="uniform",
+                                                                dtype=torch.float64),
+          "membrane": membrane}
+
+
+def plane_blade(x, y_high=2.0, z=(-1.0, 2.0)):
+    """The plane x = const for y <= y_high (a partial cut below 1)."""
+    return cutting.Blade.swept((x, -1, z[0]), (x, y_high, z[0]), (x, -1, z[1]), (x, y_high, z[1]))
+
+
+def random_blade(gen, center_scale=(1.0, 0.6, 0.6)):
+    """A quad through a random point of the box, randomly oriented, of random size."""
+    rand = lambda *s: torch.rand(*s, generator=gen, dtype=torch.float64)
+    c = rand(3) * torch.tensor(center_scale, dtype=torch.float64)
+    n = torch.nn.functional.normalize(rand(3) - 0.5, dim=0)
+    t1 = torch.nn.functional.normalize(torch.linalg.cross(n, rand(3) - 0.5), dim=0)
+    t2 = torch.linalg.cross(n, t1)
+    s1, s2 = 0.2 + float(rand(())), 0.2 + float(rand(()))
+    p = [c - s1 * t1 - s2 * t2, c + s1 * t1 - s2 * t2, c + s1 * t1 + s2 * t2, c - s1 * t1 + s2 * t2]
+    return cutting.Blade.swept(p[0].tolist(), p[1].tolist(), p[3].tolist(), p[2].tolist())
+
+
+def deformed(vertices, gen, amount=0.02):
+    """The vertices randomly moved by up to amount / 2 per axis (below a fifth of the cells: no
+    element inverts)."""
+    return vertices + amount * (torch.rand(vertices.shape, generator=gen, dtype=torch.float64) - 0.5)
+
+
+def reference(elements, num_nodes, x, blade, removed=None, slit=None):
+    """mesh.cutting.cut, the oracle (its split assigns int64 ids into the elements: it takes int64
+    elements only; the op keeps int32 ones int32), or None where it raises."""
+    try:
+        return cutting.cut(elements.long(), num_nodes, x, blade, removed, slit)
+    except MeshError:
+        return None
+
+
+def assert_same(got, want):
+    for field in FIELDS:
+        a, b = getattr(got, field), getattr(want, field)
+        if field == "elements":
+            assert a.dtype in (torch.int32, torch.int64)
+            b = b.to(a.dtype)
+        assert a.dtype == b.dtype, field
+        assert torch.equal(a, b), f"{field} differs"
+    assert got.num_old_nodes == want.num_old_nodes
+
+
+def check(elements, num_nodes, x, blade, removed=None, slit=None):
+    """The op (through cut_mesh) against the reference; returns the reference's result (None where
+    the blade misses, and then the op raises the same)."""
+    want = reference(elements, num_nodes, x, blade, removed, slit)
+    if want is None:
+        with pytest.raises(MeshError, match="crosses no interior face"):
+            ops_cutting.cut_mesh(elements, num_nodes, x, blade, removed, slit)
+        return None
+    got = ops_cutting.cut_mesh(elements, num_nodes, x, blade, removed, slit)
+    assert_same(got, want)
+    assert got.elements.dtype == elements.dtype
+    return want
+
+
+@pytest.mark.parametrize("index", [torch.int64, torch.int32], ids=["int64", "int32"])
+@pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
+@pytest.mark.parametrize("kind", list(MESHES))
+def test_cuts_through_a_section_and_partial_ones_equal_the_reference(kind, dtype, index):
+    mesh = MESHES[kind]()
+    x = mesh.vertices.to(dtype)
+    elements = mesh.elements.to(index)
+    full = check(elements, mesh.num_vertices, x, plane_blade(0.51))
+    assert full is not None and full.new_nodes > 0
+    partial = check(elements, mesh.num_vertices, x, plane_blade(0.51, y_high=0.25))
+    assert partial is not None and 0 < partial.new_nodes < full.new_nodes
+    # a slit: a blade ending inside the body, oblique so that faces stay joined along its front
+    slanted = cutting.Blade.swept((0.53, -1, -1), (0.47, 0.33, -1), (0.53, -1, 2), (0.47, 0.33, 2))
+    check(elements, mesh.num_vertices, x, slanted)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
+@pytest.mark.parametrize("kind", list(MESHES))
+def test_removed_elements_slits_and_successive_cuts_equal_the_reference(kind, dtype):
+    mesh = MESHES[kind]()
+    gen = torch.Generator().manual_seed(5)
+    n = mesh.elements.shape[0]
+    removed = torch.rand(n, generator=gen) < 0.15
+    x = deformed(mesh.vertices, gen).to(dtype)
+    elements, num_nodes, slit, cuts = mesh.elements, mesh.num_vertices, None, 0
+    # a scalpel going down in strips: each cut with the previous one's elements and slit
+    for step in range(6):
+        top = 0.62 - 0.1 * step
+        blade = cutting.Blade.swept((0.55, top, -1), (0.55, top, 2), (0.45, top - 0.12, -1), (0.45, top - 0.12, 2))
+        want = check(elements, num_nodes, x, blade, removed, slit)
+        if want is None:
+            continue
+        cuts += 1
+        elements, slit = want.elements, want.slit
+        x = x[want.parents]
+        num_nodes = x.shape[0]
+    assert cuts >= 3
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
+@pytest.mark.parametrize("kind", list(MESHES))
+def test_random_blades_on_deformed_meshes_equal_the_reference(kind, dtype):
+    mesh = MESHES[kind]()
+    gen = torch.Generator().manual_seed(11)
+    crossed = 0
+    for trial in range(40):
+        x = deformed(mesh.vertices, gen).to(dtype)
+        removed = (torch.rand(mesh.elements.shape[0], generator=gen) < 0.1) if trial % 3 == 0 else None
+        elements, num_nodes, slit = mesh.elements.to(torch.int32 if trial % 2 else torch.int64), mesh.num_vertices, None
+        for _ in range(2):
+            want = check(elements, num_nodes, x, random_blade(gen), removed, slit)
+            if want is None:
+                continue
+            crossed += 1
+            elements, slit = want.elements.to(elements.dtype), want.slit
+            x = x[want.parents]
+            num_nodes = x.shape[0]
+    assert crossed >= 30
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
+def test_blades_through_nodes_and_centroids_equal_the_reference(dtype):
+    """Planes laid exactly through grid nodes and element centroids: segments that end on the
+    blade or run along its edges, where each step's rounding decides (the cross products and
+    norms round as torch's kernels do)."""
+    mesh = tm.beam_mesh(6, 3, 3, size=(1.2, 0.6, 0.6), dtype=torch.float64)
+    x = mesh.vertices.to(dtype)
+    centroid_planes = torch.unique(x[mesh.elements].mean(1)[:, 0]).tolist()[:8]
+    crossed = 0
+    for px in [0.2 * i for i in range(7)] + centroid_planes:
+        for y_high in (0.6, 0.3, 0.2, 0.1):
+            for z in ((-1.0, 2.0), (0.0, 0.6), (0.2, 0.4)):
+                for blade in (plane_blade(px, y_high, z),
+                              cutting.Blade.swept((px, y_high, z[0]), (px, y_high, z[1]), (px - 0.2, y_high - 0.2, z[0]),
+                                                  (px - 0.2, y_high - 0.2, z[1]))):
+                    crossed += check(mesh.elements, mesh.num_vertices, x, blade) is not None
+    assert crossed > 200
+
+
+def test_a_large_mesh_whose_reach_is_measured_again_equals_the_reference():
+    """A mesh large enough that the op guesses the reach (the largest node-to-centroid distance)
+    from a sample of its elements: with every sampled element removed, or one node pulled far
+    away, the guess falls short and the op looks at the elements again."""
+    mesh = tm.beam_mesh(16, 6, 6, size=(1.6, 0.6, 0.6), dtype=torch.float64)
+    n = mesh.elements.shape[0]
+    gen = torch.Generator().manual_seed(2)
+    sampled = torch.arange(n) % (n // 512) == 0  # the op's sample: every (N // 512)-th element
+    pulled = mesh.vertices.clone()
+    pulled[mesh.elements[7, 1]] += torch.tensor([0.0, 0.9, 0.4], dtype=torch.float64)
+    crossed = 0
+    for x, removed in ((mesh.vertices, sampled), (pulled, None), (deformed(mesh.vertices, gen), None)):
+        for dtype in DTYPES:
+            for px in (0.05, 0.43, 0.97, 1.52):
+                for top in (0.62, 0.3):
+                    blade = cutting.Blade.swept((px, top, -1), (px, top, 2), (px + 0.02, top - 0.2, -1),
+                                                (px, top - 0.2, 2))
+                    crossed += check(mesh.elements, mesh.num_vertices, x.to(dtype), blade, removed) is not None
+    assert crossed >= 40
+
+
+@pytest.mark.parametrize("kind", ["tet", "membrane"])
+def test_node_ids_past_21_bits_equal_the_reference(kind):
+    """Node ids of 2**21 and more (the op's face keys no longer fit in one word)."""
+    mesh = MESHES[kind]()
+    offset = 2**21
+    x = torch.zeros((offset + mesh.num_vertices, 3), dtype=torch.float32)
+    x[offset:] = mesh.vertices.float()
+    elements = (mesh.elements + offset).to(torch.int32)
+    first = check(elements, x.shape[0], x, plane_blade(0.51, 0.25))
+    assert first is not None and first.new_nodes > 0
+    check(first.elements, first.parents.shape[0], x[first.parents], plane_blade(0.71), slit=first.slit)
+
+
+def test_the_sofa_beam_strip_equals_the_reference():
+    from tensormass_torch.sim import builtin
+
+    mesh = builtin.sofa_beam().simulator.bodies[0].mesh  # float32, 101,250 tetrahedra
+    blade = cutting.Blade.swept((9.55, 8.0, -3), (9.55, 8.0, 3), (9.55, 7.73, -3), (9.55, 7.73, 3))
+    want = check(mesh.elements, mesh.num_vertices, mesh.vertices, blade)
+    assert want is not None and want.cut_first.numel() > 10
+
+
+def test_the_result_does_not_depend_on_the_number_of_threads():
+    mesh = tm.beam_mesh(16, 6, 6, size=(1.6, 0.6, 0.6), dtype=torch.float64)
+    x = deformed(mesh.vertices, torch.Generator().manual_seed(4))
+    alive = torch.ones(mesh.elements.shape[0], dtype=torch.bool)
+    blade = plane_blade(0.83, 0.35)
+    args = (mesh.elements, alive, x, blade.vertices, blade.triangles, torch.zeros((0, 2), dtype=torch.int64))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = op(*args)
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(one, op(*args)):
+        assert torch.equal(a, b)
+
+
+def test_the_cut_follows_the_rounding_of_torchs_default_kernels():
+    """With ATEN_CPU_CAPABILITY=default torch's cross products and norms round each product (its
+    vectorised builds fuse them): the op asks torch which, and still equals the reference."""
+    code = ("import sys, torch; sys.path.insert(0, {tests!r}); import test_cutting_ops as t;"
+            "t.test_blades_through_nodes_and_centroids_equal_the_reference(torch.float64);"
+            "t.test_blades_through_nodes_and_centroids_equal_the_reference(torch.float32)")
+    env = dict(os.environ, ATEN_CPU_CAPABILITY="default")
+    done = subprocess.run([sys.executable, "-c", code.format(tests=os.path.dirname(__file__))], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+@pytest.mark.parametrize("kind", list(MESHES))
+def test_a_blade_that_misses_returns_the_mesh_unchanged(kind):
+    mesh = MESHES[kind]()
+    n = mesh.elements.shape[0]
+    first, second, _ = cutting.interior_faces(mesh.elements)
+    removed = torch.zeros(n, dtype=torch.bool)
+    removed[second[1]] = True
+    slit = torch.stack([first[:3], second[:3]], 1)  # a removed element in the second row
+    alive = ~removed
+    far = plane_blade(5.0)
+    out = op(mesh.elements, alive, mesh.vertices, far.vertices, far.triangles, slit)
+    assert torch.equal(out[0], mesh.elements) and out[0].data_ptr() != mesh.elements.data_ptr()
+    assert torch.equal(out[1], torch.arange(mesh.num_vertices))
+    assert out[2].shape == (0,) and out[3].shape == (0,) and out[2].dtype == torch.int64
+    kept = alive[slit].all(1)
+    assert not bool(kept.all()) and torch.equal(out[4], slit[kept])  # the alive rows (which share their face)
+    with pytest.raises(MeshError, match="crosses no interior face"):
+        ops_cutting.cut_mesh(mesh.elements, mesh.num_vertices, mesh.vertices, far, removed, slit)
+    with pytest.raises(MeshError, match="crosses no interior face"):
+        cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices, far, removed, slit)
+
+
+def test_pairs_that_share_no_face_are_ignored():
+    """A slit row whose elements share no face parts nothing: the op's result is the cut without
+    it. (mesh.cutting.cut looks the parted faces up by the rows' positions among the elements
+    around the cut, where such a row can stand for another pair: here it splits a fifth node.)"""
+    mesh = tm.beam_mesh(4, 3, 3, size=(1.0, 0.6, 0.6), dtype=torch.float64)
+    blade = plane_blade(0.3, 0.1)
+    strangers = torch.tensor([[12, 26]])  # no node in common
+    got = ops_cutting.cut_mesh(mesh.elements, mesh.num_vertices, mesh.vertices, blade, slit=strangers)
+    without = cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices, blade)
+    for field in ("elements", "parents", "cut_first", "cut_second"):
+        assert torch.equal(getattr(got, field), getattr(without, field))
+    assert got.new_nodes == 4 and got.slit.shape == (0, 2)
+    assert cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices, blade, slit=strangers).new_nodes == 5
+
+
+def _args(dtype=torch.float64):
+    mesh = tet_mesh()
+    blade = plane_blade(0.51)
+    return dict(elements=mesh.elements, alive=torch.ones(mesh.elements.shape[0], dtype=torch.bool),
+                x=mesh.vertices.to(dtype), blade_vertices=blade.vertices.to(dtype), blade_triangles=blade.triangles,
+                slit=torch.zeros((0, 2), dtype=torch.int64))
+
+
+@pytest.mark.parametrize("change,message", [
+    (dict(elements=lambda a: a["elements"].float()), "elements must be int64 or int32"),
+    (dict(elements=lambda a: a["elements"][:, :2].contiguous()), r"elements must be \[N, 4\]"),
+    (dict(elements=lambda a: a["elements"].t().contiguous().t()), "elements must be contiguous"),
+    (dict(elements=lambda a: torch.where(a["elements"] == 7, 10**6, a["elements"])), "elements: alive element .* outside"),
+    (dict(alive=lambda a: a["alive"].int()), "alive must be bool"),
+    (dict(alive=lambda a: a["alive"][1:]), "alive has shape"),
+    (dict(x=lambda a: a["x"][:, :2].contiguous()), r"x must be \[V, 3\]"),
+    (dict(x=lambda a: a["x"].half()), "x must be float32 or float64"),
+    (dict(x=lambda a: a["x"][:-1]), "elements: alive element .* outside"),
+    (dict(blade_vertices=lambda a: a["blade_vertices"].float()), "blade_vertices is Float but x is Double"),
+    (dict(blade_vertices=lambda a: a["blade_vertices"][:, :2].contiguous()), r"blade_vertices must be \[B >= 1, 3\]"),
+    (dict(blade_triangles=lambda a: a["blade_triangles"].int()), "blade_triangles must be int64"),
+    (dict(blade_triangles=lambda a: a["blade_triangles"][:0]), r"blade_triangles must be \[T >= 1, 3\]"),
+    (dict(blade_triangles=lambda a: a["blade_triangles"] + 2), "blade_triangles holds 4, outside the 4 blade_vertices"),
+    (dict(slit=lambda a: torch.tensor([[0, 1]], dtype=torch.int32)), "slit must be int64"),
+    (dict(slit=lambda a: torch.tensor([0, 1])), r"slit must be \[S, 2\]"),
+    (dict(slit=lambda a: torch.tensor([[0, 10**6]])), "slit holds element 1000000, outside the 270 elements"),
+])
+def test_bad_arguments_raise_naming_them(change, message):
+    args = _args()
+    for name, make in change.items():
+        args[name] = make(args)
+    with pytest.raises(RuntimeError, match=message):
+        op(*args.values())
+
+
+def test_cut_mesh_refuses_positions_of_the_wrong_shape():
+    mesh = tet_mesh()
+    for x in (mesh.vertices[:, :2], mesh.vertices[:-1]):
+        with pytest.raises(MeshError, match=r"positions must be \[96, 3\]"):
+            ops_cutting.cut_mesh(mesh.elements, mesh.num_vertices, x, plane_blade(0.51))
+
+
+def test_opcheck_on_the_example():
+    d = library.REGISTRY["cutting_cut_mesh"]
+    for dtype in DTYPES:
+        args, kwargs = d.example("cpu", dtype)
+        torch.library.opcheck(library.op("cutting_cut_mesh"), args, kwargs)
+        got = op(*args)
+        want = d.reference(*args)
+        assert got[2].numel() > 0 and got[4].numel() > 0  # the example cuts and leaves a slit
+        for a, b in zip(got, want):
+            assert torch.equal(a, b)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cut_mesh_brings_cuda_inputs_back_to_cuda():
+    mesh = tet_mesh()
+    device = torch.device("cuda")
+    removed = torch.zeros(mesh.elements.shape[0], dtype=torch.bool)
+    removed[3] = True
+    got = ops_cutting.cut_mesh(mesh.elements.to(device), mesh.num_vertices, mesh.vertices.float().to(device),
+                               plane_blade(0.51, 0.25).to(mesh.vertices.to(device)), removed.to(device))
+    want = cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices.float(), plane_blade(0.51, 0.25), removed)
+    for field in FIELDS:
+        assert getattr(got, field).device.type == "cuda", field
+        assert torch.equal(getattr(got, field).cpu(), getattr(want, field)), field
