@@ -9,10 +9,10 @@ from typing import Callable, List, Optional, Sequence
 import torch
 
 from ..errors import CapacityError, MeshError, SceneError, SolverError
-from ..mesh import cutting
 from ..mesh.cutting import Blade
 from ..mesh.meshes import Mesh
 from ..ops import node_graph
+from ..ops.cutting import cut_mesh
 from ..ops.segments import Segments
 from ..ops.topology import upload
 from ..physics.constraints import node_mask
@@ -539,8 +539,8 @@ class Simulator:
         removed = self.model.removed_host()
         removed = None if removed is None else removed[self.element_ptr[i]:self.element_ptr[i + 1]]
         try:
-            result = cutting.cut(elements, old.mesh.num_vertices, self.positions(i).to("cpu"), blade, removed,
-                                 self._slits[i])
+            result = cut_mesh(elements, old.mesh.num_vertices, self.positions(i).to("cpu"), blade, removed,
+                              self._slits[i])
         except MeshError:
             if missing_ok:
                 return 0
