@@ -16,6 +16,8 @@ plus the gather plan of the paper (``index``, ``ForceIndex``, ``N_n``) over its 
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from torch import nn
 
@@ -99,6 +101,9 @@ class ElementGroup(nn.Module):
             self.register_buffer("edges", edges)
             self.register_buffer("edge_k", edge_k)
             self.plan = GatherPlan.build(edges, self.num_nodes)
+            #: the edge rows in use, live or emptied by a cut (the rows past it: the pool cuts
+            #: take new edges from, :meth:`reserve_slots`)
+            self.edge_rows_used = edges.shape[0]
         else:
             b, c, d = tensor_form.stvk_tensors(m, measure, lam, mu, proj)
             self.register_buffer("tensor_b", b)
@@ -158,18 +163,33 @@ class ElementGroup(nn.Module):
                 tensor.index_fill_(0, rows, 0.0)
 
     # ---------------------------------------------------------------- cuts (elements re-pointed)
-    def reserve_slots(self, extra: int) -> None:
+    def reserve_slots(self, extra: int, spare_edges: int = 0) -> None:
         """Room for ``extra`` (>= 1) more items on each node of the gather plan (its
         ``num_slots``; the gathers read a node's first ``incidences`` slots only): what cuts in
         place need where a node gains items, the hooke tensor form's edges (a node split next to
         it adds an edge). The last slot is kept empty: edges a cut leaves with no element write
-        their zero there (the sink slot of node 0). Before any graph of the group is built (the
-        node graphs take their slot count from it)."""
+        their zero there (the sink slot of node 0). The hooke tensor form also gets a pool of
+        ``spare_edges`` edge rows, zero edges (0, 0) in the sink slot, from which cuts take their
+        new edges: while it lasts, a cut moves no edge array (what captured launches read). Before
+        any graph of the group is built (the node graphs take their slot count from it)."""
         if self.form == "tensor" and self.model == "hooke" and extra > 0:
             self.reserved_slots = int(extra)
-            self.plan = GatherPlan(self.plan.index, self.plan.force_index, self.plan.num_slots + int(extra),
+            sink = self.plan.num_slots + int(extra) - 1
+            edge_slots = getattr(self, "edge_slots", None)
+            self.edges, force_index, edge_slots = _edge_pool(self.edges, self.plan.force_index, edge_slots,
+                                                             int(spare_edges), sink)
+            if edge_slots is not None:
+                self.edge_slots = edge_slots
+            self._edge_k_over_edges()
+            self.plan = GatherPlan(self.edges, force_index, self.plan.num_slots + int(extra),
                                    self.plan.num_nodes, self.plan.incidences)
             self.__dict__.pop("_cut_tables", None)
+
+    def _edge_k_over_edges(self) -> None:
+        """``edge_k`` grown with zero blocks to the rows of ``edges`` (the pool's), where it has fewer."""
+        grown = self.edges.shape[0] - self.edge_k.shape[0]
+        if grown > 0:
+            self.edge_k = torch.cat([self.edge_k, self.edge_k.new_zeros((grown,) + self.edge_k.shape[1:])])
 
     def _edge_plan(self) -> bool:
         return self.form == "tensor" and self.model == "hooke"
@@ -312,19 +332,24 @@ class ElementGroup(nn.Module):
         slots_dtype = tables["edge_slots"].dtype
         moved_ids = ids.to(slots_dtype)[:, None].expand_as(moved)[moved]
         left, _ = topology.remove_from_lists(tables["edge_slots"], old_edges[moved].long(), moved_ids)
-        first_new, sink = tables["edges"].shape[0], self.plan.num_slots - 1
-        lists = torch.full((tables["edge_slots"].shape[0], edges.shape[0]), -1, dtype=slots_dtype)
+        # the new edges take the pool's first rows; a pool too small grows (the arrays move)
+        first_new, count, sink = self.edge_rows_used, edges.shape[0], self.plan.num_slots - 1
+        capacity = tables["edges"].shape[0]
+        if first_new + count > capacity:
+            grow = max(first_new + count - capacity, capacity // 8)
+            tables["edges"], tables["force_index"], tables["edge_slots"] = _edge_pool(
+                tables["edges"], tables["force_index"], tables["edge_slots"], grow, sink)
+        new_rows = torch.arange(first_new, first_new + count)
+        self.edge_rows_used = first_new + count
         # each new edge's elements in id order (ids ascending, an element once per edge)
+        lists = tables["edge_slots"][:, first_new:first_new + count]
         lists[topology.append_slots(torch.zeros_like(edge_of), edge_of), edge_of] = moved_ids
-        tables["edge_slots"] = torch.cat([tables["edge_slots"], lists], 1)
-        tables["edges"] = torch.cat([tables["edges"], edges.to(tables["edges"].dtype)])
+        tables["edges"][first_new:first_new + count] = edges.to(tables["edges"].dtype)
         new_edges = old_edges.clone()
         new_edges[moved] = (edge_of + first_new).to(old_edges.dtype)
         tables["element_edges"][rows] = new_edges
-        force_index = tables["force_index"]
-        tables["force_index"] = torch.cat([force_index, force_index.new_full(edges.shape, sink)])
         dead_items = (dead[:, None] * 2 + torch.arange(2)).reshape(-1)
-        new_items = torch.arange(2 * first_new, 2 * (first_new + edges.shape[0]))
+        new_items = torch.arange(2 * first_new, 2 * (first_new + count))
         changed_nodes, changed_items = self._edit_lists(tables, dead_items, tables["edges"][dead].reshape(-1).long(),
                                                         new_items, edges.reshape(-1))
         tables["edges"][dead] = 0  # a zero edge (0, 0) in node 0's sink slot: its partial forces, 0, never read
@@ -344,8 +369,10 @@ class ElementGroup(nn.Module):
         sends = {"refresh_rows": refresh_rows, "dead": dead, "graph_edges": graph_edges.to(rows.dtype),
                  "incidence_nodes": changed_nodes}
         if copy:
-            sends.update(slot_edges=left, slot_lists=tables["edge_slots"][:, left], new_lists=lists,
-                         new_edges=edges.to(tables["edges"].dtype), rows=rows, element_edges=new_edges, nodes=nodes,
+            slot_edges = torch.cat([left, new_rows])
+            edge_rows = torch.cat([new_rows, dead.long()])
+            sends.update(slot_edges=slot_edges, slot_lists=tables["edge_slots"][:, slot_edges], edge_rows=edge_rows,
+                         edge_values=tables["edges"][edge_rows], rows=rows, element_edges=new_edges, nodes=nodes,
                          incidences=tables["incidences"][changed_nodes], items=changed_items,
                          force_index=tables["force_index"].view(-1)[changed_items])
         return sends
@@ -381,21 +408,18 @@ class ElementGroup(nn.Module):
                                                                   "_native_by_rows_tangent")]
             return dropped[0] is not None
         if copy:
+            grow = tables["edges"].shape[0] - self.edges.shape[0]  # the pool grew with the host's
+            self.edges, self.plan.force_index, self.edge_slots = _edge_pool(
+                self.edges, self.plan.force_index, self.edge_slots, grow, self.plan.num_slots - 1)
+            self.edges.index_copy_(0, sent["edge_rows"], sent["edge_values"])
             self.edge_slots.index_copy_(1, sent["slot_edges"], sent["slot_lists"])
-            self.edge_slots = torch.cat([self.edge_slots, sent["new_lists"]], 1)
-            self.edges = torch.cat([self.edges, sent["new_edges"]])
             self.element_edges.index_copy_(0, sent["rows"], sent["element_edges"])
-            force_index = self.plan.force_index
-            force_index = torch.cat([force_index, force_index.new_empty(sent["new_edges"].shape)])
-            force_index.view(-1).index_copy_(0, sent["items"], sent["force_index"])
-            self.plan.force_index = force_index
+            self.plan.force_index.view(-1).index_copy_(0, sent["items"], sent["force_index"])
             self.plan.incidences.index_copy_(0, sent["incidence_nodes"], sent["incidences"])
-        else:
+        else:  # the tables are the group's own (new tensors where the pool grew)
             self.edge_slots, self.edges = tables["edge_slots"], tables["edges"]
             self.plan.force_index = tables["force_index"]
-        self.edges.index_fill_(0, sent["dead"], 0)
-        grown = self.edges.shape[0] - self.edge_k.shape[0]
-        self.edge_k = torch.cat([self.edge_k, self.edge_k.new_zeros((grown,) + self.edge_k.shape[1:])])
+        self._edge_k_over_edges()
         self.edge_k.index_fill_(0, sent["dead"], 0)
         self.plan.index = self.edges  # the plan (the object kept: its caches follow it) over the grown edges
         topology.refresh_hooke_edges(rest, self.elements, sent["refresh_rows"], self.element_edges, self.edge_slots,
@@ -428,3 +452,18 @@ class ElementGroup(nn.Module):
                 f"tangent={self.tangent}, "
                 f"elements={self.elements.shape[0]}, "
                 f"dim={self.dim}, N_n={self.plan.num_slots}")
+
+
+def _edge_pool(edges: torch.Tensor, force_index: torch.Tensor, edge_slots: Optional[torch.Tensor], count: int,
+               sink: int):
+    """A hooke tensor form's edge tables with ``count`` pool rows appended: zero edges (0, 0)
+    whose partial forces (0) go to node 0's sink slot ``sink`` and whose lists (``edge_slots``, if
+    made) are empty. Returns (edges ``[Ed + count, 2]``, force_index ``[Ed + count, 2]``,
+    edge_slots ``[S, Ed + count]`` or None); the tensors themselves where count is 0."""
+    if count <= 0:
+        return edges, force_index, edge_slots
+    edges = torch.cat([edges, edges.new_zeros((count, 2))])
+    force_index = torch.cat([force_index, force_index.new_full((count, 2), sink)])
+    if edge_slots is not None:
+        edge_slots = torch.cat([edge_slots, edge_slots.new_full((edge_slots.shape[0], count), -1)], 1)
+    return edges, force_index, edge_slots

@@ -19,6 +19,9 @@ from .materials import Material
 #: Picinbono's element tensors reads 25x its stress form and loses precision under large motions
 #: in float32 (the measurements: ``benchmarks/results/h200/ops_bench.md``, docs/physics.md).
 AUTO_FORM = {"hooke": "tensor", "stvk": "stress", "corotational": "stress"}
+#: Edge rows reserved per spare node for cuts in place (``TensorMass.reserve_slots``): a node a
+#: cut splits off brings 8 to 9 new edges in the tetrahedral beams' cuts.
+EDGES_PER_NEW_NODE = 10
 
 
 def _resolve_form(form: str, material) -> str:
@@ -324,13 +327,16 @@ class TensorMass(nn.Module):
                                self.mass, self.node_elements)
         return stale
 
-    def reserve_slots(self, extra: Optional[int] = None) -> None:
-        """Room for ``extra`` more slots per node in the groups whose nodes gain items when cut (the
-        hooke tensor form's edges: :meth:`ElementGroup.reserve_slots`); None: half the group's
-        slots, at least 8 (a node next to a cut gains an edge per neighbour split). Before the
-        first solve (the node graphs take their slot count from the plans)."""
+    def reserve_slots(self, extra: Optional[int] = None, spare_nodes: int = 0) -> None:
+        """Room for cuts in place in the groups whose nodes gain items when cut (the hooke tensor
+        form's edges: :meth:`ElementGroup.reserve_slots`): ``extra`` more slots per node (None:
+        half the group's slots, at least 8: a node next to a cut gains an edge per neighbour
+        split) and a pool of edge rows for the edges ``spare_nodes`` new nodes bring
+        (``EDGES_PER_NEW_NODE`` each; a cut past the pool grows it, moving the edge arrays).
+        Before the first solve (the node graphs take their slot count from the plans)."""
         for group in self.groups:
-            group.reserve_slots(max(8, group.plan.num_slots // 2) if extra is None else extra)
+            group.reserve_slots(max(8, group.plan.num_slots // 2) if extra is None else extra,
+                                EDGES_PER_NEW_NODE * int(spare_nodes))
 
     # ---------------------------------------------------------------- evaluation
     def _check_positions(self, name: str, x: torch.Tensor):

@@ -219,7 +219,7 @@ class Simulator:
         self.used_nodes = [b.mesh.num_vertices for b in bodies]
         self.model = TensorMass.packed(rest, parts, form=form)
         if any(spare):
-            self.model.reserve_slots()
+            self.model.reserve_slots(spare_nodes=sum(spare))
         self.fixed = torch.cat(fixed)
         self.prescribed = torch.cat(prescribed)
         self._has_prescribed = any(b.motion is not None for b in bodies)  # known once: no sync per step

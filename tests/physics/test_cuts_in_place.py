@@ -148,6 +148,11 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
                        device=device, spare_nodes=64)
     sim.step(3)
     model, system, graphs = sim.model, sim.system, None
+    def edge_arrays():  # the hooke tensor-form groups' edge arrays
+        return [id(t) for g in model.groups if hasattr(g, "edge_rows_used") for t in (g.edges, g.edge_k,
+                                                                                     g.plan.force_index)]
+
+    before = edge_arrays()
     cuts = [(0, tm.Blade.swept((0.61, -1, -1), (0.61, 2, -1), (0.61, -1, 2), (0.61, 2, 2))),
             (0, tm.Blade.swept((0.3, -1, -1), (0.3, 0.05, -1), (0.3, -1, 2), (0.3, 0.05, 2)))]
     if len(meshes) == 2:
@@ -157,8 +162,11 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
             sim.remove_elements(0, [0, 5])
         assert sim.cut(body, blade) > 0
         assert sim.model is model
-        if scene == "hooke" and not sim._captures_read_edges():  # no capture reads the moved edge arrays
-            assert sim.system is system
+        # the new edges taken from the pool of edge rows: no edge array moved
+        assert edge_arrays() == before
+        if scene == "hooke":
+            if device == "cpu":  # (on CUDA a chunk of the pipelined solve may outgrow its launches)
+                assert sim.system is system
             graphs = graphs or node_graph_storage(model)
         fresh = tm.Simulator(bodies_of([b.mesh for b in sim.bodies], [b.fixed for b in sim.bodies]), dt=0.01,
                              cg_tol=1e-12, device=device)
