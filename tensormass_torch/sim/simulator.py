@@ -97,6 +97,15 @@ class Body:
             raise SceneError(f"vertices {ids} belong to no element: they would have no mass; fix them or remove them")
         self.velocity = velocity
 
+    @classmethod
+    def _trusted(cls, mesh, material: Material, fixed: torch.Tensor, prescribed: torch.Tensor, motion, name) -> "Body":
+        """A body of data known to be valid (a valid body's cut: masks ``[V]`` on the mesh's
+        device, motion with prescribed nodes), built with no check (no device read)."""
+        body = cls.__new__(cls)
+        body.mesh, body.material, body.name = mesh, material, name
+        body.fixed, body.prescribed, body.motion, body.velocity = fixed, prescribed, motion, None
+        return body
+
 
 class Simulator:
     """Implicit Euler simulation of several bodies as one packed batch.
@@ -573,7 +582,7 @@ class Simulator:
         else:  # the rows that changed written into a copy on the device
             elements = old.mesh.elements.clone()
             elements[changed.to(device)] = result.elements[changed].to(device, elements.dtype)
-        mesh = type(old.mesh)(vertices, elements, check=False)
+        mesh = type(old.mesh)._trusted(vertices, elements)
         fixed = torch.cat([old.fixed, old.fixed[new_parents]])
         prescribed = torch.cat([old.prescribed, old.prescribed[new_parents]])
         motion = None
@@ -586,7 +595,7 @@ class Simulator:
             def motion(t, follow=old.motion, pick=pick):
                 goal = torch.as_tensor(follow(t))
                 return goal[pick.to(goal.device)]
-        return Body(mesh, old.material, fixed=fixed, prescribed=prescribed, motion=motion, name=old.name)
+        return Body._trusted(mesh, old.material, fixed, prescribed, motion, old.name)
 
     def _cut_in_place(self, i: int, elements: torch.Tensor, result) -> bool:
         """The cut ``result`` of body i (its elements before: ``elements``, like the result's on
@@ -622,6 +631,8 @@ class Simulator:
         self.fixed[new_nodes] = self.fixed[parents]
         self.prescribed[new_nodes] = self.prescribed[parents]
         self.bodies[i] = self._cut_body(self.bodies[i], result, changed)
+        if i in self._host_meshes:  # the cut's elements are the new mesh's on the host
+            self._host_meshes[i] = (self.bodies[i].mesh.elements, result.elements)
         self.used_nodes[i] = used + added
         if stale:  # a new integrator view: its CUDA graphs captured again
             self._make_system()
