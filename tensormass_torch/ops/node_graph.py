@@ -474,29 +474,102 @@ def tangent_graph(group, window: int = DEFAULT.node_graph_window):
 
 
 def _tangent_edge_graph(group):
-    """tangent_graph's (EdgeGraph, neighbor, incidences) in node order, cached on the group."""
-    from ..mesh.topology import EdgeGraph
-
+    """tangent_graph's (EdgeGraph, neighbor, incidences) in node order, cached on the group (with
+    the room of ``group.reserved_slots`` and ``reserved_edges``: :func:`_padded_edge_graph`)."""
     elements = group.elements
     cache = group.__dict__.get("_native_tangent_graph")
     if unchanged(cache, (elements,)):
         return cache[2]
-    dtype = plan_indices(group.plan)[0].dtype  # the elements' (every index tensor of the op has one dtype)
-    graph = EdgeGraph.build(elements.long(), group.num_nodes)
-    plan = graph.plan
-
-    def native(t):
-        return t.to(dtype).contiguous()
-
-    graph = type(graph)(native(graph.edges), native(graph.element_edges), native(graph.edge_slots),
-                        graph.num_edge_slots, native(graph.edge_counts),
-                        type(plan)(native(plan.index), native(plan.force_index), plan.num_slots, plan.num_nodes,
-                                   native(plan.incidences)), native(graph.slot_edge))
+    graph = _built_tangent_graph(group)
+    if group.reserved_slots:  # room for cuts, written in place (tangent_topology_changed)
+        graph = _padded_edge_graph(graph, graph.plan.num_slots + group.reserved_slots,
+                                   graph.edges.shape[0] + group.reserved_edges, graph.num_edge_slots)
     plan = graph.plan
     value = (graph, _edge_neighbors(plan.index, plan.force_index, plan.num_slots, plan.num_nodes),
              plan.incidences)
     group.__dict__["_native_tangent_graph"] = _stamped((elements,), value)
     return value
+
+
+def _built_tangent_graph(group):
+    """The EdgeGraph of the group's elements, its index tensors of the plan's native dtype."""
+    from ..mesh.topology import EdgeGraph
+
+    dtype = plan_indices(group.plan)[0].dtype  # the elements' (every index tensor of the op has one dtype)
+    graph = EdgeGraph.build(group.elements.long(), group.num_nodes)
+    plan = graph.plan
+
+    def native(t):
+        return t.to(dtype).contiguous()
+
+    return type(graph)(native(graph.edges), native(graph.element_edges), native(graph.edge_slots),
+                       graph.num_edge_slots, native(graph.edge_counts),
+                       type(plan)(native(plan.index), native(plan.force_index), plan.num_slots, plan.num_nodes,
+                                  native(plan.incidences)), native(graph.slot_edge))
+
+
+def _padded_edge_graph(graph, num_slots: int, num_edges: int, num_edge_slots: int):
+    """``graph`` (an EdgeGraph) with room: ``num_slots`` slots a node (the last a sink), ``num_edges``
+    edge rows (the rows past its edges: zero edges (0, 0) with no element, in node 0's sink slot)
+    and ``num_edge_slots`` elements an edge; None where it does not fit (a node with no free
+    slot before the sink, more edges or elements an edge than that)."""
+    plan = graph.plan
+    extra_edges, extra_slots = num_edges - graph.edges.shape[0], num_slots - plan.num_slots
+    if extra_edges < 0 or extra_slots < 1 or graph.num_edge_slots > num_edge_slots:
+        return None
+
+    def rows_after(t, count, value):
+        return torch.cat([t, t.new_full((count,) + tuple(t.shape[1:]), value)])
+
+    padded = type(plan)(rows_after(plan.index, extra_edges, 0),
+                        rows_after(plan.force_index, extra_edges, num_slots - 1), num_slots, plan.num_nodes,
+                        plan.incidences)
+    return type(graph)(rows_after(graph.edges, extra_edges, 0), graph.element_edges, graph.edge_slots, num_edge_slots,
+                       rows_after(graph.edge_counts, extra_edges, 0), padded,
+                       rows_after(graph.slot_edge, extra_slots, 0))
+
+
+@torch.no_grad()
+def tangent_topology_changed(group) -> bool:
+    """A stress-form group's elements changed in place (a cut): its tangent graph cached on the
+    group (:func:`tangent_graph`), where there is one, built again from them and written into the
+    storage of the one cached (every tensor by node and by rows, the rows too), since captured
+    CUDA graphs read it; its sizes (slots a node, edge rows, elements an edge: launch parameters)
+    kept. Where the new graph does not fit them (no room reserved, ``reserved_slots``, or more
+    than it), the caches are dropped: built again at the next use. Returns whether they were
+    dropped (solves captured over them must be captured again)."""
+    names = ("_native_tangent_graph", "_native_rows_tangent", "_native_by_rows_tangent")
+    cached = [group.__dict__.get(name) for name in names]
+    if cached[0] is None:
+        return False
+    graph, neighbor, incidences = cached[0][2]
+    fresh = _padded_edge_graph(_built_tangent_graph(group), graph.plan.num_slots, graph.edges.shape[0],
+                               graph.num_edge_slots)
+    if fresh is None:
+        for name in names:
+            group.__dict__.pop(name, None)
+        return True
+    plan, new_plan = graph.plan, fresh.plan
+    for old, new in ((graph.edges, fresh.edges), (graph.element_edges, fresh.element_edges),
+                     (graph.edge_slots, fresh.edge_slots), (graph.edge_counts, fresh.edge_counts),
+                     (plan.index, new_plan.index), (plan.force_index, new_plan.force_index),
+                     (plan.incidences, new_plan.incidences), (graph.slot_edge, fresh.slot_edge)):
+        old.copy_(new)
+    neighbor.copy_(_edge_neighbors(plan.index, plan.force_index, plan.num_slots, plan.num_nodes))
+    group.__dict__[names[0]] = _stamped((group.elements,), cached[0][2])
+    if cached[2] is not None and cached[1] is not None:  # by rows: the rows and arrays again, in place
+        key, rows_before, by_rows_before = cached[1][3], cached[1][2], cached[2][2]
+        group.__dict__.pop(names[1]), group.__dict__.pop(names[2])
+        tensors = (neighbor, incidences, graph.slot_edge)
+        by_rows, rows = _by_rows(group, "tangent", incidences, tensors, key[1])
+        if rows_before is not None:
+            rows_before.copy_(rows)
+            for old, new in zip(by_rows_before, by_rows):
+                old.copy_(new)
+            group.__dict__.pop("_row_of", None)
+            group.__dict__[names[1]] = _stamped((incidences,), rows_before, key)
+            group.__dict__[names[2]] = _stamped(tensors, by_rows_before, rows_before)
+    return False
 
 
 def tangent_serves(group, u: torch.Tensor, inputs=(), variants: KernelVariants = DEFAULT) -> bool:

@@ -60,6 +60,8 @@ class ElementGroup(nn.Module):
         self.kind = "tet" if self.nodes_per_element == 4 else "tri"
         #: slots added to the plan for cuts in place (:meth:`reserve_slots`)
         self.reserved_slots = 0
+        #: edge rows added to the stress forms' tangent graph for cuts in place (:meth:`reserve_slots`)
+        self.reserved_edges = 0
         self.membrane = geometry.needs_projector(self.nodes_per_element, self.dim)
 
         element_rest = geometry.element_nodes(rest, elements)
@@ -171,7 +173,14 @@ class ElementGroup(nn.Module):
         their zero there (the sink slot of node 0). The hooke tensor form also gets a pool of
         ``spare_edges`` edge rows, zero edges (0, 0) in the sink slot, from which cuts take their
         new edges: while it lasts, a cut moves no edge array (what captured launches read). Before
-        any graph of the group is built (the node graphs take their slot count from it)."""
+        any graph of the group is built (the node graphs take their slot count from it).
+
+        A stress-form stvk or corotational group keeps its plan (a cut's new node takes items its
+        parent had: it never needs more slots) and notes the room for its tangent graph
+        (``reserved_slots``, ``reserved_edges``), which ``node_graph.tangent_graph`` builds with
+        it so that a cut writes that graph again in place."""
+        if self.form == "stress" and self.model != "hooke" and extra > 0:
+            self.reserved_slots, self.reserved_edges = int(extra), int(spare_edges)
         if self.form == "tensor" and self.model == "hooke" and extra > 0:
             self.reserved_slots = int(extra)
             sink = self.plan.num_slots + int(extra) - 1
@@ -393,8 +402,9 @@ class ElementGroup(nn.Module):
 
         Returns:
             whether solves captured before must be captured again: the stress forms' tangent
-            graph dropped (built again at its next use), or a chunk of the pipelined solve grown
-            past the slots its launches were given (``solve.chunk_slots_grew``)."""
+            graph dropped where it did not fit its room (``node_graph.tangent_topology_changed``;
+            built again at its next use), or a chunk of the pipelined solve grown past the slots
+            its launches were given (``solve.chunk_slots_grew``)."""
         tables = self.cut_tables()
         copy = tables["elements"] is not self.elements
         if copy:
@@ -404,9 +414,9 @@ class ElementGroup(nn.Module):
                 self.plan.force_index.view(-1).index_copy_(0, sent["items"], sent["force_index"])
                 self.plan.incidences.index_copy_(0, sent["incidence_nodes"], sent["incidences"])
             library.refresh_plan_indices(self.plan)
-            dropped = [self.__dict__.pop(name, None) for name in ("_native_tangent_graph", "_native_rows_tangent",
-                                                                  "_native_by_rows_tangent")]
-            return dropped[0] is not None
+            if node_graph.tangent_topology_changed(self):  # dropped: built again, captured again
+                return True
+            return solve.chunk_slots_grew(self)
         if copy:
             grow = tables["edges"].shape[0] - self.edges.shape[0]  # the pool grew with the host's
             self.edges, self.plan.force_index, self.edge_slots = _edge_pool(

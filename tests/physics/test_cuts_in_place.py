@@ -122,7 +122,8 @@ SCENES = {"hooke": ("hooke",), "corotational": ("corotational",), "corotational+
 
 
 def node_graph_storage(model):
-    return [t.data_ptr() for g in model.groups for key in ("_native_node_graph", "_native_by_rows_hooke")
+    return [t.data_ptr() for g in model.groups for key in ("_native_node_graph", "_native_by_rows_hooke",
+                                                           "_native_tangent_graph", "_native_by_rows_tangent")
             if key in g.__dict__ for t in g.__dict__[key][2] if isinstance(t, torch.Tensor)]
 
 
@@ -131,8 +132,8 @@ def node_graph_storage(model):
 def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(device, planned_on, scene):
     """Bodies with spare rows cut between steps (through, then a slit), with removals between:
     the steps after each cut equal those of a simulator built from the cut meshes at the same
-    state; nothing was rebuilt (the model, and for the hooke tensor form the integrator with its
-    captured CUDA graphs and the node graphs' storage, are the same)."""
+    state; nothing was rebuilt (the model, the node graphs' storage, the hooke tensor form's and the
+    stress forms' tangent graphs, and on the CPU the integrator, are the same)."""
     beam = tm.beam_mesh(6, 2, 2, size=(1.2, 0.4, 0.4), origin=(0.0, -0.2, -0.2), dtype=torch.float64)
     sheet = tm.beam_tri_mesh(6, 3, size=(0.6, 0.3), dim=3, dtype=torch.float64)
     sheet = tm.TriMesh(sheet.vertices + torch.tensor([0.0, -1.0, 0.3], dtype=torch.float64), sheet.elements)
@@ -147,7 +148,7 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
     sim = tm.Simulator(bodies_of(meshes, [m.vertices[:, 0] == 0 for m in meshes]), dt=0.01, cg_tol=1e-12,
                        device=device, spare_nodes=64)
     sim.step(3)
-    model, system, graphs = sim.model, sim.system, None
+    model, system, graphs = sim.model, sim.system, node_graph_storage(sim.model)
     def edge_arrays():  # the hooke tensor-form groups' edge arrays
         return [id(t) for g in model.groups if hasattr(g, "edge_rows_used") for t in (g.edges, g.edge_k,
                                                                                      g.plan.force_index)]
@@ -164,10 +165,8 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
         assert sim.model is model
         # the new edges taken from the pool of edge rows: no edge array moved
         assert edge_arrays() == before
-        if scene == "hooke":
-            if device == "cpu":  # (on CUDA a chunk of the pipelined solve may outgrow its launches)
-                assert sim.system is system
-            graphs = graphs or node_graph_storage(model)
+        if device == "cpu":  # (on CUDA a chunk of the pipelined solve may outgrow its launches)
+            assert sim.system is system
         fresh = tm.Simulator(bodies_of([b.mesh for b in sim.bodies], [b.fixed for b in sim.bodies]), dt=0.01,
                              cg_tol=1e-12, device=device)
         for i in range(sim.num_bodies):
@@ -181,8 +180,9 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
         for i in range(sim.num_bodies):
             torch.testing.assert_close(sim.positions(i), fresh.positions(i), rtol=1e-12, atol=1e-12)
             torch.testing.assert_close(sim.velocities(i), fresh.velocities(i), rtol=1e-12, atol=1e-12)
+    # the node graphs (hooke, tangent) written in place, not built again
+    assert graphs and node_graph_storage(model) == graphs
     if scene == "hooke":
-        assert node_graph_storage(model) == graphs  # written in place, not built again
         group = model.groups[0]  # its node graph in node order (where one is cached), as one built from its edges now
         neighbor, node_k = group.__dict__["_native_node_graph"][2] if "_native_node_graph" in group.__dict__ else \
             node_graph.hooke_node_graph(group)
@@ -213,3 +213,22 @@ def test_a_cut_with_no_room_builds_the_simulator_again_with_room_and_the_next_cu
 def test_bad_spare_nodes_are_one_error(spare):
     with pytest.raises(SceneError, match="spare_nodes"):
         tm.Simulator([tm.Body(tm.beam_mesh(2, 1, 1), material("hooke", "polar"))], spare_nodes=spare)
+
+
+def test_a_tangent_graph_with_no_room_for_a_cut_is_built_again():
+    """A stress-form body whose tangent graph has no edge rows to spare: the cut drops it (built
+    again at the next step, the integrator made again) and the steps equal a fresh simulator's."""
+    beam = tm.beam_mesh(6, 2, 2, size=(1.2, 0.4, 0.4), origin=(0.0, -0.2, -0.2), dtype=torch.float64)
+    mat = material("corotational", "polar")
+    sim = tm.Simulator([tm.Body(beam, mat, fixed=beam.vertices[:, 0] == 0)], dt=0.01, cg_tol=1e-12, spare_nodes=64)
+    sim.model.groups[0].reserved_edges = 0  # a cut adds edges: the graph cannot take them
+    sim.step(3)
+    system, graph = sim.system, sim.model.groups[0].__dict__.get("_native_tangent_graph")
+    sim.cut(0, tm.Blade.swept((0.61, -1, -1), (0.61, 2, -1), (0.61, -1, 2), (0.61, 2, 2)))
+    if graph is not None:  # (the pure-torch path has no tangent graph)
+        assert sim.system is not system and "_native_tangent_graph" not in sim.model.groups[0].__dict__
+    fresh = tm.Simulator([tm.Body(sim.bodies[0].mesh, mat, fixed=sim.bodies[0].fixed)], dt=0.01, cg_tol=1e-12)
+    fresh.x, fresh.v = sim.positions(0).clone(), sim.velocities(0).clone()
+    sim.step(2)
+    fresh.step(2)
+    torch.testing.assert_close(sim.positions(0), fresh.positions(0), rtol=1e-12, atol=1e-12)
