@@ -1,4 +1,4 @@
-// CPU implementation of the cutting op (ops.h); it has no CUDA one (schema.cpp says why).
+// CPU implementations of the cutting ops (ops.h, tables.h); they have no CUDA ones (schema.cpp says why).
 #include <torch/library.h>
 
 #include "cutting/ops.h"

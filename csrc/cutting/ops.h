@@ -1,5 +1,7 @@
 // Host side of the mesh-cutting op (its schema and what it computes: schema.cpp; registered for the
 // CPU by cpu.cpp): argument checks and the host algorithm of tensormass_torch.mesh.cutting.cut.
+// The ops that edit the tables a cut changes (cutting_edit_element_tables, cutting_edit_edge_tables)
+// have theirs in tables.h; register_cutting_ops, at the end, registers the three.
 //
 // The algorithm, for a blade that meets a few elements of a large mesh. R_k below is the reach:
 // the largest distance along axis k from an alive element's centroid to one of its nodes.
@@ -37,6 +39,7 @@
 
 #include "common/checks.h"
 #include "common/dispatch.h"
+#include "cutting/tables.h"
 
 namespace tensormass {
 namespace cutting {
@@ -885,6 +888,10 @@ inline std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> cu
 }
 
 // Registers the CPU implementation of the cutting op (cpu.cpp); its schema: schema.cpp.
-inline void register_cutting_ops(torch::Library& m) { m.impl("cutting_cut_mesh", &cutting_cut_mesh); }
+inline void register_cutting_ops(torch::Library& m) {
+  m.impl("cutting_cut_mesh", &cutting_cut_mesh);
+  m.impl("cutting_edit_element_tables", &cutting_edit_element_tables);
+  m.impl("cutting_edit_edge_tables", &cutting_edit_edge_tables);
+}
 
 }  // namespace tensormass

@@ -1,12 +1,15 @@
-// Schema of the mesh-cutting op: the whole of mesh.cutting.cut (the faces a blade crosses part, their
-// nodes split) as one host algorithm (ops.h; registered for the CPU only by cpu.cpp: the simulator
-// calls it on host copies of the mesh and positions, whatever device it runs on). The conventions
-// every op follows: library.cpp. Fake kernel: the Python module named below (set_python_module).
+// Schemas of the cutting ops, host algorithms registered for the CPU only (cpu.cpp): the simulator
+// calls them on host copies, whatever device it runs on. cutting_cut_mesh: the whole of
+// mesh.cutting.cut (the faces a blade crosses part, their nodes split; ops.h);
+// cutting_edit_element_tables and cutting_edit_edge_tables: the integer tables a cut in place
+// edits (tables.h). The conventions every op follows: library.cpp. Fake kernels: the Python module
+// named below (set_python_module).
 //
-// Its reference is tensormass_torch.mesh.cutting.cut (tensormass_torch.ops.cutting's OpDef wraps it
-// in this signature); the op computes the same elements, parents, pairs and slit, bit for bit: the
-// centroids, cross products, norms and dot products are evaluated in the order torch's CPU kernels
-// evaluate them, with fused multiply-adds where those kernels fuse (ops.h asks them once).
+// cutting_cut_mesh's reference is tensormass_torch.mesh.cutting.cut (tensormass_torch.ops.cutting's
+// OpDef wraps it in this signature); the op computes the same elements, parents, pairs and slit,
+// bit for bit: the centroids, cross products, norms and dot products are evaluated in the order
+// torch's CPU kernels evaluate them, with fused multiply-adds where those kernels fuse (ops.h asks
+// them once).
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(tensormass, m) {
@@ -36,4 +39,63 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   the elements it looks at, which this op may choose otherwise.
   m.def("cutting_cut_mesh(Tensor elements, Tensor alive, Tensor x, Tensor blade_vertices, Tensor blade_triangles, "
         "Tensor slit) -> (Tensor, Tensor, Tensor, Tensor, Tensor)");
+
+  // The integer tables a cut in place edits (TensorMass.repoint_elements: elements ids [M], one
+  // group's, re-pointed to nodes [M, n]), planned on the host: one group's elements [N, n], its
+  // gather plan (force_index [items, w], incidences [V], and its lists node_items [S, V]: slot s of
+  // node i holds the item row w + a whose force_index is s, -1 past the last; S = the plan's
+  // num_slots) and the model's lists node_slots [S', V] (model element ids, -1 past the last),
+  // edited in place as the reference (tensormass_torch.ops.cutting) edits them, bit for bit; the
+  // results are what the caller sends to the device. Index tensors all of the elements' index
+  // type (int32 or int64) but ids (int64, the model ids of the rows); host tensors (CPU only).
+  // rows [M]: the group's rows of ids, unique; a node id that changes must be one no alive element
+  // holds (a cut's new node, which takes the elements of one node).
+  //
+  // cutting_edit_element_tables(elements! [N, n], force_index! [N, n], incidences! [V],
+  //                             node_items! [S, V], node_slots! [S', V], rows [M], ids [M] int64,
+  //                             nodes [M, n])
+  //     -> (incidence_nodes [K] int64, incidences [K], items [J] int64, force_index [J],
+  //         slot_nodes [C] int64, node_slot_lists [S', C], both [2M, n])
+  //   A group whose plan's items are its elements (w = n: the stress forms, the stvk tensor form):
+  //   each entry (m, a) whose node changes leaves the old node's lists (node_items and node_slots,
+  //   each list packed in order) and joins the new node's after the items there, in row-major
+  //   order; force_index and incidences follow, elements[rows] = nodes. Returns the nodes whose
+  //   incidences changed and their incidences now, the items whose force_index changed and it now,
+  //   the node_slots columns changed and their lists now, and cat(the rows before, nodes).
+  m.def("cutting_edit_element_tables(Tensor(a!) elements, Tensor(b!) force_index, Tensor(c!) incidences, "
+        "Tensor(d!) node_items, Tensor(e!) node_slots, Tensor rows, Tensor ids, Tensor nodes) "
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
+  // cutting_edit_edge_tables(elements! [N, n], force_index! [Ed, 2], incidences! [V],
+  //                          node_items! [S, V], node_slots! [S', V], edges! [Ed, 2],
+  //                          edge_slots! [Se, Ed], element_edges! [N, P], rows [M], ids [M] int64,
+  //                          nodes [M, n], element_row [N_model], removed [N_model] bool,
+  //                          int edge_rows_used)
+  //     -> (status [3] int64, refresh_rows [R], dead [D] int64, graph_edges [G],
+  //         incidence_nodes [K] int64, incidences [K], items [J] int64, force_index [J],
+  //         slot_edges [L] int64, edge_slot_lists [Se, L], edge_rows [Q] int64, edge_values [Q, 2],
+  //         element_edges [M, P], slot_nodes [C] int64, node_slot_lists [S', C], both [2M, n])
+  //   A hooke tensor-form group, whose plan's items are its edges (w = 2; edge_slots: each edge's
+  //   model element ids in the order its tensor was summed; element_edges: the edge of each local
+  //   pair a < b; the edge rows past edge_rows_used: the pool of zero edges (0, 0) in the sink
+  //   slot S - 1 that new edges take). A pair of the rows with a changed node moves: its new edge
+  //   (lower, higher node) is a new edge row, the new edges sorted by (lower, higher) and taking
+  //   the pool's first rows (their elements listed in the pairs' order); an old edge keeps the
+  //   elements that stay, and one left with no alive element (removed: the model's flags) leaves
+  //   its nodes' lists (a zero edge (0, 0) in the sink slot, its row kept); node_items, force_index
+  //   and incidences follow (new edges' items appended at both ends), node_slots as above.
+  //   First the room: status = (need, new edges, edited): need is the most edges of any node after
+  //   the cut; where need > S - 1 (a plan without room: the caller raises) or the pool holds fewer
+  //   than the new edges (the caller grows it and calls again) nothing is written, edited = 0, and
+  //   the other results are empty. Else (edited = 1) the rows whose edges are summed again (the
+  //   cut's and, for each old edge the moved pairs left that keeps an alive element, the row of
+  //   its first one: element_row), the emptied edges, the edges whose node-graph entries change
+  //   (those of the items whose slots moved and those of the rows summed again), the incidences
+  //   and items changed as above, the edge_slots columns changed (the old edges left, then the new
+  //   rows) and their lists, the edge rows written (the new, then the emptied) and their values,
+  //   the rows' element_edges now, node_slots as above and cat(the rows before, nodes).
+  m.def("cutting_edit_edge_tables(Tensor(a!) elements, Tensor(b!) force_index, Tensor(c!) incidences, "
+        "Tensor(d!) node_items, Tensor(e!) node_slots, Tensor(f!) edges, Tensor(g!) edge_slots, "
+        "Tensor(h!) element_edges, Tensor rows, Tensor ids, Tensor nodes, Tensor element_row, Tensor removed, "
+        "int edge_rows_used) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, "
+        "Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
 }

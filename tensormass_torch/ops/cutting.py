@@ -1,5 +1,6 @@
 """The cutting op family (``csrc/cutting/``): :func:`mesh.cutting.cut <tensormass_torch.mesh.cutting.cut>`
-in one native call on the host.
+in one native call on the host, and the edits a cut in place makes to the integer tables
+(``TensorMass.repoint_elements``) in another.
 
 The pure-torch cut costs hundreds of small tensor ops and several host synchronisations per call,
 on whatever device the mesh is on; the op is one host algorithm (a pass over the elements, then
@@ -23,23 +24,51 @@ raises the same ``MeshError``); pairs that share no face are ignored (``cut`` pa
 reference here leaves them out first); and int32 elements stay int32 (``split_nodes`` writes int64
 ids into them and fails: the reference here splits an int64 copy).
 
+A cut in place re-points a few elements of one group to new nodes; the host tables it edits (the
+group's ``ElementGroup.cut_tables`` and the model's ``node_slots``) change only in the lists of the
+nodes and edges those elements leave and join. In torch that is about 150 small ops; each op below
+is one call that edits the tables in place and returns what the device needs (their schemas say
+what, in which order):
+
+    cutting_edit_element_tables(elements!, force_index!, incidences!, node_items!, node_slots!,
+        rows, ids, nodes) -> (incidence_nodes, incidences, items, force_index, slot_nodes,
+        node_slot_lists, both)
+            a group whose plan's items are its elements (the stress forms, the stvk tensor form)
+    cutting_edit_edge_tables(..., edges!, edge_slots!, element_edges!, rows, ids, nodes,
+        element_row, removed, edge_rows_used) -> (status, refresh_rows, dead, graph_edges, ...)
+            a hooke tensor-form group, whose items are edges: the new edges from the pool of edge
+            rows, the room checked first (``status``: nothing written where there is none)
+    edit_cut_tables(tables, node_slots, rows, ids, nodes, ...) -> (results by name, edge rows used)
+            the op where the extension serves the CPU, else its reference; raises CapacityError
+            where the plan has no room, grows the edge pool where it is short
+
+Their references are the Python that planned cuts before them (bit for bit: same tables, same
+results), the fallback where the extension is not built.
+
 Not differentiable (a change of topology).
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Callable, Optional, Tuple
 
 import torch
 
 from .. import _backend
-from ..errors import MeshError
+from ..errors import CapacityError, MeshError
 from ..mesh import cutting as mesh_cutting
-from . import library
+from . import library, topology
 from .library import OpDef
 
-__all__ = ["cut_mesh"]
+__all__ = ["cut_mesh", "edit_cut_tables", "ELEMENT_RESULTS", "EDGE_RESULTS"]
 
 NAME = "cutting_cut_mesh"
+ELEMENT_TABLES = "cutting_edit_element_tables"
+EDGE_TABLES = "cutting_edit_edge_tables"
+#: The results of the table edits by name, in the ops' order.
+ELEMENT_RESULTS = ("incidence_nodes", "incidences", "items", "force_index", "slot_nodes", "node_slot_lists", "both")
+EDGE_RESULTS = ("status", "refresh_rows", "dead", "graph_edges", "incidence_nodes", "incidences", "items",
+                "force_index", "slot_edges", "edge_slot_lists", "edge_rows", "edge_values", "element_edges",
+                "slot_nodes", "node_slot_lists", "both")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -92,8 +121,220 @@ def _example(device, dtype):
     return (elements, alive, x, blade.vertices.to(x), blade.triangles.to(device), slit), {}
 
 
+# ---------------------------------------------------------------------------------------------
+# The cut's table edits: references (the Python TensorMass and ElementGroup ran), fake kernels,
+# examples
+# ---------------------------------------------------------------------------------------------
+
+
+def _pairs(n: int) -> torch.Tensor:
+    """The local node pairs a < b of an element of ``n`` nodes ``[P, 2]``, in the order of
+    ``element_edges``' columns."""
+    return torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)])
+
+
+def _edit_node_lists(node_slots, ids, old, nodes, changed):
+    """The model's lists ``node_slots [S', V]`` edited: the element of each changed entry
+    (``changed [M, n]`` of the rows' nodes ``old`` and ``nodes`` ``[M, n]``; ``ids [M]`` their
+    model ids) leaves its old node's list (packed in order) and joins its new node's after the
+    elements there. Returns the columns changed (sorted) and their lists now ``[S', C]``."""
+    moved = ids[:, None].expand_as(changed)[changed].to(node_slots.dtype)
+    touched, _ = topology.remove_from_lists(node_slots, old[changed].long(), moved)
+    targets = nodes[changed].long()
+    slots = topology.append_slots(topology.list_counts(node_slots, targets), targets)
+    node_slots[slots, targets] = moved
+    columns = torch.unique(torch.cat([touched, targets]))
+    return columns, node_slots[:, columns]
+
+
+def _edit_plan_lists(node_items, force_index, incidences, gone_items, gone_nodes, new_items, new_nodes):
+    """A gather plan's lists ``node_items [S, V]`` edited in place: items ``gone_items [R]`` (``row
+    * w + a``) leave their nodes ``gone_nodes [R]`` (each list packed in order), ``new_items [A]``
+    join ``new_nodes [A]`` after the items there (in the order given); ``force_index`` and
+    ``incidences`` follow. Returns the nodes whose ``incidences`` changed and the (flat) items
+    whose ``force_index`` did."""
+    force_index = force_index.view(-1)
+    nodes, items = [new_nodes], [new_items]
+    if gone_items.numel():
+        touched, lists = topology.remove_from_lists(node_items, gone_nodes, gone_items)
+        used = lists >= 0
+        slot_of = torch.arange(lists.shape[0])[:, None].expand_as(lists)
+        force_index[lists[used].long()] = slot_of[used].to(force_index.dtype)
+        incidences[touched] = used.sum(0).to(incidences.dtype)
+        nodes.append(touched)
+        items.append(lists[used].long())
+    if new_items.numel():
+        slots = topology.append_slots(incidences[new_nodes], new_nodes)
+        node_items[slots, new_nodes] = new_items.to(node_items.dtype)
+        force_index[new_items.long()] = slots.to(force_index.dtype)
+        incidences.index_add_(0, new_nodes, torch.ones_like(new_nodes, dtype=incidences.dtype))
+    return torch.unique(torch.cat(nodes)), torch.unique(torch.cat(items).long())
+
+
+def _ref_cutting_edit_element_tables(elements, force_index, incidences, node_items, node_slots, rows, ids, nodes):
+    """Each moved incidence leaves its node's lists (packed in order) and joins the new node's (in
+    element order): the slots of a group built from the new elements."""
+    n = elements.shape[1]
+    old = elements[rows]
+    changed = old != nodes
+    slot_nodes, node_slot_lists = _edit_node_lists(node_slots, ids, old, nodes, changed)
+    items = (rows.long()[:, None] * n + torch.arange(n))[changed]
+    elements[rows] = nodes
+    changed_nodes, changed_items = _edit_plan_lists(node_items, force_index, incidences, items, old[changed].long(),
+                                                    items, nodes[changed].long())
+    return (changed_nodes, incidences[changed_nodes], changed_items, force_index.view(-1)[changed_items], slot_nodes,
+            node_slot_lists, torch.cat([old, nodes]))
+
+
+def _unedited(status, elements, node_slots, edge_slots, pairs):
+    """The edge op's results where it writes nothing: the status, and empty tensors."""
+    index, wide = dict(dtype=elements.dtype), dict(dtype=torch.int64)
+    empty = torch.empty((0,), **index)
+    return (status, empty, torch.empty((0,), **wide), empty.clone(), torch.empty((0,), **wide), empty.clone(),
+            torch.empty((0,), **wide), empty.clone(), torch.empty((0,), **wide),
+            torch.empty((edge_slots.shape[0], 0), **index), torch.empty((0,), **wide), torch.empty((0, 2), **index),
+            torch.empty((0, pairs), **index), torch.empty((0,), **wide), torch.empty((node_slots.shape[0], 0), **index),
+            torch.empty((0, elements.shape[1]), **index))
+
+
+def _ref_cutting_edit_edge_tables(elements, force_index, incidences, node_items, node_slots, edges, edge_slots,
+                                  element_edges, rows, ids, nodes, element_row, removed, edge_rows_used):
+    """An edge that gains a new node is a new edge row (its elements listed in id order, its slots
+    appended at both ends); an old edge keeps the elements that stay, and one left with none
+    leaves its nodes' lists (its row stays, a zero edge (0, 0) in node 0's sink slot, the plan's
+    last). First the room: nothing is written where the plan or the pool has too little."""
+    num_nodes = incidences.shape[0]
+    old = elements[rows]
+    changed = old != nodes
+    pairs = _pairs(elements.shape[1])
+    moved = changed[:, pairs[:, 0]] | changed[:, pairs[:, 1]]  # [M, P]: the pair's edge changes
+    a, b = nodes[:, pairs[:, 0]][moved].long(), nodes[:, pairs[:, 1]][moved].long()
+    keys = torch.minimum(a, b) * num_nodes + torch.maximum(a, b)
+    unique_keys, edge_of = torch.unique(keys, return_inverse=True)
+    new_edges = torch.stack([unique_keys // num_nodes, unique_keys % num_nodes], 1)  # [E', 2]
+    # the old edges the moved pairs leave, and those of them no alive element is left on
+    old_edges = element_edges[rows]
+    left, moving = torch.unique(old_edges[moved].long(), return_counts=True)
+    listed = edge_slots[:, left].long()
+    alive = ((listed >= 0) & ~removed[listed.clamp(min=0)]).sum(0)
+    dead = left[alive == moving]
+    change = torch.zeros_like(incidences)
+    change.index_add_(0, new_edges.reshape(-1), torch.ones_like(new_edges.reshape(-1), dtype=change.dtype))
+    dead_ends = edges[dead].reshape(-1).long()
+    change.index_add_(0, dead_ends, torch.full_like(dead_ends, -1, dtype=change.dtype))
+    need = int((incidences + change).max()) if num_nodes else 0
+    # the new edges take the pool's first rows
+    first_new, count, sink = int(edge_rows_used), new_edges.shape[0], node_items.shape[0] - 1
+    status = torch.tensor([need, count, 0])
+    if need > sink or first_new + count > edges.shape[0]:
+        return _unedited(status, elements, node_slots, edge_slots, pairs.shape[0])
+    slot_nodes, node_slot_lists = _edit_node_lists(node_slots, ids, old, nodes, changed)
+    moved_ids = ids.to(edge_slots.dtype)[:, None].expand_as(moved)[moved]
+    left, _ = topology.remove_from_lists(edge_slots, old_edges[moved].long(), moved_ids)
+    new_rows = torch.arange(first_new, first_new + count)
+    # each new edge's elements in id order (ids ascending, an element once per edge)
+    lists = edge_slots[:, first_new:first_new + count]
+    lists[topology.append_slots(torch.zeros_like(edge_of), edge_of), edge_of] = moved_ids
+    edges[first_new:first_new + count] = new_edges.to(edges.dtype)
+    rows_edges = old_edges.clone()
+    rows_edges[moved] = (edge_of + first_new).to(old_edges.dtype)
+    element_edges[rows] = rows_edges
+    dead_items = (dead[:, None] * 2 + torch.arange(2)).reshape(-1)
+    new_items = torch.arange(2 * first_new, 2 * (first_new + count))
+    changed_nodes, changed_items = _edit_plan_lists(node_items, force_index, incidences, dead_items,
+                                                    edges[dead].reshape(-1).long(), new_items, new_edges.reshape(-1))
+    edges[dead] = 0  # a zero edge (0, 0) in node 0's sink slot: its partial forces, 0, never read
+    force_index[dead] = sink
+    elements[rows] = nodes
+    # the rows whose edges are summed again: the cut's, and for each old edge the moved pairs
+    # left that keeps an alive element, one such element (its row names the edge)
+    listed = edge_slots[:, left].long()
+    alive = (listed >= 0) & ~removed[listed.clamp(min=0)]
+    witness = listed.gather(0, alive.int().argmax(0, keepdim=True))[0][alive.any(0)]
+    refresh_rows = torch.unique(torch.cat([rows.long(), element_row[witness].long()])).to(rows.dtype)
+    changed_items = torch.unique(torch.cat([changed_items, dead_items]))
+    # the edges the node graphs take again: those whose slots moved (new and emptied ones
+    # included) and those summed again
+    graph_edges = torch.unique(torch.cat([changed_items // 2, element_edges[refresh_rows.long()].reshape(-1).long()]))
+    slot_edges = torch.cat([left, new_rows])
+    edge_rows = torch.cat([new_rows, dead.long()])
+    status[2] = 1
+    return (status, refresh_rows, dead, graph_edges.to(rows.dtype), changed_nodes, incidences[changed_nodes],
+            changed_items, force_index.view(-1)[changed_items], slot_edges, edge_slots[:, slot_edges], edge_rows,
+            edges[edge_rows], rows_edges, slot_nodes, node_slot_lists, torch.cat([old, nodes]))
+
+
+def _fake_cutting_edit_element_tables(elements, force_index, incidences, node_items, node_slots, rows, ids, nodes):
+    ctx = torch.library.get_ctx()
+    num_changed_nodes, num_items, num_columns = (ctx.new_dynamic_size() for _ in range(3))
+    index, wide = dict(dtype=elements.dtype, device=elements.device), dict(dtype=torch.int64, device=elements.device)
+    return (torch.empty((num_changed_nodes,), **wide), torch.empty((num_changed_nodes,), **index),
+            torch.empty((num_items,), **wide), torch.empty((num_items,), **index), torch.empty((num_columns,), **wide),
+            torch.empty((node_slots.shape[0], num_columns), **index),
+            torch.empty((2 * rows.shape[0], elements.shape[1]), **index))
+
+
+def _fake_cutting_edit_edge_tables(elements, force_index, incidences, node_items, node_slots, edges, edge_slots,
+                                   element_edges, rows, ids, nodes, element_row, removed, edge_rows_used):
+    ctx = torch.library.get_ctx()
+    refresh, dead, graph, changed_nodes, items, edge_columns, edge_rows, edited_rows, columns = (
+        ctx.new_dynamic_size() for _ in range(9))
+    index, wide = dict(dtype=elements.dtype, device=elements.device), dict(dtype=torch.int64, device=elements.device)
+    return (torch.empty((3,), **wide), torch.empty((refresh,), **index), torch.empty((dead,), **wide),
+            torch.empty((graph,), **index), torch.empty((changed_nodes,), **wide),
+            torch.empty((changed_nodes,), **index), torch.empty((items,), **wide), torch.empty((items,), **index),
+            torch.empty((edge_columns,), **wide), torch.empty((edge_slots.shape[0], edge_columns), **index),
+            torch.empty((edge_rows,), **wide), torch.empty((edge_rows, 2), **index),
+            torch.empty((edited_rows, element_edges.shape[1]), **index), torch.empty((columns,), **wide),
+            torch.empty((node_slots.shape[0], columns), **index),
+            torch.empty((2 * edited_rows, elements.shape[1]), **index))
+
+
+def _table_example(model_name: str):
+    """A 3 x 2 x 1 beam of tetrahedra (a ``model_name`` model, its tables int32) with spare rows
+    and room for cuts, one element removed, and the cut of a blade at x = 0.51 through half of
+    its section: the tables the model plans that cut on and the elements it re-points."""
+
+    def example(device, dtype):
+        from ..mesh.beams import beam_mesh
+        from ..physics.materials import Material
+        from ..physics.tensor_mass import TensorMass
+
+        mesh = beam_mesh(3, 2, 1, size=(1.0, 0.5, 0.25), dtype=torch.float64)
+        spare = 12
+        rest = torch.cat([mesh.vertices, mesh.vertices[:1].expand(spare, 3)])
+        material = Material(young=1e3, poisson=0.3, density=1.0, model=model_name)
+        model = TensorMass.packed(rest, [(mesh.elements, material, "tet")], form="tensor")
+        model.reserve_slots(spare_nodes=spare)
+        model.remove_elements([3])
+        blade = mesh_cutting.Blade.swept((0.51, -1, -1), (0.51, 0.3, -1), (0.51, -1, 2), (0.51, 0.3, 2))
+        removed = model.removed_host()
+        result = mesh_cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices, blade, removed)
+        ids = torch.nonzero((result.elements != mesh.elements).any(1)).flatten()
+        group, model_tables = model.groups[0], model._cut_tables()
+        tables = group.cut_tables()
+
+        def index(t):
+            return t.to(device=device, dtype=torch.int32).contiguous()
+
+        head = [index(tables[k]) for k in ("elements", "force_index", "incidences", "node_items")]
+        head.append(index(model_tables["node_slots"]))
+        rows, nodes = index(model_tables["element_row"][ids]), index(result.elements[ids])
+        if model_name != "hooke":
+            return (*head, rows, ids.to(device), nodes), {}
+        edge_tables = [index(tables[k]) for k in ("edges", "edge_slots", "element_edges")]
+        return (*head, *edge_tables, rows, ids.to(device), nodes, index(model_tables["element_row"]),
+                removed.to(device), group.edge_rows_used), {}
+
+    return example
+
+
 OPS = (OpDef(NAME, _ref_cutting_cut_mesh, _fake_cutting_cut_mesh, differentiable=False, example=_example,
-             devices=("cpu",)),)
+             devices=("cpu",)),
+       OpDef(ELEMENT_TABLES, _ref_cutting_edit_element_tables, _fake_cutting_edit_element_tables,
+             differentiable=False, mutates=True, example=_table_example("stvk"), devices=("cpu",)),
+       OpDef(EDGE_TABLES, _ref_cutting_edit_edge_tables, _fake_cutting_edit_edge_tables, differentiable=False,
+             mutates=True, example=_table_example("hooke"), devices=("cpu",)))
 library.define(OPS, lambda: library.register(OPS))
 
 
@@ -102,11 +343,11 @@ library.define(OPS, lambda: library.register(OPS))
 # ---------------------------------------------------------------------------------------------
 
 
-def _native_available() -> bool:
-    """Whether the op can run: the extension serves the CPU (where the op runs, whatever the
-    mesh's device) and has it."""
+def _native_available(name: str = NAME) -> bool:
+    """Whether the op ``name`` can run: the extension serves the CPU (where the op runs, whatever
+    the mesh's device) and has it."""
     return (_backend.use_extension("cpu") and library.ensure_registered()
-            and hasattr(torch.ops.tensormass, NAME))
+            and hasattr(torch.ops.tensormass, name))
 
 
 @torch.no_grad()
@@ -139,3 +380,70 @@ def cut_mesh(elements: torch.Tensor, num_nodes: int, x: torch.Tensor, blade: mes
         raise MeshError("the blade crosses no interior face of the body: nothing to cut")
     return mesh_cutting.CutResult(out.to(device=device, dtype=elements.dtype), parents.to(device), first.to(device),
                                   second.to(device), num_nodes, joined.to(device))
+
+
+def _table_op(name: str, tables, native: bool):
+    """The op ``name`` where it can take these index ``tables`` (the extension serves the CPU and
+    has it; every table on the CPU, contiguous, of the first one's int32 or int64 type), and
+    whether it is the op; else its reference."""
+    index = tables[0].dtype
+    if (native and index in (torch.int32, torch.int64) and _native_available(name)
+            and all(t.device.type == "cpu" and t.dtype == index and t.is_contiguous() for t in tables)):
+        return library.op(name), True
+    return library.REGISTRY[name].reference, False
+
+
+@torch.no_grad()
+def edit_cut_tables(tables: dict, node_slots: torch.Tensor, rows: torch.Tensor, ids: torch.Tensor,
+                    nodes: torch.Tensor, element_row: Optional[torch.Tensor] = None,
+                    removed: Optional[torch.Tensor] = None, edge_rows_used: int = 0,
+                    grow_pool: Optional[Callable[[int], None]] = None, *, native: bool = True) -> Tuple[dict, int]:
+    """The host tables of one group (``tables``: ``ElementGroup.cut_tables``, edited in place,
+    entries replaced where the edge pool grows) and the model's lists ``node_slots [S', V]``
+    edited for the elements at ``rows [M]`` (the group's rows of the model ids ``ids [M]``,
+    int64, ascending) re-pointed to ``nodes [M, n]``, through ``cutting_edit_element_tables``
+    (or ``cutting_edit_edge_tables`` where the tables have ``edges``: a hooke tensor-form group;
+    ``element_row``, ``removed``: the model's, on the host; ``edge_rows_used``: the group's edge
+    rows in use, the pool past them) where the extension serves the CPU and takes the tables,
+    else its reference. Where the pool holds fewer rows than the cut's new edges, ``grow_pool(rows)``
+    grows ``tables``' edges, force_index and edge_slots to at least that many rows first.
+
+    Returns:
+        the ops' results by name (``ELEMENT_RESULTS`` or ``EDGE_RESULTS`` but ``status``), and the
+        edge rows in use after the cut (``edge_rows_used`` itself for an element plan).
+
+    Raises:
+        CapacityError: a node would have more edges than the plan has slots but its sink (nothing
+            changed).
+    """
+    nodes = nodes.to(tables["elements"].dtype).contiguous()
+    ids = ids.to("cpu", torch.int64).contiguous()
+    written = [tables[k] for k in ("elements", "force_index", "incidences", "node_items")] + [node_slots]
+    if "edges" not in tables:
+        call, is_native = _table_op(ELEMENT_TABLES, written + [rows, nodes], native)
+        results = dict(zip(ELEMENT_RESULTS, call(*written, rows, ids, nodes)))
+        if is_native:  # the op writes through data pointers: caches keyed on _version must see it
+            torch.autograd.graph.increment_version(written)
+        return results, edge_rows_used
+    while True:
+        written = ([tables[k] for k in ("elements", "force_index", "incidences", "node_items")] + [node_slots]
+                   + [tables[k] for k in ("edges", "edge_slots", "element_edges")])
+        call, is_native = _table_op(EDGE_TABLES, written + [rows, nodes, element_row], native)
+        results = dict(zip(EDGE_RESULTS, call(*written, rows, ids, nodes, element_row, removed.contiguous(),
+                                              int(edge_rows_used))))
+        need, count, edited = results.pop("status").tolist()
+        if edited:
+            break
+        room = tables["node_items"].shape[0] - 1
+        if need > room:
+            raise CapacityError(f"a node would have {need} edges; the plan has room for {room}")
+        if grow_pool is None:
+            raise ValueError(f"the edge pool has {tables['edges'].shape[0] - edge_rows_used} rows for the cut's "
+                             f"{count} new edges: pass grow_pool")
+        grow_pool(edge_rows_used + count)
+        if tables["edges"].shape[0] < edge_rows_used + count:
+            raise RuntimeError(f"grow_pool left {tables['edges'].shape[0]} edge rows; the cut needs "
+                               f"{edge_rows_used + count}")
+    if is_native:
+        torch.autograd.graph.increment_version(written)
+    return results, edge_rows_used + count

@@ -21,10 +21,10 @@ from typing import Optional
 import torch
 from torch import nn
 
-from ..errors import CapacityError, MaterialError
+from ..errors import MaterialError
 from ..mesh import geometry
 from ..mesh.topology import GatherPlan, unique_edges
-from ..ops import library, node_graph, solve, topology
+from ..ops import cutting, library, node_graph, solve, topology
 from ..ops.reference import tensor_form
 from .materials import lame
 
@@ -228,163 +228,75 @@ class ElementGroup(nn.Module):
             index = tables["edges" if self._edge_plan() else "elements"]
             flat = index.reshape(-1).long()
             items = torch.arange(flat.numel(), dtype=index.dtype)
+            slots = tables["force_index"].reshape(-1).long()
+            # the listed items only: the pool's and emptied edges (0, 0) sit in node 0's sink slot,
+            # past its count, and belong to no list
+            listed = slots < tables["incidences"].long()[flat]
             node_items = torch.full((self.plan.num_slots, self.num_nodes), -1, dtype=index.dtype)
-            node_items[tables["force_index"].reshape(-1).long(), flat] = items
+            node_items[slots[listed], flat[listed]] = items[listed]
             tables["node_items"] = node_items
             self.__dict__["_cut_tables"] = tables
         return tables
 
-    @torch.no_grad()
-    def cut_plan(self, rows: torch.Tensor, nodes: torch.Tensor, removed: torch.Tensor) -> dict:
-        """What re-pointing the elements at ``rows`` (``[M]``, ascending, alive) to ``nodes [M, n]``
-        takes, checked against the room there is before anything changes (host tensors, read
-        from :meth:`cut_tables`; ``removed [N_model]``: the model's removed flags, on the host).
-        Where a node id changes, the new id must be a node no element was ever on (a cut's new
-        node). The hooke tensor form: the edges that gain a new node become new edge rows and
-        the old edges left with no element leave the plan; every node's edges must fit
-        ``num_slots - 1`` (:meth:`reserve_slots`).
-
-        Raises:
-            CapacityError: a node would need more slots than the plan has.
-        """
+    def _grow_edge_pool(self, rows: int) -> None:
+        """The edge pool of the tables of :meth:`cut_tables` grown to at least ``rows`` edge rows,
+        by an eighth of the rows at least (new tensors: the arrays move, on the device too, at
+        :meth:`write_cut`)."""
         tables = self.cut_tables()
-        old = tables["elements"][rows]
-        plan = {"rows": rows, "old": old, "nodes": nodes.to(old.dtype), "changed": old != nodes}
-        if not self._edge_plan():
-            return plan
-        pairs = self._pairs()
-        changed = plan["changed"]
-        moved = changed[:, pairs[:, 0]] | changed[:, pairs[:, 1]]  # [M, P]: the pair's edge changes
-        a, b = nodes[:, pairs[:, 0]][moved].long(), nodes[:, pairs[:, 1]][moved].long()
-        keys = torch.minimum(a, b) * self.num_nodes + torch.maximum(a, b)
-        unique_keys, edge_of = torch.unique(keys, return_inverse=True)
-        edges = torch.stack([unique_keys // self.num_nodes, unique_keys % self.num_nodes], 1)  # [E', 2]
-        # the old edges the moved pairs leave, and those of them no alive element is left on
-        old_edges = tables["element_edges"][rows]
-        left, moving = torch.unique(old_edges[moved].long(), return_counts=True)
-        listed = tables["edge_slots"][:, left].long()
-        alive = ((listed >= 0) & ~removed[listed.clamp(min=0)]).sum(0)
-        dead = left[alive == moving]
-        incidences = tables["incidences"]
-        change = torch.zeros_like(incidences)
-        change.index_add_(0, edges.reshape(-1), torch.ones_like(edges.reshape(-1), dtype=change.dtype))
-        dead_ends = tables["edges"][dead].reshape(-1).long()
-        change.index_add_(0, dead_ends, torch.full_like(dead_ends, -1, dtype=change.dtype))
-        need = int((incidences + change).max()) if self.num_nodes else 0
-        if need > self.plan.num_slots - 1:
-            raise CapacityError(f"a node would have {need} edges; the plan has room for {self.plan.num_slots - 1}")
-        plan.update(moved=moved, edges=edges, edge_of=edge_of, dead=dead, old_edges=old_edges)
-        return plan
-
-    def _pairs(self) -> torch.Tensor:
-        n = self.nodes_per_element
-        return torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)])
-
-    def _edit_lists(self, tables, gone_items, gone_nodes, new_items, new_nodes):
-        """The gather plan's lists edited (in ``tables``): items ``gone_items [R]`` (``row * w +
-        a``) leave their nodes ``gone_nodes [R]`` (each list packed in order), ``new_items [A]``
-        join ``new_nodes [A]`` after the items there (in the order given); ``force_index`` and
-        ``incidences`` follow. Returns the nodes whose ``incidences`` changed and the (flat)
-        items whose ``force_index`` did."""
-        table, incidences = tables["node_items"], tables["incidences"]
-        force_index = tables["force_index"].view(-1)
-        nodes, items = [new_nodes], [new_items]
-        if gone_items.numel():
-            touched, lists = topology.remove_from_lists(table, gone_nodes, gone_items)
-            used = lists >= 0
-            slot_of = torch.arange(lists.shape[0])[:, None].expand_as(lists)
-            force_index[lists[used].long()] = slot_of[used].to(force_index.dtype)
-            incidences[touched] = used.sum(0).to(incidences.dtype)
-            nodes.append(touched)
-            items.append(lists[used].long())
-        if new_items.numel():
-            slots = topology.append_slots(incidences[new_nodes], new_nodes)
-            table[slots, new_nodes] = new_items.to(table.dtype)
-            force_index[new_items.long()] = slots.to(force_index.dtype)
-            incidences.index_add_(0, new_nodes, torch.ones_like(new_nodes, dtype=incidences.dtype))
-        return torch.unique(torch.cat(nodes)), torch.unique(torch.cat(items).long())
+        capacity = tables["edges"].shape[0]
+        grow = max(rows - capacity, capacity // 8)
+        tables["edges"], tables["force_index"], tables["edge_slots"] = _edge_pool(
+            tables["edges"], tables["force_index"], tables["edge_slots"], grow, self.plan.num_slots - 1)
 
     @torch.no_grad()
-    def edit_cut(self, plan: dict, ids: torch.Tensor, element_row: torch.Tensor, removed: torch.Tensor) -> dict:
-        """The tables of :meth:`cut_tables` edited as :meth:`cut_plan` planned (``ids [M]``: the
-        elements' model ids; ``element_row``, ``removed``: the model's, on the host); returns the
-        host tensors :meth:`write_cut` needs on the device (by name; on an accelerator, the
-        tables' changed parts too). Element data (shape vectors, measures, tensors B, C, D) are
-        per element and unchanged: the rest shape is the same. Only sums over nodes or edges
-        change:
+    def edit_cut(self, rows: torch.Tensor, ids: torch.Tensor, nodes: torch.Tensor, node_slots: torch.Tensor,
+                 element_row: torch.Tensor, removed: torch.Tensor) -> tuple:
+        """The tables of :meth:`cut_tables` and the model's lists ``node_slots [S', V]`` (model
+        element ids) edited for the elements at ``rows [M]`` (ascending, alive; ``ids [M]``: their
+        model ids, int64) re-pointed to ``nodes [M, n]``, in one host call
+        (``ops.cutting.edit_cut_tables``; ``element_row``, ``removed``: the model's, on the host),
+        the room checked before anything changes. Where a node id changes, the new id must be a
+        node no element was ever on (a cut's new node). Element data (shape vectors, measures,
+        tensors B, C, D) are per element and unchanged: the rest shape is the same. Only sums over
+        nodes or edges change:
 
             element plans   each moved incidence leaves its node's list (the list packed in order)
                             and joins the new node's (in element order): the slots of a group
                             built from the new elements
-            hooke tensor    an edge that gains a new node is a new edge row (edges, edge_slots
-                            grow; its elements listed in id order, its slots appended at both
-                            ends); an old edge keeps the elements that stay, and one left with
-                            none leaves its nodes' lists (its row stays, a zero edge (0, 0) in
-                            node 0's sink slot, the plan's last)
+            hooke tensor    an edge that gains a new node is a new edge row, taken from the pool
+                            (:meth:`reserve_slots`; grown where short: the arrays move); its
+                            elements listed in id order, its slots appended at both ends; an old
+                            edge keeps the elements that stay, and one left with none leaves its
+                            nodes' lists (its row stays, a zero edge (0, 0) in node 0's sink slot,
+                            the plan's last); every node's edges must fit ``num_slots - 1``
+
+        Returns:
+            the host tensors :meth:`write_cut` needs on the device (by name; on an accelerator,
+            the tables' changed parts too) and the op's results by name (the model's among them:
+            ``slot_nodes``, ``node_slot_lists``, ``both``).
+
+        Raises:
+            CapacityError: a node would need more slots than the plan has (nothing changed).
         """
         tables = self.cut_tables()
-        rows, old, nodes, changed = plan["rows"], plan["old"], plan["nodes"], plan["changed"]
+        nodes = nodes.to(tables["elements"].dtype)
+        edge_plan = self._edge_plan()
+        done, rows_used = cutting.edit_cut_tables(tables, node_slots, rows, ids, nodes, element_row, removed,
+                                                  self.edge_rows_used if edge_plan else 0, self._grow_edge_pool)
         copy = tables["elements"] is not self.elements
-        if not self._edge_plan():
-            n = self.nodes_per_element
-            items = (rows.long()[:, None] * n + torch.arange(n))[changed]
-            tables["elements"][rows] = nodes
-            changed_nodes, changed_items = self._edit_lists(tables, items, old[changed].long(), items,
-                                                            nodes[changed].long())
+        if not edge_plan:
             sends = {}
             if copy:
-                sends.update(rows=rows, nodes=nodes, incidence_nodes=changed_nodes,
-                             incidences=tables["incidences"][changed_nodes], items=changed_items,
-                             force_index=tables["force_index"].view(-1)[changed_items])
-            return sends
-        moved, edge_of, edges, dead, old_edges = (plan[k] for k in ("moved", "edge_of", "edges", "dead", "old_edges"))
-        slots_dtype = tables["edge_slots"].dtype
-        moved_ids = ids.to(slots_dtype)[:, None].expand_as(moved)[moved]
-        left, _ = topology.remove_from_lists(tables["edge_slots"], old_edges[moved].long(), moved_ids)
-        # the new edges take the pool's first rows; a pool too small grows (the arrays move)
-        first_new, count, sink = self.edge_rows_used, edges.shape[0], self.plan.num_slots - 1
-        capacity = tables["edges"].shape[0]
-        if first_new + count > capacity:
-            grow = max(first_new + count - capacity, capacity // 8)
-            tables["edges"], tables["force_index"], tables["edge_slots"] = _edge_pool(
-                tables["edges"], tables["force_index"], tables["edge_slots"], grow, sink)
-        new_rows = torch.arange(first_new, first_new + count)
-        self.edge_rows_used = first_new + count
-        # each new edge's elements in id order (ids ascending, an element once per edge)
-        lists = tables["edge_slots"][:, first_new:first_new + count]
-        lists[topology.append_slots(torch.zeros_like(edge_of), edge_of), edge_of] = moved_ids
-        tables["edges"][first_new:first_new + count] = edges.to(tables["edges"].dtype)
-        new_edges = old_edges.clone()
-        new_edges[moved] = (edge_of + first_new).to(old_edges.dtype)
-        tables["element_edges"][rows] = new_edges
-        dead_items = (dead[:, None] * 2 + torch.arange(2)).reshape(-1)
-        new_items = torch.arange(2 * first_new, 2 * (first_new + count))
-        changed_nodes, changed_items = self._edit_lists(tables, dead_items, tables["edges"][dead].reshape(-1).long(),
-                                                        new_items, edges.reshape(-1))
-        tables["edges"][dead] = 0  # a zero edge (0, 0) in node 0's sink slot: its partial forces, 0, never read
-        tables["force_index"][dead] = sink
-        tables["elements"][rows] = nodes
-        # the rows whose edges are summed again: the cut's, and for each old edge the moved pairs
-        # left that keeps an alive element, one such element (its row names the edge)
-        listed = tables["edge_slots"][:, left].long()
-        alive = (listed >= 0) & ~removed[listed.clamp(min=0)]
-        witness = listed.gather(0, alive.int().argmax(0, keepdim=True))[0][alive.any(0)]
-        refresh_rows = torch.unique(torch.cat([rows.long(), element_row[witness].long()])).to(rows.dtype)
-        changed_items = torch.unique(torch.cat([changed_items, dead_items]))
-        # the edges the node graphs take again: those whose slots moved (new and emptied ones
-        # included) and those summed again
-        graph_edges = torch.unique(torch.cat([changed_items // 2, tables["element_edges"][refresh_rows.long()]
-                                              .reshape(-1).long()]))
-        sends = {"refresh_rows": refresh_rows, "dead": dead, "graph_edges": graph_edges.to(rows.dtype),
-                 "incidence_nodes": changed_nodes}
+                sends.update(rows=rows, nodes=nodes, incidence_nodes=done["incidence_nodes"],
+                             incidences=done["incidences"], items=done["items"], force_index=done["force_index"])
+            return sends, done
+        self.edge_rows_used = rows_used
+        sends = {name: done[name] for name in ("refresh_rows", "dead", "graph_edges", "incidence_nodes")}
         if copy:
-            slot_edges = torch.cat([left, new_rows])
-            edge_rows = torch.cat([new_rows, dead.long()])
-            sends.update(slot_edges=slot_edges, slot_lists=tables["edge_slots"][:, slot_edges], edge_rows=edge_rows,
-                         edge_values=tables["edges"][edge_rows], rows=rows, element_edges=new_edges, nodes=nodes,
-                         incidences=tables["incidences"][changed_nodes], items=changed_items,
-                         force_index=tables["force_index"].view(-1)[changed_items])
-        return sends
+            sends.update(slot_edges=done["slot_edges"], slot_lists=done["edge_slot_lists"], edge_rows=done["edge_rows"],
+                         edge_values=done["edge_values"], rows=rows, element_edges=done["element_edges"], nodes=nodes,
+                         incidences=done["incidences"], items=done["items"], force_index=done["force_index"])
+        return sends, done
 
     @torch.no_grad()
     def write_cut(self, sent: dict, rest: torch.Tensor, removed: torch.Tensor, element_row: torch.Tensor) -> bool:

@@ -265,13 +265,13 @@ class TensorMass(nn.Module):
         ``ids [M]`` (model ids, one group's, alive) get the node ids ``nodes [M, n]``; where an id
         changes it is one of ``new_nodes [K]``, rows no element uses yet (spare rows, or nodes
         whose elements were all removed or re-pointed), each a copy of ``parents [K]`` (its rest
-        position). Per group, :meth:`ElementGroup.cut_plan`, :meth:`ElementGroup.edit_cut` and
-        :meth:`ElementGroup.write_cut`; the lumped masses of the nodes left and joined summed
-        again from their lists (as :meth:`remove_elements` does). Forces, products, energy and
-        masses are then those of a model built from the new elements (to rounding). Nothing is
-        reallocated but the hooke tensor form's edge arrays, which grow by the edges the new
-        nodes bring (the node graphs, a solver's buffers and captured CUDA graphs keep their
-        storage).
+        position). Per group, :meth:`ElementGroup.edit_cut` (the group's tables and the model's
+        lists edited in one host call) and :meth:`ElementGroup.write_cut`; the lumped masses of
+        the nodes left and joined summed again from their lists (as :meth:`remove_elements` does).
+        Forces, products, energy and masses are then those of a model built from the new elements
+        (to rounding). Nothing is reallocated (the node graphs, a solver's buffers and captured
+        CUDA graphs keep their storage) but the hooke tensor form's edge arrays where the new
+        edges outgrow their pool (:meth:`reserve_slots`).
 
         The cut is planned on the host (on copies of the integer tables where the model is on an
         accelerator: ``ElementGroup.cut_tables``), so it reads nothing from the device; what the
@@ -300,23 +300,17 @@ class TensorMass(nn.Module):
             raise MeshError(f"nodes must be [{ids.numel()}, {group.nodes_per_element}], got {tuple(nodes.shape)}")
         index = tables["element_row"].dtype
         rows = tables["element_row"][ids]
-        removed = self._removed_host
-        plan = group.cut_plan(rows, nodes, removed)  # checks the room: raises before anything changes
         node_slots = tables["node_slots"]
-        old, changed = plan["old"], plan["changed"]
-        moved = ids[:, None].expand_as(changed)[changed].to(node_slots.dtype)
-        touched, _ = topology.remove_from_lists(node_slots, old[changed].long(), moved)
-        targets = plan["nodes"][changed].long()
-        slots = topology.append_slots(topology.list_counts(node_slots, targets), targets)
-        node_slots[slots, targets] = moved
-        sends = {f"group_{k}": v for k, v in group.edit_cut(plan, ids, tables["element_row"], removed).items()}
-        both = torch.cat([old, plan["nodes"]]).to(index)
+        # the group's tables and node_slots edited in one host call: the room is checked first, so
+        # that a CapacityError leaves everything as it was
+        group_sends, done = group.edit_cut(rows, ids, nodes, node_slots, tables["element_row"], self._removed_host)
+        sends = {f"group_{k}": v for k, v in group_sends.items()}
+        both = done["both"].to(index)  # the rows' nodes before and after: their masses summed again
         sends.update(new_nodes=torch.as_tensor(new_nodes).to("cpu", torch.int64),
                      parents=torch.as_tensor(parents).to("cpu", torch.int64), both=both,
                      both_rows=torch.arange(both.shape[0], dtype=index))
         if node_slots is not self.node_slots:
-            columns = torch.unique(torch.cat([touched, targets]))
-            sends.update(slot_nodes=columns, slot_lists=node_slots[:, columns])
+            sends.update(slot_nodes=done["slot_nodes"], slot_lists=done["node_slot_lists"])
         sent = topology.upload(sends, self.rest.device)
         self.rest.index_copy_(0, sent["new_nodes"], self.rest[sent["parents"]])
         if node_slots is not self.node_slots:

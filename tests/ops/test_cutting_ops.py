@@ -6,7 +6,15 @@ deformed positions, blades laid exactly through nodes and centroids (where the r
 step decides), a large mesh whose reach the op must measure twice, and the SOFA beam; whatever the
 number of threads and the build of torch's kernels. A blade that misses returns the mesh as it
 was; bad arguments raise naming them; ``opcheck`` passes; ``cut_mesh`` brings CUDA results back
-to CUDA. Pairs that share no face are ignored (where ``cut`` may take one for another pair)."""
+to CUDA. Pairs that share no face are ignored (where ``cut`` may take one for another pair).
+
+The table edits of a cut in place (``cutting_edit_element_tables``, ``cutting_edit_edge_tables``,
+``edit_cut_tables``) equal their references (the Python that planned cuts before them) bit for
+bit, every result and every table they write: on tetrahedra and membranes, every model and form,
+int64 and int32 tables, with removed elements and slits, through sequences of cuts (the model cut
+in place between them holds the same tables), on the SOFA beam at a small size; an edge pool
+exactly full, one row short (nothing written) and grown; a plan with no room writes nothing and
+raises CapacityError; bad arguments raise naming them; the edits bump the tables' versions."""
 from __future__ import annotations
 
 import os
@@ -17,10 +25,11 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.errors import MeshError
+from tensormass_torch.errors import CapacityError, MeshError
 from tensormass_torch.mesh import cutting
 from tensormass_torch.ops import cutting as ops_cutting
 from tensormass_torch.ops import library
+from tensormass_torch.physics.groups import _edge_pool
 
 pytestmark = pytest.mark.skipif(not library.ensure_registered(), reason="the compiled extension is not available")
 FIELDS = ("elements", "parents", "cut_first", "cut_second", "slit")
@@ -355,3 +364,311 @@ def test_cut_mesh_brings_cuda_inputs_back_to_cuda():
     for field in FIELDS:
         assert getattr(got, field).device.type == "cuda", field
         assert torch.equal(getattr(got, field).cpu(), getattr(want, field)), field
+
+
+
+# ---------------------------------------------------------------------------------------------
+# The table edits of a cut in place
+# ---------------------------------------------------------------------------------------------
+
+WRITTEN = ("elements", "force_index", "incidences", "node_items", "node_slots")
+EDGE_WRITTEN = ("edges", "edge_slots", "element_edges")
+TABLES = WRITTEN + EDGE_WRITTEN + ("element_row",)
+TABLE_CASES = [("tet", "hooke", "tensor"), ("tet", "stvk", "tensor"), ("tet", "hooke", "stress"),
+               ("tet", "stvk", "stress"), ("tet", "corotational", "stress"), ("membrane", "hooke", "tensor"),
+               ("membrane", "stvk", "tensor"), ("membrane", "corotational", "stress")]
+TABLE_CASE_IDS = ["-".join(case) for case in TABLE_CASES]
+INDEX = [torch.int64, torch.int32]
+INDEX_IDS = ["int64", "int32"]
+
+
+def table_model(mesh, kind, model_name, form, spare, pool_nodes=None, reserve=True):
+    """A model of ``mesh`` with ``spare`` spare rows (where cuts put their new nodes) and, where
+    ``reserve``, room for cuts (slots, and a pool of edges for ``pool_nodes`` new nodes)."""
+    rest = torch.cat([mesh.vertices, mesh.vertices[:1].expand(spare, 3)])
+    material = tm.Material(model=model_name, young=2e4, poisson=0.3, density=800.0, rotation="polar")
+    model = tm.TensorMass.packed(rest, [(mesh.elements, material, kind)], form=form)
+    if reserve:
+        model.reserve_slots(spare_nodes=spare if pool_nodes is None else pool_nodes)
+    model._prepare_removals()
+    return model
+
+
+def host_tables(model, index=None):
+    """Copies of the host tables a cut of the model's one group edits (``ElementGroup.cut_tables``
+    and the model's ``node_slots``, ``element_row``), of ``index`` dtype where given."""
+    tables = dict(model.groups[0].cut_tables())
+    model_tables = model._cut_tables()
+    tables.update(node_slots=model_tables["node_slots"], element_row=model_tables["element_row"])
+    return {k: (v.clone() if index is None else v.to(index).clone()).contiguous() for k, v in tables.items()}
+
+
+def op_call(tables, ids, nodes, removed, edge_rows_used):
+    """The op and its arguments for a cut re-pointing model elements ``ids`` to ``nodes``, as
+    ``TensorMass.repoint_elements`` passes them."""
+    rows = tables["element_row"][ids]
+    nodes = nodes.to(tables["elements"].dtype).contiguous()
+    head = [tables[k] for k in WRITTEN]
+    if "edges" not in tables:
+        return ops_cutting.ELEMENT_TABLES, head + [rows, ids, nodes]
+    return ops_cutting.EDGE_TABLES, head + [tables[k] for k in EDGE_WRITTEN] + [
+        rows, ids, nodes, tables["element_row"], removed, edge_rows_used]
+
+
+def assert_identical(got, want, what):
+    assert got.dtype == want.dtype, f"{what}: {got.dtype} != {want.dtype}"
+    assert got.shape == want.shape, f"{what}: {tuple(got.shape)} != {tuple(want.shape)}"
+    assert torch.equal(got, want), f"{what} differs"
+
+
+def assert_same_tables(got, want):
+    assert set(got) == set(want)
+    for name in got:
+        assert_identical(got[name], want[name], name)
+
+
+def check_table_edit(model, ids, nodes, index=None, edge_rows_used=None):
+    """The op on copies of the model's tables against its reference on other copies: every
+    result and every table bit for bit. Returns (results by name, the op's tables)."""
+    removed = model.removed_host().clone()
+    used = getattr(model.groups[0], "edge_rows_used", 0) if edge_rows_used is None else edge_rows_used
+    native, reference = host_tables(model, index), host_tables(model, index)
+    name, args = op_call(native, ids, nodes, removed, used)
+    _, ref_args = op_call(reference, ids, nodes, removed, used)
+    got = library.op(name)(*args)
+    want = library.REGISTRY[name].reference(*ref_args)
+    names = ops_cutting.EDGE_RESULTS if name == ops_cutting.EDGE_TABLES else ops_cutting.ELEMENT_RESULTS
+    assert len(got) == len(want) == len(names)
+    for result, a, b in zip(names, got, want):
+        assert_identical(a, b, result)
+    assert_same_tables(native, reference)
+    return dict(zip(names, got)), native
+
+
+def run_cuts(model, mesh, blades, index=None, removals=((3, 11, 20), (5,))):
+    """Cuts along ``blades`` one after another (with the previous cuts' slit), each checked by
+    check_table_edit and then made in the model (``repoint_elements``), whose own tables then hold
+    what the op wrote on its copies; elements removed before the first cut and the second.
+    Returns the number of cuts whose new nodes split elements."""
+    count = mesh.elements.shape[0]
+    elements, vertices, slit = mesh.elements.clone(), mesh.vertices, None
+    alive = torch.ones(count, dtype=torch.bool)
+    split = 0
+    for k, blade in enumerate(blades):
+        if k < len(removals):
+            gone = torch.tensor([r for r in removals[k] if r < count and bool(alive[r])], dtype=torch.int64)
+            model.remove_elements(gone)
+            alive[gone] = False
+        used = vertices.shape[0]
+        result = cutting.cut(elements, used, vertices, blade, ~alive, slit)
+        ids = torch.nonzero((result.elements != elements).any(1)).flatten()
+        nodes = result.elements[ids]
+        results, edited = check_table_edit(model, ids, nodes, index)
+        if ids.numel():
+            split += 1
+            model.repoint_elements(ids, nodes, torch.arange(used, result.parents.shape[0]), result.parents[used:])
+            if index is None:
+                assert_same_tables(host_tables(model), edited)
+        elements, vertices, slit = result.elements, vertices[result.parents], result.slit
+    return split
+
+
+def blades_of(kind):
+    """Through the body, a partial cut (a slit, oblique: faces stay joined along its front) and
+    one more through the body beside them."""
+    if kind == "tet":
+        return [plane_blade(0.51),
+                cutting.Blade.swept((0.33, -1, -1), (0.27, 0.33, -1), (0.33, -1, 2), (0.27, 0.33, 2)),
+                plane_blade(0.73, y_high=0.45)]
+    return [plane_blade(0.51, y_high=0.3),
+            cutting.Blade.swept((0.33, -1, -1), (0.27, 0.5, -1), (0.33, -1, 2), (0.27, 0.5, 2)),
+            plane_blade(0.76)]
+
+
+@pytest.mark.parametrize("index", INDEX, ids=INDEX_IDS)
+@pytest.mark.parametrize("kind,model_name,form", TABLE_CASES, ids=TABLE_CASE_IDS)
+def test_table_edits_of_every_model_and_form_equal_the_reference(kind, model_name, form, index):
+    mesh = MESHES[kind]()
+    model = table_model(mesh, "tet" if kind == "tet" else "tri", model_name, form, spare=90)
+    assert run_cuts(model, mesh, blades_of(kind), index) == 3
+
+
+@pytest.mark.parametrize("model_name,form", [("hooke", "tensor"), ("corotational", "stress")])
+def test_the_sofa_beam_at_a_small_size_equals_the_reference(model_name, form):
+    from tensormass_torch.sim import builtin
+
+    mesh = builtin.sofa_beam(model=model_name, scale=5).simulator.bodies[0].mesh  # 15 x 3 x 3 cells, float32
+    model = table_model(mesh, "tet", model_name, form, spare=64)
+
+    def section(x, y_low):
+        return cutting.Blade.swept((x, 11, -3), (x, 11, 3), (x, y_low, -3), (x, y_low, 3))
+
+    assert run_cuts(model, mesh, [section(6.0137, 8.9), section(9.525, 5.9), section(6.33, 5.9),
+                                  section(12.7, 7.1)]) == 4
+
+
+def first_cut(mesh, kind):
+    """The elements a cut through the body re-points (model ids) and their new nodes."""
+    result = cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices, blades_of(kind)[0])
+    ids = torch.nonzero((result.elements != mesh.elements).any(1)).flatten()
+    return ids, result.elements[ids]
+
+
+def trimmed(tables, rows):
+    """The tables with their edge rows cut to ``rows`` (the pool's past them)."""
+    tables = dict(tables)
+    for name in ("edges", "force_index"):
+        tables[name] = tables[name][:rows].contiguous()
+    tables["edge_slots"] = tables["edge_slots"][:, :rows].contiguous()
+    return tables
+
+
+@pytest.mark.parametrize("index", INDEX, ids=INDEX_IDS)
+@pytest.mark.parametrize("kind", ["tet", "membrane"])
+def test_an_edge_pool_exactly_full_edits_and_one_row_short_writes_nothing(kind, index):
+    mesh = MESHES[kind]()
+    model = table_model(mesh, "tet" if kind == "tet" else "tri", "hooke", "tensor", spare=40)
+    model.remove_elements([2, 9])
+    ids, nodes = first_cut(mesh, kind)
+    used = model.groups[0].edge_rows_used
+    removed = model.removed_host()
+    status = library.REGISTRY[ops_cutting.EDGE_TABLES].reference(*op_call(host_tables(model, index), ids, nodes,
+                                                                          removed, used)[1])[0]
+    count = int(status[1])
+    assert int(status[2]) == 1 and count > 0
+    for rows, edits in ((used + count, True), (used + count - 1, False)):
+        before = trimmed(host_tables(model, index), rows)
+        native, reference = ({k: v.clone() for k, v in before.items()} for _ in range(2))
+        name, args = op_call(native, ids, nodes, removed, used)
+        got = library.op(name)(*args)
+        want = library.REGISTRY[name].reference(*op_call(reference, ids, nodes, removed, used)[1])
+        for result, a, b in zip(ops_cutting.EDGE_RESULTS, got, want):
+            assert_identical(a, b, result)
+        assert_same_tables(native, reference)
+        assert bool(got[0][2]) == edits and int(got[0][1]) == count
+        if not edits:
+            assert_same_tables(native, before)
+            assert all(t.numel() == 0 for t in got[1:])
+
+
+def grower(tables, sink):
+    """grow_pool for edit_cut_tables, as ElementGroup's: at least an eighth more rows."""
+    def grow(rows):
+        capacity = tables["edges"].shape[0]
+        tables["edges"], tables["force_index"], tables["edge_slots"] = _edge_pool(
+            tables["edges"], tables["force_index"], tables["edge_slots"], max(rows - capacity, capacity // 8), sink)
+    return grow
+
+
+@pytest.mark.parametrize("index", INDEX, ids=INDEX_IDS)
+@pytest.mark.parametrize("kind", ["tet", "membrane"])
+def test_an_edge_pool_too_small_grows_and_the_edit_equals_the_reference(kind, index):
+    mesh = MESHES[kind]()
+    model = table_model(mesh, "tet" if kind == "tet" else "tri", "hooke", "tensor", spare=40, pool_nodes=0)
+    ids, nodes = first_cut(mesh, kind)
+    group = model.groups[0]
+    used, sink = group.edge_rows_used, group.plan.num_slots - 1
+    assert group.edges.shape[0] == used  # no pool
+    done = []
+    for native in (True, False):
+        tables = host_tables(model, index)
+        node_slots = tables.pop("node_slots")
+        results, rows_used = ops_cutting.edit_cut_tables(tables, node_slots, tables["element_row"][ids], ids, nodes,
+                                                         tables["element_row"], model.removed_host(), used,
+                                                         grower(tables, sink), native=native)
+        assert tables["edges"].shape[0] >= rows_used > used
+        done.append((results, rows_used, dict(tables, node_slots=node_slots)))
+    (got, got_used, got_tables), (want, want_used, want_tables) = done
+    assert got_used == want_used and list(got) == list(want) == list(ops_cutting.EDGE_RESULTS[1:])
+    for name in got:
+        assert_identical(got[name], want[name], name)
+    assert_same_tables(got_tables, want_tables)
+    # the model grows its pool the same way
+    result = cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices, blades_of(kind)[0])
+    model.repoint_elements(ids, nodes, torch.arange(mesh.num_vertices, result.parents.shape[0]),
+                           result.parents[mesh.num_vertices:])
+    if index == torch.int64:
+        assert_same_tables(host_tables(model), got_tables)
+        assert group.edge_rows_used == got_used
+
+
+@pytest.mark.parametrize("native", [True, False], ids=["op", "reference"])
+@pytest.mark.parametrize("kind", ["tet", "membrane"])
+def test_a_plan_with_no_room_writes_nothing_and_raises(kind, native):
+    """No slots reserved: the plan's last slot, which the edges a cut empties would take, is a
+    node's. The op writes nothing and says why; edit_cut_tables and repoint_elements raise
+    CapacityError with every table as it was."""
+    mesh = MESHES[kind]()
+    model = table_model(mesh, "tet" if kind == "tet" else "tri", "hooke", "tensor", spare=40, reserve=False)
+    ids, nodes = first_cut(mesh, kind)
+    group = model.groups[0]
+    used, removed = group.edge_rows_used, model.removed_host()
+    before = host_tables(model)
+    tables = host_tables(model)
+    name, args = op_call(tables, ids, nodes, removed, used)
+    call = library.op(name) if native else library.REGISTRY[name].reference
+    status = call(*args)[0]
+    assert int(status[2]) == 0 and int(status[0]) > group.plan.num_slots - 1
+    assert_same_tables(tables, before)
+    node_slots = tables.pop("node_slots")
+    with pytest.raises(CapacityError, match=f"the plan has room for {group.plan.num_slots - 1}"):
+        ops_cutting.edit_cut_tables(tables, node_slots, tables["element_row"][ids], ids, nodes, tables["element_row"],
+                                    removed, used, grower(tables, 0), native=native)
+    assert_same_tables(dict(tables, node_slots=node_slots), before)
+    result = cutting.cut(mesh.elements, mesh.num_vertices, mesh.vertices, blades_of(kind)[0])
+    with pytest.raises(CapacityError, match="room for"):
+        model.repoint_elements(ids, nodes, torch.arange(mesh.num_vertices, result.parents.shape[0]),
+                               result.parents[mesh.num_vertices:])
+    assert_same_tables(host_tables(model), before)
+    assert group.edge_rows_used == used
+
+
+@pytest.mark.parametrize("name", [ops_cutting.ELEMENT_TABLES, ops_cutting.EDGE_TABLES])
+def test_the_table_edits_equal_the_reference_on_their_examples_and_bump_versions(name):
+    d = library.REGISTRY[name]
+    args, _ = d.example("cpu", torch.float64)
+    native = [a.clone() if isinstance(a, torch.Tensor) else a for a in args]
+    reference = [a.clone() if isinstance(a, torch.Tensor) else a for a in args]
+    got, want = library.op(name)(*native), d.reference(*reference)
+    for a, b in zip(got, want):
+        assert_identical(a, b, name)
+    written = [i for i, a in enumerate(library.op(name)._schema.arguments) if a.alias_info is not None]
+    for i in written:
+        assert_identical(native[i], reference[i], library.op(name)._schema.arguments[i].name)
+    assert all(not torch.equal(native[i], args[i]) for i in written)  # the example edits every table
+    # through edit_cut_tables, the op's writes bump the tables' versions (caches keyed on them)
+    tables = dict(zip(WRITTEN + EDGE_WRITTEN, [a.clone() for a in args[:len(written)]]))
+    node_slots = tables.pop("node_slots")
+    versions = [t._version for t in tables.values()] + [node_slots._version]
+    rows, ids, nodes = args[len(written):len(written) + 3]
+    edge = name == ops_cutting.EDGE_TABLES
+    ops_cutting.edit_cut_tables(tables, node_slots, rows, ids, nodes, *(args[-3:] if edge else ()))
+    assert all(t._version > v for t, v in zip(list(tables.values()) + [node_slots], versions))
+
+
+def _table_args():
+    args, _ = library.REGISTRY[ops_cutting.EDGE_TABLES].example("cpu", torch.float64)
+    return dict(zip([a.name for a in library.op(ops_cutting.EDGE_TABLES)._schema.arguments], args))
+
+
+@pytest.mark.parametrize("change,message", [
+    (dict(force_index=lambda a: a["force_index"].long()), "force_index is Long; expected Int"),
+    (dict(elements=lambda a: a["elements"][:, :2].contiguous()), r"elements must be \[N, 4\]"),
+    (dict(node_items=lambda a: a["node_items"][:, 1:]), r"node_items has shape \[.*\]; expected"),
+    (dict(edge_slots=lambda a: a["edge_slots"].t().contiguous().t()), "edge_slots must be contiguous"),
+    (dict(ids=lambda a: a["ids"].int()), "ids is Int; expected Long"),
+    (dict(rows=lambda a: a["rows"] + 10**6), "rows holds 10000"),
+    (dict(nodes=lambda a: a["nodes"] + 10**6), "nodes holds 10000"),
+    (dict(removed=lambda a: a["removed"][1:]), "removed has shape"),
+    (dict(edge_rows_used=lambda a: 10**7), "edge_rows_used is 10000000"),
+    (dict(edge_rows_used=lambda a: 0), "element_edges: row .* outside the 0 edge rows in use"),
+])
+def test_bad_table_arguments_raise_naming_them_and_write_nothing(change, message):
+    args = _table_args()
+    for name, make in change.items():
+        args[name] = make(args)
+    before = {k: v.clone() for k, v in args.items() if isinstance(v, torch.Tensor)}
+    with pytest.raises(RuntimeError, match=message):
+        library.op(ops_cutting.EDGE_TABLES)(*args.values())
+    for k, v in before.items():
+        assert torch.equal(args[k], v), k

@@ -232,3 +232,28 @@ def test_a_tangent_graph_with_no_room_for_a_cut_is_built_again():
     sim.step(2)
     fresh.step(2)
     torch.testing.assert_close(sim.positions(0), fresh.positions(0), rtol=1e-12, atol=1e-12)
+
+
+def test_cuts_that_empty_edges_of_node_0_beside_the_edge_pool_leave_the_forces_of_the_cut_mesh(planned_on):
+    """The pool's zero edges (0, 0) sit in node 0's sink slot, past its count: cuts that empty
+    edges of node 0 (and take pool rows) keep them out of node 0's list."""
+    mesh = tm.beam_mesh(4, 2, 2, size=(1.0, 0.5, 0.5), dtype=torch.float64)
+    rest = torch.cat([mesh.vertices, mesh.vertices[:1].expand(80, 3)])
+    mat = material("hooke", "polar")
+    model = tm.TensorMass.packed(rest, [(mesh.elements, mat, "tet")], form="tensor")
+    model.reserve_slots(spare_nodes=7)  # a pool that the cuts outgrow too
+    elements, vertices, slit = mesh.elements.clone(), mesh.vertices, None
+    gen = torch.Generator().manual_seed(0)
+    for blade in (cutting.Blade.swept((-1, 0.1, -1), (2, 0.1, -1), (-1, 0.1, 2), (2, 0.1, 2)),
+                  cutting.Blade.swept((0.6, -1, -1), (0.6, -1, 2), (0.6, 2, -1), (0.6, 2, 2)),
+                  cutting.Blade.swept((0.35, -1, -1), (0.35, -1, 2), (0.35, 2, -1), (0.35, 2, 2)),
+                  cutting.Blade.swept((-1, -1, 0.1), (2, -1, 0.1), (-1, 2, 0.1), (2, 2, 0.1))):
+        used = vertices.shape[0]
+        result = cutting.cut(elements, used, vertices, blade, None, slit)
+        ids = torch.nonzero((result.elements != elements).any(1)).flatten()
+        model.repoint_elements(ids, result.elements[ids], torch.arange(used, result.parents.shape[0]),
+                               result.parents[used:])
+        elements, vertices, slit = result.elements, vertices[result.parents], result.slit
+        fresh = tm.TensorMass.packed(vertices, [(elements, mat, "tet")], form="tensor")
+        x = vertices + 0.02 * torch.randn(vertices.shape, generator=gen, dtype=torch.float64)
+        assert_same(Used(model, rest, vertices.shape[0]), fresh, x, torch.randn_like(x))
