@@ -559,7 +559,8 @@ def tangent_topology_changed(group) -> bool:
     group.__dict__[names[0]] = _stamped((group.elements,), cached[0][2])
     if cached[2] is not None and cached[1] is not None:  # by rows: the rows and arrays again, in place
         key, rows_before, by_rows_before = cached[1][3], cached[1][2], cached[2][2]
-        group.__dict__.pop(names[1]), group.__dict__.pop(names[2])
+        for name in names[1:]:  # made again below from the graph written above
+            del group.__dict__[name]
         tensors = (neighbor, incidences, graph.slot_edge)
         by_rows, rows = _by_rows(group, "tangent", incidences, tensors, key[1])
         if rows_before is not None:

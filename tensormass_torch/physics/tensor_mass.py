@@ -20,7 +20,8 @@ from .materials import Material
 #: in float32 (the measurements: ``benchmarks/results/h200/ops_bench.md``, docs/physics.md).
 AUTO_FORM = {"hooke": "tensor", "stvk": "stress", "corotational": "stress"}
 #: Edge rows reserved per spare node for cuts in place (``TensorMass.reserve_slots``): a node a
-#: cut splits off brings 8 to 9 new edges in the tetrahedral beams' cuts.
+#: cut splits off brings about half its parent's edges (what the tetrahedral beams' cuts bring:
+#: docs/topology-changes.md); a cut past the pool grows it.
 EDGES_PER_NEW_NODE = 10
 
 
