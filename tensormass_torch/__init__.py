@@ -15,6 +15,7 @@ from .mesh.surface import tetrahedralize
 from .physics.contact import Plane
 from .physics.materials import MODELS, Material
 from .physics.tensor_mass import TensorMass
+from .physics.tools import Box, Capsule, Sphere, Tool
 from .sim.scalpel import Scalpel
 from .sim.scene_file import load_scene
 from .sim.simulator import Body, InvertedElementsWarning, Simulator
@@ -27,5 +28,5 @@ __all__ = [
     "TensorMassError",
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh", "Blade",
     "TensorMass", "Body", "Simulator", "Scalpel", "InvertedElementsWarning", "load_scene", "solve_static",
-    "tetrahedralize",
+    "tetrahedralize", "Tool", "Sphere", "Capsule", "Box",
 ]

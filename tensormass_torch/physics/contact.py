@@ -79,6 +79,10 @@ class Planes:
         depth = self.penetration(x)  # [V, P]
         return self._forces(depth), self._node_stiffness(depth)
 
+    def energy(self, x: torch.Tensor) -> torch.Tensor:
+        """The penalty energy (0-dim) at ``x [V, 3]``: sum over nodes and planes of k/2 pen^2."""
+        return 0.5 * (self.stiffness * self.penetration(x) ** 2).sum()
+
     def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """(df/dx) dx = -k n (n.dx) on nodes in contact ``[V, 3]``."""
         active = (self.penetration(x) > 0).to(x.dtype)

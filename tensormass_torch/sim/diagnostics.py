@@ -26,6 +26,42 @@ from typing import Dict, List, Optional, Sequence
 import torch
 
 
+@dataclass
+class ContactReport:
+    """Contact at the end of a step (device tensors: nothing is read back until asked).
+
+    Attributes:
+        tool_force: the force the bodies put on each tool ``[T, 3]`` (minus the sum of the
+            tool's penalty forces on the nodes: what a haptic device renders).
+        tool_torque: its torque about each tool's origin ``[T, 3]``.
+        contacts: per body, the nodes inside a tool's or a plane's contact distance ``[B]``.
+        max_penetration: per body, the deepest of those ``[B]`` (0 with no contact).
+    """
+
+    tool_force: torch.Tensor
+    tool_torque: torch.Tensor
+    contacts: torch.Tensor
+    max_penetration: torch.Tensor
+
+
+def contact_report(sim, x: Optional[torch.Tensor] = None) -> ContactReport:
+    """The :class:`ContactReport` of simulator ``sim`` at positions ``x [V, 3]`` (default: its
+    state), with its tools where they are now."""
+    x = sim.x if x is None else x
+    depth = x.new_zeros(x.shape[0])
+    if sim.planes is not None:
+        depth = sim.planes.penetration(x).amax(dim=1) if len(sim.planes) else depth
+    if sim.tools is not None:
+        depth = torch.maximum(depth, sim.tools.penetration(x))
+        force, torque = sim.tools.reactions(x)
+    else:
+        force = torque = x.new_zeros(0, 3)
+    lengths = sim.segments.lengths
+    contacts = torch.segment_reduce((depth > 0).to(x.dtype), "sum", lengths=lengths).to(torch.int64)
+    deepest = torch.segment_reduce(depth, "max", lengths=lengths, unsafe=True, initial=0.0)
+    return ContactReport(force, torque, contacts, deepest)
+
+
 def signed_measures(x: torch.Tensor, elements: torch.Tensor,
                     rest_normals: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Signed measures ``[N]`` of elements ``[N, n]`` at positions ``x [V, 3]``: volumes of tets

@@ -34,6 +34,15 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     offset = -0.5
     stiffness = 1e5
 
+    [[tools]]                         # a rigid tool pressing on the bodies' nodes (tm.Sphere, ...)
+    shape = "sphere"                  # "sphere" (radius), "capsule" (radius, half_length along its
+    radius = 0.05                     #   first axis) or "box" (half_extents = [a, b, c])
+    position = [0.5, 0, 0.2]          # its origin (or keyframes: times = [...], positions = [[...]])
+    # rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]   (its axes, as columns)
+    stiffness = 1e5                   # penalty (N/m per node)
+    thickness = 0.0                   # contact distance
+    name = "probe"                    # tangent = "exact": the curvature in the step's stiffness
+
     [[bodies]]
     name = "beam"
     mesh = { generator = "beam", cells = [20, 2, 2], size = [1, 0.1, 0.1] }
@@ -83,6 +92,8 @@ from ..mesh.beams import beam_mesh, beam_tri_mesh
 from ..mesh.meshes import Mesh
 from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
+from ..physics.tools import TANGENTS as TOOL_TANGENTS
+from ..physics.tools import Box, Capsule, Sphere, Tool
 from .builtin import Scene
 from .scalpel import Scalpel
 from .simulator import MIN_SPARE_NODES, SPARE_FRACTION, Body, Simulator
@@ -471,6 +482,53 @@ def _spare_nodes(t: _Table):
     return value
 
 
+#: ``[[tools]]`` shapes: the tool constructor and the keys of its size, in its argument order
+TOOL_SHAPES = {"sphere": (Sphere, (("radius", "positive"),)),
+               "capsule": (Capsule, (("radius", "positive"), ("half_length", "nonnegative"))),
+               "box": (Box, (("half_extents", "vec3"),))}
+
+
+def _tool(t: _Table) -> Tool:
+    """A ``[[tools]]`` table: shape and its sizes, position or keyframes (times, positions),
+    rotation, stiffness, thickness, name."""
+    shape = _choice(t, "shape", tuple(TOOL_SHAPES), what="tool shape")
+    make, sizes = TOOL_SHAPES[shape]
+    args = [t.get(key, kind) for key, kind in sizes]
+    kwargs = dict(position=t.get("position", "vec3", (0.0, 0.0, 0.0)), stiffness=t.get("stiffness", "positive", 1e5),
+                  thickness=t.get("thickness", "nonnegative", 0.0), name=t.get("name", "str", None),
+                  tangent=_choice(t, "tangent", TOOL_TANGENTS, "projected", "tool tangent"))
+    if shape != "sphere":
+        rotation = t.data.get("rotation")
+        t.seen.add("rotation")
+        if rotation is not None:
+            if not isinstance(rotation, list) or len(rotation) != 3:
+                raise t.error("rotation", f"must be 3 rows [[..], [..], [..]], got {_describe(rotation)}")
+            rotation = [_check(r, "vec3", lambda msg, i=i: t.error("rotation", f"row {i} {msg}"))
+                        for i, r in enumerate(rotation)]
+        kwargs["rotation"] = rotation
+    times = t.data.get("times")
+    t.seen.update(("times", "positions"))
+    if times is not None:
+        if not isinstance(times, list) or not times:
+            raise t.error("times", f"must be a list of keyframe times, got {_describe(times)}")
+        times = [_check(v, "number", lambda msg, i=i: t.error("times", f"entry {i} {msg}"))
+                 for i, v in enumerate(times)]
+        positions = t.data.get("positions")
+        if not isinstance(positions, list) or len(positions) != len(times):
+            raise t.error("positions", f"must be a list of {len(times)} points (one per time), "
+                                       f"got {_describe(positions)}")
+        kwargs["times"] = times
+        kwargs["positions"] = [_check(p, "vec3", lambda msg, i=i: t.error("positions", f"entry {i} {msg}"))
+                               for i, p in enumerate(positions)]
+    elif "positions" in t.data:
+        raise t.error("positions", "needs times = [...] (one per position)")
+    t.done()
+    try:
+        return make(*args, **kwargs)
+    except SceneError as exc:
+        raise t.fail(t.where, str(exc)) from exc
+
+
 def _scalpel(t: _Table) -> Scalpel:
     """A ``[[cuts]]`` table: body, times [K], edges [K, 2, 3]."""
     t.seen.add("body")
@@ -584,6 +642,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         planes.append(Plane(normal, plane.get("offset", "number", 0.0), plane.get("stiffness", "positive")))
         plane.done()
 
+    tools = [_tool(t) for t in top.tables("tools")]
     cut_tables = top.tables("cuts")
     scalpels = [_scalpel(c) for c in cut_tables]
     body_tables = top.tables("bodies")
@@ -600,7 +659,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
 
     try:
         simulator = Simulator(bodies, dt=dt, gravity=gravity, planes=planes, device=torch_device,
-                              dtype=torch_dtype, spare_nodes=spare, **options)
+                              dtype=torch_dtype, spare_nodes=spare, tools=tools, **options)
     except (SceneError, MaterialError, MeshError) as exc:
         raise fail("", str(exc)) from exc
     for table, scalpel in zip(cut_tables, scalpels):

@@ -19,6 +19,7 @@ from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
 from ..physics.materials import Material
 from ..physics.tensor_mass import TensorMass, checked_element_ids
+from ..physics.tools import Tool, ToolSet
 from ..solver.implicit_euler import (
     DynamicsSystem,
     StepOptions,
@@ -27,7 +28,7 @@ from ..solver.implicit_euler import (
     implicit_euler_step,
     step_graphs_for,
 )
-from .diagnostics import InversionCheck, InversionReport
+from .diagnostics import ContactReport, InversionCheck, InversionReport, contact_report
 from .scalpel import Scalpel
 
 #: ``Simulator(check_inversion=...)`` values.
@@ -119,6 +120,9 @@ class Simulator:
         gravity: ``[3]`` acceleration.
         rayleigh_mass, rayleigh_stiffness: Rayleigh damping r_M, r_K (>= 0).
         planes: list of :class:`Plane` (penalty contact).
+        tools: list of rigid tools (:func:`tm.Sphere`, :func:`tm.Capsule`, :func:`tm.Box`): penalties
+            on the signed distance, their stiffness in the implicit system, each tool where its
+            path puts it at the end of the step; their reactions in ``StepReport.contact``.
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs: see
             ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
             ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
@@ -147,7 +151,7 @@ class Simulator:
                  cg_tol: float = 1e-6, cg_max_iter: Optional[int] = None, require_convergence: bool = True,
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
-                 spare_nodes=0):
+                 spare_nodes=0, tools: Sequence[Tool] = ()):
         bodies = list(bodies)
         # what a topology change that rebuilds the simulator (cut) builds it again with
         self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
@@ -155,7 +159,7 @@ class Simulator:
                                cg_max_iter=cg_max_iter, require_convergence=require_convergence,
                                newton_iters=newton_iters, check_every=check_every, form=form, device=device,
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
-                               substeps_on_failure=substeps_on_failure)
+                               substeps_on_failure=substeps_on_failure, tools=tools)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -239,6 +243,8 @@ class Simulator:
             self.element_ptr.append(self.element_ptr[-1] + b.mesh.elements.shape[0])
         self.gravity = gravity
         self.planes = Planes(planes, self.dtype, self.device) if planes else None
+        #: the rigid tools (``physics.tools.ToolSet``) or None
+        self.tools = ToolSet(list(tools), self.dtype, self.device) if tools else None
         #: the mass each body has lost to element removals ``[B]``
         self.removed_mass = torch.zeros(len(bodies), dtype=self.dtype, device=self.device)
         self._make_system()
@@ -273,7 +279,7 @@ class Simulator:
         constrained = self.fixed | self.prescribed | (mass == 0)
         keep_mask = "removed" in self.model._buffers or self.ptr[-1] > sum(self.used_nodes)
         self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * self.gravity, self.segments,
-                                     constrained, self.planes, keep_mask=keep_mask)
+                                     constrained, self.planes, keep_mask=keep_mask, tools=self.tools)
 
     def _masses_changed(self):
         """After the model lost elements in place: gravity follows the masses and nodes left with
@@ -386,6 +392,8 @@ class Simulator:
         """One implicit Euler step of length ``opts.dt`` from ``x, v [V, 3]``, ending at time
         t_end (nothing committed): (x, v, report, inversion report or None)."""
         imposed = self._imposed_velocity(x, t_end, opts.dt)
+        if self.tools is not None:  # the tools where they are at the step's end
+            self.tools.set_time(t_end)
         x_new, v_new, report = implicit_euler_step(self.system, x, v, opts, imposed)
         inversion = self._check_inversion(x_new, t_end, report) if self._inversion is not None else None
         return x_new, v_new, report, inversion
@@ -481,6 +489,8 @@ class Simulator:
         for _ in range(steps):  # the same float sum as one step at a time
             self.time += self.options.dt
         self.steps_done += steps
+        if self.tools is not None:
+            report.contact = contact_report(self, x)
         self.last_report = report
         self.last_inversion = inversion
 
@@ -697,7 +707,7 @@ class Simulator:
     def _chain_graphs(self):
         """The step graphs that run several steps with one host synchronisation (CUDA, every CG
         iteration inside the captured step, no prescribed motion, no inversion check), or None."""
-        if self._has_prescribed or self._inversion is not None:
+        if self._has_prescribed or self._inversion is not None or (self.tools is not None and self.tools.moves):
             return None
         graphs = step_graphs_for(self.system, self.options, imposed=False)
         return graphs if graphs is not None and graphs.chainable else None
@@ -731,6 +741,12 @@ class Simulator:
         """Current displacements of body i from its rest shape ``[V_i, 3]``."""
         s = self._range(i)
         return self.x[s] - self.model.rest[s]
+
+    def contact_report(self) -> ContactReport:
+        """The tools' reactions (force and torque ``[T, 3]``), and per body the nodes in contact
+        with a tool or plane and the deepest penetration ``[B]``, at the current state (device
+        tensors; ``StepReport.contact`` holds the same at each step's end when there are tools)."""
+        return contact_report(self)
 
     def kinetic_energy(self) -> torch.Tensor:
         """Kinetic energy per body ``[B]``."""

@@ -90,6 +90,9 @@ class StepReport:
     #: sub-steps the step took: 1, or 2^k after a failed step was retried at dt / 2^k
     #: (``substeps_on_failure``); ``cg`` then holds every sub-step's solves.
     substeps: int = 1
+    #: the tools' reactions, contact counts and penetrations at the end of the step
+    #: (``sim.diagnostics.ContactReport``) when the simulator has tools; None otherwise.
+    contact: object = None
 
 
 class DynamicsSystem:
@@ -102,12 +105,15 @@ class DynamicsSystem:
         segments: the objects' node ranges.
         constrained: ``[V]`` bool, nodes whose velocity is imposed (fixed or prescribed).
         planes: ``contact.Planes`` or None.
+        tools: ``tools.ToolSet`` or None (rigid tools: node-wise penalties, like the planes, whose
+            poses the caller sets before each step: ``ToolSet.set_time``).
         keep_mask: keep the mask of free nodes (``free [V, 1]``) even when nothing is constrained,
             for a caller that constrains nodes later in place (topology changes); without it such
             a system has no mask (``free`` None) and its products skip the projection.
     """
 
-    def __init__(self, model, mass, external, segments: Segments, constrained, planes=None, keep_mask: bool = False):
+    def __init__(self, model, mass, external, segments: Segments, constrained, planes=None, keep_mask: bool = False,
+                 tools=None):
         self.model = model
         self.mass = mass.unsqueeze(-1)
         self.external = external
@@ -116,6 +122,7 @@ class DynamicsSystem:
         self.free = (None if not (keep_mask or bool(constrained.any()))
                      else (~constrained).to(mass.dtype).unsqueeze(-1))
         self.planes = planes if planes is not None and len(planes) else None
+        self.tools = tools if tools is not None and len(tools) else None
         self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
         self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec
         self._step_graphs = {}  # step options -> StepGraphs (CUDA)
@@ -149,7 +156,14 @@ class DynamicsSystem:
 
         # another force model (any module x -> forces) has no kernel variants
         f = (self.model(x, variants) if isinstance(self.model, TensorMass) else self.model(x)) + self.external
-        return f if self.planes is None else f + self.planes.forces(x)
+        for contact in self.contacts:
+            f = f + contact.forces(x)
+        return f
+
+    @property
+    def contacts(self) -> list:
+        """The contact terms (planes, tools) present: each has ``forces``, ``dforces``, ``linearize``."""
+        return [c for c in (self.planes, self.tools) if c is not None]
 
     def dforces(self, x, dx):
         """(dF/dx) dx ``[V, d]`` of the elastic and contact forces."""
@@ -158,9 +172,17 @@ class DynamicsSystem:
     def tangent(self, x):
         """dx -> (dF/dx) dx at ``x``, with what the products share computed once."""
         elastic = self.model.tangent(x)
-        if self.planes is None:
+        contacts = self.contacts
+        if not contacts:
             return elastic
-        return lambda dx: elastic(dx) + self.planes.dforces(x, dx)
+
+        def apply(dx):
+            total = elastic(dx)
+            for contact in contacts:
+                total = total + contact.dforces(x, dx)
+            return total
+
+        return apply
 
 
 class SystemMatvec:
@@ -211,8 +233,12 @@ class SystemMatvec:
             for dst, src in zip(self.states, states):
                 if src is not None:
                     dst.copy_(src)
-        if system.planes is not None:
-            self.contact_forces, stiffness = system.planes.linearize(x)
+        if system.contacts:
+            self.contact_forces, stiffness = None, None
+            for contact in system.contacts:
+                forces, node_stiffness = contact.linearize(x)
+                self.contact_forces = forces if self.contact_forces is None else self.contact_forces + forces
+                stiffness = node_stiffness if stiffness is None else stiffness + node_stiffness
             if self.node_stiffness is None:
                 self.node_stiffness = stiffness.clone()
             else:
@@ -251,8 +277,10 @@ class SystemMatvec:
         self._node_rhs_buffers()
         model = system.model
         model._check_positions("x", x)
-        if ops.step_rhs(model.groups, x, v, model.rest, system.mass, system.external, system.planes, h, w_coef,
-                        rayleigh_mass, self.u, self._rhs, self.node_stiffness, self.variants):
+        # the op takes planes, not tools
+        if system.tools is None and ops.step_rhs(model.groups, x, v, model.rest, system.mass, system.external,
+                                                 system.planes, h, w_coef, rayleigh_mass, self.u, self._rhs,
+                                                 self.node_stiffness, self.variants):
             self._loaded_by_node_rhs()
             return self._rhs
         self.load(x)
@@ -270,8 +298,9 @@ class SystemMatvec:
         from .. import ops
 
         system, model = self.system, self.system.model
-        if len(model.groups) != 1 or not ops.step_rhs_serves(model.groups, self.u, (model.rest, system.external),
-                                                             self.variants):
+        if system.tools is not None or len(model.groups) != 1:  # the op takes planes, not tools
+            return None
+        if not ops.step_rhs_serves(model.groups, self.u, (model.rest, system.external), self.variants):
             return None
         self._node_rhs_buffers()
         self._loaded_by_node_rhs()
@@ -306,7 +335,7 @@ class SystemMatvec:
         """All forces at the loaded positions plus the stiffness along ``w``: ``f(x) + (dF/dx) w
         [V, d]`` (elastic, external and contact), one pass over the elements for a linear model."""
         system = self.system
-        if system.planes is not None and self.contact_forces is None:
+        if system.contacts and self.contact_forces is None:
             raise RuntimeError("forces_along needs the contact forces of load(x); load_step does not keep them")
         if self.tangents is not None:
             # (dF/dx) w over the node graph, the contact stiffness in its epilogue: one pass over

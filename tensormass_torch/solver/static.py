@@ -9,12 +9,14 @@ import torch
 from ..errors import SceneError, SolverError
 from ..ops.segments import Segments
 from ..physics.constraints import node_mask
+from ..physics.tools import ToolSet
 from .cg import batched_cg
 
 
 def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81), tol: float = 1e-6,
                  external: Optional[torch.Tensor] = None, max_newton: int = 50, cg_tol: Optional[float] = None,
-                 cg_max_iter: Optional[int] = None, planes=None, precision: str = "float64") -> torch.Tensor:
+                 cg_max_iter: Optional[int] = None, planes=None, precision: str = "float64",
+                 tools=None) -> torch.Tensor:
     """Displacement ``u [V, d]`` at static equilibrium of a :class:`TensorMass` model.
 
     Solves f_int(X + u) + M g + external (+ contact) = 0 on the free nodes by Newton's method, each
@@ -37,6 +39,8 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
         external: extra nodal forces ``[V, d]``.
         cg_tol, cg_max_iter: inner CG settings (default tol / 10 and 10 V).
         planes: ``contact.Planes`` or None.
+        tools: ``tools.ToolSet`` (at the pose it is set to) or a list of ``tm.Tool`` (at time 0),
+            or None.
         precision: ``"float64"`` (default: Newton and CG in float64 whatever the model's dtype) or
             ``"model"`` (in the model's dtype).
 
@@ -47,11 +51,15 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
     if precision not in PRECISIONS:
         raise SceneError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
     out_dtype = model.rest.dtype
+    if tools is not None and not isinstance(tools, ToolSet):
+        tools = ToolSet(list(tools), out_dtype, model.rest.device)
     if precision == "float64" and out_dtype != torch.float64:
         model = _variant(model, torch.float64)
         planes = None if planes is None else planes.to(dtype=torch.float64)
+        tools = None if tools is None else tools.to(dtype=torch.float64)
         external = None if external is None else external.to(torch.float64)
-    u = _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, planes)
+    contacts = [c for c in (planes, tools) if c is not None and len(c)]
+    u = _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, contacts)
     return u.to(out_dtype)
 
 
@@ -79,7 +87,7 @@ def _variant(model, dtype, tangent: Optional[str] = None):
     return clone
 
 
-def _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, planes):
+def _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, contacts):
     # Newton steps on the exact tangent (quadratic convergence); where it is indefinite (a
     # compressed stvk body: CG breaks down) that step is taken on the definite tangent instead.
     exact = _variant(model, model.rest.dtype, "exact")
@@ -110,14 +118,14 @@ def _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter
     # positions would round the small displacements of a stiff body (see TensorMass).
     def residual(u):
         r = exact.displacement_forces(u) + load
-        if planes is not None:
-            r = r + planes.forces(rest + u)
+        for contact in contacts:
+            r = r + contact.forces(rest + u)
         return r * free
 
     def potential(u):
         value = exact.displacement_energy(u) - (load * u).sum()
-        if planes is not None:  # penalty energy k/2 pen^2
-            value = value + 0.5 * (planes.stiffness * planes.penetration(rest + u) ** 2).sum()
+        for contact in contacts:  # penalty energies
+            value = value + contact.energy(rest + u)
         return value
 
     def tangent(on, u):
@@ -126,14 +134,16 @@ def _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter
 
         def matvec(p):
             ap = -stiffness(p)
-            return ap if planes is None else ap - planes.dforces(x, p)
+            for contact in contacts:
+                ap = ap - contact.dforces(x, p)
+            return ap
 
         return matvec
 
     def failed(result):
         return bool(result.breakdown.any() | result.nonfinite.any())
 
-    linear = all(g.model == "hooke" for g in model.groups) and planes is None  # corotational is not
+    linear = all(g.model == "hooke" for g in model.groups) and not contacts  # corotational is not
     u = torch.zeros_like(rest)
     r = residual(u)
     history = []
@@ -143,7 +153,7 @@ def _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter
             return u
         history.append(ratio)
         if _stalled(history):
-            _raise_if_rounding(model, u, r, load, free, planes, tol)
+            _raise_if_rounding(model, u, r, load, free, contacts, tol)
         result = batched_cg(tangent(exact, u), r, segments, free, tol=cg_tol, max_iter=cg_max_iter)
         if failed(result) and has_stvk:
             definite = definite or _variant(model, model.rest.dtype, "definite")
@@ -172,7 +182,7 @@ def _stalled(history) -> bool:
     return len(history) > STALL_STEPS and min(history[-STALL_STEPS:]) > STALL_FACTOR * min(history[:-STALL_STEPS])
 
 
-def _raise_if_rounding(model, u, r, load, free, planes, tol: float):
+def _raise_if_rounding(model, u, r, load, free, contacts, tol: float):
     """Raise when a stalled solve below float64 stalled on rounding: its residual ``r [V, d]`` at
     ``u [V, d]`` differs from the float64 residual there by as much as it measures. A stall that
     float64 shares (a slow non-linear solve) is left to max_newton."""
@@ -181,8 +191,8 @@ def _raise_if_rounding(model, u, r, load, free, planes, tol: float):
     wide = _variant(model, torch.float64)
     u64 = u.to(torch.float64)
     r64 = wide.displacement_forces(u64) + load.to(torch.float64)
-    if planes is not None:
-        r64 = r64 + planes.to(dtype=torch.float64).forces(wide.rest + u64)
+    for contact in contacts:
+        r64 = r64 + contact.to(dtype=torch.float64).forces(wide.rest + u64)
     r64 = r64 * free.to(torch.float64)
     noise = float(torch.linalg.vector_norm(r.to(torch.float64) - r64))
     if noise > 0.5 * float(torch.linalg.vector_norm(r)):

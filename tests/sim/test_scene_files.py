@@ -157,6 +157,16 @@ MISTAKES = {
     "unknown solver option": (BEAM + "[solver]\ncg_tolerance = 1e-3\n", "solver.cg_tolerance: unknown key; did you mean 'cg_tol'?"),
     "plane without stiffness": (BEAM + "[[planes]]\nnormal = [0, 0, 1]\n", "planes[0].stiffness: missing (required)"),
     "bad dtype": ('dtype = "float16"\n' + BEAM, "dtype: unknown dtype 'float16'"),
+    "unknown tool shape": (BEAM + '[[tools]]\nshape = "cone"\nradius = 1\n',
+                           "tools[0].shape: unknown tool shape 'cone'; expected one of sphere, capsule, box"),
+    "negative tool radius": (BEAM + '[[tools]]\nshape = "sphere"\nradius = -1\n',
+                             "tools[0].radius: must be > 0"),
+    "tool positions without times": (BEAM + '[[tools]]\nshape = "sphere"\nradius = 1\npositions = [[0, 0, 0]]\n',
+                                     "tools[0].positions: needs times"),
+    "tool NaN position": (BEAM + '[[tools]]\nshape = "box"\nhalf_extents = [1, 1, 1]\nposition = [0, nan, 0]\n',
+                          "tools[0].position: entry 1 must be a finite number"),
+    "tool bad rotation": (BEAM + '[[tools]]\nshape = "box"\nhalf_extents = [1, 1, 1]\n'
+                          'rotation = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]\n', "tools[0]: tool rotation must be a 3x3 rotation"),
     "bad device": ('device = "gpu0"\n' + BEAM, "device: not a torch device"),
 }
 
@@ -171,6 +181,29 @@ def test_mistakes_name_the_key(tmp_path, case):
     assert "\n" not in message
     assert message.startswith(str(path)) and expected in message, message
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml"]  # nothing written
+
+
+def test_tools_reach_the_simulator(tmp_path):
+    path = write(tmp_path, BEAM + """
+        [[tools]]
+        shape = "capsule"
+        radius = 0.1
+        half_length = 0.2
+        rotation = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]
+        times = [0, 1]
+        positions = [[0.5, 0.1, 0.5], [0.5, 0.1, 0.3]]
+        stiffness = 2e4
+        thickness = 0.01
+        name = "probe"
+        """)
+    sim = load_scene(path).simulator
+    (tool,) = sim.tools.tools
+    assert (tool.shape, tool.size, tool.stiffness, tool.thickness, tool.name) == ("capsule", (0.1, 0.2), 2e4, 0.01,
+                                                                                   "probe")
+    assert tool.origin(0.5) == pytest.approx((0.5, 0.1, 0.4))
+    assert tool.rotation[2] == (-1.0, 0.0, 0.0)
+    sim.step()
+    assert sim.last_report.contact.tool_force.shape == (1, 3)
 
 
 def test_missing_scene_file(tmp_path):
