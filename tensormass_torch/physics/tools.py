@@ -15,8 +15,8 @@ eigenvalues are k along n and k g kappa_i <= 0 across it (g < 0 in contact; kapp
 curvatures): a node pressed into a convex tool can slide off it. That negative part, |f| kappa,
 can outweigh a light node's mass term M / h^2 and make the step's matrix indefinite (CG breaks
 down; docs/contact.md gives the case met). So the stiffness the step uses is, by default
-(``tangent="projected"``), the Hessian projected onto the positive semi-definite matrices: k n n^T (its negative eigenvalues set to 0); the exact
-Hessian is ``tangent="exact"`` (tests check it against finite differences of the force, and the
+(``tangent="projected"``), the Hessian projected onto the positive semi-definite matrices:
+k n n^T (its negative eigenvalues set to 0); the exact Hessian is ``tangent="exact"`` (tests check it against finite differences of the force, and the
 projection against the exact one's eigen-decomposition). On flat parts (a box's faces) the two
 are the same. The step linearises at its start with the tool where it will be at the end
 (``ToolSet.set_time``), as for the planes.
