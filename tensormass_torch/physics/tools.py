@@ -12,14 +12,14 @@ penalty energy, force and stiffness
 with ``n = grad d`` (unit) and ``H`` the Hessian of d (the curvature of its level set: (I - n n^T)
 / rho outside a sphere of centre distance rho; zero on a flat face). H n = 0, so the Hessian's
 eigenvalues are k along n and k g kappa_i <= 0 across it (g < 0 in contact; kappa_i the surface's
-curvatures): a node pressed into a convex tool can slide off it. That negative part, |f| kappa,
-can outweigh a light node's mass term M / h^2 and make the step's matrix indefinite (CG breaks
-down; docs/contact.md gives the case met). So the stiffness the step uses is, by default
-(``tangent="projected"``), the Hessian projected onto the positive semi-definite matrices:
-k n n^T (its negative eigenvalues set to 0); the exact Hessian is ``tangent="exact"`` (tests check it against finite differences of the force, and the
-projection against the exact one's eigen-decomposition). On flat parts (a box's faces) the two
-are the same. The step linearises at its start with the tool where it will be at the end
-(``ToolSet.set_time``), as for the planes.
+curvatures): a node pressed into a convex tool can slide off it. That negative part, |f| kappa, can
+outweigh a light node's mass term M / h^2 and make the step's matrix indefinite (CG breaks down;
+docs/contact.md gives the case met). So the stiffness the step uses is, by default
+(``tangent="projected"``), the Hessian projected onto the positive semi-definite matrices: k n n^T
+(its negative eigenvalues set to 0); the exact Hessian is ``tangent="exact"`` (tests check it
+against finite differences of the force, and the projection against the exact one's
+eigen-decomposition). On flat parts (a box's faces) the two are the same. The step linearises at
+its start with the tool where it will be at the end (``ToolSet.set_time``), as for the planes.
 
 The reaction on a tool is minus the sum of the forces it puts on the nodes; its torque is taken
 about the tool's origin. Every node of every body meets every tool (a dense pass over the nodes:
