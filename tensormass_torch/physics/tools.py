@@ -344,19 +344,23 @@ class ToolSet:
 
     def penetration(self, x: torch.Tensor) -> torch.Tensor:
         """The deepest penetration of each node into any tool ``[V]``: max(0, -g) (0 away from them)."""
-        depth = x.new_zeros(x.shape[0])
-        for g, _, _ in self.gaps(x):
-            depth = torch.maximum(depth, torch.clamp(-g, min=0.0))
-        return depth
+        return self.contact_state(x)[0]
 
     def reactions(self, x: torch.Tensor):
         """The force ``[T, 3]`` the nodes at ``x [V, 3]`` put on each tool (minus the sum of the
         tool's forces on them) and its torque ``[T, 3]`` about the tool's origin."""
+        return self.contact_state(x)[1:]
+
+    def contact_state(self, x: torch.Tensor):
+        """:meth:`penetration` ``[V]`` and :meth:`reactions` (``[T, 3]`` twice) at ``x [V, 3]``
+        from one evaluation of the distances (what a step's report needs)."""
+        depth = x.new_zeros(x.shape[0])
         force, torque = [], []
         for i, (k, (g, n, _)) in enumerate(zip(self.stiffness, self.gaps(x))):
+            depth = torch.maximum(depth, torch.clamp(-g, min=0.0))
             on_nodes = -(k * torch.clamp(g, max=0.0))[:, None] * n  # [V, 3]
             force.append(-on_nodes.sum(0))
             torque.append(-torch.linalg.cross(x - self.origins[i], on_nodes).sum(0))
         if not force:
-            return x.new_zeros(0, 3), x.new_zeros(0, 3)
-        return torch.stack(force), torch.stack(torque)
+            return depth, x.new_zeros(0, 3), x.new_zeros(0, 3)
+        return depth, torch.stack(force), torch.stack(torque)

@@ -49,13 +49,11 @@ def contact_report(sim, x: Optional[torch.Tensor] = None) -> ContactReport:
     state), with its tools where they are now."""
     x = sim.x if x is None else x
     depth = x.new_zeros(x.shape[0])
-    if sim.planes is not None:
-        depth = sim.planes.penetration(x).amax(dim=1) if len(sim.planes) else depth
+    force = torque = x.new_zeros(0, 3)
     if sim.tools is not None:
-        depth = torch.maximum(depth, sim.tools.penetration(x))
-        force, torque = sim.tools.reactions(x)
-    else:
-        force = torque = x.new_zeros(0, 3)
+        depth, force, torque = sim.tools.contact_state(x)
+    if sim.planes is not None:
+        depth = torch.maximum(depth, sim.planes.penetration(x).amax(dim=1))
     lengths = sim.segments.lengths
     contacts = torch.segment_reduce((depth > 0).to(x.dtype), "sum", lengths=lengths).to(torch.int64)
     deepest = torch.segment_reduce(depth, "max", lengths=lengths, unsafe=True, initial=0.0)

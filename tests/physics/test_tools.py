@@ -4,8 +4,10 @@ equilibrium against the fixed nodes' forces and gravity, the simulator's reports
 import dataclasses
 import math
 
+import numpy as np
 import pytest
 import torch
+from conftest import random_rotation
 
 import tensormass_torch as tm
 from tensormass_torch.physics.tools import ToolSet
@@ -13,17 +15,8 @@ from tensormass_torch.physics.tools import ToolSet
 DT = torch.float64
 
 
-def random_rotation(gen) -> list:
-    q, r = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=DT))
-    q = q * torch.sign(torch.diagonal(r))
-    if torch.linalg.det(q) < 0:
-        q[:, 0] = -q[:, 0]
-    return q.tolist()
-
-
 def tool_cases():
-    gen = torch.Generator().manual_seed(7)
-    rot = random_rotation(gen)
+    rot = random_rotation(np.random.default_rng(7), 3).tolist()
     return {
         "sphere": tm.Sphere(0.3, position=(0.1, -0.2, 0.05), stiffness=2e3, thickness=0.02),
         "capsule": tm.Capsule(0.2, 0.25, position=(0.0, 0.1, 0.0), rotation=rot, stiffness=3e3, thickness=0.01),
