@@ -12,6 +12,7 @@ from .mesh.cutting import Blade
 from .mesh.io import load_mesh, save_mesh
 from .mesh.meshes import Mesh, TetMesh, TriMesh
 from .mesh.surface import tetrahedralize
+from .physics.body_contact import Contact
 from .physics.contact import Plane
 from .physics.materials import MODELS, Material
 from .physics.tensor_mass import TensorMass
@@ -28,5 +29,5 @@ __all__ = [
     "TensorMassError",
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh", "Blade",
     "TensorMass", "Body", "Simulator", "Scalpel", "InvertedElementsWarning", "load_scene", "solve_static",
-    "tetrahedralize", "Tool", "Sphere", "Capsule", "Box",
+    "tetrahedralize", "Tool", "Sphere", "Capsule", "Box", "Contact",
 ]

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from ..errors import SceneError
+from ..mesh.topology import boundary_faces
 
 #: Colours of the deformed entries of a panel, in order (rest shapes are drawn in REST_COLOR).
 PALETTE = ("#4878cf", "#d65f5f", "#6acc65", "#b47cc7", "#c4ad66", "#77bedb")
@@ -51,20 +52,6 @@ def _pyvista():
     return pyvista
 
 
-def boundary_faces(tets: torch.Tensor) -> torch.Tensor:
-    """Boundary triangles ``[F, 3]`` of a tet mesh ``tets [N, 4]``: the faces that belong to one tet only.
-
-    Each face keeps the winding of its tet's outward normal for positively oriented tets.
-    """
-    tets = torch.as_tensor(tets).long().cpu()
-    # The faces opposite nodes 0..3, wound so that their normals point away from that node.
-    local = torch.tensor([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-    faces = tets[:, local].reshape(-1, 3)  # [4N, 3]
-    keys = torch.sort(faces, dim=1).values
-    _, inverse, counts = torch.unique(keys, dim=0, return_inverse=True, return_counts=True)
-    return faces[counts[inverse] == 1]
-
-
 def _as_points(mesh, positions) -> np.ndarray:
     """Positions ``[V, 3]`` float64 numpy (2-D meshes and positions get z = 0)."""
     points = mesh.vertices if positions is None else positions
@@ -85,7 +72,7 @@ def _surface(pv, mesh, positions):
     """A pyvista PolyData of the body's surface: boundary faces of tets, or the triangles themselves."""
     kind = getattr(mesh, "kind", None)
     if kind == "tet":
-        triangles = boundary_faces(mesh.elements)
+        triangles = boundary_faces(mesh.elements.cpu())
     elif kind == "tri":
         triangles = mesh.elements.long().cpu()
     else:

@@ -199,3 +199,17 @@ def element_pieces(elements: torch.Tensor, num_nodes: int) -> torch.Tensor:
             break
         labels = updated
     return torch.unique(labels, return_inverse=True)[1]
+
+
+def boundary_faces(tets: torch.Tensor) -> torch.Tensor:
+    """Boundary triangles ``[F, 3]`` of a tet mesh ``tets [N, 4]``: the faces that belong to one tet only.
+
+    Each face keeps the winding of its tet's outward normal for positively oriented tets.
+    """
+    tets = torch.as_tensor(tets).long()
+    # The faces opposite nodes 0..3, wound so that their normals point away from that node.
+    local = torch.tensor([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], device=tets.device)
+    faces = tets[:, local].reshape(-1, 3)  # [4N, 3]
+    keys = torch.sort(faces, dim=1).values
+    _, inverse, counts = torch.unique(keys, dim=0, return_inverse=True, return_counts=True)
+    return faces[counts[inverse] == 1]

@@ -36,12 +36,18 @@ class ContactReport:
         tool_torque: its torque about each tool's origin ``[T, 3]``.
         contacts: per body, the nodes inside a tool's or a plane's contact distance ``[B]``.
         max_penetration: per body, the deepest of those ``[B]`` (0 with no contact).
+        body_contacts: per body, its surface vertices in contact with another body's surface
+            (or its own, with self-contact) ``[B]`` (zeros without body contact).
+        body_penetration: per body, the deepest interpenetration of its surface into another's
+            ``[B]``: max(0, -signed distance), the thickness layer's compression not counted.
     """
 
     tool_force: torch.Tensor
     tool_torque: torch.Tensor
     contacts: torch.Tensor
     max_penetration: torch.Tensor
+    body_contacts: Optional[torch.Tensor] = None
+    body_penetration: Optional[torch.Tensor] = None
 
 
 def contact_report(sim, x: Optional[torch.Tensor] = None) -> ContactReport:
@@ -57,7 +63,12 @@ def contact_report(sim, x: Optional[torch.Tensor] = None) -> ContactReport:
     lengths = sim.segments.lengths
     contacts = torch.segment_reduce((depth > 0).to(x.dtype), "sum", lengths=lengths).to(torch.int64)
     deepest = torch.segment_reduce(depth, "max", lengths=lengths, unsafe=True, initial=0.0)
-    return ContactReport(force, torque, contacts, deepest)
+    body = getattr(sim, "body_contact", None)
+    if body is None:
+        body_counts, body_depth = torch.zeros_like(contacts), torch.zeros_like(deepest)
+    else:
+        body_counts, body_depth = body.detect(x).penetration(sim.num_bodies, sim.segments.node_object)
+    return ContactReport(force, torque, contacts, deepest, body_counts, body_depth)
 
 
 def signed_measures(x: torch.Tensor, elements: torch.Tensor,

@@ -11,10 +11,12 @@ import torch
 from ..errors import CapacityError, MeshError, SceneError, SolverError
 from ..mesh.cutting import Blade
 from ..mesh.meshes import Mesh
+from ..mesh.topology import boundary_faces
 from ..ops import node_graph
 from ..ops.cutting import cut_mesh
 from ..ops.segments import Segments
 from ..ops.topology import upload
+from ..physics.body_contact import Contact, SurfaceContact
 from ..physics.constraints import node_mask
 from ..physics.contact import Plane, Planes
 from ..physics.materials import Material
@@ -123,6 +125,10 @@ class Simulator:
         tools: list of rigid tools (:func:`tm.Sphere`, :func:`tm.Capsule`, :func:`tm.Box`): penalties
             on the signed distance, their stiffness in the implicit system, each tool where its
             path puts it at the end of the step; their reactions in ``StepReport.contact``.
+        contact: a :class:`tm.Contact` (thickness, stiffness, self-contact) for contact between the
+            surfaces of the tetrahedral bodies, or None (default: bodies pass through each other).
+            Pairs are found at the start of each step; bodies they join are solved together; its
+            steps run eagerly (not chained). Counts and penetrations in ``StepReport.contact``.
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs: see
             ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
             ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
@@ -151,7 +157,7 @@ class Simulator:
                  cg_tol: float = 1e-6, cg_max_iter: Optional[int] = None, require_convergence: bool = True,
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
-                 spare_nodes=0, tools: Sequence[Tool] = ()):
+                 spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None):
         bodies = list(bodies)
         # what a topology change that rebuilds the simulator (cut) builds it again with
         self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
@@ -159,7 +165,7 @@ class Simulator:
                                cg_max_iter=cg_max_iter, require_convergence=require_convergence,
                                newton_iters=newton_iters, check_every=check_every, form=form, device=device,
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
-                               substeps_on_failure=substeps_on_failure, tools=tools)
+                               substeps_on_failure=substeps_on_failure, tools=tools, contact=contact)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -245,9 +251,15 @@ class Simulator:
         self.planes = Planes(planes, self.dtype, self.device) if planes else None
         #: the rigid tools (``physics.tools.ToolSet``) or None
         self.tools = ToolSet(list(tools), self.dtype, self.device) if tools else None
+        if contact is not None and not isinstance(contact, Contact):
+            raise SceneError(f"contact must be a tm.Contact or None, got {type(contact).__name__}")
+        self.contact = contact
+        #: contact between the bodies' surfaces (``physics.body_contact.SurfaceContact``) or None
+        self.body_contact = None
         #: the mass each body has lost to element removals ``[B]``
         self.removed_mass = torch.zeros(len(bodies), dtype=self.dtype, device=self.device)
         self._make_system()
+        self._surfaces_changed()
         self.x = rest.clone()
         self.v = torch.cat(velocities)
         self.time = 0.0
@@ -279,7 +291,21 @@ class Simulator:
         constrained = self.fixed | self.prescribed | (mass == 0)
         keep_mask = "removed" in self.model._buffers or self.ptr[-1] > sum(self.used_nodes)
         self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * self.gravity, self.segments,
-                                     constrained, self.planes, keep_mask=keep_mask, tools=self.tools)
+                                     constrained, self.planes, keep_mask=keep_mask, tools=self.tools,
+                                     body_contact=self.body_contact)
+
+    def _surfaces_changed(self):
+        """The body contact's surfaces from the bodies' remaining tetrahedra (after a cut or a
+        removal the surfaces change), into the system; nothing without ``contact``."""
+        if self.contact is None:
+            return
+        triangles = [boundary_faces(self.mesh(i).elements.to(self.device)) + self.ptr[i]
+                     for i, b in enumerate(self.bodies) if b.mesh.kind == "tet"]
+        if not triangles:
+            raise SceneError("contact is between the surfaces of tetrahedral bodies; this simulator has none")
+        self.body_contact = SurfaceContact(torch.cat(triangles), self.segments.node_object, self.model.rest,
+                                           self.contact)
+        self.system.body_contact = self.body_contact
 
     def _masses_changed(self):
         """After the model lost elements in place: gravity follows the masses and nodes left with
@@ -343,6 +369,7 @@ class Simulator:
         lost = self.model._remove_checked(ids)  # counted from the host's copy: no device read
         self.removed_mass[i] += lost
         self._masses_changed()
+        self._surfaces_changed()
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
         return lost
@@ -489,7 +516,7 @@ class Simulator:
         for _ in range(steps):  # the same float sum as one step at a time
             self.time += self.options.dt
         self.steps_done += steps
-        if self.tools is not None:
+        if self.tools is not None or self.body_contact is not None:
             report.contact = contact_report(self, x)
         self.last_report = report
         self.last_inversion = inversion
@@ -646,10 +673,12 @@ class Simulator:
         self.used_nodes[i] = used + added
         if stale:  # a new integrator view: its CUDA graphs captured again
             self._make_system()
+            self._surfaces_changed()
         else:
             torch.mul(self.model.lumped_mass()[:, None], self.gravity, out=self.system.external)
             free = ~(self.fixed | self.prescribed)[new_nodes]
             self.system.free[new_nodes] = free.to(self.system.free.dtype)[:, None]
+            self._surfaces_changed()
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
         return True
@@ -681,6 +710,7 @@ class Simulator:
             if ids.numel():
                 self.model.remove_elements(ids + self.element_ptr[k])
         self._make_system()
+        self._surfaces_changed()
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
         with torch.no_grad():

@@ -107,13 +107,16 @@ class DynamicsSystem:
         planes: ``contact.Planes`` or None.
         tools: ``tools.ToolSet`` or None (rigid tools: node-wise penalties, like the planes, whose
             poses the caller sets before each step: ``ToolSet.set_time``).
+        body_contact: ``body_contact.SurfaceContact`` or None (vertex-triangle contact between the
+            bodies' surfaces: pairs found at each linearisation; a step solves the bodies they
+            join as one system).
         keep_mask: keep the mask of free nodes (``free [V, 1]``) even when nothing is constrained,
             for a caller that constrains nodes later in place (topology changes); without it such
             a system has no mask (``free`` None) and its products skip the projection.
     """
 
     def __init__(self, model, mass, external, segments: Segments, constrained, planes=None, keep_mask: bool = False,
-                 tools=None):
+                 tools=None, body_contact=None):
         self.model = model
         self.mass = mass.unsqueeze(-1)
         self.external = external
@@ -123,9 +126,11 @@ class DynamicsSystem:
                      else (~constrained).to(mass.dtype).unsqueeze(-1))
         self.planes = planes if planes is not None and len(planes) else None
         self.tools = tools if tools is not None and len(tools) else None
+        self.body_contact = body_contact
         self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
         self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec
         self._step_graphs = {}  # step options -> StepGraphs (CUDA)
+        self._coupled_cg = {}  # object ptr of coupled solves -> CGSolver
 
     def cg_solver(self, like: torch.Tensor, cuda_graphs: bool) -> CGSolver:
         """The batched CG over these objects (made once, on ``like``'s device and dtype)."""
@@ -158,6 +163,8 @@ class DynamicsSystem:
         f = (self.model(x, variants) if isinstance(self.model, TensorMass) else self.model(x)) + self.external
         for contact in self.contacts:
             f = f + contact.forces(x)
+        if self.body_contact is not None:
+            f = f + self.body_contact.forces(x)
         return f
 
     @property
@@ -169,18 +176,21 @@ class DynamicsSystem:
         """(dF/dx) dx ``[V, d]`` of the elastic and contact forces."""
         return self.tangent(x)(dx)
 
-    def tangent(self, x):
-        """dx -> (dF/dx) dx at ``x``, with what the products share computed once."""
+    def tangent(self, x, pairs=None):
+        """dx -> (dF/dx) dx at ``x``, with what the products share computed once; ``pairs``: the
+        body contact's pairs at x where the caller has them (else found here)."""
         elastic = self.model.tangent(x)
         contacts = self.contacts
-        if not contacts:
+        if pairs is None and self.body_contact is not None:
+            pairs = self.body_contact.detect(x)
+        if not contacts and pairs is None:
             return elastic
 
         def apply(dx):
             total = elastic(dx)
             for contact in contacts:
                 total = total + contact.dforces(x, dx)
-            return total
+            return total if pairs is None else total + pairs.dforces(dx)
 
         return apply
 
@@ -412,21 +422,63 @@ def _coefficients(opts: StepOptions):
     return 1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness)
 
 
-def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None) -> CGResult:
-    """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x."""
+def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None) -> CGResult:
+    """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x;
+    ``pairs``: the body contact's pairs at x (found here when the system has body contact and
+    they are not given)."""
     mass_coef, stiffness_coef = _coefficients(opts)
+    if pairs is None and system.body_contact is not None:
+        pairs = system.body_contact.detect(x)
     fused = (loaded if loaded is not None
              else system.system_matvec(mass_coef, stiffness_coef, opts.pipelined, opts.variants))
     if fused is None:  # a model that is not a TensorMass: the composed product
-        tangent = system.tangent(x)
-        return batched_cg(lambda p: mass_coef * system.mass * p - stiffness_coef * tangent(p), rhs,
-                          system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
+        tangent = system.tangent(x, pairs)
+
+        def matvec(p):
+            return mass_coef * system.mass * p - stiffness_coef * tangent(p)
+    else:
+        if loaded is None:
+            fused.load(x)
+        matvec = fused
+        if pairs is not None and len(pairs):
+            def matvec(p):  # the pairs' stiffness beside the fused product (it projects; the CG projects again)
+                return fused(p)[0] - stiffness_coef * pairs.dforces(p)
+    coupled = _coupled_solve(system, matvec, rhs, opts, pairs) if pairs is not None and len(pairs) else None
+    if coupled is not None:
+        return coupled
+    if fused is None:
+        return batched_cg(matvec, rhs, system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
                           check_every=opts.check_every)
-    if loaded is None:
-        fused.load(x)
     cg = system.cg_solver(rhs, opts.cuda_graphs)
-    return cg.solve(fused, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
-                    graph_key=fused.graph_key)
+    # the pairs change from step to step: their product is not captured
+    graph_key = fused.graph_key if matvec is fused else None
+    return cg.solve(matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
+                    graph_key=graph_key)
+
+
+def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs) -> CGResult | None:
+    """The solve when contact pairs join objects: one CG over each run of objects they join
+    (``body_contact.coupled_ranges``), its outcome given to each object of the run; None where no
+    pair joins two objects (the per-object solve applies)."""
+    from ..physics.body_contact import coupled_ranges
+
+    objects = system.segments.num_objects
+    ptr = coupled_ranges(pairs, objects)
+    if len(ptr) == objects + 1:
+        return None
+    solver = system._coupled_cg.get(tuple(ptr))
+    if solver is None:
+        if len(system._coupled_cg) >= 16:  # the runs change as bodies meet and part: keep a few
+            system._coupled_cg.clear()
+        node_ptr = system.segments.ptr.tolist()
+        lengths = [node_ptr[ptr[i + 1]] - node_ptr[ptr[i]] for i in range(len(ptr) - 1)]
+        solver = system._coupled_cg[tuple(ptr)] = CGSolver(Segments.from_lengths(lengths, rhs.device), rhs.shape,
+                                                           rhs.dtype, rhs.device, system.free, cuda_graphs=False)
+    result = solver.solve(matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every)
+    run = torch.repeat_interleave(torch.arange(len(ptr) - 1, device=rhs.device),
+                                  torch.tensor(ptr, device=rhs.device).diff())
+    return CGResult(result.solution, *(t[run] for t in (result.iterations, result.residual_norm, result.rhs_norm,
+                                                         result.converged, result.breakdown, result.nonfinite)))
 
 
 #: What to do about each way a step's solve fails (the end of SolverError's message).
@@ -465,11 +517,12 @@ def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):
                           status, result)
 
 
-def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, matvec=None):
+def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, matvec=None, pairs=None):
     """The right-hand side ``[V, d]`` of the first linear system of a step, and the velocity change
     of the constrained nodes ``[V, d]`` (None when there is none to impose). ``matvec``: the
     step's SystemMatvec, loaded here at ``x`` (its rotations and contact terms are then reused
-    by the CG: computed once per step), or None."""
+    by the CG: computed once per step), or None; ``pairs``: with a matvec, the body contact's
+    pairs at x (their forces and stiffness join the matvec's)."""
     h = opts.dt
     # Constrained nodes take their imposed velocity exactly; CG solves for the free nodes only.
     # With no imposed velocity, constrained nodes are fixed: they are at rest and stay there.
@@ -480,6 +533,11 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
     if matvec is not None:
         tangent = matvec.tangent
         rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.rayleigh_stiffness)
+        if pairs is not None and len(pairs):
+            rhs = rhs + h * (pairs.forces() + pairs.dforces((h + opts.rayleigh_stiffness) * v))
+
+            def tangent(dx, elastic=matvec.tangent):
+                return elastic(dx) + pairs.dforces(dx)
     else:
         tangent = system.tangent(x)
         rhs = system.forces(x, opts.variants) + tangent((h + opts.rayleigh_stiffness) * v)
@@ -701,7 +759,9 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     """The system's :class:`StepGraphs` for these options, or None where they do not apply."""
     from ..physics.tensor_mass import TensorMass
 
+    # body contact's pairs change in number from step to step: its steps run eagerly
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
+            or system.body_contact is not None
             or system.model.rest.device.type != "cuda"
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None
@@ -730,8 +790,11 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     h = opts.dt
     report = StepReport()
     loaded = system.system_matvec(*_coefficients(opts), opts.pipelined, opts.variants)
-    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
-    result = _solve(system, x, rhs, opts, loaded)
+    # the body contact's pairs where the step linearises (without a matvec the system finds them)
+    pairs = (system.body_contact.detect(x, v, h) if system.body_contact is not None and loaded is not None
+             else None)
+    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded, pairs)  # loads it at x
+    result = _solve(system, x, rhs, opts, loaded, pairs)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution

@@ -38,17 +38,6 @@ def drawn_fraction(pixels: np.ndarray) -> float:
     return float((np.abs(pixels.astype(int) - 255).sum(axis=-1) > 30).mean())
 
 
-def test_boundary_faces_of_a_beam():
-    mesh = tm.beam_mesh(2, 1, 1)
-    faces = render.boundary_faces(mesh.elements)
-    # 2 * (2*1 + 1*1 + 2*1) square faces on the boundary, 2 triangles each
-    assert faces.shape == (20, 3)
-    # outward: the divergence theorem gives the volume from the oriented boundary faces
-    x = mesh.vertices.double()[faces]
-    volume = (torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]) * x[:, 0]).sum() / 6
-    assert volume.item() == pytest.approx(1.0, rel=1e-12)
-
-
 def test_png_of_a_beam_is_not_blank(tmp_path):
     mesh = tm.beam_mesh(8, 2, 2, size=(1.0, 0.1, 0.1))
     path = render.render_png(tmp_path / "beam.png", [[(mesh, None), (mesh, twisted(mesh))], [(mesh, None)]],

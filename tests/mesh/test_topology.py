@@ -1,7 +1,9 @@
 """Precomputation of the paper's Algorithm 1: index, ForceIndex, N_n, CSR node lists."""
+import pytest
 import torch
 
 import tensormass_torch as tm
+from tensormass_torch.mesh import topology
 from tensormass_torch.mesh.topology import GatherPlan, incidence_slots, node_element_lists, padded_sum
 from tensormass_torch.ops.reference.gather import node_gather, scatter_partial_forces
 
@@ -51,3 +53,14 @@ def test_node_element_lists():
         entries = slice(int(ptr[node]), int(ptr[node + 1]))
         assert torch.all(mesh.elements[element_ids[entries], local_ids[entries]] == node)
         assert torch.all(element_ids[entries][1:] > element_ids[entries][:-1])
+
+
+def test_boundary_faces_of_a_beam():
+    mesh = tm.beam_mesh(2, 1, 1)
+    faces = topology.boundary_faces(mesh.elements)
+    # 2 * (2*1 + 1*1 + 2*1) square faces on the boundary, 2 triangles each
+    assert faces.shape == (20, 3)
+    # outward: the divergence theorem gives the volume from the oriented boundary faces
+    x = mesh.vertices.double()[faces]
+    volume = (torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]) * x[:, 0]).sum() / 6
+    assert volume.item() == pytest.approx(1.0, rel=1e-12)

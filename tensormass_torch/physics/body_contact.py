@@ -1,0 +1,405 @@
+"""Contact between the surfaces of bodies: vertex-triangle penalties with a contact thickness,
+found by a spatial hash each step, their stiffness in the implicit system.
+
+Every surface vertex p of a body meets the surface triangles (a, b, c) of the other bodies (and,
+with ``self_contact``, the far parts of its own surface). For a pair, the closest point of the
+triangle is ``q = w_a a + w_b b + w_c c`` (barycentric weights w on the triangle), at distance
+``d = |p - q|``; its sign is the side of the triangle's outward normal ``n_t`` that p is on, so
+``s = sign(n_t . (p - q)) d`` is negative once p is inside the other body. With the thickness
+delta the gap is ``g = s - delta`` and, while g < 0, the pair's penalty energy and forces are
+
+    E = k/2 g^2       f_p = -k g u        f_a = k g w_a u,  f_b = k g w_b u,  f_c = k g w_c u
+
+with ``u = sign (p - q) / d`` (= n_t where q is inside the triangle). These forces are minus the
+energy's gradient: d is the minimum of |p - sum w_i x_i| over the triangle, so by the envelope
+theorem its gradient is u on p and -w_i u on the triangle's nodes (the minimising w does not
+move to first order). They sum to zero (the w sum to 1) and their torque about any point is zero
+(p - q is along u): contact conserves linear and angular momentum.
+
+The stiffness the implicit step uses is, by default (``tangent="projected"``), k J^T J with
+J = (u, -w_a u, -w_b u, -w_c u): the energy's Hessian without its curvature term k g d2s/dx2,
+positive semi-definite (the same choice as the tools'; docs/contact.md). ``tangent="exact"``
+keeps that term (each pair's 12 x 12 Hessian by automatic differentiation of its energy: for
+tests and small scenes; it can make the step's matrix indefinite).
+
+Which pairs: for each surface vertex and each other body, the nearest triangle of that body
+within ``thickness + search`` (the spatial hash's reach); the pair is in contact while its gap is
+negative. A vertex that went deeper than ``search`` into a body is lost to it (the step was too
+long for the contact: shorten dt, stiffen the contact or widen ``search``). For self-contact the
+triangles within the same reach of the vertex at rest (its neighbourhood) are left out.
+
+Pairs are found at the start of a step (where the step linearises) and kept for its solve. A
+pair counts from the step whose end it would reach in contact at the current velocities (its
+gap plus dt times its closing speed negative), not from the step after: its linearised force
+-k (g + J dx) u then acts on the gap at the end of the step, as an implicit step's forces do,
+and a body arriving at speed v stops within about the penalty's own depth instead of v dt inside
+the other. (At the step's start such a pair's force -k g u, g > 0, pulls: it is the linear
+model's value there, the solve's result is the push at the end.) The pairs couple the bodies
+they join: the step solves such bodies together (one CG over the run of objects that contact
+joins, ``coupled_ranges``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional
+
+import torch
+
+from ..errors import SceneError
+
+#: the stiffness a body contact gives the implicit step (``Contact.tangent``)
+TANGENTS = ("projected", "exact")
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Settings of contact between bodies (the scene file's ``[contact]`` table).
+
+    Attributes:
+        stiffness: penalty k (N/m per vertex in contact).
+        thickness: contact distance delta: surfaces are pushed apart once closer than this (a
+            layer that takes the penalty's compression, so the surfaces themselves need not
+            interpenetrate; 0: they meet at the surfaces).
+        search: how far past the thickness pairs are looked for, and how deep a vertex may go into
+            another body and still be pushed out; None: the mean edge length of the bodies'
+            surfaces.
+        self_contact: a body's surface also meets its own far parts (those beyond ``thickness +
+            search`` of a vertex at rest).
+        tangent: ``"projected"`` (default; positive semi-definite) or ``"exact"`` (see the module).
+    """
+
+    stiffness: float = 1e5
+    thickness: float = 0.0
+    search: Optional[float] = None
+    self_contact: bool = False
+    tangent: str = "projected"
+
+    def __post_init__(self):
+        def number(value):
+            return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+        if not number(self.stiffness) or self.stiffness <= 0:
+            raise SceneError(f"contact stiffness must be a positive finite number, got {self.stiffness!r}")
+        if not number(self.thickness) or self.thickness < 0:
+            raise SceneError(f"contact thickness must be a non-negative finite number, got {self.thickness!r}")
+        if self.search is not None and (not number(self.search) or self.search <= 0):
+            raise SceneError(f"contact search must be a positive finite number or None, got {self.search!r}")
+        if not isinstance(self.self_contact, bool):
+            raise SceneError(f"contact self_contact must be true or false, got {self.self_contact!r}")
+        if self.tangent not in TANGENTS:
+            raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
+                             f"got {self.tangent!r}")
+
+
+def closest_weights(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Barycentric weights ``[..., 3]`` of the point of triangle (a, b, c) closest to p (all
+    ``[..., 3]``): the projection onto the triangle's plane where it falls inside, else the
+    nearest of the closest points of the three edges (a degenerate triangle: its edges)."""
+    tiny = torch.finfo(p.dtype).tiny
+    ab, ac, ap = b - a, c - a, p - a
+    d00, d01, d11 = (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)
+    d20, d21 = (ap * ab).sum(-1), (ap * ac).sum(-1)
+    denom = d00 * d11 - d01 * d01
+    safe = torch.where(denom > 0, denom, torch.ones_like(denom))
+    wb = (d11 * d20 - d01 * d21) / safe
+    wc = (d00 * d21 - d01 * d20) / safe
+    wa = 1.0 - wb - wc
+    inside = (denom > 1e-12 * d00 * d11) & (wa >= 0) & (wb >= 0) & (wc >= 0)
+
+    def on_edge(start, end):
+        e = end - start
+        t = ((p - start) * e).sum(-1) / torch.clamp((e * e).sum(-1), min=tiny)
+        t = torch.clamp(t, 0.0, 1.0)
+        return t, ((p - start - t[..., None] * e) ** 2).sum(-1)
+
+    t_ab, d_ab = on_edge(a, b)
+    t_ac, d_ac = on_edge(a, c)
+    t_bc, d_bc = on_edge(b, c)
+    zero = torch.zeros_like(t_ab)
+    w_ab = torch.stack([1 - t_ab, t_ab, zero], -1)
+    w_ac = torch.stack([1 - t_ac, zero, t_ac], -1)
+    w_bc = torch.stack([zero, 1 - t_bc, t_bc], -1)
+    w_edge = torch.where((d_ab <= d_ac)[..., None], w_ab, w_ac)
+    w_edge = torch.where((d_bc < torch.minimum(d_ab, d_ac))[..., None], w_bc, w_edge)
+    return torch.where(inside[..., None], torch.stack([wa, wb, wc], -1), w_edge)
+
+
+def closest_point(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
+    """From p to triangle (a, b, c) (all ``[..., 3]``): the closest point's weights w ``[..., 3]``,
+    p minus that point ``[..., 3]``, its length d ``[...]`` and the triangle's unit normal
+    (b - a) x (c - a) ``[..., 3]`` (outward for an outward-wound surface)."""
+    w = closest_weights(p, a, b, c)
+    diff = p - (w[..., 0:1] * a + w[..., 1:2] * b + w[..., 2:3] * c)
+    normal = torch.linalg.cross(b - a, c - a)
+    normal = normal / torch.clamp(torch.linalg.vector_norm(normal, dim=-1, keepdim=True),
+                                  min=torch.finfo(p.dtype).tiny)
+    return w, diff, torch.linalg.vector_norm(diff, dim=-1), normal
+
+
+def _direction(diff: torch.Tensor, d: torch.Tensor, side: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """u = side (p - q) / d, the gradient of the signed distance at p; the normal where p is on
+    the triangle (d ~ 0, where the direction of p - q means nothing)."""
+    tiny = torch.finfo(d.dtype).eps * torch.clamp(d.amax() if d.numel() else d.new_ones(()), min=1.0)
+    return torch.where((d > tiny)[..., None], side[..., None] * diff / torch.clamp(d, min=tiny)[..., None], normal)
+
+
+def signed_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
+    """The signed distance from p to the one triangle (a, b, c) (all ``[..., 3]``): (s ``[...]``,
+    unit direction u ``[..., 3]`` (ds/dp), weights w ``[..., 3]``); s < 0 on the side opposite
+    the triangle's normal. (On a closed surface, where the closest point is on an edge or a
+    corner several triangles share, the side is that of their normals' sum: ``SurfaceContact``.)"""
+    w, diff, d, normal = closest_point(p, a, b, c)
+    side = torch.where((normal * diff).sum(-1) >= 0, 1.0, -1.0).to(p.dtype)
+    return side * d, _direction(diff, d, side, normal), w
+
+
+def _hash(cells: torch.Tensor) -> torch.Tensor:
+    """An int64 key of integer cells ``[..., 3]``: distinct cells may share one (the narrow phase
+    checks every candidate's distance, so a collision costs work, never a contact)."""
+    return (cells[..., 0] * 73856093) ^ (cells[..., 1] * 19349663) ^ (cells[..., 2] * 83492791)
+
+
+def _sum_into(num_nodes: int, nodes: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``[V, 3]`` zeros plus ``values [M, 3]`` summed at ``nodes [M]``, in an order that does not
+    depend on the run (index_put_'s accumulation sorts by index; index_add_ would use atomics)."""
+    out = values.new_zeros(num_nodes, 3)
+    return out.index_put_((nodes,), values, accumulate=True)
+
+
+@dataclass
+class ContactPairs:
+    """The vertex-triangle pairs in contact at one state (what a step linearises).
+
+    Attributes:
+        nodes: ``[P, 4]`` the vertex, then the triangle's three nodes (packed node ids).
+        weights: ``[P, 3]`` the closest point's barycentric weights on the triangle.
+        direction: ``[P, 3]`` u, the unit gradient of the signed distance at the vertex.
+        signed: ``[P]`` s, the signed distance (negative: the vertex is inside the other body).
+        gap: ``[P]`` s - thickness (negative: in contact).
+        objects: ``[P, 2]`` the vertex's body and the triangle's.
+        stiffness: k.
+        hessians: ``[P, 12, 12]`` each pair's exact energy Hessian (``tangent="exact"``), or None.
+        num_nodes: V.
+    """
+
+    nodes: torch.Tensor
+    weights: torch.Tensor
+    direction: torch.Tensor
+    signed: torch.Tensor
+    gap: torch.Tensor
+    objects: torch.Tensor
+    stiffness: float
+    hessians: Optional[torch.Tensor]
+    num_nodes: int
+
+    def __len__(self):
+        return self.gap.numel()
+
+    def _coefficients(self) -> torch.Tensor:
+        """``[P, 4]``: the vertex's 1 and the triangle's -w (J = coefficient x u per node)."""
+        return torch.cat([torch.ones_like(self.weights[:, :1]), -self.weights], dim=1)
+
+    def forces(self) -> torch.Tensor:
+        """The penalty forces ``[V, 3]``: -k g u on the vertex, k g w_i u on the triangle's nodes."""
+        per_pair = (-self.stiffness * self.gap)[:, None, None] * self._coefficients()[:, :, None] \
+            * self.direction[:, None, :]  # [P, 4, 3]
+        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+
+    def dforces(self, dx: torch.Tensor) -> torch.Tensor:
+        """(df/dx) dx ``[V, 3]`` with the chosen stiffness (minus the projected or exact Hessian)."""
+        if self.hessians is not None:
+            local = dx[self.nodes].reshape(-1, 12)  # [P, 12]
+            per_pair = -(self.hessians @ local[:, :, None])[:, :, 0].reshape(-1, 4, 3)
+        else:
+            coef = self._coefficients()  # [P, 4]
+            along = (coef[:, :, None] * dx[self.nodes]).sum(1)  # J dx as a vector: sum_i c_i dx_i [P, 3]
+            normal = self.stiffness * (along * self.direction).sum(-1)  # k u . J dx [P]
+            per_pair = -(normal[:, None, None] * coef[:, :, None]) * self.direction[:, None, :]
+        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+
+    def energy(self) -> torch.Tensor:
+        """The penalty energy (0-dim): sum over pairs of k/2 g^2."""
+        return 0.5 * self.stiffness * (self.gap ** 2).sum()
+
+    def penetration(self, num_objects: int, node_object: torch.Tensor):
+        """Per body ``[B]``: its vertices in contact (int64) and the deepest interpenetration of
+        its surface into another's, max(0, -s) (0 with none: the thickness layer's compression
+        is not penetration)."""
+        vertex = self.nodes[:, 0]
+        counts = torch.zeros(num_objects, dtype=torch.int64, device=vertex.device)
+        counts.index_put_((node_object[vertex],), torch.ones_like(vertex), accumulate=True)
+        deepest = self.signed.new_zeros(num_objects)
+        deepest.scatter_reduce_(0, node_object[vertex], torch.clamp(-self.signed, min=0.0), "amax")
+        return counts, deepest
+
+
+def _pair_energy_hessians(x: torch.Tensor, nodes: torch.Tensor, side: torch.Tensor, stiffness: float,
+                          thickness: float) -> torch.Tensor:
+    """``[P, 12, 12]``: each pair's exact energy Hessian k/2 (side d - delta)^2 over its 12
+    coordinates (``side [P]`` as found; automatic differentiation through the closest point: the
+    pairs are independent, so 12 backward passes give every block)."""
+    with torch.enable_grad():
+        local = x[nodes].detach().reshape(-1, 12).requires_grad_(True)
+        y = local.reshape(-1, 4, 3)
+        _, _, d, _ = closest_point(y[:, 0], y[:, 1], y[:, 2], y[:, 3])
+        energy = 0.5 * stiffness * ((side * d - thickness) ** 2).sum()
+        (grad,) = torch.autograd.grad(energy, local, create_graph=True)
+        rows = [torch.autograd.grad(grad[:, j].sum(), local, retain_graph=True)[0] for j in range(12)]
+    return torch.stack(rows, dim=1).detach()
+
+
+class SurfaceContact:
+    """Contact between the surfaces of packed bodies (see the module).
+
+    Args:
+        triangles: ``[F, 3]`` the bodies' surface triangles (packed node ids, wound outward).
+        node_object: ``[V]`` each node's body (int64).
+        rest: ``[V, 3]`` rest positions (for self-contact's neighbourhoods and the default search).
+        settings: :class:`Contact`.
+    """
+
+    def __init__(self, triangles: torch.Tensor, node_object: torch.Tensor, rest: torch.Tensor, settings: Contact):
+        if not isinstance(settings, Contact):
+            raise SceneError(f"contact must be a tm.Contact, got {type(settings).__name__}")
+        self.settings = settings
+        self.triangles = triangles.to(device=rest.device, dtype=torch.int64).reshape(-1, 3)
+        self.node_object = node_object.to(rest.device)
+        self.triangle_object = self.node_object[self.triangles[:, 0]]
+        self.vertices = torch.unique(self.triangles)  # the surface vertices [S]
+        self.vertex_object = self.node_object[self.vertices]
+        self.num_nodes = rest.shape[0]
+        self.num_objects = int(self.node_object.max()) + 1 if self.node_object.numel() else 0
+        if settings.search is not None:
+            self.search = float(settings.search)
+        else:
+            edges = rest[self.triangles] - rest[self.triangles.roll(1, dims=1)]
+            self.search = float(torch.linalg.vector_norm(edges, dim=-1).mean()) if len(self.triangles) else 1.0
+        self.rest = rest
+
+    @property
+    def reach(self) -> float:
+        """Thickness plus search: the distance within which pairs are looked for."""
+        return self.settings.thickness + self.search
+
+    def candidates(self, x: torch.Tensor):
+        """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
+        triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed
+        self-contact) whose triangle's box, grown by :attr:`reach`, holds the vertex's cell.
+
+        A spatial hash of cell size c = the largest triangle box side + 2 reach: each grown box
+        covers at most 2 cells per axis (8 entries), each vertex lies in one."""
+        device = x.device
+        empty = torch.zeros(0, dtype=torch.int64, device=device)
+        if len(self.triangles) == 0:
+            return empty, empty
+        corners = x[self.triangles]  # [F, 3, 3]
+        low, high = corners.amin(1), corners.amax(1)
+        reach = self.reach
+        cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
+        first = torch.floor((low - reach) / cell).to(torch.int64)
+        last = torch.floor((high + reach) / cell).to(torch.int64)
+        offsets = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=device)
+        cells = first[:, None, :] + offsets[None]  # [F, 8, 3]
+        keep = (cells <= last[:, None, :]).all(-1)  # [F, 8]
+        keys = _hash(cells)[keep]
+        owners = torch.arange(len(self.triangles), device=device)[:, None].expand_as(keep)[keep]
+        keys, order = torch.sort(keys, stable=True)
+        owners = owners[order]
+        vertex_keys = _hash(torch.floor(x[self.vertices] / cell).to(torch.int64))
+        start = torch.searchsorted(keys, vertex_keys, side="left")
+        counts = torch.searchsorted(keys, vertex_keys, side="right") - start
+        vertex = torch.repeat_interleave(torch.arange(len(self.vertices), device=device), counts)
+        first_of = torch.repeat_interleave(start - (torch.cumsum(counts, 0) - counts), counts)
+        triangle = owners[first_of + torch.arange(vertex.numel(), device=device)]
+        same = self.vertex_object[vertex] == self.triangle_object[triangle]
+        if not self.settings.self_contact:
+            return vertex[~same], triangle[~same]
+        # self-contact: not the vertex's own triangles, nor those near it at rest
+        node = self.vertices[vertex]
+        own = (self.triangles[triangle] == node[:, None]).any(1)
+        tri = self.triangles[triangle]
+        s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
+        keep = ~same | (~own & (s_rest.abs() > reach))
+        return vertex[keep], triangle[keep]
+
+    def detect(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0) -> ContactPairs:
+        """The pairs in contact at ``x [V, 3]``: for each surface vertex and each body, the nearest
+        of its candidate triangles within :attr:`reach`, where the gap is negative, or, given the
+        velocities ``v [V, 3]`` and a step ``dt``, where the gap the pair would have after the
+        step at those velocities, g + dt u . (v_p - sum w_i v_i), is negative (see the module).
+        """
+        vertex, triangle = self.candidates(x)
+        tri = self.triangles[triangle]
+        node = self.vertices[vertex]
+        w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
+        near = d < self.reach
+        vertex, triangle, node, tri, w, diff, d, normal = (
+            t[near] for t in (vertex, triangle, node, tri, w, diff, d, normal))
+        # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic)
+        group = vertex * max(self.num_objects, 1) + self.triangle_object[triangle]
+        _, group = torch.unique(group, return_inverse=True)
+        groups = int(group.max()) + 1 if group.numel() else 0
+        least = d.new_full((groups,), math.inf).scatter_reduce(0, group, d, "amin")
+        # The triangles whose closest point is the nearest one share it (an edge or a corner of the
+        # surface): the vertex is outside when it is on the outer side of their normals' sum (the
+        # side of one triangle's plane is wrong beyond a convex edge: outside the body, but
+        # behind the plane of the face the edge bounds).
+        tied = d <= least[group] + 1e-9 * self.reach
+        pseudo = normal.new_zeros(groups, 3).index_put_((group,), normal * tied[:, None].to(d.dtype),
+                                                        accumulate=True)
+        big = torch.iinfo(torch.int64).max
+        first = torch.full((groups,), big, dtype=torch.int64, device=x.device).scatter_reduce(
+            0, group, torch.where(tied, triangle, big), "amin")
+        chosen = tied & (triangle == first[group])
+        side = torch.where((pseudo[group] * diff).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
+        gap = side * d - self.settings.thickness
+        closing = gap < 0
+        if v is not None and dt > 0:
+            u = _direction(diff, d, side, normal)
+            relative = v[node] - (w[:, :, None] * v[tri]).sum(1)
+            closing = closing | (gap + dt * (u * relative).sum(-1) < 0)
+        active = chosen & closing
+        side, d, diff, normal = side[active], d[active], diff[active], normal[active]
+        nodes = torch.cat([node[active, None], tri[active]], dim=1)
+        objects = torch.stack([self.vertex_object[vertex[active]], self.triangle_object[triangle[active]]], dim=1)
+        k = self.settings.stiffness
+        hessians = (_pair_energy_hessians(x, nodes, side, k, self.settings.thickness)
+                    if self.settings.tangent == "exact" else None)
+        return ContactPairs(nodes, w[active], _direction(diff, d, side, normal), side * d, gap[active], objects, k,
+                            hessians, self.num_nodes)
+
+    def energy(self, x: torch.Tensor) -> torch.Tensor:
+        """The penalty energy (0-dim) at ``x [V, 3]`` (pairs found at x)."""
+        return self.detect(x).energy()
+
+    def forces(self, x: torch.Tensor) -> torch.Tensor:
+        """The penalty forces ``[V, 3]`` at ``x [V, 3]``."""
+        return self.detect(x).forces()
+
+    def to(self, device=None, dtype=None) -> "SurfaceContact":
+        """This contact with its tensors on ``device`` (rest positions in ``dtype``)."""
+        rest = self.rest.to(device=device, dtype=dtype)
+        other = SurfaceContact(self.triangles.to(rest.device), self.node_object.to(rest.device), rest,
+                               self.settings)
+        other.search = self.search
+        return other
+
+
+def coupled_ranges(pairs: ContactPairs, num_objects: int) -> List[int]:
+    """The object ranges ``[0, ..., B]`` (a ptr) of the solves a step with these pairs needs: runs of
+    consecutive objects such that each pair's two bodies lie in one run (every object alone
+    where no pair joins two)."""
+    ends = list(range(1, num_objects + 1))
+    if len(pairs) == 0:
+        return [0] + ends
+    lo = pairs.objects.amin(1)
+    hi = pairs.objects.amax(1)
+    # reach[i]: the furthest object a run starting at or before i must cover
+    reach = torch.arange(num_objects, device=lo.device).scatter_reduce(0, lo, hi, "amax")
+    reach = torch.cummax(reach, 0).values.tolist()
+    ptr = [0]
+    for i in range(num_objects):
+        if reach[i] == i:  # nothing before or at i joins anything after it
+            ptr.append(i + 1)
+    return ptr

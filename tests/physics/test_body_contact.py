@@ -1,0 +1,268 @@
+"""Contact between bodies (physics.body_contact): the vertex-triangle penalty's force and stiffness
+against the energy's derivatives (float64), momentum, the implicit step with contact against a
+dense solve, two bodies dropped onto each other and a floor, the simulator's reports, bad input."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from conftest import random_rotation
+
+import tensormass_torch as tm
+from tensormass_torch.mesh.topology import boundary_faces
+from tensormass_torch.physics.body_contact import (
+    Contact,
+    SurfaceContact,
+    closest_weights,
+    coupled_ranges,
+    signed_distance,
+)
+from tensormass_torch.solver.implicit_euler import implicit_euler_step
+
+DT = torch.float64
+
+
+def two_blocks(offset=(0.05, 0.03, 0.09), cells=(3, 3, 2), seed=0, jitter=0.004):
+    """Two 0.2 x 0.2 x 0.1 blocks, the second shifted by ``offset`` and turned a little (they
+    overlap), nodes jittered: (meshes, packed rest [V, 3], surface triangles, node objects)."""
+    a = tm.beam_mesh(*cells, size=(0.2, 0.2, 0.1), dtype=DT)
+    b = tm.beam_mesh(*cells, size=(0.2, 0.2, 0.1), dtype=DT)
+    rng = np.random.default_rng(seed)
+    turn = torch.tensor(random_rotation(rng, 3), dtype=DT)
+    small = torch.linalg.matrix_exp(0.1 * (turn - turn.T))  # a rotation near the identity
+    centre = torch.tensor([0.1, 0.1, 0.05], dtype=DT)
+    b = tm.TetMesh((b.vertices - centre) @ small.T + centre + torch.tensor(offset, dtype=DT), b.elements)
+    gen = torch.Generator().manual_seed(seed)
+    rest = torch.cat([a.vertices, b.vertices])
+    rest = rest + jitter * (torch.rand(rest.shape, generator=gen, dtype=DT) - 0.5)
+    triangles = torch.cat([boundary_faces(a.elements), boundary_faces(b.elements) + a.num_vertices])
+    objects = torch.cat([torch.zeros(a.num_vertices, dtype=torch.int64), torch.ones(b.num_vertices, dtype=torch.int64)])
+    return (a, b), rest, triangles, objects
+
+
+def test_closest_point_against_a_dense_search():
+    """The closest point's weights against the best of a fine grid over the triangle."""
+    gen = torch.Generator().manual_seed(1)
+    tri = torch.rand(200, 3, 3, generator=gen, dtype=DT)
+    p = torch.rand(200, 3, generator=gen, dtype=DT) * 2 - 0.5
+    w = closest_weights(p, tri[:, 0], tri[:, 1], tri[:, 2])
+    assert bool((w >= -1e-12).all()) and torch.allclose(w.sum(-1), torch.ones(200, dtype=DT))
+    d = torch.linalg.vector_norm(p - (w[:, :, None] * tri).sum(1), dim=-1)
+    n = 120
+    i, j = torch.meshgrid(torch.arange(n + 1), torch.arange(n + 1), indexing="ij")
+    keep = i + j <= n
+    grid = torch.stack([n - i[keep] - j[keep], i[keep], j[keep]], -1).to(DT) / n  # [G, 3]
+    points = torch.einsum("gk,pkc->pgc", grid, tri)
+    best = torch.linalg.vector_norm(p[:, None] - points, dim=-1).amin(1)
+    assert bool((d <= best + 1e-12).all())  # never further than any grid point
+    assert float((best - d).max()) < 2e-2 / n * 10  # and the grid comes within its spacing
+
+
+def test_signed_distance_sign_and_gradient():
+    a, b, c = (torch.tensor(v, dtype=DT) for v in ([0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]))
+    s, u, w = signed_distance(torch.tensor([[0.2, 0.2, 0.3], [0.2, 0.2, -0.1]], dtype=DT), a, b, c)
+    torch.testing.assert_close(s, torch.tensor([0.3, -0.1], dtype=DT))
+    torch.testing.assert_close(u, torch.tensor([[0.0, 0, 1], [0.0, 0, 1]], dtype=DT))
+    torch.testing.assert_close(w, torch.tensor([[0.6, 0.2, 0.2]] * 2, dtype=DT))
+
+
+@pytest.fixture(params=[0, 1, 2])
+def overlapping(request):
+    meshes, rest, triangles, objects = two_blocks(seed=request.param)
+    contact = SurfaceContact(triangles, objects, rest, Contact(stiffness=3e3, thickness=0.01, tangent="exact"))
+    return contact, rest
+
+
+def test_pairs_are_found_both_ways(overlapping):
+    contact, x = overlapping
+    pairs = contact.detect(x)
+    assert len(pairs) >= 8
+    assert {tuple(o) for o in pairs.objects.tolist()} == {(0, 1), (1, 0)}
+    assert bool((pairs.gap < 0).all()) and bool((pairs.signed < contact.settings.thickness).all())
+    # every pair's triangle belongs to the other body, its vertex to its own
+    assert bool((contact.node_object[pairs.nodes[:, 0]] == pairs.objects[:, 0]).all())
+    assert bool((contact.node_object[pairs.nodes[:, 1:]] == pairs.objects[:, 1:2]).all())
+
+
+def test_force_is_minus_the_energy_gradient(overlapping):
+    contact, x = overlapping
+    y = x.clone().requires_grad_(True)
+    (gradient,) = torch.autograd.grad(contact.energy(y), y)
+    forces = contact.forces(x)
+    assert float(forces.abs().max()) > 1.0
+    torch.testing.assert_close(forces, -gradient, rtol=1e-10, atol=1e-10)
+
+
+def test_forces_conserve_momentum(overlapping):
+    """The forces sum to zero and so does their torque: linear and angular momentum."""
+    contact, x = overlapping
+    forces = contact.forces(x)
+    scale = float(forces.abs().sum())
+    assert float(forces.sum(0).abs().max()) < 1e-12 * scale
+    assert float(torch.linalg.cross(x, forces).sum(0).abs().max()) < 1e-12 * scale
+    for body in (0, 1):  # and each body takes an equal and opposite share
+        mine = contact.node_object == body
+        assert float(forces[mine].abs().sum()) > 0
+
+
+def test_stiffness_against_finite_differences_of_the_force(overlapping):
+    """tangent="exact": the pairs' product is the force's derivative (the pairs held: a step keeps
+    those found where it linearises); the projected one, k J^T J, is symmetric positive
+    semi-definite and differs from it by the curvature term."""
+    contact, x = overlapping
+    pairs = contact.detect(x)
+    gen = torch.Generator().manual_seed(5)
+    dx = torch.randn(x.shape, generator=gen, dtype=DT)
+    eps = 1e-6
+    fd = (pairs_at(contact, pairs, x + eps * dx).forces() - pairs_at(contact, pairs, x - eps * dx).forces()) / (2 * eps)
+    torch.testing.assert_close(pairs.dforces(dx), fd, rtol=1e-6, atol=1e-6)
+    projected = dataclasses.replace(pairs, hessians=None)
+    assert float((projected.dforces(dx) - pairs.dforces(dx)).abs().max()) > 1e-3
+    y = torch.randn(x.shape, generator=gen, dtype=DT)
+    assert float((y * projected.dforces(dx)).sum()) == pytest.approx(float((dx * projected.dforces(y)).sum()),
+                                                                     rel=1e-10)
+    assert float(-(dx * projected.dforces(dx)).sum()) >= 0
+
+
+def pairs_at(contact, pairs, y):
+    """The same pairs (vertex, triangle, side) evaluated at positions ``y``."""
+    from tensormass_torch.physics.body_contact import closest_point
+
+    nodes = pairs.nodes
+    w, diff, d, normal = closest_point(y[nodes[:, 0]], y[nodes[:, 1]], y[nodes[:, 2]], y[nodes[:, 3]])
+    side = torch.sign(pairs.signed)
+    u = side[:, None] * diff / d[:, None]
+    return dataclasses.replace(pairs, weights=w, direction=u, signed=side * d,
+                               gap=side * d - contact.settings.thickness)
+
+
+def test_the_step_with_contact_equals_a_dense_solve():
+    """One implicit Euler step of two bodies in contact (projected stiffness) against the dense
+    system: the elastic Jacobian by autograd, the pairs' k J^T J assembled, solved by LU."""
+    material = tm.Material(young=1e4, poisson=0.3, density=1000)
+    (a, b), rest, _, _ = two_blocks(offset=(0.05, 0.03, 0.095), cells=(2, 2, 1), jitter=0.0)
+    bodies = [tm.Body(tm.TetMesh(rest[:a.num_vertices], a.elements), material),
+              tm.Body(tm.TetMesh(rest[a.num_vertices:], b.elements), material)]
+    sim = tm.Simulator(bodies, dt=0.01, contact=tm.Contact(stiffness=1e3, thickness=0.01), rayleigh_mass=0.5,
+                       cg_tol=1e-13, cuda_graphs=False)
+    gen = torch.Generator().manual_seed(2)
+    x = sim.x + 0.003 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
+    v = 0.1 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
+    system = sim.system
+    pairs = sim.body_contact.detect(x)
+    assert len(pairs) >= 4 and {0, 1} <= set(pairs.objects.flatten().tolist())
+    _, v_new, report = implicit_euler_step(system, x, v, sim.options)
+    # the two bodies were solved as one system: the same iterations
+    assert report.cg_iterations[0] == report.cg_iterations[1]
+    n, h, r_m = x.numel(), sim.options.dt, 0.5
+    stiffness = torch.autograd.functional.jacobian(lambda y: system.model(y.reshape(-1, 3)).reshape(-1),
+                                                   x.reshape(-1))
+    for p in range(len(pairs)):
+        jac = torch.zeros(n, dtype=DT)
+        for coef, node in zip([1.0] + (-pairs.weights[p]).tolist(), pairs.nodes[p].tolist()):
+            jac[3 * node:3 * node + 3] += coef * pairs.direction[p]
+        stiffness -= pairs.stiffness * torch.outer(jac, jac)
+    mass = system.mass.expand_as(x).reshape(-1)
+    forces = system.forces(x).reshape(-1)
+    matrix = torch.diag(mass * (1 + h * r_m)) - h * h * stiffness
+    rhs = h * (forces + h * stiffness @ v.reshape(-1) - r_m * mass * v.reshape(-1))
+    expected = v + torch.linalg.solve(matrix, rhs).reshape(-1, 3)
+    torch.testing.assert_close(v_new, expected, rtol=1e-9, atol=1e-9)
+
+
+def mean_edge_length(mesh) -> float:
+    edges = mesh.edges()
+    return float(torch.linalg.vector_norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], dim=-1).mean())
+
+
+def test_two_bodies_dropped_on_each_other_and_a_floor_come_to_rest():
+    """The documented defaults (tm.Contact(): k = 1e5 N/m, dt = 0.005): a block dropped 2 cm onto
+    another on the floor rests on it, its surface at most 1 % of the mean edge length inside."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    lower = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), dtype=DT)
+    upper = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.12), dtype=DT)
+    sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
+                       planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(), rayleigh_mass=1.0)
+    deepest = torch.zeros(2, dtype=DT)
+    for _ in range(120):
+        report = sim.step()
+        deepest = torch.maximum(deepest, report.contact.body_penetration)
+    assert float(deepest.max()) <= 0.01 * mean_edge_length(lower)
+    assert bool((report.contact.body_contacts > 0).all())  # they touch
+    assert float(sim.kinetic_energy().sum()) < 1e-4  # at rest
+    # the upper one sits on the lower one, which sits on the floor
+    assert float(sim.positions(1)[:, 2].mean()) > float(sim.positions(0)[:, 2].max())
+    assert float(sim.positions(0)[:, 2].min()) > -0.01 * mean_edge_length(lower)
+
+
+def test_coupled_ranges():
+    class Pairs:
+        def __init__(self, objects):
+            self.objects = torch.tensor(objects, dtype=torch.int64).reshape(-1, 2)
+
+        def __len__(self):
+            return self.objects.shape[0]
+
+    assert coupled_ranges(Pairs([]), 4) == [0, 1, 2, 3, 4]
+    assert coupled_ranges(Pairs([[1, 2]]), 4) == [0, 1, 3, 4]
+    assert coupled_ranges(Pairs([[3, 0]]), 5) == [0, 4, 5]
+    assert coupled_ranges(Pairs([[0, 1], [2, 3], [3, 2]]), 5) == [0, 2, 4, 5]
+
+
+def test_a_body_alone_has_no_self_contact_at_rest():
+    """Self-contact leaves out a vertex's neighbourhood at rest; a body folded onto itself meets itself."""
+    strip = tm.beam_mesh(12, 2, 1, size=(1.2, 0.2, 0.1), dtype=DT)
+    triangles = boundary_faces(strip.elements)
+    objects = torch.zeros(strip.num_vertices, dtype=torch.int64)
+    contact = SurfaceContact(triangles, objects, strip.vertices, Contact(self_contact=True, thickness=0.01))
+    assert len(contact.detect(strip.vertices)) == 0
+    # fold: the far half turned over onto the near half, 0.105 above it (inside the thickness)
+    x = strip.vertices.clone()
+    far = x[:, 0] > 0.6
+    x[far, 0] = 1.2 - x[far, 0]
+    x[far, 2] = 0.205 - x[far, 2]
+    pairs = contact.detect(x)
+    assert len(pairs) > 0
+    assert bool(((x[pairs.nodes[:, 0], 0] < 0.6) | (strip.vertices[pairs.nodes[:, 0], 0] > 0.6)).all())
+    without = SurfaceContact(triangles, objects, strip.vertices, Contact(self_contact=False, thickness=0.01))
+    assert len(without.detect(x)) == 0
+
+
+@pytest.mark.parametrize("kwargs, word", [
+    (dict(stiffness=-1.0), "stiffness"), (dict(stiffness=float("nan")), "stiffness"),
+    (dict(thickness=-0.1), "thickness"), (dict(search=0.0), "search"), (dict(self_contact="yes"), "self_contact"),
+    (dict(tangent="wrong"), "tangent"),
+])
+def test_bad_contact_settings_raise_one_clear_error(kwargs, word):
+    with pytest.raises(tm.SceneError, match=word):
+        tm.Contact(**kwargs)
+
+
+def test_the_simulator_rejects_a_bad_contact():
+    body = tm.Body(tm.beam_mesh(1, 1, 1), tm.Material(young=1e4, poisson=0.3, density=1000))
+    with pytest.raises(tm.SceneError, match="contact must be a tm.Contact"):
+        tm.Simulator([body], contact={"stiffness": 1e3})
+    tri = tm.Body(tm.beam_tri_mesh(2, 2), tm.Material(young=1e4, poisson=0.3, density=1000))
+    with pytest.raises(tm.SceneError, match="tetrahedral"):
+        tm.Simulator([tri], contact=tm.Contact())
+
+
+def test_without_contact_the_report_has_no_body_contact():
+    body = tm.Body(tm.beam_mesh(2, 1, 1), tm.Material(young=1e4, poisson=0.3, density=1000))
+    sim = tm.Simulator([body], tools=[tm.Sphere(0.1, position=(5.0, 0, 0))])
+    report = sim.step()
+    assert sim.body_contact is None and report.contact.body_contacts.tolist() == [0]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    _, rest, triangles, objects = two_blocks(seed=4)
+    cpu = SurfaceContact(triangles, objects, rest, Contact(stiffness=3e3, thickness=0.01))
+    gpu = cpu.to(device="cuda")
+    a, b = cpu.detect(rest), gpu.detect(rest.cuda())
+    assert torch.equal(a.nodes, b.nodes.cpu())
+    torch.testing.assert_close(a.forces(), b.forces().cpu(), rtol=1e-12, atol=1e-12)
+    dx = torch.randn(rest.shape, dtype=DT)
+    torch.testing.assert_close(a.dforces(dx), b.dforces(dx.cuda()).cpu(), rtol=1e-12, atol=1e-12)
+    # deterministic on the device: the same bits twice
+    assert torch.equal(b.forces(), gpu.detect(rest.cuda()).forces())
