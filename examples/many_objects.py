@@ -1,12 +1,14 @@
 """A few hundred objects of different shapes and materials in one Simulator, falling onto a floor.
 
     python examples/many_objects.py [--objects 300] [--steps 50] [--device cuda] [--out out/many] [--gif]
+                                    [--no-contact]
 
 Shapes: boxes, balls, capsules and rabbit-like bodies (``tensormass_torch.mesh.implicit``), each shape
 meshed once and copied; every object has its own Young's modulus (1e4 to 1e6 Pa, log-uniform),
 Poisson ratio, density and model (hooke, stvk, corotational). They are packed into one batch: one
-kernel launch per op for all of them, and a CG with per-object scalars and convergence. Returns
-the simulator.
+kernel launch per op for all of them, and a CG with per-object scalars and convergence. They meet
+each other through ``tm.Contact`` (``--no-contact``: they fall through each other; bodies that
+touch are then solved together). Returns the simulator.
 """
 import argparse
 import time
@@ -62,12 +64,14 @@ def main(argv=None):
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--out", default=None, help="write .vtu frames and a .pvd series here")
     parser.add_argument("--gif", action="store_true", help="also render many.gif (needs pyvista and --out)")
+    parser.add_argument("--no-contact", action="store_true", help="bodies pass through each other")
     args = parser.parse_args(argv)
     dtype = getattr(torch, args.dtype)
     bodies = make_bodies(args.objects, args.device, dtype)
     sim = tm.Simulator(bodies, dt=0.01, gravity=(0.0, 0.0, -9.81), rayleigh_mass=0.5,
                        planes=[tm.Plane((0.0, 0.0, 1.0), 0.0, 1e4)], cg_tol=1e-4,
-                       device=args.device, dtype=dtype)
+                       device=args.device, dtype=dtype,
+                       contact=None if args.no_contact else tm.Contact(stiffness=1e4))
     writers = []
     if args.out:
         from tensormass_torch.app.render import FrameRenderer

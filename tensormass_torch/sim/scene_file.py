@@ -43,6 +43,12 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     thickness = 0.0                   # contact distance
     name = "probe"                    # tangent = "exact": the curvature in the step's stiffness
 
+    [contact]                         # contact between the bodies' surfaces (tm.Contact)
+    stiffness = 1e5                   # penalty (N/m per vertex in contact)
+    thickness = 0.0                   # surfaces are pushed apart once closer than this
+    # search = 0.05                   # how far pairs are looked for (default: mean surface edge)
+    self_contact = false              # a body's surface also meets its own far parts
+
     [[bodies]]
     name = "beam"
     mesh = { generator = "beam", cells = [20, 2, 2], size = [1, 0.1, 0.1] }
@@ -90,6 +96,8 @@ import torch
 from ..errors import InvertedElementsError, MaterialError, MeshError, SceneError
 from ..mesh.beams import beam_mesh, beam_tri_mesh
 from ..mesh.meshes import Mesh
+from ..physics.body_contact import TANGENTS as CONTACT_TANGENTS
+from ..physics.body_contact import Contact
 from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from ..physics.tools import TANGENTS as TOOL_TANGENTS
@@ -643,6 +651,15 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         plane.done()
 
     tools = [_tool(t) for t in top.tables("tools")]
+    contact_table = top.table("contact")
+    contact = None
+    if contact_table is not None:
+        search = contact_table.get("search", "positive", None)
+        contact = Contact(stiffness=contact_table.get("stiffness", "positive", 1e5),
+                          thickness=contact_table.get("thickness", "nonnegative", 0.0), search=search,
+                          self_contact=contact_table.get("self_contact", "bool", False),
+                          tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
+        contact_table.done()
     cut_tables = top.tables("cuts")
     scalpels = [_scalpel(c) for c in cut_tables]
     body_tables = top.tables("bodies")
@@ -659,7 +676,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
 
     try:
         simulator = Simulator(bodies, dt=dt, gravity=gravity, planes=planes, device=torch_device,
-                              dtype=torch_dtype, spare_nodes=spare, tools=tools, **options)
+                              dtype=torch_dtype, spare_nodes=spare, tools=tools, contact=contact, **options)
     except (SceneError, MaterialError, MeshError) as exc:
         raise fail("", str(exc)) from exc
     for table, scalpel in zip(cut_tables, scalpels):

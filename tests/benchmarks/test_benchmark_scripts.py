@@ -197,3 +197,11 @@ def test_carving_quick(tmp_path):
     assert {r.get("removed_per_step") for r in records if r["steps_per_s"]} == {0, 10}
     cuts = [r for r in records if r.get("cut_ms")]
     assert len(cuts) == 4 and all(r["cut_elements"] > 0 and r["cut_nodes"] > 0 for r in cuts)
+
+
+def test_contact_penetration_quick(tmp_path):
+    import contact_penetration
+
+    (row,) = contact_penetration.main(["--quick", "--out", str(tmp_path)])
+    assert row["steps"] == 5 and row["max_penetration_m"] >= 0
+    assert (tmp_path / "contact_penetration.md").exists() and (tmp_path / "contact_penetration.json").exists()

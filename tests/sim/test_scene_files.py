@@ -168,6 +168,9 @@ MISTAKES = {
     "tool bad rotation": (BEAM + '[[tools]]\nshape = "box"\nhalf_extents = [1, 1, 1]\n'
                           'rotation = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]\n', "tools[0]: tool rotation must be a 3x3 rotation"),
     "bad device": ('device = "gpu0"\n' + BEAM, "device: not a torch device"),
+    "negative contact stiffness": (BEAM + '[contact]\nstiffness = -1\n', "contact.stiffness: must be > 0"),
+    "unknown contact key": (BEAM + '[contact]\nfriction = 0.3\n', "contact.friction"),
+    "bad contact tangent": (BEAM + '[contact]\ntangent = "full"\n', "contact.tangent: unknown contact tangent"),
 }
 
 
@@ -209,3 +212,16 @@ def test_tools_reach_the_simulator(tmp_path):
 def test_missing_scene_file(tmp_path):
     with pytest.raises(tm.SceneError, match="scene file not found"):
         load_scene(tmp_path / "nope.toml")
+
+
+def test_contact_reaches_the_simulator(tmp_path):
+    path = write(tmp_path, BEAM + """
+        [contact]
+        stiffness = 2e4
+        thickness = 0.01
+        search = 0.05
+        self_contact = true
+        """)
+    sim = load_scene(path).simulator
+    assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True)
+    assert sim.body_contact is not None and sim.body_contact.search == 0.05

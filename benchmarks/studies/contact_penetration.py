@@ -1,0 +1,84 @@
+"""Contact between bodies (issue 24): two blocks dropped onto each other and onto a floor; the
+deepest interpenetration against the contact stiffness and the step, and whether they come to rest.
+
+    python benchmarks/studies/contact_penetration.py [--stiffness 1e4 1e5 1e6] [--dt 0.01 0.005 0.0025]
+                                                     [--seconds 0.6] [--device cpu] [--dtype float64]
+                                                     [--out benchmarks/results/contact] [--quick]
+
+The scene is the test's (tests/physics/test_body_contact.py): two 0.2 x 0.2 x 0.1 m hooke blocks
+(E = 1e5 Pa, nu = 0.3, 1000 kg/m^3, 4 x 4 x 2 cells), the upper 2 cm above the lower, a floor
+plane of 1e5 N/m, Rayleigh mass damping 1/s. For each (stiffness, dt): the deepest
+interpenetration of a surface into the other over the run (``StepReport.contact``, the thickness
+0), as metres and as a fraction of the mean edge length, the kinetic energy at the end, the
+wall time per step. Writes ``contact_penetration.md`` and ``.json`` to ``--out``.
+"""
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import common  # noqa: E402
+
+import tensormass_torch as tm  # noqa: E402
+
+
+def drop(stiffness: float, dt: float, seconds: float, device, dtype):
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    lower = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), dtype=dtype)
+    upper = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.12), dtype=dtype)
+    sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=dt, device=device,
+                       planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(stiffness=stiffness),
+                       rayleigh_mass=1.0)
+    edges = lower.edges()
+    edge = float(torch.linalg.vector_norm(lower.vertices[edges[:, 0]] - lower.vertices[edges[:, 1]], dim=-1).mean())
+    steps = max(1, round(seconds / dt))
+    deepest = 0.0
+    start = time.perf_counter()
+    for _ in range(steps):
+        report = sim.step()
+        deepest = max(deepest, float(report.contact.body_penetration.max()))
+    elapsed = time.perf_counter() - start
+    return dict(stiffness_n_per_m=stiffness, dt_s=dt, steps=steps, max_penetration_m=deepest,
+                max_penetration_over_edge=deepest / edge, mean_edge_m=edge,
+                kinetic_energy_end_j=float(sim.kinetic_energy().sum()), ms_per_step=1e3 * elapsed / steps)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--stiffness", type=float, nargs="+", default=[1e4, 1e5, 1e6])
+    parser.add_argument("--dt", type=float, nargs="+", default=[0.01, 0.005, 0.0025])
+    parser.add_argument("--seconds", type=float, default=0.6)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "results" / "contact"))
+    parser.add_argument("--quick", action="store_true", help="one case, a few steps (the tests' run)")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.stiffness, args.dt, args.seconds = [1e5], [0.01], 0.05
+    dtype = getattr(torch, args.dtype)
+    rows = [drop(k, dt, args.seconds, args.device, dtype) for k in args.stiffness for dt in args.dt]
+    meta = common.metadata(args.device, seconds=args.seconds, dtype=args.dtype)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "contact_penetration.json").write_text(json.dumps({"meta": meta, "records": rows}, indent=1))
+    lines = ["# Two blocks dropped onto each other: deepest interpenetration against stiffness and dt", "",
+             f"{meta['device']}, commit {meta['commit']}, {meta['date']}, {args.dtype}, "
+             f"{args.seconds} s simulated.", "",
+             "| stiffness (N/m) | dt (s) | steps | deepest (m) | / mean edge | kinetic energy at the end (J) "
+             "| ms/step |",
+             "|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['stiffness_n_per_m']:.0e} | {r['dt_s']:g} | {r['steps']} | {r['max_penetration_m']:.2e} | "
+                     f"{100 * r['max_penetration_over_edge']:.3f} % | {r['kinetic_energy_end_j']:.2e} | "
+                     f"{r['ms_per_step']:.1f} |")
+    (out / "contact_penetration.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
