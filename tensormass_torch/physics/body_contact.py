@@ -345,7 +345,11 @@ class SurfaceContact:
         # surface): the vertex is outside when it is on the outer side of their normals' sum (the
         # side of one triangle's plane is wrong beyond a convex edge: outside the body, but
         # behind the plane of the face the edge bounds).
-        tied = d <= least[group] + 1e-9 * self.reach
+        # Tied: within the rounding of the distances, which two triangles compute differently for
+        # their shared edge (a few ulps of the coordinates: in float32 far more than any fixed
+        # fraction of the reach; a missed tie leaves one grazing face to decide the side).
+        rounding = 32.0 * torch.finfo(d.dtype).eps * (x[node].abs().amax(-1) + self.reach)
+        tied = d <= least[group] + rounding
         pseudo = normal.new_zeros(groups, 3).index_put_((group,), normal * tied[:, None].to(d.dtype),
                                                         accumulate=True)
         big = torch.iinfo(torch.int64).max

@@ -66,6 +66,47 @@ def test_signed_distance_sign_and_gradient():
     torch.testing.assert_close(w, torch.tensor([[0.6, 0.2, 0.2]] * 2, dtype=DT))
 
 
+def probes_outside_a_block(dtype, seed, n=300):
+    """A jittered, turned block away from the origin and n tiny probe triangles (bodies 1..n) just
+    outside it past its edges, nearly along one face's normal: the other face sees p - q at a
+    grazing angle, so only both normals together tell the side. (rest [V, 3], triangles, objects)."""
+    rng = np.random.default_rng(seed)
+    block = tm.beam_mesh(5, 5, 3, size=(0.2, 0.2, 0.1), dtype=DT)
+    sizes = torch.tensor([0.2, 0.2, 0.1], dtype=DT)
+    rows = torch.arange(n)
+    corner = torch.from_numpy(rng.integers(0, 2, size=(n, 3))).to(DT)
+    along = torch.from_numpy(rng.integers(0, 3, size=n))  # the edge's axis
+    base = corner * sizes
+    base[rows, along] = torch.from_numpy(rng.uniform(0.05, 0.95, size=n)) * sizes[along]
+    out = 2 * corner - 1
+    out[rows, along] = 0.0
+    lean = torch.where(torch.from_numpy(rng.integers(0, 2, size=n)).bool(), (along + 1) % 3, (along + 2) % 3)
+    out[rows, lean] *= torch.from_numpy(rng.uniform(0.0, 0.05, size=n))
+    p = base + out / out.norm(dim=1, keepdim=True) * torch.from_numpy(rng.uniform(0.003, 0.03, size=n))[:, None]
+    tiny = torch.tensor([[0, 0, 0], [1e-5, 0, 0], [0, 1e-5, 0]], dtype=DT)
+    block_nodes = block.vertices + torch.from_numpy(rng.uniform(-5e-4, 5e-4, size=tuple(block.vertices.shape)))
+    turn = torch.tensor(random_rotation(rng, 3), dtype=DT)
+    rest = torch.cat([block_nodes, (p[:, None] + tiny).reshape(-1, 3)]) @ turn.T + torch.tensor([0.7, -0.3, 0.4], dtype=DT)
+    triangles = torch.cat([boundary_faces(block.elements), block.num_vertices + torch.arange(3 * n).reshape(n, 3)])
+    objects = torch.cat([torch.zeros(block.num_vertices, dtype=torch.int64), 1 + rows.repeat_interleave(3)])
+    return rest.to(dtype), triangles, objects
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_points_just_past_an_edge_are_outside(dtype, seed):
+    """No probe outside the block is taken for inside it, in float32 too (the two faces of an edge
+    compute its distance with different rounding: both must count for the side)."""
+    rest, triangles, objects = probes_outside_a_block(dtype, seed)
+    contact = SurfaceContact(triangles, objects, rest, Contact(search=0.05))
+    pairs = contact.detect(rest)
+    into_block = pairs.objects[:, 1] == 0
+    assert int(into_block.sum()) == 0, pairs.signed[into_block]
+    # the probes are near the block: their distances are seen, positive
+    vertex, triangle = contact.candidates(rest)
+    assert int((contact.triangle_object[triangle] == 0).sum()) > 300
+
+
 @pytest.fixture(params=[0, 1, 2])
 def overlapping(request):
     meshes, rest, triangles, objects = two_blocks(seed=request.param)
