@@ -223,15 +223,64 @@ class ContactPairs:
         return 0.5 * self.stiffness * (self.gap ** 2).sum()
 
     def penetration(self, num_objects: int, node_object: torch.Tensor):
-        """Per body ``[B]``: its vertices in contact (int64) and the deepest interpenetration of
-        its surface into another's, max(0, -s) (0 with none: the thickness layer's compression
-        is not penetration)."""
+        """Per body ``[B]``: its vertices in contact (gap < 0, int64: pairs kept only for their
+        predicted gap do not count) and the deepest interpenetration of its surface into
+        another's, max(0, -s) (0 with none: the thickness layer's compression is not penetration)."""
         vertex = self.nodes[:, 0]
         counts = torch.zeros(num_objects, dtype=torch.int64, device=vertex.device)
-        counts.index_put_((node_object[vertex],), torch.ones_like(vertex), accumulate=True)
+        counts.index_put_((node_object[vertex],), (self.gap < 0).to(torch.int64), accumulate=True)
         deepest = self.signed.new_zeros(num_objects)
         deepest.scatter_reduce_(0, node_object[vertex], torch.clamp(-self.signed, min=0.0), "amax")
         return counts, deepest
+
+
+class PairStiffness:
+    """The pairs' projected stiffness as a product on buffers whose storage stays from step to
+    step: ``dx -> c k J^T J dx [V, 3]`` (c the step's stiffness coefficient), so that a CUDA graph
+    captured over a CG iteration replays with each step's pairs.
+
+    The buffers hold ``capacity`` pairs (a power of two, at least 64, grown as needed, never
+    shrunk); rows past the step's pairs are zero and add nothing. Each pair keeps its 4 x 3
+    rows ``sqrt(c k) coef_i u`` (coef = (1, -w_a, -w_b, -w_c)), so the product is a gather, a
+    dot per pair, a scale and a deterministic scatter. The padding gathers node 0 but scatters
+    to rows of its own past the V nodes (the sorting scatter walks the entries of one row in
+    sequence: thousands of padding entries on one node would serialise it).
+    """
+
+    def __init__(self):
+        self.capacity = 0
+        self.nodes: Optional[torch.Tensor] = None  # [C, 4] gathered (padding: node 0)
+        self.targets: Optional[torch.Tensor] = None  # [4 C] scattered to (padding: V + its slot)
+        self.rows: Optional[torch.Tensor] = None  # [C, 4, 3]
+        self.num_nodes = 0
+
+    def load(self, pairs: "ContactPairs", coefficient: float) -> bool:
+        """Take ``pairs`` (projected tangent) scaled by ``coefficient``; returns whether the buffers
+        were reallocated (then graphs captured over the old ones must not be replayed)."""
+        count = len(pairs)
+        like = pairs.direction
+        grew = (self.rows is None or count > self.capacity or self.rows.dtype != like.dtype
+                or self.rows.device != like.device or pairs.num_nodes != self.num_nodes)
+        if grew:
+            self.capacity = max(64, 1 << max(count - 1, 1).bit_length(), self.capacity)
+            self.nodes = torch.zeros(self.capacity, 4, dtype=torch.int64, device=like.device)
+            self.targets = torch.zeros(4 * self.capacity, dtype=torch.int64, device=like.device)
+            self.rows = like.new_zeros(self.capacity, 4, 3)
+        self.num_nodes = pairs.num_nodes
+        scale = math.sqrt(coefficient * pairs.stiffness)
+        self.nodes[:count].copy_(pairs.nodes)
+        self.nodes[count:].zero_()
+        self.targets[:4 * count].copy_(pairs.nodes.reshape(-1))
+        torch.arange(self.num_nodes + 4 * count, self.num_nodes + 4 * self.capacity, out=self.targets[4 * count:])
+        torch.mul(pairs._coefficients()[:, :, None] * pairs.direction[:, None, :], scale, out=self.rows[:count])
+        self.rows[count:].zero_()
+        return grew
+
+    def __call__(self, dx: torch.Tensor) -> torch.Tensor:
+        """``c k J^T J dx [V, 3]`` for ``dx [V, 3]`` (minus c times the pairs' dforces)."""
+        along = (self.rows * dx[self.nodes]).sum((1, 2))  # sqrt(ck) u . J dx per pair [C]
+        per_entry = (along[:, None, None] * self.rows).reshape(-1, 3)
+        return _sum_into(self.num_nodes + 4 * self.capacity, self.targets, per_entry)[:self.num_nodes]
 
 
 def _pair_energy_hessians(x: torch.Tensor, nodes: torch.Tensor, side: torch.Tensor, stiffness: float,
@@ -276,6 +325,7 @@ class SurfaceContact:
             edges = rest[self.triangles] - rest[self.triangles.roll(1, dims=1)]
             self.search = float(torch.linalg.vector_norm(edges, dim=-1).mean()) if len(self.triangles) else 1.0
         self.rest = rest
+        self._last = None  # (x, its version, v, its version, dt, pairs) of detect_at_state
 
     @property
     def reach(self) -> float:
@@ -301,26 +351,28 @@ class SurfaceContact:
         last = torch.floor((high + reach) / cell).to(torch.int64)
         offsets = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=device)
         cells = first[:, None, :] + offsets[None]  # [F, 8, 3]
-        keep = (cells <= last[:, None, :]).all(-1)  # [F, 8]
-        keys = _hash(cells)[keep]
-        owners = torch.arange(len(self.triangles), device=device)[:, None].expand_as(keep)[keep]
-        keys, order = torch.sort(keys, stable=True)
-        owners = owners[order]
+        # (each boolean selection below is one host synchronisation: a mask is turned into
+        # indices once and every tensor gathered with them)
+        entries = (cells <= last[:, None, :]).all(-1).reshape(-1).nonzero().squeeze(1)  # [F * 8] -> kept
+        keys, order = torch.sort(_hash(cells).reshape(-1)[entries], stable=True)
+        owners = entries[order] // 8
         vertex_keys = _hash(torch.floor(x[self.vertices] / cell).to(torch.int64))
         start = torch.searchsorted(keys, vertex_keys, side="left")
         counts = torch.searchsorted(keys, vertex_keys, side="right") - start
-        vertex = torch.repeat_interleave(torch.arange(len(self.vertices), device=device), counts)
-        first_of = torch.repeat_interleave(start - (torch.cumsum(counts, 0) - counts), counts)
-        triangle = owners[first_of + torch.arange(vertex.numel(), device=device)]
+        total = int(counts.sum())
+        vertex = torch.repeat_interleave(torch.arange(len(self.vertices), device=device), counts, output_size=total)
+        first_of = torch.repeat_interleave(start - (torch.cumsum(counts, 0) - counts), counts, output_size=total)
+        triangle = owners[first_of + torch.arange(total, device=device)]
         same = self.vertex_object[vertex] == self.triangle_object[triangle]
         if not self.settings.self_contact:
-            return vertex[~same], triangle[~same]
+            other = (~same).nonzero().squeeze(1)
+            return vertex[other], triangle[other]
         # self-contact: not the vertex's own triangles, nor those near it at rest
         node = self.vertices[vertex]
         own = (self.triangles[triangle] == node[:, None]).any(1)
         tri = self.triangles[triangle]
         s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
-        keep = ~same | (~own & (s_rest.abs() > reach))
+        keep = (~same | (~own & (s_rest.abs() > reach))).nonzero().squeeze(1)
         return vertex[keep], triangle[keep]
 
     def detect(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0) -> ContactPairs:
@@ -333,13 +385,17 @@ class SurfaceContact:
         tri = self.triangles[triangle]
         node = self.vertices[vertex]
         w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
-        near = d < self.reach
+        near = (d < self.reach).nonzero().squeeze(1)
         vertex, triangle, node, tri, w, diff, d, normal = (
             t[near] for t in (vertex, triangle, node, tri, w, diff, d, normal))
-        # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic)
-        group = vertex * max(self.num_objects, 1) + self.triangle_object[triangle]
-        _, group = torch.unique(group, return_inverse=True)
-        groups = int(group.max()) + 1 if group.numel() else 0
+        # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic).
+        # Groups numbered by a sort of their keys, at most one per candidate (no host read).
+        key = vertex * max(self.num_objects, 1) + self.triangle_object[triangle]
+        sorted_key, order = torch.sort(key)
+        starts = torch.ones_like(sorted_key, dtype=torch.bool)
+        starts[1:] = sorted_key[1:] != sorted_key[:-1]
+        group = torch.empty_like(key).scatter_(0, order, torch.cumsum(starts, 0) - 1)
+        groups = key.numel()
         least = d.new_full((groups,), math.inf).scatter_reduce(0, group, d, "amin")
         # The triangles whose closest point is the nearest one share it (an edge or a corner of the
         # surface): the vertex is outside when it is on the outer side of their normals' sum (the
@@ -363,7 +419,7 @@ class SurfaceContact:
             u = _direction(diff, d, side, normal)
             relative = v[node] - (w[:, :, None] * v[tri]).sum(1)
             closing = closing | (gap + dt * (u * relative).sum(-1) < 0)
-        active = chosen & closing
+        active = (chosen & closing).nonzero().squeeze(1)
         side, d, diff, normal = side[active], d[active], diff[active], normal[active]
         nodes = torch.cat([node[active, None], tri[active]], dim=1)
         objects = torch.stack([self.vertex_object[vertex[active]], self.triangle_object[triangle[active]]], dim=1)
@@ -372,6 +428,18 @@ class SurfaceContact:
                     if self.settings.tangent == "exact" else None)
         return ContactPairs(nodes, w[active], _direction(diff, d, side, normal), side * d, gap[active], objects, k,
                             hessians, self.num_nodes)
+
+    def detect_at_state(self, x: torch.Tensor, v: torch.Tensor, dt: float) -> ContactPairs:
+        """:meth:`detect` ``(x, v, dt)``, found once per state: the pairs found at the end of a step
+        (for its report) serve the next step's linearisation. The same tensors, unchanged since
+        (their in-place version counters), with the same dt, give the same pairs."""
+        last = self._last
+        if (last is not None and last[0] is x and last[1] == x._version and last[2] is v
+                and last[3] == v._version and last[4] == dt):
+            return last[5]
+        pairs = self.detect(x, v, dt)
+        self._last = (x, x._version, v, v._version, dt, pairs)
+        return pairs
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         """The penalty energy (0-dim) at ``x [V, 3]`` (pairs found at x)."""

@@ -67,7 +67,9 @@ def contact_report(sim, x: Optional[torch.Tensor] = None) -> ContactReport:
     if body is None:
         body_counts, body_depth = torch.zeros_like(contacts), torch.zeros_like(deepest)
     else:
-        body_counts, body_depth = body.detect(x).penetration(sim.num_bodies, sim.segments.node_object)
+        # at the simulator's state, the pairs its next step linearises with (found once for both)
+        pairs = body.detect_at_state(x, sim.v, sim.options.dt) if x is sim.x else body.detect(x)
+        body_counts, body_depth = pairs.penetration(sim.num_bodies, sim.segments.node_object)
     return ContactReport(force, torque, contacts, deepest, body_counts, body_depth)
 
 

@@ -131,6 +131,23 @@ class DynamicsSystem:
         self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec
         self._step_graphs = {}  # step options -> StepGraphs (CUDA)
         self._coupled_cg = {}  # object ptr of coupled solves -> CGSolver
+        self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
+        self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
+
+    def pair_stiffness(self, pairs, coefficient: float):
+        """The body contact's :class:`PairStiffness` loaded with ``pairs`` scaled by ``coefficient``
+        (its buffers kept across steps; where they grow, the graphs captured over the old ones
+        are dropped)."""
+        from ..physics.body_contact import PairStiffness
+
+        if self._pair_stiffness is None:
+            self._pair_stiffness = PairStiffness()
+        if self._pair_stiffness.load(pairs, coefficient):
+            self._coupled_cg.clear()
+            if self._cg is not None:
+                self._cg._graphs = {k: g for k, g in self._cg._graphs.items()
+                                    if not (isinstance(k[0], tuple) and "pairs" in k[0])}
+        return self._pair_stiffness
 
     def cg_solver(self, like: torch.Tensor, cuda_graphs: bool) -> CGSolver:
         """The batched CG over these objects (made once, on ``like``'s device and dtype)."""
@@ -439,42 +456,63 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
     else:
         if loaded is None:
             fused.load(x)
-        matvec = fused
-        if pairs is not None and len(pairs):
-            def matvec(p):  # the pairs' stiffness beside the fused product (it projects; the CG projects again)
+        matvec, graph_key = fused, fused.graph_key
+        if pairs is not None and len(pairs) and pairs.hessians is None:
+            # the pairs' stiffness beside the fused product (it projects; the CG projects again), on
+            # buffers kept across steps: the iterations' graphs replay with each step's pairs
+            stiffness = system.pair_stiffness(pairs, stiffness_coef)
+            graph_key = (fused.graph_key, "pairs", stiffness.capacity)
+
+            def matvec(p):
+                return fused(p)[0] + stiffness(p)
+        elif pairs is not None and len(pairs):  # the exact tangent: each step's own Hessians, eager
+            graph_key = None
+
+            def matvec(p):
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p)
-    coupled = _coupled_solve(system, matvec, rhs, opts, pairs) if pairs is not None and len(pairs) else None
+    coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key) if pairs is not None and len(pairs)
+               else None)
     if coupled is not None:
         return coupled
     if fused is None:
         return batched_cg(matvec, rhs, system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
                           check_every=opts.check_every)
     cg = system.cg_solver(rhs, opts.cuda_graphs)
-    # the pairs change from step to step: their product is not captured
-    graph_key = fused.graph_key if matvec is fused else None
     return cg.solve(matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
                     graph_key=graph_key)
 
 
-def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs) -> CGResult | None:
+def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs, graph_key=None) -> CGResult | None:
     """The solve when contact pairs join objects: one CG over each run of objects they join
     (``body_contact.coupled_ranges``), its outcome given to each object of the run; None where no
-    pair joins two objects (the per-object solve applies)."""
+    pair has ever joined two objects (the per-object solve applies). ``graph_key``: as
+    ``CGSolver.solve``.
+
+    Runs merge as bodies meet and stay merged when they part (the layout is the coarsest of
+    this step's and the layouts before): the layout changes at most B - 1 times in a
+    simulation, so its solver, buffers and captured graphs are made a bounded number of times
+    instead of at every contact that comes or goes. A merged run is one system: solving bodies
+    that no longer touch together costs iterations of the slower, not correctness."""
     from ..physics.body_contact import coupled_ranges
 
     objects = system.segments.num_objects
     ptr = coupled_ranges(pairs, objects)
+    if system._coupled_ptr is not None:  # a boundary stays only where every layout so far had one
+        kept = set(system._coupled_ptr)
+        ptr = [i for i in ptr if i in kept]
+    system._coupled_ptr = ptr
     if len(ptr) == objects + 1:
         return None
     solver = system._coupled_cg.get(tuple(ptr))
     if solver is None:
-        if len(system._coupled_cg) >= 16:  # the runs change as bodies meet and part: keep a few
-            system._coupled_cg.clear()
+        system._coupled_cg.clear()  # layouts only coarsen: an older one does not come back
         node_ptr = system.segments.ptr.tolist()
         lengths = [node_ptr[ptr[i + 1]] - node_ptr[ptr[i]] for i in range(len(ptr) - 1)]
         solver = system._coupled_cg[tuple(ptr)] = CGSolver(Segments.from_lengths(lengths, rhs.device), rhs.shape,
-                                                           rhs.dtype, rhs.device, system.free, cuda_graphs=False)
-    result = solver.solve(matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every)
+                                                           rhs.dtype, rhs.device, system.free,
+                                                           cuda_graphs=opts.cuda_graphs)
+    result = solver.solve(matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
+                          graph_key=graph_key)
     run = torch.repeat_interleave(torch.arange(len(ptr) - 1, device=rhs.device),
                                   torch.tensor(ptr, device=rhs.device).diff())
     return CGResult(result.solution, *(t[run] for t in (result.iterations, result.residual_norm, result.rhs_norm,
@@ -791,7 +829,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     report = StepReport()
     loaded = system.system_matvec(*_coefficients(opts), opts.pipelined, opts.variants)
     # the body contact's pairs where the step linearises (without a matvec the system finds them)
-    pairs = (system.body_contact.detect(x, v, h) if system.body_contact is not None and loaded is not None
+    pairs = (system.body_contact.detect_at_state(x, v, h) if system.body_contact is not None and loaded is not None
              else None)
     rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded, pairs)  # loads it at x
     result = _solve(system, x, rhs, opts, loaded, pairs)

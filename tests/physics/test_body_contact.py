@@ -12,6 +12,7 @@ import tensormass_torch as tm
 from tensormass_torch.mesh.topology import boundary_faces
 from tensormass_torch.physics.body_contact import (
     Contact,
+    PairStiffness,
     SurfaceContact,
     closest_weights,
     coupled_ranges,
@@ -175,6 +176,28 @@ def pairs_at(contact, pairs, y):
     u = side[:, None] * diff / d[:, None]
     return dataclasses.replace(pairs, weights=w, direction=u, signed=side * d,
                                gap=side * d - contact.settings.thickness)
+
+
+def test_pair_stiffness_buffers_equal_the_pairs_product():
+    """The fixed-capacity product (what a captured CG replays) is -c times the pairs' projected
+    dforces, with padding that adds nothing; loading fewer pairs keeps the buffers, more grows them."""
+    meshes, rest, triangles, objects = two_blocks()
+    contact = SurfaceContact(triangles, objects, rest, Contact(stiffness=3e3, thickness=0.01))
+    pairs = contact.detect(rest)
+    dx = torch.randn(rest.shape, dtype=DT, generator=torch.Generator().manual_seed(3))
+    product = PairStiffness()
+    assert product.load(pairs, 0.7)  # first load allocates
+    assert product.capacity >= len(pairs) and product.capacity & (product.capacity - 1) == 0
+    torch.testing.assert_close(product(dx), -0.7 * pairs.dforces(dx), rtol=1e-12, atol=1e-12)
+    fewer = dataclasses.replace(pairs, **{f: getattr(pairs, f)[: len(pairs) // 2]
+                                          for f in ("nodes", "weights", "direction", "signed", "gap", "objects")})
+    storage = product.rows.data_ptr()
+    assert not product.load(fewer, 0.7) and product.rows.data_ptr() == storage
+    torch.testing.assert_close(product(dx), -0.7 * fewer.dforces(dx), rtol=1e-12, atol=1e-12)
+    more = dataclasses.replace(pairs, **{f: torch.cat([getattr(pairs, f)] * (product.capacity // len(pairs) + 1))
+                                         for f in ("nodes", "weights", "direction", "signed", "gap", "objects")})
+    assert product.load(more, 0.7)
+    torch.testing.assert_close(product(dx), -0.7 * more.dforces(dx), rtol=1e-12, atol=1e-12)
 
 
 def test_the_step_with_contact_equals_a_dense_solve():
