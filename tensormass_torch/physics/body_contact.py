@@ -67,6 +67,9 @@ class Contact:
         self_contact: a body's surface also meets its own far parts (those beyond ``thickness +
             search`` of a vertex at rest).
         tangent: ``"projected"`` (default; positive semi-definite) or ``"exact"`` (see the module).
+        friction: Coulomb coefficient mu between the bodies (0: frictionless, the default).
+        friction_velocity: eps_v (m/s), the slip speed below which friction is viscous instead
+            of Coulomb (the regularisation: a sticking contact creeps at less than this).
     """
 
     stiffness: float = 1e5
@@ -74,6 +77,8 @@ class Contact:
     search: Optional[float] = None
     self_contact: bool = False
     tangent: str = "projected"
+    friction: float = 0.0
+    friction_velocity: float = 1e-3
 
     def __post_init__(self):
         def number(value):
@@ -87,6 +92,11 @@ class Contact:
             raise SceneError(f"contact search must be a positive finite number or None, got {self.search!r}")
         if not isinstance(self.self_contact, bool):
             raise SceneError(f"contact self_contact must be true or false, got {self.self_contact!r}")
+        if not number(self.friction) or self.friction < 0:
+            raise SceneError(f"contact friction must be a non-negative finite number, got {self.friction!r}")
+        if not number(self.friction_velocity) or self.friction_velocity <= 0:
+            raise SceneError(f"contact friction_velocity must be a positive finite number (m/s), "
+                             f"got {self.friction_velocity!r}")
         if self.tangent not in TANGENTS:
             raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
                              f"got {self.tangent!r}")
@@ -181,6 +191,9 @@ class ContactPairs:
         stiffness: k.
         hessians: ``[P, 12, 12]`` each pair's exact energy Hessian (``tangent="exact"``), or None.
         num_nodes: V.
+        friction: ``[P]`` each pair's friction damping c (N s/m) on its tangential relative
+            velocity, mu k max(0, -g) / max(|v_t|, eps_v) at the velocities it was found with
+            (lagged: fixed for the step), or None (no friction).
     """
 
     nodes: torch.Tensor
@@ -192,6 +205,7 @@ class ContactPairs:
     stiffness: float
     hessians: Optional[torch.Tensor]
     num_nodes: int
+    friction: Optional[torch.Tensor] = None
 
     def __len__(self):
         return self.gap.numel()
@@ -218,6 +232,19 @@ class ContactPairs:
             per_pair = -(normal[:, None, None] * coef[:, :, None]) * self.direction[:, None, :]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
 
+    def friction_forces(self, v: torch.Tensor) -> torch.Tensor:
+        """The friction forces ``[V, 3]`` at velocities ``v [V, 3]``: each pair's -c P_t (J v) on
+        the vertex and +c w_i P_t (J v) on the triangle's nodes (P_t = I - u u^T: the relative
+        velocity's tangential part), zero without friction. Linear in v (c is fixed for the
+        step), so it is also its own derivative: the implicit step's damping matrix times v."""
+        if self.friction is None:
+            return v.new_zeros(self.num_nodes, 3)
+        coef = self._coefficients()  # [P, 4]
+        relative = (coef[:, :, None] * v[self.nodes]).sum(1)  # J v [P, 3]
+        tangential = relative - (relative * self.direction).sum(-1, keepdim=True) * self.direction
+        per_pair = -(self.friction[:, None, None] * coef[:, :, None]) * tangential[:, None, :]
+        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+
     def energy(self) -> torch.Tensor:
         """The penalty energy (0-dim): sum over pairs of k/2 g^2."""
         return 0.5 * self.stiffness * (self.gap ** 2).sum()
@@ -235,14 +262,17 @@ class ContactPairs:
 
 
 class PairStiffness:
-    """The pairs' projected stiffness as a product on buffers whose storage stays from step to
-    step: ``dx -> c k J^T J dx [V, 3]`` (c the step's stiffness coefficient), so that a CUDA graph
-    captured over a CG iteration replays with each step's pairs.
+    """The pairs' part of the step's matrix as a product on buffers whose storage stays from step
+    to step, so that a CUDA graph captured over a CG iteration replays with each step's pairs:
+
+        dx -> sum over pairs of J^T (a u u^T + b P_t) J dx   [V, 3]
+
+    with a = c_K k (the projected stiffness times the step's stiffness coefficient) and
+    b = h c_p (the pair's friction damping times dt; 0 without friction), P_t = I - u u^T.
 
     The buffers hold ``capacity`` pairs (a power of two, at least 64, grown as needed, never
-    shrunk); rows past the step's pairs are zero and add nothing. Each pair keeps its 4 x 3
-    rows ``sqrt(c k) coef_i u`` (coef = (1, -w_a, -w_b, -w_c)), so the product is a gather, a
-    dot per pair, a scale and a deterministic scatter. The padding gathers node 0 but scatters
+    shrunk); rows past the step's pairs are zero and add nothing. The product is a gather, a
+    few products per pair and a deterministic scatter. The padding gathers node 0 but scatters
     to rows of its own past the V nodes (the sorting scatter walks the entries of one row in
     sequence: thousands of padding entries on one node would serialise it).
     """
@@ -251,35 +281,51 @@ class PairStiffness:
         self.capacity = 0
         self.nodes: Optional[torch.Tensor] = None  # [C, 4] gathered (padding: node 0)
         self.targets: Optional[torch.Tensor] = None  # [4 C] scattered to (padding: V + its slot)
-        self.rows: Optional[torch.Tensor] = None  # [C, 4, 3]
+        self.coef: Optional[torch.Tensor] = None  # [C, 4] (1, -w_a, -w_b, -w_c)
+        self.direction: Optional[torch.Tensor] = None  # [C, 3] u
+        self.normal: Optional[torch.Tensor] = None  # [C] a
+        self.friction: Optional[torch.Tensor] = None  # [C] b (zeros without friction)
         self.num_nodes = 0
 
-    def load(self, pairs: "ContactPairs", coefficient: float) -> bool:
-        """Take ``pairs`` (projected tangent) scaled by ``coefficient``; returns whether the buffers
-        were reallocated (then graphs captured over the old ones must not be replayed)."""
+    def load(self, pairs: "ContactPairs", coefficient: float, damping: float = 0.0) -> bool:
+        """Take ``pairs`` (projected tangent) with a = ``coefficient`` k and b = ``damping`` times
+        their friction; returns whether the buffers were reallocated (then graphs captured over
+        the old ones must not be replayed)."""
         count = len(pairs)
         like = pairs.direction
-        grew = (self.rows is None or count > self.capacity or self.rows.dtype != like.dtype
-                or self.rows.device != like.device or pairs.num_nodes != self.num_nodes)
+        grew = (self.coef is None or count > self.capacity or self.coef.dtype != like.dtype
+                or self.coef.device != like.device or pairs.num_nodes != self.num_nodes)
         if grew:
             self.capacity = max(64, 1 << max(count - 1, 1).bit_length(), self.capacity)
             self.nodes = torch.zeros(self.capacity, 4, dtype=torch.int64, device=like.device)
             self.targets = torch.zeros(4 * self.capacity, dtype=torch.int64, device=like.device)
-            self.rows = like.new_zeros(self.capacity, 4, 3)
+            self.coef = like.new_zeros(self.capacity, 4)
+            self.direction = like.new_zeros(self.capacity, 3)
+            self.normal = like.new_zeros(self.capacity)
+            self.friction = like.new_zeros(self.capacity)
         self.num_nodes = pairs.num_nodes
-        scale = math.sqrt(coefficient * pairs.stiffness)
         self.nodes[:count].copy_(pairs.nodes)
         self.nodes[count:].zero_()
         self.targets[:4 * count].copy_(pairs.nodes.reshape(-1))
         torch.arange(self.num_nodes + 4 * count, self.num_nodes + 4 * self.capacity, out=self.targets[4 * count:])
-        torch.mul(pairs._coefficients()[:, :, None] * pairs.direction[:, None, :], scale, out=self.rows[:count])
-        self.rows[count:].zero_()
+        self.coef[:count].copy_(pairs._coefficients())
+        self.direction[:count].copy_(pairs.direction)
+        self.normal[:count].fill_(coefficient * pairs.stiffness)
+        if pairs.friction is None:
+            self.friction[:count].zero_()
+        else:
+            torch.mul(pairs.friction, damping, out=self.friction[:count])
+        for buffer in (self.coef, self.direction, self.normal, self.friction):
+            buffer[count:].zero_()
         return grew
 
     def __call__(self, dx: torch.Tensor) -> torch.Tensor:
-        """``c k J^T J dx [V, 3]`` for ``dx [V, 3]`` (minus c times the pairs' dforces)."""
-        along = (self.rows * dx[self.nodes]).sum((1, 2))  # sqrt(ck) u . J dx per pair [C]
-        per_entry = (along[:, None, None] * self.rows).reshape(-1, 3)
+        """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class)."""
+        relative = (self.coef[:, :, None] * dx[self.nodes]).sum(1)  # J dx [C, 3]
+        along = (relative * self.direction).sum(-1, keepdim=True)  # u . J dx [C, 1]
+        # a u (u . J dx) + b (J dx - u (u . J dx))
+        vector = self.friction[:, None] * relative + ((self.normal - self.friction)[:, None] * along) * self.direction
+        per_entry = (self.coef[:, :, None] * vector[:, None, :]).reshape(-1, 3)
         return _sum_into(self.num_nodes + 4 * self.capacity, self.targets, per_entry)[:self.num_nodes]
 
 
@@ -426,8 +472,20 @@ class SurfaceContact:
         k = self.settings.stiffness
         hessians = (_pair_energy_hessians(x, nodes, side, k, self.settings.thickness)
                     if self.settings.tangent == "exact" else None)
-        return ContactPairs(nodes, w[active], _direction(diff, d, side, normal), side * d, gap[active], objects, k,
-                            hessians, self.num_nodes)
+        pairs = ContactPairs(nodes, w[active], _direction(diff, d, side, normal), side * d, gap[active], objects, k,
+                             hessians, self.num_nodes)
+        if self.settings.friction > 0 and v is not None:
+            pairs.friction = self._friction(pairs, v)
+        return pairs
+
+    def _friction(self, pairs: ContactPairs, v: torch.Tensor) -> torch.Tensor:
+        """``[P]`` the pairs' friction damping mu lambda / max(|v_t|, eps_v) at velocities ``v``,
+        lambda = k max(0, -g) the normal force: Coulomb's mu lambda opposing a slip faster than
+        eps_v, a viscous drag below it (zero for pairs only predicted to touch)."""
+        relative = (pairs._coefficients()[:, :, None] * v[pairs.nodes]).sum(1)  # J v [P, 3]
+        tangential = relative - (relative * pairs.direction).sum(-1, keepdim=True) * pairs.direction
+        slip = torch.clamp(torch.linalg.vector_norm(tangential, dim=-1), min=self.settings.friction_velocity)
+        return self.settings.friction * pairs.stiffness * torch.clamp(-pairs.gap, min=0.0) / slip
 
     def detect_at_state(self, x: torch.Tensor, v: torch.Tensor, dt: float) -> ContactPairs:
         """:meth:`detect` ``(x, v, dt)``, found once per state: the pairs found at the end of a step

@@ -134,15 +134,15 @@ class DynamicsSystem:
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
 
-    def pair_stiffness(self, pairs, coefficient: float):
-        """The body contact's :class:`PairStiffness` loaded with ``pairs`` scaled by ``coefficient``
-        (its buffers kept across steps; where they grow, the graphs captured over the old ones
-        are dropped)."""
+    def pair_stiffness(self, pairs, coefficient: float, damping: float = 0.0):
+        """The body contact's :class:`PairStiffness` loaded with ``pairs``, their stiffness scaled by
+        ``coefficient`` and their friction by ``damping`` (its buffers kept across steps; where
+        they grow, the graphs captured over the old ones are dropped)."""
         from ..physics.body_contact import PairStiffness
 
         if self._pair_stiffness is None:
             self._pair_stiffness = PairStiffness()
-        if self._pair_stiffness.load(pairs, coefficient):
+        if self._pair_stiffness.load(pairs, coefficient, damping):
             self._coupled_cg.clear()
             if self._cg is not None:
                 self._cg._graphs = {k: g for k, g in self._cg._graphs.items()
@@ -460,7 +460,7 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
         if pairs is not None and len(pairs) and pairs.hessians is None:
             # the pairs' stiffness beside the fused product (it projects; the CG projects again), on
             # buffers kept across steps: the iterations' graphs replay with each step's pairs
-            stiffness = system.pair_stiffness(pairs, stiffness_coef)
+            stiffness = system.pair_stiffness(pairs, stiffness_coef, opts.dt)
             graph_key = (fused.graph_key, "pairs", stiffness.capacity)
 
             def matvec(p):
@@ -468,8 +468,8 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
         elif pairs is not None and len(pairs):  # the exact tangent: each step's own Hessians, eager
             graph_key = None
 
-            def matvec(p):
-                return fused(p)[0] - stiffness_coef * pairs.dforces(p)
+            def matvec(p):  # (with friction, its damping h C: minus h times its forces)
+                return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
     coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key) if pairs is not None and len(pairs)
                else None)
     if coupled is not None:
@@ -568,11 +568,15 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
     if system.free is not None and imposed_velocity is not None:
         dv_imposed = (1.0 - system.free) * (imposed_velocity - v)
     mass_coef, stiffness_coef = _coefficients(opts)
+    friction = None  # the pairs' friction forces (linear in the velocity: -C v)
     if matvec is not None:
         tangent = matvec.tangent
         rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.rayleigh_stiffness)
         if pairs is not None and len(pairs):
             rhs = rhs + h * (pairs.forces() + pairs.dforces((h + opts.rayleigh_stiffness) * v))
+            if pairs.friction is not None:  # the damping -C v_new, implicit: -h C v here, h C in the matrix
+                friction = pairs.friction_forces
+                rhs = rhs + h * friction(v)
 
             def tangent(dx, elastic=matvec.tangent):
                 return elastic(dx) + pairs.dforces(dx)
@@ -584,6 +588,8 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
         rhs = h * rhs
     if dv_imposed is not None:
         rhs = rhs - (mass_coef * system.mass * dv_imposed - stiffness_coef * tangent(dv_imposed))
+        if friction is not None:
+            rhs = rhs + h * friction(dv_imposed)
     return rhs, dv_imposed
 
 

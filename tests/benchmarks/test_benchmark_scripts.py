@@ -205,3 +205,11 @@ def test_contact_penetration_quick(tmp_path):
     (row,) = contact_penetration.main(["--quick", "--out", str(tmp_path)])
     assert row["steps"] == 5 and row["max_penetration_m"] >= 0
     assert (tmp_path / "contact_penetration.md").exists() and (tmp_path / "contact_penetration.json").exists()
+
+
+def test_contact_piles_quick(tmp_path):
+    import contact_piles
+
+    (row,) = contact_piles.main(["--quick", "--device", "cpu", "--out", str(tmp_path)])
+    assert row["blocks"] == 8 and row["steps_per_s_with"] > 0 and row["surface_triangles"] > 0
+    assert (tmp_path / "contact_piles.md").exists() and (tmp_path / "contact_piles.json").exists()

@@ -2,6 +2,7 @@
 against the energy's derivatives (float64), momentum, the implicit step with contact against a
 dense solve, two bodies dropped onto each other and a floor, the simulator's reports, bad input."""
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -178,26 +179,35 @@ def pairs_at(contact, pairs, y):
                                gap=side * d - contact.settings.thickness)
 
 
-def test_pair_stiffness_buffers_equal_the_pairs_product():
+@pytest.mark.parametrize("friction", [False, True])
+def test_pair_stiffness_buffers_equal_the_pairs_product(friction):
     """The fixed-capacity product (what a captured CG replays) is -c times the pairs' projected
-    dforces, with padding that adds nothing; loading fewer pairs keeps the buffers, more grows them."""
+    dforces minus b times their friction forces, with padding that adds nothing; loading fewer
+    pairs keeps the buffers, more grows them."""
     meshes, rest, triangles, objects = two_blocks()
     contact = SurfaceContact(triangles, objects, rest, Contact(stiffness=3e3, thickness=0.01))
     pairs = contact.detect(rest)
-    dx = torch.randn(rest.shape, dtype=DT, generator=torch.Generator().manual_seed(3))
+    gen = torch.Generator().manual_seed(3)
+    if friction:
+        pairs.friction = torch.rand(len(pairs), dtype=DT, generator=gen) * 50.0
+    dx = torch.randn(rest.shape, dtype=DT, generator=gen)
+
+    def expected(some):
+        return -0.7 * some.dforces(dx) - 0.3 * some.friction_forces(dx)
+
+    fields = ("nodes", "weights", "direction", "signed", "gap", "objects") + (("friction",) if friction else ())
     product = PairStiffness()
-    assert product.load(pairs, 0.7)  # first load allocates
+    assert product.load(pairs, 0.7, 0.3)  # first load allocates
     assert product.capacity >= len(pairs) and product.capacity & (product.capacity - 1) == 0
-    torch.testing.assert_close(product(dx), -0.7 * pairs.dforces(dx), rtol=1e-12, atol=1e-12)
-    fewer = dataclasses.replace(pairs, **{f: getattr(pairs, f)[: len(pairs) // 2]
-                                          for f in ("nodes", "weights", "direction", "signed", "gap", "objects")})
-    storage = product.rows.data_ptr()
-    assert not product.load(fewer, 0.7) and product.rows.data_ptr() == storage
-    torch.testing.assert_close(product(dx), -0.7 * fewer.dforces(dx), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(product(dx), expected(pairs), rtol=1e-12, atol=1e-12)
+    fewer = dataclasses.replace(pairs, **{f: getattr(pairs, f)[: len(pairs) // 2] for f in fields})
+    storage = product.coef.data_ptr()
+    assert not product.load(fewer, 0.7, 0.3) and product.coef.data_ptr() == storage
+    torch.testing.assert_close(product(dx), expected(fewer), rtol=1e-12, atol=1e-12)
     more = dataclasses.replace(pairs, **{f: torch.cat([getattr(pairs, f)] * (product.capacity // len(pairs) + 1))
-                                         for f in ("nodes", "weights", "direction", "signed", "gap", "objects")})
-    assert product.load(more, 0.7)
-    torch.testing.assert_close(product(dx), -0.7 * more.dforces(dx), rtol=1e-12, atol=1e-12)
+                                         for f in fields})
+    assert product.load(more, 0.7, 0.3)
+    torch.testing.assert_close(product(dx), expected(more), rtol=1e-12, atol=1e-12)
 
 
 def test_the_step_with_contact_equals_a_dense_solve():
@@ -259,6 +269,60 @@ def test_two_bodies_dropped_on_each_other_and_a_floor_come_to_rest():
     assert float(sim.positions(0)[:, 2].min()) > -0.01 * mean_edge_length(lower)
 
 
+def block_on_a_slab(theta_deg, friction, steps=125, dt=2e-3, friction_velocity=1e-3):
+    """A soft 0.1 m cube resting on a stiff slab held at its base, gravity tilted by theta from
+    the slab's normal: the cube's mass-weighted mean velocity along the slope at each step [steps]."""
+    theta = math.radians(theta_deg)
+    slab = tm.beam_mesh(4, 4, 1, size=(0.4, 0.4, 0.05), dtype=DT)
+    cube = tm.beam_mesh(2, 2, 2, size=(0.1, 0.1, 0.1), origin=(0.1, 0.15, 0.05), dtype=DT)
+    bodies = [tm.Body(slab, tm.Material(young=1e7, poisson=0.3, density=1000), fixed=slab.vertices[:, 2] < 1e-9),
+              tm.Body(cube, tm.Material(young=1e6, poisson=0.3, density=1000))]
+    sim = tm.Simulator(bodies, dt=dt, gravity=(9.81 * math.sin(theta), 0.0, -9.81 * math.cos(theta)), dtype=DT,
+                       contact=Contact(friction=friction, friction_velocity=friction_velocity), cg_tol=1e-10)
+    cube_nodes = slice(slab.num_vertices, None)
+    mass = sim.system.mass[cube_nodes, 0]
+    speeds = []
+    for _ in range(steps):
+        sim.step()
+        speeds.append(float((mass * sim.v[cube_nodes, 0]).sum() / mass.sum()))
+    return torch.tensor(speeds, dtype=DT)
+
+
+@pytest.mark.parametrize("theta, friction", [(40, 0.5), (30, 0.3), (40, 0.0)])
+def test_a_block_slides_down_a_slope_at_coulombs_acceleration(theta, friction):
+    """Past the friction angle (tan theta > mu) the block slides at g (sin theta - mu cos theta)."""
+    dt = 2e-3
+    speeds = block_on_a_slab(theta, friction, dt=dt)
+    first = 25  # past the first steps, where the normal force builds up
+    measured = float(speeds[-1] - speeds[first]) / ((len(speeds) - 1 - first) * dt)
+    coulomb = 9.81 * (math.sin(math.radians(theta)) - friction * math.cos(math.radians(theta)))
+    assert abs(measured - coulomb) < 0.05 * coulomb, (measured, coulomb)
+
+
+def test_a_block_below_the_friction_angle_sticks():
+    """tan theta < mu: the block stays, creeping slower than the regularisation's slip speed
+    (frictionless, it would be moving at g sin theta t ~ 0.8 m/s by the end)."""
+    speeds = block_on_a_slab(20, 0.5, friction_velocity=1e-3)
+    assert float(speeds[-25:].abs().max()) < 1e-3
+
+
+def test_friction_forces_conserve_linear_momentum_and_oppose_the_slip(overlapping):
+    contact, x = overlapping
+    pairs = contact.detect(x)
+    pairs.friction = torch.full((len(pairs),), 20.0, dtype=DT)
+    v = torch.randn(x.shape, dtype=DT, generator=torch.Generator().manual_seed(5))
+    forces = pairs.friction_forces(v)
+    assert float(forces.abs().max()) > 1e-3
+    assert float(forces.sum(0).abs().max()) < 1e-12 * float(forces.abs().sum())
+    assert float((forces * v).sum()) < 0  # it dissipates: negative power
+    # with friction set, detection computes it from the slip: mu k max(0, -g) / max(|v_t|, eps_v)
+    rubbing = SurfaceContact(contact.triangles, contact.node_object, contact.rest,
+                             dataclasses.replace(contact.settings, friction=0.4))
+    found = rubbing.detect(x, v, 1e-3)
+    assert found.friction is not None and bool((found.friction >= 0).all())
+    assert bool((found.friction[found.gap >= 0] == 0).all()) and float(found.friction.max()) > 0
+
+
 def test_coupled_ranges():
     class Pairs:
         def __init__(self, objects):
@@ -295,7 +359,8 @@ def test_a_body_alone_has_no_self_contact_at_rest():
 @pytest.mark.parametrize("kwargs, word", [
     (dict(stiffness=-1.0), "stiffness"), (dict(stiffness=float("nan")), "stiffness"),
     (dict(thickness=-0.1), "thickness"), (dict(search=0.0), "search"), (dict(self_contact="yes"), "self_contact"),
-    (dict(tangent="wrong"), "tangent"),
+    (dict(tangent="wrong"), "tangent"), (dict(friction=-0.1), "friction"),
+    (dict(friction=float("inf")), "friction"), (dict(friction_velocity=0.0), "friction_velocity"),
 ])
 def test_bad_contact_settings_raise_one_clear_error(kwargs, word):
     with pytest.raises(tm.SceneError, match=word):

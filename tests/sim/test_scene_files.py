@@ -169,7 +169,8 @@ MISTAKES = {
                           'rotation = [[2, 0, 0], [0, 1, 0], [0, 0, 1]]\n', "tools[0]: tool rotation must be a 3x3 rotation"),
     "bad device": ('device = "gpu0"\n' + BEAM, "device: not a torch device"),
     "negative contact stiffness": (BEAM + '[contact]\nstiffness = -1\n', "contact.stiffness: must be > 0"),
-    "unknown contact key": (BEAM + '[contact]\nfriction = 0.3\n', "contact.friction"),
+    "unknown contact key": (BEAM + '[contact]\nfrictions = 0.3\n', "contact.frictions"),
+    "negative contact friction": (BEAM + '[contact]\nfriction = -0.3\n', "contact.friction: must be >= 0"),
     "bad contact tangent": (BEAM + '[contact]\ntangent = "full"\n', "contact.tangent: unknown contact tangent"),
 }
 
@@ -221,7 +222,10 @@ def test_contact_reaches_the_simulator(tmp_path):
         thickness = 0.01
         search = 0.05
         self_contact = true
+        friction = 0.4
+        friction_velocity = 0.01
         """)
     sim = load_scene(path).simulator
-    assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True)
+    assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True, friction=0.4,
+                                     friction_velocity=0.01)
     assert sim.body_contact is not None and sim.body_contact.search == 0.05
