@@ -232,6 +232,12 @@ class ContactPairs:
             per_pair = -(normal[:, None, None] * coef[:, :, None]) * self.direction[:, None, :]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
 
+    def slip(self, v: torch.Tensor) -> torch.Tensor:
+        """``[P, 3]`` each pair's tangential relative velocity P_t J v at velocities ``v [V, 3]``
+        (the vertex's against the triangle's closest point, less its part along u)."""
+        relative = (self._coefficients()[:, :, None] * v[self.nodes]).sum(1)  # J v
+        return relative - (relative * self.direction).sum(-1, keepdim=True) * self.direction
+
     def friction_forces(self, v: torch.Tensor) -> torch.Tensor:
         """The friction forces ``[V, 3]`` at velocities ``v [V, 3]``: each pair's -c P_t (J v) on
         the vertex and +c w_i P_t (J v) on the triangle's nodes (P_t = I - u u^T: the relative
@@ -239,10 +245,7 @@ class ContactPairs:
         step), so it is also its own derivative: the implicit step's damping matrix times v."""
         if self.friction is None:
             return v.new_zeros(self.num_nodes, 3)
-        coef = self._coefficients()  # [P, 4]
-        relative = (coef[:, :, None] * v[self.nodes]).sum(1)  # J v [P, 3]
-        tangential = relative - (relative * self.direction).sum(-1, keepdim=True) * self.direction
-        per_pair = -(self.friction[:, None, None] * coef[:, :, None]) * tangential[:, None, :]
+        per_pair = -(self.friction[:, None, None] * self._coefficients()[:, :, None]) * self.slip(v)[:, None, :]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
 
     def energy(self) -> torch.Tensor:
@@ -482,9 +485,7 @@ class SurfaceContact:
         """``[P]`` the pairs' friction damping mu lambda / max(|v_t|, eps_v) at velocities ``v``,
         lambda = k max(0, -g) the normal force: Coulomb's mu lambda opposing a slip faster than
         eps_v, a viscous drag below it (zero for pairs only predicted to touch)."""
-        relative = (pairs._coefficients()[:, :, None] * v[pairs.nodes]).sum(1)  # J v [P, 3]
-        tangential = relative - (relative * pairs.direction).sum(-1, keepdim=True) * pairs.direction
-        slip = torch.clamp(torch.linalg.vector_norm(tangential, dim=-1), min=self.settings.friction_velocity)
+        slip = torch.clamp(torch.linalg.vector_norm(pairs.slip(v), dim=-1), min=self.settings.friction_velocity)
         return self.settings.friction * pairs.stiffness * torch.clamp(-pairs.gap, min=0.0) / slip
 
     def detect_at_state(self, x: torch.Tensor, v: torch.Tensor, dt: float) -> ContactPairs:
