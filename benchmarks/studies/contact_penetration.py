@@ -13,7 +13,6 @@ interpenetration of a surface into the other over the run (``StepReport.contact`
 wall time per step. Writes ``contact_penetration.md`` and ``.json`` to ``--out``.
 """
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -60,24 +59,20 @@ def main(argv=None):
     if args.quick:
         args.stiffness, args.dt, args.seconds = [1e5], [0.01], 0.05
     dtype = getattr(torch, args.dtype)
-    rows = [drop(k, dt, args.seconds, args.device, dtype) for k in args.stiffness for dt in args.dt]
     meta = common.metadata(args.device, seconds=args.seconds, dtype=args.dtype)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "contact_penetration.json").write_text(json.dumps({"meta": meta, "records": rows}, indent=1))
-    lines = ["# Two blocks dropped onto each other: deepest interpenetration against stiffness and dt", "",
-             f"{meta['device']}, commit {meta['commit']}, {meta['date']}, {args.dtype}, "
-             f"{args.seconds} s simulated.", "",
-             "| stiffness (N/m) | dt (s) | steps | deepest (m) | / mean edge | kinetic energy at the end (J) "
-             "| ms/step |",
-             "|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['stiffness_n_per_m']:.0e} | {r['dt_s']:g} | {r['steps']} | {r['max_penetration_m']:.2e} | "
-                     f"{100 * r['max_penetration_over_edge']:.3f} % | {r['kinetic_energy_end_j']:.2e} | "
-                     f"{r['ms_per_step']:.1f} |")
-    (out / "contact_penetration.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    return rows
+    columns = [("stiffness_n_per_m", "stiffness (N/m)", ".0e"), ("dt_s", "dt (s)", "g"), ("steps", "steps", None),
+               ("max_penetration_m", "deepest (m)", ".2e"), ("max_penetration_percent", "/ mean edge (%)", ".3f"),
+               ("kinetic_energy_end_j", "kinetic energy at the end (J)", ".2e"), ("ms_per_step", "ms/step", ".1f")]
+    results = common.Results(args.out, "contact_penetration", "Two blocks dropped onto each other: deepest "
+                             "interpenetration against stiffness and dt", meta, columns,
+                             [f"{args.dtype}, {args.seconds} s simulated."])
+    for k in args.stiffness:
+        for dt in args.dt:
+            row = drop(k, dt, args.seconds, args.device, dtype)
+            row["max_penetration_percent"] = 100 * row["max_penetration_over_edge"]
+            results.add(row, echo=False)
+    results.finish()
+    return results.records
 
 
 if __name__ == "__main__":

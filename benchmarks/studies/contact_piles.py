@@ -16,7 +16,6 @@ only the rate is compared). Detection: ``SurfaceContact.detect`` at the final st
 Writes ``contact_piles.md`` and ``.json`` to ``--out``.
 """
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -97,24 +96,20 @@ def main(argv=None):
     if args.quick:
         args.columns, args.cells, args.steps = [2], [2, 2, 1], 3
     dtype = getattr(torch, args.dtype)
-    rows = [measure(c, args.cells, args.steps, args.friction, args.device, dtype) for c in args.columns]
     meta = common.metadata(args.device, dtype=args.dtype, cells=args.cells, friction=args.friction)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "contact_piles.json").write_text(json.dumps({"meta": meta, "records": rows}, indent=1))
-    lines = ["# Piles of blocks: steps/s with body contact against without, detection time", "",
-             f"{meta['device']}, commit {meta['commit']}, {meta['date']}, {args.dtype}, blocks of "
-             f"{args.cells} cells, friction {args.friction:g}, dt {DT} s.", "",
-             "| blocks | tets | surface triangles | pairs | steps/s without | steps/s with | cost | detection (ms) "
-             "| CG iterations | deepest over the run (m) |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['blocks']} | {r['tets']:,} | {r['surface_triangles']:,} | {r['pairs']:,} | "
-                     f"{r['steps_per_s_without']:.1f} | {r['steps_per_s_with']:.1f} | {r['cost_ratio']:.1f}x | "
-                     f"{r['detect_ms']:.2f} | {r['cg_iterations']} | {r['deepest_m']:.2e} |")
-    (out / "contact_piles.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    return rows
+    columns = [("blocks", "blocks", None), ("tets", "tets", ","), ("surface_triangles", "surface triangles", ","),
+               ("pairs", "pairs", ","), ("steps_per_s_without", "steps/s without", ".1f"),
+               ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
+               ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations", "CG iterations", None),
+               ("deepest_m", "deepest over the run (m)", ".2e")]
+    notes = [f"{args.dtype}, blocks of {args.cells} cells, friction {args.friction:g}, dt {DT} s, "
+             f"{args.steps} steps with contact before the timed ones."]
+    results = common.Results(args.out, "contact_piles", "Piles of blocks: steps/s with body contact against "
+                             "without, detection time", meta, columns, notes)
+    for c in args.columns:  # written as each pile is measured: a later failure loses nothing
+        results.add(measure(c, args.cells, args.steps, args.friction, args.device, dtype), echo=False)
+    results.finish()
+    return results.records
 
 
 if __name__ == "__main__":
