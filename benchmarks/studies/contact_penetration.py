@@ -1,4 +1,4 @@
-"""Contact between bodies (issue 24): two blocks dropped onto each other and onto a floor; the
+"""Contact between bodies: two blocks dropped onto each other and onto a floor; the
 deepest interpenetration against the contact stiffness and the step, and whether they come to rest.
 
     python benchmarks/studies/contact_penetration.py [--stiffness 1e4 1e5 1e6] [--dt 0.01 0.005 0.0025]

@@ -1,4 +1,4 @@
-"""Contact between bodies at scale (issue 24): piles of soft blocks in columns dropped onto a floor,
+"""Contact between bodies at scale: piles of soft blocks in columns dropped onto a floor,
 steps/s with body contact against without it in the same run, the detection's time against the
 number of surface triangles, and the deepest interpenetration over the run.
 

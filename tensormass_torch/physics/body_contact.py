@@ -226,16 +226,19 @@ class ContactPairs:
             local = dx[self.nodes].reshape(-1, 12)  # [P, 12]
             per_pair = -(self.hessians @ local[:, :, None])[:, :, 0].reshape(-1, 4, 3)
         else:
-            coef = self._coefficients()  # [P, 4]
-            along = (coef[:, :, None] * dx[self.nodes]).sum(1)  # J dx as a vector: sum_i c_i dx_i [P, 3]
-            normal = self.stiffness * (along * self.direction).sum(-1)  # k u . J dx [P]
-            per_pair = -(normal[:, None, None] * coef[:, :, None]) * self.direction[:, None, :]
+            normal = self.stiffness * (self.relative(dx) * self.direction).sum(-1)  # k u . J dx [P]
+            per_pair = -(normal[:, None, None] * self._coefficients()[:, :, None]) * self.direction[:, None, :]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+
+    def relative(self, dx: torch.Tensor) -> torch.Tensor:
+        """``[P, 3]`` J dx as a vector per pair: the vertex's motion less the closest point's,
+        sum_i coef_i dx_i for node motions (or velocities) ``dx [V, 3]``."""
+        return (self._coefficients()[:, :, None] * dx[self.nodes]).sum(1)
 
     def slip(self, v: torch.Tensor) -> torch.Tensor:
         """``[P, 3]`` each pair's tangential relative velocity P_t J v at velocities ``v [V, 3]``
         (the vertex's against the triangle's closest point, less its part along u)."""
-        relative = (self._coefficients()[:, :, None] * v[self.nodes]).sum(1)  # J v
+        relative = self.relative(v)
         return relative - (relative * self.direction).sum(-1, keepdim=True) * self.direction
 
     def friction_forces(self, v: torch.Tensor) -> torch.Tensor:
