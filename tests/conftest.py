@@ -70,6 +70,17 @@ def axis_rotation(axis, angle: float) -> np.ndarray:
     return np.eye(3) + s * k + (1 - c) * k @ k
 
 
+def u_shape_surface(dtype=torch.float64):
+    """A closed, non-convex surface: a block of 3 x 1 x 2 cells (0.3 x 0.1 x 0.2) without its
+    middle top cell (vertices ``[V, 3]``, outward triangles ``[F, 3]``)."""
+    from tensormass_torch.mesh.topology import boundary_faces
+
+    mesh = beam_mesh(3, 1, 2, size=(0.3, 0.1, 0.2), dtype=dtype)
+    centroids = mesh.vertices[mesh.elements].mean(1)
+    notch = (centroids[:, 0] > 0.1) & (centroids[:, 0] < 0.2) & (centroids[:, 2] > 0.1)
+    return mesh.vertices, boundary_faces(mesh.elements[~notch])
+
+
 def rel_err(a, b) -> float:
     """||a - b|| / ||b|| (Frobenius), with tensors or arrays."""
     a = torch.as_tensor(a, dtype=torch.float64)

@@ -47,6 +47,8 @@ from typing import List, Optional
 import torch
 
 from ..errors import SceneError
+from ..mesh.distance import closest_point, closest_weights  # noqa: F401  (closest_weights: re-exported)
+from .contact import check_friction, coulomb_damping
 
 #: the stiffness a body contact gives the implicit step (``Contact.tangent``)
 TANGENTS = ("projected", "exact")
@@ -92,59 +94,10 @@ class Contact:
             raise SceneError(f"contact search must be a positive finite number or None, got {self.search!r}")
         if not isinstance(self.self_contact, bool):
             raise SceneError(f"contact self_contact must be true or false, got {self.self_contact!r}")
-        if not number(self.friction) or self.friction < 0:
-            raise SceneError(f"contact friction must be a non-negative finite number, got {self.friction!r}")
-        if not number(self.friction_velocity) or self.friction_velocity <= 0:
-            raise SceneError(f"contact friction_velocity must be a positive finite number (m/s), "
-                             f"got {self.friction_velocity!r}")
+        check_friction(self.friction, self.friction_velocity, "contact")
         if self.tangent not in TANGENTS:
             raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
                              f"got {self.tangent!r}")
-
-
-def closest_weights(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    """Barycentric weights ``[..., 3]`` of the point of triangle (a, b, c) closest to p (all
-    ``[..., 3]``): the projection onto the triangle's plane where it falls inside, else the
-    nearest of the closest points of the three edges (a degenerate triangle: its edges)."""
-    tiny = torch.finfo(p.dtype).tiny
-    ab, ac, ap = b - a, c - a, p - a
-    d00, d01, d11 = (ab * ab).sum(-1), (ab * ac).sum(-1), (ac * ac).sum(-1)
-    d20, d21 = (ap * ab).sum(-1), (ap * ac).sum(-1)
-    denom = d00 * d11 - d01 * d01
-    safe = torch.where(denom > 0, denom, torch.ones_like(denom))
-    wb = (d11 * d20 - d01 * d21) / safe
-    wc = (d00 * d21 - d01 * d20) / safe
-    wa = 1.0 - wb - wc
-    inside = (denom > 1e-12 * d00 * d11) & (wa >= 0) & (wb >= 0) & (wc >= 0)
-
-    def on_edge(start, end):
-        e = end - start
-        t = ((p - start) * e).sum(-1) / torch.clamp((e * e).sum(-1), min=tiny)
-        t = torch.clamp(t, 0.0, 1.0)
-        return t, ((p - start - t[..., None] * e) ** 2).sum(-1)
-
-    t_ab, d_ab = on_edge(a, b)
-    t_ac, d_ac = on_edge(a, c)
-    t_bc, d_bc = on_edge(b, c)
-    zero = torch.zeros_like(t_ab)
-    w_ab = torch.stack([1 - t_ab, t_ab, zero], -1)
-    w_ac = torch.stack([1 - t_ac, zero, t_ac], -1)
-    w_bc = torch.stack([zero, 1 - t_bc, t_bc], -1)
-    w_edge = torch.where((d_ab <= d_ac)[..., None], w_ab, w_ac)
-    w_edge = torch.where((d_bc < torch.minimum(d_ab, d_ac))[..., None], w_bc, w_edge)
-    return torch.where(inside[..., None], torch.stack([wa, wb, wc], -1), w_edge)
-
-
-def closest_point(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
-    """From p to triangle (a, b, c) (all ``[..., 3]``): the closest point's weights w ``[..., 3]``,
-    p minus that point ``[..., 3]``, its length d ``[...]`` and the triangle's unit normal
-    (b - a) x (c - a) ``[..., 3]`` (outward for an outward-wound surface)."""
-    w = closest_weights(p, a, b, c)
-    diff = p - (w[..., 0:1] * a + w[..., 1:2] * b + w[..., 2:3] * c)
-    normal = torch.linalg.cross(b - a, c - a)
-    normal = normal / torch.clamp(torch.linalg.vector_norm(normal, dim=-1, keepdim=True),
-                                  min=torch.finfo(p.dtype).tiny)
-    return w, diff, torch.linalg.vector_norm(diff, dim=-1), normal
 
 
 def _direction(diff: torch.Tensor, d: torch.Tensor, side: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
@@ -488,8 +441,8 @@ class SurfaceContact:
         """``[P]`` the pairs' friction damping mu lambda / max(|v_t|, eps_v) at velocities ``v``,
         lambda = k max(0, -g) the normal force: Coulomb's mu lambda opposing a slip faster than
         eps_v, a viscous drag below it (zero for pairs only predicted to touch)."""
-        slip = torch.clamp(torch.linalg.vector_norm(pairs.slip(v), dim=-1), min=self.settings.friction_velocity)
-        return self.settings.friction * pairs.stiffness * torch.clamp(-pairs.gap, min=0.0) / slip
+        return coulomb_damping(self.settings.friction, pairs.stiffness * torch.clamp(-pairs.gap, min=0.0),
+                               torch.linalg.vector_norm(pairs.slip(v), dim=-1), self.settings.friction_velocity)
 
     def detect_at_state(self, x: torch.Tensor, v: torch.Tensor, dt: float) -> ContactPairs:
         """:meth:`detect` ``(x, v, dt)``, found once per state: the pairs found at the end of a step

@@ -1,6 +1,22 @@
-"""Penalty contact with planes: f = k max(0, d - n.x) n on every node, and its differential."""
+"""Penalty contact with planes: f = k max(0, d - n.x) n on every node, and its differential; the
+regularised Coulomb friction that planes and tools put on the nodes in contact with them.
+
+Friction (a plane's or a tool's ``friction`` mu > 0). A node in contact with normal force lambda
+= k max(0, -g) and tangential velocity v_t (relative to the surface, P_t (v - v_surface), P_t =
+I - n n^T) feels
+
+    f = -c P_t (v - v_surface),     c = mu lambda / max(|v_t|, eps_v)
+
+Coulomb's mu lambda against a slip faster than ``friction_velocity`` eps_v, a viscous drag below it
+(a sticking node creeps at less than eps_v). c is taken at the step's start (lagged, as the
+contact's linearisation is), so over a step the friction is a damper, linear in the velocity:
+:class:`NodeDamping` (C = sum c P_t per node, symmetric positive semi-definite), which implicit
+Euler takes implicitly (h C joins the step's matrix). The same law as between bodies
+(``body_contact``), here per node.
+"""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -9,17 +25,73 @@ import torch
 from ..errors import SceneError
 
 
+def coulomb_damping(friction, normal_force: torch.Tensor, slip_speed: torch.Tensor,
+                    friction_velocity) -> torch.Tensor:
+    """The regularised Coulomb damping c = mu lambda / max(|v_t|, eps_v) (N s/m), elementwise:
+    ``friction`` mu, ``normal_force`` lambda >= 0, ``slip_speed`` |v_t|, ``friction_velocity``
+    eps_v > 0 (numbers or broadcastable tensors)."""
+    return friction * normal_force / torch.clamp(slip_speed, min=friction_velocity)
+
+
+@dataclass
+class NodeDamping:
+    """Friction on nodes over one step, as a damper: ``f = drive - C v``.
+
+    Attributes:
+        matrix: ``[V, 3, 3]`` C, per node the sum of c P_t over what it touches (symmetric
+            positive semi-definite).
+        drive: ``[V, 3]`` C v_surface: the force at rest on a node touching a moving surface
+            (zero against planes and still tools).
+    """
+
+    matrix: torch.Tensor
+    drive: torch.Tensor
+
+    def product(self, v: torch.Tensor) -> torch.Tensor:
+        """C v ``[V, 3]``."""
+        return (self.matrix * v[:, None, :]).sum(-1)
+
+    def forces(self, v: torch.Tensor) -> torch.Tensor:
+        """The friction forces ``drive - C v`` ``[V, 3]`` at node velocities ``v [V, 3]``."""
+        return self.drive - self.product(v)
+
+    def __add__(self, other: "NodeDamping") -> "NodeDamping":
+        return NodeDamping(self.matrix + other.matrix, self.drive + other.drive)
+
+
+def tangential_projector(normal: torch.Tensor) -> torch.Tensor:
+    """P_t = I - n n^T ``[..., 3, 3]`` for unit normals ``[..., 3]``."""
+    eye = torch.eye(3, dtype=normal.dtype, device=normal.device)
+    return eye - normal[..., :, None] * normal[..., None, :]
+
+
+def check_friction(friction, friction_velocity, what: str) -> None:
+    """Raise a SceneError naming ``what`` unless mu >= 0 and eps_v > 0 are finite numbers."""
+    def number(value):
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+    if not number(friction) or friction < 0:
+        raise SceneError(f"{what} friction must be a non-negative finite number, got {friction!r}")
+    if not number(friction_velocity) or friction_velocity <= 0:
+        raise SceneError(f"{what} friction_velocity must be a positive finite number (m/s), "
+                         f"got {friction_velocity!r}")
+
+
 @dataclass(frozen=True)
 class Plane:
     """The half-space n.x >= offset, pushed back by a penalty of ``stiffness`` (N/m per node).
 
     ``normal`` is normalised on use; the force on a node below the plane is
-    ``stiffness * (offset - n.x) * n`` (SOFA's ``PlaneForceField``).
+    ``stiffness * (offset - n.x) * n`` (SOFA's ``PlaneForceField``). ``friction``: the Coulomb
+    coefficient mu against the plane (0: frictionless, the default); ``friction_velocity``: eps_v
+    (m/s), the slip speed below which friction is viscous (see the module).
     """
 
     normal: Sequence[float]
     offset: float
     stiffness: float
+    friction: float = 0.0
+    friction_velocity: float = 1e-3
 
     def __post_init__(self):
         n = torch.as_tensor(self.normal, dtype=torch.float64)
@@ -27,16 +99,23 @@ class Plane:
             raise SceneError(f"plane normal must be 3 finite numbers, not all zero; got {self.normal!r}")
         if not (self.stiffness > 0 and torch.isfinite(torch.tensor(float(self.stiffness)))):
             raise SceneError(f"plane stiffness must be positive and finite; got {self.stiffness!r}")
+        check_friction(self.friction, self.friction_velocity, "plane")
 
 
 class Planes:
-    """Planes stacked for evaluation: normals ``[P, 3]``, offsets ``[P]``, stiffness ``[P]``."""
+    """Planes stacked for evaluation: normals ``[P, 3]``, offsets ``[P]``, stiffness ``[P]``,
+    friction coefficients and velocities ``[P]``."""
 
     def __init__(self, planes: Sequence[Plane], dtype, device):
         normals = torch.tensor([list(p.normal) for p in planes], dtype=dtype, device=device).reshape(-1, 3)
         self.normals = normals / normals.norm(dim=1, keepdim=True)
         self.offsets = torch.tensor([float(p.offset) for p in planes], dtype=dtype, device=device)
         self.stiffness = torch.tensor([float(p.stiffness) for p in planes], dtype=dtype, device=device)
+        self.friction = torch.tensor([float(p.friction) for p in planes], dtype=dtype, device=device)
+        self.friction_velocity = torch.tensor([float(p.friction_velocity) for p in planes], dtype=dtype,
+                                              device=device)
+        #: whether any plane has friction (known on the host: no device read to decide)
+        self.has_friction = any(p.friction > 0 for p in planes)
 
     def __len__(self):
         return self.offsets.numel()
@@ -44,8 +123,9 @@ class Planes:
     def to(self, dtype=None, device=None) -> "Planes":
         """These planes with their tensors in ``dtype`` on ``device`` (a copy; None keeps each)."""
         other = Planes.__new__(Planes)
-        for name in ("normals", "offsets", "stiffness"):
+        for name in ("normals", "offsets", "stiffness", "friction", "friction_velocity"):
             setattr(other, name, getattr(self, name).to(dtype=dtype, device=device))
+        other.has_friction = self.has_friction
         return other
 
     # Elementwise products and small sums over the 3 coordinates / P planes rather than matrix
@@ -88,3 +168,15 @@ class Planes:
         active = (self.penetration(x) > 0).to(x.dtype)
         along = (active * self.stiffness) * (dx[:, None, :] * self.normals).sum(-1)  # [V, P]
         return -(along[:, :, None] * self.normals).sum(1)
+
+    def friction_damping(self, x: torch.Tensor, v: torch.Tensor) -> NodeDamping:
+        """The planes' friction over a step from positions ``x [V, 3]`` and velocities ``v [V, 3]``
+        (see the module): per node and plane it is below, c P_t with c = mu k depth /
+        max(|P_t v|, eps_v)."""
+        depth = self.penetration(x)  # [V, P]
+        along = (v[:, None, :] * self.normals).sum(-1)  # [V, P]
+        slip = v[:, None, :] - along[:, :, None] * self.normals  # [V, P, 3]
+        c = coulomb_damping(self.friction, self.stiffness * depth, torch.linalg.vector_norm(slip, dim=-1),
+                            self.friction_velocity)  # [V, P]
+        matrix = (c[:, :, None, None] * tangential_projector(self.normals)).sum(1)
+        return NodeDamping(matrix, torch.zeros_like(x))

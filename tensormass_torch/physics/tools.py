@@ -21,9 +21,14 @@ against finite differences of the force, and the projection against the exact on
 eigen-decomposition). On flat parts (a box's faces) the two are the same. The step linearises at
 its start with the tool where it will be at the end (``ToolSet.set_time``), as for the planes.
 
-The reaction on a tool is minus the sum of the forces it puts on the nodes; its torque is taken
-about the tool's origin. Every node of every body meets every tool (a dense pass over the nodes:
-tools are few, and a pass is a handful of elementwise ops).
+With ``friction`` mu > 0 a tool also drags the nodes touching it: regularised Coulomb against
+the tool's velocity over the step (``physics.contact`` gives the law), taken implicitly as a
+damper.
+
+The reaction on a tool is minus the sum of the forces it puts on the nodes (penalty and, given
+the nodes' velocities, friction); its torque is taken about the tool's origin. Every node of
+every body meets every tool (a dense pass over the nodes: tools are few, and a pass is a handful
+of elementwise ops).
 """
 from __future__ import annotations
 
@@ -33,10 +38,12 @@ from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
-from ..errors import SceneError
+from ..errors import MeshError, SceneError
+from ..mesh.distance import SignedDistanceGrid, signed_distance_grid
+from .contact import NodeDamping, check_friction, coulomb_damping, tangential_projector
 
 #: the tool shapes (``Tool.shape``)
-SHAPES = ("sphere", "capsule", "box")
+SHAPES = ("sphere", "capsule", "box", "mesh")
 #: the stiffness a tool gives the implicit step (``Tool.tangent``)
 TANGENTS = ("projected", "exact")
 
@@ -61,12 +68,13 @@ def _positive(value, name: str, allow_zero: bool = False) -> float:
 
 @dataclass(frozen=True)
 class Tool:
-    """A rigid tool (build one with :func:`Sphere`, :func:`Capsule` or :func:`Box`).
+    """A rigid tool (build one with :func:`Sphere`, :func:`Capsule`, :func:`Box` or :func:`MeshTool`).
 
     Attributes:
         shape: ``"sphere"``, ``"capsule"`` (a segment of half length ``size[1]`` along the tool's
-            first axis, radius ``size[0]``) or ``"box"`` (half extents ``size``).
-        size: the shape's dimensions (sphere: ``(radius,)``).
+            first axis, radius ``size[0]``), ``"box"`` (half extents ``size``) or ``"mesh"`` (a
+            closed triangle surface through its signed distance grid ``grid``).
+        size: the shape's dimensions (sphere: ``(radius,)``; a mesh: none).
         stiffness: penalty k (N/m per node).
         thickness: contact distance: a node is pushed back once closer than this to the surface.
         position: the origin ``[3]`` where no path is given.
@@ -77,6 +85,11 @@ class Tool:
         tangent: the stiffness the implicit step uses: ``"projected"`` (k n n^T, positive
             semi-definite; default) or ``"exact"`` (the energy's Hessian, with the surface's
             curvature: indefinite in contact with a curved tool). See the module's notes.
+        friction: Coulomb coefficient mu between the tool and the nodes (0: frictionless, the
+            default; regularised as ``physics.contact`` says, against the tool's velocity).
+        friction_velocity: eps_v (m/s), the slip speed below which friction is viscous.
+        grid: a mesh tool's ``mesh.distance.SignedDistanceGrid`` in its own frame (None for the
+            other shapes).
     """
 
     shape: str
@@ -90,12 +103,17 @@ class Tool:
     motion: Optional[Callable[[float], Sequence[float]]] = field(default=None, compare=False)
     name: Optional[str] = None
     tangent: str = "projected"
+    friction: float = 0.0
+    friction_velocity: float = 1e-3
+    grid: Optional[SignedDistanceGrid] = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.shape not in SHAPES:
             raise SceneError(f"tool shape must be one of {', '.join(map(repr, SHAPES))}, got {self.shape!r}")
         sizes = {"sphere": ("radius",), "capsule": ("radius", "half_length"),
-                 "box": ("half_extents[0]", "half_extents[1]", "half_extents[2]")}[self.shape]
+                 "box": ("half_extents[0]", "half_extents[1]", "half_extents[2]"), "mesh": ()}[self.shape]
+        if (self.shape == "mesh") != isinstance(self.grid, SignedDistanceGrid):
+            raise SceneError("a mesh tool needs its signed distance grid (build it with tm.MeshTool), and only it")
         if len(self.size) != len(sizes):
             raise SceneError(f"a {self.shape} takes {len(sizes)} sizes ({', '.join(sizes)}), got {self.size!r}")
         for value, name in zip(self.size, sizes):
@@ -104,6 +122,7 @@ class Tool:
         if self.tangent not in TANGENTS:
             raise SceneError(f"tool tangent must be one of {', '.join(map(repr, TANGENTS))}, got {self.tangent!r}")
         _positive(self.thickness, "tool thickness", allow_zero=True)
+        check_friction(self.friction, self.friction_velocity, "tool")
         _vector(self.position, "tool position")
         r = torch.as_tensor(self.rotation, dtype=torch.float64)
         if r.shape != (3, 3) or not bool(torch.isfinite(r).all()) \
@@ -167,30 +186,64 @@ def _rotation(rotation):
 
 
 def Sphere(radius: float, position=(0.0, 0.0, 0.0), stiffness: float = 1e5, thickness: float = 0.0, *,
-           times=None, positions=None, motion=None, name: Optional[str] = None, tangent: str = "projected") -> Tool:
+           times=None, positions=None, motion=None, name: Optional[str] = None, tangent: str = "projected",
+           friction: float = 0.0, friction_velocity: float = 1e-3) -> Tool:
     """A sphere of ``radius`` centred on its origin (``position``, or keyframes ``times``,
     ``positions``, or ``motion(t) -> [3]``)."""
     position, times, positions = _path(position, times, positions)
     return Tool("sphere", (radius,), stiffness, thickness, position, _rotation(None), times, positions, motion, name,
-                tangent)
+                tangent, friction, friction_velocity)
 
 
 def Capsule(radius: float, half_length: float, position=(0.0, 0.0, 0.0), rotation=None, stiffness: float = 1e5,
             thickness: float = 0.0, *, times=None, positions=None, motion=None, name: Optional[str] = None,
-            tangent: str = "projected") -> Tool:
+            tangent: str = "projected", friction: float = 0.0, friction_velocity: float = 1e-3) -> Tool:
     """A capsule: the points within ``radius`` of the segment from -``half_length`` to
     +``half_length`` along the tool's first axis (``rotation``'s first column; default x)."""
     position, times, positions = _path(position, times, positions)
     return Tool("capsule", (radius, half_length), stiffness, thickness, position, _rotation(rotation), times,
-                positions, motion, name, tangent)
+                positions, motion, name, tangent, friction, friction_velocity)
 
 
 def Box(half_extents, position=(0.0, 0.0, 0.0), rotation=None, stiffness: float = 1e5, thickness: float = 0.0, *,
-        times=None, positions=None, motion=None, name: Optional[str] = None, tangent: str = "projected") -> Tool:
+        times=None, positions=None, motion=None, name: Optional[str] = None, tangent: str = "projected",
+        friction: float = 0.0, friction_velocity: float = 1e-3) -> Tool:
     """A box of ``half_extents [3]`` along the tool's axes (``rotation``'s columns)."""
     position, times, positions = _path(position, times, positions)
     return Tool("box", _vector(half_extents, "box half_extents"), stiffness, thickness, position,
-                _rotation(rotation), times, positions, motion, name, tangent)
+                _rotation(rotation), times, positions, motion, name, tangent, friction, friction_velocity)
+
+
+def MeshTool(surface, position=(0.0, 0.0, 0.0), rotation=None, stiffness: float = 1e5, thickness: float = 0.0, *,
+             resolution: int = 32, spacing: Optional[float] = None, times=None, positions=None, motion=None,
+             name: Optional[str] = None, tangent: str = "projected", friction: float = 0.0,
+             friction_velocity: float = 1e-3, device=None) -> Tool:
+    """A tool of any closed triangle surface: ``surface`` is a file path (any meshio surface
+    format), a ``tm.TriMesh``, ``(vertices [V, 3], triangles [F, 3])`` or a pyvista PolyData,
+    its coordinates in the tool's frame (placed at ``position`` or along a path, turned by
+    ``rotation``). Its signed distance is sampled once on a grid of ``resolution`` cells along
+    its longest side (or of ``spacing``) that reaches ``thickness`` and two cells past it
+    (``mesh.distance``): the distance between grid nodes is trilinear, so corners are rounded
+    over about a cell. Building the grid costs seconds on a CPU for thousands of triangles,
+    milliseconds on a GPU (``device``: where it is built; the simulator moves it to its own).
+
+    Raises:
+        MeshError: the surface is not closed (an edge not shared by exactly two triangles), is
+            wound inconsistently, or encloses no volume.
+    """
+    from ..mesh.surface import _surface_arrays
+
+    position, times, positions = _path(position, times, positions)
+    _positive(thickness, "tool thickness", allow_zero=True)
+    what = f"tool mesh {name!r}" if name else "tool mesh"
+    try:
+        vertices, triangles = _surface_arrays(surface)
+    except MeshError as exc:
+        raise MeshError(f"{what}: {exc}") from None
+    grid = signed_distance_grid(vertices, triangles, resolution=resolution, spacing=spacing, margin=thickness,
+                                device=device, what=what)
+    return Tool("mesh", (), stiffness, thickness, position, _rotation(rotation), times, positions, motion, name,
+                tangent, friction, friction_velocity, grid)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,14 +298,19 @@ def _box(q: torch.Tensor, half: torch.Tensor):
     return d, n, hessian
 
 
-_DISTANCES = {"sphere": _sphere, "capsule": _capsule, "box": _box}
+def _mesh(q: torch.Tensor, grid: SignedDistanceGrid):
+    return grid.sample(q)
+
+
+_DISTANCES = {"sphere": _sphere, "capsule": _capsule, "box": _box, "mesh": _mesh}
 
 
 class ToolSet:
-    """Tools stacked for evaluation on one device: their origins ``origins [T, 3]`` (a buffer
-    written in place by :meth:`set_time`, so captured launches read the current poses), axes
-    ``rotations [T, 3, 3]``, stiffness and thickness. The same interface as ``contact.Planes``
-    (``forces``, ``dforces``, ``linearize``, ``energy``) plus :meth:`reactions`."""
+    """Tools stacked for evaluation on one device: their origins ``origins [T, 3]`` and velocities
+    ``velocities [T, 3]`` (buffers written in place by :meth:`set_time`, so captured launches read
+    the current poses), axes ``rotations [T, 3, 3]``, stiffness and thickness. The same interface
+    as ``contact.Planes`` (``forces``, ``dforces``, ``linearize``, ``energy``,
+    ``friction_damping``) plus :meth:`reactions`."""
 
     def __init__(self, tools: Sequence[Tool], dtype, device):
         for i, tool in enumerate(tools):
@@ -265,10 +323,14 @@ class ToolSet:
                                       device=device).reshape(-1, 3, 3)
         # the shapes' sizes as the distances take them (a box's half extents as a tensor: made here,
         # not at each evaluation, which a captured step replays)
-        self.sizes = [torch.tensor(t.size, dtype=dtype, device=device) if t.shape == "box" else t.size for t in tools]
+        self.sizes = [torch.tensor(t.size, dtype=dtype, device=device) if t.shape == "box"
+                      else t.grid.to(dtype=dtype, device=device) if t.shape == "mesh" else t.size for t in tools]
         self.stiffness = [t.stiffness for t in tools]
         self.thickness = [t.thickness for t in tools]
-        self.time = 0.0
+        self.velocities = torch.zeros_like(self.origins)
+        #: whether any tool has friction
+        self.has_friction = any(t.friction > 0 for t in tools)
+        self.time, self.dt = 0.0, None
 
     def __len__(self):
         return len(self.tools)
@@ -278,20 +340,29 @@ class ToolSet:
         """Whether any tool moves (then its pose changes between steps)."""
         return any(t.moves for t in self.tools)
 
-    def set_time(self, t: float) -> None:
-        """The tools' origins at time ``t``, written into :attr:`origins` in place."""
-        if t == self.time:
+    def set_time(self, t: float, dt: Optional[float] = None) -> None:
+        """The tools' origins at time ``t``, written into :attr:`origins` in place, and with the
+        length ``dt`` of the step ending at t, their velocities over it, (o(t) - o(t - dt)) / dt,
+        into :attr:`velocities` (without dt, zero)."""
+        if t == self.time and dt == self.dt:
             return
         origins = torch.tensor([list(tool.origin(t)) for tool in self.tools], dtype=self.origins.dtype)
+        velocities = torch.zeros_like(origins)
+        if dt:
+            before = torch.tensor([list(tool.origin(t - dt)) for tool in self.tools], dtype=self.origins.dtype)
+            velocities = (origins - before) / dt
         self.origins.copy_(origins.reshape(-1, 3), non_blocking=False)
-        self.time = t
+        self.velocities.copy_(velocities.reshape(-1, 3), non_blocking=False)
+        self.time, self.dt = t, dt
 
     def to(self, dtype=None, device=None) -> "ToolSet":
         """These tools with their tensors in ``dtype`` on ``device`` (a copy; None keeps each)."""
         other = ToolSet.__new__(ToolSet)
         other.tools, other.stiffness, other.thickness = self.tools, self.stiffness, self.thickness
-        other.time = self.time
-        other.sizes = [s.to(dtype=dtype, device=device) if isinstance(s, torch.Tensor) else s for s in self.sizes]
+        other.time, other.dt, other.has_friction = self.time, self.dt, self.has_friction
+        other.velocities = self.velocities.to(dtype=dtype, device=device).clone()
+        other.sizes = [s.to(dtype=dtype, device=device) if isinstance(s, (torch.Tensor, SignedDistanceGrid)) else s
+                       for s in self.sizes]
         other.origins = self.origins.to(dtype=dtype, device=device).clone()
         other.rotations = self.rotations.to(dtype=dtype, device=device)
         return other
@@ -346,19 +417,49 @@ class ToolSet:
         """The deepest penetration of each node into any tool ``[V]``: max(0, -g) (0 away from them)."""
         return self.contact_state(x)[0]
 
-    def reactions(self, x: torch.Tensor):
-        """The force ``[T, 3]`` the nodes at ``x [V, 3]`` put on each tool (minus the sum of the
-        tool's forces on them) and its torque ``[T, 3]`` about the tool's origin."""
-        return self.contact_state(x)[1:]
+    def reactions(self, x: torch.Tensor, v: Optional[torch.Tensor] = None):
+        """The force ``[T, 3]`` the nodes at ``x [V, 3]`` (moving at ``v [V, 3]``: with friction)
+        put on each tool (minus the sum of the tool's forces on them) and its torque ``[T, 3]``
+        about the tool's origin."""
+        return self.contact_state(x, v)[1:]
 
-    def contact_state(self, x: torch.Tensor):
+    def _friction(self, i: int, g: torch.Tensor, n: torch.Tensor, v: torch.Tensor):
+        """Tool i's friction damping on the nodes: c ``[V]`` and P_t ``[V, 3, 3]`` at gaps ``g``,
+        normals ``n`` and node velocities ``v [V, 3]`` (c = 0 away from it)."""
+        tool = self.tools[i]
+        n = n / torch.clamp(torch.linalg.vector_norm(n, dim=-1, keepdim=True), min=torch.finfo(n.dtype).tiny)
+        relative = v - self.velocities[i]
+        slip = relative - (relative * n).sum(-1, keepdim=True) * n
+        c = coulomb_damping(tool.friction, self.stiffness[i] * torch.clamp(-g, min=0.0),
+                            torch.linalg.vector_norm(slip, dim=-1), tool.friction_velocity)
+        return c, tangential_projector(n)
+
+    def friction_damping(self, x: torch.Tensor, v: torch.Tensor) -> NodeDamping:
+        """The tools' friction over a step from positions ``x [V, 3]`` and velocities ``v [V, 3]``
+        (``contact.NodeDamping``: C = sum c P_t, drive = sum c P_t v_tool, each tool's c =
+        mu k max(0, -g) / max(|P_t (v - v_tool)|, eps_v))."""
+        matrix = x.new_zeros(*x.shape, 3)
+        drive = torch.zeros_like(x)
+        for i, (g, n, _) in enumerate(self.gaps(x)):
+            if self.tools[i].friction > 0:
+                c, projector = self._friction(i, g, n, v)
+                damping = c[:, None, None] * projector
+                matrix = matrix + damping
+                drive = drive + (damping * self.velocities[i]).sum(-1)
+        return NodeDamping(matrix, drive)
+
+    def contact_state(self, x: torch.Tensor, v: Optional[torch.Tensor] = None):
         """:meth:`penetration` ``[V]`` and :meth:`reactions` (``[T, 3]`` twice) at ``x [V, 3]``
-        from one evaluation of the distances (what a step's report needs)."""
+        from one evaluation of the distances (what a step's report needs); with node velocities
+        ``v [V, 3]``, the reactions include the friction at (x, v)."""
         depth = x.new_zeros(x.shape[0])
         force, torque = [], []
         for i, (k, (g, n, _)) in enumerate(zip(self.stiffness, self.gaps(x))):
             depth = torch.maximum(depth, torch.clamp(-g, min=0.0))
             on_nodes = -(k * torch.clamp(g, max=0.0))[:, None] * n  # [V, 3]
+            if v is not None and self.tools[i].friction > 0:
+                c, projector = self._friction(i, g, n, v)
+                on_nodes = on_nodes - c[:, None] * (projector * (v - self.velocities[i])[:, None, :]).sum(-1)
             force.append(-on_nodes.sum(0))
             torque.append(-torch.linalg.cross(x - self.origins[i], on_nodes).sum(0))
         if not force:

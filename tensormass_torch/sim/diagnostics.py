@@ -32,7 +32,7 @@ class ContactReport:
 
     Attributes:
         tool_force: the force the bodies put on each tool ``[T, 3]`` (minus the sum of the
-            tool's penalty forces on the nodes: what a haptic device renders).
+            tool's penalty and friction forces on the nodes: what a haptic device renders).
         tool_torque: its torque about each tool's origin ``[T, 3]``.
         contacts: per body, the nodes inside a tool's or a plane's contact distance ``[B]``.
         max_penetration: per body, the deepest of those ``[B]`` (0 with no contact).
@@ -57,7 +57,7 @@ def contact_report(sim, x: Optional[torch.Tensor] = None) -> ContactReport:
     depth = x.new_zeros(x.shape[0])
     force = torque = x.new_zeros(0, 3)
     if sim.tools is not None:
-        depth, force, torque = sim.tools.contact_state(x)
+        depth, force, torque = sim.tools.contact_state(x, sim.v if x is sim.x else None)
     if sim.planes is not None:
         depth = torch.maximum(depth, sim.planes.penetration(x).amax(dim=1))
     lengths = sim.segments.lengths

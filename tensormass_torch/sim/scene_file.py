@@ -33,15 +33,20 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     normal = [0, 0, 1]
     offset = -0.5
     stiffness = 1e5
+    friction = 0.0                    # Coulomb coefficient against the plane (0: none)
+    friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
 
     [[tools]]                         # a rigid tool pressing on the bodies' nodes (tm.Sphere, ...)
     shape = "sphere"                  # "sphere" (radius), "capsule" (radius, half_length along its
-    radius = 0.05                     #   first axis) or "box" (half_extents = [a, b, c])
+    radius = 0.05                     #   first axis), "box" (half_extents = [a, b, c]) or "mesh"
+                                      #   (file = "probe.stl": a closed surface in the tool's frame,
+                                      #   relative to the scene file; resolution = 32 grid cells)
     position = [0.5, 0, 0.2]          # its origin (or keyframes: times = [...], positions = [[...]])
     # rotation = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]   (its axes, as columns)
     stiffness = 1e5                   # penalty (N/m per node)
     thickness = 0.0                   # contact distance
     name = "probe"                    # tangent = "exact": the curvature in the step's stiffness
+    friction = 0.0                    # Coulomb coefficient against the tool (friction_velocity too)
 
     [contact]                         # contact between the bodies' surfaces (tm.Contact)
     stiffness = 1e5                   # penalty (N/m per vertex in contact)
@@ -103,7 +108,7 @@ from ..physics.body_contact import Contact
 from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from ..physics.tools import TANGENTS as TOOL_TANGENTS
-from ..physics.tools import Box, Capsule, Sphere, Tool
+from ..physics.tools import Box, Capsule, MeshTool, Sphere, Tool
 from .builtin import Scene
 from .scalpel import Scalpel
 from .simulator import MIN_SPARE_NODES, SPARE_FRACTION, Body, Simulator
@@ -495,18 +500,26 @@ def _spare_nodes(t: _Table):
 #: ``[[tools]]`` shapes: the tool constructor and the keys of its size, in its argument order
 TOOL_SHAPES = {"sphere": (Sphere, (("radius", "positive"),)),
                "capsule": (Capsule, (("radius", "positive"), ("half_length", "nonnegative"))),
-               "box": (Box, (("half_extents", "vec3"),))}
+               "box": (Box, (("half_extents", "vec3"),)),
+               "mesh": (MeshTool, (("file", "str"),))}
 
 
-def _tool(t: _Table) -> Tool:
-    """A ``[[tools]]`` table: shape and its sizes, position or keyframes (times, positions),
-    rotation, stiffness, thickness, name."""
+def _tool(t: _Table, base_dir: Path) -> Tool:
+    """A ``[[tools]]`` table: shape and its sizes (a mesh: its file, relative to ``base_dir``,
+    and resolution), position or keyframes (times, positions), rotation, stiffness, thickness,
+    name, tangent, friction, friction_velocity."""
     shape = _choice(t, "shape", tuple(TOOL_SHAPES), what="tool shape")
     make, sizes = TOOL_SHAPES[shape]
     args = [t.get(key, kind) for key, kind in sizes]
+    if shape == "mesh":
+        args = [base_dir / args[0]]
+        if not args[0].is_file():
+            raise t.error("file", f"tool surface file not found: '{args[0]}'")
     kwargs = dict(position=t.get("position", "vec3", (0.0, 0.0, 0.0)), stiffness=t.get("stiffness", "positive", 1e5),
                   thickness=t.get("thickness", "nonnegative", 0.0), name=t.get("name", "str", None),
-                  tangent=_choice(t, "tangent", TOOL_TANGENTS, "projected", "tool tangent"))
+                  tangent=_choice(t, "tangent", TOOL_TANGENTS, "projected", "tool tangent"),
+                  friction=t.get("friction", "nonnegative", 0.0),
+                  friction_velocity=t.get("friction_velocity", "positive", 1e-3))
     if shape != "sphere":
         rotation = t.data.get("rotation")
         t.seen.add("rotation")
@@ -532,10 +545,12 @@ def _tool(t: _Table) -> Tool:
                                for i, p in enumerate(positions)]
     elif "positions" in t.data:
         raise t.error("positions", "needs times = [...] (one per position)")
+    if shape == "mesh":
+        kwargs["resolution"] = t.get("resolution", "posint", 32)
     t.done()
     try:
         return make(*args, **kwargs)
-    except SceneError as exc:
+    except (SceneError, MeshError) as exc:
         raise t.fail(t.where, str(exc)) from exc
 
 
@@ -649,10 +664,12 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         normal = plane.get("normal", "vec3")
         if not any(normal):
             raise plane.error("normal", "must not be the zero vector")
-        planes.append(Plane(normal, plane.get("offset", "number", 0.0), plane.get("stiffness", "positive")))
+        planes.append(Plane(normal, plane.get("offset", "number", 0.0), plane.get("stiffness", "positive"),
+                            friction=plane.get("friction", "nonnegative", 0.0),
+                            friction_velocity=plane.get("friction_velocity", "positive", 1e-3)))
         plane.done()
 
-    tools = [_tool(t) for t in top.tables("tools")]
+    tools = [_tool(t, path.parent) for t in top.tables("tools")]
     contact_table = top.table("contact")
     contact = None
     if contact_table is not None:

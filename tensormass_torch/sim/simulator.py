@@ -420,7 +420,7 @@ class Simulator:
         t_end (nothing committed): (x, v, report, inversion report or None)."""
         imposed = self._imposed_velocity(x, t_end, opts.dt)
         if self.tools is not None:  # the tools where they are at the step's end
-            self.tools.set_time(t_end)
+            self.tools.set_time(t_end, opts.dt)
         x_new, v_new, report = implicit_euler_step(self.system, x, v, opts, imposed)
         inversion = self._check_inversion(x_new, t_end, report) if self._inversion is not None else None
         return x_new, v_new, report, inversion

@@ -121,7 +121,8 @@ class DynamicsSystem:
         self.mass = mass.unsqueeze(-1)
         self.external = external
         self.segments = segments
-        node_graph.set_objects(model, segments.ptr)  # the node graphs' rows keep to one object each
+        if hasattr(model, "groups"):  # a TensorMass: its node graphs' rows keep to one object each
+            node_graph.set_objects(model, segments.ptr)
         self.free = (None if not (keep_mask or bool(constrained.any()))
                      else (~constrained).to(mass.dtype).unsqueeze(-1))
         self.planes = planes if planes is not None and len(planes) else None
@@ -188,6 +189,21 @@ class DynamicsSystem:
     def contacts(self) -> list:
         """The contact terms (planes, tools) present: each has ``forces``, ``dforces``, ``linearize``."""
         return [c for c in (self.planes, self.tools) if c is not None]
+
+    @property
+    def has_node_friction(self) -> bool:
+        """Whether a plane or a tool has friction (``friction_damping`` is then not None)."""
+        return any(c.has_friction for c in self.contacts)
+
+    def friction_damping(self, x, v):
+        """The planes' and tools' friction over a step from ``x, v [V, 3]`` as a damper
+        (``contact.NodeDamping``: forces ``drive - C v``), or None where none has friction."""
+        damping = None
+        for contact in self.contacts:
+            if contact.has_friction:
+                term = contact.friction_damping(x, v)
+                damping = term if damping is None else damping + term
+        return damping
 
     def dforces(self, x, dx):
         """(dF/dx) dx ``[V, d]`` of the elastic and contact forces."""
@@ -325,7 +341,8 @@ class SystemMatvec:
         from .. import ops
 
         system, model = self.system, self.system.model
-        if system.tools is not None or len(model.groups) != 1:  # the op takes planes, not tools
+        # the op takes planes, not tools, and no friction (added to the stiffness after the op)
+        if system.tools is not None or system.has_node_friction or len(model.groups) != 1:
             return None
         if not ops.step_rhs_serves(model.groups, self.u, (model.rest, system.external), self.variants):
             return None
@@ -439,10 +456,20 @@ def _coefficients(opts: StepOptions):
     return 1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness)
 
 
-def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None) -> CGResult:
-    """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x;
-    ``pairs``: the body contact's pairs at x (found here when the system has body contact and
-    they are not given)."""
+def _fold_damping(matvec: "SystemMatvec", damping, opts: StepOptions) -> None:
+    """Put the planes' and tools' friction C (``contact.NodeDamping``) into the loaded matvec's
+    node stiffness as C / (h + r_K): the step's matrix then holds c_K C / (h + r_K) = h C, and the
+    products that read the node stiffness (CG, the imposed velocities' term) take the damper in
+    with the contact stiffness."""
+    if damping is not None:
+        matvec.node_stiffness.add_(damping.matrix, alpha=1.0 / (opts.dt + opts.rayleigh_stiffness))
+
+
+def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None, damping=None) -> CGResult:
+    """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x
+    (with ``damping`` folded in); ``pairs``: the body contact's pairs at x (found here when the
+    system has body contact and they are not given); ``damping``: the planes' and tools' friction
+    (``contact.NodeDamping``: h C joins the matrix) or None."""
     mass_coef, stiffness_coef = _coefficients(opts)
     if pairs is None and system.body_contact is not None:
         pairs = system.body_contact.detect(x)
@@ -452,10 +479,12 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
         tangent = system.tangent(x, pairs)
 
         def matvec(p):
-            return mass_coef * system.mass * p - stiffness_coef * tangent(p)
+            product = mass_coef * system.mass * p - stiffness_coef * tangent(p)
+            return product if damping is None else product + opts.dt * damping.product(p)
     else:
         if loaded is None:
             fused.load(x)
+            _fold_damping(fused, damping, opts)
         matvec, graph_key = fused, fused.graph_key
         if pairs is not None and len(pairs) and pairs.hessians is None:
             # the pairs' stiffness beside the fused product (it projects; the CG projects again), on
@@ -556,11 +585,12 @@ def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):
 
 
 def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, matvec=None, pairs=None):
-    """The right-hand side ``[V, d]`` of the first linear system of a step, and the velocity change
-    of the constrained nodes ``[V, d]`` (None when there is none to impose). ``matvec``: the
-    step's SystemMatvec, loaded here at ``x`` (its rotations and contact terms are then reused
-    by the CG: computed once per step), or None; ``pairs``: with a matvec, the body contact's
-    pairs at x (their forces and stiffness join the matvec's)."""
+    """The right-hand side ``[V, d]`` of the first linear system of a step, the velocity change
+    of the constrained nodes ``[V, d]`` (None when there is none to impose), and the planes' and
+    tools' friction over the step (``contact.NodeDamping``, or None without). ``matvec``: the
+    step's SystemMatvec, loaded here at ``x`` (its rotations and contact terms, friction
+    included, are then reused by the CG: computed once per step), or None; ``pairs``: with a
+    matvec, the body contact's pairs at x (their forces and stiffness join the matvec's)."""
     h = opts.dt
     # Constrained nodes take their imposed velocity exactly; CG solves for the free nodes only.
     # With no imposed velocity, constrained nodes are fixed: they are at rest and stay there.
@@ -569,9 +599,13 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
         dv_imposed = (1.0 - system.free) * (imposed_velocity - v)
     mass_coef, stiffness_coef = _coefficients(opts)
     friction = None  # the pairs' friction forces (linear in the velocity: -C v)
+    # the planes' and tools' friction, lagged: the damper drive - C v_new, implicit: h (drive - C v)
+    # in the right-hand side, h C in the matrix
+    damping = system.friction_damping(x, v) if system.has_node_friction else None
     if matvec is not None:
         tangent = matvec.tangent
         rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.rayleigh_stiffness)
+        _fold_damping(matvec, damping, opts)  # (after the right-hand side, which must not see it)
         if pairs is not None and len(pairs):
             rhs = rhs + h * (pairs.forces() + pairs.dforces((h + opts.rayleigh_stiffness) * v))
             if pairs.friction is not None:  # the damping -C v_new, implicit: -h C v here, h C in the matrix
@@ -586,11 +620,15 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
         if opts.rayleigh_mass:  # no damping term without damping
             rhs = rhs - opts.rayleigh_mass * system.mass * v
         rhs = h * rhs
+    if damping is not None:
+        rhs = rhs + h * damping.forces(v)
     if dv_imposed is not None:
         rhs = rhs - (mass_coef * system.mass * dv_imposed - stiffness_coef * tangent(dv_imposed))
         if friction is not None:
             rhs = rhs + h * friction(dv_imposed)
-    return rhs, dv_imposed
+        if damping is not None and matvec is None:  # (with a matvec, tangent has it: folded in)
+            rhs = rhs - h * damping.product(dv_imposed)
+    return rhs, dv_imposed, damping
 
 
 def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
@@ -672,7 +710,7 @@ class StepGraphs:
         """Phase A; returns whether its solve also did phase C (a whole solve in one op that ends
         the step in its own kernel: ``solve.StepEnd``). ``chained``: as :meth:`_phase_c`."""
         opts = self.opts
-        rhs, dv_imposed = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
+        rhs, dv_imposed, _ = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
         if dv_imposed is not None:
             self.dv_imposed.copy_(dv_imposed)
         ring = (self.ring, self.ring_pos) if chained else (None, None)
@@ -837,8 +875,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # the body contact's pairs where the step linearises (without a matvec the system finds them)
     pairs = (system.body_contact.detect_at_state(x, v, h) if system.body_contact is not None and loaded is not None
              else None)
-    rhs, dv_imposed = _step_system(system, x, v, opts, imposed_velocity, loaded, pairs)  # loads it at x
-    result = _solve(system, x, rhs, opts, loaded, pairs)
+    rhs, dv_imposed, damping = _step_system(system, x, v, opts, imposed_velocity, loaded, pairs)  # loads it at x
+    result = _solve(system, x, rhs, opts, loaded, pairs, damping)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
@@ -848,7 +886,9 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         residual = (system.mass * (v_new - v) - h * system.forces(x_new, opts.variants)
                     + h * opts.rayleigh_mass * system.mass * v_new
                     - h * opts.rayleigh_stiffness * system.dforces(x_new, v_new))
-        result = _solve(system, x_new, -residual, opts)
+        if damping is not None:
+            residual = residual - h * damping.forces(v_new)
+        result = _solve(system, x_new, -residual, opts, damping=damping)
         report.cg.append(result)
         _raise_if_failed(result, opts, "Newton iteration CG")
         v_new = v_new + result.solution

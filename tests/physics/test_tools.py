@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import random_rotation
+from conftest import random_rotation, u_shape_surface
 
 import tensormass_torch as tm
+from tensormass_torch.mesh.topology import boundary_faces
 from tensormass_torch.physics.tools import ToolSet
 
 DT = torch.float64
@@ -246,3 +247,100 @@ def test_cuda_steps_match_the_cpu(model):
     assert float(runs[0][1].abs().max()) > 0
     torch.testing.assert_close(runs[1][0], runs[0][0], rtol=1e-8, atol=1e-10)
     torch.testing.assert_close(runs[1][1], runs[0][1], rtol=1e-6, atol=1e-8)
+
+
+def u_tool(**kwargs):
+    """A mesh tool of a non-convex closed surface, turned and placed."""
+    rot = random_rotation(np.random.default_rng(4), 3).tolist()
+    return tm.MeshTool(u_shape_surface(), position=(0.05, -0.02, 0.1), rotation=rot, resolution=12, **kwargs)
+
+
+def test_mesh_tool_force_and_stiffness_are_derivatives_of_the_energy():
+    """A tool of any closed surface: its force is minus the energy's gradient, its exact stiffness
+    the force's derivative inside the grid's cells, its projected one k grad(phi) grad(phi)^T."""
+    tool = u_tool(stiffness=3e3, thickness=0.01, tangent="exact")
+    tools = ToolSet([tool], DT, "cpu")
+    gen = torch.Generator().manual_seed(5)
+    grid = tool.grid
+    cells = torch.rand(600, 3, generator=gen, dtype=DT) * (torch.tensor(grid.values.shape, dtype=DT) - 1)
+    rotation = torch.tensor(tool.rotation, dtype=DT)
+    x = (grid.lower + grid.spacing * cells) @ rotation.T + torch.tensor(tool.position, dtype=DT)
+    gaps = tools.gaps(x)[0][0]
+    assert bool((gaps < 0).sum() > 40) and bool((gaps > 0).sum() > 40)
+    forces, stiffness = tools.linearize(x)
+    y = x.clone().requires_grad_(True)
+    (gradient,) = torch.autograd.grad(tools.energy(y), y)
+    torch.testing.assert_close(forces, -gradient, rtol=1e-12, atol=1e-12)
+    eps = 1e-7
+    # skipped: points within eps of a cell's face (the interpolant's gradient jumps there) or of
+    # the contact distance
+    near_kink = ((cells - cells.round()).abs() < 10 * eps / grid.spacing).any(1) | (gaps.abs() < 10 * eps)
+    for k in range(3):
+        step = torch.zeros_like(x)
+        step[:, k] = eps
+        column = -(tools.forces(x + step) - tools.forces(x - step)) / (2 * eps)
+        torch.testing.assert_close(stiffness[~near_kink, :, k], column[~near_kink], rtol=1e-5, atol=1e-3)
+    projected = ToolSet([dataclasses.replace(tool, tangent="projected")], DT, "cpu").node_stiffness(x)
+    g, n, _ = tools.gaps(x)[0]
+    expected = 3e3 * (g < 0).to(DT)[:, None, None] * n[:, :, None] * n[:, None, :]
+    torch.testing.assert_close(projected, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_a_mesh_tool_of_a_box_presses_as_the_box():
+    """The surface of a box as a mesh tool: the same distances near its faces and the same
+    pressing on a held block as the analytic box (the trilinear grid is exact on flat parts)."""
+    cube = tm.beam_mesh(2, 2, 2, size=(0.2, 0.2, 0.1), origin=(-0.1, -0.1, -0.05), dtype=DT)
+    surface = tm.TriMesh(cube.vertices, boundary_faces(cube.elements), check=False)
+    path = dict(times=[0.0, 0.2], positions=[(0.0, 0.0, 0.26), (0.0, 0.0, 0.24)], stiffness=2e4)
+    mesh, mat = block(n=(4, 4, 2), young=1e5)
+    runs = []
+    for tool in (tm.MeshTool(surface, resolution=20, **path), tm.Box((0.1, 0.1, 0.05), **path)):
+        sim = tm.Simulator([tm.Body(mesh, mat, fixed=mesh.vertices[:, 2] < 1e-9)], dt=0.01, tools=[tool], dtype=DT,
+                           rayleigh_mass=1.0, cg_tol=1e-12)
+        sim.step(30)
+        runs.append((sim.x.clone(), sim.last_report.contact.tool_force.clone()))
+    assert float(runs[1][1][0, 2]) > 1.0  # the box presses
+    torch.testing.assert_close(runs[0][0], runs[1][0], rtol=1e-9, atol=1e-11)
+    torch.testing.assert_close(runs[0][1], runs[1][1], rtol=1e-9, atol=1e-9)
+
+
+def test_bad_mesh_tools_raise_one_clear_error(tmp_path):
+    vertices, faces = u_shape_surface()
+    with pytest.raises(tm.MeshError, match=r"tool mesh 'probe' is not closed: 3 edges"):
+        tm.MeshTool((vertices, faces[1:]), name="probe")
+    bad = vertices.clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(tm.MeshError, match="tool mesh: surface vertices must be finite"):
+        tm.MeshTool((bad, faces))
+    with pytest.raises(tm.MeshError, match="tool mesh: surface file not found"):
+        tm.MeshTool(tmp_path / "missing.stl")
+    with pytest.raises(tm.SceneError, match="a mesh tool needs its signed distance grid"):
+        tm.Tool("mesh", (), 1e5)
+
+
+def test_mesh_tool_scene_key(tmp_path):
+    vertices, faces = u_shape_surface()
+    tm.save_mesh(tmp_path / "u.obj", tm.TriMesh(vertices, faces, check=False))
+    tm.save_mesh(tmp_path / "open.obj", tm.TriMesh(vertices, faces[1:], check=False))
+    text = """
+dt = 0.01
+steps = 1
+[[tools]]
+shape = "mesh"
+file = "u.obj"
+resolution = 10
+position = [0, 0, 0.5]
+[[bodies]]
+mesh = { generator = "beam", cells = [2, 2, 2], size = [0.1, 0.1, 0.1] }
+material = { young = 1e6, poisson = 0.3, density = 1000 }
+"""
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    tool = tm.load_scene(path).simulator.tools.tools[0]
+    assert tool.shape == "mesh" and tool.grid.values.shape[0] > 10
+    path.write_text(text.replace("u.obj", "open.obj"))
+    with pytest.raises(tm.SceneError, match=r"tools\[0\].*not closed"):
+        tm.load_scene(path)
+    path.write_text(text.replace("u.obj", "none.stl"))
+    with pytest.raises(tm.SceneError, match=r"tools\[0\].file.*not found"):
+        tm.load_scene(path)

@@ -1,0 +1,91 @@
+"""Signed distance grids of closed surfaces (mesh.distance): the grid's values against a brute-force
+oracle (nearest triangle by a dense search, inside by the winding number) on a non-convex surface,
+either winding; the interpolant's gradient and Hessian against autograd; the checks on open,
+inconsistently wound and flat surfaces."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import u_shape_surface
+
+import tensormass_torch as tm
+from tensormass_torch.mesh.distance import check_closed, closest_point, signed_distance_grid
+
+DT = torch.float64
+
+
+def winding_numbers(p, a, b, c):
+    """The solid angles of the triangles seen from p over 4 pi (Van Oosterom and Strackee)."""
+    ra, rb, rc = a - p[:, None], b - p[:, None], c - p[:, None]
+    la, lb, lc = (r.norm(dim=-1) for r in (ra, rb, rc))
+    numerator = (ra * torch.linalg.cross(rb, rc, dim=-1)).sum(-1)
+    denominator = la * lb * lc + (ra * rb).sum(-1) * lc + (ra * rc).sum(-1) * lb + (rb * rc).sum(-1) * la
+    return (2 * torch.atan2(numerator, denominator)).sum(-1) / (4 * math.pi)
+
+
+@pytest.mark.parametrize("winding", ["outward", "inward"])
+def test_grid_values_are_the_signed_distance(winding):
+    vertices, faces = u_shape_surface()
+    if winding == "inward":
+        faces = faces[:, [0, 2, 1]]
+    grid = signed_distance_grid(vertices, faces, resolution=12, margin=0.01)
+    shape = grid.values.shape
+    axes = [grid.lower[i] + grid.spacing * torch.arange(shape[i], dtype=DT) for i in range(3)]
+    nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    _, _, d, _ = closest_point(nodes[:, None], a, b, c)
+    inside = winding_numbers(nodes, a, b, c).abs() > 0.5
+    expected = torch.where(inside, -d.amin(1), d.amin(1))
+    assert bool(inside.any()) and bool((~inside).any())
+    torch.testing.assert_close(grid.values.reshape(-1), expected, rtol=0, atol=1e-12)
+    # the grid reaches the margin and two cells past the surface's box
+    assert float(grid.lower.max()) <= -0.01 - 2 * grid.spacing + 1e-12
+    assert float(grid.values.amax()) > 0.01
+
+
+def test_sample_is_the_trilinear_interpolant_and_its_derivatives():
+    vertices, faces = u_shape_surface()
+    grid = signed_distance_grid(vertices, faces, resolution=10)
+    # at the nodes, the values
+    node = torch.tensor([[3, 2, 4], [0, 0, 0], [7, 1, 5]])
+    q = grid.lower + grid.spacing * node.to(DT)
+    phi, _, _ = grid.sample(q)
+    torch.testing.assert_close(phi, grid.values[node[:, 0], node[:, 1], node[:, 2]], rtol=0, atol=1e-12)
+    # inside cells: gradient and Hessian are autograd's of phi
+    gen = torch.Generator().manual_seed(2)
+    cells = torch.randint(0, 8, (20, 3), generator=gen).to(DT) + 0.1 + 0.8 * torch.rand(20, 3, generator=gen,
+                                                                                        dtype=DT)
+    cells[:, 1] = torch.clamp(cells[:, 1], max=grid.values.shape[1] - 1.2)
+    points = grid.lower + grid.spacing * cells
+    phi, grad, hessian = grid.sample(points)
+    for i in range(points.shape[0]):
+        def f(p):
+            return grid.sample(p[None])[0][0]
+        torch.testing.assert_close(torch.autograd.functional.jacobian(f, points[i]), grad[i], rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(torch.autograd.functional.hessian(f, points[i]), hessian[i], rtol=1e-9,
+                                   atol=1e-9)
+    # beyond the grid: positive, at least the distance to its box
+    far = torch.tensor([[1.0, 0.05, 0.1], [-0.5, -0.5, -0.5]], dtype=DT)
+    phi, grad, _ = grid.sample(far)
+    assert bool((phi > 0.3).all())
+    torch.testing.assert_close(grad.norm(dim=1), torch.ones(2, dtype=DT))
+
+
+def test_open_or_badly_wound_or_flat_surfaces_raise():
+    vertices, faces = u_shape_surface()
+    with pytest.raises(tm.MeshError, match=r"surface is not closed: 3 edges are not shared by exactly two"):
+        signed_distance_grid(vertices, faces[1:])
+    flipped = faces.clone()
+    flipped[0] = flipped[0, [0, 2, 1]]
+    with pytest.raises(tm.MeshError, match="not consistently wound"):
+        check_closed(np.asarray(flipped))
+    # a flat closed surface (a square's two sides) has no inside
+    square = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=DT)
+    sides = torch.tensor([[0, 1, 2], [0, 2, 3], [1, 0, 3], [1, 3, 2]])
+    with pytest.raises(tm.MeshError, match="encloses no volume"):
+        signed_distance_grid(square, sides, resolution=4)
+    with pytest.raises(tm.MeshError, match="resolution must be an integer"):
+        signed_distance_grid(vertices, faces, resolution=0)
+    with pytest.raises(tm.MeshError, match="grid spacing must be a positive"):
+        signed_distance_grid(vertices, faces, spacing=-1.0)
