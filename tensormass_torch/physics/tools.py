@@ -224,7 +224,8 @@ def MeshTool(surface, position=(0.0, 0.0, 0.0), rotation=None, stiffness: float 
     ``rotation``). Its signed distance is sampled once on a grid of ``resolution`` cells along
     its longest side (or of ``spacing``) that reaches ``thickness`` and two cells past it
     (``mesh.distance``): the distance between grid nodes is trilinear, so corners are rounded
-    over about a cell. Building the grid costs seconds on a CPU for thousands of triangles,
+    over about a cell, and parts thinner than about two cells are lost (a finer resolution
+    keeps them). Building the grid costs seconds on a CPU for thousands of triangles,
     milliseconds on a GPU (``device``: where it is built; the simulator moves it to its own).
 
     Raises:

@@ -98,3 +98,12 @@ def test_every_builtin_scene_runs():
         scene = make(**smallest[name], dtype=torch.float64)
         scene.simulator.step(2)
         assert bool(torch.isfinite(scene.simulator.x).all()), name
+
+
+def test_mesh_tool_example():
+    """The belt (a tool of a closed surface) brings the block up to its speed by friction."""
+    import pytest
+
+    _, rows = load("mesh_tool").main(["--steps", "20", "--resolution", "12", "--device", "cpu"])
+    assert rows[-1][2] == pytest.approx(0.2, abs=2e-3)
+    assert rows[-1][1][2] < 0  # the block weighs on the belt
