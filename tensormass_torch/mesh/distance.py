@@ -29,6 +29,7 @@ from ..errors import MeshError
 #: point-triangle evaluations per batch when building a grid (bounds the temporary memory)
 PAIRS_PER_BATCH = 1 << 22
 
+
 def closest_weights(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     """Barycentric weights ``[..., 3]`` of the point of triangle (a, b, c) closest to p (all
     ``[..., 3]``): the projection onto the triangle's plane where it falls inside, else the
@@ -105,9 +106,6 @@ def surface_signed_distances(points: torch.Tensor, vertices: torch.Tensor, trian
     are no farther than the nearest one's far side: a few triangles each, not all of them."""
     shape = points.shape[:3]
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    normals = torch.linalg.cross(b - a, c - a)
-    normals = normals / torch.clamp(torch.linalg.vector_norm(normals, dim=-1, keepdim=True),
-                                    min=torch.finfo(points.dtype).tiny)
     angles = _corner_angles(a, b, c)
     low, high = torch.minimum(torch.minimum(a, b), c), torch.maximum(torch.maximum(a, b), c)
     # blocks of nodes: their ids [nb, block^3] (-1 past the grid's end) and boxes

@@ -48,7 +48,7 @@ import torch
 
 from ..errors import SceneError
 from ..mesh.distance import closest_point, closest_weights  # noqa: F401  (closest_weights: re-exported)
-from .contact import check_friction, coulomb_damping
+from .contact import check_friction, coulomb_damping, tangential_part
 
 #: the stiffness a body contact gives the implicit step (``Contact.tangent``)
 TANGENTS = ("projected", "exact")
@@ -191,8 +191,7 @@ class ContactPairs:
     def slip(self, v: torch.Tensor) -> torch.Tensor:
         """``[P, 3]`` each pair's tangential relative velocity P_t J v at velocities ``v [V, 3]``
         (the vertex's against the triangle's closest point, less its part along u)."""
-        relative = self.relative(v)
-        return relative - (relative * self.direction).sum(-1, keepdim=True) * self.direction
+        return tangential_part(self.relative(v), self.direction)
 
     def friction_forces(self, v: torch.Tensor) -> torch.Tensor:
         """The friction forces ``[V, 3]`` at velocities ``v [V, 3]``: each pair's -c P_t (J v) on

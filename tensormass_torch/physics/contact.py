@@ -59,6 +59,12 @@ class NodeDamping:
         return NodeDamping(self.matrix + other.matrix, self.drive + other.drive)
 
 
+def tangential_part(vector: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """P_t w = w - (w . n) n ``[..., 3]``: the part of ``vector`` across unit ``normal`` (both
+    ``[..., 3]``, broadcast)."""
+    return vector - (vector * normal).sum(-1, keepdim=True) * normal
+
+
 def tangential_projector(normal: torch.Tensor) -> torch.Tensor:
     """P_t = I - n n^T ``[..., 3, 3]`` for unit normals ``[..., 3]``."""
     eye = torch.eye(3, dtype=normal.dtype, device=normal.device)
@@ -174,8 +180,7 @@ class Planes:
         (see the module): per node and plane it is below, c P_t with c = mu k depth /
         max(|P_t v|, eps_v)."""
         depth = self.penetration(x)  # [V, P]
-        along = (v[:, None, :] * self.normals).sum(-1)  # [V, P]
-        slip = v[:, None, :] - along[:, :, None] * self.normals  # [V, P, 3]
+        slip = tangential_part(v[:, None, :], self.normals)  # [V, P, 3]
         c = coulomb_damping(self.friction, self.stiffness * depth, torch.linalg.vector_norm(slip, dim=-1),
                             self.friction_velocity)  # [V, P]
         matrix = (c[:, :, None, None] * tangential_projector(self.normals)).sum(1)

@@ -40,7 +40,7 @@ import torch
 
 from ..errors import MeshError, SceneError
 from ..mesh.distance import SignedDistanceGrid, signed_distance_grid
-from .contact import NodeDamping, check_friction, coulomb_damping, tangential_projector
+from .contact import NodeDamping, check_friction, coulomb_damping, tangential_part, tangential_projector
 
 #: the tool shapes (``Tool.shape``)
 SHAPES = ("sphere", "capsule", "box", "mesh")
@@ -429,8 +429,7 @@ class ToolSet:
         normals ``n`` and node velocities ``v [V, 3]`` (c = 0 away from it)."""
         tool = self.tools[i]
         n = n / torch.clamp(torch.linalg.vector_norm(n, dim=-1, keepdim=True), min=torch.finfo(n.dtype).tiny)
-        relative = v - self.velocities[i]
-        slip = relative - (relative * n).sum(-1, keepdim=True) * n
+        slip = tangential_part(v - self.velocities[i], n)
         c = coulomb_damping(tool.friction, self.stiffness[i] * torch.clamp(-g, min=0.0),
                             torch.linalg.vector_norm(slip, dim=-1), tool.friction_velocity)
         return c, tangential_projector(n)
