@@ -37,6 +37,17 @@ the other. (At the step's start such a pair's force -k g u, g > 0, pulls: it is 
 model's value there, the solve's result is the push at the end.) The pairs couple the bodies
 they join: the step solves such bodies together (one CG over the run of objects that contact
 joins, ``coupled_ranges``).
+
+The starting velocities only predict the end of the step: the solve changes them (another
+pair's push, the floor stopping the body below, a bounce), and a pair left out of the solve has
+no force, however deep the solution puts its vertex. So the step checks its solution against
+every nearby pair (:meth:`SurfaceContact.nearby`: each vertex's nearest triangle of each other
+body within reach, whatever its gap) and solves again with those whose linear end gap
+g + u . J dx came out negative; and, since that linear model keeps the triangle, the closest
+point and the direction of the step's start, with the pairs found at the solution's end where
+a vertex is deeper there than its model says (:meth:`SurfaceContact.relinearise`: a vertex
+sliding over a crease of the other surface or across a turning triangle), linearised there
+(``solver.implicit_euler.implicit_euler_step``).
 """
 from __future__ import annotations
 
@@ -162,6 +173,20 @@ class ContactPairs:
 
     def __len__(self):
         return self.gap.numel()
+
+    def select(self, index: torch.Tensor) -> "ContactPairs":
+        """The pairs at ``index`` (indices ``[Q]`` or a mask ``[P]``), in that order."""
+        def take(t):
+            return None if t is None else t[index]
+
+        return ContactPairs(self.nodes[index], self.weights[index], self.direction[index], self.signed[index],
+                            self.gap[index], self.objects[index], self.stiffness, take(self.hessians),
+                            self.num_nodes, take(self.friction))
+
+    def end_gap(self, dx: torch.Tensor) -> torch.Tensor:
+        """``[P]`` each pair's gap after node motions ``dx [V, 3]`` in the pair's linear model,
+        g + u . J dx (the gap its linearised force -k (g + u . J dx) acts on)."""
+        return self.gap + (self.relative(dx) * self.direction).sum(-1)
 
     def _coefficients(self) -> torch.Tensor:
         """``[P, 4]``: the vertex's 1 and the triangle's -w (J = coefficient x u per node)."""
@@ -329,7 +354,7 @@ class SurfaceContact:
             edges = rest[self.triangles] - rest[self.triangles.roll(1, dims=1)]
             self.search = float(torch.linalg.vector_norm(edges, dim=-1).mean()) if len(self.triangles) else 1.0
         self.rest = rest
-        self._last = None  # (x, its version, v, its version, dt, pairs) of detect_at_state
+        self._last = None  # (x, its version, v, its version, dt, what at_state found there)
 
     @property
     def reach(self) -> float:
@@ -379,12 +404,13 @@ class SurfaceContact:
         keep = (~same | (~own & (s_rest.abs() > reach))).nonzero().squeeze(1)
         return vertex[keep], triangle[keep]
 
-    def detect(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0) -> ContactPairs:
-        """The pairs in contact at ``x [V, 3]``: for each surface vertex and each body, the nearest
-        of its candidate triangles within :attr:`reach`, where the gap is negative, or, given the
-        velocities ``v [V, 3]`` and a step ``dt``, where the gap the pair would have after the
-        step at those velocities, g + dt u . (v_p - sum w_i v_i), is negative (see the module).
-        """
+    def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
+        """Every pair a step at ``x [V, 3]`` may need, and which of them :meth:`detect` keeps:
+        (pairs, closing ``[P]`` bool). The pairs: for each surface vertex and each other body,
+        the nearest of its candidate triangles within :attr:`reach`, whatever its gap (without
+        the exact Hessians; :meth:`select` adds them). closing: the gap is negative or, given
+        the velocities ``v [V, 3]`` and a step ``dt``, the gap the pair would have after the step
+        at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module)."""
         vertex, triangle = self.candidates(x)
         tri = self.triangles[triangle]
         node = self.vertices[vertex]
@@ -415,26 +441,94 @@ class SurfaceContact:
         big = torch.iinfo(torch.int64).max
         first = torch.full((groups,), big, dtype=torch.int64, device=x.device).scatter_reduce(
             0, group, torch.where(tied, triangle, big), "amin")
-        chosen = tied & (triangle == first[group])
+        chosen = (tied & (triangle == first[group])).nonzero().squeeze(1)
+        vertex, triangle, node, tri, w, diff, d, normal, group = (
+            t[chosen] for t in (vertex, triangle, node, tri, w, diff, d, normal, group))
         side = torch.where((pseudo[group] * diff).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
         gap = side * d - self.settings.thickness
+        nodes = torch.cat([node[:, None], tri], dim=1)
+        objects = torch.stack([self.vertex_object[vertex], self.triangle_object[triangle]], dim=1)
+        pairs = ContactPairs(nodes, w, _direction(diff, d, side, normal), side * d, gap, objects,
+                             self.settings.stiffness, None, self.num_nodes)
         closing = gap < 0
         if v is not None and dt > 0:
-            u = _direction(diff, d, side, normal)
-            relative = v[node] - (w[:, :, None] * v[tri]).sum(1)
-            closing = closing | (gap + dt * (u * relative).sum(-1) < 0)
-        active = (chosen & closing).nonzero().squeeze(1)
-        side, d, diff, normal = side[active], d[active], diff[active], normal[active]
-        nodes = torch.cat([node[active, None], tri[active]], dim=1)
-        objects = torch.stack([self.vertex_object[vertex[active]], self.triangle_object[triangle[active]]], dim=1)
-        k = self.settings.stiffness
-        hessians = (_pair_energy_hessians(x, nodes, side, k, self.settings.thickness)
-                    if self.settings.tangent == "exact" else None)
-        pairs = ContactPairs(nodes, w[active], _direction(diff, d, side, normal), side * d, gap[active], objects, k,
-                             hessians, self.num_nodes)
+            closing = closing | (pairs.end_gap(dt * v) < 0)
         if self.settings.friction > 0 and v is not None:
             pairs.friction = self._friction(pairs, v)
-        return pairs
+        return pairs, closing
+
+    def select(self, x: torch.Tensor, pairs: ContactPairs, index: torch.Tensor) -> ContactPairs:
+        """The pairs at ``index`` of :meth:`nearby`'s ``pairs`` (found at ``x [V, 3]``), with their
+        exact Hessians where the tangent is ``"exact"``."""
+        chosen = pairs.select(index)
+        if self.settings.tangent == "exact":
+            side = torch.where(chosen.signed >= 0, 1.0, -1.0).to(chosen.signed.dtype)
+            chosen.hessians = _pair_energy_hessians(x, chosen.nodes, side, chosen.stiffness, self.settings.thickness)
+        return chosen
+
+    def relinearise(self, x: torch.Tensor, dx: torch.Tensor, pairs: ContactPairs, active: torch.Tensor,
+                    v: Optional[torch.Tensor] = None):
+        """The pairs a step from ``x [V, 3]`` needs once its solve moved the nodes by ``dx [V, 3]``:
+        (pairs, active ``[P']`` bool, whether any pair changed), from :meth:`nearby`'s ``pairs``
+        and the ``active`` mask the solve used.
+
+        A pair's linear model g + u . J dx (its triangle, closest point and direction fixed where
+        the step starts) misses the surface's curvature: a vertex sliding over a crease of the
+        other surface, or across a triangle that turns, ends deeper than the model says, by
+        about the slide times the turn. Where the surfaces at ``x + dx`` put a vertex deeper
+        into a body than the active pairs' models do, by more than :attr:`tolerance`, that
+        (vertex, body) takes the pair found there, linearised there: direction u_e, weights
+        w_e and gap g_e at ``x + dx``, so that its model g_e + u_e . J_e (dx' - dx) is exact at
+        the solution it was found from (written as a pair at x: gap g_e - u_e . J_e dx). A
+        (vertex, body) has at most one pair (the new one replaces the old); ``v``: the
+        velocities the friction coefficients are taken at (as :meth:`nearby`'s)."""
+        end, _ = self.nearby(x + dx)
+        objects = max(self.num_objects, 1)
+        key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
+        end_key = end.nodes[:, 0] * objects + end.objects[:, 1]
+        # the (vertex, body) of each pair at the end among the pairs: its model's end gap, or
+        # +inf where it has no active pair (no force at all)
+        model = torch.full_like(end.gap, math.inf)
+        matched = torch.zeros_like(end_key, dtype=torch.bool)
+        index = torch.zeros_like(end_key)
+        if len(pairs):
+            sorted_key, order = torch.sort(key)
+            position = torch.searchsorted(sorted_key, end_key).clamp(max=len(pairs) - 1)
+            matched = sorted_key[position] == end_key
+            index = order[position]
+            model = torch.where(matched & active[index], pairs.end_gap(dx)[index], model)
+        deeper = (end.gap < torch.clamp(model, max=0.0) - self.tolerance).nonzero().squeeze(1)
+        fresh = end.select(deeper)
+        fresh.gap = fresh.end_gap(-dx)  # g_e - u_e . J_e dx
+        fresh.signed = fresh.gap + self.settings.thickness
+        if self.settings.friction > 0 and v is not None:
+            fresh.friction = self._friction(fresh, v)
+        keep = torch.ones_like(key, dtype=torch.bool)
+        keep[index[deeper][matched[deeper]]] = False
+        kept = pairs.select(keep)
+        merged = ContactPairs(*(torch.cat([getattr(kept, f), getattr(fresh, f)])
+                                for f in ("nodes", "weights", "direction", "signed", "gap", "objects")),
+                              pairs.stiffness, None, pairs.num_nodes,
+                              None if kept.friction is None else torch.cat([kept.friction, fresh.friction]))
+        active = torch.cat([active[keep], torch.ones_like(fresh.gap, dtype=torch.bool)])
+        return merged, active, deeper.numel() > 0
+
+    @property
+    def tolerance(self) -> float:
+        """How much deeper than its pair's linear model a vertex may end a step before the step
+        is solved again with the pair linearised where it ends (:meth:`relinearise`): 1/400 of
+        :attr:`search` (by default the mean surface edge length), a geometric error small against
+        the 1 % of an edge that the contact's interpenetration is held to."""
+        return 0.0025 * self.search
+
+    def detect(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0) -> ContactPairs:
+        """The pairs in contact at ``x [V, 3]``: for each surface vertex and each body, the nearest
+        of its candidate triangles within :attr:`reach`, where the gap is negative, or, given the
+        velocities ``v [V, 3]`` and a step ``dt``, where the gap the pair would have after the
+        step at those velocities, g + dt u . (v_p - sum w_i v_i), is negative (see the module).
+        """
+        pairs, closing = self.nearby(x, v, dt)
+        return self.select(x, pairs, closing.nonzero().squeeze(1))
 
     def _friction(self, pairs: ContactPairs, v: torch.Tensor) -> torch.Tensor:
         """``[P]`` the pairs' friction damping mu lambda / max(|v_t|, eps_v) at velocities ``v``,
@@ -447,13 +541,19 @@ class SurfaceContact:
         """:meth:`detect` ``(x, v, dt)``, found once per state: the pairs found at the end of a step
         (for its report) serve the next step's linearisation. The same tensors, unchanged since
         (their in-place version counters), with the same dt, give the same pairs."""
+        return self.at_state(x, v, dt)[2]
+
+    def at_state(self, x: torch.Tensor, v: torch.Tensor, dt: float):
+        """(:meth:`nearby`'s pairs and closing mask, :meth:`detect`'s pairs) at ``(x, v, dt)``,
+        found once per state as in :meth:`detect_at_state`."""
         last = self._last
         if (last is not None and last[0] is x and last[1] == x._version and last[2] is v
                 and last[3] == v._version and last[4] == dt):
             return last[5]
-        pairs = self.detect(x, v, dt)
-        self._last = (x, x._version, v, v._version, dt, pairs)
-        return pairs
+        near, closing = self.nearby(x, v, dt)
+        found = (near, closing, self.select(x, near, closing.nonzero().squeeze(1)))
+        self._last = (x, x._version, v, v._version, dt, found)
+        return found
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         """The penalty energy (0-dim) at ``x [V, 3]`` (pairs found at x)."""

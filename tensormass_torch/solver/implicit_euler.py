@@ -74,7 +74,8 @@ class StepOptions:
 
 @dataclass
 class StepReport:
-    """What one step did: the CG result of each Newton iteration."""
+    """What one step did: the CG result of each solve (each Newton iteration; with body contact,
+    each solve again for pairs the one before left out)."""
 
     cg: List[CGResult] = field(default_factory=list)
 
@@ -465,11 +466,13 @@ def _fold_damping(matvec: "SystemMatvec", damping, opts: StepOptions) -> None:
         matvec.node_stiffness.add_(damping.matrix, alpha=1.0 / (opts.dt + opts.rayleigh_stiffness))
 
 
-def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None, damping=None) -> CGResult:
+def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None, damping=None,
+           x0=None) -> CGResult:
     """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x
     (with ``damping`` folded in); ``pairs``: the body contact's pairs at x (found here when the
     system has body contact and they are not given); ``damping``: the planes' and tools' friction
-    (``contact.NodeDamping``: h C joins the matrix) or None."""
+    (``contact.NodeDamping``: h C joins the matrix) or None; ``x0``: the CG's initial guess (None:
+    zeros)."""
     mass_coef, stiffness_coef = _coefficients(opts)
     if pairs is None and system.body_contact is not None:
         pairs = system.body_contact.detect(x)
@@ -499,22 +502,23 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
 
             def matvec(p):  # (with friction, its damping h C: minus h times its forces)
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
-    coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key) if pairs is not None and len(pairs)
+    coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key, x0) if pairs is not None and len(pairs)
                else None)
     if coupled is not None:
         return coupled
     if fused is None:
-        return batched_cg(matvec, rhs, system.segments, system.free, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
-                          check_every=opts.check_every)
+        return batched_cg(matvec, rhs, system.segments, system.free, x0=x0, tol=opts.cg_tol,
+                          max_iter=opts.cg_max_iter, check_every=opts.check_every)
     cg = system.cg_solver(rhs, opts.cuda_graphs)
-    return cg.solve(matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
+    return cg.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
                     graph_key=graph_key)
 
 
-def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs, graph_key=None) -> CGResult | None:
+def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs, graph_key=None,
+                   x0=None) -> CGResult | None:
     """The solve when contact pairs join objects: one CG over each run of objects they join
     (``body_contact.coupled_ranges``), its outcome given to each object of the run; None where no
-    pair has ever joined two objects (the per-object solve applies). ``graph_key``: as
+    pair has ever joined two objects (the per-object solve applies). ``graph_key``, ``x0``: as
     ``CGSolver.solve``.
 
     Runs merge as bodies meet and stay merged when they part (the layout is the coarsest of
@@ -540,8 +544,8 @@ def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs
         solver = system._coupled_cg[tuple(ptr)] = CGSolver(Segments.from_lengths(lengths, rhs.device), rhs.shape,
                                                            rhs.dtype, rhs.device, system.free,
                                                            cuda_graphs=opts.cuda_graphs)
-    result = solver.solve(matvec, rhs, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
-                          graph_key=graph_key)
+    result = solver.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
+                          check_every=opts.check_every, graph_key=graph_key)
     run = torch.repeat_interleave(torch.arange(len(ptr) - 1, device=rhs.device),
                                   torch.tensor(ptr, device=rhs.device).diff())
     return CGResult(result.solution, *(t[run] for t in (result.iterations, result.residual_norm, result.rhs_norm,
@@ -584,13 +588,13 @@ def _raise_if_failed(result: CGResult, opts: StepOptions, what: str):
                           status, result)
 
 
-def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, matvec=None, pairs=None):
+def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity, matvec=None):
     """The right-hand side ``[V, d]`` of the first linear system of a step, the velocity change
     of the constrained nodes ``[V, d]`` (None when there is none to impose), and the planes' and
     tools' friction over the step (``contact.NodeDamping``, or None without). ``matvec``: the
     step's SystemMatvec, loaded here at ``x`` (its rotations and contact terms, friction
-    included, are then reused by the CG: computed once per step), or None; ``pairs``: with a
-    matvec, the body contact's pairs at x (their forces and stiffness join the matvec's)."""
+    included, are then reused by the CG: computed once per step), or None. The body contact
+    pairs' part is :func:`_pairs_rhs`'s."""
     h = opts.dt
     # Constrained nodes take their imposed velocity exactly; CG solves for the free nodes only.
     # With no imposed velocity, constrained nodes are fixed: they are at rest and stay there.
@@ -598,7 +602,6 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
     if system.free is not None and imposed_velocity is not None:
         dv_imposed = (1.0 - system.free) * (imposed_velocity - v)
     mass_coef, stiffness_coef = _coefficients(opts)
-    friction = None  # the pairs' friction forces (linear in the velocity: -C v)
     # the planes' and tools' friction, lagged: the damper drive - C v_new, implicit: h (drive - C v)
     # in the right-hand side, h C in the matrix
     damping = system.friction_damping(x, v) if system.has_node_friction else None
@@ -606,14 +609,6 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
         tangent = matvec.tangent
         rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.rayleigh_stiffness)
         _fold_damping(matvec, damping, opts)  # (after the right-hand side, which must not see it)
-        if pairs is not None and len(pairs):
-            rhs = rhs + h * (pairs.forces() + pairs.dforces((h + opts.rayleigh_stiffness) * v))
-            if pairs.friction is not None:  # the damping -C v_new, implicit: -h C v here, h C in the matrix
-                friction = pairs.friction_forces
-                rhs = rhs + h * friction(v)
-
-            def tangent(dx, elastic=matvec.tangent):
-                return elastic(dx) + pairs.dforces(dx)
     else:
         tangent = system.tangent(x)
         rhs = system.forces(x, opts.variants) + tangent((h + opts.rayleigh_stiffness) * v)
@@ -624,11 +619,26 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
         rhs = rhs + h * damping.forces(v)
     if dv_imposed is not None:
         rhs = rhs - (mass_coef * system.mass * dv_imposed - stiffness_coef * tangent(dv_imposed))
-        if friction is not None:
-            rhs = rhs + h * friction(dv_imposed)
         if damping is not None and matvec is None:  # (with a matvec, tangent has it: folded in)
             rhs = rhs - h * damping.product(dv_imposed)
     return rhs, dv_imposed, damping
+
+
+def _pairs_rhs(pairs, v, dv_imposed, opts: StepOptions):
+    """The body contact pairs' part ``[V, d]`` of a step's right-hand side (the rest being
+    :func:`_step_system`'s without pairs): their forces and stiffness along the velocities
+    ``v``, and, for the velocity change ``dv_imposed`` of the constrained nodes (or None), what
+    their stiffness and friction in the matrix make of it."""
+    h = opts.dt
+    _, stiffness_coef = _coefficients(opts)
+    rhs = h * (pairs.forces() + pairs.dforces((h + opts.rayleigh_stiffness) * v))
+    if pairs.friction is not None:  # the damping -C v_new, implicit: -h C v here, h C in the matrix
+        rhs = rhs + h * pairs.friction_forces(v)
+    if dv_imposed is not None:
+        rhs = rhs + stiffness_coef * pairs.dforces(dv_imposed)
+        if pairs.friction is not None:
+            rhs = rhs + h * pairs.friction_forces(dv_imposed)
+    return rhs
 
 
 def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
@@ -639,6 +649,10 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
         raise SolverError(f"implicit Euler produced NaN/inf for objects {bad[:10]}; the state was not changed",
                           status, report)
 
+
+#: The most solves a step with body contact adds for pairs its first solve left out (see
+#: :func:`implicit_euler_step`): each adds every nearby pair the last solution drives into contact.
+CONTACT_SET_ROUNDS = 4
 
 #: The most steps chained with one host synchronisation (rows of StepGraphs' summary ring, for
 #: small batches; fewer for large ones: the ring holds at most 2^17 object summaries).
@@ -873,13 +887,39 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     report = StepReport()
     loaded = system.system_matvec(*_coefficients(opts), opts.pipelined, opts.variants)
     # the body contact's pairs where the step linearises (without a matvec the system finds them)
-    pairs = (system.body_contact.detect_at_state(x, v, h) if system.body_contact is not None and loaded is not None
-             else None)
-    rhs, dv_imposed, damping = _step_system(system, x, v, opts, imposed_velocity, loaded, pairs)  # loads it at x
-    result = _solve(system, x, rhs, opts, loaded, pairs, damping)
+    near = pairs = None
+    if system.body_contact is not None and loaded is not None:
+        near, active, pairs = system.body_contact.at_state(x, v, h)
+    rhs, dv_imposed, damping = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
+    result = _solve(system, x, rhs if pairs is None or not len(pairs)
+                    else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs, damping)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
+
+    # The contact set: the pairs were chosen by the gap each would have at the end of the step at
+    # the step's starting velocities, but the solve changes the velocities (the other pairs'
+    # forces, the floor, a bounce) and a pair left out has no force at all, whatever its end
+    # gap: a vertex separating at the start can be driven through the other surface in one step.
+    # So the step is solved again (from the last solution) with every nearby pair whose linear
+    # end gap g + h u . J v_new is negative joined to the set, and with the pairs whose vertex
+    # ends deeper than their linear model says (a slide over a crease or a turning triangle)
+    # linearised where it ends (SurfaceContact.relinearise). A (vertex, body) in the set stays
+    # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
+    # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
+    # once, and at most CONTACT_SET_ROUNDS more solves follow.
+    for _ in range(CONTACT_SET_ROUNDS if near is not None else 0):
+        dx = h * v_new
+        missed = ~active & (near.end_gap(dx) < 0)
+        near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v)
+        if not moved and not bool(missed.any()):
+            break
+        pairs = system.body_contact.select(x, near, active.nonzero().squeeze(1))
+        result = _solve(system, x, rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs,
+                        damping, x0=result.solution)
+        report.cg.append(result)
+        _raise_if_failed(result, opts, "implicit Euler CG (contact set)")
+        v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
 
     for _ in range(opts.newton_iters - 1):
         x_new = torch.add(x, v_new, alpha=h)
