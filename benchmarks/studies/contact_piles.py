@@ -3,7 +3,8 @@ steps/s with body contact against without it in the same run, the detection's ti
 number of surface triangles, and the deepest interpenetration over the run.
 
     python benchmarks/studies/contact_piles.py [--columns 2 4 6] [--cells 10 10 5] [--steps 120]
-                                               [--friction 0] [--device cuda] [--dtype float32]
+                                               [--friction 0] [--check-every 0] [--device cuda]
+                                               [--dtype float32]
                                                [--out benchmarks/results/contact] [--quick]
 
 Each pile is columns x columns stacks of ``columns`` blocks (0.2 x 0.2 x 0.1 m, E = 1e5 Pa,
@@ -13,6 +14,10 @@ floor plane of 1e5 N/m; dt = 5 ms, Rayleigh mass damping 1/s, cg_tol 1e-4. With 
 pile runs ``--steps`` steps (the deepest interpenetration over them is reported), then 10 more
 are timed; without contact, 10 steps after 10 of warm-up (the blocks fall through each other:
 only the rate is compared). Detection: ``SurfaceContact.detect`` at the final state, mean of 10.
+No block may pass through another: besides the deepest interpenetration the steps report (over
+the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
+inside another block, whatever its depth) is measured at the end and every ``--check-every``
+steps.
 Writes ``contact_piles.md`` and ``.json`` to ``--out``.
 """
 import argparse
@@ -56,16 +61,19 @@ def rate(sim, steps: int, device) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def measure(columns: int, cells, steps: int, friction: float, device, dtype):
+def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0):
     bodies, block = pile(columns, cells, device, dtype)
     free = simulator(bodies, None, device, dtype)
     free.step(10)
     without = rate(free, 10, device)
+    iterations_without = max(int(c.iterations.max()) for c in free.last_report.cg)
     del free
     sim = simulator(bodies, tm.Contact(friction=friction), device, dtype)
-    deepest, start = 0.0, time.perf_counter()
-    for _ in range(steps):
+    deepest, inside, start = 0.0, 0.0, time.perf_counter()
+    for step in range(1, steps + 1):
         deepest = max(deepest, float(sim.step().contact.body_penetration.max()))
+        if step == steps or (check_every and step % check_every == 0):
+            inside = max(inside, float(sim.interpenetration().max()))
     run_s = time.perf_counter() - start
     with_contact = rate(sim, 10, device)
     contact = sim.body_contact
@@ -76,10 +84,12 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype):
     common.sync(device)
     detect_ms = 100.0 * (time.perf_counter() - start)
     iterations = max(int(c.iterations.max()) for c in sim.last_report.cg)
+    solves = len(sim.last_report.cg)
     return dict(blocks=len(bodies), tets=len(bodies) * block.num_elements, surface_triangles=len(contact.triangles),
                 pairs=len(pairs), steps=steps, run_s=run_s, deepest_m=deepest, steps_per_s_without=without,
                 steps_per_s_with=with_contact, cost_ratio=without / with_contact, detect_ms=detect_ms,
-                cg_iterations=iterations)
+                cg_iterations=iterations, cg_iterations_without=iterations_without, solves=solves,
+                interpenetration_m=inside, mean_edge_m=contact.search)
 
 
 def main(argv=None):
@@ -88,6 +98,8 @@ def main(argv=None):
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--friction", type=float, default=0.0)
+    parser.add_argument("--check-every", type=int, default=0,
+                        help="measure the interpenetration every this many steps (0: at the end only)")
     parser.add_argument("--device", default=common.default_device())
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "results" / "contact"))
@@ -100,14 +112,18 @@ def main(argv=None):
     columns = [("blocks", "blocks", None), ("tets", "tets", ","), ("surface_triangles", "surface triangles", ","),
                ("pairs", "pairs", ","), ("steps_per_s_without", "steps/s without", ".1f"),
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
-               ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations", "CG iterations", None),
-               ("deepest_m", "deepest over the run (m)", ".2e")]
+               ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
+               ("cg_iterations", "CG iterations with", None), ("solves", "solves in the last step", None),
+               ("deepest_m", "deepest in the reports (m)", ".2e"),
+               ("interpenetration_m", "deepest inside another body (m)", ".2e"),
+               ("mean_edge_m", "mean surface edge (m)", ".2e")]
     notes = [f"{args.dtype}, blocks of {args.cells} cells, friction {args.friction:g}, dt {DT} s, "
              f"{args.steps} steps with contact before the timed ones."]
     results = common.Results(args.out, "contact_piles", "Piles of blocks: steps/s with body contact against "
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
-        results.add(measure(c, args.cells, args.steps, args.friction, args.device, dtype), echo=False)
+        results.add(measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every),
+                    echo=False)
     results.finish()
     return results.records
 

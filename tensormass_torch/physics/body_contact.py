@@ -255,15 +255,17 @@ class PairStiffness:
 
     The buffers hold ``capacity`` pairs (a power of two, at least 64, grown as needed, never
     shrunk); rows past the step's pairs are zero and add nothing. The product is a gather, a
-    few products per pair and a deterministic scatter. The padding gathers node 0 but scatters
-    to rows of its own past the V nodes (the sorting scatter walks the entries of one row in
-    sequence: thousands of padding entries on one node would serialise it).
+    few products per pair and a deterministic scatter: the entries (4 per pair) are sorted by
+    the node they go to once per load, so that each product only permutes them and sums each
+    node's run in order (a segment reduction; no sort per CG iteration). The padding gathers
+    node 0 and sorts past every node's run: no node receives it.
     """
 
     def __init__(self):
         self.capacity = 0
         self.nodes: Optional[torch.Tensor] = None  # [C, 4] gathered (padding: node 0)
-        self.targets: Optional[torch.Tensor] = None  # [4 C] scattered to (padding: V + its slot)
+        self.order: Optional[torch.Tensor] = None  # [4 C] the entries by the node they go to (padding last)
+        self.offsets: Optional[torch.Tensor] = None  # [V + 1] node i's run: order[offsets[i]:offsets[i + 1]]
         self.coef: Optional[torch.Tensor] = None  # [C, 4] (1, -w_a, -w_b, -w_c)
         self.direction: Optional[torch.Tensor] = None  # [C, 3] u
         self.normal: Optional[torch.Tensor] = None  # [C] a
@@ -281,7 +283,8 @@ class PairStiffness:
         if grew:
             self.capacity = max(64, 1 << max(count - 1, 1).bit_length(), self.capacity)
             self.nodes = torch.zeros(self.capacity, 4, dtype=torch.int64, device=like.device)
-            self.targets = torch.zeros(4 * self.capacity, dtype=torch.int64, device=like.device)
+            self.order = torch.zeros(4 * self.capacity, dtype=torch.int64, device=like.device)
+            self.offsets = torch.zeros(pairs.num_nodes + 1, dtype=torch.int64, device=like.device)
             self.coef = like.new_zeros(self.capacity, 4)
             self.direction = like.new_zeros(self.capacity, 3)
             self.normal = like.new_zeros(self.capacity)
@@ -289,8 +292,10 @@ class PairStiffness:
         self.num_nodes = pairs.num_nodes
         self.nodes[:count].copy_(pairs.nodes)
         self.nodes[count:].zero_()
-        self.targets[:4 * count].copy_(pairs.nodes.reshape(-1))
-        torch.arange(self.num_nodes + 4 * count, self.num_nodes + 4 * self.capacity, out=self.targets[4 * count:])
+        targets, order = torch.sort(pairs.nodes.reshape(-1), stable=True)
+        self.order[:4 * count].copy_(order)
+        torch.arange(4 * count, 4 * self.capacity, out=self.order[4 * count:])
+        torch.searchsorted(targets, torch.arange(self.num_nodes + 1, device=like.device), out=self.offsets)
         self.coef[:count].copy_(pairs._coefficients())
         self.direction[:count].copy_(pairs.direction)
         self.normal[:count].fill_(coefficient * pairs.stiffness)
@@ -309,7 +314,7 @@ class PairStiffness:
         # a u (u . J dx) + b (J dx - u (u . J dx))
         vector = self.friction[:, None] * relative + ((self.normal - self.friction)[:, None] * along) * self.direction
         per_entry = (self.coef[:, :, None] * vector[:, None, :]).reshape(-1, 3)
-        return _sum_into(self.num_nodes + 4 * self.capacity, self.targets, per_entry)[:self.num_nodes]
+        return torch.segment_reduce(per_entry[self.order], "sum", offsets=self.offsets, axis=0, unsafe=True)
 
 
 def _pair_energy_hessians(x: torch.Tensor, nodes: torch.Tensor, side: torch.Tensor, stiffness: float,

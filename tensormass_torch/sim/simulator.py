@@ -30,7 +30,7 @@ from ..solver.implicit_euler import (
     implicit_euler_step,
     step_graphs_for,
 )
-from .diagnostics import ContactReport, InversionCheck, InversionReport, contact_report
+from .diagnostics import ContactReport, InversionCheck, InversionReport, contact_report, interpenetration
 from .scalpel import Scalpel
 
 #: ``Simulator(check_inversion=...)`` values.
@@ -777,6 +777,12 @@ class Simulator:
         with a tool or plane and the deepest penetration ``[B]``, at the current state (device
         tensors; ``StepReport.contact`` holds the same at each step's end when there are tools)."""
         return contact_report(self)
+
+    def interpenetration(self) -> torch.Tensor:
+        """Per body ``[B]``, how deep its surface is inside other bodies now, measured exactly
+        whatever the contact settings (``diagnostics.interpenetration``: for checks that no
+        body passed through another; one distance query per body with neighbours)."""
+        return interpenetration(self)
 
     def kinetic_energy(self) -> torch.Tensor:
         """Kinetic energy per body ``[B]``."""

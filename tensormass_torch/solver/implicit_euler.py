@@ -902,15 +902,17 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # forces, the floor, a bounce) and a pair left out has no force at all, whatever its end
     # gap: a vertex separating at the start can be driven through the other surface in one step.
     # So the step is solved again (from the last solution) with every nearby pair whose linear
-    # end gap g + h u . J v_new is negative joined to the set, and with the pairs whose vertex
-    # ends deeper than their linear model says (a slide over a crease or a turning triangle)
-    # linearised where it ends (SurfaceContact.relinearise). A (vertex, body) in the set stays
+    # end gap g + h u . J v_new is below -tolerance (SurfaceContact.tolerance: an end gap just
+    # short of zero is left to the next step, which finds the pair in contact) joined to the set,
+    # and with the pairs whose vertex ends deeper than their linear model says (a slide over a
+    # crease or a turning triangle) linearised where it ends (SurfaceContact.relinearise), by
+    # the same tolerance. A (vertex, body) in the set stays
     # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
     # once, and at most CONTACT_SET_ROUNDS more solves follow.
     for _ in range(CONTACT_SET_ROUNDS if near is not None else 0):
         dx = h * v_new
-        missed = ~active & (near.end_gap(dx) < 0)
+        missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v)
         if not moved and not bool(missed.any()):
             break

@@ -250,3 +250,40 @@ def test_full_scene_holds_what_the_minimal_one_leaves_out():
     for wanted in ("projector", "rest_normals", "system.planes.normals", "node_stiffness", "system.free",
                    ".tri.", "shape_vectors"):
         assert any(wanted in n for n in names), wanted
+
+
+def _cubes(offsets, sizes=None, contact=None):
+    """Cubes of 4^3 cells (edge ``size``, default 0.1 m) at ``offsets``, float64."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    bodies = []
+    for k, offset in enumerate(offsets):
+        size = 0.1 if sizes is None else sizes[k]
+        mesh = tm.beam_mesh(4, 4, 4, size=(size, size, size), dtype=torch.float64)
+        bodies.append(tm.Body(tm.TetMesh(mesh.vertices + torch.tensor(offset, dtype=torch.float64), mesh.elements),
+                              material))
+    return tm.Simulator(bodies, dt=0.01, dtype=torch.float64, contact=contact)
+
+
+def test_interpenetration_is_the_deepest_vertex_inside_another_body():
+    assert _cubes([(0, 0, 0), (0, 0, 0.2)]).interpenetration().tolist() == [0.0, 0.0]
+    # overlapping by 2 cm along z: each body's face vertices are 2 cm inside the other
+    torch.testing.assert_close(_cubes([(0, 0, 0), (0, 0, 0.08)]).interpenetration(),
+                               torch.tensor([0.02, 0.02], dtype=torch.float64))
+    # a corner 3 cm into the other body along each axis: 3 cm from its nearest face
+    torch.testing.assert_close(_cubes([(0, 0, 0), (0.03, 0.03, 0.07)]).interpenetration(),
+                               torch.tensor([0.03, 0.03], dtype=torch.float64))
+
+
+def test_interpenetration_sees_a_body_that_went_through_another():
+    # a 2 cm cube wholly inside a 10 cm one: its surface vertex at (5, 5, 5) cm is 5 cm from every
+    # face of the big one. The contact's pairs reach no further than the search (a mean edge);
+    # the diagnostic sees it all
+    sim = _cubes([(0, 0, 0), (0.03, 0.04, 0.05)], sizes=[0.1, 0.02], contact=tm.Contact())
+    torch.testing.assert_close(sim.interpenetration(), torch.tensor([0.0, 0.05], dtype=torch.float64))
+    assert float(sim.contact_report().body_penetration.max()) < 0.05
+
+
+def test_interpenetration_agrees_with_the_contact_report_within_reach():
+    sim = _cubes([(0, 0, 0), (0.01, 0.02, 0.095)], contact=tm.Contact())
+    torch.testing.assert_close(sim.interpenetration(), sim.contact_report().body_penetration)
+    assert float(sim.interpenetration().min()) > 0
