@@ -158,8 +158,12 @@ def surface_signed_distances(points: torch.Tensor, vertices: torch.Tensor, trian
         distance[part], along[part] = d, weight * (normal * diff).sum(-1)
     nearest = torch.full((flat.shape[0],), big, dtype=points.dtype, device=points.device)
     nearest.scatter_reduce_(0, node, distance, "amin")
-    # the faces sharing the nearest point are those as near (to rounding)
-    tie = distance <= nearest[node] + 32 * torch.finfo(points.dtype).eps * (distance + half.amax())
+    # the faces sharing the nearest point are those as near, to the rounding of the distances,
+    # which scales with the coordinates (two faces compute their shared edge's distance
+    # differently by a few ulps of them), not with the distance: a point beside a crease, nearly
+    # in one face's plane, would otherwise take that face's side alone
+    scale = flat[node].abs().amax(-1) + distance + half.amax()
+    tie = distance <= nearest[node] + 32 * torch.finfo(points.dtype).eps * scale
     side = torch.zeros_like(nearest).index_add_(0, node[tie], along[tie])
     return torch.where(side < 0, -nearest, nearest).reshape(shape)
 

@@ -10,7 +10,8 @@ import torch
 from conftest import u_shape_surface
 
 import tensormass_torch as tm
-from tensormass_torch.mesh.distance import check_closed, closest_point, signed_distance_grid
+from tensormass_torch.mesh.distance import (check_closed, closest_point, signed_distance_grid,
+                                            surface_signed_distances)
 
 DT = torch.float64
 
@@ -42,6 +43,18 @@ def test_grid_values_are_the_signed_distance(winding):
     # the grid reaches the margin and two cells past the surface's box
     assert float(grid.lower.max()) <= -0.01 - 2 * grid.spacing + 1e-12
     assert float(grid.values.amax()) > 0.01
+
+
+def test_a_point_beside_a_crease_takes_both_faces_side_in_float32():
+    # two faces of a body's surface met in a pile (float32): the point is nearest their shared
+    # edge, nearly in the first face's plane; the two faces' distances differ by rounding (3e-8)
+    # and the first face alone puts it inside. Both faces are nearest: outside, 1.37 mm.
+    vertices = torch.tensor([[0.293292314, 0.909236073, 0.297392845], [0.292573363, 0.949234188, 0.297523677],
+                             [0.332665741, 0.949838758, 0.291527212], [0.337615311, 0.949699461, 0.324701786]])
+    faces = torch.tensor([[0, 1, 2], [1, 3, 2]])
+    point = torch.tensor([0.293433905, 0.95062077, 0.297405183]).reshape(1, 1, 1, 3)
+    signed = float(surface_signed_distances(point, vertices, faces, block=1))
+    assert signed == pytest.approx(1.3735e-3, rel=1e-3)
 
 
 def test_sample_is_the_trilinear_interpolant_and_its_derivatives():
