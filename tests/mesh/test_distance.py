@@ -10,8 +10,7 @@ import torch
 from conftest import u_shape_surface
 
 import tensormass_torch as tm
-from tensormass_torch.mesh.distance import (check_closed, closest_point, signed_distance_grid,
-                                            surface_signed_distances)
+from tensormass_torch.mesh.distance import check_closed, closest_point, signed_distance_grid, surface_signed_distances
 
 DT = torch.float64
 
