@@ -360,6 +360,7 @@ class SurfaceContact:
             self.search = float(torch.linalg.vector_norm(edges, dim=-1).mean()) if len(self.triangles) else 1.0
         self.rest = rest
         self._last = None  # (x, its version, v, its version, dt, what at_state found there)
+        self._static = None  # (x, its version, the pairs in contact there): see _pairs_at
 
     @property
     def reach(self) -> float:
@@ -566,7 +567,20 @@ class SurfaceContact:
 
     def forces(self, x: torch.Tensor) -> torch.Tensor:
         """The penalty forces ``[V, 3]`` at ``x [V, 3]``."""
-        return self.detect(x).forces()
+        return self._pairs_at(x).forces()
+
+    def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+        """(df/dx) dx ``[V, 3]`` at ``x [V, 3]`` for node motions ``dx [V, 3]``, with the pairs in
+        contact at x (the contacts' interface of ``solve_static``: its CG products at one x
+        share the pairs, found once)."""
+        return self._pairs_at(x).dforces(dx)
+
+    def _pairs_at(self, x: torch.Tensor) -> ContactPairs:
+        """:meth:`detect` ``(x)``, found once for the same tensor unchanged (its version)."""
+        last = self._static
+        if last is None or last[0] is not x or last[1] != x._version:
+            self._static = last = (x, x._version, self.detect(x))
+        return last[2]
 
     def to(self, device=None, dtype=None) -> "SurfaceContact":
         """This contact with its tensors on ``device`` (rest positions in ``dtype``)."""

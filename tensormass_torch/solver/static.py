@@ -16,7 +16,7 @@ from .cg import batched_cg
 def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81), tol: float = 1e-6,
                  external: Optional[torch.Tensor] = None, max_newton: int = 50, cg_tol: Optional[float] = None,
                  cg_max_iter: Optional[int] = None, planes=None, precision: str = "float64",
-                 tools=None) -> torch.Tensor:
+                 tools=None, body_contact=None) -> torch.Tensor:
     """Displacement ``u [V, d]`` at static equilibrium of a :class:`TensorMass` model.
 
     Solves f_int(X + u) + M g + external (+ contact) = 0 on the free nodes by Newton's method, each
@@ -41,6 +41,9 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
         planes: ``contact.Planes`` or None.
         tools: ``tools.ToolSet`` (at the pose it is set to) or a list of ``tm.Tool`` (at time 0),
             or None.
+        body_contact: contact between the bodies a packed model holds (a
+            ``body_contact.SurfaceContact``, as ``Simulator.body_contact``), or None. Its penalty
+            is piecewise quadratic: Newton takes the pairs in contact at each iterate.
         precision: ``"float64"`` (default: Newton and CG in float64 whatever the model's dtype) or
             ``"model"`` (in the model's dtype).
 
@@ -57,8 +60,9 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
         model = _variant(model, torch.float64)
         planes = None if planes is None else planes.to(dtype=torch.float64)
         tools = None if tools is None else tools.to(dtype=torch.float64)
+        body_contact = None if body_contact is None else body_contact.to(dtype=torch.float64)
         external = None if external is None else external.to(torch.float64)
-    contacts = [c for c in (planes, tools) if c is not None and len(c)]
+    contacts = [c for c in (planes, tools) if c is not None and len(c)] + ([body_contact] if body_contact is not None else [])
     u = _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, contacts)
     return u.to(out_dtype)
 

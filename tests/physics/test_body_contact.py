@@ -269,6 +269,33 @@ def test_two_bodies_dropped_on_each_other_and_a_floor_come_to_rest():
     assert float(sim.positions(0)[:, 2].min()) > -0.01 * mean_edge_length(lower)
 
 
+def test_static_balance_of_two_bodies_in_contact_and_a_tool():
+    """Two clamped blocks pressed 1 mm into each other, a sphere pushing the lower one sideways:
+    at static equilibrium (solve_static with the body contact, float64) the force on the tool
+    equals the forces at both bodies' fixed nodes plus gravity (1e-6 relative), and the
+    contact's forces between the bodies sum to zero."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    mesh = tm.beam_mesh(4, 4, 2, size=(0.1, 0.1, 0.05), dtype=DT)
+    lower = tm.Body(mesh, material, fixed=mesh.vertices[:, 2] < 1e-9)  # held at its bottom
+    upper = tm.Body(tm.TetMesh(mesh.vertices + torch.tensor([0.02, 0.01, 0.049], dtype=DT), mesh.elements),
+                    material, fixed=mesh.vertices[:, 2] > 0.05 - 1e-9)  # held at its top
+    sphere = tm.Sphere(0.03, position=(-0.028, 0.05, 0.03), stiffness=1e4)
+    sim = tm.Simulator([lower, upper], dt=0.01, dtype=DT, contact=tm.Contact(), tools=[sphere])
+    fixed = sim.system.free[:, 0] == 0
+    gravity = (0.0, 0.0, -9.81)
+    u = tm.solve_static(sim.model, fixed=fixed, gravity=gravity, tools=sim.tools, body_contact=sim.body_contact,
+                        tol=1e-10)
+    x = sim.model.rest + u
+    between = sim.body_contact.forces(x)
+    assert len(sim.body_contact.detect(x)) > 0 and float(sim.tools.forces(x).abs().sum()) > 0
+    weight = sim.model.lumped_mass()[:, None] * torch.tensor(gravity, dtype=DT)
+    at_fixed = -(sim.model(x) + weight + between + sim.tools.forces(x))[fixed]  # what the supports put on
+    force, _ = sim.tools.reactions(x)
+    expected = at_fixed.sum(0) + weight.sum(0)
+    torch.testing.assert_close(force[0], expected, rtol=1e-6, atol=1e-6 * float(expected.norm()))
+    assert float(between.sum(0).norm()) <= 1e-12 * float(between.abs().sum())
+
+
 def test_a_pair_the_solve_closes_joins_the_step():
     """Two blocks falling together at 1 m/s, 0.1 mm apart, the lower one on the floor: no pair is
     closing at the step's start (the same velocities), but the floor stops the lower block in the
