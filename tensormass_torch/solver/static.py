@@ -62,7 +62,9 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
         tools = None if tools is None else tools.to(dtype=torch.float64)
         body_contact = None if body_contact is None else body_contact.to(dtype=torch.float64)
         external = None if external is None else external.to(torch.float64)
-    contacts = [c for c in (planes, tools) if c is not None and len(c)] + ([body_contact] if body_contact is not None else [])
+    contacts = [c for c in (planes, tools) if c is not None and len(c)]
+    if body_contact is not None:
+        contacts.append(body_contact)
     u = _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, contacts)
     return u.to(out_dtype)
 
