@@ -23,12 +23,9 @@ keeps that term (each pair's 12 x 12 Hessian by automatic differentiation of its
 tests and small scenes; it can make the step's matrix indefinite).
 
 Which pairs: for each surface vertex and each other body, the nearest triangle of that body
-within ``thickness + search`` (the spatial hash's reach), grown by ``2 dt max|v|`` over the
-surface nodes at a step's start (what a vertex and a triangle can close in the step: a body
-arriving faster than the search per step is found before it is inside; at most 4 searches
-more); the pair is in contact
-while its gap is negative. A vertex that went deeper than ``search`` into a body is lost to it
-(the step was too long for the contact: shorten dt, stiffen the contact or widen ``search``). For self-contact the
+within ``thickness + search`` (the spatial hash's reach); the pair is in contact while its gap is
+negative. A vertex that went deeper than ``search`` into a body is lost to it (the step was too
+long for the contact: shorten dt, stiffen the contact or widen ``search``). For self-contact the
 triangles within the same reach of the vertex at rest (its neighbourhood) are left out.
 
 Pairs are found at the start of a step (where the step linearises) and kept for its solve. A
@@ -63,9 +60,6 @@ import torch
 from ..errors import SceneError
 from ..mesh.distance import closest_point, closest_weights  # noqa: F401  (closest_weights: re-exported)
 from .contact import check_friction, coulomb_damping, tangential_part
-
-#: How many times the search a step's velocities may grow it by (SurfaceContact.nearby).
-MAX_GROWTH = 4.0
 
 #: the stiffness a body contact gives the implicit step (``Contact.tangent``)
 TANGENTS = ("projected", "exact")
@@ -373,11 +367,10 @@ class SurfaceContact:
         """Thickness plus search: the distance within which pairs are looked for."""
         return self.settings.thickness + self.search
 
-    def candidates(self, x: torch.Tensor, reach=None):
+    def candidates(self, x: torch.Tensor):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
         triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed
-        self-contact) whose triangle's box, grown by ``reach`` (default :attr:`reach`; a float
-        or a 0-dim tensor), holds the vertex's cell.
+        self-contact) whose triangle's box, grown by :attr:`reach`, holds the vertex's cell.
 
         A spatial hash of cell size c = the largest triangle box side + 2 reach: each grown box
         covers at most 2 cells per axis (8 entries), each vertex lies in one."""
@@ -387,7 +380,7 @@ class SurfaceContact:
             return empty, empty
         corners = x[self.triangles]  # [F, 3, 3]
         low, high = corners.amin(1), corners.amax(1)
-        reach = self.reach if reach is None else reach
+        reach = self.reach
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
         first = torch.floor((low - reach) / cell).to(torch.int64)
         last = torch.floor((high + reach) / cell).to(torch.int64)
@@ -414,7 +407,7 @@ class SurfaceContact:
         own = (self.triangles[triangle] == node[:, None]).any(1)
         tri = self.triangles[triangle]
         s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
-        keep = (~same | (~own & (s_rest.abs() > self.reach))).nonzero().squeeze(1)
+        keep = (~same | (~own & (s_rest.abs() > reach))).nonzero().squeeze(1)
         return vertex[keep], triangle[keep]
 
     def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
@@ -424,20 +417,11 @@ class SurfaceContact:
         the exact Hessians; :meth:`select` adds them). closing: the gap is negative or, given
         the velocities ``v [V, 3]`` and a step ``dt``, the gap the pair would have after the step
         at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module)."""
-        # Over the step a vertex and a triangle close by at most dt times twice the fastest
-        # surface node's speed: the search grows by that (a 0-dim tensor: no host read), so that
-        # a vertex arriving faster than the search per step is found before it is inside; by at
-        # most MAX_GROWTH searches (the hash's cells grow with it: a body thrown much faster
-        # needs a shorter dt).
-        reach = self.reach
-        if v is not None and dt > 0 and len(self.vertices):
-            closing = 2.0 * dt * torch.linalg.vector_norm(v[self.vertices], dim=-1).amax()
-            reach = reach + torch.clamp(closing, max=MAX_GROWTH * self.search)
-        vertex, triangle = self.candidates(x, reach)
+        vertex, triangle = self.candidates(x)
         tri = self.triangles[triangle]
         node = self.vertices[vertex]
         w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
-        near = (d < reach).nonzero().squeeze(1)
+        near = (d < self.reach).nonzero().squeeze(1)
         vertex, triangle, node, tri, w, diff, d, normal = (
             t[near] for t in (vertex, triangle, node, tri, w, diff, d, normal))
         # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic).
@@ -456,7 +440,7 @@ class SurfaceContact:
         # Tied: within the rounding of the distances, which two triangles compute differently for
         # their shared edge (a few ulps of the coordinates: in float32 far more than any fixed
         # fraction of the reach; a missed tie leaves one grazing face to decide the side).
-        rounding = 32.0 * torch.finfo(d.dtype).eps * (x[node].abs().amax(-1) + reach)
+        rounding = 32.0 * torch.finfo(d.dtype).eps * (x[node].abs().amax(-1) + self.reach)
         tied = d <= least[group] + rounding
         pseudo = normal.new_zeros(groups, 3).index_put_((group,), normal * tied[:, None].to(d.dtype),
                                                         accumulate=True)
