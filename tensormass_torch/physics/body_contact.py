@@ -23,8 +23,10 @@ keeps that term (each pair's 12 x 12 Hessian by automatic differentiation of its
 tests and small scenes; it can make the step's matrix indefinite).
 
 Which pairs: for each surface vertex and each other body, the nearest triangle of that body
-within ``thickness + search`` (the spatial hash's reach); the pair is in contact while its gap is
-negative. A vertex that went deeper than ``search`` into a body is lost to it (the step was too
+within ``thickness + search`` (the spatial hash's reach), plus, at a step's start, what the pair
+may close over the step at its nodes' speeds (the broad phase sweeps the triangles' and the
+vertices' boxes over the step: a vertex arriving faster than the search per step is found
+before it is inside); the pair is in contact while its gap is negative. A vertex that went deeper than ``search`` into a body is lost to it (the step was too
 long for the contact: shorten dt, stiffen the contact or widen ``search``). For self-contact the
 triangles within the same reach of the vertex at rest (its neighbourhood) are left out.
 
@@ -132,6 +134,20 @@ def _hash(cells: torch.Tensor) -> torch.Tensor:
     """An int64 key of integer cells ``[..., 3]``: distinct cells may share one (the narrow phase
     checks every candidate's distance, so a collision costs work, never a contact)."""
     return (cells[..., 0] * 73856093) ^ (cells[..., 1] * 19349663) ^ (cells[..., 2] * 83492791)
+
+
+def _covered_cells(low: torch.Tensor, high: torch.Tensor, cell):
+    """The cells of size ``cell`` that boxes [low, high] ``[N, 3]`` cover: (box ids ``[E]``,
+    integer cells ``[E, 3]``), each box's cells in a row (one host read: their number)."""
+    first = torch.floor(low / cell).to(torch.int64)
+    span = torch.floor(high / cell).to(torch.int64) - first + 1  # [N, 3] cells per axis
+    count = span.prod(-1)
+    total = int(count.sum())
+    box = torch.repeat_interleave(torch.arange(len(low), device=low.device), count, output_size=total)
+    local = torch.arange(total, device=low.device) - (torch.cumsum(count, 0) - count)[box]
+    ny, nz = span[box, 1], span[box, 2]
+    offset = torch.stack([local // (ny * nz), (local // nz) % ny, local % nz], dim=-1)
+    return box, first[box] + offset
 
 
 def _sum_into(num_nodes: int, nodes: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -367,13 +383,19 @@ class SurfaceContact:
         """Thickness plus search: the distance within which pairs are looked for."""
         return self.settings.thickness + self.search
 
-    def candidates(self, x: torch.Tensor):
+    def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
         triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed
-        self-contact) whose triangle's box, grown by :attr:`reach`, holds the vertex's cell.
+        self-contact) whose triangle's box, grown by :attr:`reach`, meets the vertex's box.
+        Given velocities ``v [V, 3]`` and a step ``dt``, the boxes are swept: a triangle's
+        holds it at x and at x + dt v, a vertex's its segment over the step (a vertex arriving
+        faster than the reach per step is found before it is inside); otherwise a vertex's box
+        is its point.
 
-        A spatial hash of cell size c = the largest triangle box side + 2 reach: each grown box
-        covers at most 2 cells per axis (8 entries), each vertex lies in one."""
+        A spatial hash of cell size c = the largest triangle box side at x + 2 reach (motion does
+        not grow it: a still triangle covers at most 2 cells per axis, a moving one as many as
+        its swept box does, and a vertex's segment likewise). A pair meets in every cell both
+        boxes cover; it is kept in one, the cell of the low corner of the boxes' intersection."""
         device = x.device
         empty = torch.zeros(0, dtype=torch.int64, device=device)
         if len(self.triangles) == 0:
@@ -382,32 +404,47 @@ class SurfaceContact:
         low, high = corners.amin(1), corners.amax(1)
         reach = self.reach
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
-        first = torch.floor((low - reach) / cell).to(torch.int64)
-        last = torch.floor((high + reach) / cell).to(torch.int64)
-        offsets = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=device)
-        cells = first[:, None, :] + offsets[None]  # [F, 8, 3]
-        # (each boolean selection below is one host synchronisation: a mask is turned into
-        # indices once and every tensor gathered with them)
-        entries = (cells <= last[:, None, :]).all(-1).reshape(-1).nonzero().squeeze(1)  # [F * 8] -> kept
-        keys, order = torch.sort(_hash(cells).reshape(-1)[entries], stable=True)
-        owners = entries[order] // 8
-        vertex_keys = _hash(torch.floor(x[self.vertices] / cell).to(torch.int64))
-        start = torch.searchsorted(keys, vertex_keys, side="left")
-        counts = torch.searchsorted(keys, vertex_keys, side="right") - start
+        points = x[self.vertices]
+        swept = v is not None and dt > 0
+        if swept:
+            moved = corners + dt * v[self.triangles]
+            low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
+            ends = points + dt * v[self.vertices]
+            point_low, point_high = torch.minimum(points, ends), torch.maximum(points, ends)
+        low, high = low - reach, high + reach
+        # (each count below is one host synchronisation: the sizes of what follows)
+        owners, cells = _covered_cells(low, high, cell)
+        keys, order = torch.sort(_hash(cells), stable=True)
+        owners, cells = owners[order], cells[order]
+        if swept:
+            query_vertex, query_cells = _covered_cells(point_low, point_high, cell)
+        else:
+            query_vertex = torch.arange(len(self.vertices), device=device)
+            query_cells = torch.floor(points / cell).to(torch.int64)
+        query_keys = _hash(query_cells)
+        start = torch.searchsorted(keys, query_keys, side="left")
+        counts = torch.searchsorted(keys, query_keys, side="right") - start
         total = int(counts.sum())
-        vertex = torch.repeat_interleave(torch.arange(len(self.vertices), device=device), counts, output_size=total)
+        query = torch.repeat_interleave(torch.arange(len(query_keys), device=device), counts, output_size=total)
         first_of = torch.repeat_interleave(start - (torch.cumsum(counts, 0) - counts), counts, output_size=total)
-        triangle = owners[first_of + torch.arange(total, device=device)]
+        entry = first_of + torch.arange(total, device=device)
+        triangle, vertex = owners[entry], query_vertex[query]
+        # an entry of another cell whose key collides is not a candidate (it would repeat a pair)
+        kept = (cells[entry] == query_cells[query]).all(-1)
+        if swept:  # boxes that meet, once: in the cell of their intersection's low corner
+            corner = torch.maximum(point_low[vertex], low[triangle])
+            meet = ((point_low[vertex] <= high[triangle]) & (point_high[vertex] >= low[triangle])).all(-1)
+            kept &= meet & (torch.floor(corner / cell).to(torch.int64) == query_cells[query]).all(-1)
         same = self.vertex_object[vertex] == self.triangle_object[triangle]
         if not self.settings.self_contact:
-            other = (~same).nonzero().squeeze(1)
+            other = (kept & ~same).nonzero().squeeze(1)
             return vertex[other], triangle[other]
         # self-contact: not the vertex's own triangles, nor those near it at rest
         node = self.vertices[vertex]
         own = (self.triangles[triangle] == node[:, None]).any(1)
         tri = self.triangles[triangle]
         s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
-        keep = (~same | (~own & (s_rest.abs() > reach))).nonzero().squeeze(1)
+        keep = (kept & (~same | (~own & (s_rest.abs() > reach)))).nonzero().squeeze(1)
         return vertex[keep], triangle[keep]
 
     def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
@@ -417,11 +454,15 @@ class SurfaceContact:
         the exact Hessians; :meth:`select` adds them). closing: the gap is negative or, given
         the velocities ``v [V, 3]`` and a step ``dt``, the gap the pair would have after the step
         at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module)."""
-        vertex, triangle = self.candidates(x)
+        vertex, triangle = self.candidates(x, v, dt)
         tri = self.triangles[triangle]
         node = self.vertices[vertex]
         w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
-        near = (d < self.reach).nonzero().squeeze(1)
+        reach = self.reach
+        if v is not None and dt > 0:  # what the pair may close over the step joins its reach
+            speed = torch.linalg.vector_norm(v, dim=-1)
+            reach = reach + dt * (speed[node] + speed[tri].amax(-1))
+        near = (d < reach).nonzero().squeeze(1)
         vertex, triangle, node, tri, w, diff, d, normal = (
             t[near] for t in (vertex, triangle, node, tri, w, diff, d, normal))
         # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic).

@@ -127,6 +127,35 @@ def test_pairs_are_found_both_ways(overlapping):
     assert bool((contact.node_object[pairs.nodes[:, 1:]] == pairs.objects[:, 1:2]).all())
 
 
+@pytest.mark.parametrize("speed", [0.0, 3.0])
+def test_broad_phase_is_every_pair_whose_boxes_meet_once(overlapping, speed):
+    """The candidates hold every (vertex, triangle) pair of different bodies whose boxes meet
+    (the triangle's grown by the reach), each once; with velocities, both boxes swept over the
+    step (up to 15 cm a step here, past several cells), exactly those."""
+    contact, x = overlapping
+    gen = torch.Generator().manual_seed(3)
+    v = speed * (torch.rand(x.shape, generator=gen, dtype=DT) - 0.5)
+    dt = 0.1
+    vertex, triangle = contact.candidates(x, v, dt) if speed else contact.candidates(x)
+    found = list(zip(vertex.tolist(), triangle.tolist()))
+    assert len(found) == len(set(found))
+    ends = x + dt * v if speed else x
+    corners = torch.stack([x[contact.triangles], ends[contact.triangles]], 1).reshape(-1, 6, 3)
+    low, high = corners.amin(1) - contact.reach, corners.amax(1) + contact.reach
+    points = x[contact.vertices]
+    point_ends = ends[contact.vertices]
+    point_low, point_high = torch.minimum(points, point_ends), torch.maximum(points, point_ends)
+    meet = ((point_low[:, None] <= high[None]) & (point_high[:, None] >= low[None])).all(-1)
+    meet &= contact.vertex_object[:, None] != contact.triangle_object[None]
+    meeting = set(map(tuple, meet.nonzero().tolist()))
+    if speed:
+        assert set(found) == meeting
+        still = set(zip(*(t.tolist() for t in contact.candidates(x))))
+        assert set(found) - still  # pairs only the motion brings within reach
+    else:  # still: every pair whose triangle's grown box covers the vertex's cell, a superset
+        assert set(found) >= meeting
+
+
 def test_force_is_minus_the_energy_gradient(overlapping):
     contact, x = overlapping
     y = x.clone().requires_grad_(True)
@@ -294,6 +323,26 @@ def test_static_balance_of_two_bodies_in_contact_and_a_tool():
     expected = at_fixed.sum(0) + weight.sum(0)
     torch.testing.assert_close(force[0], expected, rtol=1e-6, atol=1e-6 * float(expected.norm()))
     assert float(between.sum(0).norm()) <= 1e-12 * float(between.abs().sum())
+
+
+def test_a_body_faster_than_the_search_per_step_does_not_go_through():
+    """A block shot at 6 m/s onto a held one with dt = 0.01 s moves 6 cm a step, more than the
+    search (the mean edge, 5.7 cm) and than the held block's thickness: the broad phase sweeps
+    the boxes over the step, the pairs are found before it is inside, and it bounces
+    off."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    lower = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), dtype=DT)
+    upper = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.16), dtype=DT)
+    sim = tm.Simulator([tm.Body(lower, material, fixed=lower.vertices[:, 2] < 1e-9),
+                        tm.Body(upper, material, velocity=(0, 0, -6.0))], dt=0.01, contact=tm.Contact(), dtype=DT)
+    assert 6.0 * 0.01 > sim.body_contact.search
+    deepest = 0.0
+    for _ in range(20):
+        sim.step()
+        deepest = max(deepest, float(sim.interpenetration().max()))
+    assert float(sim.positions(1)[:, 2].min()) > float(sim.positions(0)[:, 2].max())  # above it, going up
+    assert float(sim.v[sim.ptr[1]:, 2].mean()) > 0
+    assert deepest < 0.2 * sim.body_contact.search
 
 
 def test_a_pair_the_solve_closes_joins_the_step():
