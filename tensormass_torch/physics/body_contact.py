@@ -23,11 +23,12 @@ keeps that term (each pair's 12 x 12 Hessian by automatic differentiation of its
 tests and small scenes; it can make the step's matrix indefinite).
 
 Which pairs: for each surface vertex and each other body, the nearest triangle of that body
-within ``thickness + search`` (the spatial hash's reach), plus, at a step's start, what the pair
-may close over the step at its nodes' speeds (the broad phase sweeps the triangles' and the
-vertices' boxes over the step: a vertex arriving faster than the search per step is found
-before it is inside); the pair is in contact while its gap is negative. A vertex that went deeper than ``search`` into a body is lost to it (the step was too
-long for the contact: shorten dt, stiffen the contact or widen ``search``). For self-contact the
+within ``thickness + search`` (the spatial hash's reach), with ``swept`` plus, at a step's start,
+what the pair may close over the step at its nodes' speeds (the broad phase sweeps the
+triangles' and the vertices' boxes over the step: a vertex arriving faster than the search per
+step is found before it is inside); the pair is in contact while its gap is negative. A vertex
+that went deeper than ``search`` into a body is lost to it (the step was too long for the
+contact: shorten dt, stiffen the contact, widen ``search`` or sweep). For self-contact the
 triangles within the same reach of the vertex at rest (its neighbourhood) are left out.
 
 Pairs are found at the start of a step (where the step linearises) and kept for its solve. A
@@ -81,6 +82,10 @@ class Contact:
             surfaces.
         self_contact: a body's surface also meets its own far parts (those beyond ``thickness +
             search`` of a vertex at rest).
+        swept: find each step's pairs over the step's motion (``SurfaceContact.candidates``):
+            a body closing on another faster than the search per step is found before it is
+            inside. Off by default: the swept boxes of many bodies moving together (a pile in
+            free fall) multiply the candidates.
         tangent: ``"projected"`` (default; positive semi-definite) or ``"exact"`` (see the module).
         friction: Coulomb coefficient mu between the bodies (0: frictionless, the default).
         friction_velocity: eps_v (m/s), the slip speed below which friction is viscous instead
@@ -91,6 +96,7 @@ class Contact:
     thickness: float = 0.0
     search: Optional[float] = None
     self_contact: bool = False
+    swept: bool = False
     tangent: str = "projected"
     friction: float = 0.0
     friction_velocity: float = 1e-3
@@ -107,6 +113,8 @@ class Contact:
             raise SceneError(f"contact search must be a positive finite number or None, got {self.search!r}")
         if not isinstance(self.self_contact, bool):
             raise SceneError(f"contact self_contact must be true or false, got {self.self_contact!r}")
+        if not isinstance(self.swept, bool):
+            raise SceneError(f"contact swept must be true or false, got {self.swept!r}")
         check_friction(self.friction, self.friction_velocity, "contact")
         if self.tangent not in TANGENTS:
             raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
@@ -387,10 +395,10 @@ class SurfaceContact:
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
         triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed
         self-contact) whose triangle's box, grown by :attr:`reach`, meets the vertex's box.
-        Given velocities ``v [V, 3]`` and a step ``dt``, the boxes are swept: a triangle's
-        holds it at x and at x + dt v, a vertex's its segment over the step (a vertex arriving
-        faster than the reach per step is found before it is inside); otherwise a vertex's box
-        is its point.
+        Given velocities ``v [V, 3]`` and a step ``dt`` (with ``Contact.swept``), the boxes are
+        swept: a triangle's holds it at x and at x + dt v, a vertex's its segment over the step
+        (a vertex arriving faster than the reach per step is found before it is inside);
+        otherwise a vertex's box is its point.
 
         A spatial hash of cell size c = the largest triangle box side at x + 2 reach (motion does
         not grow it: a still triangle covers at most 2 cells per axis, a moving one as many as
@@ -405,7 +413,7 @@ class SurfaceContact:
         reach = self.reach
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
         points = x[self.vertices]
-        swept = v is not None and dt > 0
+        swept = self.settings.swept and v is not None and dt > 0
         if swept:
             moved = corners + dt * v[self.triangles]
             low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
@@ -459,7 +467,8 @@ class SurfaceContact:
         node = self.vertices[vertex]
         w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
         reach = self.reach
-        if v is not None and dt > 0:  # what the pair may close over the step joins its reach
+        swept = self.settings.swept and v is not None and dt > 0
+        if swept:  # what the pair may close over the step joins its reach
             speed = torch.linalg.vector_norm(v, dim=-1)
             reach = reach + dt * (speed[node] + speed[tri].amax(-1))
         near = (d < reach).nonzero().squeeze(1)
@@ -492,6 +501,13 @@ class SurfaceContact:
         vertex, triangle, node, tri, w, diff, d, normal, group = (
             t[chosen] for t in (vertex, triangle, node, tri, w, diff, d, normal, group))
         side = torch.where((pseudo[group] * diff).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
+        if swept:
+            # Past the reach the candidates need not hold every triangle nearer than the chosen
+            # one (only those whose boxes meet the vertex's), so its side may be wrong: there a
+            # pair is kept only outside (a vertex that deep inside is lost to the body anyway).
+            trusted = ((d < self.reach) | (side > 0)).nonzero().squeeze(1)
+            vertex, triangle, node, tri, w, diff, d, normal, side = (
+                t[trusted] for t in (vertex, triangle, node, tri, w, diff, d, normal, side))
         gap = side * d - self.settings.thickness
         nodes = torch.cat([node[:, None], tri], dim=1)
         objects = torch.stack([self.vertex_object[vertex], self.triangle_object[triangle]], dim=1)

@@ -133,6 +133,7 @@ def test_broad_phase_is_every_pair_whose_boxes_meet_once(overlapping, speed):
     (the triangle's grown by the reach), each once; with velocities, both boxes swept over the
     step (up to 15 cm a step here, past several cells), exactly those."""
     contact, x = overlapping
+    contact.settings = dataclasses.replace(contact.settings, swept=True)
     gen = torch.Generator().manual_seed(3)
     v = speed * (torch.rand(x.shape, generator=gen, dtype=DT) - 0.5)
     dt = 0.1
@@ -328,13 +329,14 @@ def test_static_balance_of_two_bodies_in_contact_and_a_tool():
 def test_a_body_faster_than_the_search_per_step_does_not_go_through():
     """A block shot at 6 m/s onto a held one with dt = 0.01 s moves 6 cm a step, more than the
     search (the mean edge, 5.7 cm) and than the held block's thickness: the broad phase sweeps
-    the boxes over the step, the pairs are found before it is inside, and it bounces
-    off."""
+    the boxes over the step (Contact(swept=True)), the pairs are found before it is inside, and
+    it bounces off; without the sweep it goes through."""
     material = tm.Material(young=1e5, poisson=0.3, density=1000)
     lower = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), dtype=DT)
     upper = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.16), dtype=DT)
     sim = tm.Simulator([tm.Body(lower, material, fixed=lower.vertices[:, 2] < 1e-9),
-                        tm.Body(upper, material, velocity=(0, 0, -6.0))], dt=0.01, contact=tm.Contact(), dtype=DT)
+                        tm.Body(upper, material, velocity=(0, 0, -6.0))], dt=0.01,
+                       contact=tm.Contact(swept=True), dtype=DT)
     assert 6.0 * 0.01 > sim.body_contact.search
     deepest = 0.0
     for _ in range(20):
@@ -343,6 +345,10 @@ def test_a_body_faster_than_the_search_per_step_does_not_go_through():
     assert float(sim.positions(1)[:, 2].min()) > float(sim.positions(0)[:, 2].max())  # above it, going up
     assert float(sim.v[sim.ptr[1]:, 2].mean()) > 0
     assert deepest < 0.2 * sim.body_contact.search
+    still = tm.Simulator([tm.Body(lower, material, fixed=lower.vertices[:, 2] < 1e-9),
+                          tm.Body(upper, material, velocity=(0, 0, -6.0))], dt=0.01, contact=tm.Contact(), dtype=DT)
+    still.step(20)
+    assert float(still.positions(1)[:, 2].min()) < float(still.positions(0)[:, 2].max())
 
 
 def test_a_pair_the_solve_closes_joins_the_step():
@@ -490,6 +496,7 @@ def test_a_body_alone_has_no_self_contact_at_rest():
     (dict(thickness=-0.1), "thickness"), (dict(search=0.0), "search"), (dict(self_contact="yes"), "self_contact"),
     (dict(tangent="wrong"), "tangent"), (dict(friction=-0.1), "friction"),
     (dict(friction=float("inf")), "friction"), (dict(friction_velocity=0.0), "friction_velocity"),
+    (dict(swept=1), "swept"),
 ])
 def test_bad_contact_settings_raise_one_clear_error(kwargs, word):
     with pytest.raises(tm.SceneError, match=word):
