@@ -3,7 +3,7 @@ steps/s with body contact against without it in the same run, the detection's ti
 number of surface triangles, and the deepest interpenetration over the run.
 
     python benchmarks/studies/contact_piles.py [--columns 2 4 6] [--cells 10 10 5] [--steps 120]
-                                               [--friction 0] [--check-every 0] [--device cuda]
+                                               [--friction 0] [--swept] [--check-every 0] [--device cuda]
                                                [--dtype float32]
                                                [--out benchmarks/results/contact] [--quick]
 
@@ -61,14 +61,15 @@ def rate(sim, steps: int, device) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0):
+def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
+            swept: bool = False):
     bodies, block = pile(columns, cells, device, dtype)
     free = simulator(bodies, None, device, dtype)
     free.step(10)
     without = rate(free, 10, device)
     iterations_without = max(int(c.iterations.max()) for c in free.last_report.cg)
     del free
-    sim = simulator(bodies, tm.Contact(friction=friction), device, dtype)
+    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept), device, dtype)
     deepest, checks, start = 0.0, [], time.perf_counter()
     for step in range(1, steps + 1):
         deepest = max(deepest, float(sim.step().contact.body_penetration.max()))
@@ -99,6 +100,7 @@ def main(argv=None):
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--friction", type=float, default=0.0)
+    parser.add_argument("--swept", action="store_true", help="Contact(swept=True): pairs over each step's motion")
     parser.add_argument("--check-every", type=int, default=0,
                         help="measure the interpenetration every this many steps (0: at the end only)")
     parser.add_argument("--device", default=common.default_device())
@@ -118,13 +120,13 @@ def main(argv=None):
                ("deepest_m", "deepest in the reports (m)", ".2e"),
                ("interpenetration_m", "deepest inside another body (m)", ".2e"),
                ("mean_edge_m", "mean surface edge (m)", ".2e")]
-    notes = [f"{args.dtype}, blocks of {args.cells} cells, friction {args.friction:g}, dt {DT} s, "
+    notes = [f"{args.dtype}, blocks of {args.cells} cells, friction {args.friction:g}, swept {args.swept}, dt {DT} s, "
              f"{args.steps} steps with contact before the timed ones."]
     results = common.Results(args.out, "contact_piles", "Piles of blocks: steps/s with body contact against "
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
-        results.add(measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every),
-                    echo=False)
+        results.add(measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
+                            args.swept), echo=False)
     results.finish()
     return results.records
 

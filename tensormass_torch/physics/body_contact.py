@@ -391,14 +391,41 @@ class SurfaceContact:
         """Thickness plus search: the distance within which pairs are looked for."""
         return self.settings.thickness + self.search
 
+    def _motion(self, x: torch.Tensor, v: torch.Tensor, dt: float):
+        """The step's motion as the broad phase sweeps it: (each node's displacement apart from
+        its body's mean, dt (v - V_body) ``[V, 3]``; each body's mean displacement dt V_body
+        ``[B, 3]``; per body, the largest dt |V_a - V_b| over the bodies b whose boxes may meet
+        its own over the step ``[B]``). Bodies moving together (a pile in free fall) sweep
+        little: only their own deformation and turning, and what they close on each other.
+        (The bodies' pairwise test is [B, B]: fine for thousands of bodies.)"""
+        objects = max(self.num_objects, 1)
+        counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(v.dtype)
+        mean = v.new_zeros(objects, 3).index_put_((self.node_object,), v, accumulate=True) / counts[:, None]
+        body_step = dt * mean
+        deviation = dt * v - body_step[self.node_object]
+        points = x[self.vertices]
+        spread = torch.linalg.vector_norm(deviation[self.vertices], dim=-1)
+        lower = points.new_full((objects, 3), math.inf).scatter_reduce(
+            0, self.vertex_object[:, None].expand(-1, 3), points, "amin")
+        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(
+            0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
+        turn = spread.new_zeros(objects).scatter_reduce(0, self.vertex_object, spread, "amax")
+        closing = torch.linalg.vector_norm(body_step[:, None] - body_step[None], dim=-1)  # [B, B]
+        margin = (self.reach + turn[:, None] + turn[None] + closing)[..., None]
+        meet = ((lower[:, None] <= upper[None] + margin) & (lower[None] <= upper[:, None] + margin)).all(-1)
+        grow = torch.where(meet, closing, torch.zeros_like(closing)).amax(1)
+        return deviation, body_step, grow
+
     def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
         triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed
         self-contact) whose triangle's box, grown by :attr:`reach`, meets the vertex's box.
         Given velocities ``v [V, 3]`` and a step ``dt`` (with ``Contact.swept``), the boxes are
-        swept: a triangle's holds it at x and at x + dt v, a vertex's its segment over the step
-        (a vertex arriving faster than the reach per step is found before it is inside);
-        otherwise a vertex's box is its point.
+        swept over the step in their body's moving frame (:meth:`_motion`): a triangle's holds
+        it at x and at x + dt (v - V_body), a vertex's its segment likewise, grown by the most
+        that a body its body may meet closes on it, dt |V_a - V_b| (a vertex arriving faster
+        than the reach per step is found before it is inside); otherwise a vertex's box is its
+        point.
 
         A spatial hash of cell size c = the largest triangle box side at x + 2 reach (motion does
         not grow it: a still triangle covers at most 2 cells per axis, a moving one as many as
@@ -414,11 +441,13 @@ class SurfaceContact:
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
         points = x[self.vertices]
         swept = self.settings.swept and v is not None and dt > 0
-        if swept:
-            moved = corners + dt * v[self.triangles]
+        if swept:  # in each body's moving frame, grown by what the bodies it may meet close on it
+            deviation, _, grow = self._motion(x, v, dt)
+            moved = corners + deviation[self.triangles]
             low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
-            ends = points + dt * v[self.vertices]
-            point_low, point_high = torch.minimum(points, ends), torch.maximum(points, ends)
+            ends = points + deviation[self.vertices]
+            grow = grow[self.vertex_object][:, None]
+            point_low, point_high = torch.minimum(points, ends) - grow, torch.maximum(points, ends) + grow
         low, high = low - reach, high + reach
         # (each count below is one host synchronisation: the sizes of what follows)
         owners, cells = _covered_cells(low, high, cell)
@@ -469,8 +498,10 @@ class SurfaceContact:
         reach = self.reach
         swept = self.settings.swept and v is not None and dt > 0
         if swept:  # what the pair may close over the step joins its reach
-            speed = torch.linalg.vector_norm(v, dim=-1)
-            reach = reach + dt * (speed[node] + speed[tri].amax(-1))
+            deviation, body_step, _ = self._motion(x, v, dt)
+            spread = torch.linalg.vector_norm(deviation, dim=-1)
+            between = body_step[self.vertex_object[vertex]] - body_step[self.triangle_object[triangle]]
+            reach = reach + spread[node] + spread[tri].amax(-1) + torch.linalg.vector_norm(between, dim=-1)
         near = (d < reach).nonzero().squeeze(1)
         vertex, triangle, node, tri, w, diff, d, normal = (
             t[near] for t in (vertex, triangle, node, tri, w, diff, d, normal))
