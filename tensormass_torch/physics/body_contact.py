@@ -23,10 +23,11 @@ keeps that term (each pair's 12 x 12 Hessian by automatic differentiation of its
 tests and small scenes; it can make the step's matrix indefinite).
 
 Which pairs: for each surface vertex and each other body, the nearest triangle of that body
-within ``thickness + search`` (the spatial hash's reach), with ``swept`` plus, at a step's start,
-what the pair may close over the step at its nodes' speeds (the broad phase sweeps the
-triangles' and the vertices' boxes over the step: a vertex arriving faster than the search per
-step is found before it is inside); the pair is in contact while its gap is negative. A vertex
+within ``thickness + search`` (the spatial hash's reach), with ``swept`` (the default) plus,
+at a step's start, what the pair may close over the step (the broad phase sweeps the
+triangles' and the vertices' boxes over the step in their bodies' moving frames: a vertex
+arriving faster than the search per step is found before it is inside); the pair is in
+contact while its gap is negative. A vertex
 that went deeper than ``search`` into a body is lost to it (the step was too long for the
 contact: shorten dt, stiffen the contact, widen ``search`` or sweep). For self-contact the
 triangles within the same reach of the vertex at rest (its neighbourhood) are left out.
@@ -64,6 +65,9 @@ from ..errors import SceneError
 from ..mesh.distance import closest_point, closest_weights  # noqa: F401  (closest_weights: re-exported)
 from .contact import check_friction, coulomb_damping, tangential_part
 
+#: Bodies tested against all the others at a time by the swept broad phase (memory: BODY_ROWS x B).
+BODY_ROWS = 2048
+
 #: the stiffness a body contact gives the implicit step (``Contact.tangent``)
 TANGENTS = ("projected", "exact")
 
@@ -82,10 +86,10 @@ class Contact:
             surfaces.
         self_contact: a body's surface also meets its own far parts (those beyond ``thickness +
             search`` of a vertex at rest).
-        swept: find each step's pairs over the step's motion (``SurfaceContact.candidates``):
-            a body closing on another faster than the search per step is found before it is
-            inside. Off by default: the swept boxes of many bodies moving together (a pile in
-            free fall) multiply the candidates.
+        swept: find each step's pairs over the step's motion (``SurfaceContact.candidates``,
+            in each body's moving frame): a body closing on another faster than the search per
+            step is found before it is inside (default). False: within the search of where the
+            step starts only (a little cheaper for a few small bodies).
         tangent: ``"projected"`` (default; positive semi-definite) or ``"exact"`` (see the module).
         friction: Coulomb coefficient mu between the bodies (0: frictionless, the default).
         friction_velocity: eps_v (m/s), the slip speed below which friction is viscous instead
@@ -96,7 +100,7 @@ class Contact:
     thickness: float = 0.0
     search: Optional[float] = None
     self_contact: bool = False
-    swept: bool = False
+    swept: bool = True
     tangent: str = "projected"
     friction: float = 0.0
     friction_velocity: float = 1e-3
@@ -397,7 +401,7 @@ class SurfaceContact:
         ``[B, 3]``; per body, the largest dt |V_a - V_b| over the bodies b whose boxes may meet
         its own over the step ``[B]``). Bodies moving together (a pile in free fall) sweep
         little: only their own deformation and turning, and what they close on each other.
-        (The bodies' pairwise test is [B, B]: fine for thousands of bodies.)"""
+        (The bodies' pairwise test runs BODY_ROWS bodies against all at a time.)"""
         objects = max(self.num_objects, 1)
         counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(v.dtype)
         mean = v.new_zeros(objects, 3).index_put_((self.node_object,), v, accumulate=True) / counts[:, None]
@@ -410,11 +414,13 @@ class SurfaceContact:
         upper = points.new_full((objects, 3), -math.inf).scatter_reduce(
             0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
         turn = spread.new_zeros(objects).scatter_reduce(0, self.vertex_object, spread, "amax")
-        closing = torch.linalg.vector_norm(body_step[:, None] - body_step[None], dim=-1)  # [B, B]
-        margin = (self.reach + turn[:, None] + turn[None] + closing)[..., None]
-        meet = ((lower[:, None] <= upper[None] + margin) & (lower[None] <= upper[:, None] + margin)).all(-1)
-        grow = torch.where(meet, closing, torch.zeros_like(closing)).amax(1)
-        return deviation, body_step, grow
+        grow = []
+        for rows in torch.arange(objects, device=x.device).split(BODY_ROWS):  # [rows, B] at a time
+            closing = torch.linalg.vector_norm(body_step[rows, None] - body_step[None], dim=-1)
+            margin = (self.reach + turn[rows, None] + turn[None] + closing)[..., None]
+            meet = ((lower[rows, None] <= upper[None] + margin) & (lower[None] <= upper[rows, None] + margin)).all(-1)
+            grow.append(torch.where(meet, closing, torch.zeros_like(closing)).amax(1))
+        return deviation, body_step, torch.cat(grow)
 
     def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,

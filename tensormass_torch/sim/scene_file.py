@@ -53,7 +53,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     thickness = 0.0                   # surfaces are pushed apart once closer than this
     # search = 0.05                   # how far pairs are looked for (default: mean surface edge)
     self_contact = false              # a body's surface also meets its own far parts
-    swept = false                     # find pairs over each step's motion (fast bodies)
+    swept = true                      # find pairs over each step's motion (fast bodies)
     friction = 0.0                    # Coulomb coefficient between the bodies (0: none)
     friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
 
@@ -678,7 +678,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         contact = Contact(stiffness=contact_table.get("stiffness", "positive", 1e5),
                           thickness=contact_table.get("thickness", "nonnegative", 0.0), search=search,
                           self_contact=contact_table.get("self_contact", "bool", False),
-                          swept=contact_table.get("swept", "bool", False),
+                          swept=contact_table.get("swept", "bool", True),
                           friction=contact_table.get("friction", "nonnegative", 0.0),
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))

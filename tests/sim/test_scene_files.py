@@ -222,11 +222,11 @@ def test_contact_reaches_the_simulator(tmp_path):
         thickness = 0.01
         search = 0.05
         self_contact = true
-        swept = true
+        swept = false
         friction = 0.4
         friction_velocity = 0.01
         """)
     sim = load_scene(path).simulator
-    assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True, swept=True,
+    assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True, swept=False,
                                      friction=0.4, friction_velocity=0.01)
     assert sim.body_contact is not None and sim.body_contact.search == 0.05
