@@ -422,7 +422,7 @@ class SurfaceContact:
             grow.append(torch.where(meet, closing, torch.zeros_like(closing)).amax(1))
         return deviation, body_step, torch.cat(grow)
 
-    def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
+    def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0, motion=None):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
         triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed
         self-contact) whose triangle's box, grown by :attr:`reach`, meets the vertex's box.
@@ -431,7 +431,7 @@ class SurfaceContact:
         it at x and at x + dt (v - V_body), a vertex's its segment likewise, grown by the most
         that a body its body may meet closes on it, dt |V_a - V_b| (a vertex arriving faster
         than the reach per step is found before it is inside); otherwise a vertex's box is its
-        point.
+        point. ``motion``: :meth:`_motion` ``(x, v, dt)`` when the caller has it.
 
         A spatial hash of cell size c = the largest triangle box side at x + 2 reach (motion does
         not grow it: a still triangle covers at most 2 cells per axis, a moving one as many as
@@ -448,7 +448,7 @@ class SurfaceContact:
         points = x[self.vertices]
         swept = self.settings.swept and v is not None and dt > 0
         if swept:  # in each body's moving frame, grown by what the bodies it may meet close on it
-            deviation, _, grow = self._motion(x, v, dt)
+            deviation, _, grow = self._motion(x, v, dt) if motion is None else motion
             moved = corners + deviation[self.triangles]
             low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
             ends = points + deviation[self.vertices]
@@ -497,14 +497,15 @@ class SurfaceContact:
         the exact Hessians; :meth:`select` adds them). closing: the gap is negative or, given
         the velocities ``v [V, 3]`` and a step ``dt``, the gap the pair would have after the step
         at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module)."""
-        vertex, triangle = self.candidates(x, v, dt)
+        swept = self.settings.swept and v is not None and dt > 0
+        motion = self._motion(x, v, dt) if swept else None
+        vertex, triangle = self.candidates(x, v, dt, motion)
         tri = self.triangles[triangle]
         node = self.vertices[vertex]
         w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
         reach = self.reach
-        swept = self.settings.swept and v is not None and dt > 0
         if swept:  # what the pair may close over the step joins its reach
-            deviation, body_step, _ = self._motion(x, v, dt)
+            deviation, body_step, _ = motion
             spread = torch.linalg.vector_norm(deviation, dim=-1)
             between = body_step[self.vertex_object[vertex]] - body_step[self.triangle_object[triangle]]
             reach = reach + spread[node] + spread[tri].amax(-1) + torch.linalg.vector_norm(between, dim=-1)
