@@ -17,7 +17,8 @@ only the rate is compared). Detection: ``SurfaceContact.detect`` at the final st
 No block may pass through another: besides the deepest interpenetration the steps report (over
 the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
 inside another block, whatever its depth) is measured at the end and every ``--check-every``
-steps (each check's step, interpenetration and kinetic energy go to the JSON).
+steps (each check's step, interpenetration and kinetic energy go to the JSON), and at the end
+the pairs of blocks of one column still over each other whose order from the floor up changed.
 Writes ``contact_piles.md`` and ``.json`` to ``--out``.
 """
 import argparse
@@ -91,7 +92,23 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
                 pairs=len(pairs), steps=steps, run_s=run_s, deepest_m=deepest, steps_per_s_without=without,
                 steps_per_s_with=with_contact, cost_ratio=without / with_contact, detect_ms=detect_ms,
                 cg_iterations=iterations, cg_iterations_without=iterations_without, solves=solves,
-                interpenetration_m=inside, mean_edge_m=contact.search, checks=checks)
+                interpenetration_m=inside, mean_edge_m=contact.search, checks=checks,
+                out_of_order=out_of_order(sim, columns))
+
+
+def out_of_order(sim, columns: int) -> int:
+    """How many pairs of blocks of one column, still over each other in plan (centroids less than
+    15 cm apart: the blocks are 20 cm wide), are no longer in their starting order from the floor
+    up: a block through the one under it, or a tumbling pile that stacked them again the other
+    way (blocks knocked off, one falling to the floor first); the interpenetration tells them
+    apart only while the first is still inside."""
+    segments = sim.segments
+    centroids = torch.stack([segments.sum(sim.x[:, i]) for i in range(3)], -1) / segments.lengths[:, None]
+    stacks = centroids.reshape(columns * columns, columns, 3)  # [column, level from the floor, xyz]
+    plan = torch.linalg.vector_norm(stacks[:, :, None, :2] - stacks[:, None, :, :2], dim=-1)
+    below = torch.ones(columns, columns, dtype=torch.bool, device=sim.x.device).triu(1)  # level a under b
+    flipped = (stacks[:, :, None, 2] >= stacks[:, None, :, 2]) & (plan < 0.15) & below
+    return int(flipped.sum())
 
 
 def main(argv=None):
@@ -119,6 +136,7 @@ def main(argv=None):
                ("cg_iterations", "CG iterations with", None), ("solves", "solves in the last step", None),
                ("deepest_m", "deepest in the reports (m)", ".2e"),
                ("interpenetration_m", "deepest inside another body (m)", ".2e"),
+               ("out_of_order", "stacked blocks out of order", None),
                ("mean_edge_m", "mean surface edge (m)", ".2e")]
     notes = [f"{args.dtype}, blocks of {args.cells} cells, friction {args.friction:g}, swept {args.swept}, dt {DT} s, "
              f"{args.steps} steps with contact before the timed ones."]
