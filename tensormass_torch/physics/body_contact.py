@@ -27,10 +27,10 @@ within ``thickness + search`` (the spatial hash's reach), with ``swept`` (the de
 at a step's start, what the pair may close over the step (the broad phase sweeps the
 triangles' and the vertices' boxes over the step in their bodies' moving frames: a vertex
 arriving faster than the search per step is found before it is inside); the pair is in
-contact while its gap is negative. A vertex
-that went deeper than ``search`` into a body is lost to it (the step was too long for the
-contact: shorten dt, stiffen the contact, widen ``search`` or sweep). For self-contact the
-triangles within the same reach of the vertex at rest (its neighbourhood) are left out.
+contact while its gap is negative. A vertex that went deeper than ``search`` into a body is
+lost to it (the step was too long for the contact: shorten dt, stiffen the contact or widen
+``search``). For self-contact the triangles within the same reach of the vertex at rest (its
+neighbourhood) are left out.
 
 Pairs are found at the start of a step (where the step linearises) and kept for its solve. A
 pair counts from the step whose end it would reach in contact at the current velocities (its
@@ -658,7 +658,7 @@ class SurfaceContact:
 
     def energy(self, x: torch.Tensor) -> torch.Tensor:
         """The penalty energy (0-dim) at ``x [V, 3]`` (pairs found at x)."""
-        return self.detect(x).energy()
+        return self._pairs_at(x).energy()
 
     def forces(self, x: torch.Tensor) -> torch.Tensor:
         """The penalty forces ``[V, 3]`` at ``x [V, 3]``."""

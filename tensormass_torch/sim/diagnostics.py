@@ -26,7 +26,6 @@ from typing import Dict, List, Optional, Sequence
 import torch
 
 from ..mesh.distance import surface_signed_distances
-from ..mesh.topology import boundary_faces
 
 
 @dataclass
@@ -89,8 +88,8 @@ def interpenetration(sim, x: Optional[torch.Tensor] = None) -> torch.Tensor:
     Costs one distance query per body with neighbours (for checks, not for every step)."""
     x = sim.x if x is None else x
     depth = x.new_zeros(sim.num_bodies)
-    tet = [i for i in range(sim.num_bodies) if sim.bodies[i].mesh.kind == "tet"]
-    faces = {i: boundary_faces(sim.mesh(i).elements.to(x.device)) + sim.ptr[i] for i in tet}
+    faces = {i: f.to(x.device) for i, f in sim.surface_triangles().items()}
+    tet = list(faces)
     if len(tet) < 2:
         return depth
     surface = [torch.unique(faces[i]) for i in tet]

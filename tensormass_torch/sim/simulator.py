@@ -4,7 +4,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence
 
 import torch
 
@@ -299,12 +299,11 @@ class Simulator:
         removal the surfaces change), into the system; nothing without ``contact``."""
         if self.contact is None:
             return
-        triangles = [boundary_faces(self.mesh(i).elements.to(self.device)) + self.ptr[i]
-                     for i, b in enumerate(self.bodies) if b.mesh.kind == "tet"]
+        triangles = self.surface_triangles()
         if not triangles:
             raise SceneError("contact is between the surfaces of tetrahedral bodies; this simulator has none")
-        self.body_contact = SurfaceContact(torch.cat(triangles), self.segments.node_object, self.model.rest,
-                                           self.contact)
+        self.body_contact = SurfaceContact(torch.cat(list(triangles.values())), self.segments.node_object,
+                                           self.model.rest, self.contact)
         self.system.body_contact = self.body_contact
 
     def _masses_changed(self):
@@ -777,6 +776,12 @@ class Simulator:
         with a tool or plane and the deepest penetration ``[B]``, at the current state (device
         tensors; ``StepReport.contact`` holds the same at each step's end when there are tools)."""
         return contact_report(self)
+
+    def surface_triangles(self) -> Dict[int, torch.Tensor]:
+        """The surface of each tetrahedral body as it is now (cuts and removals included): body
+        index -> its boundary triangles ``[F_i, 3]``, outward-wound, in packed node ids."""
+        return {i: boundary_faces(self.mesh(i).elements.to(self.device)) + self.ptr[i]
+                for i, b in enumerate(self.bodies) if b.mesh.kind == "tet"}
 
     def interpenetration(self) -> torch.Tensor:
         """Per body ``[B]``, how deep its surface is inside other bodies now, measured exactly
