@@ -3,8 +3,9 @@ steps/s with body contact against without it in the same run, the detection's ti
 number of surface triangles, and the deepest interpenetration over the run.
 
     python benchmarks/studies/contact_piles.py [--columns 2 4 6] [--cells 10 10 5] [--steps 120]
-                                               [--friction 0] [--swept] [--check-every 0] [--device cuda]
-                                               [--dtype float32]
+                                               [--friction 0] [--no-swept] [--check-every 0]
+                                               [--preconditioners auto none] [--device cuda]
+                                               [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
 
 Each pile is columns x columns stacks of ``columns`` blocks (0.2 x 0.2 x 0.1 m, E = 1e5 Pa,
@@ -12,19 +13,24 @@ nu = 0.3, 1000 kg/m^3; ``--cells`` per block: 10 x 10 x 5 is 3,000 tets), the co
 apart, the blocks of a column 3 cm apart and shifted 1 cm sideways each (an offset stack), over a
 floor plane of 1e5 N/m; dt = 5 ms, Rayleigh mass damping 1/s, cg_tol 1e-4. With contact the
 pile runs ``--steps`` steps (the deepest interpenetration over them is reported), then 10 more
-are timed; without contact, 10 steps after 10 of warm-up (the blocks fall through each other:
-only the rate is compared). Detection: ``SurfaceContact.detect`` at the final state, mean of 10.
+are timed, once for each of ``--preconditioners`` (the Simulator's ``preconditioner``); without
+contact, 10 steps after 10 of warm-up (the blocks fall through each other: only the rate is
+compared). Detection: ``SurfaceContact.detect`` at the final state, mean of 10.
 No block may pass through another: besides the deepest interpenetration the steps report (over
 the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
 inside another block, whatever its depth) is measured at the end and every ``--check-every``
-steps (each check's step, interpenetration and kinetic energy go to the JSON), and at the end
-the pairs of blocks of one column still over each other whose order from the floor up changed.
+steps (each check's step, interpenetration, kinetic energy and blocks out of order go to the
+JSON), and at the end the pairs of blocks of one column still over each other whose order from
+the floor up changed. A run longer than one sitting: ``--state DIR --budget-s S`` saves the state
+after S seconds of stepping and stops; the same command goes on from it.
 Writes ``contact_piles.md`` and ``.json`` to ``--out``.
 """
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -49,9 +55,9 @@ def pile(columns: int, cells, device, dtype):
     return bodies, block
 
 
-def simulator(bodies, contact, device, dtype):
+def simulator(bodies, contact, device, dtype, preconditioner="auto"):
     return tm.Simulator(bodies, dt=DT, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0,
-                        device=device, dtype=dtype, cg_tol=1e-4)
+                        device=device, dtype=dtype, cg_tol=1e-4, preconditioner=preconditioner)
 
 
 def rate(sim, steps: int, device) -> float:
@@ -62,22 +68,54 @@ def rate(sim, steps: int, device) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
-            swept: bool = False):
-    bodies, block = pile(columns, cells, device, dtype)
+def without_contact(bodies, device, dtype) -> dict:
+    """The same pile without contact (the blocks fall through each other: only the rate counts)."""
     free = simulator(bodies, None, device, dtype)
     free.step(10)
     without = rate(free, 10, device)
-    iterations_without = max(int(c.iterations.max()) for c in free.last_report.cg)
+    iterations = max(int(c.iterations.max()) for c in free.last_report.cg)
     del free
-    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept), device, dtype)
-    deepest, checks, start = 0.0, [], time.perf_counter()
-    for step in range(1, steps + 1):
-        deepest = max(deepest, float(sim.step().contact.body_penetration.max()))
+    common.release(device)
+    return dict(steps_per_s_without=without, cg_iterations_without=iterations)
+
+
+def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
+            swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
+            state: Optional[Path] = None, budget_s: Optional[float] = None) -> Optional[dict]:
+    """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None).
+    With ``state`` (a folder), the run goes on from the state saved there (positions,
+    velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
+    have passed, saves it there and returns None: a run longer than one sitting of a machine
+    resumes where it stopped, stepping the same states."""
+    bodies, block = pile(columns, cells, device, dtype)
+    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept), device, dtype, preconditioner)
+    saved = state / "meta.json" if state is not None else None
+    if saved is not None and saved.exists():
+        progress = json.loads(saved.read_text())
+        sim.x = torch.load(state / "x.pt").to(sim.x)
+        sim.v = torch.load(state / "v.pt").to(sim.v)
+    else:
+        progress = dict(step=0, deepest=0.0, checks=[], run_s=0.0,
+                        **(baseline if baseline is not None else without_contact(bodies, device, dtype)))
+    start = time.perf_counter()
+    for step in range(progress["step"] + 1, steps + 1):
+        progress["deepest"] = max(progress["deepest"], float(sim.step().contact.body_penetration.max()))
+        progress["step"] = step
         if step == steps or (check_every and step % check_every == 0):
-            checks.append([step, float(sim.interpenetration().max()), float(sim.kinetic_energy().sum())])
-    inside = max(c[1] for c in checks)
-    run_s = time.perf_counter() - start
+            progress["checks"].append([step, float(sim.interpenetration().max()), float(sim.kinetic_energy().sum()),
+                                       out_of_order(sim, columns)])
+            print(f"step {step}: inside {progress['checks'][-1][1]:.3e} m, out of order {progress['checks'][-1][3]}, "
+                  f"{step / (progress['run_s'] + time.perf_counter() - start):.2f} steps/s", flush=True)
+        if state is not None and budget_s is not None and step < steps and time.perf_counter() - start > budget_s:
+            progress["run_s"] += time.perf_counter() - start
+            state.mkdir(parents=True, exist_ok=True)
+            torch.save(sim.x.cpu(), state / "x.pt")
+            torch.save(sim.v.cpu(), state / "v.pt")
+            saved.write_text(json.dumps(progress))
+            print(f"paused at step {step} of {steps}; the state is in {state}", flush=True)
+            return None
+    progress["run_s"] += time.perf_counter() - start
+    inside = max(c[1] for c in progress["checks"])
     with_contact = rate(sim, 10, device)
     contact = sim.body_contact
     common.sync(device)
@@ -86,13 +124,16 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
         pairs = contact.detect(sim.x, sim.v, DT)
     common.sync(device)
     detect_ms = 100.0 * (time.perf_counter() - start)
-    iterations = max(int(c.iterations.max()) for c in sim.last_report.cg)
-    solves = len(sim.last_report.cg)
+    report = sim.last_report
+    without = progress["steps_per_s_without"]
     return dict(blocks=len(bodies), tets=len(bodies) * block.num_elements, surface_triangles=len(contact.triangles),
-                pairs=len(pairs), steps=steps, run_s=run_s, deepest_m=deepest, steps_per_s_without=without,
-                steps_per_s_with=with_contact, cost_ratio=without / with_contact, detect_ms=detect_ms,
-                cg_iterations=iterations, cg_iterations_without=iterations_without, solves=solves,
-                interpenetration_m=inside, mean_edge_m=contact.search, checks=checks,
+                pairs=len(pairs), steps=steps, run_s=progress["run_s"], deepest_m=progress["deepest"],
+                preconditioner=preconditioner, steps_per_s_without=without, steps_per_s_with=with_contact,
+                cost_ratio=without / with_contact, detect_ms=detect_ms,
+                cg_iterations=max(int(c.iterations.max()) for c in report.cg),
+                cg_iterations_step=sum(int(c.iterations.max()) for c in report.cg),
+                cg_iterations_without=progress["cg_iterations_without"], solves=len(report.cg),
+                interpenetration_m=inside, mean_edge_m=contact.search, checks=progress["checks"],
                 out_of_order=out_of_order(sim, columns))
 
 
@@ -117,7 +158,13 @@ def main(argv=None):
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--friction", type=float, default=0.0)
-    parser.add_argument("--swept", action="store_true", help="Contact(swept=True): pairs over each step's motion")
+    parser.add_argument("--swept", action=argparse.BooleanOptionalAction, default=True,
+                        help="Contact(swept=...): pairs over each step's motion (the default) or at its start")
+    parser.add_argument("--preconditioners", nargs="+", default=["auto"], choices=["auto", "none", "jacobi"],
+                        help="a run with contact for each (the pile without contact is measured once)")
+    parser.add_argument("--state", default=None,
+                        help="a folder to save the run's state in when --budget-s runs out, and to go on from")
+    parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
     parser.add_argument("--check-every", type=int, default=0,
                         help="measure the interpenetration every this many steps (0: at the end only)")
     parser.add_argument("--device", default=common.default_device())
@@ -133,7 +180,10 @@ def main(argv=None):
                ("pairs", "pairs", ","), ("steps_per_s_without", "steps/s without", ".1f"),
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
                ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
-               ("cg_iterations", "CG iterations with", None), ("solves", "solves in the last step", None),
+               ("preconditioner", "preconditioner", None),
+               ("cg_iterations", "CG iterations with (most of one solve)", None),
+               ("cg_iterations_step", "CG iterations of the last step", None),
+               ("solves", "solves in the last step", None),
                ("deepest_m", "deepest in the reports (m)", ".2e"),
                ("interpenetration_m", "deepest inside another body (m)", ".2e"),
                ("out_of_order", "stacked blocks out of order", None),
@@ -143,8 +193,16 @@ def main(argv=None):
     results = common.Results(args.out, "contact_piles", "Piles of blocks: steps/s with body contact against "
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
-        results.add(measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
-                            args.swept), echo=False)
+        baseline = None
+        for preconditioner in args.preconditioners:
+            state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}"
+            record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
+                             args.swept, preconditioner, baseline, state, args.budget_s)
+            if record is None:  # paused: the state is saved, the rest waits for the next run
+                results.finish()
+                return results.records
+            baseline = {k: record[k] for k in ("steps_per_s_without", "cg_iterations_without")}
+            results.add(record, echo=False)
     results.finish()
     return results.records
 

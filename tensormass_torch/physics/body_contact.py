@@ -256,6 +256,19 @@ class ContactPairs:
         per_pair = -(self.friction[:, None, None] * self._coefficients()[:, :, None]) * self.slip(v)[:, None, :]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
 
+    def stiffness_diagonal(self, coefficient: float, damping: float = 0.0) -> torch.Tensor:
+        """The diagonal ``[V, 3]`` of the pairs' part of the step's matrix, sum over pairs of
+        J^T (a u u^T + b P_t) J with a = ``coefficient`` k, b = ``damping`` c_p (as
+        :class:`PairStiffness`): coef_i^2 (a u_x^2 + b (1 - u_x^2)) at node i, axis x. The
+        projected stiffness's also where the tangent is exact (its Hessians' diagonal need not be
+        positive; this is for a preconditioner)."""
+        along = self.direction * self.direction  # [P, 3]
+        per_axis = (coefficient * self.stiffness) * along
+        if self.friction is not None and damping:
+            per_axis = per_axis + (damping * self.friction)[:, None] * (1.0 - along)
+        per_entry = (self._coefficients() ** 2)[:, :, None] * per_axis[:, None, :]  # [P, 4, 3]
+        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 3))
+
     def energy(self) -> torch.Tensor:
         """The penalty energy (0-dim): sum over pairs of k/2 g^2."""
         return 0.5 * self.stiffness * (self.gap ** 2).sum()

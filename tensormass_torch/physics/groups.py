@@ -349,6 +349,38 @@ class ElementGroup(nn.Module):
         node_graph.topology_changed(self, sent["graph_edges"], sent["incidence_nodes"])
         return solve.chunk_slots_grew(self, tables["incidences"])
 
+    def stiffness_diagonal(self) -> torch.Tensor:
+        """The diagonal ``[V, d]`` of the group's linear stiffness at rest, K = -dF/du at u = 0
+        (non-negative; what a Jacobi preconditioner divides by). Exact for hooke; for stvk and
+        corotational the rest value, which their tangents leave near it for moderate strain (a
+        preconditioner needs only a positive diagonal of the right size). Removed elements hold
+        zeros (:meth:`remove_rows`), so they add nothing. Summed in an order that does not depend
+        on the run (index_put_ sorts by index): the same preconditioner, the same iterates.
+
+        Per node j and axis a, summed over the elements on j (Cotin's K_jj):
+        measure ((lam + mu) m_ja^2 + mu |m_j|^2 P_aa), P the identity or the membrane's projector;
+        the hooke tensor form's is minus its edges' tensors' diagonals (K_jj = -sum_k K_jk)."""
+        rows = self.num_nodes
+        if self.form == "tensor" and self.model == "hooke":
+            diagonal = -torch.diagonal(self.edge_k, dim1=-2, dim2=-1)  # [Ed, d]
+            nodes = self.edges.long()
+            values = torch.stack([diagonal, diagonal], dim=1)  # the same at both ends
+        else:
+            if self.form == "tensor":  # stvk: B = K / 2
+                values = 2.0 * torch.einsum("njjaa->nja", self.tensor_b)  # [N, n, d]
+            else:
+                lam, mu = self.lame()
+                m = self.shape_vectors
+                plane = (torch.ones_like(m[:, 0]) if self.projector is None
+                         else torch.diagonal(self.projector, dim1=-2, dim2=-1))  # [N, d]
+                squares = m * m
+                values = self.measure[:, None, None] * ((lam + mu)[:, None, None] * squares
+                                                        + mu[:, None, None] * squares.sum(-1, keepdim=True)
+                                                        * plane[:, None, :])
+            nodes = self.elements.long()
+        out = values.new_zeros(rows, values.shape[-1])
+        return out.index_put_((nodes.reshape(-1),), values.reshape(-1, values.shape[-1]), accumulate=True)
+
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""
         young = self.young if young is None else young

@@ -9,7 +9,7 @@ from torch import nn
 from .. import ops
 from ..errors import MaterialError, MeshError, SceneError
 from ..mesh.topology import incidence_slots, padded_sum
-from ..ops import topology
+from ..ops import library, topology
 from ..ops.variants import DEFAULT, KernelVariants
 from .groups import FORMS, ElementGroup
 from .materials import Material
@@ -423,6 +423,17 @@ class TensorMass(nn.Module):
             f = ops.forces(group, u, state) + ops.dforces(group, u, w, state)
             total = f if total is None else total + f
         return total
+
+    def stiffness_diagonal(self) -> torch.Tensor:
+        """The diagonal ``[V, d]`` of the linear stiffness at rest (every group's
+        :meth:`ElementGroup.stiffness_diagonal`), kept while the groups' tensors are unmodified
+        (a cut edits them in place, and the next call sums again)."""
+        tensors = tuple(t for group in self.groups for t in group.buffers())
+        cache = self.__dict__.get("_stiffness_diagonal")
+        if not library.unchanged(cache, tensors):
+            total = sum(group.stiffness_diagonal() for group in self.groups)
+            cache = self.__dict__["_stiffness_diagonal"] = (tensors, tuple(t._version for t in tensors), total)
+        return cache[2]
 
     def lumped_mass(self) -> torch.Tensor:
         """Lumped nodal masses ``[V]``."""

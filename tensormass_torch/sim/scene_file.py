@@ -23,6 +23,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     rayleigh_mass = 0.5
     rayleigh_stiffness = 0.002
     form = "auto"                     # "stress", "tensor"
+    preconditioner = "auto"           # "none", "jacobi" (auto: Jacobi where bodies touch)
 
     [render]                          # off-screen pictures of the frames (pyvista)
     png = false                       # one PNG per frame
@@ -110,6 +111,7 @@ from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from ..physics.tools import TANGENTS as TOOL_TANGENTS
 from ..physics.tools import Box, Capsule, MeshTool, Sphere, Tool
+from ..solver.preconditioner import PRECONDITIONERS
 from .builtin import Scene
 from .scalpel import Scalpel
 from .simulator import MIN_SPARE_NODES, SPARE_FRACTION, Body, Simulator
@@ -652,6 +654,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         rayleigh_mass=solver.get("rayleigh_mass", "nonnegative", 0.0),
         rayleigh_stiffness=solver.get("rayleigh_stiffness", "nonnegative", 0.0),
         form=_choice(solver, "form", FORMS, "auto", "form"),
+        preconditioner=_choice(solver, "preconditioner", PRECONDITIONERS, "auto", "preconditioner"),
     )
     solver.done()
 

@@ -30,6 +30,7 @@ from ..solver.implicit_euler import (
     implicit_euler_step,
     step_graphs_for,
 )
+from ..solver.preconditioner import PRECONDITIONERS
 from .diagnostics import ContactReport, InversionCheck, InversionReport, contact_report, interpenetration
 from .scalpel import Scalpel
 
@@ -129,8 +130,8 @@ class Simulator:
             surfaces of the tetrahedral bodies, or None (default: bodies pass through each other).
             Pairs are found at the start of each step; bodies they join are solved together; its
             steps run eagerly (not chained). Counts and penetrations in ``StepReport.contact``.
-        cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs: see
-            ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
+        cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs,
+            preconditioner: see ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
             ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
             converging solve is never cut short; the value used is ``sim.options.cg_max_iter``.
         form: element force form, ``"auto" | "stress" | "tensor"``.
@@ -157,7 +158,8 @@ class Simulator:
                  cg_tol: float = 1e-6, cg_max_iter: Optional[int] = None, require_convergence: bool = True,
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
-                 spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None):
+                 spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
+                 preconditioner: str = "auto"):
         bodies = list(bodies)
         # what a topology change that rebuilds the simulator (cut) builds it again with
         self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
@@ -165,7 +167,8 @@ class Simulator:
                                cg_max_iter=cg_max_iter, require_convergence=require_convergence,
                                newton_iters=newton_iters, check_every=check_every, form=form, device=device,
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
-                               substeps_on_failure=substeps_on_failure, tools=tools, contact=contact)
+                               substeps_on_failure=substeps_on_failure, tools=tools, contact=contact,
+                               preconditioner=preconditioner)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -185,6 +188,9 @@ class Simulator:
             raise SceneError(f"cg_tol must be a finite number >= 0, got {cg_tol!r}")
         if newton_iters < 1:
             raise SceneError(f"newton_iters must be >= 1, got {newton_iters}")
+        if preconditioner not in PRECONDITIONERS:
+            raise SceneError(f"preconditioner must be one of {', '.join(map(repr, PRECONDITIONERS))}, "
+                             f"got {preconditioner!r}")
         if check_inversion not in INVERSION_CHECKS:
             raise SceneError(f"check_inversion must be one of {', '.join(map(repr, INVERSION_CHECKS))}, "
                              f"got {check_inversion!r}")
@@ -212,7 +218,7 @@ class Simulator:
                                    rayleigh_stiffness=float(rayleigh_stiffness), cg_tol=cg_tol,
                                    cg_max_iter=cg_max_iter, require_convergence=require_convergence,
                                    newton_iters=newton_iters, check_every=check_every,
-                                   cuda_graphs=bool(cuda_graphs))
+                                   cuda_graphs=bool(cuda_graphs), preconditioner=preconditioner)
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
         offset = 0
         for b, room in zip(bodies, spare):

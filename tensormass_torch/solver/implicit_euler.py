@@ -10,6 +10,7 @@ started from x' = x, is exactly the system above).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import List
 
@@ -21,6 +22,7 @@ from ..ops import node_graph, solve
 from ..ops.segments import Segments
 from ..ops.variants import DEFAULT, KernelVariants
 from .cg import CGResult, CGSolver, batched_cg, run_captured
+from .preconditioner import PRECONDITIONERS, JacobiScaling, system_diagonal
 
 
 def auto_cg_max_iter(free_dofs: int) -> int:
@@ -54,6 +56,10 @@ class StepOptions:
             iteration; the fastest); False: the classic CG. In float32 the pipelined recurrences
             lose accuracy on ill-conditioned systems: more iterations, and at worst a false
             breakdown, where the classic CG converges (the Simulator retries such a step so).
+        preconditioner: ``"auto"`` (default: Jacobi for the solves that body contact pairs join,
+            none elsewhere), ``"none"`` or ``"jacobi"`` (every solve of a TensorMass; not the
+            whole-solve op or the captured steps): see ``solver.preconditioner``. With Jacobi,
+            ``cg_tol`` holds the residual scaled by the diagonal's inverse square root.
         variants: the kernel variants the ops run (``ops.variants.KernelVariants``: equivalent
             kernels that differ in speed); the default reads the benchmarks' ``TENSORMASS_*``
             variables once (``KernelVariants.from_env``).
@@ -69,7 +75,13 @@ class StepOptions:
     check_every: int = 8
     cuda_graphs: bool = True
     pipelined: bool = True
+    preconditioner: str = "auto"
     variants: KernelVariants = field(default_factory=KernelVariants.from_env)
+
+    def __post_init__(self):
+        if self.preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"unknown preconditioner {self.preconditioner!r}; known: "
+                             f"{', '.join(map(repr, PRECONDITIONERS))}")
 
 
 @dataclass
@@ -135,6 +147,7 @@ class DynamicsSystem:
         self._coupled_cg = {}  # object ptr of coupled solves -> CGSolver
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
+        self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
 
     def pair_stiffness(self, pairs, coefficient: float, damping: float = 0.0):
         """The body contact's :class:`PairStiffness` loaded with ``pairs``, their stiffness scaled by
@@ -502,16 +515,39 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
 
             def matvec(p):  # (with friction, its damping h C: minus h times its forces)
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
+    scaling = _jacobi(system, opts, fused, pairs, mass_coef, stiffness_coef)
+    if scaling is not None:  # CG on S A S y = S b, x = S y (solver.preconditioner)
+        matvec = scaling.product(matvec)
+        graph_key = None if graph_key is None else (graph_key, scaling.key)
+        rhs = rhs * scaling.scale
+        x0 = None if x0 is None else x0 / scaling.scale
     coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key, x0) if pairs is not None and len(pairs)
                else None)
     if coupled is not None:
-        return coupled
-    if fused is None:
-        return batched_cg(matvec, rhs, system.segments, system.free, x0=x0, tol=opts.cg_tol,
-                          max_iter=opts.cg_max_iter, check_every=opts.check_every)
-    cg = system.cg_solver(rhs, opts.cuda_graphs)
-    return cg.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
-                    graph_key=graph_key)
+        result = coupled
+    elif fused is None:
+        result = batched_cg(matvec, rhs, system.segments, system.free, x0=x0, tol=opts.cg_tol,
+                            max_iter=opts.cg_max_iter, check_every=opts.check_every)
+    else:
+        result = system.cg_solver(rhs, opts.cuda_graphs).solve(matvec, rhs, x0=x0, tol=opts.cg_tol,
+                                                                max_iter=opts.cg_max_iter,
+                                                                check_every=opts.check_every, graph_key=graph_key)
+    if scaling is not None:
+        result = dataclasses.replace(result, solution=result.solution * scaling.scale)
+    return result
+
+
+def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):
+    """The system's ``preconditioner.JacobiScaling`` loaded with this solve's diagonal where
+    ``opts.preconditioner`` asks for it (``"auto"``: where body contact ``pairs`` join the solve)
+    and the model has a loaded product ``fused`` (a TensorMass); None otherwise."""
+    with_pairs = pairs is not None and len(pairs) > 0
+    if fused is None or opts.preconditioner == "none" or (opts.preconditioner == "auto" and not with_pairs):
+        return None
+    if system._jacobi is None:
+        system._jacobi = JacobiScaling()
+    return system._jacobi.load(system_diagonal(system, mass_coef, stiffness_coef, fused.node_stiffness,
+                                               pairs if with_pairs else None, opts.dt))
 
 
 def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs, graph_key=None,
@@ -857,7 +893,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
 
     # body contact's pairs change in number from step to step: its steps run eagerly
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
-            or system.body_contact is not None
+            or system.body_contact is not None or opts.preconditioner == "jacobi"
             or system.model.rest.device.type != "cuda"
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None

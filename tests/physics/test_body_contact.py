@@ -242,15 +242,17 @@ def test_pair_stiffness_buffers_equal_the_pairs_product(friction):
     torch.testing.assert_close(product(dx), expected(more), rtol=1e-12, atol=1e-12)
 
 
-def test_the_step_with_contact_equals_a_dense_solve():
+@pytest.mark.parametrize("preconditioner", ["auto", "none"])
+def test_the_step_with_contact_equals_a_dense_solve(preconditioner):
     """One implicit Euler step of two bodies in contact (projected stiffness) against the dense
-    system: the elastic Jacobian by autograd, the pairs' k J^T J assembled, solved by LU."""
+    system: the elastic Jacobian by autograd, the pairs' k J^T J assembled, solved by LU; with the
+    default preconditioner (Jacobi where pairs join the solve) and without."""
     material = tm.Material(young=1e4, poisson=0.3, density=1000)
     (a, b), rest, _, _ = two_blocks(offset=(0.05, 0.03, 0.095), cells=(2, 2, 1), jitter=0.0)
     bodies = [tm.Body(tm.TetMesh(rest[:a.num_vertices], a.elements), material),
               tm.Body(tm.TetMesh(rest[a.num_vertices:], b.elements), material)]
     sim = tm.Simulator(bodies, dt=0.01, contact=tm.Contact(stiffness=1e3, thickness=0.01), rayleigh_mass=0.5,
-                       cg_tol=1e-13, cuda_graphs=False)
+                       cg_tol=1e-13, cuda_graphs=False, preconditioner=preconditioner)
     gen = torch.Generator().manual_seed(2)
     x = sim.x + 0.003 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
     v = 0.1 * torch.randn(sim.x.shape, generator=gen, dtype=DT)

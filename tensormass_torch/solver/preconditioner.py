@@ -1,0 +1,86 @@
+"""Jacobi preconditioning of the step's CG, written as a symmetric diagonal scaling.
+
+CG on A x = b preconditioned by D = diag(A) makes the same iterates x as plain CG on
+
+    (S A S) y = S b,    x = S y,    S = D^(-1/2)
+
+so the CG and its ops (``ops.cg``, the captured iterations) stay as they are: the solver is
+handed the product p -> S A (S p), the right-hand side S b and the initial guess S^(-1) x0, and
+its solution is scaled back. Its residual is then S r, the residual with each row divided by the
+square root of its diagonal: the tolerance holds that scaled residual relative to S b. (The rows
+scaled down most are the stiff ones, contact and floor, where a residual costs the least motion.)
+
+What it is for: a penalty (a body's contact pairs, the floor, a tool) adds k dt^2 to the diagonal
+of the nodes it acts on, tens of times the elastic diagonal at the stiffnesses the scenes use, so
+unpreconditioned CG spends its iterations on those few rows; dividing by the diagonal brings
+them back to the others' scale. On an elastic body alone the diagonal varies little and Jacobi
+saves little: :data:`PRECONDITIONERS`' ``"auto"`` uses it only where body contact pairs join a
+solve.
+
+The diagonal is the system's own, c_M m + c_K (K_rest + node stiffness) + the pairs' part, with
+K_rest the elastic stiffness's diagonal at rest (``TensorMass.stiffness_diagonal``: exact for
+hooke, near the tangent's for stvk and corotational, which is all a preconditioner needs).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+#: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
+#: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
+#: preconditioner), ``"auto"`` (jacobi for the solves body contact pairs join, none elsewhere).
+PRECONDITIONERS = ("auto", "none", "jacobi")
+
+
+class JacobiScaling:
+    """S = D^(-1/2) ``[V, d]`` in a buffer whose storage stays from solve to solve (a CUDA graph
+    captured over the scaled product replays with each step's diagonal)."""
+
+    def __init__(self):
+        self.scale: Optional[torch.Tensor] = None
+
+    def load(self, diagonal: torch.Tensor) -> "JacobiScaling":
+        """Take the system's diagonal ``[V, d]``; rows whose diagonal is not positive (a node
+        with no mass and no element left, whose row CG never moves) are left unscaled."""
+        scale = torch.where(diagonal > 0, torch.rsqrt(diagonal.clamp(min=torch.finfo(diagonal.dtype).tiny)),
+                            torch.ones_like(diagonal))
+        if self.scale is None or self.scale.shape != scale.shape or self.scale.dtype != scale.dtype \
+                or self.scale.device != scale.device:
+            self.scale = scale
+        else:
+            self.scale.copy_(scale)
+        return self
+
+    @property
+    def key(self) -> tuple:
+        """What a graph captured over :meth:`product` depends on: the buffer's storage."""
+        return ("jacobi", self.scale.data_ptr())
+
+    def product(self, matvec):
+        """p -> S A (S p) ``[V, d]`` for the product ``matvec`` (A p, or a fused product's
+        (A p, p . Ap) whose dots are dropped: the CG takes its own on the scaled vectors)."""
+        scale = self.scale
+
+        def scaled(p: torch.Tensor) -> torch.Tensor:
+            out = matvec(p * scale)
+            return (out[0] if isinstance(out, tuple) else out) * scale
+
+        return scaled
+
+
+def system_diagonal(system, mass_coef: float, stiffness_coef: float, node_stiffness: Optional[torch.Tensor],
+                    pairs=None, pair_damping: float = 0.0) -> torch.Tensor:
+    """The diagonal ``[V, d]`` of a step's matrix c_M M - c_K dF/dx for ``system``
+    (``DynamicsSystem`` of a TensorMass): mass, the elastic stiffness at rest, the loaded
+    ``node_stiffness [V, d, d]`` (planes, tools, their folded friction; or None) and the body
+    contact ``pairs`` with their friction times ``pair_damping`` (or None)."""
+    diagonal = stiffness_coef * system.model.stiffness_diagonal() + mass_coef * system.mass
+    if node_stiffness is not None:
+        diagonal = diagonal + stiffness_coef * torch.diagonal(node_stiffness, dim1=-2, dim2=-1)
+    if pairs is not None and len(pairs):
+        diagonal = diagonal + pairs.stiffness_diagonal(stiffness_coef, pair_damping)
+    return diagonal
+
+
+__all__ = ["PRECONDITIONERS", "JacobiScaling", "system_diagonal"]

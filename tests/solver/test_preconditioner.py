@@ -1,0 +1,215 @@
+"""Jacobi preconditioning (solver.preconditioner): the diagonals it divides by against the probed
+diagonals of the operators (float64), the preconditioned step against the plain one and a dense
+solve, the cache following a cut, and bad choices."""
+import dataclasses
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.physics.body_contact import Contact, PairStiffness, SurfaceContact
+from tensormass_torch.solver.implicit_euler import _coefficients, implicit_euler_step
+from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagonal
+
+DT = torch.float64
+
+
+def probed_diagonal(product, shape):
+    """The diagonal ``[V, d]`` of a linear map on ``[V, d]`` fields, one unit vector at a time."""
+    out = torch.zeros(shape, dtype=DT)
+    for i in range(shape[0]):
+        for a in range(shape[1]):
+            e = torch.zeros(shape, dtype=DT)
+            e[i, a] = 1.0
+            out[i, a] = product(e)[i, a]
+    return out
+
+
+def meshes():
+    tet = tm.beam_mesh(2, 2, 3, size=(0.1, 0.1, 0.3), dtype=DT)
+    planar = tm.beam_tri_mesh(3, 2, size=(0.3, 0.2), dtype=DT)
+    membrane = tm.beam_tri_mesh(3, 2, size=(0.3, 0.2), dim=3, dtype=DT)
+    gen = torch.Generator().manual_seed(0)
+    # a membrane out of its plane, so that its projectors are not the identity's block
+    lifted = membrane.vertices + torch.cat([torch.zeros(membrane.num_vertices, 2, dtype=DT),
+                                            0.05 * torch.rand(membrane.num_vertices, 1, generator=gen, dtype=DT)], 1)
+    return {"tet": tet, "tri2d": planar, "membrane": tm.TriMesh(lifted, membrane.elements)}
+
+
+CASES = [(kind, model, form) for kind in ("tet", "tri2d", "membrane")
+         for model, form in (("hooke", "tensor"), ("hooke", "stress"), ("stvk", "tensor"), ("stvk", "stress"),
+                             ("corotational", "stress"))
+         if not (kind == "membrane" and model == "corotational")]
+
+
+@pytest.mark.parametrize("kind,model,form", CASES)
+def test_stiffness_diagonal_is_the_rest_stiffness_diagonal(kind, model, form):
+    """Every group's diagonal equals the probed diagonal of -dF/dx at rest."""
+    mesh = meshes()[kind]
+    tensor_mass = tm.TensorMass(mesh, tm.Material(young=1e5, poisson=0.3, density=1000, model=model), form=form)
+    rest = tensor_mass.rest
+    expected = probed_diagonal(lambda e: -tensor_mass.dforce(rest, e), rest.shape)
+    diagonal = tensor_mass.stiffness_diagonal()
+    assert bool((diagonal > 0).all())
+    torch.testing.assert_close(diagonal, expected, rtol=1e-12, atol=1e-12 * float(expected.abs().max()))
+
+
+@pytest.mark.parametrize("form", ["tensor", "stress"])
+def test_the_diagonal_follows_a_cut(form):
+    """Removing elements edits the groups' tensors in place: the kept diagonal is summed again and
+    equals the probed one of the cut model (removed elements add nothing)."""
+    mesh = tm.beam_mesh(2, 2, 3, size=(0.1, 0.1, 0.3), dtype=DT)
+    tensor_mass = tm.TensorMass(mesh, tm.Material(young=1e5, poisson=0.3, density=1000), form=form)
+    before = tensor_mass.stiffness_diagonal().clone()
+    assert tensor_mass.stiffness_diagonal() is tensor_mass.stiffness_diagonal()  # kept
+    tensor_mass.remove_elements(torch.tensor([0, 5, 7]))
+    rest = tensor_mass.rest
+    expected = probed_diagonal(lambda e: -tensor_mass.dforce(rest, e), rest.shape)
+    after = tensor_mass.stiffness_diagonal()
+    assert not torch.equal(after, before)
+    torch.testing.assert_close(after, expected, rtol=1e-12, atol=1e-12 * float(expected.abs().max()))
+
+
+def two_blocks_in_contact(preconditioner="auto", friction=0.0, cg_tol=1e-13):
+    """Two small blocks, one resting on the other on a floor, in contact (with Jacobi, by default)."""
+    material = tm.Material(young=1e4, poisson=0.3, density=1000)
+    low = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), dtype=DT)
+    high = tm.TetMesh(low.vertices + torch.tensor([0.05, 0.03, 0.095], dtype=DT), low.elements)
+    return tm.Simulator([tm.Body(low, material), tm.Body(high, material)], dt=0.01,
+                        planes=[tm.Plane((0, 0, 1), 0.001, 1e4, friction=0.3)],
+                        contact=tm.Contact(stiffness=1e3, thickness=0.01, friction=friction), rayleigh_mass=0.5,
+                        cg_tol=cg_tol, cuda_graphs=False, preconditioner=preconditioner)
+
+
+def loaded_step_matrix(sim):
+    """The step's SystemMatvec loaded at the state (node stiffness of the floor and its friction
+    folded in, as a step does) and the pairs the step linearises."""
+    from tensormass_torch.solver.implicit_euler import _step_system
+
+    system, opts = sim.system, sim.options
+    loaded = system.system_matvec(*_coefficients(opts), opts.pipelined, opts.variants)
+    _, _, pairs = sim.body_contact.at_state(sim.x, sim.v, opts.dt)
+    _step_system(system, sim.x, sim.v, opts, None, loaded)
+    return loaded, pairs
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.4])
+def test_the_system_diagonal_is_the_step_matrix_diagonal(friction):
+    """system_diagonal equals the probed diagonal of the step's whole product: mass, elasticity,
+    the floor's stiffness and friction, the pairs' stiffness and friction."""
+    sim = two_blocks_in_contact(friction=friction)
+    gen = torch.Generator().manual_seed(1)
+    sim.v = 0.05 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
+    loaded, pairs = loaded_step_matrix(sim)
+    assert len(pairs) > 0 and (friction == 0) == (pairs.friction is None)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    stiffness = PairStiffness()
+    stiffness.load(pairs, stiffness_coef, sim.options.dt)
+    expected = probed_diagonal(lambda e: loaded(e)[0] + stiffness(e), sim.x.shape)
+    diagonal = system_diagonal(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness, pairs, sim.options.dt)
+    torch.testing.assert_close(diagonal, expected, rtol=1e-12, atol=1e-14)
+
+
+def test_the_scaled_product_is_s_a_s():
+    """JacobiScaling's product is S A S with S = D^(-1/2), a fused (A p, p . Ap) product's dots
+    dropped; its buffer keeps its storage across loads; rows without a positive diagonal stay
+    unscaled."""
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(12, 12, generator=gen, dtype=DT)
+    a = a @ a.T + 12 * torch.eye(12, dtype=DT)
+    diagonal = torch.diagonal(a).reshape(4, 3).clone()
+    diagonal[2, 1] = 0.0  # a row CG never moves
+    scaling = JacobiScaling().load(diagonal)
+    storage = scaling.scale.data_ptr()
+    s = scaling.scale.reshape(-1)
+    assert s[7] == 1.0
+    p = torch.randn(4, 3, generator=gen, dtype=DT)
+    expected = (s[:, None] * a * s[None, :]) @ p.reshape(-1)
+    plain = scaling.product(lambda q: (a @ q.reshape(-1)).view(4, 3))
+    fused = scaling.product(lambda q: ((a @ q.reshape(-1)).view(4, 3), torch.zeros(4, dtype=DT)))
+    torch.testing.assert_close(plain(p).reshape(-1), expected)
+    torch.testing.assert_close(fused(p).reshape(-1), expected)
+    scaling.load(2.0 * torch.diagonal(a).reshape(4, 3))
+    assert scaling.scale.data_ptr() == storage
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.4])
+def test_preconditioned_and_plain_steps_agree(friction):
+    """The same step (contact pairs, floor and its friction) solved to 1e-13 with Jacobi and
+    without: the same velocities to 1e-9."""
+    results = []
+    for preconditioner in ("jacobi", "none"):
+        sim = two_blocks_in_contact(preconditioner, friction)
+        gen = torch.Generator().manual_seed(4)
+        sim.v = 0.05 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
+        _, v_new, report = implicit_euler_step(sim.system, sim.x, sim.v, sim.options)
+        assert all(bool(r.converged.all()) for r in report.cg)
+        results.append(v_new)
+    torch.testing.assert_close(results[0], results[1], rtol=1e-9, atol=1e-9)
+
+
+def test_jacobi_on_a_body_without_contact_equals_the_plain_step():
+    """preconditioner="jacobi" without contact (the scaled product instead of the whole-solve op):
+    the plain step's velocities to 1e-9, and a fixed node stays fixed."""
+    mesh = tm.beam_mesh(4, 1, 1, size=(0.4, 0.1, 0.1), dtype=DT)
+    out = []
+    for preconditioner in ("jacobi", "none"):
+        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000), fixed=mesh.vertices[:, 0] < 1e-9)
+        sim = tm.Simulator([body], dt=0.01, cg_tol=1e-13, preconditioner=preconditioner)
+        sim.step(3)
+        out.append(sim.v.clone())
+    torch.testing.assert_close(out[0], out[1], rtol=1e-9, atol=1e-9)
+    assert float(out[0][mesh.vertices[:, 0] < 1e-9].abs().max()) == 0.0
+
+
+def test_a_pile_with_jacobi_keeps_the_bodies_apart():
+    """Two blocks dropped on each other with the default (Jacobi where they touch) and float32:
+    the steps converge and the bodies stay apart (exact interpenetration under 1 % of an edge)."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    low = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), dtype=torch.float32)
+    high = tm.TetMesh(low.vertices + torch.tensor([0.02, 0.0, 0.13]), low.elements)
+    sim = tm.Simulator([tm.Body(low, material), tm.Body(high, material)], dt=0.005,
+                       planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(), rayleigh_mass=1.0, cg_tol=1e-4)
+    for _ in range(60):
+        report = sim.step()
+    assert report.contact.body_contacts.sum() > 0
+    assert float(sim.interpenetration().max()) < 0.01 * sim.body_contact.search
+
+
+def test_bad_preconditioner_raises_one_clear_error(tmp_path):
+    mesh = tm.beam_mesh(1, 1, 1, dtype=DT)
+    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', got 'ilu'"):
+        tm.Simulator([tm.Body(mesh, tm.Material(young=1e5, poisson=0.3))], preconditioner="ilu")
+    scene = tmp_path / "bad.toml"
+    scene.write_text('[solver]\npreconditioner = "multigrid"\n\n[[bodies]]\nmesh = { generator = "beam", cells = [1, 1, 1] }\n'
+                     'material = { young = 1e5, poisson = 0.3, density = 1000 }\n')
+    with pytest.raises(tm.SceneError, match="preconditioner"):
+        tm.load_scene(scene)
+
+
+def test_the_scene_file_key_reaches_the_simulator(tmp_path):
+    scene = tmp_path / "jacobi.toml"
+    scene.write_text('[solver]\npreconditioner = "jacobi"\n\n[[bodies]]\nmesh = { generator = "beam", cells = [1, 1, 1] }\n'
+                     'material = { young = 1e5, poisson = 0.3, density = 1000 }\n')
+    assert tm.load_scene(scene).simulator.options.preconditioner == "jacobi"
+
+
+def test_detected_pairs_have_a_positive_diagonal():
+    """ContactPairs.stiffness_diagonal of overlapping bodies is non-negative and zero off the
+    pairs' nodes; with friction it grows by the tangential part."""
+    mesh = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), dtype=DT)
+    rest = torch.cat([mesh.vertices, mesh.vertices + torch.tensor([0.03, 0.02, 0.09], dtype=DT)])
+    from tensormass_torch.mesh.topology import boundary_faces
+
+    triangles = torch.cat([boundary_faces(mesh.elements), boundary_faces(mesh.elements) + mesh.num_vertices])
+    objects = torch.cat([torch.zeros(mesh.num_vertices, dtype=torch.int64),
+                         torch.ones(mesh.num_vertices, dtype=torch.int64)])
+    contact = SurfaceContact(triangles, objects, rest, Contact(stiffness=1e3, thickness=0.01))
+    pairs = contact.detect(rest)
+    assert len(pairs) > 0
+    plain = pairs.stiffness_diagonal(0.5)
+    touched = torch.zeros(rest.shape[0], dtype=torch.bool)
+    touched[pairs.nodes.reshape(-1)] = True
+    assert bool((plain >= 0).all()) and float(plain[~touched].abs().max()) == 0.0
+    rubbing = dataclasses.replace(pairs, friction=torch.full((len(pairs),), 7.0, dtype=DT))
+    assert bool((rubbing.stiffness_diagonal(0.5, 0.1) >= plain).all())
