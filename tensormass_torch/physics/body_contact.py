@@ -435,8 +435,7 @@ class SurfaceContact:
             grow.append(torch.where(meet, closing, torch.zeros_like(closing)).amax(1))
         return deviation, body_step, torch.cat(grow)
 
-    def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0, motion=None,
-                   subset=None):
+    def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0, motion=None):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
         triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed
         self-contact) whose triangle's box, grown by :attr:`reach`, meets the vertex's box.
@@ -445,8 +444,7 @@ class SurfaceContact:
         it at x and at x + dt (v - V_body), a vertex's its segment likewise, grown by the most
         that a body its body may meet closes on it, dt |V_a - V_b| (a vertex arriving faster
         than the reach per step is found before it is inside); otherwise a vertex's box is its
-        point. ``motion``: :meth:`_motion` ``(x, v, dt)`` when the caller has it. ``subset``:
-        (vertex ids into :attr:`vertices`, triangle ids) to look among, or None (all).
+        point. ``motion``: :meth:`_motion` ``(x, v, dt)`` when the caller has it.
 
         A spatial hash of cell size c = the largest triangle box side at x + 2 reach (motion does
         not grow it: a still triangle covers at most 2 cells per axis, a moving one as many as
@@ -454,25 +452,20 @@ class SurfaceContact:
         boxes cover; it is kept in one, the cell of the low corner of the boxes' intersection."""
         device = x.device
         empty = torch.zeros(0, dtype=torch.int64, device=device)
-        vertex_ids, triangle_ids = subset if subset is not None else (None, None)
-        triangles = self.triangles if triangle_ids is None else self.triangles[triangle_ids]
-        vertices = self.vertices if vertex_ids is None else self.vertices[vertex_ids]
-        vertex_object = self.vertex_object if vertex_ids is None else self.vertex_object[vertex_ids]
-        triangle_object = self.triangle_object if triangle_ids is None else self.triangle_object[triangle_ids]
-        if len(triangles) == 0 or len(vertices) == 0:
+        if len(self.triangles) == 0:
             return empty, empty
-        corners = x[triangles]  # [F, 3, 3]
+        corners = x[self.triangles]  # [F, 3, 3]
         low, high = corners.amin(1), corners.amax(1)
         reach = self.reach
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
-        points = x[vertices]
+        points = x[self.vertices]
         swept = self.settings.swept and v is not None and dt > 0
         if swept:  # in each body's moving frame, grown by what the bodies it may meet close on it
             deviation, _, grow = self._motion(x, v, dt) if motion is None else motion
-            moved = corners + deviation[triangles]
+            moved = corners + deviation[self.triangles]
             low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
-            ends = points + deviation[vertices]
-            grow = grow[vertex_object][:, None]
+            ends = points + deviation[self.vertices]
+            grow = grow[self.vertex_object][:, None]
             point_low, point_high = torch.minimum(points, ends) - grow, torch.maximum(points, ends) + grow
         low, high = low - reach, high + reach
         # (each count below is one host synchronisation: the sizes of what follows)
@@ -482,7 +475,7 @@ class SurfaceContact:
         if swept:
             query_vertex, query_cells = _covered_cells(point_low, point_high, cell)
         else:
-            query_vertex = torch.arange(len(vertices), device=device)
+            query_vertex = torch.arange(len(self.vertices), device=device)
             query_cells = torch.floor(points / cell).to(torch.int64)
         query_keys = _hash(query_cells)
         start = torch.searchsorted(keys, query_keys, side="left")
@@ -498,55 +491,28 @@ class SurfaceContact:
             corner = torch.maximum(point_low[vertex], low[triangle])
             meet = ((point_low[vertex] <= high[triangle]) & (point_high[vertex] >= low[triangle])).all(-1)
             kept &= meet & (torch.floor(corner / cell).to(torch.int64) == query_cells[query]).all(-1)
-        same = vertex_object[vertex] == triangle_object[triangle]
+        same = self.vertex_object[vertex] == self.triangle_object[triangle]
         if not self.settings.self_contact:
-            keep = (kept & ~same).nonzero().squeeze(1)
-        else:  # self-contact: not the vertex's own triangles, nor those near it at rest
-            node = vertices[vertex]
-            tri = triangles[triangle]
-            own = (tri == node[:, None]).any(1)
-            s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
-            keep = (kept & (~same | (~own & (s_rest.abs() > reach)))).nonzero().squeeze(1)
-        vertex, triangle = vertex[keep], triangle[keep]
-        if subset is not None:  # back to ids into all the vertices and triangles
-            vertex = vertex if vertex_ids is None else vertex_ids[vertex]
-            triangle = triangle if triangle_ids is None else triangle_ids[triangle]
-        return vertex, triangle
+            other = (kept & ~same).nonzero().squeeze(1)
+            return vertex[other], triangle[other]
+        # self-contact: not the vertex's own triangles, nor those near it at rest
+        node = self.vertices[vertex]
+        own = (self.triangles[triangle] == node[:, None]).any(1)
+        tri = self.triangles[triangle]
+        s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
+        keep = (kept & (~same | (~own & (s_rest.abs() > reach)))).nonzero().squeeze(1)
+        return vertex[keep], triangle[keep]
 
-    def _around(self, x: torch.Tensor, bodies: torch.Tensor):
-        """(surface vertex ids, triangle ids) of the bodies ``bodies [B]`` (bool) and of those
-        whose boxes at ``x`` come within :attr:`reach` of theirs: every pair with a vertex or a
-        triangle of ``bodies`` is among them, whole bodies each (so the nearest triangle of a
-        body is the nearest of all its triangles)."""
-        objects = max(self.num_objects, 1)
-        points = x[self.vertices]
-        index = self.vertex_object[:, None].expand(-1, 3)
-        lower = points.new_full((objects, 3), math.inf).scatter_reduce(0, index, points, "amin")
-        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(0, index, points, "amax")
-        chosen = bodies.nonzero().squeeze(1)
-        meet = ((lower[chosen, None] <= upper[None] + self.reach)
-                & (lower[None] <= upper[chosen, None] + self.reach)).all(-1).any(0)  # [B]
-        around = meet | bodies
-        return around[self.vertex_object].nonzero().squeeze(1), around[self.triangle_object].nonzero().squeeze(1)
-
-    def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0,
-               bodies: Optional[torch.Tensor] = None):
+    def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
         """Every pair a step at ``x [V, 3]`` may need, and which of them :meth:`detect` keeps:
         (pairs, closing ``[P]`` bool). The pairs: for each surface vertex and each other body,
         the nearest of its candidate triangles within :attr:`reach`, whatever its gap (without
         the exact Hessians; :meth:`select` adds them). closing: the gap is negative or, given
         the velocities ``v [V, 3]`` and a step ``dt``, the gap the pair would have after the step
-        at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module).
-
-        ``bodies``: ``[B]`` bool, only the pairs with a vertex or a triangle of these bodies (the
-        rest looked at only as far as they may meet them), or None (all)."""
+        at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module)."""
         swept = self.settings.swept and v is not None and dt > 0
         motion = self._motion(x, v, dt) if swept else None
-        subset = None if bodies is None else self._around(x, bodies)
-        vertex, triangle = self.candidates(x, v, dt, motion, subset)
-        if bodies is not None:
-            wanted = (bodies[self.vertex_object[vertex]] | bodies[self.triangle_object[triangle]]).nonzero().squeeze(1)
-            vertex, triangle = vertex[wanted], triangle[wanted]
+        vertex, triangle = self.candidates(x, v, dt, motion)
         tri = self.triangles[triangle]
         node = self.vertices[vertex]
         w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
@@ -615,7 +581,7 @@ class SurfaceContact:
         return chosen
 
     def relinearise(self, x: torch.Tensor, dx: torch.Tensor, pairs: ContactPairs, active: torch.Tensor,
-                    v: Optional[torch.Tensor] = None, bodies: Optional[torch.Tensor] = None):
+                    v: Optional[torch.Tensor] = None):
         """The pairs a step from ``x [V, 3]`` needs once its solve moved the nodes by ``dx [V, 3]``:
         (pairs, active ``[P']`` bool, whether any pair changed), from :meth:`nearby`'s ``pairs``
         and the ``active`` mask the solve used.
@@ -629,11 +595,8 @@ class SurfaceContact:
         w_e and gap g_e at ``x + dx``, so that its model g_e + u_e . J_e (dx' - dx) is exact at
         the solution it was found from (written as a pair at x: gap g_e - u_e . J_e dx). A
         (vertex, body) has at most one pair (the new one replaces the old); ``v``: the
-        velocities the friction coefficients are taken at (as :meth:`nearby`'s). ``bodies``:
-        ``[B]`` bool, the bodies whose motion ``dx`` changed since pairs and active were last
-        checked against it (only pairs with a vertex or a triangle of theirs can differ), or None
-        (all)."""
-        end, _ = self.nearby(x + dx, bodies=bodies)
+        velocities the friction coefficients are taken at (as :meth:`nearby`'s)."""
+        end, _ = self.nearby(x + dx)
         objects = max(self.num_objects, 1)
         key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
         end_key = end.nodes[:, 0] * objects + end.objects[:, 1]

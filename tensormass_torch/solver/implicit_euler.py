@@ -945,16 +945,11 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # the same tolerance. A (vertex, body) in the set stays
     # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
-    # once, and at most CONTACT_SET_ROUNDS more solves follow. After a re-solve only the bodies
-    # it moved (their run's CG iterated; the others kept their solution, pairs and end gaps) are
-    # looked at again, with whatever they may meet.
-    changed = None  # the first check looks at every body
+    # once, and at most CONTACT_SET_ROUNDS more solves follow.
     for _ in range(CONTACT_SET_ROUNDS if near is not None else 0):
         dx = h * v_new
         missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
-        if changed is not None and not bool(changed.any()):
-            break  # no body moved: the last check stands
-        near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v, changed)
+        near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v)
         if not moved and not bool(missed.any()):
             break
         pairs = system.body_contact.select(x, near, active.nonzero().squeeze(1))
@@ -963,7 +958,6 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         report.cg.append(result)
         _raise_if_failed(result, opts, "implicit Euler CG (contact set)")
         v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
-        changed = result.iterations > 0  # [B]
 
     for _ in range(opts.newton_iters - 1):
         x_new = torch.add(x, v_new, alpha=h)

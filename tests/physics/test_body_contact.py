@@ -409,38 +409,6 @@ def test_pairs_relinearised_where_the_step_ends(overlapping):
         assert abs(gap - at_end[key]) < 1e-12
 
 
-@pytest.mark.parametrize("swept", [False, True])
-def test_nearby_for_some_bodies_is_all_the_pairs_with_them(swept):
-    """nearby(..., bodies=mask) finds exactly the pairs of the whole detection whose vertex or
-    triangle is in a masked body (the same nearest triangles, directions and gaps), looking only
-    at those bodies and the ones whose boxes come within reach of theirs: a row of four
-    overlapping blocks, the mask on the second; then on none (no pair)."""
-    block = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), dtype=DT)
-    shifts = [(0.0, 0.0, 0.0), (0.15, 0.01, 0.02), (0.3, -0.01, 0.0), (0.9, 0.0, 0.0)]  # the last far away
-    rest = torch.cat([block.vertices + torch.tensor(t, dtype=DT) for t in shifts])
-    count = block.num_vertices
-    triangles = torch.cat([boundary_faces(block.elements) + i * count for i in range(len(shifts))])
-    objects = torch.arange(len(shifts)).repeat_interleave(count)
-    contact = SurfaceContact(triangles, objects, rest, Contact(stiffness=1e3, swept=swept))
-    gen = torch.Generator().manual_seed(5)
-    v = torch.randn(rest.shape, generator=gen, dtype=DT)
-    whole, closing = contact.nearby(rest, v, 0.01)
-    mask = torch.tensor([False, True, False, False])
-    some, some_closing = contact.nearby(rest, v, 0.01, bodies=mask)
-    wanted = mask[whole.objects].any(1)
-    assert 0 < int(wanted.sum()) < len(whole)
-
-    def rows(p, keep):
-        table = torch.cat([p.nodes.to(DT), p.weights, p.direction, p.gap[:, None]], dim=1)[keep]
-        return table[torch.argsort(table[:, 0] * 1e4 + table[:, 1])]
-
-    torch.testing.assert_close(rows(some, slice(None)), rows(whole, wanted), rtol=0, atol=0)
-    vertices, triangles = contact._around(rest, mask)  # the far block is not looked at
-    assert not bool((contact.vertex_object[vertices] == 3).any())
-    none, _ = contact.nearby(rest, v, 0.01, bodies=torch.zeros(4, dtype=torch.bool))
-    assert len(none) == 0
-
-
 def block_on_a_slab(theta_deg, friction, steps=125, dt=2e-3, friction_velocity=1e-3):
     """A soft 0.1 m cube resting on a stiff slab held at its base, gravity tilted by theta from
     the slab's normal: the cube's mass-weighted mean velocity along the slope at each step [steps]."""
