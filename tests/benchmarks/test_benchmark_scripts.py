@@ -213,3 +213,27 @@ def test_contact_piles_quick(tmp_path):
     (row,) = contact_piles.main(["--quick", "--device", "cpu", "--out", str(tmp_path)])
     assert row["blocks"] == 8 and row["steps_per_s_with"] > 0 and row["surface_triangles"] > 0
     assert (tmp_path / "contact_piles.md").exists() and (tmp_path / "contact_piles.json").exists()
+
+
+def test_contact_piles_resumes_a_paused_run(tmp_path):
+    """--state with --budget-s 0 pauses after each step, saving the state; the same command goes
+    on from it to the end, at the state an uninterrupted run reaches; two preconditioners, the
+    pile without contact measured once."""
+    import contact_piles
+
+    whole = contact_piles.main(["--quick", "--device", "cpu", "--dtype", "float64", "--out", str(tmp_path / "a"),
+                                "--preconditioners", "auto", "none"])
+    assert [r["preconditioner"] for r in whole] == ["auto", "none"]
+    assert whole[0]["steps_per_s_without"] == whole[1]["steps_per_s_without"]
+    command = ["--quick", "--device", "cpu", "--dtype", "float64", "--out", str(tmp_path / "b"),
+               "--state", str(tmp_path / "state"), "--budget-s", "0"]
+    assert contact_piles.main(command) == []  # paused after step 1
+    meta = json.loads((tmp_path / "state" / "columns2_auto" / "meta.json").read_text())
+    assert meta["step"] == 1
+    assert contact_piles.main(command) == []  # after step 2
+    (row,) = contact_piles.main(command)  # step 3 ends the run
+    assert row["steps"] == 3
+    inside, kinetic = whole[0]["checks"][-1][1:3]
+    assert row["checks"][-1][0] == 3
+    assert abs(row["checks"][-1][2] - kinetic) <= 1e-9 * max(1.0, kinetic)
+    assert abs(row["interpenetration_m"] - inside) <= 1e-9
