@@ -13,7 +13,8 @@ except for the corotational model with R recomputed inside the op (f is not an e
 through R(u): reference vjp); with ``rotations`` given, R is an input: the u-gradient is
 dforces(u, g, R) and R gets the reference vjp. dforces: d(g . K(u) du)/d du = dforces(u, g).
 lam, mu: the forces are linear in (lam, mu), so the gradient per element is the dot of the
-element's cotangent with its forces at (lam, mu) = (1, 0) and (0, 1). Every other gradient
+element's cotangent with its forces at (lam, mu) = (1, 0) and (0, 1) (not the definite stvk
+tangent, whose positive part of S is not linear in them: the reference's vjp). Every other gradient
 (geometry, u in the element-level and padded ops, u in stvk dforces) is the reference's vjp, so
 every input that requires grad gets a correct one; double backward works where the reference
 path does.
@@ -192,7 +193,9 @@ def _fast_gradients(name):
             if dforce and needs[u_pos] and (int(inputs[-3]) == MODEL_IDS["hooke"] or (corot and not r_of_u)):
                 fast[u_pos] = None  # K does not depend on u: hooke, corotational with R given
         lam_pos, mu_pos = len(inputs) - 6, len(inputs) - 5
-        if needs[lam_pos] or needs[mu_pos]:
+        # the definite tangent's S+ is not linear in (lam, mu): its gradient is the reference's vjp
+        definite = dforce and int(inputs[-3]) == MODEL_IDS["stvk_definite"]
+        if (needs[lam_pos] or needs[mu_pos]) and not definite:
             fast[lam_pos], fast[mu_pos] = _lame_gradients(name, inputs, g, needs[lam_pos], needs[mu_pos])
         return fast
 

@@ -113,9 +113,48 @@ def stvk_dforces(u, du, m, vol, lam, mu, proj=None):
 
 
 def positive_part(sym: torch.Tensor) -> torch.Tensor:
-    """The positive part of symmetric matrices ``[..., d, d]``: negative eigenvalues set to 0."""
-    values, vectors = torch.linalg.eigh(sym)
-    return (vectors * torch.clamp(values, min=0.0).unsqueeze(-2)) @ vectors.transpose(-1, -2)
+    """The positive part of symmetric matrices ``[..., d, d]``: negative eigenvalues set to 0.
+    Differentiable everywhere, repeated eigenvalues included (:class:`_PositivePart`)."""
+    return _PositivePart.apply(sym)[0]
+
+
+class _PositivePart(torch.autograd.Function):
+    """S -> S+ with the derivative of a matrix function (Daleckii-Krein): for S = Q diag(l) Q^T,
+    d(S+) = Q (G o (Q^T dS Q)) Q^T with G_ij = (l_i+ - l_j+) / (l_i - l_j), and where l_i and l_j
+    (nearly) coincide the derivative there, 1 above 0 and 0 below (1/2 at 0 exactly). eigh's own
+    backward divides by l_i - l_j and gives NaN at repeated eigenvalues: at rest S = 0, all equal.
+    The backward is written in differentiable ops, so a second derivative exists as well."""
+
+    generate_vmap_rule = True  # (the ops' reference vjps run under torch.func)
+
+    @staticmethod
+    def forward(sym):
+        values, vectors = torch.linalg.eigh(sym)
+        return (vectors * torch.clamp(values, min=0.0).unsqueeze(-2)) @ vectors.transpose(-1, -2), values, vectors
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        _, values, vectors = output
+        ctx.mark_non_differentiable(values, vectors)
+        ctx.save_for_backward(values, vectors)
+
+    @staticmethod
+    def backward(ctx, grad, _values, _vectors):
+        values, vectors = ctx.saved_tensors
+        return _positive_part_vjp(values, vectors, grad)
+
+
+def _positive_part_vjp(values, vectors, grad):
+    positive = torch.clamp(values, min=0.0)
+    slope = (values > 0).to(values.dtype) + 0.5 * (values == 0).to(values.dtype)
+    gap = values.unsqueeze(-1) - values.unsqueeze(-2)
+    scale = values.abs().amax(-1, keepdim=True).unsqueeze(-1)
+    close = gap.abs() <= 1e-12 * scale
+    secant = (positive.unsqueeze(-1) - positive.unsqueeze(-2)) / torch.where(close, torch.ones_like(gap), gap)
+    tangent = 0.5 * (slope.unsqueeze(-1) + slope.unsqueeze(-2))
+    weights = torch.where(close, tangent, secant)
+    inner = vectors.transpose(-1, -2) @ (0.5 * (grad + grad.transpose(-1, -2))) @ vectors
+    return vectors @ (weights * inner) @ vectors.transpose(-1, -2)
 
 
 def stvk_definite_dforces(u, du, m, vol, lam, mu, proj=None):

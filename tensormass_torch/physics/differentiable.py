@@ -1,0 +1,120 @@
+"""A TensorMass's forces, force differential and lumped masses as differentiable functions of
+its material: what the adjoint of the implicit step (``solver.adjoint``) differentiates.
+
+The model's groups hold what their kernels need precomputed from the material (the tensor
+form's edge tensors, the cached Lame constants), so no gradient reaches a material parameter
+through them. This view evaluates every group through the stress-form ops instead (the same
+forces and differential, up to rounding: the tensor form is the stress form's sums regrouped),
+with the Lame constants formed from the per-element values it is given at each call, so
+autograd reaches them: per-element Young's modulus, Poisson ratio and density ``[N]`` in the
+model's element numbering (the parts in the order they were packed).
+"""
+from __future__ import annotations
+
+from typing import List, Optional
+
+import torch
+
+from .. import ops
+from ..errors import SceneError
+from .groups import ElementGroup
+
+
+class DifferentiableModel:
+    """The elastic terms of ``model`` (a :class:`TensorMass` as built: no element removed or cut)
+    as functions of per-element material values.
+
+    Attributes:
+        group_ids: per group, the model's element ids of its rows ``[N_g]`` (int64).
+        young, poisson, density: the model's own per-element values ``[N]`` (detached).
+    """
+
+    def __init__(self, model):
+        if "removed" in model._buffers:
+            raise SceneError("gradients through a model whose elements were removed or cut are not available "
+                             "yet: build a simulator of the remaining mesh")
+        self.model = model
+        like = model.rest
+        self.group_ids: List[torch.Tensor] = []
+        self._stress_groups: List[ElementGroup] = []
+        self._node_ids: List[torch.Tensor] = []
+        young = like.new_empty(model.num_elements)
+        poisson = like.new_empty(model.num_elements)
+        density = like.new_empty(model.num_elements)
+        for group in model.groups:
+            sources = group.__dict__["_sources"]
+            ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
+            values = [torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4)]
+            for full, value in zip((young, poisson, density), values):
+                full[ids] = value
+            self.group_ids.append(ids)
+            self._stress_groups.append(_stress_group(model.rest, group, values[0], values[1]))
+            self._node_ids.append(group.elements.long())
+        self.young, self.poisson, self.density = young, poisson, density
+
+    def per_element(self, name: str, value: Optional[torch.Tensor]) -> torch.Tensor:
+        """``value`` (a 0-dim or ``[N]`` tensor; None: the model's own) as ``[N]`` over the model's
+        elements, its autograd graph kept."""
+        own = getattr(self, name)
+        if value is None:
+            return own
+        if value.dim() == 0:
+            return value.expand(own.shape[0])
+        return value
+
+    def lumped_mass(self, density: torch.Tensor) -> torch.Tensor:
+        """Lumped masses ``[V]`` for per-element densities ``[N]``: each element gives rho V / n to
+        each of its n nodes (the model's masses, summed in another order)."""
+        mass = density.new_zeros(self.model.num_nodes)
+        for group, ids, nodes in zip(self._stress_groups, self.group_ids, self._node_ids):
+            share = density[ids] * group.measure / nodes.shape[1]
+            mass = mass.index_add(0, nodes.reshape(-1), share.repeat_interleave(nodes.shape[1]))
+        return mass
+
+    def forces_and_differential(self, u: torch.Tensor, w: torch.Tensor, young: torch.Tensor,
+                                poisson: torch.Tensor):
+        """``(f(u), K(u) w)`` ``[V, d]`` at displacements ``u [V, d]`` along ``w [V, d]`` for the
+        per-element ``young, poisson [N]``: the corotational rotations at u (their derivative
+        included), the stvk tangent the model's solver uses (exact or definite)."""
+        forces = differential = None
+        for group, ids in zip(self._stress_groups, self.group_ids):
+            group.young, group.poisson = young[ids], poisson[ids]  # read by ops.stress.lame at each call
+            state = ops.linearize(group, u)
+            f = ops.forces(group, u, state)
+            k_w = ops.dforces(group, u, w, state)
+            forces = f if forces is None else forces + f
+            differential = k_w if differential is None else differential + k_w
+        return forces, differential
+
+
+def _stress_group(rest: torch.Tensor, group: ElementGroup, young: torch.Tensor, poisson: torch.Tensor) -> ElementGroup:
+    """A stress-form group of ``group``'s elements (its own when it has the stress form: a new one
+    all the same, whose material this view sets at each call), with ``group``'s measure (a
+    membrane's thickness in it)."""
+    tangent = group.tangent if group.form == "stress" else "exact"  # the tensor form's stvk is exact
+    twin = ElementGroup(rest, group.elements, young, poisson, group.model, "stress", None,
+                        group.rotation or "polar", tangent)
+    twin.measure = group.measure.detach().clone()
+    return twin
+
+
+def check_per_element(name: str, value, count: int, like: torch.Tensor, low: float,
+                      high: float) -> Optional[torch.Tensor]:
+    """``value`` (None, a number, a 0-dim or ``[count]`` tensor) as a tensor of ``like``'s dtype and
+    device (its autograd graph kept), after checking its shape and that it is finite and in
+    (low, high); None stays None."""
+    if value is None:
+        return None
+    t = value if isinstance(value, torch.Tensor) else torch.as_tensor(value)
+    if t.dim() not in (0, 1) or (t.dim() == 1 and t.shape[0] != count):
+        raise SceneError(f"{name} has shape {tuple(t.shape)}; expected a scalar or [{count}] (one per element)")
+    if not t.is_floating_point():
+        raise SceneError(f"{name} must be a floating-point tensor, got {t.dtype}")
+    t = t.to(dtype=like.dtype, device=like.device)
+    with torch.no_grad():
+        bad = ~torch.isfinite(t) | (t <= low) | (t >= high)
+        if bool(bad.any()):
+            worst = t[bad].reshape(-1)[0].item()
+            raise SceneError(f"{name} must be finite and in ({low:g}, {high:g}); got {worst!r}")
+    return t
+

@@ -1,0 +1,214 @@
+"""Differentiable rollouts: a simulation's trajectory as tensors autograd reaches through.
+
+``tm.rollout(sim, steps, young=..., forces=...)`` steps a copy of the simulator's state (the
+simulator itself is not advanced) with the adjoint step of ``solver.adjoint``: the trajectory it
+returns carries gradients back to the initial positions and velocities, the per-element Young's
+moduli, Poisson ratios and densities, gravity and the external node forces of each step, and,
+through the prescribed nodes' imposed velocities, to whatever the positions depend on.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import List, Optional, Sequence
+
+import torch
+from torch.utils.checkpoint import checkpoint
+
+from ..errors import SceneError
+from ..physics.differentiable import DifferentiableModel, check_per_element
+from ..solver.adjoint import DifferentiableStep, ImplicitStep, adjoint_options, check_differentiable
+from .simulator import Body, Simulator
+
+
+@dataclass
+class Rollout:
+    """A trajectory: ``x, v [F, V, 3]`` at the steps ``frames`` (step 0 is the initial state), over
+    the simulator's node rows (``sim.x``'s: bodies in order, spare rows included)."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    frames: List[int]
+
+
+def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[torch.Tensor] = None,
+            young=None, poisson=None, density=None, gravity=None, forces: Optional[torch.Tensor] = None,
+            exact: bool = True, cg_tol: Optional[float] = None, checkpoint_every: Optional[int] = None,
+            frames: Optional[Sequence[int]] = None) -> Rollout:
+    """``steps`` implicit Euler steps of ``sim`` from its state (or ``x0, v0``), differentiable.
+
+    Every argument left None is the simulator's own (no gradient); a tensor that requires grad
+    gets one through every step by the adjoint method (``solver.adjoint``).
+
+    Args:
+        sim: the simulator (not advanced: its state, time and caches of solves stay as they are).
+        steps: number of steps (>= 1).
+        x0, v0: initial positions and velocities ``[V, 3]`` (V = ``sim.x.shape[0]``).
+        young, poisson, density: a scalar or one value per element ``[N]`` in the simulator's
+            element numbering (bodies in order, ``sim.element_ptr``). Given any of them, the steps
+            run on a simulator built again with these values (detached).
+        gravity: ``[3]``.
+        forces: external node forces ``[V, 3]`` on every step, or ``[steps, V, 3]`` one per step.
+        exact: converge the forward and the adjoint solves (to ``cg_tol``, default the
+            simulator's): the gradient is that of the computed trajectory. False: the solves run
+            as the simulator's options say; with a fixed CG budget the gradient is then the
+            adjoint of the converged steps along the truncated trajectory (``solver.adjoint``).
+        checkpoint_every: keep the state every k steps only and recompute the steps in between
+            during the backward (memory ~ steps / k + k states instead of ~ steps); None: keep all.
+        frames: the steps whose states are returned (default: all, 0 .. steps).
+
+    Returns:
+        :class:`Rollout`.
+
+    Raises:
+        SceneError for bad arguments; SolverError where the simulation has something the
+        adjoint does not differentiate (tools, contact between bodies, friction, several Newton
+        iterations, removed or cut elements) or a solve fails. Nothing of ``sim`` is changed.
+    """
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise SceneError(f"steps must be a positive integer, got {steps!r}")
+    if checkpoint_every is not None and (isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int)
+                                         or checkpoint_every < 1):
+        raise SceneError(f"checkpoint_every must be a positive integer or None, got {checkpoint_every!r}")
+    if sim.scalpels:
+        raise SceneError("a simulator with scalpels changes its mesh as it steps: rollouts do not differentiate cuts")
+    like = sim.x
+    num_elements = sim.element_ptr[-1]
+    young = check_per_element("young", young, num_elements, like, 0.0, float("inf"))
+    poisson = check_per_element("poisson", poisson, num_elements, like, -1.0, 0.5)
+    density = check_per_element("density", density, num_elements, like, 0.0, float("inf"))
+    x = _state("x0", x0, sim.x)
+    v = _state("v0", v0, sim.v)
+    gravity = _vector("gravity", gravity, sim.gravity)
+    forces = _forces(forces, steps, like)
+    frames = _frames(frames, steps)
+
+    stepping = sim if young is None and poisson is None and density is None else \
+        _rebuilt(sim, young, poisson, density)
+    forward, adjoint = adjoint_options(stepping.options, exact, cg_tol)
+    check_differentiable(stepping.system, forward)
+    model = DifferentiableModel(stepping.model)
+    step = DifferentiableStep(stepping.system, forward, adjoint, model)
+    young_all = model.per_element("young", young)
+    poisson_all = model.per_element("poisson", poisson)
+    mass = stepping.system.mass[:, 0] if density is None else model.lumped_mass(model.per_element("density", density))
+    with_external = gravity is not None or forces is not None or density is not None
+    g = sim.gravity if gravity is None else gravity
+    h = forward.dt
+    start = sim.time
+
+    def run(first: int, count: int, x, v):
+        """Steps first+1 .. first+count from x, v: (x, v, the frames' states among them)."""
+        kept = []
+        for n in range(first, first + count):
+            imposed = _imposed_velocity(stepping, x, start + (n + 1) * h, h)
+            external = None
+            if with_external:
+                external = mass[:, None] * g
+                if forces is not None:
+                    external = external + (forces[n] if forces.dim() == 3 else forces)
+            x, v = ImplicitStep.apply(step, x, v, imposed, external, mass, young_all, poisson_all)
+            if n + 1 in frames:
+                kept.append((x, v))
+        return x, v, kept
+
+    recorded = [(x, v)] if 0 in frames else []
+    chunk = checkpoint_every or steps
+    for first in range(0, steps, chunk):
+        count = min(chunk, steps - first)
+        if checkpoint_every is None:
+            x, v, kept = run(first, count, x, v)
+        else:
+            def segment(x, v, first=first, count=count):
+                x, v, kept = run(first, count, x, v)
+                return (x, v, *[t for pair in kept for t in pair])
+
+            x, v, *flat = checkpoint(segment, x, v, use_reentrant=False)
+            kept = list(zip(flat[0::2], flat[1::2]))
+        recorded.extend(kept)
+    return Rollout(torch.stack([s[0] for s in recorded]), torch.stack([s[1] for s in recorded]), sorted(frames))
+
+
+def _state(name: str, value, own: torch.Tensor) -> torch.Tensor:
+    if value is None:
+        return own.detach()
+    if not isinstance(value, torch.Tensor) or value.shape != own.shape:
+        shape = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+        raise SceneError(f"{name} must be a tensor of shape {tuple(own.shape)} (the simulator's node rows), "
+                         f"got {shape}")
+    value = value.to(dtype=own.dtype, device=own.device)
+    if not bool(torch.isfinite(value.detach()).all()):
+        raise SceneError(f"{name} has NaN or inf entries")
+    return value
+
+
+def _vector(name: str, value, own: torch.Tensor) -> Optional[torch.Tensor]:
+    if value is None:
+        return None
+    t = value if isinstance(value, torch.Tensor) else torch.as_tensor(value, dtype=own.dtype)
+    if t.shape != own.shape or not bool(torch.isfinite(t.detach()).all()):
+        raise SceneError(f"{name} must be {own.shape[0]} finite numbers, got {t.detach().tolist()}")
+    return t.to(dtype=own.dtype, device=own.device)
+
+
+def _forces(forces, steps: int, like: torch.Tensor) -> Optional[torch.Tensor]:
+    if forces is None:
+        return None
+    if not isinstance(forces, torch.Tensor) or forces.shape not in (like.shape, (steps, *like.shape)):
+        shape = tuple(forces.shape) if isinstance(forces, torch.Tensor) else type(forces).__name__
+        raise SceneError(f"forces must have shape {tuple(like.shape)} (every step) or {(steps, *like.shape)} "
+                         f"(one per step), got {shape}")
+    if not bool(torch.isfinite(forces.detach()).all()):
+        raise SceneError("forces has NaN or inf entries")
+    return forces.to(dtype=like.dtype, device=like.device)
+
+
+def _frames(frames, steps: int) -> set:
+    if frames is None:
+        return set(range(steps + 1))
+    chosen = set()
+    for f in frames:
+        if isinstance(f, bool) or not isinstance(f, int) or not 0 <= f <= steps:
+            raise SceneError(f"frames must be steps in 0 .. {steps}, got {f!r}")
+        chosen.add(f)
+    if not chosen:
+        raise SceneError("frames is empty: name at least one step to return")
+    return chosen
+
+
+def _rebuilt(sim: Simulator, young, poisson, density) -> Simulator:
+    """``sim`` built again with per-element material values (detached; None: the body's own)."""
+    if "removed" in sim.model._buffers:
+        raise SceneError("rollouts with new material values rebuild the simulator, which a simulator whose "
+                         "elements were removed or cut cannot be: build one from the remaining mesh")
+    bodies = []
+    for i, body in enumerate(sim.bodies):
+        lo, hi = sim.element_ptr[i], sim.element_ptr[i + 1]
+        changes = {name: value.detach().expand(sim.element_ptr[-1])[lo:hi]
+                   for name, value in (("young", young), ("poisson", poisson), ("density", density))
+                   if value is not None}
+        material = dataclasses.replace(body.material, **changes)
+        bodies.append(Body._trusted(body.mesh, material, body.fixed, body.prescribed, body.motion, body.name))
+    spare = [sim.ptr[i + 1] - sim.ptr[i] - sim.used_nodes[i] for i in range(len(sim.bodies))]
+    rebuilt = Simulator(bodies, spare_nodes=spare, **sim._init_args)
+    rebuilt.options = sim.options
+    return rebuilt
+
+
+def _imposed_velocity(sim: Simulator, x: torch.Tensor, t_next: float, h: float) -> Optional[torch.Tensor]:
+    """The prescribed nodes' end velocities ``[V, 3]`` taking them from ``x`` to their motion at
+    ``t_next`` (0 elsewhere), differentiable in x; None without prescribed nodes."""
+    if not sim._has_prescribed:
+        return None
+    goal = torch.zeros_like(x.detach())
+    mask = torch.zeros(x.shape[0], 1, dtype=x.dtype, device=x.device)
+    for i, body in enumerate(sim.bodies):
+        if body.motion is None:
+            continue
+        nodes = torch.nonzero(body.prescribed.to(x.device)).flatten() + sim.ptr[i]
+        target = torch.as_tensor(body.motion(t_next), dtype=x.dtype, device=x.device)
+        if target.shape != (nodes.numel(), 3):
+            raise SceneError(f"body {i}: motion(t) returned shape {tuple(target.shape)}; expected [{nodes.numel()}, 3]")
+        goal[nodes] = target
+        mask[nodes] = 1.0
+    return mask * (goal - x) / h

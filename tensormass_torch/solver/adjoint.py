@@ -1,0 +1,198 @@
+"""The implicit Euler step as a differentiable function, by the adjoint method.
+
+One linearised step (``implicit_euler_step``, ``newton_iters=1``) solves ``A dv = b`` with
+
+    A(x)          = c_M M - c_K K(x)                       c_M = 1 + h r_M, c_K = h (h + r_K)
+    b(x, v)       = h (f(x) + f_ext + (h + r_K) K(x) v - r_M M v)
+    v' = v + dv,  x' = x + h v'
+
+(K: the elastic and plane stiffness the solver uses; constrained rows: dv is imposed there and the
+system holds the free rows only). Written as a residual of the free rows,
+
+    R(dv; x, v, theta) = c_M M dv + h r_M M v - h (f(x) + f_ext) - c_K K(x) (dv + v),
+
+the step's dv is the root of R, and A = dR/d(dv) is symmetric. For a loss L with cotangents
+g_x' = dL/dx', g_v' = dL/dv', the velocity change's cotangent is g = g_v' + h g_x', and by the
+implicit-function theorem, for any input p of R (x, v, the imposed velocities, f_ext, M and the
+material through f and K):
+
+    A lam = P g                  (the adjoint solve: the step's own operator and CG; P: free rows)
+    dL/dp += -lam . dR/dp        (one vector-Jacobian product of R: autograd through the ops)
+
+plus the direct terms of v' = v + dv and x' = x + h v'. No tape is kept through the CG's
+iterations: a step's backward is one solve and one pass of the ops' gradients (K's derivative
+along lam for the non-linear models: stvk's, and the corotational rotations').
+
+This is the gradient of the *converged* step at the states the forward computed. Where the
+forward stops CG on a budget (``require_convergence=False``) its dv is not A^-1 b and the
+returned gradient is not that of the truncated computation: it is the adjoint of the exact
+step, evaluated along the inexact trajectory (``sim.rollout``'s ``exact=True`` converges both
+solves instead).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import torch
+
+from ..errors import SolverError
+from .implicit_euler import DynamicsSystem, StepOptions, _coefficients, _raise_if_failed, _solve, implicit_euler_step
+
+
+@dataclasses.dataclass
+class DifferentiableStep:
+    """What :class:`ImplicitStep` needs beyond its tensors: the packed ``system`` it steps, the
+    options of the forward solve (``forward``) and of the adjoint solve (``adjoint``), and the
+    model's differentiable view (``physics.differentiable.DifferentiableModel``)."""
+
+    system: DynamicsSystem
+    forward: StepOptions
+    adjoint: StepOptions
+    model: object
+
+    def step(self, x, v, imposed, external):
+        """The forward step from ``x, v [V, 3]`` (``imposed``: the constrained nodes' end
+        velocities or None; ``external``: this step's external forces ``[V, 3]`` in place of the
+        system's, or None): ``(x', v')``. The system's external forces are restored after."""
+        system = self.system
+        kept = None
+        if external is not None:
+            kept = system.external.clone()
+            system.external.copy_(external)
+        try:
+            x_new, v_new, _ = implicit_euler_step(system, x, v, self.forward, imposed)
+        finally:
+            if kept is not None:
+                system.external.copy_(kept)
+        return x_new, v_new
+
+    def residual(self, x, v, dv, external, mass, young, poisson) -> torch.Tensor:
+        """``R(dv; x, v, ...)`` ``[V, 3]`` of the module's docstring, every row (the caller keeps the
+        free ones): ``external`` None leaves f_ext out (a constant: no gradient needs its value),
+        ``mass [V]``, ``young, poisson [N]``."""
+        opts = self.forward
+        h = opts.dt
+        mass_coef, stiffness_coef = _coefficients(opts)
+        system = self.system
+        w = dv + v
+        forces, differential = self.model.forces_and_differential(x - system.model.rest, w, young, poisson)
+        for contact in system.contacts:
+            forces = forces + contact.forces(x)
+            differential = differential + contact.dforces(x, w)
+        m = mass[:, None]
+        residual = mass_coef * m * dv - h * forces - stiffness_coef * differential
+        if opts.rayleigh_mass:
+            residual = residual + (h * opts.rayleigh_mass) * m * v
+        if external is not None:
+            residual = residual - h * external
+        return residual
+
+    def adjoint_solve(self, x, rhs) -> torch.Tensor:
+        """lam ``[V, 3]`` with A(x) lam = rhs on the free rows (0 on the constrained ones)."""
+        result = _solve(self.system, x, rhs, self.adjoint)
+        _raise_if_failed(result, self.adjoint, "the adjoint solve of a step")
+        return result.solution
+
+
+class ImplicitStep(torch.autograd.Function):
+    """``(x', v') = step(x, v)`` with the adjoint backward of the module's docstring.
+
+    Inputs: the :class:`DifferentiableStep`; positions, velocities ``[V, 3]``; the constrained
+    nodes' end velocities ``[V, 3]`` or None (fixed nodes stay at rest); the step's external
+    forces ``[V, 3]`` or None (the system's); lumped masses ``[V]``; per-element Young's moduli
+    and Poisson ratios ``[N]``. Masses and material must be those the system was built with (the
+    forward reads the system's; the backward differentiates through these).
+    """
+
+    @staticmethod
+    def forward(ctx, step: DifferentiableStep, x, v, imposed, external, mass, young, poisson):
+        with torch.no_grad():
+            x_new, v_new = step.step(x, v, imposed, external)
+        ctx.step = step
+        ctx.has_imposed = imposed is not None
+        ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new)
+        return x_new, v_new
+
+    @staticmethod
+    def backward(ctx, g_x, g_v):
+        step: DifferentiableStep = ctx.step
+        x, v, imposed, mass, young, poisson, v_new = ctx.saved_tensors
+        h = step.forward.dt
+        free = step.system.free
+        if g_x is None:
+            g_x = torch.zeros_like(x)
+        if g_v is None:
+            g_v = torch.zeros_like(v)
+        g_dv = g_v + h * g_x
+        lam = step.adjoint_solve(x, g_dv if free is None else g_dv * free)
+        needs = ctx.needs_input_grad  # (step, x, v, imposed, external, mass, young, poisson)
+        with torch.enable_grad():
+            leaves = {}
+
+            def leaf(name, t, i):
+                if t is None or not needs[i]:
+                    return t
+                t = t.detach().requires_grad_(True)
+                leaves[name] = t
+                return t
+
+            # x and v are leaves whenever anything is asked: R's value depends on them
+            x_ = x.detach().requires_grad_(True)
+            v_ = v.detach().requires_grad_(True)
+            imposed_ = leaf("imposed", imposed, 3)
+            external_ = None
+            if needs[4]:
+                external_ = torch.zeros_like(x).requires_grad_(True)  # R is affine in f_ext
+                leaves["external"] = external_
+            mass_ = leaf("mass", mass, 5)
+            young_ = leaf("young", young, 6)
+            poisson_ = leaf("poisson", poisson, 7)
+            # dv: its free rows as solved (constants), its constrained rows imposed by the inputs
+            dv = (v_new - v) if free is None else (v_new - v) * free
+            if imposed_ is not None:
+                dv = dv + (1.0 - free) * (imposed_ - v_)
+            residual = step.residual(x_, v_, dv, external_, mass_, young_, poisson_)
+            wanted = {"x": x_, "v": v_, **leaves}
+            grads = torch.autograd.grad((lam * residual).sum(), list(wanted.values()), allow_unused=True)
+        got = {name: (torch.zeros_like(t) if g is None else -g) for (name, t), g in zip(wanted.items(), grads)}
+        # the direct terms: x' = x + h v', v' = v + dv (constrained rows: v' = imposed there)
+        grad_x = got["x"] + g_x
+        if imposed is None:
+            grad_v = got["v"] + g_dv
+            grad_imposed = None
+        else:
+            grad_v = got["v"] + g_dv * free
+            grad_imposed = got["imposed"] + g_dv * (1.0 - free) if "imposed" in got else None
+        return (None, grad_x if needs[1] else None, grad_v if needs[2] else None, grad_imposed,
+                got.get("external"), got.get("mass"), got.get("young"), got.get("poisson"))
+
+
+def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
+    """Raise SolverError naming what this system has that the adjoint step does not differentiate."""
+    reasons = []
+    if opts.newton_iters != 1:
+        reasons.append(f"newton_iters={opts.newton_iters} (the adjoint is that of one linearisation: use 1)")
+    if system.tools is not None:
+        reasons.append("rigid tools")
+    if system.body_contact is not None:
+        reasons.append("contact between bodies")
+    if system.planes is not None and system.planes.has_friction:
+        reasons.append("planes with friction")
+    if reasons:
+        raise SolverError("gradients through this simulation are not available: it has " + "; ".join(reasons)
+                          + ". Differentiable steps support elastic bodies, fixed and prescribed nodes, "
+                          "gravity, external forces and frictionless planes")
+
+
+def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None):
+    """(forward, adjoint) step options. ``exact``: both solves converged to ``tol`` (None: the
+    forward's cg_tol), a step whose solve does not converge raising; otherwise both as ``opts``
+    run (a fixed CG budget accepted where ``opts`` accepts it)."""
+    if not exact:
+        return opts, opts
+    tol = opts.cg_tol if tol is None else float(tol)
+    converged = dataclasses.replace(opts, cg_tol=tol, require_convergence=True)
+    return converged, converged
+
+__all__ = ["DifferentiableStep", "ImplicitStep", "SolverError", "adjoint_options", "check_differentiable"]
