@@ -85,7 +85,8 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
 
     stepping = sim if young is None and poisson is None and density is None else \
         _rebuilt(sim, young, poisson, density)
-    forward, adjoint = adjoint_options(stepping.options, exact, cg_tol)
+    free_dofs = max(3 * int((~(b.fixed | b.prescribed)).sum()) for b in sim.bodies)
+    forward, adjoint = adjoint_options(stepping.options, exact, cg_tol, free_dofs)
     check_differentiable(stepping.system, forward)
     model = DifferentiableModel(stepping.model)
     step = DifferentiableStep(stepping.system, forward, adjoint, model)

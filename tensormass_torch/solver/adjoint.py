@@ -37,7 +37,15 @@ from typing import Optional
 import torch
 
 from ..errors import SolverError
-from .implicit_euler import DynamicsSystem, StepOptions, _coefficients, _raise_if_failed, _solve, implicit_euler_step
+from .implicit_euler import (
+    DynamicsSystem,
+    StepOptions,
+    _coefficients,
+    _raise_if_failed,
+    _solve,
+    auto_cg_max_iter,
+    implicit_euler_step,
+)
 
 
 @dataclasses.dataclass
@@ -185,14 +193,16 @@ def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
                           "gravity, external forces and frictionless planes")
 
 
-def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None):
+def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None, free_dofs: int = 0):
     """(forward, adjoint) step options. ``exact``: both solves converged to ``tol`` (None: the
-    forward's cg_tol), a step whose solve does not converge raising; otherwise both as ``opts``
-    run (a fixed CG budget accepted where ``opts`` accepts it)."""
+    forward's cg_tol) within at least ``auto_cg_max_iter(free_dofs)`` iterations (the largest
+    object's free degrees of freedom: a budget is lifted), a solve that does not converge
+    raising; otherwise both as ``opts`` run (a fixed CG budget accepted where ``opts`` accepts it)."""
     if not exact:
         return opts, opts
     tol = opts.cg_tol if tol is None else float(tol)
-    converged = dataclasses.replace(opts, cg_tol=tol, require_convergence=True)
+    converged = dataclasses.replace(opts, cg_tol=tol, require_convergence=True,
+                                    cg_max_iter=max(opts.cg_max_iter, auto_cg_max_iter(free_dofs)))
     return converged, converged
 
 __all__ = ["DifferentiableStep", "ImplicitStep", "SolverError", "adjoint_options", "check_differentiable"]

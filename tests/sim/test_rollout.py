@@ -1,0 +1,231 @@
+"""Differentiable rollouts (``tm.rollout``, ``solver.adjoint``): gradients of a loss on the
+trajectory against central finite differences of the forward in float64, for every parameter
+kind, model and element kind; gradcheck; checkpointing; the CPU extension against pure torch;
+bad input."""
+import numpy as np
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tests.conftest import build_scene, random_material
+
+STEPS = 3
+
+
+def _sim(rng, kind: str, model: str, steps_before: int = 2, **options):
+    """A small float64 simulator of one body held at one end, deformed by a few steps. stvk with
+    its exact tangent: the definite one's positive part of S has kinks where an eigenvalue
+    crosses 0, which central differences straddle (its gradient: gradcheck, the rest test)."""
+    scene = build_scene(rng, kind)
+    material = random_material(rng, model, young=float(rng.uniform(5e3, 2e4)))
+    rest = scene.mesh.vertices
+    fixed = rest[:, 0] < rest[:, 0].min() + 1e-6 if kind == "tet" else rest[:, 0] < rest[:, 0].min() + 0.1
+    defaults = dict(dt=0.01, cg_tol=1e-13, rayleigh_mass=0.1, rayleigh_stiffness=0.01)
+    defaults.update(options)
+    sim = tm.Simulator([tm.Body(scene.mesh, material, fixed=fixed)], **defaults)
+    if steps_before:
+        sim.step(steps_before)
+    return sim
+
+
+def _loss(sim, weights, **kwargs):
+    """A loss on every frame's positions and velocities of a rollout."""
+    run = tm.rollout(sim, STEPS, **kwargs)
+    return (run.x * weights[0]).sum() + 0.3 * (run.v * weights[1]).sum()
+
+
+def _directional_error(sim, weights, name, value, rng, **fixed_kwargs) -> float:
+    """|g . d - (L(p + e d) - L(p - e d)) / 2e| / |g . d| for a random direction d."""
+    leaf = value.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(_loss(sim, weights, **{name: leaf}, **fixed_kwargs), leaf)
+    direction = torch.tensor(rng.standard_normal(tuple(value.shape)), dtype=value.dtype)
+    eps = 1e-5 * float(value.abs().mean().clamp_min(1e-2))
+    with torch.no_grad():
+        plus = _loss(sim, weights, **{name: value + eps * direction}, **fixed_kwargs)
+        minus = _loss(sim, weights, **{name: value - eps * direction}, **fixed_kwargs)
+    fd = float(plus - minus) / (2 * eps)
+    analytic = float((grad * direction).sum())
+    return abs(analytic - fd) / abs(fd)
+
+
+def _parameters(sim, rng):
+    """One value of every parameter kind the rollout differentiates."""
+    V, N = sim.x.shape[0], sim.element_ptr[-1]
+    young = float(sim.bodies[0].material.young)
+    f = lambda *shape: torch.tensor(rng.standard_normal(shape), dtype=torch.float64)  # noqa: E731
+    return {
+        "x0": sim.x + 1e-3 * f(V, 3),
+        "v0": sim.v + 1e-2 * f(V, 3),
+        "gravity": torch.tensor([0.5, 1.0, -9.81], dtype=torch.float64),
+        "forces": f(STEPS, V, 3),
+        "young": torch.tensor(young, dtype=torch.float64),
+        "young_per_element": young * (1 + 0.2 * torch.tensor(rng.uniform(size=N))),
+        "poisson": 0.3 + 0.1 * torch.tensor(rng.uniform(size=N)),
+        "density": 1000 * (1 + 0.3 * torch.tensor(rng.uniform(size=N))),
+    }
+
+
+@pytest.mark.parametrize("model", ["hooke", "stvk", "corotational"])
+@pytest.mark.parametrize("kind", ["tet", "tri3d"])
+def test_gradients_match_finite_differences(rng, kind, model):
+    """Every parameter kind, against central differences: relative error <= 1e-6."""
+    sim = _sim(rng, kind, model)
+    V = sim.x.shape[0]
+    weights = [torch.tensor(rng.standard_normal((STEPS + 1, V, 3))) for _ in range(2)]
+    errors = {}
+    for label, value in _parameters(sim, rng).items():
+        name = "young" if label == "young_per_element" else label
+        errors[label] = _directional_error(sim, weights, name, value, rng)
+    assert max(errors.values()) <= 1e-6, errors
+
+
+def test_prescribed_nodes_and_a_floor(rng):
+    """A beam whose held end is moved (prescribed nodes: their imposed velocities depend on the
+    positions) falling onto a floor plane it reaches during the rollout."""
+    scene = build_scene(rng, "tet")
+    rest = scene.mesh.vertices
+    held = rest[:, 0] < rest[:, 0].min() + 1e-6
+    start = rest[held].clone()
+    body = tm.Body(scene.mesh, random_material(rng, "corotational", young=3e3), prescribed=held,
+                   motion=lambda t: start + torch.tensor([0.0, 0.0, -2.0 * t], dtype=torch.float64))
+    floor = rest[:, 2].min() - 0.004
+    sim = tm.Simulator([body], dt=0.01, cg_tol=1e-13, planes=[tm.Plane((0, 0, 1), float(floor), 3e4)])
+    sim.step(2)
+    run = tm.rollout(sim, STEPS)
+    assert bool((run.x[-1, :, 2] < floor).any()), "the scene must touch the floor"
+    V = sim.x.shape[0]
+    weights = [torch.tensor(rng.standard_normal((STEPS + 1, V, 3))) for _ in range(2)]
+    params = _parameters(sim, rng)
+    for name in ("x0", "v0", "young", "forces"):
+        assert _directional_error(sim, weights, name, params[name], rng) <= 1e-6, name
+
+
+def test_gradcheck_on_a_tiny_scene():
+    """torch.autograd.gradcheck of two steps of six tetrahedra (initial state, moduli, forces)."""
+    mesh = tm.beam_mesh(1, 1, 1, size=(0.2, 0.1, 0.1), dtype=torch.float64)
+    fixed = mesh.vertices[:, 0] < 1e-9
+    sim = tm.Simulator([tm.Body(mesh, tm.Material(young=1e4, poisson=0.3, model="stvk"), fixed=fixed)],
+                       dt=0.01, cg_tol=1e-14)
+    sim.step(2)
+    V, N = sim.x.shape[0], sim.element_ptr[-1]
+
+    def positions(x0, young, forces):
+        return tm.rollout(sim, 2, x0=x0, young=young, forces=forces, frames=[2]).x
+
+    x0 = sim.x.clone().requires_grad_(True)
+    young = torch.full((N,), 1e4, dtype=torch.float64, requires_grad=True)
+    forces = torch.zeros(V, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(positions, (x0, young, forces), eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def test_a_rollout_steps_as_the_simulator_and_changes_nothing(rng):
+    """Without parameters the trajectory is the simulator's (to rounding); the simulator is not
+    advanced."""
+    sim = _sim(rng, "tet", "corotational")
+    x, v, time = sim.x.clone(), sim.v.clone(), sim.time
+    run = tm.rollout(sim, STEPS)
+    assert torch.equal(sim.x, x) and torch.equal(sim.v, v) and sim.time == time
+    assert torch.equal(run.x[0], x) and run.frames == list(range(STEPS + 1))
+    sim.step(STEPS)
+    torch.testing.assert_close(run.x[-1], sim.x, rtol=0, atol=1e-12)
+    torch.testing.assert_close(run.v[-1], sim.v, rtol=0, atol=1e-10)
+
+
+def test_checkpointing_gives_the_same_gradients(rng):
+    """States kept every 2 steps, the rest recomputed in the backward: the same gradients."""
+    sim = _sim(rng, "tet", "stvk")
+    N = sim.element_ptr[-1]
+    grads = []
+    for every in (None, 2):
+        young = torch.full((N,), 1e4, dtype=torch.float64, requires_grad=True)
+        v0 = sim.v.clone().requires_grad_(True)
+        run = tm.rollout(sim, 5, young=young, v0=v0, checkpoint_every=every, frames=[5])
+        (run.x.square().sum() + run.v.sum()).backward()
+        grads.append((young.grad, v0.grad))
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=0)
+
+
+def test_stvk_from_rest_has_finite_gradients():
+    """At rest the second Piola-Kirchhoff stress is 0 (all its eigenvalues equal): the definite
+    tangent's positive part still has a derivative."""
+    mesh = tm.beam_mesh(2, 1, 1, size=(0.2, 0.1, 0.1), dtype=torch.float64)
+    sim = tm.Simulator([tm.Body(mesh, tm.Material(young=1e4, poisson=0.3, model="stvk"),
+                                fixed=mesh.vertices[:, 0] < 1e-9)], dt=0.01, cg_tol=1e-12)
+    young = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
+    x0 = sim.x.clone().requires_grad_(True)
+    tm.rollout(sim, 2, young=young, x0=x0).x[-1, :, 2].sum().backward()
+    assert torch.isfinite(young.grad) and bool(torch.isfinite(x0.grad).all()) and float(young.grad) != 0.0
+
+
+def test_the_cpu_extension_and_pure_torch_agree(rng, monkeypatch):
+    from tensormass_torch import _backend
+
+    if not _backend.use_extension("cpu"):
+        pytest.skip("the CPU extension is not built")
+    grads = []
+    for mode in ("extension", "torch"):
+        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+        sim = _sim(np.random.default_rng(7), "tet", "corotational")
+        young = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
+        x0 = sim.x.clone().requires_grad_(True)
+        tm.rollout(sim, STEPS, young=young, x0=x0).x.square().sum().backward()
+        grads.append((young.grad, x0.grad))
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_a_budgeted_simulator_differentiates_exactly_by_default(rng):
+    """A simulator on a fixed CG budget: ``exact=True`` (default) converges both solves; with
+    ``exact=False`` the forward keeps the budget and the gradient differs."""
+    sim = _sim(rng, "tet", "hooke", cg_max_iter=3, require_convergence=False, cg_tol=1e-12)
+    young = torch.tensor(1e4, dtype=torch.float64)
+    grads = []
+    for exact in (True, False):
+        leaf = young.clone().requires_grad_(True)
+        run = tm.rollout(sim, STEPS, young=leaf, exact=exact, frames=[STEPS])
+        run.x.square().sum().backward()
+        grads.append(float(leaf.grad))
+    assert grads[0] != grads[1]
+    assert np.isfinite(grads).all()
+
+
+def test_bad_input_gives_one_clear_error(rng):
+    sim = _sim(rng, "tet", "hooke", steps_before=0)
+    x = sim.x.clone()
+    N, V = sim.element_ptr[-1], sim.x.shape[0]
+    cases = [
+        (dict(steps=0), r"steps must be a positive integer"),
+        (dict(young=torch.ones(N + 1)), r"young has shape \(%d,\); expected a scalar or \[%d\]" % (N + 1, N)),
+        (dict(young=torch.tensor(float("nan"))), r"young must be finite"),
+        (dict(poisson=torch.tensor(0.5)), r"poisson must be finite and in \(-1, 0.5\)"),
+        (dict(density=torch.tensor(-1.0)), r"density must be finite and in \(0, inf\)"),
+        (dict(x0=torch.zeros(V - 1, 3)), r"x0 must be a tensor of shape"),
+        (dict(forces=torch.zeros(2, V, 3)), r"forces must have shape"),
+        (dict(gravity=[0.0, float("inf"), 0.0]), r"gravity must be 3 finite numbers"),
+        (dict(frames=[STEPS + 1]), r"frames must be steps in 0 \.\. 3"),
+        (dict(checkpoint_every=0), r"checkpoint_every must be a positive integer"),
+    ]
+    for kwargs, message in cases:
+        steps = kwargs.pop("steps", STEPS)
+        with pytest.raises(tm.SceneError, match=message):
+            tm.rollout(sim, steps, **kwargs)
+    assert torch.equal(sim.x, x) and sim.time == 0.0
+
+
+@pytest.mark.parametrize("what", ["tools", "newton", "friction", "removed"])
+def test_what_the_adjoint_does_not_differentiate_is_named(rng, what):
+    """No silent zero gradient: a simulation with something the adjoint step leaves out raises."""
+    scene = build_scene(rng, "tet")
+    body = tm.Body(scene.mesh, random_material(rng, "hooke"), fixed=scene.mesh.vertices[:, 0] < 1e-6)
+    options = {"tools": dict(tools=[tm.Sphere(0.1, position=(0.5, 0.4, 0.9))]),
+               "newton": dict(newton_iters=2),
+               "friction": dict(planes=[tm.Plane((0, 0, 1), -0.5, 1e4, friction=0.5)]),
+               "removed": {}}[what]
+    sim = tm.Simulator([body], **options)
+    message = {"tools": "rigid tools", "newton": "newton_iters=2", "friction": "planes with friction",
+               "removed": "removed or cut"}[what]
+    if what == "removed":
+        sim.remove_elements(0, [0])
+    with pytest.raises((tm.SolverError, tm.SceneError), match=message):
+        tm.rollout(sim, 2, young=torch.tensor(1e4, dtype=torch.float64))
