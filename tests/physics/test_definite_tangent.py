@@ -47,6 +47,26 @@ def test_positive_part():
     torch.testing.assert_close(plus - stress_form.positive_part(-sym), sym)  # S = S+ - (-S)+
 
 
+def test_positive_part_derivative_at_distinct_and_repeated_eigenvalues():
+    """The derivative of S -> S+ (Daleckii-Krein) against central differences, for symmetric
+    inputs with distinct eigenvalues, a repeated positive pair, and S = 0 (at rest: eigh's own
+    backward divides by 0 there), where it is the derivative along every direction that keeps
+    the eigenvalues' order, 1/2 of the identity map."""
+    def of_symmetric(a):
+        return stress_form.positive_part(a + a.transpose(-1, -2))
+
+    g = torch.Generator().manual_seed(0)
+    distinct = torch.randn(20, 3, 3, generator=g, dtype=torch.float64)
+    repeated = torch.diag(torch.tensor([0.5, 0.5, -1.0], dtype=torch.float64)).expand(1, 3, 3).clone()
+    for a in (distinct, repeated):
+        assert torch.autograd.gradcheck(of_symmetric, (a.requires_grad_(True),))
+    zero = torch.zeros(1, 3, 3, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(1, 3, 3, generator=g, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((w * stress_form.positive_part(zero)).sum(), zero)
+    assert bool(torch.isfinite(grad).all())
+    torch.testing.assert_close(grad, 0.5 * (w + w.transpose(-1, -2)) / 2)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_equals_exact_under_tension_and_is_semidefinite_under_compression(kind, monkeypatch):
     monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
