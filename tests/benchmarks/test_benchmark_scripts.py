@@ -237,3 +237,14 @@ def test_contact_piles_resumes_a_paused_run(tmp_path):
     assert row["checks"][-1][0] == 3
     assert abs(row["checks"][-1][2] - kinetic) <= 1e-9 * max(1.0, kinetic)
     assert abs(row["interpenetration_m"] - inside) <= 1e-9
+
+
+def test_rollout_gradients_quick(tmp_path):
+    import rollout_gradients
+
+    records = rollout_gradients.main(["--device", "cpu", "--quick", "--out", str(tmp_path),
+                                      "--scenes", "sofa_beam", "--models", "hooke"])
+    modes = [r["mode"] for r in records]
+    assert modes == ["sim.step", "budget", "exact"]
+    assert all(r["backward_ms"] > 0 and r["forward_ms"] > 0 for r in records[1:])
+    assert (tmp_path / "rollout_gradients.md").exists()

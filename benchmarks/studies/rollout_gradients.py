@@ -1,0 +1,118 @@
+"""Gradients through rollouts: the adjoint's time against the forward's, and memory against steps.
+
+    python benchmarks/studies/rollout_gradients.py [--device cuda] [--scenes sofa_beam,paper_beam]
+        [--models hooke,corotational] [--steps 50] [--memory-steps 25,50,100,200] [--checkpoint 10]
+        [--out benchmarks/results/gradients] [--quick]
+
+For each scene and model (float32, the scene's own settings): the simulator's own steps/s
+(``sim.step``, chained and captured where it can be), then a rollout of ``--steps`` steps whose
+loss depends on the last state, with the per-element Young's moduli and the initial positions
+requiring grad: the forward's and the backward's wall time per step, in the two modes of
+``tm.rollout``: ``exact`` (both solves converged to the scene's tolerance: the SOFA beam's
+10-iteration budget lifted) and ``budget`` (``exact=False``: the solves as the scene runs them).
+Memory: the peak allocated during forward and backward of rollouts of ``--memory-steps`` steps,
+keeping every state or every ``--checkpoint``-th (CUDA only).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common
+import common
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.sim import builtin
+
+COLUMNS = [("scene", "scene", None), ("model", "model", None), ("elements", "elements", None),
+           ("mode", "mode", None), ("steps", "steps", None), ("sim_steps_per_s", "sim.step steps/s", ".1f"),
+           ("forward_ms", "rollout forward ms/step", ".2f"), ("backward_ms", "backward ms/step", ".2f"),
+           ("ratio", "backward / forward", ".2f"), ("checkpoint", "checkpoint every", None),
+           ("peak_mib", "peak MiB", ".0f"), ("state_mib", "one state (x, v) MiB", ".2f")]
+
+
+def make_scene(name: str, model: str, device, scale: int):
+    if name == "sofa_beam":
+        return builtin.sofa_beam(model=model, device=device, scale=scale).simulator
+    return builtin.paper_beam(resolution=max(4 // scale, 1), model=model, device=device).simulator
+
+
+def timed_rollout(sim, steps: int, exact: bool, device):
+    """(forward s, backward s) of a rollout whose loss is the last state's, moduli and x0 leaves."""
+    young = torch.full((sim.element_ptr[-1],), float(sim.bodies[0].material.young), dtype=sim.dtype,
+                       device=sim.device, requires_grad=True)
+    x0 = sim.x.clone().requires_grad_(True)
+    common.sync(device)
+    start = time.perf_counter()
+    run = tm.rollout(sim, steps, young=young, x0=x0, exact=exact, frames=[steps])
+    loss = run.x[-1].square().sum()
+    common.sync(device)
+    middle = time.perf_counter()
+    loss.backward()
+    common.sync(device)
+    end = time.perf_counter()
+    assert torch.isfinite(young.grad).all() and torch.isfinite(x0.grad).all()
+    return middle - start, end - middle
+
+
+def peak_memory(sim, steps: int, every, device) -> float:
+    """Peak MiB allocated over a rollout of ``steps`` and its backward (beyond what was held)."""
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated()
+    young = torch.full((sim.element_ptr[-1],), float(sim.bodies[0].material.young), dtype=sim.dtype,
+                       device=sim.device, requires_grad=True)
+    run = tm.rollout(sim, steps, young=young, checkpoint_every=every, frames=[steps], exact=False)
+    run.x[-1].square().sum().backward()
+    torch.cuda.synchronize()
+    return (torch.cuda.max_memory_allocated() - base) / 2 ** 20
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default=common.default_device())
+    parser.add_argument("--scenes", default="sofa_beam,paper_beam")
+    parser.add_argument("--models", default="hooke,corotational")
+    parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--memory-steps", default=None)
+    parser.add_argument("--checkpoint", type=int, default=10)
+    parser.add_argument("--scale", type=int, default=None, help="divide the scenes' resolution")
+    parser.add_argument("--modes", default="budget,exact")
+    parser.add_argument("--out", default="benchmarks/results/gradients")
+    parser.add_argument("--quick", action="store_true", help="tiny sizes (a smoke run)")
+    args = parser.parse_args(argv)
+    common.fill_defaults(args, normal=dict(steps=50, memory_steps="25,50,100,200", scale=1),
+                         quick=dict(steps=3, memory_steps="4,8", scale=8))
+    device = torch.device(args.device)
+    meta = common.metadata(device, steps=args.steps, checkpoint=args.checkpoint, scale=args.scale)
+    results = common.Results(args.out, "rollout_gradients",
+                             "Gradients through rollouts: backward against forward, memory against steps", meta,
+                             COLUMNS, notes=[__doc__.split("\n\n", 2)[2].strip()])
+    for scene in args.scenes.split(","):
+        for model in args.models.split(","):
+            sim = make_scene(scene, model, device, args.scale)
+            base = dict(scene=scene, model=model, elements=sim.element_ptr[-1])
+            sim.step(5)  # warm: captured graphs, the simulator's state off rest
+            per_step, done = common.time_steps(sim.step, device, steps=max(args.steps, 20), max_seconds=20.0)
+            results.add(common.record(**base, mode="sim.step", steps=done, sim_steps_per_s=1.0 / per_step))
+            for mode in args.modes.split(","):
+                timed_rollout(sim, 2, mode == "exact", device)  # warm: the adjoint's graphs
+                forward, backward = timed_rollout(sim, args.steps, mode == "exact", device)
+                results.add(common.record(**base, mode=mode, steps=args.steps, forward_ms=1e3 * forward / args.steps,
+                                          backward_ms=1e3 * backward / args.steps, ratio=backward / forward))
+            if common.is_cuda(device):
+                state = 2 * sim.x.numel() * sim.x.element_size() / 2 ** 20
+                for steps in common.parse_ints(args.memory_steps):
+                    for every in (None, args.checkpoint):
+                        results.add(common.record(**base, mode="budget", steps=steps, checkpoint=every or "-",
+                                                  peak_mib=peak_memory(sim, steps, every, device), state_mib=state))
+            del sim
+            common.release(device)
+    results.finish()
+    return results.records
+
+if __name__ == "__main__":
+    main()
