@@ -1,15 +1,16 @@
 """System identification: recover the Young's moduli of a beam's regions from its trajectory.
 
     python examples/identify_moduli.py [--regions 4] [--steps 30] [--model corotational]
-                                       [--cells 8 2 2] [--iterations 30] [--device cpu|cuda]
+                                       [--cells 8 2 2] [--iterations 40] [--device cpu|cuda]
     python examples/identify_moduli.py --per-element ...   # one modulus per element
 
 A clamped beam made of ``--regions`` slabs of different stiffness sags under gravity while a load
-lifts and pushes its free end; its node positions over ``--steps`` steps are the observation. Starting from a uniform guess, L-BFGS fits
-the log-moduli to the observation through ``tm.rollout``: the gradient of the trajectory misfit
-with respect to every modulus comes from one adjoint solve per step (``solver.adjoint``). Prints
-each region's recovered modulus against the truth (per element: the relative error's quantiles
-over the elements), the final misfit and the wall time.
+lifts and pushes its free end; its node positions over ``--steps`` steps are the observation.
+Starting from a uniform guess, L-BFGS fits the log-moduli to the observation through
+``tm.rollout``: the gradient of the trajectory misfit with respect to every modulus comes from
+one adjoint solve per step (``solver.adjoint``). Prints each region's recovered modulus against
+the truth (per element: the relative error's quantiles over the elements), the final misfit and
+the wall time.
 """
 import argparse
 import math

@@ -627,3 +627,16 @@ def test_cuda_matches_cpu(kind, rot, dtype, rng):
     assert (gpu[0].cpu().double() - ref).abs().max() < TOL[dtype]
     for a, b in zip(gpu, cpu):
         assert a.device.type == "cuda" and rel(a.cpu(), b) < TOL[dtype]
+
+
+def test_polar_rotation_derivative_where_singular_values_repeat():
+    """The polar factor's derivative (its own, not the SVD's) by gradcheck at random F (half of
+    them inverted), at F = I (every singular value equal: the SVD's backward divides by 0) and
+    in 2-D."""
+    from tensormass_torch.ops.reference.corotational import polar_rotations
+
+    g = torch.Generator().manual_seed(0)
+    for F in (torch.randn(20, 3, 3, generator=g, dtype=torch.float64),
+              torch.eye(3, dtype=torch.float64).expand(2, 3, 3).clone(),
+              torch.randn(6, 2, 2, generator=g, dtype=torch.float64)):
+        assert torch.autograd.gradcheck(polar_rotations, (F.requires_grad_(True),))

@@ -146,12 +146,18 @@ def test_checkpointing_gives_the_same_gradients(rng):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=0)
 
 
-def test_stvk_from_rest_has_finite_gradients():
-    """At rest the second Piola-Kirchhoff stress is 0 (all its eigenvalues equal): the definite
-    tangent's positive part still has a derivative."""
-    mesh = tm.beam_mesh(2, 1, 1, size=(0.2, 0.1, 0.1), dtype=torch.float64)
-    sim = tm.Simulator([tm.Body(mesh, tm.Material(young=1e4, poisson=0.3, model="stvk"),
-                                fixed=mesh.vertices[:, 0] < 1e-9)], dt=0.01, cg_tol=1e-12)
+@pytest.mark.parametrize("model,rotation,kind", [("stvk", "polar", "tet"), ("corotational", "polar", "tet"),
+                                                 ("corotational", "qr", "tet"), ("corotational", "polar", "tri")])
+def test_gradients_from_rest_are_finite(model, rotation, kind):
+    """At rest the stvk stress is 0 and the deformation gradient I (all eigenvalues, all singular
+    values equal), where eigh's and svd's own backwards divide by 0: the definite tangent's
+    positive part and the polar rotation have derivatives of their own there."""
+    if kind == "tet":
+        mesh = tm.beam_mesh(2, 1, 1, size=(0.2, 0.1, 0.1), dtype=torch.float64)
+    else:
+        mesh = tm.beam_tri_mesh(2, 1, size=(0.2, 0.1), dim=3, dtype=torch.float64)
+    material = tm.Material(young=1e4, poisson=0.3, model=model, rotation=rotation, thickness=0.01)
+    sim = tm.Simulator([tm.Body(mesh, material, fixed=mesh.vertices[:, 0] < 1e-9)], dt=0.01, cg_tol=1e-12)
     young = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
     x0 = sim.x.clone().requires_grad_(True)
     tm.rollout(sim, 2, young=young, x0=x0).x[-1, :, 2].sum().backward()

@@ -33,11 +33,44 @@ def polar_rotations(F: torch.Tensor, rest_normals=None, normals=None) -> torch.T
     """
     if rest_normals is not None:
         F = F + normals[:, :, None] * rest_normals[:, None, :]
-    U, _, Vh = torch.linalg.svd(F)
-    det = torch.linalg.det(U @ Vh)
-    flip = torch.ones_like(U[:, 0, :])
-    flip[:, -1] = torch.where(det < 0, -1.0, 1.0)
-    return (U * flip[:, None, :]) @ Vh
+    return _PolarRotation.apply(F)[0]
+
+
+class _PolarRotation(torch.autograd.Function):
+    """F -> R of F = R S, with the polar factor's own derivative rather than the SVD's.
+
+    With F = U diag(s) V^T (s signed: the last one negated where R flips it) and R = U V^T, a
+    change dF turns R by dR = R W, W skew with W S + S W = R^T dF - dF^T R (the skew part of
+    R^T dF = W S + dS), so in V's basis W_ij = (V^T (R^T dF - dF^T R) V)_ij / (s_i + s_j). Its
+    vector-Jacobian product is dL/dF = 2 R skew(V (M o (V^T R^T G V)) V^T) with M_ij = 1 / (s_i
+    + s_j). Unlike the SVD's backward (1 / (s_i^2 - s_j^2)), it is finite at repeated singular
+    values (at rest F = I: all equal); only a collapsed element (s_i + s_j = 0) has none."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(F):
+        U, s, Vh = torch.linalg.svd(F)
+        det = torch.linalg.det(U @ Vh)
+        flip = torch.ones_like(s)
+        flip[..., -1] = torch.where(det < 0, -1.0, 1.0)
+        return (U * flip[..., None, :]) @ Vh, s * flip, Vh.transpose(-1, -2)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        rotations, signed, V = output
+        ctx.mark_non_differentiable(signed, V)
+        ctx.save_for_backward(rotations, signed, V)
+
+    @staticmethod
+    def backward(ctx, grad, _signed, _V):
+        R, s, V = ctx.saved_tensors
+        inner = V.transpose(-1, -2) @ (R.transpose(-1, -2) @ grad) @ V
+        total = s[..., :, None] + s[..., None, :]
+        tiny = torch.finfo(s.dtype).tiny
+        total = torch.where(total.abs() > tiny, total, torch.full_like(total, tiny))
+        C = V @ (inner / total) @ V.transpose(-1, -2)
+        return R @ (C - C.transpose(-1, -2))
 
 
 def qr_rotations(x_elem: torch.Tensor, rest_elem: torch.Tensor) -> torch.Tensor:
