@@ -10,8 +10,9 @@ loss depends on the last state, with the per-element Young's moduli and the init
 requiring grad: the forward's and the backward's wall time per step, in the two modes of
 ``tm.rollout``: ``exact`` (both solves converged to the scene's tolerance: the SOFA beam's
 10-iteration budget lifted) and ``budget`` (``exact=False``: the solves as the scene runs them).
-Memory: the peak allocated during forward and backward of rollouts of ``--memory-steps`` steps,
-keeping every state or every ``--checkpoint``-th (CUDA only).
+Memory: the peak allocated during forward and backward of rollouts of ``--memory-steps`` steps
+from initial positions that require grad (budget mode), keeping every state or every
+``--checkpoint``-th (CUDA only).
 """
 from __future__ import annotations
 
@@ -59,17 +60,17 @@ def timed_rollout(sim, steps: int, exact: bool, device):
 
 
 def peak_memory(sim, steps: int, every, device) -> float:
-    """Peak MiB allocated over a rollout of ``steps`` and its backward (beyond what was held)."""
+    """Peak MiB allocated over a rollout of ``steps`` from initial positions that require grad,
+    and its backward, beyond what was allocated before (no material given: the simulator is not
+    built again, so this is the rollout's own memory)."""
     torch.cuda.synchronize()
     torch.cuda.reset_peak_memory_stats()
     base = torch.cuda.memory_allocated()
-    young = torch.full((sim.element_ptr[-1],), float(sim.bodies[0].material.young), dtype=sim.dtype,
-                       device=sim.device, requires_grad=True)
-    run = tm.rollout(sim, steps, young=young, checkpoint_every=every, frames=[steps], exact=False)
+    x0 = sim.x.clone().requires_grad_(True)
+    run = tm.rollout(sim, steps, x0=x0, checkpoint_every=every, frames=[steps], exact=False)
     run.x[-1].square().sum().backward()
     torch.cuda.synchronize()
     return (torch.cuda.max_memory_allocated() - base) / 2 ** 20
-
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -71,21 +71,24 @@ class DifferentiableModel:
             mass = mass.index_add(0, nodes.reshape(-1), share.repeat_interleave(nodes.shape[1]))
         return mass
 
-    def forces_and_differential(self, u: torch.Tensor, w: torch.Tensor, young: torch.Tensor,
-                                poisson: torch.Tensor):
-        """``(f(u), K(u) w)`` ``[V, d]`` at displacements ``u [V, d]`` along ``w [V, d]`` for the
-        per-element ``young, poisson [N]``: the corotational rotations at u (their derivative
-        included), the stvk tangent the model's solver uses (exact or definite)."""
-        forces = differential = None
+    def step_forces(self, u: torch.Tensor, w: torch.Tensor, force_coef: float, stiffness_coef: float,
+                    young: torch.Tensor, poisson: torch.Tensor) -> torch.Tensor:
+        """``force_coef f(u) + stiffness_coef K(u) w`` ``[V, d]`` (implicit Euler's elastic terms) at
+        displacements ``u [V, d]`` along ``w [V, d]`` for the per-element ``young, poisson [N]``:
+        the corotational rotations at u (their derivative included), the stvk tangent the model's
+        solver uses (exact or definite). A hooke group is linear, f(u) = K u: one product,
+        K (force_coef u + stiffness_coef w), whose backward is one product and one pass over the
+        elements for the moduli."""
+        total = None
         for group, ids in zip(self._stress_groups, self.group_ids):
             group.young, group.poisson = young[ids], poisson[ids]  # read by ops.stress.lame at each call
-            state = ops.linearize(group, u)
-            f = ops.forces(group, u, state)
-            k_w = ops.dforces(group, u, w, state)
-            forces = f if forces is None else forces + f
-            differential = k_w if differential is None else differential + k_w
-        return forces, differential
-
+            if group.model == "hooke":
+                term = ops.dforces(group, u, force_coef * u + stiffness_coef * w)
+            else:
+                state = ops.linearize(group, u)
+                term = force_coef * ops.forces(group, u, state) + stiffness_coef * ops.dforces(group, u, w, state)
+            total = term if total is None else total + term
+        return total
 
 def _stress_group(rest: torch.Tensor, group: ElementGroup, young: torch.Tensor, poisson: torch.Tensor) -> ElementGroup:
     """A stress-form group of ``group``'s elements (its own when it has the stress form: a new one

@@ -84,12 +84,11 @@ class DifferentiableStep:
         mass_coef, stiffness_coef = _coefficients(opts)
         system = self.system
         w = dv + v
-        forces, differential = self.model.forces_and_differential(x - system.model.rest, w, young, poisson)
-        for contact in system.contacts:
-            forces = forces + contact.forces(x)
-            differential = differential + contact.dforces(x, w)
+        elastic = self.model.step_forces(x - system.model.rest, w, h, stiffness_coef, young, poisson)
         m = mass[:, None]
-        residual = mass_coef * m * dv - h * forces - stiffness_coef * differential
+        residual = mass_coef * m * dv - elastic
+        for contact in system.contacts:
+            residual = residual - h * contact.forces(x) - stiffness_coef * contact.dforces(x, w)
         if opts.rayleigh_mass:
             residual = residual + (h * opts.rayleigh_mass) * m * v
         if external is not None:

@@ -107,3 +107,19 @@ def test_mesh_tool_example():
     _, rows = load("mesh_tool").main(["--steps", "20", "--resolution", "12", "--device", "cpu"])
     assert rows[-1][2] == pytest.approx(0.2, abs=2e-3)
     assert rows[-1][1][2] < 0  # the block weighs on the belt
+
+
+def test_identify_moduli_example():
+    """Two regions' moduli recovered from a trajectory; per element, the misfit falls."""
+    result = load("identify_moduli").main(["--cells", "4", "1", "1", "--regions", "2", "--steps", "10",
+                                           "--iterations", "15"])
+    for found, truth in zip(result["recovered"], result["truth"]):
+        assert abs(found / truth - 1) < 1e-4
+    result = load("identify_moduli").main(["--cells", "4", "1", "1", "--per-element", "--steps", "10",
+                                           "--iterations", "15", "--model", "hooke"])
+    assert result["misfit"] < 1e-2 * result["first_misfit"]
+
+
+def test_reach_target_example():
+    result = load("reach_target").main(["--cells", "4", "1", "1", "--steps", "10", "--iterations", "15"])
+    assert result["distance"][1] < 0.1 * result["distance"][0]
