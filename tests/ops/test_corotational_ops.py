@@ -630,12 +630,16 @@ def test_cuda_matches_cpu(kind, rot, dtype, rng):
 
 
 def test_polar_rotation_derivative_where_singular_values_repeat():
-    """The polar factor's derivative (its own, not the SVD's) by gradcheck at random F (half of
-    them inverted), at F = I (every singular value equal: the SVD's backward divides by 0) and
+    """The closest proper rotation (Newton's iteration, the SVD where det F <= 0) equals the
+    SVD's; its derivative (the polar factor's own, not the SVD's) by gradcheck at random F (half
+    of them inverted), at F = I (every singular value equal: the SVD's backward divides by 0) and
     in 2-D."""
-    from tensormass_torch.ops.reference.corotational import polar_rotations
+    from tensormass_torch.ops.reference.corotational import _svd_rotation, polar_rotations
 
     g = torch.Generator().manual_seed(0)
+    F = torch.randn(500, 3, 3, generator=g, dtype=torch.float64)
+    for batch in (F, torch.eye(3, dtype=torch.float64) + 0.3 * F, F[:, :2, :2]):
+        torch.testing.assert_close(polar_rotations(batch), _svd_rotation(batch), rtol=0, atol=1e-12)
     for F in (torch.randn(20, 3, 3, generator=g, dtype=torch.float64),
               torch.eye(3, dtype=torch.float64).expand(2, 3, 3).clone(),
               torch.randn(6, 2, 2, generator=g, dtype=torch.float64)):

@@ -33,44 +33,125 @@ def polar_rotations(F: torch.Tensor, rest_normals=None, normals=None) -> torch.T
     """
     if rest_normals is not None:
         F = F + normals[:, :, None] * rest_normals[:, None, :]
-    return _PolarRotation.apply(F)[0]
+    return _PolarRotation.apply(F)
 
 
 class _PolarRotation(torch.autograd.Function):
-    """F -> R of F = R S, with the polar factor's own derivative rather than the SVD's.
+    """F -> R, the closest proper rotation (the polar factor where det F > 0), with the polar
+    factor's own derivative.
 
-    With F = U diag(s) V^T (s signed: the last one negated where R flips it) and R = U V^T, a
-    change dF turns R by dR = R W, W skew with W S + S W = R^T dF - dF^T R (the skew part of
-    R^T dF = W S + dS), so in V's basis W_ij = (V^T (R^T dF - dF^T R) V)_ij / (s_i + s_j). Its
-    vector-Jacobian product is dL/dF = 2 R skew(V (M o (V^T R^T G V)) V^T) with M_ij = 1 / (s_i
-    + s_j). Unlike the SVD's backward (1 / (s_i^2 - s_j^2)), it is finite at repeated singular
-    values (at rest F = I: all equal); only a collapsed element (s_i + s_j = 0) has none."""
+    Forward: 2-D in closed form (the angle of (F00 + F11, F10 - F01)); 3-D by Newton's iteration
+    X <- (g X + X^-T / g) / 2 with determinant scaling g = |det X|^(-1/3) (Higham), a fixed count
+    of cofactor-and-scale passes over the batch, then the SVD for the elements it does not serve
+    (det F <= 0, where the closest proper rotation flips the smallest singular vector, or not
+    converged). A batched SVD of every element cost 70 % of a corotational step's backward.
+
+    Backward: F = R S turns R by dR = R W, W skew with W S + S W = R^T dF - dF^T R. In 3-D, with
+    W = [w]x, the left side is [(tr(S) I - S) w]x, so the vector-Jacobian product is
+    dL/dF = 2 R [c]x, c = (tr(S) I - S)^-1 axial(skew(R^T G)); in 2-D, W = w J and the left side
+    is w tr(S) J: dL/dF = (B10 - B01) / tr(S) R J with B = R^T G. Unlike the SVD's backward
+    (1 / (s_i^2 - s_j^2)) it is finite where singular values repeat (at rest F = I: all equal);
+    only a collapsed element (s_i + s_j = 0) has none."""
 
     generate_vmap_rule = True
 
     @staticmethod
     def forward(F):
-        U, s, Vh = torch.linalg.svd(F)
-        det = torch.linalg.det(U @ Vh)
-        flip = torch.ones_like(s)
-        flip[..., -1] = torch.where(det < 0, -1.0, 1.0)
-        return (U * flip[..., None, :]) @ Vh, s * flip, Vh.transpose(-1, -2)
+        return _closest_rotation(F)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        rotations, signed, V = output
-        ctx.mark_non_differentiable(signed, V)
-        ctx.save_for_backward(rotations, signed, V)
+        ctx.save_for_backward(inputs[0], output)
 
     @staticmethod
-    def backward(ctx, grad, _signed, _V):
-        R, s, V = ctx.saved_tensors
-        inner = V.transpose(-1, -2) @ (R.transpose(-1, -2) @ grad) @ V
-        total = s[..., :, None] + s[..., None, :]
-        tiny = torch.finfo(s.dtype).tiny
-        total = torch.where(total.abs() > tiny, total, torch.full_like(total, tiny))
-        C = V @ (inner / total) @ V.transpose(-1, -2)
-        return R @ (C - C.transpose(-1, -2))
+    def backward(ctx, grad):
+        F, R = ctx.saved_tensors
+        B = R.transpose(-1, -2) @ grad
+        S = R.transpose(-1, -2) @ F
+        if F.shape[-1] == 2:
+            beta = B[..., 1, 0] - B[..., 0, 1]
+            trace = _guarded(S[..., 0, 0] + S[..., 1, 1])
+            J = torch.tensor([[0.0, -1.0], [1.0, 0.0]], dtype=F.dtype, device=F.device)
+            return (beta / trace)[..., None, None] * (R @ J)
+        S = 0.5 * (S + S.transpose(-1, -2))
+        b = 0.5 * _axial(B - B.transpose(-1, -2))
+        M = torch.diagonal(S, dim1=-2, dim2=-1).sum(-1)[..., None, None] * torch.eye(3, dtype=F.dtype,
+                                                                                    device=F.device) - S
+        cof = _cofactors(M)  # M symmetric: its adjugate is its cofactor matrix
+        c = (cof @ b.unsqueeze(-1)).squeeze(-1) / _guarded(_det_from(M, cof))[..., None]
+        return 2.0 * R @ _cross_matrix(c)
+
+
+def _guarded(value: torch.Tensor) -> torch.Tensor:
+    """``value`` kept at least the dtype's tiny in magnitude (its sign kept): a divisor."""
+    tiny = torch.finfo(value.dtype).tiny
+    return torch.where(value.abs() > tiny, value, torch.where(value < 0, -tiny, tiny))
+
+
+def _axial(W: torch.Tensor) -> torch.Tensor:
+    """w of a skew matrix W = [w]x ``[..., 3]``."""
+    return torch.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], dim=-1)
+
+
+def _cross_matrix(w: torch.Tensor) -> torch.Tensor:
+    """[w]x ``[..., 3, 3]``: [w]x v = w x v."""
+    zero = torch.zeros_like(w[..., 0])
+    return torch.stack([torch.stack([zero, -w[..., 2], w[..., 1]], -1),
+                        torch.stack([w[..., 2], zero, -w[..., 0]], -1),
+                        torch.stack([-w[..., 1], w[..., 0], zero], -1)], dim=-2)
+
+
+def _cofactors(X: torch.Tensor) -> torch.Tensor:
+    """The cofactor matrix of 3x3 matrices ``[..., 3, 3]`` (det(X) X^-T): its columns are cross
+    products of X's columns."""
+    c0, c1, c2 = X[..., :, 0], X[..., :, 1], X[..., :, 2]
+    return torch.stack([torch.linalg.cross(c1, c2), torch.linalg.cross(c2, c0), torch.linalg.cross(c0, c1)], dim=-1)
+
+
+def _det_from(X: torch.Tensor, cofactors: torch.Tensor) -> torch.Tensor:
+    return (X[..., :, 0] * cofactors[..., :, 0]).sum(-1)
+
+
+#: Newton passes of the 3-D polar factor (determinant-scaled: from a condition number of 1e6 it
+#: converges in about 9; where it has not, the SVD takes over)
+POLAR_NEWTON_PASSES = 10
+
+
+def _closest_rotation(F: torch.Tensor) -> torch.Tensor:
+    if F.shape[-1] == 2:
+        angle = torch.atan2(F[..., 1, 0] - F[..., 0, 1], F[..., 0, 0] + F[..., 1, 1])
+        c, s = torch.cos(angle), torch.sin(angle)
+        return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], dim=-2)
+    if _traced(F):  # torch.compile, opcheck's fake tensors: no data-dependent branch
+        return _svd_rotation(F)
+    X = F
+    for _ in range(POLAR_NEWTON_PASSES):
+        cof = _cofactors(X)
+        det = _guarded(_det_from(X, cof))
+        scale = det.abs() ** (-1.0 / 3.0)
+        X = 0.5 * (scale[..., None, None] * X + cof / (scale * det)[..., None, None])
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    error = (X.transpose(-1, -2) @ X - eye).abs().amax((-2, -1))
+    det_f = _det_from(F, _cofactors(F))
+    others = ~((det_f > 0) & (error <= 100 * torch.finfo(F.dtype).eps))
+    if bool(others.any()):
+        X = X.clone()
+        X[others] = _svd_rotation(F[others])
+    return X
+
+
+def _traced(t: torch.Tensor) -> bool:
+    from torch._subclasses.fake_tensor import is_fake
+
+    return torch.compiler.is_compiling() or is_fake(t)
+
+
+def _svd_rotation(F: torch.Tensor) -> torch.Tensor:
+    U, _, Vh = torch.linalg.svd(F)
+    det = torch.linalg.det(U @ Vh)
+    flip = torch.ones_like(U[..., 0, :])
+    flip[..., -1] = torch.where(det < 0, -1.0, 1.0)
+    return (U * flip[..., None, :]) @ Vh
 
 
 def qr_rotations(x_elem: torch.Tensor, rest_elem: torch.Tensor) -> torch.Tensor:
