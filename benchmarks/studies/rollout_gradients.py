@@ -2,7 +2,7 @@
 
     python benchmarks/studies/rollout_gradients.py [--device cuda] [--scenes sofa_beam,paper_beam]
         [--models hooke,corotational] [--steps 50] [--memory-steps 25,50,100,200] [--checkpoint 10]
-        [--out benchmarks/results/gradients] [--quick]
+        [--identify hooke,corotational] [--out benchmarks/results/gradients] [--quick]
 
 For each scene and model (float32, the scene's own settings): the simulator's own steps/s
 (``sim.step``, chained and captured where it can be), then a rollout of ``--steps`` steps whose
@@ -12,11 +12,15 @@ requiring grad: the forward's and the backward's wall time per step, in the two 
 10-iteration budget lifted) and ``budget`` (``exact=False``: the solves as the scene runs them).
 Memory: the peak allocated during forward and backward of rollouts of ``--memory-steps`` steps
 from initial positions that require grad (budget mode), keeping every state or every
-``--checkpoint``-th (CUDA only).
+``--checkpoint``-th (CUDA only). Identification (``--identify``): ``examples/identify_moduli.py
+--per-element`` at the SOFA beam's resolution (75 x 15 x 15 cells, 101,250 tets and as many
+unknown moduli, float64, 20 steps, 30 L-BFGS iterations): wall time, misfit, the moduli's relative
+error.
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -28,11 +32,14 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch.sim import builtin
 
+ROOT = Path(__file__).resolve().parents[2]
 COLUMNS = [("scene", "scene", None), ("model", "model", None), ("elements", "elements", None),
            ("mode", "mode", None), ("steps", "steps", None), ("sim_steps_per_s", "sim.step steps/s", ".1f"),
            ("forward_ms", "rollout forward ms/step", ".2f"), ("backward_ms", "backward ms/step", ".2f"),
            ("ratio", "backward / forward", ".2f"), ("checkpoint", "checkpoint every", None),
-           ("peak_mib", "peak MiB", ".0f"), ("state_mib", "one state (x, v) MiB", ".2f")]
+           ("peak_mib", "peak MiB", ".0f"), ("state_mib", "one state (x, v) MiB", ".2f"),
+           ("rollouts", "identification: rollouts + gradients", None), ("wall_s", "wall s", ".1f"),
+           ("misfit", "misfit first -> last", None), ("error", "moduli's relative error: median / 90 % / max", None)]
 
 
 def make_scene(name: str, model: str, device, scale: int):
@@ -82,11 +89,13 @@ def main(argv=None):
     parser.add_argument("--checkpoint", type=int, default=10)
     parser.add_argument("--scale", type=int, default=None, help="divide the scenes' resolution")
     parser.add_argument("--modes", default="budget,exact")
+    parser.add_argument("--identify", default=None, help="models of the identification run ('' for none)")
     parser.add_argument("--out", default="benchmarks/results/gradients")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (a smoke run)")
     args = parser.parse_args(argv)
-    common.fill_defaults(args, normal=dict(steps=50, memory_steps="25,50,100,200", scale=1),
-                         quick=dict(steps=3, memory_steps="4,8", scale=8))
+    common.fill_defaults(args, normal=dict(steps=50, memory_steps="25,50,100,200", scale=1,
+                                           identify="hooke,corotational"),
+                         quick=dict(steps=3, memory_steps="4,8", scale=8, identify="hooke"))
     device = torch.device(args.device)
     meta = common.metadata(device, steps=args.steps, checkpoint=args.checkpoint, scale=args.scale)
     results = common.Results(args.out, "rollout_gradients",
@@ -112,8 +121,26 @@ def main(argv=None):
                                                   peak_mib=peak_memory(sim, steps, every, device), state_mib=state))
             del sim
             common.release(device)
+    for model in filter(None, args.identify.split(",")):
+        results.add(identification(model, args.scale, device))
     results.finish()
     return results.records
+
+
+def identification(model: str, scale: int, device) -> dict:
+    """examples/identify_moduli.py with one unknown modulus per element, at the SOFA beam's size."""
+    spec = importlib.util.spec_from_file_location("identify_moduli", ROOT / "examples" / "identify_moduli.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    cells = [str(max(75 // scale, 2)), str(max(15 // scale, 1)), str(max(15 // scale, 1))]
+    out = example.main(["--cells", *cells, "--per-element", "--steps", "20", "--iterations", "30", "--model", model,
+                        "--device", str(device), "--dtype", "float64"])
+    nx, ny, nz = map(int, cells)
+    q = out["relative_error_quantiles"]
+    return common.record(scene="identify_moduli", model=model, elements=6 * nx * ny * nz, mode="per element",
+                         rollouts=out["evaluations"], wall_s=out["wall_s"],
+                         misfit=f"{out['first_misfit']:.2e} -> {out['misfit']:.2e}",
+                         error=f"{q[0]:.3f} / {q[1]:.3f} / {q[2]:.3f}")
 
 if __name__ == "__main__":
     main()
