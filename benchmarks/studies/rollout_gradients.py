@@ -31,15 +31,17 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch.sim import builtin
+from tensormass_torch.solver.adjoint import DifferentiableStep
 
 ROOT = Path(__file__).resolve().parents[2]
 COLUMNS = [("scene", "scene", None), ("model", "model", None), ("elements", "elements", None),
            ("mode", "mode", None), ("steps", "steps", None), ("sim_steps_per_s", "sim.step steps/s", ".1f"),
            ("forward_ms", "rollout forward ms/step", ".2f"), ("backward_ms", "backward ms/step", ".2f"),
-           ("ratio", "backward / forward", ".2f"), ("checkpoint", "checkpoint every", None),
+           ("ratio", "backward / rollout forward", ".2f"), ("solve_ms", "of which adjoint solve ms/step", ".2f"),
+           ("step_ratio", "backward / sim.step", ".1f"), ("checkpoint", "checkpoint every", None),
            ("peak_mib", "peak MiB", ".0f"), ("state_mib", "one state (x, v) MiB", ".2f"),
            ("rollouts", "identification: rollouts + gradients", None), ("wall_s", "wall s", ".1f"),
-           ("misfit", "misfit first -> last", None), ("error", "moduli's relative error: median / 90 % / max", None)]
+           ("misfit", "misfit first -> last", None), ("moduli_error", "moduli's relative error: median / 90 % / max", None)]
 
 
 def make_scene(name: str, model: str, device, scale: int):
@@ -49,7 +51,19 @@ def make_scene(name: str, model: str, device, scale: int):
 
 
 def timed_rollout(sim, steps: int, exact: bool, device):
-    """(forward s, backward s) of a rollout whose loss is the last state's, moduli and x0 leaves."""
+    """(forward s, backward s, of which the adjoint solves s) of a rollout whose loss is the last
+    state's, with the moduli and x0 as leaves (the solves timed synchronised, one by one)."""
+    solve_time = [0.0]
+    solve = DifferentiableStep.adjoint_solve
+
+    def timed_solve(self, x, rhs):
+        common.sync(device)
+        start = time.perf_counter()
+        lam = solve(self, x, rhs)
+        common.sync(device)
+        solve_time[0] += time.perf_counter() - start
+        return lam
+
     young = torch.full((sim.element_ptr[-1],), float(sim.bodies[0].material.young), dtype=sim.dtype,
                        device=sim.device, requires_grad=True)
     x0 = sim.x.clone().requires_grad_(True)
@@ -59,11 +73,19 @@ def timed_rollout(sim, steps: int, exact: bool, device):
     loss = run.x[-1].square().sum()
     common.sync(device)
     middle = time.perf_counter()
-    loss.backward()
+    DifferentiableStep.adjoint_solve = timed_solve
+    try:
+        loss.backward()
+    finally:
+        DifferentiableStep.adjoint_solve = solve
     common.sync(device)
     end = time.perf_counter()
     assert torch.isfinite(young.grad).all() and torch.isfinite(x0.grad).all()
-    return middle - start, end - middle
+    return middle - start, end - middle, solve_time[0]
+
+def per_step_rate(results) -> float:
+    """The last ``sim.step`` row's steps/s."""
+    return next(r["sim_steps_per_s"] for r in reversed(results.records) if r.get("sim_steps_per_s"))
 
 
 def peak_memory(sim, steps: int, every, device) -> float:
@@ -110,9 +132,11 @@ def main(argv=None):
             results.add(common.record(**base, mode="sim.step", steps=done, sim_steps_per_s=1.0 / per_step))
             for mode in args.modes.split(","):
                 timed_rollout(sim, 2, mode == "exact", device)  # warm: the adjoint's graphs
-                forward, backward = timed_rollout(sim, args.steps, mode == "exact", device)
+                forward, backward, solves = timed_rollout(sim, args.steps, mode == "exact", device)
                 results.add(common.record(**base, mode=mode, steps=args.steps, forward_ms=1e3 * forward / args.steps,
-                                          backward_ms=1e3 * backward / args.steps, ratio=backward / forward))
+                                          backward_ms=1e3 * backward / args.steps, ratio=backward / forward,
+                                          solve_ms=1e3 * solves / args.steps, step_ratio=backward * per_step_rate(
+                                              results) / args.steps))
             if common.is_cuda(device):
                 state = 2 * sim.x.numel() * sim.x.element_size() / 2 ** 20
                 for steps in common.parse_ints(args.memory_steps):
@@ -140,7 +164,7 @@ def identification(model: str, scale: int, device) -> dict:
     return common.record(scene="identify_moduli", model=model, elements=6 * nx * ny * nz, mode="per element",
                          rollouts=out["evaluations"], wall_s=out["wall_s"],
                          misfit=f"{out['first_misfit']:.2e} -> {out['misfit']:.2e}",
-                         error=f"{q[0]:.3f} / {q[1]:.3f} / {q[2]:.3f}")
+                         moduli_error=f"{q[0]:.3f} / {q[1]:.3f} / {q[2]:.3f}")
 
 if __name__ == "__main__":
     main()
