@@ -41,7 +41,8 @@ COLUMNS = [("scene", "scene", None), ("model", "model", None), ("elements", "ele
            ("step_ratio", "backward / sim.step", ".1f"), ("checkpoint", "checkpoint every", None),
            ("peak_mib", "peak MiB", ".0f"), ("state_mib", "one state (x, v) MiB", ".2f"),
            ("rollouts", "identification: rollouts + gradients", None), ("wall_s", "wall s", ".1f"),
-           ("misfit", "misfit first -> last", None), ("moduli_error", "moduli's relative error: median / 90 % / max", None)]
+           ("misfit", "misfit first -> last", None),
+           ("moduli_error", "moduli's relative error: median / 90 % / max", None)]
 
 
 def make_scene(name: str, model: str, device, scale: int):
