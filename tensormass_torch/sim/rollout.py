@@ -33,8 +33,8 @@ class Rollout:
 
 def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[torch.Tensor] = None,
             young=None, poisson=None, density=None, gravity=None, forces: Optional[torch.Tensor] = None,
-            exact: bool = True, cg_tol: Optional[float] = None, checkpoint_every: Optional[int] = None,
-            frames: Optional[Sequence[int]] = None) -> Rollout:
+            prescribed: Optional[torch.Tensor] = None, exact: bool = True, cg_tol: Optional[float] = None,
+            checkpoint_every: Optional[int] = None, frames: Optional[Sequence[int]] = None) -> Rollout:
     """``steps`` implicit Euler steps of ``sim`` from its state (or ``x0, v0``), differentiable.
 
     Every argument left None is the simulator's own (no gradient); a tensor that requires grad
@@ -49,6 +49,9 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
             run on a simulator built again with these values (detached).
         gravity: ``[3]``.
         forces: external node forces ``[V, 3]`` on every step, or ``[steps, V, 3]`` one per step.
+        prescribed: the prescribed nodes' positions at the end of each step ``[steps, P, 3]`` (P:
+            the prescribed nodes, bodies in order, each body's in ascending node order), in place
+            of the bodies' ``motion``; their imposed velocities take them there from where they are.
         exact: converge the forward and the adjoint solves (to ``cg_tol``, default the
             simulator's): the gradient is that of the computed trajectory. False: the solves run
             as the simulator's options say; with a fixed CG budget the gradient is then the
@@ -81,6 +84,7 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
     v = _state("v0", v0, sim.v)
     gravity = _vector("gravity", gravity, sim.gravity)
     forces = _forces(forces, steps, like)
+    prescribed = _prescribed(sim, prescribed, steps)
     frames = _frames(frames, steps)
 
     stepping = sim if young is None and poisson is None and density is None else \
@@ -102,7 +106,8 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
         """Steps first+1 .. first+count from x, v: (x, v, the frames' states among them)."""
         kept = []
         for n in range(first, first + count):
-            imposed = _imposed_velocity(stepping, x, start + (n + 1) * h, h)
+            imposed = _imposed_velocity(stepping, x, start + (n + 1) * h, h,
+                                        None if prescribed is None else prescribed[n])
             external = None
             if with_external:
                 external = mass[:, None] * g
@@ -196,20 +201,46 @@ def _rebuilt(sim: Simulator, young, poisson, density) -> Simulator:
     return rebuilt
 
 
-def _imposed_velocity(sim: Simulator, x: torch.Tensor, t_next: float, h: float) -> Optional[torch.Tensor]:
-    """The prescribed nodes' end velocities ``[V, 3]`` taking them from ``x`` to their motion at
-    ``t_next`` (0 elsewhere), differentiable in x; None without prescribed nodes."""
+def _prescribed_rows(sim: Simulator) -> torch.Tensor:
+    """The prescribed nodes' rows of ``sim.x`` ``[P]``, bodies in order, ascending in each."""
+    rows = [torch.nonzero(b.prescribed.to(sim.device)).flatten() + sim.ptr[i] for i, b in enumerate(sim.bodies)]
+    return torch.cat(rows)
+
+
+def _prescribed(sim: Simulator, prescribed, steps: int) -> Optional[torch.Tensor]:
+    if prescribed is None:
+        return None
+    count = int(sum(int(b.prescribed.sum()) for b in sim.bodies))
+    if count == 0:
+        raise SceneError("prescribed positions were given, but the simulator has no prescribed nodes")
+    if not isinstance(prescribed, torch.Tensor) or prescribed.shape != (steps, count, 3):
+        shape = tuple(prescribed.shape) if isinstance(prescribed, torch.Tensor) else type(prescribed).__name__
+        raise SceneError(f"prescribed must have shape {(steps, count, 3)} (each step's end positions of the "
+                         f"{count} prescribed nodes), got {shape}")
+    if not bool(torch.isfinite(prescribed.detach()).all()):
+        raise SceneError("prescribed has NaN or inf entries")
+    return prescribed.to(dtype=sim.dtype, device=sim.device)
+
+
+def _imposed_velocity(sim: Simulator, x: torch.Tensor, t_next: float, h: float,
+                      targets: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+    """The prescribed nodes' end velocities ``[V, 3]`` taking them from ``x`` to ``targets
+    [P, 3]`` (None: their motion at ``t_next``), 0 elsewhere, differentiable in x and targets;
+    None without prescribed nodes."""
     if not sim._has_prescribed:
         return None
-    goal = torch.zeros_like(x.detach())
-    mask = torch.zeros(x.shape[0], 1, dtype=x.dtype, device=x.device)
-    for i, body in enumerate(sim.bodies):
-        if body.motion is None:
-            continue
-        nodes = torch.nonzero(body.prescribed.to(x.device)).flatten() + sim.ptr[i]
-        target = torch.as_tensor(body.motion(t_next), dtype=x.dtype, device=x.device)
-        if target.shape != (nodes.numel(), 3):
-            raise SceneError(f"body {i}: motion(t) returned shape {tuple(target.shape)}; expected [{nodes.numel()}, 3]")
-        goal[nodes] = target
-        mask[nodes] = 1.0
+    rows = _prescribed_rows(sim)
+    if targets is None:
+        parts = []
+        for i, body in enumerate(sim.bodies):
+            if body.motion is None:
+                continue
+            count = int(body.prescribed.sum())
+            target = torch.as_tensor(body.motion(t_next), dtype=x.dtype, device=x.device)
+            if target.shape != (count, 3):
+                raise SceneError(f"body {i}: motion(t) returned shape {tuple(target.shape)}; expected [{count}, 3]")
+            parts.append(target)
+        targets = torch.cat(parts)
+    goal = torch.zeros_like(x).index_copy(0, rows, targets)
+    mask = torch.zeros(x.shape[0], 1, dtype=x.dtype, device=x.device).index_fill(0, rows, 1.0)
     return mask * (goal - x) / h

@@ -98,6 +98,13 @@ def test_prescribed_nodes_and_a_floor(rng):
     params = _parameters(sim, rng)
     for name in ("x0", "v0", "young", "forces"):
         assert _directional_error(sim, weights, name, params[name], rng) <= 1e-6, name
+    # the held end's path as a tensor in place of its motion: the same trajectory, and its gradient
+    path = torch.stack([start + torch.tensor([0.0, 0.0, -2.0 * (sim.time + (n + 1) * 0.01)], dtype=torch.float64)
+                        for n in range(STEPS)])
+    torch.testing.assert_close(tm.rollout(sim, STEPS, prescribed=path).x, run.x, rtol=0, atol=1e-12)
+    assert _directional_error(sim, weights, "prescribed", path, rng) <= 1e-6
+    with pytest.raises(tm.SceneError, match=r"prescribed must have shape \(3, %d, 3\)" % int(held.sum())):
+        tm.rollout(sim, STEPS, prescribed=path[:, 1:])
 
 
 def test_gradcheck_on_a_tiny_scene():
