@@ -47,12 +47,31 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
         precision: ``"float64"`` (default: Newton and CG in float64 whatever the model's dtype) or
             ``"model"`` (in the model's dtype).
 
+    Gradients: ``u`` is differentiable (by the implicit-function theorem) with respect to
+    ``gravity`` and ``external`` when they require grad, and to the model's material where its
+    tensors do (a stress-form model built from a ``Material`` whose young, poisson or density
+    requires grad): see :class:`_StaticEquilibrium`.
+
     Raises:
         SolverError when CG breaks down (the tangent stiffness is not positive definite: buckling,
         inverted elements) or Newton does not converge in ``max_newton`` steps.
     """
     if precision not in PRECISIONS:
         raise SceneError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
+    args = dict(fixed=fixed, tol=tol, max_newton=max_newton, cg_tol=cg_tol, cg_max_iter=cg_max_iter, planes=planes,
+                precision=precision, tools=tools, body_contact=body_contact)
+    params = [t for t in model.buffers() if t.requires_grad]
+    gravity_grad = isinstance(gravity, torch.Tensor) and gravity.requires_grad
+    external_grad = external is not None and external.requires_grad
+    if torch.is_grad_enabled() and (params or gravity_grad or external_grad):
+        _check_differentiable(model, tools, body_contact)
+        gravity = torch.as_tensor(gravity, dtype=model.rest.dtype, device=model.rest.device)
+        return _StaticEquilibrium.apply(model, args, gravity, external, *params)
+    return _solve_static(model, gravity=gravity, external=external, **args)
+
+
+def _solve_static(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, planes, precision, tools,
+                  body_contact) -> torch.Tensor:
     out_dtype = model.rest.dtype
     if tools is not None and not isinstance(tools, ToolSet):
         tools = ToolSet(list(tools), out_dtype, model.rest.device)
@@ -232,3 +251,94 @@ def _line_search(potential, residual, u, du, r) -> float:
                 return step
         step *= 0.5
     return step
+
+
+class _StaticEquilibrium(torch.autograd.Function):
+    """``u`` at equilibrium as a function of the load and the model's material, by the
+    implicit-function theorem: on the free rows r(u, p) = f(u; p) + M(p) g + external (+ contact)
+    = 0, so with A = -dr/du (the exact tangent, and the contacts' stiffness; symmetric positive
+    definite at a stable equilibrium) du/dp = A^-1 dr/dp and, for the cotangent g of u,
+
+        A lam = P g,   dL/dp = lam . dr/dp
+
+    one CG solve at the equilibrium and one vector-Jacobian product of the residual through the
+    model's ops (its buffers that require grad: Lame constants' sources, masses).
+
+    Inputs: the model, the other arguments of ``solve_static``, gravity ``[d]``, external
+    ``[V, d]`` or None, then the model's buffers that require grad (so autograd reaches them)."""
+
+    @staticmethod
+    def forward(ctx, model, args, gravity, external, *params):
+        u = _solve_static(model, gravity=gravity.detach(), external=None if external is None else external.detach(),
+                          **args)
+        ctx.model, ctx.args = model, args
+        ctx.save_for_backward(u, gravity, external, *params)
+        return u
+
+    @staticmethod
+    def backward(ctx, grad):
+        u, gravity, external, *params = ctx.saved_tensors
+        u = u.detach()  # this function's output: autograd must not come back through it
+        model, args = ctx.model, ctx.args
+        rest = model.rest
+        free = (~node_mask(args["fixed"], rest.shape[0], "fixed", device=rest.device)).to(rest.dtype).unsqueeze(-1)
+        contacts = _contacts_of(args, rest)
+        exact = _variant(model, rest.dtype, "exact")
+        stiffness = exact.displacement_tangent(u)
+        x = rest + u
+
+        def matvec(p):
+            ap = -stiffness(p)
+            for contact in contacts:
+                ap = ap - contact.dforces(x, p)
+            return ap
+
+        tol = 1e-12 if rest.dtype == torch.float64 else 1e-6
+        result = batched_cg(matvec, grad * free, Segments.single(rest.shape[0], rest.device), free, tol=tol,
+                            max_iter=10 * u.numel())
+        if not bool(result.converged.all()):
+            raise SolverError(f"the static solve's adjoint CG: {result.status()[0]} (the tangent at the "
+                              "equilibrium is not positive definite, or the tolerance is out of reach)",
+                              result.status(), result)
+        lam = result.solution
+        needs = ctx.needs_input_grad  # (model, args, gravity, external, *params)
+        with torch.enable_grad():
+            g = gravity.detach().requires_grad_(needs[2])
+            ext = None if external is None else external.detach().requires_grad_(needs[3])
+            residual = model.displacement_forces(u) + model.lumped_mass().unsqueeze(-1) * g
+            if ext is not None:
+                residual = residual + ext
+            for contact in contacts:
+                residual = residual + contact.forces(x)
+            wanted = [t for t, need in zip([g, ext, *params], needs[2:]) if need and t is not None]
+            grads = iter(torch.autograd.grad((lam * residual).sum(), wanted, allow_unused=True)) if wanted else iter(())
+        out = [next(grads) if need and t is not None else None for t, need in zip([g, ext, *params], needs[2:])]
+        return (None, None, *out)
+
+
+def _check_differentiable(model, tools, body_contact) -> None:
+    """The implicit-function theorem needs the residual's exact Jacobian, which the solve's tangent
+    is only for hooke and stvk elements and planes: raise naming anything else."""
+    reasons = []
+    if any(g.model == "corotational" for g in model.groups):
+        reasons.append("corotational elements (their forces' Jacobian through the rotations is not the "
+                       "symmetric tangent the solve uses)")
+    if tools is not None and len(tools):
+        reasons.append("rigid tools")
+    if body_contact is not None:
+        reasons.append("contact between bodies")
+    if reasons:
+        raise SolverError("gradients of the static equilibrium are not available with " + "; ".join(reasons)
+                          + " (hooke and stvk bodies, fixed nodes and planes are differentiable; for the others, "
+                          "tm.rollout differentiates the dynamic steps)")
+
+
+def _contacts_of(args: dict, rest: torch.Tensor) -> list:
+    """The contact terms of ``solve_static``'s arguments, in the model's dtype."""
+    tools = args["tools"]
+    if tools is not None and not isinstance(tools, ToolSet):
+        tools = ToolSet(list(tools), rest.dtype, rest.device)
+    contacts = [c for c in (args["planes"], tools) if c is not None and len(c)]
+    if args["body_contact"] is not None:
+        contacts.append(args["body_contact"])
+    return contacts
