@@ -135,17 +135,21 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
     return Rollout(torch.stack([s[0] for s in recorded]), torch.stack([s[1] for s in recorded]), sorted(frames))
 
 
+def _checked(name: str, value, shapes, expected: str, like: torch.Tensor) -> torch.Tensor:
+    """``value`` after checking it is a tensor of one of ``shapes`` (``expected`` says which, in the
+    error) with finite entries, in ``like``'s dtype and on its device (its graph kept)."""
+    if not isinstance(value, torch.Tensor) or tuple(value.shape) not in [tuple(s) for s in shapes]:
+        shape = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+        raise SceneError(f"{name} must have shape {expected}, got {shape}")
+    if not bool(torch.isfinite(value.detach()).all()):
+        raise SceneError(f"{name} has NaN or inf entries")
+    return value.to(dtype=like.dtype, device=like.device)
+
+
 def _state(name: str, value, own: torch.Tensor) -> torch.Tensor:
     if value is None:
         return own.detach()
-    if not isinstance(value, torch.Tensor) or value.shape != own.shape:
-        shape = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
-        raise SceneError(f"{name} must be a tensor of shape {tuple(own.shape)} (the simulator's node rows), "
-                         f"got {shape}")
-    value = value.to(dtype=own.dtype, device=own.device)
-    if not bool(torch.isfinite(value.detach()).all()):
-        raise SceneError(f"{name} has NaN or inf entries")
-    return value
+    return _checked(name, value, [own.shape], f"{tuple(own.shape)} (the simulator's node rows)", own)
 
 
 def _vector(name: str, value, own: torch.Tensor) -> Optional[torch.Tensor]:
@@ -160,13 +164,8 @@ def _vector(name: str, value, own: torch.Tensor) -> Optional[torch.Tensor]:
 def _forces(forces, steps: int, like: torch.Tensor) -> Optional[torch.Tensor]:
     if forces is None:
         return None
-    if not isinstance(forces, torch.Tensor) or forces.shape not in (like.shape, (steps, *like.shape)):
-        shape = tuple(forces.shape) if isinstance(forces, torch.Tensor) else type(forces).__name__
-        raise SceneError(f"forces must have shape {tuple(like.shape)} (every step) or {(steps, *like.shape)} "
-                         f"(one per step), got {shape}")
-    if not bool(torch.isfinite(forces.detach()).all()):
-        raise SceneError("forces has NaN or inf entries")
-    return forces.to(dtype=like.dtype, device=like.device)
+    return _checked("forces", forces, [like.shape, (steps, *like.shape)],
+                    f"{tuple(like.shape)} (every step) or {(steps, *like.shape)} (one per step)", like)
 
 
 def _frames(frames, steps: int) -> set:
@@ -213,13 +212,8 @@ def _prescribed(sim: Simulator, prescribed, steps: int) -> Optional[torch.Tensor
     count = int(sum(int(b.prescribed.sum()) for b in sim.bodies))
     if count == 0:
         raise SceneError("prescribed positions were given, but the simulator has no prescribed nodes")
-    if not isinstance(prescribed, torch.Tensor) or prescribed.shape != (steps, count, 3):
-        shape = tuple(prescribed.shape) if isinstance(prescribed, torch.Tensor) else type(prescribed).__name__
-        raise SceneError(f"prescribed must have shape {(steps, count, 3)} (each step's end positions of the "
-                         f"{count} prescribed nodes), got {shape}")
-    if not bool(torch.isfinite(prescribed.detach()).all()):
-        raise SceneError("prescribed has NaN or inf entries")
-    return prescribed.to(dtype=sim.dtype, device=sim.device)
+    return _checked("prescribed", prescribed, [(steps, count, 3)],
+                    f"{(steps, count, 3)} (each step's end positions of the {count} prescribed nodes)", sim.x)
 
 
 def _imposed_velocity(sim: Simulator, x: torch.Tensor, t_next: float, h: float,

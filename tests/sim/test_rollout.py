@@ -213,7 +213,7 @@ def test_bad_input_gives_one_clear_error(rng):
         (dict(young=torch.tensor(float("nan"))), r"young must be finite"),
         (dict(poisson=torch.tensor(0.5)), r"poisson must be finite and in \(-1, 0.5\)"),
         (dict(density=torch.tensor(-1.0)), r"density must be finite and in \(0, inf\)"),
-        (dict(x0=torch.zeros(V - 1, 3)), r"x0 must be a tensor of shape"),
+        (dict(x0=torch.zeros(V - 1, 3)), r"x0 must have shape \(%d, 3\)" % V),
         (dict(forces=torch.zeros(2, V, 3)), r"forces must have shape"),
         (dict(gravity=[0.0, float("inf"), 0.0]), r"gravity must be 3 finite numbers"),
         (dict(frames=[STEPS + 1]), r"frames must be steps in 0 \.\. 3"),
