@@ -44,7 +44,8 @@ class _PolarRotation(torch.autograd.Function):
     X <- (g X + X^-T / g) / 2 with determinant scaling g = |det X|^(-1/3) (Higham), a fixed count
     of cofactor-and-scale passes over the batch, then the SVD for the elements it does not serve
     (det F <= 0, where the closest proper rotation flips the smallest singular vector, or not
-    converged). A batched SVD of every element cost 70 % of a corotational step's backward.
+    converged): the SVD of every element is slow as a batch of 3x3 problems on a GPU
+    (docs/gradients.md).
 
     Backward: F = R S turns R by dR = R W, W skew with W S + S W = R^T dF - dF^T R. In 3-D, with
     W = [w]x, the left side is [(tr(S) I - S) w]x, so the vector-Jacobian product is
@@ -112,8 +113,9 @@ def _det_from(X: torch.Tensor, cofactors: torch.Tensor) -> torch.Tensor:
     return (X[..., :, 0] * cofactors[..., :, 0]).sum(-1)
 
 
-#: Newton passes of the 3-D polar factor (determinant-scaled: from a condition number of 1e6 it
-#: converges in about 9; where it has not, the SVD takes over)
+#: Newton passes of the 3-D polar factor (determinant-scaled, the convergence is quadratic once
+#: near: a few passes beyond what moderately stretched elements need); an element it has not
+#: converged on (orthogonality error above 100 eps) takes the SVD instead
 POLAR_NEWTON_PASSES = 10
 
 
