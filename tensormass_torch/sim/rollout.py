@@ -101,13 +101,14 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
     g = sim.gravity if gravity is None else gravity
     h = forward.dt
     start = sim.time
+    rows = _prescribed_rows(stepping) if stepping._has_prescribed else None  # found once, not per step
 
     def run(first: int, count: int, x, v):
         """Steps first+1 .. first+count from x, v: (x, v, the frames' states among them)."""
         kept = []
         for n in range(first, first + count):
-            imposed = _imposed_velocity(stepping, x, start + (n + 1) * h, h,
-                                        None if prescribed is None else prescribed[n])
+            imposed = None if rows is None else _imposed_velocity(
+                stepping, rows, x, start + (n + 1) * h, h, None if prescribed is None else prescribed[n])
             external = None
             if with_external:
                 external = mass[:, None] * g
@@ -216,14 +217,11 @@ def _prescribed(sim: Simulator, prescribed, steps: int) -> Optional[torch.Tensor
                     f"{(steps, count, 3)} (each step's end positions of the {count} prescribed nodes)", sim.x)
 
 
-def _imposed_velocity(sim: Simulator, x: torch.Tensor, t_next: float, h: float,
-                      targets: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
-    """The prescribed nodes' end velocities ``[V, 3]`` taking them from ``x`` to ``targets
-    [P, 3]`` (None: their motion at ``t_next``), 0 elsewhere, differentiable in x and targets;
-    None without prescribed nodes."""
-    if not sim._has_prescribed:
-        return None
-    rows = _prescribed_rows(sim)
+def _imposed_velocity(sim: Simulator, rows: torch.Tensor, x: torch.Tensor, t_next: float, h: float,
+                      targets: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The prescribed nodes' (``rows [P]``) end velocities ``[V, 3]`` taking them from ``x`` to
+    ``targets [P, 3]`` (None: their motion at ``t_next``), 0 elsewhere, differentiable in x and
+    targets."""
     if targets is None:
         parts = []
         for i, body in enumerate(sim.bodies):

@@ -117,7 +117,6 @@ class ImplicitStep(torch.autograd.Function):
         with torch.no_grad():
             x_new, v_new = step.step(x, v, imposed, external)
         ctx.step = step
-        ctx.has_imposed = imposed is not None
         ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new)
         return x_new, v_new
 
