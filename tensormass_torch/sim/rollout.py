@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from os import PathLike
 from typing import List, Optional, Sequence
 
 import torch
@@ -31,7 +32,7 @@ class Rollout:
     frames: List[int]
 
 
-def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[torch.Tensor] = None,
+def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[torch.Tensor] = None,
             young=None, poisson=None, density=None, gravity=None, forces: Optional[torch.Tensor] = None,
             prescribed: Optional[torch.Tensor] = None, exact: bool = True, cg_tol: Optional[float] = None,
             checkpoint_every: Optional[int] = None, frames: Optional[Sequence[int]] = None) -> Rollout:
@@ -41,7 +42,8 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
     gets one through every step by the adjoint method (``solver.adjoint``).
 
     Args:
-        sim: the simulator (not advanced: its state, time and caches of solves stay as they are).
+        sim: the simulator (not advanced: its state, time and caches of solves stay as they are),
+            a built-in or file scene (``tm.load_scene``'s), or a scene file's path.
         steps: number of steps (>= 1).
         x0, v0: initial positions and velocities ``[V, 3]`` (V = ``sim.x.shape[0]``).
         young, poisson, density: a scalar or one value per element ``[N]`` in the simulator's
@@ -68,6 +70,7 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
         adjoint does not differentiate (tools, contact between bodies, friction, several Newton
         iterations, removed or cut elements) or a solve fails. Nothing of ``sim`` is changed.
     """
+    sim = _simulator_of(sim)
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise SceneError(f"steps must be a positive integer, got {steps!r}")
     if checkpoint_every is not None and (isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int)
@@ -134,6 +137,18 @@ def rollout(sim: Simulator, steps: int, *, x0: Optional[torch.Tensor] = None, v0
             kept = list(zip(flat[0::2], flat[1::2]))
         recorded.extend(kept)
     return Rollout(torch.stack([s[0] for s in recorded]), torch.stack([s[1] for s in recorded]), sorted(frames))
+
+
+def _simulator_of(sim) -> Simulator:
+    """The simulator of a simulator, a scene (``sim.builtin.Scene``) or a scene file's path."""
+    if isinstance(sim, (str, PathLike)):
+        from .scene_file import load_scene
+
+        sim = load_scene(sim)
+    sim = getattr(sim, "simulator", sim)
+    if not isinstance(sim, Simulator):
+        raise SceneError(f"rollout steps a tm.Simulator, a scene or a scene file's path; got {type(sim).__name__}")
+    return sim
 
 
 def _checked(name: str, value, shapes, expected: str, like: torch.Tensor) -> torch.Tensor:
