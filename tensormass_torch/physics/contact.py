@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Optional, Sequence
 
 import torch
 
@@ -132,6 +132,17 @@ class Planes:
         for name in ("normals", "offsets", "stiffness", "friction", "friction_velocity"):
             setattr(other, name, getattr(self, name).to(dtype=dtype, device=device))
         other.has_friction = self.has_friction
+        return other
+
+    def replaced(self, offsets: Optional[torch.Tensor] = None, stiffness: Optional[torch.Tensor] = None) -> "Planes":
+        """These planes with ``offsets`` / ``stiffness`` ``[P]`` in place of theirs (None keeps them;
+        the other tensors shared): the planes as functions of those values, for autograd."""
+        other = Planes.__new__(Planes)
+        other.__dict__.update(self.__dict__)
+        if offsets is not None:
+            other.offsets = offsets
+        if stiffness is not None:
+            other.stiffness = stiffness
         return other
 
     # Elementwise products and small sums over the 3 coordinates / P planes rather than matrix

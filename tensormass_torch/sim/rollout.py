@@ -34,7 +34,8 @@ class Rollout:
 
 def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[torch.Tensor] = None,
             young=None, poisson=None, density=None, gravity=None, forces: Optional[torch.Tensor] = None,
-            prescribed: Optional[torch.Tensor] = None, exact: bool = True, cg_tol: Optional[float] = None,
+            prescribed: Optional[torch.Tensor] = None, plane_offsets=None, plane_stiffness=None,
+            exact: bool = True, cg_tol: Optional[float] = None,
             checkpoint_every: Optional[int] = None, frames: Optional[Sequence[int]] = None) -> Rollout:
     """``steps`` implicit Euler steps of ``sim`` from its state (or ``x0, v0``), differentiable.
 
@@ -54,6 +55,8 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
         prescribed: the prescribed nodes' positions at the end of each step ``[steps, P, 3]`` (P:
             the prescribed nodes, bodies in order, each body's in ascending node order), in place
             of the bodies' ``motion``; their imposed velocities take them there from where they are.
+        plane_offsets, plane_stiffness: the planes' offsets d (n . x >= d outside) and penalty
+            stiffness ``[P]``, in the order the simulator was given them.
         exact: converge the forward and the adjoint solves (to ``cg_tol``, default the
             simulator's): the gradient is that of the computed trajectory. False: the solves run
             as the simulator's options say; with a fixed CG budget the gradient is then the
@@ -88,6 +91,9 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
     gravity = _vector("gravity", gravity, sim.gravity)
     forces = _forces(forces, steps, like)
     prescribed = _prescribed(sim, prescribed, steps)
+    plane_offsets, plane_stiffness = (_plane_values(sim, name, value, low) for name, value, low in
+                                      (("plane_offsets", plane_offsets, -float("inf")),
+                                       ("plane_stiffness", plane_stiffness, 0.0)))
     frames = _frames(frames, steps)
 
     stepping = sim if young is None and poisson is None and density is None else \
@@ -117,7 +123,8 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
                 external = mass[:, None] * g
                 if forces is not None:
                     external = external + (forces[n] if forces.dim() == 3 else forces)
-            x, v = ImplicitStep.apply(step, x, v, imposed, external, mass, young_all, poisson_all)
+            x, v = ImplicitStep.apply(step, x, v, imposed, external, mass, young_all, poisson_all, plane_offsets,
+                                      plane_stiffness)
             if n + 1 in frames:
                 kept.append((x, v))
         return x, v, kept
@@ -182,6 +189,20 @@ def _forces(forces, steps: int, like: torch.Tensor) -> Optional[torch.Tensor]:
         return None
     return _checked("forces", forces, [like.shape, (steps, *like.shape)],
                     f"{tuple(like.shape)} (every step) or {(steps, *like.shape)} (one per step)", like)
+
+
+def _plane_values(sim: Simulator, name: str, value, low: float) -> Optional[torch.Tensor]:
+    """``value`` (None, or one number per plane ``[P]``) checked: finite, above ``low``."""
+    if value is None:
+        return None
+    count = 0 if sim.planes is None else len(sim.planes)
+    if count == 0:
+        raise SceneError(f"{name} was given, but the simulator has no planes")
+    value = value if isinstance(value, torch.Tensor) else torch.as_tensor(value, dtype=sim.dtype)
+    value = _checked(name, value, [(count,)], f"({count},) (one per plane)", sim.x)
+    if bool((value.detach() <= low).any()):
+        raise SceneError(f"{name} must be > {low:g}, got {value.detach().tolist()}")
+    return value
 
 
 def _frames(frames, steps: int) -> set:

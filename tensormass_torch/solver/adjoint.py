@@ -59,26 +59,33 @@ class DifferentiableStep:
     adjoint: StepOptions
     model: object
 
-    def step(self, x, v, imposed, external):
+    def step(self, x, v, imposed, external, plane_offsets=None, plane_stiffness=None):
         """The forward step from ``x, v [V, 3]`` (``imposed``: the constrained nodes' end
         velocities or None; ``external``: this step's external forces ``[V, 3]`` in place of the
-        system's, or None): ``(x', v')``. The system's external forces are restored after."""
+        system's, or None; ``plane_offsets``, ``plane_stiffness``: ``[P]`` in place of the planes',
+        or None): ``(x', v')``. What it replaced is written in place (the captured graphs read
+        that storage) and restored after."""
         system = self.system
-        kept = None
-        if external is not None:
-            kept = system.external.clone()
-            system.external.copy_(external)
+        planes = system.planes
+        swaps = [(target, value) for target, value in ((system.external, external),
+                                                       (None if planes is None else planes.offsets, plane_offsets),
+                                                       (None if planes is None else planes.stiffness, plane_stiffness))
+                 if value is not None]
+        kept = [target.clone() for target, _ in swaps]
+        for target, value in swaps:
+            target.copy_(value)
         try:
             x_new, v_new, _ = implicit_euler_step(system, x, v, self.forward, imposed)
         finally:
-            if kept is not None:
-                system.external.copy_(kept)
+            for (target, _), old in zip(swaps, kept):
+                target.copy_(old)
         return x_new, v_new
 
-    def residual(self, x, v, dv, external, mass, young, poisson) -> torch.Tensor:
+    def residual(self, x, v, dv, external, mass, young, poisson, plane_offsets=None,
+                 plane_stiffness=None) -> torch.Tensor:
         """``R(dv; x, v, ...)`` ``[V, 3]`` of the module's docstring, every row (the caller keeps the
         free ones): ``external`` None leaves f_ext out (a constant: no gradient needs its value),
-        ``mass [V]``, ``young, poisson [N]``."""
+        ``mass [V]``, ``young, poisson [N]``, the planes' ``offsets, stiffness [P]`` (None: theirs)."""
         opts = self.forward
         h = opts.dt
         mass_coef, stiffness_coef = _coefficients(opts)
@@ -88,6 +95,8 @@ class DifferentiableStep:
         m = mass[:, None]
         residual = mass_coef * m * dv - elastic
         for contact in system.contacts:
+            if contact is system.planes:
+                contact = contact.replaced(plane_offsets, plane_stiffness)
             residual = residual - h * contact.forces(x) - stiffness_coef * contact.dforces(x, w)
         if opts.rayleigh_mass:
             residual = residual + (h * opts.rayleigh_mass) * m * v
@@ -108,22 +117,24 @@ class ImplicitStep(torch.autograd.Function):
     Inputs: the :class:`DifferentiableStep`; positions, velocities ``[V, 3]``; the constrained
     nodes' end velocities ``[V, 3]`` or None (fixed nodes stay at rest); the step's external
     forces ``[V, 3]`` or None (the system's); lumped masses ``[V]``; per-element Young's moduli
-    and Poisson ratios ``[N]``. Masses and material must be those the system was built with (the
-    forward reads the system's; the backward differentiates through these).
+    and Poisson ratios ``[N]``; the planes' offsets and stiffness ``[P]`` or None (theirs).
+    Masses and material must be those the system was built with (the forward reads the
+    system's; the backward differentiates through these).
     """
 
     @staticmethod
-    def forward(ctx, step: DifferentiableStep, x, v, imposed, external, mass, young, poisson):
+    def forward(ctx, step: DifferentiableStep, x, v, imposed, external, mass, young, poisson, plane_offsets=None,
+                plane_stiffness=None):
         with torch.no_grad():
-            x_new, v_new = step.step(x, v, imposed, external)
+            x_new, v_new = step.step(x, v, imposed, external, plane_offsets, plane_stiffness)
         ctx.step = step
-        ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new)
+        ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new, plane_offsets, plane_stiffness)
         return x_new, v_new
 
     @staticmethod
     def backward(ctx, g_x, g_v):
         step: DifferentiableStep = ctx.step
-        x, v, imposed, mass, young, poisson, v_new = ctx.saved_tensors
+        x, v, imposed, mass, young, poisson, v_new, plane_offsets, plane_stiffness = ctx.saved_tensors
         h = step.forward.dt
         free = step.system.free
         if g_x is None:
@@ -132,7 +143,8 @@ class ImplicitStep(torch.autograd.Function):
             g_v = torch.zeros_like(v)
         g_dv = g_v + h * g_x
         lam = step.adjoint_solve(x, g_dv if free is None else g_dv * free)
-        needs = ctx.needs_input_grad  # (step, x, v, imposed, external, mass, young, poisson)
+        # (step, x, v, imposed, external, mass, young, poisson, plane_offsets, plane_stiffness)
+        needs = ctx.needs_input_grad
         with torch.enable_grad():
             leaves = {}
 
@@ -154,11 +166,13 @@ class ImplicitStep(torch.autograd.Function):
             mass_ = leaf("mass", mass, 5)
             young_ = leaf("young", young, 6)
             poisson_ = leaf("poisson", poisson, 7)
+            offsets_ = leaf("plane_offsets", plane_offsets, 8)
+            stiffness_ = leaf("plane_stiffness", plane_stiffness, 9)
             # dv: its free rows as solved (constants), its constrained rows imposed by the inputs
             dv = (v_new - v) if free is None else (v_new - v) * free
             if imposed_ is not None:
                 dv = dv + (1.0 - free) * (imposed_ - v_)
-            residual = step.residual(x_, v_, dv, external_, mass_, young_, poisson_)
+            residual = step.residual(x_, v_, dv, external_, mass_, young_, poisson_, offsets_, stiffness_)
             wanted = {"x": x_, "v": v_, **leaves}
             grads = torch.autograd.grad((lam * residual).sum(), list(wanted.values()), allow_unused=True)
         got = {name: (torch.zeros_like(t) if g is None else -g) for (name, t), g in zip(wanted.items(), grads)}
@@ -171,7 +185,8 @@ class ImplicitStep(torch.autograd.Function):
             grad_v = got["v"] + g_dv * free
             grad_imposed = got["imposed"] + g_dv * (1.0 - free) if "imposed" in got else None
         return (None, grad_x if needs[1] else None, grad_v if needs[2] else None, grad_imposed,
-                got.get("external"), got.get("mass"), got.get("young"), got.get("poisson"))
+                got.get("external"), got.get("mass"), got.get("young"), got.get("poisson"),
+                got.get("plane_offsets"), got.get("plane_stiffness"))
 
 
 def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:

@@ -103,6 +103,12 @@ def test_prescribed_nodes_and_a_floor(rng):
                         for n in range(STEPS)])
     torch.testing.assert_close(tm.rollout(sim, STEPS, prescribed=path).x, run.x, rtol=0, atol=1e-12)
     assert _directional_error(sim, weights, "prescribed", path, rng) <= 1e-6
+    # the floor's offset and stiffness
+    for name, value in (("plane_offsets", torch.tensor([float(floor)], dtype=torch.float64)),
+                        ("plane_stiffness", torch.tensor([3e4], dtype=torch.float64))):
+        assert _directional_error(sim, weights, name, value, rng) <= 1e-6, name
+    with pytest.raises(tm.SceneError, match=r"plane_stiffness must be > 0"):
+        tm.rollout(sim, STEPS, plane_stiffness=torch.tensor([-1.0], dtype=torch.float64))
     with pytest.raises(tm.SceneError, match=r"prescribed must have shape \(3, %d, 3\)" % int(held.sum())):
         tm.rollout(sim, STEPS, prescribed=path[:, 1:])
 
@@ -288,3 +294,23 @@ fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.1, 0.1]] }
     torch.testing.assert_close(direct.x, run.x.detach())
     with pytest.raises(tm.SceneError, match="rollout steps a tm.Simulator"):
         tm.rollout(42, 3)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("model", ["hooke", "corotational"])
+def test_cuda_plane_gradients_match_the_cpu(model):
+    """The planes' offsets and stiffness written in place for the captured CUDA steps: the same
+    trajectory and gradients as on the CPU (float64)."""
+    results = {}
+    for device in ("cpu", "cuda"):
+        sim = _sim(np.random.default_rng(5), "tet", model, device=device, steps_before=0, gravity=(0.0, 0.0, -30.0),
+                   planes=[tm.Plane((0, 0, 1), -0.02, 2e4)])
+        offsets = torch.tensor([-0.01], dtype=torch.float64, device=device, requires_grad=True)
+        stiffness = torch.tensor([3e4], dtype=torch.float64, device=device, requires_grad=True)
+        run = tm.rollout(sim, 6, plane_offsets=offsets, plane_stiffness=stiffness)
+        run.x[-1].square().sum().backward()
+        results[device] = (run.x.detach().cpu(), offsets.grad.cpu(), stiffness.grad.cpu())
+        assert float(sim.planes.offsets[0]) == -0.02  # restored
+    assert float(results["cpu"][2]) != 0.0  # the scene touches the plane
+    for a, b in zip(results["cuda"], results["cpu"]):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)
