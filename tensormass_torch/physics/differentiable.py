@@ -37,19 +37,15 @@ class DifferentiableModel:
         like = model.rest
         self.group_ids: List[torch.Tensor] = []
         self._stress_groups: List[ElementGroup] = []
-        self._node_ids: List[torch.Tensor] = []
         young = like.new_empty(model.num_elements)
         poisson = like.new_empty(model.num_elements)
         density = like.new_empty(model.num_elements)
         for group in model.groups:
-            sources = group.__dict__["_sources"]
-            ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
-            values = [torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4)]
+            ids, *values = model.group_sources(group)
             for full, value in zip((young, poisson, density), values):
                 full[ids] = value
             self.group_ids.append(ids)
             self._stress_groups.append(_stress_group(model.rest, group, values[0], values[1]))
-            self._node_ids.append(group.elements.long())
         self.young, self.poisson, self.density = young, poisson, density
 
     def per_element(self, name: str, value: Optional[torch.Tensor]) -> torch.Tensor:
@@ -63,13 +59,10 @@ class DifferentiableModel:
         return value
 
     def lumped_mass(self, density: torch.Tensor) -> torch.Tensor:
-        """Lumped masses ``[V]`` for per-element densities ``[N]``: each element gives rho V / n to
-        each of its n nodes (the model's masses, summed in another order)."""
-        mass = density.new_zeros(self.model.num_nodes)
-        for group, ids, nodes in zip(self._stress_groups, self.group_ids, self._node_ids):
-            share = density[ids] * group.measure / nodes.shape[1]
-            mass = mass.index_add(0, nodes.reshape(-1), share.repeat_interleave(nodes.shape[1]))
-        return mass
+        """Lumped masses ``[V]`` for per-element densities ``[N]``: the model's own sum (each element
+        gives rho V / n to each of its n nodes), differentiable in the densities."""
+        return self.model._lumped_mass([(group.elements, density[ids] * group.measure)
+                                        for group, ids in zip(self._stress_groups, self.group_ids)])
 
     def step_forces(self, u: torch.Tensor, w: torch.Tensor, force_coef: float, stiffness_coef: float,
                     young: torch.Tensor, poisson: torch.Tensor) -> torch.Tensor:
@@ -89,6 +82,7 @@ class DifferentiableModel:
                 term = force_coef * ops.forces(group, u, state) + stiffness_coef * ops.dforces(group, u, w, state)
             total = term if total is None else total + term
         return total
+
 
 def _stress_group(rest: torch.Tensor, group: ElementGroup, young: torch.Tensor, poisson: torch.Tensor) -> ElementGroup:
     """A stress-form group of ``group``'s elements (its own when it has the stress form: a new one

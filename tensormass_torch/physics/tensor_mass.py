@@ -129,6 +129,16 @@ class TensorMass(nn.Module):
         slots, num_slots, _ = incidence_slots(nodes, self.num_nodes)
         return padded_sum(shares, nodes, slots, num_slots, self.num_nodes)
 
+    def group_sources(self, group):
+        """``(ids, young, poisson, density)`` of ``group``'s rows as built: the model's element ids
+        ``[N_g]`` (int64) and the per-element material ``[N_g]`` (detached, in the model's dtype
+        and on its device: the model may have moved since it was built)."""
+        like = self.rest
+        sources = group.__dict__["_sources"]
+        ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
+        young, poisson, density = (torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4))
+        return ids, young, poisson, density
+
     # ---------------------------------------------------------------- topology changes
     def remove_elements(self, ids) -> float:
         """Remove elements in place, the Tensor-Mass way: each group drops their contribution
@@ -220,10 +230,7 @@ class TensorMass(nn.Module):
         element_share = like.new_empty(self.num_elements)
         nodes, items = [], []
         for g, group in enumerate(self.groups):
-            sources = group.__dict__["_sources"]
-            ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
-            # the sources are as built: the model may have moved since (.to())
-            young, poisson, density = (torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4))
+            ids, young, poisson, density = self.group_sources(group)
             group.prepare_removals(young, poisson, ids.to(index))
             element_group[ids] = g
             element_row[ids] = torch.arange(ids.numel(), device=like.device, dtype=index)

@@ -73,17 +73,11 @@ def solve_static(model, fixed=None, gravity: Sequence[float] = (0.0, 0.0, -9.81)
 def _solve_static(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, planes, precision, tools,
                   body_contact) -> torch.Tensor:
     out_dtype = model.rest.dtype
-    if tools is not None and not isinstance(tools, ToolSet):
-        tools = ToolSet(list(tools), out_dtype, model.rest.device)
+    contacts = _contacts_of(planes, tools, body_contact, model.rest)
     if precision == "float64" and out_dtype != torch.float64:
         model = _variant(model, torch.float64)
-        planes = None if planes is None else planes.to(dtype=torch.float64)
-        tools = None if tools is None else tools.to(dtype=torch.float64)
-        body_contact = None if body_contact is None else body_contact.to(dtype=torch.float64)
+        contacts = [c.to(dtype=torch.float64) for c in contacts]
         external = None if external is None else external.to(torch.float64)
-    contacts = [c for c in (planes, tools) if c is not None and len(c)]
-    if body_contact is not None:
-        contacts.append(body_contact)
     u = _solve(model, fixed, gravity, tol, external, max_newton, cg_tol, cg_max_iter, contacts)
     return u.to(out_dtype)
 
@@ -282,7 +276,7 @@ class _StaticEquilibrium(torch.autograd.Function):
         model, args = ctx.model, ctx.args
         rest = model.rest
         free = (~node_mask(args["fixed"], rest.shape[0], "fixed", device=rest.device)).to(rest.dtype).unsqueeze(-1)
-        contacts = _contacts_of(args, rest)
+        contacts = _contacts_of(args["planes"], args["tools"], args["body_contact"], rest)
         exact = _variant(model, rest.dtype, "exact")
         stiffness = exact.displacement_tangent(u)
         x = rest + u
@@ -333,12 +327,12 @@ def _check_differentiable(model, tools, body_contact) -> None:
                           "tm.rollout differentiates the dynamic steps)")
 
 
-def _contacts_of(args: dict, rest: torch.Tensor) -> list:
-    """The contact terms of ``solve_static``'s arguments, in the model's dtype."""
-    tools = args["tools"]
+def _contacts_of(planes, tools, body_contact, rest: torch.Tensor) -> list:
+    """The contact terms of ``solve_static``'s arguments present (planes, tools: a ``ToolSet`` or
+    a list of tools, body contact), tools in the model's dtype."""
     if tools is not None and not isinstance(tools, ToolSet):
         tools = ToolSet(list(tools), rest.dtype, rest.device)
-    contacts = [c for c in (args["planes"], tools) if c is not None and len(c)]
-    if args["body_contact"] is not None:
-        contacts.append(args["body_contact"])
+    contacts = [c for c in (planes, tools) if c is not None and len(c)]
+    if body_contact is not None:
+        contacts.append(body_contact)
     return contacts
