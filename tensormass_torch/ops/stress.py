@@ -21,6 +21,7 @@ path does.
 """
 from __future__ import annotations
 
+import functools
 from typing import Optional
 
 import torch
@@ -43,6 +44,7 @@ from .library import (
     unchanged,
 )
 from .reference import corotational, stress_form
+from .reference.stress_form import small_matmul
 
 __all__ = ["corotational_rotations", "stress_args", "lame"]
 
@@ -57,9 +59,10 @@ def _qr_rotations(u_e, rest):
     return corotational.qr_rotations(rest + u_e, rest)
 
 
-def _ref_corotational_rotations(u, elements, m, proj, rest, method):
+def _ref_corotational_rotations(u, elements, m, proj, rest, method, known=None):
     """Element rotations ``[N, d, d]`` at u: method 0 = SOFA's QR frame, 1 = polar (membranes map
-    their rest normal onto the current one first, as ``ops.linearize``)."""
+    their rest normal onto the current one first, as ``ops.linearize``). ``known``: the polar
+    factors as the kernel computed them (only their derivative is then taken here)."""
     u_e = u[elements]
     if int(method) == ROTATION_IDS["qr"]:
         return _qr_rotations(u_e, rest)
@@ -67,14 +70,14 @@ def _ref_corotational_rotations(u, elements, m, proj, rest, method):
         raise ValueError(f"unknown rotation method {method!r} (0 = qr, 1 = polar)")
     F = corotational.deformation_gradient(u_e, m, proj)
     if proj is None:
-        return corotational.polar_rotations(F)
+        return corotational.polar_rotations(F, rotations=known)
     x_e = rest + u_e
 
     def unit_normal(p):
         n = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         return n / torch.linalg.vector_norm(n, dim=1, keepdim=True)
 
-    return corotational.polar_rotations(F, unit_normal(rest), unit_normal(x_e))
+    return corotational.polar_rotations(F, unit_normal(rest), unit_normal(x_e), rotations=known)
 
 
 def _element_rotations(u_e, rest, rotations):
@@ -162,6 +165,49 @@ def _lame_gradients(name, inputs, grad, need_lam, need_mu):
     return (at(ones, zeros) if need_lam else None), (at(zeros, ones) if need_mu else None)
 
 
+def _rotation_cotangent(name, inputs, grad):
+    """d(grad . out)/dR ``[N, d, d]`` for the corotational stress ops with the rotations given.
+
+    The op's element output is f_j = -vol R sigma m_j with sigma = C(P sym(R^T A - P0) P): for the
+    forces A = F = P + grad U (P0 = P), for the differential A = grad dU (P0 = 0); C the isotropic
+    stiffness (lam, mu) on the plane of P (I for full-dimensional elements). With G = sum_j g_j m_j
+    (x) (g the element's cotangent), grad . out = -vol <R sigma, G>, and C being self-adjoint,
+
+        dL/dR = -vol (G sigma + A sigma_g),   sigma_g = C(P sym(R^T G) P),
+
+    sigma_g being the stress of the differential along g: a few products of 3x3 matrices per
+    element, where differentiating the reference retraces its whole graph."""
+    m, vol, lam, mu, proj, _, _, rotations = inputs[-8:]
+    dforce = "dforces" in name
+    elements = inputs[2] if dforce else inputs[1]
+    source = inputs[1] if dforce else inputs[0]  # du, or u
+    g_e = _element_cotangent(name, inputs, grad)
+    A = stress_form.displacement_gradient(source[elements], m)
+    rotations_t = rotations.transpose(-1, -2)
+    strain = small_matmul(rotations_t, A)
+    if not dforce:
+        plane = corotational._plane(m, proj)
+        A = A + plane
+        strain = strain + small_matmul(rotations_t, plane) - plane  # R^T F - P
+    G = stress_form.displacement_gradient(g_e, m)
+    sigma = stress_form._isotropic(stress_form._project(stress_form._sym(strain), proj), lam, mu, proj)
+    sigma_g = stress_form._isotropic(stress_form._project(stress_form._sym(small_matmul(rotations_t, G)), proj),
+                                     lam, mu, proj)
+    return -vol[:, None, None] * (small_matmul(G, sigma) + small_matmul(A, sigma_g))
+
+
+def _rotations_gradients(inputs, g, needs):
+    """The rotations op's u-gradient: polar factors computed again by the kernel (a product per
+    element, not the reference's Newton passes and their graph), only their derivative through
+    the reference; SOFA's QR frame (closed form, cheap) through the reference."""
+    u, elements, m, proj, rest, method = inputs
+    if not needs[0] or int(method) != ROTATION_IDS["polar"]:
+        return {}
+    with torch.no_grad():
+        known = op("corotational_rotations")(*inputs)
+    return library.reference_vjp(functools.partial(_ref_corotational_rotations, known=known), inputs, [0], g)
+
+
 def _fast_gradients(name):
     """The gradients the stress ops compute themselves (see the module's docstring)."""
     fused = name in ("stress_forces", "stress_dforces")
@@ -192,6 +238,9 @@ def _fast_gradients(name):
                 fast[target] = op("stress_dforces")(*args)
             if dforce and needs[u_pos] and (int(inputs[-3]) == MODEL_IDS["hooke"] or (corot and not r_of_u)):
                 fast[u_pos] = None  # K does not depend on u: hooke, corotational with R given
+        rotations_pos = len(inputs) - 1
+        if corot and not r_of_u and needs[rotations_pos]:
+            fast[rotations_pos] = _rotation_cotangent(name, inputs, g)
         lam_pos, mu_pos = len(inputs) - 6, len(inputs) - 5
         # the definite tangent's S+ is not linear in (lam, mu): its gradient is the reference's vjp
         definite = dforce and int(inputs[-3]) == MODEL_IDS["stvk_definite"]
@@ -235,7 +284,7 @@ _REFERENCES = {"stress_element_forces": _ref_stress_element_forces,
 _DEFINED = {"stress_partial_forces": library.partial_defined(1), "stress_partial_dforces": library.partial_defined(2)}
 OPS = tuple(OpDef(name, _REFERENCES[name], _FAKES[name], _fast_gradients(name), example=_example(name),
                   defined=_DEFINED.get(name)) for name in _REFERENCES) + (
-    OpDef("corotational_rotations", _ref_corotational_rotations, _fake_rotations,
+    OpDef("corotational_rotations", _ref_corotational_rotations, _fake_rotations, _rotations_gradients,
           example=_example("corotational_rotations")),)
 library.define(OPS, lambda: library.register(OPS))
 

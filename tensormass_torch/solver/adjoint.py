@@ -37,6 +37,7 @@ from typing import Optional
 import torch
 
 from ..errors import SolverError
+from .cg import run_captured
 from .implicit_euler import (
     DynamicsSystem,
     StepOptions,
@@ -58,6 +59,7 @@ class DifferentiableStep:
     forward: StepOptions
     adjoint: StepOptions
     model: object
+    _vjp_graphs: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def step(self, x, v, imposed, external, plane_offsets=None, plane_stiffness=None):
         """The forward step from ``x, v [V, 3]`` (``imposed``: the constrained nodes' end
@@ -104,11 +106,88 @@ class DifferentiableStep:
             residual = residual - h * external
         return residual
 
+    def residual_vjp(self, lam: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
+        """``-lam . dR/dp`` for p = x, v and the inputs named in ``wanted`` (of :data:`_INPUTS`), at
+        the step whose tensors ``saved`` holds (x, v, v_new, imposed, mass, young, poisson,
+        plane_offsets, plane_stiffness; None where absent): ``{name: gradient}``, zeros where R
+        does not depend on p.
+
+        On CUDA (``forward.cuda_graphs``) the whole product, R's graph and its backward, is
+        captured once per pattern of wanted and absent inputs and replayed from then on: a
+        rollout's steps differ only in their values, and a step's backward is otherwise hundreds
+        of small launches (more than their arithmetic)."""
+        if not (self.forward.cuda_graphs and lam.device.type == "cuda"):
+            return self._residual_vjp(lam, saved, wanted)
+        key = (wanted, tuple(name for name, t in saved.items() if t is None))
+        captured = self._vjp_graphs.get(key)
+        if captured is None:
+            captured = self._vjp_graphs[key] = _CapturedVjp(
+                lam.clone(), {name: None if t is None else t.detach().clone() for name, t in saved.items()})
+        captured.lam.copy_(lam)
+        for name, t in saved.items():
+            if t is not None:
+                captured.saved[name].copy_(t)
+
+        def work():
+            grads = self._residual_vjp(captured.lam, captured.saved, wanted)
+            if not captured.out:  # the first, eager, run: the buffers the graph will write
+                captured.out.update({name: torch.empty_like(g) for name, g in grads.items()})
+            for name, g in grads.items():
+                captured.out[name].copy_(g)
+
+        run_captured(captured.graphs, "vjp", work)
+        return {name: t.clone() for name, t in captured.out.items()}
+
+    def _residual_vjp(self, lam: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
+        x, v, v_new = saved["x"], saved["v"], saved["v_new"]
+        free = self.system.free
+        with torch.enable_grad():
+            leaves = {}
+
+            def leaf(name):
+                t = saved[name]
+                if t is None or name not in wanted:
+                    return t
+                t = t.detach().requires_grad_(True)
+                leaves[name] = t
+                return t
+
+            # x and v are leaves whenever anything is asked: R's value depends on them
+            x_ = x.detach().requires_grad_(True)
+            v_ = v.detach().requires_grad_(True)
+            imposed_ = leaf("imposed")
+            external_ = None
+            if "external" in wanted:
+                external_ = torch.zeros_like(x).requires_grad_(True)  # R is affine in f_ext
+                leaves["external"] = external_
+            mass_, young_, poisson_, offsets_, stiffness_ = (leaf(name) for name in (
+                "mass", "young", "poisson", "plane_offsets", "plane_stiffness"))
+            # dv: its free rows as solved (constants), its constrained rows imposed by the inputs
+            dv = (v_new - v) if free is None else (v_new - v) * free
+            if imposed_ is not None:
+                dv = dv + (1.0 - free) * (imposed_ - v_)
+            residual = self.residual(x_, v_, dv, external_, mass_, young_, poisson_, offsets_, stiffness_)
+            inputs = {"x": x_, "v": v_, **leaves}
+            grads = torch.autograd.grad((lam * residual).sum(), list(inputs.values()), allow_unused=True)
+        return {name: (torch.zeros_like(t) if g is None else -g) for (name, t), g in zip(inputs.items(), grads)}
+
     def adjoint_solve(self, x, rhs) -> torch.Tensor:
         """lam ``[V, 3]`` with A(x) lam = rhs on the free rows (0 on the constrained ones)."""
         result = _solve(self.system, x, rhs, self.adjoint)
         _raise_if_failed(result, self.adjoint, "the adjoint solve of a step")
         return result.solution
+
+
+@dataclasses.dataclass
+class _CapturedVjp:
+    """A captured :meth:`DifferentiableStep.residual_vjp`: its input buffers (the cotangent
+    ``lam`` and the step's tensors), its graphs (``solver.cg.run_captured``'s) and the buffers the
+    graph writes its gradients into."""
+
+    lam: torch.Tensor
+    saved: dict
+    graphs: dict = dataclasses.field(default_factory=dict)
+    out: dict = dataclasses.field(default_factory=dict)
 
 
 class ImplicitStep(torch.autograd.Function):
@@ -145,37 +224,10 @@ class ImplicitStep(torch.autograd.Function):
         lam = step.adjoint_solve(x, g_dv if free is None else g_dv * free)
         # (step, x, v, imposed, external, mass, young, poisson, plane_offsets, plane_stiffness)
         needs = ctx.needs_input_grad
-        with torch.enable_grad():
-            leaves = {}
-
-            def leaf(name, t, i):
-                if t is None or not needs[i]:
-                    return t
-                t = t.detach().requires_grad_(True)
-                leaves[name] = t
-                return t
-
-            # x and v are leaves whenever anything is asked: R's value depends on them
-            x_ = x.detach().requires_grad_(True)
-            v_ = v.detach().requires_grad_(True)
-            imposed_ = leaf("imposed", imposed, 3)
-            external_ = None
-            if needs[4]:
-                external_ = torch.zeros_like(x).requires_grad_(True)  # R is affine in f_ext
-                leaves["external"] = external_
-            mass_ = leaf("mass", mass, 5)
-            young_ = leaf("young", young, 6)
-            poisson_ = leaf("poisson", poisson, 7)
-            offsets_ = leaf("plane_offsets", plane_offsets, 8)
-            stiffness_ = leaf("plane_stiffness", plane_stiffness, 9)
-            # dv: its free rows as solved (constants), its constrained rows imposed by the inputs
-            dv = (v_new - v) if free is None else (v_new - v) * free
-            if imposed_ is not None:
-                dv = dv + (1.0 - free) * (imposed_ - v_)
-            residual = step.residual(x_, v_, dv, external_, mass_, young_, poisson_, offsets_, stiffness_)
-            wanted = {"x": x_, "v": v_, **leaves}
-            grads = torch.autograd.grad((lam * residual).sum(), list(wanted.values()), allow_unused=True)
-        got = {name: (torch.zeros_like(t) if g is None else -g) for (name, t), g in zip(wanted.items(), grads)}
+        wanted = frozenset(name for name, i in _INPUTS.items() if needs[i])
+        got = step.residual_vjp(lam, dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young,
+                                          poisson=poisson, plane_offsets=plane_offsets,
+                                          plane_stiffness=plane_stiffness), wanted)
         # the direct terms: x' = x + h v', v' = v + dv (constrained rows: v' = imposed there)
         grad_x = got["x"] + g_x
         if imposed is None:
@@ -187,6 +239,11 @@ class ImplicitStep(torch.autograd.Function):
         return (None, grad_x if needs[1] else None, grad_v if needs[2] else None, grad_imposed,
                 got.get("external"), got.get("mass"), got.get("young"), got.get("poisson"),
                 got.get("plane_offsets"), got.get("plane_stiffness"))
+
+
+#: ImplicitStep's inputs that can take a gradient, by their position in ``forward``'s arguments
+_INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7, "plane_offsets": 8,
+           "plane_stiffness": 9}
 
 
 def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:

@@ -252,9 +252,21 @@ def test_what_the_adjoint_does_not_differentiate_is_named(rng, what):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("model", ["hooke", "stvk", "corotational"])
-def test_cuda_gradients_match_the_cpu(model):
-    """The same rollout and gradients on CUDA (captured steps, the extension's CUDA ops) as on
-    the CPU, in float64; the hooke case in the tensor form (the default) and the stress form."""
+def test_cuda_gradients_match_the_cpu(model, monkeypatch):
+    """The same rollout and gradients on CUDA (captured steps, the extension's CUDA ops, each
+    step's vector-Jacobian product captured and replayed) as on the CPU, in float64; the hooke
+    case in the tensor form (the default) and the stress form."""
+    from tensormass_torch.solver import adjoint
+
+    replays = []
+
+    def recording(graphs, key, work):
+        replayed = adjoint_run_captured(graphs, key, work)
+        replays.append((replayed, graphs[key] is not False))
+        return replayed
+
+    adjoint_run_captured = adjoint.run_captured
+    monkeypatch.setattr(adjoint, "run_captured", recording)
     grads = {}
     for device in ("cpu", "cuda"):
         for form in (("tensor", "stress") if model == "hooke" else ("auto",)):
@@ -266,6 +278,8 @@ def test_cuda_gradients_match_the_cpu(model):
             run = tm.rollout(sim, STEPS, young=young, x0=x0, forces=forces)
             (run.x.square().sum() + run.v[-1].sum()).backward()
             grads[device, form] = [t.grad.cpu() for t in (young, x0, forces)]
+    # the first step's backward captured, the next ones replayed
+    assert replays and all(captured for _, captured in replays) and sum(r for r, _ in replays) >= STEPS - 1
     for (device, form), got in grads.items():
         for a, b in zip(got, grads["cpu", form]):
             torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)

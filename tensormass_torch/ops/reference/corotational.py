@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .stress_form import _energy_density, _isotropic, _nodal, _project, _sym, displacement_gradient
+from .stress_form import _energy_density, _isotropic, _nodal, _project, _sym, displacement_gradient, small_matmul
 
 
 def _plane(m, proj):
@@ -24,16 +24,18 @@ def deformation_gradient(u, m, proj=None):
     return _plane(m, proj) + displacement_gradient(u, m)
 
 
-def polar_rotations(F: torch.Tensor, rest_normals=None, normals=None) -> torch.Tensor:
+def polar_rotations(F: torch.Tensor, rest_normals=None, normals=None, rotations=None) -> torch.Tensor:
     """Rotation factor of the polar decomposition F = R S, a proper rotation (det R = +1) ``[N, d, d]``.
 
     Inverted elements (det F < 0) get the closest proper rotation: the singular vector of the
     smallest singular value is flipped. For membranes, F maps the rest plane only, so the rest
     normal is mapped onto the current normal first (``rest_normals``, ``normals`` ``[N, 3]``).
+    ``rotations``: the factor as already computed (a kernel's, ``[N, d, d]``): its values are
+    returned and only the derivative is taken here (no Newton passes, no SVD).
     """
     if rest_normals is not None:
         F = F + normals[:, :, None] * rest_normals[:, None, :]
-    return _PolarRotation.apply(F)
+    return _PolarRotation.apply(F, rotations)
 
 
 class _PolarRotation(torch.autograd.Function):
@@ -57,30 +59,36 @@ class _PolarRotation(torch.autograd.Function):
     generate_vmap_rule = True
 
     @staticmethod
-    def forward(F):
-        return _closest_rotation(F)
+    def forward(F, known=None):
+        return _closest_rotation(F) if known is None else known.clone()
 
     @staticmethod
     def setup_context(ctx, inputs, output):
         ctx.save_for_backward(inputs[0], output)
 
     @staticmethod
-    def backward(ctx, grad):
+    def backward(ctx, grad, *_):
         F, R = ctx.saved_tensors
-        B = R.transpose(-1, -2) @ grad
-        S = R.transpose(-1, -2) @ F
-        if F.shape[-1] == 2:
-            beta = B[..., 1, 0] - B[..., 0, 1]
-            trace = _guarded(S[..., 0, 0] + S[..., 1, 1])
-            J = torch.tensor([[0.0, -1.0], [1.0, 0.0]], dtype=F.dtype, device=F.device)
-            return (beta / trace)[..., None, None] * (R @ J)
-        S = 0.5 * (S + S.transpose(-1, -2))
-        b = 0.5 * _axial(B - B.transpose(-1, -2))
-        M = torch.diagonal(S, dim1=-2, dim2=-1).sum(-1)[..., None, None] * torch.eye(3, dtype=F.dtype,
-                                                                                    device=F.device) - S
-        cof = _cofactors(M)  # M symmetric: its adjugate is its cofactor matrix
-        c = (cof @ b.unsqueeze(-1)).squeeze(-1) / _guarded(_det_from(M, cof))[..., None]
-        return 2.0 * R @ _cross_matrix(c)
+        return polar_vjp(F, R, grad), None
+
+
+def polar_vjp(F: torch.Tensor, R: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+    """dL/dF ``[N, d, d]`` for R = polar(F) and dL/dR = ``grad`` (see :class:`_PolarRotation`)."""
+    Rt = R.transpose(-1, -2)
+    B = small_matmul(Rt, grad)
+    S = small_matmul(Rt, F)
+    if F.shape[-1] == 2:
+        beta = B[..., 1, 0] - B[..., 0, 1]
+        trace = _guarded(S[..., 0, 0] + S[..., 1, 1])
+        RJ = torch.stack([R[..., :, 1], -R[..., :, 0]], dim=-1)  # R J, J = [[0, -1], [1, 0]]
+        return (beta / trace)[..., None, None] * RJ
+    S = 0.5 * (S + S.transpose(-1, -2))
+    b = 0.5 * _axial(B - B.transpose(-1, -2))
+    M = torch.diagonal(S, dim1=-2, dim2=-1).sum(-1)[..., None, None] * torch.eye(3, dtype=F.dtype,
+                                                                                device=F.device) - S
+    cof = _cofactors(M)  # M symmetric: its adjugate is its cofactor matrix
+    c = (cof * b.unsqueeze(-2)).sum(-1) / _guarded(_det_from(M, cof))[..., None]
+    return 2.0 * small_matmul(R, _cross_matrix(c))
 
 
 def _guarded(value: torch.Tensor) -> torch.Tensor:
@@ -168,7 +176,7 @@ def qr_rotations(x_elem: torch.Tensor, rest_elem: torch.Tensor) -> torch.Tensor:
         axes = torch.stack([ex, ey, ez], dim=1)
         return axes / torch.linalg.vector_norm(axes, dim=2, keepdim=True)
 
-    return frame(x_elem).transpose(1, 2) @ frame(rest_elem)
+    return small_matmul(frame(x_elem).transpose(1, 2), frame(rest_elem))
 
 
 def _rotated_strain(u, m, rotations, proj):
