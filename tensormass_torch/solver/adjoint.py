@@ -31,6 +31,7 @@ solves instead).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from typing import Optional
 
@@ -59,14 +60,22 @@ class DifferentiableStep:
     forward: StepOptions
     adjoint: StepOptions
     model: object
-    _vjp_graphs: dict = dataclasses.field(default_factory=dict, repr=False)
+    _backward_graphs: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def step(self, x, v, imposed, external, plane_offsets=None, plane_stiffness=None):
         """The forward step from ``x, v [V, 3]`` (``imposed``: the constrained nodes' end
         velocities or None; ``external``: this step's external forces ``[V, 3]`` in place of the
         system's, or None; ``plane_offsets``, ``plane_stiffness``: ``[P]`` in place of the planes',
-        or None): ``(x', v')``. What it replaced is written in place (the captured graphs read
-        that storage) and restored after."""
+        or None): ``(x', v')``."""
+        with self._written(external, plane_offsets, plane_stiffness):
+            x_new, v_new, _ = implicit_euler_step(self.system, x, v, self.forward, imposed)
+        return x_new, v_new
+
+    @contextlib.contextmanager
+    def _written(self, external=None, plane_offsets=None, plane_stiffness=None):
+        """The system's external forces and planes' values replaced by those given (None: kept)
+        for the body of the ``with``: written in place (captured graphs read that storage) and
+        restored after, whatever happens."""
         system = self.system
         planes = system.planes
         swaps = [(target, value) for target, value in ((system.external, external),
@@ -77,11 +86,10 @@ class DifferentiableStep:
         for target, value in swaps:
             target.copy_(value)
         try:
-            x_new, v_new, _ = implicit_euler_step(system, x, v, self.forward, imposed)
+            yield
         finally:
             for (target, _), old in zip(swaps, kept):
                 target.copy_(old)
-        return x_new, v_new
 
     def residual(self, x, v, dv, external, mass, young, poisson, plane_offsets=None,
                  plane_stiffness=None) -> torch.Tensor:
@@ -106,37 +114,55 @@ class DifferentiableStep:
             residual = residual - h * external
         return residual
 
-    def residual_vjp(self, lam: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
-        """``-lam . dR/dp`` for p = x, v and the inputs named in ``wanted`` (of :data:`_INPUTS`), at
-        the step whose tensors ``saved`` holds (x, v, v_new, imposed, mass, young, poisson,
-        plane_offsets, plane_stiffness; None where absent): ``{name: gradient}``, zeros where R
-        does not depend on p.
+    def backward(self, rhs: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
+        """The adjoint solve ``A lam = rhs`` (``rhs [V, 3]``: P g) and ``-lam . dR/dp`` for p = x, v and
+        the inputs named in ``wanted`` (of :data:`_INPUTS`), at the step whose tensors ``saved``
+        holds (x, v, v_new, imposed, mass, young, poisson, plane_offsets, plane_stiffness; None
+        where absent): ``{name: gradient}``, zeros where R does not depend on p. Raises
+        SolverError where the solve fails.
 
-        On CUDA (``forward.cuda_graphs``) the whole product, R's graph and its backward, is
-        captured once per pattern of wanted and absent inputs and replayed from then on: a
-        rollout's steps differ only in their values, and a step's backward is otherwise hundreds
-        of small launches (more than their arithmetic)."""
-        if not (self.forward.cuda_graphs and lam.device.type == "cuda"):
-            return self._residual_vjp(lam, saved, wanted)
-        key = (wanted, tuple(name for name, t in saved.items() if t is None))
-        captured = self._vjp_graphs.get(key)
-        if captured is None:
-            captured = self._vjp_graphs[key] = _CapturedVjp(
-                lam.clone(), {name: None if t is None else t.detach().clone() for name, t in saved.items()})
-        captured.lam.copy_(lam)
-        for name, t in saved.items():
-            if t is not None:
-                captured.saved[name].copy_(t)
+        On CUDA (``forward.cuda_graphs``), where the solve is one device op (the device deciding
+        when it stops), the solve and the product, R's graph and its backward, are captured once
+        per pattern of wanted and absent inputs and replayed from then on: a rollout's steps
+        differ only in their values, and a step's backward is otherwise hundreds of small
+        launches (more than their arithmetic). The solve's outcome is read once after."""
+        with self._written(None, saved["plane_offsets"], saved["plane_stiffness"]):  # A(x) of the forward's planes
+            matvec = self._adjoint_matvec()
+            cg = None if matvec is None else self.system.cg_solver(rhs, cuda_graphs=True)
+            if cg is None or not (self.forward.cuda_graphs and rhs.device.type == "cuda"
+                                  and cg.solves_in_one_op(matvec)):
+                lam = self.adjoint_solve(saved["x"], rhs)
+                return self._residual_vjp(lam, saved, wanted)
+            key = (wanted, tuple(name for name, t in saved.items() if t is None))
+            captured = self._backward_graphs.get(key)
+            if captured is None:
+                captured = self._backward_graphs[key] = _CapturedBackward(
+                    rhs.clone(), {name: None if t is None else t.detach().clone() for name, t in saved.items()})
+            captured.rhs.copy_(rhs)
+            for name, t in saved.items():
+                if t is not None:
+                    captured.saved[name].copy_(t)
+            opts = self.adjoint
 
-        def work():
-            grads = self._residual_vjp(captured.lam, captured.saved, wanted)
-            if not captured.out:  # the first, eager, run: the buffers the graph will write
-                captured.out.update({name: torch.empty_like(g) for name, g in grads.items()})
-            for name, g in grads.items():
-                captured.out[name].copy_(g)
+            def work():
+                matvec.load(captured.saved["x"])
+                cg.begin(matvec, captured.rhs, opts.cg_tol, opts.cg_max_iter, opts.cg_max_iter)
+                grads = self._residual_vjp(cg.state.x, captured.saved, wanted)
+                if not captured.out:  # the first, eager, run: the buffers the graph will write
+                    captured.out.update({name: torch.empty_like(g) for name, g in grads.items()})
+                for name, g in grads.items():
+                    captured.out[name].copy_(g)
 
-        run_captured(captured.graphs, "vjp", work)
+            run_captured(captured.graphs, "backward", work)
+            _raise_if_failed(cg.result(), opts, "the adjoint solve of a step")
         return {name: t.clone() for name, t in captured.out.items()}
+
+    def _adjoint_matvec(self):
+        """The step's fused system product (``SystemMatvec``) where the adjoint solve can use it
+        directly (no preconditioner scaling), else None."""
+        if self.adjoint.preconditioner == "jacobi":
+            return None
+        return self.system.system_matvec(*_coefficients(self.adjoint), self.adjoint.pipelined, self.adjoint.variants)
 
     def _residual_vjp(self, lam: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
         x, v, v_new = saved["x"], saved["v"], saved["v_new"]
@@ -179,12 +205,12 @@ class DifferentiableStep:
 
 
 @dataclasses.dataclass
-class _CapturedVjp:
-    """A captured :meth:`DifferentiableStep.residual_vjp`: its input buffers (the cotangent
-    ``lam`` and the step's tensors), its graphs (``solver.cg.run_captured``'s) and the buffers the
-    graph writes its gradients into."""
+class _CapturedBackward:
+    """A captured :meth:`DifferentiableStep.backward`: its input buffers (the adjoint solve's
+    right-hand side and the step's tensors), its graphs (``solver.cg.run_captured``'s) and the
+    buffers the graph writes its gradients into."""
 
-    lam: torch.Tensor
+    rhs: torch.Tensor
     saved: dict
     graphs: dict = dataclasses.field(default_factory=dict)
     out: dict = dataclasses.field(default_factory=dict)
@@ -221,13 +247,12 @@ class ImplicitStep(torch.autograd.Function):
         if g_v is None:
             g_v = torch.zeros_like(v)
         g_dv = g_v + h * g_x
-        lam = step.adjoint_solve(x, g_dv if free is None else g_dv * free)
         # (step, x, v, imposed, external, mass, young, poisson, plane_offsets, plane_stiffness)
         needs = ctx.needs_input_grad
         wanted = frozenset(name for name, i in _INPUTS.items() if needs[i])
-        got = step.residual_vjp(lam, dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young,
-                                          poisson=poisson, plane_offsets=plane_offsets,
-                                          plane_stiffness=plane_stiffness), wanted)
+        got = step.backward(g_dv if free is None else g_dv * free,
+                            dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young, poisson=poisson,
+                                 plane_offsets=plane_offsets, plane_stiffness=plane_stiffness), wanted)
         # the direct terms: x' = x + h v', v' = v + dv (constrained rows: v' = imposed there)
         grad_x = got["x"] + g_x
         if imposed is None:

@@ -103,10 +103,15 @@ def test_prescribed_nodes_and_a_floor(rng):
                         for n in range(STEPS)])
     torch.testing.assert_close(tm.rollout(sim, STEPS, prescribed=path).x, run.x, rtol=0, atol=1e-12)
     assert _directional_error(sim, weights, "prescribed", path, rng) <= 1e-6
-    # the floor's offset and stiffness
-    for name, value in (("plane_offsets", torch.tensor([float(floor)], dtype=torch.float64)),
-                        ("plane_stiffness", torch.tensor([3e4], dtype=torch.float64))):
-        assert _directional_error(sim, weights, name, value, rng) <= 1e-6, name
+    # the floor's offset and stiffness, at the simulator's values and at others (the adjoint
+    # solve's operator is then that of the given planes, not the simulator's)
+    for offset, stiffness in ((float(floor), 3e4), (float(floor) + 0.002, 9e4)):
+        for name, value in (("plane_offsets", torch.tensor([offset], dtype=torch.float64)),
+                            ("plane_stiffness", torch.tensor([stiffness], dtype=torch.float64))):
+            assert _directional_error(sim, weights, name, value, rng) <= 1e-6, name
+    given = dict(plane_offsets=torch.tensor([float(floor) + 0.002], dtype=torch.float64),
+                 plane_stiffness=torch.tensor([9e4], dtype=torch.float64))
+    assert _directional_error(sim, weights, "x0", params["x0"], rng, **given) <= 1e-6
     with pytest.raises(tm.SceneError, match=r"plane_stiffness must be > 0"):
         tm.rollout(sim, STEPS, plane_stiffness=torch.tensor([-1.0], dtype=torch.float64))
     with pytest.raises(tm.SceneError, match=r"prescribed must have shape \(3, %d, 3\)" % int(held.sum())):
