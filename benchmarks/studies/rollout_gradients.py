@@ -1,13 +1,15 @@
 """Gradients through rollouts: the adjoint's time against the forward's, and memory against steps.
 
     python benchmarks/studies/rollout_gradients.py [--device cuda] [--scenes sofa_beam,paper_beam]
-        [--models hooke,corotational] [--steps 50] [--memory-steps 25,50,100,200] [--checkpoint 10]
+        [--models hooke,corotational] [--steps 50] [--memory-steps 25,50,100,200,1000] [--checkpoint 10]
         [--identify hooke,corotational] [--out benchmarks/results/gradients] [--quick]
 
 For each scene and model (float32, the scene's own settings): the simulator's own steps/s
 (``sim.step``, chained and captured where it can be), then a rollout of ``--steps`` steps whose
 loss depends on the last state, with the per-element Young's moduli and the initial positions
-requiring grad: the forward's and the backward's wall time per step, in the two modes of
+requiring grad (the moduli given, the rollout builds the simulator again with them: that set-up
+is in its forward's time), then with the initial positions only: the forward's and the
+backward's wall time per step, in the two modes of
 ``tm.rollout``: ``exact`` (both solves converged to the scene's tolerance: the SOFA beam's
 10-iteration budget lifted) and ``budget`` (``exact=False``: the solves as the scene runs them).
 Memory: the peak allocated during forward and backward of rollouts of ``--memory-steps`` steps
@@ -31,14 +33,14 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch.sim import builtin
-from tensormass_torch.solver.adjoint import DifferentiableStep
 
 ROOT = Path(__file__).resolve().parents[2]
 COLUMNS = [("scene", "scene", None), ("model", "model", None), ("elements", "elements", None),
-           ("mode", "mode", None), ("steps", "steps", None), ("sim_steps_per_s", "sim.step steps/s", ".1f"),
+           ("mode", "mode", None), ("leaves", "gradients of", None), ("steps", "steps", None),
+           ("sim_steps_per_s", "sim.step steps/s", ".1f"),
            ("forward_ms", "rollout forward ms/step", ".2f"), ("backward_ms", "backward ms/step", ".2f"),
-           ("ratio", "backward / rollout forward", ".2f"), ("solve_ms", "of which adjoint solve ms/step", ".2f"),
-           ("step_ratio", "backward / sim.step", ".1f"), ("checkpoint", "checkpoint every", None),
+           ("ratio", "backward / rollout forward", ".2f"), ("step_ratio", "backward / sim.step", ".1f"),
+           ("checkpoint", "checkpoint every", None),
            ("peak_mib", "peak MiB", ".0f"), ("state_mib", "one state (x, v) MiB", ".2f"),
            ("rollouts", "identification: rollouts + gradients", None), ("wall_s", "wall s", ".1f"),
            ("misfit", "misfit first -> last", None),
@@ -51,38 +53,24 @@ def make_scene(name: str, model: str, device, scale: int):
     return builtin.paper_beam(resolution=max(4 // scale, 1), model=model, device=device).simulator
 
 
-def timed_rollout(sim, steps: int, exact: bool, device):
-    """(forward s, backward s, of which the adjoint solves s) of a rollout whose loss is the last
-    state's, with the moduli and x0 as leaves (the solves timed synchronised, one by one)."""
-    solve_time = [0.0]
-    solve = DifferentiableStep.adjoint_solve
-
-    def timed_solve(self, x, rhs):
-        common.sync(device)
-        start = time.perf_counter()
-        lam = solve(self, x, rhs)
-        common.sync(device)
-        solve_time[0] += time.perf_counter() - start
-        return lam
-
-    young = torch.full((sim.element_ptr[-1],), float(sim.bodies[0].material.young), dtype=sim.dtype,
-                       device=sim.device, requires_grad=True)
-    x0 = sim.x.clone().requires_grad_(True)
+def timed_rollout(sim, steps: int, exact: bool, device, moduli: bool = True):
+    """(forward s, backward s) of a rollout whose loss is the last state's, with x0 and (``moduli``)
+    the per-element Young's moduli as leaves."""
+    leaves = {"x0": sim.x.clone().requires_grad_(True)}
+    if moduli:
+        leaves["young"] = torch.full((sim.element_ptr[-1],), float(sim.bodies[0].material.young), dtype=sim.dtype,
+                                     device=sim.device, requires_grad=True)
     common.sync(device)
     start = time.perf_counter()
-    run = tm.rollout(sim, steps, young=young, x0=x0, exact=exact, frames=[steps])
+    run = tm.rollout(sim, steps, exact=exact, frames=[steps], **leaves)
     loss = run.x[-1].square().sum()
     common.sync(device)
     middle = time.perf_counter()
-    DifferentiableStep.adjoint_solve = timed_solve
-    try:
-        loss.backward()
-    finally:
-        DifferentiableStep.adjoint_solve = solve
+    loss.backward()
     common.sync(device)
     end = time.perf_counter()
-    assert torch.isfinite(young.grad).all() and torch.isfinite(x0.grad).all()
-    return middle - start, end - middle, solve_time[0]
+    assert all(bool(torch.isfinite(t.grad).all()) for t in leaves.values())
+    return middle - start, end - middle
 
 def per_step_rate(results) -> float:
     """The last ``sim.step`` row's steps/s."""
@@ -116,7 +104,7 @@ def main(argv=None):
     parser.add_argument("--out", default="benchmarks/results/gradients")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (a smoke run)")
     args = parser.parse_args(argv)
-    common.fill_defaults(args, normal=dict(steps=50, memory_steps="25,50,100,200", scale=1,
+    common.fill_defaults(args, normal=dict(steps=50, memory_steps="25,50,100,200,1000", scale=1,
                                            identify="hooke,corotational"),
                          quick=dict(steps=3, memory_steps="4,8", scale=8, identify="hooke"))
     device = torch.device(args.device)
@@ -132,12 +120,13 @@ def main(argv=None):
             per_step, done = common.time_steps(sim.step, device, steps=max(args.steps, 20), max_seconds=20.0)
             results.add(common.record(**base, mode="sim.step", steps=done, sim_steps_per_s=1.0 / per_step))
             for mode in args.modes.split(","):
-                timed_rollout(sim, 2, mode == "exact", device)  # warm: the adjoint's graphs
-                forward, backward, solves = timed_rollout(sim, args.steps, mode == "exact", device)
-                results.add(common.record(**base, mode=mode, steps=args.steps, forward_ms=1e3 * forward / args.steps,
-                                          backward_ms=1e3 * backward / args.steps, ratio=backward / forward,
-                                          solve_ms=1e3 * solves / args.steps, step_ratio=backward * per_step_rate(
-                                              results) / args.steps))
+                for moduli in (True, False):
+                    timed_rollout(sim, 2, mode == "exact", device, moduli)  # warm: the adjoint's graphs
+                    forward, backward = timed_rollout(sim, args.steps, mode == "exact", device, moduli)
+                    results.add(common.record(**base, mode=mode, leaves="young, x0" if moduli else "x0",
+                                              steps=args.steps, forward_ms=1e3 * forward / args.steps,
+                                              backward_ms=1e3 * backward / args.steps, ratio=backward / forward,
+                                              step_ratio=backward * per_step_rate(results) / args.steps))
             if common.is_cuda(device):
                 state = 2 * sim.x.numel() * sim.x.element_size() / 2 ** 20
                 for steps in common.parse_ints(args.memory_steps):

@@ -244,8 +244,9 @@ def test_rollout_gradients_quick(tmp_path):
 
     records = rollout_gradients.main(["--device", "cpu", "--quick", "--out", str(tmp_path),
                                       "--scenes", "sofa_beam", "--models", "hooke"])
-    modes = [r["mode"] for r in records]
-    assert modes == ["sim.step", "budget", "exact", "per element"]
-    assert all(r["backward_ms"] > 0 and r["forward_ms"] > 0 for r in records[1:3])
+    rows = [(r["mode"], r.get("leaves")) for r in records]
+    assert rows == [("sim.step", None), ("budget", "young, x0"), ("budget", "x0"), ("exact", "young, x0"),
+                    ("exact", "x0"), ("per element", None)]
+    assert all(r["backward_ms"] > 0 and r["forward_ms"] > 0 for r in records[1:5])
     assert records[-1]["scene"] == "identify_moduli" and records[-1]["rollouts"] > 1
     assert (tmp_path / "rollout_gradients.md").exists()
