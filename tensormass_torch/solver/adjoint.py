@@ -38,7 +38,7 @@ from typing import Optional
 import torch
 
 from ..errors import SolverError
-from .cg import run_captured
+from .cg import BREAKDOWN, CONVERGED, NONFINITE, run_captured
 from .implicit_euler import (
     DynamicsSystem,
     StepOptions,
@@ -154,7 +154,12 @@ class DifferentiableStep:
                     captured.out[name].copy_(g)
 
             run_captured(captured.graphs, "backward", work)
-            _raise_if_failed(cg.result(), opts, "the adjoint solve of a step")
+            status = cg.state.status
+            failed = (status == BREAKDOWN) | (status == NONFINITE)
+            if opts.require_convergence:
+                failed = failed | (status != CONVERGED)
+            if bool(failed.any()):  # the one synchronisation; the report only where it failed
+                _raise_if_failed(cg.result(), opts, "the adjoint solve of a step")
         return {name: t.clone() for name, t in captured.out.items()}
 
     def _adjoint_matvec(self):

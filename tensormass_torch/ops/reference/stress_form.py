@@ -36,12 +36,16 @@ def displacement_gradient(u: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
 
 
 def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a @ b`` for batches of small matrices ``[..., p, q] x [..., q, r]``. On a GPU as broadcast
-    products and one sum (elementwise kernels: ``@`` on a large batch of 3x3 matrices launches
-    batched GEMMs that take far longer than the arithmetic); on a CPU ``@``, which is faster there."""
+    """``a @ b`` for batches of small matrices ``[..., p, q] x [..., q, r]``. On a GPU as q
+    broadcast products summed (a few elementwise kernels: ``@`` on a large batch of 3x3 matrices
+    launches batched GEMMs that take far longer than the arithmetic, and one broadcast product
+    summed over its middle dimension a strided reduction); on a CPU ``@``, which is faster there."""
     if a.device.type == "cpu":
         return a @ b
-    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    out = a[..., :, :1] * b[..., :1, :]
+    for k in range(1, a.shape[-1]):
+        out = out + a[..., :, k:k + 1] * b[..., k:k + 1, :]
+    return out
 
 
 def _sym(a: torch.Tensor) -> torch.Tensor:
