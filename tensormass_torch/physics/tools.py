@@ -326,7 +326,9 @@ class ToolSet:
         # not at each evaluation, which a captured step replays)
         self.sizes = [torch.tensor(t.size, dtype=dtype, device=device) if t.shape == "box"
                       else t.grid.to(dtype=dtype, device=device) if t.shape == "mesh" else t.size for t in tools]
-        self.stiffness = [t.stiffness for t in tools]
+        #: penalty stiffness per tool ``[T]`` (a buffer: written in place for a rollout's tool_stiffness,
+        #: which captured steps then read)
+        self.stiffness = torch.tensor([t.stiffness for t in tools], dtype=dtype, device=device)
         self.thickness = [t.thickness for t in tools]
         self.velocities = torch.zeros_like(self.origins)
         #: whether any tool has friction
@@ -359,13 +361,26 @@ class ToolSet:
     def to(self, dtype=None, device=None) -> "ToolSet":
         """These tools with their tensors in ``dtype`` on ``device`` (a copy; None keeps each)."""
         other = ToolSet.__new__(ToolSet)
-        other.tools, other.stiffness, other.thickness = self.tools, self.stiffness, self.thickness
+        other.tools, other.thickness = self.tools, self.thickness
+        other.stiffness = self.stiffness.to(dtype=dtype, device=device).clone()
         other.time, other.dt, other.has_friction = self.time, self.dt, self.has_friction
         other.velocities = self.velocities.to(dtype=dtype, device=device).clone()
         other.sizes = [s.to(dtype=dtype, device=device) if isinstance(s, (torch.Tensor, SignedDistanceGrid)) else s
                        for s in self.sizes]
         other.origins = self.origins.to(dtype=dtype, device=device).clone()
         other.rotations = self.rotations.to(dtype=dtype, device=device)
+        return other
+
+    def replaced(self, origins: Optional[torch.Tensor] = None,
+                 stiffness: Optional[torch.Tensor] = None) -> "ToolSet":
+        """These tools with ``origins [T, 3]`` / ``stiffness [T]`` in place of theirs (None keeps
+        them; the other tensors shared): the tools as functions of those values, for autograd."""
+        other = ToolSet.__new__(ToolSet)
+        other.__dict__.update(self.__dict__)
+        if origins is not None:
+            other.origins = origins
+        if stiffness is not None:
+            other.stiffness = stiffness
         return other
 
     def gaps(self, x: torch.Tensor):

@@ -35,8 +35,9 @@ class Rollout:
 def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[torch.Tensor] = None,
             young=None, poisson=None, density=None, gravity=None, forces: Optional[torch.Tensor] = None,
             prescribed: Optional[torch.Tensor] = None, plane_offsets=None, plane_stiffness=None,
-            exact: bool = True, cg_tol: Optional[float] = None,
-            checkpoint_every: Optional[int] = None, frames: Optional[Sequence[int]] = None) -> Rollout:
+            tool_positions: Optional[torch.Tensor] = None, tool_stiffness=None, exact: bool = True,
+            cg_tol: Optional[float] = None, checkpoint_every: Optional[int] = None,
+            frames: Optional[Sequence[int]] = None) -> Rollout:
     """``steps`` implicit Euler steps of ``sim`` from its state (or ``x0, v0``), differentiable.
 
     Every argument left None is the simulator's own (no gradient); a tensor that requires grad
@@ -57,6 +58,9 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
             of the bodies' ``motion``; their imposed velocities take them there from where they are.
         plane_offsets, plane_stiffness: the planes' offsets d (n . x >= d outside) and penalty
             stiffness ``[P]``, in the order the simulator was given them.
+        tool_positions: the tools' origins at the end of each step ``[steps, T, 3]``, in place of
+            their paths (tools in the order the simulator was given them).
+        tool_stiffness: the tools' penalty stiffness ``[T]``.
         exact: converge the forward and the adjoint solves (to ``cg_tol``, default the
             simulator's): the gradient is that of the computed trajectory. False: the solves run
             as the simulator's options say; with a fixed CG budget the gradient is then the
@@ -70,7 +74,7 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
 
     Raises:
         SceneError for bad arguments; SolverError where the simulation has something the
-        adjoint does not differentiate (tools, contact between bodies, friction, several Newton
+        adjoint does not differentiate (contact between bodies, friction, several Newton
         iterations, removed or cut elements) or a solve fails. Nothing of ``sim`` is changed.
     """
     sim = _simulator_of(sim)
@@ -94,6 +98,8 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
     plane_offsets, plane_stiffness = (_plane_values(sim, name, value, low) for name, value, low in
                                       (("plane_offsets", plane_offsets, -float("inf")),
                                        ("plane_stiffness", plane_stiffness, 0.0)))
+    tool_origins = _tool_origins(sim, tool_positions, steps)
+    tool_stiffness = _tool_stiffness(sim, tool_stiffness)
     frames = _frames(frames, steps)
 
     stepping = sim if young is None and poisson is None and density is None else \
@@ -124,7 +130,8 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
                 if forces is not None:
                     external = external + (forces[n] if forces.dim() == 3 else forces)
             x, v = ImplicitStep.apply(step, x, v, imposed, external, mass, young_all, poisson_all, plane_offsets,
-                                      plane_stiffness)
+                                      plane_stiffness, None if tool_origins is None else tool_origins[n],
+                                      tool_stiffness)
             if n + 1 in frames:
                 kept.append((x, v))
         return x, v, kept
@@ -202,6 +209,37 @@ def _plane_values(sim: Simulator, name: str, value, low: float) -> Optional[torc
     value = _checked(name, value, [(count,)], f"({count},) (one per plane)", sim.x)
     if bool((value.detach() <= low).any()):
         raise SceneError(f"{name} must be > {low:g}, got {value.detach().tolist()}")
+    return value
+
+
+def _tool_origins(sim: Simulator, tool_positions, steps: int) -> Optional[torch.Tensor]:
+    """The tools' origins at the end of each step ``[steps, T, 3]``: ``tool_positions`` checked, or
+    their paths' (None without tools). A rollout writes each step's into the tools (restored
+    after) rather than moving them, so the simulator's tools stay where they are."""
+    count = 0 if sim.tools is None else len(sim.tools)
+    if tool_positions is not None:
+        if count == 0:
+            raise SceneError("tool_positions was given, but the simulator has no tools")
+        return _checked("tool_positions", tool_positions, [(steps, count, 3)],
+                        f"{(steps, count, 3)} (each step's end origin of the {count} tools)", sim.x)
+    if count == 0:
+        return None
+    h = sim.options.dt
+    path = [[list(tool.origin(sim.time + (n + 1) * h)) for tool in sim.tools.tools] for n in range(steps)]
+    return torch.tensor(path, dtype=sim.dtype).to(sim.device)
+
+
+def _tool_stiffness(sim: Simulator, value) -> Optional[torch.Tensor]:
+    """``value`` (None, or one number per tool ``[T]``) checked: finite and positive."""
+    if value is None:
+        return None
+    count = 0 if sim.tools is None else len(sim.tools)
+    if count == 0:
+        raise SceneError("tool_stiffness was given, but the simulator has no tools")
+    value = value if isinstance(value, torch.Tensor) else torch.as_tensor(value, dtype=sim.dtype)
+    value = _checked("tool_stiffness", value, [(count,)], f"({count},) (one per tool)", sim.x)
+    if bool((value.detach() <= 0).any()):
+        raise SceneError(f"tool_stiffness must be > 0, got {value.detach().tolist()}")
     return value
 
 

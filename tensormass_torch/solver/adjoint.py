@@ -62,26 +62,25 @@ class DifferentiableStep:
     model: object
     _backward_graphs: dict = dataclasses.field(default_factory=dict, repr=False)
 
-    def step(self, x, v, imposed, external, plane_offsets=None, plane_stiffness=None):
+    def step(self, x, v, imposed, external, contact: dict):
         """The forward step from ``x, v [V, 3]`` (``imposed``: the constrained nodes' end
         velocities or None; ``external``: this step's external forces ``[V, 3]`` in place of the
-        system's, or None; ``plane_offsets``, ``plane_stiffness``: ``[P]`` in place of the planes',
-        or None): ``(x', v')``."""
-        with self._written(external, plane_offsets, plane_stiffness):
+        system's, or None; ``contact``: values of :data:`CONTACT_VALUES` in place of the system's,
+        None where kept): ``(x', v')``."""
+        with self._written(external, contact):
             x_new, v_new, _ = implicit_euler_step(self.system, x, v, self.forward, imposed)
         return x_new, v_new
 
     @contextlib.contextmanager
-    def _written(self, external=None, plane_offsets=None, plane_stiffness=None):
-        """The system's external forces and planes' values replaced by those given (None: kept)
+    def _written(self, external, contact: dict):
+        """The system's external forces and contact values replaced by those given (None: kept)
         for the body of the ``with``: written in place (captured graphs read that storage) and
         restored after, whatever happens."""
         system = self.system
-        planes = system.planes
-        swaps = [(target, value) for target, value in ((system.external, external),
-                                                       (None if planes is None else planes.offsets, plane_offsets),
-                                                       (None if planes is None else planes.stiffness, plane_stiffness))
-                 if value is not None]
+        targets = [(system.external, external)] + [
+            (getattr(getattr(system, owner), attribute), contact.get(name))
+            for name, (owner, attribute) in CONTACT_VALUES.items() if getattr(system, owner) is not None]
+        swaps = [(target, value) for target, value in targets if value is not None]
         kept = [target.clone() for target, _ in swaps]
         for target, value in swaps:
             target.copy_(value)
@@ -91,11 +90,11 @@ class DifferentiableStep:
             for (target, _), old in zip(swaps, kept):
                 target.copy_(old)
 
-    def residual(self, x, v, dv, external, mass, young, poisson, plane_offsets=None,
-                 plane_stiffness=None) -> torch.Tensor:
+    def residual(self, x, v, dv, external, mass, young, poisson, contact: dict) -> torch.Tensor:
         """``R(dv; x, v, ...)`` ``[V, 3]`` of the module's docstring, every row (the caller keeps the
         free ones): ``external`` None leaves f_ext out (a constant: no gradient needs its value),
-        ``mass [V]``, ``young, poisson [N]``, the planes' ``offsets, stiffness [P]`` (None: theirs)."""
+        ``mass [V]``, ``young, poisson [N]``, ``contact``: values of :data:`CONTACT_VALUES` (None:
+        the system's)."""
         opts = self.forward
         h = opts.dt
         mass_coef, stiffness_coef = _coefficients(opts)
@@ -104,10 +103,12 @@ class DifferentiableStep:
         elastic = self.model.step_forces(x - system.model.rest, w, h, stiffness_coef, young, poisson)
         m = mass[:, None]
         residual = mass_coef * m * dv - elastic
-        for contact in system.contacts:
-            if contact is system.planes:
-                contact = contact.replaced(plane_offsets, plane_stiffness)
-            residual = residual - h * contact.forces(x) - stiffness_coef * contact.dforces(x, w)
+        for term in system.contacts:
+            if term is system.planes:
+                term = term.replaced(contact.get("plane_offsets"), contact.get("plane_stiffness"))
+            elif term is system.tools:
+                term = term.replaced(contact.get("tool_origins"), contact.get("tool_stiffness"))
+            residual = residual - h * term.forces(x) - stiffness_coef * term.dforces(x, w)
         if opts.rayleigh_mass:
             residual = residual + (h * opts.rayleigh_mass) * m * v
         if external is not None:
@@ -117,8 +118,8 @@ class DifferentiableStep:
     def backward(self, rhs: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
         """The adjoint solve ``A lam = rhs`` (``rhs [V, 3]``: P g) and ``-lam . dR/dp`` for p = x, v and
         the inputs named in ``wanted`` (of :data:`_INPUTS`), at the step whose tensors ``saved``
-        holds (x, v, v_new, imposed, mass, young, poisson, plane_offsets, plane_stiffness; None
-        where absent): ``{name: gradient}``, zeros where R does not depend on p. Raises
+        holds (x, v, v_new, imposed, mass, young, poisson and :data:`CONTACT_VALUES`; None where
+        absent): ``{name: gradient}``, zeros where R does not depend on p. Raises
         SolverError where the solve fails.
 
         On CUDA (``forward.cuda_graphs``), where the solve is one device op (the device deciding
@@ -126,7 +127,7 @@ class DifferentiableStep:
         per pattern of wanted and absent inputs and replayed from then on: a rollout's steps
         differ only in their values, and a step's backward is otherwise hundreds of small
         launches (more than their arithmetic). The solve's outcome is read once after."""
-        with self._written(None, saved["plane_offsets"], saved["plane_stiffness"]):  # A(x) of the forward's planes
+        with self._written(None, {name: saved[name] for name in CONTACT_VALUES}):  # A(x) of the forward's contact
             matvec = self._adjoint_matvec()
             cg = None if matvec is None else self.system.cg_solver(rhs, cuda_graphs=True)
             if cg is None or not (self.forward.cuda_graphs and rhs.device.type == "cuda"
@@ -191,13 +192,13 @@ class DifferentiableStep:
             if "external" in wanted:
                 external_ = torch.zeros_like(x).requires_grad_(True)  # R is affine in f_ext
                 leaves["external"] = external_
-            mass_, young_, poisson_, offsets_, stiffness_ = (leaf(name) for name in (
-                "mass", "young", "poisson", "plane_offsets", "plane_stiffness"))
+            mass_, young_, poisson_ = (leaf(name) for name in ("mass", "young", "poisson"))
+            contact = {name: leaf(name) for name in CONTACT_VALUES}
             # dv: its free rows as solved (constants), its constrained rows imposed by the inputs
             dv = (v_new - v) if free is None else (v_new - v) * free
             if imposed_ is not None:
                 dv = dv + (1.0 - free) * (imposed_ - v_)
-            residual = self.residual(x_, v_, dv, external_, mass_, young_, poisson_, offsets_, stiffness_)
+            residual = self.residual(x_, v_, dv, external_, mass_, young_, poisson_, contact)
             inputs = {"x": x_, "v": v_, **leaves}
             grads = torch.autograd.grad((lam * residual).sum(), list(inputs.values()), allow_unused=True)
         return {name: (torch.zeros_like(t) if g is None else -g) for (name, t), g in zip(inputs.items(), grads)}
@@ -227,24 +228,27 @@ class ImplicitStep(torch.autograd.Function):
     Inputs: the :class:`DifferentiableStep`; positions, velocities ``[V, 3]``; the constrained
     nodes' end velocities ``[V, 3]`` or None (fixed nodes stay at rest); the step's external
     forces ``[V, 3]`` or None (the system's); lumped masses ``[V]``; per-element Young's moduli
-    and Poisson ratios ``[N]``; the planes' offsets and stiffness ``[P]`` or None (theirs).
+    and Poisson ratios ``[N]``; the planes' offsets and stiffness ``[P]``, the tools' origins
+    ``[T, 3]`` (where they are at the step's end) and stiffness ``[T]``, each or None (theirs).
     Masses and material must be those the system was built with (the forward reads the
     system's; the backward differentiates through these).
     """
 
     @staticmethod
     def forward(ctx, step: DifferentiableStep, x, v, imposed, external, mass, young, poisson, plane_offsets=None,
-                plane_stiffness=None):
+                plane_stiffness=None, tool_origins=None, tool_stiffness=None):
+        contact = dict(plane_offsets=plane_offsets, plane_stiffness=plane_stiffness, tool_origins=tool_origins,
+                       tool_stiffness=tool_stiffness)
         with torch.no_grad():
-            x_new, v_new = step.step(x, v, imposed, external, plane_offsets, plane_stiffness)
+            x_new, v_new = step.step(x, v, imposed, external, contact)
         ctx.step = step
-        ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new, plane_offsets, plane_stiffness)
+        ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new, *contact.values())
         return x_new, v_new
 
     @staticmethod
     def backward(ctx, g_x, g_v):
         step: DifferentiableStep = ctx.step
-        x, v, imposed, mass, young, poisson, v_new, plane_offsets, plane_stiffness = ctx.saved_tensors
+        x, v, imposed, mass, young, poisson, v_new, *contact = ctx.saved_tensors
         h = step.forward.dt
         free = step.system.free
         if g_x is None:
@@ -252,12 +256,11 @@ class ImplicitStep(torch.autograd.Function):
         if g_v is None:
             g_v = torch.zeros_like(v)
         g_dv = g_v + h * g_x
-        # (step, x, v, imposed, external, mass, young, poisson, plane_offsets, plane_stiffness)
         needs = ctx.needs_input_grad
         wanted = frozenset(name for name, i in _INPUTS.items() if needs[i])
         got = step.backward(g_dv if free is None else g_dv * free,
                             dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young, poisson=poisson,
-                                 plane_offsets=plane_offsets, plane_stiffness=plane_stiffness), wanted)
+                                 **dict(zip(CONTACT_VALUES, contact))), wanted)
         # the direct terms: x' = x + h v', v' = v + dv (constrained rows: v' = imposed there)
         grad_x = got["x"] + g_x
         if imposed is None:
@@ -267,13 +270,16 @@ class ImplicitStep(torch.autograd.Function):
             grad_v = got["v"] + g_dv * free
             grad_imposed = got["imposed"] + g_dv * (1.0 - free) if "imposed" in got else None
         return (None, grad_x if needs[1] else None, grad_v if needs[2] else None, grad_imposed,
-                got.get("external"), got.get("mass"), got.get("young"), got.get("poisson"),
-                got.get("plane_offsets"), got.get("plane_stiffness"))
+                *(got.get(name) for name in list(_INPUTS)[1:]))
 
 
+#: The contact values a differentiable step takes in place of the system's: name -> (the system's
+#: contact term, its attribute), each written in place for the forward (captured steps read it)
+CONTACT_VALUES = {"plane_offsets": ("planes", "offsets"), "plane_stiffness": ("planes", "stiffness"),
+                  "tool_origins": ("tools", "origins"), "tool_stiffness": ("tools", "stiffness")}
 #: ImplicitStep's inputs that can take a gradient, by their position in ``forward``'s arguments
-_INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7, "plane_offsets": 8,
-           "plane_stiffness": 9}
+_INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7,
+           **{name: 8 + i for i, name in enumerate(CONTACT_VALUES)}}
 
 
 def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
@@ -281,8 +287,8 @@ def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
     reasons = []
     if opts.newton_iters != 1:
         reasons.append(f"newton_iters={opts.newton_iters} (the adjoint is that of one linearisation: use 1)")
-    if system.tools is not None:
-        reasons.append("rigid tools")
+    if system.tools is not None and system.tools.has_friction:
+        reasons.append("tools with friction")
     if system.body_contact is not None:
         reasons.append("contact between bodies")
     if system.planes is not None and system.planes.has_friction:
@@ -290,7 +296,7 @@ def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
     if reasons:
         raise SolverError("gradients through this simulation are not available: it has " + "; ".join(reasons)
                           + ". Differentiable steps support elastic bodies, fixed and prescribed nodes, "
-                          "gravity, external forces and frictionless planes")
+                          "gravity, external forces, frictionless planes and tools")
 
 
 def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None, free_dofs: int = 0):
@@ -305,4 +311,5 @@ def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None,
                                     cg_max_iter=max(opts.cg_max_iter, auto_cg_max_iter(free_dofs)))
     return converged, converged
 
-__all__ = ["DifferentiableStep", "ImplicitStep", "SolverError", "adjoint_options", "check_differentiable"]
+__all__ = ["CONTACT_VALUES", "DifferentiableStep", "ImplicitStep", "SolverError", "adjoint_options",
+           "check_differentiable"]

@@ -237,17 +237,51 @@ def test_bad_input_gives_one_clear_error(rng):
     assert torch.equal(sim.x, x) and sim.time == 0.0
 
 
+@pytest.mark.parametrize("shape", ["sphere", "box"])
+def test_tools_pressing_on_a_beam(rng, shape):
+    """A tool moving down into a held beam (the projected tangent of a curved sphere, a box's
+    flat face): gradients of its path, its stiffness, the initial positions and the moduli
+    against central differences; a path equal to the tool's keyframes gives the same rollout."""
+    scene = build_scene(rng, "tet")
+    rest = scene.mesh.vertices
+    body = tm.Body(scene.mesh, random_material(rng, "corotational", young=3e3), fixed=rest[:, 0] < rest[:, 0].min() + 1e-6)
+    top = float(rest[:, 2].max())
+    start, end = (0.9, 0.4, top + 0.18), (0.9, 0.4, top + 0.02)
+    size = dict(sphere=dict(radius=0.2), box=dict(half_extents=(0.2, 0.5, 0.2)))[shape]
+    tool = (tm.Sphere if shape == "sphere" else tm.Box)(**size, stiffness=2e4, times=(0.0, 0.05), positions=(start, end))
+    sim = tm.Simulator([body], dt=0.01, cg_tol=1e-13, gravity=(0.0, 0.0, 0.0), tools=[tool])
+    sim.step(1)
+    run = tm.rollout(sim, STEPS)
+    path = torch.tensor([list(tool.origin(sim.time + (n + 1) * 0.01)) for n in range(STEPS)],
+                        dtype=torch.float64)[:, None, :]
+    assert bool((sim.tools.replaced(path[-1]).penetration(run.x[-1]) > 0).any()), "the tool must touch the beam"
+    torch.testing.assert_close(tm.rollout(sim, STEPS, tool_positions=path).x, run.x, rtol=0, atol=1e-12)
+    V = sim.x.shape[0]
+    weights = [torch.tensor(rng.standard_normal((STEPS + 1, V, 3))) for _ in range(2)]
+    params = _parameters(sim, rng)
+    assert _directional_error(sim, weights, "tool_positions", path, rng) <= 1e-6
+    assert _directional_error(sim, weights, "tool_stiffness", torch.tensor([3e4], dtype=torch.float64), rng) <= 1e-6
+    for name in ("x0", "young"):
+        assert _directional_error(sim, weights, name, params[name], rng) <= 1e-6, name
+    origin = tuple(sim.tools.origins[0].tolist())
+    with pytest.raises(tm.SceneError, match=r"tool_positions must have shape \(3, 1, 3\)"):
+        tm.rollout(sim, STEPS, tool_positions=path[:2])
+    with pytest.raises(tm.SceneError, match=r"tool_stiffness must be > 0"):
+        tm.rollout(sim, STEPS, tool_stiffness=torch.tensor([0.0], dtype=torch.float64))
+    assert tuple(sim.tools.origins[0].tolist()) == origin and sim.time == 0.01  # nothing of sim changed
+
+
 @pytest.mark.parametrize("what", ["tools", "newton", "friction", "removed"])
 def test_what_the_adjoint_does_not_differentiate_is_named(rng, what):
     """No silent zero gradient: a simulation with something the adjoint step leaves out raises."""
     scene = build_scene(rng, "tet")
     body = tm.Body(scene.mesh, random_material(rng, "hooke"), fixed=scene.mesh.vertices[:, 0] < 1e-6)
-    options = {"tools": dict(tools=[tm.Sphere(0.1, position=(0.5, 0.4, 0.9))]),
+    options = {"tools": dict(tools=[tm.Sphere(0.1, position=(0.5, 0.4, 0.9), friction=0.3)]),
                "newton": dict(newton_iters=2),
                "friction": dict(planes=[tm.Plane((0, 0, 1), -0.5, 1e4, friction=0.5)]),
                "removed": {}}[what]
     sim = tm.Simulator([body], **options)
-    message = {"tools": "rigid tools", "newton": "newton_iters=2", "friction": "planes with friction",
+    message = {"tools": "tools with friction", "newton": "newton_iters=2", "friction": "planes with friction",
                "removed": "removed or cut"}[what]
     if what == "removed":
         sim.remove_elements(0, [0])
@@ -317,19 +351,24 @@ fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.1, 0.1]] }
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("model", ["hooke", "corotational"])
-def test_cuda_plane_gradients_match_the_cpu(model):
-    """The planes' offsets and stiffness written in place for the captured CUDA steps: the same
-    trajectory and gradients as on the CPU (float64)."""
+def test_cuda_contact_gradients_match_the_cpu(model):
+    """The planes' offsets and stiffness and a tool's path and stiffness written in place for the
+    captured CUDA steps: the same trajectory and gradients as on the CPU (float64)."""
     results = {}
     for device in ("cpu", "cuda"):
         sim = _sim(np.random.default_rng(5), "tet", model, device=device, steps_before=0, gravity=(0.0, 0.0, -30.0),
-                   planes=[tm.Plane((0, 0, 1), -0.02, 2e4)])
+                   planes=[tm.Plane((0, 0, 1), -0.02, 2e4)], tools=[tm.Sphere(0.2, position=(0.9, 0.4, 0.8))])
         offsets = torch.tensor([-0.01], dtype=torch.float64, device=device, requires_grad=True)
         stiffness = torch.tensor([3e4], dtype=torch.float64, device=device, requires_grad=True)
-        run = tm.rollout(sim, 6, plane_offsets=offsets, plane_stiffness=stiffness)
+        path = torch.tensor([[[0.9, 0.4, 0.8 - 0.02 * n]] for n in range(1, 7)], dtype=torch.float64,
+                            device=device, requires_grad=True)
+        tool_stiffness = torch.tensor([5e4], dtype=torch.float64, device=device, requires_grad=True)
+        run = tm.rollout(sim, 6, plane_offsets=offsets, plane_stiffness=stiffness, tool_positions=path,
+                         tool_stiffness=tool_stiffness)
         run.x[-1].square().sum().backward()
-        results[device] = (run.x.detach().cpu(), offsets.grad.cpu(), stiffness.grad.cpu())
-        assert float(sim.planes.offsets[0]) == -0.02  # restored
-    assert float(results["cpu"][2]) != 0.0  # the scene touches the plane
+        results[device] = (run.x.detach().cpu(), offsets.grad.cpu(), stiffness.grad.cpu(), path.grad.cpu(),
+                           tool_stiffness.grad.cpu())
+        assert float(sim.planes.offsets[0]) == -0.02 and float(sim.tools.origins[0, 2]) == 0.8  # restored
+    assert float(results["cpu"][2]) != 0.0 and float(results["cpu"][4]) != 0.0  # the scene touches both
     for a, b in zip(results["cuda"], results["cpu"]):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)
