@@ -123,3 +123,9 @@ def test_identify_moduli_example():
 def test_reach_target_example():
     result = load("reach_target").main(["--cells", "4", "1", "1", "--steps", "10", "--iterations", "15"])
     assert result["distance"][1] < 0.1 * result["distance"][0]
+
+
+def test_push_with_tool_example():
+    """The sphere's path found through the tool's gradient brings the end to its height, at rest."""
+    result = load("push_with_tool").main(["--cells", "4", "2", "2", "--steps", "24", "--iterations", "20"])
+    assert result["miss_after"] < 0.05 * result["miss_before"] and result["speed_after"] < 0.01
