@@ -123,45 +123,56 @@ class DifferentiableStep:
         SolverError where the solve fails.
 
         On CUDA (``forward.cuda_graphs``), where the solve is one device op (the device deciding
-        when it stops), the solve and the product, R's graph and its backward, are captured once
-        per pattern of wanted and absent inputs and replayed from then on: a rollout's steps
-        differ only in their values, and a step's backward is otherwise hundreds of small
+        when it stops), the solve and the product, R's graph and its backward, run as one CUDA
+        graph per pattern of wanted and absent inputs (:meth:`prepare_backward`): a rollout's
+        steps differ only in their values, and a step's backward is otherwise hundreds of small
         launches (more than their arithmetic). The solve's outcome is read once after."""
         with self._written(None, {name: saved[name] for name in CONTACT_VALUES}):  # A(x) of the forward's contact
-            matvec = self._adjoint_matvec()
-            cg = None if matvec is None else self.system.cg_solver(rhs, cuda_graphs=True)
-            if cg is None or not (self.forward.cuda_graphs and rhs.device.type == "cuda"
-                                  and cg.solves_in_one_op(matvec)):
+            captured = self._captured_backward(saved, wanted)
+            if captured is None:
                 lam = self.adjoint_solve(saved["x"], rhs)
                 return self._residual_vjp(lam, saved, wanted)
-            key = (wanted, tuple(name for name, t in saved.items() if t is None))
-            captured = self._backward_graphs.get(key)
-            if captured is None:
-                captured = self._backward_graphs[key] = _CapturedBackward(
-                    rhs.clone(), {name: None if t is None else t.detach().clone() for name, t in saved.items()})
-            captured.rhs.copy_(rhs)
-            for name, t in saved.items():
-                if t is not None:
-                    captured.saved[name].copy_(t)
-            opts = self.adjoint
-
-            def work():
-                matvec.load(captured.saved["x"])
-                cg.begin(matvec, captured.rhs, opts.cg_tol, opts.cg_max_iter, opts.cg_max_iter)
-                grads = self._residual_vjp(cg.state.x, captured.saved, wanted)
-                if not captured.out:  # the first, eager, run: the buffers the graph will write
-                    captured.out.update({name: torch.empty_like(g) for name, g in grads.items()})
-                for name, g in grads.items():
-                    captured.out[name].copy_(g)
-
-            run_captured(captured.graphs, "backward", work)
-            status = cg.state.status
+            captured.load(rhs, saved)
+            run_captured(captured.graphs, "backward", captured.work)
+            status = captured.cg.state.status
             failed = (status == BREAKDOWN) | (status == NONFINITE)
-            if opts.require_convergence:
+            if self.adjoint.require_convergence:
                 failed = failed | (status != CONVERGED)
             if bool(failed.any()):  # the one synchronisation; the report only where it failed
-                _raise_if_failed(cg.result(), opts, "the adjoint solve of a step")
+                _raise_if_failed(captured.cg.result(), self.adjoint, "the adjoint solve of a step")
         return {name: t.clone() for name, t in captured.out.items()}
+
+    def prepare_backward(self, saved: dict, wanted: frozenset) -> None:
+        """Capture the backward's graph for this pattern of inputs now, at the forward's step
+        (``saved``, ``wanted`` as :meth:`backward`; its right-hand side zero), where it is
+        captured and not yet made. Captured here, on the caller's thread: inside the backward,
+        autograd's other threads may touch the device while the graph is being captured, which
+        spoils the capture."""
+        captured = self._captured_backward(saved, wanted)
+        if captured is None or "backward" in captured.graphs:
+            return
+        with self._written(None, {name: saved[name] for name in CONTACT_VALUES}):
+            captured.load(torch.zeros_like(saved["x"]), saved)
+            run_captured(captured.graphs, "backward", captured.work)
+
+    def _captured_backward(self, saved: dict, wanted: frozenset) -> Optional["_CapturedBackward"]:
+        """The backward's buffers and graphs for this pattern of wanted and absent inputs (made
+        where absent), or None where the backward is not captured (not CUDA, no CUDA graphs, a
+        scaled or several-op adjoint solve)."""
+        x = saved["x"]
+        if not (self.forward.cuda_graphs and x.device.type == "cuda"):
+            return None
+        key = (wanted, tuple(name for name, t in saved.items() if t is None))
+        captured = self._backward_graphs.get(key)
+        if captured is None:
+            matvec = self._adjoint_matvec()
+            cg = None if matvec is None else self.system.cg_solver(x, cuda_graphs=True)
+            if cg is None or not cg.solves_in_one_op(matvec):
+                return None
+            captured = self._backward_graphs[key] = _CapturedBackward(
+                self, wanted, matvec, cg, torch.zeros_like(x),
+                {name: None if t is None else t.detach().clone() for name, t in saved.items()})
+        return captured
 
     def _adjoint_matvec(self):
         """The step's fused system product (``SystemMatvec``) where the adjoint solve can use it
@@ -212,14 +223,37 @@ class DifferentiableStep:
 
 @dataclasses.dataclass
 class _CapturedBackward:
-    """A captured :meth:`DifferentiableStep.backward`: its input buffers (the adjoint solve's
-    right-hand side and the step's tensors), its graphs (``solver.cg.run_captured``'s) and the
-    buffers the graph writes its gradients into."""
+    """:meth:`DifferentiableStep.backward` as a CUDA graph: its input buffers (the adjoint solve's
+    right-hand side ``rhs`` and the step's tensors ``saved``), the solve's product and CG, the
+    graphs (``solver.cg.run_captured``'s) and the buffers ``out`` the graph writes its gradients
+    into."""
 
+    step: "DifferentiableStep"
+    wanted: frozenset
+    matvec: object
+    cg: object
     rhs: torch.Tensor
     saved: dict
     graphs: dict = dataclasses.field(default_factory=dict)
     out: dict = dataclasses.field(default_factory=dict)
+
+    def load(self, rhs: torch.Tensor, saved: dict) -> None:
+        """Copy a step's right-hand side and tensors into the buffers the graph reads."""
+        self.rhs.copy_(rhs)
+        for name, t in saved.items():
+            if t is not None:
+                self.saved[name].copy_(t)
+
+    def work(self) -> None:
+        """The device work the graph holds: load the operator at x, solve in one op, the vjp."""
+        opts = self.step.adjoint
+        self.matvec.load(self.saved["x"])
+        self.cg.begin(self.matvec, self.rhs, opts.cg_tol, opts.cg_max_iter, opts.cg_max_iter)
+        grads = self.step._residual_vjp(self.cg.state.x, self.saved, self.wanted)
+        if not self.out:  # the first, eager, run: the buffers the graph will write
+            self.out.update({name: torch.empty_like(g) for name, g in grads.items()})
+        for name, g in grads.items():
+            self.out[name].copy_(g)
 
 
 class ImplicitStep(torch.autograd.Function):
@@ -243,6 +277,9 @@ class ImplicitStep(torch.autograd.Function):
             x_new, v_new = step.step(x, v, imposed, external, contact)
         ctx.step = step
         ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new, *contact.values())
+        if any(ctx.needs_input_grad):
+            step.prepare_backward(dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young,
+                                       poisson=poisson, **contact), _wanted(ctx.needs_input_grad))
         return x_new, v_new
 
     @staticmethod
@@ -257,7 +294,7 @@ class ImplicitStep(torch.autograd.Function):
             g_v = torch.zeros_like(v)
         g_dv = g_v + h * g_x
         needs = ctx.needs_input_grad
-        wanted = frozenset(name for name, i in _INPUTS.items() if needs[i])
+        wanted = _wanted(needs)
         got = step.backward(g_dv if free is None else g_dv * free,
                             dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young, poisson=poisson,
                                  **dict(zip(CONTACT_VALUES, contact))), wanted)
@@ -280,6 +317,11 @@ CONTACT_VALUES = {"plane_offsets": ("planes", "offsets"), "plane_stiffness": ("p
 #: ImplicitStep's inputs that can take a gradient, by their position in ``forward``'s arguments
 _INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7,
            **{name: 8 + i for i, name in enumerate(CONTACT_VALUES)}}
+
+
+def _wanted(needs) -> frozenset:
+    """The names (of :data:`_INPUTS`) of the inputs whose gradient ``needs`` asks for."""
+    return frozenset(name for name, i in _INPUTS.items() if needs[i])
 
 
 def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
