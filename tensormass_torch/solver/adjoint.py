@@ -151,7 +151,10 @@ class DifferentiableStep:
         captured = self._captured_backward(saved, wanted)
         if captured is None or "backward" in captured.graphs:
             return
-        with self._written(None, {name: saved[name] for name in CONTACT_VALUES}):
+        # the capture's own autograd graph is none of the caller's: saved-tensor hooks around the
+        # forward (torch.utils.checkpoint's, which count what each step saves) stay out of it
+        with self._written(None, {name: saved[name] for name in CONTACT_VALUES}), \
+                torch.autograd.graph.saved_tensors_hooks(_kept, _kept):
             captured.load(torch.zeros_like(saved["x"]), saved)
             run_captured(captured.graphs, "backward", captured.work)
 
@@ -317,6 +320,10 @@ CONTACT_VALUES = {"plane_offsets": ("planes", "offsets"), "plane_stiffness": ("p
 #: ImplicitStep's inputs that can take a gradient, by their position in ``forward``'s arguments
 _INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7,
            **{name: 8 + i for i, name in enumerate(CONTACT_VALUES)}}
+
+
+def _kept(t):
+    return t
 
 
 def _wanted(needs) -> frozenset:

@@ -314,13 +314,16 @@ def test_cuda_gradients_match_the_cpu(model, monkeypatch):
             young = torch.full((N,), 1e4, dtype=torch.float64, device=device, requires_grad=True)
             x0 = sim.x.clone().requires_grad_(True)
             forces = torch.zeros(STEPS, V, 3, dtype=torch.float64, device=device, requires_grad=True)
-            run = tm.rollout(sim, STEPS, young=young, x0=x0, forces=forces)
-            (run.x.square().sum() + run.v[-1].sum()).backward()
-            grads[device, form] = [t.grad.cpu() for t in (young, x0, forces)]
+            for every in (None, 2):  # checkpointed: the same gradients
+                for t in (young, x0, forces):
+                    t.grad = None
+                run = tm.rollout(sim, STEPS, young=young, x0=x0, forces=forces, checkpoint_every=every)
+                (run.x.square().sum() + run.v[-1].sum()).backward()
+                grads[device, form, every] = [t.grad.cpu() for t in (young, x0, forces)]
     # the first step's backward captured, the next ones replayed
     assert replays and all(captured for _, captured in replays) and sum(r for r, _ in replays) >= STEPS - 1
-    for (device, form), got in grads.items():
-        for a, b in zip(got, grads["cpu", form]):
+    for (device, form, every), got in grads.items():
+        for a, b in zip(got, grads["cpu", form, None]):
             torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)
 
 
