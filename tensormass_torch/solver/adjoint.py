@@ -148,13 +148,14 @@ class DifferentiableStep:
         captured and not yet made. Captured here, on the caller's thread: inside the backward,
         autograd's other threads may touch the device while the graph is being captured, which
         spoils the capture."""
+        if _saved_tensor_hooks_active():
+            # inside torch.utils.checkpoint's forward, whose hooks would count the capture's own
+            # saved tensors (and torch.func refuses to run under them): the backward captures
+            return
         captured = self._captured_backward(saved, wanted)
         if captured is None or "backward" in captured.graphs:
             return
-        # the capture's own autograd graph is none of the caller's: saved-tensor hooks around the
-        # forward (torch.utils.checkpoint's, which count what each step saves) stay out of it
-        with self._written(None, {name: saved[name] for name in CONTACT_VALUES}), \
-                torch.autograd.graph.saved_tensors_hooks(_kept, _kept):
+        with self._written(None, {name: saved[name] for name in CONTACT_VALUES}):
             captured.load(torch.zeros_like(saved["x"]), saved)
             run_captured(captured.graphs, "backward", captured.work)
 
@@ -322,8 +323,14 @@ _INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7,
            **{name: 8 + i for i, name in enumerate(CONTACT_VALUES)}}
 
 
-def _kept(t):
-    return t
+def _saved_tensor_hooks_active() -> bool:
+    """Whether saved-tensor hooks (``torch.autograd.graph.saved_tensors_hooks``) are in force on
+    this thread: disabling them refuses exactly then."""
+    try:
+        with torch.autograd.graph.disable_saved_tensors_hooks("saved-tensor hooks are active"):
+            return False
+    except RuntimeError:
+        return True
 
 
 def _wanted(needs) -> frozenset:
