@@ -30,9 +30,7 @@ class DifferentiableModel:
     """
 
     def __init__(self, model):
-        if "removed" in model._buffers:
-            raise SceneError("gradients through a model whose elements were removed or cut are not available "
-                             "yet: build a simulator of the remaining mesh")
+        self.check(model)
         self.model = model
         like = model.rest
         self.group_ids: List[torch.Tensor] = []
@@ -47,6 +45,14 @@ class DifferentiableModel:
             self.group_ids.append(ids)
             self._stress_groups.append(_stress_group(model.rest, group, values[0], values[1]))
         self.young, self.poisson, self.density = young, poisson, density
+
+    @staticmethod
+    def check(model) -> None:
+        """Raise SceneError where ``model`` has changed from what this view can be made of (a view
+        made before the change holds the elements as they were)."""
+        if "removed" in model._buffers:
+            raise SceneError("gradients through a model whose elements were removed or cut are not available "
+                             "yet: build a simulator of the remaining mesh")
 
     def per_element(self, name: str, value: Optional[torch.Tensor]) -> torch.Tensor:
         """``value`` (a 0-dim or ``[N]`` tensor; None: the model's own) as ``[N]`` over the model's

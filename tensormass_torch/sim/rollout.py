@@ -18,7 +18,7 @@ from torch.utils.checkpoint import checkpoint
 
 from ..errors import SceneError
 from ..physics.differentiable import DifferentiableModel, check_per_element
-from ..solver.adjoint import DifferentiableStep, ImplicitStep, adjoint_options, check_differentiable
+from ..solver.adjoint import ImplicitStep, adjoint_options, check_differentiable, differentiable_step
 from .simulator import Body, Simulator
 
 
@@ -107,8 +107,9 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
     free_dofs = max(3 * int((~(b.fixed | b.prescribed)).sum()) for b in sim.bodies)
     forward, adjoint = adjoint_options(stepping.options, exact, cg_tol, free_dofs)
     check_differentiable(stepping.system, forward)
-    model = DifferentiableModel(stepping.model)
-    step = DifferentiableStep(stepping.system, forward, adjoint, model)
+    DifferentiableModel.check(stepping.model)  # also where the view was made by an earlier rollout
+    step = differentiable_step(stepping.system, forward, adjoint, lambda: DifferentiableModel(stepping.model))
+    model = step.model
     young_all = model.per_element("young", young)
     poisson_all = model.per_element("poisson", poisson)
     mass = stepping.system.mass[:, 0] if density is None else model.lumped_mass(model.per_element("density", density))

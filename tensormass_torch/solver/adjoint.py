@@ -323,6 +323,18 @@ _INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7,
            **{name: 8 + i for i, name in enumerate(CONTACT_VALUES)}}
 
 
+def differentiable_step(system: DynamicsSystem, forward: StepOptions, adjoint: StepOptions,
+                        make_model) -> DifferentiableStep:
+    """The system's :class:`DifferentiableStep` for these options, made once (``make_model()``:
+    its differentiable model) and kept on the system: rollouts of one simulator then share its
+    captured backward graphs, which read the model's tensors and the options' numbers."""
+    key = (dataclasses.astuple(forward), dataclasses.astuple(adjoint))
+    step = system._differentiable_steps.get(key)
+    if step is None:
+        step = system._differentiable_steps[key] = DifferentiableStep(system, forward, adjoint, make_model())
+    return step
+
+
 def _saved_tensor_hooks_active() -> bool:
     """Whether saved-tensor hooks (``torch.autograd.graph.saved_tensors_hooks``) are in force on
     this thread: disabling them refuses exactly then."""
@@ -368,4 +380,4 @@ def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None,
     return converged, converged
 
 __all__ = ["CONTACT_VALUES", "DifferentiableStep", "ImplicitStep", "SolverError", "adjoint_options",
-           "check_differentiable"]
+           "check_differentiable", "differentiable_step"]

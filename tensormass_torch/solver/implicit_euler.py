@@ -144,6 +144,7 @@ class DynamicsSystem:
         self._cg = None  # CGSolver, kept across steps (its buffers and CUDA graphs)
         self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec
         self._step_graphs = {}  # step options -> StepGraphs (CUDA)
+        self._differentiable_steps = {}  # (forward, adjoint options) -> solver.adjoint.DifferentiableStep
         self._coupled_cg = {}  # object ptr of coupled solves -> CGSolver
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept

@@ -284,9 +284,12 @@ def test_what_the_adjoint_does_not_differentiate_is_named(rng, what):
     message = {"tools": "tools with friction", "newton": "newton_iters=2", "friction": "planes with friction",
                "removed": "removed or cut"}[what]
     if what == "removed":
+        tm.rollout(sim, 2)  # a rollout before: its differentiable view is kept, and checked again
         sim.remove_elements(0, [0])
     with pytest.raises((tm.SolverError, tm.SceneError), match=message):
         tm.rollout(sim, 2, young=torch.tensor(1e4, dtype=torch.float64))
+    with pytest.raises((tm.SolverError, tm.SceneError), match=message):
+        tm.rollout(sim, 2, x0=sim.x.clone().requires_grad_(True))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
