@@ -6,15 +6,15 @@ One linearised step (``implicit_euler_step``, ``newton_iters=1``) solves ``A dv 
     b(x, v)       = h (f(x) + f_ext + (h + r_K) K(x) v - r_M M v)
     v' = v + dv,  x' = x + h v'
 
-(K: the elastic and plane stiffness the solver uses; constrained rows: dv is imposed there and the
-system holds the free rows only). Written as a residual of the free rows,
+(K: the elastic, planes' and tools' stiffness the solver uses; constrained rows: dv is imposed
+there and the system holds the free rows only). Written as a residual of the free rows,
 
     R(dv; x, v, theta) = c_M M dv + h r_M M v - h (f(x) + f_ext) - c_K K(x) (dv + v),
 
 the step's dv is the root of R, and A = dR/d(dv) is symmetric. For a loss L with cotangents
 g_x' = dL/dx', g_v' = dL/dv', the velocity change's cotangent is g = g_v' + h g_x', and by the
-implicit-function theorem, for any input p of R (x, v, the imposed velocities, f_ext, M and the
-material through f and K):
+implicit-function theorem, for any input p of R (x, v, the imposed velocities, f_ext, M, the
+material through f and K, and the planes' and tools' values through their forces and stiffness):
 
     A lam = P g                  (the adjoint solve: the step's own operator and CG; P: free rows)
     dL/dp += -lam . dR/dp        (one vector-Jacobian product of R: autograd through the ops)
