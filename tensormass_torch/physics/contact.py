@@ -108,6 +108,18 @@ class Plane:
         check_friction(self.friction, self.friction_velocity, "plane")
 
 
+def with_values(term, **values):
+    """A shallow copy of the contact term ``term`` (planes, tools) with the attributes given in
+    ``values`` in their place (None keeps the term's; the other tensors shared): the term as a
+    function of those values, for autograd."""
+    other = type(term).__new__(type(term))
+    other.__dict__.update(term.__dict__)
+    for name, value in values.items():
+        if value is not None:
+            setattr(other, name, value)
+    return other
+
+
 class Planes:
     """Planes stacked for evaluation: normals ``[P, 3]``, offsets ``[P]``, stiffness ``[P]``,
     friction coefficients and velocities ``[P]``."""
@@ -137,13 +149,7 @@ class Planes:
     def replaced(self, offsets: Optional[torch.Tensor] = None, stiffness: Optional[torch.Tensor] = None) -> "Planes":
         """These planes with ``offsets`` / ``stiffness`` ``[P]`` in place of theirs (None keeps them;
         the other tensors shared): the planes as functions of those values, for autograd."""
-        other = Planes.__new__(Planes)
-        other.__dict__.update(self.__dict__)
-        if offsets is not None:
-            other.offsets = offsets
-        if stiffness is not None:
-            other.stiffness = stiffness
-        return other
+        return with_values(self, offsets=offsets, stiffness=stiffness)
 
     # Elementwise products and small sums over the 3 coordinates / P planes rather than matrix
     # products: x @ normals.T is a [V, 3] x [3, P] product that BLAS runs as a slow skinny GEMV

@@ -40,7 +40,14 @@ import torch
 
 from ..errors import MeshError, SceneError
 from ..mesh.distance import SignedDistanceGrid, signed_distance_grid
-from .contact import NodeDamping, check_friction, coulomb_damping, tangential_part, tangential_projector
+from .contact import (
+    NodeDamping,
+    check_friction,
+    coulomb_damping,
+    tangential_part,
+    tangential_projector,
+    with_values,
+)
 
 #: the tool shapes (``Tool.shape``)
 SHAPES = ("sphere", "capsule", "box", "mesh")
@@ -375,13 +382,7 @@ class ToolSet:
                  stiffness: Optional[torch.Tensor] = None) -> "ToolSet":
         """These tools with ``origins [T, 3]`` / ``stiffness [T]`` in place of theirs (None keeps
         them; the other tensors shared): the tools as functions of those values, for autograd."""
-        other = ToolSet.__new__(ToolSet)
-        other.__dict__.update(self.__dict__)
-        if origins is not None:
-            other.origins = origins
-        if stiffness is not None:
-            other.stiffness = stiffness
-        return other
+        return with_values(self, origins=origins, stiffness=stiffness)
 
     def gaps(self, x: torch.Tensor):
         """Per tool: the gap ``g = d - thickness [V]``, the unit normal ``n [V, 3]`` and the
