@@ -111,15 +111,18 @@ def _native_gather(partial: torch.Tensor, plan: GatherPlan, node_term):
     return gather
 
 
-def element_forces(group, u: torch.Tensor) -> torch.Tensor:
-    """Kernel 1: partial forces ``[N, n, d]`` of every item of ``group`` at displacements ``u [V, d]``."""
+def element_forces(group, u: torch.Tensor, state: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Kernel 1: partial forces ``[N, n, d]`` of every item of ``group`` at displacements ``u [V, d]``.
+
+    ``state``: the corotational rotations the forces take ``[N, d, d]`` (normally ``linearize(group,
+    u)``, which None computes here); the forces are then affine in u."""
     native = _native(group, u)
     if native is not None:  # corotational: R at u from the rotations op, then the force op with it
-        return native.element_forces(group, u)
+        return native.element_forces(group, u, state)
     if group.model == "corotational":
         lam, mu = group.lame()
         return corotational.forces(_element_values(group, u), group.shape_vectors, group.measure, lam, mu,
-                                   linearize(group, u), group.projector)
+                                   linearize(group, u) if state is None else state, group.projector)
     if group.form == "stress":
         lam, mu = group.lame()
         element_forces_of = stress_form.FORCES[stress_form.kernel_model(group)]
@@ -164,12 +167,12 @@ def node_gather(partial: torch.Tensor, plan: GatherPlan, node_term: Optional[tor
 
 def forces(group, u: torch.Tensor, state: Optional[torch.Tensor] = None,
            variants: KernelVariants = DEFAULT) -> torch.Tensor:
-    """Elastic forces of the group on every node ``[V, d]``; ``state``: ``linearize(group, u)``
-    when the caller has it (the corotational rotations at u, then not computed again)."""
+    """Elastic forces of the group on every node ``[V, d]``; ``state``: as :func:`element_forces`
+    (``linearize(group, u)`` when the caller has it: then not computed again)."""
     native = _native(group, u)
     if native is not None:  # corotational: as element_forces
         return native.forces(group, u, state, variants)
-    return node_gather(element_forces(group, u), group.plan)
+    return node_gather(element_forces(group, u, state), group.plan)
 
 
 def dforces(group, u: torch.Tensor, du: torch.Tensor, state: Optional[torch.Tensor] = None) -> torch.Tensor:

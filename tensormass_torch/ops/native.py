@@ -30,7 +30,8 @@ __all__ = ["supports", "corotational_rotations", "element_forces", "element_dfor
 def element_forces(group, u: torch.Tensor, rotations: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Kernel 1 at element level: ``[N, n, d]`` (edges ``[Ed, 2, d]`` for the hooke tensor form).
 
-    ``rotations``: the corotational rotations at ``u`` ``[N, d, d]`` (computed here when None).
+    ``rotations``: the corotational rotations the forces take ``[N, d, d]`` (those at ``u``,
+    computed here, when None).
     """
     u = u.contiguous()
     index, _, _ = plan_indices(group.plan)

@@ -77,12 +77,19 @@ class DifferentiableModel:
         the corotational rotations at u (their derivative included), the stvk tangent the model's
         solver uses (exact or definite). A hooke group is linear, f(u) = K u: one product,
         K (force_coef u + stiffness_coef w), whose backward is one product and one pass over the
-        elements for the moduli."""
+        elements for the moduli; a corotational group likewise one product at u + (stiffness_coef
+        / force_coef) w with the rotations of u. ``force_coef`` must not be 0 (it is the step's h)."""
         total = None
         for group, ids in zip(self._stress_groups, self.group_ids):
             group.young, group.poisson = young[ids], poisson[ids]  # read by ops.stress.lame at each call
             if group.model == "hooke":
                 term = ops.dforces(group, u, force_coef * u + stiffness_coef * w)
+            elif group.model == "corotational":
+                # with R = R(u) held in the op, f(u; R) is affine in u and K_R w = f(u + w; R) - f(u; R):
+                # a f(u) + b K_R w = a f(u + (b / a) w; R), one op whose backward forms R's cotangent
+                # and the (lam, mu) gradients once
+                rotations = ops.linearize(group, u)
+                term = force_coef * ops.forces(group, u + (stiffness_coef / force_coef) * w, rotations)
             else:
                 state = ops.linearize(group, u)
                 term = force_coef * ops.forces(group, u, state) + stiffness_coef * ops.dforces(group, u, w, state)
