@@ -46,7 +46,7 @@ from .library import (
 from .reference import corotational, stress_form
 from .reference.stress_form import small_matmul
 
-__all__ = ["corotational_rotations", "stress_args", "lame"]
+__all__ = ["corotational_rotations", "corotational_rotations_vjp", "stress_args", "lame"]
 
 # ---------------------------------------------------------------------------------------------
 # References
@@ -63,7 +63,11 @@ def _ref_corotational_rotations(u, elements, m, proj, rest, method, known=None):
     """Element rotations ``[N, d, d]`` at u: method 0 = SOFA's QR frame, 1 = polar (membranes map
     their rest normal onto the current one first, as ``ops.linearize``). ``known``: the polar
     factors as the kernel computed them (only their derivative is then taken here)."""
-    u_e = u[elements]
+    return _element_rotations_at(u[elements], m, proj, rest, method, known)
+
+
+def _element_rotations_at(u_e, m, proj, rest, method, known=None):
+    """:func:`_ref_corotational_rotations` from the elements' nodal displacements ``u_e [N, n, d]``."""
     if int(method) == ROTATION_IDS["qr"]:
         return _qr_rotations(u_e, rest)
     if int(method) != ROTATION_IDS["polar"]:
@@ -326,6 +330,20 @@ def stress_args(group, u: Optional[torch.Tensor] = None, rotations: Optional[tor
         rotations = None
     return (group.shape_vectors.contiguous(), group.measure.contiguous(), lam.contiguous(), mu.contiguous(),
             None if proj is None else proj.contiguous(), MODEL_IDS[stress_form.kernel_model(group)], rest, rotations)
+
+
+def corotational_rotations_vjp(group, u: torch.Tensor, rotations: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+    """d(grad . R(u))/du per element node ``[N, n, d]`` (not yet summed on the nodes: the caller
+    gathers it with the group's plan, deterministically) for a corotational group's rotations
+    ``rotations [N, d, d]`` at ``u [V, d]`` and their cotangent ``grad [N, d, d]``: the polar map's
+    derivative at the factors given, SOFA's QR frame's through its closed form."""
+    index, _, _ = plan_indices(group.plan)
+    u_e = u.detach()[index].requires_grad_(True)
+    with torch.enable_grad():
+        value = _element_rotations_at(u_e, group.shape_vectors, group.projector, getattr(group, "rest_elements", None),
+                                      ROTATION_IDS[group.rotation], rotations.detach())
+        (cotangent,) = torch.autograd.grad(value, u_e, grad)
+    return cotangent
 
 
 def corotational_rotations(group, u: torch.Tensor) -> torch.Tensor:

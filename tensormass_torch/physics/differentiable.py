@@ -17,6 +17,7 @@ import torch
 
 from .. import ops
 from ..errors import SceneError
+from ..ops import stress
 from .groups import ElementGroup
 
 
@@ -88,13 +89,32 @@ class DifferentiableModel:
                 # with R = R(u) held in the op, f(u; R) is affine in u and K_R w = f(u + w; R) - f(u; R):
                 # a f(u) + b K_R w = a f(u + (b / a) w; R), one op whose backward forms R's cotangent
                 # and the (lam, mu) gradients once
-                rotations = ops.linearize(group, u)
+                rotations = _Rotations.apply(u, group)
                 term = force_coef * ops.forces(group, u + (stiffness_coef / force_coef) * w, rotations)
             else:
                 state = ops.linearize(group, u)
                 term = force_coef * ops.forces(group, u, state) + stiffness_coef * ops.dforces(group, u, w, state)
             total = term if total is None else total + term
         return total
+
+
+class _Rotations(torch.autograd.Function):
+    """A corotational group's rotations at ``u [V, d]`` (``ops.linearize``) ``[N, d, d]``, whose
+    backward sums the elements' cotangents on the nodes through the group's plan (one
+    deterministic gather) rather than autograd's scatter of ``u[elements]`` (a sort per call)."""
+
+    @staticmethod
+    def forward(ctx, u, group):
+        rotations = ops.linearize(group, u)
+        ctx.save_for_backward(u, rotations)
+        ctx.group = group
+        return rotations
+
+    @staticmethod
+    def backward(ctx, grad):
+        u, rotations = ctx.saved_tensors
+        per_element = stress.corotational_rotations_vjp(ctx.group, u, rotations, grad)
+        return ops.node_gather(per_element, ctx.group.plan), None
 
 
 def _stress_group(rest: torch.Tensor, group: ElementGroup, young: torch.Tensor, poisson: torch.Tensor) -> ElementGroup:
