@@ -148,12 +148,11 @@ class DifferentiableStep:
         captured and not yet made. Captured here, on the caller's thread: inside the backward,
         autograd's other threads may touch the device while the graph is being captured, which
         spoils the capture."""
-        if _saved_tensor_hooks_active():
-            # inside torch.utils.checkpoint's forward, whose hooks would count the capture's own
-            # saved tensors (and torch.func refuses to run under them): the backward captures
-            return
         captured = self._captured_backward(saved, wanted)
-        if captured is None or "backward" in captured.graphs:
+        if captured is None or "backward" in captured.graphs or _saved_tensor_hooks_active():
+            # (hooks: inside torch.utils.checkpoint's forward, whose hooks would count the
+            # capture's own saved tensors, and torch.func refuses to run under them: the
+            # backward captures)
             return
         with self._written(None, {name: saved[name] for name in CONTACT_VALUES}):
             captured.load(torch.zeros_like(saved["x"]), saved)

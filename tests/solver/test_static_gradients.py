@@ -76,5 +76,5 @@ def test_what_the_static_gradient_does_not_cover_is_named(rng):
     model = tm.TensorMass(scene.mesh, tm.Material(young=young, poisson=0.3, model="corotational"), form="stress")
     with pytest.raises(tm.SolverError, match="corotational elements"):
         tm.solve_static(model, fixed=scene.mesh.vertices[:, 0] < 0.1)
-    with torch.no_grad():  # without gradients it solves as before
+    with torch.no_grad():  # no gradient asked: the solve itself is not refused
         tm.solve_static(model, fixed=scene.mesh.vertices[:, 0] < 0.1)
