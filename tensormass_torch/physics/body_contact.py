@@ -55,6 +55,8 @@ sliding over a crease of the other surface or across a turning triangle), linear
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import List, Optional
@@ -186,6 +188,12 @@ class ContactPairs:
         friction: ``[P]`` each pair's friction damping c (N s/m) on its tangential relative
             velocity, mu k max(0, -g) / max(|v_t|, eps_v) at the velocities it was found with
             (lagged: fixed for the step), or None (no friction).
+        shift: ``[P, 4, 3]`` the motions of its four nodes from the state the step linearises at
+            to where the pair was found (:meth:`SurfaceContact.relinearise`: its direction,
+            weights and gap are those at x + shift, its gap carried back to x), or None (every
+            pair found at x).
+        born: ``[P]`` int64, with ``shift``: the solve of the step whose motion the shift is
+            (``relinearise``'s ``solution``; -1: the pair was found at x, its shift 0), or None.
     """
 
     nodes: torch.Tensor
@@ -198,6 +206,8 @@ class ContactPairs:
     hessians: Optional[torch.Tensor]
     num_nodes: int
     friction: Optional[torch.Tensor] = None
+    shift: Optional[torch.Tensor] = None
+    born: Optional[torch.Tensor] = None
 
     def __len__(self):
         return self.gap.numel()
@@ -209,7 +219,7 @@ class ContactPairs:
 
         return ContactPairs(self.nodes[index], self.weights[index], self.direction[index], self.signed[index],
                             self.gap[index], self.objects[index], self.stiffness, take(self.hessians),
-                            self.num_nodes, take(self.friction))
+                            self.num_nodes, take(self.friction), take(self.shift), take(self.born))
 
     def end_gap(self, dx: torch.Tensor) -> torch.Tensor:
         """``[P]`` each pair's gap after node motions ``dx [V, 3]`` in the pair's linear model,
@@ -356,6 +366,73 @@ class PairStiffness:
         vector = self.friction[:, None] * relative + ((self.normal - self.friction)[:, None] * along) * self.direction
         per_entry = (self.coef[:, :, None] * vector[:, None, :]).reshape(-1, 3)
         return torch.segment_reduce(per_entry[self.order], "sum", offsets=self.offsets, axis=0, unsafe=True)
+
+
+class HeldPairs:
+    """A step's contact pairs as functions of the positions and of the contact's stiffness and
+    thickness, what each pair is held to (its vertex and triangle, its side, and where it was
+    linearised) kept as the step found it: the body contact's part of the step's residual that
+    the adjoint step differentiates (``solver.adjoint``).
+
+    At positions x, a pair of ``pairs`` (a :class:`ContactPairs`) has, at y = x[nodes] + shift
+    (its node motions :attr:`ContactPairs.shift`; 0 where found at x), the closest point's
+    weights w(y), direction u(y) and signed distance s(y) = side |y_p - q(y)|, and
+
+        g(x, delta) = s(y) - delta - u(y) . J(y) shift        (the gap its linear model has at x)
+        f = -k g J^T u        (df/dx) dw = -k J^T u (u . J dw)          (J = (1, -w_a, -w_b, -w_c))
+
+    At the x and settings the step found them with, these are the pairs' forces and projected
+    stiffness exactly (the same closest point, the same formulas). Their derivatives in x go
+    through w(y) and u(y) (the surfaces' curvature), and in the shift likewise (an earlier
+    solve's motion: the adjoint step carries its cotangent back to that solve).
+
+    Args:
+        pairs: the step's pairs (``tangent="projected"``: no Hessians).
+        stiffness: k, a number or a 0-dim tensor.
+        thickness: delta, a number or a 0-dim tensor.
+        shift: ``[P, 4, 3]`` in place of the pairs' own (the same values, with a gradient), or None.
+    """
+
+    def __init__(self, pairs: ContactPairs, stiffness, thickness, shift: Optional[torch.Tensor] = None):
+        self.pairs = pairs
+        self.stiffness = stiffness
+        self.thickness = thickness
+        self.shift = pairs.shift if shift is None else shift
+        self._at = None  # (x, its model (coefficients [P, 4], direction [P, 3], gap [P]))
+
+    def _model(self, x: torch.Tensor):
+        """(J's coefficients ``[P, 4]``, u ``[P, 3]``, g ``[P]``) at ``x [V, 3]``, formed once per x."""
+        if self._at is not None and self._at[0] is x:
+            return self._at[1]
+        pairs = self.pairs
+        y = x[pairs.nodes]  # [P, 4, 3]
+        if self.shift is not None:
+            y = y + self.shift
+        w, diff, d, normal = closest_point(y[:, 0], y[:, 1], y[:, 2], y[:, 3])
+        # the side the pair was found on: u . (p - q) = side d (where d is not ~0, which it is
+        # only for a vertex on the triangle, where the side leaves s unchanged)
+        side = torch.where((pairs.direction * diff.detach()).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
+        direction = _direction(diff, d, side, normal)
+        coefficients = torch.cat([torch.ones_like(w[:, :1]), -w], dim=1)
+        gap = side * d - self.thickness
+        if self.shift is not None:
+            gap = gap - ((coefficients[:, :, None] * self.shift).sum(1) * direction).sum(-1)
+        self._at = (x, (coefficients, direction, gap))
+        return self._at[1]
+
+    def forces(self, x: torch.Tensor) -> torch.Tensor:
+        """The pairs' forces ``[V, 3]`` at ``x [V, 3]``."""
+        coefficients, direction, gap = self._model(x)
+        per_pair = (-self.stiffness * gap)[:, None, None] * coefficients[:, :, None] * direction[:, None, :]
+        return _sum_into(self.pairs.num_nodes, self.pairs.nodes.reshape(-1), per_pair.reshape(-1, 3))
+
+    def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+        """The pairs' projected force differential ``[V, 3]`` at ``x [V, 3]`` along ``dx [V, 3]``."""
+        coefficients, direction, _ = self._model(x)
+        relative = (coefficients[:, :, None] * dx[self.pairs.nodes]).sum(1)  # J dx [P, 3]
+        normal = self.stiffness * (relative * direction).sum(-1)
+        per_pair = -(normal[:, None, None] * coefficients[:, :, None]) * direction[:, None, :]
+        return _sum_into(self.pairs.num_nodes, self.pairs.nodes.reshape(-1), per_pair.reshape(-1, 3))
 
 
 def _pair_energy_hessians(x: torch.Tensor, nodes: torch.Tensor, side: torch.Tensor, stiffness: float,
@@ -581,7 +658,7 @@ class SurfaceContact:
         return chosen
 
     def relinearise(self, x: torch.Tensor, dx: torch.Tensor, pairs: ContactPairs, active: torch.Tensor,
-                    v: Optional[torch.Tensor] = None):
+                    v: Optional[torch.Tensor] = None, solution: int = -1):
         """The pairs a step from ``x [V, 3]`` needs once its solve moved the nodes by ``dx [V, 3]``:
         (pairs, active ``[P']`` bool, whether any pair changed), from :meth:`nearby`'s ``pairs``
         and the ``active`` mask the solve used.
@@ -595,7 +672,8 @@ class SurfaceContact:
         w_e and gap g_e at ``x + dx``, so that its model g_e + u_e . J_e (dx' - dx) is exact at
         the solution it was found from (written as a pair at x: gap g_e - u_e . J_e dx). A
         (vertex, body) has at most one pair (the new one replaces the old); ``v``: the
-        velocities the friction coefficients are taken at (as :meth:`nearby`'s)."""
+        velocities the friction coefficients are taken at (as :meth:`nearby`'s); ``solution``:
+        which of the step's solves moved the nodes by ``dx`` (the new pairs' ``born``)."""
         end, _ = self.nearby(x + dx)
         objects = max(self.num_objects, 1)
         key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
@@ -615,6 +693,8 @@ class SurfaceContact:
         fresh = end.select(deeper)
         fresh.gap = fresh.end_gap(-dx)  # g_e - u_e . J_e dx
         fresh.signed = fresh.gap + self.settings.thickness
+        fresh.shift = dx[fresh.nodes]
+        fresh.born = torch.full_like(fresh.gap, solution, dtype=torch.int64)
         if self.settings.friction > 0 and v is not None:
             fresh.friction = self._friction(fresh, v)
         keep = torch.ones_like(key, dtype=torch.bool)
@@ -623,7 +703,12 @@ class SurfaceContact:
         merged = ContactPairs(*(torch.cat([getattr(kept, f), getattr(fresh, f)])
                                 for f in ("nodes", "weights", "direction", "signed", "gap", "objects")),
                               pairs.stiffness, None, pairs.num_nodes,
-                              None if kept.friction is None else torch.cat([kept.friction, fresh.friction]))
+                              None if kept.friction is None else torch.cat([kept.friction, fresh.friction]),
+                              *((None, None) if kept.shift is None and not deeper.numel() else (
+                                  torch.cat([kept.direction.new_zeros(len(kept), 4, 3) if kept.shift is None
+                                             else kept.shift, fresh.shift]),
+                                  torch.cat([torch.full_like(kept.gap, -1, dtype=torch.int64) if kept.born is None
+                                             else kept.born, fresh.born]))))
         active = torch.cat([active[keep], torch.ones_like(fresh.gap, dtype=torch.bool)])
         return merged, active, deeper.numel() > 0
 
@@ -689,6 +774,16 @@ class SurfaceContact:
         if last is None or last[0] is not x or last[1] != x._version:
             self._static = last = (x, x._version, self.detect(x))
         return last[2]
+
+    def with_values(self, stiffness: Optional[float] = None, thickness: Optional[float] = None) -> "SurfaceContact":
+        """This contact with another penalty ``stiffness`` and ``thickness`` (None: kept), its
+        tensors and its search shared (a differentiable step's own values: ``solver.adjoint``)."""
+        changes = {name: float(value) for name, value in (("stiffness", stiffness), ("thickness", thickness))
+                   if value is not None}
+        other = copy.copy(self)
+        other.settings = dataclasses.replace(self.settings, **changes)
+        other._last = other._static = None
+        return other
 
     def to(self, device=None, dtype=None) -> "SurfaceContact":
         """This contact with its tensors on ``device`` (rest positions in ``dtype``)."""

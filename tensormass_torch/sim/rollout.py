@@ -3,8 +3,9 @@
 ``tm.rollout(sim, steps, young=..., forces=...)`` steps a copy of the simulator's state (the
 simulator itself is not advanced) with the adjoint step of ``solver.adjoint``: the trajectory it
 returns carries gradients back to the initial positions and velocities, the per-element Young's
-moduli, Poisson ratios and densities, gravity and the external node forces of each step, and,
-through the prescribed nodes' imposed velocities, to whatever the positions depend on.
+moduli, Poisson ratios and densities, gravity and the external node forces of each step, the
+planes', tools' and body contact's values, and, through the prescribed nodes' imposed
+velocities, to whatever the positions depend on.
 """
 from __future__ import annotations
 
@@ -35,7 +36,8 @@ class Rollout:
 def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[torch.Tensor] = None,
             young=None, poisson=None, density=None, gravity=None, forces: Optional[torch.Tensor] = None,
             prescribed: Optional[torch.Tensor] = None, plane_offsets=None, plane_stiffness=None,
-            tool_positions: Optional[torch.Tensor] = None, tool_stiffness=None, exact: bool = True,
+            tool_positions: Optional[torch.Tensor] = None, tool_stiffness=None, contact_stiffness=None,
+            contact_thickness=None, exact: bool = True,
             cg_tol: Optional[float] = None, checkpoint_every: Optional[int] = None,
             frames: Optional[Sequence[int]] = None) -> Rollout:
     """``steps`` implicit Euler steps of ``sim`` from its state (or ``x0, v0``), differentiable.
@@ -61,6 +63,10 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
         tool_positions: the tools' origins at the end of each step ``[steps, T, 3]``, in place of
             their paths (tools in the order the simulator was given them).
         tool_stiffness: the tools' penalty stiffness ``[T]``.
+        contact_stiffness, contact_thickness: the contact between bodies' penalty stiffness k and
+            thickness delta (numbers or 0-dim tensors), in place of its ``tm.Contact``'s. The
+            gradient is that of each step with its contact pairs held: which vertex meets which
+            triangle, on which side (``solver.adjoint``).
         exact: converge the forward and the adjoint solves (to ``cg_tol``, default the
             simulator's): the gradient is that of the computed trajectory. False: the solves run
             as the simulator's options say; with a fixed CG budget the gradient is then the
@@ -74,8 +80,8 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
 
     Raises:
         SceneError for bad arguments; SolverError where the simulation has something the
-        adjoint does not differentiate (contact between bodies, friction, several Newton
-        iterations, removed or cut elements) or a solve fails. Nothing of ``sim`` is changed.
+        adjoint does not differentiate (friction, the exact tangent of contact between bodies,
+        several Newton iterations, removed or cut elements) or a solve fails. Nothing of ``sim`` is changed.
     """
     sim = _simulator_of(sim)
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -100,6 +106,8 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
                                        ("plane_stiffness", plane_stiffness, 0.0)))
     tool_origins = _tool_origins(sim, tool_positions, steps)
     tool_stiffness = _tool_stiffness(sim, tool_stiffness)
+    contact_stiffness = _contact_value(sim, "contact_stiffness", contact_stiffness, positive=True)
+    contact_thickness = _contact_value(sim, "contact_thickness", contact_thickness, positive=False)
     frames = _frames(frames, steps)
 
     stepping = sim if young is None and poisson is None and density is None else \
@@ -132,7 +140,7 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
                     external = external + (forces[n] if forces.dim() == 3 else forces)
             x, v = ImplicitStep.apply(step, x, v, imposed, external, mass, young_all, poisson_all, plane_offsets,
                                       plane_stiffness, None if tool_origins is None else tool_origins[n],
-                                      tool_stiffness)
+                                      tool_stiffness, contact_stiffness, contact_thickness)
             if n + 1 in frames:
                 kept.append((x, v))
         return x, v, kept
@@ -241,6 +249,19 @@ def _tool_stiffness(sim: Simulator, value) -> Optional[torch.Tensor]:
     value = _checked("tool_stiffness", value, [(count,)], f"({count},) (one per tool)", sim.x)
     if bool((value.detach() <= 0).any()):
         raise SceneError(f"tool_stiffness must be > 0, got {value.detach().tolist()}")
+    return value
+
+
+def _contact_value(sim: Simulator, name: str, value, positive: bool) -> Optional[torch.Tensor]:
+    """``value`` (None, or one number) checked: finite, > 0 (``positive``) or >= 0."""
+    if value is None:
+        return None
+    if sim.body_contact is None:
+        raise SceneError(f"{name} was given, but the simulator has no contact between bodies (tm.Contact)")
+    value = value if isinstance(value, torch.Tensor) else torch.as_tensor(value, dtype=sim.dtype)
+    value = _checked(name, value, [()], "() (one number)", sim.x)
+    if bool(value.detach() <= 0) if positive else bool(value.detach() < 0):
+        raise SceneError(f"{name} must be {'> 0' if positive else '>= 0'}, got {float(value.detach())}")
     return value
 
 

@@ -6,7 +6,7 @@ One linearised step (``implicit_euler_step``, ``newton_iters=1``) solves ``A dv 
     b(x, v)       = h (f(x) + f_ext + (h + r_K) K(x) v - r_M M v)
     v' = v + dv,  x' = x + h v'
 
-(K: the elastic, planes' and tools' stiffness the solver uses; constrained rows: dv is imposed
+(K: the elastic, planes', tools' and body contact's stiffness the solver uses; constrained rows: dv is imposed
 there and the system holds the free rows only). Written as a residual of the free rows,
 
     R(dv; x, v, theta) = c_M M dv + h r_M M v - h (f(x) + f_ext) - c_K K(x) (dv + v),
@@ -23,6 +23,14 @@ plus the direct terms of v' = v + dv and x' = x + h v'. No tape is kept through 
 iterations: a step's backward is one solve and one pass of the ops' gradients (K's derivative
 along lam for the non-linear models: stvk's, and the corotational rotations').
 
+Contact between bodies enters R through its pairs' forces and projected stiffness. Which surface
+vertex meets which triangle, and on which side, are discrete choices, held as the forward made
+them (the gradient exists where a small change of the inputs keeps them); each pair's closest
+point, direction and gap are functions of x and of the contact's stiffness and thickness
+(``body_contact.HeldPairs``). A step whose contact set took several solves holds pairs that were
+linearised where an earlier solve ended (at x + h v_q): its backward goes back through those
+solves, one adjoint solve each (``DifferentiableStep._contact_solves_backward``).
+
 This is the gradient of the *converged* step at the states the forward computed. Where the
 forward stops CG on a budget (``require_convergence=False``) its dv is not A^-1 b and the
 returned gradient is not that of the truncated computation: it is the adjoint of the exact
@@ -38,6 +46,7 @@ from typing import Optional
 import torch
 
 from ..errors import SolverError
+from ..physics.body_contact import HeldPairs
 from .cg import BREAKDOWN, CONVERGED, NONFINITE, run_captured
 from .implicit_euler import (
     DynamicsSystem,
@@ -65,18 +74,28 @@ class DifferentiableStep:
     def step(self, x, v, imposed, external, contact: dict):
         """The forward step from ``x, v [V, 3]`` (``imposed``: the constrained nodes' end
         velocities or None; ``external``: this step's external forces ``[V, 3]`` in place of the
-        system's, or None; ``contact``: values of :data:`CONTACT_VALUES` in place of the system's,
-        None where kept): ``(x', v')``."""
+        system's, or None; ``contact``: values of :data:`CONTACT_VALUES` and
+        :data:`BODY_CONTACT_VALUES` in place of the system's, None where kept): ``(x', v',
+        solves)``, solves: each solve of the step's contact set (``StepReport.contact_solves``:
+        its pairs and end velocities), or None without body contact."""
         with self._written(external, contact):
-            x_new, v_new, _ = implicit_euler_step(self.system, x, v, self.forward, imposed)
-        return x_new, v_new
+            # (detached: the body contact keeps the state it last found pairs at, which must not
+            # hold the rollout's autograd graph alive)
+            x_new, v_new, report = implicit_euler_step(self.system, x.detach(), v.detach(), self.forward,
+                                                       None if imposed is None else imposed.detach())
+        return x_new, v_new, report.contact_solves
 
     @contextlib.contextmanager
     def _written(self, external, contact: dict):
         """The system's external forces and contact values replaced by those given (None: kept)
         for the body of the ``with``: written in place (captured graphs read that storage) and
-        restored after, whatever happens."""
+        restored after, whatever happens; the body contact's stiffness and thickness (numbers
+        in its settings) by a copy of it with those values in the system's place."""
         system = self.system
+        body = system.body_contact
+        if body is not None and any(contact.get(name) is not None for name in BODY_CONTACT_VALUES):
+            system.body_contact = body.with_values(**{setting: contact.get(name)
+                                                      for name, setting in BODY_CONTACT_VALUES.items()})
         targets = [(system.external, external)] + [
             (getattr(getattr(system, owner), attribute), contact.get(name))
             for name, (owner, attribute) in CONTACT_VALUES.items() if getattr(system, owner) is not None]
@@ -89,12 +108,16 @@ class DifferentiableStep:
         finally:
             for (target, _), old in zip(swaps, kept):
                 target.copy_(old)
+            system.body_contact = body
 
-    def residual(self, x, v, dv, external, mass, young, poisson, contact: dict) -> torch.Tensor:
+    def residual(self, x, v, dv, external, mass, young, poisson, contact: dict, pairs=None,
+                 shift=None) -> torch.Tensor:
         """``R(dv; x, v, ...)`` ``[V, 3]`` of the module's docstring, every row (the caller keeps the
         free ones): ``external`` None leaves f_ext out (a constant: no gradient needs its value),
-        ``mass [V]``, ``young, poisson [N]``, ``contact``: values of :data:`CONTACT_VALUES` (None:
-        the system's)."""
+        ``mass [V]``, ``young, poisson [N]``, ``contact``: values of :data:`CONTACT_VALUES` and
+        :data:`BODY_CONTACT_VALUES` (None: the system's), ``pairs``: the body contact's pairs the
+        solve held (``body_contact.ContactPairs``; their forces and stiffness as
+        ``body_contact.HeldPairs``, with ``shift`` in place of theirs where given) or None."""
         opts = self.forward
         h = opts.dt
         mass_coef, stiffness_coef = _coefficients(opts)
@@ -109,6 +132,12 @@ class DifferentiableStep:
             elif term is system.tools:
                 term = term.replaced(contact.get("tool_origins"), contact.get("tool_stiffness"))
             residual = residual - h * term.forces(x) - stiffness_coef * term.dforces(x, w)
+        if pairs is not None and len(pairs):
+            settings = system.body_contact.settings
+            held = HeldPairs(pairs, **{setting: getattr(settings, setting) if contact.get(name) is None
+                                       else contact[name] for name, setting in BODY_CONTACT_VALUES.items()},
+                             shift=shift)
+            residual = residual - h * held.forces(x) - stiffness_coef * held.dforces(x, w)
         if opts.rayleigh_mass:
             residual = residual + (h * opts.rayleigh_mass) * m * v
         if external is not None:
@@ -118,9 +147,15 @@ class DifferentiableStep:
     def backward(self, rhs: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
         """The adjoint solve ``A lam = rhs`` (``rhs [V, 3]``: P g) and ``-lam . dR/dp`` for p = x, v and
         the inputs named in ``wanted`` (of :data:`_INPUTS`), at the step whose tensors ``saved``
-        holds (x, v, v_new, imposed, mass, young, poisson and :data:`CONTACT_VALUES`; None where
-        absent): ``{name: gradient}``, zeros where R does not depend on p. Raises
+        holds (x, v, v_new, imposed, mass, young, poisson, the values of :data:`CONTACT_VALUES` and
+        :data:`BODY_CONTACT_VALUES`, None where absent, and ``solves``, the step's contact-set
+        solves or None): ``{name: gradient}``, zeros where R does not depend on p. Raises
         SolverError where the solve fails.
+
+        With body contact, the step's end velocities are those of its last contact-set solve,
+        whose pairs include pairs linearised at an earlier solve's end (their shift: that
+        solve's motion). The backward then goes back through the solves
+        (:meth:`_contact_solves_backward`).
 
         On CUDA (``forward.cuda_graphs``), where the solve is one device op (the device deciding
         when it stops), the solve and the product, R's graph and its backward, run as one CUDA
@@ -129,6 +164,8 @@ class DifferentiableStep:
         launches (more than their arithmetic). The solve's outcome is read once after."""
         with self._written(None, {name: saved[name] for name in CONTACT_VALUES}):  # A(x) of the forward's contact
             captured = self._captured_backward(saved, wanted)
+            if saved.get("solves"):
+                return self._contact_solves_backward(rhs, saved, wanted)
             if captured is None:
                 lam = self.adjoint_solve(saved["x"], rhs)
                 return self._residual_vjp(lam, saved, wanted)
@@ -163,8 +200,8 @@ class DifferentiableStep:
         where absent), or None where the backward is not captured (not CUDA, no CUDA graphs, a
         scaled or several-op adjoint solve)."""
         x = saved["x"]
-        if not (self.forward.cuda_graphs and x.device.type == "cuda"):
-            return None
+        if not (self.forward.cuda_graphs and x.device.type == "cuda") or self.system.body_contact is not None:
+            return None  # (body contact: each step's pairs differ in number, and its forward is eager)
         key = (wanted, tuple(name for name, t in saved.items() if t is None))
         captured = self._backward_graphs.get(key)
         if captured is None:
@@ -184,8 +221,49 @@ class DifferentiableStep:
             return None
         return self.system.system_matvec(*_coefficients(self.adjoint), self.adjoint.pipelined, self.adjoint.variants)
 
-    def _residual_vjp(self, lam: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
+    def _contact_solves_backward(self, rhs: torch.Tensor, saved: dict, wanted: frozenset) -> dict:
+        """:meth:`backward` of a step with body contact: its solves r = R .. 0 (``saved["solves"]``),
+        each solve's end velocities v_r = v + dv_r (the constrained rows: imposed) the root of its
+        own residual R_r (its pairs; a pair linearised at solve q's end has the shift h v_q). The
+        cotangent c_r of v_r (c_R: the step's, ``rhs``; an earlier one's: what the later pairs'
+        shifts give it) takes one adjoint solve with solve r's operator, A_r lam = P c_r, and one
+        vjp of R_r, which also gives the cotangents of the solves its shifts came from; plus
+        v_r's direct terms (the last solve's are :class:`ImplicitStep`'s)."""
+        solves, imposed, free = saved["solves"], saved["imposed"], self.system.free
+        last = len(solves) - 1
+        cotangents = {last: rhs}
+        total = {}
+        for r in range(last, -1, -1):
+            c = cotangents.pop(r, None)
+            if c is None:
+                continue
+            if r < last:
+                if imposed is None or free is None:
+                    direct = {"v": c}
+                else:
+                    direct = {"v": c * free, "imposed": c * (1.0 - free)}
+                _accumulate(total, direct)
+                if free is not None:
+                    c = c * free
+            lam = self.adjoint_solve(saved["x"], c, solves[r][0])
+            got = self._residual_vjp(lam, saved, wanted, solve=r)
+            for q, g in got.pop("solutions").items():
+                cotangents[q] = g if q not in cotangents else cotangents[q] + g
+            _accumulate(total, got)
+        if "imposed" in total and "imposed" not in wanted:
+            del total["imposed"]
+        return total
+
+    def _residual_vjp(self, lam: torch.Tensor, saved: dict, wanted: frozenset, solve: Optional[int] = None) -> dict:
+        """``-lam . dR/dp`` ``{name: [...]}`` for x, v and the inputs named in ``wanted`` at the step
+        ``saved`` holds (as :meth:`backward`'s). ``solve``: with body contact, the contact-set
+        solve whose residual (its pairs, its end velocities) this is; its earlier solves' end
+        velocities are then inputs too, their cotangents returned under ``"solutions"``
+        (``{solve: [V, 3]}``)."""
         x, v, v_new = saved["x"], saved["v"], saved["v_new"]
+        pairs = None
+        if solve is not None:
+            pairs, v_new = saved["solves"][solve]
         free = self.system.free
         with torch.enable_grad():
             leaves = {}
@@ -207,19 +285,32 @@ class DifferentiableStep:
                 external_ = torch.zeros_like(x).requires_grad_(True)  # R is affine in f_ext
                 leaves["external"] = external_
             mass_, young_, poisson_ = (leaf(name) for name in ("mass", "young", "poisson"))
-            contact = {name: leaf(name) for name in CONTACT_VALUES}
+            contact = {name: leaf(name) for name in _CONTACT_INPUTS}
             # dv: its free rows as solved (constants), its constrained rows imposed by the inputs
             dv = (v_new - v) if free is None else (v_new - v) * free
             if imposed_ is not None:
                 dv = dv + (1.0 - free) * (imposed_ - v_)
-            residual = self.residual(x_, v_, dv, external_, mass_, young_, poisson_, contact)
-            inputs = {"x": x_, "v": v_, **leaves}
+            # pairs linearised at an earlier solve's end: their shift h v_q, v_q an input
+            shift, earlier = None, {}
+            if pairs is not None and pairs.born is not None:
+                shift = pairs.shift
+                for q in pairs.born.unique().tolist():
+                    if q >= 0:
+                        earlier[q] = saved["solves"][q][1].detach().requires_grad_(True)
+                        moved = self.forward.dt * earlier[q][pairs.nodes]
+                        shift = torch.where((pairs.born == q)[:, None, None], moved, shift)
+            residual = self.residual(x_, v_, dv, external_, mass_, young_, poisson_, contact, pairs, shift)
+            inputs = {"x": x_, "v": v_, **leaves, **{("solution", q): t for q, t in earlier.items()}}
             grads = torch.autograd.grad((lam * residual).sum(), list(inputs.values()), allow_unused=True)
-        return {name: (torch.zeros_like(t) if g is None else -g) for (name, t), g in zip(inputs.items(), grads)}
+        out = {name: (torch.zeros_like(t) if g is None else -g) for (name, t), g in zip(inputs.items(), grads)}
+        if solve is not None:
+            out["solutions"] = {q: out.pop(("solution", q)) for q in earlier}
+        return out
 
-    def adjoint_solve(self, x, rhs) -> torch.Tensor:
-        """lam ``[V, 3]`` with A(x) lam = rhs on the free rows (0 on the constrained ones)."""
-        result = _solve(self.system, x, rhs, self.adjoint)
+    def adjoint_solve(self, x, rhs, pairs=None) -> torch.Tensor:
+        """lam ``[V, 3]`` with A(x) lam = rhs on the free rows (0 on the constrained ones);
+        ``pairs``: the body contact's pairs the forward step held, or None."""
+        result = _solve(self.system, x, rhs, self.adjoint, pairs=pairs)
         _raise_if_failed(result, self.adjoint, "the adjoint solve of a step")
         return result.solution
 
@@ -266,23 +357,30 @@ class ImplicitStep(torch.autograd.Function):
     nodes' end velocities ``[V, 3]`` or None (fixed nodes stay at rest); the step's external
     forces ``[V, 3]`` or None (the system's); lumped masses ``[V]``; per-element Young's moduli
     and Poisson ratios ``[N]``; the planes' offsets and stiffness ``[P]``, the tools' origins
-    ``[T, 3]`` (where they are at the step's end) and stiffness ``[T]``, each or None (theirs).
+    ``[T, 3]`` (where they are at the step's end) and stiffness ``[T]``, the body contact's
+    stiffness and thickness (0-dim), each or None (theirs).
     Masses and material must be those the system was built with (the forward reads the
     system's; the backward differentiates through these).
     """
 
     @staticmethod
     def forward(ctx, step: DifferentiableStep, x, v, imposed, external, mass, young, poisson, plane_offsets=None,
-                plane_stiffness=None, tool_origins=None, tool_stiffness=None):
+                plane_stiffness=None, tool_origins=None, tool_stiffness=None, contact_stiffness=None,
+                contact_thickness=None):
         contact = dict(plane_offsets=plane_offsets, plane_stiffness=plane_stiffness, tool_origins=tool_origins,
-                       tool_stiffness=tool_stiffness)
+                       tool_stiffness=tool_stiffness, contact_stiffness=contact_stiffness,
+                       contact_thickness=contact_thickness)
         with torch.no_grad():
-            x_new, v_new = step.step(x, v, imposed, external, contact)
+            x_new, v_new, solves = step.step(x, v, imposed, external, contact)
         ctx.step = step
+        # the contact set's solves (their pairs are constants of the step), each end velocity a
+        # detached alias: the last is the output v_new, whose grad_fn is this node (a reference
+        # cycle through the autograd graph, which Python's collector cannot see, would leak it)
+        ctx.solves = None if solves is None else [(pairs, end.detach()) for pairs, end in solves]
         ctx.save_for_backward(x, v, imposed, mass, young, poisson, v_new, *contact.values())
         if any(ctx.needs_input_grad):
             step.prepare_backward(dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young,
-                                       poisson=poisson, **contact), _wanted(ctx.needs_input_grad))
+                                       poisson=poisson, solves=solves, **contact), _wanted(ctx.needs_input_grad))
         return x_new, v_new
 
     @staticmethod
@@ -300,7 +398,7 @@ class ImplicitStep(torch.autograd.Function):
         wanted = _wanted(needs)
         got = step.backward(g_dv if free is None else g_dv * free,
                             dict(x=x, v=v, v_new=v_new, imposed=imposed, mass=mass, young=young, poisson=poisson,
-                                 **dict(zip(CONTACT_VALUES, contact))), wanted)
+                                 solves=ctx.solves, **dict(zip(_CONTACT_INPUTS, contact))), wanted)
         # the direct terms: x' = x + h v', v' = v + dv (constrained rows: v' = imposed there)
         grad_x = got["x"] + g_x
         if imposed is None:
@@ -317,9 +415,13 @@ class ImplicitStep(torch.autograd.Function):
 #: contact term, its attribute), each written in place for the forward (captured steps read it)
 CONTACT_VALUES = {"plane_offsets": ("planes", "offsets"), "plane_stiffness": ("planes", "stiffness"),
                   "tool_origins": ("tools", "origins"), "tool_stiffness": ("tools", "stiffness")}
+#: The body contact's values a differentiable step takes in place of its settings: name -> the
+#: ``body_contact.Contact`` setting (numbers: the forward steps a copy of the contact with them)
+BODY_CONTACT_VALUES = {"contact_stiffness": "stiffness", "contact_thickness": "thickness"}
+_CONTACT_INPUTS = (*CONTACT_VALUES, *BODY_CONTACT_VALUES)
 #: ImplicitStep's inputs that can take a gradient, by their position in ``forward``'s arguments
 _INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7,
-           **{name: 8 + i for i, name in enumerate(CONTACT_VALUES)}}
+           **{name: 8 + i for i, name in enumerate(_CONTACT_INPUTS)}}
 
 
 def differentiable_step(system: DynamicsSystem, forward: StepOptions, adjoint: StepOptions,
@@ -332,6 +434,12 @@ def differentiable_step(system: DynamicsSystem, forward: StepOptions, adjoint: S
     if step is None:
         step = system._differentiable_steps[key] = DifferentiableStep(system, forward, adjoint, make_model())
     return step
+
+
+def _accumulate(total: dict, terms: dict) -> None:
+    """``total[name] += terms[name]`` for each name (set where absent)."""
+    for name, t in terms.items():
+        total[name] = t if name not in total else total[name] + t
 
 
 def _saved_tensor_hooks_active() -> bool:
@@ -356,14 +464,17 @@ def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
         reasons.append(f"newton_iters={opts.newton_iters} (the adjoint is that of one linearisation: use 1)")
     if system.tools is not None and system.tools.has_friction:
         reasons.append("tools with friction")
-    if system.body_contact is not None:
-        reasons.append("contact between bodies")
+    body = system.body_contact
+    if body is not None and body.settings.friction > 0:
+        reasons.append("contact between bodies with friction")
+    if body is not None and body.settings.tangent != "projected":
+        reasons.append(f"contact between bodies with tangent={body.settings.tangent!r} (use 'projected')")
     if system.planes is not None and system.planes.has_friction:
         reasons.append("planes with friction")
     if reasons:
         raise SolverError("gradients through this simulation are not available: it has " + "; ".join(reasons)
                           + ". Differentiable steps support elastic bodies, fixed and prescribed nodes, "
-                          "gravity, external forces, frictionless planes and tools")
+                          "gravity, external forces, frictionless planes, tools and contact between bodies")
 
 
 def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None, free_dofs: int = 0):
@@ -378,5 +489,5 @@ def adjoint_options(opts: StepOptions, exact: bool, tol: Optional[float] = None,
                                     cg_max_iter=max(opts.cg_max_iter, auto_cg_max_iter(free_dofs)))
     return converged, converged
 
-__all__ = ["CONTACT_VALUES", "DifferentiableStep", "ImplicitStep", "SolverError", "adjoint_options",
-           "check_differentiable", "differentiable_step"]
+__all__ = ["BODY_CONTACT_VALUES", "CONTACT_VALUES", "DifferentiableStep", "ImplicitStep", "SolverError",
+           "adjoint_options", "check_differentiable", "differentiable_step"]

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import List
+from typing import List, Optional
 
 import torch
 
@@ -90,6 +90,10 @@ class StepReport:
     each solve again for pairs the one before left out)."""
 
     cg: List[CGResult] = field(default_factory=list)
+    #: each solve of the step's contact set: (the body contact's pairs it held, ``ContactPairs``;
+    #: the end velocities it gave ``[V, d]``), the last the step's; None without body contact (or
+    #: with a model without a fused product: its solves find their pairs)
+    contact_solves: Optional[list] = None
 
     @property
     def cg_iterations(self) -> torch.Tensor:
@@ -933,6 +937,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
+    if near is not None:
+        report.contact_solves = [(pairs, v_new)]
 
     # The contact set: the pairs were chosen by the gap each would have at the end of the step at
     # the step's starting velocities, but the solve changes the velocities (the other pairs'
@@ -950,7 +956,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     for _ in range(CONTACT_SET_ROUNDS if near is not None else 0):
         dx = h * v_new
         missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
-        near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v)
+        near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
+                                                              solution=len(report.contact_solves) - 1)
         if not moved and not bool(missed.any()):
             break
         pairs = system.body_contact.select(x, near, active.nonzero().squeeze(1))
@@ -959,6 +966,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         report.cg.append(result)
         _raise_if_failed(result, opts, "implicit Euler CG (contact set)")
         v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
+        report.contact_solves.append((pairs, v_new))
 
     for _ in range(opts.newton_iters - 1):
         x_new = torch.add(x, v_new, alpha=h)

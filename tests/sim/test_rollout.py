@@ -229,6 +229,7 @@ def test_bad_input_gives_one_clear_error(rng):
         (dict(gravity=[0.0, float("inf"), 0.0]), r"gravity must be 3 finite numbers"),
         (dict(frames=[STEPS + 1]), r"frames must be steps in 0 \.\. 3"),
         (dict(checkpoint_every=0), r"checkpoint_every must be a positive integer"),
+        (dict(contact_stiffness=1e3), r"contact_stiffness was given, but the simulator has no contact between"),
     ]
     for kwargs, message in cases:
         steps = kwargs.pop("steps", STEPS)
@@ -271,9 +272,126 @@ def test_tools_pressing_on_a_beam(rng, shape):
     assert tuple(sim.tools.origins[0].tolist()) == origin and sim.time == 0.01  # nothing of sim changed
 
 
-@pytest.mark.parametrize("what", ["tools", "newton", "friction", "removed"])
+def _blocks_in_contact(rough: bool = False, device="cpu", **contact):
+    """A small block pressed by gravity onto a larger one held at its base (float64, corotational),
+    after three steps: every step of a rollout from there has pairs between the two. ``rough``:
+    the larger one's top nodes jittered (a surface of turning triangles)."""
+    material = tm.Material(young=2e4, poisson=0.3, density=1000, model="corotational")
+    lower = tm.beam_mesh(3, 3, 2, size=(0.2, 0.2, 0.1), dtype=torch.float64)
+    if rough:
+        jitter = torch.rand(lower.vertices.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+        lower = tm.TetMesh(lower.vertices + 0.004 * (jitter - 0.5) * (lower.vertices[:, 2:] > 0.05), lower.elements)
+    upper = tm.beam_mesh(2, 2, 2, size=(0.1, 0.1, 0.1), origin=(0.05, 0.06, 0.098), dtype=torch.float64)
+    settings = dict(stiffness=2e3, thickness=0.005)
+    settings.update(contact)
+    sim = tm.Simulator([tm.Body(lower, material, fixed=lower.vertices[:, 2] < 1e-6), tm.Body(upper, material)],
+                       dt=0.01, cg_tol=1e-13, contact=tm.Contact(**settings), rayleigh_mass=0.1, device=device)
+    sim.step(3)
+    return sim
+
+
+def _contact_solves(monkeypatch) -> list:
+    """Record each differentiable step's contact-set solves: per step, (solves, pairs of its last
+    solve linearised at an earlier solve's end)."""
+    from tensormass_torch.solver.adjoint import DifferentiableStep
+
+    seen, step = [], DifferentiableStep.step
+
+    def recording(self, *args):
+        out = step(self, *args)
+        pairs = out[2][-1][0]
+        seen.append((len(out[2]), 0 if pairs.born is None else int((pairs.born >= 0).sum())))
+        return out
+
+    monkeypatch.setattr(DifferentiableStep, "step", recording)
+    return seen
+
+
+def test_bodies_in_contact(rng, monkeypatch):
+    """Contact between bodies: gradients of the initial state, the moduli, gravity and the
+    contact's stiffness and thickness against central differences; the contact's own values
+    give the simulator's trajectory; the contact's values are checked."""
+    sim = _blocks_in_contact()
+    seen = _contact_solves(monkeypatch)
+    run = tm.rollout(sim, STEPS)
+    assert len(seen) == STEPS and all(pairs > 0 for pairs in sim.step().contact.body_contacts.tolist())
+    sim = _blocks_in_contact()
+    again = tm.rollout(sim, STEPS, contact_stiffness=2e3, contact_thickness=torch.tensor(0.005, dtype=torch.float64))
+    torch.testing.assert_close(again.x, run.x, rtol=0, atol=0)
+    V = sim.x.shape[0]
+    weights = [torch.tensor(rng.standard_normal((STEPS + 1, V, 3))) for _ in range(2)]
+    params = _parameters(sim, rng)
+    params["contact_stiffness"] = torch.tensor(2.5e3, dtype=torch.float64)
+    params["contact_thickness"] = torch.tensor(0.006, dtype=torch.float64)
+    for name in ("x0", "v0", "young", "gravity", "contact_stiffness", "contact_thickness"):
+        assert _directional_error(sim, weights, name, params[name], rng) <= 1e-6, name
+    for kwargs, message in [(dict(contact_stiffness=0.0), r"contact_stiffness must be > 0"),
+                            (dict(contact_thickness=-1e-3), r"contact_thickness must be >= 0"),
+                            (dict(contact_thickness=torch.zeros(2)), r"contact_thickness must have shape \(\)")]:
+        with pytest.raises(tm.SceneError, match=message):
+            tm.rollout(sim, STEPS, **kwargs)
+    assert sim.body_contact.settings.stiffness == 2e3 and sim.time == pytest.approx(0.03)  # nothing changed
+
+
+def test_a_pair_linearised_at_an_earlier_solve_carries_its_gradient_back(rng, monkeypatch):
+    """A block spun onto another: a step's contact set takes a pair linearised where its first
+    solve ended (the block turns over the other's surface), whose shift is that solve's motion;
+    the gradient goes back through both solves and matches central differences."""
+    sim = _blocks_in_contact(rough=True)
+    lower = sim.ptr[1]
+    centre = sim.x[lower:].mean(0)
+    arm = sim.x[lower:] - centre
+    v0 = sim.v.clone()
+    v0[lower:] = 6.0 * torch.stack([-arm[:, 1], arm[:, 0], torch.zeros_like(arm[:, 0])], 1) \
+        + torch.tensor([0.3, 0.0, -0.3], dtype=torch.float64)
+    steps = 4
+    seen = _contact_solves(monkeypatch)
+    tm.rollout(sim, steps, v0=v0)
+    assert any(solves > 1 and born > 0 for solves, born in seen), seen
+    V = sim.x.shape[0]
+    weights = [torch.tensor(rng.standard_normal((steps + 1, V, 3))) for _ in range(2)]
+
+    def loss(**kwargs):
+        kwargs.setdefault("v0", v0)
+        run = tm.rollout(sim, steps, **kwargs)
+        return (run.x * weights[0]).sum() + 0.3 * (run.v * weights[1]).sum()
+
+    for name, value in (("x0", sim.x.clone()), ("v0", v0), ("contact_stiffness", torch.tensor(2e3, dtype=torch.float64))):
+        leaf = value.clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad(loss(**{name: leaf}), leaf)
+        direction = torch.tensor(rng.standard_normal(tuple(value.shape)), dtype=torch.float64)
+        eps = 1e-5 * float(value.abs().mean().clamp_min(1e-2))
+        with torch.no_grad():
+            fd = float(loss(**{name: value + eps * direction}) - loss(**{name: value - eps * direction})) / (2 * eps)
+        assert abs(float((grad * direction).sum()) - fd) <= 1e-6 * abs(fd), name
+
+
+def test_a_rollout_with_contact_leaves_nothing_alive():
+    """Once the trajectory and the gradient are dropped, so are the simulator and its steps (no
+    reference cycle through the autograd graph, which the collector cannot break)."""
+    import gc
+    import weakref
+
+    sim = _blocks_in_contact()
+    x0 = sim.x.clone().requires_grad_(True)
+    run = tm.rollout(sim, 2, x0=x0)
+    run.x.sum().backward()
+    alive = weakref.ref(sim.system)
+    del sim, run, x0
+    gc.collect()
+    assert alive() is None
+
+
+@pytest.mark.parametrize("what", ["tools", "newton", "friction", "removed", "body friction", "exact tangent"])
 def test_what_the_adjoint_does_not_differentiate_is_named(rng, what):
     """No silent zero gradient: a simulation with something the adjoint step leaves out raises."""
+    if what in ("body friction", "exact tangent"):
+        sim = _blocks_in_contact(**(dict(friction=0.3) if what == "body friction" else dict(tangent="exact")))
+        message = {"body friction": "contact between bodies with friction",
+                   "exact tangent": "contact between bodies with tangent='exact'"}[what]
+        with pytest.raises(tm.SolverError, match=message):
+            tm.rollout(sim, 2, x0=sim.x.clone().requires_grad_(True))
+        return
     scene = build_scene(rng, "tet")
     body = tm.Body(scene.mesh, random_material(rng, "hooke"), fixed=scene.mesh.vertices[:, 0] < 1e-6)
     options = {"tools": dict(tools=[tm.Sphere(0.1, position=(0.5, 0.4, 0.9), friction=0.3)]),
@@ -376,5 +494,24 @@ def test_cuda_contact_gradients_match_the_cpu(model):
                            tool_stiffness.grad.cpu())
         assert float(sim.planes.offsets[0]) == -0.02 and float(sim.tools.origins[0, 2]) == 0.8  # restored
     assert float(results["cpu"][2]) != 0.0 and float(results["cpu"][4]) != 0.0  # the scene touches both
+    for a, b in zip(results["cuda"], results["cpu"]):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_body_contact_gradients_match_the_cpu():
+    """Contact between bodies on CUDA (eager steps and backward: each step's pairs differ): the
+    same trajectory and gradients of the initial positions and the contact's stiffness and
+    thickness as on the CPU (float64)."""
+    results = {}
+    for device in ("cpu", "cuda"):
+        sim = _blocks_in_contact(device=device)
+        x0 = sim.x.detach().clone().requires_grad_(True)
+        stiffness = torch.tensor(2e3, dtype=torch.float64, device=device, requires_grad=True)
+        thickness = torch.tensor(0.005, dtype=torch.float64, device=device, requires_grad=True)
+        run = tm.rollout(sim, STEPS, x0=x0, contact_stiffness=stiffness, contact_thickness=thickness)
+        run.x[-1].square().sum().backward()
+        results[device] = (run.x.detach().cpu(), x0.grad.cpu(), stiffness.grad.cpu(), thickness.grad.cpu())
+    assert float(results["cpu"][2]) != 0.0
     for a, b in zip(results["cuda"], results["cpu"]):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)
