@@ -17,7 +17,9 @@ from initial positions that require grad (budget mode), keeping every state or e
 ``--checkpoint``-th (CUDA only). Identification (``--identify``): ``examples/identify_moduli.py
 --per-element`` at the SOFA beam's resolution (75 x 15 x 15 cells, 101,250 tets and as many
 unknown moduli, float64, 20 steps, 30 L-BFGS iterations): wall time, misfit, the moduli's relative
-error.
+error. ``--scenes stack``: ``scenes/stack.toml``, three blocks dropped onto each other and a floor
+(contact between bodies; the model overrides the file's hooke), timed once its blocks have landed
+(after the ``sim.step`` rows' steps).
 """
 from __future__ import annotations
 
@@ -48,6 +50,8 @@ COLUMNS = [("scene", "scene", None), ("model", "model", None), ("elements", "ele
 
 
 def make_scene(name: str, model: str, device, scale: int):
+    if name == "stack":  # contact between bodies: its steps and their backward eager
+        return tm.load_scene(ROOT / "scenes" / "stack.toml", device=device, model=model).simulator
     if name == "sofa_beam":
         return builtin.sofa_beam(model=model, device=device, scale=scale).simulator
     return builtin.paper_beam(resolution=max(4 // scale, 1), model=model, device=device).simulator

@@ -250,3 +250,12 @@ def test_rollout_gradients_quick(tmp_path):
     assert all(r["backward_ms"] > 0 and r["forward_ms"] > 0 for r in records[1:5])
     assert records[-1]["scene"] == "identify_moduli" and records[-1]["rollouts"] > 1
     assert (tmp_path / "rollout_gradients.md").exists()
+
+
+def test_rollout_gradients_of_the_contact_scene(tmp_path):
+    import rollout_gradients
+
+    records = rollout_gradients.main(["--device", "cpu", "--quick", "--out", str(tmp_path), "--scenes", "stack",
+                                      "--models", "hooke", "--identify", "", "--modes", "budget"])
+    assert [r["mode"] for r in records] == ["sim.step", "budget", "budget"]
+    assert all(r["backward_ms"] > 0 for r in records[1:])
