@@ -1,6 +1,7 @@
 """Steps per second of whole implicit Euler steps on the benchmark scenes (benchmarks/README.md).
 
     python benchmarks/suite/step_bench.py --device cuda --out $OUT      # all scenes, both backends
+    ... --integrators backward_euler,newmark                          # each scene with each integrator
 
 Scenes: SOFA's GPU benchmark beam (101,250 tets, 10 CG iterations, contact plane) and the
 paper's 307,200-tet beam (25 CG iterations), each with the extension and the pure-torch path
@@ -12,6 +13,7 @@ it). Writes step_bench.md / step_bench.json under --out.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -26,7 +28,8 @@ from tensormass_torch.sim.builtin import sofa_beam
 PAPER_BEAM_ELEMENTS = 307_200
 
 COLUMNS = [("scene", "scene", None), ("model", "model", None), ("elements", "elements", None),
-           ("backend", "backend", None), ("cg_iterations", "CG it", None), ("ms_per_step", "ms/step", ".2f"),
+           ("backend", "backend", None), ("integrator", "integrator", None), ("cg_iterations", "CG it", None),
+           ("ms_per_step", "ms/step", ".2f"),
            ("steps_per_s", "steps/s", ".1f"), ("ms_per_cg_iteration", "ms/CG it", ".3f"),
            ("floor_ratio", "x floor", ".1f")]
 
@@ -52,6 +55,7 @@ def main(argv=None):
     parser.add_argument("--out", default="benchmarks/results")
     parser.add_argument("--backends", default="extension,torch")
     parser.add_argument("--scenes", default="sofa_beam,paper_beam")
+    parser.add_argument("--integrators", default="backward_euler", help="StepOptions.integrator values, each timed")
     parser.add_argument("--max-seconds", type=float, default=10.0, help="time limit of one measurement's steps")
     parser.add_argument("--budget-s", type=float, default=None, help="wall-clock limit: later measurements are skipped")
     args = parser.parse_args(argv)
@@ -63,15 +67,20 @@ def main(argv=None):
     for scene in args.scenes.split(","):
         make, models = SCENES[scene]
         for model in models:
-            for backend in args.backends.split(","):
-                rec = record(scene=scene, model=model, kind="tet", objects=1, backend=backend, device=device.type,
-                             dtype="float32")
+            for backend, integrator in ((b, i) for b in args.backends.split(",") for i in args.integrators.split(",")):
+                rec = record(scene=scene, model=model, kind="tet", objects=1, backend=backend, integrator=integrator,
+                             device=device.type, dtype="float32")
                 if budget.remaining() <= 0:
                     rec["skipped"] = "budget spent"
                     results.add(rec)
                     continue
-                out = run_simulator(lambda: make(model, device, torch.float32), backend, device, args.steps,
-                                    args.max_seconds)
+
+                def built(model=model, integrator=integrator):
+                    sim = make(model, device, torch.float32)
+                    sim.options = dataclasses.replace(sim.options, integrator=integrator)
+                    return sim
+
+                out = run_simulator(built, backend, device, args.steps, args.max_seconds)
                 sim = out.pop("_sim", None)
                 out.pop("_wall_s", None)
                 rec.update(out)

@@ -69,12 +69,13 @@ void euler_update_cpu(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c1
                       const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
                       const at::Tensor& iterations, const at::Tensor& rr, const at::Tensor& rhs_sq, at::Tensor norms,
                       at::Tensor summary, at::Tensor scratch, at::Tensor counter, const c10::optional<at::Tensor>& ring,
-                      const c10::optional<at::Tensor>& ring_pos, bool carry) {
+                      const c10::optional<at::Tensor>& ring_pos, bool carry, double h_old) {
   const CGPlan plan = check_euler_update(x, v, dv, dv_imposed, x_new, v_new, chunk_start, chunk_object, object_chunk,
                                          status, iterations, rr, rhs_sq, norms, summary, scratch, counter, ring,
                                          ring_pos);
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "euler_update", [&] {
-    const EulerUpdate<scalar_t> update = euler_update_of<scalar_t>(x, v, dv, dv_imposed, h, x_new, v_new, carry);
+    const EulerUpdate<scalar_t> update = euler_update_of<scalar_t>(x, v, dv, dv_imposed, h, x_new, v_new, carry,
+                                                                   h_old);
     const StepSummary<scalar_t> out = step_summary_of<scalar_t>(status, iterations, rr, rhs_sq, norms, summary, ring,
                                                                 ring_pos);
     double* sums = scratch.data_ptr<double>();

@@ -31,14 +31,15 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   m.def("cg_dot(Tensor a, Tensor b, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
         "Tensor(a!) out, Tensor(b!) scratch, Tensor(c!) counter) -> ()");
   // euler_update(x!, v!, dv, dv_imposed?, h, x_new!, v_new!, <chunk plan>, status, iterations, rr, rhs_sq,
-  //              norms!, summary!, scratch!, counter! [B + 1], ring!?, ring_pos!?, carry)
-  //   the end of an implicit Euler step after its CG (common/cg.h: EulerUpdate, StepSummary):
-  //   v_new = (v + dv) + dv_imposed, x_new = x + h v_new (with carry also into x and v: the next
+  //              norms!, summary!, scratch!, counter! [B + 1], ring!?, ring_pos!?, carry, h_old=0)
+  //   the end of an implicit step after its CG (common/cg.h: EulerUpdate, StepSummary):
+  //   v_new = (v + dv) + dv_imposed, x_new = x + h v_new, or x + h_old v + (h - h_old) v_new where
+  //   h_old != 0 (the trapezoidal rule's h / 2) (with carry also into x and v: the next
   //   chained step starts there), the per-object |v_new|^2 into norms and the step's summary [5, B]
   //   float64 (status, iterations, rr, rhs_sq, norms), also into row ring_pos of ring [R, 5, B] when
   //   given, ring_pos [1] int64 then advanced by one.
   m.def("euler_update(Tensor(a!) x, Tensor(b!) v, Tensor dv, Tensor? dv_imposed, float h, Tensor(c!) x_new, "
         "Tensor(d!) v_new, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, Tensor status, "
         "Tensor iterations, Tensor rr, Tensor rhs_sq, Tensor(e!) norms, Tensor(f!) summary, Tensor(g!) scratch, "
-        "Tensor(h!) counter, Tensor(i!)? ring, Tensor(j!)? ring_pos, bool carry) -> ()");
+        "Tensor(h!) counter, Tensor(i!)? ring, Tensor(j!)? ring_pos, bool carry, float h_old=0.0) -> ()");
 }

@@ -96,8 +96,10 @@ struct CGIterates {
 
 // ------------------------------------------------------------------ the end of an implicit Euler step
 //
-// euler_update (cg/schema.cpp): per value v_new = (v + dv) + dv_imposed, x_new = x + h v_new (and,
-// when `carry`, x = x_new, v = v_new: the next chained step starts there), the per-object
+// euler_update (cg/schema.cpp): per value v_new = (v + dv) + dv_imposed, x_new = x + h v_new, or
+// with h_old != 0 x_new = x + h_old v + (h - h_old) v_new (the trapezoidal / Newmark average-
+// acceleration position update, h_old = h / 2; h_old = 0 is backward Euler's, computed as it always
+// was) (and, when `carry`, x = x_new, v = v_new: the next chained step starts there), the per-object
 // |v_new|^2 (summed as cg_dot sums) into norms, and the step's summary [5, B] float64 (status,
 // iterations, rr, rhs_sq, norms), also into row ring_pos of ring [R, 5, B] when given, ring_pos
 // then advanced by one.
@@ -112,6 +114,7 @@ struct EulerUpdate {
   S* v_new;
   bool carry;
   int64_t d;
+  S h_old;  // the old velocity's share of the step's motion (0: backward Euler)
 
   // The update of value j; returns v_new[j].
   TM_HD S operator()(int64_t j) const { return apply(j, dv[j]); }
@@ -120,7 +123,7 @@ struct EulerUpdate {
   TM_HD S apply(int64_t j, S dv_j) const {
     S vn = v[j] + dv_j;
     if (dv_imposed != nullptr) vn += dv_imposed[j];
-    const S xn = x[j] + h * vn;
+    const S xn = h_old == S(0) ? x[j] + h * vn : x[j] + h_old * v[j] + (h - h_old) * vn;
     x_new[j] = xn;
     v_new[j] = vn;
     if (carry) {

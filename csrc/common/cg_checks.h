@@ -163,10 +163,11 @@ inline int64_t values_per_node(const at::Tensor& t) { return t.size(0) ? t.numel
 template <typename S>
 inline EulerUpdate<S> euler_update_of(const at::Tensor& x, const at::Tensor& v, const at::Tensor& dv,
                                       const c10::optional<at::Tensor>& dv_imposed, double h, const at::Tensor& x_new,
-                                      const at::Tensor& v_new, bool carry) {
+                                      const at::Tensor& v_new, bool carry, double h_old) {
   const bool imposed = dv_imposed.has_value() && dv_imposed->defined();
   return EulerUpdate<S>{x.data_ptr<S>(), v.data_ptr<S>(), dv.data_ptr<S>(), imposed ? dv_imposed->data_ptr<S>() : nullptr,
-                        static_cast<S>(h), x_new.data_ptr<S>(), v_new.data_ptr<S>(), carry, values_per_node(x)};
+                        static_cast<S>(h), x_new.data_ptr<S>(), v_new.data_ptr<S>(), carry, values_per_node(x),
+                        static_cast<S>(h_old)};
 }
 
 template <typename S>

@@ -214,10 +214,12 @@ struct StepEndTensors {
   at::Tensor x_new, v_new, norms, summary, sums, counter;
   c10::optional<at::Tensor> ring, ring_pos;
   bool carry;
+  double h_old;  // EulerUpdate's: the old velocity's share of the step's motion (0: backward Euler)
 
   StepEndTensors(at::TensorList step, const c10::optional<at::Tensor>& dv_imposed_, double h_,
-                 const c10::optional<at::Tensor>& ring_, const c10::optional<at::Tensor>& ring_pos_, bool carry_)
-      : dv_imposed(dv_imposed_), h(h_), ring(ring_), ring_pos(ring_pos_), carry(carry_) {
+                 const c10::optional<at::Tensor>& ring_, const c10::optional<at::Tensor>& ring_pos_, bool carry_,
+                 double h_old_)
+      : dv_imposed(dv_imposed_), h(h_), ring(ring_), ring_pos(ring_pos_), carry(carry_), h_old(h_old_) {
     static const char* const names[] = {"state_x", "state_v", "x_new", "v_new",
                                         "norms",   "summary", "end_sums", "end_counter"};
     auto t = unpack_tensors(step, "step", names);
@@ -316,7 +318,7 @@ void run_hooke_node_solve(const SolveInputs& in, const CGTensors& cg, const Solv
     s.cache_slots = cache_slots;
     if (end != nullptr) {
       s.end.update = euler_update_of<S>(end->x, end->v, cg.x, end->dv_imposed, end->h, end->x_new, end->v_new,
-                                        end->carry);
+                                        end->carry, end->h_old);
       s.end.summary = step_summary_of<S>(cg.status, cg.iterations, cg.rr, cg.rhs_sq, end->norms, end->summary,
                                          end->ring, end->ring_pos);
       s.end.sums = end->sums.data_ptr<double>();
@@ -384,12 +386,13 @@ void hooke_node_solve_step(const OptionalTensorList& system, double c_mass, doub
                            at::TensorList plan, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
                            at::TensorList cg, at::TensorList buffers, at::TensorList step,
                            const c10::optional<at::Tensor>& dv_imposed, double h, const c10::optional<at::Tensor>& ring,
-                           const c10::optional<at::Tensor>& ring_pos, bool carry, int64_t flags, int64_t cache_slots) {
+                           const c10::optional<at::Tensor>& ring_pos, bool carry, int64_t flags, int64_t cache_slots,
+                           double h_old) {
   const SystemTensors sys(system);
   const PlanTensors plan_tensors(plan);
   const SolveInputs in{sys, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan_tensors, chunk_nodes, chunk_slots,
                        max_iter};
-  const StepEndTensors end(step, dv_imposed, h, ring, ring_pos, carry);
+  const StepEndTensors end(step, dv_imposed, h, ring, ring_pos, carry, h_old);
   run_hooke_node_solve<L>(in, CGTensors(cg), SolveBuffers(buffers), flags, cache_slots, &end);
 }
 
@@ -401,8 +404,9 @@ void hooke_node_solve_step(const OptionalTensorList& system, double c_mass, doub
 // shared memory, the launches and the gaps between them serve every step. Each step's summary
 // goes to ring row ring_pos (advanced), the last also into summary; steps > 1 needs carry.
 // loads = [rest, external [V, d], plane_normals? [P, 3], plane_offsets? [P], plane_stiffness? [P]],
-// rhs_out = [u, rhs [V, d]] (written), step_coefs = [h, w_coef, rayleigh_mass]. Raises where
-// hooke_node_solve does, having changed nothing.
+// rhs_out = [u, rhs [V, d]] (written), step_coefs = [h, w_coef, rayleigh_mass] or [h, w_coef,
+// rayleigh_mass, h_old] (EulerUpdate's h_old; 0 where absent). Raises where hooke_node_solve does,
+// having changed nothing.
 template <class L>
 void hooke_node_steps(const OptionalTensorList& system, double c_mass, double c_stiff,
                       const c10::optional<at::Tensor>& node_stiffness, const OptionalTensorList& loads,
@@ -419,12 +423,14 @@ void hooke_node_steps(const OptionalTensorList& system, double c_mass, double c_
   static const char* const out_names[] = {"u", "rhs"};
   const std::array<at::Tensor, 2> outs = unpack_tensors(rhs_out, "rhs_out", out_names);
   const at::Tensor &u = outs[0], &rhs = outs[1];
-  TORCH_CHECK(step_coefs.size() == 3, "tensormass: step_coefs must be [h, w_coef, rayleigh_mass], got ",
+  TORCH_CHECK(step_coefs.size() == 3 || step_coefs.size() == 4,
+              "tensormass: step_coefs must be [h, w_coef, rayleigh_mass] or [h, w_coef, rayleigh_mass, h_old], got ",
               std::to_string(step_coefs.size()), " values");
   const double h = step_coefs[0], w_coef = step_coefs[1], rayleigh_mass = step_coefs[2];
+  const double h_old = step_coefs.size() == 4 ? step_coefs[3] : 0.0;
   const SystemTensors sys(system);
   const PlanTensors plan_tensors(plan);
-  const StepEndTensors end(step, c10::nullopt, h, ring, ring_pos, carry);
+  const StepEndTensors end(step, c10::nullopt, h, ring, ring_pos, carry, h_old);
   check_values(rhs, "rhs");
   const StepPlanes planes(rhs, plane_normals, plane_offsets, plane_stiffness, node_stiffness);
   TORCH_CHECK(planes.given || !(node_stiffness.has_value() && node_stiffness->defined()),

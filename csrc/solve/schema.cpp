@@ -51,7 +51,7 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   m.def("hooke_node_solve_step(Tensor?[] system, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor rhs, "
         "float tol_sq, Tensor[] plan, int chunk_nodes, int chunk_slots, int max_iter, Tensor(a!)[] cg, "
         "Tensor(b!)[] buffers, Tensor(c!)[] step, Tensor? dv_imposed, float h, Tensor(d!)? ring, "
-        "Tensor(e!)? ring_pos, bool carry, int flags=3, int cache_slots=-1) -> ()");
+        "Tensor(e!)? ring_pos, bool carry, int flags=3, int cache_slots=-1, float h_old=0.0) -> ()");
   // hooke_node_steps(system, c_mass, c_stiff, node_stiffness! [V, 3, 3]?, loads = [rest, external [V, d],
   //                  plane_normals? [P, 3], plane_offsets? [P], plane_stiffness? [P]], rhs_out! = [u, rhs
   //                  [V, d]], tol_sq, plan, chunk_nodes, chunk_slots, max_iter, cg!, buffers!, step!,

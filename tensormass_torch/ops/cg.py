@@ -209,14 +209,15 @@ def _ref_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, cou
 
 def _ref_euler_update(x, v, dv, dv_imposed, h, x_new, v_new, chunk_start, chunk_object, object_chunk, status,
                       iterations, rr, rhs_sq, norms, summary, scratch, counter, ring=None, ring_pos=None,
-                      carry=False):
-    """v_new = v + dv (+ dv_imposed), x_new = x + h v_new (``carry``: also into x, v); per object
+                      carry=False, h_old=0.0):
+    """v_new = v + dv (+ dv_imposed), x_new = x + h v_new (``h_old`` not 0: x + h_old v + (h - h_old)
+    v_new, the trapezoidal rule's) (``carry``: also into x, v); per object
     |v_new|^2 into norms ``[B]`` and the columns (status, iterations, rr, rhs_sq, norm) into
     summary ``[5, B]`` float64 and, with a ring ``[R, 5, B]``, its row ring_pos[0] (if in range),
     ring_pos then advanced by one."""
     plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
     vn = v + dv if dv_imposed is None else v + dv + dv_imposed
-    xn = x + h * vn
+    xn = x + h * vn if h_old == 0 else x + h_old * v + (h - h_old) * vn
     x_new.copy_(xn)
     v_new.copy_(vn)
     if carry:
@@ -263,7 +264,7 @@ def _example(name):
         summary = torch.zeros((5, b), dtype=torch.float64, device=device)
         counter = torch.zeros(b + 1, dtype=torch.int32, device=device)
         return (s.x, s.r, field, None, 0.01, s.beta.new_zeros((5, 3)), s.beta.new_zeros((5, 3)), *tensors, s.status,
-                s.iterations, s.rr, s.rhs_sq, s.alpha, summary, s.scratch, counter, ring, ring_pos, True), {}
+                s.iterations, s.rr, s.rhs_sq, s.alpha, summary, s.scratch, counter, ring, ring_pos, True, 0.004), {}
 
     return example
 

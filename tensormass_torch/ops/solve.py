@@ -86,7 +86,7 @@ SOLVE_BUFFERS = ("exchange", "sums", "counters")
 STEP = ("state_x", "state_v", "x_new", "v_new", "norms", "summary", "end_sums", "end_counter")
 LOADS = ("rest", "external", "plane_normals", "plane_offsets", "plane_stiffness")
 RHS_OUT = ("u", "rhs")
-STEP_COEFS = ("h", "w_coef", "rayleigh_mass")
+STEP_COEFS = ("h", "w_coef", "rayleigh_mass", "h_old")
 
 
 def _state(cg):
@@ -119,11 +119,11 @@ def _ref_hooke_node_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, 
 
 def _ref_hooke_node_solve_step(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, chunk_nodes, chunk_slots,
                                max_iter, cg, buffers, step, dv_imposed, h, ring, ring_pos, carry, flags=3,
-                               cache_slots=-1):
+                               cache_slots=-1, h_old=0.0):
     s = _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg)
     state_x, state_v, x_new, v_new, norms, summary, end_sums, end_counter = step
     cg_family._ref_euler_update(state_x, state_v, s.x, dv_imposed, h, x_new, v_new, *plan, s.status, s.iterations,
-                                s.rr, s.rhs_sq, norms, summary, end_sums, end_counter, ring, ring_pos, carry)
+                                s.rr, s.rhs_sq, norms, summary, end_sums, end_counter, ring, ring_pos, carry, h_old)
 
 
 def _ref_hooke_node_steps(system, c_mass, c_stiff, node_stiffness, loads, rhs_out, tol_sq, plan, chunk_nodes,
@@ -132,13 +132,15 @@ def _ref_hooke_node_steps(system, c_mass, c_stiff, node_stiffness, loads, rhs_ou
     *graph, mass, _ = system
     rest, external, *planes = loads
     u, rhs = rhs_out
-    h, w_coef, rayleigh_mass = step_coefs
+    h, w_coef, rayleigh_mass, *rest_coefs = step_coefs
+    h_old = rest_coefs[0] if rest_coefs else 0.0
     state_x, state_v = step[0], step[1]
     for _ in range(int(steps)):
         _ref_hooke_node_step_rhs(state_x, state_v, rest, *graph, mass, external, *planes, h, w_coef, rayleigh_mass, u,
                                  rhs, node_stiffness)
         _ref_hooke_node_solve_step(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, chunk_nodes,
-                                   chunk_slots, max_iter, cg, buffers, step, None, h, ring, ring_pos, carry)
+                                   chunk_slots, max_iter, cg, buffers, step, None, h, ring, ring_pos, carry,
+                                   h_old=h_old)
 
 
 def _example(name):
@@ -172,7 +174,7 @@ def _example(name):
             return (system, c_mass, c_stiff, node_stiffness, rhs, *solve, step, None, 0.01, None, None, True), {}
         loads = [ex.rest, 9.8 * ex.du, None, None, None]
         rhs_out = [torch.empty_like(p), torch.empty_like(p)]
-        return (system, c_mass, c_stiff, None, loads, rhs_out, *solve, step, [0.01, 0.02, 0.1], None, None, True,
+        return (system, c_mass, c_stiff, None, loads, rhs_out, *solve, step, [0.01, 0.02, 0.1, 0.005], None, None, True,
                 2), {}
 
     return example
@@ -340,7 +342,8 @@ def chunk_slots_grew(group, incidences: Optional[torch.Tensor] = None) -> bool:
 class StepEnd:
     """The end of an implicit Euler step for the solve that computes its ``dv`` to do in its own
     kernel (:func:`system_solve`: ``hooke_node_solve_step``), as ``euler_update`` does it:
-    ``v_new = v + dv (+ dv_imposed)``, ``x_new = x + h v_new`` (all ``[V, d]``; ``carry``: also
+    ``v_new = v + dv (+ dv_imposed)``, ``x_new = x + h v_new`` (``h_old`` not 0: ``x + h_old v +
+    (h - h_old) v_new``, the trapezoidal rule's) (all ``[V, d]``; ``carry``: also
     into ``x, v``), each object's ``|v_new|^2`` into ``norms [B]``, the step's summary into
     ``summary [5, B]`` float64 and, with a ``ring [R, 5, B]``, its row ``ring_pos [1]`` (then
     advanced). ``done``: set by the solve that did it (else the caller runs ``euler_update``)."""
@@ -362,6 +365,7 @@ class StepEnd:
     #: for all of them (``hooke_node_steps``) where it serves, else nothing is done
     rhs: Optional["StepRhs"] = None
     steps: int = 1
+    h_old: float = 0.0
 
 
 @dataclasses.dataclass
@@ -461,14 +465,15 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
                 torch.ops.tensormass.hooke_node_steps(
                     *system, node_stiffness, [in_solve.rest, in_solve.external, *planes], [in_solve.u, rhs], *solve,
                     _step_list(e, work.end_work_of(layout, layout_plan)),
-                    [float(e.h), float(in_solve.w_coef), float(in_solve.rayleigh_mass)], e.ring, e.ring_pos,
+                    [float(e.h), float(in_solve.w_coef), float(in_solve.rayleigh_mass), float(e.h_old)], e.ring,
+                    e.ring_pos,
                     bool(e.carry), int(e.steps), *kernel)
                 e.done = True
             elif step_end is not None and variants.fused_step_end:
                 e = step_end
                 torch.ops.tensormass.hooke_node_solve_step(
                     *system, node_stiffness, rhs, *solve, _step_list(e, work.end_work_of(layout, layout_plan)),
-                    e.dv_imposed, float(e.h), e.ring, e.ring_pos, bool(e.carry), *kernel)
+                    e.dv_imposed, float(e.h), e.ring, e.ring_pos, bool(e.carry), *kernel, float(e.h_old))
                 e.done = True
             else:
                 torch.ops.tensormass.hooke_node_solve(*system, node_stiffness, rhs, *solve, *kernel)

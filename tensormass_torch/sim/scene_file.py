@@ -24,6 +24,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     rayleigh_stiffness = 0.002
     form = "auto"                     # "stress", "tensor"
     preconditioner = "auto"           # "none", "jacobi" (auto: Jacobi where bodies touch)
+    integrator = "backward_euler"     # or "newmark" (average acceleration: no numerical damping)
 
     [render]                          # off-screen pictures of the frames (pyvista)
     png = false                       # one PNG per frame
@@ -111,6 +112,7 @@ from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from ..physics.tools import TANGENTS as TOOL_TANGENTS
 from ..physics.tools import Box, Capsule, MeshTool, Sphere, Tool
+from ..solver.implicit_euler import INTEGRATORS
 from ..solver.preconditioner import PRECONDITIONERS
 from .builtin import Scene
 from .scalpel import Scalpel
@@ -655,6 +657,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         rayleigh_stiffness=solver.get("rayleigh_stiffness", "nonnegative", 0.0),
         form=_choice(solver, "form", FORMS, "auto", "form"),
         preconditioner=_choice(solver, "preconditioner", PRECONDITIONERS, "auto", "preconditioner"),
+        integrator=_choice(solver, "integrator", list(INTEGRATORS), "backward_euler", "integrator"),
     )
     solver.done()
 

@@ -23,6 +23,7 @@ from ..physics.materials import Material
 from ..physics.tensor_mass import TensorMass, checked_element_ids
 from ..physics.tools import Tool, ToolSet
 from ..solver.implicit_euler import (
+    INTEGRATORS,
     DynamicsSystem,
     StepOptions,
     StepReport,
@@ -130,6 +131,9 @@ class Simulator:
             surfaces of the tetrahedral bodies, or None (default: bodies pass through each other).
             Pairs are found at the start of each step; bodies they join are solved together; its
             steps run eagerly (not chained). Counts and penetrations in ``StepReport.contact``.
+        integrator: ``"backward_euler"`` (default: numerical damping that grows with dt, the most
+            robust) or ``"newmark"`` (Newmark's average acceleration, the trapezoidal rule: no
+            numerical damping, the same cost per step; see ``solver.implicit_euler``).
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs,
             preconditioner: see ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
             ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
@@ -159,7 +163,7 @@ class Simulator:
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
-                 preconditioner: str = "auto"):
+                 preconditioner: str = "auto", integrator: str = "backward_euler"):
         bodies = list(bodies)
         # what a topology change that rebuilds the simulator (cut) builds it again with
         self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
@@ -168,7 +172,7 @@ class Simulator:
                                newton_iters=newton_iters, check_every=check_every, form=form, device=device,
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
                                substeps_on_failure=substeps_on_failure, tools=tools, contact=contact,
-                               preconditioner=preconditioner)
+                               preconditioner=preconditioner, integrator=integrator)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -191,6 +195,11 @@ class Simulator:
         if preconditioner not in PRECONDITIONERS:
             raise SceneError(f"preconditioner must be one of {', '.join(map(repr, PRECONDITIONERS))}, "
                              f"got {preconditioner!r}")
+        if integrator not in INTEGRATORS:
+            raise SceneError(f"integrator must be one of {', '.join(map(repr, INTEGRATORS))}, got {integrator!r}")
+        if integrator != "backward_euler" and newton_iters != 1:
+            raise SceneError(f"newton_iters={newton_iters} needs integrator='backward_euler' (the {integrator!r} "
+                             "step is one linearisation)")
         if check_inversion not in INVERSION_CHECKS:
             raise SceneError(f"check_inversion must be one of {', '.join(map(repr, INVERSION_CHECKS))}, "
                              f"got {check_inversion!r}")
@@ -218,7 +227,8 @@ class Simulator:
                                    rayleigh_stiffness=float(rayleigh_stiffness), cg_tol=cg_tol,
                                    cg_max_iter=cg_max_iter, require_convergence=require_convergence,
                                    newton_iters=newton_iters, check_every=check_every,
-                                   cuda_graphs=bool(cuda_graphs), preconditioner=preconditioner)
+                                   cuda_graphs=bool(cuda_graphs), preconditioner=preconditioner,
+                                   integrator=integrator)
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
         offset = 0
         for b, room in zip(bodies, spare):

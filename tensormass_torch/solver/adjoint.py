@@ -462,6 +462,8 @@ def check_differentiable(system: DynamicsSystem, opts: StepOptions) -> None:
     reasons = []
     if opts.newton_iters != 1:
         reasons.append(f"newton_iters={opts.newton_iters} (the adjoint is that of one linearisation: use 1)")
+    if opts.integrator != "backward_euler":
+        reasons.append(f"integrator={opts.integrator!r} (the adjoint is backward Euler's)")
     if system.tools is not None and system.tools.has_friction:
         reasons.append("tools with friction")
     body = system.body_contact

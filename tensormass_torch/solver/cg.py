@@ -23,6 +23,7 @@ and no host check at all.
 """
 from __future__ import annotations
 
+import gc
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Tuple, Union
 
@@ -250,16 +251,26 @@ def run_captured(graphs: dict, key, work: Callable[[], None]) -> bool:
     ``graphs[key]``: the first time eagerly (which warms every op up), then captured; replayed
     from the next call on. A capture that fails (an op that cannot be captured) is remembered as
     False and the work stays eager: the same arithmetic. Capturing runs nothing, so the buffers
-    keep their values. Returns whether a graph was replayed."""
+    keep their values. Returns whether a graph was replayed.
+
+    Python's cycle collector is paused while capturing: a collection there can free another
+    simulator's unreachable graphs and buffers, and destroying a graph during a capture
+    invalidates the capture (seen: a chained step's capture failing after an earlier simulator
+    of the same process became garbage)."""
     graph = graphs.get(key)
     if graph is None:
         work()
         graph = torch.cuda.CUDAGraph()
+        collecting = gc.isenabled()
+        gc.disable()
         try:
             with torch.cuda.graph(graph):
                 work()
         except Exception:  # noqa: BLE001 (not capturable: the eager path is as correct)
             graph = False
+        finally:
+            if collecting:
+                gc.enable()
         graphs[key] = graph
         return False
     if graph is False:

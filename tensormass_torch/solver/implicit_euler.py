@@ -7,6 +7,20 @@
 Optional further Newton iterations solve the non-linear backward Euler equations
 R(v') = M (v' - v) - h f(x + h v') + h r_M M v' - h r_K K v' = 0 (the first iteration,
 started from x' = x, is exactly the system above).
+
+The same system with theta h in place of h where it weighs the step's end gives Newmark's
+average acceleration (``integrator="newmark"``, theta = 1/2: the trapezoidal rule). With the
+damped forces F(x, v) = f(x) - r_M M v + r_K K v and
+
+    M dv = h ((1 - theta) F(x, v) + theta F(x', v')),     x' = x + (1 - theta) h v + theta h v',
+
+F(x', v') linearised at x (x' - x = h v + theta h dv) gives
+
+    ((1 + theta h r_M) M - theta h (theta h + r_K) K) dv = h (f + (theta h + r_K) K v - r_M M v)
+
+(theta = 1: the system above). For a linear undamped system theta = 1/2 is Newmark's
+beta = 1/4, gamma = 1/2: it keeps the energy (no amplitude lost per period, where backward Euler
+loses a fraction that grows with h / T), at the same cost per step. Friction stays implicit in v'.
 """
 from __future__ import annotations
 
@@ -63,6 +77,8 @@ class StepOptions:
         variants: the kernel variants the ops run (``ops.variants.KernelVariants``: equivalent
             kernels that differ in speed); the default reads the benchmarks' ``TENSORMASS_*``
             variables once (``KernelVariants.from_env``).
+        integrator: ``"backward_euler"`` (default) or ``"newmark"`` (Newmark's average
+            acceleration, the trapezoidal rule: no numerical damping; :data:`INTEGRATORS`).
     """
 
     dt: float
@@ -77,11 +93,34 @@ class StepOptions:
     pipelined: bool = True
     preconditioner: str = "auto"
     variants: KernelVariants = field(default_factory=KernelVariants.from_env)
+    integrator: str = "backward_euler"
 
     def __post_init__(self):
         if self.preconditioner not in PRECONDITIONERS:
             raise ValueError(f"unknown preconditioner {self.preconditioner!r}; known: "
                              f"{', '.join(map(repr, PRECONDITIONERS))}")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"unknown integrator {self.integrator!r}; known: {', '.join(map(repr, INTEGRATORS))}")
+        if self.integrator != "backward_euler" and self.newton_iters != 1:
+            raise ValueError(f"newton_iters={self.newton_iters} needs integrator='backward_euler' (the "
+                             f"{self.integrator!r} step is one linearisation)")
+
+    @property
+    def theta(self) -> float:
+        """The weight theta of the step's end in its forces and motion: 1 for backward Euler,
+        1/2 for Newmark's average acceleration (the module's docstring)."""
+        return INTEGRATORS[self.integrator]
+
+    @property
+    def velocity_coefficient(self) -> float:
+        """theta h + r_K: the multiple of the velocities the right-hand side's stiffness acts on."""
+        return self.theta * self.dt + self.rayleigh_stiffness
+
+    @property
+    def old_velocity_share(self) -> float:
+        """(1 - theta) h: the part of the step's motion taken at the old velocities,
+        x' = x + (1 - theta) h v + theta h v'."""
+        return (1.0 - self.theta) * self.dt
 
 
 @dataclass
@@ -322,10 +361,11 @@ class SystemMatvec:
         self.tangents = None if tangent is None else [tangent]
 
     def load_step(self, x: torch.Tensor, v: torch.Tensor, h: float, rayleigh_mass: float,
-                  rayleigh_stiffness: float) -> torch.Tensor:
-        """Linearise at positions ``x [V, d]`` (as :meth:`load`) and return implicit Euler's
+                  w_coef: float) -> torch.Tensor:
+        """Linearise at positions ``x [V, d]`` (as :meth:`load`) and return the implicit step's
         right-hand side there for velocities ``v [V, d]``:
-        ``h (f(x) + (h + r_K) K v - r_M M v)`` ``[V, d]`` (K = dF/dx, contact included).
+        ``h (f(x) + w_coef K v - r_M M v)`` ``[V, d]`` (K = dF/dx, contact included; w_coef =
+        ``StepOptions.velocity_coefficient``, theta h + r_K).
 
         One op where the extension has it (``ops.step_rhs``: the hooke tensor form over the node
         graph, one pass over the nodes instead of a dozen ops); then :attr:`contact_forces` is
@@ -335,7 +375,6 @@ class SystemMatvec:
         from .. import ops
 
         system = self.system
-        w_coef = h + rayleigh_stiffness
         self._node_rhs_buffers()
         model = system.model
         model._check_positions("x", x)
@@ -351,7 +390,7 @@ class SystemMatvec:
             rhs = rhs - rayleigh_mass * system.mass * v
         return h * rhs
 
-    def step_rhs_in_solve(self, h: float, rayleigh_mass: float, rayleigh_stiffness: float):
+    def step_rhs_in_solve(self, h: float, rayleigh_mass: float, w_coef: float):
         """What a solve needs to compute :meth:`load_step`'s right-hand side itself, at the state
         its step end starts from (``solve.StepRhs``: into :attr:`u`, :attr:`node_stiffness` with
         planes, and the buffer returned with it: ``(StepRhs, rhs [V, d])``), where ``load_step``
@@ -368,7 +407,7 @@ class SystemMatvec:
         self._node_rhs_buffers()
         self._loaded_by_node_rhs()
         rest, external = (t.contiguous() for t in (model.rest, system.external))
-        return solve.StepRhs(rest, external, h + rayleigh_stiffness, rayleigh_mass, self.u, system.planes), self._rhs
+        return solve.StepRhs(rest, external, w_coef, rayleigh_mass, self.u, system.planes), self._rhs
 
     def _node_rhs_buffers(self):
         """The buffers the right-hand side's op writes besides u: the rhs ``[V, d]`` and, with
@@ -470,18 +509,25 @@ class SystemMatvec:
 
 
 def _coefficients(opts: StepOptions):
-    """(c_M, c_K) of the system matrix c_M M - c_K K."""
-    h = opts.dt
+    """(c_M, c_K) of the system matrix c_M M - c_K K: 1 + theta h r_M and theta h (theta h + r_K)."""
+    h = opts.theta * opts.dt
     return 1.0 + h * opts.rayleigh_mass, h * (h + opts.rayleigh_stiffness)
+
+
+def _end_positions(x: torch.Tensor, v: torch.Tensor, v_new: torch.Tensor, opts: StepOptions) -> torch.Tensor:
+    """x' = x + (1 - theta) h v + theta h v' ``[V, d]`` (backward Euler: x + h v', as its kernels)."""
+    if opts.theta == 1.0:
+        return torch.add(x, v_new, alpha=opts.dt)
+    return x + opts.old_velocity_share * v + (opts.dt - opts.old_velocity_share) * v_new
 
 
 def _fold_damping(matvec: "SystemMatvec", damping, opts: StepOptions) -> None:
     """Put the planes' and tools' friction C (``contact.NodeDamping``) into the loaded matvec's
-    node stiffness as C / (h + r_K): the step's matrix then holds c_K C / (h + r_K) = h C, and the
-    products that read the node stiffness (CG, the imposed velocities' term) take the damper in
-    with the contact stiffness."""
+    node stiffness as h C / c_K: the step's matrix then holds h C (the friction is implicit in
+    the end velocities whatever the integrator), and the products that read the node stiffness
+    (CG, the imposed velocities' term) take the damper in with the contact stiffness."""
     if damping is not None:
-        matvec.node_stiffness.add_(damping.matrix, alpha=1.0 / (opts.dt + opts.rayleigh_stiffness))
+        matvec.node_stiffness.add_(damping.matrix, alpha=opts.dt / _coefficients(opts)[1])
 
 
 def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None, damping=None,
@@ -648,11 +694,11 @@ def _step_system(system: DynamicsSystem, x, v, opts: StepOptions, imposed_veloci
     damping = system.friction_damping(x, v) if system.has_node_friction else None
     if matvec is not None:
         tangent = matvec.tangent
-        rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.rayleigh_stiffness)
+        rhs = matvec.load_step(x, v, h, opts.rayleigh_mass, opts.velocity_coefficient)
         _fold_damping(matvec, damping, opts)  # (after the right-hand side, which must not see it)
     else:
         tangent = system.tangent(x)
-        rhs = system.forces(x, opts.variants) + tangent((h + opts.rayleigh_stiffness) * v)
+        rhs = system.forces(x, opts.variants) + tangent(opts.velocity_coefficient * v)
         if opts.rayleigh_mass:  # no damping term without damping
             rhs = rhs - opts.rayleigh_mass * system.mass * v
         rhs = h * rhs
@@ -672,7 +718,7 @@ def _pairs_rhs(pairs, v, dv_imposed, opts: StepOptions):
     their stiffness and friction in the matrix make of it."""
     h = opts.dt
     _, stiffness_coef = _coefficients(opts)
-    rhs = h * (pairs.forces() + pairs.dforces((h + opts.rayleigh_stiffness) * v))
+    rhs = h * (pairs.forces() + pairs.dforces(opts.velocity_coefficient * v))
     if pairs.friction is not None:  # the damping -C v_new, implicit: -h C v here, h C in the matrix
         rhs = rhs + h * pairs.friction_forces(v)
     if dv_imposed is not None:
@@ -690,6 +736,9 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
         raise SolverError(f"implicit Euler produced NaN/inf for objects {bad[:10]}; the state was not changed",
                           status, report)
 
+
+#: ``StepOptions.integrator`` -> theta, the weight of the step's end (module docstring)
+INTEGRATORS = {"backward_euler": 1.0, "newmark": 0.5}
 
 #: The most solves a step with body contact adds for pairs its first solve left out (see
 #: :func:`implicit_euler_step`): each adds every nearby pair the last solution drives into contact.
@@ -770,7 +819,7 @@ class StepGraphs:
             self.dv_imposed.copy_(dv_imposed)
         ring = (self.ring, self.ring_pos) if chained else (None, None)
         end = solve.StepEnd(self.x, self.v, self._dv_imposed(), float(opts.dt), self.x_new, self.v_new, self.norms,
-                             self.summary, *ring, chained)
+                             self.summary, *ring, chained, h_old=opts.old_velocity_share)
         self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first, end)
         return end.done
 
@@ -783,13 +832,13 @@ class StepGraphs:
         opts = self.opts
         if self.imposed is not None:
             return False
-        in_solve = self.matvec.step_rhs_in_solve(opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness)
+        in_solve = self.matvec.step_rhs_in_solve(opts.dt, opts.rayleigh_mass, opts.velocity_coefficient)
         if in_solve is None:
             return False
         step_rhs, rhs = in_solve
         ring = (self.ring, self.ring_pos) if chained else (None, None)
         end = solve.StepEnd(self.x, self.v, None, float(opts.dt), self.x_new, self.v_new, self.norms, self.summary,
-                             *ring, chained, rhs=step_rhs, steps=count)
+                             *ring, chained, rhs=step_rhs, steps=count, h_old=opts.old_velocity_share)
         self.cg.begin(self.matvec, rhs, opts.cg_tol, opts.cg_max_iter, self.first, end)
         return end.done
 
@@ -802,7 +851,7 @@ class StepGraphs:
         ring = (self.ring, self.ring_pos) if chained else (None, None)
         cg.native.euler_update(self.x, self.v, s.x, self._dv_imposed(), float(self.opts.dt), self.x_new, self.v_new,
                                *cg.plan.tensors(), s.status, s.iterations, s.rr, cg.rhs_sq, self.norms, self.summary,
-                               s.scratch, self.update_counter, *ring, chained)
+                               s.scratch, self.update_counter, *ring, chained, self.opts.old_velocity_share)
 
     def _chained_steps(self, count: int):
         if self._steps_in_solve(count, chained=True):
@@ -903,7 +952,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None
     key = (opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness, opts.cg_tol, opts.cg_max_iter,
-           opts.require_convergence, opts.check_every, opts.pipelined, opts.variants, imposed)
+           opts.require_convergence, opts.check_every, opts.pipelined, opts.variants, opts.integrator, imposed)
     graphs = system._step_graphs.get(key)
     if graphs is None:
         graphs = system._step_graphs[key] = StepGraphs(system, opts, imposed)
@@ -954,7 +1003,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
     # once, and at most CONTACT_SET_ROUNDS more solves follow.
     for _ in range(CONTACT_SET_ROUNDS if near is not None else 0):
-        dx = h * v_new
+        dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
         missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
                                                               solution=len(report.contact_solves) - 1)
@@ -980,6 +1029,6 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         _raise_if_failed(result, opts, "Newton iteration CG")
         v_new = v_new + result.solution
 
-    x_new = torch.add(x, v_new, alpha=h)
+    x_new = _end_positions(x, v, v_new, opts)
     _raise_if_nonfinite(system, system.segments.sum(x_new.abs() + v_new.abs()), report)
     return x_new, v_new, report

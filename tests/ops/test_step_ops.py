@@ -56,7 +56,7 @@ def test_step_rhs_equals_composition(planes, r_m):
     h, r_k = 0.01, 0.02
     expected, reference = _composed_rhs(system, x, v, h, r_m, r_k)
     fused = system.system_matvec(1.0, 2e-4)
-    got = fused.load_step(x, v, h, r_m, r_k)
+    got = fused.load_step(x, v, h, r_m, h + r_k)  # (w_coef: backward Euler's h + r_K)
     assert got is fused._rhs  # the one op ran (its buffer), not the composition
     torch.testing.assert_close(got, expected, rtol=1e-10, atol=1e-10 * float(expected.abs().max()))
     torch.testing.assert_close(fused.u, x - system.model.rest, rtol=0, atol=0)
@@ -73,7 +73,7 @@ def test_step_rhs_planar_triangles():
     system, x, v = _system(planes=False, dim=2)
     expected, _ = _composed_rhs(system, x, v, 0.02, 0.1, 0.0)
     fused = system.system_matvec(1.0, 4e-4)
-    got = fused.load_step(x, v, 0.02, 0.1, 0.0)
+    got = fused.load_step(x, v, 0.02, 0.1, 0.02)
     assert got is fused._rhs
     torch.testing.assert_close(got, expected, rtol=1e-10, atol=1e-10 * float(expected.abs().max()))
 
@@ -82,7 +82,7 @@ def test_step_rhs_float32_close_to_float64():
     system64, x64, v64 = _system()
     expected, _ = _composed_rhs(system64, x64, v64, 0.01, 0.1, 0.01)
     system32, _, _ = _system(dtype=torch.float32)
-    got = system32.system_matvec(1.0, 1e-4).load_step(x64.float(), v64.float(), 0.01, 0.1, 0.01)
+    got = system32.system_matvec(1.0, 1e-4).load_step(x64.float(), v64.float(), 0.01, 0.1, 0.02)
     scale = float(expected.abs().max())
     assert float((got.double() - expected).abs().max()) < 1e-5 * scale
 

@@ -134,7 +134,7 @@ def steps_call(system, matvec, device, **changes):
                 exchange=torch.zeros(2, like.shape[0], 4 * like.shape[1], dtype=like.dtype, device=device),
                 sums=torch.zeros(4 * plan.num_chunks, dtype=torch.float64, device=device),
                 counters=torch.zeros(3, dtype=torch.int32, device=device),
-                state_x=like.clone(), state_v=torch.zeros_like(like), h=0.01, x_new=torch.zeros_like(like),
+                state_x=like.clone(), state_v=torch.zeros_like(like), h=0.01, h_old=0.0, x_new=torch.zeros_like(like),
                 v_new=torch.zeros_like(like), norms=torch.zeros(objects, dtype=like.dtype, device=device),
                 summary=torch.zeros(5, objects, dtype=torch.float64, device=device),
                 end_sums=torch.zeros(plan.num_chunks, dtype=torch.float64, device=device),
