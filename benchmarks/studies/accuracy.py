@@ -34,7 +34,8 @@ for a mode omega; both are in the json (``*_backward_euler``) as a check of the 
 Families (one curve each, per model and dtype): static "mesh" (m), "tol" (Newton tolerance,
 CG at tol / 10), "aspect" (cells 2x longer / shorter along x); dynamic "mesh N=..." (m at N
 steps per period), "dt" (N), "cg_tol", "cg_cap" (a fixed CG budget, require_convergence=False,
-SOFA's way), "newton" (iterations per step at a large step). Time: the solve (static) or the
+SOFA's way), "newton" (iterations per step at a large step), "dt newmark" (N, with
+``integrator="newmark"``: no numerical damping, ``--integrators``). Time: the solve (static) or the
 steps of one simulated period (dynamic), synchronised wall clock after a warm-up, the fastest of
 up to 3 repeats for runs under 2 s; setup excluded.
 
@@ -286,7 +287,8 @@ def backward_euler_mode(frequency: float, dt: float):
 
 def dynamic_run(model_name: str, dtype_name: str, device, m: int, steps_per_period: int, period: float,
                 mode_shape: torch.Tensor, mode_frequency: float, periods: float, cg_tol: float,
-                cg_max_iter: int = 1000, newton_iters: int = 1, require_convergence: bool = True) -> dict:
+                cg_max_iter: int = 1000, newton_iters: int = 1, require_convergence: bool = True,
+                integrator: str = "backward_euler") -> dict:
     """Free vibration from the first mode's velocity: a record (value: frequency in Hz)."""
     dtype = getattr(torch, dtype_name)
     mesh, fixed, tip = cantilever(m, torch.float64, "cpu")
@@ -296,11 +298,12 @@ def dynamic_run(model_name: str, dtype_name: str, device, m: int, steps_per_peri
                  nodes=mesh.num_vertices, objects=1, backend=tm.backend_info().get(torch.device(device).type),
                  device=torch.device(device).type, dtype=dtype_name, m=m, cells=list(BEAM.cells(m)),
                  steps_per_period=steps_per_period, dt=dt, cg_tol=cg_tol, cg_max_iter=cg_max_iter,
-                 newton_iters=newton_iters, require_convergence=require_convergence, quantity="frequency (Hz)")
+                 newton_iters=newton_iters, require_convergence=require_convergence, integrator=integrator,
+                 quantity="frequency (Hz)")
     sim = tm.Simulator([tm.Body(mesh, material(model_name), fixed=fixed, velocity=velocity)], dt=dt,
                        gravity=(0.0, 0.0, 0.0), cg_tol=cg_tol, cg_max_iter=cg_max_iter,
                        require_convergence=require_convergence, newton_iters=newton_iters, device=device,
-                       dtype=dtype)
+                       dtype=dtype, integrator=integrator)
     tip = tip.to(sim.device)
     steps = max(int(math.ceil(periods * steps_per_period)), 6)
     samples = [torch.zeros((), dtype=dtype, device=sim.device)]
@@ -395,6 +398,8 @@ def settings_text(r: dict) -> str:
                      else f"a fixed {r['cg_max_iter']} CG iterations")
         if r.get("newton_iters", 1) > 1:
             parts.append(f"{r['newton_iters']} Newton iterations")
+        if r.get("integrator", "backward_euler") != "backward_euler":
+            parts.append(r["integrator"])
     return ", ".join(parts)
 
 
@@ -503,6 +508,8 @@ def parse_args(argv=None):
     p.add_argument("--models", default="hooke,stvk,corotational")
     p.add_argument("--dtypes", default="float64,float32")
     p.add_argument("--problems", default="static,dynamic")
+    p.add_argument("--integrators", default="backward_euler,newmark",
+                   help="the dynamic 'dt' family's integrators (StepOptions.integrator)")
     p.add_argument("--static-m", default=None, help="refinements of the static mesh family (comma list)")
     p.add_argument("--dynamic-m", default=None, help="refinements of the dynamic mesh families (comma list)")
     p.add_argument("--periods", type=float, default=None, help="simulated periods per dynamic run (1)")
@@ -530,6 +537,7 @@ def main(argv=None):
         size["periods"] = args.periods
     models = [m for m in args.models.split(",") if m]
     dtypes = [d for d in args.dtypes.split(",") if d]
+    integrators = [i for i in args.integrators.split(",") if i]
     problems = [p for p in args.problems.split(",") if p]
     budget = Budget(args.budget_s)
     started = time.perf_counter()
@@ -662,20 +670,25 @@ def main(argv=None):
         for model in models:
             for dtype in dtypes:
                 cg_tol = DYNAMIC_CG_TOL[dtype]
-                runs = []  # (family, m, N, cg_tol, cap, newton, require_convergence)
+                runs = []  # (family, m, N, cg_tol, cap, newton, require_convergence, integrator)
                 for n in size["dynamic_mesh_n"]:
-                    runs += [(f"mesh N={n}", m, n, cg_tol, 1000, 1, True) for m in size["dynamic_m"]]
-                runs += [("dt", size["dyn_m"], n, cg_tol, 1000, 1, True) for n in size["dyn_n"]]
-                runs += [("cg_tol", size["dyn_m"], size["dyn_mid_n"], t, 1000, 1, True) for t in size["cg_tols"]
-                         if t > cg_tol]
-                runs += [("cg_cap", size["dyn_m"], size["dyn_mid_n"], 0.0, c, 1, False) for c in size["cg_caps"]]
-                runs += [("newton", size["dyn_m"], size["newton_n"], cg_tol, 1000, k, True) for k in size["newtons"]]
-                for family, m, n, tol, cap, newton, require in runs:
+                    runs += [(f"mesh N={n}", m, n, cg_tol, 1000, 1, True, "backward_euler")
+                             for m in size["dynamic_m"]]
+                for integrator in integrators:
+                    runs += [("dt" if integrator == "backward_euler" else f"dt {integrator}", size["dyn_m"], n, cg_tol,
+                              1000, 1, True, integrator) for n in size["dyn_n"]]
+                runs += [("cg_tol", size["dyn_m"], size["dyn_mid_n"], t, 1000, 1, True, "backward_euler")
+                         for t in size["cg_tols"] if t > cg_tol]
+                runs += [("cg_cap", size["dyn_m"], size["dyn_mid_n"], 0.0, c, 1, False, "backward_euler")
+                         for c in size["cg_caps"]]
+                runs += [("newton", size["dyn_m"], size["newton_n"], cg_tol, 1000, k, True, "backward_euler")
+                         for k in size["newtons"]]
+                for family, m, n, tol, cap, newton, require, integrator in runs:
                     if budget.remaining() <= 0:
                         skip("dynamic", family, model, dtype, m, "budget spent")
                         continue
                     rec = dynamic_run(model, dtype, device, m, n, period, modes[m][1], modes[m][0],
-                                      size["periods"], tol, cap, newton, require)
+                                      size["periods"], tol, cap, newton, require, integrator)
                     add(rec, family, freq_ref, freq_timoshenko)
                 release(device)
 
