@@ -29,7 +29,8 @@ decay per period come from a least-squares fit of w_{k+1} = a w_k + b w_{k-1} to
 displacement (Prony; exact for one damped mode sampled at any rate, where zero crossings of a
 one-period record would resolve the period to a fraction of a step only). Implicit Euler damps:
 its frequency is atan(omega dt) / dt and its decay per period (1 + omega^2 dt^2)^(-pi / atan(omega dt))
-for a mode omega; both are in the json (``*_backward_euler``) as a check of the measurement.
+for a mode omega; both are in the json (``*_backward_euler``; Newmark's, atan(omega dt / 2) / (dt / 2) and
+no decay, as ``*_newmark``) as a check of the measurement.
 
 Families (one curve each, per model and dtype): static "mesh" (m), "tol" (Newton tolerance,
 CG at tol / 10), "aspect" (cells 2x longer / shorter along x); dynamic "mesh N=..." (m at N
@@ -285,6 +286,16 @@ def backward_euler_mode(frequency: float, dt: float):
     return angle / (2 * math.pi * dt), (1.0 + omega_dt ** 2) ** (-math.pi / angle)
 
 
+def newmark_mode(frequency: float, dt: float):
+    """(frequency Hz, decay per period) of Newmark's average acceleration on an undamped mode of
+    ``frequency``: per step lambda = (1 + i omega dt / 2) / (1 - i omega dt / 2), |lambda| = 1."""
+    return math.atan(math.pi * frequency * dt) / (math.pi * dt), 1.0
+
+
+#: ``integrator`` -> its exact (frequency, decay per period) on an undamped mode
+EXACT_MODES = {"backward_euler": backward_euler_mode, "newmark": newmark_mode}
+
+
 def dynamic_run(model_name: str, dtype_name: str, device, m: int, steps_per_period: int, period: float,
                 mode_shape: torch.Tensor, mode_frequency: float, periods: float, cg_tol: float,
                 cg_max_iter: int = 1000, newton_iters: int = 1, require_convergence: bool = True,
@@ -327,17 +338,17 @@ def dynamic_run(model_name: str, dtype_name: str, device, m: int, steps_per_peri
         return rec
     signal = torch.stack(samples).double().cpu().numpy()
     frequency, decay, residual = fit_damped_mode(signal, dt)
-    be_frequency, be_decay = backward_euler_mode(mode_frequency, dt)
+    exact_frequency, exact_decay = EXACT_MODES[integrator](mode_frequency, dt)
     rec.update(steps=steps, time_s=seconds, time_per_period_s=seconds * steps_per_period / steps,
                cg_iterations=int(iterations), mode_frequency_hz=mode_frequency, fit_residual=residual,
-               frequency_backward_euler_hz=be_frequency, decay_backward_euler=be_decay)
+               **{f"frequency_{integrator}_hz": exact_frequency, f"decay_{integrator}": exact_decay})
     if frequency is None:
         rec["error"] = f"the tip's motion is not one damped oscillation (fit residual {residual:.1e})"
         return rec
-    # rel_error_time: what time stepping costs on this mesh; backward_euler_check: the fit against
-    # implicit Euler's exact answer for this mesh's mode (~0 unless the CG tolerance shows).
+    # rel_error_time: what time stepping costs on this mesh; <integrator>_check: the fit against
+    # the integrator's exact answer for this mesh's mode (~0 unless the CG tolerance shows).
     rec.update(value=frequency, decay_per_period=decay, rel_error_time=frequency / mode_frequency - 1.0,
-               backward_euler_check=frequency / be_frequency - 1.0)
+               **{f"{integrator}_check": frequency / exact_frequency - 1.0})
     return rec
 
 
