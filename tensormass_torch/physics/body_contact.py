@@ -171,6 +171,19 @@ def _sum_into(num_nodes: int, nodes: torch.Tensor, values: torch.Tensor) -> torc
     return out.index_put_((nodes,), values, accumulate=True)
 
 
+def _relative(nodes: torch.Tensor, coefficients: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+    """``[P, 3]`` J dx per pair: sum_i coefficient_i dx[node_i] (``nodes, coefficients [P, 4]``)."""
+    return (coefficients[:, :, None] * dx[nodes]).sum(1)
+
+
+def _along_normals(num_nodes: int, nodes: torch.Tensor, coefficients: torch.Tensor, direction: torch.Tensor,
+                   magnitude: torch.Tensor) -> torch.Tensor:
+    """``[V, 3]``: each pair's force ``magnitude [P]`` along its direction u ``[P, 3]``, J^T (magnitude
+    u): coefficient_i magnitude u on node i of ``nodes [P, 4]``, summed deterministically."""
+    per_pair = magnitude[:, None, None] * coefficients[:, :, None] * direction[:, None, :]  # [P, 4, 3]
+    return _sum_into(num_nodes, nodes.reshape(-1), per_pair.reshape(-1, 3))
+
+
 @dataclass
 class ContactPairs:
     """The vertex-triangle pairs in contact at one state (what a step linearises).
@@ -232,24 +245,23 @@ class ContactPairs:
 
     def forces(self) -> torch.Tensor:
         """The penalty forces ``[V, 3]``: -k g u on the vertex, k g w_i u on the triangle's nodes."""
-        per_pair = (-self.stiffness * self.gap)[:, None, None] * self._coefficients()[:, :, None] \
-            * self.direction[:, None, :]  # [P, 4, 3]
-        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+        return _along_normals(self.num_nodes, self.nodes, self._coefficients(), self.direction,
+                              -self.stiffness * self.gap)
 
     def dforces(self, dx: torch.Tensor) -> torch.Tensor:
         """(df/dx) dx ``[V, 3]`` with the chosen stiffness (minus the projected or exact Hessian)."""
         if self.hessians is not None:
             local = dx[self.nodes].reshape(-1, 12)  # [P, 12]
             per_pair = -(self.hessians @ local[:, :, None])[:, :, 0].reshape(-1, 4, 3)
-        else:
-            normal = self.stiffness * (self.relative(dx) * self.direction).sum(-1)  # k u . J dx [P]
-            per_pair = -(normal[:, None, None] * self._coefficients()[:, :, None]) * self.direction[:, None, :]
-        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+            return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+        coefficients = self._coefficients()  # projected: -k (u . J dx) along each pair's normal
+        along = (_relative(self.nodes, coefficients, dx) * self.direction).sum(-1)
+        return _along_normals(self.num_nodes, self.nodes, coefficients, self.direction, -self.stiffness * along)
 
     def relative(self, dx: torch.Tensor) -> torch.Tensor:
         """``[P, 3]`` J dx as a vector per pair: the vertex's motion less the closest point's,
         sum_i coef_i dx_i for node motions (or velocities) ``dx [V, 3]``."""
-        return (self._coefficients()[:, :, None] * dx[self.nodes]).sum(1)
+        return _relative(self.nodes, self._coefficients(), dx)
 
     def slip(self, v: torch.Tensor) -> torch.Tensor:
         """``[P, 3]`` each pair's tangential relative velocity P_t J v at velocities ``v [V, 3]``
@@ -423,16 +435,14 @@ class HeldPairs:
     def forces(self, x: torch.Tensor) -> torch.Tensor:
         """The pairs' forces ``[V, 3]`` at ``x [V, 3]``."""
         coefficients, direction, gap = self._model(x)
-        per_pair = (-self.stiffness * gap)[:, None, None] * coefficients[:, :, None] * direction[:, None, :]
-        return _sum_into(self.pairs.num_nodes, self.pairs.nodes.reshape(-1), per_pair.reshape(-1, 3))
+        return _along_normals(self.pairs.num_nodes, self.pairs.nodes, coefficients, direction, -self.stiffness * gap)
 
     def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """The pairs' projected force differential ``[V, 3]`` at ``x [V, 3]`` along ``dx [V, 3]``."""
         coefficients, direction, _ = self._model(x)
-        relative = (coefficients[:, :, None] * dx[self.pairs.nodes]).sum(1)  # J dx [P, 3]
-        normal = self.stiffness * (relative * direction).sum(-1)
-        per_pair = -(normal[:, None, None] * coefficients[:, :, None]) * direction[:, None, :]
-        return _sum_into(self.pairs.num_nodes, self.pairs.nodes.reshape(-1), per_pair.reshape(-1, 3))
+        along = (_relative(self.pairs.nodes, coefficients, dx) * direction).sum(-1)
+        return _along_normals(self.pairs.num_nodes, self.pairs.nodes, coefficients, direction,
+                              -self.stiffness * along)
 
 
 def _pair_energy_hessians(x: torch.Tensor, nodes: torch.Tensor, side: torch.Tensor, stiffness: float,
