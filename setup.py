@@ -199,7 +199,8 @@ setup(
     python_requires=">=3.9",
     # torch is deliberately absent: the user's torch (CPU or CUDA build) must be kept as it is.
     install_requires=["numpy", "meshio", "tqdm"],
-    extras_require={"test": ["pytest", "hypothesis"], "render": ["pyvista"], "mesh": ["tetgen", "pytetwild"]},
+    extras_require={"test": ["pytest", "hypothesis"], "render": ["pyvista"], "mesh": ["tetgen", "pytetwild"],
+                    "multigrid": ["pyamg"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
     entry_points={"console_scripts": ["tensormass = tensormass_torch.app.cli:main"]},

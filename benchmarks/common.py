@@ -490,14 +490,16 @@ def tri_dims(elements: int) -> tuple:
     return tuple(max(1, round(k * n)) for n in TRI_BEAM)
 
 
-def cantilever_sim(kind: str, model: str, elements: int, device, dtype=torch.float32, cg_iterations: int = 25):
+def cantilever_sim(kind: str, model: str, elements: int, device, dtype=torch.float32, cg_iterations: int = 25,
+                   young: float = 1e5):
     """The paper's beam scene at about ``elements`` elements: clamped at x = 0, under gravity,
     implicit Euler with a fixed CG budget (tol 0: every variant does the same work).
 
     tet: ``beam_mesh`` with the paper beam's proportions (1 x 0.4 x 0.25 m), gravity -z.
     tri: ``beam_tri_mesh`` (1 x 0.667 m) as a membrane in the plane z = 0, gravity -y (in plane).
-    Material: E = 1e5 Pa, nu = 0.3, rho = 1000, the exact tangent; corotational with SOFA's QR
-    frame (the frame the extension implements). Returns (simulator, gravity).
+    Material: E = ``young`` (default the paper's 1e5 Pa), nu = 0.3, rho = 1000, the exact tangent;
+    corotational with SOFA's QR frame (the frame the extension implements). Returns (simulator,
+    gravity).
     """
     if kind == "tet":
         mesh = tm.beam_mesh(*tet_dims(elements), size=PAPER_SIZE, dtype=dtype, device=device)
@@ -510,7 +512,7 @@ def cantilever_sim(kind: str, model: str, elements: int, device, dtype=torch.flo
         raise ValueError(f"unknown element kind {kind!r}; expected 'tet' or 'tri'")
     # The paper's method: stvk on its exact tangent (the default "auto" would take the definite one)
     rotation = {"rotation": "qr"} if model == "corotational" else {}
-    mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model, tangent="exact", **rotation)
+    mat = tm.Material(young=young, poisson=0.3, density=1000.0, model=model, tangent="exact", **rotation)
     body = tm.Body(mesh, mat, fixed=mesh.vertices[:, 0] <= 1e-6)
     sim = tm.Simulator([body], dt=0.01, gravity=gravity, cg_tol=0.0, cg_max_iter=cg_iterations,
                        require_convergence=False, check_every=1000, device=device, dtype=dtype)

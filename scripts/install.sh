@@ -6,7 +6,8 @@
 #   3. `pip install --no-build-isolation -e .` (compiles tensormass_torch._C against that torch
 #      when csrc/ has sources), skipped when nothing it depends on changed since the last run;
 #   4. test dependencies (pytest, meshio, numpy, tqdm, hypothesis for the fuzz tests, tetgen for
-#      tm.tetrahedralize, pyvista for the off-screen rendering tests),
+#      tm.tetrahedralize, pyamg for the multigrid preconditioner, pyvista for the off-screen
+#      rendering tests),
 #      only if missing. pyvista's vtk wheel renders headless through EGL (Mesa's libEGL and
 #      llvmpipe on a machine without a GPU; see tensormass_torch/app/render.py).
 # Quiet when all goes well; on a failure prints pip's output and exits non-zero.
@@ -162,7 +163,7 @@ fi
 # 4. test dependencies
 read -r -a missing <<<"$(py_out '
 import importlib
-for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen"):
+for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen", "pyamg"):
     try:
         importlib.import_module(name)
     except Exception:

@@ -442,6 +442,12 @@ class TensorMass(nn.Module):
             cache = self.__dict__["_stiffness_diagonal"] = (tensors, tuple(t._version for t in tensors), total)
         return cache[2]
 
+    def rest_stiffness_edges(self):
+        """Every group's :meth:`ElementGroup.rest_stiffness_edges` in one list ``(edges [E, 2],
+        blocks [E, d, d])`` (an edge two groups share appears twice: its blocks add)."""
+        parts = [group.rest_stiffness_edges() for group in self.groups]
+        return torch.cat([e for e, _ in parts]), torch.cat([k for _, k in parts])
+
     def lumped_mass(self) -> torch.Tensor:
         """Lumped nodal masses ``[V]``."""
         return self.mass

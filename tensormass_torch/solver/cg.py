@@ -20,11 +20,18 @@ Where the matvec has a whole-solve op (``SystemMatvec.solve_in_one_op``: the hoo
 ``ops.system_cg``), the start and every iteration run as that one op instead (on the GPU one
 persistent kernel that stops on the device once no object is active): bitwise the same iterates,
 and no host check at all.
+
+With a ``preconditioner`` (z = M^-1 r, symmetric positive definite per object), an iteration is
+preconditioned CG instead: alpha = r.z / p.Ap, p = z + beta p with beta = r'.z' / r.z, the
+stopping rule still on the true residual ||r_b||. Its scalars are small tensor ops beside the
+compiled per-object dots (``cg_ops.object_dot``): no host synchronisation either, so its
+iterations are captured the same way (where the preconditioner's own ops can be).
 """
 from __future__ import annotations
 
 import gc
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable, Dict, List, Optional, Tuple, Union
 
 import torch
@@ -92,6 +99,7 @@ class CGSolver:
         self.cuda_graphs = bool(cuda_graphs) and self.state.x.device.type == "cuda" and self.native is not None
         self._graphs: Dict[tuple, object] = {}
         self.graph_replays = 0
+        self._pcg = None  # the preconditioned iteration's buffers, made at its first use
 
     def _project(self, v):
         return v if self.free is None else v * self.free
@@ -104,7 +112,9 @@ class CGSolver:
         av = self._project(out)
         return av, (v * av).sum(-1)
 
-    def _iterate(self, matvec: Matvec, max_iter: int):
+    def _iterate(self, matvec: Matvec, max_iter: int, preconditioner=None):
+        if preconditioner is not None:
+            return self._pcg_iterate(matvec, max_iter, preconditioner)
         s = self.state
         # A matvec that can end in the step length itself (SystemMatvec.matvec_alpha with the
         # compiled ops) saves a launch per iteration; same alpha, bit for bit.
@@ -115,6 +125,55 @@ class CGSolver:
             cg_ops.cg_alpha(p_dot_ap, self.plan, s, self.native)
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
         cg_ops.cg_direction(self.plan, s, self.native)
+
+    def _pcg_buffers(self):
+        """The preconditioned iteration's own buffers (made at its first use): z ``[V, d]``;
+        per object ``[B]``: r.z, its previous value, p.Ap, the new r.r."""
+        if self._pcg is None:
+            s = self.state
+            self._pcg = SimpleNamespace(z=torch.zeros_like(s.x), rz=torch.zeros_like(s.rr),
+                                        rz_old=torch.zeros_like(s.rr), p_ap=torch.zeros_like(s.rr),
+                                        rr_new=torch.zeros_like(s.rr))
+        return self._pcg
+
+    def _precondition(self, preconditioner, buffers):
+        """z = M^-1 r projected on the free nodes, and r.z per object."""
+        s = self.state
+        buffers.z.copy_(self._project(preconditioner(s.r)))
+        cg_ops.object_dot(s.r, buffers.z, self.plan, buffers.rz, s, self.native)
+
+    def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
+        """One preconditioned iteration on the active objects (the others untouched); statuses,
+        iteration counts and r.r kept as the plain iteration keeps them."""
+        s, b = self.state, self._pcg_buffers()
+        spread = self.plan.segments.spread
+        active = s.status == ACTIVE
+        ap = self._apply(matvec, s.p)[0]
+        cg_ops.object_dot(s.p, ap, self.plan, b.p_ap, s, self.native)
+        curved = b.p_ap > 0
+        status = torch.where(active & ~curved, torch.where(torch.isfinite(b.p_ap), BREAKDOWN, NONFINITE), s.status)
+        going = active & curved
+        s.alpha.copy_(torch.where(going, b.rz / torch.where(curved, b.p_ap, torch.ones_like(b.p_ap)), s.alpha))
+        moving = spread(going) > 0
+        step = spread(s.alpha)
+        s.x.copy_(torch.where(moving, s.x + step * s.p, s.x))
+        s.r.copy_(torch.where(moving, s.r - step * ap, s.r))
+        cg_ops.object_dot(s.r, s.r, self.plan, b.rr_new, s, self.native)
+        iterations = s.iterations + going.to(torch.int32)
+        finite = torch.isfinite(b.rr_new)
+        converged = finite & (b.rr_new <= s.threshold)
+        capped = finite & ~converged & (iterations >= max_iter)
+        status = torch.where(going, torch.where(~finite, NONFINITE, torch.where(
+            converged, CONVERGED, torch.where(capped, CAPPED, ACTIVE))), status)
+        s.rr.copy_(torch.where(going & finite, b.rr_new, s.rr))
+        s.iterations.copy_(iterations)
+        s.status.copy_(status.to(torch.int32))
+        b.rz_old.copy_(b.rz)
+        self._precondition(preconditioner, b)
+        on = s.status == ACTIVE
+        b.rz.copy_(torch.where(on, b.rz, b.rz_old))
+        s.beta.copy_(torch.where(on, b.rz / torch.where(on, b.rz_old, torch.ones_like(b.rz_old)), s.beta))
+        s.p.copy_(torch.where(spread(on) > 0, b.z + spread(s.beta) * s.p, s.p))
 
     def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int,
                    step_end=None) -> bool:
@@ -130,12 +189,13 @@ class CGSolver:
         serves = getattr(matvec, "solves_in_one_op", None) if self.native is not None else None
         return serves is not None and serves(self)
 
-    def iterate(self, matvec: Matvec, count: int, max_iter: int):
-        """Up to ``count`` iterations from the current state (objects that stopped stay as they are)."""
-        if self._in_one_op(matvec, None, 0.0, max_iter, count):
+    def iterate(self, matvec: Matvec, count: int, max_iter: int, preconditioner=None):
+        """Up to ``count`` iterations from the current state (objects that stopped stay as they
+        are); ``preconditioner``: as :meth:`solve`."""
+        if preconditioner is None and self._in_one_op(matvec, None, 0.0, max_iter, count):
             return
         for _ in range(count):
-            self._iterate(matvec, max_iter)
+            self._iterate(matvec, max_iter, preconditioner)
 
     def begin(self, matvec: Matvec, rhs: torch.Tensor, tol: float, max_iter: int, count: int, step_end=None):
         """:meth:`start` from x0 = 0 and up to ``count`` iterations: one op where the matvec has a
@@ -161,9 +221,9 @@ class CGSolver:
         # underflows p.Ap to 0, which would read as a breakdown.
         return max(float(tol), torch.finfo(dtype).eps)
 
-    def _run(self, matvec: Matvec, count: int, max_iter: int, graph_key):
+    def _run(self, matvec: Matvec, count: int, max_iter: int, graph_key, preconditioner=None):
         def iterations():
-            self.iterate(matvec, count, max_iter)
+            self.iterate(matvec, count, max_iter, preconditioner)
 
         if graph_key is None or not self.cuda_graphs:
             iterations()
@@ -171,7 +231,7 @@ class CGSolver:
             self.graph_replays += 1
 
     def start(self, matvec: Matvec, rhs: torch.Tensor, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
-              max_iter: int = 200):
+              max_iter: int = 200, preconditioner=None):
         """Set up a solve (residual, norms, per-object status) on the device, with no host
         synchronisation: it can be part of a captured CUDA graph. Arguments as :meth:`solve`."""
         _check_settings(tol, max_iter, 1)
@@ -196,7 +256,12 @@ class CGSolver:
         s.iterations.zero_()
         s.alpha.zero_()
         s.beta.zero_()
-        s.p.copy_(s.r)
+        if preconditioner is None:
+            s.p.copy_(s.r)
+        else:
+            buffers = self._pcg_buffers()
+            self._precondition(preconditioner, buffers)
+            s.p.copy_(buffers.z)
 
     def any_active(self) -> bool:
         """Whether some object is still iterating (a host synchronisation)."""
@@ -210,7 +275,8 @@ class CGSolver:
                         torch.sqrt(self.rhs_sq), status == CONVERGED, status == BREAKDOWN, status == NONFINITE)
 
     def solve(self, matvec: Matvec, rhs: torch.Tensor, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
-              max_iter: int = 200, check_every: int = 8, graph_key=None, done: int = 0) -> CGResult:
+              max_iter: int = 200, check_every: int = 8, graph_key=None, done: int = 0,
+              preconditioner=None) -> CGResult:
         """Solve A x = rhs for every object at once.
 
         Args:
@@ -226,23 +292,29 @@ class CGSolver:
                 iterations may be captured once in a CUDA graph and replayed.
             done: iterations already run since a :meth:`start` made by the caller (then ``rhs`` and
                 ``x0`` are ignored and the solve goes on from the current state).
+            preconditioner: r ``[V, d]`` -> M^-1 r ``[V, d]`` (a symmetric positive definite
+                operator acting on each object alone), or None (plain CG). Its ops are in the
+                captured iterations where ``graph_key`` is given: it must then also read only
+                tensors whose storage stays.
         """
         _check_settings(tol, max_iter, check_every)
         if done == 0:
-            if x0 is None and self.solves_in_one_op(matvec):  # the whole solve, the device deciding when to stop
+            # the whole solve in one op, the device deciding when to stop
+            if x0 is None and preconditioner is None and self.solves_in_one_op(matvec):
                 self.begin(matvec, rhs, tol, max_iter, max_iter)
                 done = max_iter
             else:
-                self.start(matvec, rhs, x0, tol, max_iter)
-        self.finish(matvec, max_iter, check_every, graph_key, done)
+                self.start(matvec, rhs, x0, tol, max_iter, preconditioner)
+        self.finish(matvec, max_iter, check_every, graph_key, done, preconditioner)
         return self.result()
 
-    def finish(self, matvec: Matvec, max_iter: int, check_every: int, graph_key=None, done: int = 0):
+    def finish(self, matvec: Matvec, max_iter: int, check_every: int, graph_key=None, done: int = 0,
+               preconditioner=None):
         """Iterate from the current state until no object is active or ``max_iter`` iterations
         have run (``done`` of them already), looking at the host every ``check_every``."""
         while done < max_iter and self.any_active():
             count = min(check_every, max_iter - done)
-            self._run(matvec, count, max_iter, graph_key)
+            self._run(matvec, count, max_iter, graph_key, preconditioner)
             done += count
 
 
@@ -282,18 +354,18 @@ def run_captured(graphs: dict, key, work: Callable[[], None]) -> bool:
 
 def batched_cg(matvec: Matvec, rhs: torch.Tensor, segments: Segments, free: Optional[torch.Tensor] = None,
                x0: Optional[torch.Tensor] = None, tol: float = 1e-6, max_iter: int = 200,
-               check_every: int = 8) -> CGResult:
+               check_every: int = 8, preconditioner=None) -> CGResult:
     """Solve A x = rhs for every object at once (a one-off :class:`CGSolver`; see its ``solve``).
 
     Args:
         matvec: p ``[V, d]`` -> A p ``[V, d]``, or (A p projected, p . Ap per node ``[V]``).
         rhs: ``[V, d]``; segments: the objects' node ranges.
         free: ``[V, 1]`` mask (1 free, 0 constrained) or None; x0: initial guess ``[V, d]``.
-        tol, max_iter, check_every: as :meth:`CGSolver.solve`.
+        tol, max_iter, check_every, preconditioner: as :meth:`CGSolver.solve`.
     """
     _check_settings(tol, max_iter, check_every)
     solver = CGSolver(segments, rhs.shape, rhs.dtype, rhs.device, free, cuda_graphs=False)
-    return solver.solve(matvec, rhs, x0, tol, max_iter, check_every)
+    return solver.solve(matvec, rhs, x0, tol, max_iter, check_every, preconditioner=preconditioner)
 
 
 __all__ = ["CGResult", "CGSolver", "batched_cg", "STATUS_WORDS", "ACTIVE", "CONVERGED", "BREAKDOWN", "NONFINITE",

@@ -36,7 +36,7 @@ from ..ops import node_graph, solve
 from ..ops.segments import Segments
 from ..ops.variants import DEFAULT, KernelVariants
 from .cg import CGResult, CGSolver, batched_cg, run_captured
-from .preconditioner import PRECONDITIONERS, JacobiScaling, system_diagonal
+from .preconditioner import PRECONDITIONERS, JacobiScaling, MultigridSolve, system_diagonal, system_multigrid
 
 
 def auto_cg_max_iter(free_dofs: int) -> int:
@@ -71,9 +71,11 @@ class StepOptions:
             lose accuracy on ill-conditioned systems: more iterations, and at worst a false
             breakdown, where the classic CG converges (the Simulator retries such a step so).
         preconditioner: ``"auto"`` (default: Jacobi for the solves that body contact pairs join,
-            none elsewhere), ``"none"`` or ``"jacobi"`` (every solve of a TensorMass; not the
-            whole-solve op or the captured steps): see ``solver.preconditioner``. With Jacobi,
-            ``cg_tol`` holds the residual scaled by the diagonal's inverse square root.
+            none elsewhere), ``"none"``, ``"jacobi"`` or ``"multigrid"`` (every solve of a
+            TensorMass; not the whole-solve op or the captured steps): see
+            ``solver.preconditioner`` and ``solver.multigrid``. With Jacobi, ``cg_tol`` holds the
+            residual scaled by the diagonal's inverse square root; with multigrid, the true
+            residual.
         variants: the kernel variants the ops run (``ops.variants.KernelVariants``: equivalent
             kernels that differ in speed); the default reads the benchmarks' ``TENSORMASS_*``
             variables once (``KernelVariants.from_env``).
@@ -192,6 +194,8 @@ class DynamicsSystem:
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
+        self._multigrid = None  # (coefficients, cache of preconditioner.system_multigrid): built once
+        self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
 
     def pair_stiffness(self, pairs, coefficient: float, damping: float = 0.0):
         """The body contact's :class:`PairStiffness` loaded with ``pairs``, their stiffness scaled by
@@ -566,14 +570,17 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
 
             def matvec(p):  # (with friction, its damping h C: minus h times its forces)
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
+    multigrid = _multigrid(system, opts, fused, matvec, pairs, mass_coef, stiffness_coef, rhs)
+    if multigrid is not None:
+        graph_key = None if graph_key is None else (graph_key, multigrid.key)
     scaling = _jacobi(system, opts, fused, pairs, mass_coef, stiffness_coef)
     if scaling is not None:  # CG on S A S y = S b, x = S y (solver.preconditioner)
         matvec = scaling.product(matvec)
         graph_key = None if graph_key is None else (graph_key, scaling.key)
         rhs = rhs * scaling.scale
         x0 = None if x0 is None else x0 / scaling.scale
-    coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key, x0) if pairs is not None and len(pairs)
-               else None)
+    coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key, x0, multigrid)
+               if pairs is not None and len(pairs) else None)
     if coupled is not None:
         result = coupled
     elif fused is None:
@@ -582,10 +589,27 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
     else:
         result = system.cg_solver(rhs, opts.cuda_graphs).solve(matvec, rhs, x0=x0, tol=opts.cg_tol,
                                                                 max_iter=opts.cg_max_iter,
-                                                                check_every=opts.check_every, graph_key=graph_key)
+                                                                check_every=opts.check_every, graph_key=graph_key,
+                                                                preconditioner=multigrid)
     if scaling is not None:
         result = dataclasses.replace(result, solution=result.solution * scaling.scale)
     return result
+
+
+def _multigrid(system: DynamicsSystem, opts: StepOptions, fused, matvec, pairs, mass_coef: float,
+               stiffness_coef: float, like: torch.Tensor):
+    """The system's ``preconditioner.MultigridSolve`` loaded with this solve's product ``matvec``
+    and diagonal where ``opts.preconditioner`` is ``"multigrid"`` and the model has a loaded
+    product ``fused`` (a TensorMass); None otherwise."""
+    if fused is None or opts.preconditioner != "multigrid":
+        return None
+    hierarchy = system_multigrid(system, mass_coef, stiffness_coef, like)
+    if system._multigrid_solve is None or system._multigrid_solve.multigrid is not hierarchy:
+        system._multigrid_solve = MultigridSolve(hierarchy)
+    with_pairs = pairs is not None and len(pairs) > 0
+    return system._multigrid_solve.load(matvec, system_diagonal(system, mass_coef, stiffness_coef,
+                                                                fused.node_stiffness, pairs if with_pairs else None,
+                                                                opts.dt))
 
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):
@@ -593,7 +617,7 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
     ``opts.preconditioner`` asks for it (``"auto"``: where body contact ``pairs`` join the solve)
     and the model has a loaded product ``fused`` (a TensorMass); None otherwise."""
     with_pairs = pairs is not None and len(pairs) > 0
-    if fused is None or opts.preconditioner == "none" or (opts.preconditioner == "auto" and not with_pairs):
+    if fused is None or not (opts.preconditioner == "jacobi" or (opts.preconditioner == "auto" and with_pairs)):
         return None
     if system._jacobi is None:
         system._jacobi = JacobiScaling()
@@ -602,11 +626,11 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
 
 
 def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs, graph_key=None,
-                   x0=None) -> CGResult | None:
+                   x0=None, preconditioner=None) -> CGResult | None:
     """The solve when contact pairs join objects: one CG over each run of objects they join
     (``body_contact.coupled_ranges``), its outcome given to each object of the run; None where no
-    pair has ever joined two objects (the per-object solve applies). ``graph_key``, ``x0``: as
-    ``CGSolver.solve``.
+    pair has ever joined two objects (the per-object solve applies). ``graph_key``, ``x0``,
+    ``preconditioner``: as ``CGSolver.solve``.
 
     Runs merge as bodies meet and stay merged when they part (the layout is the coarsest of
     this step's and the layouts before): the layout changes at most B - 1 times in a
@@ -632,7 +656,7 @@ def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs
                                                            rhs.dtype, rhs.device, system.free,
                                                            cuda_graphs=opts.cuda_graphs)
     result = solver.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
-                          check_every=opts.check_every, graph_key=graph_key)
+                          check_every=opts.check_every, graph_key=graph_key, preconditioner=preconditioner)
     run = torch.repeat_interleave(torch.arange(len(ptr) - 1, device=rhs.device),
                                   torch.tensor(ptr, device=rhs.device).diff())
     return CGResult(result.solution, *(t[run] for t in (result.iterations, result.residual_norm, result.rhs_norm,
@@ -947,7 +971,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
 
     # body contact's pairs change in number from step to step: its steps run eagerly
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
-            or system.body_contact is not None or opts.preconditioner == "jacobi"
+            or system.body_contact is not None or opts.preconditioner in ("jacobi", "multigrid")
             or system.model.rest.device.type != "cuda"
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None

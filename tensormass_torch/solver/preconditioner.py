@@ -27,10 +27,13 @@ from typing import Optional
 
 import torch
 
+from ..ops import library
+
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
 #: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
-#: preconditioner), ``"auto"`` (jacobi for the solves body contact pairs join, none elsewhere).
-PRECONDITIONERS = ("auto", "none", "jacobi")
+#: preconditioner), ``"auto"`` (jacobi for the solves body contact pairs join, none elsewhere),
+#: ``"multigrid"`` (preconditioned CG with a smoothed-aggregation V-cycle: ``solver.multigrid``).
+PRECONDITIONERS = ("auto", "none", "jacobi", "multigrid")
 
 
 class JacobiScaling:
@@ -83,4 +86,61 @@ def system_diagonal(system, mass_coef: float, stiffness_coef: float, node_stiffn
     return diagonal
 
 
-__all__ = ["PRECONDITIONERS", "JacobiScaling", "system_diagonal"]
+def system_multigrid(system, mass_coef: float, stiffness_coef: float, like: torch.Tensor):
+    """The ``multigrid.Multigrid`` of ``system``'s (a ``DynamicsSystem`` of a TensorMass) step
+    matrix at rest c_M M + c_K K_rest on ``like``'s dtype and device, built at the first call and
+    kept while the coefficients, the model's tensors (a cut edits them) and the constraints stay."""
+    from . import multigrid
+
+    model = system.model
+    tensors = tuple(t for group in model.groups for t in group.buffers()) + (system.mass,) + (
+        () if system.free is None else (system.free,))
+    key = (float(mass_coef), float(stiffness_coef), like.dtype, like.device)
+    cache = system._multigrid
+    if cache is None or cache[0] != key or not library.unchanged(cache[1], tensors):
+        edges, blocks = model.rest_stiffness_edges()
+        matrix = multigrid.rest_system_matrix(edges, blocks, system.mass, mass_coef, stiffness_coef, system.free)
+        built = multigrid.Multigrid(matrix, multigrid.rigid_body_modes(model.rest), like.dtype, like.device)
+        cache = system._multigrid = (key, (tensors, tuple(t._version for t in tensors), built))
+    return cache[1][2]
+
+
+class MultigridSolve:
+    """A solve's multigrid preconditioner r ``[V, d]`` -> z ``[V, d]``: the system's hierarchy
+    (``system_multigrid``) with the finest level on this solve's product and diagonal, the
+    inverse diagonal in a buffer whose storage stays from solve to solve (a CUDA graph captured
+    over the iterations replays with each step's diagonal)."""
+
+    def __init__(self, multigrid):
+        self.multigrid = multigrid
+        self.inverse_diagonal: Optional[torch.Tensor] = None
+        self.product = None
+
+    def load(self, product, diagonal: torch.Tensor) -> "MultigridSolve":
+        """The solve's ``product`` (p -> A p, or a fused product's (A p, p . Ap)) and ``diagonal
+        [V, d]`` (rows whose diagonal is not positive are left alone)."""
+        inverse = torch.where(diagonal > 0, 1.0 / torch.where(diagonal > 0, diagonal, torch.ones_like(diagonal)),
+                              torch.zeros_like(diagonal))
+        if self.inverse_diagonal is None or self.inverse_diagonal.shape != inverse.shape \
+                or self.inverse_diagonal.dtype != inverse.dtype or self.inverse_diagonal.device != inverse.device:
+            self.inverse_diagonal = inverse
+        else:
+            self.inverse_diagonal.copy_(inverse)
+
+        def apply(p):
+            out = product(p)
+            return out[0] if isinstance(out, tuple) else out
+
+        self.product = apply
+        return self
+
+    @property
+    def key(self) -> tuple:
+        """What a graph captured over :meth:`__call__` depends on: the hierarchy and the buffer."""
+        return ("multigrid", id(self.multigrid), self.inverse_diagonal.data_ptr())
+
+    def __call__(self, r: torch.Tensor) -> torch.Tensor:
+        return self.multigrid(r, self.product, self.inverse_diagonal)
+
+
+__all__ = ["PRECONDITIONERS", "JacobiScaling", "MultigridSolve", "system_diagonal", "system_multigrid"]

@@ -1,0 +1,250 @@
+"""Smoothed-aggregation multigrid as the step's CG preconditioner, with the rigid-body modes.
+
+Unpreconditioned CG needs more iterations the finer and the stiffer the mesh (a converged step
+of a 300k-tet beam takes hundreds); a multilevel preconditioner keeps the count nearly flat.
+The hierarchy is built once per mesh and per step coefficients, on the host, by pyamg's
+smoothed aggregation (a well-kept library: aggregation, tentative prolongators fitted to the
+near-null space, Jacobi-smoothed prolongators, Galerkin coarse operators). It is handed the
+step's matrix at rest,
+
+    A = c_M M + c_K K_rest,   fixed nodes' rows and columns replaced by the identity,
+
+as a ``[V d, V d]`` block-sparse matrix (``TensorMass.rest_stiffness_edges``), and the rigid-body
+modes (3 translations and 3 rotations in 3-D, 2 and 1 in 2-D) as the near-null space: what
+elasticity's low-energy modes look like locally, which is what makes the coarse levels
+represent bending. Its operators then live on the solve's device as CSR tensors and one
+V-cycle runs there (``Multigrid.__call__``):
+
+    level l < L:  x = S_l b (pre-smoothing from 0);  r = b - A_l x;  x += P_l V_{l+1}(P_l^T r);
+                  x += S_l (b - A_l x) (post-smoothing)
+                  (level 0: the step's own product and diagonal, where the solve gives them)
+    level L:      x = A_L^-1 b (a dense inverse, from a Cholesky factorisation made once: one
+                  matrix-vector product, where triangular solves would be sequential)
+
+S_l is a Chebyshev polynomial of the Jacobi-scaled operator D_l^-1 A_l on [lambda/30, 1.1 lambda]
+(lambda: the largest eigenvalue of D_l^-1 A_l, estimated at set-up), the same polynomial before
+and after: the cycle is a symmetric positive definite operator, as CG needs. Polynomial smoothers
+are the GPU's: products and vector updates, no ordering as Gauss-Seidel would need.
+
+Invariants: objects of a packed batch share no edge, so no aggregate crosses two objects and
+the cycle acts on each object alone (what the batched CG's per-object scalars assume). The
+coarse levels see the rest stiffness only; the finest level smooths with the step's own
+product and diagonal (the floor's and tools' stiffness, stvk's and corotational's tangents,
+body contact pairs), so the penalties that add tens of times the elastic diagonal to a few
+rows are smoothed where they act. Where the step's matrix differs from the rest one, the
+cycle is an approximation of its inverse (more iterations, never a wrong answer: the stopping
+rule is on the true residual).
+"""
+from __future__ import annotations
+
+import warnings
+from typing import List, Optional
+
+import numpy as np
+import torch
+
+from ..errors import SceneError
+
+#: Unknowns of the coarsest level (solved with a dense inverse): coarsening stops below it, and
+#: a hierarchy whose coarsest level is above ``MAX_DIRECT`` (a mesh aggregation cannot reduce)
+#: is refused.
+COARSE_SIZE = 2000
+MAX_DIRECT = 20000
+
+
+def _pyamg():
+    try:
+        import pyamg
+    except ImportError as err:  # pragma: no cover (the test set-up installs it)
+        raise SceneError("preconditioner='multigrid' builds its hierarchy with pyamg, which is not installed: "
+                         "pip install pyamg (or tensormass_torch[multigrid])") from err
+    return pyamg
+
+
+def rigid_body_modes(positions: torch.Tensor) -> np.ndarray:
+    """The rigid-body modes at ``positions [V, d]`` as columns ``[V d, 6]`` (3-D) or ``[V d, 3]``
+    (2-D), float64: translations, then rotations about the centroid (scaled to the mesh's size,
+    so that every column has a comparable norm)."""
+    x = positions.detach().to("cpu", torch.float64).numpy()
+    x = x - x.mean(axis=0)
+    x = x / max(float(np.abs(x).max()), np.finfo(np.float64).tiny)
+    v, d = x.shape
+    if d == 2:
+        modes = np.zeros((v, 2, 3))
+        modes[:, 0, 0] = modes[:, 1, 1] = 1.0
+        modes[:, 0, 2], modes[:, 1, 2] = -x[:, 1], x[:, 0]
+        return modes.reshape(v * 2, 3)
+    modes = np.zeros((v, 3, 6))
+    for axis in range(3):
+        modes[:, axis, axis] = 1.0
+    ex, ey, ez = x[:, 0], x[:, 1], x[:, 2]
+    modes[:, 1, 3], modes[:, 2, 3] = -ez, ey  # about x
+    modes[:, 0, 4], modes[:, 2, 4] = ez, -ex  # about y
+    modes[:, 0, 5], modes[:, 1, 5] = -ey, ex  # about z
+    return modes.reshape(v * 3, 6)
+
+
+def rest_system_matrix(edges: torch.Tensor, blocks: torch.Tensor, mass: torch.Tensor, mass_coef: float,
+                       stiffness_coef: float, free: Optional[torch.Tensor] = None):
+    """The step's matrix at rest c_M M + c_K K as a scipy BSR matrix ``[V d, V d]`` (float64),
+    from the stiffness's edge blocks (``rest_stiffness_edges``: ``edges [E, 2]``, ``blocks
+    [E, d, d]``), the lumped ``mass [V]`` and ``free [V, 1]`` (None: all free); a fixed node's
+    row and column are the identity's. Blocks sorted by (row, column), duplicates summed in
+    that order: the same matrix for the same mesh."""
+    import scipy.sparse as sp
+
+    v, d = mass.shape[0], blocks.shape[-1]  # mass: [V] or [V, 1]
+    e = edges.to("cpu", torch.int64)
+    k = blocks.detach().to("cpu", torch.float64)
+    m = mass.detach().to("cpu", torch.float64).reshape(-1)
+    eye = torch.eye(d, dtype=torch.float64)
+    low, high = e[:, 0], e[:, 1]
+    diagonal = torch.zeros(v, d, d, dtype=torch.float64)
+    diagonal.index_add_(0, low, -k)
+    diagonal.index_add_(0, high, -k.transpose(1, 2))
+    diagonal = stiffness_coef * diagonal + mass_coef * m[:, None, None] * eye
+    rows = torch.cat([low, high, torch.arange(v)])
+    cols = torch.cat([high, low, torch.arange(v)])
+    values = torch.cat([stiffness_coef * k, stiffness_coef * k.transpose(1, 2), diagonal])
+    if free is not None:
+        fixed = (free.detach().to("cpu").reshape(-1) == 0)
+        touches = fixed[rows] | fixed[cols]
+        values = torch.where(touches[:, None, None], torch.zeros_like(values), values)
+        on_fixed_diagonal = touches & (rows == cols)
+        values[on_fixed_diagonal] = eye
+    order = np.lexsort((cols.numpy(), rows.numpy()))
+    rows, cols, values = rows.numpy()[order], cols.numpy()[order], values.numpy()[order]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=v))])
+    matrix = sp.bsr_matrix((values, cols, indptr), shape=(v * d, v * d))
+    matrix.sum_duplicates()
+    return matrix
+
+
+def _csr(matrix, dtype: torch.dtype, device) -> torch.Tensor:
+    """A scipy sparse matrix as a torch CSR tensor (int32 indices: half the index traffic)."""
+    csr = matrix.tocsr()
+    csr.sort_indices()
+    with warnings.catch_warnings():  # torch's notice that its sparse CSR support is in beta
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(torch.from_numpy(csr.indptr.astype(np.int32)),
+                                       torch.from_numpy(csr.indices.astype(np.int32)),
+                                       torch.from_numpy(csr.data), size=csr.shape, dtype=dtype,
+                                       check_invariants=False).to(device)
+
+
+class _Level:
+    """One level: its operator A ``[n, n]``, prolongator P ``[n, n_coarse]`` and restriction
+    P^T (CSR), inverse diagonal ``[n, 1]`` and Chebyshev coefficients on D^-1 A."""
+
+    def __init__(self, level, dtype, device, degree: int):
+        import pyamg.util.linalg as amg_linalg
+        import scipy.sparse as sp
+
+        a = level.A.tocsr()
+        self.size = a.shape[0]
+        self.matrix = _csr(a, dtype, device)
+        self.prolong = _csr(level.P, dtype, device)
+        self.restrict = _csr(level.P.T, dtype, device)
+        diagonal = a.diagonal()
+        inverse = np.where(diagonal > 0, 1.0 / np.where(diagonal > 0, diagonal, 1.0), 0.0)
+        self.inverse_diagonal = torch.from_numpy(inverse).to(device=device, dtype=dtype)[:, None]
+        top = float(amg_linalg.approximate_spectral_radius(sp.diags(inverse) @ a, symmetric=False))
+        self.top = top
+        self.steps = chebyshev_steps(top / 30.0, 1.1 * top, degree)
+
+    def product(self, x: torch.Tensor) -> torch.Tensor:
+        return self.matrix @ x
+
+
+def chebyshev_steps(low: float, high: float, degree: int):
+    """The scalars of ``degree`` steps of Chebyshev iteration for A x = b preconditioned by D on
+    the interval [low, high] of D^-1 A's spectrum: the first step is c_0 D r, each next
+    a_k (last step) + c_k D r. Returns [(a_k, c_k)] (a_0 = 0)."""
+    theta, delta = (high + low) / 2.0, (high - low) / 2.0
+    sigma = theta / delta
+    rho = 1.0 / sigma
+    steps = [(0.0, 1.0 / theta)]
+    for _ in range(degree - 1):
+        rho_next = 1.0 / (2.0 * sigma - rho)
+        steps.append((rho_next * rho, 2.0 * rho_next / delta))
+        rho = rho_next
+    return steps
+
+
+def _smooth(product, inverse_diagonal: torch.Tensor, steps, b: torch.Tensor, x: Optional[torch.Tensor]):
+    """Chebyshev smoothing of A x = b ``[n, 1]`` from x (None: 0) with the operator ``product``
+    and D^-1 ``inverse_diagonal [n, 1]``: the same polynomial whatever x, hence a symmetric
+    operator b -> x from x = 0."""
+    r = b if x is None else b - product(x)
+    step = None
+    for a, c in steps:
+        if step is None:
+            step = inverse_diagonal * r
+            step.mul_(c)
+        else:
+            r = r - product(step)
+            step = step.mul_(a).addcmul_(inverse_diagonal, r, value=c)
+        x = step.clone() if x is None else x.add_(step)
+    return x
+
+
+class Multigrid:
+    """A smoothed-aggregation V-cycle ``r [V, d] -> z [V, d]`` for the step's matrix at rest.
+
+    Args:
+        matrix: the scipy BSR matrix ``[V d, V d]`` (:func:`rest_system_matrix`).
+        modes: the near-null space ``[V d, k]`` (:func:`rigid_body_modes`).
+        dtype, device: of the solve.
+        degree: Chebyshev smoothing steps before and after the coarse correction (>= 1).
+        coarse_size: unknowns of the coarsest level (solved by a dense inverse).
+    """
+
+    def __init__(self, matrix, modes: np.ndarray, dtype: torch.dtype, device, degree: int = 2,
+                 coarse_size: int = COARSE_SIZE):
+        pyamg = _pyamg()
+        if degree < 1:
+            raise ValueError(f"multigrid smoothing degree must be >= 1, got {degree}")
+        # pyamg counts a level's size in blocks; the coarse levels' blocks are the modes
+        hierarchy = pyamg.smoothed_aggregation_solver(matrix, B=modes, symmetry="symmetric",
+                                                      max_coarse=max(coarse_size // modes.shape[1], 1),
+                                                      max_levels=12, keep=False)
+        coarse = hierarchy.levels[-1].A
+        if coarse.shape[0] > MAX_DIRECT:
+            raise SceneError(f"multigrid: aggregation could not coarsen this mesh below {coarse.shape[0]} unknowns "
+                             f"(at most {MAX_DIRECT} are solved directly); use preconditioner='jacobi'")
+        self.levels: List[_Level] = [_Level(level, dtype, device, degree) for level in hierarchy.levels[:-1]]
+        dense = torch.from_numpy(coarse.toarray()).to(device=device, dtype=torch.float64)
+        factor, info = torch.linalg.cholesky_ex(dense)
+        if int(info) != 0:
+            raise SceneError("multigrid: the coarsest level's matrix is not positive definite (a node with no "
+                             "mass?); use preconditioner='jacobi'")
+        self.coarse_inverse = torch.cholesky_inverse(factor).to(dtype)
+        #: unknowns per level, finest first (the report's "levels")
+        self.sizes = [level.size for level in self.levels] + [coarse.shape[0]]
+        self.operator_complexity = float(hierarchy.operator_complexity())
+
+    def _cycle(self, depth: int, b: torch.Tensor, fine) -> torch.Tensor:
+        if depth == len(self.levels):
+            return self.coarse_inverse @ b
+        level = self.levels[depth]
+        product, inverse_diagonal = fine if (depth == 0 and fine is not None) else (level.product,
+                                                                                     level.inverse_diagonal)
+        x = _smooth(product, inverse_diagonal, level.steps, b, None)
+        coarse = self._cycle(depth + 1, level.restrict @ (b - product(x)), None)
+        return _smooth(product, inverse_diagonal, level.steps, b, x.add_(level.prolong @ coarse))
+
+    def __call__(self, r: torch.Tensor, fine_product=None, fine_inverse_diagonal=None) -> torch.Tensor:
+        """z = V(r): one V-cycle on the residual ``r [V, d]`` (its shape kept).
+
+        ``fine_product`` (p ``[V, d]`` -> A p ``[V, d]``) and ``fine_inverse_diagonal [V, d]``:
+        the finest level's operator and its inverse diagonal in place of the hierarchy's (the
+        step's true matrix, with its contact stiffness and tangent, where the hierarchy holds
+        the rest stiffness); both or neither."""
+        fine = None
+        if fine_product is not None:
+            shape = r.shape
+            fine = (lambda x: fine_product(x.view(shape)).reshape(-1, 1), fine_inverse_diagonal.reshape(-1, 1))
+        return self._cycle(0, r.reshape(-1, 1), fine).reshape(r.shape)
+
+
+__all__ = ["Multigrid", "rest_system_matrix", "rigid_body_modes", "COARSE_SIZE", "MAX_DIRECT"]

@@ -1,0 +1,225 @@
+"""The multigrid preconditioner (solver.multigrid) and preconditioned CG (solver.cg): the
+assembled rest matrix against the step's product (float64, every group kind), the V-cycle a
+symmetric positive definite operator (dense), preconditioned CG against dense solves and plain
+CG, per object in a batch, the step with multigrid against the plain step on the CPU extension
+and pure torch, CUDA against the CPU, the hierarchy rebuilt after a cut, scene files and bad
+input."""
+import dataclasses
+import sys
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.ops.segments import Segments
+from tensormass_torch.solver import multigrid
+from tensormass_torch.solver.cg import CGSolver, batched_cg
+from tensormass_torch.solver.implicit_euler import _coefficients
+from tensormass_torch.solver.preconditioner import system_multigrid
+
+pytest.importorskip("pyamg")
+DT = torch.float64
+
+
+def beam_sim(cells=(12, 3, 3), model="hooke", young=1e5, preconditioner="multigrid", device="cpu", **options):
+    """A beam 1 x 0.25 x 0.25 m held at x = 0 under gravity (float64)."""
+    mesh = tm.beam_mesh(*cells, size=(1.0, 0.25, 0.25), dtype=DT)
+    body = tm.Body(mesh, tm.Material(young=young, poisson=0.3, density=1000.0, model=model),
+                   fixed=mesh.vertices[:, 0] == 0)
+    options = {"cg_tol": 1e-10, "cuda_graphs": False, **options}
+    return tm.Simulator([body], dt=0.01, gravity=(0.0, 0.0, -9.81), preconditioner=preconditioner, device=device,
+                        **options)
+
+
+def meshes():
+    tet = tm.beam_mesh(4, 2, 2, size=(0.4, 0.2, 0.2), dtype=DT)
+    planar = tm.beam_tri_mesh(5, 3, size=(0.5, 0.3), dtype=DT)
+    membrane = tm.beam_tri_mesh(5, 3, size=(0.5, 0.3), dim=3, dtype=DT)
+    gen = torch.Generator().manual_seed(0)
+    lifted = membrane.vertices + torch.cat([torch.zeros(membrane.num_vertices, 2, dtype=DT),
+                                            0.05 * torch.rand(membrane.num_vertices, 1, generator=gen, dtype=DT)], 1)
+    return {"tet": tet, "tri2d": planar, "membrane": tm.TriMesh(lifted, membrane.elements)}
+
+
+CASES = [(kind, model, form) for kind in ("tet", "tri2d", "membrane")
+         for model, form in (("hooke", "tensor"), ("hooke", "stress"), ("stvk", "tensor"), ("stvk", "stress"),
+                             ("corotational", "stress"))
+         if not (kind == "membrane" and model == "corotational")]
+
+
+@pytest.mark.parametrize("kind,model,form", CASES)
+def test_the_rest_matrix_is_the_steps_product_at_rest(kind, model, form):
+    """c_M M + c_K K_rest assembled from the groups' edge blocks equals the step's product at
+    rest on free rows and is the identity on fixed ones."""
+    mesh = meshes()[kind]
+    fixed = mesh.vertices[:, 0] == 0
+    body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000, model=model), fixed=fixed)
+    sim = tm.Simulator([body], dt=0.01, cuda_graphs=False, form=form)
+    assert sim.model.groups[0].form == form
+    system = sim.system
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    edges, blocks = sim.model.rest_stiffness_edges()
+    matrix = multigrid.rest_system_matrix(edges, blocks, system.mass, mass_coef, stiffness_coef, system.free)
+    gen = torch.Generator().manual_seed(1)
+    p = torch.randn(sim.x.shape, generator=gen, dtype=DT)
+    assembled = torch.from_numpy(matrix @ p.reshape(-1).numpy()).reshape(p.shape)
+    free = system.free
+    product = mass_coef * system.mass * (p * free) - stiffness_coef * sim.model.dforce(sim.model.rest, p * free)
+    torch.testing.assert_close(assembled * free, product * free, rtol=1e-12, atol=1e-12 * float(product.abs().max()))
+    torch.testing.assert_close(assembled[fixed], p[fixed], rtol=0, atol=0)
+
+
+def dense_of(operator, n, dtype=DT):
+    """The matrix ``[n, n]`` of a linear map on ``[n/3, 3]`` fields."""
+    eye = torch.eye(n, dtype=dtype)
+    return torch.stack([operator(eye[i].reshape(-1, 3)).reshape(-1) for i in range(n)], dim=1)
+
+
+def test_the_v_cycle_is_symmetric_positive_definite():
+    """With three levels, the cycle (on the hierarchy's fine operator, and on the step's own
+    product with a floor's stiffness) is a symmetric positive definite matrix on the free nodes."""
+    sim = beam_sim(cells=(16, 2, 2), planes=[tm.Plane((0, 0, 1), 0.05, 1e5)])
+    system = sim.system
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    edges, blocks = sim.model.rest_stiffness_edges()
+    matrix = multigrid.rest_system_matrix(edges, blocks, system.mass, mass_coef, stiffness_coef, system.free)
+    cycle = multigrid.Multigrid(matrix, multigrid.rigid_body_modes(sim.model.rest), DT, "cpu", coarse_size=30)
+    assert len(cycle.sizes) == 3, cycle.sizes
+    free = system.free.expand(-1, 3).reshape(-1) > 0
+    n = sim.x.numel()
+    plain = dense_of(cycle, n)[free][:, free]
+    fused = system.system_matvec(mass_coef, stiffness_coef)
+    fused.load(sim.x + torch.tensor([0.0, 0.0, -0.06], dtype=DT))  # some nodes below the floor
+    diagonal = sim.model.stiffness_diagonal() * stiffness_coef + mass_coef * system.mass \
+        + stiffness_coef * torch.diagonal(fused.node_stiffness, dim1=-2, dim2=-1)
+    assert float(torch.diagonal(fused.node_stiffness, dim1=-2, dim2=-1).abs().max()) > 0
+    own = dense_of(lambda r: cycle(r * system.free, lambda p: fused(p)[0], 1.0 / diagonal), n)[free][:, free]
+    for operator in (plain, own):
+        torch.testing.assert_close(operator, operator.T, rtol=0, atol=1e-10 * float(operator.abs().max()))
+        assert float(torch.linalg.eigvalsh(operator).min()) > 0
+
+
+def test_preconditioned_cg_matches_a_dense_solve_per_object():
+    """Two objects of a packed batch (one soft, one 100x stiffer, different sizes) solved together:
+    each matches its dense solve and needs a fraction of plain CG's iterations; an object whose
+    right-hand side is zero stops at once."""
+    meshes = [tm.beam_mesh(10, 2, 2, size=(1.0, 0.2, 0.2), dtype=DT), tm.beam_mesh(6, 3, 2, size=(0.6, 0.3, 0.2),
+                                                                                    dtype=DT)]
+    bodies = [tm.Body(m, tm.Material(young=e, poisson=0.3, density=1000.0), fixed=m.vertices[:, 0] == 0)
+              for m, e in zip(meshes, (1e5, 1e7))]
+    sim = tm.Simulator(bodies, dt=0.01, cuda_graphs=False, preconditioner="multigrid")
+    system = sim.system
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    fused = system.system_matvec(mass_coef, stiffness_coef)
+    fused.load(sim.x)
+    cycle = system_multigrid(system, mass_coef, stiffness_coef, sim.x)
+    gen = torch.Generator().manual_seed(2)
+    rhs = torch.randn(sim.x.shape, generator=gen, dtype=DT) * system.free
+    n = sim.x.numel()
+    dense = dense_of(lambda p: fused(p)[0], n)
+    free = system.free.expand(-1, 3).reshape(-1) > 0
+    expected = torch.zeros(n, dtype=DT)
+    expected[free] = torch.linalg.solve(dense[free][:, free], rhs.reshape(-1)[free])
+    pcg = batched_cg(fused, rhs, system.segments, system.free, tol=1e-12, max_iter=500, preconditioner=cycle)
+    plain = batched_cg(fused, rhs, system.segments, system.free, tol=1e-12, max_iter=5000)
+    assert pcg.status() == ["converged", "converged"]
+    torch.testing.assert_close(pcg.solution.reshape(-1), expected, rtol=0, atol=1e-9 * float(expected.abs().max()))
+    assert all(3 * int(a) < int(b) for a, b in zip(pcg.iterations, plain.iterations)), (pcg.iterations,
+                                                                                        plain.iterations)
+    # an object with nothing to solve stops at the start; the other's iterates are its own
+    ptr = system.segments.ptr.tolist()
+    half = rhs.clone()
+    half[ptr[1]:] = 0
+    solver = CGSolver(system.segments, rhs.shape, DT, "cpu", system.free, cuda_graphs=False)
+    one = solver.solve(fused, half, tol=1e-12, max_iter=500, preconditioner=cycle)
+    assert one.iterations[1] == 0 and one.status()[1] == "converged"
+    alone = batched_cg(fused, half, Segments.single(sim.x.shape[0]), system.free, tol=1e-12, max_iter=500,
+                       preconditioner=cycle)
+    torch.testing.assert_close(one.solution, alone.solution, rtol=0, atol=1e-9 * float(alone.solution.abs().max()))
+
+
+@pytest.mark.parametrize("model", ["hooke", "stvk", "corotational"])
+def test_a_multigrid_step_is_the_plain_step(model):
+    """Steps with multigrid (a floor, Rayleigh damping) land where plain CG's do; with far fewer
+    iterations."""
+    runs, iterations = [], []
+    for preconditioner in ("none", "multigrid"):
+        sim = beam_sim(model=model, preconditioner=preconditioner, rayleigh_mass=0.1, rayleigh_stiffness=0.001,
+                       planes=[tm.Plane((0, 0, 1), -0.02, 1e4)])
+        sim.step(15)
+        runs.append(sim.x.clone())
+        iterations.append(int(sim.last_report.cg[0].iterations.max()))
+    torch.testing.assert_close(runs[1], runs[0], rtol=0, atol=1e-9)
+    assert 2 * iterations[1] < iterations[0], iterations
+
+
+def test_the_cpu_extension_and_pure_torch_agree(monkeypatch):
+    from tensormass_torch import _backend
+
+    if not _backend.use_extension("cpu"):
+        pytest.skip("the CPU extension is not built")
+    runs = []
+    for mode in ("extension", "torch"):
+        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+        sim = beam_sim(model="corotational", planes=[tm.Plane((0, 0, 1), -0.02, 1e4)])
+        sim.step(10)
+        runs.append(sim.x.clone())
+    torch.testing.assert_close(runs[0], runs[1], rtol=0, atol=1e-10)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("model", ["hooke", "corotational"])
+def test_cuda_matches_the_cpu(model):
+    """The preconditioned iterations on CUDA (captured in graphs) equal the CPU's in float64."""
+    runs = []
+    for device in ("cpu", "cuda"):
+        sim = beam_sim(model=model, device=device, cuda_graphs=True, planes=[tm.Plane((0, 0, 1), -0.02, 1e4)])
+        sim.step(20)
+        runs.append(sim.x.cpu())
+    torch.testing.assert_close(runs[1], runs[0], rtol=0, atol=1e-9)
+
+
+def test_the_hierarchy_follows_a_cut_and_the_coefficients():
+    sim = beam_sim(cells=(8, 2, 2))
+    sim.step()
+    first = sim.system._multigrid[1][2]
+    sim.step()
+    assert sim.system._multigrid[1][2] is first  # kept from step to step
+    sim.remove_elements(0, torch.arange(0, 12))
+    sim.step()
+    assert sim.system._multigrid[1][2] is not first
+    cut = sim.system._multigrid[1][2]
+    sim.options = dataclasses.replace(sim.options, dt=0.005)
+    sim.step()
+    assert sim.system._multigrid[1][2] is not cut
+
+
+def test_scene_file_and_bad_input(tmp_path, monkeypatch):
+    path = tmp_path / "multigrid.toml"
+    path.write_text("""
+dt = 0.01
+steps = 2
+[solver]
+preconditioner = "multigrid"
+[[bodies]]
+mesh = { generator = "beam", cells = [6, 2, 2], size = [1.0, 0.5, 0.5] }
+material = { model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }
+fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
+""")
+    scene = tm.load_scene(path)
+    assert scene.simulator.options.preconditioner == "multigrid"
+    scene.simulator.step(2)
+    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'multigrid', "
+                                            "got 'amg'"):
+        beam_sim(preconditioner="amg")
+    sim = beam_sim(cells=(4, 1, 1))
+    x = sim.x.clone()
+    monkeypatch.setitem(sys.modules, "pyamg", None)  # as if it were not installed
+    with pytest.raises(tm.SceneError, match="builds its hierarchy with pyamg, which is not installed"):
+        sim.step()
+    assert torch.equal(sim.x, x) and sim.steps_done == 0
+    monkeypatch.delitem(sys.modules, "pyamg")
+    monkeypatch.setattr(multigrid, "MAX_DIRECT", 10)
+    with pytest.raises(tm.SceneError, match="could not coarsen this mesh below"):
+        sim.step()
+    assert torch.equal(sim.x, x)
