@@ -127,53 +127,53 @@ class CGSolver:
         cg_ops.cg_direction(self.plan, s, self.native)
 
     def _pcg_buffers(self):
-        """The preconditioned iteration's own buffers (made at its first use): z ``[V, d]``;
-        per object ``[B]``: r.z, its previous value, p.Ap, the new r.r."""
+        """The preconditioned iteration's own per-object buffers ``[B]`` (made at its first use):
+        r.z, p.Ap, the new r.r and the step length."""
         if self._pcg is None:
             s = self.state
-            self._pcg = SimpleNamespace(z=torch.zeros_like(s.x), rz=torch.zeros_like(s.rr),
-                                        rz_old=torch.zeros_like(s.rr), p_ap=torch.zeros_like(s.rr),
+            self._pcg = SimpleNamespace(rz=torch.zeros_like(s.rr), p_ap=torch.zeros_like(s.rr),
                                         rr_new=torch.zeros_like(s.rr))
         return self._pcg
 
-    def _precondition(self, preconditioner, buffers):
-        """z = M^-1 r projected on the free nodes, and r.z per object."""
+    def _precondition(self, preconditioner, rz: torch.Tensor) -> torch.Tensor:
+        """z = M^-1 r ``[V, d]`` projected on the free nodes, and r.z per object into ``rz``."""
         s = self.state
-        buffers.z.copy_(self._project(preconditioner(s.r)))
-        cg_ops.object_dot(s.r, buffers.z, self.plan, buffers.rz, s, self.native)
+        z = preconditioner(s.r)
+        if self.free is not None:
+            z = z * self.free
+        cg_ops.object_dot(s.r, z, self.plan, rz, s, self.native)
+        return z
 
     def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
-        """One preconditioned iteration on the active objects (the others untouched); statuses,
-        iteration counts and r.r kept as the plain iteration keeps them."""
+        """One preconditioned iteration. An object that is not active takes a zero step (its x
+        and r stay, but for a non-finite one's); its direction is not kept (it never iterates
+        again in this solve). Statuses, iteration counts and r.r as the plain iteration's."""
         s, b = self.state, self._pcg_buffers()
-        spread = self.plan.segments.spread
-        active = s.status == ACTIVE
+        node = self.plan.segments.node_object
         ap = self._apply(matvec, s.p)[0]
         cg_ops.object_dot(s.p, ap, self.plan, b.p_ap, s, self.native)
+        active = s.status == ACTIVE
         curved = b.p_ap > 0
-        status = torch.where(active & ~curved, torch.where(torch.isfinite(b.p_ap), BREAKDOWN, NONFINITE), s.status)
         going = active & curved
-        s.alpha.copy_(torch.where(going, b.rz / torch.where(curved, b.p_ap, torch.ones_like(b.p_ap)), s.alpha))
-        moving = spread(going) > 0
-        step = spread(s.alpha)
-        s.x.copy_(torch.where(moving, s.x + step * s.p, s.x))
-        s.r.copy_(torch.where(moving, s.r - step * ap, s.r))
+        status = torch.where(active & ~curved, torch.where(torch.isfinite(b.p_ap), BREAKDOWN, NONFINITE), s.status)
+        s.alpha.copy_(torch.where(going, b.rz / b.p_ap, 0.0))
+        step = s.alpha[node].unsqueeze(-1)
+        s.x.addcmul_(step, s.p)
+        s.r.addcmul_(step, ap, value=-1.0)
         cg_ops.object_dot(s.r, s.r, self.plan, b.rr_new, s, self.native)
         iterations = s.iterations + going.to(torch.int32)
         finite = torch.isfinite(b.rr_new)
         converged = finite & (b.rr_new <= s.threshold)
-        capped = finite & ~converged & (iterations >= max_iter)
-        status = torch.where(going, torch.where(~finite, NONFINITE, torch.where(
-            converged, CONVERGED, torch.where(capped, CAPPED, ACTIVE))), status)
+        capped = ~converged & (iterations >= max_iter)
+        ended = torch.where(~finite, NONFINITE, torch.where(converged, CONVERGED, torch.where(capped, CAPPED, ACTIVE)))
+        s.status.copy_(torch.where(going, ended, status))
         s.rr.copy_(torch.where(going & finite, b.rr_new, s.rr))
         s.iterations.copy_(iterations)
-        s.status.copy_(status.to(torch.int32))
-        b.rz_old.copy_(b.rz)
-        self._precondition(preconditioner, b)
+        rz_old = b.rz.clone()
+        z = self._precondition(preconditioner, b.rz)
         on = s.status == ACTIVE
-        b.rz.copy_(torch.where(on, b.rz, b.rz_old))
-        s.beta.copy_(torch.where(on, b.rz / torch.where(on, b.rz_old, torch.ones_like(b.rz_old)), s.beta))
-        s.p.copy_(torch.where(spread(on) > 0, b.z + spread(s.beta) * s.p, s.p))
+        s.beta.copy_(torch.where(on, b.rz / rz_old, 0.0))
+        s.p.mul_(s.beta[node].unsqueeze(-1)).add_(z)
 
     def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int,
                    step_end=None) -> bool:
@@ -259,9 +259,7 @@ class CGSolver:
         if preconditioner is None:
             s.p.copy_(s.r)
         else:
-            buffers = self._pcg_buffers()
-            self._precondition(preconditioner, buffers)
-            s.p.copy_(buffers.z)
+            s.p.copy_(self._precondition(preconditioner, self._pcg_buffers().rz))
 
     def any_active(self) -> bool:
         """Whether some object is still iterating (a host synchronisation)."""
