@@ -23,12 +23,14 @@ and no host check at all.
 
 With a ``preconditioner`` (z = M^-1 r, symmetric positive definite per object), an iteration is
 preconditioned CG instead: alpha = r.z / p.Ap, p = z + beta p with beta = r'.z' / r.z, the
-stopping rule still on the true residual ||r_b||. Its scalars are small tensor ops beside the
-compiled per-object dots (``cg_ops.object_dot``): no host synchronisation either, so its
-iterations are captured the same way (where the preconditioner's own ops can be).
+stopping rule still on the true residual ||r_b||. It runs through the same ops (the step
+length's op reads r.z where it reads r.r, the direction's reads z where it reads r) with r.z
+and beta beside them: no host synchronisation either, so its iterations are captured the same
+way (where the preconditioner's own ops can be).
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -128,11 +130,12 @@ class CGSolver:
 
     def _pcg_buffers(self):
         """The preconditioned iteration's own per-object buffers ``[B]`` (made at its first use):
-        r.z, p.Ap, the new r.r and the step length."""
+        r.z and its next value, and ``scaled``, the state as the plain CG ops see it with r.z in
+        place of r.r (their step length alpha = r.z / p.Ap is then preconditioned CG's)."""
         if self._pcg is None:
             s = self.state
-            self._pcg = SimpleNamespace(rz=torch.zeros_like(s.rr), p_ap=torch.zeros_like(s.rr),
-                                        rr_new=torch.zeros_like(s.rr))
+            rz = torch.zeros_like(s.rr)
+            self._pcg = SimpleNamespace(rz=rz, rz_new=torch.zeros_like(s.rr), scaled=dataclasses.replace(s, rr=rz))
         return self._pcg
 
     def _precondition(self, preconditioner, rz: torch.Tensor) -> torch.Tensor:
@@ -142,38 +145,26 @@ class CGSolver:
         if self.free is not None:
             z = z * self.free
         cg_ops.object_dot(s.r, z, self.plan, rz, s, self.native)
-        return z
+        return z.contiguous()
 
     def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
-        """One preconditioned iteration. An object that is not active takes a zero step (its x
-        and r stay, but for a non-finite one's); its direction is not kept (it never iterates
-        again in this solve). Statuses, iteration counts and r.r as the plain iteration's."""
+        """One preconditioned iteration through the plain CG's ops: the step length from r.z
+        (``cg_alpha`` on the state with r.z for r.r), the update of x, r, r.r, statuses and
+        counts (``cg_update``: the stopping rule on the true residual), then z = M^-1 r,
+        beta = r'.z' / r.z and p = z + beta p (``cg_direction`` with z for r); objects that are
+        not active stay as they are."""
         s, b = self.state, self._pcg_buffers()
-        node = self.plan.segments.node_object
-        ap = self._apply(matvec, s.p)[0]
-        cg_ops.object_dot(s.p, ap, self.plan, b.p_ap, s, self.native)
-        active = s.status == ACTIVE
-        curved = b.p_ap > 0
-        going = active & curved
-        status = torch.where(active & ~curved, torch.where(torch.isfinite(b.p_ap), BREAKDOWN, NONFINITE), s.status)
-        s.alpha.copy_(torch.where(going, b.rz / b.p_ap, 0.0))
-        step = s.alpha[node].unsqueeze(-1)
-        s.x.addcmul_(step, s.p)
-        s.r.addcmul_(step, ap, value=-1.0)
-        cg_ops.object_dot(s.r, s.r, self.plan, b.rr_new, s, self.native)
-        iterations = s.iterations + going.to(torch.int32)
-        finite = torch.isfinite(b.rr_new)
-        converged = finite & (b.rr_new <= s.threshold)
-        capped = ~converged & (iterations >= max_iter)
-        ended = torch.where(~finite, NONFINITE, torch.where(converged, CONVERGED, torch.where(capped, CAPPED, ACTIVE)))
-        s.status.copy_(torch.where(going, ended, status))
-        s.rr.copy_(torch.where(going & finite, b.rr_new, s.rr))
-        s.iterations.copy_(iterations)
-        rz_old = b.rz.clone()
-        z = self._precondition(preconditioner, b.rz)
-        on = s.status == ACTIVE
-        s.beta.copy_(torch.where(on, b.rz / rz_old, 0.0))
-        s.p.mul_(s.beta[node].unsqueeze(-1)).add_(z)
+        fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
+        ap = fused(s.p, self.plan, b.scaled) if fused is not None else None
+        if ap is None:
+            ap, p_dot_ap = self._apply(matvec, s.p)
+            cg_ops.cg_alpha(p_dot_ap, self.plan, b.scaled, self.native)
+        cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
+        z = self._precondition(preconditioner, b.rz_new)
+        going = s.status == ACTIVE
+        s.beta.copy_(torch.where(going, b.rz_new / torch.where(going, b.rz, 1.0), 0.0))
+        b.rz.copy_(torch.where(going, b.rz_new, b.rz))
+        cg_ops.cg_direction(self.plan, dataclasses.replace(s, r=z), self.native)
 
     def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int,
                    step_end=None) -> bool:

@@ -607,9 +607,10 @@ def _multigrid(system: DynamicsSystem, opts: StepOptions, fused, matvec, pairs, 
     if system._multigrid_solve is None or system._multigrid_solve.multigrid is not hierarchy:
         system._multigrid_solve = MultigridSolve(hierarchy)
     with_pairs = pairs is not None and len(pairs) > 0
-    return system._multigrid_solve.load(matvec, system_diagonal(system, mass_coef, stiffness_coef,
-                                                                fused.node_stiffness, pairs if with_pairs else None,
-                                                                opts.dt))
+    diagonal = system_diagonal(system, mass_coef, stiffness_coef, fused.node_stiffness,
+                               pairs if with_pairs else None, opts.dt)
+    node_stiffness = None if fused.node_stiffness is None else stiffness_coef * fused.node_stiffness
+    return system._multigrid_solve.load(matvec, diagonal, node_stiffness, system.free)
 
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):

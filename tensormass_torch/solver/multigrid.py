@@ -148,6 +148,11 @@ class _Level:
         diagonal = a.diagonal()
         inverse = np.where(diagonal > 0, 1.0 / np.where(diagonal > 0, diagonal, 1.0), 0.0)
         self.inverse_diagonal = torch.from_numpy(inverse).to(device=device, dtype=dtype)[:, None]
+        # what a change of the finest level's node stiffness updates in place (Multigrid.load)
+        self.rest_values = self.matrix.values().clone()
+        self.rest_diagonal = torch.from_numpy(diagonal).to(device=device, dtype=dtype)
+        rows = torch._convert_indices_from_csr_to_coo(self.matrix.crow_indices(), self.matrix.col_indices())
+        self.pattern_keys = rows[0].long() * self.size + rows[1].long()  # sorted: CSR rows, sorted columns
         top = float(amg_linalg.approximate_spectral_radius(sp.diags(inverse) @ a, symmetric=False))
         self.top = top
         self.steps = chebyshev_steps(top / 30.0, 1.1 * top, degree)
@@ -219,9 +224,68 @@ class Multigrid:
             raise SceneError("multigrid: the coarsest level's matrix is not positive definite (a node with no "
                              "mass?); use preconditioner='jacobi'")
         self.coarse_inverse = torch.cholesky_inverse(factor).to(dtype)
+        self.coarse_rest = dense
+        self._loaded = False  # whether the coarse operators hold a node stiffness (else the rest's)
         #: unknowns per level, finest first (the report's "levels")
         self.sizes = [level.size for level in self.levels] + [coarse.shape[0]]
         self.operator_complexity = float(hierarchy.operator_complexity())
+
+    def load(self, node_stiffness: Optional[torch.Tensor], free: Optional[torch.Tensor] = None) -> None:
+        """Carry a node stiffness N ``[V, d, d]`` (the floor's and tools' penalties, already times
+        the step's c_K; None: none) into the coarse operators, in place: A_1 = A_1,rest +
+        P_0^T N P_0 and so on down, the coarsest level's inverse formed again. N is block
+        diagonal, so P^T N P has the pattern of P^T A P (A holds every diagonal block): the
+        values are added where the coarse matrix already has entries. Rows of fixed nodes
+        (``free [V, 1]`` zero) are left out, as the hierarchy's identity rows. Without the
+        update the coarse corrections fight a penalty they do not know of, tens of times the
+        elastic diagonal of the rows it acts on (docs/preconditioners.md)."""
+        acting = None
+        if node_stiffness is not None:
+            block_norm = node_stiffness.abs().amax(dim=(-2, -1))
+            if free is not None:
+                block_norm = block_norm * free.reshape(-1)
+            acting = torch.nonzero(block_norm > 0).reshape(-1)
+            if acting.numel() == 0:
+                acting = None
+        if acting is None:
+            if self._loaded:
+                self._restore()
+            return
+        d = node_stiffness.shape[-1]
+        axes = torch.arange(d, device=acting.device)
+        rows = (acting[:, None, None] * d + axes[None, :, None]).expand(-1, d, d).reshape(-1)
+        cols = (acting[:, None, None] * d + axes[None, None, :]).expand(-1, d, d).reshape(-1)
+        values = node_stiffness[acting].reshape(-1).to(self.coarse_inverse.dtype)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, (self.sizes[0], self.sizes[0]))
+            delta = delta.to_sparse_csr()
+            for depth, level in enumerate(self.levels):
+                delta = level.restrict @ (delta @ level.prolong)
+                if depth + 1 < len(self.levels):
+                    self._add(self.levels[depth + 1], delta)
+        factor, info = torch.linalg.cholesky_ex(self.coarse_rest + delta.to_dense().to(torch.float64))
+        if int(info) == 0:  # (a penalty adds a positive semidefinite part: always, but for roundoff)
+            self.coarse_inverse.copy_(torch.cholesky_inverse(factor))
+        self._loaded = True
+
+    @staticmethod
+    def _add(level: "_Level", delta: torch.Tensor) -> None:
+        """The level's matrix and inverse diagonal made rest + ``delta`` (CSR, within its pattern)."""
+        coo = torch._convert_indices_from_csr_to_coo(delta.crow_indices(), delta.col_indices()).long()
+        keys = coo[0] * level.size + coo[1]
+        where = torch.searchsorted(level.pattern_keys, keys)
+        level.matrix.values().copy_(level.rest_values.index_add(0, where, delta.values()))
+        on_diagonal = coo[0] == coo[1]
+        diagonal = level.rest_diagonal.index_add(0, coo[0][on_diagonal], delta.values()[on_diagonal])
+        level.inverse_diagonal.copy_(torch.where(diagonal > 0, 1.0 / diagonal, 0.0)[:, None])
+
+    def _restore(self) -> None:
+        for level in self.levels[1:]:
+            level.matrix.values().copy_(level.rest_values)
+            level.inverse_diagonal.copy_(torch.where(level.rest_diagonal > 0, 1.0 / level.rest_diagonal, 0.0)[:, None])
+        self.coarse_inverse.copy_(torch.cholesky_inverse(torch.linalg.cholesky(self.coarse_rest)))
+        self._loaded = False
 
     def _cycle(self, depth: int, b: torch.Tensor, fine) -> torch.Tensor:
         if depth == len(self.levels):

@@ -116,9 +116,12 @@ class MultigridSolve:
         self.inverse_diagonal: Optional[torch.Tensor] = None
         self.product = None
 
-    def load(self, product, diagonal: torch.Tensor) -> "MultigridSolve":
+    def load(self, product, diagonal: torch.Tensor, node_stiffness: Optional[torch.Tensor] = None,
+             free: Optional[torch.Tensor] = None) -> "MultigridSolve":
         """The solve's ``product`` (p -> A p, or a fused product's (A p, p . Ap)) and ``diagonal
-        [V, d]`` (rows whose diagonal is not positive are left alone)."""
+        [V, d]`` (rows whose diagonal is not positive are left alone); its node stiffness
+        ``[V, d, d]`` times c_K (or None) goes into the coarse operators (``Multigrid.load``)."""
+        self.multigrid.load(node_stiffness, free)
         inverse = torch.where(diagonal > 0, 1.0 / torch.where(diagonal > 0, diagonal, torch.ones_like(diagonal)),
                               torch.zeros_like(diagonal))
         if self.inverse_diagonal is None or self.inverse_diagonal.shape != inverse.shape \

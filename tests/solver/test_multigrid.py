@@ -99,6 +99,58 @@ def test_the_v_cycle_is_symmetric_positive_definite():
         assert float(torch.linalg.eigvalsh(operator).min()) > 0
 
 
+def test_a_node_stiffness_reaches_every_coarse_level():
+    """``Multigrid.load(N)``: each coarse operator becomes the Galerkin product of the level above
+    with N added at the finest (dense float64), the coarsest inverse that of its operator; fixed
+    nodes' blocks are left out; ``load(None)`` restores the rest operators."""
+    sim = beam_sim(cells=(16, 2, 2))
+    system = sim.system
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    edges, blocks = sim.model.rest_stiffness_edges()
+    matrix = multigrid.rest_system_matrix(edges, blocks, system.mass, mass_coef, stiffness_coef, system.free)
+    cycle = multigrid.Multigrid(matrix, multigrid.rigid_body_modes(sim.model.rest), DT, "cpu", coarse_size=30)
+    rest = [level.matrix.to_dense().clone() for level in cycle.levels] + [cycle.coarse_inverse.clone()]
+    gen = torch.Generator().manual_seed(3)
+    n = torch.randn(sim.x.shape[0], 3, 3, generator=gen, dtype=DT)
+    node_stiffness = n @ n.transpose(1, 2)
+    node_stiffness[1::3] = 0  # nodes without a penalty
+    cycle.load(node_stiffness, system.free)
+    free = system.free.reshape(-1)
+    kept = (node_stiffness * free[:, None, None]).numpy()
+    import scipy.sparse as sp
+
+    operator = torch.from_numpy((matrix + sp.block_diag(list(kept), format="csr")).toarray())
+    for depth, level in enumerate(cycle.levels):
+        if depth > 0:
+            torch.testing.assert_close(level.matrix.to_dense(), operator, rtol=1e-12, atol=1e-12 * float(
+                operator.abs().max()))
+            torch.testing.assert_close(level.inverse_diagonal.reshape(-1), 1.0 / torch.diagonal(operator))
+        operator = level.restrict.to_dense() @ operator @ level.prolong.to_dense()
+    torch.testing.assert_close(cycle.coarse_inverse, torch.linalg.inv(operator), rtol=1e-9, atol=1e-9 * float(
+        cycle.coarse_inverse.abs().max()))
+    cycle.load(None)
+    for before, level in zip(rest[1:], cycle.levels[1:]):
+        assert torch.equal(level.matrix.to_dense(), before)
+    torch.testing.assert_close(cycle.coarse_inverse, rest[-1], rtol=1e-12, atol=0)
+
+
+def test_a_floor_costs_few_iterations(monkeypatch):
+    """A beam lying on a stiff floor: with the floor's stiffness in the coarse levels, a step takes
+    the iterations of a free one; without (``Multigrid.load`` a no-op), ten times more."""
+    iterations = {}
+    for update in (True, False):
+        if not update:
+            monkeypatch.setattr(multigrid.Multigrid, "load", lambda *args, **kwargs: None)
+        mesh = tm.beam_mesh(48, 4, 4, size=(1.0, 0.1, 0.1), dtype=DT)
+        body = tm.Body(mesh, tm.Material(young=1e6, poisson=0.3, density=1000.0), fixed=mesh.vertices[:, 0] == 0)
+        sim = tm.Simulator([body], dt=0.01, preconditioner="multigrid", cg_tol=1e-8, cuda_graphs=False,
+                           planes=[tm.Plane((0, 0, 1), 0.001, 1e6)])
+        sim.step(2)
+        assert len(sim.system._multigrid[1][2].sizes) == 2
+        iterations[update] = int(sim.last_report.cg[0].iterations.max())
+    assert iterations[True] <= 20 and 5 * iterations[True] < iterations[False], iterations
+
+
 def test_preconditioned_cg_matches_a_dense_solve_per_object():
     """Two objects of a packed batch (one soft, one 100x stiffer, different sizes) solved together:
     each matches its dense solve and needs a fraction of plain CG's iterations; an object whose
