@@ -6,10 +6,10 @@
 #   3. `pip install --no-build-isolation -e .` (compiles tensormass_torch._C against that torch
 #      when csrc/ has sources), skipped when nothing it depends on changed since the last run;
 #   4. test dependencies (pytest, meshio, numpy, tqdm, hypothesis for the fuzz tests, tetgen for
-#      tm.tetrahedralize, pyamg for the multigrid preconditioner, pyvista for the off-screen
-#      rendering tests),
-#      only if missing. pyvista's vtk wheel renders headless through EGL (Mesa's libEGL and
-#      llvmpipe on a machine without a GPU; see tensormass_torch/app/render.py).
+#      tm.tetrahedralize, pyamg and cholespy for the multigrid and Cholesky preconditioners,
+#      pyvista for the off-screen rendering tests), only if missing. pyvista's vtk wheel
+#      renders headless through EGL (Mesa's libEGL and llvmpipe on a machine without a GPU;
+#      see tensormass_torch/app/render.py).
 # Quiet when all goes well; on a failure prints pip's output and exits non-zero.
 # Switches: PYTHON, TORCH_SPEC, TENSORMASS_BUILD_EXT, TENSORMASS_BUILD_CUDA, TENSORMASS_REINSTALL=1
 # (force step 3).
@@ -163,7 +163,7 @@ fi
 # 4. test dependencies
 read -r -a missing <<<"$(py_out '
 import importlib
-for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen", "pyamg"):
+for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen", "pyamg", "cholespy"):
     try:
         importlib.import_module(name)
     except Exception:

@@ -6,13 +6,14 @@ multigrid's iteration count grows with the mesh.
 
 Part 1 (solve_to_tolerance.md): on the paper's 307,200-tet beam (hooke, E = 1e5 and 1e7, dt =
 0.01, clamped, gravity) and SOFA's 101,250-tet beam (hooke, its plane), implicit Euler steps
-solved to a relative residual of 1e-6 with each preconditioner (none, jacobi, multigrid), and
+solved to a relative residual of 1e-6 with each preconditioner (none, jacobi, multigrid, and
+cholesky: the rest matrix's sparse Cholesky factor, the direct-solver baseline), and
 the same scene's fixed-budget steps of 25 and 10 CG iterations (tol 0: what the speed
 benchmarks time). Per row: CG iterations of the last step, its relative residual (the CG's own:
 the true residual for none and multigrid, Jacobi's scaled one), ms per step (steady state, after
 two steps that build the multigrid hierarchy and capture the CUDA graphs) and the ratio to the
-25-iteration step of the same scene, and the multigrid's set-up seconds (its first step less a
-steady one).
+25-iteration step of the same scene, and the multigrid's and the factorisation's set-up seconds
+(the first step less a steady one).
 
 Part 2 (multigrid_scaling.md): the paper beam's proportions from the SOFA beam's size to about
 5M tets (``--sizes``), E = 1e5, tolerance 1e-6: the multigrid's iterations per step, levels,
@@ -43,6 +44,8 @@ SOLVERS = {  # name -> StepOptions changes
                    preconditioner="jacobi"),
     "multigrid": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
                       preconditioner="multigrid"),
+    "cholesky": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
+                     preconditioner="cholesky"),
 }
 
 COLUMNS = [("scene", "scene", None), ("young", "E", ".0e"), ("elements", "elements", None),
@@ -81,11 +84,12 @@ def measure(scene: str, elements: int, young: float, solver: str, device, dtype,
     sim.step(1)
     per_step, _ = time_steps(sim.step, device, steps, max_seconds)
     iterations, residual = last_report(sim)
-    multigrid = sim.system._multigrid
-    hierarchy = None if multigrid is None else multigrid[1][2]
+    built = sim.system._rest_preconditioner
+    hierarchy = None if built is None or not hasattr(built[1][2], "sizes") else built[1][2]
+    setup = None if built is None else first - per_step
     return dict(scene=scene, young=young, elements=sim.model.num_elements, nodes=sim.model.num_nodes, solver=solver,
                 cg_iterations=iterations, relative_residual=residual, ms_per_step=per_step * 1e3,
-                setup_s=None if hierarchy is None else first - per_step,
+                setup_s=setup,
                 levels=None if hierarchy is None else len(hierarchy.sizes),
                 operator_complexity=None if hierarchy is None else hierarchy.operator_complexity,
                 level_sizes=None if hierarchy is None else hierarchy.sizes), sim

@@ -23,7 +23,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     rayleigh_mass = 0.5
     rayleigh_stiffness = 0.002
     form = "auto"                     # "stress", "tensor"
-    preconditioner = "auto"           # "none", "jacobi", "multigrid" (auto: Jacobi where bodies touch)
+    preconditioner = "auto"           # "none", "jacobi", "multigrid", "cholesky" (auto: Jacobi where bodies touch)
     integrator = "backward_euler"     # or "newmark" (average acceleration: no numerical damping)
 
     [render]                          # off-screen pictures of the frames (pyvista)

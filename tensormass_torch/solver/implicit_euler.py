@@ -36,7 +36,7 @@ from ..ops import node_graph, solve
 from ..ops.segments import Segments
 from ..ops.variants import DEFAULT, KernelVariants
 from .cg import CGResult, CGSolver, batched_cg, run_captured
-from .preconditioner import PRECONDITIONERS, JacobiScaling, MultigridSolve, system_diagonal, system_multigrid
+from .preconditioner import PRECONDITIONERS, JacobiScaling, MultigridSolve, system_diagonal, system_rest_preconditioner
 
 
 def auto_cg_max_iter(free_dofs: int) -> int:
@@ -71,11 +71,11 @@ class StepOptions:
             lose accuracy on ill-conditioned systems: more iterations, and at worst a false
             breakdown, where the classic CG converges (the Simulator retries such a step so).
         preconditioner: ``"auto"`` (default: Jacobi for the solves that body contact pairs join,
-            none elsewhere), ``"none"``, ``"jacobi"`` or ``"multigrid"`` (every solve of a
-            TensorMass; not the whole-solve op or the captured steps): see
-            ``solver.preconditioner`` and ``solver.multigrid``. With Jacobi, ``cg_tol`` holds the
-            residual scaled by the diagonal's inverse square root; with multigrid, the true
-            residual.
+            none elsewhere), ``"none"``, ``"jacobi"``, ``"multigrid"`` or ``"cholesky"`` (every
+            solve of a TensorMass; not the whole-solve op or the captured steps): see
+            ``solver.preconditioner``, ``solver.multigrid`` and ``solver.direct``. With Jacobi,
+            ``cg_tol`` holds the residual scaled by the diagonal's inverse square root; with the
+            others, the true residual.
         variants: the kernel variants the ops run (``ops.variants.KernelVariants``: equivalent
             kernels that differ in speed); the default reads the benchmarks' ``TENSORMASS_*``
             variables once (``KernelVariants.from_env``).
@@ -194,7 +194,7 @@ class DynamicsSystem:
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
-        self._multigrid = None  # (coefficients, cache of preconditioner.system_multigrid): built once
+        self._rest_preconditioner = None  # (key, cache) of preconditioner.system_rest_preconditioner
         self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
 
     def pair_stiffness(self, pairs, coefficient: float, damping: float = 0.0):
@@ -570,9 +570,10 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
 
             def matvec(p):  # (with friction, its damping h C: minus h times its forces)
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
-    multigrid = _multigrid(system, opts, fused, matvec, pairs, mass_coef, stiffness_coef, rhs)
+    multigrid = _rest_preconditioner(system, opts, fused, matvec, pairs, mass_coef, stiffness_coef, rhs)
     if multigrid is not None:
-        graph_key = None if graph_key is None else (graph_key, multigrid.key)
+        key = getattr(multigrid, "key", None)  # None: not capturable (cholespy's solves)
+        graph_key = None if graph_key is None or key is None else (graph_key, key)
     scaling = _jacobi(system, opts, fused, pairs, mass_coef, stiffness_coef)
     if scaling is not None:  # CG on S A S y = S b, x = S y (solver.preconditioner)
         matvec = scaling.product(matvec)
@@ -596,16 +597,19 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
     return result
 
 
-def _multigrid(system: DynamicsSystem, opts: StepOptions, fused, matvec, pairs, mass_coef: float,
-               stiffness_coef: float, like: torch.Tensor):
-    """The system's ``preconditioner.MultigridSolve`` loaded with this solve's product ``matvec``
-    and diagonal where ``opts.preconditioner`` is ``"multigrid"`` and the model has a loaded
-    product ``fused`` (a TensorMass); None otherwise."""
-    if fused is None or opts.preconditioner != "multigrid":
+def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matvec, pairs, mass_coef: float,
+                         stiffness_coef: float, like: torch.Tensor):
+    """This solve's preconditioner built from the rest matrix where ``opts.preconditioner`` asks
+    for one and the model has a loaded product ``fused`` (a TensorMass), else None: the
+    system's ``direct.RestCholesky`` (``"cholesky"``), or its ``preconditioner.MultigridSolve``
+    loaded with this solve's product ``matvec``, diagonal and node stiffness (``"multigrid"``)."""
+    if fused is None or opts.preconditioner not in ("multigrid", "cholesky"):
         return None
-    hierarchy = system_multigrid(system, mass_coef, stiffness_coef, like)
-    if system._multigrid_solve is None or system._multigrid_solve.multigrid is not hierarchy:
-        system._multigrid_solve = MultigridSolve(hierarchy)
+    built = system_rest_preconditioner(system, opts.preconditioner, mass_coef, stiffness_coef, like)
+    if opts.preconditioner == "cholesky":
+        return built
+    if system._multigrid_solve is None or system._multigrid_solve.multigrid is not built:
+        system._multigrid_solve = MultigridSolve(built)
     with_pairs = pairs is not None and len(pairs) > 0
     diagonal = system_diagonal(system, mass_coef, stiffness_coef, fused.node_stiffness,
                                pairs if with_pairs else None, opts.dt)
@@ -972,7 +976,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
 
     # body contact's pairs change in number from step to step: its steps run eagerly
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
-            or system.body_contact is not None or opts.preconditioner in ("jacobi", "multigrid")
+            or system.body_contact is not None or opts.preconditioner in ("jacobi", "multigrid", "cholesky")
             or system.model.rest.device.type != "cuda"
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None

@@ -32,8 +32,9 @@ from ..ops import library
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
 #: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
 #: preconditioner), ``"auto"`` (jacobi for the solves body contact pairs join, none elsewhere),
-#: ``"multigrid"`` (preconditioned CG with a smoothed-aggregation V-cycle: ``solver.multigrid``).
-PRECONDITIONERS = ("auto", "none", "jacobi", "multigrid")
+#: ``"multigrid"`` (preconditioned CG with a smoothed-aggregation V-cycle: ``solver.multigrid``),
+#: ``"cholesky"`` (with the rest matrix's sparse Cholesky factor: ``solver.direct``).
+PRECONDITIONERS = ("auto", "none", "jacobi", "multigrid", "cholesky")
 
 
 class JacobiScaling:
@@ -86,23 +87,33 @@ def system_diagonal(system, mass_coef: float, stiffness_coef: float, node_stiffn
     return diagonal
 
 
-def system_multigrid(system, mass_coef: float, stiffness_coef: float, like: torch.Tensor):
-    """The ``multigrid.Multigrid`` of ``system``'s (a ``DynamicsSystem`` of a TensorMass) step
-    matrix at rest c_M M + c_K K_rest on ``like``'s dtype and device, built at the first call and
-    kept while the coefficients, the model's tensors (a cut edits them) and the constraints stay."""
-    from . import multigrid
+def system_rest_preconditioner(system, kind: str, mass_coef: float, stiffness_coef: float, like: torch.Tensor):
+    """The preconditioner built from ``system``'s (a ``DynamicsSystem`` of a TensorMass) step
+    matrix at rest c_M M + c_K K_rest on ``like``'s dtype and device: ``kind`` ``"multigrid"``
+    (``multigrid.Multigrid``) or ``"cholesky"`` (``direct.RestCholesky``). Built at the first
+    call and kept while the kind, the coefficients, the model's tensors (a cut edits them), the
+    masses and the constraints stay."""
+    from . import direct, multigrid
 
     model = system.model
     tensors = tuple(t for group in model.groups for t in group.buffers()) + (system.mass,) + (
         () if system.free is None else (system.free,))
-    key = (float(mass_coef), float(stiffness_coef), like.dtype, like.device)
-    cache = system._multigrid
+    key = (kind, float(mass_coef), float(stiffness_coef), like.dtype, like.device)
+    cache = system._rest_preconditioner
     if cache is None or cache[0] != key or not library.unchanged(cache[1], tensors):
         edges, blocks = model.rest_stiffness_edges()
         matrix = multigrid.rest_system_matrix(edges, blocks, system.mass, mass_coef, stiffness_coef, system.free)
-        built = multigrid.Multigrid(matrix, multigrid.rigid_body_modes(model.rest), like.dtype, like.device)
-        cache = system._multigrid = (key, (tensors, tuple(t._version for t in tensors), built))
+        if kind == "multigrid":
+            built = multigrid.Multigrid(matrix, multigrid.rigid_body_modes(model.rest), like.dtype, like.device)
+        else:
+            built = direct.RestCholesky(matrix, like.dtype, like.device)
+        cache = system._rest_preconditioner = (key, (tensors, tuple(t._version for t in tensors), built))
     return cache[1][2]
+
+
+def system_multigrid(system, mass_coef: float, stiffness_coef: float, like: torch.Tensor):
+    """``system_rest_preconditioner(system, "multigrid", ...)``."""
+    return system_rest_preconditioner(system, "multigrid", mass_coef, stiffness_coef, like)
 
 
 class MultigridSolve:
@@ -146,4 +157,5 @@ class MultigridSolve:
         return self.multigrid(r, self.product, self.inverse_diagonal)
 
 
-__all__ = ["PRECONDITIONERS", "JacobiScaling", "MultigridSolve", "system_diagonal", "system_multigrid"]
+__all__ = ["PRECONDITIONERS", "JacobiScaling", "MultigridSolve", "system_diagonal", "system_multigrid",
+           "system_rest_preconditioner"]

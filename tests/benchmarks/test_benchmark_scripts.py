@@ -179,16 +179,18 @@ def test_definite_tangent_quick(tmp_path):
 
 def test_solve_to_tolerance_quick(tmp_path):
     pytest.importorskip("pyamg")
+    pytest.importorskip("cholespy")
     import solve_to_tolerance
 
     solve_to_tolerance.main(["--quick", "--device", "cpu", "--steps", "2", "--max-seconds", "0.2", "--out",
                              str(tmp_path)])
     records = json.loads((tmp_path / "solve_to_tolerance.json").read_text())["records"]
     assert not any(r.get("error") for r in records)
-    converged = [r for r in records if r["solver"] in ("none", "jacobi", "multigrid")]
-    assert len(converged) == 9 and all(r["relative_residual"] <= 1e-6 for r in converged)
+    converged = [r for r in records if r["solver"] in ("none", "jacobi", "multigrid", "cholesky")]
+    assert len(converged) == 12 and all(r["relative_residual"] <= 1e-6 for r in converged)
     by = {(r["scene"], r["young"], r["solver"]): r["cg_iterations"] for r in records}
     assert by[("paper_beam", 1e7, "multigrid")] * 5 < by[("paper_beam", 1e7, "none")]
+    assert by[("paper_beam", 1e5, "cholesky")] == 1  # hooke without contact: the factor solves it
     scaling = json.loads((tmp_path / "multigrid_scaling.json").read_text())["records"]
     assert [r["elements"] for r in scaling] == [4800, 38400] and all(r["cg_iterations"] <= 20 for r in scaling)
 

@@ -146,7 +146,7 @@ def test_a_floor_costs_few_iterations(monkeypatch):
         sim = tm.Simulator([body], dt=0.01, preconditioner="multigrid", cg_tol=1e-8, cuda_graphs=False,
                            planes=[tm.Plane((0, 0, 1), 0.001, 1e6)])
         sim.step(2)
-        assert len(sim.system._multigrid[1][2].sizes) == 2
+        assert len(sim.system._rest_preconditioner[1][2].sizes) == 2
         iterations[update] = int(sim.last_report.cg[0].iterations.max())
     assert iterations[True] <= 20 and 5 * iterations[True] < iterations[False], iterations
 
@@ -234,16 +234,16 @@ def test_cuda_matches_the_cpu(model):
 def test_the_hierarchy_follows_a_cut_and_the_coefficients():
     sim = beam_sim(cells=(8, 2, 2))
     sim.step()
-    first = sim.system._multigrid[1][2]
+    first = sim.system._rest_preconditioner[1][2]
     sim.step()
-    assert sim.system._multigrid[1][2] is first  # kept from step to step
+    assert sim.system._rest_preconditioner[1][2] is first  # kept from step to step
     sim.remove_elements(0, torch.arange(0, 12))
     sim.step()
-    assert sim.system._multigrid[1][2] is not first
-    cut = sim.system._multigrid[1][2]
+    assert sim.system._rest_preconditioner[1][2] is not first
+    cut = sim.system._rest_preconditioner[1][2]
     sim.options = dataclasses.replace(sim.options, dt=0.005)
     sim.step()
-    assert sim.system._multigrid[1][2] is not cut
+    assert sim.system._rest_preconditioner[1][2] is not cut
 
 
 def test_scene_file_and_bad_input(tmp_path, monkeypatch):
@@ -261,7 +261,7 @@ fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
     scene = tm.load_scene(path)
     assert scene.simulator.options.preconditioner == "multigrid"
     scene.simulator.step(2)
-    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'multigrid', "
+    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'multigrid', 'cholesky', "
                                             "got 'amg'"):
         beam_sim(preconditioner="amg")
     sim = beam_sim(cells=(4, 1, 1))

@@ -178,7 +178,7 @@ def test_a_pile_with_jacobi_keeps_the_bodies_apart():
 
 def test_bad_preconditioner_raises_one_clear_error(tmp_path):
     mesh = tm.beam_mesh(1, 1, 1, dtype=DT)
-    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'multigrid', "
+    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'multigrid', 'cholesky', "
                                             "got 'ilu'"):
         tm.Simulator([tm.Body(mesh, tm.Material(young=1e5, poisson=0.3))], preconditioner="ilu")
     scene = tmp_path / "bad.toml"
