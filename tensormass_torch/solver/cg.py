@@ -102,6 +102,7 @@ class CGSolver:
         self._graphs: Dict[tuple, object] = {}
         self.graph_replays = 0
         self._pcg = None  # the preconditioned iteration's buffers, made at its first use
+        self._rhs = None  # the right-hand side a captured start reads (preconditioned solves)
 
     def _project(self, v):
         return v if self.free is None else v * self.free
@@ -292,6 +293,13 @@ class CGSolver:
             if x0 is None and preconditioner is None and self.solves_in_one_op(matvec):
                 self.begin(matvec, rhs, tol, max_iter, max_iter)
                 done = max_iter
+            elif x0 is None and preconditioner is not None and graph_key is not None and self.cuda_graphs:
+                # the start applies the preconditioner once: captured too, over a kept copy of rhs
+                if self._rhs is None or self._rhs.shape != rhs.shape or self._rhs.dtype != rhs.dtype:
+                    self._rhs = torch.empty_like(rhs)
+                self._rhs.copy_(rhs)
+                run_captured(self._graphs, (graph_key, "start", float(tol), max_iter),
+                             lambda: self.start(matvec, self._rhs, None, tol, max_iter, preconditioner))
             else:
                 self.start(matvec, rhs, x0, tol, max_iter, preconditioner)
         self.finish(matvec, max_iter, check_every, graph_key, done, preconditioner)

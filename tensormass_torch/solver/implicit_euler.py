@@ -602,7 +602,7 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
     """This solve's preconditioner built from the rest matrix where ``opts.preconditioner`` asks
     for one and the model has a loaded product ``fused`` (a TensorMass), else None: the
     system's ``direct.RestCholesky`` (``"cholesky"``), or its ``preconditioner.MultigridSolve``
-    loaded with this solve's product ``matvec``, diagonal and node stiffness (``"multigrid"``)."""
+    loaded with this solve's product ``matvec``, node stiffness and pairs (``"multigrid"``)."""
     if fused is None or opts.preconditioner not in ("multigrid", "cholesky"):
         return None
     built = system_rest_preconditioner(system, opts.preconditioner, mass_coef, stiffness_coef, like)
@@ -611,10 +611,9 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
     if system._multigrid_solve is None or system._multigrid_solve.multigrid is not built:
         system._multigrid_solve = MultigridSolve(built)
     with_pairs = pairs is not None and len(pairs) > 0
-    diagonal = system_diagonal(system, mass_coef, stiffness_coef, fused.node_stiffness,
-                               pairs if with_pairs else None, opts.dt)
     node_stiffness = None if fused.node_stiffness is None else stiffness_coef * fused.node_stiffness
-    return system._multigrid_solve.load(matvec, diagonal, node_stiffness, system.free)
+    return system._multigrid_solve.load(matvec, node_stiffness, system.free,
+                                        pairs.stiffness_diagonal(stiffness_coef, opts.dt) if with_pairs else None)
 
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):

@@ -21,9 +21,10 @@ V-cycle runs there (``Multigrid.__call__``):
     level L:      x = A_L^-1 b (a dense inverse, from a Cholesky factorisation made once: one
                   matrix-vector product, where triangular solves would be sequential)
 
-S_l is a Chebyshev polynomial of the Jacobi-scaled operator D_l^-1 A_l on [lambda/30, 1.1 lambda]
-(lambda: the largest eigenvalue of D_l^-1 A_l, estimated at set-up), the same polynomial before
-and after: the cycle is a symmetric positive definite operator, as CG needs. Polynomial smoothers
+S_l is a Chebyshev polynomial of D_l^-1 A_l with l1-Jacobi's D_l (the rows' l1 norms: D^-1 A's
+spectrum in (0, 1] by construction, whatever a step's penalties add) over [lambda/30, 1.1]
+(lambda: the largest eigenvalue at rest, estimated at set-up), the same polynomial before and
+after: the cycle is a symmetric positive definite operator, as CG needs. Polynomial smoothers
 are the GPU's: products and vector updates, no ordering as Gauss-Seidel would need.
 
 Invariants: objects of a packed batch share no edge, so no aggregate crosses two objects and
@@ -50,6 +51,11 @@ from ..errors import SceneError
 #: is refused.
 COARSE_SIZE = 2000
 MAX_DIRECT = 20000
+#: The top of the smoothers' Chebyshev interval. Their scaling is l1-Jacobi, D = diag(sum_j |a_ij|),
+#: for which D - A is diagonally dominant, so D^-1 A's spectrum lies in (0, 1] whatever the
+#: penalties a step adds (an estimate made at rest would not bound them); the margin covers the
+#: finest level's step tangent, whose row sums are those at rest.
+CHEBYSHEV_TOP = 1.1
 
 
 def _pyamg():
@@ -145,20 +151,24 @@ class _Level:
         self.matrix = _csr(a, dtype, device)
         self.prolong = _csr(level.P, dtype, device)
         self.restrict = _csr(level.P.T, dtype, device)
-        diagonal = a.diagonal()
-        inverse = np.where(diagonal > 0, 1.0 / np.where(diagonal > 0, diagonal, 1.0), 0.0)
+        row_l1 = row_sums(a)
+        inverse = np.where(row_l1 > 0, 1.0 / np.where(row_l1 > 0, row_l1, 1.0), 0.0)
         self.inverse_diagonal = torch.from_numpy(inverse).to(device=device, dtype=dtype)[:, None]
         # what a change of the finest level's node stiffness updates in place (Multigrid.load)
         self.rest_values = self.matrix.values().clone()
-        self.rest_diagonal = torch.from_numpy(diagonal).to(device=device, dtype=dtype)
+        self.rest_l1 = torch.from_numpy(row_l1).to(device=device, dtype=dtype)
         rows = torch._convert_indices_from_csr_to_coo(self.matrix.crow_indices(), self.matrix.col_indices())
         self.pattern_keys = rows[0].long() * self.size + rows[1].long()  # sorted: CSR rows, sorted columns
         top = float(amg_linalg.approximate_spectral_radius(sp.diags(inverse) @ a, symmetric=False))
-        self.top = top
-        self.steps = chebyshev_steps(top / 30.0, 1.1 * top, degree)
+        self.steps = chebyshev_steps(top / 30.0, CHEBYSHEV_TOP, degree)
 
     def product(self, x: torch.Tensor) -> torch.Tensor:
         return self.matrix @ x
+
+
+def row_sums(matrix) -> np.ndarray:
+    """The l1 norms of a scipy sparse matrix's rows ``[n]``: sum_j |a_ij|."""
+    return np.asarray(abs(matrix).sum(axis=1), dtype=np.float64).reshape(-1)
 
 
 def chebyshev_steps(low: float, high: float, degree: int):
@@ -225,6 +235,10 @@ class Multigrid:
                              "mass?); use preconditioner='jacobi'")
         self.coarse_inverse = torch.cholesky_inverse(factor).to(dtype)
         self.coarse_rest = dense
+        #: the finest level's rest row l1 norms ``[V d]``: its smoothing's scaling before the step's
+        #: penalties (``MultigridSolve.load`` adds them)
+        self.fine_row_l1 = torch.from_numpy(row_sums(matrix)).to(device=device, dtype=dtype)
+        self.dim = matrix.blocksize[0] if hasattr(matrix, "blocksize") else 1  # unknowns per node
         self._loaded = False  # whether the coarse operators hold a node stiffness (else the rest's)
         #: unknowns per level, finest first (the report's "levels")
         self.sizes = [level.size for level in self.levels] + [coarse.shape[0]]
@@ -271,19 +285,19 @@ class Multigrid:
 
     @staticmethod
     def _add(level: "_Level", delta: torch.Tensor) -> None:
-        """The level's matrix and inverse diagonal made rest + ``delta`` (CSR, within its pattern)."""
+        """The level's matrix made rest + ``delta`` (CSR, within its pattern), its l1 scaling
+        rest + |delta|'s row sums."""
         coo = torch._convert_indices_from_csr_to_coo(delta.crow_indices(), delta.col_indices()).long()
         keys = coo[0] * level.size + coo[1]
         where = torch.searchsorted(level.pattern_keys, keys)
         level.matrix.values().copy_(level.rest_values.index_add(0, where, delta.values()))
-        on_diagonal = coo[0] == coo[1]
-        diagonal = level.rest_diagonal.index_add(0, coo[0][on_diagonal], delta.values()[on_diagonal])
-        level.inverse_diagonal.copy_(torch.where(diagonal > 0, 1.0 / diagonal, 0.0)[:, None])
+        row_l1 = level.rest_l1.index_add(0, coo[0], delta.values().abs())  # >= the row's l1: D^-1 A stays in (0, 1]
+        level.inverse_diagonal.copy_(torch.where(row_l1 > 0, 1.0 / row_l1, 0.0)[:, None])
 
     def _restore(self) -> None:
         for level in self.levels[1:]:
             level.matrix.values().copy_(level.rest_values)
-            level.inverse_diagonal.copy_(torch.where(level.rest_diagonal > 0, 1.0 / level.rest_diagonal, 0.0)[:, None])
+            level.inverse_diagonal.copy_(torch.where(level.rest_l1 > 0, 1.0 / level.rest_l1, 0.0)[:, None])
         self.coarse_inverse.copy_(torch.cholesky_inverse(torch.linalg.cholesky(self.coarse_rest)))
         self._loaded = False
 
@@ -301,9 +315,10 @@ class Multigrid:
         """z = V(r): one V-cycle on the residual ``r [V, d]`` (its shape kept).
 
         ``fine_product`` (p ``[V, d]`` -> A p ``[V, d]``) and ``fine_inverse_diagonal [V, d]``:
-        the finest level's operator and its inverse diagonal in place of the hierarchy's (the
-        step's true matrix, with its contact stiffness and tangent, where the hierarchy holds
-        the rest stiffness); both or neither."""
+        the finest level's operator and its smoothing's scaling (the inverse of its rows' l1
+        norms, or a bound of them) in place of the hierarchy's (the step's true matrix, with its
+        contact stiffness and tangent, where the hierarchy holds the rest stiffness); both or
+        neither."""
         fine = None
         if fine_product is not None:
             shape = r.shape

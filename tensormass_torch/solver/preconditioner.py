@@ -118,23 +118,29 @@ def system_multigrid(system, mass_coef: float, stiffness_coef: float, like: torc
 
 class MultigridSolve:
     """A solve's multigrid preconditioner r ``[V, d]`` -> z ``[V, d]``: the system's hierarchy
-    (``system_multigrid``) with the finest level on this solve's product and diagonal, the
-    inverse diagonal in a buffer whose storage stays from solve to solve (a CUDA graph captured
-    over the iterations replays with each step's diagonal)."""
+    (``system_multigrid``) with the finest level on this solve's product and scaling, the
+    scaling in a buffer whose storage stays from solve to solve (a CUDA graph captured over the
+    iterations replays with each step's)."""
 
     def __init__(self, multigrid):
         self.multigrid = multigrid
         self.inverse_diagonal: Optional[torch.Tensor] = None
         self.product = None
 
-    def load(self, product, diagonal: torch.Tensor, node_stiffness: Optional[torch.Tensor] = None,
-             free: Optional[torch.Tensor] = None) -> "MultigridSolve":
-        """The solve's ``product`` (p -> A p, or a fused product's (A p, p . Ap)) and ``diagonal
-        [V, d]`` (rows whose diagonal is not positive are left alone); its node stiffness
-        ``[V, d, d]`` times c_K (or None) goes into the coarse operators (``Multigrid.load``)."""
+    def load(self, product, node_stiffness: Optional[torch.Tensor] = None, free: Optional[torch.Tensor] = None,
+             pair_diagonal: Optional[torch.Tensor] = None) -> "MultigridSolve":
+        """The solve's ``product`` (p -> A p, or a fused product's (A p, p . Ap)), its node
+        stiffness ``[V, d, d]`` times c_K (or None: it goes into the coarse operators,
+        ``Multigrid.load``) and the body contact pairs' diagonal ``[V, d]`` (or None). The finest
+        level's scaling is the inverse of its rows' l1 norms: the rest matrix's, plus the node
+        stiffness's rows and the pairs' diagonal (a bound where the pairs couple nodes)."""
         self.multigrid.load(node_stiffness, free)
-        inverse = torch.where(diagonal > 0, 1.0 / torch.where(diagonal > 0, diagonal, torch.ones_like(diagonal)),
-                              torch.zeros_like(diagonal))
+        row_l1 = self.multigrid.fine_row_l1.view(-1, self.multigrid.dim)
+        if node_stiffness is not None:
+            row_l1 = row_l1 + node_stiffness.abs().sum(-1)
+        if pair_diagonal is not None:
+            row_l1 = row_l1 + pair_diagonal
+        inverse = torch.where(row_l1 > 0, 1.0 / row_l1, 0.0)
         if self.inverse_diagonal is None or self.inverse_diagonal.shape != inverse.shape \
                 or self.inverse_diagonal.dtype != inverse.dtype or self.inverse_diagonal.device != inverse.device:
             self.inverse_diagonal = inverse

@@ -15,7 +15,7 @@ from tensormass_torch.ops.segments import Segments
 from tensormass_torch.solver import multigrid
 from tensormass_torch.solver.cg import CGSolver, batched_cg
 from tensormass_torch.solver.implicit_euler import _coefficients
-from tensormass_torch.solver.preconditioner import system_multigrid
+from tensormass_torch.solver.preconditioner import MultigridSolve, system_multigrid
 
 pytest.importorskip("pyamg")
 DT = torch.float64
@@ -90,10 +90,9 @@ def test_the_v_cycle_is_symmetric_positive_definite():
     plain = dense_of(cycle, n)[free][:, free]
     fused = system.system_matvec(mass_coef, stiffness_coef)
     fused.load(sim.x + torch.tensor([0.0, 0.0, -0.06], dtype=DT))  # some nodes below the floor
-    diagonal = sim.model.stiffness_diagonal() * stiffness_coef + mass_coef * system.mass \
-        + stiffness_coef * torch.diagonal(fused.node_stiffness, dim1=-2, dim2=-1)
-    assert float(torch.diagonal(fused.node_stiffness, dim1=-2, dim2=-1).abs().max()) > 0
-    own = dense_of(lambda r: cycle(r * system.free, lambda p: fused(p)[0], 1.0 / diagonal), n)[free][:, free]
+    assert float(fused.node_stiffness.abs().max()) > 0
+    solve = MultigridSolve(cycle).load(fused, stiffness_coef * fused.node_stiffness, system.free)
+    own = dense_of(lambda r: solve(r * system.free), n)[free][:, free]
     for operator in (plain, own):
         torch.testing.assert_close(operator, operator.T, rtol=0, atol=1e-10 * float(operator.abs().max()))
         assert float(torch.linalg.eigvalsh(operator).min()) > 0
@@ -124,7 +123,8 @@ def test_a_node_stiffness_reaches_every_coarse_level():
         if depth > 0:
             torch.testing.assert_close(level.matrix.to_dense(), operator, rtol=1e-12, atol=1e-12 * float(
                 operator.abs().max()))
-            torch.testing.assert_close(level.inverse_diagonal.reshape(-1), 1.0 / torch.diagonal(operator))
+            bound = 1.0 / level.inverse_diagonal.reshape(-1)  # l1-Jacobi's scaling: at least each row's l1
+            assert bool((bound >= operator.abs().sum(1) * (1 - 1e-12)).all())
         operator = level.restrict.to_dense() @ operator @ level.prolong.to_dense()
     torch.testing.assert_close(cycle.coarse_inverse, torch.linalg.inv(operator), rtol=1e-9, atol=1e-9 * float(
         cycle.coarse_inverse.abs().max()))
@@ -136,7 +136,7 @@ def test_a_node_stiffness_reaches_every_coarse_level():
 
 def test_a_floor_costs_few_iterations(monkeypatch):
     """A beam lying on a stiff floor: with the floor's stiffness in the coarse levels, a step takes
-    the iterations of a free one; without (``Multigrid.load`` a no-op), ten times more."""
+    the iterations of a free one; without (``Multigrid.load`` a no-op), several times more."""
     iterations = {}
     for update in (True, False):
         if not update:
@@ -148,7 +148,7 @@ def test_a_floor_costs_few_iterations(monkeypatch):
         sim.step(2)
         assert len(sim.system._rest_preconditioner[1][2].sizes) == 2
         iterations[update] = int(sim.last_report.cg[0].iterations.max())
-    assert iterations[True] <= 20 and 5 * iterations[True] < iterations[False], iterations
+    assert iterations[True] <= 20 and 3 * iterations[True] < iterations[False], iterations
 
 
 def test_preconditioned_cg_matches_a_dense_solve_per_object():
