@@ -24,7 +24,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     rayleigh_stiffness = 0.002
     form = "auto"                     # "stress", "tensor"
     preconditioner = "auto"           # "none", "jacobi", "multigrid", "cholesky" (auto: Jacobi where bodies touch)
-    integrator = "backward_euler"     # or "newmark" (average acceleration: no numerical damping)
+    integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
 
     [render]                          # off-screen pictures of the frames (pyvista)
     png = false                       # one PNG per frame

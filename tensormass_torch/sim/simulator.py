@@ -28,6 +28,7 @@ from ..solver.implicit_euler import (
     StepOptions,
     StepReport,
     auto_cg_max_iter,
+    bdf2_step,
     implicit_euler_step,
     step_graphs_for,
 )
@@ -132,8 +133,11 @@ class Simulator:
             Pairs are found at the start of each step; bodies they join are solved together; its
             steps run eagerly (not chained). Counts and penetrations in ``StepReport.contact``.
         integrator: ``"backward_euler"`` (default: numerical damping that grows with dt, the most
-            robust) or ``"newmark"`` (Newmark's average acceleration, the trapezoidal rule: no
-            numerical damping, the same cost per step; see ``solver.implicit_euler``).
+            robust), ``"newmark"`` (Newmark's average acceleration, the trapezoidal rule: no
+            numerical damping) or ``"bdf2"`` (second order, its damping falling as dt^3; each
+            step uses the state one step before, so the first step, a step after ``sim.x`` or
+            ``sim.v`` were set, and sub-steps are backward Euler's and steps are not chained);
+            all at backward Euler's cost per step (see ``solver.implicit_euler``).
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs,
             preconditioner: see ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
             ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
@@ -197,9 +201,9 @@ class Simulator:
                              f"got {preconditioner!r}")
         if integrator not in INTEGRATORS:
             raise SceneError(f"integrator must be one of {', '.join(map(repr, INTEGRATORS))}, got {integrator!r}")
-        if integrator != "backward_euler" and newton_iters != 1:
-            raise SceneError(f"newton_iters={newton_iters} needs integrator='backward_euler' (the {integrator!r} "
-                             "step is one linearisation)")
+        if INTEGRATORS[integrator] != 1.0 and newton_iters != 1:
+            raise SceneError(f"newton_iters={newton_iters} needs integrator='backward_euler' or 'bdf2' (the "
+                             f"{integrator!r} step is one linearisation)")
         if check_inversion not in INVERSION_CHECKS:
             raise SceneError(f"check_inversion must be one of {', '.join(map(repr, INVERSION_CHECKS))}, "
                              f"got {check_inversion!r}")
@@ -281,6 +285,9 @@ class Simulator:
         self.time = 0.0
         self.steps_done = 0
         self.last_report: Optional[StepReport] = None
+        # the state one step before and the state committed after it (BDF2's history: valid while
+        # sim.x, sim.v are still those committed tensors)
+        self._history = None
         self.check_inversion = check_inversion
         self.substeps_on_failure = substeps_on_failure
         # Built only when asked for: "off" costs nothing (no buffers, no work per step).
@@ -430,13 +437,21 @@ class Simulator:
             warnings.warn(f"inverted elements at t = {self.time:.6g}: {inversion.describe(self._names())}",
                           InvertedElementsWarning, stacklevel=3)
 
-    def _substep(self, x, v, t_end: float, opts: StepOptions):
-        """One implicit Euler step of length ``opts.dt`` from ``x, v [V, 3]``, ending at time
-        t_end (nothing committed): (x, v, report, inversion report or None)."""
-        imposed = self._imposed_velocity(x, t_end, opts.dt)
+    def _substep(self, x, v, t_end: float, opts: StepOptions, previous=None):
+        """One implicit step of length ``opts.dt`` from ``x, v [V, 3]``, ending at time t_end
+        (nothing committed): (x, v, report, inversion report or None). ``previous``: BDF2's
+        state one step before (None: its start, a backward Euler step)."""
         if self.tools is not None:  # the tools where they are at the step's end
             self.tools.set_time(t_end, opts.dt)
-        x_new, v_new, report = implicit_euler_step(self.system, x, v, opts, imposed)
+        if opts.integrator == "bdf2":
+            if previous is None:
+                imposed = self._imposed_velocity(x, t_end, opts.dt)
+            else:  # the prescribed nodes reach their target from BDF2's extrapolated start over 2 dt / 3
+                imposed = self._imposed_velocity((4.0 * x - previous[0]) / 3.0, t_end, 2.0 * opts.dt / 3.0)
+            x_new, v_new, report = bdf2_step(self.system, x, v, previous, opts, imposed)
+        else:
+            imposed = self._imposed_velocity(x, t_end, opts.dt)
+            x_new, v_new, report = implicit_euler_step(self.system, x, v, opts, imposed)
         inversion = self._check_inversion(x_new, t_end, report) if self._inversion is not None else None
         return x_new, v_new, report, inversion
 
@@ -449,7 +464,7 @@ class Simulator:
         for j in range(count):
             # prescribed motions at the sub-step times; the last one ends exactly at time + dt
             t_end = self.time + self.options.dt * ((j + 1) / count)
-            x, v, report, inversion = self._substep(x, v, t_end, opts)
+            x, v, report, inversion = self._substep(x, v, t_end, opts, self._previous_state() if count == 1 else None)
             reports.append(report)
         if count == 1:
             return x, v, reports[0], inversion
@@ -526,7 +541,20 @@ class Simulator:
             left -= 1
         return self.last_report
 
+    def _previous_state(self):
+        """BDF2's state one step of dt before the current one ``(x, v)``, or None where there is
+        none: the first step, a chain or sub-steps before, ``sim.x`` / ``sim.v`` set since,
+        the node count changed (a cut that made room)."""
+        if self._history is None:
+            return None
+        previous, committed = self._history
+        if committed[0] is not self.x or committed[1] is not self.v or previous[0].shape != self.x.shape:
+            return None
+        return previous
+
     def _commit(self, x, v, steps: int, report: StepReport, inversion):
+        one_step = steps == 1 and report.substeps == 1 and self.options.integrator == "bdf2"
+        self._history = ((self.x, self.v), (x, v)) if one_step else None
         self.x, self.v = x, v
         for _ in range(steps):  # the same float sum as one step at a time
             self.time += self.options.dt
@@ -680,6 +708,7 @@ class Simulator:
         with torch.no_grad():
             self.x[new_nodes] = self.x[parents]
             self.v[new_nodes] = self.v[parents]
+        self._history = None  # (BDF2's state before has no rows for the new nodes: its next step starts again)
         self.fixed[new_nodes] = self.fixed[parents]
         self.prescribed[new_nodes] = self.prescribed[parents]
         self.bodies[i] = self._cut_body(self.bodies[i], result, changed)

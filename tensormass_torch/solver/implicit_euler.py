@@ -21,6 +21,9 @@ F(x', v') linearised at x (x' - x = h v + theta h dv) gives
 (theta = 1: the system above). For a linear undamped system theta = 1/2 is Newmark's
 beta = 1/4, gamma = 1/2: it keeps the energy (no amplitude lost per period, where backward Euler
 loses a fraction that grows with h / T), at the same cost per step. Friction stays implicit in v'.
+
+BDF2 (``integrator="bdf2"``) is backward Euler from an extrapolated state with a shorter step
+(:func:`bdf2_step`): second order, its damping falling as h^3, at backward Euler's cost.
 """
 from __future__ import annotations
 
@@ -79,8 +82,10 @@ class StepOptions:
         variants: the kernel variants the ops run (``ops.variants.KernelVariants``: equivalent
             kernels that differ in speed); the default reads the benchmarks' ``TENSORMASS_*``
             variables once (``KernelVariants.from_env``).
-        integrator: ``"backward_euler"`` (default) or ``"newmark"`` (Newmark's average
-            acceleration, the trapezoidal rule: no numerical damping; :data:`INTEGRATORS`).
+        integrator: ``"backward_euler"`` (default), ``"newmark"`` (Newmark's average
+            acceleration, the trapezoidal rule: no numerical damping) or ``"bdf2"`` (the
+            two-step backward differentiation formula: second order, damping that falls as h^3;
+            its steps are :func:`bdf2_step`'s); :data:`INTEGRATORS`.
     """
 
     dt: float
@@ -103,8 +108,8 @@ class StepOptions:
                              f"{', '.join(map(repr, PRECONDITIONERS))}")
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"unknown integrator {self.integrator!r}; known: {', '.join(map(repr, INTEGRATORS))}")
-        if self.integrator != "backward_euler" and self.newton_iters != 1:
-            raise ValueError(f"newton_iters={self.newton_iters} needs integrator='backward_euler' (the "
+        if self.theta != 1.0 and self.newton_iters != 1:
+            raise ValueError(f"newton_iters={self.newton_iters} needs integrator='backward_euler' or 'bdf2' (the "
                              f"{self.integrator!r} step is one linearisation)")
 
     @property
@@ -765,8 +770,9 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
                           status, report)
 
 
-#: ``StepOptions.integrator`` -> theta, the weight of the step's end (module docstring)
-INTEGRATORS = {"backward_euler": 1.0, "newmark": 0.5}
+#: ``StepOptions.integrator`` -> theta, the weight of the step's end (module docstring); BDF2's
+#: solve is a backward Euler one (:func:`bdf2_step`)
+INTEGRATORS = {"backward_euler": 1.0, "newmark": 0.5, "bdf2": 1.0}
 
 #: The most solves a step with body contact adds for pairs its first solve left out (see
 #: :func:`implicit_euler_step`): each adds every nearby pair the last solution drives into contact.
@@ -975,6 +981,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
 
     # body contact's pairs change in number from step to step: its steps run eagerly
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
+            or opts.integrator == "bdf2"  # (bdf2_step's backward Euler steps have their own)
             or system.body_contact is not None or opts.preconditioner in ("jacobi", "multigrid", "cholesky")
             or system.model.rest.device.type != "cuda"
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
@@ -985,6 +992,36 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     if graphs is None:
         graphs = system._step_graphs[key] = StepGraphs(system, opts, imposed)
     return graphs
+
+
+def bdf2_step(system: DynamicsSystem, x, v, previous, opts: StepOptions, imposed_velocity=None):
+    """One BDF2 step from ``x, v [V, d]`` and the state one step of the same dt before,
+    ``previous = (x_prev, v_prev)`` (None: the first step, backward Euler's). BDF2,
+
+        3/2 x' - 2 x + 1/2 x_prev = h v',    M (3/2 v' - 2 v + 1/2 v_prev) = h F(x', v'),
+
+    is backward Euler from the extrapolated state x^ = (4 x - x_prev) / 3, v^ = (4 v - v_prev) / 3
+    with the step h' = 2 h / 3: x' = x^ + h' v', M (v' - v^) = h' F(x', v'). So its steps are
+    backward Euler steps of other inputs, on every path the backward Euler step has (captured
+    steps, preconditioners, contact, Newton iterations). ``imposed_velocity``: the constrained
+    nodes' v' (with ``previous``, the velocity that takes them from x^ to their target over h').
+    Returns what :func:`implicit_euler_step` returns."""
+    if previous is None:
+        return implicit_euler_step(system, x, v, dataclasses.replace(opts, integrator="backward_euler"),
+                                   imposed_velocity)
+    x_hat, v_hat = bdf2_extrapolation(x, v, previous)
+    return implicit_euler_step(system, x_hat, v_hat, bdf2_options(opts), imposed_velocity)
+
+
+def bdf2_extrapolation(x: torch.Tensor, v: torch.Tensor, previous) -> tuple:
+    """(x^, v^) = ((4 x - x_prev) / 3, (4 v - v_prev) / 3) ``[V, d]`` (:func:`bdf2_step`)."""
+    x_prev, v_prev = previous
+    return (4.0 * x - x_prev) / 3.0, (4.0 * v - v_prev) / 3.0
+
+
+def bdf2_options(opts: StepOptions) -> StepOptions:
+    """The backward Euler step a BDF2 step with ``opts`` is: dt' = 2 dt / 3."""
+    return dataclasses.replace(opts, dt=2.0 * opts.dt / 3.0, integrator="backward_euler")
 
 
 def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed_velocity=None):
@@ -998,6 +1035,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         (x_new, v_new, StepReport). Raises SolverError, leaving inputs untouched, when a solve
         fails or the new state is not finite.
     """
+    if opts.integrator == "bdf2":
+        raise ValueError("a BDF2 step needs the state before: use bdf2_step")
     graphs = step_graphs_for(system, opts, imposed_velocity is not None)
     if graphs is not None:
         return graphs.step(x, v, imposed_velocity)
