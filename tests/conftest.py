@@ -362,3 +362,22 @@ def load_script(folder: str, name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def group_meshes(dtype=torch.float64):
+    """One small mesh per element-group kind: ``{"tet", "tri2d", "membrane"}`` (the membrane
+    lifted out of its plane, so that its projectors are not the identity's block)."""
+    tet = beam_mesh(2, 2, 3, size=(0.1, 0.1, 0.3), dtype=dtype)
+    planar = beam_tri_mesh(3, 2, size=(0.3, 0.2), dtype=dtype)
+    membrane = beam_tri_mesh(3, 2, size=(0.3, 0.2), dim=3, dtype=dtype)
+    gen = torch.Generator().manual_seed(0)
+    lifted = membrane.vertices + torch.cat([torch.zeros(membrane.num_vertices, 2, dtype=dtype),
+                                            0.05 * torch.rand(membrane.num_vertices, 1, generator=gen, dtype=dtype)], 1)
+    return {"tet": tet, "tri2d": planar, "membrane": TriMesh(lifted, membrane.elements)}
+
+
+#: (kind, model, form) of every element group a model builds (membranes have no corotational model)
+GROUP_CASES = [(kind, model, form) for kind in ("tet", "tri2d", "membrane")
+               for model, form in (("hooke", "tensor"), ("hooke", "stress"), ("stvk", "tensor"), ("stvk", "stress"),
+                                   ("corotational", "stress"))
+               if not (kind == "membrane" and model == "corotational")]

@@ -165,9 +165,9 @@ def _covered_cells(low: torch.Tensor, high: torch.Tensor, cell):
 
 
 def _sum_into(num_nodes: int, nodes: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """``[V, 3]`` zeros plus ``values [M, 3]`` summed at ``nodes [M]``, in an order that does not
+    """``[V, k]`` zeros plus ``values [M, k]`` summed at ``nodes [M]``, in an order that does not
     depend on the run (index_put_'s accumulation sorts by index; index_add_ would use atomics)."""
-    out = values.new_zeros(num_nodes, 3)
+    out = values.new_zeros(num_nodes, values.shape[-1])
     return out.index_put_((nodes,), values, accumulate=True)
 
 
@@ -290,6 +290,19 @@ class ContactPairs:
             per_axis = per_axis + (damping * self.friction)[:, None] * (1.0 - along)
         per_entry = (self._coefficients() ** 2)[:, :, None] * per_axis[:, None, :]  # [P, 4, 3]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 3))
+
+    def stiffness_blocks(self, coefficient: float, damping: float = 0.0) -> torch.Tensor:
+        """The diagonal blocks ``[V, 3, 3]`` of the pairs' part of the step's matrix (as
+        :meth:`stiffness_diagonal`, whose diagonals they hold): coef_i^2 (a u u^T + b (I - u u^T))
+        at node i."""
+        along = self.direction[:, :, None] * self.direction[:, None, :]  # [P, 3, 3]
+        stiffness = torch.as_tensor(coefficient * self.stiffness, dtype=along.dtype, device=along.device)
+        per_pair = (stiffness.reshape(-1, 1, 1) if stiffness.dim() else stiffness) * along
+        if self.friction is not None and damping:
+            eye = torch.eye(3, dtype=along.dtype, device=along.device)
+            per_pair = per_pair + (damping * self.friction)[:, None, None] * (eye - along)
+        per_entry = (self._coefficients() ** 2)[:, :, None, None] * per_pair[:, None]  # [P, 4, 3, 3]
+        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 9)).view(-1, 3, 3)
 
     def energy(self) -> torch.Tensor:
         """The penalty energy (0-dim): sum over pairs of k/2 g^2."""

@@ -442,6 +442,22 @@ class TensorMass(nn.Module):
             cache = self.__dict__["_stiffness_diagonal"] = (tensors, tuple(t._version for t in tensors), total)
         return cache[2]
 
+    def stiffness_diagonal_blocks(self) -> torch.Tensor:
+        """The diagonal blocks ``[V, d, d]`` of the linear stiffness at rest, K_ii = -sum_j K_ij
+        over the edges of :meth:`rest_stiffness_edges` (what a block-Jacobi preconditioner
+        inverts), kept while the groups' tensors are unmodified (a cut edits them in place)."""
+        tensors = tuple(t for group in self.groups for t in group.buffers())
+        cache = self.__dict__.get("_stiffness_blocks")
+        if not library.unchanged(cache, tensors):
+            edges, blocks = self.rest_stiffness_edges()
+            flat = blocks.reshape(blocks.shape[0], -1)
+            both = torch.cat([-flat, -blocks.transpose(1, 2).reshape(flat.shape)])
+            nodes = torch.cat([edges[:, 0], edges[:, 1]])
+            total = flat.new_zeros(self.num_nodes, flat.shape[1]).index_put_((nodes,), both, accumulate=True)
+            total = total.view(self.num_nodes, *blocks.shape[1:])
+            cache = self.__dict__["_stiffness_blocks"] = (tensors, tuple(t._version for t in tensors), total)
+        return cache[2]
+
     def rest_stiffness_edges(self):
         """Every group's :meth:`ElementGroup.rest_stiffness_edges` in one list ``(edges [E, 2],
         blocks [E, d, d])`` (an edge two groups share appears twice: its blocks add)."""

@@ -19,15 +19,7 @@ import numpy as np
 import torch
 
 from ..errors import SceneError
-
-
-def _cholespy():
-    try:
-        import cholespy
-    except ImportError as err:  # pragma: no cover (the test set-up installs it)
-        raise SceneError("preconditioner='cholesky' factorises with cholespy, which is not installed: "
-                         "pip install cholespy (or tensormass_torch[direct])") from err
-    return cholespy
+from .preconditioner import optional_module
 
 
 class RestCholesky:
@@ -36,7 +28,7 @@ class RestCholesky:
     ``device``."""
 
     def __init__(self, matrix, dtype: torch.dtype, device):
-        cholespy = _cholespy()
+        cholespy = optional_module("cholespy", "cholesky", "factorises", "direct")
         coo = matrix.tocoo()
         solver = {torch.float32: cholespy.CholeskySolverF, torch.float64: cholespy.CholeskySolverD}.get(dtype)
         if solver is None:

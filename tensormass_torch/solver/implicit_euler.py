@@ -39,7 +39,13 @@ from ..ops import node_graph, solve
 from ..ops.segments import Segments
 from ..ops.variants import DEFAULT, KernelVariants
 from .cg import CGResult, CGSolver, batched_cg, run_captured
-from .preconditioner import PRECONDITIONERS, JacobiScaling, MultigridSolve, system_diagonal, system_rest_preconditioner
+from .preconditioner import (
+    PRECONDITIONERS,
+    JacobiScaling,
+    MultigridSolve,
+    system_diagonal_blocks,
+    system_rest_preconditioner,
+)
 
 
 def auto_cg_max_iter(free_dofs: int) -> int:
@@ -583,8 +589,8 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
     if scaling is not None:  # CG on S A S y = S b, x = S y (solver.preconditioner)
         matvec = scaling.product(matvec)
         graph_key = None if graph_key is None else (graph_key, scaling.key)
-        rhs = rhs * scaling.scale
-        x0 = None if x0 is None else x0 / scaling.scale
+        rhs = scaling.apply(rhs)
+        x0 = None if x0 is None else scaling.unapply(x0)
     coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key, x0, multigrid)
                if pairs is not None and len(pairs) else None)
     if coupled is not None:
@@ -598,7 +604,7 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
                                                                 check_every=opts.check_every, graph_key=graph_key,
                                                                 preconditioner=multigrid)
     if scaling is not None:
-        result = dataclasses.replace(result, solution=result.solution * scaling.scale)
+        result = dataclasses.replace(result, solution=scaling.apply(result.solution))
     return result
 
 
@@ -622,7 +628,7 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
 
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):
-    """The system's ``preconditioner.JacobiScaling`` loaded with this solve's diagonal where
+    """The system's ``preconditioner.JacobiScaling`` loaded with this solve's 3x3 diagonal blocks where
     ``opts.preconditioner`` asks for it (``"auto"``: where body contact ``pairs`` join the solve)
     and the model has a loaded product ``fused`` (a TensorMass); None otherwise."""
     with_pairs = pairs is not None and len(pairs) > 0
@@ -630,8 +636,8 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
         return None
     if system._jacobi is None:
         system._jacobi = JacobiScaling()
-    return system._jacobi.load(system_diagonal(system, mass_coef, stiffness_coef, fused.node_stiffness,
-                                               pairs if with_pairs else None, opts.dt))
+    return system._jacobi.load(system_diagonal_blocks(system, mass_coef, stiffness_coef, fused.node_stiffness,
+                                                      pairs if with_pairs else None, opts.dt))
 
 
 def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs, graph_key=None,

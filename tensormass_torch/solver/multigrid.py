@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from ..errors import SceneError
+from .preconditioner import optional_module
 
 #: Unknowns of the coarsest level (solved with a dense inverse): coarsening stops below it, and
 #: a hierarchy whose coarsest level is above ``MAX_DIRECT`` (a mesh aggregation cannot reduce)
@@ -56,15 +57,6 @@ MAX_DIRECT = 20000
 #: penalties a step adds (an estimate made at rest would not bound them); the margin covers the
 #: finest level's step tangent, whose row sums are those at rest.
 CHEBYSHEV_TOP = 1.1
-
-
-def _pyamg():
-    try:
-        import pyamg
-    except ImportError as err:  # pragma: no cover (the test set-up installs it)
-        raise SceneError("preconditioner='multigrid' builds its hierarchy with pyamg, which is not installed: "
-                         "pip install pyamg (or tensormass_torch[multigrid])") from err
-    return pyamg
 
 
 def rigid_body_modes(positions: torch.Tensor) -> np.ndarray:
@@ -216,7 +208,7 @@ class Multigrid:
 
     def __init__(self, matrix, modes: np.ndarray, dtype: torch.dtype, device, degree: int = 2,
                  coarse_size: int = COARSE_SIZE):
-        pyamg = _pyamg()
+        pyamg = optional_module("pyamg", "multigrid", "builds its hierarchy", "multigrid")
         if degree < 1:
             raise ValueError(f"multigrid smoothing degree must be >= 1, got {degree}")
         # pyamg counts a level's size in blocks; the coarse levels' blocks are the modes

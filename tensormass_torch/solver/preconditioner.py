@@ -20,6 +20,11 @@ solve.
 The diagonal is the system's own, c_M m + c_K (K_rest + node stiffness) + the pairs' part, with
 K_rest the elastic stiffness's diagonal at rest (``TensorMass.stiffness_diagonal``: exact for
 hooke, near the tangent's for stvk and corotational, which is all a preconditioner needs).
+
+Block Jacobi (``"jacobi"`` in 3-D and 2-D alike) divides by each node's whole d x d diagonal
+block B instead: S = B^(-1/2) (symmetric, from B's eigendecomposition), the same S A S form. A
+penalty k n n^T along a tilted normal, a membrane's in-plane stiffness, a node of a thin body
+couple a node's axes; the block takes them in where the diagonal cannot.
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ from typing import Optional
 
 import torch
 
+from ..errors import SceneError
 from ..ops import library
 
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
@@ -38,22 +44,40 @@ PRECONDITIONERS = ("auto", "none", "jacobi", "multigrid", "cholesky")
 
 
 class JacobiScaling:
-    """S = D^(-1/2) ``[V, d]`` in a buffer whose storage stays from solve to solve (a CUDA graph
-    captured over the scaled product replays with each step's diagonal)."""
+    """S = D^(-1/2) ``[V, d]`` (Jacobi) or S = B^(-1/2) ``[V, d, d]`` (3x3 block Jacobi: each
+    node's diagonal block B, S symmetric) and S^-1, in buffers whose storage stays from solve to
+    solve (a CUDA graph captured over the scaled product replays with each step's)."""
 
     def __init__(self):
         self.scale: Optional[torch.Tensor] = None
+        self.inverse: Optional[torch.Tensor] = None
 
     def load(self, diagonal: torch.Tensor) -> "JacobiScaling":
-        """Take the system's diagonal ``[V, d]``; rows whose diagonal is not positive (a node
-        with no mass and no element left, whose row CG never moves) are left unscaled."""
-        scale = torch.where(diagonal > 0, torch.rsqrt(diagonal.clamp(min=torch.finfo(diagonal.dtype).tiny)),
-                            torch.ones_like(diagonal))
+        """Take the system's diagonal ``[V, d]`` or diagonal blocks ``[V, d, d]``; rows (blocks)
+        that are not positive (definite) (a node with no mass and no element left, whose row CG
+        never moves) are left unscaled."""
+        if diagonal.dim() == 3:
+            values, vectors = torch.linalg.eigh(diagonal)
+            positive = (values > 0).all(-1)
+            safe = values.clamp(min=torch.finfo(values.dtype).tiny)
+            eye = torch.eye(diagonal.shape[-1], dtype=diagonal.dtype, device=diagonal.device)
+
+            def power(exponent):
+                blocks = (vectors * safe.pow(exponent)[..., None, :]) @ vectors.transpose(-1, -2)
+                return torch.where(positive[:, None, None], blocks, eye)
+
+            scale, inverse = power(-0.5), power(0.5)
+        else:
+            positive = diagonal > 0
+            safe = diagonal.clamp(min=torch.finfo(diagonal.dtype).tiny)
+            scale = torch.where(positive, torch.rsqrt(safe), torch.ones_like(diagonal))
+            inverse = torch.where(positive, torch.sqrt(safe), torch.ones_like(diagonal))
         if self.scale is None or self.scale.shape != scale.shape or self.scale.dtype != scale.dtype \
                 or self.scale.device != scale.device:
-            self.scale = scale
+            self.scale, self.inverse = scale, inverse
         else:
             self.scale.copy_(scale)
+            self.inverse.copy_(inverse)
         return self
 
     @property
@@ -61,16 +85,39 @@ class JacobiScaling:
         """What a graph captured over :meth:`product` depends on: the buffer's storage."""
         return ("jacobi", self.scale.data_ptr())
 
+    def apply(self, v: torch.Tensor) -> torch.Tensor:
+        """S v ``[V, d]``."""
+        if self.scale.dim() == 3:
+            return torch.einsum("vab,vb->va", self.scale, v)
+        return v * self.scale
+
+    def unapply(self, v: torch.Tensor) -> torch.Tensor:
+        """S^-1 v ``[V, d]``."""
+        if self.inverse.dim() == 3:
+            return torch.einsum("vab,vb->va", self.inverse, v)
+        return v * self.inverse
+
     def product(self, matvec):
         """p -> S A (S p) ``[V, d]`` for the product ``matvec`` (A p, or a fused product's
         (A p, p . Ap) whose dots are dropped: the CG takes its own on the scaled vectors)."""
-        scale = self.scale
 
         def scaled(p: torch.Tensor) -> torch.Tensor:
-            out = matvec(p * scale)
-            return (out[0] if isinstance(out, tuple) else out) * scale
+            out = matvec(self.apply(p))
+            return self.apply(out[0] if isinstance(out, tuple) else out)
 
         return scaled
+
+
+def optional_module(name: str, choice: str, does: str, extra: str):
+    """The module ``name`` a preconditioner ``choice`` needs, or one SceneError saying how to
+    install it (``does``: what it does with it; ``extra``: the package's extra that brings it)."""
+    import importlib
+
+    try:
+        return importlib.import_module(name)
+    except ImportError as err:
+        raise SceneError(f"preconditioner={choice!r} {does} with {name}, which is not installed: "
+                         f"pip install {name} (or tensormass_torch[{extra}])") from err
 
 
 def system_diagonal(system, mass_coef: float, stiffness_coef: float, node_stiffness: Optional[torch.Tensor],
@@ -163,5 +210,22 @@ class MultigridSolve:
         return self.multigrid(r, self.product, self.inverse_diagonal)
 
 
-__all__ = ["PRECONDITIONERS", "JacobiScaling", "MultigridSolve", "system_diagonal", "system_multigrid",
+def system_diagonal_blocks(system, mass_coef: float, stiffness_coef: float, node_stiffness: Optional[torch.Tensor],
+                           pairs=None, pair_damping: float = 0.0) -> torch.Tensor:
+    """The diagonal blocks ``[V, d, d]`` of a step's matrix, as :func:`system_diagonal` gives its
+    diagonal: mass, the elastic stiffness's blocks at rest (``TensorMass.stiffness_diagonal_blocks``),
+    the node stiffness and the pairs' blocks."""
+    blocks = stiffness_coef * system.model.stiffness_diagonal_blocks()
+    d = blocks.shape[-1]
+    blocks = blocks + (mass_coef * system.mass.reshape(-1))[:, None, None] * torch.eye(
+        d, dtype=blocks.dtype, device=blocks.device)
+    if node_stiffness is not None:
+        blocks = blocks + stiffness_coef * node_stiffness
+    if pairs is not None and len(pairs):
+        blocks = blocks + pairs.stiffness_blocks(stiffness_coef, pair_damping)
+    return blocks
+
+
+__all__ = ["PRECONDITIONERS", "JacobiScaling", "MultigridSolve", "system_diagonal", "system_diagonal_blocks",
+           "system_multigrid",
            "system_rest_preconditioner"]

@@ -9,6 +9,7 @@ import sys
 
 import pytest
 import torch
+from conftest import GROUP_CASES, group_meshes
 
 import tensormass_torch as tm
 from tensormass_torch.ops.segments import Segments
@@ -31,27 +32,11 @@ def beam_sim(cells=(12, 3, 3), model="hooke", young=1e5, preconditioner="multigr
                         **options)
 
 
-def meshes():
-    tet = tm.beam_mesh(4, 2, 2, size=(0.4, 0.2, 0.2), dtype=DT)
-    planar = tm.beam_tri_mesh(5, 3, size=(0.5, 0.3), dtype=DT)
-    membrane = tm.beam_tri_mesh(5, 3, size=(0.5, 0.3), dim=3, dtype=DT)
-    gen = torch.Generator().manual_seed(0)
-    lifted = membrane.vertices + torch.cat([torch.zeros(membrane.num_vertices, 2, dtype=DT),
-                                            0.05 * torch.rand(membrane.num_vertices, 1, generator=gen, dtype=DT)], 1)
-    return {"tet": tet, "tri2d": planar, "membrane": tm.TriMesh(lifted, membrane.elements)}
-
-
-CASES = [(kind, model, form) for kind in ("tet", "tri2d", "membrane")
-         for model, form in (("hooke", "tensor"), ("hooke", "stress"), ("stvk", "tensor"), ("stvk", "stress"),
-                             ("corotational", "stress"))
-         if not (kind == "membrane" and model == "corotational")]
-
-
-@pytest.mark.parametrize("kind,model,form", CASES)
+@pytest.mark.parametrize("kind,model,form", GROUP_CASES)
 def test_the_rest_matrix_is_the_steps_product_at_rest(kind, model, form):
     """c_M M + c_K K_rest assembled from the groups' edge blocks equals the step's product at
     rest on free rows and is the identity on fixed ones."""
-    mesh = meshes()[kind]
+    mesh = group_meshes()[kind]
     fixed = mesh.vertices[:, 0] == 0
     body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000, model=model), fixed=fixed)
     sim = tm.Simulator([body], dt=0.01, cuda_graphs=False, form=form)

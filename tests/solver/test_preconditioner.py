@@ -5,11 +5,12 @@ import dataclasses
 
 import pytest
 import torch
+from conftest import GROUP_CASES, group_meshes
 
 import tensormass_torch as tm
 from tensormass_torch.physics.body_contact import Contact, PairStiffness, SurfaceContact
 from tensormass_torch.solver.implicit_euler import _coefficients, implicit_euler_step
-from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagonal
+from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagonal, system_diagonal_blocks
 
 DT = torch.float64
 
@@ -25,27 +26,10 @@ def probed_diagonal(product, shape):
     return out
 
 
-def meshes():
-    tet = tm.beam_mesh(2, 2, 3, size=(0.1, 0.1, 0.3), dtype=DT)
-    planar = tm.beam_tri_mesh(3, 2, size=(0.3, 0.2), dtype=DT)
-    membrane = tm.beam_tri_mesh(3, 2, size=(0.3, 0.2), dim=3, dtype=DT)
-    gen = torch.Generator().manual_seed(0)
-    # a membrane out of its plane, so that its projectors are not the identity's block
-    lifted = membrane.vertices + torch.cat([torch.zeros(membrane.num_vertices, 2, dtype=DT),
-                                            0.05 * torch.rand(membrane.num_vertices, 1, generator=gen, dtype=DT)], 1)
-    return {"tet": tet, "tri2d": planar, "membrane": tm.TriMesh(lifted, membrane.elements)}
-
-
-CASES = [(kind, model, form) for kind in ("tet", "tri2d", "membrane")
-         for model, form in (("hooke", "tensor"), ("hooke", "stress"), ("stvk", "tensor"), ("stvk", "stress"),
-                             ("corotational", "stress"))
-         if not (kind == "membrane" and model == "corotational")]
-
-
-@pytest.mark.parametrize("kind,model,form", CASES)
+@pytest.mark.parametrize("kind,model,form", GROUP_CASES)
 def test_stiffness_diagonal_is_the_rest_stiffness_diagonal(kind, model, form):
     """Every group's diagonal equals the probed diagonal of -dF/dx at rest."""
-    mesh = meshes()[kind]
+    mesh = group_meshes()[kind]
     tensor_mass = tm.TensorMass(mesh, tm.Material(young=1e5, poisson=0.3, density=1000, model=model), form=form)
     rest = tensor_mass.rest
     expected = probed_diagonal(lambda e: -tensor_mass.dforce(rest, e), rest.shape)
@@ -68,6 +52,31 @@ def test_the_diagonal_follows_a_cut(form):
     after = tensor_mass.stiffness_diagonal()
     assert not torch.equal(after, before)
     torch.testing.assert_close(after, expected, rtol=1e-12, atol=1e-12 * float(expected.abs().max()))
+
+
+def probed_blocks(product, shape):
+    """The diagonal blocks ``[V, d, d]`` of a linear map on ``[V, d]`` fields."""
+    out = torch.zeros(shape[0], shape[1], shape[1], dtype=DT)
+    for a in range(shape[1]):
+        for i in range(shape[0]):
+            e = torch.zeros(shape, dtype=DT)
+            e[i, a] = 1.0
+            out[i, :, a] = product(e)[i]
+    return out
+
+
+@pytest.mark.parametrize("kind,model,form", GROUP_CASES)
+def test_stiffness_blocks_are_the_rest_stiffness_blocks(kind, model, form):
+    """Every node's d x d block of -dF/dx at rest, and after a cut."""
+    mesh = group_meshes()[kind]
+    tensor_mass = tm.TensorMass(mesh, tm.Material(young=1e5, poisson=0.3, density=1000, model=model), form=form)
+    rest = tensor_mass.rest
+    for cut in (False, True):
+        if cut:
+            tensor_mass.remove_elements(torch.tensor([0, 3]))
+        expected = probed_blocks(lambda e: -tensor_mass.dforce(rest, e), rest.shape)
+        blocks = tensor_mass.stiffness_diagonal_blocks()
+        torch.testing.assert_close(blocks, expected, rtol=1e-12, atol=1e-12 * float(expected.abs().max()))
 
 
 def two_blocks_in_contact(preconditioner="auto", friction=0.0, cg_tol=1e-13):
@@ -108,6 +117,46 @@ def test_the_system_diagonal_is_the_step_matrix_diagonal(friction):
     expected = probed_diagonal(lambda e: loaded(e)[0] + stiffness(e), sim.x.shape)
     diagonal = system_diagonal(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness, pairs, sim.options.dt)
     torch.testing.assert_close(diagonal, expected, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.4])
+def test_the_system_blocks_are_the_step_matrix_blocks(friction):
+    """system_diagonal_blocks equals the probed diagonal blocks of the step's whole product (the
+    floor and pairs with their friction couple a node's axes)."""
+    sim = two_blocks_in_contact(friction=friction)
+    gen = torch.Generator().manual_seed(1)
+    sim.v = 0.05 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
+    loaded, pairs = loaded_step_matrix(sim)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    stiffness = PairStiffness()
+    stiffness.load(pairs, stiffness_coef, sim.options.dt)
+    expected = probed_blocks(lambda e: loaded(e)[0] + stiffness(e), sim.x.shape)
+    blocks = system_diagonal_blocks(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness, pairs,
+                                    sim.options.dt)
+    torch.testing.assert_close(blocks, expected, rtol=1e-12, atol=1e-14)
+    off = blocks - torch.diag_embed(torch.diagonal(blocks, dim1=-2, dim2=-1))
+    assert float(off.abs().max()) > 1e-6 * float(blocks.abs().max())  # the blocks are not diagonal
+
+
+def test_the_block_scaling_is_b_to_the_minus_half():
+    """With blocks, S = B^(-1/2): symmetric, S B S = I per node, S^-1 its inverse; the product is
+    S A S; a node whose block is zero stays unscaled."""
+    gen = torch.Generator().manual_seed(5)
+    a = torch.randn(12, 12, generator=gen, dtype=DT)
+    a = a @ a.T + 12 * torch.eye(12, dtype=DT)
+    blocks = torch.stack([a[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(4)]).clone()
+    blocks[2] = 0.0
+    scaling = JacobiScaling().load(blocks)
+    s = scaling.scale
+    torch.testing.assert_close(s, s.transpose(1, 2))
+    for i in (0, 1, 3):
+        torch.testing.assert_close(s[i] @ blocks[i] @ s[i], torch.eye(3, dtype=DT))
+    torch.testing.assert_close(s[2], torch.eye(3, dtype=DT))
+    p = torch.randn(4, 3, generator=gen, dtype=DT)
+    torch.testing.assert_close(scaling.unapply(scaling.apply(p)), p)
+    big = torch.block_diag(*s)
+    expected = (big @ a @ big) @ p.reshape(-1)
+    torch.testing.assert_close(scaling.product(lambda q: (a @ q.reshape(-1)).view(4, 3))(p).reshape(-1), expected)
 
 
 def test_the_scaled_product_is_s_a_s():
