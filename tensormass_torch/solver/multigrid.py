@@ -17,7 +17,7 @@ V-cycle runs there (``Multigrid.__call__``):
 
     level l < L:  x = S_l b (pre-smoothing from 0);  r = b - A_l x;  x += P_l V_{l+1}(P_l^T r);
                   x += S_l (b - A_l x) (post-smoothing)
-                  (level 0: the step's own product and diagonal, where the solve gives them)
+                  (level 0: the step's own product and scaling, where the solve gives them)
     level L:      x = A_L^-1 b (a dense inverse, from a Cholesky factorisation made once: one
                   matrix-vector product, where triangular solves would be sequential)
 
@@ -29,12 +29,11 @@ are the GPU's: products and vector updates, no ordering as Gauss-Seidel would ne
 
 Invariants: objects of a packed batch share no edge, so no aggregate crosses two objects and
 the cycle acts on each object alone (what the batched CG's per-object scalars assume). The
-coarse levels see the rest stiffness only; the finest level smooths with the step's own
-product and diagonal (the floor's and tools' stiffness, stvk's and corotational's tangents,
-body contact pairs), so the penalties that add tens of times the elastic diagonal to a few
-rows are smoothed where they act. Where the step's matrix differs from the rest one, the
-cycle is an approximation of its inverse (more iterations, never a wrong answer: the stopping
-rule is on the true residual).
+finest level smooths with the step's own product (the floor's and tools' stiffness, stvk's and
+corotational's tangents, body contact pairs); the coarse levels hold the rest stiffness plus
+the floor's and tools' node stiffness (:meth:`Multigrid.load`, each solve). Where the step's
+matrix differs from that (tangents, pairs), the cycle approximates its inverse: more
+iterations, never a wrong answer (the stopping rule is on the true residual).
 """
 from __future__ import annotations
 
