@@ -64,6 +64,28 @@ void cg_dot_cpu(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chun
   });
 }
 
+void cg_dot_beta_cpu(const at::Tensor& r, const at::Tensor& z, const at::Tensor& chunk_start,
+                     const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
+                     at::Tensor rz, at::Tensor beta, at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_dot_beta(r, z, chunk_start, chunk_object, object_chunk, status, rz, beta, scratch,
+                                        counter);
+  AT_DISPATCH_FLOATING_TYPES(r.scalar_type(), "cg_dot_beta", [&] {
+    const int64_t d = values_per_node(r);
+    const scalar_t* a = r.data_ptr<scalar_t>();
+    const scalar_t* b = z.data_ptr<scalar_t>();
+    const int32_t* st = status.data_ptr<int32_t>();
+    double* sums = scratch.data_ptr<double>();
+    for_each_chunk(plan, d, st, [&](int64_t c, int64_t begin, int64_t end) { sums[c] = chunk_dot(a, b, begin * d, end * d); });
+    scalar_t* rz_b = rz.data_ptr<scalar_t>();
+    scalar_t* beta_b = beta.data_ptr<scalar_t>();
+    for (int64_t o = 0; o < plan.num_objects; ++o) {
+      if (st[o] != kActive) continue;
+      const scalar_t total = static_cast<scalar_t>(object_sum(sums, plan.object_chunk, o));
+      beta_b[o] = pcg_beta_step<scalar_t>(total, rz_b[o]);
+    }
+  });
+}
+
 void euler_update_cpu(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c10::optional<at::Tensor>& dv_imposed,
                       double h, at::Tensor x_new, at::Tensor v_new, const at::Tensor& chunk_start,
                       const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
@@ -104,6 +126,7 @@ void euler_update_cpu(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c1
 TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
   m.impl("euler_update", &tensormass::euler_update_cpu);
   m.impl("cg_dot", &tensormass::cg_dot_cpu);
+  m.impl("cg_dot_beta", &tensormass::cg_dot_beta_cpu);
   m.impl("cg_alpha", &tensormass::cg_alpha_cpu);
   m.impl("cg_update", &tensormass::cg_update_cpu);
   m.impl("cg_direction", &tensormass::cg_direction_cpu);

@@ -84,6 +84,27 @@ __global__ void __launch_bounds__(kBlock) cg_dot_kernel(const S* __restrict__ a,
   }
 }
 
+// cg_dot_beta: cg_dot's sums over the chunks of active objects; the object's last block takes
+// preconditioned CG's beta and r.z (pcg_beta_step).
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_dot_beta_kernel(const S* __restrict__ a, const S* __restrict__ b,
+                                                             CGPlan plan, int64_t d, const int32_t* status, S* rz,
+                                                             S* beta, double* scratch, int32_t* counter) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+  if (status[object] != kActive) return;
+  double acc = 0.0;
+  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+    acc += static_cast<double>(a[j]) * static_cast<double>(b[j]);
+  }
+  const double chunk_total = block_sum(acc);
+  double total = 0.0;
+  if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
+    S rz_b = rz[object];
+    beta[object] = pcg_beta_step<S>(static_cast<S>(total), rz_b);
+    rz[object] = rz_b;
+  }
+}
+
 // euler_update: one block per chunk; the object's last block writes its summary column (and ring
 // row): finish_step_summary.
 template <typename S>
@@ -161,6 +182,21 @@ void cg_dot_cuda(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chu
   });
 }
 
+void cg_dot_beta_cuda(const at::Tensor& r, const at::Tensor& z, const at::Tensor& chunk_start,
+                      const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
+                      at::Tensor rz, at::Tensor beta, at::Tensor scratch, at::Tensor counter) {
+  const CGPlan plan = check_cg_dot_beta(r, z, chunk_start, chunk_object, object_chunk, status, rz, beta, scratch,
+                                        counter);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(r.device());
+  AT_DISPATCH_FLOATING_TYPES(r.scalar_type(), "cg_dot_beta", [&] {
+    cg_dot_beta_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        r.data_ptr<scalar_t>(), z.data_ptr<scalar_t>(), plan, values_per_node(r), status.data_ptr<int32_t>(),
+        rz.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>(), scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
 void euler_update_cuda(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c10::optional<at::Tensor>& dv_imposed,
                        double h, at::Tensor x_new, at::Tensor v_new, const at::Tensor& chunk_start,
                        const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& status,
@@ -188,6 +224,7 @@ void euler_update_cuda(at::Tensor x, at::Tensor v, const at::Tensor& dv, const c
 TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
   m.impl("euler_update", &tensormass::euler_update_cuda);
   m.impl("cg_dot", &tensormass::cg_dot_cuda);
+  m.impl("cg_dot_beta", &tensormass::cg_dot_beta_cuda);
   m.impl("cg_alpha", &tensormass::cg_alpha_cuda);
   m.impl("cg_update", &tensormass::cg_update_cuda);
   m.impl("cg_direction", &tensormass::cg_direction_cuda);

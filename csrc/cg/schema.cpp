@@ -30,6 +30,11 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   per-object a . b (every object, active or not).
   m.def("cg_dot(Tensor a, Tensor b, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
         "Tensor(a!) out, Tensor(b!) scratch, Tensor(c!) counter) -> ()");
+  // cg_dot_beta(r, z [V, d], <chunk plan>, status, rz! [B], beta! [B], scratch!, counter!)
+  //   preconditioned CG's direction coefficient: per active object rz_new = r . z (cg_dot's sums),
+  //   beta = rz_new / rz, rz = rz_new; objects that are not active are skipped.
+  m.def("cg_dot_beta(Tensor r, Tensor z, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
+        "Tensor status, Tensor(a!) rz, Tensor(b!) beta, Tensor(c!) scratch, Tensor(d!) counter) -> ()");
   // euler_update(x!, v!, dv, dv_imposed?, h, x_new!, v_new!, <chunk plan>, status, iterations, rr, rhs_sq,
   //              norms!, summary!, scratch!, counter! [B + 1], ring!?, ring_pos!?, carry, h_old=0)
   //   the end of an implicit step after its CG (common/cg.h: EulerUpdate, StepSummary):

@@ -66,6 +66,15 @@ TM_HD S cg_beta_step(double rr_new_sum, S& rr, S threshold, int64_t max_iter, in
   return rr_new / rr_old;
 }
 
+// Preconditioned CG's direction coefficient after z = M^-1 r: beta = r'.z' / r.z, and r.z kept
+// for the next iteration.
+template <typename S>
+TM_HD S pcg_beta_step(S rz_new, S& rz) {
+  const S beta = rz_new / rz;
+  rz = rz_new;
+  return beta;
+}
+
 // The start of a solve from x0 = 0 (CGSolver.start): r = p = b, rr = b.b; the object is
 // non-finite, already converged (b.b <= tol^2 b.b, i.e. b = 0), capped (max_iter = 0) or active.
 template <typename S>

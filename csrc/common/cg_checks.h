@@ -120,6 +120,17 @@ inline CGPlan check_cg_dot(const at::Tensor& a, const at::Tensor& b, const at::T
   return plan;
 }
 
+// cg_dot_beta: cg_dot's operands, the statuses and the preconditioned scalars r.z and beta.
+inline CGPlan check_cg_dot_beta(const at::Tensor& r, const at::Tensor& z, const at::Tensor& chunk_start,
+                                const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                                const at::Tensor& status, const at::Tensor& rz, const at::Tensor& beta,
+                                const at::Tensor& scratch, const at::Tensor& counter) {
+  const CGPlan plan = check_cg_dot(r, z, chunk_start, chunk_object, object_chunk, rz, scratch, counter);
+  cg_check_state(status, "status", r, plan.num_objects);
+  cg_check_scalars(beta, "beta", r, plan.num_objects);
+  return plan;
+}
+
 // ------------------------------------------------------------------ the end of an implicit Euler step: checks
 
 inline CGPlan check_euler_update(const at::Tensor& x, const at::Tensor& v, const at::Tensor& dv,

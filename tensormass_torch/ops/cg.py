@@ -10,8 +10,9 @@ Each runs the compiled op ``torch.ops.tensormass.cg_*`` (the cg family, ``csrc/c
 block per chunk of a :class:`ChunkPlan`, deterministic sums, no host synchronisation: capturable in
 a CUDA graph) when the extension serves the device, else the pure-torch reference below, which is
 the tests' oracle. Objects that are not active are left untouched by every step. The family also
-has ``cg_dot`` (per-object dot products) and ``euler_update`` (the end of an implicit Euler step
-after its solve). The ops write into their arguments and return nothing (fake kernels: none).
+has ``cg_dot`` (per-object dot products), ``cg_dot_beta`` (preconditioned CG's r.z and beta) and
+``euler_update`` (the end of an implicit Euler step after its solve). The ops write into their
+arguments and return nothing (fake kernels: none).
 """
 from __future__ import annotations
 
@@ -172,6 +173,21 @@ def object_dot(a: torch.Tensor, b: torch.Tensor, plan: ChunkPlan, out: torch.Ten
     native.cg_dot(a.contiguous(), b.contiguous(), *plan.tensors(), out, s.scratch, s.counter)
 
 
+def _ref_pcg_beta(rz_new: torch.Tensor, status: torch.Tensor, rz: torch.Tensor, beta: torch.Tensor):
+    going = status == ACTIVE
+    beta.copy_(torch.where(going, rz_new / torch.where(going, rz, torch.ones_like(rz)), beta))
+    rz.copy_(torch.where(going, rz_new, rz))
+
+
+def pcg_beta(r: torch.Tensor, z: torch.Tensor, plan: ChunkPlan, rz: torch.Tensor, s: CGState, native=None):
+    """Preconditioned CG's direction coefficient after z = M^-1 r (``[V, d]`` each): per active
+    object rz_new = r . z, ``s.beta = rz_new / rz`` and ``rz = rz_new`` (``[B]``, in place); objects
+    that are not active are left as they are."""
+    if native is None:
+        return _ref_pcg_beta(_object_sums(r * z, plan).to(rz.dtype), s.status, rz, s.beta)
+    native.cg_dot_beta(r.contiguous(), z.contiguous(), *plan.tensors(), s.status, rz, s.beta, s.scratch, s.counter)
+
+
 def native_ops_for(x: torch.Tensor):
     """The compiled CG ops for ``x``'s device and dtype, or None (pure-torch reference)."""
     if x.dtype not in (torch.float32, torch.float64):
@@ -205,6 +221,11 @@ def _ref_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chun
 
 def _ref_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter):
     out.copy_(_object_sums(a * b, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)))
+
+
+def _ref_cg_dot_beta(r, z, chunk_start, chunk_object, object_chunk, status, rz, beta, scratch, counter):
+    plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
+    _ref_pcg_beta(_object_sums(r * z, plan).to(rz.dtype), status, rz, beta)
 
 
 def _ref_euler_update(x, v, dv, dv_imposed, h, x_new, v_new, chunk_start, chunk_object, object_chunk, status,
@@ -258,6 +279,9 @@ def _example(name):
             return (s.p, s.r, s.beta, s.status, *tensors), {}
         if name == "cg_dot":
             return (field, s.p, *tensors, s.rr, s.scratch, s.counter), {}
+        if name == "cg_dot_beta":
+            s.status[1] = CONVERGED  # skipped
+            return (field, s.p, *tensors, s.status, s.rr, s.beta, s.scratch, s.counter), {}
         b = segments.num_objects
         ring = torch.zeros((2, 5, b), dtype=torch.float64, device=device)
         ring_pos = torch.zeros(1, dtype=torch.int64, device=device)
@@ -270,7 +294,7 @@ def _example(name):
 
 
 _REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_update": _ref_cg_update, "cg_direction": _ref_cg_direction,
-               "cg_dot": _ref_cg_dot, "euler_update": _ref_euler_update}
+               "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta, "euler_update": _ref_euler_update}
 OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
                   scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())
 library.define(OPS, lambda: library.register(OPS))

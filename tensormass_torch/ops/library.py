@@ -36,7 +36,7 @@ __all__ = ["FAMILIES", "OpDef", "REGISTRY", "define", "register", "ensure_regist
            "Example", "supports"]
 
 #: The op families, each a folder of csrc/ and a module of this package.
-FAMILIES = ("stress", "tensor_form", "gather", "node_graph", "cg", "solve", "topology", "cutting")
+FAMILIES = ("stress", "tensor_form", "gather", "node_graph", "cg", "solve", "topology", "cutting", "multigrid")
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
 #: see ``reference.stress_form.kernel_model``).

@@ -130,30 +130,28 @@ class CGSolver:
         cg_ops.cg_direction(self.plan, s, self.native)
 
     def _pcg_buffers(self):
-        """The preconditioned iteration's own per-object buffers ``[B]`` (made at its first use):
-        r.z and its next value, and ``scaled``, the state as the plain CG ops see it with r.z in
-        place of r.r (their step length alpha = r.z / p.Ap is then preconditioned CG's)."""
+        """The preconditioned iteration's own per-object buffer ``[B]`` (made at its first use):
+        r.z, and ``scaled``, the state as the plain CG ops see it with r.z in place of r.r (their
+        step length alpha = r.z / p.Ap is then preconditioned CG's)."""
         if self._pcg is None:
             s = self.state
             rz = torch.zeros_like(s.rr)
-            self._pcg = SimpleNamespace(rz=rz, rz_new=torch.zeros_like(s.rr), scaled=dataclasses.replace(s, rr=rz))
+            self._pcg = SimpleNamespace(rz=rz, scaled=dataclasses.replace(s, rr=rz))
         return self._pcg
 
-    def _precondition(self, preconditioner, rz: torch.Tensor) -> torch.Tensor:
-        """z = M^-1 r ``[V, d]`` projected on the free nodes, and r.z per object into ``rz``."""
-        s = self.state
-        z = preconditioner(s.r)
+    def _precondition(self, preconditioner) -> torch.Tensor:
+        """z = M^-1 r ``[V, d]`` projected on the free nodes."""
+        z = preconditioner(self.state.r)
         if self.free is not None:
-            z = z * self.free
-        cg_ops.object_dot(s.r, z, self.plan, rz, s, self.native)
+            z = z.mul_(self.free) if z is not self.state.r else z * self.free
         return z.contiguous()
 
     def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
         """One preconditioned iteration through the plain CG's ops: the step length from r.z
         (``cg_alpha`` on the state with r.z for r.r), the update of x, r, r.r, statuses and
         counts (``cg_update``: the stopping rule on the true residual), then z = M^-1 r,
-        beta = r'.z' / r.z and p = z + beta p (``cg_direction`` with z for r); objects that are
-        not active stay as they are."""
+        beta = r'.z' / r.z (``pcg_beta``) and p = z + beta p (``cg_direction`` with z for r);
+        objects that are not active stay as they are."""
         s, b = self.state, self._pcg_buffers()
         fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
         ap = fused(s.p, self.plan, b.scaled) if fused is not None else None
@@ -161,10 +159,8 @@ class CGSolver:
             ap, p_dot_ap = self._apply(matvec, s.p)
             cg_ops.cg_alpha(p_dot_ap, self.plan, b.scaled, self.native)
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
-        z = self._precondition(preconditioner, b.rz_new)
-        going = s.status == ACTIVE
-        s.beta.copy_(torch.where(going, b.rz_new / torch.where(going, b.rz, 1.0), 0.0))
-        b.rz.copy_(torch.where(going, b.rz_new, b.rz))
+        z = self._precondition(preconditioner)
+        cg_ops.pcg_beta(s.r, z, self.plan, b.rz, s, self.native)
         cg_ops.cg_direction(self.plan, dataclasses.replace(s, r=z), self.native)
 
     def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int,
@@ -251,7 +247,9 @@ class CGSolver:
         if preconditioner is None:
             s.p.copy_(s.r)
         else:
-            s.p.copy_(self._precondition(preconditioner, self._pcg_buffers().rz))
+            z = self._precondition(preconditioner)
+            cg_ops.object_dot(s.r, z, self.plan, self._pcg_buffers().rz, s, self.native)
+            s.p.copy_(z)
 
     def any_active(self) -> bool:
         """Whether some object is still iterating (a host synchronisation)."""

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from ..errors import SceneError
+from ..ops.multigrid import BsrMatrix, bsr_gemv, chebyshev
 from .preconditioner import optional_module
 
 #: Unknowns of the coarsest level (solved with a dense inverse): coarsening stops below it, and
@@ -118,7 +119,8 @@ def rest_system_matrix(edges: torch.Tensor, blocks: torch.Tensor, mass: torch.Te
 
 
 def _csr(matrix, dtype: torch.dtype, device) -> torch.Tensor:
-    """A scipy sparse matrix as a torch CSR tensor (int32 indices: half the index traffic)."""
+    """A scipy sparse matrix as a torch CSR tensor (int32 indices): the operands of the sparse
+    products that carry a node stiffness into the coarse levels (:meth:`Multigrid.load`)."""
     csr = matrix.tocsr()
     csr.sort_indices()
     with warnings.catch_warnings():  # torch's notice that its sparse CSR support is in beta
@@ -129,32 +131,54 @@ def _csr(matrix, dtype: torch.dtype, device) -> torch.Tensor:
                                        check_invariants=False).to(device)
 
 
-class _Level:
-    """One level: its operator A ``[n, n]``, prolongator P ``[n, n_coarse]`` and restriction
-    P^T (CSR), inverse diagonal ``[n, 1]`` and Chebyshev coefficients on D^-1 A."""
+def _block_of(matrix, rows: int, cols: int) -> tuple:
+    """The block shape to store ``matrix`` in: its own where it is a BSR matrix of one the ops
+    take, else ``(rows, cols)`` where they divide its shape, else 1 x 1."""
+    own = getattr(matrix, "blocksize", None)
+    if own is not None and tuple(own) in _BLOCKS:
+        return tuple(own)
+    if (rows, cols) in _BLOCKS and matrix.shape[0] % rows == 0 and matrix.shape[1] % cols == 0:
+        return rows, cols
+    return 1, 1
 
-    def __init__(self, level, dtype, device, degree: int):
+
+#: the block shapes of the multigrid ops (csrc/multigrid/ops.h)
+_BLOCKS = {(6, 6), (3, 6), (6, 3), (3, 3), (2, 3), (3, 2), (2, 2), (1, 1)}
+
+
+class _Level:
+    """One level: its operator A ``[n, n]``, prolongator P ``[n, n_coarse]`` and restriction P^T
+    (block-sparse: ``ops.multigrid.BsrMatrix``), the inverse of its rows' l1 norms ``[n]`` and the
+    Chebyshev coefficients on D^-1 A."""
+
+    def __init__(self, level, dtype, device, degree: int, dim: int, modes: int):
         import pyamg.util.linalg as amg_linalg
         import scipy.sparse as sp
 
-        a = level.A.tocsr()
+        a = level.A
         self.size = a.shape[0]
-        self.matrix = _csr(a, dtype, device)
-        self.prolong = _csr(level.P, dtype, device)
-        self.restrict = _csr(level.P.T, dtype, device)
+        self.dtype, self.device = dtype, device
+        unknowns = a.blocksize[0] if hasattr(a, "blocksize") else 1  # a node's (level 0) or aggregate's
+        self.matrix = BsrMatrix.from_scipy(a, _block_of(a, unknowns, unknowns), dtype, device)
+        self.prolong = BsrMatrix.from_scipy(level.P, _block_of(level.P, self.matrix.block[0], modes), dtype, device)
+        self.restrict = BsrMatrix.from_scipy(level.P.T.tocsr(), tuple(reversed(self.prolong.block)), dtype, device)
+        self._scipy_prolong = level.P  # for the sparse products of Multigrid.load, made there when needed
+        self._csr = None
         row_l1 = row_sums(a)
         inverse = np.where(row_l1 > 0, 1.0 / np.where(row_l1 > 0, row_l1, 1.0), 0.0)
-        self.inverse_diagonal = torch.from_numpy(inverse).to(device=device, dtype=dtype)[:, None]
+        self.inverse_diagonal = torch.from_numpy(inverse).to(device=device, dtype=dtype)
         # what a change of the finest level's node stiffness updates in place (Multigrid.load)
-        self.rest_values = self.matrix.values().clone()
+        self.rest_values = self.matrix.values.clone()
         self.rest_l1 = torch.from_numpy(row_l1).to(device=device, dtype=dtype)
-        rows = torch._convert_indices_from_csr_to_coo(self.matrix.crow_indices(), self.matrix.col_indices())
-        self.pattern_keys = rows[0].long() * self.size + rows[1].long()  # sorted: CSR rows, sorted columns
-        top = float(amg_linalg.approximate_spectral_radius(sp.diags(inverse) @ a, symmetric=False))
+        top = float(amg_linalg.approximate_spectral_radius(sp.diags(inverse) @ a.tocsr(), symmetric=False))
         self.steps = chebyshev_steps(top / 30.0, CHEBYSHEV_TOP, degree)
 
-    def product(self, x: torch.Tensor) -> torch.Tensor:
-        return self.matrix @ x
+    def sparse_transfers(self):
+        """(P, P^T) as torch CSR tensors (made at the first call)."""
+        if self._csr is None:
+            p = self._scipy_prolong
+            self._csr = (_csr(p, self.dtype, self.device), _csr(p.T, self.dtype, self.device))
+        return self._csr
 
 
 def row_sums(matrix) -> np.ndarray:
@@ -177,20 +201,20 @@ def chebyshev_steps(low: float, high: float, degree: int):
     return steps
 
 
-def _smooth(product, inverse_diagonal: torch.Tensor, steps, b: torch.Tensor, x: Optional[torch.Tensor]):
-    """Chebyshev smoothing of A x = b ``[n, 1]`` from x (None: 0) with the operator ``product``
-    and D^-1 ``inverse_diagonal [n, 1]``: the same polynomial whatever x, hence a symmetric
-    operator b -> x from x = 0."""
-    r = b if x is None else b - product(x)
-    step = None
+def _smooth(matrix: Optional[BsrMatrix], product, inverse_diagonal: torch.Tensor, steps, b: torch.Tensor,
+            x: Optional[torch.Tensor]) -> torch.Tensor:
+    """Chebyshev smoothing of A x = b ``[n]`` from x (None: 0) with the level's ``matrix``, or the
+    operator ``product`` (x -> A x ``[n]``) where it is None, and D^-1 ``inverse_diagonal [n]``: the
+    same polynomial whatever x, hence a symmetric operator b -> x from x = 0. One op a step
+    (``ops.multigrid.chebyshev``: the residual, the step and the update fused)."""
+    step = torch.empty_like(b)
     for a, c in steps:
-        if step is None:
-            step = inverse_diagonal * r
-            step.mul_(c)
+        if x is None:
+            x = chebyshev(b, inverse_diagonal, step, torch.empty_like(b), 0.0, c)
+        elif matrix is not None:  # (other rows read x: the new x in a new buffer)
+            x = chebyshev(b, inverse_diagonal, step, torch.empty_like(b), a, c, x=x, matrix=matrix)
         else:
-            r = r - product(step)
-            step = step.mul_(a).addcmul_(inverse_diagonal, r, value=c)
-        x = step.clone() if x is None else x.add_(step)
+            x = chebyshev(b, inverse_diagonal, step, x, a, c, x=x, product=product(x))
     return x
 
 
@@ -210,6 +234,8 @@ class Multigrid:
         pyamg = optional_module("pyamg", "multigrid", "builds its hierarchy", "multigrid")
         if degree < 1:
             raise ValueError(f"multigrid smoothing degree must be >= 1, got {degree}")
+        #: unknowns per node
+        self.dim = matrix.blocksize[0] if hasattr(matrix, "blocksize") else 1
         # pyamg counts a level's size in blocks; the coarse levels' blocks are the modes
         hierarchy = pyamg.smoothed_aggregation_solver(matrix, B=modes, symmetry="symmetric",
                                                       max_coarse=max(coarse_size // modes.shape[1], 1),
@@ -218,7 +244,8 @@ class Multigrid:
         if coarse.shape[0] > MAX_DIRECT:
             raise SceneError(f"multigrid: aggregation could not coarsen this mesh below {coarse.shape[0]} unknowns "
                              f"(at most {MAX_DIRECT} are solved directly); use preconditioner='jacobi'")
-        self.levels: List[_Level] = [_Level(level, dtype, device, degree) for level in hierarchy.levels[:-1]]
+        self.levels: List[_Level] = [_Level(level, dtype, device, degree, self.dim, modes.shape[1])
+                                     for level in hierarchy.levels[:-1]]
         dense = torch.from_numpy(coarse.toarray()).to(device=device, dtype=torch.float64)
         factor, info = torch.linalg.cholesky_ex(dense)
         if int(info) != 0:
@@ -229,7 +256,6 @@ class Multigrid:
         #: the finest level's rest row l1 norms ``[V d]``: its smoothing's scaling before the step's
         #: penalties (``MultigridSolve.load`` adds them)
         self.fine_row_l1 = torch.from_numpy(row_sums(matrix)).to(device=device, dtype=dtype)
-        self.dim = matrix.blocksize[0] if hasattr(matrix, "blocksize") else 1  # unknowns per node
         self._loaded = False  # whether the coarse operators hold a node stiffness (else the rest's)
         #: unknowns per level, finest first (the report's "levels")
         self.sizes = [level.size for level in self.levels] + [coarse.shape[0]]
@@ -266,7 +292,8 @@ class Multigrid:
             delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, (self.sizes[0], self.sizes[0]))
             delta = delta.to_sparse_csr()
             for depth, level in enumerate(self.levels):
-                delta = level.restrict @ (delta @ level.prolong)
+                prolong, restrict = level.sparse_transfers()
+                delta = restrict @ (delta @ prolong)
                 if depth + 1 < len(self.levels):
                     self._add(self.levels[depth + 1], delta)
         factor, info = torch.linalg.cholesky_ex(self.coarse_rest + delta.to_dense().to(torch.float64))
@@ -279,16 +306,15 @@ class Multigrid:
         """The level's matrix made rest + ``delta`` (CSR, within its pattern), its l1 scaling
         rest + |delta|'s row sums."""
         coo = torch._convert_indices_from_csr_to_coo(delta.crow_indices(), delta.col_indices()).long()
-        keys = coo[0] * level.size + coo[1]
-        where = torch.searchsorted(level.pattern_keys, keys)
-        level.matrix.values().copy_(level.rest_values.index_add(0, where, delta.values()))
+        where = level.matrix.index_of(coo[0], coo[1])
+        level.matrix.values.view(-1).copy_(level.rest_values.view(-1).index_add(0, where, delta.values()))
         row_l1 = level.rest_l1.index_add(0, coo[0], delta.values().abs())  # >= the row's l1: D^-1 A stays in (0, 1]
-        level.inverse_diagonal.copy_(torch.where(row_l1 > 0, 1.0 / row_l1, 0.0)[:, None])
+        level.inverse_diagonal.copy_(torch.where(row_l1 > 0, 1.0 / row_l1, 0.0))
 
     def _restore(self) -> None:
         for level in self.levels[1:]:
-            level.matrix.values().copy_(level.rest_values)
-            level.inverse_diagonal.copy_(torch.where(level.rest_l1 > 0, 1.0 / level.rest_l1, 0.0)[:, None])
+            level.matrix.values.copy_(level.rest_values)
+            level.inverse_diagonal.copy_(torch.where(level.rest_l1 > 0, 1.0 / level.rest_l1, 0.0))
         self.coarse_inverse.copy_(torch.cholesky_inverse(torch.linalg.cholesky(self.coarse_rest)))
         self._loaded = False
 
@@ -296,11 +322,15 @@ class Multigrid:
         if depth == len(self.levels):
             return self.coarse_inverse @ b
         level = self.levels[depth]
-        product, inverse_diagonal = fine if (depth == 0 and fine is not None) else (level.product,
-                                                                                     level.inverse_diagonal)
-        x = _smooth(product, inverse_diagonal, level.steps, b, None)
-        coarse = self._cycle(depth + 1, level.restrict @ (b - product(x)), None)
-        return _smooth(product, inverse_diagonal, level.steps, b, x.add_(level.prolong @ coarse))
+        if depth == 0 and fine is not None:
+            matrix, (product, inverse_diagonal) = None, fine
+        else:
+            matrix, product, inverse_diagonal = level.matrix, None, level.inverse_diagonal
+        x = _smooth(matrix, product, inverse_diagonal, level.steps, b, None)
+        residual = b - product(x) if matrix is None else bsr_gemv(matrix, x, b, alpha=-1.0, beta=1.0)
+        coarse = self._cycle(depth + 1, bsr_gemv(level.restrict, residual), None)
+        bsr_gemv(level.prolong, coarse, x, out=x)  # x += P e
+        return _smooth(matrix, product, inverse_diagonal, level.steps, b, x)
 
     def __call__(self, r: torch.Tensor, fine_product=None, fine_inverse_diagonal=None) -> torch.Tensor:
         """z = V(r): one V-cycle on the residual ``r [V, d]`` (its shape kept).
@@ -313,8 +343,8 @@ class Multigrid:
         fine = None
         if fine_product is not None:
             shape = r.shape
-            fine = (lambda x: fine_product(x.view(shape)).reshape(-1, 1), fine_inverse_diagonal.reshape(-1, 1))
-        return self._cycle(0, r.reshape(-1, 1), fine).reshape(r.shape)
+            fine = (lambda x: fine_product(x.view(shape)).reshape(-1), fine_inverse_diagonal.reshape(-1))
+        return self._cycle(0, r.reshape(-1), fine).reshape(r.shape)
 
 
 __all__ = ["Multigrid", "rest_system_matrix", "rigid_body_modes", "COARSE_SIZE", "MAX_DIRECT"]

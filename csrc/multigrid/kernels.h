@@ -1,0 +1,106 @@
+// The multigrid family's kernels (ops.h): products of block-sparse matrices (BSR: blocks of R x C
+// values, the blocks of a block row listed by row_ptr / block_cols) with a vector, ending in one
+// of two epilogues, written once for the CPU and CUDA.
+//
+// A block row's product is summed by a group of G threads (G = 1 on the CPU): lane l takes the
+// row's blocks l, l + G, l + 2G, ... in order, and the lanes' partial sums are then added in a
+// fixed tree (the CUDA launcher's shuffles). So for one matrix and one G the result does not
+// depend on timing: deterministic, no atomics. The CPU (G = 1) sums in block order; the two
+// agree to rounding.
+#pragma once
+
+#include <cstdint>
+
+#include "common/element_math.h"
+
+namespace tensormass {
+
+// The blocks of one BSR matrix and how to sum a block row.
+template <int R, int C, typename S>
+struct BsrRows {
+  const S* values;           // [nb, R, C]
+  const int32_t* block_cols; // [nb]
+  const int32_t* row_ptr;    // [Rb + 1]
+
+  // out[i] = sum over the blocks k = row_ptr[row] + lane, + stride, ... of (block k x)_i
+  TM_HD void partial(int64_t row, int lane, int stride, const S* x, S (&out)[R]) const {
+    TM_UNROLL for (int i = 0; i < R; ++i) out[i] = S(0);
+    const int32_t end = row_ptr[row + 1];
+    for (int32_t k = row_ptr[row] + lane; k < end; k += stride) {
+      const S* block = values + static_cast<int64_t>(k) * (R * C);
+      const S* xc = x + static_cast<int64_t>(block_cols[k]) * C;
+      S xv[C];
+      TM_UNROLL for (int j = 0; j < C; ++j) xv[j] = xc[j];
+      TM_UNROLL for (int i = 0; i < R; ++i) {
+        TM_UNROLL for (int j = 0; j < C; ++j) out[i] += block[i * C + j] * xv[j];
+      }
+    }
+  }
+};
+
+// multigrid_bsr_gemv: out = alpha A x + beta y (y absent: alpha A x). out may be y (each row reads
+// its own entries of y before writing them) but not x.
+template <int R, int C, typename S>
+struct BsrGemvKernel {
+  static constexpr int kRows = R;
+  using Scalar = S;
+  BsrRows<R, C, S> a;
+  const S* x;  // [Cb C]
+  const S* y;  // [Rb R] or nullptr
+  S alpha, beta;
+  S* out;      // [Rb R]
+
+  TM_HD void partial(int64_t row, int lane, int stride, S (&sum)[R]) const { a.partial(row, lane, stride, x, sum); }
+
+  TM_HD void finish(int64_t row, const S (&sum)[R]) const {
+    TM_UNROLL for (int i = 0; i < R; ++i) {
+      const int64_t j = row * R + i;
+      out[j] = y != nullptr ? alpha * sum[i] + beta * y[j] : alpha * sum[i];
+    }
+  }
+};
+
+// multigrid_chebyshev: one step of Chebyshev iteration for A x = b scaled by D^-1:
+//   r = b - A x (A a BSR matrix), or b - product (the product A x given), or b (x absent: x = 0)
+//   step = a step + c D^-1 r   (a = 0: the first step, step's old values not read)
+//   x_out = x + step           (x absent: step)
+// x_out must not be x where A is given (other rows read x); elsewhere it may.
+template <int R, int C, typename S>
+struct ChebyshevKernel {
+  static constexpr int kRows = R;
+  using Scalar = S;
+  BsrRows<R, C, S> a;  // values nullptr: no matrix
+  const S* product;    // [n] or nullptr
+  const S* b;          // [n]
+  const S* inverse_diagonal;  // [n]
+  const S* x;          // [n] or nullptr (zero)
+  S* step;             // [n]
+  S* x_out;            // [n]
+  S coef_a, coef_c;
+
+  TM_HD void partial(int64_t row, int lane, int stride, S (&sum)[R]) const {
+    if (a.values != nullptr && x != nullptr) {
+      a.partial(row, lane, stride, x, sum);
+    } else {
+      TM_UNROLL for (int i = 0; i < R; ++i) sum[i] = S(0);
+    }
+  }
+
+  TM_HD void finish(int64_t row, const S (&sum)[R]) const {
+    TM_UNROLL for (int i = 0; i < R; ++i) {
+      const int64_t j = row * R + i;
+      S r = b[j];
+      if (a.values != nullptr && x != nullptr) {
+        r -= sum[i];
+      } else if (product != nullptr) {
+        r -= product[j];
+      }
+      S s = coef_c * inverse_diagonal[j] * r;
+      if (coef_a != S(0)) s += coef_a * step[j];
+      step[j] = s;
+      x_out[j] = x != nullptr ? x[j] + s : s;
+    }
+  }
+};
+
+}  // namespace tensormass

@@ -1,0 +1,27 @@
+// Schemas of the multigrid ops: the products a V-cycle's coarse levels take (the host side:
+// ops.h, its kernels: kernels.h; registered for the CPU and CUDA by cpu.cpp and cuda.cu). The
+// conventions every op follows: library.cpp. Fake kernels: none (the ops write in place); the
+// Python module named below holds their references (set_python_module).
+//
+// A BSR matrix is (values [nb, R, C], block_cols [nb] int32, row_ptr [Rb + 1] int32): block row I
+// holds the blocks row_ptr[I] .. row_ptr[I + 1] - 1, block k at block column block_cols[k] (any
+// order within a row; the caller guarantees the columns are in range). Block shapes: 6x6, 3x6,
+// 6x3, 3x3, 2x3, 3x2, 2x2, 1x1. Vectors are flat [n] of the matrix's dtype. Each block row is
+// summed in a fixed order (deterministic, no atomics).
+#include <torch/library.h>
+
+TORCH_LIBRARY_FRAGMENT(tensormass, m) {
+  m.set_python_module("tensormass_torch.ops.multigrid");
+  // multigrid_bsr_gemv(values, block_cols, row_ptr, x [Cb C], y? [Rb R], alpha, beta, out! [Rb R]) -> ()
+  //   out = alpha A x + beta y (alpha A x without y). out may be y, never x.
+  m.def("multigrid_bsr_gemv(Tensor values, Tensor block_cols, Tensor row_ptr, Tensor x, Tensor? y, float alpha, "
+        "float beta, Tensor(a!) out) -> ()");
+  // multigrid_chebyshev(values?, block_cols?, row_ptr?, product? [n], b [n], inverse_diagonal [n], x? [n],
+  //                     step! [n], x_out! [n], a, c) -> ()
+  //   one step of Chebyshev iteration for A x = b scaled by D^-1 = inverse_diagonal:
+  //   r = b - A x (the square matrix given), b - product (A x given), or b (no x: x = 0);
+  //   step = a step + c D^-1 r (a = 0: step's old values unread); x_out = x + step (no x: step).
+  //   x_out may be x only where the matrix is not given.
+  m.def("multigrid_chebyshev(Tensor? values, Tensor? block_cols, Tensor? row_ptr, Tensor? product, Tensor b, "
+        "Tensor inverse_diagonal, Tensor? x, Tensor(a!) step, Tensor(b!) x_out, float a, float c) -> ()");
+}

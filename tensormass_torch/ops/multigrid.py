@@ -1,0 +1,179 @@
+"""The multigrid op family (``csrc/multigrid/``): the products of a V-cycle's coarse levels.
+
+A level's operator, prolongator and restriction are block-sparse (:class:`BsrMatrix`: blocks of
+k x k, d x k and k x d values, k the near-null space's modes); these ops take one product each
+with its epilogue fused, so that a V-cycle is a few launches per level (captured in a CUDA graph
+with the rest of a CG iteration):
+
+    multigrid_bsr_gemv(values, block_cols, row_ptr, x, y?, alpha, beta, out!)
+            out = alpha A x + beta y: the residual b - A x, a restriction P^T r, a prolongation
+            added x + P e
+    multigrid_chebyshev(values?, block_cols?, row_ptr?, product?, b, inverse_diagonal, x?, step!,
+        x_out!, a, c)
+            one Chebyshev smoothing step: r = b - A x (or b - product, or b from x = 0),
+            step = a step + c D^-1 r, x_out = x + step
+
+Each block row is summed in a fixed order (deterministic, no atomics). The pure-torch references
+below are the tests' oracle and the path where the extension does not serve the device. Not
+differentiable (solver kernels).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .. import _backend
+from . import library
+from .library import OpDef
+
+__all__ = ["BsrMatrix", "bsr_gemv", "chebyshev"]
+
+
+@dataclass
+class BsrMatrix:
+    """A block-sparse matrix ``[Rb R, Cb C]``: ``values [nb, R, C]``, ``block_cols [nb]`` and
+    ``row_ptr [Rb + 1]`` (int32), the blocks of block row I at ``row_ptr[I] .. row_ptr[I + 1] - 1``;
+    ``block_rows [nb]`` (int64, each block's row: the reference's)."""
+
+    values: torch.Tensor
+    block_cols: torch.Tensor
+    row_ptr: torch.Tensor
+    block_rows: torch.Tensor
+    shape: tuple
+
+    @classmethod
+    def from_scipy(cls, matrix, block: tuple, dtype: torch.dtype, device) -> "BsrMatrix":
+        """A scipy sparse matrix as blocks of ``block = (R, C)`` (its shape divisible by them),
+        columns sorted within each row."""
+        bsr = matrix.tobsr(blocksize=block)
+        bsr.sort_indices()
+        rows = np.repeat(np.arange(bsr.shape[0] // block[0]), np.diff(bsr.indptr))
+
+        def to(array, dt):
+            return torch.from_numpy(np.ascontiguousarray(array)).to(device=device, dtype=dt)
+
+        return cls(to(bsr.data, dtype), to(bsr.indices.astype(np.int32), torch.int32),
+                   to(bsr.indptr.astype(np.int32), torch.int32), to(rows.astype(np.int64), torch.int64),
+                   tuple(bsr.shape))
+
+    @property
+    def block(self) -> tuple:
+        return tuple(self.values.shape[1:])
+
+    def arrays(self):
+        """``(values, block_cols, row_ptr)``: the ops' matrix arguments."""
+        return self.values, self.block_cols, self.row_ptr
+
+    def to_dense(self) -> torch.Tensor:
+        """The matrix ``[Rb R, Cb C]`` as a dense tensor (tests)."""
+        r, c = self.block
+        dense = torch.zeros(self.shape[0] // r, r, self.shape[1] // c, c, dtype=self.values.dtype,
+                            device=self.values.device)
+        dense[self.block_rows, :, self.block_cols.long(), :] = self.values
+        return dense.reshape(self.shape)
+
+    def index_of(self, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+        """The positions in ``values.view(-1)`` of the entries ``(rows, cols)`` ``[M]`` (int64), which
+        must lie in blocks the matrix holds."""
+        r, c = self.block
+        keys = self.block_rows * (self.shape[1] // c) + self.block_cols.long()  # sorted (rows, then columns)
+        block = torch.searchsorted(keys, (rows // r) * (self.shape[1] // c) + cols // c)
+        return block * (r * c) + (rows % r) * c + cols % c
+
+
+# ---------------------------------------------------------------------------------------------
+# References (the op signatures)
+# ---------------------------------------------------------------------------------------------
+
+
+def _block_rows(row_ptr: torch.Tensor, blocks: int) -> torch.Tensor:
+    counts = row_ptr.long().diff()
+    return torch.repeat_interleave(torch.arange(counts.numel(), device=row_ptr.device), counts, output_size=blocks)
+
+
+def _ref_product(values, block_cols, row_ptr, x):
+    """A x ``[Rb R]`` in the reference's order (per-block products, then their sum per row)."""
+    nb, r, c = values.shape
+    blocks = torch.einsum("kij,kj->ki", values, x.view(-1, c)[block_cols.long()])
+    out = torch.zeros(row_ptr.numel() - 1, r, dtype=values.dtype, device=values.device)
+    return out.index_add_(0, _block_rows(row_ptr, nb), blocks).reshape(-1)
+
+
+def _ref_multigrid_bsr_gemv(values, block_cols, row_ptr, x, y, alpha, beta, out):
+    product = alpha * _ref_product(values, block_cols, row_ptr, x)
+    out.copy_(product if y is None else product + beta * y)
+
+
+def _ref_multigrid_chebyshev(values, block_cols, row_ptr, product, b, inverse_diagonal, x, step, x_out, a, c):
+    if values is not None:
+        r = b - _ref_product(values, block_cols, row_ptr, x)
+    elif product is not None:
+        r = b - product
+    else:
+        r = b
+    s = c * inverse_diagonal * r
+    if a != 0:
+        s = s + a * step
+    step.copy_(s)
+    x_out.copy_(s if x is None else x + s)
+
+
+def _example(name):
+    def example(device, dtype):
+        gen = torch.Generator().manual_seed(5)
+
+        def rand(*shape):
+            return torch.randn(*shape, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
+
+        row_ptr = torch.tensor([0, 2, 3, 5], dtype=torch.int32, device=device)
+        block_cols = torch.tensor([0, 2, 1, 0, 1], dtype=torch.int32, device=device)
+        if name == "multigrid_bsr_gemv":  # 3 x 3 block rows of 3 x 6 blocks
+            return (rand(5, 3, 6), block_cols, row_ptr, rand(18), rand(9), 1.5, -0.5, rand(9)), {}
+        values = rand(5, 3, 3)
+        return (values, block_cols, row_ptr, None, rand(9), rand(9).abs(), rand(9), rand(9), rand(9), 0.3, 0.7), {}
+
+    return example
+
+
+OPS = (
+    OpDef("multigrid_bsr_gemv", _ref_multigrid_bsr_gemv, None, differentiable=False, mutates=True,
+          example=_example("multigrid_bsr_gemv")),
+    OpDef("multigrid_chebyshev", _ref_multigrid_chebyshev, None, differentiable=False, mutates=True,
+          example=_example("multigrid_chebyshev")),
+)
+library.define(OPS, lambda: library.register(OPS))
+
+# ---------------------------------------------------------------------------------------------
+# Calls
+# ---------------------------------------------------------------------------------------------
+
+
+def _op_or_reference(name: str, device: torch.device):
+    """The op ``name`` where the extension serves ``device`` and has it, else its reference."""
+    if _backend.use_extension(device) and library.ensure_registered() and hasattr(torch.ops.tensormass, name):
+        return library.op(name)
+    return library.REGISTRY[name].reference
+
+
+def bsr_gemv(matrix: BsrMatrix, x: torch.Tensor, y: Optional[torch.Tensor] = None, alpha: float = 1.0,
+             beta: float = 1.0, out: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``alpha A x + beta y`` (without ``y``: ``alpha A x``) ``[Rb R]`` for flat ``x [Cb C]``, into
+    ``out`` (may be ``y``, not ``x``; None: a new tensor)."""
+    if out is None:
+        out = torch.empty(matrix.shape[0], dtype=x.dtype, device=x.device)
+    _op_or_reference("multigrid_bsr_gemv", x.device)(*matrix.arrays(), x, y, float(alpha), float(beta), out)
+    return out
+
+
+def chebyshev(b: torch.Tensor, inverse_diagonal: torch.Tensor, step: torch.Tensor, x_out: torch.Tensor, a: float,
+              c: float, x: Optional[torch.Tensor] = None, matrix: Optional[BsrMatrix] = None,
+              product: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """One Chebyshev step (``multigrid_chebyshev``) on flat vectors ``[n]``: the residual of ``x``
+    through ``matrix`` or its ``product`` A x (neither: x = 0 and ``x`` None); returns ``x_out``."""
+    arrays = matrix.arrays() if matrix is not None else (None, None, None)
+    _op_or_reference("multigrid_chebyshev", b.device)(*arrays, product, b, inverse_diagonal, x, step, x_out,
+                                                       float(a), float(c))
+    return x_out

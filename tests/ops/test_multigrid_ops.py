@@ -1,0 +1,148 @@
+"""The multigrid op family (csrc/multigrid/, ops/multigrid.py): the block-sparse product and the
+Chebyshev step against their pure-torch references and a dense product (float64), for every
+block shape and on rows of many and of few blocks (the lane groups of the CUDA kernel), on the
+CPU extension and CUDA; deterministic; the aliasing rules and bad inputs."""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+
+from tensormass_torch import _backend
+from tensormass_torch.ops import library
+from tensormass_torch.ops.multigrid import BsrMatrix, bsr_gemv, chebyshev
+
+BLOCKS = [(6, 6), (3, 6), (6, 3), (3, 3), (2, 3), (3, 2), (2, 2), (1, 1)]
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def native(device):
+    if not (_backend.use_extension(torch.device(device)) and library.ensure_registered()):
+        pytest.skip(f"the extension does not serve {device}")
+    return torch.ops.tensormass
+
+
+def random_bsr(block, block_rows, block_cols, per_row, seed, device, dtype=torch.float64):
+    """A random BSR matrix with about ``per_row`` blocks a block row (some rows empty)."""
+    rng = np.random.default_rng(seed)
+    density = min(1.0, per_row / block_cols)
+    pattern = sp.random(block_rows, block_cols, density=density, random_state=rng, format="csr")
+    pattern.data[:] = 1.0
+    pattern = pattern.tolil()
+    pattern[0, :] = 0  # an empty block row
+    dense = sp.kron(pattern.tocsr(), np.ones(block)).toarray() * rng.standard_normal(
+        (block_rows * block[0], block_cols * block[1]))
+    matrix = sp.csr_matrix(dense)
+    return BsrMatrix.from_scipy(matrix, block, dtype, device), torch.from_numpy(dense).to(device=device, dtype=dtype)
+
+
+def vec(n, seed, device, dtype=torch.float64):
+    gen = torch.Generator().manual_seed(seed)
+    return torch.randn(n, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("block", BLOCKS)
+@pytest.mark.parametrize("per_row", [2, 6, 40])
+def test_gemv_matches_the_dense_product_and_the_reference(device, block, per_row):
+    ops = native(device)
+    matrix, dense = random_bsr(block, 37, 45, per_row, seed=per_row, device=device)
+    x, y = vec(45 * block[1], 1, device), vec(37 * block[0], 2, device)
+    out = torch.full_like(y, float("nan"))
+    ops.multigrid_bsr_gemv(*matrix.arrays(), x, y, -1.5, 0.25, out)
+    expected = -1.5 * dense @ x + 0.25 * y
+    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    ref = torch.empty_like(y)
+    library.REGISTRY["multigrid_bsr_gemv"].reference(*matrix.arrays(), x, y, -1.5, 0.25, ref)
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    # without y; the same inputs give the same bits (fixed order of sums)
+    again = torch.empty_like(y)
+    ops.multigrid_bsr_gemv(*matrix.arrays(), x, None, 2.0, 0.0, again)
+    torch.testing.assert_close(again, 2.0 * dense @ x, rtol=1e-12, atol=1e-12)
+    twice = torch.empty_like(y)
+    ops.multigrid_bsr_gemv(*matrix.arrays(), x, None, 2.0, 0.0, twice)
+    assert torch.equal(again, twice)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_gemv_adds_in_place_and_float32(device):
+    ops = native(device)
+    matrix, dense = random_bsr((3, 6), 20, 8, 3, seed=4, device=device)
+    e, x = vec(48, 5, device), vec(60, 6, device)
+    expected = x + dense @ e
+    ops.multigrid_bsr_gemv(*matrix.arrays(), e, x, 1.0, 1.0, x)  # out is y: x += P e
+    torch.testing.assert_close(x, expected, rtol=1e-12, atol=1e-12)
+    single = BsrMatrix(matrix.values.float(), matrix.block_cols, matrix.row_ptr, matrix.block_rows, matrix.shape)
+    out = torch.empty(60, dtype=torch.float32, device=device)
+    ops.multigrid_bsr_gemv(*single.arrays(), e.float(), None, 1.0, 0.0, out)
+    torch.testing.assert_close(out, (dense @ e).float(), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("block", [(6, 6), (3, 3), (2, 2), (1, 1)])
+def test_chebyshev_step_matches_its_definition(device, block):
+    """r = b - A x (the matrix, or its product given, or x = 0), step = a step + c D^-1 r,
+    x_out = x + step; the op equals its reference."""
+    ops = native(device)
+    matrix, dense = random_bsr(block, 30, 30, 12, seed=7, device=device)
+    n = 30 * block[0]
+    b, x, dinv, old = vec(n, 8, device), vec(n, 9, device), vec(n, 10, device).abs(), vec(n, 11, device)
+    a, c = 0.4, 0.9
+    expected_step = a * old + c * dinv * (b - dense @ x)
+    for how in ("matrix", "product", "zero"):
+        step, x_out = old.clone(), torch.full_like(b, float("nan"))
+        if how == "matrix":
+            ops.multigrid_chebyshev(*matrix.arrays(), None, b, dinv, x, step, x_out, a, c)
+            want_step, want_x = expected_step, x + expected_step
+        elif how == "product":
+            ops.multigrid_chebyshev(None, None, None, dense @ x, b, dinv, x, step, x_out, a, c)
+            want_step, want_x = expected_step, x + expected_step
+        else:  # the first step from x = 0: step's old values are not read (a = 0)
+            step.fill_(float("nan"))
+            ops.multigrid_chebyshev(None, None, None, None, b, dinv, None, step, x_out, 0.0, c)
+            want_step = c * dinv * b
+            want_x = want_step
+        torch.testing.assert_close(step, want_step, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(x_out, want_x, rtol=1e-12, atol=1e-12)
+    # the group-level call with the product updates x in place
+    step, x_in = old.clone(), x.clone()
+    chebyshev(b, dinv, step, x_in, a, c, x=x_in, product=dense @ x)
+    torch.testing.assert_close(x_in, x + expected_step, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_the_cpu():
+    for block, per_row in (((6, 6), 50), ((3, 6), 4), ((6, 3), 100)):
+        outs = []
+        for device in ("cpu", "cuda"):
+            native(device)
+            matrix, _ = random_bsr(block, 60, 70, per_row, seed=12, device=device)
+            x = vec(70 * block[1], 13, device)
+            outs.append(bsr_gemv(matrix, x).cpu())
+        torch.testing.assert_close(outs[1], outs[0], rtol=1e-12, atol=1e-12)
+
+
+def test_bad_inputs_raise_naming_the_argument():
+    ops = native("cpu")
+    matrix, _ = random_bsr((3, 3), 4, 4, 2, seed=1, device="cpu")
+    x, out = vec(12, 1, "cpu"), torch.zeros(12, dtype=torch.float64)
+    with pytest.raises(RuntimeError, match="block_cols"):
+        ops.multigrid_bsr_gemv(matrix.values, matrix.block_cols.long(), matrix.row_ptr, x, None, 1.0, 0.0, out)
+    with pytest.raises(RuntimeError, match="out must not be x"):
+        ops.multigrid_bsr_gemv(*matrix.arrays(), x, None, 1.0, 0.0, x)
+    with pytest.raises(RuntimeError, match="out has shape"):
+        ops.multigrid_bsr_gemv(*matrix.arrays(), x, None, 1.0, 0.0, torch.zeros(9, dtype=torch.float64))
+    with pytest.raises(RuntimeError, match="values is Float"):
+        ops.multigrid_bsr_gemv(matrix.values.float(), matrix.block_cols, matrix.row_ptr, x, None, 1.0, 0.0, out)
+    odd, _ = random_bsr((3, 3), 4, 4, 2, seed=1, device="cpu")
+    with pytest.raises(RuntimeError, match="unsupported block shape 4 x 3"):
+        ops.multigrid_bsr_gemv(torch.zeros(odd.values.shape[0], 4, 3, dtype=torch.float64), odd.block_cols,
+                               odd.row_ptr, x, None, 1.0, 0.0, torch.zeros(16, dtype=torch.float64))
+    step = torch.zeros(12, dtype=torch.float64)
+    with pytest.raises(RuntimeError, match="x_out must not be x"):
+        ops.multigrid_chebyshev(*matrix.arrays(), None, x, x.abs(), x, step, x, 0.5, 0.5)
+    with pytest.raises(RuntimeError, match="not both"):
+        ops.multigrid_chebyshev(*matrix.arrays(), x, x, x.abs(), x, step, out, 0.5, 0.5)
+    with pytest.raises(RuntimeError, match="without x"):
+        ops.multigrid_chebyshev(None, None, None, x, x, x.abs(), None, step, out, 0.5, 0.5)
+    with pytest.raises(RuntimeError, match="inverse_diagonal has shape"):
+        ops.multigrid_chebyshev(None, None, None, None, x, x[:6].abs(), None, step, out, 0.0, 0.5)
