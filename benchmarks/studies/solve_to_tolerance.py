@@ -7,7 +7,8 @@ multigrid's iteration count grows with the mesh.
 Part 1 (solve_to_tolerance.md): on the paper's 307,200-tet beam (hooke, E = 1e5 and 1e7, dt =
 0.01, clamped, gravity) and SOFA's 101,250-tet beam (hooke, its plane), implicit Euler steps
 solved to a relative residual of 1e-6 with each preconditioner (none, jacobi, multigrid, and
-cholesky: the rest matrix's sparse Cholesky factor, the direct-solver baseline), and
+cholesky: the rest matrix's sparse Cholesky factor, the direct-solver baseline; "+warm": each
+step's CG started from the extrapolation of the steps before, ``warm_start``), and
 the same scene's fixed-budget steps of 25 and 10 CG iterations (tol 0: what the speed
 benchmarks time). Per row: CG iterations of the last step, its relative residual (the CG's own:
 the true residual for none and multigrid, Jacobi's scaled one), ms per step (steady state, after
@@ -42,8 +43,12 @@ SOLVERS = {  # name -> StepOptions changes
     "none": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=8, preconditioner="none"),
     "jacobi": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=8,
                    preconditioner="jacobi"),
+    "none+warm": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=8,
+                      preconditioner="none", warm_start=True),
     "multigrid": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
                       preconditioner="multigrid"),
+    "multigrid+warm": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
+                           preconditioner="multigrid", warm_start=True),
     "cholesky": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
                      preconditioner="cholesky"),
 }
@@ -104,6 +109,9 @@ def main(argv=None):
     parser.add_argument("--sizes", default=None, help="tets of the scaling part (default 101k .. 4.9M)")
     parser.add_argument("--steps", type=int, default=None)
     parser.add_argument("--parts", default="solvers,scaling")
+    parser.add_argument("--solvers", default=",".join(SOLVERS), help="rows of part 1, of: " + ", ".join(SOLVERS))
+    parser.add_argument("--scenes", default="paper_beam:1e5,paper_beam:1e7,sofa_beam",
+                        help="part 1's scenes: paper_beam:E and sofa_beam")
     parser.add_argument("--max-seconds", type=float, default=5.0)
     parser.add_argument("--budget-s", type=float, default=None)
     args = parser.parse_args(argv)
@@ -118,11 +126,22 @@ def main(argv=None):
         results = Results(args.out, "solve_to_tolerance", "Time to a converged step (relative residual 1e-6) "
                           "against fixed CG budgets", meta, COLUMNS,
                           notes=["hooke, implicit Euler, float32; steady-state ms per step after two steps."])
-        scenes = [("paper_beam", args.elements, 1e5), ("paper_beam", args.elements, 1e7),
-                  ("sofa_beam", 101_250 if not args.quick else 1_000, 1e3)]
+        scenes = []
+        for item in args.scenes.split(","):
+            name, _, young = item.partition(":")
+            if name == "sofa_beam":
+                scenes.append(("sofa_beam", 101_250 if not args.quick else 1_000, 1e3))
+            elif name == "paper_beam":
+                scenes.append(("paper_beam", args.elements, float(young or 1e5)))
+            else:
+                parser.error(f"unknown scene {name!r} in --scenes")
+        solvers = [name.strip() for name in args.solvers.split(",") if name.strip()]
+        unknown = sorted(set(solvers) - set(SOLVERS))
+        if unknown:
+            parser.error(f"unknown solvers {unknown} in --solvers; known: {', '.join(SOLVERS)}")
         for scene, elements, young in scenes:
             base = None
-            for solver in SOLVERS:
+            for solver in solvers:
                 if not budget.allows(10.0):
                     results.add(record(scene=scene, young=young, solver=solver, skipped="budget"))
                     continue

@@ -25,6 +25,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     form = "auto"                     # "stress", "tensor"
     preconditioner = "auto"           # "none", "jacobi", "multigrid", "cholesky" (auto: Jacobi where bodies touch)
     integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
+    warm_start = false                # start each CG from the last steps' extrapolated solution
 
     [render]                          # off-screen pictures of the frames (pyvista)
     png = false                       # one PNG per frame
@@ -658,6 +659,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         form=_choice(solver, "form", FORMS, "auto", "form"),
         preconditioner=_choice(solver, "preconditioner", PRECONDITIONERS, "auto", "preconditioner"),
         integrator=_choice(solver, "integrator", list(INTEGRATORS), "backward_euler", "integrator"),
+        warm_start=solver.get("warm_start", "bool", False),
     )
     solver.done()
 

@@ -139,7 +139,10 @@ class Simulator:
             ``sim.v`` were set, and sub-steps are backward Euler's and steps are not chained);
             all at backward Euler's cost per step (see ``solver.implicit_euler``).
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs,
-            preconditioner: see ``StepOptions``. ``cg_max_iter=None`` (default) caps CG at
+            preconditioner, warm_start: see ``StepOptions``. With ``warm_start`` each step's CG
+            starts from the extrapolation of the two steps before (2 dv_1 - dv_2; dv_1 after one
+            step; zeros after a state set by hand, a cut that made room, sub-steps or a chain of
+            steps, which keep no history). ``cg_max_iter=None`` (default) caps CG at
             ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
             converging solve is never cut short; the value used is ``sim.options.cg_max_iter``.
         form: element force form, ``"auto" | "stress" | "tensor"``.
@@ -167,7 +170,7 @@ class Simulator:
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
-                 preconditioner: str = "auto", integrator: str = "backward_euler"):
+                 preconditioner: str = "auto", integrator: str = "backward_euler", warm_start: bool = False):
         bodies = list(bodies)
         # what a topology change that rebuilds the simulator (cut) builds it again with
         self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
@@ -176,7 +179,7 @@ class Simulator:
                                newton_iters=newton_iters, check_every=check_every, form=form, device=device,
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
                                substeps_on_failure=substeps_on_failure, tools=tools, contact=contact,
-                               preconditioner=preconditioner, integrator=integrator)
+                               preconditioner=preconditioner, integrator=integrator, warm_start=warm_start)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -204,6 +207,8 @@ class Simulator:
         if INTEGRATORS[integrator] != 1.0 and newton_iters != 1:
             raise SceneError(f"newton_iters={newton_iters} needs integrator='backward_euler' or 'bdf2' (the "
                              f"{integrator!r} step is one linearisation)")
+        if not isinstance(warm_start, bool):
+            raise SceneError(f"warm_start must be True or False, got {warm_start!r}")
         if check_inversion not in INVERSION_CHECKS:
             raise SceneError(f"check_inversion must be one of {', '.join(map(repr, INVERSION_CHECKS))}, "
                              f"got {check_inversion!r}")
@@ -232,7 +237,7 @@ class Simulator:
                                    cg_max_iter=cg_max_iter, require_convergence=require_convergence,
                                    newton_iters=newton_iters, check_every=check_every,
                                    cuda_graphs=bool(cuda_graphs), preconditioner=preconditioner,
-                                   integrator=integrator)
+                                   integrator=integrator, warm_start=warm_start)
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
         offset = 0
         for b, room in zip(bodies, spare):
@@ -288,6 +293,9 @@ class Simulator:
         # the state one step before and the state committed after it (BDF2's history: valid while
         # sim.x, sim.v are still those committed tensors)
         self._history = None
+        # the solutions of the last steps' first solves, newest first, and the state committed
+        # after the newest (warm_start's history: valid while sim.x, sim.v are those tensors)
+        self._solutions = None
         self.check_inversion = check_inversion
         self.substeps_on_failure = substeps_on_failure
         # Built only when asked for: "off" costs nothing (no buffers, no work per step).
@@ -437,10 +445,11 @@ class Simulator:
             warnings.warn(f"inverted elements at t = {self.time:.6g}: {inversion.describe(self._names())}",
                           InvertedElementsWarning, stacklevel=3)
 
-    def _substep(self, x, v, t_end: float, opts: StepOptions, previous=None):
+    def _substep(self, x, v, t_end: float, opts: StepOptions, previous=None, guess=None):
         """One implicit step of length ``opts.dt`` from ``x, v [V, 3]``, ending at time t_end
         (nothing committed): (x, v, report, inversion report or None). ``previous``: BDF2's
-        state one step before (None: its start, a backward Euler step)."""
+        state one step before (None: its start, a backward Euler step); ``guess``: the first
+        solve's initial guess (``warm_start``) or None."""
         if self.tools is not None:  # the tools where they are at the step's end
             self.tools.set_time(t_end, opts.dt)
         if opts.integrator == "bdf2":
@@ -448,10 +457,10 @@ class Simulator:
                 imposed = self._imposed_velocity(x, t_end, opts.dt)
             else:  # the prescribed nodes reach their target from BDF2's extrapolated start over 2 dt / 3
                 imposed = self._imposed_velocity((4.0 * x - previous[0]) / 3.0, t_end, 2.0 * opts.dt / 3.0)
-            x_new, v_new, report = bdf2_step(self.system, x, v, previous, opts, imposed)
+            x_new, v_new, report = bdf2_step(self.system, x, v, previous, opts, imposed, guess)
         else:
             imposed = self._imposed_velocity(x, t_end, opts.dt)
-            x_new, v_new, report = implicit_euler_step(self.system, x, v, opts, imposed)
+            x_new, v_new, report = implicit_euler_step(self.system, x, v, opts, imposed, guess)
         inversion = self._check_inversion(x_new, t_end, report) if self._inversion is not None else None
         return x_new, v_new, report, inversion
 
@@ -464,7 +473,9 @@ class Simulator:
         for j in range(count):
             # prescribed motions at the sub-step times; the last one ends exactly at time + dt
             t_end = self.time + self.options.dt * ((j + 1) / count)
-            x, v, report, inversion = self._substep(x, v, t_end, opts, self._previous_state() if count == 1 else None)
+            one = count == 1
+            x, v, report, inversion = self._substep(x, v, t_end, opts, self._previous_state() if one else None,
+                                                    self._guess() if one else None)
             reports.append(report)
         if count == 1:
             return x, v, reports[0], inversion
@@ -552,9 +563,30 @@ class Simulator:
             return None
         return previous
 
+    def _guess(self):
+        """``warm_start``'s guess of the next step's first solve ``[V, 3]``: 2 dv_1 - dv_2 from the
+        two steps before, dv_1 from one, None without history (see ``_commit``)."""
+        solutions = self._solutions_before()
+        if not self.options.warm_start or not solutions:
+            return None
+        return solutions[0] if len(solutions) == 1 else 2.0 * solutions[0] - solutions[1]
+
+    def _solutions_before(self) -> list:
+        """The kept solutions (newest first) while the state is the one committed after them."""
+        if self._solutions is None:
+            return []
+        solutions, committed = self._solutions
+        if committed[0] is not self.x or committed[1] is not self.v or solutions[0].shape != self.x.shape:
+            return []
+        return solutions
+
     def _commit(self, x, v, steps: int, report: StepReport, inversion):
-        one_step = steps == 1 and report.substeps == 1 and self.options.integrator == "bdf2"
+        single = steps == 1 and report.substeps == 1
+        one_step = single and self.options.integrator == "bdf2"
         self._history = ((self.x, self.v), (x, v)) if one_step else None
+        if self.options.warm_start:
+            kept = self._solutions_before()[:1]
+            self._solutions = ([report.cg[0].solution] + kept, (x, v)) if single and report.cg else None
         self.x, self.v = x, v
         for _ in range(steps):  # the same float sum as one step at a time
             self.time += self.options.dt

@@ -173,6 +173,8 @@ class MultigridSolve:
         self.multigrid = multigrid
         self.inverse_diagonal: Optional[torch.Tensor] = None
         self.product = None
+        self._node_stiffness: Optional[torch.Tensor] = None  # what the last load carried (a copy)
+        self._with_pairs = True  # whether it had pairs (until the first load: nothing is loaded)
 
     def load(self, product, node_stiffness: Optional[torch.Tensor] = None, free: Optional[torch.Tensor] = None,
              pair_diagonal: Optional[torch.Tensor] = None) -> "MultigridSolve":
@@ -180,7 +182,24 @@ class MultigridSolve:
         stiffness ``[V, d, d]`` times c_K (or None: it goes into the coarse operators,
         ``Multigrid.load``) and the body contact pairs' diagonal ``[V, d]`` (or None). The finest
         level's scaling is the inverse of its rows' l1 norms: the rest matrix's, plus the node
-        stiffness's rows and the pairs' diagonal (a bound where the pairs couple nodes)."""
+        stiffness's rows and the pairs' diagonal (a bound where the pairs couple nodes).
+
+        A load with what the last one had (no pairs, and the same node stiffness or none, as a
+        floor's penalties while the same nodes touch it) changes nothing and is skipped."""
+
+        def apply(p):
+            out = product(p)
+            return out[0] if isinstance(out, tuple) else out
+
+        self.product = apply
+        if pair_diagonal is None and not self._with_pairs and (
+                (node_stiffness is None and self._node_stiffness is None)
+                or (node_stiffness is not None and self._node_stiffness is not None
+                    and node_stiffness.shape == self._node_stiffness.shape
+                    and torch.equal(node_stiffness, self._node_stiffness))):
+            return self
+        self._with_pairs = pair_diagonal is not None
+        self._node_stiffness = None if node_stiffness is None else node_stiffness.clone()
         self.multigrid.load(node_stiffness, free)
         row_l1 = self.multigrid.fine_row_l1.view(-1, self.multigrid.dim)
         if node_stiffness is not None:
@@ -193,12 +212,6 @@ class MultigridSolve:
             self.inverse_diagonal = inverse
         else:
             self.inverse_diagonal.copy_(inverse)
-
-        def apply(p):
-            out = product(p)
-            return out[0] if isinstance(out, tuple) else out
-
-        self.product = apply
         return self
 
     @property

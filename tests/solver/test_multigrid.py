@@ -206,14 +206,20 @@ def test_the_cpu_extension_and_pure_torch_agree(monkeypatch):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("model", ["hooke", "corotational"])
-def test_cuda_matches_the_cpu(model):
-    """The preconditioned iterations on CUDA (captured in graphs) equal the CPU's in float64."""
+@pytest.mark.parametrize("warm_start", [False, True])
+def test_cuda_matches_the_cpu(model, warm_start):
+    """The preconditioned steps on CUDA (captured in graphs: the right-hand side, the start and
+    the predicted iterations, then one iteration a look) equal the CPU's in float64, with and
+    without warm starts, on and off the floor."""
     runs = []
     for device in ("cpu", "cuda"):
-        sim = beam_sim(model=model, device=device, cuda_graphs=True, planes=[tm.Plane((0, 0, 1), -0.02, 1e4)])
+        sim = beam_sim(model=model, device=device, cuda_graphs=True, planes=[tm.Plane((0, 0, 1), -0.02, 1e4)],
+                       warm_start=warm_start)
         sim.step(20)
         runs.append(sim.x.cpu())
     torch.testing.assert_close(runs[1], runs[0], rtol=0, atol=1e-9)
+    graphs = [g for g in sim.system._step_graphs.values() if g.preconditioned]
+    assert len(graphs) == 1 and sum(1 for k, g in graphs[0]._graphs.items() if g) >= 2  # replayed, not eager
 
 
 def test_the_hierarchy_follows_a_cut_and_the_coefficients():
