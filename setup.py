@@ -200,7 +200,7 @@ setup(
     # torch is deliberately absent: the user's torch (CPU or CUDA build) must be kept as it is.
     install_requires=["numpy", "meshio", "tqdm"],
     extras_require={"test": ["pytest", "hypothesis"], "render": ["pyvista"], "mesh": ["tetgen", "pytetwild"],
-                    "multigrid": ["pyamg"], "direct": ["cholespy"]},
+                    "multigrid": ["pyamg"], "direct": ["cholespy"], "viewer": ["viser"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
     entry_points={"console_scripts": ["tensormass = tensormass_torch.app.cli:main"]},

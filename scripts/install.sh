@@ -7,7 +7,8 @@
 #      when csrc/ has sources), skipped when nothing it depends on changed since the last run;
 #   4. test dependencies (pytest, meshio, numpy, tqdm, hypothesis for the fuzz tests, tetgen for
 #      tm.tetrahedralize, pyamg and cholespy for the multigrid and Cholesky preconditioners,
-#      pyvista for the off-screen rendering tests), only if missing. pyvista's vtk wheel
+#      pyvista for the off-screen rendering tests, viser and playwright for the viewer and its
+#      browser test, which drives the system's Chromium), only if missing. pyvista's vtk wheel
 #      renders headless through EGL (Mesa's libEGL and llvmpipe on a machine without a GPU;
 #      see tensormass_torch/app/render.py).
 # Quiet when all goes well; on a failure prints pip's output and exits non-zero.
@@ -163,7 +164,8 @@ fi
 # 4. test dependencies
 read -r -a missing <<<"$(py_out '
 import importlib
-for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen", "pyamg", "cholespy"):
+for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen", "pyamg", "cholespy", "viser",
+             "playwright"):
     try:
         importlib.import_module(name)
     except Exception:

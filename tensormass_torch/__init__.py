@@ -6,6 +6,7 @@
     f = model(mesh.vertices)          # [V, 3] elastic forces
 """
 from ._backend import backend_info
+from .app.viewer import Viewer, view
 from .errors import InvertedElementsError, MaterialError, MeshError, SceneError, SolverError, TensorMassError
 from .mesh.beams import beam_mesh, beam_tri_mesh
 from .mesh.cutting import Blade
@@ -30,5 +31,6 @@ __all__ = [
     "TensorMassError",
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh", "Blade",
     "TensorMass", "Body", "Simulator", "Scalpel", "InvertedElementsWarning", "load_scene", "solve_static",
-    "tetrahedralize", "Rollout", "rollout", "Tool", "Sphere", "Capsule", "Box", "MeshTool", "Contact",
+    "tetrahedralize", "Rollout", "rollout", "Tool", "Sphere", "Capsule", "Box", "MeshTool", "Contact", "Viewer",
+    "view",
 ]

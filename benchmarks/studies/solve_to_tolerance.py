@@ -10,7 +10,8 @@ solved to a relative residual of 1e-6 with each preconditioner (none, jacobi, mu
 cholesky: the rest matrix's sparse Cholesky factor, the direct-solver baseline; "+warm": each
 step's CG started from the extrapolation of the steps before, ``warm_start``), and
 the same scene's fixed-budget steps of 25 and 10 CG iterations (tol 0: what the speed
-benchmarks time). Per row: CG iterations of the last step, its relative residual (the CG's own:
+benchmarks time). Per row: CG iterations of the last timed step and their mean over the 5
+steps after, the last step's relative residual (the CG's own:
 the true residual for none and multigrid, Jacobi's scaled one), ms per step (steady state, after
 two steps that build the multigrid hierarchy and capture the CUDA graphs) and the ratio to the
 25-iteration step of the same scene, and the multigrid's and the factorisation's set-up seconds
@@ -54,7 +55,7 @@ SOLVERS = {  # name -> StepOptions changes
 }
 
 COLUMNS = [("scene", "scene", None), ("young", "E", ".0e"), ("elements", "elements", None),
-           ("solver", "solver", None), ("cg_iterations", "CG it", None),
+           ("solver", "solver", None), ("cg_iterations", "CG it", None), ("cg_iterations_mean", "mean CG it", ".1f"),
            ("relative_residual", "rel. residual", ".1e"), ("ms_per_step", "ms/step", ".2f"),
            ("x_25", "x 25-it step", ".2f"), ("setup_s", "set-up s", ".2f"), ("levels", "levels", None),
            ("error", "error", None)]
@@ -89,11 +90,16 @@ def measure(scene: str, elements: int, young: float, solver: str, device, dtype,
     sim.step(1)
     per_step, _ = time_steps(sim.step, device, steps, max_seconds)
     iterations, residual = last_report(sim)
+    counts = []
+    for _ in range(5):  # (warm starts vary from step to step)
+        sim.step(1)
+        counts.append(last_report(sim)[0])
     built = sim.system._rest_preconditioner
     hierarchy = None if built is None or not hasattr(built[1][2], "sizes") else built[1][2]
     setup = None if built is None else first - per_step
     return dict(scene=scene, young=young, elements=sim.model.num_elements, nodes=sim.model.num_nodes, solver=solver,
-                cg_iterations=iterations, relative_residual=residual, ms_per_step=per_step * 1e3,
+                cg_iterations=iterations, cg_iterations_mean=sum(counts) / len(counts), relative_residual=residual,
+                ms_per_step=per_step * 1e3,
                 setup_s=setup,
                 levels=None if hierarchy is None else len(hierarchy.sizes),
                 operator_complexity=None if hierarchy is None else hierarchy.operator_complexity,

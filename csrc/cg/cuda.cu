@@ -69,15 +69,22 @@ __global__ void __launch_bounds__(kBlock) cg_direction_kernel(S* __restrict__ p,
   }
 }
 
+// This block's chunk of a . b (float64, the block's fixed order of sums), in every thread.
 template <typename S>
-__global__ void __launch_bounds__(kBlock) cg_dot_kernel(const S* __restrict__ a, const S* __restrict__ b, CGPlan plan,
-                                                        int64_t d, S* out, double* scratch, int32_t* counter) {
-  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+__device__ double chunk_dot_sum(const S* __restrict__ a, const S* __restrict__ b, const CGPlan& plan, int64_t chunk,
+                                int64_t d) {
   double acc = 0.0;
   for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
     acc += static_cast<double>(a[j]) * static_cast<double>(b[j]);
   }
-  const double chunk_total = block_sum(acc);
+  return block_sum(acc);
+}
+
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_dot_kernel(const S* __restrict__ a, const S* __restrict__ b, CGPlan plan,
+                                                        int64_t d, S* out, double* scratch, int32_t* counter) {
+  const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
+  const double chunk_total = chunk_dot_sum(a, b, plan, chunk, d);
   double total = 0.0;
   if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
     out[object] = static_cast<S>(total);
@@ -92,11 +99,7 @@ __global__ void __launch_bounds__(kBlock) cg_dot_beta_kernel(const S* __restrict
                                                              S* beta, double* scratch, int32_t* counter) {
   const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
   if (status[object] != kActive) return;
-  double acc = 0.0;
-  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
-    acc += static_cast<double>(a[j]) * static_cast<double>(b[j]);
-  }
-  const double chunk_total = block_sum(acc);
+  const double chunk_total = chunk_dot_sum(a, b, plan, chunk, d);
   double total = 0.0;
   if (object_total(plan, chunk, object, chunk_total, scratch, counter, total) && threadIdx.x == 0) {
     S rz_b = rz[object];

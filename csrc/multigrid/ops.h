@@ -41,6 +41,12 @@ void dispatch_block(int64_t r, int64_t c, F&& f) {
               " (6x6, 3x6, 6x3, 3x3, 2x3, 3x2, 2x2, 1x1)");
 }
 
+// f(S{}, IC<R>{}, IC<C>{}) for the dtype and block shape of a call.
+template <class F>
+void dispatch_scalar_block(at::ScalarType t, int64_t r, int64_t c, F&& f) {
+  dispatch_scalar(t, [&](auto s_tag) { dispatch_block(r, c, [&](auto r_c, auto c_c) { f(s_tag, r_c, c_c); }); });
+}
+
 // Lanes summing one block row: a warp where rows hold many blocks (a coarse level's ~50), fewer
 // where they hold few (a prolongator's ~4), one on the CPU. A function of the matrix alone, so
 // one matrix always sums in one order.
@@ -91,20 +97,16 @@ void multigrid_bsr_gemv(const at::Tensor& values, const at::Tensor& block_cols, 
   const bool with_y = y.has_value() && y->defined();
   if (with_y) check_vector(*y, "y", out, rows * r, "out");
   typename L::Guard guard(out.device());
-  dispatch_scalar(out.scalar_type(), [&](auto s_tag) {
+  dispatch_scalar_block(out.scalar_type(), r, c, [&](auto s_tag, auto r_c, auto c_c) {
     using S = decltype(s_tag);
-    dispatch_block(r, c, [&](auto r_c, auto c_c) {
-      constexpr int RR = decltype(r_c)::value;
-      constexpr int CC = decltype(c_c)::value;
-      BsrGemvKernel<RR, CC, S> k;
-      k.a = {values.data_ptr<S>(), block_cols.data_ptr<int32_t>(), row_ptr.data_ptr<int32_t>()};
-      k.x = x.data_ptr<S>();
-      k.y = with_y ? y->data_ptr<S>() : nullptr;
-      k.alpha = static_cast<S>(alpha);
-      k.beta = static_cast<S>(beta);
-      k.out = out.data_ptr<S>();
-      L::run_rows(rows, k, row_group(values.size(0), rows));
-    });
+    BsrGemvKernel<decltype(r_c)::value, decltype(c_c)::value, S> k;
+    k.a = {values.data_ptr<S>(), block_cols.data_ptr<int32_t>(), row_ptr.data_ptr<int32_t>()};
+    k.x = x.data_ptr<S>();
+    k.y = with_y ? y->data_ptr<S>() : nullptr;
+    k.alpha = static_cast<S>(alpha);
+    k.beta = static_cast<S>(beta);
+    k.out = out.data_ptr<S>();
+    L::run_rows(rows, k, row_group(values.size(0), rows));
   });
 }
 
@@ -147,25 +149,20 @@ void multigrid_chebyshev(const c10::optional<at::Tensor>& values, const c10::opt
                 "(other rows read x)");
   }
   typename L::Guard guard(b.device());
-  dispatch_scalar(b.scalar_type(), [&](auto s_tag) {
+  dispatch_scalar_block(b.scalar_type(), r, c, [&](auto s_tag, auto r_c, auto c_c) {
     using S = decltype(s_tag);
-    dispatch_block(r, c, [&](auto r_c, auto c_c) {
-      constexpr int RR = decltype(r_c)::value;
-      constexpr int CC = decltype(c_c)::value;
-      ChebyshevKernel<RR, CC, S> k;
-      k.a = {with_matrix ? values->data_ptr<S>() : nullptr,
-             with_matrix ? block_cols->data_ptr<int32_t>() : nullptr,
-             with_matrix ? row_ptr->data_ptr<int32_t>() : nullptr};
-      k.product = with_product ? product->data_ptr<S>() : nullptr;
-      k.b = b.data_ptr<S>();
-      k.inverse_diagonal = inverse_diagonal.data_ptr<S>();
-      k.x = with_x ? x->data_ptr<S>() : nullptr;
-      k.step = step.data_ptr<S>();
-      k.x_out = x_out.data_ptr<S>();
-      k.coef_a = static_cast<S>(coef_a);
-      k.coef_c = static_cast<S>(coef_c);
-      L::run_rows(rows, k, with_matrix ? row_group(blocks, rows) : 1);
-    });
+    ChebyshevKernel<decltype(r_c)::value, decltype(c_c)::value, S> k;
+    k.a = {with_matrix ? values->data_ptr<S>() : nullptr, with_matrix ? block_cols->data_ptr<int32_t>() : nullptr,
+           with_matrix ? row_ptr->data_ptr<int32_t>() : nullptr};
+    k.product = with_product ? product->data_ptr<S>() : nullptr;
+    k.b = b.data_ptr<S>();
+    k.inverse_diagonal = inverse_diagonal.data_ptr<S>();
+    k.x = with_x ? x->data_ptr<S>() : nullptr;
+    k.step = step.data_ptr<S>();
+    k.x_out = x_out.data_ptr<S>();
+    k.coef_a = static_cast<S>(coef_a);
+    k.coef_c = static_cast<S>(coef_c);
+    L::run_rows(rows, k, with_matrix ? row_group(blocks, rows) : 1);
   });
 }
 

@@ -1,6 +1,7 @@
 """The ``tensormass`` command line (also ``python -m tensormass_torch``).
 
     tensormass run SCENE         run a built-in scene or a .toml scene file; .vtu frames + .pvd series
+    tensormass view SCENE        run a scene live in the browser: watch, poke and cut it (viser)
     tensormass bench [SCENE]     steps/s of one scene on one device (the full suite: benchmarks/)
     tensormass convert IN OUT    convert a mesh file between meshio formats
     tensormass info              backends, devices and build, as JSON
@@ -191,6 +192,21 @@ def _cmd_run(args):
     return 0
 
 
+def _cmd_view(args):
+    from .viewer import Viewer
+
+    if args.gif and not args.record:
+        raise UsageError("--gif needs --record (the folder the GIF goes to)")
+    scene = _load(args)
+    viewer = Viewer(scene, host=args.host, port=args.port, coloring=args.coloring, record=args.record,
+                    gif=args.gif, playing=not args.paused, steps=args.steps)
+    if args.exit_on_close:
+        viewer.exit_on_close()
+    print(f"{PROG}: viewing {viewer.name} at {viewer.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+    viewer.wait_closed()
+    return 0
+
+
 def _synchronize(device):
     import torch
 
@@ -258,7 +274,7 @@ def _cmd_convert(args):
 
 
 def build_parser():
-    """The ``tensormass`` argument parser (sub-commands run, bench, convert, info)."""
+    """The ``tensormass`` argument parser (sub-commands run, view, bench, convert, info)."""
     from ..physics.materials import MODELS
     from ..sim.builtin import SCENES
 
@@ -286,6 +302,24 @@ def build_parser():
     run.add_argument("--quiet", action="store_true", help="no progress line; print nothing but errors")
     _add_scene_arguments(run, MODELS)
     run.set_defaults(func=_cmd_run)
+
+    view = sub.add_parser("view", help="run a scene live in the browser (viser): watch, poke and cut it",
+                          description="Serve a scene live at http://HOST:PORT: its bodies drawn as they move, "
+                                      "play / pause / step / reset, dt, the CG budget, the model and Young's "
+                                      "modulus as controls, tools moved with gizmos, cuts drawn with two clicks.")
+    view.add_argument("scene", metavar="SCENE", help=scene_help)
+    view.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080; 0: any free one)")
+    view.add_argument("--host", default="127.0.0.1",
+                      help="address to serve on (default 127.0.0.1: this machine only; 0.0.0.0: every network)")
+    view.add_argument("--coloring", default="displacement", choices=["displacement", "stress", "none"],
+                      help="what the bodies' colours show (default displacement)")
+    view.add_argument("--record", default=None, help="also write the frames shown to this folder (.vtu + .pvd)")
+    view.add_argument("--gif", action="store_true", help="with --record, also an animated GIF (needs pyvista)")
+    view.add_argument("--paused", action="store_true", help="start paused")
+    view.add_argument("--steps", type=_positive_int, default=None, help="pause after this many steps")
+    view.add_argument("--exit-on-close", action="store_true", help="stop once the last page viewing it closes")
+    _add_scene_arguments(view, MODELS)
+    view.set_defaults(func=_cmd_view)
 
     bench = sub.add_parser("bench", help="steps/s of one scene (the full benchmark suite is in benchmarks/)",
                            description="Time the implicit steps of one scene on one device and print steps/s. "

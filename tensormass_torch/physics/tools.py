@@ -341,40 +341,64 @@ class ToolSet:
         #: whether any tool has friction
         self.has_friction = any(t.friction > 0 for t in tools)
         self.time, self.dt = 0.0, None
+        #: tool index -> the origin ``(x, y, z)`` it is held at in place of its path (:meth:`hold`)
+        self.held = {}
+        self._written = self.origins.cpu()  # the origins last written, on the host
 
     def __len__(self):
         return len(self.tools)
 
     @property
     def moves(self) -> bool:
-        """Whether any tool moves (then its pose changes between steps)."""
-        return any(t.moves for t in self.tools)
+        """Whether any tool moves (then its pose changes between steps): a path, or a tool held
+        where a caller puts it (:meth:`hold`)."""
+        return bool(self.held) or any(t.moves for t in self.tools)
+
+    def hold(self, index: int, position) -> None:
+        """Hold tool ``index`` at the origin ``position`` ``[3]`` from the next step on, in place of
+        its path (a tool driven live: a viewer's gizmo, a haptic device); its velocity over that
+        step is its move from where it was over the step's length. Raises ``SceneError`` naming a
+        bad index or position (nothing changes)."""
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(self.tools):
+            raise SceneError(f"tool index must be an integer in [0, {len(self.tools)}), got {index!r}")
+        self.held[index] = _vector(position, "tool position")
+        self.time = None  # the next set_time writes the new origin
+
+    def origin_at(self, index: int, t: float) -> Tuple[float, float, float]:
+        """Tool ``index``'s origin at time ``t``: where it is held, else its path's."""
+        held = self.held.get(index)
+        return held if held is not None else self.tools[index].origin(t)
 
     def set_time(self, t: float, dt: Optional[float] = None) -> None:
         """The tools' origins at time ``t``, written into :attr:`origins` in place, and with the
         length ``dt`` of the step ending at t, their velocities over it, (o(t) - o(t - dt)) / dt,
-        into :attr:`velocities` (without dt, zero)."""
+        into :attr:`velocities` (without dt, zero). A held tool is where it is held, its
+        velocity its move from the origin written before over dt."""
         if t == self.time and dt == self.dt:
             return
-        origins = torch.tensor([list(tool.origin(t)) for tool in self.tools], dtype=self.origins.dtype)
+        origins = torch.tensor([list(self.origin_at(i, t)) for i in range(len(self.tools))],
+                               dtype=self.origins.dtype)
         velocities = torch.zeros_like(origins)
         if dt:
-            before = torch.tensor([list(tool.origin(t - dt)) for tool in self.tools], dtype=self.origins.dtype)
+            before = torch.tensor([list(self.tools[i].origin(t - dt)) if i not in self.held else
+                                   self._written[i].tolist() for i in range(len(self.tools))], dtype=self.origins.dtype)
             velocities = (origins - before) / dt
         self.origins.copy_(origins.reshape(-1, 3), non_blocking=False)
         self.velocities.copy_(velocities.reshape(-1, 3), non_blocking=False)
+        self._written = origins.reshape(-1, 3)
         self.time, self.dt = t, dt
 
     def to(self, dtype=None, device=None) -> "ToolSet":
         """These tools with their tensors in ``dtype`` on ``device`` (a copy; None keeps each)."""
         other = ToolSet.__new__(ToolSet)
-        other.tools, other.thickness = self.tools, self.thickness
+        other.tools, other.thickness, other.held = self.tools, self.thickness, dict(self.held)
         other.stiffness = self.stiffness.to(dtype=dtype, device=device).clone()
         other.time, other.dt, other.has_friction = self.time, self.dt, self.has_friction
         other.velocities = self.velocities.to(dtype=dtype, device=device).clone()
         other.sizes = [s.to(dtype=dtype, device=device) if isinstance(s, (torch.Tensor, SignedDistanceGrid)) else s
                        for s in self.sizes]
         other.origins = self.origins.to(dtype=dtype, device=device).clone()
+        other._written = self._written.clone()
         other.rotations = self.rotations.to(dtype=dtype, device=device)
         return other
 

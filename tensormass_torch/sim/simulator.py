@@ -172,6 +172,10 @@ class Simulator:
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
                  preconditioner: str = "auto", integrator: str = "backward_euler", warm_start: bool = False):
         bodies = list(bodies)
+        if not hasattr(self, "initial_bodies"):  # (a rebuild for a cut runs __init__ again: kept)
+            #: the bodies this simulator was first built with (:meth:`rebuilt`)
+            self.initial_bodies = list(bodies)
+            self._initial_spare = spare_nodes
         # what a topology change that rebuilds the simulator (cut) builds it again with
         self._init_args = dict(dt=dt, gravity=gravity, rayleigh_mass=rayleigh_mass,
                                rayleigh_stiffness=rayleigh_stiffness, planes=planes, cg_tol=cg_tol,
@@ -828,6 +832,34 @@ class Simulator:
         if ok:
             self._commit(graphs.x.clone(), graphs.v.clone(), ok, graphs.report_of(summaries[ok - 1]), None)
         return ok
+
+    def rebuilt(self, bodies=None, **changes) -> "Simulator":
+        """A new simulator with this one's constructor settings, ``changes`` applied (the
+        constructor's keyword arguments: ``dt=``, ``cg_max_iter=``, ``tools=``...), over
+        ``bodies`` (default: :attr:`initial_bodies`, as first built, before any cut), at the
+        bodies' initial state and time 0 (a reset; another material: new bodies). Raises
+        ``SceneError`` naming an argument the constructor does not take."""
+        known = set(self._init_args) | {"spare_nodes"}
+        unknown = sorted(set(changes) - known)
+        if unknown:
+            raise SceneError(f"rebuilt: unknown settings {unknown}; known: {sorted(known)}")
+        args = {**self._init_args, "spare_nodes": self._initial_spare, **changes}
+        return Simulator(list(self.initial_bodies if bodies is None else bodies), **args)
+
+    def move_tool(self, tool, position) -> None:
+        """Hold a tool at the origin ``position`` ``[3]`` from the next step on, in place of its
+        path (a tool driven live, by a viewer's gizmo or a device); its velocity over the next
+        step is its move over that step (friction against it follows). ``tool``: its index in
+        ``tools`` or its name. Raises ``SceneError`` naming a missing tool or a bad position
+        (nothing changes). Steps are not chained while a tool is held."""
+        if self.tools is None:
+            raise SceneError("move_tool: this simulator has no tools")
+        names = [t.name for t in self.tools.tools]
+        if isinstance(tool, str):
+            if tool not in names:
+                raise SceneError(f"move_tool: no tool named {tool!r}; tools: {names}")
+            tool = names.index(tool)
+        self.tools.hold(tool, position)
 
     def _range(self, i: int) -> slice:
         if not -self.num_bodies <= i < self.num_bodies:

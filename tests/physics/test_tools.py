@@ -167,6 +167,42 @@ def test_simulator_reports_and_moving_tool():
     assert bool(torch.isfinite(sim.x).all())
 
 
+def test_a_tool_moved_live_is_its_path():
+    """A box held by ``move_tool`` where its keyframes would put it at each step's end moves the
+    body as the keyframed box does, friction (the tool's velocity) included; by index or name;
+    bad tools and positions raise and change nothing; held tools are not chained."""
+    mesh, mat = block(young=2e5)
+    runs = []
+    for live in (False, True):
+        box = tm.Box((0.12, 0.12, 0.05), times=[0.0, 0.2], positions=[[0, 0, 0.3], [0.03, 0, 0.22]], stiffness=2e5,
+                     friction=0.5, name="pusher")
+        if live:
+            box = dataclasses.replace(box, times=(), positions=(), position=(0.0, 0.0, 0.3))
+        sim = tm.Simulator([tm.Body(mesh, mat)], dt=0.01, planes=[tm.Plane((0, 0, 1), 0.0, 2e5)], tools=[box],
+                           cg_tol=1e-12)
+        keyed = tm.Box((0.12, 0.12, 0.05), times=[0.0, 0.2], positions=[[0, 0, 0.3], [0.03, 0, 0.22]])
+        for k in range(25):
+            if live:
+                sim.move_tool("pusher" if k % 2 else 0, keyed.origin(0.01 * (k + 1)))
+            sim.step()
+        runs.append((sim.x.clone(), sim.last_report.contact.tool_force.clone()))
+        if live:
+            assert sim.tools.moves and sim._chain_graphs() is None
+            x = sim.x.clone()
+            for bad, match in ((lambda: sim.move_tool(1, (0, 0, 0)), "tool index must be an integer in \\[0, 1\\)"),
+                               (lambda: sim.move_tool("knife", (0, 0, 0)), "no tool named 'knife'"),
+                               (lambda: sim.move_tool(0, (0, float("nan"), 0)), "tool position must be 3 finite")):
+                with pytest.raises(tm.SceneError, match=match):
+                    bad()
+            assert sim.tools.held[0] == pytest.approx(keyed.origin(0.25)) and torch.equal(sim.x, x)
+    torch.testing.assert_close(runs[1][0], runs[0][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(runs[1][1], runs[0][1], rtol=1e-9, atol=1e-9)
+    assert float(runs[0][1][0].norm()) > 0  # the box pressed
+    plain = tm.Simulator([tm.Body(mesh, mat)], dt=0.01)
+    with pytest.raises(tm.SceneError, match="this simulator has no tools"):
+        plain.move_tool(0, (0, 0, 0))
+
+
 def test_no_tool_changes_nothing():
     mesh, mat = block()
     far = tm.Sphere(0.05, position=(5.0, 5.0, 5.0))

@@ -1,0 +1,118 @@
+"""What the live viewer costs the simulation: steps/s of a scene stepping alone against the same
+scene playing in a ``Viewer`` with a page connected (a headless Chromium, software WebGL), per
+colouring, in one process.
+
+    python benchmarks/studies/viewer_overhead.py --device cuda --out DIR
+    ... --quick                                   # a small beam, seconds on a CPU
+
+The scene is SOFA's beam (101,250 tets, hooke, 10 CG iterations a step; ``--scale 5``: a coarser
+one). "alone": ``sim.step(n)`` in a loop for ``--seconds``; "viewer": a fresh simulator of the
+scene playing in the viewer for as long, after a warm-up, its steps counted over that time
+(the viewer batches steps to about 30 frames a second, draws each frame on a thread of its own
+and skips frames while the last one is being drawn). Without a Chromium (or playwright) the
+viewer runs with no page connected, which the table says.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import socket
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the shared common
+import common
+import torch
+from common import Results, metadata, record
+
+from tensormass_torch.sim.builtin import sofa_beam
+
+COLUMNS = [("run", "run", None), ("coloring", "colour", None), ("page", "page", None),
+           ("steps", "steps", None), ("seconds", "s", ".1f"), ("steps_per_s", "steps/s", ".1f"),
+           ("relative", "x alone", ".3f"), ("frames", "frames", None)]
+
+
+def alone(scene_factory, seconds: float, device) -> dict:
+    sim = scene_factory().simulator
+    sim.step(3)
+    common.sync(device)
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        sim.step(10)
+        steps += 10
+    common.sync(device)
+    elapsed = time.perf_counter() - start
+    return dict(run="alone", steps=steps, seconds=elapsed, steps_per_s=steps / elapsed)
+
+
+def in_viewer(scene_factory, seconds: float, coloring: str) -> dict:
+    from tensormass_torch.app.viewer import Viewer
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    viewer = Viewer(scene_factory(), port=port, coloring=coloring, playing=False)
+    browser = playwright = None
+    try:
+        chromium = shutil.which("chromium-headless-shell") or shutil.which("chromium")
+        if chromium:
+            try:
+                from playwright.sync_api import sync_playwright
+
+                playwright = sync_playwright().start()
+                browser = playwright.chromium.launch(executable_path=chromium, args=[
+                    "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+                page = browser.new_page(viewport={"width": 960, "height": 600})
+                page.goto(viewer.url)
+                page.get_by_text("Connected").wait_for(timeout=60_000)
+            except ImportError:
+                browser = None
+        viewer.step(3)
+        viewer.play()
+        time.sleep(min(2.0, seconds / 3))  # the batch size settles
+        first, start, frames = viewer.sim.steps_done, time.perf_counter(), viewer.frames
+        time.sleep(seconds)
+        steps, elapsed = viewer.sim.steps_done - first, time.perf_counter() - start
+        viewer.pause()
+        return dict(run="viewer", coloring=coloring, page=browser is not None, steps=steps, seconds=elapsed,
+                    steps_per_s=steps / elapsed, frames=viewer.frames - frames)
+    finally:
+        viewer.close()
+        if browser is not None:
+            browser.close()
+        if playwright is not None:
+            playwright.stop()
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default=common.default_device())
+    parser.add_argument("--out", default="benchmarks/results/viewer")
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--scale", type=int, default=None, help="SOFA beam coarsening (1: 101,250 tets)")
+    parser.add_argument("--seconds", type=float, default=None, help="measured seconds per run")
+    parser.add_argument("--colorings", default="displacement,none")
+    args = parser.parse_args(argv)
+    common.fill_defaults(args, dict(scale=1, seconds=15.0), dict(scale=5, seconds=3.0))
+    device = torch.device(args.device)
+
+    def factory():
+        return sofa_beam(model="hooke", device=device, scale=args.scale)
+
+    elements = factory().simulator.model.num_elements
+    results = Results(args.out, "viewer_overhead", "Steps/s of SOFA's beam alone and playing in the viewer",
+                      metadata(device, elements=elements),
+                      COLUMNS, notes=[f"SOFA beam, {elements} tets, hooke, 10 CG iterations, float32; "
+                                      f"{args.seconds:g} s a run."])
+    base = alone(factory, args.seconds, device)
+    results.add(record(**base, relative=1.0))
+    for coloring in args.colorings.split(","):
+        rec = in_viewer(factory, args.seconds, coloring)
+        rec["relative"] = rec["steps_per_s"] / base["steps_per_s"]
+        results.add(record(**rec))
+    results.finish()
+
+
+if __name__ == "__main__":
+    main()
