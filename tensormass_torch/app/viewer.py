@@ -16,6 +16,8 @@ Interaction:
     is put (``Simulator.move_tool``), and the panel shows the force the bodies put on it;
   - cutting: "Cut" then two clicks across a body: the blade is the surface the two click rays
     sweep (every face between them in depth is cut, ``Simulator.cut``);
+  - grabbing: "Grab a node" then a click: the surface node nearest the click ray is held
+    (``Simulator.hold_nodes``) and follows a gizmo until "Release";
   - controls: play / pause / step / reset, dt, the CG budget, the material model and Young's
     modulus (a new simulator at the initial state), the colouring.
 
@@ -169,6 +171,9 @@ class Viewer:
         self._drawing = threading.Event()  # a frame is waiting or being drawn
         self._status = None
         self._cut_rays = None  # the first click of a cut, waiting for the second
+        self._grabbing = False  # the next click grabs a node
+        self._grabbed = None  # (body, node) held by the drag gizmo
+        self._drag_gizmo = None
         self._writer = self._renderer = None
         if record is not None:
             from ..sim.output import FrameWriter
@@ -278,6 +283,61 @@ class Viewer:
             self._publish()
             return added
         return self.run(work)
+
+    def grab(self, ray):
+        """Pick the surface node nearest to a ray ``(origin, direction)`` (a click) and hold it
+        where it is (``Simulator.hold_nodes``); a gizmo then drags it (:meth:`drag`). Returns
+        (body, node id in its mesh)."""
+        origin, direction = (np.asarray(v, dtype=np.float64) for v in ray)
+        if origin.shape != (3,) or direction.shape != (3,) or not np.isfinite(np.r_[origin, direction]).all():
+            raise SceneError(f"a grab's ray must be an origin and a direction of 3 finite numbers, got {ray!r}")
+        direction = direction / max(float(np.linalg.norm(direction)), 1e-300)
+
+        def work():
+            best = None
+            for i in range(self.sim.num_bodies):
+                nodes = np.unique(self._surface(i).faces)
+                x = self.sim.positions(i).detach().cpu().double().numpy()[nodes]
+                along = (x - origin) @ direction
+                distance = np.linalg.norm(x - origin - along[:, None] * direction, axis=1)
+                distance[along < 0] = np.inf  # behind the camera
+                k = int(np.argmin(distance))
+                if best is None or distance[k] < best[0]:
+                    best = (distance[k], i, int(nodes[k]), x[k])
+            _, body, node, where = best
+            self.sim.hold_nodes(body, [node], where[None])
+            self._grabbed = (body, node)
+            return body, node, where
+
+        body, node, where = self.run(work)
+        with self._lock:
+            self._drag_gizmo = self.server.scene.add_transform_controls(
+                "/grabbed", scale=0.15 * self._scene_size, disable_rotations=True, position=tuple(where))
+
+            @self._drag_gizmo.on_update
+            def _(event):
+                self.drag(tuple(float(v) for v in self._drag_gizmo.position), wait=False)
+        return body, node
+
+    def drag(self, position, wait: bool = True):
+        """Hold the grabbed node at ``position`` from the next step on."""
+        def work():
+            if self._grabbed is None:
+                raise SceneError("drag: no node is grabbed (grab one first)")
+            body, node = self._grabbed
+            self.sim.hold_nodes(body, [node], [list(position)])
+        return self.run(work, wait=wait)
+
+    def release(self):
+        """Let the grabbed node go."""
+        def work():
+            self.sim.release_nodes()
+            self._grabbed = None
+        self.run(work)
+        with self._lock:
+            if self._drag_gizmo is not None:
+                self._drag_gizmo.remove()
+                self._drag_gizmo = None
 
     def set_coloring(self, coloring: str):
         if coloring not in COLORINGS:
@@ -391,6 +451,10 @@ class Viewer:
 
     def _replace(self, sim):
         self.sim = sim
+        self._grabbed = None
+        if self._drag_gizmo is not None:
+            self._drag_gizmo.remove()
+            self._drag_gizmo = None
         self._surfaces.clear()
         self._meshes.clear()
         self.error = None
@@ -596,6 +660,15 @@ class Viewer:
         return Blade.swept(o1, o1 + far * d1, o2, o2 + far * d2)
 
     def _on_click(self, event):
+        if self._grabbing:
+            self._grabbing = False
+            self._grab_button.label = "Grab a node"
+            try:
+                self.grab((event.ray_origin, event.ray_direction))
+            except TensorMassError as exc:
+                self.error = str(exc)
+                self._show_status()
+            return
         if self._cut_rays is None:
             return
         if not self._cut_rays:
@@ -618,6 +691,8 @@ class Viewer:
         step = gui.add_button("Step")
         reset = gui.add_button("Reset")
         self._cut_button = gui.add_button("Cut")
+        self._grab_button = gui.add_button("Grab a node")
+        release = gui.add_button("Release")
         sim = self.sim
         dt = gui.add_number("dt (s)", sim.options.dt, min=1e-6, step=sim.options.dt / 10)
         budget = gui.add_number("CG budget (0: converge)", 0 if sim.options.require_convergence
@@ -645,6 +720,17 @@ class Viewer:
         def _(event):
             self._cut_rays = []
             self._cut_button.label = "Cut: click the line's start"
+
+        @self._grab_button.on_click
+        def _(event):
+            if self._grabbed is not None:
+                self.release()
+            self._grabbing = True
+            self._grab_button.label = "Grab: click a node"
+
+        @release.on_click
+        def _(event):
+            self.release()
 
         @dt.on_update
         def _(event):

@@ -171,6 +171,9 @@ def _simulator_of(sim) -> Simulator:
     sim = getattr(sim, "simulator", sim)
     if not isinstance(sim, Simulator):
         raise SceneError(f"rollout steps a tm.Simulator, a scene or a scene file's path; got {type(sim).__name__}")
+    if sim._held is not None:
+        raise SceneError("rollout: the simulator holds nodes (hold_nodes); release them (release_nodes) or give "
+                         "their path as prescribed nodes")
     return sim
 
 

@@ -271,6 +271,9 @@ class Simulator:
         self.fixed = torch.cat(fixed)
         self.prescribed = torch.cat(prescribed)
         self._has_prescribed = any(b.motion is not None for b in bodies)  # known once: no sync per step
+        #: nodes held where a caller puts them (:meth:`hold_nodes`): packed ids ``[k]`` and their
+        #: targets ``[k, 3]``, or None
+        self._held = None
         self.segments = Segments.from_lengths([r.shape[0] for r in rest_parts], self.device)
         #: each body's first element in the model's numbering, and the element count ``[B + 1]``
         self.element_ptr = [0]
@@ -324,7 +327,11 @@ class Simulator:
         constrained, so that later removals update it in place."""
         mass = self.model.lumped_mass()
         constrained = self.fixed | self.prescribed | (mass == 0)
-        keep_mask = "removed" in self.model._buffers or self.ptr[-1] > sum(self.used_nodes)
+        if self._held is not None:
+            constrained = constrained.clone()
+            constrained[self._held[0]] = True
+        keep_mask = ("removed" in self.model._buffers or self.ptr[-1] > sum(self.used_nodes)
+                     or getattr(self, "_held_ever", False))
         self.system = DynamicsSystem(self.model, mass, mass.unsqueeze(-1) * self.gravity, self.segments,
                                      constrained, self.planes, keep_mask=keep_mask, tools=self.tools,
                                      body_contact=self.body_contact)
@@ -408,12 +415,53 @@ class Simulator:
             self._inversion = InversionCheck.for_simulator(self)
         return lost
 
+    def hold_nodes(self, body, nodes, positions) -> None:
+        """Hold nodes of a body at ``positions`` from the next step on, as prescribed nodes are
+        held on their path (a grab: a viewer's dragged node, a gripper): each step ends with them
+        there, the rest of the body following implicitly. ``nodes``: ids of the body's mesh
+        ``[k]`` (or a bool mask); ``positions [k, 3]``. Holding again replaces every held node
+        of the simulator; :meth:`release_nodes` lets them go. Raises ``SceneError`` naming a bad
+        body, node (out of range, fixed or prescribed) or position; nothing changes then."""
+        i = self._body_index(body)
+        local = torch.nonzero(node_mask(nodes, self.used_nodes[i], "hold_nodes: nodes", self.device)).flatten()
+        ids = local + self.ptr[i]
+        targets = torch.as_tensor(positions, dtype=self.dtype, device=self.device)
+        if targets.numel() == 3 * ids.numel():
+            targets = targets.reshape(-1, 3)
+        if targets.shape != (ids.numel(), 3) or not bool(torch.isfinite(targets).all()):
+            raise SceneError(f"hold_nodes: positions must be [{ids.numel()}, 3] finite numbers, got shape "
+                             f"{tuple(targets.shape)}")
+        if bool((self.fixed | self.prescribed)[ids].any()):
+            raise SceneError("hold_nodes: fixed and prescribed nodes are held already; hold free nodes")
+        self.release_nodes()
+        if ids.numel() == 0:
+            return
+        self._held = (ids, targets.clone())
+        if self.system.free is None:  # a system built without constraints: one with a mask, once
+            self._held_ever = True
+            self._make_system()
+        else:
+            self.system.free[ids] = 0.0
+
+    def release_nodes(self) -> None:
+        """Let the nodes :meth:`hold_nodes` holds go (they move freely from the next step on)."""
+        if self._held is None:
+            return
+        ids = self._held[0]
+        self._held = None
+        free = ~(self.fixed | self.prescribed)[ids] & (self.model.lumped_mass()[ids] > 0)
+        self.system.free[ids] = free.to(self.system.free.dtype)[:, None]
+
     def _imposed_velocity(self, x: torch.Tensor, t_next: float, h: float):
         """End-of-step velocities ``[V, 3]`` taking the prescribed nodes from ``x [V, 3]`` to
-        ``motion(t_next)`` over a step of length h (zero on fixed nodes), or None."""
-        if not self._has_prescribed:
+        ``motion(t_next)`` and the held ones to where they are held over a step of length h
+        (zero on fixed nodes), or None."""
+        if not self._has_prescribed and self._held is None:
             return None
         target_v = torch.zeros_like(self.v)
+        if self._held is not None:
+            ids, goal = self._held
+            target_v[ids] = (goal - x[ids]) / h
         for i, b in enumerate(self.bodies):
             if b.motion is None:
                 continue
@@ -817,7 +865,8 @@ class Simulator:
     def _chain_graphs(self):
         """The step graphs that run several steps with one host synchronisation (CUDA, every CG
         iteration inside the captured step, no prescribed motion, no inversion check), or None."""
-        if self._has_prescribed or self._inversion is not None or (self.tools is not None and self.tools.moves):
+        if (self._has_prescribed or self._held is not None or self._inversion is not None
+                or (self.tools is not None and self.tools.moves)):
             return None
         graphs = step_graphs_for(self.system, self.options, imposed=False)
         return graphs if graphs is not None and graphs.chainable else None

@@ -143,7 +143,8 @@ def test_closing_the_page_stops_the_command(tmp_path):
 def test_actions_without_a_browser(tmp_path):
     """The viewer's actions on a running simulation: playing runs steps and pauses at ``steps``,
     options and materials change it, reset starts again (keeping the material chosen), a cut of
-    two rays across the block adds nodes, colours and recorded frames."""
+    two rays across the block adds nodes, a node grabbed by a ray follows where it is dragged,
+    colours and recorded frames."""
     scene = tm.load_scene(SCENES / "cut.toml")
     with Viewer(scene, port=free_port(), playing=True, steps=6, record=tmp_path / "rec") as viewer:
         viewer.wait_steps(6)
@@ -164,6 +165,16 @@ def test_actions_without_a_browser(tmp_path):
         added = viewer.cut(((float(middle[0]), float(low[1]) - 0.1, above), (0, 0, -1)),
                            ((float(middle[0]), float(high[1]) + 0.1, above), (0, 0, -1)))
         assert added > 0 and viewer.sim.mesh(0).num_vertices > x.shape[0]
+        # grab the node under a ray straight down onto the block's top, drag it up, let it go
+        body, node = viewer.grab(((float(low[0]) + 0.01, float(middle[1]), above), (0.0, 0.0, -1.0)))
+        lifted = viewer.sim.positions(body)[node] + torch.tensor([0.0, 0.0, 0.05], dtype=x.dtype)
+        viewer.drag(lifted.tolist())
+        viewer.step(2)
+        torch.testing.assert_close(viewer.sim.positions(body)[node], lifted, rtol=0, atol=1e-6)
+        viewer.release()
+        assert viewer.sim._held is None and viewer._drag_gizmo is None
+        with pytest.raises(tm.SceneError, match="no node is grabbed"):
+            viewer.drag((0.0, 0.0, 0.0))
         old = viewer.sim
         viewer.set_material(model="hooke", young=2e6)
         assert viewer.sim is not old and viewer.sim.steps_done == 0
