@@ -36,7 +36,9 @@ Families (one curve each, per model and dtype): static "mesh" (m), "tol" (Newton
 CG at tol / 10), "aspect" (cells 2x longer / shorter along x); dynamic "mesh N=..." (m at N
 steps per period), "dt" (N), "cg_tol", "cg_cap" (a fixed CG budget, require_convergence=False,
 SOFA's way), "newton" (iterations per step at a large step), "dt newmark" (N, with
-``integrator="newmark"``: no numerical damping, ``--integrators``). Time: the solve (static) or the
+``integrator="newmark"``: no numerical damping, ``--integrators``), and per solver of
+``--solvers`` other than plain CG, "cg_tol <solver>" and "cg_cap <solver>" (multigrid
+preconditioned, warm started: ``SOLVERS``). Time: the solve (static) or the
 steps of one simulated period (dynamic), synchronised wall clock after a warm-up, the fastest of
 up to 3 repeats for runs under 2 s; setup excluded.
 
@@ -45,6 +47,8 @@ Errors, all against the converged 3-D values: static |w / w_conv - 1|. Dynamic "
 run's frequency against the mesh's modal one): the mesh makes the frequency too high and
 implicit Euler too low, and their signed sum vanishes at some dt by coincidence; the sum of
 magnitudes does not. Dynamic "motion": the larger of that and the amplitude lost per period.
+"Solver error": a cg_tol or cg_cap run's frequency against the same mesh and dt solved to
+convergence (the "dt" family): what the solver's settings cost, apart from mesh and time step.
 A target below the reference's own uncertainty (how far Richardson's estimate moves when the
 finest refinement is left out) is reported as not judgeable.
 
@@ -101,12 +105,13 @@ PRESETS = {
     "quick": dict(static_m=[1], static_ref_m=[1, 2, 3], static_tol_m=1, static_tols=[1e-2],
                   aspect_m=1, aspects=[2.0], modal_ref_m=[1, 2, 3], dynamic_m=[1, 2], dynamic_mesh_n=[8],
                   dyn_m=1, dyn_n=[8, 16], dyn_mid_n=8, cg_tols=[1e-2], cg_caps=[10],
-                  newton_n=8, newtons=[2], periods=1.0),
+                  newton_n=8, newtons=[2], periods=1.0, solver_caps={"multigrid": [1, 2]}),
     "default": dict(static_m=[1, 2, 3, 4, 6], static_ref_m=[1, 2, 3, 4, 6, 8, 10], static_tol_m=3,
                     static_tols=[1e-1, 1e-2, 1e-3, 1e-4, 1e-6], aspect_m=3, aspects=[2.0, 0.5],
                     modal_ref_m=[1, 2, 3, 4, 6, 8], dynamic_m=[1, 2, 3], dynamic_mesh_n=[16, 64],
                     dyn_m=2, dyn_n=[8, 16, 32, 64, 128], dyn_mid_n=32, cg_tols=[1e-1, 1e-2, 1e-3, 1e-4],
-                    cg_caps=[5, 10, 20, 40], newton_n=8, newtons=[2, 3], periods=1.0),
+                    cg_caps=[5, 10, 20, 40], newton_n=8, newtons=[2, 3], periods=1.0,
+                    solver_caps={"multigrid": [1, 2, 4, 8]}),
 }
 
 #: Newton tolerance of the static runs where the family does not sweep it, and the CG tolerance
@@ -122,10 +127,12 @@ TITLE = "Accuracy against run time: cantilever statics and first frequency"
 COLUMNS = [("problem", "problem", None), ("family", "family", None), ("model", "model", None),
            ("dtype", "dtype", None), ("m", "m", None), ("elements", "elements", ","),
            ("steps_per_period", "N=T/dt", None), ("tol", "tol", ".0e"), ("cg_tol", "CG tol", ".0e"),
-           ("cg_max_iter", "CG cap", None), ("newton_iters", "Newton", None), ("value", "value", ".6g"),
+           ("cg_max_iter", "CG cap", None), ("solver", "solver", None), ("newton_iters", "Newton", None),
+           ("value", "value", ".6g"),
            ("rel_error", "error", ".2e"), ("rel_error_timoshenko", "vs Timoshenko", "+.2e"),
            ("rel_error_mesh", "mesh error", "+.2e"), ("rel_error_time", "time-stepping error", "+.2e"),
-           ("amplitude_loss_per_period", "amplitude lost/period", ".2e"), ("time_s", "time s", ".3f"),
+           ("amplitude_loss_per_period", "amplitude lost/period", ".2e"),
+           ("rel_error_solver", "solver error", ".2e"), ("time_s", "time s", ".3f"),
            ("cg_iterations", "CG it", None)]
 
 
@@ -299,8 +306,9 @@ EXACT_MODES = {"backward_euler": backward_euler_mode, "newmark": newmark_mode}
 def dynamic_run(model_name: str, dtype_name: str, device, m: int, steps_per_period: int, period: float,
                 mode_shape: torch.Tensor, mode_frequency: float, periods: float, cg_tol: float,
                 cg_max_iter: int = 1000, newton_iters: int = 1, require_convergence: bool = True,
-                integrator: str = "backward_euler") -> dict:
-    """Free vibration from the first mode's velocity: a record (value: frequency in Hz)."""
+                integrator: str = "backward_euler", solver: str = "none") -> dict:
+    """Free vibration from the first mode's velocity: a record (value: frequency in Hz).
+    ``solver``: the CG's preconditioner, "+warm" for warm starts (``SOLVERS``)."""
     dtype = getattr(torch, dtype_name)
     mesh, fixed, tip = cantilever(m, torch.float64, "cpu")
     dt = period / steps_per_period
@@ -310,11 +318,12 @@ def dynamic_run(model_name: str, dtype_name: str, device, m: int, steps_per_peri
                  device=torch.device(device).type, dtype=dtype_name, m=m, cells=list(BEAM.cells(m)),
                  steps_per_period=steps_per_period, dt=dt, cg_tol=cg_tol, cg_max_iter=cg_max_iter,
                  newton_iters=newton_iters, require_convergence=require_convergence, integrator=integrator,
-                 quantity="frequency (Hz)")
+                 solver=solver, quantity="frequency (Hz)")
+    preconditioner, _, warm = solver.partition("+")
     sim = tm.Simulator([tm.Body(mesh, material(model_name), fixed=fixed, velocity=velocity)], dt=dt,
                        gravity=(0.0, 0.0, 0.0), cg_tol=cg_tol, cg_max_iter=cg_max_iter,
                        require_convergence=require_convergence, newton_iters=newton_iters, device=device,
-                       dtype=dtype, integrator=integrator)
+                       dtype=dtype, integrator=integrator, preconditioner=preconditioner, warm_start=warm == "warm")
     tip = tip.to(sim.device)
     steps = max(int(math.ceil(periods * steps_per_period)), 6)
     samples = [torch.zeros((), dtype=dtype, device=sim.device)]
@@ -374,7 +383,29 @@ CRITERIA = (
               "s per simulated period"),
     Criterion("motion", "dynamic", "rel_error_motion",
               "One period of motion: max(frequency error, amplitude lost per period)", "s per simulated period"),
+    Criterion("solver", "dynamic", "rel_error_solver",
+              "Solver error: frequency against the same mesh and dt solved to convergence", "s per simulated period"),
 )
+
+
+#: ``--solvers``: the preconditioner, with "+warm" for warm starts
+SOLVERS = ("none", "none+warm", "multigrid", "multigrid+warm")
+
+
+def solver_errors(records: Sequence[dict], model: str, dtype: str) -> None:
+    """Each dynamic run's solver error ``rel_error_solver``: |its frequency / the frequency of the
+    same mesh and dt solved to convergence (the "dt" family's run) - 1|: what the CG tolerance or
+    budget (and the solver) costs, apart from the mesh and the time step. Set on the runs of the
+    cg_tol and cg_cap families of ``model`` and ``dtype`` (in place)."""
+    converged = {(r["m"], r["steps_per_period"]): r["value"] for r in records
+                 if r.get("problem") == "dynamic" and r.get("family") == "dt" and r.get("value") is not None
+                 and (r["model"], r["dtype"]) == (model, dtype)}
+    for r in records:
+        if (r.get("problem") == "dynamic" and (r["model"], r["dtype"]) == (model, dtype) and r.get("value") is not None
+                and str(r.get("family", "")).startswith(("cg_tol", "cg_cap"))):
+            reference = converged.get((r["m"], r["steps_per_period"]))
+            if reference is not None:
+                r["rel_error_solver"] = abs(r["value"] / reference - 1.0)
 
 
 def cost(rec: dict) -> Optional[float]:
@@ -411,6 +442,8 @@ def settings_text(r: dict) -> str:
             parts.append(f"{r['newton_iters']} Newton iterations")
         if r.get("integrator", "backward_euler") != "backward_euler":
             parts.append(r["integrator"])
+        if r.get("solver", "none") != "none":
+            parts.append(f"CG with {r['solver']}")
     return ", ".join(parts)
 
 
@@ -467,7 +500,7 @@ def picks_paragraph(chosen: Dict[str, List[dict]]) -> List[str]:
 
 def draw(records: Sequence[dict], meta: dict):
     def figure(plt):
-        fig, axes = plt.subplots(1, len(CRITERIA), figsize=(21, 9.5))
+        fig, axes = plt.subplots(1, len(CRITERIA), figsize=(7 * len(CRITERIA), 9.5))
         colors = {"hooke": "tab:blue", "stvk": "tab:orange", "corotational": "tab:green"}
         styles = {"float64": "-", "float32": ":"}
         markers = "osD^v<>pP*Xh"
@@ -521,6 +554,9 @@ def parse_args(argv=None):
     p.add_argument("--problems", default="static,dynamic")
     p.add_argument("--integrators", default="backward_euler,newmark",
                    help="the dynamic 'dt' family's integrators (StepOptions.integrator)")
+    p.add_argument("--solvers", default="none",
+                   help="the dynamic cg_tol and cg_cap families' solvers: none, multigrid, and either with '+warm' "
+                        "(warm starts); each other than none adds families '<family> <solver>'")
     p.add_argument("--static-m", default=None, help="refinements of the static mesh family (comma list)")
     p.add_argument("--dynamic-m", default=None, help="refinements of the dynamic mesh families (comma list)")
     p.add_argument("--periods", type=float, default=None, help="simulated periods per dynamic run (1)")
@@ -549,6 +585,10 @@ def main(argv=None):
     models = [m for m in args.models.split(",") if m]
     dtypes = [d for d in args.dtypes.split(",") if d]
     integrators = [i for i in args.integrators.split(",") if i]
+    solvers = [v for v in args.solvers.split(",") if v]
+    for solver in solvers:
+        if solver not in SOLVERS:
+            raise SystemExit(f"accuracy.py: unknown solver {solver!r} in --solvers; known: {', '.join(SOLVERS)}")
     problems = [p for p in args.problems.split(",") if p]
     budget = Budget(args.budget_s)
     started = time.perf_counter()
@@ -681,26 +721,30 @@ def main(argv=None):
         for model in models:
             for dtype in dtypes:
                 cg_tol = DYNAMIC_CG_TOL[dtype]
-                runs = []  # (family, m, N, cg_tol, cap, newton, require_convergence, integrator)
+                runs = []  # (family, m, N, cg_tol, cap, newton, require_convergence, integrator, solver)
                 for n in size["dynamic_mesh_n"]:
-                    runs += [(f"mesh N={n}", m, n, cg_tol, 1000, 1, True, "backward_euler")
+                    runs += [(f"mesh N={n}", m, n, cg_tol, 1000, 1, True, "backward_euler", "none")
                              for m in size["dynamic_m"]]
                 for integrator in integrators:
                     runs += [("dt" if integrator == "backward_euler" else f"dt {integrator}", size["dyn_m"], n, cg_tol,
-                              1000, 1, True, integrator) for n in size["dyn_n"]]
-                runs += [("cg_tol", size["dyn_m"], size["dyn_mid_n"], t, 1000, 1, True, "backward_euler")
-                         for t in size["cg_tols"] if t > cg_tol]
-                runs += [("cg_cap", size["dyn_m"], size["dyn_mid_n"], 0.0, c, 1, False, "backward_euler")
-                         for c in size["cg_caps"]]
-                runs += [("newton", size["dyn_m"], size["newton_n"], cg_tol, 1000, k, True, "backward_euler")
+                              1000, 1, True, integrator, "none") for n in size["dyn_n"]]
+                for solver in solvers:
+                    suffix = "" if solver == "none" else f" {solver}"
+                    caps = size["cg_caps"] if solver == "none" else size["solver_caps"][solver.partition("+")[0]]
+                    runs += [("cg_tol" + suffix, size["dyn_m"], size["dyn_mid_n"], t, 1000, 1, True, "backward_euler",
+                              solver) for t in size["cg_tols"] if t > cg_tol]
+                    runs += [("cg_cap" + suffix, size["dyn_m"], size["dyn_mid_n"], 0.0, c, 1, False, "backward_euler",
+                              solver) for c in caps]
+                runs += [("newton", size["dyn_m"], size["newton_n"], cg_tol, 1000, k, True, "backward_euler", "none")
                          for k in size["newtons"]]
-                for family, m, n, tol, cap, newton, require, integrator in runs:
+                for family, m, n, tol, cap, newton, require, integrator, solver in runs:
                     if budget.remaining() <= 0:
                         skip("dynamic", family, model, dtype, m, "budget spent")
                         continue
                     rec = dynamic_run(model, dtype, device, m, n, period, modes[m][1], modes[m][0],
-                                      size["periods"], tol, cap, newton, require, integrator)
+                                      size["periods"], tol, cap, newton, require, integrator, solver)
                     add(rec, family, freq_ref, freq_timoshenko)
+                solver_errors(results.records, model, dtype)
                 release(device)
 
     meta["references"] = references

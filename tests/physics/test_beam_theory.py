@@ -7,6 +7,7 @@ by a 1-D Timoshenko finite-element eigenproblem, and Richardson on sequences of 
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import sys
@@ -281,7 +282,9 @@ def test_fit_damped_mode_recovers_a_sampled_mode(accuracy):
 
 
 def test_accuracy_script_quick(accuracy, tmp_path):
-    results = accuracy.main(["--quick", "--models", "hooke", "--dtypes", "float64", "--out", str(tmp_path)])
+    solvers = "none,multigrid" if importlib.util.find_spec("pyamg") else "none"
+    results = accuracy.main(["--quick", "--models", "hooke", "--dtypes", "float64", "--out", str(tmp_path),
+                             "--solvers", solvers])
     data = json.loads((tmp_path / "accuracy.json").read_text())
     md = (tmp_path / "accuracy.md").read_text()
     assert "Which settings to pick" in md and "Pareto" in md
@@ -301,4 +304,8 @@ def test_accuracy_script_quick(accuracy, tmp_path):
             assert abs(r[f"{integrator}_check"]) < 1e-6
             assert r["decay_per_period"] == pytest.approx(r[f"decay_{integrator}"], rel=1e-5)
     assert {r.get("integrator") for r in dynamic} == {"backward_euler", "newmark"}
-    assert set(data["meta"]["picks"]) == {"static", "frequency", "motion"}
+    assert set(data["meta"]["picks"]) == {"static", "frequency", "motion", "solver"}
+    # the solver error: a budget's frequency against the same mesh and dt solved to convergence
+    capped = [r for r in dynamic if r["family"].startswith("cg_cap")]
+    assert capped and all(r["rel_error_solver"] >= 0 for r in capped)
+    assert {r["family"] for r in capped} == {"cg_cap"} | ({"cg_cap multigrid"} if "multigrid" in solvers else set())
