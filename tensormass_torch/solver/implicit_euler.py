@@ -834,7 +834,7 @@ class StepGraphs:
         # status, iterations, r.r, b.b, |v|^2 per object: what the host reads, in one copy
         self.summary = torch.zeros(5, self.norms.numel(), dtype=torch.float64, device=like.device)
         self.matvec = system.system_matvec(*_coefficients(opts), opts.pipelined, opts.variants)
-        #: whether the solves are multigrid-preconditioned CG (:meth:`_preconditioned_step`)
+        #: whether the solves are multigrid-preconditioned CG (:meth:`_preconditioned_solve`)
         self.preconditioned = opts.preconditioner == "multigrid"
         # Where the whole CG is one op that stops on the device, graph A holds all of it;
         # otherwise its first check_every iterations, then the host looks.
