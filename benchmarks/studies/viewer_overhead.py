@@ -9,8 +9,10 @@ The scene is SOFA's beam (101,250 tets, hooke, 10 CG iterations a step; ``--scal
 one). "alone": ``sim.step(n)`` in a loop for ``--seconds``; "viewer": a fresh simulator of the
 scene playing in the viewer for as long, after a warm-up, its steps counted over that time
 (the viewer batches steps to about 30 frames a second, draws each frame on a thread of its own
-and skips frames while the last one is being drawn). Without a Chromium (or playwright) the
-viewer runs with no page connected, which the table says.
+and skips frames while the last one is being drawn). ``--pages yes,no``: with a page connected (a
+headless Chromium drawing with software WebGL, on the same CPU) and without one (the viewer's
+own cost: copies, colours, encoding, messages); without a Chromium (or playwright) the "yes" runs
+have no page either, which the table says.
 """
 from __future__ import annotations
 
@@ -46,7 +48,7 @@ def alone(scene_factory, seconds: float, device) -> dict:
     return dict(run="alone", steps=steps, seconds=elapsed, steps_per_s=steps / elapsed)
 
 
-def in_viewer(scene_factory, seconds: float, coloring: str) -> dict:
+def in_viewer(scene_factory, seconds: float, coloring: str, page: bool = True) -> dict:
     from tensormass_torch.app.viewer import Viewer
 
     with socket.socket() as s:
@@ -55,7 +57,7 @@ def in_viewer(scene_factory, seconds: float, coloring: str) -> dict:
     viewer = Viewer(scene_factory(), port=port, coloring=coloring, playing=False)
     browser = playwright = None
     try:
-        chromium = shutil.which("chromium-headless-shell") or shutil.which("chromium")
+        chromium = (shutil.which("chromium-headless-shell") or shutil.which("chromium")) if page else None
         if chromium:
             try:
                 from playwright.sync_api import sync_playwright
@@ -93,6 +95,8 @@ def main(argv=None):
     parser.add_argument("--scale", type=int, default=None, help="SOFA beam coarsening (1: 101,250 tets)")
     parser.add_argument("--seconds", type=float, default=None, help="measured seconds per run")
     parser.add_argument("--colorings", default="displacement,none")
+    parser.add_argument("--pages", default="yes,no",
+                        help="runs with a page connected (yes) and without one (no: the viewer's own cost)")
     args = parser.parse_args(argv)
     common.fill_defaults(args, dict(scale=1, seconds=15.0), dict(scale=5, seconds=3.0))
     device = torch.device(args.device)
@@ -107,10 +111,11 @@ def main(argv=None):
                                       f"{args.seconds:g} s a run."])
     base = alone(factory, args.seconds, device)
     results.add(record(**base, relative=1.0))
-    for coloring in args.colorings.split(","):
-        rec = in_viewer(factory, args.seconds, coloring)
-        rec["relative"] = rec["steps_per_s"] / base["steps_per_s"]
-        results.add(record(**rec))
+    for page in args.pages.split(","):
+        for coloring in args.colorings.split(","):
+            rec = in_viewer(factory, args.seconds, coloring, page == "yes")
+            rec["relative"] = rec["steps_per_s"] / base["steps_per_s"]
+            results.add(record(**rec))
     results.finish()
 
 
