@@ -141,12 +141,15 @@ def _cmd_info(args):
 
 
 def _cmd_run(args):
+    from ..sim import distributed
     from ..sim.output import FrameWriter
     from .progress import Progress
     from .render import FrameRenderer
 
     if (args.png or args.gif) and not args.out:
         raise UsageError("--png and --gif need --out (the folder the pictures go to)")
+    if distributed.launched():
+        return _run_distributed(args)
     # Everything that can fail on bad input happens before the first file is written.
     scene = _load(args)
     sim = scene.simulator
@@ -205,6 +208,61 @@ def _cmd_view(args):
     print(f"{PROG}: viewing {viewer.name} at {viewer.url} (Ctrl-C to stop)", file=sys.stderr, flush=True)
     viewer.wait_closed()
     return 0
+
+
+def _run_distributed(args):
+    """``tensormass run`` under ``torchrun``: this rank's share of the scene's bodies
+    (``sim.distributed``), its frames written by it, the series by rank 0."""
+    import torch.distributed as dist
+
+    from ..sim import distributed
+    from ..sim.output import FrameWriter
+
+    if args.png or args.gif:
+        raise UsageError("--png and --gif render one process's frames: run without torchrun for pictures")
+    device = distributed.init(args.device)
+    if args.device is not None:
+        args.device = str(device)
+    try:
+        if _is_scene_file(args.scene):
+            from ..sim.scene_file import load_scene
+
+            def load(select):
+                return load_scene(args.scene, device=args.device, dtype=args.dtype, model=args.model, select=select)
+        else:
+            def load(select):
+                return distributed.select_bodies(_load(args), select)
+        share = distributed.BatchShare(load)
+        scene, rank = share.scene, share.rank
+        steps = scene.steps if args.steps is None else args.steps
+        every = scene.output_every if args.every is None else args.every
+        writer = FrameWriter(args.out, scene.name, series=rank == 0) if args.out else None
+        say = (lambda *a: None) if args.quiet or rank else (lambda *a: print(*a, file=sys.stderr, flush=True))
+        say(f"{scene.description}; {steps} steps over {share.world} processes")
+
+        series = []  # rank 0: every rank's frames so far
+
+        def write_frame():
+            entries = distributed.collectively(
+                lambda: writer.write(scene.simulator, share.body_ids) if scene.simulator is not None else [],
+                "writing a frame")
+            gathered = [None] * share.world
+            dist.all_gather_object(gathered, entries)
+            if rank == 0:
+                series.extend(e for part in gathered for e in part)
+                writer.write_series(series)
+
+        if writer:
+            write_frame()
+        for done in range(1, steps + 1):
+            share.step(1)
+            if writer and (done % every == 0 or done == steps):
+                write_frame()
+        if writer:
+            say(f"wrote {writer.frame} frames to {Path(args.out) / (scene.name + '.pvd')}")
+        return 0
+    finally:
+        dist.destroy_process_group()
 
 
 def _synchronize(device):

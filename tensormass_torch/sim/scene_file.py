@@ -100,7 +100,7 @@ except ModuleNotFoundError:  # Python < 3.11: the package still imports; reading
         tomllib = None
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import torch
 
@@ -139,6 +139,9 @@ class FileScene(Scene):
 
     path: Optional[Path] = None
     render: Dict[str, Any] = field(default_factory=dict)
+    #: the file's index of each body of the simulator (all of them, unless ``load_scene``'s
+    #: ``select`` chose some)
+    body_ids: Optional[List[int]] = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -600,7 +603,8 @@ def _device(t: _Table, override) -> torch.device:
     return device
 
 
-def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) -> FileScene:
+def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
+               select: Optional[Callable[[List[Body]], Sequence[int]]] = None) -> FileScene:
     """Read, check and build a TOML scene file.
 
     Args:
@@ -608,6 +612,10 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
         device, dtype: override the file's ``device`` / ``dtype`` (a torch device or string; a
             torch dtype or ``"float32"`` / ``"float64"``).
         model: override every body's material model (one of ``tm.MODELS``).
+        select: ``bodies -> indices``: build the simulator of these of the file's bodies only
+            (a process's share of a batch over several: ``sim.distributed``); ``body_ids`` says
+            which. Bodies of the scene's other parts (contact between bodies, scalpels) must
+            then be among them; an empty selection builds no simulator (``simulator`` None).
 
     Returns:
         a :class:`FileScene` holding the built :class:`Simulator`.
@@ -704,6 +712,18 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
     spare = [(max(MIN_SPARE_NODES, b.mesh.num_vertices // SPARE_FRACTION)
               if {i, i - len(bodies), b.name} & targets else 0) if room is None else room
              for i, (b, room) in enumerate(zip(bodies, spare))]
+    body_ids = list(range(len(bodies)))
+    if select is not None:
+        body_ids = sorted({int(i) for i in select(bodies)})
+        if any(not 0 <= i < len(bodies) for i in body_ids):
+            raise fail("bodies", f"select chose bodies {body_ids}; the file has {len(bodies)}")
+        if len(body_ids) < len(bodies) and (contact is not None or scalpels):
+            raise fail("", "a scene with contact between bodies or scalpels runs with all of its bodies in one "
+                           "process (its bodies meet or are cut by name and index)")
+        bodies, spare = [bodies[i] for i in body_ids], [spare[i] for i in body_ids]
+        if not bodies:
+            return FileScene(name, None, steps, output_every, description or name, path=path, render=render,
+                             body_ids=[])
 
     try:
         simulator = Simulator(bodies, dt=dt, gravity=gravity, planes=planes, device=torch_device,
@@ -718,4 +738,5 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None) ->
     if not description:
         tets = sum(b.mesh.num_elements for b in bodies)
         description = f"{name}: {len(bodies)} bodies, {tets} elements, dt {dt:g} s, {steps} steps"
-    return FileScene(name, simulator, steps, output_every, description, path=path, render=render)
+    return FileScene(name, simulator, steps, output_every, description, path=path, render=render,
+                     body_ids=body_ids)

@@ -1,0 +1,136 @@
+"""A batch of bodies over several processes (sim/distributed.py): `torchrun --nproc-per-node 2
+-m tensormass_torch run SCENE` on the CPU (gloo) writes, per body, what one process writes (float64,
+1e-12) and one series of all; a step that fails on one rank fails every rank with one error naming
+it, and nothing hangs; bodies are dealt by element count; scenes whose bodies must stay together
+are refused by name."""
+import math
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from xml.etree import ElementTree
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.app.cli import main
+from tensormass_torch.sim.distributed import partition_bodies
+
+meshio = pytest.importorskip("meshio")
+pytestmark = pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+                                reason="needs torch.distributed with gloo")
+
+BODY = """
+[[bodies]]
+name = "{name}"
+mesh = {{ generator = "beam", cells = [{n}, 2, 2], size = [{length}, 0.2, 0.2], origin = [0.0, {y}, 0.0] }}
+material = {{ model = "{model}", young = {young}, poisson = 0.3, density = 1000.0 }}
+fixed = {{ box = [[0.0, {y}, 0.0], [0.0, {y2}, 0.2]] }}
+"""
+
+
+def scene_file(tmp_path, youngs=(2e5, 5e5, 1e6, 3e5), models=("hooke", "stvk", "corotational", "corotational"),
+               solver="cg_tol = 1e-10"):
+    text = f'name = "beams"\ndt = 0.01\nsteps = 6\noutput_every = 3\ndtype = "float64"\n[solver]\n{solver}\n'
+    for k, (young, model) in enumerate(zip(youngs, models)):
+        y = 0.4 * k
+        text += BODY.format(name=f"beam{k}", n=4 + 2 * k, length=0.5 + 0.1 * k, y=y, y2=y + 0.2, model=model,
+                            young=young)
+    path = tmp_path / "beams.toml"
+    path.write_text(text)
+    return path
+
+
+def torchrun(args, processes=2, timeout=180):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    command = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc-per-node", str(processes),
+               "--master-addr", "127.0.0.1", "--master-port", str(port), "-m", "tensormass_torch"] + args
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout,
+                          env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+
+
+def series(folder: Path):
+    root = ElementTree.parse(folder / "beams.pvd").getroot()
+    return sorted((float(d.get("timestep")), int(d.get("part")), d.get("file")) for d in root.iter("DataSet"))
+
+
+def test_bodies_over_two_processes_are_the_bodies_of_one(tmp_path):
+    path = scene_file(tmp_path)
+    assert main(["run", str(path), "--out", str(tmp_path / "one"), "--quiet"]) == 0
+    done = torchrun(["run", str(path), "--out", str(tmp_path / "two"), "--quiet"])
+    assert done.returncode == 0, done.stderr[-3000:]
+    one, two = series(tmp_path / "one"), series(tmp_path / "two")
+    assert [(t, p, f) for t, p, f in two] == [(t, p, f) for t, p, f in one] and len(one) == 4 * 3
+    for _, _, file in one:
+        a, b = meshio.read(tmp_path / "one" / file), meshio.read(tmp_path / "two" / file)
+        assert (a.points - b.points).__abs__().max() <= 1e-12
+        for key in ("displacement", "velocity"):
+            assert abs(a.point_data[key] - b.point_data[key]).max() <= 1e-12
+    moved = meshio.read(tmp_path / "two" / one[-1][2])
+    assert abs(moved.point_data["displacement"]).max() > 1e-4  # the bodies moved
+
+
+def test_a_failed_step_on_one_rank_stops_the_run(tmp_path):
+    """One stiff body cannot converge in the budget: its rank's step fails, the run stops at once
+    with an error naming that rank (torchrun then ends the other processes)."""
+    path = scene_file(tmp_path, youngs=(2e5, 2e5, 2e5, 5e9), solver="cg_tol = 1e-12\ncg_max_iter = 15")
+    done = torchrun(["run", str(path), "--out", str(tmp_path / "out"), "--quiet"])
+    assert done.returncode != 0
+    lines = [line for line in done.stderr.splitlines() if line.startswith("tensormass: error:")]
+    assert lines, done.stderr[-3000:]
+    assert all("a step at t = 0 failed (rank" in line and "SolverError" in line and "not converged" in line
+               for line in lines)
+
+
+def _collective_worker(rank: int, world: int, init: str, out: str):
+    import torch.distributed as dist
+
+    from tensormass_torch.sim.distributed import DistributedError, collectively
+
+    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    results = []
+    results.append(repr(collectively(lambda: rank * 10, "a step that works")))
+    try:
+        collectively(lambda: 1 / 0 if rank == 1 else rank, "a step")
+        results.append("no error")
+    except DistributedError as exc:
+        results.append(str(exc))
+    Path(out, f"rank{rank}.txt").write_text("\n".join(results))
+    dist.destroy_process_group()
+
+
+def test_what_one_rank_raises_every_rank_raises(tmp_path):
+    """collectively(): where it works every rank gets its own result; where rank 1 raises, both
+    ranks raise one DistributedError naming rank 1 and its error (neither waits)."""
+    import torch.multiprocessing as mp
+
+    init = f"file://{tmp_path / 'store'}"
+    mp.start_processes(_collective_worker, args=(2, init, str(tmp_path)), nprocs=2, join=True, start_method="spawn")
+    for rank in (0, 1):
+        first, second = (tmp_path / f"rank{rank}.txt").read_text().splitlines()
+        assert first == repr(rank * 10)
+        assert second == "a step failed (rank 1: ZeroDivisionError: division by zero)"
+
+
+def test_bodies_are_dealt_by_element_count():
+    assert partition_bodies([10, 1, 7, 3, 3], 2) == [[0, 4], [1, 2, 3]]  # loads 13 and 11
+    assert partition_bodies([5, 5, 5], 3) == [[0], [1], [2]]
+    assert partition_bodies([4], 3) == [[0], [], []]
+    shares = partition_bodies([int(1000 * (1 + math.sin(k))) for k in range(40)], 4)
+    loads = [sum(int(1000 * (1 + math.sin(k))) for k in share) for share in shares]
+    assert sorted(k for share in shares for k in share) == list(range(40))
+    assert max(loads) - min(loads) <= 2000  # within the heaviest body
+    with pytest.raises(ValueError, match="parts must be a positive integer"):
+        partition_bodies([1], 0)
+
+
+def test_scenes_whose_bodies_stay_together_are_refused(tmp_path):
+    path = scene_file(tmp_path)
+    path.write_text(path.read_text() + "\n[contact]\nstiffness = 1e5\n")
+    with pytest.raises(tm.SceneError, match="contact between bodies or scalpels runs with all of its bodies"):
+        tm.load_scene(path, select=lambda bodies: [0])
+    scene = tm.load_scene(path, select=lambda bodies: range(len(bodies)))  # all of them: fine
+    assert scene.body_ids == [0, 1, 2, 3]
