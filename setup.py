@@ -200,7 +200,8 @@ setup(
     # torch is deliberately absent: the user's torch (CPU or CUDA build) must be kept as it is.
     install_requires=["numpy", "meshio", "tqdm"],
     extras_require={"test": ["pytest", "hypothesis"], "render": ["pyvista"], "mesh": ["tetgen", "pytetwild"],
-                    "multigrid": ["pyamg"], "direct": ["cholespy"], "viewer": ["viser"]},
+                    "multigrid": ["pyamg"], "direct": ["cholespy"], "viewer": ["viser"],
+                    "distributed": ["pymetis"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
     entry_points={"console_scripts": ["tensormass = tensormass_torch.app.cli:main"]},

@@ -8,7 +8,8 @@
 #   4. test dependencies (pytest, meshio, numpy, tqdm, hypothesis for the fuzz tests, tetgen for
 #      tm.tetrahedralize, pyamg and cholespy for the multigrid and Cholesky preconditioners,
 #      pyvista for the off-screen rendering tests, viser and playwright for the viewer and its
-#      browser test, which drives the system's Chromium), only if missing. pyvista's vtk wheel
+#      browser test, which drives the system's Chromium, pymetis for partitioning one mesh over
+#      several processes), only if missing. pyvista's vtk wheel
 #      renders headless through EGL (Mesa's libEGL and llvmpipe on a machine without a GPU;
 #      see tensormass_torch/app/render.py).
 # Quiet when all goes well; on a failure prints pip's output and exits non-zero.
@@ -165,7 +166,7 @@ fi
 read -r -a missing <<<"$(py_out '
 import importlib
 for name in ("pytest", "meshio", "numpy", "pyvista", "tqdm", "hypothesis", "tetgen", "pyamg", "cholespy", "viser",
-             "playwright"):
+             "playwright", "pymetis"):
     try:
         importlib.import_module(name)
     except Exception:

@@ -134,3 +134,86 @@ def test_scenes_whose_bodies_stay_together_are_refused(tmp_path):
         tm.load_scene(path, select=lambda bodies: [0])
     scene = tm.load_scene(path, select=lambda bodies: range(len(bodies)))  # all of them: fine
     assert scene.body_ids == [0, 1, 2, 3]
+
+
+# ---------------------------------------------------------------------------------------------
+# one mesh over several processes (sim/partitioned.py)
+# ---------------------------------------------------------------------------------------------
+
+MODELS = ("hooke", "stvk", "corotational")
+
+
+def partitioned_beam():
+    mesh = tm.beam_mesh(12, 3, 3, size=(1.0, 0.25, 0.25), dtype=torch.float64)
+    fixed = mesh.vertices[:, 0] == 0
+    return mesh, fixed
+
+
+def _partitioned_worker(rank: int, world: int, init: str, out: str):
+    import torch.distributed as dist
+
+    from tensormass_torch.sim.partitioned import PartitionedSimulator
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    mesh, fixed = partitioned_beam()
+    results = {}
+    for model in MODELS:
+        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
+        sim = PartitionedSimulator(body, dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001,
+                                   planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], cg_tol=1e-14)
+        sim.step(5)
+        results[model] = (sim.positions(), sim.velocities(), sim.owned.numel())
+    torch.save(results, Path(out) / f"partitioned_{rank}.pt")
+    dist.destroy_process_group()
+
+
+@pytest.mark.parametrize("world", [3])
+def test_one_mesh_over_processes_is_the_one_process_step(tmp_path, world):
+    """A beam partitioned over 3 gloo processes (pymetis: a part with two neighbours), 5 steps with a floor it reaches,
+    Rayleigh damping and fixed nodes: positions and velocities equal one process's Simulator's
+    (float64, converged CG) to 1e-12, for hooke, stvk and corotational; every node owned once."""
+    pytest.importorskip("pymetis")
+    import torch.multiprocessing as mp
+
+    mp.start_processes(_partitioned_worker, args=(world, f"file://{tmp_path / 'store'}", str(tmp_path)),
+                       nprocs=world, join=True, start_method="spawn")
+    mesh, fixed = partitioned_beam()
+    results = [torch.load(tmp_path / f"partitioned_{r}.pt") for r in range(world)]
+    for model in MODELS:
+        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
+        one = tm.Simulator([body], dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001, cg_tol=1e-14,
+                           planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], preconditioner="none", cuda_graphs=False)
+        one.step(5)
+        assert float(one.x[:, 2].min()) < -0.005  # the floor is reached
+        assert sum(r[model][2] for r in results) == mesh.num_vertices
+        assert all(r[model][2] > 0 for r in results)
+        for r in results:
+            torch.testing.assert_close(r[model][0], one.x, rtol=0, atol=1e-12)
+            torch.testing.assert_close(r[model][1], one.v, rtol=0, atol=1e-10)
+
+
+def test_node_partitions_are_connected_and_balanced():
+    pytest.importorskip("pymetis")
+    from tensormass_torch.mesh.topology import unique_edges
+    from tensormass_torch.sim.partitioned import partition_nodes
+
+    mesh = tm.beam_mesh(24, 4, 4, size=(1.0, 0.2, 0.2))
+    parts = partition_nodes(mesh.elements, mesh.num_vertices, 4)
+    sizes = torch.bincount(parts, minlength=4)
+    assert int(sizes.min()) > 0 and int(sizes.max()) <= 1.2 * mesh.num_vertices / 4
+    edges, _, _ = unique_edges(mesh.elements.long(), mesh.num_vertices)
+    for p in range(4):  # each part connected through its own edges
+        inside = edges[(parts[edges[:, 0]] == p) & (parts[edges[:, 1]] == p)]
+        nodes = torch.nonzero(parts == p).flatten().tolist()
+        reached, frontier = {nodes[0]}, [nodes[0]]
+        neighbours = {}
+        for a, b in inside.tolist():
+            neighbours.setdefault(a, []).append(b)
+            neighbours.setdefault(b, []).append(a)
+        while frontier:
+            frontier = [m for n in frontier for m in neighbours.get(n, []) if m not in reached]
+            reached.update(frontier)
+        assert reached == set(nodes)
+    assert torch.equal(partition_nodes(mesh.elements, mesh.num_vertices, 1), torch.zeros(mesh.num_vertices,
+                                                                                         dtype=torch.int64))
