@@ -18,6 +18,7 @@ from .physics.contact import Plane
 from .physics.materials import MODELS, Material
 from .physics.tensor_mass import TensorMass
 from .physics.tools import Box, Capsule, MeshTool, Sphere, Tool
+from .sim.partitioned import PartitionedSimulator
 from .sim.rollout import Rollout, rollout
 from .sim.scalpel import Scalpel
 from .sim.scene_file import load_scene
@@ -32,5 +33,5 @@ __all__ = [
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh", "Blade",
     "TensorMass", "Body", "Simulator", "Scalpel", "InvertedElementsWarning", "load_scene", "solve_static",
     "tetrahedralize", "Rollout", "rollout", "Tool", "Sphere", "Capsule", "Box", "MeshTool", "Contact", "Viewer",
-    "view",
+    "view", "PartitionedSimulator",
 ]
