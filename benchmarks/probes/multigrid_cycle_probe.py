@@ -1,6 +1,8 @@
 """Where a multigrid-preconditioned step's time goes: one V-cycle, its levels' products, the
 step's own product and one preconditioned CG iteration, each captured in a CUDA graph and
-replayed (ms per replay), and a profiler table of the kernels of one eager V-cycle.
+replayed (ms per replay), and a profiler table of the kernels of one eager V-cycle; then whole
+steps: ms per step, which of the step's phases replay a graph and which run eagerly, the host's
+time by function (cProfile) and the profiler's table of a few steps.
 
     python benchmarks/probes/multigrid_cycle_probe.py --device cuda [--elements 307200] [--young 1e5]
 
@@ -45,6 +47,40 @@ def replay_ms(work, device, repeats: int = 50) -> float:
     return begin.elapsed_time(end) / repeats
 
 
+def step_profile(sim, device, steps: int = 20):
+    """Whole steps of ``sim``: ms per step, the step graphs' phases (graph or eager), cProfile's
+    functions by total time and the profiler's table of a few steps."""
+    import cProfile
+    import pstats
+    import time
+
+    common.sync(device)
+    start = time.perf_counter()
+    for _ in range(steps):
+        sim.step()
+    common.sync(device)
+    print(f"\n{(time.perf_counter() - start) / steps * 1e3:.3f} ms a step over {steps} steps; iterations "
+          f"{int(sim.last_report.cg[0].iterations.max())}")
+    for graphs in sim.system._step_graphs.values():
+        phases = {str(key): ("eager" if graph is False else "graph") for key, graph in graphs._graphs.items()}
+        print("phases:", phases)
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for _ in range(steps):
+        sim.step()
+    common.sync(device)
+    profiler.disable()
+    pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
+    if device.type == "cuda":
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            for _ in range(3):
+                sim.step()
+            torch.cuda.synchronize()
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default=common.default_device())
@@ -54,7 +90,7 @@ def main(argv=None):
     device = torch.device(args.device)
     sim = common.cantilever_sim("tet", "hooke", args.elements, device, torch.float32, young=args.young)[0]
     sim.options = dataclasses.replace(sim.options, cg_tol=1e-6, cg_max_iter=20000, require_convergence=False,
-                                      preconditioner="multigrid")
+                                      check_every=2, preconditioner="multigrid")
     sim.step(3)
     solve = sim.system._multigrid_solve
     multigrid = solve.multigrid
@@ -96,6 +132,7 @@ def main(argv=None):
                 solve(r)
             torch.cuda.synchronize()
         print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=25))
+    step_profile(sim, device)
 
 
 if __name__ == "__main__":
