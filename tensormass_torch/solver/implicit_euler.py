@@ -928,27 +928,31 @@ class StepGraphs:
             self.dv_imposed.copy_(dv_imposed)
         self.rhs.copy_(rhs)
 
-    def _start_phase(self, preconditioner, count: int, warm: bool):
-        """A preconditioned solve's start (from :attr:`guess` where ``warm``) and its first ``count``
-        iterations."""
+    def _start_phase(self, preconditioner, warm: bool):
+        """A preconditioned solve's start (from :attr:`guess` where ``warm``)."""
         opts = self.opts
         self.cg.start(self.matvec, self.rhs, self.guess if warm else None, opts.cg_tol, opts.cg_max_iter,
                       preconditioner)
-        self.cg.iterate(self.matvec, count, opts.cg_max_iter, preconditioner)
 
     def _preconditioned_solve(self, warm: bool):
         """A multigrid-preconditioned step's solve: the right-hand side (graph), the preconditioner
         loaded with the step's node stiffness (eager: a floor's or tool's penalties reach the
-        coarse levels when they change), the start and as many iterations as the last step took
-        (graph: one host look when the count holds), then one iteration a look."""
+        coarse levels when they change), the start (graph) and as many iterations as the last step
+        took, as graphs of 2^k iterations (12 = 8 + 4: the graphs made stay few, log2 of the
+        largest count, however the count varies from step to step; the iterations stop on the
+        device once converged), then one host look and, while it is needed, one iteration a look."""
         opts = self.opts
         run_captured(self._graphs, "rhs", self._rhs_phase)
         mass_coef, stiffness_coef = _coefficients(opts)
         preconditioner = _rest_preconditioner(self.system, opts, self.matvec, self.matvec, None, mass_coef,
                                               stiffness_coef, self.rhs)
         count = min(self._predicted or self.first, opts.cg_max_iter)
-        run_captured(self._graphs, ("start", preconditioner.key, count, warm),
-                     lambda: self._start_phase(preconditioner, count, warm))
+        run_captured(self._graphs, ("start", preconditioner.key, warm),
+                     lambda: self._start_phase(preconditioner, warm))
+        for bit in reversed(range(count.bit_length())):
+            if count >> bit & 1:
+                run_captured(self._graphs, ("iterations", preconditioner.key, 1 << bit),
+                             lambda n=1 << bit: self.cg.iterate(self.matvec, n, opts.cg_max_iter, preconditioner))
         self.cg.finish(self.matvec, opts.cg_max_iter, 1, (self.matvec.graph_key, preconditioner.key), done=count,
                        preconditioner=preconditioner)
 
