@@ -278,3 +278,25 @@ def test_rollout_gradients_of_the_contact_scene(tmp_path):
                                       "--models", "hooke", "--identify", "", "--modes", "budget"])
     assert [r["mode"] for r in records] == ["sim.step", "budget", "budget"]
     assert all(r["backward_ms"] > 0 for r in records[1:])
+
+
+def test_distributed_scaling_quick(tmp_path, monkeypatch):
+    pytest.importorskip("pymetis")
+    import socket
+
+    import distributed_scaling
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    # (the script makes a group of one through these: set here, so that they are undone after)
+    for name, value in dict(RANK="0", WORLD_SIZE="1", LOCAL_RANK="0", MASTER_ADDR="127.0.0.1",
+                            MASTER_PORT=str(port)).items():
+        monkeypatch.setenv(name, value)
+    distributed_scaling.main(["--quick", "--device", "cpu", "--out", str(tmp_path)])
+    records = json.loads((tmp_path / "distributed_scaling.json").read_text())["records"]
+    by = {(r["kind"], r["path"]): r for r in records}
+    # one rank's partitioned CG is the one-process CG: the same iterations to the same tolerance
+    assert by[("beam", "partitioned")]["cg_iterations"] == by[("beam", "single")]["cg_iterations"] > 0
+    assert by[("batch", "40 bodies")]["body_steps_per_s"] > 0
+    assert "| beam | 1 | 4800 | partitioned |" in (tmp_path / "distributed_scaling.md").read_text()
