@@ -178,10 +178,17 @@ def main(argv=None):
         os.environ.update(RANK="0", WORLD_SIZE="1", LOCAL_RANK="0")
     device = distributed.init(args.device)
     rows = []
+
+    def done(new):
+        rows.extend(new)
+        if dist.get_rank() == 0:
+            for row in new:
+                print(json.dumps(row), flush=True)
+
     for elements in [int(v) for v in args.beams.split(",") if v]:
-        rows += beam_rows(elements, device, args)
+        done(beam_rows(elements, device, args))
     for bodies in [int(v) for v in args.bodies.split(",") if v]:
-        rows.append(batch_row(bodies, device, args))
+        done([batch_row(bodies, device, args)])
     if dist.get_rank() == 0:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
