@@ -163,7 +163,9 @@ class PartitionedSimulator:
         """The sum over the ranks (all-reduced; float64 0-dim)."""
         import torch.distributed as dist
 
-        total = value.detach().to(torch.float64).reshape(1).clone()
+        # (NCCL reduces device tensors only: the sum travels on this rank's device there)
+        where = self.device if dist.get_backend() == "nccl" else torch.device("cpu")
+        total = value.detach().to(device=where, dtype=torch.float64).reshape(1).clone()
         dist.all_reduce(total)
         return total[0]
 

@@ -217,3 +217,20 @@ def test_node_partitions_are_connected_and_balanced():
         assert reached == set(nodes)
     assert torch.equal(partition_nodes(mesh.elements, mesh.num_vertices, 1), torch.zeros(mesh.num_vertices,
                                                                                          dtype=torch.int64))
+
+
+def test_partitioned_sums_travel_on_the_device_under_nccl(monkeypatch):
+    """NCCL reduces device tensors only: the partitioned simulator's scalar sums are made on its
+    device there (found on two H100s: a CPU tensor's all-reduce failed), on the CPU under gloo."""
+    import torch.distributed as dist
+
+    from tensormass_torch.sim.partitioned import PartitionedSimulator
+
+    seen = []
+    monkeypatch.setattr(dist, "all_reduce", lambda tensor, *a, **k: seen.append(tensor.device))
+    sim = PartitionedSimulator.__new__(PartitionedSimulator)
+    sim.device = torch.device("meta")  # (a device other than the CPU that needs no GPU)
+    for backend, expected in (("nccl", "meta"), ("gloo", "cpu")):
+        monkeypatch.setattr(dist, "get_backend", lambda *a, backend=backend: backend)
+        sim._sum(torch.tensor(3.0))
+        assert seen[-1].type == expected
