@@ -144,8 +144,8 @@ def write(out: Path, rows: list, meta: dict, world: int):
     records.sort(key=lambda r: (r["kind"], r["elements"], r["ranks"], r["path"]))
     path.write_text(json.dumps({"runs": old["runs"], "records": records}, indent=1))
     lines = ["# Several GPUs: a partitioned beam and a dealt batch, by ranks", ""]
-    lines += [f"- {n} rank(s): {m.get('device_name')}, {m.get('date')}, commit {m.get('commit')}, torch {m.get('torch')}"
-              for n, m in sorted(old["runs"].items())]
+    lines += [f"- {n} rank(s): {m.get('device_name')}, {m.get('date')}, commit {m.get('commit')}, "
+              f"torch {m.get('torch')}" for n, m in sorted(old["runs"].items())]
     lines += ["", "| " + " | ".join(title for _, title in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for r in records:
         cells = []
