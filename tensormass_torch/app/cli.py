@@ -225,6 +225,13 @@ def _run_distributed(args):
         args.device = str(device)
     try:
         if _is_scene_file(args.scene):
+            from ..sim.scene_file import scene_split
+
+            if (args.split or scene_split(args.scene)) == "mesh":
+                return _run_partitioned(args)
+        elif args.split == "mesh":
+            raise UsageError("--split mesh takes a scene file (its [distributed] table), not a built-in scene")
+        if _is_scene_file(args.scene):
             from ..sim.scene_file import load_scene
 
             def load(select):
@@ -263,6 +270,41 @@ def _run_distributed(args):
         return 0
     finally:
         dist.destroy_process_group()
+
+
+def _run_partitioned(args):
+    """``tensormass run`` under ``torchrun`` with the scene's one body's mesh partitioned over the
+    processes (``PartitionedSimulator``): every rank steps its part; each frame is gathered on
+    every rank and written by rank 0."""
+    import torch.distributed as dist
+
+    from ..sim import distributed
+    from ..sim.output import FrameWriter
+    from ..sim.scene_file import load_scene
+
+    scene = distributed.collectively(lambda: load_scene(args.scene, device=args.device, dtype=args.dtype,
+                                                        model=args.model, split="mesh"), "loading the scene")
+    sim, rank = scene.simulator, dist.get_rank()
+    steps = scene.steps if args.steps is None else args.steps
+    every = scene.output_every if args.every is None else args.every
+    writer = FrameWriter(args.out, scene.name) if args.out and rank == 0 else None
+    say = (lambda *a: None) if args.quiet or rank else (lambda *a: print(*a, file=sys.stderr, flush=True))
+    say(f"{scene.description}; {steps} steps")
+
+    def write_frame():
+        frame = sim.snapshot()  # (every rank: the gather is collective)
+        if writer:
+            writer.write(frame)
+
+    if args.out:
+        write_frame()
+    for done in range(1, steps + 1):
+        sim.step(1)  # (a failed solve raises on every rank alike: the CG's scalars are all-reduced)
+        if args.out and (done % every == 0 or done == steps):
+            write_frame()
+    if writer:
+        say(f"wrote {writer.frame} frames to {Path(args.out) / (scene.name + '.pvd')}")
+    return 0
 
 
 def _synchronize(device):
@@ -358,6 +400,9 @@ def build_parser():
     run.add_argument("--png", action="store_true", help="also render a PNG per frame (needs pyvista)")
     run.add_argument("--gif", action="store_true", help="also render an animated GIF of the frames (needs pyvista)")
     run.add_argument("--quiet", action="store_true", help="no progress line; print nothing but errors")
+    run.add_argument("--split", choices=["bodies", "mesh"], default=None,
+                     help="under torchrun: deal the bodies over the processes, or partition the one body's "
+                          "mesh over them (default: the scene file's [distributed] split, else bodies)")
     _add_scene_arguments(run, MODELS)
     run.set_defaults(func=_cmd_run)
 

@@ -129,6 +129,7 @@ class PartitionedSimulator:
             to_q = held_nodes[q][partition[held_nodes[q]] == self.rank]
             if to_q.numel():
                 self.send[q] = position[to_q]
+        self.body = body
         self.element_ids = held_elements[self.rank]
         local_elements = position[elements[self.element_ids]]
         kind = TetMesh if mesh.kind == "tet" else TriMesh
@@ -258,6 +259,11 @@ class PartitionedSimulator:
 
     # ---------------------------------------------------------------- results
 
+    def snapshot(self) -> "PartitionedFrame":
+        """The whole body's state now, gathered on every rank (a collective: every rank calls
+        it), in the shape ``sim.output.FrameWriter`` writes a simulator's."""
+        return PartitionedFrame(self.body, self.time, self.positions(), self.velocities())
+
     def positions(self) -> torch.Tensor:
         """Every node's position ``[V, 3]`` (gathered from the owners; on every rank)."""
         return self._gather(self.x)
@@ -276,4 +282,31 @@ class PartitionedSimulator:
         return full
 
 
-__all__ = ["PartitionedSimulator", "partition_nodes"]
+@dataclasses.dataclass
+class PartitionedFrame:
+    """A partitioned body's gathered state (:meth:`PartitionedSimulator.snapshot`): one body,
+    read as a one-body simulator's by ``FrameWriter`` (``positions(0)`` ``[V, 3]``, ...)."""
+
+    body: object
+    time: float
+    x: torch.Tensor
+    v: torch.Tensor
+
+    @property
+    def bodies(self) -> list:
+        return [self.body]
+
+    def positions(self, i: int = 0) -> torch.Tensor:
+        return self.x
+
+    def velocities(self, i: int = 0) -> torch.Tensor:
+        return self.v
+
+    def displacements(self, i: int = 0) -> torch.Tensor:
+        return self.x - self.body.mesh.vertices.to(self.x)
+
+    def mesh(self, i: int = 0):
+        return self.body.mesh
+
+
+__all__ = ["PartitionedFrame", "PartitionedSimulator", "partition_nodes"]

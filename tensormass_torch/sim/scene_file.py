@@ -27,6 +27,10 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
     warm_start = false                # start each CG from the last steps' extrapolated solution
 
+    [distributed]                     # under torchrun --nproc-per-node N (docs/distributed.md)
+    split = "bodies"                  # the bodies dealt over the processes; "mesh": the one body's
+                                      # mesh partitioned over them (PartitionedSimulator)
+
     [render]                          # off-screen pictures of the frames (pyvista)
     png = false                       # one PNG per frame
     gif = false                       # an animated GIF of all frames
@@ -603,8 +607,70 @@ def _device(t: _Table, override) -> torch.device:
     return device
 
 
+#: how a scene is spread over the processes of a group (``[distributed] split``)
+SPLITS = ["bodies", "mesh"]
+
+
+def _check_mesh_split(bodies, options, planes, tools, contact, scalpels, select, fail) -> None:
+    """One SceneError naming what a scene split by mesh has that the partitioned step does not do."""
+    problems = []
+    if len(bodies) != 1:
+        problems.append(f"{len(bodies)} bodies (one body's mesh is what is partitioned)")
+    if any(b.motion is not None for b in bodies):
+        problems.append("prescribed nodes")
+    if tools:
+        problems.append("tools")
+    if contact is not None:
+        problems.append("contact between bodies")
+    if scalpels:
+        problems.append("cuts")
+    if any(p.friction > 0 for p in planes):
+        problems.append("friction on a plane")
+    unsupported = {"newton_iters": 1, "integrator": "backward_euler", "warm_start": False,
+                   "require_convergence": True}
+    problems += [f"[solver] {key} = {options[key]!r}" for key, value in unsupported.items()
+                 if options[key] != value]
+    if options["preconditioner"] not in ("auto", "none"):
+        problems.append(f"[solver] preconditioner = {options['preconditioner']!r}")
+    if select is not None:
+        problems.append("a selection of bodies")
+    if problems:
+        raise fail("distributed.split", "a mesh partitioned over processes takes one body stepped by backward "
+                                        "Euler to convergence, with fixed nodes and frictionless planes; this "
+                                        "scene has " + ", ".join(problems))
+
+
+def _partitioned(body, dt, gravity, planes, options, device, dtype, fail):
+    """The rank's ``PartitionedSimulator`` of ``body`` in a process group of several, else None."""
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() < 2:
+        return None
+    from .partitioned import PartitionedSimulator
+
+    try:
+        return PartitionedSimulator(body, dt=dt, gravity=gravity, rayleigh_mass=options["rayleigh_mass"],
+                                    rayleigh_stiffness=options["rayleigh_stiffness"], planes=planes,
+                                    cg_tol=options["cg_tol"], cg_max_iter=options["cg_max_iter"], device=device,
+                                    dtype=dtype)
+    except (SceneError, MaterialError, MeshError) as exc:
+        raise fail("", str(exc)) from exc
+
+
+def scene_split(path) -> str:
+    """The file's ``[distributed] split`` (``"bodies"`` where it has none), read without building
+    anything; :func:`load_scene` checks it with the rest."""
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, AttributeError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return "bodies"  # (load_scene names the problem)
+    table = data.get("distributed")
+    return table.get("split", "bodies") if isinstance(table, dict) else "bodies"
+
+
 def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
-               select: Optional[Callable[[List[Body]], Sequence[int]]] = None) -> FileScene:
+               select: Optional[Callable[[List[Body]], Sequence[int]]] = None,
+               split: Optional[str] = None) -> FileScene:
     """Read, check and build a TOML scene file.
 
     Args:
@@ -616,6 +682,12 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
             (a process's share of a batch over several: ``sim.distributed``); ``body_ids`` says
             which. Bodies of the scene's other parts (contact between bodies, scalpels) must
             then be among them; an empty selection builds no simulator (``simulator`` None).
+        split: override the file's ``[distributed] split``. ``"mesh"``: in a process group of
+            several (``torch.distributed``, as torchrun starts), ``simulator`` is this rank's
+            :class:`PartitionedSimulator` of the scene's one body; in one process the usual
+            ``Simulator`` (the same physics). The scene must then be what the partitioned step
+            does: one body, no prescribed nodes, tools, contact between bodies, scalpels or
+            friction, backward Euler with one Newton iteration and CG to convergence.
 
     Returns:
         a :class:`FileScene` holding the built :class:`Simulator`.
@@ -699,6 +771,12 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
+    distributed_table = top.table("distributed") or _Table({}, "distributed", fail)
+    file_split = _choice(distributed_table, "split", SPLITS, "bodies", "split")
+    distributed_table.done()
+    if split is not None and split not in SPLITS:
+        raise SceneError(f"unknown split {split!r}; expected one of {', '.join(SPLITS)}")
+    split = split or file_split
     cut_tables = top.tables("cuts")
     scalpels = [_scalpel(c) for c in cut_tables]
     body_tables = top.tables("bodies")
@@ -712,6 +790,15 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
     spare = [(max(MIN_SPARE_NODES, b.mesh.num_vertices // SPARE_FRACTION)
               if {i, i - len(bodies), b.name} & targets else 0) if room is None else room
              for i, (b, room) in enumerate(zip(bodies, spare))]
+    if split == "mesh":
+        _check_mesh_split(bodies, options, planes, tools, contact, scalpels, select, fail)
+        partitioned = _partitioned(bodies[0], dt, gravity, planes, options, torch_device, torch_dtype, fail)
+        if partitioned is not None:
+            if not description:
+                description = (f"{name}: 1 body of {bodies[0].mesh.num_elements} elements over "
+                               f"{partitioned.world} processes, dt {dt:g} s, {steps} steps")
+            return FileScene(name, partitioned, steps, output_every, description, path=path, render=render,
+                             body_ids=[0])
     body_ids = list(range(len(bodies)))
     if select is not None:
         body_ids = sorted({int(i) for i in select(bodies)})

@@ -234,3 +234,65 @@ def test_partitioned_sums_travel_on_the_device_under_nccl(monkeypatch):
         monkeypatch.setattr(dist, "get_backend", lambda *a, backend=backend: backend)
         sim._sum(torch.tensor(3.0))
         assert seen[-1].type == expected
+
+
+MESH_SPLIT = """name = "beams"
+dt = 0.01
+steps = 6
+output_every = 3
+dtype = "float64"
+[solver]
+cg_tol = 1e-12
+rayleigh_mass = 0.1
+[distributed]
+split = "mesh"
+[[planes]]
+normal = [0, 0, 1]
+offset = -0.02
+stiffness = 1e4
+[[bodies]]
+name = "beam"
+mesh = { generator = "beam", cells = [10, 3, 3], size = [1.0, 0.25, 0.25] }
+material = { model = "corotational", young = 2e5, poisson = 0.3, density = 1000.0 }
+fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.25, 0.25]] }
+"""
+
+
+def test_a_scene_split_by_mesh_over_two_processes_is_the_one_process_run(tmp_path):
+    """``[distributed] split = "mesh"``: under torchrun the one body's mesh is partitioned
+    (PartitionedSimulator) and rank 0 writes the gathered frames; in one process the same file is
+    the usual Simulator. The frames agree to the CG's tolerance (float64)."""
+    pytest.importorskip("pymetis")
+    from tensormass_torch.sim.scene_file import load_scene
+
+    path = tmp_path / "beams.toml"
+    path.write_text(MESH_SPLIT)
+    assert type(load_scene(path).simulator).__name__ == "Simulator"  # one process: the usual simulator
+    assert main(["run", str(path), "--out", str(tmp_path / "one"), "--quiet"]) == 0
+    done = torchrun(["run", str(path), "--out", str(tmp_path / "two"), "--quiet"])
+    assert done.returncode == 0, done.stderr[-3000:]
+    one, two = series(tmp_path / "one"), series(tmp_path / "two")
+    assert [(round(t, 9), p, f) for t, p, f in two] == [(round(t, 9), p, f) for t, p, f in one] and len(one) == 3
+    for _, _, file in one:
+        a, b = meshio.read(tmp_path / "one" / file), meshio.read(tmp_path / "two" / file)
+        assert abs(a.points - b.points).max() <= 1e-10
+        assert abs(a.point_data["velocity"] - b.point_data["velocity"]).max() <= 1e-8
+    assert abs(meshio.read(tmp_path / "two" / one[-1][2]).point_data["displacement"]).max() > 1e-4
+
+
+def test_a_mesh_split_names_what_the_partitioned_step_does_not_do(tmp_path):
+    from tensormass_torch.errors import SceneError
+    from tensormass_torch.sim.scene_file import load_scene
+
+    two_bodies = MESH_SPLIT + MESH_SPLIT[MESH_SPLIT.index("[[bodies]]"):].replace('"beam"', '"other"', 1)
+    for text, named in ((two_bodies, "2 bodies"),
+                        (MESH_SPLIT.replace("rayleigh_mass = 0.1", "integrator = \"newmark\""), "integrator"),
+                        (MESH_SPLIT.replace("stiffness = 1e4", "stiffness = 1e4\nfriction = 0.5"), "friction"),
+                        (MESH_SPLIT.replace('split = "mesh"', 'split = "nodes"'), "unknown split")):
+        path = tmp_path / "bad.toml"
+        path.write_text(text)
+        with pytest.raises(SceneError, match=named):
+            load_scene(path)
+    path.write_text(MESH_SPLIT)
+    with pytest.raises(SceneError, match="unknown split"):
+        load_scene(path, split="nodes")
