@@ -220,6 +220,11 @@ def _run_distributed(args):
 
     if args.png or args.gif:
         raise UsageError("--png and --gif render one process's frames: run without torchrun for pictures")
+    if args.device is None and _is_scene_file(args.scene):
+        from ..sim.scene_file import scene_device
+
+        # a file's CUDA device is a GPU a rank (cuda:LOCAL_RANK, NCCL), as --device cuda is
+        args.device = scene_device(args.scene)
     device = distributed.init(args.device)
     if args.device is not None:
         args.device = str(device)

@@ -657,15 +657,30 @@ def _partitioned(body, dt, gravity, planes, options, device, dtype, fail):
         raise fail("", str(exc)) from exc
 
 
+def _peek(path) -> dict:
+    """The file's TOML, read without checking or building anything ({} where it cannot be read:
+    :func:`load_scene` names the problem)."""
+    try:
+        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, AttributeError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return {}
+
+
 def scene_split(path) -> str:
     """The file's ``[distributed] split`` (``"bodies"`` where it has none), read without building
     anything; :func:`load_scene` checks it with the rest."""
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, AttributeError, tomllib.TOMLDecodeError, UnicodeDecodeError):
-        return "bodies"  # (load_scene names the problem)
-    table = data.get("distributed")
+    table = _peek(path).get("distributed")
     return table.get("split", "bodies") if isinstance(table, dict) else "bodies"
+
+
+def scene_device(path) -> Optional[str]:
+    """The file's ``device`` (None where it has none), read without building anything: a process
+    group is started for it before the scene is loaded (NCCL and a GPU a rank for CUDA)."""
+    device = _peek(path).get("device")
+    try:
+        return str(torch.device(device)) if isinstance(device, str) else None
+    except RuntimeError:  # (not a device: load_scene names it)
+        return None
 
 
 def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,

@@ -296,3 +296,16 @@ def test_a_mesh_split_names_what_the_partitioned_step_does_not_do(tmp_path):
     path.write_text(MESH_SPLIT)
     with pytest.raises(SceneError, match="unknown split"):
         load_scene(path, split="nodes")
+
+
+def test_a_scene_files_device_and_split_are_read_before_the_group_starts(tmp_path):
+    """Under torchrun the process group (NCCL and a GPU a rank for CUDA) starts before the scene
+    is built, from the file's device and split, read without building it."""
+    from tensormass_torch.sim.scene_file import scene_device, scene_split
+
+    path = tmp_path / "s.toml"
+    for text, device, split in (('device = "cuda"\n[distributed]\nsplit = "mesh"\n', "cuda", "mesh"),
+                                ("dt = 0.01\n", None, "bodies"), ('device = "gpu"\n', None, "bodies"),
+                                ("not toml [", None, "bodies")):
+        path.write_text(text)
+        assert (scene_device(path), scene_split(path)) == (device, split)
