@@ -300,3 +300,23 @@ def test_distributed_scaling_quick(tmp_path, monkeypatch):
     assert by[("beam", "partitioned")]["cg_iterations"] == by[("beam", "single")]["cg_iterations"] > 0
     assert by[("batch", "40 bodies")]["body_steps_per_s"] > 0
     assert "| beam | 1 | 4800 | partitioned |" in (tmp_path / "distributed_scaling.md").read_text()
+
+
+def test_newton_comparison_quick(tmp_path):
+    """Our rows always; Newton's where newton and warp are installed (not a dependency), else one
+    line in the notes saying they were skipped."""
+    import newton_comparison
+
+    newton_comparison.main(["--quick", "--device", "cpu", "--models", "hooke", "--cg-budgets", "10,converged",
+                            "--vbd-budgets", "5", "--seconds", "0.05", "--stable-dts", "0.01,0.04",
+                            "--out", str(tmp_path)])
+    data = json.loads((tmp_path / "newton_comparison.json").read_text())
+    ours = {r["budget"]: r for r in data["records"] if r["engine"] == "tensormass_torch"}
+    assert ours["CG converged"]["solver_error"] == 0.0 and 0 < ours["CG 10"]["solver_error"] < 1
+    assert ours["CG 10"]["max_tip"] > 0 and ours["CG 10: largest stable dt"]["dt"] in (0.01, 0.04)
+    newton_rows = [r for r in data["records"] if r["engine"] == "newton"]
+    skipped = newton_comparison.newton_available()
+    assert bool(newton_rows) == (skipped is None)
+    if skipped:
+        assert any("skipped" in note for note in data["meta"].get("notes", [])) or \
+            "skipped" in (tmp_path / "newton_comparison.md").read_text()
