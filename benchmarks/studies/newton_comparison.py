@@ -7,8 +7,8 @@ own model.
     python benchmarks/studies/newton_comparison.py --quick --device cpu --out DIR     # seconds
 
 Scenes (``--scenes``): SOFA's beam (101,250 tets) and the paper's beam (307,200 tets), clamped at
-x = 0, under gravity, no floor; the same mesh, density, Young's modulus and Poisson ratio in both
-engines. Models: ours hooke, corotational and stvk (``--models``); Newton's neo-Hookean (VBD's
+x = 0, under gravity (-z for both engines), no floor; the same mesh, density, Young's modulus
+and Poisson ratio in both engines. Models: ours hooke, corotational and stvk (``--models``); Newton's neo-Hookean (VBD's
 tetrahedra), whose Lame parameters are the same E and nu's. At small strain all of them are
 linear elasticity; their references differ by the models' nonlinearity only.
 
@@ -113,6 +113,9 @@ def ours(geometry, model: str, budget, dt: float, seconds: float, device, dtype)
 # ------------------------------------------------------------------------------------ Newton
 
 
+_NEWTON_MODELS = {}  # (geometry, device) -> Newton's model of the last scene
+
+
 def newton_available():
     try:
         import newton  # noqa: F401
@@ -122,26 +125,51 @@ def newton_available():
     return None
 
 
-def newton_run(geometry, iterations: int, dt: float, seconds: float, device):
+def newton_model(geometry, wp_device: str, coloring: Path | None = None):
+    """Newton's model of the beam (built once a scene and device: the builder's Python loops are
+    slow); ``coloring``: as :func:`newton_run`."""
+    import newton
+    import warp as wp
+
+    vertices, tets, fixed, _, material, _ = geometry
+    young, poisson = material["young"], material["poisson"]
+    mu = young / (2.0 * (1.0 + poisson))
+    lam = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
+    key = (id(geometry), wp_device)
+    if key not in _NEWTON_MODELS:
+        _NEWTON_MODELS.clear()
+        builder = newton.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        builder.add_soft_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0,
+                              vel=wp.vec3(0.0, 0.0, 0.0), vertices=[wp.vec3(*v) for v in vertices.tolist()],
+                              indices=tets.reshape(-1).tolist(), density=material["density"], k_mu=mu,
+                              k_lambda=lam, k_damp=0.0, add_surface_mesh_edges=False)
+        for i in fixed.nonzero().flatten().tolist():
+            builder.particle_mass[i] = 0.0
+        if coloring is not None and coloring.exists():
+            with np.load(coloring) as groups:
+                builder.set_coloring([groups[f"group_{k}"] for k in range(len(groups.files))])
+        else:
+            builder.color()
+            if coloring is not None:
+                coloring.parent.mkdir(parents=True, exist_ok=True)
+                np.savez(coloring, **{f"group_{k}": np.asarray(g) for k, g in
+                                      enumerate(builder.particle_color_groups)})
+        _NEWTON_MODELS[key] = builder.finalize(device=wp_device)
+    return _NEWTON_MODELS[key]
+
+
+def newton_run(geometry, iterations: int, dt: float, seconds: float, device, coloring: Path | None = None):
     """Newton's VBD on the same mesh (neo-Hookean, the same E, nu, density): tip z displacement at
-    every step ``[n]`` and steps/s."""
+    every step ``[n]`` and steps/s. ``coloring``: a ``.npz`` of the particles' colour groups
+    (``group_0``, ...) made by Newton's own ``ModelBuilder.color`` on another machine, read where
+    it exists and written where it does not (Newton colours on the CPU, whose JIT library,
+    ``warp-clang.so``, a GPU machine need not have)."""
     import newton
     import warp as wp
 
     vertices, tets, fixed, tip, material, _ = geometry
-    young, poisson = material["young"], material["poisson"]
-    mu = young / (2.0 * (1.0 + poisson))
-    lam = young * poisson / ((1.0 + poisson) * (1.0 - 2.0 * poisson))
     wp_device = "cpu" if device.type == "cpu" else f"cuda:{device.index or 0}"
-    builder = newton.ModelBuilder(gravity=(0.0, 0.0, -9.81))
-    builder.add_soft_mesh(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
-                          vertices=[wp.vec3(*v) for v in vertices.tolist()], indices=tets.reshape(-1).tolist(),
-                          density=material["density"], k_mu=mu, k_lambda=lam, k_damp=0.0,
-                          add_surface_mesh_edges=False)
-    for i in fixed.nonzero().flatten().tolist():
-        builder.particle_mass[i] = 0.0
-    builder.color()
-    model = builder.finalize(device=wp_device)
+    model = newton_model(geometry, wp_device, coloring)
     solver = newton.solvers.SolverVBD(model, iterations=int(iterations), particle_enable_self_contact=False)
     states = [model.state(), model.state()]
     control = model.control()
@@ -221,12 +249,25 @@ def main(argv=None):
     parser.add_argument("--vbd-reference", type=int, default=200, help="Newton's reference VBD iterations")
     parser.add_argument("--seconds", type=float, default=None, help="simulated seconds a run")
     parser.add_argument("--stable-dts", default="", help="dts to try for the largest stable one (comma list)")
+    parser.add_argument("--make-colorings", action="store_true",
+                        help="only build Newton's models of the scenes and write their colourings to --colorings")
+    parser.add_argument("--colorings", default=None,
+                        help="folder of Newton's particle colourings, <scene>_<nodes>.npz: read where they exist, "
+                             "written where not (make them where warp runs on the CPU)")
     args = parser.parse_args(argv)
     common.fill_defaults(args, dict(scenes="sofa_beam,paper_beam", elements=307_200, seconds=1.0),
                          dict(scenes="paper_beam", elements=480, seconds=0.1))
     device = torch.device(args.device)
     dtype = torch.float32
     skip = newton_available()
+    if args.make_colorings:
+        if skip or args.colorings is None:
+            raise SystemExit(skip or "--make-colorings needs --colorings DIR")
+        for scene in [s for s in args.scenes.split(",") if s]:
+            geometry = scene_geometry(scene, args.elements)
+            newton_model(geometry, "cpu", coloring_file(args, scene, geometry))
+            print("wrote", coloring_file(args, scene, geometry))
+        return
     notes = [f"float32; error: RMS of the tip's z displacement against each engine's own reference over "
              f"{args.seconds:g} s, divided by the reference's largest; references at dt / 4."]
     if skip:
@@ -264,14 +305,19 @@ def main(argv=None):
     results.finish()
 
 
+def coloring_file(args, scene, geometry):
+    return None if args.colorings is None else Path(args.colorings) / f"{scene}_{geometry[0].shape[0]}.npz"
+
+
 def newton_rows(results, scene, geometry, args, device):
     """Newton's rows of ``scene``: each VBD budget against its references."""
     dt = geometry[5]
     elements = int(geometry[1].shape[0])
-    reference, _ = newton_run(geometry, args.vbd_reference, dt / 4, args.seconds, device)
-    same_dt, _ = newton_run(geometry, args.vbd_reference, dt, args.seconds, device)
+    coloring = coloring_file(args, scene, geometry)
+    reference, _ = newton_run(geometry, args.vbd_reference, dt / 4, args.seconds, device, coloring)
+    same_dt, _ = newton_run(geometry, args.vbd_reference, dt, args.seconds, device, coloring)
     for budget in [int(b) for b in args.vbd_budgets.split(",") if b]:
-        trace, rate = newton_run(geometry, budget, dt, args.seconds, device)
+        trace, rate = newton_run(geometry, budget, dt, args.seconds, device, coloring)
         error, max_tip = trajectory_error(trace, dt, reference, dt / 4)
         results.add(record(scene=scene, engine="newton", model="neo-Hookean (VBD)", budget=f"VBD {budget}",
                            dt=dt, steps_per_s=rate, tip_error=error,
@@ -292,7 +338,8 @@ def stable_dt_rows(results, scene, geometry, args, device, dtype, skip):
                                                                          device, dtype))]
     if not skip:
         runs.append(("newton", "neo-Hookean (VBD)", f"VBD {vbd}",
-                     lambda dt: newton_run(geometry, vbd, dt, args.seconds, device)))
+                     lambda dt: newton_run(geometry, vbd, dt, args.seconds, device,
+                                           coloring_file(args, scene, geometry))))
     for engine, name, label, run in runs:
         largest = None
         for dt in dts:
