@@ -99,9 +99,10 @@ def fuzz(device, steps, seed=7):
     return counts
 
 
-def test_random_removals_and_cuts_over_thousands_of_steps():
-    counts = fuzz("cpu", 2000)
-    assert counts["removed"] > 50 and counts["cuts"] >= 10, counts
+def test_random_removals_and_cuts_over_a_thousand_steps():
+    # (CUDA's run below takes 10,000 steps; this one's 1,000 keep CI's time)
+    counts = fuzz("cpu", 1000)
+    assert counts["removed"] > 25 and counts["cuts"] >= 5, counts
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
