@@ -298,8 +298,8 @@ def _run_partitioned(args):
 
     def write_frame():
         frame = sim.snapshot()  # (every rank: the gather is collective)
-        if writer:
-            writer.write(frame)
+        # (rank 0 writes; a failed write stops every rank rather than leaving them waiting)
+        distributed.collectively(lambda: writer.write(frame) if writer else None, "writing a frame")
 
     if args.out:
         write_frame()
