@@ -119,8 +119,8 @@ SCENES = sorted((ROOT / "scenes").glob("*.toml"))
 def test_every_shipped_scene_runs_to_its_end(scene, dtype, backend, tmp_path):
     """Each shipped scene, to its full length, on defaults, with the extension in both dtypes and
     on the pure-torch fallback in float64; the fallback in float32 runs each scene's first 20
-    steps (its full runs took ~2.5 of CI's minutes, and float32 on that path is also covered by
-    the op and step tests)."""
+    steps (its full runs are the slowest of the suite, and float32 on that path is also covered
+    by the op and step tests)."""
     env = {**_env(tmp_path), "TENSORMASS_BACKEND": backend}
     steps = " --steps 20" if (backend, dtype) == ("torch", "float32") else ""
     _run(f"tensormass run {scene} --dtype {dtype} --out {tmp_path / 'out'} --quiet{steps}", env)

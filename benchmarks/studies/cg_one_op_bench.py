@@ -60,7 +60,7 @@ def measure(scene_name: str, iterations: int, chunk_nodes, repeats: int):
 
     def op_by_op():
         cg.start(matvec, rhs, None, 0.0, iterations)
-        cg._run(matvec, iterations, iterations, graph_key="bench")
+        cg.run_iterations(matvec, iterations, iterations, graph_key="bench")
 
     for work in (one_op, op_by_op, one_op, op_by_op):  # warm-up (and the graph's capture)
         work()

@@ -1,4 +1,4 @@
-"""Several GPUs (issue 28): the implicit step of one beam partitioned over the ranks
+"""Several GPUs: the implicit step of one beam partitioned over the ranks
 (``PartitionedSimulator``), and a batch of small bodies dealt over the ranks (each rank steps
 its share as one packed ``Simulator``), at each size given, on as many ranks as torchrun starts.
 
@@ -58,13 +58,9 @@ def timed(step, device, steps: int) -> float:
     start = time.perf_counter()
     step(steps)
     sync(device)
-    elapsed = torch.tensor([time.perf_counter() - start], dtype=torch.float64, device=_group_device(device))
+    elapsed = torch.tensor([time.perf_counter() - start], dtype=torch.float64, device=distributed.group_device(device))
     dist.all_reduce(elapsed, op=dist.ReduceOp.MAX)
     return float(elapsed[0]) / steps
-
-
-def _group_device(device):
-    return device if dist.get_backend() == "nccl" else torch.device("cpu")
 
 
 def peak_gb(device) -> list:

@@ -230,17 +230,15 @@ def _run_distributed(args):
         args.device = str(device)
     try:
         if _is_scene_file(args.scene):
-            from ..sim.scene_file import scene_split
+            from ..sim.scene_file import load_scene, scene_split
 
             if (args.split or scene_split(args.scene)) == "mesh":
                 return _run_partitioned(args)
-        elif args.split == "mesh":
-            raise UsageError("--split mesh takes a scene file (its [distributed] table), not a built-in scene")
-        if _is_scene_file(args.scene):
-            from ..sim.scene_file import load_scene
 
             def load(select):
                 return load_scene(args.scene, device=args.device, dtype=args.dtype, model=args.model, select=select)
+        elif args.split == "mesh":
+            raise UsageError("--split mesh takes a scene file (its [distributed] table), not a built-in scene")
         else:
             def load(select):
                 return distributed.select_bodies(_load(args), select)

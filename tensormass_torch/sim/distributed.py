@@ -16,7 +16,7 @@ so no rank waits for one that failed; a rank that dies outright is seen by the o
 connection, within the process group's timeout (``TENSORMASS_DIST_TIMEOUT_S``, default 120 s).
 
 Contact between bodies and scalpels need every body in one process: such scenes are refused by
-name. One large mesh over several processes (halo exchange in each CG product) is not here yet.
+name. One large mesh over several processes is ``sim.partitioned``.
 """
 from __future__ import annotations
 
@@ -70,6 +70,16 @@ def init(device: Optional[str] = None) -> torch.device:
     return wanted
 
 
+def group_device(device: Optional[torch.device] = None) -> torch.device:
+    """Where the process group's collectives take their tensors: NCCL reduces device tensors
+    only (``device``, default this process's current CUDA device), gloo CPU ones."""
+    import torch.distributed as dist
+
+    if dist.get_backend() != "nccl":
+        return torch.device("cpu")
+    return device if device is not None else torch.device("cuda", torch.cuda.current_device())
+
+
 def collectively(work: Callable[[], T], what: str) -> T:
     """``work()`` on every rank; if it raises on any, every rank raises one
     :class:`DistributedError` saying ``what`` failed, on which ranks and why (one collective when
@@ -80,10 +90,7 @@ def collectively(work: Callable[[], T], what: str) -> T:
         result, error = work(), None
     except Exception as exc:  # noqa: BLE001 (handed to every rank)
         result, error = None, f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-    flag = torch.tensor([0 if error is None else 1], dtype=torch.int64)
-    group_device = torch.device("cuda", torch.cuda.current_device()) \
-        if dist.get_backend() == "nccl" else torch.device("cpu")
-    flag = flag.to(group_device)
+    flag = torch.tensor([0 if error is None else 1], dtype=torch.int64, device=group_device())
     dist.all_reduce(flag)
     if int(flag.item()):
         errors: List[Optional[str]] = [None] * dist.get_world_size()
@@ -142,4 +149,5 @@ def select_bodies(scene, select):
     return scene
 
 
-__all__ = ["BatchShare", "DistributedError", "partition_bodies", "launched", "init", "collectively", "select_bodies"]
+__all__ = ["BatchShare", "DistributedError", "partition_bodies", "launched", "init", "collectively", "group_device",
+           "select_bodies"]

@@ -36,7 +36,7 @@ from ..mesh.meshes import TetMesh, TriMesh
 from ..mesh.topology import unique_edges
 from ..physics.contact import Planes
 from ..physics.tensor_mass import TensorMass
-from .distributed import collectively
+from .distributed import collectively, group_device
 
 
 def partition_nodes(elements: torch.Tensor, num_nodes: int, parts: int) -> torch.Tensor:
@@ -117,18 +117,20 @@ class PartitionedSimulator:
         self.local = held_nodes[self.rank]  # owned and ghost nodes, global ids ascending
         position = torch.full((num_nodes,), -1, dtype=torch.int64)
         position[self.local] = torch.arange(self.local.numel())
-        self.owned_rows = position[self.owned]  # the owned nodes' rows among the local ones
-        # halo: what each rank q sends this one (its owned nodes this rank holds as ghosts), and back
+        # the owned nodes' rows among the local ones, and the halo lists: what each rank q sends
+        # this one (its owned nodes this rank holds as ghosts), and back; on this rank's device,
+        # where every CG iteration indexes with them
+        self.owned_rows = position[self.owned].to(self.device)
         self.receive, self.send = {}, {}
         for q in range(self.world):
             if q == self.rank:
                 continue
             from_q = self.local[partition[self.local] == q]
             if from_q.numel():
-                self.receive[q] = position[from_q]
+                self.receive[q] = position[from_q].to(self.device)
             to_q = held_nodes[q][partition[held_nodes[q]] == self.rank]
             if to_q.numel():
-                self.send[q] = position[to_q]
+                self.send[q] = position[to_q].to(self.device)
         self.body = body
         self.element_ids = held_elements[self.rank]
         local_elements = position[elements[self.element_ids]]
@@ -164,9 +166,7 @@ class PartitionedSimulator:
         """The sum over the ranks (all-reduced; float64 0-dim)."""
         import torch.distributed as dist
 
-        # (NCCL reduces device tensors only: the sum travels on this rank's device there)
-        where = self.device if dist.get_backend() == "nccl" else torch.device("cpu")
-        total = value.detach().to(device=where, dtype=torch.float64).reshape(1).clone()
+        total = value.detach().to(device=group_device(self.device), dtype=torch.float64).reshape(1).clone()
         dist.all_reduce(total)
         return total[0]
 
@@ -176,7 +176,7 @@ class PartitionedSimulator:
 
         ops, incoming = [], {}
         for q, rows in self.send.items():
-            ops.append(dist.P2POp(dist.isend, field[rows.to(field.device)].contiguous(), q))
+            ops.append(dist.P2POp(dist.isend, field[rows].contiguous(), q))
         for q, rows in self.receive.items():
             incoming[q] = torch.empty(rows.numel(), field.shape[1], dtype=field.dtype, device=field.device)
             ops.append(dist.P2POp(dist.irecv, incoming[q], q))
@@ -184,10 +184,10 @@ class PartitionedSimulator:
             for request in dist.batch_isend_irecv(ops):
                 request.wait()
         for q, rows in self.receive.items():
-            field[rows.to(field.device)] = incoming[q]
+            field[rows] = incoming[q]
 
     def _dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        rows = self.owned_rows.to(a.device)
+        rows = self.owned_rows
         return self._sum((a[rows].double() * b[rows].double()).sum())
 
     # ---------------------------------------------------------------- the step
@@ -275,7 +275,7 @@ class PartitionedSimulator:
         import torch.distributed as dist
 
         parts: List[Optional[torch.Tensor]] = [None] * self.world
-        dist.all_gather_object(parts, field[self.owned_rows.to(field.device)].detach().cpu())
+        dist.all_gather_object(parts, field[self.owned_rows].detach().cpu())
         full = torch.empty(self.num_nodes, 3, dtype=self.dtype)
         for r, values in enumerate(parts):
             full[torch.nonzero(self.partition == r).flatten()] = values

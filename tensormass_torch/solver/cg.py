@@ -209,7 +209,10 @@ class CGSolver:
         # underflows p.Ap to 0, which would read as a breakdown.
         return max(float(tol), torch.finfo(dtype).eps)
 
-    def _run(self, matvec: Matvec, count: int, max_iter: int, graph_key, preconditioner=None):
+    def run_iterations(self, matvec: Matvec, count: int, max_iter: int, graph_key, preconditioner=None):
+        """:meth:`iterate` ``count`` times, through a CUDA graph kept per (``graph_key``, count,
+        max_iter) where the solver captures (``graph_key`` None: eagerly)."""
+
         def iterations():
             self.iterate(matvec, count, max_iter, preconditioner)
 
@@ -309,7 +312,7 @@ class CGSolver:
         have run (``done`` of them already), looking at the host every ``check_every``."""
         while done < max_iter and self.any_active():
             count = min(check_every, max_iter - done)
-            self._run(matvec, count, max_iter, graph_key, preconditioner)
+            self.run_iterations(matvec, count, max_iter, graph_key, preconditioner)
             done += count
 
 

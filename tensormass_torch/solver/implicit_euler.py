@@ -949,12 +949,11 @@ class StepGraphs:
         count = min(self._predicted or self.first, opts.cg_max_iter)
         run_captured(self._graphs, ("start", preconditioner.key, warm),
                      lambda: self._start_phase(preconditioner, warm))
+        graph_key = (self.matvec.graph_key, preconditioner.key)
         for bit in reversed(range(count.bit_length())):
             if count >> bit & 1:
-                run_captured(self._graphs, ("iterations", preconditioner.key, 1 << bit),
-                             lambda n=1 << bit: self.cg.iterate(self.matvec, n, opts.cg_max_iter, preconditioner))
-        self.cg.finish(self.matvec, opts.cg_max_iter, 1, (self.matvec.graph_key, preconditioner.key), done=count,
-                       preconditioner=preconditioner)
+                self.cg.run_iterations(self.matvec, 1 << bit, opts.cg_max_iter, graph_key, preconditioner)
+        self.cg.finish(self.matvec, opts.cg_max_iter, 1, graph_key, done=count, preconditioner=preconditioner)
 
     @property
     def chainable(self) -> bool:

@@ -221,7 +221,7 @@ def test_node_partitions_are_connected_and_balanced():
 
 def test_partitioned_sums_travel_on_the_device_under_nccl(monkeypatch):
     """NCCL reduces device tensors only: the partitioned simulator's scalar sums are made on its
-    device there (found on two H100s: a CPU tensor's all-reduce failed), on the CPU under gloo."""
+    device there, on the CPU under gloo."""
     import torch.distributed as dist
 
     from tensormass_torch.sim.partitioned import PartitionedSimulator

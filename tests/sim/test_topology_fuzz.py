@@ -100,7 +100,7 @@ def fuzz(device, steps, seed=7):
 
 
 def test_random_removals_and_cuts_over_a_thousand_steps():
-    # (CUDA's run below takes 10,000 steps; this one's 1,000 keep CI's time)
+    # (CUDA's run below takes 10,000 steps; the CPU's 1,000 keep the suite's time)
     counts = fuzz("cpu", 1000)
     assert counts["removed"] > 25 and counts["cuts"] >= 5, counts
 
