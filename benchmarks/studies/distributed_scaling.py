@@ -5,8 +5,8 @@ its share as one packed ``Simulator``), at each size given, on as many ranks as 
     torchrun --nproc-per-node N benchmarks/studies/distributed_scaling.py --device cuda --out DIR
     python benchmarks/studies/distributed_scaling.py --quick --device cpu --out DIR   # one process
 
-Run it once per N into the same DIR: each run adds its rows to distributed_scaling.json (rows of
-the same N are replaced) and writes distributed_scaling.md with every N so far, so strong scaling
+Run it once per N into the same DIR: each run adds its rows to distributed_scaling.json (a row
+measured again replaces the old one) and writes distributed_scaling.md with every N so far, so strong scaling
 (one size over N) and weak scaling (size proportional to N) read off one table.
 
 Beam rows: the paper beam's proportions (1 x 0.4 x 0.25 m, clamped at x = 0, gravity), hooke,
@@ -77,6 +77,15 @@ def beam(elements: int, device):
     return tm.Body(mesh, material, fixed=mesh.vertices[:, 0] <= 1e-6), mesh.num_elements
 
 
+def slabs(mesh, parts: int) -> torch.Tensor:
+    """Each node's part ``[V]``: equal node counts in order along the beam's axis (connected slabs,
+    the cut a graph partitioner finds for a beam, without its minutes on a mesh of tens of millions)."""
+    order = torch.sort(mesh.vertices[:, 0].cpu(), stable=True).indices
+    partition = torch.empty(mesh.num_vertices, dtype=torch.int64)
+    partition[order] = torch.arange(mesh.num_vertices) * parts // mesh.num_vertices
+    return partition
+
+
 def beam_rows(elements: int, device, args) -> list:
     rows = []
     world = dist.get_world_size()
@@ -84,16 +93,20 @@ def beam_rows(elements: int, device, args) -> list:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     start = time.perf_counter()
-    sim = PartitionedSimulator(body, dt=0.01, cg_tol=args.tol, device=device, dtype=torch.float32)
+    graphs = ", graphs" if args.graphs == "yes" else ""
+    partition = slabs(body.mesh, world) if args.partition == "slabs" else None  # None: METIS
+    sim = PartitionedSimulator(body, dt=0.01, cg_tol=args.tol, device=device, dtype=torch.float32,
+                               partition=partition, check_every=args.check_every, cuda_graphs=args.graphs == "yes")
     setup = time.perf_counter() - start
     sim.step(1)
     per_step = timed(sim.step, device, args.steps)
     iterations = sim.last_iterations
-    rows.append(dict(kind="beam", ranks=world, elements=count, path="partitioned", ms_per_step=per_step * 1e3,
+    rows.append(dict(kind="beam", ranks=world, elements=count, path=f"partitioned ({args.partition}{graphs})",
+                     ms_per_step=per_step * 1e3,
                      cg_iterations=iterations, ms_per_iteration=per_step * 1e3 / max(iterations, 1),
                      setup_s=setup, memory_gb=peak_gb(device)))
     del sim
-    if world == 1:
+    if world == 1 and args.single == "yes":
         if device.type == "cuda":
             torch.cuda.empty_cache()
             torch.cuda.reset_peak_memory_stats(device)
@@ -136,7 +149,11 @@ def write(out: Path, rows: list, meta: dict, world: int):
     path = out / "distributed_scaling.json"
     old = json.loads(path.read_text()) if path.exists() else {"runs": {}, "records": []}
     old["runs"][str(world)] = meta
-    records = [r for r in old["records"] if r["ranks"] != world] + rows
+    def key(r):
+        return r["kind"], r["ranks"], r["elements"], r["path"]
+
+    replaced = {key(r) for r in rows}  # a row measured again replaces the old one
+    records = [r for r in old["records"] if key(r) not in replaced] + rows
     records.sort(key=lambda r: (r["kind"], r["elements"], r["ranks"], r["path"]))
     path.write_text(json.dumps({"runs": old["runs"], "records": records}, indent=1))
     lines = ["# Several GPUs: a partitioned beam and a dealt batch, by ranks", ""]
@@ -163,6 +180,13 @@ def main(argv=None):
     parser.add_argument("--body-cells", default="2x2x2", help="cells of a small body (6 tets a cell)")
     parser.add_argument("--tol", type=float, default=1e-5, help="the beam's CG relative residual")
     parser.add_argument("--steps", type=int, default=5, help="timed beam steps")
+    parser.add_argument("--partition", choices=("metis", "slabs"), default="metis",
+                        help="the beam's parts: METIS's (the library's default) or equal slabs along its axis")
+    parser.add_argument("--check-every", type=int, default=16, help="partitioned CG iterations between host reads")
+    parser.add_argument("--graphs", choices=("yes", "no"), default="no",
+                        help="replay the partitioned CG's iterations as captured CUDA graphs")
+    parser.add_argument("--single", choices=("yes", "no"), default="yes",
+                        help="with one rank, also time the one-process simulator")
     parser.add_argument("--batch-steps", type=int, default=20, help="timed batch steps")
     args = parser.parse_args(argv)
     common.fill_defaults(args, dict(beams="1228800,2457600,4915200", bodies="10000,100000"),
@@ -181,9 +205,9 @@ def main(argv=None):
             for row in new:
                 print(json.dumps(row), flush=True)
 
-    for elements in [int(v) for v in args.beams.split(",") if v]:
+    for elements in [int(v) for v in args.beams.split(",") if v and int(v) > 0]:
         done(beam_rows(elements, device, args))
-    for bodies in [int(v) for v in args.bodies.split(",") if v]:
+    for bodies in [int(v) for v in args.bodies.split(",") if v and int(v) > 0]:
         done([batch_row(bodies, device, args)])
     if dist.get_rank() == 0:
         out = Path(args.out)

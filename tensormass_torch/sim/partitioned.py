@@ -20,9 +20,13 @@ with the stopping rule of the one-process CG (||r|| <= tol ||rhs|| over the whol
 step equals one process's to the CG's tolerance and rounding (tested: 1e-12 in float64, hooke,
 stvk and corotational, fixed nodes and a plane).
 
-This is the pure-torch composed path (the element ops through the model's ``forward`` and
-``dforce``, the compiled ones where the extension serves the device): correct on every device
-and backend; the fused node-graph kernels of one process are not used here.
+A rank's part is a one-process system (``solver.implicit_euler.DynamicsSystem`` over the part's
+``TensorMass``): its right-hand side and CG product are the one-process ops (the fused node-graph
+kernels where the extension serves the device, their references elsewhere), their ghost rows
+ignored. The CG's scalars stay on the device: each dot is a local sum over the owned rows and one
+all-reduce (on the stream under NCCL), and the host reads the residual only every
+``check_every`` iterations, so an iteration costs the one-process product plus a halo exchange
+and two small all-reduces, with no host wait.
 """
 from __future__ import annotations
 
@@ -34,8 +38,10 @@ import torch
 from ..errors import SceneError
 from ..mesh.meshes import TetMesh, TriMesh
 from ..mesh.topology import unique_edges
+from ..ops.segments import Segments
 from ..physics.contact import Planes
 from ..physics.tensor_mass import TensorMass
+from ..solver.implicit_euler import DynamicsSystem
 from .distributed import collectively, group_device
 
 
@@ -80,16 +86,21 @@ class PartitionedSimulator:
             ``tm.Simulator``'s (``cg_max_iter`` None: 10 x the free degrees of freedom).
         device, dtype: where and in what precision this rank steps.
         partition: the part of each node ``[V]`` (default: :func:`partition_nodes`).
+        check_every: CG iterations between the host's reads of the residual (the iterations in
+            between run without a host synchronisation; those past convergence change nothing).
     """
 
     def __init__(self, body, *, dt: float = 0.01, gravity=(0.0, 0.0, -9.81), rayleigh_mass: float = 0.0,
                  rayleigh_stiffness: float = 0.0, planes: Sequence = (), cg_tol: float = 1e-6,
                  cg_max_iter: Optional[int] = None, device=None, dtype=None,
-                 partition: Optional[torch.Tensor] = None):
+                 partition: Optional[torch.Tensor] = None, check_every: int = 16,
+                 cuda_graphs: bool = False):
         import torch.distributed as dist
 
         if body.motion is not None:
             raise SceneError("a partitioned body takes fixed nodes, not prescribed ones")
+        if int(check_every) < 1:
+            raise SceneError(f"check_every must be a positive number of CG iterations, got {check_every}")
         self.rank, self.world = dist.get_rank(), dist.get_world_size()
         mesh = body.mesh
         self.device = torch.device(device) if device is not None else mesh.vertices.device
@@ -112,7 +123,9 @@ class PartitionedSimulator:
             touches = (partition[elements] == r).any(1)
             ids = torch.nonzero(touches).flatten()
             held_elements.append(ids)
-            held_nodes.append(torch.unique(elements[ids]))
+            held = torch.zeros(num_nodes, dtype=torch.bool)  # (a mask, not a sort: linear in the mesh)
+            held[elements[ids].flatten()] = True
+            held_nodes.append(torch.nonzero(held).flatten())
         self.owned = torch.nonzero(partition == self.rank).flatten()  # global ids, ascending
         self.local = held_nodes[self.rank]  # owned and ghost nodes, global ids ascending
         position = torch.full((num_nodes,), -1, dtype=torch.int64)
@@ -140,17 +153,28 @@ class PartitionedSimulator:
         # (a rank whose part fails to build stops every rank, rather than leaving them waiting)
         self.model = collectively(lambda: TensorMass(local_mesh, _material_of(body.material, self.element_ids)),
                                   "building a part of the mesh")
-        self.mass = self.model.lumped_mass()[:, None]
-        self.free = (~body.fixed.cpu()[self.local]).to(device=self.device, dtype=self.dtype)[:, None]
+        mass = self.model.lumped_mass()
+        fixed = body.fixed.cpu()[self.local].to(self.device)
+        self.free = (~fixed).to(self.dtype)[:, None]
         self.gravity = torch.as_tensor(gravity, dtype=self.dtype, device=self.device)
-        self.external = self.mass * self.gravity
         self.planes = Planes(list(planes), self.dtype, self.device) if planes else None
+        # the one-process integrator's view of the part: its fused system product (node graph,
+        # contact stiffness, fixed-node projection) and right-hand side serve the owned rows
+        self.system = DynamicsSystem(self.model, mass, mass[:, None] * self.gravity,
+                                     Segments.single(self.local.numel(), self.device), fixed, self.planes,
+                                     keep_mask=True)
+        self.owned_weight = torch.zeros(self.local.numel(), dtype=torch.float64, device=self.device)
+        self.owned_weight[self.owned_rows] = 1.0
         self.dt = float(dt)
         self.rayleigh_mass, self.rayleigh_stiffness = float(rayleigh_mass), float(rayleigh_stiffness)
         free_dofs = self._sum(torch.tensor(float(3 * int((~body.fixed.cpu()[self.owned]).sum())),
                                            dtype=torch.float64))
         self.cg_tol = float(cg_tol)
         self.cg_max_iter = int(cg_max_iter) if cg_max_iter is not None else max(100, 10 * int(free_dofs))
+        self.check_every = int(check_every)
+        self.cuda_graphs = bool(cuda_graphs)
+        self._cg_state = None  # the CG's buffers, kept across steps (a CUDA graph replays over them)
+        self._graphs = {}  # (matvec, iterations) -> captured iterations (solver.cg.run_captured)
         self.x = rest.clone()
         self.v = torch.zeros_like(rest)
         if body.velocity is not None:
@@ -186,10 +210,6 @@ class PartitionedSimulator:
         for q, rows in self.receive.items():
             field[rows] = incoming[q]
 
-    def _dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        rows = self.owned_rows
-        return self._sum((a[rows].double() * b[rows].double()).sum())
-
     # ---------------------------------------------------------------- the step
 
     def step(self, n: int = 1) -> None:
@@ -202,60 +222,91 @@ class PartitionedSimulator:
         x, v = self.x, self.v
         self._exchange(x)
         self._exchange(v)
-        forces = self.model(x) + self.external
-        stiffness = None
-        if self.planes is not None:
-            contact, stiffness = self.planes.linearize(x)
-            forces = forces + contact
-
-        def tangent(w):
-            out = self.model.dforce(x, w)
-            if stiffness is not None:
-                out = out - (stiffness * w[:, None, :]).sum(-1)
-            return out
-
-        rhs = h * (forces + tangent((h + r_k) * v) - r_m * self.mass * v) * self.free
-
-        def product(p):
-            self._exchange(p)
-            return (c_m * self.mass * p - c_k * tangent(p)) * self.free
-
-        dv = self._cg(product, rhs)
+        matvec = self.system.system_matvec(c_m, c_k)
+        # the owned rows of rhs are complete (every element of an owned node is held here); the
+        # ghost rows are not, and no owned row reads them
+        rhs = matvec.load_step(x, v, h, r_m, h + r_k) * self.free
+        dv = self._cg(matvec, rhs)
         self.v = v + dv
         self.x = x + h * self.v
         self.time += h
         self.steps_done += 1
 
-    def _cg(self, product, rhs: torch.Tensor) -> torch.Tensor:
-        """Classic CG on the owned rows: ||r|| <= tol ||rhs|| over every rank; a solve that does not
-        converge within the cap raises (on every rank alike: the scalars are the same everywhere)."""
-        from ..errors import SolverError
+    def _owned_dot(self, per_node: torch.Tensor) -> torch.Tensor:
+        """The all-reduced sum of a per-node quantity ``[L]`` over the owned rows (float64 ``[1]``
+        on this rank's device; no host synchronisation under NCCL)."""
+        import torch.distributed as dist
 
-        x = torch.zeros_like(rhs)
-        r = rhs.clone()
-        p = r.clone()
-        rr = self._dot(r, r)
-        threshold = max(self.cg_tol, torch.finfo(rhs.dtype).eps) ** 2 * float(rr)
-        iterations = 0
-        while float(rr) > threshold:
-            if iterations >= self.cg_max_iter:
-                raise SolverError(f"partitioned CG did not converge: relative residual "
-                                  f"{(float(rr) / max(threshold, 1e-300)) ** 0.5 * self.cg_tol:.2e} after "
-                                  f"{iterations} iterations", ["not converged"], None)
-            ap = product(p)
-            curvature = self._dot(p, ap)
-            if not float(curvature) > 0:
+        total = torch.dot(per_node.to(torch.float64), self.owned_weight).reshape(1)
+        total = total.to(group_device(self.device))
+        dist.all_reduce(total)
+        return total.to(self.device)
+
+    def _cg(self, matvec, rhs: torch.Tensor) -> torch.Tensor:
+        """Classic CG on the owned rows, its scalars kept on the device: ||r|| <= tol ||rhs|| over
+        every rank, the same rule and iterates as one process's CG. The host reads the scalars once
+        every ``check_every`` iterations; the iterations in between past convergence change
+        nothing (their step length is 0). A solve that does not converge within the cap, or that
+        breaks down, raises on every rank alike (the scalars are the same everywhere). Returns
+        the solution ``[L, 3]``, a buffer overwritten by the next solve."""
+        from ..errors import SolverError
+        from ..solver.cg import run_captured
+
+        s = self._cg_state
+        if s is None or s["x"].shape != rhs.shape or s["x"].dtype != rhs.dtype:
+            s = self._cg_state = dict(x=torch.empty_like(rhs), r=torch.empty_like(rhs), p=torch.empty_like(rhs),
+                                      **{k: torch.zeros(1, dtype=torch.float64, device=self.device)
+                                         for k in ("rr", "threshold", "count", "broken")})
+            self._graphs = {}
+        s["x"].zero_()
+        s["r"].copy_(rhs)
+        s["p"].copy_(rhs)
+        s["rr"].copy_(self._owned_dot((rhs * rhs).sum(-1)))
+        torch.mul(s["rr"], max(self.cg_tol, torch.finfo(rhs.dtype).eps) ** 2, out=s["threshold"])
+        s["count"].zero_()
+        s["broken"].zero_()
+        while True:
+            left, iterations, failed = torch.cat([s["rr"] - s["threshold"], s["count"], s["broken"]]).tolist()
+            if failed:
                 raise SolverError("partitioned CG broke down (the system is not positive definite)", ["breakdown"],
                                   None)
-            alpha = rr / curvature
-            x = x + alpha.to(x.dtype) * p
-            r = r - alpha.to(r.dtype) * ap
-            rr_new = self._dot(r, r)
-            p = r + (rr_new / rr).to(r.dtype) * p
-            rr = rr_new
-            iterations += 1
-        self.last_iterations = iterations
-        return x
+            if not left > 0:
+                break
+            if iterations >= self.cg_max_iter:
+                relative = (float(s["rr"]) / max(float(s["threshold"]), 1e-300)) ** 0.5 * self.cg_tol
+                raise SolverError(f"partitioned CG did not converge: relative residual {relative:.2e} after "
+                                  f"{int(iterations)} iterations", ["not converged"], None)
+            block = min(self.check_every, self.cg_max_iter - int(iterations))
+
+            def work(block=block):
+                self._iterations(matvec, s, block)
+
+            if self.cuda_graphs and self.device.type == "cuda":
+                run_captured(self._graphs, (id(matvec), block), work)
+            else:
+                work()
+        self.last_iterations = int(iterations)
+        return s["x"]
+
+    def _iterations(self, matvec, s: dict, count: int) -> None:
+        """``count`` CG iterations on the buffers ``s`` in place (the same storage each time: a
+        CUDA graph can replay them); an iteration with the residual at the threshold, or past the
+        cap, changes nothing."""
+        zero = torch.zeros((), dtype=torch.float64, device=self.device)
+        x, r, p, rr = s["x"], s["r"], s["p"], s["rr"]
+        for _ in range(count):
+            self._exchange(p)
+            ap, p_ap = matvec(p)
+            curvature = self._owned_dot(p_ap)
+            active = (rr > s["threshold"]) & (s["count"] < self.cg_max_iter)
+            s["broken"].logical_or_(active & ~(curvature > 0))
+            step = torch.where(active, rr / curvature, zero).to(x.dtype)
+            x.addcmul_(p, step)
+            r.addcmul_(ap, step, value=-1.0)
+            rr_new = torch.where(active, self._owned_dot((r * r).sum(-1)), rr)
+            p.mul_(torch.where(active, rr_new / rr, zero).to(x.dtype)).add_(r)
+            rr.copy_(rr_new)
+            s["count"].add_(active.double())
 
     # ---------------------------------------------------------------- results
 

@@ -164,6 +164,12 @@ def _partitioned_worker(rank: int, world: int, init: str, out: str):
                                    planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], cg_tol=1e-14)
         sim.step(5)
         results[model] = (sim.positions(), sim.velocities(), sim.owned.numel())
+    # the host reading the residual after every iteration changes no iterate
+    body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="hooke"), fixed=fixed)
+    sim = PartitionedSimulator(body, dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001,
+                               planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], cg_tol=1e-14, check_every=1)
+    sim.step(5)
+    results["hooke, checked every iteration"] = (sim.positions(), sim.velocities(), sim.last_iterations)
     torch.save(results, Path(out) / f"partitioned_{rank}.pt")
     dist.destroy_process_group()
 
@@ -191,6 +197,67 @@ def test_one_mesh_over_processes_is_the_one_process_step(tmp_path, world):
         for r in results:
             torch.testing.assert_close(r[model][0], one.x, rtol=0, atol=1e-12)
             torch.testing.assert_close(r[model][1], one.v, rtol=0, atol=1e-10)
+            if model == "hooke":
+                checked = r["hooke, checked every iteration"]
+                assert torch.equal(checked[0], r[model][0]) and torch.equal(checked[1], r[model][1])
+                assert checked[2] > 0
+
+
+def _partitioned_cuda_worker(rank: int, world: int, init: str, out: str):
+    import torch.distributed as dist
+
+    from tensormass_torch.sim.partitioned import PartitionedSimulator
+
+    torch.cuda.set_device(rank)
+    dist.init_process_group("nccl", init_method=init, rank=rank, world_size=world)
+    mesh, fixed = partitioned_beam()
+    results = {}
+    for model in MODELS:
+        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
+        for graphs in (False, True):
+            sim = PartitionedSimulator(body, dt=0.01, rayleigh_mass=0.1, planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)],
+                                       cg_tol=1e-14, check_every=4, cuda_graphs=graphs, device=f"cuda:{rank}")
+            sim.step(5)
+            captured = [graph is not False for graph in sim._graphs.values()]
+            results[model, graphs] = (sim.positions(), sim.last_iterations, captured)
+    torch.save(results, Path(out) / f"partitioned_cuda_{rank}.pt")
+    dist.destroy_process_group()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU (NCCL)")
+def test_one_mesh_over_gpus_is_the_one_process_step(tmp_path):
+    """On the GPU under NCCL (two GPUs where there are, else one rank): the partitioned step
+    (fused node-graph products, scalars on the device) equals one process's Simulator in float64
+    to 1e-12, eager and with its CG iterations replayed as captured CUDA graphs."""
+    import torch.multiprocessing as mp
+
+    world = min(2, torch.cuda.device_count())
+    if world > 1:
+        pytest.importorskip("pymetis")
+    mp.start_processes(_partitioned_cuda_worker, args=(world, f"file://{tmp_path / 'store'}", str(tmp_path)),
+                       nprocs=world, join=True, start_method="spawn")
+    mesh, fixed = partitioned_beam()
+    results = [torch.load(tmp_path / f"partitioned_cuda_{r}.pt") for r in range(world)]
+    for model in MODELS:
+        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
+        one = tm.Simulator([body], dt=0.01, rayleigh_mass=0.1, cg_tol=1e-14, preconditioner="none",
+                           planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], device="cuda")
+        one.step(5)
+        for r in results:
+            for graphs in (False, True):
+                torch.testing.assert_close(r[model, graphs][0], one.x.cpu(), rtol=0, atol=1e-12)
+            assert r[model, True][1] == r[model, False][1] > 0
+            assert r[model, True][2] and all(r[model, True][2])  # captured, not left eager
+            assert r[model, False][2] == []
+
+
+def test_a_partitioned_check_interval_must_be_positive():
+    from tensormass_torch.sim.partitioned import PartitionedSimulator
+
+    mesh, fixed = partitioned_beam()
+    body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0), fixed=fixed)
+    with pytest.raises(tm.SceneError, match="check_every must be a positive number"):
+        PartitionedSimulator(body, check_every=0)  # refused before any collective
 
 
 def test_node_partitions_are_connected_and_balanced():
