@@ -297,7 +297,7 @@ def test_distributed_scaling_quick(tmp_path, monkeypatch):
     records = json.loads((tmp_path / "distributed_scaling.json").read_text())["records"]
     by = {(r["kind"], r["path"]): r for r in records}
     # one rank's partitioned CG is the one-process CG: the same iterations to the same tolerance
-    assert by[("beam", "partitioned")]["cg_iterations"] == by[("beam", "single")]["cg_iterations"] > 0
+    assert by[("beam", "partitioned (metis)")]["cg_iterations"] == by[("beam", "single")]["cg_iterations"] > 0
     assert by[("batch", "40 bodies")]["body_steps_per_s"] > 0
     assert "| beam | 1 | 4800 | partitioned |" in (tmp_path / "distributed_scaling.md").read_text()
 
