@@ -299,7 +299,7 @@ def test_distributed_scaling_quick(tmp_path, monkeypatch):
     # one rank's partitioned CG is the one-process CG: the same iterations to the same tolerance
     assert by[("beam", "partitioned (metis)")]["cg_iterations"] == by[("beam", "single")]["cg_iterations"] > 0
     assert by[("batch", "40 bodies")]["body_steps_per_s"] > 0
-    assert "| beam | 1 | 4800 | partitioned |" in (tmp_path / "distributed_scaling.md").read_text()
+    assert "| beam | 1 | 4800 | partitioned (metis) |" in (tmp_path / "distributed_scaling.md").read_text()
 
 
 def test_newton_comparison_quick(tmp_path):
