@@ -183,7 +183,7 @@ def main(argv=None):
     parser.add_argument("--partition", choices=("metis", "slabs"), default="metis",
                         help="the beam's parts: METIS's (the library's default) or equal slabs along its axis")
     parser.add_argument("--check-every", type=int, default=16, help="partitioned CG iterations between host reads")
-    parser.add_argument("--graphs", choices=("yes", "no"), default="no",
+    parser.add_argument("--graphs", choices=("yes", "no"), default="yes",
                         help="replay the partitioned CG's iterations as captured CUDA graphs")
     parser.add_argument("--single", choices=("yes", "no"), default="yes",
                         help="with one rank, also time the one-process simulator")

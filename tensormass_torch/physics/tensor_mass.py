@@ -36,6 +36,27 @@ def _resolve_form(form: str, material) -> str:
     return form
 
 
+def _per_element(material, name: str, num_elements: int, like: torch.Tensor):
+    """Material parameter ``name`` per element: a plain number stays a number (a batch of many
+    bodies then makes one tensor per group, not one per body: :func:`_cat_per_element`), anything
+    else becomes ``material.per_element``'s tensor ``[N]``."""
+    value = getattr(material, name)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    return material.per_element(name, num_elements, like)
+
+
+def _cat_per_element(values, counts, like: torch.Tensor) -> torch.Tensor:
+    """The per-element tensor ``[sum(counts)]`` of parts whose values are numbers or tensors
+    ``[count]`` (in ``like``'s dtype and device; numbers copied to the device once)."""
+    if all(isinstance(v, float) for v in values):
+        per_part = torch.tensor(values, dtype=like.dtype).to(like.device)
+        repeats = torch.tensor(counts, dtype=torch.int64).to(like.device)
+        return per_part.repeat_interleave(repeats, output_size=sum(counts))
+    return torch.cat([torch.full((n,), v, dtype=like.dtype, device=like.device) if isinstance(v, float) else v
+                      for v, n in zip(values, counts)])
+
+
 def checked_element_ids(ids, removed: Optional[torch.Tensor], count: int, owner: str) -> torch.Tensor:
     """Element ids to remove as a sorted int64 CPU tensor, or one MeshError naming the problem:
     not 1-D integers, out of range of the ``count`` elements of ``owner`` (a label for the
@@ -98,26 +119,28 @@ class TensorMass(nn.Module):
             model_form = _resolve_form(form, material)
             key = (kind, material.model, model_form, material.rotation if material.model == "corotational" else None,
                    material.tangent_for(model_form))
-            young = material.per_element("young", n_elem, like)
-            poisson = material.per_element("poisson", n_elem, like)
-            density = material.per_element("density", n_elem, like)
-            scale = material.per_element("thickness", n_elem, like) if kind == "tri" else None
+            young, poisson, density = (_per_element(material, name, n_elem, like)
+                                       for name in ("young", "poisson", "density"))
+            scale = _per_element(material, "thickness", n_elem, like) if kind == "tri" else None
             grouped.setdefault(key, []).append((elements, young, poisson, density, scale, first_id))
             first_id += n_elem
         groups = []
         masses = []
         for (kind, model, model_form, rotation, tangent), items in grouped.items():
-            elements = torch.cat([it[0] for it in items])
-            young = torch.cat([it[1] for it in items])
-            poisson = torch.cat([it[2] for it in items])
-            scale = torch.cat([it[4] for it in items]) if kind == "tri" else None
+            counts = [it[0].shape[0] for it in items]
+            elements = torch.cat([it[0] for it in items]).to(rest.device)
+            young, poisson, density = (_cat_per_element([it[i] for it in items], counts, like) for i in (1, 2, 3))
+            scale = _cat_per_element([it[4] for it in items], counts, like) if kind == "tri" else None
             group = ElementGroup(rest, elements, young, poisson, model, model_form, scale, rotation or "polar",
                                  tangent)
             groups.append(group)
-            density = torch.cat([it[3] for it in items])
             masses.append((elements, density * group.measure.detach()))
-            # what a first removal needs to recover (held as references: nothing allocated here)
-            group.__dict__["_sources"] = [(it[5], it[0].shape[0], it[1], it[2], it[3]) for it in items]
+            # what a first removal needs to recover (views of the group's tensors: nothing allocated)
+            starts = [0]
+            for n in counts:
+                starts.append(starts[-1] + n)
+            group.__dict__["_sources"] = [(it[5], n, young[a:a + n], poisson[a:a + n], density[a:a + n])
+                                          for it, n, a in zip(items, counts, starts)]
         self.groups = nn.ModuleList(groups)
         self.num_elements = first_id
         self.register_buffer("mass", self._lumped_mass(masses))

@@ -94,7 +94,7 @@ class PartitionedSimulator:
                  rayleigh_stiffness: float = 0.0, planes: Sequence = (), cg_tol: float = 1e-6,
                  cg_max_iter: Optional[int] = None, device=None, dtype=None,
                  partition: Optional[torch.Tensor] = None, check_every: int = 16,
-                 cuda_graphs: bool = False):
+                 cuda_graphs: bool = True):
         import torch.distributed as dist
 
         if body.motion is not None:

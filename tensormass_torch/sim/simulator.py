@@ -243,23 +243,26 @@ class Simulator:
                                    cuda_graphs=bool(cuda_graphs), preconditioner=preconditioner,
                                    integrator=integrator, warm_start=warm_start)
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
+        # bodies on the host are packed on the host and moved once (a batch of many small bodies
+        # would otherwise cost a dozen small copies and a synchronisation a body)
+        staging = torch.device("cpu") if all(b.mesh.vertices.device.type == "cpu" for b in bodies) else self.device
         offset = 0
         for b, room in zip(bodies, spare):
-            verts = b.mesh.vertices.to(device=self.device, dtype=self.dtype)
+            verts = b.mesh.vertices.to(device=staging, dtype=self.dtype)
             if verts.shape[1] == 2:
                 verts = torch.cat([verts, verts.new_zeros(verts.shape[0], 1)], dim=1)
-            no = torch.zeros(room, dtype=torch.bool, device=self.device)
+            no = torch.zeros(room, dtype=torch.bool, device=staging)
             # spare rows: copies of the body's first node (no element: no mass, held)
             rest_parts.append(torch.cat([verts, verts[:1].expand(room, -1)]))
-            parts.append((b.mesh.elements.to(self.device) + offset, b.material, b.mesh.kind))
-            fixed.append(torch.cat([b.fixed.to(self.device), no]))
-            prescribed.append(torch.cat([b.prescribed.to(self.device), no]))
+            parts.append((b.mesh.elements.to(staging) + offset, b.material, b.mesh.kind))
+            fixed.append(torch.cat([b.fixed.to(staging), no]))
+            prescribed.append(torch.cat([b.prescribed.to(staging), no]))
             vel = torch.zeros_like(verts) if b.velocity is None else \
-                torch.as_tensor(b.velocity, dtype=self.dtype, device=self.device).expand_as(verts).clone()
-            vel[b.fixed.to(self.device)] = 0.0
+                torch.as_tensor(b.velocity, dtype=self.dtype, device=staging).expand_as(verts).clone()
+            vel[b.fixed.to(staging)] = 0.0
             velocities.append(torch.cat([vel, vel.new_zeros(room, 3)]))
             offset += verts.shape[0] + room
-        rest = torch.cat(rest_parts)
+        rest = torch.cat(rest_parts).to(self.device)
         self.ptr = [0]
         for r in rest_parts:
             self.ptr.append(self.ptr[-1] + r.shape[0])
@@ -268,8 +271,8 @@ class Simulator:
         self.model = TensorMass.packed(rest, parts, form=form)
         if any(spare):
             self.model.reserve_slots(spare_nodes=sum(spare))
-        self.fixed = torch.cat(fixed)
-        self.prescribed = torch.cat(prescribed)
+        self.fixed = torch.cat(fixed).to(self.device)
+        self.prescribed = torch.cat(prescribed).to(self.device)
         self._has_prescribed = any(b.motion is not None for b in bodies)  # known once: no sync per step
         #: nodes held where a caller puts them (:meth:`hold_nodes`): packed ids ``[k]`` and their
         #: targets ``[k, 3]``, or None
@@ -293,7 +296,7 @@ class Simulator:
         self._make_system()
         self._surfaces_changed()
         self.x = rest.clone()
-        self.v = torch.cat(velocities)
+        self.v = torch.cat(velocities).to(self.device)
         self.time = 0.0
         self.steps_done = 0
         self.last_report: Optional[StepReport] = None

@@ -17,7 +17,6 @@ import tensormass_torch as tm
 from tensormass_torch.app.cli import main
 from tensormass_torch.sim.distributed import partition_bodies
 
-meshio = pytest.importorskip("meshio")
 pytestmark = pytest.mark.skipif(not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
                                 reason="needs torch.distributed with gloo")
 
@@ -58,6 +57,7 @@ def series(folder: Path):
 
 
 def test_bodies_over_two_processes_are_the_bodies_of_one(tmp_path):
+    meshio = pytest.importorskip("meshio")
     path = scene_file(tmp_path)
     assert main(["run", str(path), "--out", str(tmp_path / "one"), "--quiet"]) == 0
     done = torchrun(["run", str(path), "--out", str(tmp_path / "two"), "--quiet"])
@@ -329,6 +329,7 @@ def test_a_scene_split_by_mesh_over_two_processes_is_the_one_process_run(tmp_pat
     """``[distributed] split = "mesh"``: under torchrun the one body's mesh is partitioned
     (PartitionedSimulator) and rank 0 writes the gathered frames; in one process the same file is
     the usual Simulator. The frames agree to the CG's tolerance (float64)."""
+    meshio = pytest.importorskip("meshio")
     pytest.importorskip("pymetis")
     from tensormass_torch.sim.scene_file import load_scene
 
