@@ -93,7 +93,7 @@ def beam_rows(elements: int, device, args) -> list:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     start = time.perf_counter()
-    graphs = ", graphs" if args.graphs == "yes" else ""
+    graphs = ", graphs" if args.graphs == "yes" and device.type == "cuda" else ""  # (CPU: none)
     partition = slabs(body.mesh, world) if args.partition == "slabs" else None  # None: METIS
     sim = PartitionedSimulator(body, dt=0.01, cg_tol=args.tol, device=device, dtype=torch.float32,
                                partition=partition, check_every=args.check_every, cuda_graphs=args.graphs == "yes")
@@ -105,6 +105,7 @@ def beam_rows(elements: int, device, args) -> list:
                      ms_per_step=per_step * 1e3,
                      cg_iterations=iterations, ms_per_iteration=per_step * 1e3 / max(iterations, 1),
                      setup_s=setup, memory_gb=peak_gb(device)))
+    sim.close()
     del sim
     if world == 1 and args.single == "yes":
         if device.type == "cuda":

@@ -299,12 +299,15 @@ def _run_partitioned(args):
         # (rank 0 writes; a failed write stops every rank rather than leaving them waiting)
         distributed.collectively(lambda: writer.write(frame) if writer else None, "writing a frame")
 
-    if args.out:
-        write_frame()
-    for done in range(1, steps + 1):
-        sim.step(1)  # (a failed solve raises on every rank alike: the CG's scalars are all-reduced)
-        if args.out and (done % every == 0 or done == steps):
+    try:
+        if args.out:
             write_frame()
+        for done in range(1, steps + 1):
+            sim.step(1)  # (a failed solve raises on every rank alike: the CG's scalars are all-reduced)
+            if args.out and (done % every == 0 or done == steps):
+                write_frame()
+    finally:
+        sim.close()  # (its captured graphs go before the process group does)
     if writer:
         say(f"wrote {writer.frame} frames to {Path(args.out) / (scene.name + '.pvd')}")
     return 0

@@ -220,6 +220,7 @@ def _partitioned_cuda_worker(rank: int, world: int, init: str, out: str):
             sim.step(5)
             captured = [graph is not False for graph in sim._graphs.values()]
             results[model, graphs] = (sim.positions(), sim.last_iterations, captured)
+            sim.close()
     torch.save(results, Path(out) / f"partitioned_cuda_{rank}.pt")
     dist.destroy_process_group()
 
