@@ -96,15 +96,25 @@ def unique_edges(elements: torch.Tensor, num_nodes: int):
 
 def padded_sum(values: torch.Tensor, targets: torch.Tensor, slots: torch.Tensor, num_slots: int,
                num_targets: int) -> torch.Tensor:
-    """Deterministic scatter-sum through a padded ``[num_slots, T, ...]`` buffer.
-
-    values ``[M, ...]``, targets ``[M]``, slots ``[M]`` (from :func:`incidence_slots`)
-    -> sums ``[T, ...]``. Used for one-off assembly (masses, vertex/edge tensors) so that even
-    precomputation is bitwise reproducible on the GPU.
-    """
-    buffer = values.new_zeros((num_slots, num_targets) + tuple(values.shape[1:]))
-    buffer[slots, targets] = values
-    return sum_slots_in_order(buffer)
+    """Deterministic scatter-sum, slot after slot: values ``[M, ...]``, targets ``[M]``, slots
+    ``[M]`` (from :func:`incidence_slots`) -> sums ``[T, ...]``, each target's items added in
+    slot order (``sum_slots_in_order`` of the padded ``[num_slots, T, ...]`` buffer, bitwise, as
+    the kernels add them), so that even precomputation is bitwise reproducible on the GPU. The
+    padded buffer itself is never made (num_slots times the result: the peak of a model's
+    construction): a slot's items have distinct targets, so each slot is one gather and one write
+    without collisions. Used for one-off assembly (masses, edge tensors)."""
+    total = values.new_zeros((num_targets,) + tuple(values.shape[1:]))
+    if num_slots == 0 or values.shape[0] == 0:
+        return total
+    order = torch.argsort(slots, stable=True)
+    counts = torch.bincount(slots, minlength=num_slots).tolist()
+    start = 0
+    for count in counts:
+        items = order[start:start + count]
+        start += count
+        at = targets[items]
+        total.index_put_((at,), total[at] + values[items])
+    return total
 
 
 def sum_slots_in_order(buffer: torch.Tensor) -> torch.Tensor:

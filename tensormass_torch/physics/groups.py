@@ -98,8 +98,7 @@ class ElementGroup(nn.Module):
                                 "parameters that require grad: use form='stress'")
         lam, mu = self.lame(young, poisson)
         if model == "hooke":
-            element_k = tensor_form.element_stiffness(m, measure, lam, mu, proj)
-            edges, edge_k = tensor_form.assemble_edges(element_k, elements, self.num_nodes)
+            edges, edge_k = tensor_form.assemble_hooke_edges(m, measure, lam, mu, proj, elements, self.num_nodes)
             self.register_buffer("edges", edges)
             self.register_buffer("edge_k", edge_k)
             self.plan = GatherPlan.build(edges, self.num_nodes)
@@ -390,11 +389,10 @@ class ElementGroup(nn.Module):
         if self.form == "tensor" and self.model == "hooke":
             return self.edges.long(), self.edge_k
         if self.form == "tensor":  # stvk: B = K / 2
-            element_k = 2.0 * self.tensor_b
-        else:
-            lam, mu = self.lame()
-            element_k = tensor_form.element_stiffness(self.shape_vectors, self.measure, lam, mu, self.projector)
-        return tensor_form.assemble_edges(element_k, self.elements.long(), self.num_nodes)
+            return tensor_form.assemble_edges(2.0 * self.tensor_b, self.elements.long(), self.num_nodes)
+        lam, mu = self.lame()
+        return tensor_form.assemble_hooke_edges(self.shape_vectors, self.measure, lam, mu, self.projector,
+                                                self.elements.long(), self.num_nodes)
 
     def lame(self, young=None, poisson=None):
         """(lam, mu) ``[N]``, plane-stress for membranes and 2-D triangles."""

@@ -139,7 +139,13 @@ class TensorMass(nn.Module):
             starts = [0]
             for n in counts:
                 starts.append(starts[-1] + n)
-            group.__dict__["_sources"] = [(it[5], n, young[a:a + n], poisson[a:a + n], density[a:a + n])
+            def source(value, whole, n, a):  # a body's own tensor, else a view of the group's
+                if not isinstance(value, float):
+                    return value
+                return whole[a:a + n] if not whole.requires_grad else whole.new_tensor(value).expand(n)
+
+            group.__dict__["_sources"] = [(it[5], n, *(source(it[i], whole, n, a)
+                                                       for i, whole in ((1, young), (2, poisson), (3, density))))
                                           for it, n, a in zip(items, counts, starts)]
         self.groups = nn.ModuleList(groups)
         self.num_elements = first_id

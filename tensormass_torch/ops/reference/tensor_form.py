@@ -61,11 +61,33 @@ def assemble_edges(element_k: torch.Tensor, elements: torch.Tensor, num_nodes: i
         edges: ``[Ed, 2]`` (i < j); edge_k: ``[Ed, d, d]`` mapping u_j to the force on i.
     """
     edges, pairs, element_edges = unique_edges(elements, num_nodes)
-    block = oriented_blocks(element_k, elements, pairs)
+    return edges, _sum_onto_edges(oriented_blocks(element_k, elements, pairs), element_edges, edges.shape[0])
+
+
+def assemble_hooke_edges(m, vol, lam, mu, proj, elements: torch.Tensor, num_nodes: int, chunk: int = 1 << 16):
+    """``assemble_edges(element_stiffness(m, vol, lam, mu, proj), elements, num_nodes)`` without
+    the ``[N, n, n, d, d]`` tensor and its temporaries (about 2 KB a tetrahedron in float32, the
+    peak of a hooke model's construction): the element tensors are made ``chunk`` elements at a
+    time and only their pair blocks ``[N, P, d, d]`` kept. The same values (each element's
+    tensor is computed alone either way). No gradient (the tensor form precomputes)."""
+    edges, pairs, element_edges = unique_edges(elements, num_nodes)
+    count, dim = elements.shape[0], m.shape[-1]
+    with torch.no_grad():
+        block = m.new_empty((count, pairs.shape[0], dim, dim))
+        for start in range(0, count, chunk):
+            part = slice(start, start + chunk)
+            element_k = element_stiffness(m[part], vol[part], lam[part], mu[part], None if proj is None else proj[part])
+            block[part] = oriented_blocks(element_k, elements[part], pairs)
+            del element_k
+    return edges, _sum_onto_edges(block, element_edges, edges.shape[0])
+
+
+def _sum_onto_edges(block: torch.Tensor, element_edges: torch.Tensor, num_edges: int) -> torch.Tensor:
+    """The pair blocks ``[N, P, d, d]`` summed onto their edges ``[Ed, d, d]`` (``element_edges
+    [N, P]``), in a fixed order (deterministic)."""
     flat_edges = element_edges.reshape(-1)
-    slots, num_slots, _ = incidence_slots(flat_edges, edges.shape[0])
-    edge_k = padded_sum(block.reshape(-1, *block.shape[2:]), flat_edges, slots, num_slots, edges.shape[0])
-    return edges, edge_k
+    slots, num_slots, _ = incidence_slots(flat_edges, num_edges)
+    return padded_sum(block.reshape(-1, *block.shape[2:]), flat_edges, slots, num_slots, num_edges)
 
 
 def hooke_edge_partial_forces(u: torch.Tensor, edges: torch.Tensor, edge_k: torch.Tensor) -> torch.Tensor:
