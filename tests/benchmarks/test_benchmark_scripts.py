@@ -320,3 +320,21 @@ def test_newton_comparison_quick(tmp_path):
     if skipped:
         assert any("skipped" in note for note in data["meta"].get("notes", [])) or \
             "skipped" in (tmp_path / "newton_comparison.md").read_text()
+
+
+def test_setup_memory_quick(tmp_path):
+    """Each (model, size) measured in a process of its own: positive bytes a tet, the peak at
+    least what is held and at least the construction's, a set-up time; a size that fails is a
+    row with its error, not a lost run."""
+    import setup_memory
+
+    setup_memory.main(["--quick", "--device", "cpu", "--out", str(tmp_path)])
+    setup_memory.main(["--device", "cpu", "--models", "nonsense", "--elements", "3000", "--steps", "2",
+                       "--out", str(tmp_path / "bad")])
+    rows = json.loads((tmp_path / "setup_memory.json").read_text())["records"]
+    assert [r["model"] for r in rows] == ["hooke", "stvk"]
+    for r in rows:
+        assert r["elements"] > 2000 and r["setup_s"] > 0 and r["ms_per_step"] > 0
+        assert 0 < r["held_b"] <= r["peak_b"] and r["construction_peak_b"] <= r["peak_b"]
+    bad = json.loads((tmp_path / "bad" / "setup_memory.json").read_text())["records"]
+    assert len(bad) == 1 and "nonsense" in bad[0]["error"]

@@ -76,10 +76,23 @@ def assemble_hooke_edges(m, vol, lam, mu, proj, elements: torch.Tensor, num_node
         block = m.new_empty((count, pairs.shape[0], dim, dim))
         for start in range(0, count, chunk):
             part = slice(start, start + chunk)
-            element_k = element_stiffness(m[part], vol[part], lam[part], mu[part], None if proj is None else proj[part])
-            block[part] = oriented_blocks(element_k, elements[part], pairs)
-            del element_k
+            block[part] = _pair_blocks(m[part], vol[part], lam[part], mu[part],
+                                       None if proj is None else proj[part], elements[part], pairs)
     return edges, _sum_onto_edges(block, element_edges, edges.shape[0])
+
+
+def _pair_blocks(m, vol, lam, mu, proj, elements, pairs) -> torch.Tensor:
+    """``oriented_blocks(element_stiffness(m, vol, lam, mu, proj), elements, pairs)`` ``[N, P, d, d]``
+    made for the P pairs alone (not the n x n blocks): K_ab^T is K_ab with a and b swapped, so a
+    pair stored from its lower global node is K of (lower, higher) in that order."""
+    first_is_low = (elements[:, pairs[:, 0]] < elements[:, pairs[:, 1]])[:, :, None]
+    m_a, m_b = m[:, pairs[:, 0]], m[:, pairs[:, 1]]
+    low, high = torch.where(first_is_low, m_a, m_b), torch.where(first_is_low, m_b, m_a)  # [N, P, d]
+    plane = _plane_identity(m, proj)
+    k = lam[:, None, None, None] * (low[..., :, None] * high[..., None, :])
+    k = k + mu[:, None, None, None] * (high[..., :, None] * low[..., None, :])
+    k = k + (mu[:, None] * (low * high).sum(-1))[..., None, None] * plane[:, None]
+    return vol[:, None, None, None] * k
 
 
 def _sum_onto_edges(block: torch.Tensor, element_edges: torch.Tensor, num_edges: int) -> torch.Tensor:
