@@ -53,7 +53,7 @@ def _cat_per_element(values, counts, like: torch.Tensor) -> torch.Tensor:
         per_part = torch.tensor(values, dtype=like.dtype).to(like.device)
         repeats = torch.tensor(counts, dtype=torch.int64).to(like.device)
         return per_part.repeat_interleave(repeats, output_size=sum(counts))
-    return torch.cat([torch.full((n,), v, dtype=like.dtype, device=like.device) if isinstance(v, float) else v
+    return torch.cat([torch.full((n,), v, dtype=like.dtype, device=like.device) if isinstance(v, float) else v.to(like)
                       for v, n in zip(values, counts)])
 
 
@@ -127,7 +127,7 @@ class TensorMass(nn.Module):
         groups = []
         masses = []
         for (kind, model, model_form, rotation, tangent), items in grouped.items():
-            counts = [it[0].shape[0] for it in items]
+            counts = [int(it[0].shape[0]) for it in items]
             elements = torch.cat([it[0] for it in items]).to(rest.device)
             young, poisson, density = (_cat_per_element([it[i] for it in items], counts, like) for i in (1, 2, 3))
             scale = _cat_per_element([it[4] for it in items], counts, like) if kind == "tri" else None
@@ -136,17 +136,8 @@ class TensorMass(nn.Module):
             groups.append(group)
             masses.append((elements, density * group.measure.detach()))
             # what a first removal needs to recover (views of the group's tensors: nothing allocated)
-            starts = [0]
-            for n in counts:
-                starts.append(starts[-1] + n)
-            def source(value, whole, n, a):  # a body's own tensor, else a view of the group's
-                if not isinstance(value, float):
-                    return value
-                return whole[a:a + n] if not whole.requires_grad else whole.new_tensor(value).expand(n)
-
-            group.__dict__["_sources"] = [(it[5], n, *(source(it[i], whole, n, a)
-                                                       for i, whole in ((1, young), (2, poisson), (3, density))))
-                                          for it, n, a in zip(items, counts, starts)]
+            # a body's own tensors, or its plain numbers (made into tensors only when asked for)
+            group.__dict__["_sources"] = [(it[5], n, it[1], it[2], it[3]) for it, n in zip(items, counts)]
         self.groups = nn.ModuleList(groups)
         self.num_elements = first_id
         self.register_buffer("mass", self._lumped_mass(masses))
@@ -165,7 +156,8 @@ class TensorMass(nn.Module):
         like = self.rest
         sources = group.__dict__["_sources"]
         ids = torch.cat([torch.arange(first, first + n, device=like.device) for first, n, *_ in sources])
-        young, poisson, density = (torch.cat([s[k] for s in sources]).detach().to(like) for k in (2, 3, 4))
+        young, poisson, density = (_cat_per_element([s[k] for s in sources], [s[1] for s in sources], like)
+                                   .detach() for k in (2, 3, 4))
         return ids, young, poisson, density
 
     # ---------------------------------------------------------------- topology changes
