@@ -135,8 +135,8 @@ class TensorMass(nn.Module):
                                  tangent)
             groups.append(group)
             masses.append((elements, density * group.measure.detach()))
-            # what a first removal needs to recover (views of the group's tensors: nothing allocated)
-            # a body's own tensors, or its plain numbers (made into tensors only when asked for)
+            # what a first removal needs to recover: each body's own tensors or plain numbers
+            # (nothing allocated here; group_sources makes the tensors when asked)
             group.__dict__["_sources"] = [(it[5], n, it[1], it[2], it[3]) for it, n in zip(items, counts)]
         self.groups = nn.ModuleList(groups)
         self.num_elements = first_id

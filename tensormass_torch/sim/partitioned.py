@@ -255,6 +255,7 @@ class PartitionedSimulator:
         s = self._cg_state
         if s is None or s["x"].shape != rhs.shape or s["x"].dtype != rhs.dtype:
             s = self._cg_state = dict(x=torch.empty_like(rhs), r=torch.empty_like(rhs), p=torch.empty_like(rhs),
+                                      zero=torch.zeros((), dtype=torch.float64, device=self.device),
                                       **{k: torch.zeros(1, dtype=torch.float64, device=self.device)
                                          for k in ("rr", "threshold", "count", "broken")})
             self._graphs = {}
@@ -292,8 +293,7 @@ class PartitionedSimulator:
         """``count`` CG iterations on the buffers ``s`` in place (the same storage each time: a
         CUDA graph can replay them); an iteration with the residual at the threshold, or past the
         cap, changes nothing."""
-        zero = torch.zeros((), dtype=torch.float64, device=self.device)
-        x, r, p, rr = s["x"], s["r"], s["p"], s["rr"]
+        x, r, p, rr, zero = s["x"], s["r"], s["p"], s["rr"], s["zero"]
         for _ in range(count):
             self._exchange(p)
             ap, p_ap = matvec(p)
@@ -311,7 +311,7 @@ class PartitionedSimulator:
     def close(self) -> None:
         """Free the captured CUDA graphs and the CG's buffers (the simulator can step again: they
         are made anew). Call it, or drop the simulator, before ``destroy_process_group``: NCCL's
-        teardown waits on graphs that captured its exchanges (seen: a hang on two H100s)."""
+        teardown waits on graphs that captured its exchanges, so a live graph hangs it."""
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         self._graphs = {}

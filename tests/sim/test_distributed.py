@@ -149,6 +149,22 @@ def partitioned_beam():
     return mesh, fixed
 
 
+def partitioned_body(model: str = "hooke"):
+    """The partitioned beam as a body of ``model``."""
+    mesh, fixed = partitioned_beam()
+    return tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
+
+
+def spawned_results(worker, world: int, tmp_path, stem: str) -> list:
+    """Run ``worker(rank, world, init, out)`` on ``world`` spawned processes; each rank's saved
+    ``<stem>_<rank>.pt``."""
+    import torch.multiprocessing as mp
+
+    mp.start_processes(worker, args=(world, f"file://{tmp_path / 'store'}", str(tmp_path)), nprocs=world, join=True,
+                       start_method="spawn")
+    return [torch.load(tmp_path / f"{stem}_{r}.pt") for r in range(world)]
+
+
 def _partitioned_worker(rank: int, world: int, init: str, out: str):
     import torch.distributed as dist
 
@@ -156,17 +172,14 @@ def _partitioned_worker(rank: int, world: int, init: str, out: str):
 
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
-    mesh, fixed = partitioned_beam()
     results = {}
     for model in MODELS:
-        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
-        sim = PartitionedSimulator(body, dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001,
+        sim = PartitionedSimulator(partitioned_body(model), dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001,
                                    planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], cg_tol=1e-14)
         sim.step(5)
         results[model] = (sim.positions(), sim.velocities(), sim.owned.numel())
     # the host reading the residual after every iteration changes no iterate
-    body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="hooke"), fixed=fixed)
-    sim = PartitionedSimulator(body, dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001,
+    sim = PartitionedSimulator(partitioned_body(), dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001,
                                planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], cg_tol=1e-14, check_every=1)
     sim.step(5)
     results["hooke, checked every iteration"] = (sim.positions(), sim.velocities(), sim.last_iterations)
@@ -180,15 +193,10 @@ def test_one_mesh_over_processes_is_the_one_process_step(tmp_path, world):
     Rayleigh damping and fixed nodes: positions and velocities equal one process's Simulator's
     (float64, converged CG) to 1e-12, for hooke, stvk and corotational; every node owned once."""
     pytest.importorskip("pymetis")
-    import torch.multiprocessing as mp
-
-    mp.start_processes(_partitioned_worker, args=(world, f"file://{tmp_path / 'store'}", str(tmp_path)),
-                       nprocs=world, join=True, start_method="spawn")
-    mesh, fixed = partitioned_beam()
-    results = [torch.load(tmp_path / f"partitioned_{r}.pt") for r in range(world)]
+    results = spawned_results(_partitioned_worker, world, tmp_path, "partitioned")
+    mesh, _ = partitioned_beam()
     for model in MODELS:
-        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
-        one = tm.Simulator([body], dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001, cg_tol=1e-14,
+        one = tm.Simulator([partitioned_body(model)], dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001, cg_tol=1e-14,
                            planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], preconditioner="none", cuda_graphs=False)
         one.step(5)
         assert float(one.x[:, 2].min()) < -0.005  # the floor is reached
@@ -210,12 +218,10 @@ def _partitioned_cuda_worker(rank: int, world: int, init: str, out: str):
 
     torch.cuda.set_device(rank)
     dist.init_process_group("nccl", init_method=init, rank=rank, world_size=world)
-    mesh, fixed = partitioned_beam()
     results = {}
     for model in MODELS:
-        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
         for graphs in (False, True):
-            sim = PartitionedSimulator(body, dt=0.01, rayleigh_mass=0.1, planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)],
+            sim = PartitionedSimulator(partitioned_body(model), dt=0.01, rayleigh_mass=0.1, planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)],
                                        cg_tol=1e-14, check_every=4, cuda_graphs=graphs, device=f"cuda:{rank}")
             sim.step(5)
             captured = [graph is not False for graph in sim._graphs.values()]
@@ -230,18 +236,12 @@ def test_one_mesh_over_gpus_is_the_one_process_step(tmp_path):
     """On the GPU under NCCL (two GPUs where there are, else one rank): the partitioned step
     (fused node-graph products, scalars on the device) equals one process's Simulator in float64
     to 1e-12, eager and with its CG iterations replayed as captured CUDA graphs."""
-    import torch.multiprocessing as mp
-
     world = min(2, torch.cuda.device_count())
     if world > 1:
         pytest.importorskip("pymetis")
-    mp.start_processes(_partitioned_cuda_worker, args=(world, f"file://{tmp_path / 'store'}", str(tmp_path)),
-                       nprocs=world, join=True, start_method="spawn")
-    mesh, fixed = partitioned_beam()
-    results = [torch.load(tmp_path / f"partitioned_cuda_{r}.pt") for r in range(world)]
+    results = spawned_results(_partitioned_cuda_worker, world, tmp_path, "partitioned_cuda")
     for model in MODELS:
-        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model), fixed=fixed)
-        one = tm.Simulator([body], dt=0.01, rayleigh_mass=0.1, cg_tol=1e-14, preconditioner="none",
+        one = tm.Simulator([partitioned_body(model)], dt=0.01, rayleigh_mass=0.1, cg_tol=1e-14, preconditioner="none",
                            planes=[tm.Plane((0.0, 0.0, 1.0), -0.005, 1e4)], device="cuda")
         one.step(5)
         for r in results:
@@ -255,10 +255,8 @@ def test_one_mesh_over_gpus_is_the_one_process_step(tmp_path):
 def test_a_partitioned_check_interval_must_be_positive():
     from tensormass_torch.sim.partitioned import PartitionedSimulator
 
-    mesh, fixed = partitioned_beam()
-    body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0), fixed=fixed)
     with pytest.raises(tm.SceneError, match="check_every must be a positive number"):
-        PartitionedSimulator(body, check_every=0)  # refused before any collective
+        PartitionedSimulator(partitioned_body(), check_every=0)  # refused before any collective
 
 
 def test_node_partitions_are_connected_and_balanced():

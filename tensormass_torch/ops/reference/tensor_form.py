@@ -32,14 +32,25 @@ def _plane_identity(m: torch.Tensor, proj):
     return proj
 
 
+def stiffness_blocks(m_j, m_k, vol, lam, mu, plane) -> torch.Tensor:
+    """Cotin's blocks K_jk = vol (lam m_j m_k^T + mu m_k m_j^T + mu (m_j . m_k) P) of shape vectors
+    ``m_j, m_k [N, ..., d]`` (broadcast against each other), with ``vol, lam, mu [N]`` and the
+    projector ``plane [N, d, d]``: ``[N, ..., d, d]``. The one place the formula is written."""
+    inner = max(m_j.dim(), m_k.dim()) - 2  # the dims between N and d
+
+    def per_element(t, trailing=0):
+        return t.reshape(t.shape[0], *([1] * (inner + trailing)))
+
+    k = per_element(lam, 2) * (m_j[..., :, None] * m_k[..., None, :])
+    k = k + per_element(mu, 2) * (m_k[..., :, None] * m_j[..., None, :])
+    k = k + (per_element(mu) * (m_j * m_k).sum(-1))[..., None, None] * plane.reshape(
+        plane.shape[0], *([1] * inner), *plane.shape[1:])
+    return per_element(vol, 2) * k
+
+
 def element_stiffness(m, vol, lam, mu, proj=None) -> torch.Tensor:
     """Cotin's element tensors K_jk ``[N, n, n, d, d]``."""
-    dots = torch.einsum("nja,nka->njk", m, m)
-    plane = _plane_identity(m, proj)
-    k = lam[:, None, None, None, None] * torch.einsum("nja,nkb->njkab", m, m)
-    k = k + mu[:, None, None, None, None] * torch.einsum("nka,njb->njkab", m, m)
-    k = k + mu[:, None, None, None, None] * dots[:, :, :, None, None] * plane[:, None, None]
-    return vol[:, None, None, None, None] * k
+    return stiffness_blocks(m[:, :, None], m[:, None], vol, lam, mu, _plane_identity(m, proj))
 
 
 def oriented_blocks(element_k: torch.Tensor, elements: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
@@ -66,10 +77,10 @@ def assemble_edges(element_k: torch.Tensor, elements: torch.Tensor, num_nodes: i
 
 def assemble_hooke_edges(m, vol, lam, mu, proj, elements: torch.Tensor, num_nodes: int, chunk: int = 1 << 16):
     """``assemble_edges(element_stiffness(m, vol, lam, mu, proj), elements, num_nodes)`` without
-    the ``[N, n, n, d, d]`` tensor and its temporaries (about 2 KB a tetrahedron in float32, the
-    peak of a hooke model's construction): the element tensors are made ``chunk`` elements at a
-    time and only their pair blocks ``[N, P, d, d]`` kept. The same values (each element's
-    tensor is computed alone either way). No gradient (the tensor form precomputes)."""
+    the ``[N, n, n, d, d]`` tensor and its temporaries (each as large as it: the peak of a hooke
+    model's construction): the pair blocks ``[N, P, d, d]`` alone are made, ``chunk`` elements
+    at a time. The same values (each block is computed alone either way). No gradient (the
+    tensor form precomputes)."""
     edges, pairs, element_edges = unique_edges(elements, num_nodes)
     count, dim = elements.shape[0], m.shape[-1]
     with torch.no_grad():
@@ -88,11 +99,7 @@ def _pair_blocks(m, vol, lam, mu, proj, elements, pairs) -> torch.Tensor:
     first_is_low = (elements[:, pairs[:, 0]] < elements[:, pairs[:, 1]])[:, :, None]
     m_a, m_b = m[:, pairs[:, 0]], m[:, pairs[:, 1]]
     low, high = torch.where(first_is_low, m_a, m_b), torch.where(first_is_low, m_b, m_a)  # [N, P, d]
-    plane = _plane_identity(m, proj)
-    k = lam[:, None, None, None] * (low[..., :, None] * high[..., None, :])
-    k = k + mu[:, None, None, None] * (high[..., :, None] * low[..., None, :])
-    k = k + (mu[:, None] * (low * high).sum(-1))[..., None, None] * plane[:, None]
-    return vol[:, None, None, None] * k
+    return stiffness_blocks(low, high, vol, lam, mu, _plane_identity(m, proj))
 
 
 def _sum_onto_edges(block: torch.Tensor, element_edges: torch.Tensor, num_edges: int) -> torch.Tensor:
