@@ -290,6 +290,8 @@ class Results:
         self.notes = list(notes)
         self.records: List[dict] = []
         self.plot_note = None
+        #: markdown lines written after the table (a summary drawn from the records)
+        self.appendix: List[str] = []
 
     def add(self, rec: dict, echo: bool = True) -> dict:
         rec.setdefault("device_name", self.meta.get("device_name"))
@@ -302,6 +304,8 @@ class Results:
     def markdown(self) -> str:
         lines = header_lines(self.title, self.meta) + self.notes + ([""] if self.notes else [])
         lines.append(markdown_table(self.records, self.columns))
+        if self.appendix:
+            lines += [""] + self.appendix
         if self.plot_note:
             lines += ["", self.plot_note]
         return "\n".join(lines) + "\n"
