@@ -309,11 +309,19 @@ def test_newton_comparison_quick(tmp_path):
 
     newton_comparison.main(["--quick", "--device", "cpu", "--models", "hooke", "--cg-budgets", "10,converged",
                             "--vbd-budgets", "5", "--seconds", "0.05", "--stable-dts", "0.01,0.04",
-                            "--out", str(tmp_path)])
+                            "--scenes", "paper_beam,drop", "--out", str(tmp_path)])
     data = json.loads((tmp_path / "newton_comparison.json").read_text())
-    ours = {r["budget"]: r for r in data["records"] if r["engine"] == "tensormass_torch"}
+    ours = {r["budget"]: r for r in data["records"] if r["engine"] == "tensormass_torch" and r["scene"] == "paper_beam"}
     assert ours["CG converged"]["solver_error"] == 0.0 and 0 < ours["CG 10"]["solver_error"] < 1
     assert ours["CG 10"]["max_tip"] > 0 and ours["CG 10: largest stable dt"]["dt"] in (0.01, 0.04)
+    # the drop: 4 bodies of 72 tets falling (0.05 s: 1.2 cm) in one batch
+    drop = {r["budget"]: r for r in data["records"] if r["engine"] == "tensormass_torch" and r["scene"] == "drop"}
+    assert drop["CG 10"]["elements"] == 4 * 72 and 0.005 < drop["CG 10"]["max_tip"] < 0.02
+    # the ratios at equal error follow the table, and the json rebuilds the same md
+    md = (tmp_path / "newton_comparison.md").read_text()
+    assert "ours / Newton" in md
+    newton_comparison.main(["--replot", "--out", str(tmp_path)])
+    assert (tmp_path / "newton_comparison.md").read_text() == md
     newton_rows = [r for r in data["records"] if r["engine"] == "newton"]
     skipped = newton_comparison.newton_available()
     assert bool(newton_rows) == (skipped is None)
