@@ -41,6 +41,29 @@ def shape_vectors(rest: torch.Tensor):
     return m, measure
 
 
+def rest_geometry(points: torch.Tensor, elements: torch.Tensor, projectors: bool, chunk: int = 1 << 16):
+    """:func:`shape_vectors` (and :func:`tangent_projectors` where ``projectors``) of the elements
+    ``[N, n]`` over ``points [V, d]``: (m ``[N, n, d]``, measure ``[N]``, projectors ``[N, d, d]``
+    or None), ``chunk`` elements at a time, so that the element coordinates ``[N, n, d]`` and the
+    solves' temporaries (the first peak of a model's construction) are a chunk's. The same values
+    (each element's are computed alone either way). At once where ``points`` requires grad."""
+    count = elements.shape[0]
+    if points.requires_grad or count <= chunk:
+        element_rest = element_nodes(points, elements)
+        m, measure = shape_vectors(element_rest)
+        return m, measure, tangent_projectors(element_rest) if projectors else None
+    n, d = elements.shape[1], points.shape[1]
+    m, measure = points.new_empty((count, n, d)), points.new_empty((count,))
+    proj = points.new_empty((count, d, d)) if projectors else None
+    for start in range(0, count, chunk):
+        part = slice(start, start + chunk)
+        element_rest = element_nodes(points, elements[part])
+        m[part], measure[part] = shape_vectors(element_rest)
+        if projectors:
+            proj[part] = tangent_projectors(element_rest)
+    return m, measure, proj
+
+
 def tangent_projectors(rest: torch.Tensor) -> torch.Tensor:
     """Orthogonal projectors onto the rest plane of triangles in 3-D: ``[N, 3, 3]``.
 

@@ -9,6 +9,7 @@ fixed order, hence bitwise-reproducible results.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 
@@ -26,13 +27,23 @@ def incidence_slots(targets: torch.Tensor, num_targets: int):
         counts: items per target ``[T]``.
     """
     counts = torch.bincount(targets, minlength=num_targets)
-    order = torch.argsort(targets, stable=True)
+    # sorted on 32-bit keys where they fit, and the slots written a chunk of the order at a time:
+    # the transient memory is the order and the slots, not five [M] int64 temporaries (this
+    # runs on every element incidence of a mesh at construction, where the peak is)
+    keys = targets.to(torch.int32) if num_targets <= torch.iinfo(torch.int32).max else targets
+    order = torch.argsort(keys, stable=True)
+    del keys
     starts = torch.cumsum(counts, 0) - counts  # first position of each target in sorted order
-    position = torch.arange(targets.numel(), device=targets.device)
     slots = torch.empty_like(targets)
-    slots[order] = position - starts[targets[order]]
+    for begin in range(0, targets.numel(), _SLOT_CHUNK):
+        items = order[begin:begin + _SLOT_CHUNK]
+        position = torch.arange(begin, begin + items.numel(), device=targets.device)
+        slots[items] = position - starts[targets[items]]
     num_slots = int(counts.max().item()) if targets.numel() else 0
     return slots, num_slots, counts
+
+
+_SLOT_CHUNK = 1 << 22  # items a pass of incidence_slots (bounds its temporaries, 4M x 8 B each)
 
 
 @dataclass
@@ -86,24 +97,29 @@ def unique_edges(elements: torch.Tensor, num_nodes: int):
     pairs = torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)], device=elements.device)
     first = elements[:, pairs[:, 0]]
     second = elements[:, pairs[:, 1]]
-    low = torch.minimum(first, second)
-    high = torch.maximum(first, second)
-    keys = low * num_nodes + high  # [N, P]
+    keys = torch.minimum(first, second).mul_(num_nodes).add_(torch.maximum(first, second))  # [N, P]
+    del first, second  # (temporaries of [N, P] int64 each: this runs at construction, where the peak is)
+    shape = keys.shape
     unique_keys, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
+    del keys
     edges = torch.stack([unique_keys // num_nodes, unique_keys % num_nodes], dim=1)
-    return edges, pairs, inverse.view_as(keys)
+    return edges, pairs, inverse.view(shape)
 
 
 def padded_sum(values: torch.Tensor, targets: torch.Tensor, slots: torch.Tensor, num_slots: int,
-               num_targets: int) -> torch.Tensor:
+               num_targets: int, out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Deterministic scatter-sum, slot after slot: values ``[M, ...]``, targets ``[M]``, slots
     ``[M]`` (from :func:`incidence_slots`) -> sums ``[T, ...]``, each target's items added in
     slot order (``sum_slots_in_order`` of the padded ``[num_slots, T, ...]`` buffer, bitwise, as
     the kernels add them), so that even precomputation is bitwise reproducible on the GPU. The
     padded buffer itself is never made (num_slots times the result: the peak of a model's
     construction): a slot's items have distinct targets, so each slot is one gather and one write
-    without collisions. Used for one-off assembly (masses, edge tensors)."""
-    total = values.new_zeros((num_targets,) + tuple(values.shape[1:]))
+    without collisions. Used for one-off assembly (masses, edge tensors).
+
+    ``out``: sums ``[T, ...]`` to add onto in place (and return), or None (zeros). Summing the
+    items in parts into one ``out``, the parts in item order, gives the sums of all of them at
+    once, bitwise: a target's items are still added in slot order."""
+    total = values.new_zeros((num_targets,) + tuple(values.shape[1:])) if out is None else out
     if num_slots == 0 or values.shape[0] == 0:
         return total
     order = torch.argsort(slots, stable=True)

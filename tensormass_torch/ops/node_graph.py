@@ -238,13 +238,18 @@ def _zeros_like_nodes(group, u: torch.Tensor) -> torch.Tensor:
     return cached
 
 
-def _edge_neighbors(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int) -> torch.Tensor:
+def _edge_neighbors(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int,
+                    row_of: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The node graph's neighbours ``[N_n, V]`` of edges ``[Ed, 2]`` with their slots
     ``force_index [Ed, 2]``: slot ``force_index[e, 0]`` of ``edges[e, 0]`` holds ``edges[e, 1]`` and
-    the other way round; unused slots 0 (never read). edges' dtype."""
+    the other way round; unused slots 0 (never read). edges' dtype. ``row_of [V]``: the column of
+    each node (a graph by rows), or None (node order); the values are nodes either way."""
+    first, second = edges[:, 0].long(), edges[:, 1].long()
+    if row_of is not None:
+        first, second = row_of.long()[first], row_of.long()[second]
     neighbor = edges.new_zeros((num_slots, num_nodes))
-    neighbor[force_index[:, 0].long(), edges[:, 0].long()] = edges[:, 1]
-    neighbor[force_index[:, 1].long(), edges[:, 1].long()] = edges[:, 0]
+    neighbor[force_index[:, 0].long(), first] = edges[:, 1]
+    neighbor[force_index[:, 1].long(), second] = edges[:, 0]
     return neighbor
 
 
@@ -317,33 +322,53 @@ def _by_rows(group, name: str, incidences: torch.Tensor, tensors, window: int):
 
 def hooke_rows_graph(group, window: int = DEFAULT.node_graph_window):
     """The hooke tensor form's node graph by rows, as the ``hooke_node_*`` ops take it: (neighbor
-    ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, row_node ``[V]`` or None), from
-    :func:`hooke_node_graph` and :func:`node_graph_rows` (windows of ``window`` nodes); cached on
-    the group like them."""
-    neighbor, node_k = hooke_node_graph(group)
-    incidences = plan_indices(group.plan)[2]
-    by_rows, rows = _by_rows(group, "hooke", incidences, (neighbor, node_k, incidences), window)
-    return (*by_rows, rows)
+    ``[N_n, V]``, node_k ``[N_n, V, d, d]``, incidences ``[V]``, row_node ``[V]`` or None): the
+    graph of :func:`hooke_node_graph` with its columns in the order of :func:`node_graph_rows`
+    (windows of ``window`` nodes; ``window`` <= 1: node order, row_node None).
+
+    Built straight into the rows' order and kept once on the group (a graph of another window
+    replaces it), while the group's edge_k and its plan's indices are the same unmodified
+    tensors; topology changes write into it in place (:func:`edges_changed`,
+    :func:`topology_changed`). neighbor has the plan's native index dtype (that of
+    :func:`_plan_indices`), node_k edge_k's dtype and device."""
+    index, force_index, incidences = plan_indices(group.plan)
+    edge_k = group.edge_k
+    rows = _graph_rows(group, "hooke", incidences, index.dtype, window)
+    tensors = (edge_k, index, force_index, incidences)
+    cache = group.__dict__.get("_native_hooke_graph")
+    if unchanged(cache, tensors) and cache[3] is rows:
+        return (*cache[2], rows)
+    group.__dict__.pop("_native_hooke_graph", None)  # the old graph's memory back before the new one
+    row_of = None if rows is None else _row_of(group, rows)
+    neighbor, node_k = graph_of_edges(index, force_index, group.plan.num_slots, group.plan.num_nodes, edge_k,
+                                      row_of)
+    row_incidences = incidences if rows is None else incidences.index_select(0, rows.long()).contiguous()
+    value = (neighbor, node_k, row_incidences)
+    group.__dict__["_native_hooke_graph"] = _stamped(tensors, value, rows)
+    return (*value, rows)
 
 
 def row_nodes_of(group, incidences: torch.Tensor) -> Optional[torch.Tensor]:
     """The node of each row ``[V]`` where ``incidences`` is the hooke graph's by rows
     (:func:`hooke_rows_graph`, in the rows' order); None where it is in node order."""
-    by_rows = group.__dict__.get("_native_by_rows_hooke")
-    if by_rows is not None and by_rows[3] is not None and by_rows[2][2] is incidences:
-        return by_rows[3]
+    cache = group.__dict__.get("_native_hooke_graph")
+    if cache is not None and cache[3] is not None and cache[2][2] is incidences:
+        return cache[3]
     return None
 
 
 def graph_of_edges(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int,
-                   edge_k: torch.Tensor):
-    """The node graph in node order of edges ``[Ed, 2]`` with their slots ``force_index [Ed, 2]``
-    and blocks ``edge_k [Ed, d, d]``: (neighbor ``[N_n, V]`` of edges' dtype, node_k
-    ``[N_n, V, d, d]``); see :func:`hooke_node_graph`."""
+                   edge_k: torch.Tensor, row_of: Optional[torch.Tensor] = None):
+    """The node graph of edges ``[Ed, 2]`` with their slots ``force_index [Ed, 2]`` and blocks
+    ``edge_k [Ed, d, d]``: (neighbor ``[N_n, V]`` of edges' dtype, node_k ``[N_n, V, d, d]``); see
+    :func:`hooke_node_graph`. ``row_of [V]``: each node's column (a graph by rows), or None (node
+    order)."""
     dim = edge_k.shape[-1]
     first, second = edges[:, 0].long(), edges[:, 1].long()
+    if row_of is not None:
+        first, second = row_of.long()[first], row_of.long()[second]
     slot_first, slot_second = force_index[:, 0].long(), force_index[:, 1].long()
-    neighbor = _edge_neighbors(edges, force_index, num_slots, num_nodes)
+    neighbor = _edge_neighbors(edges, force_index, num_slots, num_nodes, row_of)
     node_k = edge_k.new_zeros((num_slots, num_nodes, dim, dim))
     with torch.no_grad():
         node_k[slot_first, first] = edge_k
@@ -352,56 +377,43 @@ def graph_of_edges(edges: torch.Tensor, force_index: torch.Tensor, num_slots: in
 
 
 def hooke_node_graph(group):
-    """The node graph of a hooke tensor-form group in slot-major ("ELL") arrays, for
-    ``hooke_node_system``: (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``).
+    """The node graph of a hooke tensor-form group in slot-major ("ELL") arrays, in node order:
+    (neighbor ``[N_n, V]``, node_k ``[N_n, V, d, d]``), :func:`hooke_rows_graph` with window 1.
 
     Slot s of node i is the slot the group's plan gives it (``force_index``): for edge e = (i, j)
     (i = ``edges[e, 0]``), ``neighbor[fi[e, 0], i] = j`` with ``node_k = K_e`` and
-    ``neighbor[fi[e, 1], j] = i`` with ``node_k = K_e^T``. Unused slots hold zeros (never read).
-    neighbor has the plan's native index dtype (that of :func:`_plan_indices`), node_k edge_k's
-    dtype and device. Cached on the group while edge_k and the plan's indices are the same
-    unmodified tensors."""
-    index, force_index, _ = plan_indices(group.plan)
-    edge_k = group.edge_k
-    tensors = (edge_k, index, force_index)
-    cache = group.__dict__.get("_native_node_graph")
-    if unchanged(cache, tensors):
-        return cache[2]
-    value = graph_of_edges(index, force_index, group.plan.num_slots, group.plan.num_nodes, edge_k)
-    group.__dict__["_native_node_graph"] = _stamped(tensors, value)
-    return value
+    ``neighbor[fi[e, 1], j] = i`` with ``node_k = K_e^T``. Unused slots hold zeros (never read)."""
+    neighbor, node_k, _, _ = hooke_rows_graph(group, window=1)
+    return neighbor, node_k
 
 
 def has_cached_graph(group) -> bool:
     """Whether a node graph of the hooke tensor-form ``group`` is cached (:func:`edges_changed`
     has something to write)."""
-    cache = group.__dict__.get("_native_node_graph")
+    cache = group.__dict__.get("_native_hooke_graph")
     return cache is not None and cache[0][0] is group.edge_k
+
+
+def _write_edges_op(device):
+    native = _backend.use_extension(device) and hasattr(torch.ops.tensormass, "node_graph_write_edges")
+    return torch.ops.tensormass.node_graph_write_edges if native else _ref_node_graph_write_edges
 
 
 @torch.no_grad()
 def edges_changed(group, edge_ids: torch.Tensor) -> None:
     """A hooke tensor-form group's blocks ``edge_k`` changed in place at ``edge_ids [k]`` (a
-    topology change, repeats allowed; its edges and plan the same): write them into the node graphs
-    cached on the group (:func:`hooke_node_graph`, :func:`hooke_rows_graph`) in place
-    (``node_graph_write_edges``), since captured CUDA graphs and packed solves read their storage,
-    and keep the caches current. A graph not built yet is built later from the new blocks."""
+    topology change, repeats allowed; its edges and plan the same): write them into the node graph
+    cached on the group (:func:`hooke_rows_graph`) in place (``node_graph_write_edges``), since
+    captured CUDA graphs and packed solves read its storage, and keep the cache current. A graph
+    not built yet is built later from the new blocks."""
     if not has_cached_graph(group):
         return
-    cache = group.__dict__["_native_node_graph"]
-    edge_k, index, force_index = cache[0]
-    native = _backend.use_extension(edge_k.device) and hasattr(torch.ops.tensormass, "node_graph_write_edges")
-    write = torch.ops.tensormass.node_graph_write_edges if native else _ref_node_graph_write_edges
-    node_k = cache[2][1]
-    write(edge_ids, index, force_index, edge_k, node_k, None)
-    group.__dict__["_native_node_graph"] = _stamped(cache[0], cache[2])
-    by_rows = group.__dict__.get("_native_by_rows_hooke")
-    if by_rows is None or by_rows[0][1] is not node_k:
-        return
-    rows = by_rows[3]
-    if rows is not None:  # a graph by rows of its own (else it is node_k itself, written above)
-        write(edge_ids, index, force_index, edge_k, by_rows[2][1], _row_of(group, rows))
-    group.__dict__["_native_by_rows_hooke"] = _stamped(by_rows[0], *by_rows[2:])
+    cache = group.__dict__["_native_hooke_graph"]
+    edge_k, index, force_index, _ = cache[0]
+    rows = cache[3]
+    _write_edges_op(edge_k.device)(edge_ids, index, force_index, edge_k, cache[2][1],
+                                   None if rows is None else _row_of(group, rows))
+    group.__dict__["_native_hooke_graph"] = _stamped(cache[0], *cache[2:])
 
 
 @torch.no_grad()
@@ -409,45 +421,34 @@ def topology_changed(group, edge_ids: torch.Tensor, nodes: torch.Tensor) -> None
     """A hooke tensor-form group's edges changed or grew in place (a cut: its plan's ``num_slots``
     and node count the same): the edges ``edge_ids [k]`` (their ends, slots or blocks; new and
     emptied edges included) and the nodes ``nodes [m]`` (their ``incidences``). The native copies
-    of its plan (``library.refresh_plan_indices``) and the node graphs cached on the group (by
-    node and by rows, the same rows) are written in place at those edges and nodes (an emptied
-    edge writes its zero block into node 0's sink slot), since captured CUDA graphs read their
-    storage; the caches kept current. Slots past a node's ``incidences`` may keep what was there:
-    nothing reads them. A graph not built yet is built later from the new data."""
+    of its plan (``library.refresh_plan_indices``) and the node graph cached on the group (the
+    same rows) are written in place at those edges and nodes (an emptied edge writes its zero
+    block into node 0's sink slot), since captured CUDA graphs read their storage; the caches kept
+    current. Slots past a node's ``incidences`` may keep what was there: nothing reads them. A
+    graph not built yet is built later from the new data."""
     index, force_index, incidences = library.refresh_plan_indices(group.plan)
-    cache = group.__dict__.get("_native_node_graph")
+    cache = group.__dict__.get("_native_hooke_graph")
     if cache is None:
         return
-    neighbor, node_k = cache[2]
+    neighbor, node_k, row_incidences = cache[2]
+    rows = cache[3]
+    row_of = None if rows is None else _row_of(group, rows)
     edge_k = group.edge_k
-    native = _backend.use_extension(edge_k.device) and hasattr(torch.ops.tensormass, "node_graph_write_edges")
-    write = torch.ops.tensormass.node_graph_write_edges if native else _ref_node_graph_write_edges
     ids = edge_ids.long()
     ends, slots = index[ids].long(), force_index[ids].long()
-
-    def write_neighbors(target, column):  # each end lists the other, in its slot
-        target[slots[:, 0], column[ends[:, 0]]] = index[ids, 1].to(target.dtype)
-        target[slots[:, 1], column[ends[:, 1]]] = index[ids, 0].to(target.dtype)
-
-    write_neighbors(neighbor, torch.arange(neighbor.shape[1], device=ids.device))
-    write(edge_ids, index, force_index, edge_k, node_k, None)
-    tensors = (edge_k, index, force_index)
-    group.__dict__["_native_node_graph"] = _stamped(tensors, cache[2])
-    rows_cache = group.__dict__.get("_native_rows_hooke")
-    if rows_cache is not None and rows_cache[0][0] is incidences:
-        group.__dict__["_native_rows_hooke"] = _stamped((incidences,), *rows_cache[2:])
-    by_rows = group.__dict__.get("_native_by_rows_hooke")
-    if by_rows is None or by_rows[0][1] is not node_k:
-        return
-    rows = by_rows[3]
-    if rows is not None:  # arrays of their own, in the rows' order
-        row_of = _row_of(group, rows)
-        row_neighbor, row_node_k, row_incidences = by_rows[2]
-        write_neighbors(row_neighbor, row_of.long())
-        write(edge_ids, index, force_index, edge_k, row_node_k, row_of)
+    column = torch.arange(neighbor.shape[1], device=ids.device) if row_of is None else row_of.long()
+    neighbor[slots[:, 0], column[ends[:, 0]]] = index[ids, 1].to(neighbor.dtype)  # each end lists the other
+    neighbor[slots[:, 1], column[ends[:, 1]]] = index[ids, 0].to(neighbor.dtype)
+    _write_edges_op(edge_k.device)(edge_ids, index, force_index, edge_k, node_k, row_of)
+    if rows is not None:  # incidences of its own, in the rows' order
         row_incidences[row_of[nodes.long()].long()] = incidences[nodes.long()]
-    tensors = (neighbor, node_k, incidences)
-    group.__dict__["_native_by_rows_hooke"] = _stamped(tensors, *by_rows[2:])
+    else:  # the plan's, refreshed above (in place where its shape stayed)
+        row_incidences = incidences
+    rows_cache = group.__dict__.get("_native_rows_hooke")
+    if rows_cache is not None and rows_cache[0][0] is incidences:  # the same rows: captured graphs read them
+        group.__dict__["_native_rows_hooke"] = _stamped((incidences,), *rows_cache[2:])
+    group.__dict__["_native_hooke_graph"] = _stamped((edge_k, index, force_index, incidences),
+                                                     (neighbor, node_k, row_incidences), rows)
 
 
 def _row_of(group, rows: torch.Tensor) -> torch.Tensor:

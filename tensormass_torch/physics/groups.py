@@ -64,12 +64,10 @@ class ElementGroup(nn.Module):
         self.reserved_edges = 0
         self.membrane = geometry.needs_projector(self.nodes_per_element, self.dim)
 
-        element_rest = geometry.element_nodes(rest, elements)
-        m, measure = geometry.shape_vectors(element_rest)
+        m, measure, proj = geometry.rest_geometry(rest, elements, self.membrane)
         measure = measure.abs()  # orientation is checked by the mesh; the measure is a size
         if measure_scale is not None:
             measure = measure * measure_scale
-        proj = geometry.tangent_projectors(element_rest) if self.membrane else None
         self.register_buffer("elements", elements)
         self.register_buffer("measure", measure)
 
@@ -79,6 +77,7 @@ class ElementGroup(nn.Module):
         if self.rotation == "qr" and self.dim != 3:
             raise MaterialError("the QR rotation frame needs 3-D elements; use rotation='polar'")
         if self.rotation == "qr" or (self.rotation == "polar" and self.membrane):
+            element_rest = geometry.element_nodes(rest, elements)
             self.register_buffer("rest_elements", element_rest)
         if self.rotation == "polar" and self.membrane:
             edges = element_rest[:, 1:3] - element_rest[:, :1]

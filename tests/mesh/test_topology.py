@@ -45,6 +45,22 @@ def test_gather_equals_scatter_add():
                                torch.zeros(4, 2, dtype=torch.float64).index_add_(0, targets, values))
 
 
+def test_padded_sum_in_parts_is_the_sum_at_once_bitwise():
+    """Items summed a part at a time into one ``out`` (parts in item order): a target's items
+    are still added in slot order, so the sums are bitwise those of one call."""
+    gen = torch.Generator().manual_seed(3)
+    values = torch.randn(1000, 3, generator=gen, dtype=torch.float32) * 10 ** torch.randint(-3, 4, (1000, 1),
+                                                                                             generator=gen)
+    targets = torch.randint(0, 17, (1000,), generator=gen)
+    slots, n_slots, _ = incidence_slots(targets, 17)
+    at_once = padded_sum(values, targets, slots, n_slots, 17)
+    total = torch.zeros(17, 3)
+    for start in range(0, 1000, 97):
+        part = slice(start, start + 97)
+        assert padded_sum(values[part], targets[part], slots[part], n_slots, 17, out=total) is total
+    assert torch.equal(total, at_once)
+
+
 def test_node_element_lists():
     mesh = tm.beam_mesh(2, 2, 1)
     ptr, element_ids, local_ids = node_element_lists(mesh.elements, mesh.num_vertices)

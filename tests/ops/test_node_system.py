@@ -262,8 +262,8 @@ def test_system_matvec_uses_the_node_layout(monkeypatch, kind, dtype):
     group, p, mass, free, stiffness = make_case(6, kind, dtype)
     u = torch.zeros_like(p)
     calls = []
-    real = node_graph.hooke_node_graph
-    monkeypatch.setattr(node_graph, "hooke_node_graph", lambda g: calls.append(1) or real(g))
+    real = node_graph.hooke_rows_graph
+    monkeypatch.setattr(node_graph, "hooke_rows_graph", lambda g, *window: calls.append(1) or real(g, *window))
     ap, dot = ops.system_matvec([group], u, p, mass, free, C_MASS, C_STIFF, node_stiffness=stiffness)
     assert calls, "ops.system_matvec did not take the node layout"
     pad = native.system_matvec(group, u, p, mass, free, C_MASS, C_STIFF, None, stiffness, variants=PADDED)
@@ -317,8 +317,8 @@ def test_simulator_node_layout_equals_padded_bitwise(monkeypatch, dtype, contact
     monkeypatch.setattr(node_graph, "step_rhs_serves", no_rhs_op)
     monkeypatch.setattr(solve, "step_rhs_serves", no_rhs_op)  # nor the solve's (hooke_node_steps, GPU)
     calls = []
-    real = node_graph.hooke_node_graph
-    monkeypatch.setattr(node_graph, "hooke_node_graph", lambda g: calls.append(1) or real(g))
+    real = node_graph.hooke_rows_graph
+    monkeypatch.setattr(node_graph, "hooke_rows_graph", lambda g, *window: calls.append(1) or real(g, *window))
     x_rows, v_rows = run_beam(dtype, contact)
     assert calls, "the solver did not use the node layout"
     # with the graph's rows in node order every sum is taken in the padded path's order; rows

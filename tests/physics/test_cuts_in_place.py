@@ -122,8 +122,7 @@ SCENES = {"hooke": ("hooke",), "corotational": ("corotational",), "corotational+
 
 
 def node_graph_storage(model):
-    return [t.data_ptr() for g in model.groups for key in ("_native_node_graph", "_native_by_rows_hooke",
-                                                           "_native_tangent_graph", "_native_by_rows_tangent")
+    return [t.data_ptr() for g in model.groups for key in ("_native_hooke_graph", "_native_tangent_graph", "_native_by_rows_tangent")
             if key in g.__dict__ for t in g.__dict__[key][2] if isinstance(t, torch.Tensor)]
 
 
@@ -183,12 +182,16 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
     # the node graphs (hooke, tangent) written in place, not built again
     assert graphs and node_graph_storage(model) == graphs
     if scene == "hooke":
-        group = model.groups[0]  # its node graph in node order (where one is cached), as one built from its edges now
-        neighbor, node_k = group.__dict__["_native_node_graph"][2] if "_native_node_graph" in group.__dict__ else \
-            node_graph.hooke_node_graph(group)
+        group = model.groups[0]  # its node graph as cached (by rows), as one built from its edges now
+        cache = group.__dict__["_native_hooke_graph"]  # (what the steps read, not a graph built now)
+        (neighbor, node_k, incidences), rows = cache[2], cache[3]
         fresh_neighbor, fresh_node_k = node_graph.graph_of_edges(group.edges, group.plan.force_index,
                                                                  group.plan.num_slots, group.num_nodes, group.edge_k)
-        read = torch.arange(neighbor.shape[0], device=neighbor.device)[:, None] < group.plan.incidences[None, :]
+        if rows is not None:
+            fresh_neighbor, fresh_node_k = fresh_neighbor[:, rows.long()], fresh_node_k[:, rows.long()]
+        assert torch.equal(incidences.long(), group.plan.incidences[rows.long()].long() if rows is not None
+                           else group.plan.incidences.long())
+        read = torch.arange(neighbor.shape[0], device=neighbor.device)[:, None] < incidences[None, :]
         assert torch.equal(neighbor[read], fresh_neighbor.to(neighbor.dtype)[read])
         assert torch.equal(node_k[read], fresh_node_k[read])
 

@@ -302,3 +302,25 @@ def test_hooke_tensor_form_float32_is_translation_exact(kind, rng, make_scene):
     exact = ops.forces(group64, u32.double())  # the same displacements, float64 arithmetic
     got = ops.forces(group32, u32)
     assert rel_err(got.double().numpy(), exact.numpy()) < 1e-4
+
+
+@pytest.mark.parametrize("kind", ["tet", "tri3d"])
+def test_hooke_edges_assembled_in_chunks_are_the_full_assembly_bitwise(kind, make_scene):
+    """``assemble_hooke_edges`` makes the pair blocks a chunk of elements at a time and adds each
+    chunk onto the edges before the next: the edges and their tensors are bitwise those of any
+    other chunk size, and those of the full element tensors summed at once (``assemble_edges``)."""
+    from tensormass_torch.ops.reference import tensor_form
+
+    scene = make_scene(kind)
+    (group,) = TensorMass(scene.mesh, Material(young=1e5, poisson=0.3), form="stress").groups
+    elements, rest = group.elements.long(), scene.rest
+    lam, mu = group.lame()
+    args = (group.shape_vectors, group.measure, lam, mu, group.projector, elements, rest.shape[0])
+    edges, edge_k = tensor_form.assemble_hooke_edges(*args, chunk=elements.shape[0])
+    for chunk in (1, 3, 7):
+        chunked_edges, chunked_k = tensor_form.assemble_hooke_edges(*args, chunk=chunk)
+        assert torch.equal(chunked_edges, edges) and torch.equal(chunked_k, edge_k)
+    full = tensor_form.element_stiffness(*args[:5])
+    full_edges, full_k = tensor_form.assemble_edges(full, elements, rest.shape[0])
+    assert torch.equal(full_edges, edges)
+    torch.testing.assert_close(full_k, edge_k, rtol=1e-6, atol=1e-6 * float(edge_k.abs().max()))

@@ -139,7 +139,7 @@ def test_removing_nothing_changes_nothing_and_everything_leaves_no_force():
 
 def node_graph_storage(model):
     """The storage of the node graphs cached on the model's groups (the hooke tensor form's)."""
-    return [t.data_ptr() for g in model.groups for key in ("_native_node_graph", "_native_by_rows_hooke")
+    return [t.data_ptr() for g in model.groups for key in ("_native_hooke_graph",)
             if key in g.__dict__ for t in g.__dict__[key][2] if isinstance(t, torch.Tensor)]
 
 

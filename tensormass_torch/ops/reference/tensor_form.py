@@ -75,21 +75,30 @@ def assemble_edges(element_k: torch.Tensor, elements: torch.Tensor, num_nodes: i
     return edges, _sum_onto_edges(oriented_blocks(element_k, elements, pairs), element_edges, edges.shape[0])
 
 
-def assemble_hooke_edges(m, vol, lam, mu, proj, elements: torch.Tensor, num_nodes: int, chunk: int = 1 << 16):
+def assemble_hooke_edges(m, vol, lam, mu, proj, elements: torch.Tensor, num_nodes: int, chunk: int = 1 << 17):
     """``assemble_edges(element_stiffness(m, vol, lam, mu, proj), elements, num_nodes)`` without
     the ``[N, n, n, d, d]`` tensor and its temporaries (each as large as it: the peak of a hooke
-    model's construction): the pair blocks ``[N, P, d, d]`` alone are made, ``chunk`` elements
-    at a time. The same values (each block is computed alone either way). No gradient (the
-    tensor form precomputes)."""
+    model's construction): the pair blocks ``[chunk, P, d, d]`` of ``chunk`` elements at a time,
+    each chunk added onto the edges before the next is made. The same values, bitwise: each
+    block is computed alone either way, and each edge's blocks are added in the same order
+    (element order; a chunk's blocks of an edge follow the earlier chunks' ones). No gradient
+    (the tensor form precomputes)."""
     edges, pairs, element_edges = unique_edges(elements, num_nodes)
-    count, dim = elements.shape[0], m.shape[-1]
+    count, dim, num_pairs = elements.shape[0], m.shape[-1], pairs.shape[0]
+    flat_edges = element_edges.reshape(-1)
+    del element_edges
+    slots, num_slots, _ = incidence_slots(flat_edges, edges.shape[0])
+    total = m.new_zeros((edges.shape[0], dim, dim))
     with torch.no_grad():
-        block = m.new_empty((count, pairs.shape[0], dim, dim))
         for start in range(0, count, chunk):
             part = slice(start, start + chunk)
-            block[part] = _pair_blocks(m[part], vol[part], lam[part], mu[part],
-                                       None if proj is None else proj[part], elements[part], pairs)
-    return edges, _sum_onto_edges(block, element_edges, edges.shape[0])
+            block = _pair_blocks(m[part], vol[part], lam[part], mu[part], None if proj is None else proj[part],
+                                 elements[part], pairs)
+            items = slice(start * num_pairs, (start + block.shape[0]) * num_pairs)
+            padded_sum(block.reshape(-1, dim, dim), flat_edges[items], slots[items], num_slots, edges.shape[0],
+                       out=total)
+            del block  # (before the next chunk's is made)
+    return edges, total
 
 
 def _pair_blocks(m, vol, lam, mu, proj, elements, pairs) -> torch.Tensor:
