@@ -18,6 +18,7 @@ from .physics.contact import Plane
 from .physics.materials import MODELS, Material
 from .physics.tensor_mass import TensorMass
 from .physics.tools import Box, Capsule, MeshTool, Sphere, Tool
+from .sim.memory import MemoryEstimate, estimate_memory
 from .sim.partitioned import PartitionedSimulator
 from .sim.rollout import Rollout, rollout
 from .sim.scalpel import Scalpel
@@ -33,5 +34,5 @@ __all__ = [
     "load_mesh", "save_mesh", "MODELS", "Material", "Mesh", "TetMesh", "TriMesh", "beam_mesh", "beam_tri_mesh", "Blade",
     "TensorMass", "Body", "Simulator", "Scalpel", "InvertedElementsWarning", "load_scene", "solve_static",
     "tetrahedralize", "Rollout", "rollout", "Tool", "Sphere", "Capsule", "Box", "MeshTool", "Contact", "Viewer",
-    "view", "PartitionedSimulator",
+    "view", "PartitionedSimulator", "estimate_memory", "MemoryEstimate",
 ]

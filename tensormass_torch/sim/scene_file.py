@@ -26,6 +26,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     preconditioner = "auto"           # "none", "jacobi", "multigrid", "cholesky" (auto: Jacobi where bodies touch)
     integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
     warm_start = false                # start each CG from the last steps' extrapolated solution
+    check_memory = true               # on a GPU: refuse at once a scene whose estimated peak does not fit
 
     [distributed]                     # under torchrun --nproc-per-node N (docs/distributed.md)
     split = "bodies"                  # the bodies dealt over the processes; "mesh": the one body's
@@ -755,6 +756,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
         preconditioner=_choice(solver, "preconditioner", PRECONDITIONERS, "auto", "preconditioner"),
         integrator=_choice(solver, "integrator", list(INTEGRATORS), "backward_euler", "integrator"),
         warm_start=solver.get("warm_start", "bool", False),
+        check_memory=solver.get("check_memory", "bool", True),
     )
     solver.done()
 

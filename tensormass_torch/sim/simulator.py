@@ -33,6 +33,7 @@ from ..solver.implicit_euler import (
     step_graphs_for,
 )
 from ..solver.preconditioner import PRECONDITIONERS
+from . import memory
 from .diagnostics import ContactReport, InversionCheck, InversionReport, contact_report, interpenetration
 from .scalpel import Scalpel
 
@@ -162,6 +163,10 @@ class Simulator:
             the first cut builds the simulator again with room (see :meth:`cut`). Spare rows
             are part of ``x``, ``v`` (held, no mass); ``positions(i)`` and the other per-body
             views show a body's nodes only.
+        check_memory: on a CUDA device, estimate the scene's peak memory before building it
+            (``tm.estimate_memory``) and raise ``SceneError`` at once, with the estimate, the
+            free memory and about how many elements would fit, where it cannot fit (nothing is
+            allocated). False: build anyway (the estimate is good to about 15 %).
     """
 
     def __init__(self, bodies: Sequence[Body], dt: float = 0.01, gravity=(0.0, 0.0, -9.81),
@@ -170,7 +175,8 @@ class Simulator:
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
-                 preconditioner: str = "auto", integrator: str = "backward_euler", warm_start: bool = False):
+                 preconditioner: str = "auto", integrator: str = "backward_euler", warm_start: bool = False,
+                 check_memory: bool = True):
         bodies = list(bodies)
         if not hasattr(self, "initial_bodies"):  # (a rebuild for a cut runs __init__ again: kept)
             #: the bodies this simulator was first built with (:meth:`rebuilt`)
@@ -228,6 +234,12 @@ class Simulator:
             raise SceneError(f"bodies have mixed dtypes {sorted(map(str, dtypes))}; pass dtype=")
         self.device = torch.device(device) if device is not None else devices.pop()
         self.dtype = dtype if dtype is not None else dtypes.pop()
+        if not isinstance(check_memory, bool):
+            raise SceneError(f"check_memory must be True or False, got {check_memory!r}")
+        #: whether the scene's memory was checked against the device's before it was built
+        self.check_memory = check_memory
+        if check_memory:  # before anything is allocated on the device
+            memory.check_fits(bodies, self.dtype, self.device, form)
         gravity = torch.as_tensor(gravity, dtype=self.dtype, device=self.device)
         if gravity.shape != (3,) or not bool(torch.isfinite(gravity).all()):
             raise SceneError(f"gravity must be 3 finite numbers, got {gravity.tolist()}")

@@ -1,0 +1,101 @@
+"""The memory estimate before building (``tm.estimate_memory``) and the error where a scene cannot
+fit on its GPU: at once, with the estimate, the free memory and the elements that would fit,
+nothing allocated."""
+import gc
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.sim import memory
+from tensormass_torch.sim.scene_file import load_scene
+
+
+def beam_body(model="hooke", cells=(40, 10, 10)):
+    mesh = tm.beam_mesh(*cells, size=(1.0, 0.25, 0.25))
+    return tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model),
+                   fixed=mesh.vertices[:, 0] <= 1e-9)
+
+
+def tensor_bytes() -> int:
+    """Bytes of every tensor storage alive (each storage once)."""
+    gc.collect()
+    storages = {}
+    for obj in gc.get_objects():
+        try:
+            if type(obj) in (torch.Tensor, torch.nn.Parameter) and obj.device.type == "cpu" and not obj.is_meta:
+                storage = obj.untyped_storage()
+                storages[storage.data_ptr()] = storage.nbytes()
+        except (RuntimeError, ReferenceError):  # storages without data (fakes, freed)
+            continue
+    return sum(storages.values())
+
+
+def test_estimate_adds_bodies_and_scales_with_the_dtype():
+    body = beam_body()
+    one = tm.estimate_memory(body)
+    assert one.elements == body.mesh.num_elements and one.dtype == torch.float32
+    assert 0 < one.held_bytes < one.peak_bytes
+    two = tm.estimate_memory([body, body])
+    assert (two.elements, two.peak_bytes, two.held_bytes) == (2 * one.elements, 2 * one.peak_bytes, 2 * one.held_bytes)
+    wide = tm.estimate_memory(body, torch.float64)
+    assert one.peak_bytes < wide.peak_bytes < 2 * one.peak_bytes  # indices do not grow with the dtype
+    stvk = tm.estimate_memory(beam_body("stvk"))
+    assert stvk.held_bytes > 2 * one.held_bytes  # the stress form's tangent graph and element data
+    assert one.elements_that_fit(one.peak_bytes * 10) == 10 * one.elements
+    assert "elements in float32: peak" in str(one)
+
+
+@pytest.mark.parametrize("model", ["hooke", "stvk", "corotational"])
+def test_estimate_is_what_a_simulator_holds(model):
+    """What a simulator of a 24,000-tet beam holds after two steps (every tensor storage it
+    added, counted on the CPU) is the estimate's held bytes to within 25 %, and the estimate
+    says it."""
+    body = beam_body(model)
+    estimate = tm.estimate_memory(body)
+    before = tensor_bytes()
+    sim = tm.Simulator([body], dt=0.01, cg_tol=0.0, cg_max_iter=5, require_convergence=False)
+    sim.step(2)
+    held = tensor_bytes() - before
+    assert 0.75 < held / estimate.held_bytes < 1.25, (held, estimate)
+
+
+def test_a_scene_that_cannot_fit_fails_at_once_with_the_estimate(monkeypatch):
+    """On a CUDA device whose free memory is below the estimated peak: one SceneError with the
+    estimate, the free bytes and the elements that would fit, before anything is allocated
+    (here: the CUDA device is never touched, free memory is what the check is told)."""
+    body = beam_body()
+    estimate = tm.estimate_memory(body)
+    free = estimate.peak_bytes // 4
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(memory, "free_bytes", lambda device: free)
+    with pytest.raises(tm.SceneError, match="does not fit on cuda") as info:
+        tm.Simulator([body], dt=0.01, device="cuda")
+    text = str(info.value)
+    assert f"about {estimate.elements_that_fit(free):,} elements" in text
+    assert f"{estimate.elements:,} elements in float32" in text and "check_memory=False" in text
+    with pytest.raises(tm.SceneError, match="check_memory must be True or False"):
+        tm.Simulator([body], dt=0.01, check_memory="no")
+
+
+def test_estimate_bad_input():
+    with pytest.raises(tm.SceneError, match="dtype must be"):
+        tm.estimate_memory(beam_body(), torch.float16)
+    with pytest.raises(tm.SceneError, match=r"bodies\[1\] is a str"):
+        tm.estimate_memory([beam_body(), "beam"])
+
+
+def test_scene_file_key(tmp_path):
+    text = """
+dt = 0.01
+steps = 1
+[solver]
+check_memory = {value}
+[[bodies]]
+mesh = {{ generator = "beam", cells = [4, 1, 1], size = [1.0, 0.25, 0.25] }}
+material = {{ model = "hooke", young = 1e5, poisson = 0.3 }}
+"""
+    for value, expected in (("false", False), ("true", True)):
+        path = tmp_path / f"scene_{value}.toml"
+        path.write_text(text.format(value=value))
+        assert load_scene(path).simulator.check_memory is expected
