@@ -46,7 +46,8 @@ def rest_geometry(points: torch.Tensor, elements: torch.Tensor, projectors: bool
     ``[N, n]`` over ``points [V, d]``: (m ``[N, n, d]``, measure ``[N]``, projectors ``[N, d, d]``
     or None), ``chunk`` elements at a time, so that the element coordinates ``[N, n, d]`` and the
     solves' temporaries (the first peak of a model's construction) are a chunk's. The same values
-    (each element's are computed alone either way). At once where ``points`` requires grad."""
+    to rounding (each element's are computed alone either way; a GPU's batched solves may round
+    differently by batch size). At once where ``points`` requires grad."""
     count = elements.shape[0]
     if points.requires_grad or count <= chunk:
         element_rest = element_nodes(points, elements)
