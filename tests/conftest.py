@@ -14,6 +14,7 @@ Element kinds (``KINDS``):
 """
 from __future__ import annotations
 
+import gc
 import os
 import zlib
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ from typing import Optional
 import numpy as np
 import pytest
 import torch
+from torch._subclasses.fake_tensor import FakeTensor
 
 from tensormass_torch import Material, TetMesh, TriMesh, beam_mesh, beam_tri_mesh
 
@@ -282,6 +284,19 @@ def make_material(rng):
 def deform(rng):
     """Factory ``deform(scene, amplitude=(0.1, 0.3), rotate=True, noise=0.05) -> x [V, d]``."""
     return lambda scene, **kw: large_deformation(rng, scene, **kw)
+
+
+def live_tensors():
+    """(count, bytes of distinct storages) of the tensors the Python heap holds (fake tensors,
+    which have no storage, left out)."""
+    gc.collect()
+    count, storages = 0, {}
+    for obj in gc.get_objects():
+        if issubclass(type(obj), torch.Tensor) and not isinstance(obj, FakeTensor):
+            count += 1
+            s = obj.untyped_storage()
+            storages[(obj.device, s.data_ptr())] = s.nbytes()
+    return count, sum(storages.values())
 
 
 # ---------------------------------------------------------------- shared by the native-op tests

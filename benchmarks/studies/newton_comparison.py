@@ -238,8 +238,7 @@ def newton_run(scene: Scene, iterations: int, dt: float, seconds: float, device,
     """Newton's VBD on the same mesh (neo-Hookean, the same E, nu, density): the tracked nodes'
     mean z displacement at every step ``[n]`` and steps/s. ``coloring``: a ``.npz`` of the
     particles' colour groups (``group_0``, ...) made by Newton's own ``ModelBuilder.color``, read
-    where it exists and written where it does not (it saves the colouring's minutes at 300k
-    tets)."""
+    where it exists and written where it does not (colouring a large mesh is slow)."""
     import newton
     import warp as wp
 

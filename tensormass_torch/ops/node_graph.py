@@ -238,18 +238,31 @@ def _zeros_like_nodes(group, u: torch.Tensor) -> torch.Tensor:
     return cached
 
 
+def _edge_columns(edges: torch.Tensor, row_of: Optional[torch.Tensor] = None):
+    """The columns (int64 ``[k]`` each) of the two ends of edges ``[k, 2]`` in a node graph's
+    arrays: the nodes themselves (node order), or their rows where ``row_of [V]`` is given."""
+    first, second = edges[:, 0].long(), edges[:, 1].long()
+    if row_of is None:
+        return first, second
+    row_of = row_of.long()
+    return row_of[first], row_of[second]
+
+
+def _write_neighbors(neighbor: torch.Tensor, edges: torch.Tensor, force_index: torch.Tensor, columns) -> None:
+    """Each end of edges ``[k, 2]`` lists the other in its slot (``force_index [k, 2]``) of
+    ``neighbor [N_n, V]``, at the ends' ``columns`` (:func:`_edge_columns`); in place."""
+    neighbor[force_index[:, 0].long(), columns[0]] = edges[:, 1].to(neighbor.dtype)
+    neighbor[force_index[:, 1].long(), columns[1]] = edges[:, 0].to(neighbor.dtype)
+
+
 def _edge_neighbors(edges: torch.Tensor, force_index: torch.Tensor, num_slots: int, num_nodes: int,
-                    row_of: Optional[torch.Tensor] = None) -> torch.Tensor:
+                    columns=None) -> torch.Tensor:
     """The node graph's neighbours ``[N_n, V]`` of edges ``[Ed, 2]`` with their slots
     ``force_index [Ed, 2]``: slot ``force_index[e, 0]`` of ``edges[e, 0]`` holds ``edges[e, 1]`` and
-    the other way round; unused slots 0 (never read). edges' dtype. ``row_of [V]``: the column of
-    each node (a graph by rows), or None (node order); the values are nodes either way."""
-    first, second = edges[:, 0].long(), edges[:, 1].long()
-    if row_of is not None:
-        first, second = row_of.long()[first], row_of.long()[second]
+    the other way round; unused slots 0 (never read). edges' dtype. ``columns``: the ends'
+    columns (:func:`_edge_columns`; default: node order); the values are nodes either way."""
     neighbor = edges.new_zeros((num_slots, num_nodes))
-    neighbor[force_index[:, 0].long(), first] = edges[:, 1]
-    neighbor[force_index[:, 1].long(), second] = edges[:, 0]
+    _write_neighbors(neighbor, edges, force_index, _edge_columns(edges) if columns is None else columns)
     return neighbor
 
 
@@ -364,11 +377,9 @@ def graph_of_edges(edges: torch.Tensor, force_index: torch.Tensor, num_slots: in
     :func:`hooke_node_graph`. ``row_of [V]``: each node's column (a graph by rows), or None (node
     order)."""
     dim = edge_k.shape[-1]
-    first, second = edges[:, 0].long(), edges[:, 1].long()
-    if row_of is not None:
-        first, second = row_of.long()[first], row_of.long()[second]
+    first, second = columns = _edge_columns(edges, row_of)
     slot_first, slot_second = force_index[:, 0].long(), force_index[:, 1].long()
-    neighbor = _edge_neighbors(edges, force_index, num_slots, num_nodes, row_of)
+    neighbor = _edge_neighbors(edges, force_index, num_slots, num_nodes, columns)
     node_k = edge_k.new_zeros((num_slots, num_nodes, dim, dim))
     with torch.no_grad():
         node_k[slot_first, first] = edge_k
@@ -435,10 +446,8 @@ def topology_changed(group, edge_ids: torch.Tensor, nodes: torch.Tensor) -> None
     row_of = None if rows is None else _row_of(group, rows)
     edge_k = group.edge_k
     ids = edge_ids.long()
-    ends, slots = index[ids].long(), force_index[ids].long()
-    column = torch.arange(neighbor.shape[1], device=ids.device) if row_of is None else row_of.long()
-    neighbor[slots[:, 0], column[ends[:, 0]]] = index[ids, 1].to(neighbor.dtype)  # each end lists the other
-    neighbor[slots[:, 1], column[ends[:, 1]]] = index[ids, 0].to(neighbor.dtype)
+    ends = index[ids]
+    _write_neighbors(neighbor, ends, force_index[ids], _edge_columns(ends, row_of))
     _write_edges_op(edge_k.device)(edge_ids, index, force_index, edge_k, node_k, row_of)
     if rows is not None:  # incidences of its own, in the rows' order
         row_incidences[row_of[nodes.long()].long()] = incidences[nodes.long()]

@@ -2,12 +2,11 @@
 allocated, where it cannot fit.
 
 The estimate counts bytes an element: for each element kind, model and form, what a scene of it
-holds while it steps and its peak over construction and the first steps, measured on the paper
-beam's meshes (tetrahedra, 1M to 120M; triangles in 3-D, 1M) through the public API
-(``benchmarks/studies/setup_memory.py``; ``docs/scale.md``). Each is an index part (the same in
-every dtype) and a floating-point part (4 bytes a number in float32, 8 in float64). Meshes of
-other shapes have other node and edge counts an element: the estimate is good to about 15 %
-there, and on the measured meshes to a few %.
+holds while it steps and its peak over construction and the first steps, measured through the
+public API (``benchmarks/studies/setup_memory.py``; the runs and the estimate's accuracy on other
+meshes: ``docs/scale.md``). Each is an index part (the same in every dtype) and a floating-point
+part (4 bytes a number in float32, 8 in float64): meshes of other shapes, with other node and edge
+counts an element, make it an estimate, not a count.
 """
 from __future__ import annotations
 
@@ -52,18 +51,13 @@ class MemoryEstimate:
                 f"{self.peak_bytes / 1e9:.3g} GB, held while stepping {self.held_bytes / 1e9:.3g} GB")
 
 
-def _form_of(material, form: str) -> str:
-    from ..physics.tensor_mass import _resolve_form
-
-    return _resolve_form(form, material)
-
-
 def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype = torch.float32,  # noqa: F821
                     form: str = "auto") -> MemoryEstimate:
     """The device memory a ``Simulator`` of ``bodies`` (a ``tm.Body`` or a list) needs, before it
     is built: a :class:`MemoryEstimate` (peak over construction and the first steps, and what it
     holds while stepping), from bytes an element of each kind and model (``BYTES_PER_ELEMENT``).
     ``dtype``: the simulator's (float32 or float64); ``form``: as ``Simulator``'s."""
+    from ..physics.tensor_mass import _resolve_form
     from .simulator import Body
 
     if isinstance(bodies, Body):
@@ -76,8 +70,8 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
         if not isinstance(body, Body):
             raise SceneError(f"estimate_memory: bodies[{i}] is a {type(body).__name__}, not a tm.Body")
         material = body.material
-        model_form = _STAND_IN.get((material.model, _form_of(material, form)),
-                                   (material.model, _form_of(material, form)))
+        model_form = (material.model, _resolve_form(form, material))
+        model_form = _STAND_IN.get(model_form, model_form)
         (held_index, held_float), (peak_index, peak_float) = BYTES_PER_ELEMENT[(body.mesh.kind, *model_form)]
         count = int(body.mesh.elements.shape[0])
         elements += count

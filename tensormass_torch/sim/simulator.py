@@ -166,7 +166,7 @@ class Simulator:
         check_memory: on a CUDA device, estimate the scene's peak memory before building it
             (``tm.estimate_memory``) and raise ``SceneError`` at once, with the estimate, the
             free memory and about how many elements would fit, where it cannot fit (nothing is
-            allocated). False: build anyway (the estimate is good to about 15 %).
+            allocated). False: build anyway (an estimate: docs/scale.md says how close).
     """
 
     def __init__(self, bodies: Sequence[Body], dt: float = 0.01, gravity=(0.0, 0.0, -9.81),

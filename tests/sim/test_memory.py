@@ -1,10 +1,9 @@
 """The memory estimate before building (``tm.estimate_memory``) and the error where a scene cannot
 fit on its GPU: at once, with the estimate, the free memory and the elements that would fit,
 nothing allocated."""
-import gc
-
 import pytest
 import torch
+from conftest import live_tensors
 
 import tensormass_torch as tm
 from tensormass_torch.sim import memory
@@ -15,20 +14,6 @@ def beam_body(model="hooke", cells=(40, 10, 10)):
     mesh = tm.beam_mesh(*cells, size=(1.0, 0.25, 0.25))
     return tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model=model),
                    fixed=mesh.vertices[:, 0] <= 1e-9)
-
-
-def tensor_bytes() -> int:
-    """Bytes of every tensor storage alive (each storage once)."""
-    gc.collect()
-    storages = {}
-    for obj in gc.get_objects():
-        try:
-            if type(obj) in (torch.Tensor, torch.nn.Parameter) and obj.device.type == "cpu" and not obj.is_meta:
-                storage = obj.untyped_storage()
-                storages[storage.data_ptr()] = storage.nbytes()
-        except (RuntimeError, ReferenceError):  # storages without data (fakes, freed)
-            continue
-    return sum(storages.values())
 
 
 def test_estimate_adds_bodies_and_scales_with_the_dtype():
@@ -53,10 +38,10 @@ def test_estimate_is_what_a_simulator_holds(model):
     says it."""
     body = beam_body(model)
     estimate = tm.estimate_memory(body)
-    before = tensor_bytes()
+    before = live_tensors()[1]
     sim = tm.Simulator([body], dt=0.01, cg_tol=0.0, cg_max_iter=5, require_convergence=False)
     sim.step(2)
-    held = tensor_bytes() - before
+    held = live_tensors()[1] - before
     assert 0.75 < held / estimate.held_bytes < 1.25, (held, estimate)
 
 

@@ -9,12 +9,11 @@ variant compares ``torch.cuda.memory_allocated`` (run by the lead on the GPU).
 """
 from __future__ import annotations
 
-import gc
 import os
 
 import pytest
 import torch
-from conftest import load_script
+from conftest import live_tensors, load_script
 
 import tensormass_torch as tm
 
@@ -93,18 +92,6 @@ def test_plain_step_reports_one_substep():
 
 
 # ------------------------------------------------------------------------------ memory over long runs
-
-
-def live_tensors():
-    """(count, bytes of distinct storages) of the tensors the Python heap holds."""
-    gc.collect()
-    count, storages = 0, {}
-    for obj in gc.get_objects():
-        if issubclass(type(obj), torch.Tensor):
-            count += 1
-            s = obj.untyped_storage()
-            storages[(obj.device, s.data_ptr())] = s.nbytes()
-    return count, sum(storages.values())
 
 
 def rss_bytes() -> int:
