@@ -24,6 +24,7 @@ iterations a step (the batch benchmark's settings), bodies dealt by element coun
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import sys
@@ -132,7 +133,9 @@ def batch_row(bodies: int, device, args) -> dict:
     fixed = mesh.vertices[:, 0] <= 1e-6
     material = tm.Material(young=1e5, poisson=0.3, density=1000.0, model="stvk")
     share = distributed.partition_bodies([mesh.num_elements] * bodies, world)[rank]
+    gc.collect()  # the previous row's simulator (its reference cycles) gone before this row's peak
     if device.type == "cuda":
+        torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
     start = time.perf_counter()
     sim = tm.Simulator([tm.Body(mesh, material, fixed=fixed) for _ in share], dt=0.01, cg_tol=0.0,

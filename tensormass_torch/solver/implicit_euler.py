@@ -31,6 +31,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import List, Optional
 
+import numpy as np
 import torch
 
 from ..errors import SolverError
@@ -990,28 +991,29 @@ class StepGraphs:
             done += steps
         return self.ring[:count].cpu()
 
+    # The host-side reading of the summaries below is numpy, not torch: each torch CPU op on a
+    # [B]-long vector wakes torch's intra-op thread pool, and on a many-core host that cost a batch
+    # of 250,000 bodies more than the GPU step itself (docs/performance-history.md). numpy runs
+    # these few vector ops on the calling thread.
+
     def report_of(self, summary: torch.Tensor) -> StepReport:
         """The :class:`StepReport` of the step whose summary ``[5, B]`` (host) is given; its CG
         solution is the CG buffer (the last solve's)."""
-        status, iterations, rr, rhs_sq, _ = summary
-        result = CGResult(self.cg.state.x.clone(), iterations.long(), torch.sqrt(torch.clamp(rr, min=0)),
-                          torch.sqrt(rhs_sq), status == cg_ops.CONVERGED, status == cg_ops.BREAKDOWN,
-                          status == cg_ops.NONFINITE)
+        status, iterations, rr, rhs_sq, _ = summary.numpy()
+        result = CGResult(self.cg.state.x.clone(), torch.from_numpy(iterations.astype(np.int64)),
+                          torch.from_numpy(np.sqrt(np.maximum(rr, 0.0))), torch.from_numpy(np.sqrt(rhs_sq)),
+                          torch.from_numpy(status == cg_ops.CONVERGED), torch.from_numpy(status == cg_ops.BREAKDOWN),
+                          torch.from_numpy(status == cg_ops.NONFINITE))
         return StepReport(cg=[result])
 
     def failure(self, summary: torch.Tensor) -> bool:
         """Whether the step of this summary ``[5, B]`` failed (what :meth:`step` raises on)."""
-        return self.first_failure(summary[None]) == 0
+        return _first_failure(summary[None].numpy(), self.opts.require_convergence) == 0
 
     def first_failure(self, summaries: torch.Tensor) -> int:
         """The index of the first failed step of ``summaries [n, 5, B]`` (host), or n if none
         failed: one vectorised check (a chain's steps are checked together)."""
-        status, norms = summaries[:, 0], summaries[:, 4]
-        bad = (status == cg_ops.BREAKDOWN) | (status == cg_ops.NONFINITE) | ~torch.isfinite(norms)
-        if self.opts.require_convergence:
-            bad |= status != cg_ops.CONVERGED
-        failed = bad.any(dim=1).nonzero()
-        return int(failed[0, 0]) if failed.numel() else summaries.shape[0]
+        return _first_failure(summaries.numpy(), self.opts.require_convergence)
 
     def step(self, x, v, imposed_velocity=None, guess=None):
         """One step from ``x, v [V, d]`` (``imposed_velocity [V, d]`` and ``guess [V, d]`` or None,
@@ -1037,10 +1039,22 @@ class StepGraphs:
         summary = self.summary.cpu()  # the step's one synchronisation
         report = self.report_of(summary)
         if self.preconditioned:
-            self._predicted = max(1, int(summary[1].max()))
-        _raise_if_failed(report.cg[0], opts, "implicit Euler CG")
-        _raise_if_nonfinite(self.system, summary[4], report)
+            self._predicted = max(1, int(summary[1].numpy().max()))
+        if self.failure(summary):  # (checked in numpy; the raising paths then name the objects)
+            _raise_if_failed(report.cg[0], opts, "implicit Euler CG")
+            _raise_if_nonfinite(self.system, summary[4], report)
         return self.x_new.clone(), self.v_new.clone(), report
+
+
+def _first_failure(summaries: np.ndarray, require_convergence: bool) -> int:
+    """The index of the first failed step of the host summaries ``[n, 5, B]`` (rows: status,
+    iterations, rr, rhs_sq, state norms), or n if none failed."""
+    status, norms = summaries[:, 0], summaries[:, 4]
+    bad = (status == cg_ops.BREAKDOWN) | (status == cg_ops.NONFINITE) | ~np.isfinite(norms)
+    if require_convergence:
+        bad |= status != cg_ops.CONVERGED
+    failed = np.flatnonzero(bad.any(axis=1))
+    return int(failed[0]) if failed.size else summaries.shape[0]
 
 
 def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
