@@ -38,7 +38,7 @@ def incidence_slots(targets: torch.Tensor, num_targets: int):
     for begin in range(0, targets.numel(), _SLOT_CHUNK):
         items = order[begin:begin + _SLOT_CHUNK]
         position = torch.arange(begin, begin + items.numel(), device=targets.device)
-        slots[items] = position - starts[targets[items]]
+        slots[items] = (position - starts[targets[items]]).to(slots.dtype)
     num_slots = int(counts.max().item()) if targets.numel() else 0
     return slots, num_slots, counts
 
@@ -69,7 +69,7 @@ class GatherPlan:
         """Plan for items ``index [N, n]`` over ``num_nodes`` nodes."""
         flat = index.reshape(-1)
         slots, num_slots, counts = incidence_slots(flat, num_nodes)
-        return cls(index, slots.view_as(index), num_slots, num_nodes, counts)
+        return cls(index, slots.view_as(index), num_slots, num_nodes, counts.to(index.dtype))
 
     def to(self, device) -> "GatherPlan":
         """The same plan with its index tensors on ``device``."""
@@ -85,25 +85,27 @@ def unique_edges(elements: torch.Tensor, num_nodes: int):
     """Unique undirected edges of elements and, for each local node pair, its edge id.
 
     Args:
-        elements: ``[N, n]`` int64.
+        elements: ``[N, n]`` int64 or int32.
         num_nodes: V.
 
     Returns:
         edges: ``[Ed, 2]`` with ``edges[:, 0] < edges[:, 1]``, sorted lexicographically.
         pairs: local node pairs ``[P, 2]`` (a < b), P = n (n - 1) / 2.
         element_edges: edge id of each (element, pair) ``[N, P]``.
+        edges and element_edges have the elements' dtype.
     """
     n = elements.shape[1]
     pairs = torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)], device=elements.device)
     first = elements[:, pairs[:, 0]]
     second = elements[:, pairs[:, 1]]
-    keys = torch.minimum(first, second).mul_(num_nodes).add_(torch.maximum(first, second))  # [N, P]
+    # int64 keys whatever the elements' dtype: V^2 passes 2^31 from 46,341 nodes
+    keys = torch.minimum(first, second).long().mul_(num_nodes).add_(torch.maximum(first, second))  # [N, P]
     del first, second  # (temporaries of [N, P] int64 each: this runs at construction, where the peak is)
     shape = keys.shape
     unique_keys, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
     del keys
-    edges = torch.stack([unique_keys // num_nodes, unique_keys % num_nodes], dim=1)
-    return edges, pairs, inverse.view(shape)
+    edges = torch.stack([unique_keys // num_nodes, unique_keys % num_nodes], dim=1).to(elements.dtype)
+    return edges, pairs, inverse.view(shape).to(elements.dtype)
 
 
 def padded_sum(values: torch.Tensor, targets: torch.Tensor, slots: torch.Tensor, num_slots: int,

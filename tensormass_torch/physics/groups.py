@@ -63,6 +63,8 @@ class ElementGroup(nn.Module):
         #: edge rows added to the stress forms' tangent graph for cuts in place (:meth:`reserve_slots`)
         self.reserved_edges = 0
         self.membrane = geometry.needs_projector(self.nodes_per_element, self.dim)
+        if self.num_nodes < 2**31 - 1 and elements.numel() < 2**31 - 1:
+            elements = elements.to(torch.int32)
 
         m, measure, proj = geometry.rest_geometry(rest, elements, self.membrane)
         measure = measure.abs()  # orientation is checked by the mesh; the measure is a size
@@ -151,8 +153,8 @@ class ElementGroup(nn.Module):
         rotation is still computed from its current nodes: finite unless three of them are exactly
         collinear. Needs :meth:`prepare_removals` first."""
         if self.form == "stress":
-            self.shape_vectors.index_fill_(0, rows, 0.0)
-            self.measure.index_fill_(0, rows, 0.0)
+            self.shape_vectors.index_fill_(0, rows.long(), 0.0)
+            self.measure.index_fill_(0, rows.long(), 0.0)
         elif self.model == "hooke":
             topology.refresh_hooke_edges(rest, self.elements, rows, self.element_edges, self.edge_slots, element_row,
                                          removed, self.measure, self.young, self.poisson, self.edge_k)
@@ -160,7 +162,7 @@ class ElementGroup(nn.Module):
                 node_graph.edges_changed(self, self.element_edges[rows].reshape(-1))
         else:
             for tensor in (self.tensor_b, self.tensor_c, self.tensor_d):
-                tensor.index_fill_(0, rows, 0.0)
+                tensor.index_fill_(0, rows.long(), 0.0)
 
     # ---------------------------------------------------------------- cuts (elements re-pointed)
     def reserve_slots(self, extra: int, spare_edges: int = 0) -> None:
@@ -318,11 +320,11 @@ class ElementGroup(nn.Module):
         tables = self.cut_tables()
         copy = tables["elements"] is not self.elements
         if copy:
-            self.elements.index_copy_(0, sent["rows"], sent["nodes"])
+            self.elements.index_copy_(0, sent["rows"].long(), sent["nodes"])
         if not self._edge_plan():
             if copy:
-                self.plan.force_index.view(-1).index_copy_(0, sent["items"], sent["force_index"])
-                self.plan.incidences.index_copy_(0, sent["incidence_nodes"], sent["incidences"])
+                self.plan.force_index.view(-1).index_copy_(0, sent["items"].long(), sent["force_index"])
+                self.plan.incidences.index_copy_(0, sent["incidence_nodes"].long(), sent["incidences"])
             library.refresh_plan_indices(self.plan)
             if node_graph.tangent_topology_changed(self):  # dropped: built again, captured again
                 return True
@@ -331,16 +333,16 @@ class ElementGroup(nn.Module):
             grow = tables["edges"].shape[0] - self.edges.shape[0]  # the pool grew with the host's
             self.edges, self.plan.force_index, self.edge_slots = _edge_pool(
                 self.edges, self.plan.force_index, self.edge_slots, grow, self.plan.num_slots - 1)
-            self.edges.index_copy_(0, sent["edge_rows"], sent["edge_values"])
-            self.edge_slots.index_copy_(1, sent["slot_edges"], sent["slot_lists"])
-            self.element_edges.index_copy_(0, sent["rows"], sent["element_edges"])
-            self.plan.force_index.view(-1).index_copy_(0, sent["items"], sent["force_index"])
-            self.plan.incidences.index_copy_(0, sent["incidence_nodes"], sent["incidences"])
+            self.edges.index_copy_(0, sent["edge_rows"].long(), sent["edge_values"])
+            self.edge_slots.index_copy_(1, sent["slot_edges"].long(), sent["slot_lists"])
+            self.element_edges.index_copy_(0, sent["rows"].long(), sent["element_edges"])
+            self.plan.force_index.view(-1).index_copy_(0, sent["items"].long(), sent["force_index"])
+            self.plan.incidences.index_copy_(0, sent["incidence_nodes"].long(), sent["incidences"])
         else:  # the tables are the group's own (new tensors where the pool grew)
             self.edge_slots, self.edges = tables["edge_slots"], tables["edges"]
             self.plan.force_index = tables["force_index"]
         self._edge_k_over_edges()
-        self.edge_k.index_fill_(0, sent["dead"], 0)
+        self.edge_k.index_fill_(0, sent["dead"].long(), 0)
         self.plan.index = self.edges  # the plan (the object kept: its caches follow it) over the grown edges
         topology.refresh_hooke_edges(rest, self.elements, sent["refresh_rows"], self.element_edges, self.edge_slots,
                                      element_row, removed, self.measure, self.young, self.poisson, self.edge_k)

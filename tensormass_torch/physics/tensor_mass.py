@@ -194,7 +194,7 @@ class TensorMass(nn.Module):
         self._prepare_removals()
         index = self.element_row.dtype  # the ops' one index dtype (the elements')
         on_device = ids.to(device=self.rest.device, dtype=index, non_blocking=True)
-        self.removed.index_fill_(0, on_device, True)  # first: the refreshes read the flags
+        self.removed.index_fill_(0, on_device.long(), True)  # first: the refreshes read the flags
         for g, group in enumerate(self.groups):
             if len(self.groups) == 1:
                 picked = on_device  # one group: no mask, no host read
@@ -341,9 +341,9 @@ class TensorMass(nn.Module):
         if node_slots is not self.node_slots:
             sends.update(slot_nodes=done["slot_nodes"], slot_lists=done["node_slot_lists"])
         sent = topology.upload(sends, self.rest.device)
-        self.rest.index_copy_(0, sent["new_nodes"], self.rest[sent["parents"]])
+        self.rest.index_copy_(0, sent["new_nodes"].long(), self.rest[sent["parents"]])
         if node_slots is not self.node_slots:
-            self.node_slots.index_copy_(1, sent["slot_nodes"], sent["slot_lists"])
+            self.node_slots.index_copy_(1, sent["slot_nodes"].long(), sent["slot_lists"])
         stale = group.write_cut({k[6:]: v for k, v in sent.items() if k.startswith("group_")}, self.rest,
                                 self.removed, self.element_row)
         topology.refresh_nodes(sent["both"], sent["both_rows"], self.node_slots, self.element_share, self.removed,

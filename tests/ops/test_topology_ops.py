@@ -43,7 +43,7 @@ def some_rows(n, count, device, seed=3):
 
 
 def edge_args(model, group, rows, removed):
-    return (model.rest, group.elements, rows, group.element_edges, group.edge_slots, model.element_row, removed,
+    return (model.rest, group.elements, rows.to(group.elements.dtype), group.element_edges, group.edge_slots, model.element_row, removed,
             group.measure, group.young, group.poisson, group.edge_k.clone())
 
 
@@ -89,7 +89,7 @@ def test_refresh_nodes_equals_its_reference_and_a_fresh_model_bitwise(device):
     outs = []
     for fn in (library.op("topology_refresh_nodes"), topology._ref_topology_refresh_nodes):
         mass, counts = model.mass.clone(), model.node_elements.clone()
-        fn(group.elements, rows, model.node_slots, model.element_share, removed, mass, counts)
+        fn(group.elements, rows.to(group.elements.dtype), model.node_slots, model.element_share, removed, mass, counts)
         outs.append((mass, counts))
     assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])
     mass, counts = outs[0]
@@ -140,8 +140,9 @@ def test_bad_arguments_raise_naming_them_and_write_nothing():
     removed = flagged(model, rows)
     args = list(edge_args(model, group, rows, removed))
     before = args[-1].clone()
+    other, name = (torch.int64, "Long") if group.elements.dtype == torch.int32 else (torch.int32, "Int")
     for position, bad, message in [(6, removed.to(torch.uint8), "removed must be bool"),
-                                   (2, rows.to(torch.int32), "rows is Int"),
+                                   (2, rows.to(other), f"rows is {name}"),
                                    (8, group.young[:-1], "young has shape"),
                                    (4, group.edge_slots[:, :-1].contiguous(), "edge_slots has shape")]:
         wrong = list(args)
@@ -150,6 +151,7 @@ def test_bad_arguments_raise_naming_them_and_write_nothing():
             library.op("topology_refresh_hooke_edges")(*wrong)
     assert torch.equal(args[-1], before)
     mass, counts = model.mass.clone(), model.node_elements.clone()
+    rows = rows.to(group.elements.dtype)
     with pytest.raises(RuntimeError, match="node_elements must be int32"):
         library.op("topology_refresh_nodes")(group.elements, rows, model.node_slots, model.element_share, removed,
                                              mass, counts.long())

@@ -324,3 +324,35 @@ def test_hooke_edges_assembled_in_chunks_are_the_full_assembly_bitwise(kind, mak
     full_edges, full_k = tensor_form.assemble_edges(full, elements, rest.shape[0])
     assert torch.equal(full_edges, edges)
     torch.testing.assert_close(full_k, edge_k, rtol=1e-6, atol=1e-6 * float(edge_k.abs().max()))
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_index_tensors_are_int32_where_they_fit_and_exact_past_46341_nodes(form):
+    """A group keeps its elements, plans and edges as int32 where the sizes fit (half the index
+    bytes, and the kernels' own dtype: no second copy), whatever the mesh's int64 ids. With more
+    than 46,341 nodes an edge key ``a * V + b`` passes 2^31: here the elements sit past 50,000
+    unused nodes, and the model equals the one of the same elements without them."""
+    from tensormass_torch import TetMesh, beam_mesh
+
+    compact = beam_mesh(4, 2, 2, size=(1.0, 0.5, 0.5), dtype=F64)
+    offset = 50_000
+    far = torch.cat([torch.zeros(offset, 3, dtype=F64), compact.vertices])
+    mesh = TetMesh(far, compact.elements + offset)
+    assert mesh.num_vertices ** 2 > 2**31 and mesh.elements.dtype == torch.int64
+    mat = Material(young=1e4, poisson=0.3, density=1000.0, model="hooke")
+    (group,) = TensorMass(mesh, mat, form=form).groups
+    (near,) = TensorMass(compact, mat, form=form).groups
+    index_tensors = [group.elements, group.plan.index, group.plan.force_index, group.plan.incidences]
+    assert all(t.dtype == torch.int32 for t in index_tensors)
+    assert torch.equal(group.elements.long(), mesh.elements)
+    if form == "tensor":
+        assert group.edges.dtype == torch.int32
+        assert torch.equal(group.edges.long(), mesh.edges())
+        assert torch.equal(group.edges.long() - offset, near.edges.long())
+        assert torch.equal(group.edge_k, near.edge_k)
+    u = 1e-3 * torch.randn(compact.num_vertices, 3, dtype=F64, generator=torch.Generator().manual_seed(5))
+    far_u = torch.cat([torch.zeros(offset, 3, dtype=F64), u])
+    model, near_model = TensorMass(mesh, mat, form=form), TensorMass(compact, mat, form=form)
+    torch.testing.assert_close(model.displacement_forces(far_u)[offset:], near_model.displacement_forces(u),
+                               rtol=0, atol=1e-15)
+    assert not bool(model.displacement_forces(far_u)[:offset].any())
