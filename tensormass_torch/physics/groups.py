@@ -36,7 +36,9 @@ class ElementGroup(nn.Module):
 
     Args:
         rest: rest positions of all nodes ``[V, d]``.
-        elements: global node ids ``[N, n]`` (n = 4 tetrahedra, 3 triangles), positively oriented.
+        elements: global node ids ``[N, n]`` (n = 4 tetrahedra, 3 triangles), positively oriented;
+            kept as int32 where the node count and ``N n`` fit (every index tensor of the group
+            then has that dtype, the one the kernels read), else int64.
         young, poisson: per-element parameters ``[N]``.
         model: ``"hooke"`` or ``"stvk"``.
         form: ``"stress"`` or ``"tensor"``.
@@ -64,7 +66,7 @@ class ElementGroup(nn.Module):
         self.reserved_edges = 0
         self.membrane = geometry.needs_projector(self.nodes_per_element, self.dim)
         if self.num_nodes < 2**31 - 1 and elements.numel() < 2**31 - 1:
-            elements = elements.to(torch.int32)
+            elements = elements.to(torch.int32)  # (arithmetic that can pass 2^31 widens: unique_edges)
 
         m, measure, proj = geometry.rest_geometry(rest, elements, self.membrane)
         measure = measure.abs()  # orientation is checked by the mesh; the measure is a size
