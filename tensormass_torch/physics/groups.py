@@ -126,8 +126,8 @@ class ElementGroup(nn.Module):
         if self.form == "tensor" and self.model == "hooke":
             self.register_buffer("young", young.contiguous())
             self.register_buffer("poisson", poisson.contiguous())
-            _, pairs, element_edges = unique_edges(self.elements.long(), self.num_nodes)  # the edges' own order
-            self.register_buffer("element_edges", element_edges.to(self.elements.dtype).contiguous())
+            _, pairs, element_edges = unique_edges(self.elements, self.num_nodes)  # the edges' own order
+            self.register_buffer("element_edges", element_edges.contiguous())
             items = ids.to(self.elements.dtype).repeat_interleave(pairs.shape[0])
             self.register_buffer("edge_slots", topology.incidence_table(element_edges.reshape(-1), items,
                                                                         self.edges.shape[0]))
