@@ -25,7 +25,8 @@ Parts = Tuple[int, int]  # (index bytes, floating-point bytes in float32)
 #: held while stepping, by (element kind, model, form): (bytes an element, bytes a node), each
 #: (index, float32 floating-point). Counted on the CPU (every tensor a simulator holds after two
 #: steps) on two mesh families, a beam and a batch of small bodies, in float32 and float64: the
-#: two families give the element and node parts, the two dtypes the index and float parts.
+#: two families give the element and node parts, the two dtypes the index and float parts
+#: (``benchmarks/studies/memory_parts.py``).
 HELD: Dict[Tuple[str, str, str], Tuple[Parts, Parts]] = {
     ("tet", "hooke", "tensor"): ((28, 34), (172, 1155)),
     ("tet", "stvk", "stress"): ((102, 387), (509, 1908)),

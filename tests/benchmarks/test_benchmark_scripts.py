@@ -346,3 +346,20 @@ def test_setup_memory_quick(tmp_path):
         assert 0 < r["held_b"] <= r["peak_b"] and r["construction_peak_b"] <= r["peak_b"]
     bad = json.loads((tmp_path / "bad" / "setup_memory.json").read_text())["records"]
     assert len(bad) == 1 and "nonsense" in bad[0]["error"]
+
+
+def test_memory_parts_quick_are_the_estimate_s_parts(tmp_path):
+    """The study that measured ``sim.memory.HELD``, on small meshes: its parts are the table's
+    within 15 % (the element and node parts of the estimate are what a CPU count gives)."""
+    import memory_parts
+
+    from tensormass_torch.sim.memory import HELD
+
+    rows = memory_parts.main(["--quick", "--kinds", "tet", "--models", "hooke,stvk", "--out", str(tmp_path)])
+    assert (tmp_path / "memory_parts.md").exists() and (tmp_path / "memory_parts.json").exists()
+    for row in rows:
+        form = "tensor" if row["model"] == "hooke" else "stress"
+        element, node = HELD[(row["kind"], row["model"], form)]
+        measured = (sum(row["element"]), sum(row["node"]))
+        for got, table in zip(measured, (sum(element), sum(node))):
+            assert abs(got / table - 1) < 0.15, (row, element, node)
