@@ -100,7 +100,7 @@ def unique_edges(elements: torch.Tensor, num_nodes: int):
     second = elements[:, pairs[:, 1]]
     # int64 keys whatever the elements' dtype: V^2 passes 2^31 from 46,341 nodes
     keys = torch.minimum(first, second).long().mul_(num_nodes).add_(torch.maximum(first, second))  # [N, P]
-    del first, second  # (temporaries of [N, P] int64 each: this runs at construction, where the peak is)
+    del first, second  # (temporaries of [N, P] each: this runs at construction, where the peak is)
     shape = keys.shape
     unique_keys, inverse = torch.unique(keys.reshape(-1), sorted=True, return_inverse=True)
     del keys
