@@ -993,7 +993,7 @@ class StepGraphs:
 
     # The host-side reading of the summaries below is numpy, not torch: each torch CPU op on a
     # [B]-long vector wakes torch's intra-op thread pool, and on a many-core host that cost a batch
-    # of 250,000 bodies more than the GPU step itself (docs/performance-history.md). numpy runs
+    # of 250,000 bodies more than the GPU step itself (docs/distributed.md, "Batches"). numpy runs
     # these few vector ops on the calling thread.
 
     def report_of(self, summary: torch.Tensor) -> StepReport:
