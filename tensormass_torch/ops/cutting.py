@@ -14,7 +14,10 @@ hash tables and union-find over the few elements near the blade), so it runs on 
             whose face the blade crossed ``[C]`` each, and the pairs still joined ``[S', 2]``
     cut_mesh(elements, num_nodes, x, blade, removed, slit) -> mesh.cutting.CutResult
             the op on any device (results on the elements' device), or mesh.cutting.cut where
-            the extension is not available
+            the extension is not available; ``alive=`` restricts its host pass
+    near_elements(elements, x, blade, slit) -> [N] bool
+            where the positions are (a GPU): a superset of the elements a cut looks at, so that
+            the host pass reads only those
 
 The op computes what ``mesh.cutting.cut`` computes, bit for bit (its reference below is ``cut``'s
 steps with the op's signature), with three differences in what is defined: with no face crossed it
@@ -59,7 +62,7 @@ from ..mesh import cutting as mesh_cutting
 from . import library, topology
 from .library import OpDef
 
-__all__ = ["cut_mesh", "edit_cut_tables", "ELEMENT_RESULTS", "EDGE_RESULTS"]
+__all__ = ["cut_mesh", "near_elements", "edit_cut_tables", "ELEMENT_RESULTS", "EDGE_RESULTS"]
 
 NAME = "cutting_cut_mesh"
 ELEMENT_TABLES = "cutting_edit_element_tables"
@@ -350,26 +353,76 @@ def _native_available(name: str = NAME) -> bool:
             and hasattr(torch.ops.tensormass, name))
 
 
+#: The relative margin by which :func:`near_elements` grows its bounds: far above the few units in
+#: the last place by which its centroids and reach, summed in another order than the op's (on a
+#: GPU), can differ from the op's; it only adds elements.
+NEAR_MARGIN = 1e-5
+
+
+@torch.no_grad()
+def near_elements(elements: torch.Tensor, x: torch.Tensor, blade: mesh_cutting.Blade,
+                  slit: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``[N]`` bool, where the positions are: a superset of the elements a cut of ``elements
+    [N, n]`` at ``x [V, 3]`` along ``blade`` looks at, with ``slit [S, 2]`` (element pairs, or
+    None) the earlier cuts' slit. An element outside it is as far from the cut as a removed one:
+    :func:`cut_mesh` with ``alive=`` this mask (and the elements not removed) returns the cut
+    of the whole mesh, while its host pass reads no position of the others. Made of a few tensor
+    ops over every element, for a mesh on a GPU: there they cost microseconds where the host
+    pass over every element costs milliseconds.
+
+    What it holds, and why that is enough (``cutting_cut_mesh``'s reasoning, ``csrc/cutting/
+    ops.h``): with R_k the largest distance along axis k from an element's centroid to one of its
+    nodes, every element whose centroid lies in the blade's box grown by 2 R (the elements whose
+    faces the blade can cross, and the stars of those faces' nodes), with a margin
+    (``NEAR_MARGIN``); and every element holding a node of a slit pair's elements (the stars of
+    the slit's nodes, which the cut splits again). The op run on such a subset measures a reach
+    no larger than R over it, and its own bounds then keep what this one keeps."""
+    nodes = x[elements.long()]  # [N, n, 3]
+    centroids = nodes.mean(1)
+    reach = (nodes - centroids[:, None]).abs().amax((0, 1)) if elements.shape[0] else centroids.new_zeros(3)
+    vertices = blade.vertices.to(x)
+    low, high = vertices.amin(0), vertices.amax(0)
+    grow = 2 * reach * (1 + NEAR_MARGIN) + NEAR_MARGIN * (low.abs() + high.abs() + reach)
+    near = ((centroids >= low - grow) & (centroids <= high + grow)).all(1)
+    if slit is not None and slit.numel():
+        held = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        held[elements[slit.to(elements.device).reshape(-1)].reshape(-1).long()] = True
+        near |= held[elements.long()].any(1)
+    return near
+
+
 @torch.no_grad()
 def cut_mesh(elements: torch.Tensor, num_nodes: int, x: torch.Tensor, blade: mesh_cutting.Blade,
              removed: Optional[torch.Tensor] = None, slit: Optional[torch.Tensor] = None, *,
-             native: bool = True) -> mesh_cutting.CutResult:
+             alive: Optional[torch.Tensor] = None, native: bool = True) -> mesh_cutting.CutResult:
     """:func:`mesh.cutting.cut <tensormass_torch.mesh.cutting.cut>` (same arguments, result and
     errors) through ``cutting_cut_mesh`` where the extension is available (and ``native``): the
     inputs are copied to the CPU, the results back to ``elements.device``. Else ``cut`` itself.
+
+    ``alive``: ``[N]`` bool (host), the elements to look at, in place of ``~removed``: those not
+    removed and :func:`near_elements` (computed where the positions are), so that the host pass
+    skips the others; the result is the same.
 
     Raises:
         MeshError: ``x`` is not ``[num_nodes, 3]``; the blade crosses no interior face.
     """
     if x.shape != (num_nodes, 3):
         raise MeshError(f"positions must be [{num_nodes}, 3] to cut along a 3-D blade, got {tuple(x.shape)}")
+    if alive is not None and alive.shape != (elements.shape[0],):
+        raise MeshError(f"alive must be [{elements.shape[0]}] (one flag per element), got {tuple(alive.shape)}")
     if not (native and x.dtype in (torch.float32, torch.float64) and _native_available()):
+        if alive is not None:
+            removed = ~alive.to(device=elements.device, dtype=torch.bool)
         return mesh_cutting.cut(elements, num_nodes, x, blade, removed, slit)
     device, host = elements.device, torch.device("cpu")
     index = elements.dtype if elements.dtype in (torch.int32, torch.int64) else torch.int64
     host_elements = elements.to(device=host, dtype=index).contiguous()
-    alive = (torch.ones(elements.shape[0], dtype=torch.bool) if removed is None
-             else ~removed.to(device=host, dtype=torch.bool))
+    if alive is not None:
+        alive = alive.to(device=host, dtype=torch.bool)
+    elif removed is None:
+        alive = torch.ones(elements.shape[0], dtype=torch.bool)
+    else:
+        alive = ~removed.to(device=host, dtype=torch.bool)
     if slit is None or slit.numel() == 0:
         slit = torch.zeros((0, 2), dtype=torch.int64)
     out, parents, first, second, joined = library.op(NAME)(

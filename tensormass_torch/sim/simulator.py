@@ -13,7 +13,7 @@ from ..mesh.cutting import Blade
 from ..mesh.meshes import Mesh
 from ..mesh.topology import boundary_faces
 from ..ops import node_graph
-from ..ops.cutting import cut_mesh
+from ..ops.cutting import cut_mesh, near_elements
 from ..ops.segments import Segments
 from ..ops.topology import upload
 from ..physics.body_contact import Contact, SurfaceContact
@@ -722,13 +722,20 @@ class Simulator:
         if old.mesh.vertices.shape[1] != 3:
             raise SceneError(f"body {i} is 2-D: cutting needs a 3-D body (tetrahedra or membranes)")
         # the cut is found on the host: the body's elements and removed flags kept there, its
-        # positions read once
+        # positions read once; on an accelerator the elements it looks at are picked there first
+        # (a superset: near_elements), so that the host pass skips the others
         elements = self._host_elements(i)
+        first, end = self.element_ptr[i], self.element_ptr[i + 1]
         removed = self.model.removed_host()
-        removed = None if removed is None else removed[self.element_ptr[i]:self.element_ptr[i + 1]]
+        removed = None if removed is None else removed[first:end]
+        alive = None
+        if self.device.type != "cpu":
+            alive = near_elements(old.mesh.elements, self.positions(i), blade, self._slits[i])
+            if "removed" in self.model._buffers:
+                alive &= ~self.model.removed[first:end]
         try:
             result = cut_mesh(elements, old.mesh.num_vertices, self.positions(i).to("cpu"), blade, removed,
-                              self._slits[i])
+                              self._slits[i], alive=None if alive is None else alive.to("cpu"))
         except MeshError:
             if missing_ok:
                 return 0
@@ -786,7 +793,7 @@ class Simulator:
         added = result.new_nodes
         if used + added > self.ptr[i + 1] - first:
             return False
-        changed = torch.nonzero((result.elements != elements).any(1)).flatten()
+        changed = self._changed_rows(i, elements, result)
         if changed.numel() == 0:  # faces parted along a slit's front, no node split yet
             return True
         new_nodes = torch.arange(first + used, first + used + added)
@@ -825,6 +832,21 @@ class Simulator:
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
         return True
+
+    def _changed_rows(self, i: int, elements: torch.Tensor, result) -> torch.Tensor:
+        """The ids ``[M]`` (body i's, ascending, host) of the elements the cut ``result`` re-pointed
+        (``elements``: the body's before, on the host). Only elements that held a split node can
+        change: they are read from the model's incidence lists of the new nodes' parents (the
+        host's ``node_slots``), not found by comparing every element."""
+        parents = result.parents[result.num_old_nodes:]
+        if parents.numel() == 0:
+            return torch.zeros(0, dtype=torch.int64)
+        self.model._prepare_removals()
+        node_slots = self.model._cut_tables()["node_slots"]
+        listed = node_slots[:, parents + self.ptr[i]].reshape(-1)
+        ids = torch.unique(listed[listed >= 0].long()) - self.element_ptr[i]
+        ids = ids[(ids >= 0) & (ids < elements.shape[0])]
+        return ids[(result.elements[ids] != elements[ids]).any(1)]
 
     def _captures_read_edges(self) -> bool:
         """Whether the integrator's captured launches may read a hooke tensor-form group's edge

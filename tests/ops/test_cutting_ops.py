@@ -97,17 +97,28 @@ def assert_same(got, want):
     assert got.num_old_nodes == want.num_old_nodes
 
 
+def near_mask(elements, x, blade, removed=None, slit=None):
+    """What the simulator passes as ``alive`` on a GPU: the elements near the cut, not removed."""
+    alive = ops_cutting.near_elements(elements, x, blade, slit)
+    return alive if removed is None else alive & ~removed
+
+
 def check(elements, num_nodes, x, blade, removed=None, slit=None):
-    """The op (through cut_mesh) against the reference; returns the reference's result (None where
-    the blade misses, and then the op raises the same)."""
+    """The op (through cut_mesh) against the reference, and again with its host pass restricted
+    to ``near_elements`` (as on a GPU); returns the reference's result (None where the blade
+    misses, and then the op raises the same)."""
     want = reference(elements, num_nodes, x, blade, removed, slit)
+    near = near_mask(elements, x, blade, removed, slit)
     if want is None:
         with pytest.raises(MeshError, match="crosses no interior face"):
             ops_cutting.cut_mesh(elements, num_nodes, x, blade, removed, slit)
+        with pytest.raises(MeshError, match="crosses no interior face"):
+            ops_cutting.cut_mesh(elements, num_nodes, x, blade, removed, slit, alive=near)
         return None
     got = ops_cutting.cut_mesh(elements, num_nodes, x, blade, removed, slit)
     assert_same(got, want)
     assert got.elements.dtype == elements.dtype
+    assert_same(ops_cutting.cut_mesh(elements, num_nodes, x, blade, removed, slit, alive=near), want)
     return want
 
 
@@ -231,6 +242,11 @@ def test_the_sofa_beam_strip_equals_the_reference():
     blade = cutting.Blade.swept((9.55, 8.0, -3), (9.55, 8.0, 3), (9.55, 7.73, -3), (9.55, 7.73, 3))
     want = check(mesh.elements, mesh.num_vertices, mesh.vertices, blade)
     assert want is not None and want.cut_first.numel() > 10
+    near = ops_cutting.near_elements(mesh.elements, mesh.vertices, blade)
+    assert int(near.sum()) < mesh.elements.shape[0] // 20  # the host pass reads a few elements
+    # the reference (no extension) takes the same mask
+    assert_same(ops_cutting.cut_mesh(mesh.elements, mesh.num_vertices, mesh.vertices, blade, alive=near,
+                                     native=False), want)
 
 
 def test_the_result_does_not_depend_on_the_number_of_threads():
@@ -338,6 +354,9 @@ def test_cut_mesh_refuses_positions_of_the_wrong_shape():
     for x in (mesh.vertices[:, :2], mesh.vertices[:-1]):
         with pytest.raises(MeshError, match=r"positions must be \[96, 3\]"):
             ops_cutting.cut_mesh(mesh.elements, mesh.num_vertices, x, plane_blade(0.51))
+    alive = torch.ones(mesh.elements.shape[0] - 1, dtype=torch.bool)
+    with pytest.raises(MeshError, match=r"alive must be \[%d\]" % mesh.elements.shape[0]):
+        ops_cutting.cut_mesh(mesh.elements, mesh.num_vertices, mesh.vertices, plane_blade(0.51), alive=alive)
 
 
 def test_opcheck_on_the_example():
