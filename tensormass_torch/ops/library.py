@@ -98,6 +98,7 @@ REGISTRY: Dict[str, OpDef] = {}
 _lock = threading.RLock()
 _registered = set()
 _family_registrations = []
+_registered_families = -1  # len(_family_registrations) when available() last registered them all
 
 
 def op(name: str):
@@ -187,13 +188,19 @@ def _import_families() -> None:
 
 
 def available() -> bool:
-    """Whether the ops are defined (the extension is loaded) and every family registered."""
+    """Whether the ops are defined (the extension is loaded) and every family registered. Every
+    op call asks: once each family is imported and registered (their count unchanged since), it
+    answers without importing them again (some 20 module lookups, ~0.1 ms an eager op call)."""
+    global _registered_families
     if not _ops_defined():
         return False
+    if _registered_families == len(_family_registrations):
+        return True
     with _lock:
         _import_families()
         for family_register in _family_registrations:
             family_register()
+        _registered_families = len(_family_registrations)
     return True
 
 
