@@ -9,7 +9,9 @@ pyvista is imported only when something is rendered, so the package imports with
 
 A *panel* is one sub-view: a list of ``(mesh, positions)`` pairs drawn together (``positions``
 ``[V, 3]`` or ``[V, 2]``, a tensor or an array; ``None`` draws the rest shape). Panels are laid
-side by side and share one camera, so their scales compare.
+side by side and share one camera, so their scales compare. Rigid tools are drawn translucent
+in ``TOOL_COLOR`` (``tools=``; ``simulator_tools(sim)`` gives a simulator's, from
+``app.shapes``).
 
 Headless Linux (no X server, no xvfb): the pip ``vtk`` wheels (9.4 and later) choose their
 OpenGL window at run time, trying X11, then EGL, then OSMesa. Without a ``DISPLAY`` this module
@@ -29,11 +31,13 @@ import torch
 
 from ..errors import SceneError
 from ..mesh.topology import boundary_faces
+from .shapes import TOOL_COLOR, tool_surface
 
 #: Colours of the deformed entries of a panel, in order (rest shapes are drawn in REST_COLOR).
 PALETTE = ("#4878cf", "#d65f5f", "#6acc65", "#b47cc7", "#c4ad66", "#77bedb")
 REST_COLOR = "#b0b0b0"
 REST_OPACITY = 0.35
+TOOL_OPACITY = 0.6
 CAMERAS = ("iso", "xy", "xz", "yz")
 INSTALL_HINT = "pip install pyvista   (or: pip install -e '.[render]')"
 
@@ -80,6 +84,43 @@ def _surface(pv, mesh, positions):
     tri = triangles.numpy()
     faces = np.concatenate([np.full((tri.shape[0], 1), 3, dtype=np.int64), tri], axis=1).ravel()
     return pv.PolyData(_as_points(mesh, positions), faces)
+
+
+def _tool_surfaces(pv, tools, num_panels: int, what: str = "tools"):
+    """pyvista PolyData of ``tools`` (None, or one list per panel of ``(vertices [K, 3], triangles
+    [F, 3])`` in world coordinates), one list per panel; SceneError naming a malformed one."""
+    if tools is None:
+        return [[] for _ in range(num_panels)]
+    if not isinstance(tools, (list, tuple)) or len(tools) != num_panels:
+        raise SceneError(f"{what} must be one list of (vertices, triangles) per panel ({num_panels}), got "
+                         f"{type(tools).__name__}{'' if not isinstance(tools, (list, tuple)) else f' of {len(tools)}'}")
+    drawn = []
+    for i, panel in enumerate(tools):
+        row = []
+        for j, item in enumerate(panel):
+            where = f"{what}[{i}][{j}]"
+            if not (isinstance(item, (list, tuple)) and len(item) == 2):
+                raise SceneError(f"{where} must be a (vertices [K, 3], triangles [F, 3]) pair")
+            points = np.asarray(torch.as_tensor(item[0]).detach().cpu(), dtype=np.float64)
+            faces = np.asarray(torch.as_tensor(item[1]).detach().cpu())
+            if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
+                raise SceneError(f"{where}: vertices must be [K, 3] and finite, got shape {points.shape}")
+            if (faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0
+                    or not np.issubdtype(faces.dtype, np.integer) or faces.min() < 0 or faces.max() >= len(points)):
+                raise SceneError(f"{where}: triangles must be [F >= 1, 3] integer ids of its {len(points)} vertices")
+            cells = np.concatenate([np.full((faces.shape[0], 1), 3, dtype=np.int64), faces.astype(np.int64)], axis=1)
+            row.append(pv.PolyData(points, cells.ravel()))
+        drawn.append(row)
+    return drawn
+
+
+def simulator_tools(simulator) -> list:
+    """The tools of ``simulator`` where they are now, as :func:`render_png` takes them for one
+    panel: ``[(vertices [K, 3], triangles [F, 3]), ...]`` (empty without tools)."""
+    if simulator.tools is None:
+        return []
+    return [(vertices + np.asarray(simulator.tools.origin_at(k, simulator.time)), faces)
+            for k, (vertices, faces) in enumerate(tool_surface(tool) for tool in simulator.tools.tools)]
 
 
 def _check_panels(panels, what: str = "panels"):
@@ -136,8 +177,10 @@ def _surfaces_of(pv, panels):
     return [[_surface(pv, mesh, positions) for mesh, positions in panel] for panel in panels]
 
 
-def _draw(pv, panels, surfaces, bounds, *, window_size, labels, colors, camera, show_edges, zoom) -> np.ndarray:
-    """Render one picture; returns its pixels ``[H, W, 3]`` uint8."""
+def _draw(pv, panels, surfaces, bounds, *, window_size, labels, colors, camera, show_edges, zoom,
+          tools=None) -> np.ndarray:
+    """Render one picture (``tools``: the tools' PolyData per panel, or None); returns its pixels
+    ``[H, W, 3]`` uint8."""
     plotter = pv.Plotter(off_screen=True, shape=(1, len(panels)), window_size=list(window_size),
                          border=False)
     try:
@@ -149,6 +192,8 @@ def _draw(pv, panels, surfaces, bounds, *, window_size, labels, colors, camera, 
                 plotter.add_mesh(surface, color=color, show_edges=show_edges and not rest,
                                  edge_color="#303030", line_width=0.5,
                                  opacity=REST_OPACITY if rest else 1.0, smooth_shading=False)
+            for shape in (tools[i] if tools is not None else ()):
+                plotter.add_mesh(shape, color=TOOL_COLOR, opacity=TOOL_OPACITY, smooth_shading=True)
             if labels is not None and i < len(labels) and labels[i]:
                 plotter.add_text(str(labels[i]), position="upper_edge", font_size=12, color="black")
         if len(panels) > 1:
@@ -171,7 +216,7 @@ def _check_zoom(zoom):
 
 
 def render_png(path, panels, *, window_size=(1200, 500), labels: Optional[Sequence[str]] = None,
-               colors=None, camera="iso", show_edges: bool = True, zoom: float = 1.0) -> Path:
+               colors=None, camera="iso", show_edges: bool = True, zoom: float = 1.0, tools=None) -> Path:
     """Render ``panels`` side by side into the PNG file ``path``; returns its Path.
 
     Args:
@@ -187,19 +232,24 @@ def render_png(path, panels, *, window_size=(1200, 500), labels: Optional[Sequen
             position ``[(position), (focal point), (view up)]``; zoomed to fit every panel.
         show_edges: draw element edges on deformed surfaces.
         zoom: magnification after the camera is fitted (> 1 fills more of each panel).
+        tools: rigid tools to draw too (translucent, in ``TOOL_COLOR``): None, or one list per
+            panel of ``(vertices [K, 3], triangles [F, 3])`` in world coordinates
+            (:func:`simulator_tools` gives a simulator's, where they are now).
 
     Raises:
         ImportError: pyvista is not installed (the message says how to install it).
-        SceneError: malformed panels, positions of the wrong shape or non-finite, a bad camera.
+        SceneError: malformed panels or tools, positions of the wrong shape or non-finite, a bad
+            camera.
     """
     _check_panels(panels)
     _check_window(window_size)
     _check_zoom(zoom)
     pv = _pyvista()
     surfaces = _surfaces_of(pv, panels)
-    image = _draw(pv, panels, surfaces, _bounds([s for row in surfaces for s in row]),
+    shapes = _tool_surfaces(pv, tools, len(panels))
+    image = _draw(pv, panels, surfaces, _bounds([s for row in surfaces + shapes for s in row]),
                   window_size=window_size, labels=labels, colors=colors, camera=camera, show_edges=show_edges,
-                  zoom=zoom)
+                  zoom=zoom, tools=shapes)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     _image_module().fromarray(image).save(path, optimize=True)
@@ -216,12 +266,13 @@ def _image_module():
 
 def render_gif(path, frames, *, fps: float = 10.0, window_size=(1200, 500),
                labels: Optional[Sequence[str]] = None, colors=None, camera="iso",
-               show_edges: bool = True, zoom: float = 1.0) -> Path:
+               show_edges: bool = True, zoom: float = 1.0, tools=None) -> Path:
     """Render a sequence of ``frames`` (each a list of panels, as :func:`render_png` takes) into
     an animated GIF ``path`` that loops; returns its Path.
 
     The camera is fitted once to every frame's bounds, so the view holds still while the bodies
-    move. Options as :func:`render_png`; ``fps`` frames per second (> 0).
+    move. Options as :func:`render_png`; ``fps`` frames per second (> 0); ``tools``: None, or
+    one entry per frame, each as :func:`render_png`'s ``tools``.
     """
     if not isinstance(frames, (list, tuple)) or not frames:
         raise SceneError("frames must be a non-empty list, each frame a list of panels")
@@ -233,12 +284,18 @@ def render_gif(path, frames, *, fps: float = 10.0, window_size=(1200, 500),
     _check_zoom(zoom)
     pv = _pyvista()
     Image = _image_module()
+    if tools is not None and (not isinstance(tools, (list, tuple)) or len(tools) != len(frames)):
+        raise SceneError(f"tools must be one entry per frame ({len(frames)}), got {type(tools).__name__}"
+                         f"{'' if not isinstance(tools, (list, tuple)) else f' of {len(tools)}'}")
     all_surfaces = [_surfaces_of(pv, panels) for panels in frames]
-    bounds = _bounds([s for surfaces in all_surfaces for row in surfaces for s in row])
+    all_shapes = [_tool_surfaces(pv, None if tools is None else tools[k], len(panels), f"tools[{k}]")
+                  for k, panels in enumerate(frames)]
+    bounds = _bounds([s for surfaces, shapes in zip(all_surfaces, all_shapes) for row in surfaces + shapes
+                      for s in row])
     images = [Image.fromarray(_draw(pv, panels, surfaces, bounds, window_size=window_size, labels=labels,
-                                    colors=colors, camera=camera, show_edges=show_edges, zoom=zoom))
+                                    colors=colors, camera=camera, show_edges=show_edges, zoom=zoom, tools=shapes))
               .convert("P", palette=Image.ADAPTIVE, colors=255)
-              for panels, surfaces in zip(frames, all_surfaces)]
+              for panels, surfaces, shapes in zip(frames, all_surfaces, all_shapes)]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(1000.0 / fps)), loop=0,
@@ -249,8 +306,9 @@ def render_gif(path, frames, *, fps: float = 10.0, window_size=(1200, 500),
 class FrameRenderer:
     """Off-screen pictures of the frames: ``<out>/<name>_<frame>.png`` and/or ``<out>/<name>.gif``.
 
-    Every body of the simulator is drawn in one view. PNGs are written as frames arrive; the GIF
-    is written by :meth:`close` from the positions kept for each frame (CPU copies ``[V_i, 3]``).
+    Every body of the simulator is drawn in one view, with its tools where they are
+    (:func:`simulator_tools`). PNGs are written as frames arrive; the GIF is written by
+    :meth:`close` from the positions kept for each frame (CPU copies ``[V_i, 3]``).
     pyvista is imported at construction, so a missing pyvista fails before any frame is
     simulated or written.
     """
@@ -265,6 +323,7 @@ class FrameRenderer:
         self.fps = fps
         self.frame = 0
         self.frames: List[list] = []
+        self.frame_tools: List[list] = []
         self.files: List[Path] = []
 
     def _panels(self, simulator) -> list:
@@ -272,19 +331,20 @@ class FrameRenderer:
                  for i in range(simulator.num_bodies)]]
 
     def write(self, simulator) -> None:
-        """Draw the current state of every body of ``simulator``."""
-        panels = self._panels(simulator)
+        """Draw the current state of every body of ``simulator``, and its tools where they are."""
+        panels, tools = self._panels(simulator), [simulator_tools(simulator)]
         if self.png:
             file = self.out_dir / f"{self.name}_{self.frame:05d}.png"
-            self.files.append(render_png(file, panels, window_size=self.window_size))
+            self.files.append(render_png(file, panels, window_size=self.window_size, tools=tools))
         if self.gif:
             self.frames.append(panels)
+            self.frame_tools.append(tools)
         self.frame += 1
 
     def close(self) -> None:
         """Write the GIF of every frame drawn so far (if asked for)."""
         if self.gif and self.frames:
             file = self.out_dir / f"{self.name}.gif"
-            self.files.append(render_gif(file, self.frames, fps=self.fps,
-                                                       window_size=self.window_size))
-            self.frames = []
+            self.files.append(render_gif(file, self.frames, fps=self.fps, window_size=self.window_size,
+                                         tools=self.frame_tools))
+            self.frames, self.frame_tools = [], []

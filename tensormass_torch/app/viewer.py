@@ -43,11 +43,11 @@ from ..errors import SceneError, SolverError, TensorMassError
 from ..mesh.cutting import Blade
 from ..mesh.geometry import shape_vectors
 from ..mesh.topology import boundary_faces
+from .shapes import TOOL_RGB, tool_surface
 
 INSTALL_HINT = "pip install viser   (or: pip install -e '.[viewer]')"
 COLORINGS = ("displacement", "stress", "none")
 BODY_COLOR = (72, 120, 207)
-TOOL_COLOR = (214, 95, 95)
 #: frames a second the adaptive batch of steps aims at
 FRAME_RATE = 30.0
 #: the most steps one frame takes (a chain on a GPU)
@@ -613,28 +613,12 @@ class Viewer:
         self._tool_handles = []
         if sim.tools is None:
             return
-        import trimesh
-
         for k, tool in enumerate(sim.tools.tools):
             origin = np.array(sim.tools.origin_at(k, sim.time))
             gizmo = server.scene.add_transform_controls(f"/tools/{k}", scale=0.3 * self._scene_size,
                                                         disable_rotations=True, position=tuple(origin))
-            rotation = np.array(tool.rotation, dtype=np.float64)
-            if tool.shape == "sphere":
-                shape = trimesh.creation.icosphere(subdivisions=3, radius=tool.size[0])
-            elif tool.shape == "capsule":
-                shape = trimesh.creation.capsule(height=2 * tool.size[1], radius=tool.size[0])
-                turn = np.array([[0, 0, 1.0], [0, 1.0, 0], [-1.0, 0, 0]])  # its z axis along the tool's first
-                shape.vertices = shape.vertices @ (rotation @ turn).T
-            elif tool.shape == "box":
-                shape = trimesh.creation.box(extents=2 * np.array(tool.size))
-                shape.vertices = shape.vertices @ rotation.T
-            else:  # a mesh tool: its grid's box
-                grid = tool.grid
-                shape = trimesh.creation.box(extents=np.asarray(grid.upper.cpu() - grid.lower.cpu()))
-                shape.vertices = (shape.vertices + np.asarray((grid.upper.cpu() + grid.lower.cpu()) / 2)) @ rotation.T
-            server.scene.add_mesh_simple(f"/tools/{k}/shape", shape.vertices, shape.faces, color=TOOL_COLOR,
-                                         opacity=0.6)
+            vertices, faces = tool_surface(tool)  # the pictures' shapes (app.shapes), about the gizmo
+            server.scene.add_mesh_simple(f"/tools/{k}/shape", vertices, faces, color=TOOL_RGB, opacity=0.6)
 
             @gizmo.on_update
             def _(event, k=k, gizmo=gizmo):

@@ -97,6 +97,8 @@ class Tool:
         friction_velocity: eps_v (m/s), the slip speed below which friction is viscous.
         grid: a mesh tool's ``mesh.distance.SignedDistanceGrid`` in its own frame (None for the
             other shapes).
+        surface: a mesh tool's triangles in its own frame, ``(vertices [K, 3] float64, triangles
+            [F, 3] int64)`` on the CPU, kept to draw it (None for the other shapes).
     """
 
     shape: str
@@ -113,6 +115,7 @@ class Tool:
     friction: float = 0.0
     friction_velocity: float = 1e-3
     grid: Optional[SignedDistanceGrid] = field(default=None, compare=False, repr=False)
+    surface: Optional[Tuple[torch.Tensor, torch.Tensor]] = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.shape not in SHAPES:
@@ -250,8 +253,10 @@ def MeshTool(surface, position=(0.0, 0.0, 0.0), rotation=None, stiffness: float 
         raise MeshError(f"{what}: {exc}") from None
     grid = signed_distance_grid(vertices, triangles, resolution=resolution, spacing=spacing, margin=thickness,
                                 device=device, what=what)
+    surface = (torch.as_tensor(vertices).detach().to("cpu", torch.float64),
+               torch.as_tensor(triangles).detach().to("cpu", torch.int64))
     return Tool("mesh", (), stiffness, thickness, position, _rotation(rotation), times, positions, motion, name,
-                tangent, friction, friction_velocity, grid)
+                tangent, friction, friction_velocity, grid, surface)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -90,6 +90,60 @@ def test_bad_input_is_named(tmp_path):
         render.render_png(tmp_path / "x.png", [])
 
 
+def tool_colored(pixels) -> np.ndarray:
+    """Pixels of the tools' red (TOOL_COLOR #d65f5f, translucent over white or the blue body)."""
+    p = pixels.astype(int)
+    return (p[..., 0] > 100) & (p[..., 0] - p[..., 1] > 40) & (p[..., 0] - p[..., 2] > 40)
+
+
+def test_tools_are_drawn_where_they_are(tmp_path):
+    from tensormass_torch.app.shapes import tool_surface
+
+    mesh = tm.beam_mesh(4, 2, 2, size=(1.0, 0.5, 0.5))
+    vertices, faces = tool_surface(tm.Sphere(0.2))
+    blank = render.render_png(tmp_path / "none.png", [[(mesh, mesh.vertices)]], window_size=(300, 200),
+                              camera="xz", show_edges=False)
+    for where, half in (((0.2, -0.4, 0.25), slice(0, 150)), ((0.8, -0.4, 0.25), slice(150, 300))):
+        path = render.render_png(tmp_path / "tool.png", [[(mesh, mesh.vertices)]], window_size=(300, 200),
+                                 camera="xz", show_edges=False,
+                                 tools=[[(vertices + np.asarray(where), faces)]])
+        red = tool_colored(np.asarray(Image.open(path).convert("RGB")))
+        assert red[:, half].mean() > 0.02 and red.sum() > 4 * red[:, half].sum() / 5  # on its side
+    assert not tool_colored(np.asarray(Image.open(blank).convert("RGB"))).any()
+
+
+def test_bad_tools_are_named(tmp_path):
+    mesh = tm.beam_mesh(2, 1, 1)
+    box = (np.zeros((4, 3)), np.array([[0, 1, 2]]))
+    for tools, message in (([box], r"one list of \(vertices, triangles\) per panel \(2\)"),
+                           ([[(np.zeros((4, 2)), box[1])], []], r"tools\[0\]\[0\]: vertices must be \[K, 3\]"),
+                           ([[(box[0], np.array([[0, 1, 9]]))], []], r"triangles must be .* ids of its 4 vertices"),
+                           ([[box[0]], []], r"tools\[0\]\[0\] must be a")):
+        with pytest.raises(tm.SceneError, match=message):
+            render.render_png(tmp_path / "x.png", [[(mesh, None)], [(mesh, None)]], window_size=(64, 64),
+                              tools=tools)
+    with pytest.raises(tm.SceneError, match=r"tools must be one entry per frame \(1\)"):
+        render.render_gif(tmp_path / "x.gif", [[[(mesh, None)]]], window_size=(64, 64), tools=[[], []])
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "x.gif").exists()
+
+
+def test_the_frames_of_a_simulator_show_its_tools(tmp_path):
+    block = tm.beam_mesh(4, 4, 2, size=(0.4, 0.4, 0.2), origin=(-0.2, -0.2, 0.0))
+    sphere = tm.Sphere(0.1, times=[0.0, 1.0], positions=[[0.0, 0.0, 0.35], [0.0, 0.0, 0.3]])
+    sim = tm.Simulator([tm.Body(block, tm.Material(young=5e4, poisson=0.3, density=500.0))], dt=0.01,
+                       tools=[sphere], planes=[tm.Plane((0, 0, 1), 0.0, 1e5)])
+    frames = render.FrameRenderer(tmp_path, "press", png=True, gif=True, window_size=(240, 180))
+    frames.write(sim)
+    sim.step(2)
+    frames.write(sim)
+    frames.close()
+    assert [f.name for f in frames.files] == ["press_00000.png", "press_00001.png", "press.gif"]
+    for file in frames.files[:2]:
+        assert tool_colored(np.asarray(Image.open(file).convert("RGB"))).mean() > 0.005
+    tools = render.simulator_tools(sim)
+    assert len(tools) == 1 and np.allclose(tools[0][0].mean(0), sim.tools.origin_at(0, sim.time), atol=1e-9)
+
+
 def test_missing_pyvista_says_how_to_install(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "pyvista", None)  # makes `import pyvista` raise ImportError
     mesh = tm.beam_mesh(2, 1, 1)
