@@ -36,6 +36,7 @@ from . import cg as cg_family
 from . import library
 from .gather import system_epilogue
 from .library import OpDef, contiguous, model_name, plan_indices, slot_mask, supports, unchanged, wants_grad
+from .topology import upload
 from .reference import corotational, stress_form
 from .stress import stress_args
 from .variants import DEFAULT, KernelVariants
@@ -491,6 +492,8 @@ def _tangent_edge_graph(group):
     if unchanged(cache, (elements,)):
         return cache[2]
     graph = _built_tangent_graph(group)
+    group.__dict__["_tangent_edges_used"] = graph.edges.shape[0]  # the pool's first row, past them
+    group.__dict__.pop("_tangent_host", None)
     if group.reserved_slots:  # room for cuts, written in place (tangent_topology_changed)
         graph = _padded_edge_graph(graph, graph.plan.num_slots + group.reserved_slots,
                                    graph.edges.shape[0] + group.reserved_edges, graph.num_edge_slots)
@@ -539,22 +542,218 @@ def _padded_edge_graph(graph, num_slots: int, num_edges: int, num_edge_slots: in
                        rows_after(graph.slot_edge, extra_slots, 0))
 
 
+def _tangent_host(group, graph) -> dict:
+    """The integer tables of the cached tangent ``graph`` a cut edits, on the host, by name (the
+    graph's own where the group's cuts are planned on its own tables, copies where they are
+    planned on copies: an accelerator; made at the first cut with one device read and kept equal
+    by each cut), with ``members [S_e, Ed]`` (each edge's (row * P + pair) ids by
+    rank, -1 past its count) and ``used`` (the edge rows in use: the pool starts there)."""
+    host = group.__dict__.get("_tangent_host")
+    if host is not None and host["graph"] is graph:
+        return host
+    plan = graph.plan
+    # copies where the group's cuts are planned on copies (an accelerator; the tests' "host copies")
+    copy = (lambda t: t.to("cpu", copy=True)) if group._plans_on_a_copy() else (lambda t: t)
+    host = {"graph": graph, "edges": copy(graph.edges), "element_edges": copy(graph.element_edges),
+            "edge_slots": copy(graph.edge_slots), "edge_counts": copy(graph.edge_counts), "index": copy(plan.index),
+            "force_index": copy(plan.force_index), "incidences": copy(plan.incidences),
+            "slot_edge": copy(graph.slot_edge), "used": group.__dict__["_tangent_edges_used"]}
+    members = torch.full((graph.num_edge_slots, host["edges"].shape[0]), -1, dtype=torch.long)
+    members[host["edge_slots"].reshape(-1).long(), host["element_edges"].reshape(-1).long()] = \
+        torch.arange(host["element_edges"].numel())
+    host["members"] = members
+    group.__dict__["_tangent_host"] = host
+    return host
+
+
+def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
+    """The cached tangent ``graph`` (and its ``neighbor [N_n, V]``, node order) edited in place for
+    the cut ``(rows [M] ascending, old nodes [M, n], new nodes [M, n])`` (host tensors; the
+    group's elements already re-pointed), planned on the host tables (:func:`_tangent_host`).
+    Where a pair of a row changes nodes, it leaves its edge (the members after it move down a
+    rank, as a build from the new elements ranks them) and joins a new edge from the pool (a
+    changed pair holds a new node, which had no edge: the members of a new edge are ranked in
+    (row, pair) order, as a build ranks them); an edge left with no member leaves its nodes'
+    lists and becomes a pool-like zero row (0, 0) in node 0's sink slot. The lists of the nodes
+    those edges touch are written again: kept edges in their order, then the new ones. Per-edge
+    sums are then a build's, bitwise; the node lists hold the same edges in another order (the
+    products agree to rounding). Returns the nodes whose lists were written (int64, on the graph's
+    device), or None, having changed nothing, where there is no room (edge rows, slots a node,
+    elements an edge) or a new edge's nodes already have one."""
+    rows, old, new = (t.to("cpu") for t in cut)
+    host = _tangent_host(group, graph)
+    n = old.shape[1]
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]  # unique_edges' local pairs
+    num_pairs = len(pairs)
+    first, second = (torch.tensor([p[k] for p in pairs]) for k in (0, 1))
+    old_low, old_high = torch.minimum(old[:, first], old[:, second]).long(), torch.maximum(old[:, first],
+                                                                                            old[:, second]).long()
+    new_low, new_high = torch.minimum(new[:, first], new[:, second]).long(), torch.maximum(new[:, first],
+                                                                                            new[:, second]).long()
+    moved = (old_low != new_low) | (old_high != new_high)  # [M, P]
+    at_row, at_pair = torch.nonzero(moved, as_tuple=True)  # in (row, pair) order: rows ascend
+    if at_row.numel() == 0:
+        return torch.zeros(0, dtype=torch.long, device=neighbor.device)
+    flat = rows.long()[at_row] * num_pairs + at_pair  # the moved members, ascending
+    element_edges, edge_slots = host["element_edges"].view(-1), host["edge_slots"].view(-1)
+    members, index = host["members"], host["index"]
+    num_slots, num_nodes, sink = graph.plan.num_slots, graph.plan.num_nodes, graph.plan.num_slots - 1
+
+    # leave: the old edges' members that stay, compacted in rank order
+    left = torch.unique(element_edges[flat].long())
+    columns = members[:, left]  # [S_e, L]
+    leaving = torch.zeros(element_edges.numel() + 1, dtype=torch.bool)
+    leaving[flat] = True
+    keep = (columns >= 0) & ~leaving[columns]  # (-1 reads the last flag: False)
+    kept_rank = keep.long().cumsum(0) - 1
+    left_counts = keep.sum(0)
+    emptied = left[left_counts == 0]
+
+    # join: the new edges, keyed (low, high), numbered from the pool in key order
+    keys = new_low[at_row, at_pair] * num_nodes + new_high[at_row, at_pair]
+    unique_keys, which, new_counts = torch.unique(keys, return_inverse=True, return_counts=True)
+    used = host["used"]
+    new_ids = used + torch.arange(unique_keys.numel())
+    if used + unique_keys.numel() > index.shape[0] or int(new_counts.max()) > graph.num_edge_slots:
+        return None
+    ends = torch.stack([unique_keys // num_nodes, unique_keys % num_nodes], 1)  # [K, 2]
+    order = torch.sort(which, stable=True).indices
+    new_rank = torch.empty_like(which)
+    new_rank[order] = torch.arange(which.numel()) - (new_counts.cumsum(0) - new_counts)[which[order]]
+
+    # the lists of the nodes those edges touch: kept edges in slot order, then the new ones
+    nodes = torch.unique(torch.cat([index[emptied].reshape(-1).long(), ends.reshape(-1)]))
+    codes = host["slot_edge"][:, nodes].long()  # [N_n, A]
+    counts = host["incidences"][nodes].long()
+    listed = torch.arange(num_slots)[:, None] < counts[None, :]
+    edge_of = torch.where(codes >= 0, codes, -codes - 1)
+    # a new edge's nodes must have no edge between them yet (a node reused, not a fresh one)
+    other = torch.where(codes >= 0, index[edge_of, 1].long(), index[edge_of, 0].long())
+    column = torch.searchsorted(nodes, ends)  # [K, 2]
+    for end in (0, 1):
+        if bool((listed[:, column[:, end]] & (other[:, column[:, end]] == ends[:, 1 - end][None, :])).any()):
+            return None
+    stays = listed & ~torch.isin(edge_of, emptied)
+    slot_of_kept = stays.long().cumsum(0) - 1
+    kept_per_node = stays.sum(0)
+    joined = torch.cat([column[:, 0], column[:, 1]])  # the new edges' ends: their nodes' columns
+    joined_codes = torch.cat([new_ids, -new_ids - 1])
+    num_new = unique_keys.numel()
+    by_column = torch.argsort(joined * num_new + torch.arange(num_new).repeat(2))  # per node, in id order
+    joined_per_node = torch.bincount(joined, minlength=nodes.numel())
+    start = joined_per_node.cumsum(0) - joined_per_node
+    joined_slot = torch.empty_like(joined)
+    joined_slot[by_column] = (kept_per_node[joined[by_column]]
+                              + torch.arange(joined.numel()) - start[joined[by_column]])
+    new_incidences = kept_per_node + joined_per_node
+    if int(new_incidences.max()) > num_slots - 1:  # node 0's last slot is the sink
+        return None
+
+    # every check passed: write the host tables
+    dtype = index.dtype
+    members[:, left] = -1
+    kr, kc = torch.nonzero(keep, as_tuple=True)
+    members[kept_rank[kr, kc], left[kc]] = columns[kr, kc]
+    edge_slots[columns[kr, kc]] = kept_rank[kr, kc].to(dtype)
+    members[new_rank, new_ids[which]] = flat
+    edge_slots[flat] = new_rank.to(dtype)
+    element_edges[flat] = new_ids[which].to(dtype)
+    host["edge_counts"][left] = left_counts.to(dtype)
+    host["edge_counts"][new_ids] = new_counts.to(dtype)
+    for table in (index, host["edges"]):
+        table[new_ids] = ends.to(dtype)
+        table[emptied] = 0
+    host["force_index"][emptied] = sink
+    new_codes = torch.zeros_like(codes)
+    sr, sc = torch.nonzero(stays, as_tuple=True)
+    new_codes[slot_of_kept[sr, sc], sc] = codes[sr, sc]
+    new_codes[joined_slot, joined] = joined_codes
+    now_listed = torch.arange(num_slots)[:, None] < new_incidences[None, :]
+    lr, lc = torch.nonzero(now_listed, as_tuple=True)
+    code = new_codes[lr, lc]
+    edge = torch.where(code >= 0, code, -code - 1)
+    host["force_index"][edge, (code < 0).long()] = lr.to(dtype)
+    host["incidences"][nodes] = new_incidences.to(dtype)
+    host["slot_edge"][:, nodes] = new_codes.to(dtype)
+    host["used"] = used + unique_keys.numel()
+    neighbor_columns = torch.zeros_like(codes)
+    neighbor_columns[lr, lc] = torch.where(code >= 0, index[edge, 1].long(), index[edge, 0].long())
+
+    # the device's tensors where they are copies, then the node-order neighbours and the rows'
+    plan = graph.plan
+    if host["index"] is not plan.index:
+        changed_members = torch.cat([columns[kr, kc], flat])
+        send = upload({"members": changed_members, "slots": edge_slots[changed_members],
+                       "flat": flat, "edge_of": element_edges[flat], "count_rows": torch.cat([left, new_ids]),
+                       "counts": host["edge_counts"][torch.cat([left, new_ids])],
+                       "edge_rows": torch.cat([new_ids, emptied]), "edge_values": index[torch.cat([new_ids, emptied])],
+                       "fi_rows": torch.unique(torch.cat([edge, emptied])),
+                       "fi_values": host["force_index"][torch.unique(torch.cat([edge, emptied]))],
+                       "nodes": nodes, "incidences": new_incidences.to(dtype), "codes": new_codes.to(dtype)},
+                      plan.index.device)
+        graph.edge_slots.view(-1).index_copy_(0, send["members"].long(), send["slots"])
+        graph.element_edges.view(-1).index_copy_(0, send["flat"].long(), send["edge_of"])
+        graph.edge_counts.index_copy_(0, send["count_rows"].long(), send["counts"])
+        for table in (plan.index, graph.edges):
+            table.index_copy_(0, send["edge_rows"].long(), send["edge_values"])
+        plan.force_index.index_copy_(0, send["fi_rows"].long(), send["fi_values"])
+        plan.incidences.index_copy_(0, send["nodes"].long(), send["incidences"])
+        graph.slot_edge.index_copy_(1, send["nodes"].long(), send["codes"])
+        device_nodes = send["nodes"].long()
+    else:
+        device_nodes = nodes
+    neighbor_values = neighbor_columns.to(device=neighbor.device, dtype=neighbor.dtype)
+    neighbor.index_copy_(1, device_nodes, neighbor_values)
+    return device_nodes
+
+
+def _tangent_rows_changed(group, cached, neighbor, incidences, slot_edge, nodes: torch.Tensor) -> None:
+    """The tangent graph's arrays by rows (``_native_by_rows_tangent``) written again from the
+    node-order ones at the columns of ``nodes`` (those whose lists changed), the rows kept (a
+    layout for speed: a node's row stays where its count changed), and the caches stamped again
+    (captured CUDA graphs read this storage)."""
+    rows_cache, by_rows_cache = cached
+    if rows_cache is None or by_rows_cache is None:
+        return
+    rows, by_rows = rows_cache[2], by_rows_cache[2]
+    tensors = (neighbor, incidences, slot_edge)
+    if rows is None:  # node order: the by-rows arrays are the tensors themselves
+        group.__dict__["_native_rows_tangent"] = _stamped((incidences,), *rows_cache[2:])
+        group.__dict__["_native_by_rows_tangent"] = _stamped(tensors, *by_rows_cache[2:])
+        return
+    columns = _row_of(group, rows)[nodes].long()
+    for old, new in zip(by_rows, tensors):
+        dim = 1 if new.dim() >= 2 else 0
+        old.index_copy_(dim, columns, new.index_select(dim, nodes))
+    group.__dict__["_native_rows_tangent"] = _stamped((incidences,), *rows_cache[2:])
+    group.__dict__["_native_by_rows_tangent"] = _stamped(tensors, *by_rows_cache[2:])
+
+
 @torch.no_grad()
-def tangent_topology_changed(group) -> bool:
+def tangent_topology_changed(group, cut=None) -> bool:
     """A stress-form group's elements changed in place (a cut): its tangent graph cached on the
-    group (:func:`tangent_graph`), where there is one, built again from them and written into the
-    storage of the one cached (every tensor by node and by rows, the rows too), since captured
-    CUDA graphs read it; its sizes (slots a node, edge rows, elements an edge: launch parameters)
-    kept. Where the new graph does not fit them (no room reserved, ``reserved_slots``, or more
-    than it), the caches are dropped: built again at the next use. Returns whether they were
-    dropped (solves captured over them must be captured again)."""
+    group (:func:`tangent_graph`), where there is one, edited in place for the cut ``(rows, old
+    nodes, new nodes)`` (host tensors: :func:`_edit_tangent_graph`), or where that cannot be
+    (``cut`` None, no room) built again from the elements and written into the storage of the
+    one cached (every tensor by node and by rows, the rows too), since captured CUDA graphs read
+    it; its sizes (slots a node, edge rows, elements an edge: launch parameters) kept. Where the
+    new graph does not fit them (no room reserved, ``reserved_slots``, or more than it), the
+    caches are dropped: built again at the next use. Returns whether they were dropped (solves
+    captured over them must be captured again)."""
     names = ("_native_tangent_graph", "_native_rows_tangent", "_native_by_rows_tangent")
     cached = [group.__dict__.get(name) for name in names]
     if cached[0] is None:
         return False
     graph, neighbor, incidences = cached[0][2]
-    fresh = _padded_edge_graph(_built_tangent_graph(group), graph.plan.num_slots, graph.edges.shape[0],
-                               graph.num_edge_slots)
+    nodes = None if cut is None else _edit_tangent_graph(group, graph, neighbor, cut)
+    if nodes is not None:
+        group.__dict__[names[0]] = _stamped((group.elements,), cached[0][2])
+        _tangent_rows_changed(group, cached[1:], neighbor, incidences, graph.slot_edge, nodes)
+        return False
+    built = _built_tangent_graph(group)
+    group.__dict__["_tangent_edges_used"] = built.edges.shape[0]
+    group.__dict__.pop("_tangent_host", None)
+    fresh = _padded_edge_graph(built, graph.plan.num_slots, graph.edges.shape[0], graph.num_edge_slots)
     if fresh is None:
         for name in names:
             group.__dict__.pop(name, None)

@@ -283,8 +283,10 @@ class ElementGroup(nn.Module):
         tables = self.cut_tables()
         nodes = nodes.to(tables["elements"].dtype)
         edge_plan = self._edge_plan()
+        old_nodes = tables["elements"][rows.long()].clone()  # (the tangent graph's edit reads them)
         done, rows_used = cutting.edit_cut_tables(tables, node_slots, rows, ids, nodes, element_row, removed,
                                                   self.edge_rows_used if edge_plan else 0, self._grow_edge_pool)
+        done["old_nodes"] = old_nodes
         copy = tables["elements"] is not self.elements
         if not edge_plan:
             sends = {}
@@ -301,15 +303,19 @@ class ElementGroup(nn.Module):
         return sends, done
 
     @torch.no_grad()
-    def write_cut(self, sent: dict, rest: torch.Tensor, removed: torch.Tensor, element_row: torch.Tensor) -> bool:
+    def write_cut(self, sent: dict, rest: torch.Tensor, removed: torch.Tensor, element_row: torch.Tensor,
+                  cut: Optional[tuple] = None) -> bool:
         """The device side of a cut :meth:`edit_cut` made on the tables: ``sent`` its tensors on
         the group's device (``ops.topology.upload``; ``rest [V, d]`` already holding the new
-        nodes' rest positions, ``removed``, ``element_row``: the model's). Writes the changed
+        nodes' rest positions, ``removed``, ``element_row``: the model's; ``cut``: the host's
+        ``(rows [M], old nodes [M, n], new nodes [M, n])``, which the stress forms' tangent graph
+        is edited from, or None: built again). Writes the changed
         parts of the tables where they are copies, then the sums: the hooke tensor form's edges
         of the cut's rows (and of one alive element of each edge the cut left) summed again
         (``ops.topology.refresh_hooke_edges``; new edges' tensors grow), emptied edges zeroed,
         the node graphs cached on the group written again in place where they changed
-        (``node_graph.topology_changed``); the plans' native copies overwritten in place.
+        (``node_graph.topology_changed``, ``node_graph.tangent_topology_changed``); the plans'
+        native copies overwritten in place.
 
         Forces, products and energy are then those of a group built from the new elements (to
         rounding: edge tensors summed in another order of edges).
@@ -328,7 +334,7 @@ class ElementGroup(nn.Module):
                 self.plan.force_index.view(-1).index_copy_(0, sent["items"].long(), sent["force_index"])
                 self.plan.incidences.index_copy_(0, sent["incidence_nodes"].long(), sent["incidences"])
             library.refresh_plan_indices(self.plan)
-            if node_graph.tangent_topology_changed(self):  # dropped: built again, captured again
+            if node_graph.tangent_topology_changed(self, cut):  # dropped: built again, captured again
                 return True
             return solve.chunk_slots_grew(self)
         if copy:

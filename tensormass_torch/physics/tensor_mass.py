@@ -345,7 +345,7 @@ class TensorMass(nn.Module):
         if node_slots is not self.node_slots:
             self.node_slots.index_copy_(1, sent["slot_nodes"].long(), sent["slot_lists"])
         stale = group.write_cut({k[6:]: v for k, v in sent.items() if k.startswith("group_")}, self.rest,
-                                self.removed, self.element_row)
+                                self.removed, self.element_row, cut=(rows, done["old_nodes"], nodes))
         topology.refresh_nodes(sent["both"], sent["both_rows"], self.node_slots, self.element_share, self.removed,
                                self.mass, self.node_elements)
         return stale

@@ -126,6 +126,42 @@ def node_graph_storage(model):
             if key in g.__dict__ for t in g.__dict__[key][2] if isinstance(t, torch.Tensor)]
 
 
+def assert_tangent_graph_is_a_builds(group):
+    """The stress form's tangent graph as the cuts edited it in place (``tangent_topology_changed``
+    with the cut: not built again) holds a build's edges from the group's elements now, each with
+    a build's members in a build's ranks (its sums bitwise a build's), and each node lists a
+    build's edges (in another order), by node and by rows."""
+    from tensormass_torch.mesh.topology import EdgeGraph
+
+    assert "_tangent_host" in group.__dict__  # edited, not built again (a build drops it)
+    graph, neighbor, incidences = group.__dict__["_native_tangent_graph"][2]
+    built = EdgeGraph.build(group.elements.long().cpu(), group.num_nodes)
+    edges, counts = graph.edges.long().cpu(), graph.edge_counts.long().cpu()
+    alive = counts > 0
+    key = lambda e: (e[:, 0] * group.num_nodes + e[:, 1]).tolist()  # noqa: E731
+    assert sorted(key(edges[alive])) == key(built.edges)
+    row_of_key = dict(zip(key(edges[alive]), torch.nonzero(alive).flatten().tolist()))
+    renumber = torch.tensor([row_of_key[k] for k in key(built.edges)])  # a build's edge -> the graph's
+    assert torch.equal(counts[renumber], built.edge_counts.long())
+    assert torch.equal(graph.element_edges.long().cpu(), renumber[built.element_edges.long()])
+    assert torch.equal(graph.edge_slots.long().cpu(), built.edge_slots.long())
+    used = torch.arange(neighbor.shape[0])[:, None] < incidences.long().cpu()[None, :]
+    assert torch.equal(incidences.long().cpu(), built.plan.incidences.long())
+    fresh_neighbor = torch.zeros_like(built.slot_edge)
+    code = built.slot_edge
+    edge = torch.where(code >= 0, code, -code - 1)
+    fresh_neighbor = torch.where(code >= 0, built.edges[edge, 1], built.edges[edge, 0])
+    fresh_used = torch.arange(fresh_neighbor.shape[0])[:, None] < built.plan.incidences[None, :]
+    for node in range(group.num_nodes):  # the same neighbours, in another order
+        assert sorted(neighbor.cpu()[used[:, node], node].tolist()) == sorted(fresh_neighbor[fresh_used[:, node],
+                                                                                             node].tolist())
+    rows_cache = group.__dict__.get("_native_by_rows_tangent")
+    if rows_cache is not None and rows_cache[3] is not None:
+        rows = rows_cache[3].long()
+        for by_rows, tensor in zip(rows_cache[2], (neighbor, incidences, graph.slot_edge)):
+            assert torch.equal(by_rows, tensor.index_select(1 if tensor.dim() >= 2 else 0, rows))
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("scene", SCENES)
 def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(device, planned_on, scene):
@@ -181,6 +217,9 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
             torch.testing.assert_close(sim.velocities(i), fresh.velocities(i), rtol=1e-12, atol=1e-12)
     # the node graphs (hooke, tangent) written in place, not built again
     assert graphs and node_graph_storage(model) == graphs
+    for group in model.groups:
+        if "_native_tangent_graph" in group.__dict__:
+            assert_tangent_graph_is_a_builds(group)
     if scene == "hooke":
         group = model.groups[0]  # its node graph as cached (by rows), as one built from its edges now
         cache = group.__dict__["_native_hooke_graph"]  # (what the steps read, not a graph built now)
