@@ -36,7 +36,6 @@ from . import cg as cg_family
 from . import library
 from .gather import system_epilogue
 from .library import OpDef, contiguous, model_name, plan_indices, slot_mask, supports, unchanged, wants_grad
-from .topology import upload
 from .reference import corotational, stress_form
 from .stress import stress_args
 from .variants import DEFAULT, KernelVariants
@@ -543,33 +542,28 @@ def _padded_edge_graph(graph, num_slots: int, num_edges: int, num_edge_slots: in
 
 
 def _tangent_host(group, graph) -> dict:
-    """The integer tables of the cached tangent ``graph`` a cut edits, on the host, by name (the
-    graph's own where the group's cuts are planned on its own tables, copies where they are
-    planned on copies: an accelerator; made at the first cut with one device read and kept equal
-    by each cut), with ``members [S_e, Ed]`` (each edge's (row * P + pair) ids by
-    rank, -1 past its count) and ``used`` (the edge rows in use: the pool starts there)."""
+    """The integer tables of the cached tangent ``graph`` (on the CPU) a cut edits, by name, with
+    ``members [S_e, Ed]`` (each edge's (row * P + pair) ids by rank, -1 past its count; made at
+    the first cut) and ``used`` (the edge rows in use: the pool starts there)."""
     host = group.__dict__.get("_tangent_host")
     if host is not None and host["graph"] is graph:
         return host
     plan = graph.plan
-    # copies where the group's cuts are planned on copies (an accelerator; the tests' "host copies")
-    copy = (lambda t: t.to("cpu", copy=True)) if group._plans_on_a_copy() else (lambda t: t)
-    host = {"graph": graph, "edges": copy(graph.edges), "element_edges": copy(graph.element_edges),
-            "edge_slots": copy(graph.edge_slots), "edge_counts": copy(graph.edge_counts), "index": copy(plan.index),
-            "force_index": copy(plan.force_index), "incidences": copy(plan.incidences),
-            "slot_edge": copy(graph.slot_edge), "used": group.__dict__["_tangent_edges_used"]}
-    members = torch.full((graph.num_edge_slots, host["edges"].shape[0]), -1, dtype=torch.long)
-    members[host["edge_slots"].reshape(-1).long(), host["element_edges"].reshape(-1).long()] = \
-        torch.arange(host["element_edges"].numel())
+    host = {"graph": graph, "edges": graph.edges, "element_edges": graph.element_edges, "edge_slots": graph.edge_slots,
+            "edge_counts": graph.edge_counts, "index": plan.index, "force_index": plan.force_index,
+            "incidences": plan.incidences, "slot_edge": graph.slot_edge, "used": group.__dict__["_tangent_edges_used"]}
+    members = torch.full((graph.num_edge_slots, graph.edges.shape[0]), -1, dtype=torch.long)
+    members[graph.edge_slots.reshape(-1).long(), graph.element_edges.reshape(-1).long()] = \
+        torch.arange(graph.element_edges.numel())
     host["members"] = members
     group.__dict__["_tangent_host"] = host
     return host
 
 
 def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
-    """The cached tangent ``graph`` (and its ``neighbor [N_n, V]``, node order) edited in place for
-    the cut ``(rows [M] ascending, old nodes [M, n], new nodes [M, n])`` (host tensors; the
-    group's elements already re-pointed), planned on the host tables (:func:`_tangent_host`).
+    """The cached tangent ``graph`` on the CPU (and its ``neighbor [N_n, V]``, node order) edited
+    in place for the cut ``(rows [M] ascending, old nodes [M, n], new nodes [M, n])`` (the group's
+    elements already re-pointed; :func:`_tangent_host` adds the edges' member lists).
     Where a pair of a row changes nodes, it leaves its edge (the members after it move down a
     rank, as a build from the new elements ranks them) and joins a new edge from the pool (a
     changed pair holds a new node, which had no edge: the members of a new edge are ranked in
@@ -577,10 +571,10 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     lists and becomes a pool-like zero row (0, 0) in node 0's sink slot. The lists of the nodes
     those edges touch are written again: kept edges in their order, then the new ones. Per-edge
     sums are then a build's, bitwise; the node lists hold the same edges in another order (the
-    products agree to rounding). Returns the nodes whose lists were written (int64, on the graph's
-    device), or None, having changed nothing, where there is no room (edge rows, slots a node,
-    elements an edge) or a new edge's nodes already have one."""
-    rows, old, new = (t.to("cpu") for t in cut)
+    products agree to rounding). Returns the nodes whose lists were written (int64), or None,
+    having changed nothing, where there is no room (edge rows, slots a node, elements an edge) or
+    a new edge's nodes already have one."""
+    rows, old, new = cut
     host = _tangent_host(group, graph)
     n = old.shape[1]
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]  # unique_edges' local pairs
@@ -593,7 +587,7 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     moved = (old_low != new_low) | (old_high != new_high)  # [M, P]
     at_row, at_pair = torch.nonzero(moved, as_tuple=True)  # in (row, pair) order: rows ascend
     if at_row.numel() == 0:
-        return torch.zeros(0, dtype=torch.long, device=neighbor.device)
+        return torch.zeros(0, dtype=torch.long)
     flat = rows.long()[at_row] * num_pairs + at_pair  # the moved members, ascending
     element_edges, edge_slots = host["element_edges"].view(-1), host["edge_slots"].view(-1)
     members, index = host["members"], host["index"]
@@ -679,32 +673,8 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     neighbor_columns = torch.zeros_like(codes)
     neighbor_columns[lr, lc] = torch.where(code >= 0, index[edge, 1].long(), index[edge, 0].long())
 
-    # the device's tensors where they are copies, then the node-order neighbours and the rows'
-    plan = graph.plan
-    if host["index"] is not plan.index:
-        changed_members = torch.cat([columns[kr, kc], flat])
-        send = upload({"members": changed_members, "slots": edge_slots[changed_members],
-                       "flat": flat, "edge_of": element_edges[flat], "count_rows": torch.cat([left, new_ids]),
-                       "counts": host["edge_counts"][torch.cat([left, new_ids])],
-                       "edge_rows": torch.cat([new_ids, emptied]), "edge_values": index[torch.cat([new_ids, emptied])],
-                       "fi_rows": torch.unique(torch.cat([edge, emptied])),
-                       "fi_values": host["force_index"][torch.unique(torch.cat([edge, emptied]))],
-                       "nodes": nodes, "incidences": new_incidences.to(dtype), "codes": new_codes.to(dtype)},
-                      plan.index.device)
-        graph.edge_slots.view(-1).index_copy_(0, send["members"].long(), send["slots"])
-        graph.element_edges.view(-1).index_copy_(0, send["flat"].long(), send["edge_of"])
-        graph.edge_counts.index_copy_(0, send["count_rows"].long(), send["counts"])
-        for table in (plan.index, graph.edges):
-            table.index_copy_(0, send["edge_rows"].long(), send["edge_values"])
-        plan.force_index.index_copy_(0, send["fi_rows"].long(), send["fi_values"])
-        plan.incidences.index_copy_(0, send["nodes"].long(), send["incidences"])
-        graph.slot_edge.index_copy_(1, send["nodes"].long(), send["codes"])
-        device_nodes = send["nodes"].long()
-    else:
-        device_nodes = nodes
-    neighbor_values = neighbor_columns.to(device=neighbor.device, dtype=neighbor.dtype)
-    neighbor.index_copy_(1, device_nodes, neighbor_values)
-    return device_nodes
+    neighbor.index_copy_(1, nodes, neighbor_columns.to(neighbor.dtype))
+    return nodes
 
 
 def _tangent_rows_changed(group, cached, neighbor, incidences, slot_edge, nodes: torch.Tensor) -> None:
@@ -732,11 +702,11 @@ def _tangent_rows_changed(group, cached, neighbor, incidences, slot_edge, nodes:
 @torch.no_grad()
 def tangent_topology_changed(group, cut=None) -> bool:
     """A stress-form group's elements changed in place (a cut): its tangent graph cached on the
-    group (:func:`tangent_graph`), where there is one, edited in place for the cut ``(rows, old
-    nodes, new nodes)`` (host tensors: :func:`_edit_tangent_graph`), or where that cannot be
-    (``cut`` None, no room) built again from the elements and written into the storage of the
-    one cached (every tensor by node and by rows, the rows too), since captured CUDA graphs read
-    it; its sizes (slots a node, edge rows, elements an edge: launch parameters) kept. Where the
+    group (:func:`tangent_graph`), where there is one: on the CPU edited in place for the cut
+    ``(rows, old nodes, new nodes)`` (host tensors; :func:`_edit_tangent_graph`); on an
+    accelerator, or where the edit cannot be (``cut`` None, no room), built again from the
+    elements and written into the storage of the one cached (every tensor by node and by rows,
+    the rows too). Captured CUDA graphs read that storage. Its sizes (slots a node, edge rows, elements an edge: launch parameters) kept. Where the
     new graph does not fit them (no room reserved, ``reserved_slots``, or more than it), the
     caches are dropped: built again at the next use. Returns whether they were dropped (solves
     captured over them must be captured again)."""
@@ -745,7 +715,10 @@ def tangent_topology_changed(group, cut=None) -> bool:
     if cached[0] is None:
         return False
     graph, neighbor, incidences = cached[0][2]
-    nodes = None if cut is None else _edit_tangent_graph(group, graph, neighbor, cut)
+    # edited on the CPU; on an accelerator built again: there a build is a few dozen fast
+    # launches, and the edit's hundred small host ops cost more (docs/topology-changes.md)
+    edit = cut is not None and graph.edges.device.type == "cpu"
+    nodes = _edit_tangent_graph(group, graph, neighbor, cut) if edit else None
     if nodes is not None:
         group.__dict__[names[0]] = _stamped((group.elements,), cached[0][2])
         _tangent_rows_changed(group, cached[1:], neighbor, incidences, graph.slot_edge, nodes)

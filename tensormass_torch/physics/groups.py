@@ -309,7 +309,7 @@ class ElementGroup(nn.Module):
         the group's device (``ops.topology.upload``; ``rest [V, d]`` already holding the new
         nodes' rest positions, ``removed``, ``element_row``: the model's; ``cut``: the host's
         ``(rows [M], old nodes [M, n], new nodes [M, n])``, which the stress forms' tangent graph
-        is edited from, or None: built again). Writes the changed
+        on the CPU is edited from, or None: built again). Writes the changed
         parts of the tables where they are copies, then the sums: the hooke tensor form's edges
         of the cut's rows (and of one alive element of each edge the cut left) summed again
         (``ops.topology.refresh_hooke_edges``; new edges' tensors grow), emptied edges zeroed,

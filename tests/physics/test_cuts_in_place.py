@@ -127,8 +127,8 @@ def node_graph_storage(model):
 
 
 def assert_tangent_graph_is_a_builds(group):
-    """The stress form's tangent graph as the cuts edited it in place (``tangent_topology_changed``
-    with the cut: not built again) holds a build's edges from the group's elements now, each with
+    """The stress form's tangent graph as the cuts edited it in place on the CPU
+    (``tangent_topology_changed`` with the cut: not built again) holds a build's edges from the group's elements now, each with
     a build's members in a build's ranks (its sums bitwise a build's), and each node lists a
     build's edges (in another order), by node and by rows."""
     from tensormass_torch.mesh.topology import EdgeGraph
@@ -218,7 +218,7 @@ def test_a_simulator_cuts_in_place_and_steps_as_a_simulator_of_the_cut_meshes(de
     # the node graphs (hooke, tangent) written in place, not built again
     assert graphs and node_graph_storage(model) == graphs
     for group in model.groups:
-        if "_native_tangent_graph" in group.__dict__:
+        if "_native_tangent_graph" in group.__dict__ and device == "cpu":  # (built again on an accelerator)
             assert_tangent_graph_is_a_builds(group)
     if scene == "hooke":
         group = model.groups[0]  # its node graph as cached (by rows), as one built from its edges now
