@@ -45,6 +45,21 @@ def section(sim, x, depth):
     return tm.Blade.swept((x, top + 1, z0), (x, top + 1, z1), (x, low, z0), (x, low, z1))
 
 
+def median_ms(sim, device, make_change, count: int) -> float:
+    """Median ms of ``count`` changes, each timed alone between steps: ``make_change(k)`` (untimed:
+    a blade placed where the body is now) returns the k-th change to time."""
+    times = []
+    for k in range(count):
+        change = make_change(k)
+        sync(device)
+        t = time.perf_counter()
+        change()
+        sync(device)
+        times.append(1e3 * (time.perf_counter() - t))
+        sim.step()
+    return statistics.median(times)
+
+
 def measure(model, device, steps=100):
     sim = fresh(model, device)
     v = sim.bodies[0].mesh.vertices
@@ -63,30 +78,18 @@ def measure(model, device, steps=100):
     # cuts through half the height at three sections (the first cut in place at another one, untimed)
     sim.cut(0, section(sim, lo + 0.8 * (hi - lo) + 0.1 * cell, 0.3))
     sim.step()
-    times = []
-    for k, frac in enumerate((0.3, 0.5, 0.7)):
-        blade = section(sim, lo + frac * (hi - lo) + 0.1 * cell, 0.5)
-        sync(device)
-        t = time.perf_counter()
-        sim.cut(0, blade)
-        sync(device)
-        times.append(1e3 * (time.perf_counter() - t))
-        sim.step()
-    out["half_cut_ms"] = statistics.median(times)
+
+    def cut_at(k, fracs=(0.3, 0.5, 0.7)):
+        blade = section(sim, lo + fracs[k] * (hi - lo) + 0.1 * cell, 0.5)
+        return lambda: sim.cut(0, blade)
+
+    out["half_cut_ms"] = median_ms(sim, device, cut_at, 3)
     # removals of 1,000 elements between steps
     mesh = sim.bodies[0].mesh
     order = torch.argsort((mesh.vertices[mesh.elements].mean(1)[:, 0] - (lo + 0.15 * (hi - lo))).abs())
     sim.remove_elements(0, order[:1])
-    times = []
-    for k in range(3):
-        ids = order[1 + 1000 * k:1 + 1000 * (k + 1)]
-        sync(device)
-        t = time.perf_counter()
-        sim.remove_elements(0, ids)
-        sync(device)
-        times.append(1e3 * (time.perf_counter() - t))
-        sim.step()
-    out["remove_1000_ms"] = statistics.median(times)
+    out["remove_1000_ms"] = median_ms(
+        sim, device, lambda k: (lambda: sim.remove_elements(0, order[1 + 1000 * k:1 + 1000 * (k + 1)])), 3)
     # a scalpel across the middle over `steps` steps
     sim = fresh(model, device)
     t0 = sim.time

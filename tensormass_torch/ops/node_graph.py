@@ -706,10 +706,11 @@ def tangent_topology_changed(group, cut=None) -> bool:
     ``(rows, old nodes, new nodes)`` (host tensors; :func:`_edit_tangent_graph`); on an
     accelerator, or where the edit cannot be (``cut`` None, no room), built again from the
     elements and written into the storage of the one cached (every tensor by node and by rows,
-    the rows too). Captured CUDA graphs read that storage. Its sizes (slots a node, edge rows, elements an edge: launch parameters) kept. Where the
-    new graph does not fit them (no room reserved, ``reserved_slots``, or more than it), the
-    caches are dropped: built again at the next use. Returns whether they were dropped (solves
-    captured over them must be captured again)."""
+    the rows too). Captured CUDA graphs read that storage. Its sizes (slots a node, edge rows,
+    elements an edge: launch parameters) are kept. Where the new graph does not fit them (no room
+    reserved, ``reserved_slots``, or more than it), the caches are dropped: built again at the
+    next use. Returns whether they were dropped (solves captured over them must be captured
+    again)."""
     names = ("_native_tangent_graph", "_native_rows_tangent", "_native_by_rows_tangent")
     cached = [group.__dict__.get(name) for name in names]
     if cached[0] is None:
