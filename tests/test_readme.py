@@ -145,8 +145,8 @@ README_RUNS = {Path(shlex.split(c)[2]).stem for c in commands()
 def test_every_shipped_scene_runs_to_its_end(scene, dtype, backend, tmp_path):
     """Each shipped scene, to its full length, on defaults, with the extension in both dtypes;
     on the pure-torch fallback, in both dtypes, its first 40 steps (past the scalpel's start and
-    the sphere's descent). The fallback's full runs took 4 minutes of the suite, and what they
-    add is checked elsewhere: the fallback's ops and steps equal the extension's (the op, step,
+    the sphere's descent). Its full runs are the slowest of the suite, and what they would add is
+    checked elsewhere: the fallback's ops and steps equal the extension's (the op, step,
     cut and contact tests run both backends)."""
     if (dtype, backend) == ("float32", "auto") and scene.stem in README_RUNS:
         pytest.skip("the README runs this scene on its defaults (test_command)")

@@ -491,8 +491,6 @@ def _tangent_edge_graph(group):
     if unchanged(cache, (elements,)):
         return cache[2]
     graph = _built_tangent_graph(group)
-    group.__dict__["_tangent_edges_used"] = graph.edges.shape[0]  # the pool's first row, past them
-    group.__dict__.pop("_tangent_host", None)
     if group.reserved_slots:  # room for cuts, written in place (tangent_topology_changed)
         graph = _padded_edge_graph(graph, graph.plan.num_slots + group.reserved_slots,
                                    graph.edges.shape[0] + group.reserved_edges, graph.num_edge_slots)
@@ -541,29 +539,27 @@ def _padded_edge_graph(graph, num_slots: int, num_edges: int, num_edge_slots: in
                        rows_after(graph.slot_edge, extra_slots, 0))
 
 
-def _tangent_host(group, graph) -> dict:
-    """The integer tables of the cached tangent ``graph`` (on the CPU) a cut edits, by name, with
-    ``members [S_e, Ed]`` (each edge's (row * P + pair) ids by rank, -1 past its count; made at
-    the first cut) and ``used`` (the edge rows in use: the pool starts there)."""
-    host = group.__dict__.get("_tangent_host")
-    if host is not None and host["graph"] is graph:
-        return host
-    plan = graph.plan
-    host = {"graph": graph, "edges": graph.edges, "element_edges": graph.element_edges, "edge_slots": graph.edge_slots,
-            "edge_counts": graph.edge_counts, "index": plan.index, "force_index": plan.force_index,
-            "incidences": plan.incidences, "slot_edge": graph.slot_edge, "used": group.__dict__["_tangent_edges_used"]}
+def _tangent_members(group, graph) -> dict:
+    """What a cut's edit of the cached tangent ``graph`` keeps besides the graph, made at the first
+    cut: ``members [S_e, Ed]`` (each edge's (row * P + pair) ids by rank, -1 past its count) and
+    ``used``, the first row of the pool of edge rows (past the last edge with members: a row an
+    edit emptied is a zero row like the pool's, (0, 0) in node 0's sink slot)."""
+    state = group.__dict__.get("_tangent_members")
+    if state is not None and state["graph"] is graph:
+        return state
     members = torch.full((graph.num_edge_slots, graph.edges.shape[0]), -1, dtype=torch.long)
     members[graph.edge_slots.reshape(-1).long(), graph.element_edges.reshape(-1).long()] = \
         torch.arange(graph.element_edges.numel())
-    host["members"] = members
-    group.__dict__["_tangent_host"] = host
-    return host
+    listed = torch.nonzero(graph.edge_counts).flatten()
+    state = {"graph": graph, "members": members, "used": int(listed[-1]) + 1 if listed.numel() else 0}
+    group.__dict__["_tangent_members"] = state
+    return state
 
 
 def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     """The cached tangent ``graph`` on the CPU (and its ``neighbor [N_n, V]``, node order) edited
     in place for the cut ``(rows [M] ascending, old nodes [M, n], new nodes [M, n])`` (the group's
-    elements already re-pointed; :func:`_tangent_host` adds the edges' member lists).
+    elements already re-pointed; :func:`_tangent_members` keeps the edges' member lists).
     Where a pair of a row changes nodes, it leaves its edge (the members after it move down a
     rank, as a build from the new elements ranks them) and joins a new edge from the pool (a
     changed pair holds a new node, which had no edge: the members of a new edge are ranked in
@@ -575,7 +571,8 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     having changed nothing, where there is no room (edge rows, slots a node, elements an edge) or
     a new edge's nodes already have one."""
     rows, old, new = cut
-    host = _tangent_host(group, graph)
+    state = _tangent_members(group, graph)
+    plan = graph.plan
     n = old.shape[1]
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]  # unique_edges' local pairs
     num_pairs = len(pairs)
@@ -589,9 +586,9 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     if at_row.numel() == 0:
         return torch.zeros(0, dtype=torch.long)
     flat = rows.long()[at_row] * num_pairs + at_pair  # the moved members, ascending
-    element_edges, edge_slots = host["element_edges"].view(-1), host["edge_slots"].view(-1)
-    members, index = host["members"], host["index"]
-    num_slots, num_nodes, sink = graph.plan.num_slots, graph.plan.num_nodes, graph.plan.num_slots - 1
+    element_edges, edge_slots = graph.element_edges.view(-1), graph.edge_slots.view(-1)
+    members, index = state["members"], plan.index
+    num_slots, num_nodes, sink = plan.num_slots, plan.num_nodes, plan.num_slots - 1
 
     # leave: the old edges' members that stay, compacted in rank order
     left = torch.unique(element_edges[flat].long())
@@ -606,7 +603,7 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     # join: the new edges, keyed (low, high), numbered from the pool in key order
     keys = new_low[at_row, at_pair] * num_nodes + new_high[at_row, at_pair]
     unique_keys, which, new_counts = torch.unique(keys, return_inverse=True, return_counts=True)
-    used = host["used"]
+    used = state["used"]
     new_ids = used + torch.arange(unique_keys.numel())
     if used + unique_keys.numel() > index.shape[0] or int(new_counts.max()) > graph.num_edge_slots:
         return None
@@ -617,8 +614,8 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
 
     # the lists of the nodes those edges touch: kept edges in slot order, then the new ones
     nodes = torch.unique(torch.cat([index[emptied].reshape(-1).long(), ends.reshape(-1)]))
-    codes = host["slot_edge"][:, nodes].long()  # [N_n, A]
-    counts = host["incidences"][nodes].long()
+    codes = graph.slot_edge[:, nodes].long()  # [N_n, A]
+    counts = plan.incidences[nodes].long()
     listed = torch.arange(num_slots)[:, None] < counts[None, :]
     edge_of = torch.where(codes >= 0, codes, -codes - 1)
     # a new edge's nodes must have no edge between them yet (a node reused, not a fresh one)
@@ -643,7 +640,7 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     if int(new_incidences.max()) > num_slots - 1:  # node 0's last slot is the sink
         return None
 
-    # every check passed: write the host tables
+    # every check passed: write the tables
     dtype = index.dtype
     members[:, left] = -1
     kr, kc = torch.nonzero(keep, as_tuple=True)
@@ -652,12 +649,12 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     members[new_rank, new_ids[which]] = flat
     edge_slots[flat] = new_rank.to(dtype)
     element_edges[flat] = new_ids[which].to(dtype)
-    host["edge_counts"][left] = left_counts.to(dtype)
-    host["edge_counts"][new_ids] = new_counts.to(dtype)
-    for table in (index, host["edges"]):
+    graph.edge_counts[left] = left_counts.to(dtype)
+    graph.edge_counts[new_ids] = new_counts.to(dtype)
+    for table in (index, graph.edges):  # (the graph's edges and its plan's items: one copy each)
         table[new_ids] = ends.to(dtype)
         table[emptied] = 0
-    host["force_index"][emptied] = sink
+    plan.force_index[emptied] = sink
     new_codes = torch.zeros_like(codes)
     sr, sc = torch.nonzero(stays, as_tuple=True)
     new_codes[slot_of_kept[sr, sc], sc] = codes[sr, sc]
@@ -666,10 +663,10 @@ def _edit_tangent_graph(group, graph, neighbor, cut) -> Optional[torch.Tensor]:
     lr, lc = torch.nonzero(now_listed, as_tuple=True)
     code = new_codes[lr, lc]
     edge = torch.where(code >= 0, code, -code - 1)
-    host["force_index"][edge, (code < 0).long()] = lr.to(dtype)
-    host["incidences"][nodes] = new_incidences.to(dtype)
-    host["slot_edge"][:, nodes] = new_codes.to(dtype)
-    host["used"] = used + unique_keys.numel()
+    plan.force_index[edge, (code < 0).long()] = lr.to(dtype)
+    plan.incidences[nodes] = new_incidences.to(dtype)
+    graph.slot_edge[:, nodes] = new_codes.to(dtype)
+    state["used"] = used + unique_keys.numel()
     neighbor_columns = torch.zeros_like(codes)
     neighbor_columns[lr, lc] = torch.where(code >= 0, index[edge, 1].long(), index[edge, 0].long())
 
@@ -724,10 +721,9 @@ def tangent_topology_changed(group, cut=None) -> bool:
         group.__dict__[names[0]] = _stamped((group.elements,), cached[0][2])
         _tangent_rows_changed(group, cached[1:], neighbor, incidences, graph.slot_edge, nodes)
         return False
-    built = _built_tangent_graph(group)
-    group.__dict__["_tangent_edges_used"] = built.edges.shape[0]
-    group.__dict__.pop("_tangent_host", None)
-    fresh = _padded_edge_graph(built, graph.plan.num_slots, graph.edges.shape[0], graph.num_edge_slots)
+    group.__dict__.pop("_tangent_members", None)  # (made again from the graph written below)
+    fresh = _padded_edge_graph(_built_tangent_graph(group), graph.plan.num_slots, graph.edges.shape[0],
+                               graph.num_edge_slots)
     if fresh is None:
         for name in names:
             group.__dict__.pop(name, None)

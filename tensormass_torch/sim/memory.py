@@ -48,7 +48,7 @@ PEAK_EXTRA: Dict[Tuple[str, str, str], Tuple[Parts, Parts]] = {
     ("tri", "corotational", "stress"): ((0, 68), (0, 0)),
 }
 #: allocations of a GPU simulator that do not grow with its mesh (its captured graphs' pools,
-#: small solver buffers): about 54 MB measured on hooke beams of 5M and 20M tets
+#: small solver buffers), rounded up from what docs/scale.md measured
 FIXED_BYTES = 64 * 2**20
 #: the room a scene's estimated peak is given over it where the check decides: the estimate came
 #: within 2 % of the GPU's measured peaks, on either side (docs/scale.md)

@@ -133,7 +133,7 @@ def assert_tangent_graph_is_a_builds(group):
     build's edges (in another order), by node and by rows."""
     from tensormass_torch.mesh.topology import EdgeGraph
 
-    assert "_tangent_host" in group.__dict__  # edited, not built again (a build drops it)
+    assert "_tangent_members" in group.__dict__  # edited, not built again (a build drops it)
     graph, neighbor, incidences = group.__dict__["_native_tangent_graph"][2]
     built = EdgeGraph.build(group.elements.long().cpu(), group.num_nodes)
     edges, counts = graph.edges.long().cpu(), graph.edge_counts.long().cpu()
