@@ -8,7 +8,8 @@ Part 1 (solve_to_tolerance.md): on the paper's 307,200-tet beam (hooke, E = 1e5 
 0.01, clamped, gravity) and SOFA's 101,250-tet beam (hooke, its plane), implicit Euler steps
 solved to a relative residual of 1e-6 with each preconditioner (none, jacobi, multigrid, and
 cholesky: the rest matrix's sparse Cholesky factor, the direct-solver baseline; "+warm": each
-step's CG started from the extrapolation of the steps before, ``warm_start``), and
+step's CG started from the extrapolation of the steps before, ``warm_start=True``; "+project":
+from the projection on the last steps' solutions, ``warm_start="project"``), and
 the same scene's fixed-budget steps of 25 and 10 CG iterations (tol 0: what the speed
 benchmarks time). Per row: CG iterations of the last timed step and their mean over the 5
 steps after, the last step's relative residual (the CG's own:
@@ -50,6 +51,10 @@ SOLVERS = {  # name -> StepOptions changes
                       preconditioner="multigrid"),
     "multigrid+warm": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
                            preconditioner="multigrid", warm_start=True),
+    "none+project": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=8,
+                         preconditioner="none", warm_start="project"),
+    "multigrid+project": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
+                              preconditioner="multigrid", warm_start="project"),
     "cholesky": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
                      preconditioner="cholesky"),
 }
@@ -120,18 +125,20 @@ def main(argv=None):
                         help="part 1's scenes: paper_beam:E and sofa_beam")
     parser.add_argument("--max-seconds", type=float, default=5.0)
     parser.add_argument("--budget-s", type=float, default=None)
+    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    parser.add_argument("--name", default="solve_to_tolerance", help="part 1's results file name")
     args = parser.parse_args(argv)
     common.fill_defaults(args, dict(elements=307_200, sizes="101250,307200,1228800,2457600,4915200", steps=20),
                          dict(elements=4_800, sizes="4800,38400", steps=3))
     device = torch.device(args.device)
-    dtype = torch.float32
+    dtype = getattr(torch, args.dtype)
     budget = Budget(args.budget_s)
     parts = args.parts.split(",")
     meta = metadata(device, dtype=str(dtype))
     if "solvers" in parts:
-        results = Results(args.out, "solve_to_tolerance", "Time to a converged step (relative residual 1e-6) "
+        results = Results(args.out, args.name, "Time to a converged step (relative residual 1e-6) "
                           "against fixed CG budgets", meta, COLUMNS,
-                          notes=["hooke, implicit Euler, float32; steady-state ms per step after five steps."])
+                          notes=[f"hooke, implicit Euler, {args.dtype}; steady-state ms per step after five steps."])
         scenes = []
         for item in args.scenes.split(","):
             name, _, young = item.partition(":")

@@ -25,7 +25,8 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     form = "auto"                     # "stress", "tensor"
     preconditioner = "auto"           # "none", "jacobi", "multigrid", "cholesky" (auto: Jacobi where bodies touch)
     integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
-    warm_start = false                # start each CG from the last steps' extrapolated solution
+    warm_start = false                # true / "extrapolate": each CG from the last steps' extrapolated
+                                      # solution; "project": their span's projection (hooke: best)
     check_memory = true               # on a GPU: refuse at once a scene whose estimated peak does not fit
 
     [distributed]                     # under torchrun --nproc-per-node N (docs/distributed.md)
@@ -118,6 +119,7 @@ from ..physics.contact import Plane
 from ..physics.materials import MODELS, ROTATIONS, TANGENTS, Material
 from ..physics.tools import TANGENTS as TOOL_TANGENTS
 from ..physics.tools import Box, Capsule, MeshTool, Sphere, Tool
+from ..solver.guess import WARM_STARTS, warm_start_mode
 from ..solver.implicit_euler import INTEGRATORS
 from ..solver.preconditioner import PRECONDITIONERS
 from .builtin import Scene
@@ -270,6 +272,13 @@ def _check(value, kind: str, error: Callable[[str], SceneError]):
                 raise error(f"node indices must be integers, got {_describe(v)}")
         return value
     raise AssertionError(f"unknown kind {kind}")
+
+
+def _warm_start(solver: _Table) -> str:
+    """``[solver] warm_start``: true, false or one of ``guess.WARM_STARTS``, as one of them."""
+    if isinstance(solver.data.get("warm_start"), bool) or not solver.has("warm_start"):
+        return warm_start_mode(solver.get("warm_start", "bool", False))
+    return _choice(solver, "warm_start", WARM_STARTS, what="warm start")
 
 
 def _choice(table: _Table, key: str, choices, default=_REQUIRED, what: str = "value") -> str:
@@ -627,7 +636,7 @@ def _check_mesh_split(bodies, options, planes, tools, contact, scalpels, select,
         problems.append("cuts")
     if any(p.friction > 0 for p in planes):
         problems.append("friction on a plane")
-    unsupported = {"newton_iters": 1, "integrator": "backward_euler", "warm_start": False,
+    unsupported = {"newton_iters": 1, "integrator": "backward_euler", "warm_start": "none",
                    "require_convergence": True}
     problems += [f"[solver] {key} = {options[key]!r}" for key, value in unsupported.items()
                  if options[key] != value]
@@ -755,7 +764,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
         form=_choice(solver, "form", FORMS, "auto", "form"),
         preconditioner=_choice(solver, "preconditioner", PRECONDITIONERS, "auto", "preconditioner"),
         integrator=_choice(solver, "integrator", list(INTEGRATORS), "backward_euler", "integrator"),
-        warm_start=solver.get("warm_start", "bool", False),
+        warm_start=_warm_start(solver),
         check_memory=solver.get("check_memory", "bool", True),
     )
     solver.done()

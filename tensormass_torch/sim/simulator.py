@@ -22,6 +22,7 @@ from ..physics.contact import Plane, Planes
 from ..physics.materials import Material
 from ..physics.tensor_mass import TensorMass, checked_element_ids
 from ..physics.tools import Tool, ToolSet
+from ..solver.guess import warm_start_mode
 from ..solver.implicit_euler import (
     INTEGRATORS,
     DynamicsSystem,
@@ -140,10 +141,13 @@ class Simulator:
             ``sim.v`` were set, and sub-steps are backward Euler's and steps are not chained);
             all at backward Euler's cost per step (see ``solver.implicit_euler``).
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs,
-            preconditioner, warm_start: see ``StepOptions``. With ``warm_start`` each step's CG
-            starts from the extrapolation of the two steps before (2 dv_1 - dv_2; dv_1 after one
-            step; zeros after a state set by hand, a cut that made room, sub-steps or a chain of
-            steps, which keep no history). ``cg_max_iter=None`` (default) caps CG at
+            preconditioner, warm_start: see ``StepOptions``. With ``warm_start=True`` (or
+            ``"extrapolate"``) each step's CG starts from the extrapolation of the two steps
+            before (2 dv_1 - dv_2; dv_1 after one step; zeros after a state set by hand, a cut
+            that made room, sub-steps or a chain of steps, which keep no history); with
+            ``"project"``, from the projection of its solution on the last steps' solutions
+            (``solver.guess``: any state, steps one at a time, no chains; best where the step's
+            matrix is constant, as hooke's without contact). ``cg_max_iter=None`` (default) caps CG at
             ``auto_cg_max_iter`` of the largest object's free degrees of freedom, so a
             converging solve is never cut short; the value used is ``sim.options.cg_max_iter``.
         form: element force form, ``"auto" | "stress" | "tensor"``.
@@ -175,7 +179,7 @@ class Simulator:
                  newton_iters: int = 1, check_every: int = 8, form: str = "auto", device=None, dtype=None,
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
-                 preconditioner: str = "auto", integrator: str = "backward_euler", warm_start: bool = False,
+                 preconditioner: str = "auto", integrator: str = "backward_euler", warm_start=False,
                  check_memory: bool = True):
         bodies = list(bodies)
         if not hasattr(self, "initial_bodies"):  # (a rebuild for a cut runs __init__ again: kept)
@@ -217,8 +221,10 @@ class Simulator:
         if INTEGRATORS[integrator] != 1.0 and newton_iters != 1:
             raise SceneError(f"newton_iters={newton_iters} needs integrator='backward_euler' or 'bdf2' (the "
                              f"{integrator!r} step is one linearisation)")
-        if not isinstance(warm_start, bool):
-            raise SceneError(f"warm_start must be True or False, got {warm_start!r}")
+        try:
+            warm_start_mode(warm_start)
+        except ValueError as exc:
+            raise SceneError(str(exc)) from None
         if check_inversion not in INVERSION_CHECKS:
             raise SceneError(f"check_inversion must be one of {', '.join(map(repr, INVERSION_CHECKS))}, "
                              f"got {check_inversion!r}")
@@ -634,7 +640,7 @@ class Simulator:
         """``warm_start``'s guess of the next step's first solve ``[V, 3]``: 2 dv_1 - dv_2 from the
         two steps before, dv_1 from one, None without history (see ``_commit``)."""
         solutions = self._solutions_before()
-        if not self.options.warm_start or not solutions:
+        if self.options.warm_start != "extrapolate" or not solutions:
             return None
         return solutions[0] if len(solutions) == 1 else 2.0 * solutions[0] - solutions[1]
 
@@ -651,7 +657,7 @@ class Simulator:
         single = steps == 1 and report.substeps == 1
         one_step = single and self.options.integrator == "bdf2"
         self._history = ((self.x, self.v), (x, v)) if one_step else None
-        if self.options.warm_start:
+        if self.options.warm_start == "extrapolate":
             kept = self._solutions_before()[:1]
             self._solutions = ([report.cg[0].solution] + kept, (x, v)) if single and report.cg else None
         self.x, self.v = x, v

@@ -36,10 +36,11 @@ import torch
 
 from ..errors import SolverError
 from ..ops import cg as cg_ops
-from ..ops import node_graph, solve
+from ..ops import library, node_graph, solve
 from ..ops.segments import Segments
 from ..ops.variants import DEFAULT, KernelVariants
 from .cg import CGResult, CGSolver, batched_cg, run_captured
+from .guess import SolutionSpace, warm_start_mode
 from .preconditioner import (
     PRECONDITIONERS,
     JacobiScaling,
@@ -93,9 +94,13 @@ class StepOptions:
             acceleration, the trapezoidal rule: no numerical damping) or ``"bdf2"`` (the
             two-step backward differentiation formula: second order, damping that falls as h^3;
             its steps are :func:`bdf2_step`'s); :data:`INTEGRATORS`.
-        warm_start: start each step's CG from a guess of its solution instead of zero: the
-            simulator extrapolates the solutions of the steps before (``sim.simulator``; the
-            step functions take it as ``guess``). The stopping rule is unchanged (the true
+        warm_start: where each step's CG starts (:data:`guess.WARM_STARTS`; ``False`` is
+            ``"none"``, ``True`` ``"extrapolate"``): ``"none"`` (default) from zero;
+            ``"extrapolate"`` from the simulator's extrapolation of the solutions of the steps
+            before (``sim.simulator``; the step functions take it as ``guess``); ``"project"``
+            from the projection of the step's solution on the span of the last steps' solutions
+            (``guess.SolutionSpace``, kept by the system: exact in its span for a constant
+            matrix, as hooke's without contact). The stopping rule is unchanged (the true
             residual relative to the right-hand side), so the step means the same; fewer
             iterations where the motion is smooth.
     """
@@ -113,9 +118,10 @@ class StepOptions:
     preconditioner: str = "auto"
     variants: KernelVariants = field(default_factory=KernelVariants.from_env)
     integrator: str = "backward_euler"
-    warm_start: bool = False
+    warm_start: str = "none"
 
     def __post_init__(self):
+        self.warm_start = warm_start_mode(self.warm_start)
         if self.preconditioner not in PRECONDITIONERS:
             raise ValueError(f"unknown preconditioner {self.preconditioner!r}; known: "
                              f"{', '.join(map(repr, PRECONDITIONERS))}")
@@ -214,6 +220,30 @@ class DynamicsSystem:
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
         self._rest_preconditioner = None  # (key, cache) of preconditioner.system_rest_preconditioner
         self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
+        self._solution_spaces = {}  # step coefficients -> (tensors, versions, guess.SolutionSpace)
+
+    def solution_space(self, opts: "StepOptions", like: torch.Tensor) -> SolutionSpace:
+        """The ``warm_start="project"`` space of the steps with these options' matrix (made at the
+        first call; one per step coefficients). It is emptied, in place, when the model's tensors
+        (a cut edits them), the masses or the constraints change: its basis was orthonormal for
+        the matrix before."""
+        tensors = self._matrix_tensors()
+        key = (*_coefficients(opts), like.dtype, like.device)
+        kept = self._solution_spaces.get(key)
+        if kept is None or kept[2].basis.shape[1:] != like.shape:
+            kept = (tensors, tuple(t._version for t in tensors), SolutionSpace(like, self.segments))
+        elif not library.unchanged(kept, tensors):
+            kept[2].reset()
+            kept = (tensors, tuple(t._version for t in tensors), kept[2])
+        self._solution_spaces[key] = kept
+        return kept[2]
+
+    def _matrix_tensors(self) -> tuple:
+        """The tensors a step's matrix at rest is made of: the model's groups', the masses, the
+        free-node mask (what ``preconditioner.system_rest_preconditioner`` keys on too)."""
+        groups = getattr(self.model, "groups", ())
+        return tuple(t for group in groups for t in group.buffers()) + (self.mass,) + (
+            () if self.free is None else (self.free,))
 
     def pair_stiffness(self, pairs, coefficient: float, damping: float = 0.0):
         """The body contact's :class:`PairStiffness` loaded with ``pairs``, their stiffness scaled by
@@ -553,12 +583,13 @@ def _fold_damping(matvec: "SystemMatvec", damping, opts: StepOptions) -> None:
 
 
 def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None, damping=None,
-           x0=None) -> CGResult:
+           x0=None, space: Optional[SolutionSpace] = None) -> CGResult:
     """Solve the step's system linearised at ``x``; ``loaded``: the SystemMatvec already loaded at x
     (with ``damping`` folded in); ``pairs``: the body contact's pairs at x (found here when the
     system has body contact and they are not given); ``damping``: the planes' and tools' friction
     (``contact.NodeDamping``: h C joins the matrix) or None; ``x0``: the CG's initial guess (None:
-    zeros)."""
+    zeros); ``space``: a ``warm_start="project"`` space that gives the initial guess (in place of
+    ``x0``) and takes the solution."""
     mass_coef, stiffness_coef = _coefficients(opts)
     if pairs is None and system.body_contact is not None:
         pairs = system.body_contact.detect(x)
@@ -588,6 +619,9 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
 
             def matvec(p):  # (with friction, its damping h C: minus h times its forces)
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
+    product = matvec  # the system's own (Jacobi below scales it)
+    if space is not None:
+        x0 = space.guess(rhs if system.free is None else rhs * system.free)
     multigrid = _rest_preconditioner(system, opts, fused, matvec, pairs, mass_coef, stiffness_coef, rhs)
     if multigrid is not None:
         key = getattr(multigrid, "key", None)  # None: not capturable (cholespy's solves)
@@ -612,7 +646,18 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
                                                                 preconditioner=multigrid)
     if scaling is not None:
         result = dataclasses.replace(result, solution=scaling.apply(result.solution))
+    if space is not None:
+        space.add(result.solution, _projected_product(product, result.solution, system.free))
     return result
+
+
+def _projected_product(matvec, p: torch.Tensor, free: Optional[torch.Tensor]) -> torch.Tensor:
+    """A p ``[V, d]`` on the free nodes, for a product that returns A p or (A p projected, per-node
+    dot) as the fused ones do."""
+    out = matvec(p)
+    if isinstance(out, tuple):
+        return out[0]
+    return out if free is None else out * free
 
 
 def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matvec, pairs, mass_coef: float,
@@ -843,7 +888,10 @@ class StepGraphs:
                       else min(opts.check_every, opts.cg_max_iter))
         self._graphs = {}
         self._a_ends = {}  # whether graph A (by key) also does C (set when A first runs)
-        self.guess = torch.zeros_like(like) if opts.warm_start else None  # the CG's initial guess
+        self.guess = torch.zeros_like(like) if opts.warm_start != "none" else None  # the CG's initial guess
+        # warm_start="project": the system's space (its guess formed in the captured start from
+        # the step's right-hand side; the solution joined to it after the solve, in a graph)
+        self.space = system.solution_space(opts, like) if opts.warm_start == "project" else None
         self.rhs = torch.zeros_like(like) if self.preconditioned else None  # the step's right-hand side
         self._predicted = None  # iterations of the last preconditioned solve
         # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
@@ -872,6 +920,7 @@ class StepGraphs:
         if dv_imposed is not None:
             self.dv_imposed.copy_(dv_imposed)
         if warm:
+            self._project_guess(rhs)
             self.cg.start(self.matvec, rhs, self.guess, opts.cg_tol, opts.cg_max_iter)
             self.cg.iterate(self.matvec, self.first, opts.cg_max_iter)
             return False
@@ -929,9 +978,21 @@ class StepGraphs:
             self.dv_imposed.copy_(dv_imposed)
         self.rhs.copy_(rhs)
 
+    def _project_guess(self, rhs: torch.Tensor):
+        """:attr:`guess` from the solution space where ``warm_start="project"``."""
+        if self.space is not None:
+            self.guess.copy_(self.space.guess(self.cg._project(rhs)))
+
+    def _add_solution(self):
+        """The solve's solution joined to the solution space (one product more)."""
+        x = self.cg.state.x
+        self.space.add(x, self.cg._apply(self.matvec, x)[0])
+
     def _start_phase(self, preconditioner, warm: bool):
         """A preconditioned solve's start (from :attr:`guess` where ``warm``)."""
         opts = self.opts
+        if warm:
+            self._project_guess(self.rhs)
         self.cg.start(self.matvec, self.rhs, self.guess if warm else None, opts.cg_tol, opts.cg_max_iter,
                       preconditioner)
 
@@ -961,7 +1022,7 @@ class StepGraphs:
         """Whether whole steps run with no host decision inside (every CG iteration is in graph
         A: the whole CG is one op, or ``cg_max_iter <= check_every``) and no imposed velocity, so
         :meth:`run_steps` applies."""
-        return self.imposed is None and self.first >= self.opts.cg_max_iter
+        return self.imposed is None and self.first >= self.opts.cg_max_iter and self.space is None
 
     @property
     def max_chain(self) -> int:
@@ -1025,6 +1086,8 @@ class StepGraphs:
         warm = guess is not None and self.guess is not None
         if warm:
             self.guess.copy_(guess)
+        if self.space is not None:  # (emptied, in place, where the model changed: the graphs stay valid)
+            warm = self.system.solution_space(self.opts, self.x) is self.space
         opts = self.opts
         ends_step = False
         if self.preconditioned:
@@ -1034,6 +1097,8 @@ class StepGraphs:
             ends_step = self._a_ends[warm]
             self.cg.finish(self.matvec, opts.cg_max_iter, opts.check_every, self.matvec.graph_key,
                            done=self.first)
+        if self.space is not None and warm:
+            run_captured(self._graphs, "add", self._add_solution)
         if not ends_step:  # also after a failed solve: its output is discarded
             run_captured(self._graphs, "C", self._phase_c)
         summary = self.summary.cpu()  # the step's one synchronisation
@@ -1114,7 +1179,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         imposed_velocity: ``[V, d]`` velocities at the end of the step of the constrained nodes;
             ignored elsewhere. None: every constrained node is fixed (and at rest).
         guess: ``[V, d]`` the first solve's initial guess of its solution (the free nodes' velocity
-            change beyond the imposed one), or None (zeros); used where ``opts.warm_start``.
+            change beyond the imposed one), or None (zeros); used where ``opts.warm_start`` is
+            ``"extrapolate"`` (with ``"project"`` the system's ``SolutionSpace`` gives it).
 
     Returns:
         (x_new, v_new, StepReport). Raises SolverError, leaving inputs untouched, when a solve
@@ -1122,7 +1188,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     """
     if opts.integrator == "bdf2":
         raise ValueError("a BDF2 step needs the state before: use bdf2_step")
-    if not opts.warm_start:
+    if opts.warm_start != "extrapolate":
         guess = None
     graphs = step_graphs_for(system, opts, imposed_velocity is not None)
     if graphs is not None:
@@ -1135,8 +1201,10 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     if system.body_contact is not None and loaded is not None:
         near, active, pairs = system.body_contact.at_state(x, v, h)
     rhs, dv_imposed, damping = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
+    space = system.solution_space(opts, x) if opts.warm_start == "project" else None
     result = _solve(system, x, rhs if pairs is None or not len(pairs)
-                    else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs, damping, x0=guess)
+                    else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs, damping, x0=guess,
+                    space=space)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution

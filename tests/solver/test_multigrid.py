@@ -206,7 +206,7 @@ def test_the_cpu_extension_and_pure_torch_agree(monkeypatch):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("model", ["hooke", "corotational"])
-@pytest.mark.parametrize("warm_start", [False, True])
+@pytest.mark.parametrize("warm_start", [False, True, "project"])
 def test_cuda_matches_the_cpu(model, warm_start):
     """The preconditioned steps on CUDA (captured in graphs: the right-hand side, the start and
     the predicted iterations, then one iteration a look) equal the CPU's in float64, with and

@@ -35,7 +35,7 @@ def make_sim(preconditioner, warm_start, prescribed):
 
 
 @pytest.mark.parametrize("preconditioner", ["none", "multigrid"])
-@pytest.mark.parametrize("warm_start", [False, True])
+@pytest.mark.parametrize("warm_start", [False, True, "project"])
 @pytest.mark.parametrize("prescribed", [False, True])
 def test_the_phases_are_the_eager_step(monkeypatch, preconditioner, warm_start, prescribed):
     if preconditioner == "multigrid":

@@ -97,10 +97,10 @@ material = { model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }
 fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
 """)
     scene = tm.load_scene(path)
-    assert scene.simulator.options.warm_start is True
+    assert scene.simulator.options.warm_start == "extrapolate"
     scene.simulator.step(2)
     path.write_text(path.read_text().replace("warm_start = true", 'warm_start = "yes"'))
     with pytest.raises(tm.SceneError, match="warm_start"):
         tm.load_scene(path)
-    with pytest.raises(tm.SceneError, match="warm_start must be True or False, got 1"):
+    with pytest.raises(tm.SceneError, match="warm_start must be True, False or one of .*got 1"):
         beam_sim(1)
