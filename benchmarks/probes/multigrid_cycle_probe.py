@@ -5,6 +5,7 @@ steps: ms per step, which of the step's phases replay a graph and which run eage
 time by function (cProfile) and the profiler's table of a few steps.
 
     python benchmarks/probes/multigrid_cycle_probe.py --device cuda [--elements 307200] [--young 1e5]
+        [--dtype float32] [--warm-start none]
 
 A probe (no results file): it prints what it measured.
 """
@@ -86,25 +87,28 @@ def main(argv=None):
     parser.add_argument("--device", default=common.default_device())
     parser.add_argument("--elements", type=int, default=307_200)
     parser.add_argument("--young", type=float, default=1e5)
+    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    parser.add_argument("--warm-start", default="none", help="StepOptions.warm_start (none, extrapolate, project)")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
-    sim = common.cantilever_sim("tet", "hooke", args.elements, device, torch.float32, young=args.young)[0]
+    dtype = getattr(torch, args.dtype)
+    sim = common.cantilever_sim("tet", "hooke", args.elements, device, dtype, young=args.young)[0]
     sim.options = dataclasses.replace(sim.options, cg_tol=1e-6, cg_max_iter=20000, require_convergence=False,
-                                      check_every=2, preconditioner="multigrid")
+                                      check_every=2, preconditioner="multigrid", warm_start=args.warm_start)
     sim.step(3)
     solve = sim.system._multigrid_solve
     multigrid = solve.multigrid
     print(f"{sim.model.num_elements} tets, {sim.model.num_nodes} nodes; levels {multigrid.sizes}; "
           f"iterations {int(sim.last_report.cg[0].iterations.max())}")
     gen = torch.Generator().manual_seed(0)
-    r = (torch.randn(sim.x.shape, generator=gen).to(device) * sim.system.free).contiguous()
+    r = (torch.randn(sim.x.shape, generator=gen, dtype=dtype).to(device) * sim.system.free).contiguous()
     graphs = [g for g in sim.system._step_graphs.values() if g.preconditioned]
     matvec = graphs[0].matvec if graphs else sim.system.system_matvec(1.0, 1e-4)
     rows = [("V-cycle", lambda: solve(r)), ("step product (fine matvec)", lambda: matvec(r))]
     for depth, level in enumerate(multigrid.levels):
-        x = torch.randn(level.size, generator=gen).to(device)
-        b = torch.randn(level.size, generator=gen).to(device)
-        coarse = torch.randn(level.prolong.shape[1], generator=gen).to(device)
+        x = torch.randn(level.size, generator=gen, dtype=dtype).to(device)
+        b = torch.randn(level.size, generator=gen, dtype=dtype).to(device)
+        coarse = torch.randn(level.prolong.shape[1], generator=gen, dtype=dtype).to(device)
         step, out = torch.zeros_like(x), torch.zeros_like(x)
         rows += [(f"level {depth} A x ({level.matrix.values.shape[0]} blocks {level.matrix.block})",
                   lambda level=level, x=x, b=b: bsr_gemv(level.matrix, x, b, alpha=-1.0, beta=1.0)),
@@ -114,7 +118,7 @@ def main(argv=None):
                   lambda level=level, x=x: bsr_gemv(level.restrict, x)),
                  (f"level {depth} prolong ({level.prolong.values.shape[0]} blocks {level.prolong.block})",
                   lambda level=level, x=x, coarse=coarse: bsr_gemv(level.prolong, coarse, x, out=x))]
-    cb = torch.randn(multigrid.coarse_inverse.shape[0], generator=gen).to(device)
+    cb = torch.randn(multigrid.coarse_inverse.shape[0], generator=gen, dtype=dtype).to(device)
     rows.append(("coarsest dense solve", lambda: multigrid.coarse_inverse @ cb))
     if graphs:
         g = graphs[0]

@@ -77,13 +77,16 @@ class MemoryEstimate:
 
 
 def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype = torch.float32,  # noqa: F821
-                    form: str = "auto") -> MemoryEstimate:
+                    form: str = "auto", warm_start="none") -> MemoryEstimate:
     """The device memory a ``Simulator`` of ``bodies`` (a ``tm.Body`` or a list) needs, before it
     is built: a :class:`MemoryEstimate` (peak over construction and the first steps, and what it
     holds while stepping), from bytes an element and a node of each kind and model (``HELD``,
     ``PEAK_EXTRA``); on a GPU add ``FIXED_BYTES``.
-    ``dtype``: the simulator's (float32 or float64); ``form``: as ``Simulator``'s."""
+    ``dtype``: the simulator's (float32 or float64); ``form``, ``warm_start``: as ``Simulator``'s
+    (``"project"`` holds its basis, ``PROJECTION_VECTORS`` float64 vectors, and its operations
+    make one more of that size at their peak)."""
     from ..physics.tensor_mass import _resolve_form
+    from ..solver.guess import PROJECTION_VECTORS, warm_start_mode
     from .simulator import Body
 
     if isinstance(bodies, Body):
@@ -97,6 +100,7 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
         return (count * (element_index + scale * element_float)
                 + nodes * (node_index + scale * node_float))
 
+    basis_bytes = PROJECTION_VECTORS * 8 if warm_start_mode(warm_start) == "project" else 0  # a node, an axis
     elements = peak = held = 0
     for i, body in enumerate(bodies):
         if not isinstance(body, Body):
@@ -106,9 +110,9 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
         key = (body.mesh.kind, *_STAND_IN.get(model_form, model_form))
         count, nodes = int(body.mesh.elements.shape[0]), int(body.mesh.num_vertices)
         elements += count
-        body_held = bytes_of(HELD[key], count, nodes)
+        body_held = bytes_of(HELD[key], count, nodes) + basis_bytes * nodes * body.mesh.vertices.shape[1]
         held += body_held
-        peak += body_held + bytes_of(PEAK_EXTRA[key], count, nodes)
+        peak += body_held + bytes_of(PEAK_EXTRA[key], count, nodes) + basis_bytes * nodes * body.mesh.vertices.shape[1]
     return MemoryEstimate(elements, peak, held, dtype)
 
 
@@ -119,14 +123,14 @@ def free_bytes(device: torch.device) -> int:
     return int(free + torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device))
 
 
-def check_fits(bodies, dtype: torch.dtype, device: torch.device, form: str = "auto") -> None:
+def check_fits(bodies, dtype: torch.dtype, device: torch.device, form: str = "auto", warm_start="none") -> None:
     """Raise ``SceneError`` before anything is allocated where a scene of ``bodies`` cannot fit on
     the CUDA ``device`` (its estimated peak over the free memory), saying the estimate, what is
     free and about how many elements would fit. Other devices: nothing (host memory is the
     operating system's to refuse)."""
     if device.type != "cuda" or not torch.cuda.is_available():
         return
-    estimate = estimate_memory(bodies, dtype, form)
+    estimate = estimate_memory(bodies, dtype, form, warm_start)
     free = free_bytes(device)
     room = max(int((free - FIXED_BYTES) / PEAK_MARGIN), 0)  # for the estimated peak
     if estimate.peak_bytes > room:

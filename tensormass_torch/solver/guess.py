@@ -11,18 +11,17 @@ which needs only b, never A^-1. Of all the guesses in span W it is the one neare
 norm (||x* - x0||_A <= ||x*||_A: never worse than zero) while A is the matrix the basis was
 made with, as for hooke without contact, whose step matrix c_M M + c_K K is the same at every
 step. After the solve the new solution x joins the basis: its part A-orthogonal to W (classical
-Gram-Schmidt twice, with the stored images Z = A W, so that w_i . A x = z_i . x needs no product),
-normalised, written over the vector that counted least in this step's guess (the smallest share
-of the objects' projections; an unused row first). Dropping a vector of an orthonormal set
+Gram-Schmidt twice, the coefficients w_i . A y from the product A y), normalised, written over
+the vector that counted least in this step's guess (the smallest share of the objects'
+projections; an unused row first). Dropping a vector of an orthonormal set
 leaves it orthonormal; dropping the oldest instead threw away the first steps' solutions, which
 carry the static deflection that every later solution shares (on a 4,800-tet beam the guess's
-residual went from 1e-6 to 0.6 of the right-hand side when the basis first filled). One
-product A x a step, beside a handful of [k, V, d] vector operations.
+residual went from 1e-6 to 0.6 of the right-hand side when the basis first filled). Two
+products a step, beside a handful of [k, V, d] vector operations.
 
-The basis is kept in float64 whatever the solve's dtype: a float32 solution is converged to
-about 1e-6, and what a new solution adds to the span is that small, so its Gram-Schmidt in
-float32 (relative roundoff 1e-7 on vectors of norm one) left it far from orthogonal; the guess
-is rounded to the solve's dtype at the end.
+The basis is kept in float64 whatever the solve's dtype: what a new solution adds to the span
+is as small as 1e-4-1e-6 of it, and its Gram-Schmidt in float32 (roundoff 1e-7 relative to the
+solution) left it far from orthogonal; the guess is rounded to the solve's dtype at the end.
 
 Why it pays: a backward Euler step damps each vibration mode by 1 / (1 + (omega h)^2), so after a
 few steps the motion is carried by the few modes with omega h below about one, and the steps'
@@ -39,12 +38,14 @@ order (a cumulative sum), so results are reproducible.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 
 from ..ops.segments import Segments
 
 #: vectors a :class:`SolutionSpace` keeps (the newest replaces the oldest)
-PROJECTION_VECTORS = 16
+PROJECTION_VECTORS = 32
 
 #: warm-start modes (``StepOptions.warm_start``): none, 2 dv_1 - dv_2 of the two steps before
 #: (the simulator's), and the projection on the last steps' solutions (:class:`SolutionSpace`)
@@ -78,9 +79,8 @@ class SolutionSpace:
         if int(capacity) < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         self.capacity = int(capacity)
-        #: the basis W ``[k, V, d]`` and its images Z = A W ``[k, V, d]``, float64 (rows of zeros: unused)
+        #: the basis W ``[k, V, d]``, float64 (rows of zeros: unused)
         self.basis = torch.zeros((self.capacity,) + tuple(like.shape), dtype=torch.float64, device=like.device)
-        self.images = torch.zeros_like(self.basis)
         #: each row's share of the last guess, summed over the objects ``[k]`` (the least is replaced)
         self.share = torch.zeros(self.capacity, dtype=torch.float64, device=like.device)
         self.dtype = like.dtype
@@ -98,7 +98,6 @@ class SolutionSpace:
     def reset(self) -> None:
         """Forget every solution (in place: captured graphs keep their addresses)."""
         self.basis.zero_()
-        self.images.zero_()
         self.share.zero_()
 
     def _object_sums(self, per_node: torch.Tensor) -> torch.Tensor:
@@ -126,26 +125,32 @@ class SolutionSpace:
         self.share.copy_((energy / energy.sum(0).clamp(min=torch.finfo(torch.float64).tiny)).sum(1))
         return (self.basis * self._spread(coefficients)).sum(0).to(self.dtype)
 
-    def add(self, solution: torch.Tensor, product: torch.Tensor) -> None:
-        """Join ``solution [V, d]`` (a solve's x) to the space, given ``product`` = A x ``[V, d]``
-        with the matrix the guesses are for. Its part A-orthogonal to the basis, normalised, is
-        written over the oldest vector; an object whose solution already lies in the span (to
-        within roundoff) writes zeros there."""
-        solution, product = solution.to(torch.float64), product.to(torch.float64)
-        direction, image = solution, product
-        for _ in range(2):  # classical Gram-Schmidt, twice: orthogonal to roundoff in float32
-            along = self._spread(self._coefficients(self.images, direction))  # w_i . A x = z_i . x
+    def add(self, solution: torch.Tensor, product: Callable[[torch.Tensor], torch.Tensor]) -> None:
+        """Join ``solution [V, d]`` (a solve's x) to the space; ``product``: p ``[V, d]`` -> A p
+        ``[V, d]`` (the solve's dtype) with the matrix the guesses are for. Its part
+        A-orthogonal to the basis, normalised, is written over the row the last guess used
+        least; an object whose solution already lies in the span (to within roundoff) writes
+        zeros there.
+
+        Gram-Schmidt twice (classical), each pass's coefficients w_i . A y from the product of
+        y: the first pass's y is the solution, the second's what the first left, whose own
+        product then also gives its norm (w . A w1 = w . A w to roundoff, w being A-orthogonal
+        to the basis). Two products, and no images A W kept: half the memory of keeping them."""
+        direction = solution.to(torch.float64)
+        image = product(solution).to(torch.float64)
+        whole_sq = self._object_sums((direction * image).sum(-1)[None])[0]
+        for first in (True, False):
+            along = self._spread(self._coefficients(self.basis, image))  # w_i . A y
             direction = direction - (self.basis * along).sum(0)
-            image = image - (self.images * along).sum(0)
+            if first:
+                image = product(direction.to(self.dtype)).to(torch.float64)
         norm_sq = self._object_sums((direction * image).sum(-1)[None])[0]
-        whole_sq = self._object_sums((solution * product).sum(-1)[None])[0]
         keep = (norm_sq > self._keep_sq * whole_sq) & (norm_sq > 0) & torch.isfinite(norm_sq)
         scale = torch.where(keep, norm_sq.clamp(min=torch.finfo(torch.float64).tiny).rsqrt(), 0.0)
         scale = self._spread(scale[None])[0]
         slot = torch.argmin(self.share).reshape(1)  # (the first of equals: an unused row first)
         # (a zero scale writes zeros, also over a non-finite solution's NaN)
         self.basis.index_copy_(0, slot, torch.where(scale != 0, direction * scale, 0.0)[None])
-        self.images.index_copy_(0, slot, torch.where(scale != 0, image * scale, 0.0)[None])
         self.share.index_fill_(0, slot, float("inf"))  # (kept until the next guess notes the shares)
 
 

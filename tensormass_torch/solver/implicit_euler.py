@@ -647,7 +647,7 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
     if scaling is not None:
         result = dataclasses.replace(result, solution=scaling.apply(result.solution))
     if space is not None:
-        space.add(result.solution, _projected_product(product, result.solution, system.free))
+        space.add(result.solution, lambda p: _projected_product(product, p, system.free))
     return result
 
 
@@ -984,9 +984,8 @@ class StepGraphs:
             self.guess.copy_(self.space.guess(self.cg._project(rhs)))
 
     def _add_solution(self):
-        """The solve's solution joined to the solution space (one product more)."""
-        x = self.cg.state.x
-        self.space.add(x, self.cg._apply(self.matvec, x)[0])
+        """The solve's solution joined to the solution space (two products more)."""
+        self.space.add(self.cg.state.x, lambda p: self.cg._apply(self.matvec, p)[0])
 
     def _start_phase(self, preconditioner, warm: bool):
         """A preconditioned solve's start (from :attr:`guess` where ``warm``)."""

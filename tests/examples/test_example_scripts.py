@@ -24,6 +24,17 @@ def test_batch_example(tmp_path):
     assert (tmp_path / "batch.pvd").exists()
 
 
+def test_converged_steps_example():
+    """The three warm starts give the same converged steps; the projection takes the fewest
+    iterations once its basis holds the motion."""
+    runs = load("converged_steps").main(["--cells", "12", "3", "3", "--steps", "24"])
+    cold = runs["none"]
+    for mode in ("extrapolate", "project"):
+        assert float((runs[mode]["x"] - cold["x"]).abs().max()) < 1e-7
+    late = {mode: sum(r["iterations"][12:]) for mode, r in runs.items()}
+    assert late["project"] < late["extrapolate"] < late["none"], late
+
+
 def test_large_rotation_example():
     """hooke fails under a 180-degree twist and spin; corotational keeps the volume (issue 4)."""
     import math

@@ -29,6 +29,13 @@ def test_estimate_adds_bodies_and_scales_with_the_dtype():
     assert stvk.held_bytes > 2 * one.held_bytes  # the stress form's tangent graph and element data
     assert one.elements_that_fit(one.peak_bytes * 10) == 10 * one.elements
     assert "elements in float32: peak" in str(one)
+    # warm_start="project" holds its float64 basis, and its operations make one more at the peak
+    project = tm.estimate_memory(body, warm_start="project")
+    sim = tm.Simulator([body], dt=0.01, warm_start="project")
+    sim.step()
+    basis = sum(space.basis.nbytes for _, _, space in sim.system._solution_spaces.values())
+    assert project.held_bytes - one.held_bytes == basis
+    assert project.peak_bytes - one.peak_bytes == 2 * basis
 
 
 @pytest.mark.parametrize("shape", ["beam", "small bodies"])

@@ -1,5 +1,5 @@
 """Warm starts (StepOptions.warm_start): each step's CG from the extrapolation of the solutions of
-the steps before. The steps are converged steps (the same trajectory to the tolerance) in fewer
+the steps before (the projection on them: test_guess.py). The steps are converged steps (the same trajectory to the tolerance) in fewer
 iterations, plain and preconditioned; the guess is 2 dv_1 - dv_2, and nothing after a state set
 by hand or sub-steps; the scene key and bad input."""
 import pytest
@@ -84,22 +84,27 @@ def test_sub_steps_keep_no_history(monkeypatch):
     assert sim.last_report.substeps == 2 and sim._guess() is None
 
 
-def test_scene_key_and_bad_input(tmp_path):
+@pytest.mark.parametrize("value,mode", [("true", "extrapolate"), ('"extrapolate"', "extrapolate"),
+                                        ('"project"', "project"), ("false", "none")])
+def test_scene_key_and_bad_input(tmp_path, value, mode):
     path = tmp_path / "warm.toml"
-    path.write_text("""
+    path.write_text(f"""
 dt = 0.01
 steps = 2
 [solver]
-warm_start = true
+warm_start = {value}
 [[bodies]]
-mesh = { generator = "beam", cells = [6, 2, 2], size = [1.0, 0.5, 0.5] }
-material = { model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }
-fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
+mesh = {{ generator = "beam", cells = [6, 2, 2], size = [1.0, 0.5, 0.5] }}
+material = {{ model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }}
+fixed = {{ box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }}
 """)
     scene = tm.load_scene(path)
-    assert scene.simulator.options.warm_start == "extrapolate"
+    assert scene.simulator.options.warm_start == mode
     scene.simulator.step(2)
-    path.write_text(path.read_text().replace("warm_start = true", 'warm_start = "yes"'))
+    path.write_text(path.read_text().replace(f"warm_start = {value}", 'warm_start = "yes"'))
+    with pytest.raises(tm.SceneError, match="unknown warm start 'yes'"):
+        tm.load_scene(path)
+    path.write_text(path.read_text().replace('warm_start = "yes"', "warm_start = 1"))
     with pytest.raises(tm.SceneError, match="warm_start"):
         tm.load_scene(path)
     with pytest.raises(tm.SceneError, match="warm_start must be True, False or one of .*got 1"):
