@@ -38,7 +38,7 @@ order (a cumulative sum), so results are reproducible.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
 
@@ -83,6 +83,11 @@ class SolutionSpace:
         self.basis = torch.zeros((self.capacity,) + tuple(like.shape), dtype=torch.float64, device=like.device)
         #: each row's share of the last guess, summed over the objects ``[k]`` (the least is replaced)
         self.share = torch.zeros(self.capacity, dtype=torch.float64, device=like.device)
+        #: 1 for the rows that hold a vector of the current matrix, 0 for the others ``[k]``: a
+        #: change of the matrix (:meth:`watch`) sets them all to 0 on the device, without a pass
+        #: over the basis; invalid rows take no part in a guess or a Gram-Schmidt and go first
+        self.valid = torch.zeros(self.capacity, dtype=torch.float64, device=like.device)
+        self._node_stiffness = None  # the node stiffness the valid rows were made with (a copy)
         self.dtype = like.dtype
         segments = segments.to(like.device)
         self._node_object = segments.node_object
@@ -99,6 +104,8 @@ class SolutionSpace:
         """Forget every solution (in place: captured graphs keep their addresses)."""
         self.basis.zero_()
         self.share.zero_()
+        self.valid.zero_()
+        self._node_stiffness = None
 
     def _object_sums(self, per_node: torch.Tensor) -> torch.Tensor:
         """Per-object sums ``[..., B]`` of per-node values ``[..., V]`` (float64), in a fixed order."""
@@ -120,9 +127,10 @@ class SolutionSpace:
         """The projected guess ``[V, d]`` (the solve's dtype) of the solution of A x = ``rhs [V, d]``
         (the right-hand side on the free nodes): sum_i w_i (w_i . rhs) per object; zeros while
         the space is empty. Notes each row's share of it (what :meth:`add` replaces)."""
-        coefficients = self._coefficients(self.basis, rhs.to(torch.float64))
+        coefficients = self._coefficients(self.basis, rhs.to(torch.float64)) * self.valid[:, None]
         energy = coefficients.square()
-        self.share.copy_((energy / energy.sum(0).clamp(min=torch.finfo(torch.float64).tiny)).sum(1))
+        share = (energy / energy.sum(0).clamp(min=torch.finfo(torch.float64).tiny)).sum(1)
+        self.share.copy_(torch.where(self.valid > 0, share, -1.0))
         return (self.basis * self._spread(coefficients)).sum(0).to(self.dtype)
 
     def add(self, solution: torch.Tensor, product: Callable[[torch.Tensor], torch.Tensor]) -> None:
@@ -140,7 +148,7 @@ class SolutionSpace:
         image = product(solution).to(torch.float64)
         whole_sq = self._object_sums((direction * image).sum(-1)[None])[0]
         for first in (True, False):
-            along = self._spread(self._coefficients(self.basis, image))  # w_i . A y
+            along = self._spread(self._coefficients(self.basis, image) * self.valid[:, None])  # w_i . A y
             direction = direction - (self.basis * along).sum(0)
             if first:
                 image = product(direction.to(self.dtype)).to(torch.float64)
@@ -152,6 +160,29 @@ class SolutionSpace:
         # (a zero scale writes zeros, also over a non-finite solution's NaN)
         self.basis.index_copy_(0, slot, torch.where(scale != 0, direction * scale, 0.0)[None])
         self.share.index_fill_(0, slot, float("inf"))  # (kept until the next guess notes the shares)
+        self.valid.index_fill_(0, slot, 1.0)
+
+    def watch(self, node_stiffness: Optional[torch.Tensor], changing: bool = False) -> None:
+        """Invalidate every row (on the device: no host synchronisation) where the step's node
+        stiffness ``[V, d, d]`` (the planes' and tools' penalties; None: none) is not the one the
+        rows were made with, or where ``changing`` (a part of the matrix that changes at every
+        step, as body contact pairs). Call it before :meth:`guess`.
+
+        A penalty that starts or stops acting changes the matrix by a large, local amount: the
+        basis is then far from A-orthonormal, and its projection was measured to cost iterations
+        (SOFA's beam landing on its floor: 125-131 iterations a step where the cold start took
+        84-116, float64). Emptied there, it fills again while the same nodes touch."""
+        if changing or node_stiffness is None:
+            if changing or self._node_stiffness is not None:
+                self.valid.zero_()
+            self._node_stiffness = None
+            return
+        if self._node_stiffness is None or self._node_stiffness.shape != node_stiffness.shape:
+            self.valid.zero_()
+            self._node_stiffness = node_stiffness.detach().clone()
+            return
+        self.valid.mul_(torch.eq(node_stiffness, self._node_stiffness).all())
+        self._node_stiffness.copy_(node_stiffness)
 
 
 __all__ = ["SolutionSpace", "PROJECTION_VECTORS", "WARM_STARTS", "warm_start_mode"]

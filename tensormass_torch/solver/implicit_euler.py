@@ -621,6 +621,7 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
     product = matvec  # the system's own (Jacobi below scales it)
     if space is not None:
+        space.watch(None if fused is None else fused.node_stiffness, changing=pairs is not None and len(pairs) > 0)
         x0 = space.guess(rhs if system.free is None else rhs * system.free)
     multigrid = _rest_preconditioner(system, opts, fused, matvec, pairs, mass_coef, stiffness_coef, rhs)
     if multigrid is not None:
@@ -981,6 +982,7 @@ class StepGraphs:
     def _project_guess(self, rhs: torch.Tensor):
         """:attr:`guess` from the solution space where ``warm_start="project"``."""
         if self.space is not None:
+            self.space.watch(self.matvec.node_stiffness)
             self.guess.copy_(self.space.guess(self.cg._project(rhs)))
 
     def _add_solution(self):

@@ -124,6 +124,36 @@ def test_a_non_finite_solution_changes_nothing_and_a_solution_in_the_span_adds_n
     torch.testing.assert_close(space.basis, before, rtol=0, atol=0)
 
 
+def test_a_change_of_the_node_stiffness_invalidates_the_rows():
+    """The planes' and tools' penalties change the matrix: the rows made before no longer count
+    (no guess from them, not in the next Gram-Schmidt, replaced first); the same stiffness keeps
+    them, and so does its absence throughout."""
+    a, segments = block_diagonal_system([6])
+    apply = product(a)
+    space = SolutionSpace(torch.zeros(6, 3, dtype=DT), segments, capacity=3)
+    x = random_field(6, 0)
+    penalty = torch.zeros(6, 3, 3, dtype=DT)
+    for stiffness in (None, penalty):
+        space.reset()
+        space.watch(stiffness)
+        space.guess(apply(x))
+        space.add(x, apply)
+        space.watch(None if stiffness is None else stiffness.clone())  # the same: kept
+        torch.testing.assert_close(space.guess(apply(x)), x, rtol=0, atol=1e-12)
+    touched = penalty.clone()
+    touched[2] = 1e3 * torch.eye(3, dtype=DT)
+    space.watch(touched)  # a node starts to touch
+    assert float(space.guess(apply(x)).abs().max()) == 0.0 and float(space.valid.sum()) == 0.0
+    space.add(x, apply)
+    torch.testing.assert_close(space.guess(apply(x)), x, rtol=0, atol=1e-12)  # filled again
+    space.watch(touched, changing=True)  # body contact pairs: changing at every step
+    assert float(space.guess(apply(x)).abs().max()) == 0.0
+    space.watch(None)  # the penalties gone
+    space.add(x, apply)
+    space.watch(touched)
+    assert float(space.valid.sum()) == 0.0
+
+
 def test_bad_input():
     with pytest.raises(ValueError, match="capacity must be >= 1, got 0"):
         SolutionSpace(torch.zeros(3, 3), Segments.from_lengths([3]), capacity=0)
