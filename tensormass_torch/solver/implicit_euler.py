@@ -240,7 +240,8 @@ class DynamicsSystem:
 
     def _matrix_tensors(self) -> tuple:
         """The tensors a step's matrix at rest is made of: the model's groups', the masses, the
-        free-node mask (what ``preconditioner.system_rest_preconditioner`` keys on too)."""
+        free-node mask (what the caches built from that matrix key on: the solution spaces here,
+        ``preconditioner.system_rest_preconditioner``)."""
         groups = getattr(self.model, "groups", ())
         return tuple(t for group in groups for t in group.buffers()) + (self.mass,) + (
             () if self.free is None else (self.free,))

@@ -143,8 +143,7 @@ def system_rest_preconditioner(system, kind: str, mass_coef: float, stiffness_co
     from . import direct, multigrid
 
     model = system.model
-    tensors = tuple(t for group in model.groups for t in group.buffers()) + (system.mass,) + (
-        () if system.free is None else (system.free,))
+    tensors = system._matrix_tensors()
     key = (kind, float(mass_coef), float(stiffness_coef), like.dtype, like.device)
     cache = system._rest_preconditioner
     if cache is None or cache[0] != key or not library.unchanged(cache[1], tensors):
