@@ -110,9 +110,10 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
         key = (body.mesh.kind, *_STAND_IN.get(model_form, model_form))
         count, nodes = int(body.mesh.elements.shape[0]), int(body.mesh.num_vertices)
         elements += count
-        body_held = bytes_of(HELD[key], count, nodes) + basis_bytes * nodes * body.mesh.vertices.shape[1]
+        basis = basis_bytes * nodes * body.mesh.vertices.shape[1]
+        body_held = bytes_of(HELD[key], count, nodes) + basis
         held += body_held
-        peak += body_held + bytes_of(PEAK_EXTRA[key], count, nodes) + basis_bytes * nodes * body.mesh.vertices.shape[1]
+        peak += body_held + bytes_of(PEAK_EXTRA[key], count, nodes) + basis
     return MemoryEstimate(elements, peak, held, dtype)
 
 

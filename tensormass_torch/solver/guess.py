@@ -146,13 +146,13 @@ class SolutionSpace:
         to the basis). Two products, and no images A W kept: half the memory of keeping them."""
         direction = solution.to(torch.float64)
         image = product(solution).to(torch.float64)
-        whole_sq = self._object_sums((direction * image).sum(-1)[None])[0]
+        whole_sq = self._object_sums((direction * image).sum(-1))
         for first in (True, False):
             along = self._spread(self._coefficients(self.basis, image) * self.valid[:, None])  # w_i . A y
             direction = direction - (self.basis * along).sum(0)
             if first:
                 image = product(direction.to(self.dtype)).to(torch.float64)
-        norm_sq = self._object_sums((direction * image).sum(-1)[None])[0]
+        norm_sq = self._object_sums((direction * image).sum(-1))
         keep = (norm_sq > self._keep_sq * whole_sq) & (norm_sq > 0) & torch.isfinite(norm_sq)
         scale = torch.where(keep, norm_sq.clamp(min=torch.finfo(torch.float64).tiny).rsqrt(), 0.0)
         scale = self._spread(scale[None])[0]
