@@ -1,5 +1,6 @@
-// Schemas of the cutting ops, host algorithms registered for the CPU only (cpu.cpp): the simulator
-// calls them on host copies, whatever device it runs on. cutting_cut_mesh: the whole of
+// Schemas of the cutting ops. Host algorithms registered for the CPU only (cpu.cpp), which the
+// simulator calls on host copies whatever device it runs on, and the cut on the device (the last
+// three, registered for the CPU and CUDA: kernels.h, device_ops.h). cutting_cut_mesh: the whole of
 // mesh.cutting.cut (the faces a blade crosses part, their nodes split; ops.h);
 // cutting_edit_element_tables and cutting_edit_edge_tables: the integer tables a cut in place
 // edits (tables.h). The conventions every op follows: library.cpp. Fake kernels: the Python module
@@ -98,4 +99,37 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
         "Tensor(h!) element_edges, Tensor rows, Tensor ids, Tensor nodes, Tensor element_row, Tensor removed, "
         "int edge_rows_used) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, "
         "Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)");
+
+  // The cut on the device: the cut of cutting_cut_mesh (and of its reference) made of fixed-size
+  // passes over preallocated tables, with no allocation and no host synchronisation (kernels.h
+  // says how, and what the tables hold). Elements are tetrahedra [N, 4] or membrane triangles
+  // [N, 3]; index tensors of the elements' type (int32 or int64) but where said.
+  //
+  // cutting_cross_faces(x [V, 3], elements [N, n], face_elements [F, 2], alive [N] bool,
+  //                     blade_vertices [B, 3], blade_triangles [T, 3] int64, parted! [F] bool,
+  //                     crossed! [F] bool) -> ()
+  //   crossed[f] = the two elements of face f are alive, still share it (n - 1 nodes) and the
+  //   segment between their centroids at x crosses a blade triangle; parted[f] |= crossed[f].
+  m.def("cutting_cross_faces(Tensor x, Tensor elements, Tensor face_elements, Tensor alive, Tensor blade_vertices, "
+        "Tensor blade_triangles, Tensor(a!) parted, Tensor(b!) crossed) -> ()");
+  // cutting_split_stars(elements [N, n], node_slots [S, V], alive [N] bool, element_faces [N, n],
+  //                     face_elements [F, 2], parted [F] bool, group! [S, V] int32,
+  //                     new_count! [V] int32, on_cut! [V] uint8) -> ()
+  //   node_slots: each node's elements (ids into elements), -1 past the last, S <= 64. For each
+  //   node held by a parted face that is still shared: its alive elements grouped through the
+  //   faces holding it that are joined (shared, not parted, both alive), the groups ranked by
+  //   their smallest element id; group[s, i] = rank * n + the node's local index in its s-th
+  //   element (-1 for a removed element and past the last), new_count[i] = groups - 1 (on_cut[i]
+  //   = 1). Every other node: new_count 0, on_cut 0, group -1.
+  m.def("cutting_split_stars(Tensor elements, Tensor node_slots, Tensor alive, Tensor element_faces, "
+        "Tensor face_elements, Tensor parted, Tensor(a!) group, Tensor(b!) new_count, Tensor(c!) on_cut) -> ()");
+  // cutting_repoint_stars(node_slots [S, V], group [S, V] int32, new_count [V] int32,
+  //                       offset [V] int64, limits [2] int64, elements! [N, n], parents! [P] int64)
+  //     -> ()
+  //   offset: the exclusive prefix sum of new_count; limits = (the first new node's id, the room:
+  //   how many new nodes fit). The elements of rank r >= 1 at node i get the node
+  //   limits[0] + offset[i] + r - 1, and parents of that node = i. Where the new nodes do not fit
+  //   (their total over room, or past P) nothing is written.
+  m.def("cutting_repoint_stars(Tensor node_slots, Tensor group, Tensor new_count, Tensor offset, Tensor limits, "
+        "Tensor(a!) elements, Tensor(b!) parents) -> ()");
 }

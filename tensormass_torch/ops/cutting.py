@@ -62,11 +62,15 @@ from ..mesh import cutting as mesh_cutting
 from . import library, topology
 from .library import OpDef
 
-__all__ = ["cut_mesh", "near_elements", "edit_cut_tables", "ELEMENT_RESULTS", "EDGE_RESULTS"]
+__all__ = ["cut_mesh", "near_elements", "edit_cut_tables", "face_table", "cut_on_device", "ELEMENT_RESULTS",
+           "EDGE_RESULTS"]
 
 NAME = "cutting_cut_mesh"
 ELEMENT_TABLES = "cutting_edit_element_tables"
 EDGE_TABLES = "cutting_edit_edge_tables"
+CROSS_FACES = "cutting_cross_faces"
+SPLIT_STARS = "cutting_split_stars"
+REPOINT_STARS = "cutting_repoint_stars"
 #: The results of the table edits by name, in the ops' order.
 ELEMENT_RESULTS = ("incidence_nodes", "incidences", "items", "force_index", "slot_nodes", "node_slot_lists", "both")
 EDGE_RESULTS = ("status", "refresh_rows", "dead", "graph_edges", "incidence_nodes", "incidences", "items",
@@ -332,12 +336,208 @@ def _table_example(model_name: str):
     return example
 
 
+# ---------------------------------------------------------------------------------------------
+# The cut on the device: references, examples (the ops return nothing: no fake kernels)
+# ---------------------------------------------------------------------------------------------
+
+
+def _ref_cutting_cross_faces(x, elements, face_elements, alive, blade_vertices, blade_triangles, parted, crossed):
+    n = elements.shape[1]
+    first, second = face_elements[:, 0].long(), face_elements[:, 1].long()
+    a, b = elements[first].long(), elements[second].long()
+    shared = (a[:, :, None] == b[:, None, :]).sum((1, 2)) == n - 1
+    p, q = x[a].mean(1), x[b].mean(1)
+    low, high = blade_vertices.amin(0), blade_vertices.amax(0)
+    close = ((torch.minimum(p, q) <= high) & (torch.maximum(p, q) >= low)).all(1)
+    tested = alive[first] & alive[second] & shared & close
+    hit = torch.zeros_like(tested)
+    if bool(tested.any()):
+        blade = mesh_cutting.Blade(blade_vertices, blade_triangles)
+        hit[tested] = mesh_cutting._segments_cross(p[tested], q[tested], blade)
+    crossed.copy_(hit)
+    parted |= hit
+
+
+def _ref_cutting_split_stars(elements, node_slots, alive, element_faces, face_elements, parted, group, new_count,
+                             on_cut):
+    num_slots, num_nodes = node_slots.shape
+    n = elements.shape[1]
+    device = elements.device
+    ids = node_slots.long()  # [S, V]
+    element = ids.clamp(min=0)
+    rows = elements[element].long()  # [S, V, n]
+    holds = rows == torch.arange(num_nodes, device=device)[None, :, None]
+    local = holds.int().argmax(-1)  # [S, V]
+    member = (ids >= 0) & alive[element] & holds.any(-1)
+    faces = element_faces[element].long()  # [S, V, n]: the face opposite each local node
+    ends = face_elements[faces.clamp(min=0)].long()  # [S, V, n, 2]
+    other = torch.where(ends[..., 0] == element[..., None], ends[..., 1], ends[..., 0])
+    # the other element's slot in the node's star: [S, V, n, S]
+    same = (other[..., None] == ids.t()[None, :, None, :]) & member.t()[None, :, None, :]
+    found, slot = same.any(-1), same.int().argmax(-1)
+    other_rows = elements[other].long()  # [S, V, n, n]
+    shared = (rows[:, :, None, :, None] == other_rows[:, :, :, None, :]).sum((-1, -2)) == n - 1
+    link = (member[..., None] & (faces >= 0) & (torch.arange(n, device=device) != local[..., None]) & found
+            & shared)
+    cut = link & parted[faces.clamp(min=0)]
+    joined = link & ~cut
+    marked = cut.any(-1).any(0)  # [V]
+    big = torch.iinfo(torch.int64).max
+    labels = torch.where(member, element, torch.full_like(element, big))
+    s_idx, v_idx, _ = torch.nonzero(joined, as_tuple=True)
+    s_other = slot[joined]
+    while True:  # each joined pair takes its smaller label, until nothing changes
+        low = torch.minimum(labels[s_idx, v_idx], labels[s_other, v_idx])
+        updated = labels.clone()
+        flat = updated.reshape(-1)
+        flat.scatter_reduce_(0, s_idx * num_nodes + v_idx, low, reduce="amin")
+        flat.scatter_reduce_(0, s_other * num_nodes + v_idx, low, reduce="amin")
+        if torch.equal(updated, labels):
+            break
+        labels = updated
+    least = member & (labels == element)  # the entry of its group's smallest element
+    rank = ((labels[None, :, :] < labels[:, None, :]) & least[None, :, :]).sum(1)  # [S, V]
+    groups = least.sum(0)
+    group.copy_(torch.where(member & marked[None, :], rank * n + local, torch.full_like(rank, -1)).to(group.dtype))
+    new_count.copy_(torch.where(marked & (groups > 1), groups - 1, torch.zeros_like(groups)).to(new_count.dtype))
+    on_cut.copy_(marked.to(on_cut.dtype))
+
+
+def _ref_cutting_repoint_stars(node_slots, group, new_count, offset, limits, elements, parents):
+    n = elements.shape[1]
+    total = int(offset[-1]) + int(new_count[-1])
+    first_new, room = int(limits[0]), int(limits[1])
+    if total > room or first_new + total > parents.shape[0]:
+        return
+    ids, g = node_slots.long(), group.long()
+    s, i = torch.nonzero((ids >= 0) & (g >= n), as_tuple=True)
+    elements[ids[s, i], g[s, i] % n] = (first_new + offset[i] + g[s, i] // n - 1).to(elements.dtype)
+    nodes = torch.repeat_interleave(torch.arange(node_slots.shape[1], device=elements.device), new_count.long())
+    parents[first_new:first_new + total] = nodes
+
+
+@torch.no_grad()
+def face_table(elements: torch.Tensor, slit: Optional[torch.Tensor] = None):
+    """The interior faces of ``elements [N, n]`` (tetrahedra or membrane triangles), for the cut on
+    the device: ``face_elements [F, 2]`` (the two elements of each face, first < second, faces in
+    the order of their sorted node ids), ``element_faces [N, n]`` (the face opposite each local
+    node, -1 on the boundary), both of the elements' index type, and ``parted [F]`` bool: the
+    faces of the element pairs ``slit [S, 2]`` (an earlier cut's slit), False elsewhere. Made once
+    per mesh (it is what the cut reads; it is never resized). A face held by more than two elements
+    (a mesh that is not a manifold) pairs its holders in order, as the reference does."""
+    n = elements.shape[1]
+    device = elements.device
+    local = torch.tensor(mesh_cutting._FACES[n], device=device)  # [n, n - 1]
+    keys = torch.sort(elements.long()[:, local], dim=-1).values.reshape(-1, n - 1)  # [N n, n - 1]
+    _, inverse = torch.unique(keys, dim=0, return_inverse=True)
+    order = torch.argsort(inverse, stable=True)
+    sorted_ids = inverse[order]
+    pair = sorted_ids[1:] == sorted_ids[:-1]
+    first, second = order[:-1][pair], order[1:][pair]  # incidences (element n + k), first < second
+    num_faces = first.shape[0]
+    element_faces = torch.full((elements.shape[0] * n,), -1, dtype=elements.dtype, device=device)
+    faces = torch.arange(num_faces, dtype=elements.dtype, device=device)
+    element_faces[second] = faces
+    element_faces[first] = faces
+    face_elements = torch.stack([first // n, second // n], 1).to(elements.dtype)
+    parted = torch.zeros(num_faces, dtype=torch.bool, device=device)
+    if slit is not None and slit.numel():
+        pairs = slit.to(device=device, dtype=torch.int64)
+        pairs = torch.stack([pairs.amin(1), pairs.amax(1)], 1)
+        keys_faces = face_elements[:, 0].long() * elements.shape[0] + face_elements[:, 1].long()
+        parted = torch.isin(keys_faces, pairs[:, 0] * elements.shape[0] + pairs[:, 1])
+    return face_elements.contiguous(), element_faces.view(-1, n).contiguous(), parted
+
+
+@torch.no_grad()
+def cut_on_device(x: torch.Tensor, elements: torch.Tensor, node_slots: torch.Tensor, alive: torch.Tensor,
+                  faces: Tuple[torch.Tensor, torch.Tensor, torch.Tensor], blade_vertices: torch.Tensor,
+                  blade_triangles: torch.Tensor, limits: torch.Tensor, parents: torch.Tensor,
+                  scratch: Optional[dict] = None, *, native: bool = True) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The cut of ``elements [N, n]`` (written in place) at ``x [V', 3]`` along a blade
+    (``blade_vertices [B, 3]``, ``blade_triangles [T, 3]`` int64, on x's device), on whatever
+    device they are: the three passes (``cutting_cross_faces``, ``cutting_split_stars``,
+    ``cutting_repoint_stars``) and a prefix sum, with no host synchronisation (a CUDA graph can
+    hold it where ``scratch`` is given). ``faces``: :func:`face_table`'s ``(face_elements,
+    element_faces, parted)``, parted updated in place; ``node_slots [S, V']``: each node's elements
+    (ids into elements, in any order); ``limits [2]`` int64: the first new node's id and how many
+    new nodes fit; ``parents [P]`` int64: each new node's parent written there. ``scratch``: a
+    dict that keeps the passes' buffers between calls (made on the first).
+
+    Returns ``(crossed [F] bool, total [] int64)``: the faces this blade crossed, and how many
+    nodes the cut adds (made only where they fit: total <= limits[1]; else nothing changes but
+    ``parted``, which the caller restores, or keeps where it cuts again with more room)."""
+    face_elements, element_faces, parted = faces
+    scratch = {} if scratch is None else scratch
+    if scratch.get("group") is None or scratch["group"].shape != node_slots.shape:
+        scratch["group"] = torch.empty(node_slots.shape, dtype=torch.int32, device=x.device)
+        scratch["new_count"] = torch.empty(node_slots.shape[1], dtype=torch.int32, device=x.device)
+        scratch["on_cut"] = torch.empty(node_slots.shape[1], dtype=torch.uint8, device=x.device)
+        scratch["crossed"] = torch.empty(parted.shape, dtype=torch.bool, device=x.device)
+    group, new_count, crossed = scratch["group"], scratch["new_count"], scratch["crossed"]
+    library.op_or_reference(CROSS_FACES, x.device, native)(x, elements, face_elements, alive, blade_vertices,
+                                                             blade_triangles, parted, crossed)
+    library.op_or_reference(SPLIT_STARS, x.device, native)(elements, node_slots, alive, element_faces,
+                                                           face_elements, parted, group, new_count, scratch["on_cut"])
+    counts = new_count.long()
+    ends = torch.cumsum(counts, 0)
+    library.op_or_reference(REPOINT_STARS, x.device, native)(node_slots, group, new_count, ends - counts, limits,
+                                                               elements, parents)
+    return crossed, ends[-1]
+
+
+def _device_example(name: str):
+    """A 4 x 2 x 1 beam of tetrahedra (int32) with room for 24 new nodes, one element removed, an
+    earlier slit, and the cut of a blade at x = 0.51 through half of its section: the arguments of
+    the pass ``name`` (the earlier passes made by their references)."""
+
+    def example(device, dtype):
+        from ..mesh.beams import beam_mesh
+
+        mesh = beam_mesh(4, 2, 1, size=(1.0, 0.5, 0.25), dtype=torch.float64)
+        spare = 24
+        nodes = mesh.num_vertices + spare
+        elements = mesh.elements.to(device=device, dtype=torch.int32)
+        alive = torch.ones(elements.shape[0], dtype=torch.bool, device=device)
+        alive[-1] = False
+        first, second, _ = mesh_cutting.interior_faces(mesh.elements)
+        face_elements, element_faces, parted = face_table(elements, torch.stack([first, second], 1)[:1])
+        x = torch.cat([mesh.vertices, mesh.vertices[:1].expand(spare, 3)]).to(device=device, dtype=dtype)
+        blade = mesh_cutting.Blade.swept((0.51, -1, -1), (0.51, 0.2, -1), (0.51, -1, 2), (0.51, 0.2, 2))
+        blade_vertices, blade_triangles = blade.vertices.to(x), blade.triangles.to(device)
+        crossed = torch.zeros_like(parted)
+        if name == "cutting_cross_faces":
+            return (x, elements, face_elements, alive, blade_vertices, blade_triangles, parted, crossed), {}
+        _ref_cutting_cross_faces(x, elements, face_elements, alive, blade_vertices, blade_triangles, parted, crossed)
+        node_slots = topology.incidence_table(elements.reshape(-1).long(), torch.arange(
+            elements.shape[0], dtype=torch.int32, device=device).repeat_interleave(elements.shape[1]), nodes)
+        group = torch.zeros(node_slots.shape, dtype=torch.int32, device=device)
+        new_count = torch.zeros(nodes, dtype=torch.int32, device=device)
+        on_cut = torch.zeros(nodes, dtype=torch.uint8, device=device)
+        if name == "cutting_split_stars":
+            return (elements, node_slots, alive, element_faces, face_elements, parted, group, new_count, on_cut), {}
+        _ref_cutting_split_stars(elements, node_slots, alive, element_faces, face_elements, parted, group, new_count,
+                                 on_cut)
+        offset = torch.cumsum(new_count.long(), 0) - new_count.long()
+        limits = torch.tensor([mesh.num_vertices, spare], dtype=torch.int64, device=device)
+        parents = torch.arange(nodes, dtype=torch.int64, device=device)
+        return (node_slots, group, new_count, offset, limits, elements.clone(), parents), {}
+
+    return example
+
+
 OPS = (OpDef(NAME, _ref_cutting_cut_mesh, _fake_cutting_cut_mesh, differentiable=False, example=_example,
              devices=("cpu",)),
        OpDef(ELEMENT_TABLES, _ref_cutting_edit_element_tables, _fake_cutting_edit_element_tables,
              differentiable=False, mutates=True, example=_table_example("stvk"), devices=("cpu",)),
        OpDef(EDGE_TABLES, _ref_cutting_edit_edge_tables, _fake_cutting_edit_edge_tables, differentiable=False,
-             mutates=True, example=_table_example("hooke"), devices=("cpu",)))
+             mutates=True, example=_table_example("hooke"), devices=("cpu",)),
+       OpDef(CROSS_FACES, _ref_cutting_cross_faces, None, differentiable=False, mutates=True,
+             example=_device_example(CROSS_FACES)),
+       OpDef(SPLIT_STARS, _ref_cutting_split_stars, None, differentiable=False, mutates=True,
+             example=_device_example(SPLIT_STARS)),
+       OpDef(REPOINT_STARS, _ref_cutting_repoint_stars, None, differentiable=False, mutates=True,
+             example=_device_example(REPOINT_STARS)))
 library.define(OPS, lambda: library.register(OPS))
 
 

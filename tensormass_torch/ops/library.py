@@ -33,7 +33,7 @@ from .reference import gather as ref_gather
 
 __all__ = ["FAMILIES", "OpDef", "REGISTRY", "define", "register", "ensure_registered", "available", "pack", "MODEL_IDS",
            "ROTATION_IDS", "model_name", "plan_indices", "unchanged", "contiguous", "wants_grad", "slot_mask", "op",
-           "Example", "supports"]
+           "Example", "supports", "op_or_reference"]
 
 #: The op families, each a folder of csrc/ and a module of this package.
 FAMILIES = ("stress", "tensor_form", "gather", "node_graph", "cg", "solve", "topology", "cutting", "multigrid")
@@ -104,6 +104,16 @@ _registered_families = -1  # len(_family_registrations) when available() last re
 def op(name: str):
     """The overload ``torch.ops.tensormass.<name>.default``."""
     return getattr(torch.ops.tensormass, name).default
+
+
+def op_or_reference(name: str, device: torch.device, native: bool = True):
+    """The op ``name`` where the extension serves ``device`` and has it (and ``native``), else its
+    reference (the path of a family's calls where the extension is not built)."""
+    from .. import _backend
+
+    if native and _backend.use_extension(device) and ensure_registered() and hasattr(torch.ops.tensormass, name):
+        return op(name)
+    return REGISTRY[name].reference
 
 
 def pack(name: str, **named):

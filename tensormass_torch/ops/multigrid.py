@@ -25,7 +25,6 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .. import _backend
 from . import library
 from .library import OpDef
 
@@ -151,20 +150,13 @@ library.define(OPS, lambda: library.register(OPS))
 # ---------------------------------------------------------------------------------------------
 
 
-def _op_or_reference(name: str, device: torch.device):
-    """The op ``name`` where the extension serves ``device`` and has it, else its reference."""
-    if _backend.use_extension(device) and library.ensure_registered() and hasattr(torch.ops.tensormass, name):
-        return library.op(name)
-    return library.REGISTRY[name].reference
-
-
 def bsr_gemv(matrix: BsrMatrix, x: torch.Tensor, y: Optional[torch.Tensor] = None, alpha: float = 1.0,
              beta: float = 1.0, out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``alpha A x + beta y`` (without ``y``: ``alpha A x``) ``[Rb R]`` for flat ``x [Cb C]``, into
     ``out`` (may be ``y``, not ``x``; None: a new tensor)."""
     if out is None:
         out = torch.empty(matrix.shape[0], dtype=x.dtype, device=x.device)
-    _op_or_reference("multigrid_bsr_gemv", x.device)(*matrix.arrays(), x, y, float(alpha), float(beta), out)
+    library.op_or_reference("multigrid_bsr_gemv", x.device)(*matrix.arrays(), x, y, float(alpha), float(beta), out)
     return out
 
 
@@ -174,6 +166,6 @@ def chebyshev(b: torch.Tensor, inverse_diagonal: torch.Tensor, step: torch.Tenso
     """One Chebyshev step (``multigrid_chebyshev``) on flat vectors ``[n]``: the residual of ``x``
     through ``matrix`` or its ``product`` A x (neither: x = 0 and ``x`` None); returns ``x_out``."""
     arrays = matrix.arrays() if matrix is not None else (None, None, None)
-    _op_or_reference("multigrid_chebyshev", b.device)(*arrays, product, b, inverse_diagonal, x, step, x_out,
+    library.op_or_reference("multigrid_chebyshev", b.device)(*arrays, product, b, inverse_diagonal, x, step, x_out,
                                                        float(a), float(c))
     return x_out

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import torch
 
-from .. import _backend
 from ..mesh import geometry
 from ..mesh.topology import incidence_slots, sum_slots_in_order
 from . import library
@@ -191,19 +190,10 @@ library.define(OPS, lambda: library.register(OPS))
 # ---------------------------------------------------------------------------------------------
 
 
-def _op_or_reference(name: str, device: torch.device, native: bool):
-    """The op ``name`` where the extension serves ``device`` and has it (and ``native``), else its
-    reference."""
-    if (native and _backend.use_extension(device) and library.ensure_registered()
-            and hasattr(torch.ops.tensormass, name)):
-        return library.op(name)
-    return library.REGISTRY[name].reference
-
-
 @torch.no_grad()
 def refresh_nodes(elements, rows, node_slots, element_share, removed, mass, node_elements, native: bool = True):
     """``topology_refresh_nodes`` through the op or its reference (see the module docstring)."""
-    _op_or_reference("topology_refresh_nodes", mass.device, native)(elements, rows, node_slots, element_share,
+    library.op_or_reference("topology_refresh_nodes", mass.device, native)(elements, rows, node_slots, element_share,
                                                                      removed, mass, node_elements)
 
 
@@ -211,5 +201,5 @@ def refresh_nodes(elements, rows, node_slots, element_share, removed, mass, node
 def refresh_hooke_edges(rest, elements, rows, element_edges, edge_slots, element_row, removed, measure, young, poisson,
                         edge_k, native: bool = True):
     """``topology_refresh_hooke_edges`` through the op or its reference (see the module docstring)."""
-    _op_or_reference("topology_refresh_hooke_edges", rest.device, native)(
+    library.op_or_reference("topology_refresh_hooke_edges", rest.device, native)(
         rest, elements, rows, element_edges, edge_slots, element_row, removed, measure, young, poisson, edge_k)

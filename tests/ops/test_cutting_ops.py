@@ -28,7 +28,7 @@ import tensormass_torch as tm
 from tensormass_torch.errors import CapacityError, MeshError
 from tensormass_torch.mesh import cutting
 from tensormass_torch.ops import cutting as ops_cutting
-from tensormass_torch.ops import library
+from tensormass_torch.ops import library, topology
 from tensormass_torch.physics.groups import _edge_pool
 
 pytestmark = pytest.mark.skipif(not library.ensure_registered(), reason="the compiled extension is not available")
@@ -691,3 +691,184 @@ def test_bad_table_arguments_raise_naming_them_and_write_nothing(change, message
         library.op(ops_cutting.EDGE_TABLES)(*args.values())
     for k, v in before.items():
         assert torch.equal(args[k], v), k
+
+
+# ---------------------------------------------------------------------------------------------
+# The cut on the device
+# ---------------------------------------------------------------------------------------------
+
+DEVICE_SPARE = 300
+
+
+def small_blade(gen):
+    """A random quad of side 0.1-0.5 inside the beam's box: cuts that end inside the body (slits)."""
+    rand = lambda *s: torch.rand(*s, generator=gen, dtype=torch.float64)
+    c = rand(3) * torch.tensor([1.0, 0.6, 0.6], dtype=torch.float64)
+    n = torch.nn.functional.normalize(rand(3) - 0.5, dim=0)
+    t1 = torch.nn.functional.normalize(torch.linalg.cross(n, rand(3) - 0.5), dim=0)
+    t2 = torch.linalg.cross(n, t1)
+    s1, s2 = 0.05 + 0.2 * float(rand(())), 0.05 + 0.2 * float(rand(()))
+    p = [c - s1 * t1 - s2 * t2, c + s1 * t1 - s2 * t2, c + s1 * t1 + s2 * t2, c - s1 * t1 + s2 * t2]
+    return cutting.Blade.swept(p[0].tolist(), p[1].tolist(), p[3].tolist(), p[2].tolist())
+
+
+def device_cuts(mesh, blades, removed=(), index=torch.int64, dtype=torch.float64, device="cpu", native=True,
+                gen=None):
+    """Cuts ``blades`` in turn with ``ops.cutting.cut_on_device`` and with ``mesh.cutting.cut``
+    (the oracle, fed its own slit), the positions deformed by ``gen`` (a generator, or None); after
+    each: the same elements, new nodes' parents, pairs crossed and slit (the parted faces still
+    shared). Returns the nodes added."""
+    num_nodes, n = mesh.num_vertices, mesh.elements.shape[1]
+    elements = mesh.elements.to(device=device, dtype=index)
+    rest = mesh.vertices if gen is None else deformed(mesh.vertices, gen)
+    x = torch.cat([rest, rest[:1].expand(DEVICE_SPARE, 3)]).to(device=device, dtype=dtype)
+    alive = torch.ones(elements.shape[0], dtype=torch.bool, device=device)
+    alive[list(removed)] = False
+    faces = ops_cutting.face_table(elements)
+    parents = torch.arange(num_nodes + DEVICE_SPARE, device=device)
+    element_ids = torch.arange(elements.shape[0], dtype=index, device=device).repeat_interleave(n)
+    want_elements, slit, used, scratch = mesh.elements.clone(), None, num_nodes, {}
+    for blade in blades:
+        want = reference(want_elements, used, x[:used].cpu(), blade, ~alive.cpu(), slit)
+        node_slots = topology.incidence_table(elements.reshape(-1).long(), element_ids, num_nodes + DEVICE_SPARE)
+        limits = torch.tensor([used, num_nodes + DEVICE_SPARE - used], device=device)
+        crossed, total = ops_cutting.cut_on_device(x, elements, node_slots, alive, faces, blade.vertices.to(x),
+                                                   blade.triangles.to(device), limits, parents, scratch,
+                                                   native=native)
+        pairs = faces[0].long().cpu()
+        if want is None:
+            assert int(total) == 0 and not bool(crossed.any())
+            continue
+        total = int(total)
+        assert torch.equal(elements.cpu().long(), want.elements)
+        assert torch.equal(parents[used:used + total].cpu(), want.parents[used:])
+        assert set(map(tuple, pairs[crossed.cpu()].tolist())) == set(
+            map(tuple, torch.stack([want.cut_first, want.cut_second], 1).sort(1).values.tolist()))
+        a, b = elements.cpu().long()[pairs[:, 0]], elements.cpu().long()[pairs[:, 1]]
+        shared = (a[:, :, None] == b[:, None, :]).sum((1, 2)) == n - 1
+        still = faces[2].cpu() & shared & alive.cpu()[pairs].all(1)
+        assert set(map(tuple, pairs[still].tolist())) == set(map(tuple, want.slit.sort(1).values.tolist()))
+        x[used:used + total] = x[parents[used:used + total]]
+        want_elements, slit, used = want.elements, want.slit, used + total
+    return used - num_nodes
+
+
+@pytest.mark.parametrize("native", [True, False], ids=["op", "reference"])
+@pytest.mark.parametrize("index,dtype", [(torch.int64, torch.float64), (torch.int32, torch.float32)],
+                         ids=["int64-float64", "int32-float32"])
+@pytest.mark.parametrize("kind", ["tet", "membrane"])
+def test_the_cut_on_the_device_equals_the_reference_through_sequences_of_cuts(kind, index, dtype, native):
+    mesh = MESHES[kind]()
+    gen = torch.Generator().manual_seed(5)
+    partial = plane_blade(0.51, 0.3) if kind == "tet" else cutting.Blade.swept((0.51, -1, -1), (0.51, 0.3, -1),
+                                                                                (0.51, -1, 1), (0.51, 0.3, 1))
+    blades = [partial, plane_blade(0.51), plane_blade(0.33, 0.35)] + [small_blade(gen) for _ in range(8)]
+    added = device_cuts(mesh, blades, removed=(3, 11, 20), index=index, dtype=dtype, native=native, gen=gen)
+    assert added > 10
+
+
+def test_random_small_blades_leave_slits_and_equal_the_reference():
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(3):
+        device_cuts(tet_mesh(), [small_blade(gen) for _ in range(8)], removed=(7, 30))
+
+
+def test_a_cut_on_the_device_with_no_room_changes_no_element():
+    mesh = tet_mesh()
+    elements = mesh.elements.clone()
+    faces = ops_cutting.face_table(elements)
+    node_slots = topology.incidence_table(elements.reshape(-1), torch.arange(elements.shape[0]).repeat_interleave(4),
+                                          mesh.num_vertices + 4)
+    x = torch.cat([mesh.vertices, mesh.vertices[:4]])
+    parents = torch.arange(mesh.num_vertices + 4)
+    alive = torch.ones(elements.shape[0], dtype=torch.bool)
+    blade = plane_blade(0.51)
+    crossed, total = ops_cutting.cut_on_device(x, elements, node_slots, alive, faces, blade.vertices, blade.triangles,
+                                               torch.tensor([mesh.num_vertices, 4]), parents)
+    assert int(total) > 4 and bool(crossed.any())
+    assert torch.equal(elements, mesh.elements) and torch.equal(parents, torch.arange(mesh.num_vertices + 4))
+
+
+def test_the_face_table_lists_each_interior_face_once_and_marks_a_slit_parted():
+    mesh = tet_mesh()
+    first, second, _ = cutting.interior_faces(mesh.elements)
+    face_elements, element_faces, parted = ops_cutting.face_table(mesh.elements, torch.stack([second, first], 1)[:3])
+    assert torch.equal(face_elements, torch.stack([first, second], 1))
+    assert int(parted.sum()) == 3 and bool(parted[:3].all())
+    for f, (a, b) in enumerate(face_elements.tolist()):
+        assert f in element_faces[a].tolist() and f in element_faces[b].tolist()
+        k = element_faces[a].tolist().index(f)  # the face opposite local node k of a: shared by b
+        assert mesh.elements[a, k] not in mesh.elements[b].tolist()
+    assert int((element_faces >= 0).sum()) == 2 * face_elements.shape[0]
+
+
+def _device_args(name):
+    args, _ = library.REGISTRY[name].example("cpu", torch.float64)
+    return dict(zip([a.name for a in library.op(name)._schema.arguments], args))
+
+
+@pytest.mark.parametrize("name,change,message", [
+    (ops_cutting.CROSS_FACES, dict(alive=lambda a: a["alive"][1:]), "alive has shape"),
+    (ops_cutting.CROSS_FACES, dict(blade_triangles=lambda a: a["blade_triangles"].int()), "blade_triangles is Int"),
+    (ops_cutting.CROSS_FACES, dict(face_elements=lambda a: a["face_elements"].long()), "face_elements is Long"),
+    (ops_cutting.SPLIT_STARS, dict(node_slots=lambda a: torch.cat([a["node_slots"]] * 20)), "at most 64 elements"),
+    (ops_cutting.SPLIT_STARS, dict(group=lambda a: a["group"].long()), "group is Long; expected Int"),
+    (ops_cutting.SPLIT_STARS, dict(parted=lambda a: a["parted"][1:]), "parted has shape"),
+    (ops_cutting.REPOINT_STARS, dict(limits=lambda a: a["limits"][:1]), r"limits has shape \[1\]"),
+    (ops_cutting.REPOINT_STARS, dict(elements=lambda a: a["elements"][:, :2].contiguous()), r"elements must be"),
+])
+def test_bad_arguments_of_the_device_passes_raise_naming_them_and_write_nothing(name, change, message):
+    args = _device_args(name)
+    for key, make in change.items():
+        args[key] = make(args)
+    before = {k: v.clone() for k, v in args.items() if isinstance(v, torch.Tensor)}
+    with pytest.raises(RuntimeError, match=message):
+        library.op(name)(*args.values())
+    for k, v in before.items():
+        assert torch.equal(args[k], v), k
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("kind", ["tet", "membrane"])
+def test_the_cut_on_cuda_equals_the_reference(kind):
+    gen = torch.Generator().manual_seed(11)
+    blades = [plane_blade(0.51, 0.3), plane_blade(0.51)] + [small_blade(gen) for _ in range(6)]
+    for index, dtype in [(torch.int64, torch.float64), (torch.int32, torch.float32)]:
+        device_cuts(MESHES[kind](), blades, removed=(3, 11), index=index, dtype=dtype, device="cuda", gen=gen)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_the_cut_on_cuda_runs_in_a_captured_graph():
+    """The three passes and the prefix sum captured once, replayed for two blades (written into
+    the captured blade buffer): the same elements as eager cuts."""
+    mesh, device = tet_mesh(), torch.device("cuda")
+    num_nodes, spare = mesh.num_vertices, 64
+
+    def setup():
+        elements = mesh.elements.to(device)
+        x = torch.cat([mesh.vertices, mesh.vertices[:1].expand(spare, 3)]).to(device)
+        node_slots = topology.incidence_table(elements.reshape(-1), torch.arange(
+            elements.shape[0], device=device).repeat_interleave(4), num_nodes + spare)
+        return dict(x=x, elements=elements, node_slots=node_slots,
+                    alive=torch.ones(elements.shape[0], dtype=torch.bool, device=device),
+                    faces=ops_cutting.face_table(elements), limits=torch.tensor([num_nodes, spare], device=device),
+                    parents=torch.arange(num_nodes + spare, device=device))
+
+    blades = [plane_blade(0.51, 0.3), plane_blade(0.71, 0.25)]
+    eager, captured = setup(), setup()
+    for blade in blades:
+        ops_cutting.cut_on_device(**eager, blade_vertices=blade.vertices.to(device),
+                                  blade_triangles=blade.triangles.to(device))
+    vertices, triangles = blades[0].vertices.to(device).clone(), blades[0].triangles.to(device)
+    scratch = {}
+    ops_cutting.cut_on_device(**setup(), blade_vertices=vertices, blade_triangles=triangles, scratch=scratch)
+    torch.cuda.synchronize()
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        ops_cutting.cut_on_device(**captured, blade_vertices=vertices, blade_triangles=triangles, scratch=scratch)
+    for blade in blades:  # the node slots are not edited here: the second blade cuts elsewhere
+        vertices.copy_(blade.vertices.to(device))
+        graph.replay()
+    torch.cuda.synchronize()
+    assert torch.equal(captured["elements"], eager["elements"])
+    assert torch.equal(captured["parents"], eager["parents"])

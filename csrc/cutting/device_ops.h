@@ -1,0 +1,203 @@
+// Host side of the cut on the device (schemas: schema.cpp; kernels: kernels.h), written once for
+// the CPU and CUDA: argument checks, dispatch and one launch through `L` (common/cpu_launcher.h,
+// common/cuda_launcher.cuh). No allocation and no host synchronisation: a cut between captured
+// steps, or inside one, is three launches and a prefix sum.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+#include <torch/library.h>
+
+#include <cstdint>
+#include <limits>
+#include <string>
+
+#include "common/checks.h"
+#include "common/dispatch.h"
+#include "cutting/kernels.h"
+
+namespace tensormass {
+namespace cutting {
+
+inline void check_index(const at::Tensor& t, const char* name, const at::Tensor& like, at::ScalarType type,
+                        at::IntArrayRef shape, const char* like_name) {
+  check_index_tensor(t, name, like, type, shape, like_name);
+}
+
+inline void check_bool(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t size,
+                       const char* like_name) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but ", like_name,
+              " is on ", like.device().str());
+  TORCH_CHECK(t.scalar_type() == at::kBool, "tensormass: ", name, " must be bool, got ", dtype_str(t.scalar_type()));
+  TORCH_CHECK(t.dim() == 1 && t.size(0) == size, "tensormass: ", name, " has shape ", shape_str(t.sizes()),
+              "; expected [", std::to_string(size), "]");
+  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
+}
+
+inline int64_t element_nodes(const at::Tensor& elements) {
+  TORCH_CHECK(elements.defined() && elements.dim() == 2 && (elements.size(1) == 3 || elements.size(1) == 4),
+              "tensormass: elements must be [N, 4] (tetrahedra) or [N, 3] (membrane triangles), got ",
+              elements.defined() ? shape_str(elements.sizes()) : std::string("undefined"));
+  return elements.size(1);
+}
+
+template <class F>
+void dispatch_element_nodes(int64_t nn, F&& f) {
+  if (nn == 4) {
+    f(IC<4>{});
+  } else {
+    f(IC<3>{});
+  }
+}
+
+// cutting_cross_faces: see schema.cpp.
+template <class L>
+void cutting_cross_faces(const at::Tensor& x, const at::Tensor& elements, const at::Tensor& face_elements,
+                         const at::Tensor& alive, const at::Tensor& blade_vertices,
+                         const at::Tensor& blade_triangles, at::Tensor parted, at::Tensor crossed) {
+  check_values(x, "x");
+  TORCH_CHECK(x.size(1) == 3, "tensormass: x must be [V, 3], got ", shape_str(x.sizes()));
+  const int64_t nn = element_nodes(elements);
+  const at::ScalarType index_type = index_type_of(elements, "elements");
+  check_index(elements, "elements", x, index_type, elements.sizes(), "x");
+  TORCH_CHECK(face_elements.defined() && face_elements.dim() == 2 && face_elements.size(1) == 2,
+              "tensormass: face_elements must be [F, 2]");
+  check_index(face_elements, "face_elements", x, index_type, face_elements.sizes(), "x");
+  const int64_t num_faces = face_elements.size(0);
+  check_bool(alive, "alive", x, elements.size(0), "x");
+  TORCH_CHECK(blade_vertices.defined() && blade_vertices.dim() == 2 && blade_vertices.size(1) == 3 &&
+                  blade_vertices.size(0) >= 1,
+              "tensormass: blade_vertices must be [B >= 1, 3]");
+  check_float_tensor(blade_vertices, "blade_vertices", x, blade_vertices.sizes());
+  TORCH_CHECK(blade_triangles.defined() && blade_triangles.dim() == 2 && blade_triangles.size(1) == 3,
+              "tensormass: blade_triangles must be [T, 3]");
+  check_index(blade_triangles, "blade_triangles", x, at::kLong, blade_triangles.sizes(), "x");
+  check_bool(parted, "parted", x, num_faces, "x");
+  check_bool(crossed, "crossed", x, num_faces, "x");
+  typename L::Guard guard(x.device());
+  dispatch_scalar(x.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_element_nodes(nn, [&](auto nn_c) {
+        constexpr int NN = decltype(nn_c)::value;
+        CrossFacesKernel<NN, S, I> k;
+        k.x = x.data_ptr<S>();
+        k.elements = elements.data_ptr<I>();
+        k.face_elements = face_elements.data_ptr<I>();
+        k.alive = alive.data_ptr<bool>();
+        k.blade_vertices = blade_vertices.data_ptr<S>();
+        k.num_blade_vertices = blade_vertices.size(0);
+        k.blade_triangles = blade_triangles.data_ptr<int64_t>();
+        k.num_triangles = blade_triangles.size(0);
+        k.eps = std::numeric_limits<S>::epsilon();
+        k.parted = parted.data_ptr<bool>();
+        k.crossed = crossed.data_ptr<bool>();
+        L::run(num_faces, k, L::kElementBlock);
+      });
+    });
+  });
+}
+
+// cutting_split_stars: see schema.cpp. Two launches: the nodes of parted faces marked, then their
+// stars split (every other node only writes new_count = 0).
+template <class L>
+void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slots, const at::Tensor& alive,
+                         const at::Tensor& element_faces, const at::Tensor& face_elements, const at::Tensor& parted,
+                         at::Tensor group, at::Tensor new_count, at::Tensor on_cut) {
+  const int64_t nn = element_nodes(elements);
+  const at::ScalarType index_type = index_type_of(elements, "elements");
+  TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
+  TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
+  check_index(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
+  TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
+              " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
+  const int64_t num_nodes = node_slots.size(1);
+  check_bool(alive, "alive", elements, elements.size(0), "elements");
+  check_index(element_faces, "element_faces", elements, index_type, elements.sizes(), "elements");
+  TORCH_CHECK(face_elements.defined() && face_elements.dim() == 2 && face_elements.size(1) == 2,
+              "tensormass: face_elements must be [F, 2]");
+  check_index(face_elements, "face_elements", elements, index_type, face_elements.sizes(), "elements");
+  check_bool(parted, "parted", elements, face_elements.size(0), "elements");
+  check_index(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
+  check_index(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
+  check_index(on_cut, "on_cut", elements, at::kByte, {num_nodes}, "elements");
+  typename L::Guard guard(elements.device());
+  on_cut.zero_();
+  dispatch_index(index_type, [&](auto i_tag) {
+    using I = decltype(i_tag);
+    dispatch_element_nodes(nn, [&](auto nn_c) {
+      constexpr int NN = decltype(nn_c)::value;
+      MarkCutNodesKernel<NN, I> mark;
+      mark.elements = elements.data_ptr<I>();
+      mark.face_elements = face_elements.data_ptr<I>();
+      mark.alive = alive.data_ptr<bool>();
+      mark.parted = parted.data_ptr<bool>();
+      mark.on_cut = on_cut.data_ptr<uint8_t>();
+      L::run(face_elements.size(0), mark, L::kNodeBlock);
+      SplitStarsKernel<NN, I> k;
+      k.elements = elements.data_ptr<I>();
+      k.node_slots = node_slots.data_ptr<I>();
+      k.num_slots = node_slots.size(0);
+      k.num_nodes = num_nodes;
+      k.alive = alive.data_ptr<bool>();
+      k.element_faces = element_faces.data_ptr<I>();
+      k.face_elements = face_elements.data_ptr<I>();
+      k.parted = parted.data_ptr<bool>();
+      k.on_cut = on_cut.data_ptr<uint8_t>();
+      k.group = group.data_ptr<int32_t>();
+      k.new_count = new_count.data_ptr<int32_t>();
+      L::run(num_nodes, k, L::kNodeBlock);
+    });
+  });
+}
+
+// cutting_repoint_stars: see schema.cpp.
+template <class L>
+void cutting_repoint_stars(const at::Tensor& node_slots, const at::Tensor& group, const at::Tensor& new_count,
+                           const at::Tensor& offset, const at::Tensor& limits, at::Tensor elements,
+                           at::Tensor parents) {
+  const int64_t nn = element_nodes(elements);
+  const at::ScalarType index_type = index_type_of(elements, "elements");
+  TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
+  TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
+  check_index(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
+  const int64_t num_nodes = node_slots.size(1);
+  TORCH_CHECK(num_nodes >= 1, "tensormass: node_slots must have at least one node");
+  check_index(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
+  check_index(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
+  check_index(offset, "offset", elements, at::kLong, {num_nodes}, "elements");
+  check_index(limits, "limits", elements, at::kLong, {2}, "elements");
+  TORCH_CHECK(parents.defined() && parents.dim() == 1, "tensormass: parents must be [P]");
+  check_index(parents, "parents", elements, at::kLong, parents.sizes(), "elements");
+  typename L::Guard guard(elements.device());
+  dispatch_index(index_type, [&](auto i_tag) {
+    using I = decltype(i_tag);
+    dispatch_element_nodes(nn, [&](auto nn_c) {
+      constexpr int NN = decltype(nn_c)::value;
+      RepointStarsKernel<NN, I> k;
+      k.node_slots = node_slots.data_ptr<I>();
+      k.num_slots = node_slots.size(0);
+      k.num_nodes = num_nodes;
+      k.group = group.data_ptr<int32_t>();
+      k.new_count = new_count.data_ptr<int32_t>();
+      k.offset = offset.data_ptr<int64_t>();
+      k.limits = limits.data_ptr<int64_t>();
+      k.elements = elements.data_ptr<I>();
+      k.parents = parents.data_ptr<int64_t>();
+      k.num_parents = parents.size(0);
+      L::run(num_nodes, k, L::kNodeBlock);
+    });
+  });
+}
+
+// Registers the device cut's ops of one backend (launcher L): cpu.cpp and cuda.cu.
+template <class L>
+void register_device_cutting_ops(torch::Library& m) {
+  m.impl("cutting_cross_faces", &cutting_cross_faces<L>);
+  m.impl("cutting_split_stars", &cutting_split_stars<L>);
+  m.impl("cutting_repoint_stars", &cutting_repoint_stars<L>);
+}
+
+}  // namespace cutting
+}  // namespace tensormass

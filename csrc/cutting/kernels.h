@@ -1,0 +1,313 @@
+// The per-item kernels of the cut on the device (device_ops.h): the same cut as the host
+// algorithm (ops.h) and its reference (tensormass_torch.mesh.cutting.cut), made of three fixed-size
+// passes that read and write preallocated tables, so that a cut needs no host synchronisation and
+// can run inside a captured CUDA graph.
+//
+// The tables (made once per mesh by tensormass_torch.ops.cutting.face_table, never resized):
+//   face_elements [F, 2]   the two elements of each interior face of the mesh as built (first < second)
+//   element_faces [N, n]   the face opposite local node k of element e, -1 where it is a boundary face
+//   parted [F] bool        faces cut so far. A face keeps its two elements whatever the cuts do
+//                          (elements are never divided), so a pair's face is "still shared" while
+//                          the two elements hold the same n - 1 nodes, and "joined" while it is
+//                          shared, not parted and both elements alive.
+//   node_slots [S, V]      each node's elements (ids into elements), -1 past the last.
+//
+// Invariant the passes keep (by induction over cuts, as the reference's): around every node its
+// alive elements are joined through faces not parted, or the node is on a parted face that is still
+// shared; a face that is not parted is shared. So only the nodes of parted, still shared faces can
+// split, and their stars are read whole.
+//
+// 1. CrossFacesKernel, a face an item: crossed = shared, both alive, and the segment between the
+//    two centroids crosses a blade triangle (the reference's Moller-Trumbore, with its box test);
+//    parted |= crossed.
+// 2. MarkCutNodesKernel, a face an item, marks the nodes of the parted faces that are still
+//    shared; then SplitStarsKernel, a node an item: if the node is marked, its alive elements are
+//    grouped through the joined faces holding it (union-find over the star, at most kMaxStar
+//    elements), the groups ranked by their smallest element id (the rank-0
+//    group keeps the node), and each star slot gets group = rank * n + the node's local index
+//    (-1: an element removed, and every slot of a node not marked); new_count = groups - 1.
+// 3. The caller numbers the new nodes: offset = exclusive prefix sum of new_count (a node's copies
+//    are numbered consecutively, nodes in order: the reference's (node, group) order).
+// 4. RepointStarsKernel, a node an item: elements of rank r >= 1 get node first_new + offset + r - 1,
+//    and parents of those new nodes = the node; nothing is written where the copies do not fit
+//    (total > room).
+// Each item writes only its own entries (a face its flags, or a 1 into its nodes' marks, the same
+// value whichever face writes it; a node its column of group, its count,
+// its new nodes' parents, and in each of its elements the column that holds it), so the results do
+// not depend on the order of items: deterministic, no atomics.
+#pragma once
+
+#include <cstdint>
+
+#include "common/element_math.h"
+
+namespace tensormass {
+namespace cutting {
+
+// The most elements a node's star may hold (node_slots' rows): the union-find runs in registers /
+// local memory of one thread.
+constexpr int kMaxStar = 64;
+
+// The segment test's vector steps, on local arrays (element_math.h's cross3 and dot3).
+template <typename S>
+TM_HD void load3(const S* p, S (&r)[3]) {
+  r[0] = p[0];
+  r[1] = p[1];
+  r[2] = p[2];
+}
+
+template <typename S>
+TM_HD void sub3(const S (&a)[3], const S (&b)[3], S (&r)[3]) {
+  r[0] = a[0] - b[0];
+  r[1] = a[1] - b[1];
+  r[2] = a[2] - b[2];
+}
+
+template <typename S>
+TM_HD S norm3(const S (&a)[3]) {
+  return tm_sqrt(dot3<S>(a, a));
+}
+
+// Whether elements a and b (rows of NN node ids) share NN - 1 nodes.
+template <int NN, typename I>
+TM_HD bool share_face(const I* a, const I* b) {
+  int shared = 0;
+  TM_UNROLL for (int i = 0; i < NN; ++i) {
+    TM_UNROLL for (int j = 0; j < NN; ++j) shared += a[i] == b[j] ? 1 : 0;
+  }
+  return shared == NN - 1;
+}
+
+template <int NN, typename S, typename I>
+struct CrossFacesKernel {
+  const S* x;                 // [V, 3]
+  const I* elements;          // [N, NN]
+  const I* face_elements;     // [F, 2]
+  const bool* alive;          // [N]
+  const S* blade_vertices;    // [B, 3]
+  int64_t num_blade_vertices; // B
+  const int64_t* blade_triangles;  // [T, 3]
+  int64_t num_triangles;
+  S eps;                      // the dtype's machine epsilon
+  bool* parted;               // [F]
+  bool* crossed;              // [F]
+
+  TM_HD void centroid(I e, S* c) const {
+    c[0] = c[1] = c[2] = S(0);
+    for (int a = 0; a < NN; ++a) {
+      const S* p = x + static_cast<int64_t>(elements[static_cast<int64_t>(e) * NN + a]) * 3;
+      c[0] += p[0];
+      c[1] += p[1];
+      c[2] += p[2];
+    }
+    c[0] /= S(NN);
+    c[1] /= S(NN);
+    c[2] /= S(NN);
+  }
+
+  TM_HD void operator()(int64_t f) const {
+    const I e1 = face_elements[2 * f], e2 = face_elements[2 * f + 1];
+    bool hit = false;
+    if (alive[e1] && alive[e2] &&
+        share_face<NN, I>(elements + static_cast<int64_t>(e1) * NN, elements + static_cast<int64_t>(e2) * NN)) {
+      S p[3], q[3];
+      centroid(e1, p);
+      centroid(e2, q);
+      // the blade's box: only segments whose box meets it are tested (as the reference)
+      S low[3], high[3];
+      for (int k = 0; k < 3; ++k) low[k] = high[k] = blade_vertices[k];
+      for (int64_t j = 1; j < num_blade_vertices; ++j) {
+        const S* v = blade_vertices + j * 3;
+        for (int k = 0; k < 3; ++k) {
+          low[k] = v[k] < low[k] ? v[k] : low[k];
+          high[k] = v[k] > high[k] ? v[k] : high[k];
+        }
+      }
+      bool close = true;
+      for (int k = 0; k < 3; ++k) {
+        const S lo = p[k] < q[k] ? p[k] : q[k], hi = p[k] < q[k] ? q[k] : p[k];
+        close = close && lo <= high[k] && hi >= low[k];
+      }
+      S d[3];
+      sub3<S>(q, p, d);
+      const S d_norm = norm3<S>(d);
+      for (int64_t t = 0; close && t < num_triangles && !hit; ++t) {
+        S a[3], b[3], c[3], e1v[3], e2v[3], h[3], s[3], qv[3];
+        load3<S>(blade_vertices + blade_triangles[3 * t] * 3, a);
+        load3<S>(blade_vertices + blade_triangles[3 * t + 1] * 3, b);
+        load3<S>(blade_vertices + blade_triangles[3 * t + 2] * 3, c);
+        sub3<S>(b, a, e1v);
+        sub3<S>(c, a, e2v);
+        cross3<S>(d, e2v, h);
+        const S det = dot3<S>(e1v, h);
+        const S det_abs = det < S(0) ? -det : det;
+        if (!(det_abs > eps * (d_norm * norm3<S>(e1v) * norm3<S>(e2v)))) continue;
+        const S inv = S(1) / det;
+        sub3<S>(p, a, s);
+        const S u = inv * dot3<S>(s, h);
+        cross3<S>(s, e1v, qv);
+        const S v = inv * dot3<S>(d, qv);
+        const S t_hit = inv * dot3<S>(e2v, qv);
+        hit = u >= S(0) && v >= S(0) && u + v <= S(1) && t_hit > S(0) && t_hit < S(1);
+      }
+    }
+    crossed[f] = hit;
+    if (hit) parted[f] = true;
+  }
+};
+
+// A face an item: a parted face whose two elements are alive and still share it marks its n - 1
+// shared nodes (on_cut, zeroed by the caller). Several faces may mark one node: each writes the same
+// 1, so the result does not depend on their order.
+template <int NN, typename I>
+struct MarkCutNodesKernel {
+  const I* elements;       // [N, NN]
+  const I* face_elements;  // [F, 2]
+  const bool* alive;       // [N]
+  const bool* parted;      // [F]
+  uint8_t* on_cut;         // [V]
+
+  TM_HD void operator()(int64_t f) const {
+    if (!parted[f]) return;
+    const I e1 = face_elements[2 * f], e2 = face_elements[2 * f + 1];
+    if (!alive[e1] || !alive[e2]) return;
+    const I* a = elements + static_cast<int64_t>(e1) * NN;
+    const I* b = elements + static_cast<int64_t>(e2) * NN;
+    if (!share_face<NN, I>(a, b)) return;
+    for (int i = 0; i < NN; ++i) {
+      for (int j = 0; j < NN; ++j) {
+        if (a[i] == b[j]) on_cut[static_cast<int64_t>(a[i])] = 1;
+      }
+    }
+  }
+};
+
+template <int NN, typename I>
+struct SplitStarsKernel {
+  const I* elements;       // [N, NN]
+  const I* node_slots;     // [num_slots, V]
+  int64_t num_slots;
+  int64_t num_nodes;       // V
+  const bool* alive;       // [N]
+  const I* element_faces;  // [N, NN]
+  const I* face_elements;  // [F, 2]
+  const bool* parted;      // [F]
+  const uint8_t* on_cut;   // [V] MarkCutNodesKernel's
+  int32_t* group;          // [num_slots, V]
+  int32_t* new_count;      // [V]
+
+  // The local index of node i in element e (NN if it does not hold it).
+  TM_HD int local_of(I e, int64_t i) const {
+    for (int a = 0; a < NN; ++a) {
+      if (static_cast<int64_t>(elements[static_cast<int64_t>(e) * NN + a]) == i) return a;
+    }
+    return NN;
+  }
+
+  TM_HD static int root(int* parent, int j) {
+    while (parent[j] != j) {
+      parent[j] = parent[parent[j]];
+      j = parent[j];
+    }
+    return j;
+  }
+
+  TM_HD void operator()(int64_t i) const {
+    // a node no parted face holds keeps its elements: only a cut's few nodes go on
+    if (!on_cut[i]) {
+      for (int64_t s = 0; s < num_slots; ++s) group[s * num_nodes + i] = -1;
+      new_count[i] = 0;
+      return;
+    }
+    I star[kMaxStar];
+    int local[kMaxStar], parent[kMaxStar];
+    int count = 0;
+    for (int64_t s = 0; s < num_slots; ++s) {
+      const I e = node_slots[s * num_nodes + i];
+      if (e < 0) break;
+      star[count] = e;
+      local[count] = alive[e] ? local_of(e, i) : NN;  // NN: takes no part (removed)
+      parent[count] = count;
+      ++count;
+    }
+    // joins through the faces holding i (those opposite another local node) that are not parted
+    for (int j = 0; j < count; ++j) {
+      if (local[j] >= NN) continue;
+      const I e = star[j];
+      for (int k = 0; k < NN; ++k) {
+        if (k == local[j]) continue;
+        const I f = element_faces[static_cast<int64_t>(e) * NN + k];
+        if (f < 0) continue;
+        const I other = face_elements[2 * static_cast<int64_t>(f)] == e ? face_elements[2 * static_cast<int64_t>(f) + 1]
+                                                                         : face_elements[2 * static_cast<int64_t>(f)];
+        int m = -1;
+        for (int l = 0; l < count; ++l) {
+          if (star[l] == other && local[l] < NN) m = l;
+        }
+        if (m < 0) continue;  // removed, or no longer holding i: the face is not shared
+        if (!share_face<NN, I>(elements + static_cast<int64_t>(e) * NN, elements + static_cast<int64_t>(other) * NN)) {
+          continue;
+        }
+        if (!parted[f]) {
+          const int a = root(parent, j), b = root(parent, m);
+          if (a != b) parent[a < b ? b : a] = a < b ? a : b;
+        }
+      }
+    }
+    // the groups ranked by their smallest element id: least[r] for each root r
+    I least[kMaxStar];
+    for (int j = 0; j < count; ++j) least[j] = -1;
+    for (int j = 0; j < count; ++j) {
+      if (local[j] >= NN) continue;
+      const int r = root(parent, j);
+      if (least[r] < 0 || star[j] < least[r]) least[r] = star[j];
+    }
+    int groups = 0;
+    for (int j = 0; j < count; ++j) groups += least[j] >= 0 ? 1 : 0;
+    for (int j = 0; j < count; ++j) {
+      int32_t out = -1;
+      if (local[j] < NN) {
+        int rank = 0;
+        const I mine = least[root(parent, j)];
+        for (int r = 0; r < count; ++r) rank += least[r] >= 0 && least[r] < mine ? 1 : 0;
+        out = rank * NN + local[j];
+      }
+      group[static_cast<int64_t>(j) * num_nodes + i] = out;
+    }
+    for (int64_t s = count; s < num_slots; ++s) group[s * num_nodes + i] = -1;
+    new_count[i] = groups - 1 > 0 ? groups - 1 : 0;
+  }
+};
+
+template <int NN, typename I>
+struct RepointStarsKernel {
+  const I* node_slots;       // [num_slots, V]
+  int64_t num_slots;
+  int64_t num_nodes;         // V
+  const int32_t* group;      // [num_slots, V]
+  const int32_t* new_count;  // [V]
+  const int64_t* offset;     // [V] exclusive prefix sum of new_count
+  const int64_t* limits;     // [2]: the first new node's id, the room (new nodes that fit)
+  I* elements;               // [N, NN]
+  int64_t* parents;          // [P] node ids
+  int64_t num_parents;       // P
+
+  TM_HD void operator()(int64_t i) const {
+    const int32_t copies = new_count[i];
+    if (copies == 0) return;
+    const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);
+    if (total > limits[1] || limits[0] + total > num_parents) return;  // no room: the cut is not made
+    const int64_t base = limits[0] + offset[i];
+    for (int64_t s = 0; s < num_slots; ++s) {
+      const int32_t g = group[s * num_nodes + i];
+      const I e = node_slots[s * num_nodes + i];
+      if (e < 0) break;
+      if (g < NN) continue;  // removed (-1), or rank 0: keeps the node
+      elements[static_cast<int64_t>(e) * NN + g % NN] = static_cast<I>(base + g / NN - 1);
+    }
+    for (int32_t r = 0; r < copies; ++r) parents[base + r] = i;
+  }
+};
+
+}  // namespace cutting
+}  // namespace tensormass
