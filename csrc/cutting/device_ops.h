@@ -7,6 +7,7 @@
 #include <ATen/core/Tensor.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <cstdint>
 #include <limits>
 #include <string>
@@ -191,12 +192,98 @@ void cutting_repoint_stars(const at::Tensor& node_slots, const at::Tensor& group
   });
 }
 
+// cutting_move_lists: see schema.cpp.
+template <class L>
+void cutting_move_lists(const at::Tensor& elements, const at::Tensor& group, const at::Tensor& new_count,
+                        const at::Tensor& offset, const at::Tensor& limits, const at::Tensor& parents,
+                        const at::Tensor& element_share, const at::Tensor& alive, at::Tensor node_slots,
+                        at::Tensor mass, at::Tensor node_elements, at::Tensor touched) {
+  const int64_t nn = element_nodes(elements);
+  const at::ScalarType index_type = index_type_of(elements, "elements");
+  TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
+  TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
+  check_index(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
+  TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
+              " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
+  const int64_t num_nodes = node_slots.size(1);
+  TORCH_CHECK(num_nodes >= 1, "tensormass: node_slots must have at least one node");
+  check_index(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
+  check_index(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
+  check_index(offset, "offset", elements, at::kLong, {num_nodes}, "elements");
+  check_index(limits, "limits", elements, at::kLong, {2}, "elements");
+  TORCH_CHECK(parents.defined() && parents.dim() == 1, "tensormass: parents must be [P]");
+  check_index(parents, "parents", elements, at::kLong, parents.sizes(), "elements");
+  TORCH_CHECK(mass.defined() && mass.dim() == 1 && mass.size(0) == num_nodes, "tensormass: mass must be [V] (",
+              std::to_string(num_nodes), " nodes: node_slots' columns)");
+  TORCH_CHECK(mass.scalar_type() == at::kFloat || mass.scalar_type() == at::kDouble,
+              "tensormass: mass must be float32 or float64, got ", dtype_str(mass.scalar_type()));
+  TORCH_CHECK(mass.device() == elements.device() && mass.is_contiguous(),
+              "tensormass: mass must be a contiguous tensor on elements' device");
+  TORCH_CHECK(element_share.defined() && element_share.dim() == 1 && element_share.size(0) == elements.size(0),
+              "tensormass: element_share must be [N] (", std::to_string(elements.size(0)), " elements)");
+  check_float_tensor(element_share, "element_share", mass, element_share.sizes());
+  check_bool(alive, "alive", elements, elements.size(0), "elements");
+  check_index(node_elements, "node_elements", elements, at::kInt, {num_nodes}, "elements");
+  check_index(touched, "touched", elements, at::kByte, {num_nodes}, "elements");
+  typename L::Guard guard(elements.device());
+  dispatch_scalar(mass.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    dispatch_index(index_type, [&](auto i_tag) {
+      using I = decltype(i_tag);
+      dispatch_element_nodes(nn, [&](auto nn_c) {
+        constexpr int NN = decltype(nn_c)::value;
+        MoveListsKernel<NN, S, I> k;
+        k.elements = elements.data_ptr<I>();
+        k.group = group.data_ptr<int32_t>();
+        k.new_count = new_count.data_ptr<int32_t>();
+        k.offset = offset.data_ptr<int64_t>();
+        k.limits = limits.data_ptr<int64_t>();
+        k.num_parents = parents.size(0);
+        k.element_share = element_share.data_ptr<S>();
+        k.alive = alive.data_ptr<bool>();
+        k.node_slots = node_slots.data_ptr<I>();
+        k.num_slots = node_slots.size(0);
+        k.num_nodes = num_nodes;
+        k.mass = mass.data_ptr<S>();
+        k.node_elements = node_elements.data_ptr<int32_t>();
+        k.touched = touched.data_ptr<uint8_t>();
+        L::run(num_nodes, k, L::kNodeBlock);
+      });
+    });
+  });
+}
+
+// cutting_copy_rows: see schema.cpp.
+template <class L>
+void cutting_copy_rows(const at::Tensor& rows, const at::Tensor& parents, int64_t max_rows, at::Tensor values) {
+  TORCH_CHECK(values.defined() && values.dim() >= 1 && values.is_contiguous(),
+              "tensormass: values must be a contiguous tensor of node rows [P', ...]");
+  check_index(rows, "rows", values, at::kLong, {2}, "values");
+  TORCH_CHECK(parents.defined() && parents.dim() == 1, "tensormass: parents must be [P]");
+  check_index(parents, "parents", values, at::kLong, parents.sizes(), "values");
+  TORCH_CHECK(values.size(0) >= parents.size(0), "tensormass: values has ", std::to_string(values.size(0)),
+              " rows; it needs one per parents entry (", std::to_string(parents.size(0)), ")");
+  TORCH_CHECK(max_rows >= 0 && max_rows <= parents.size(0), "tensormass: max_rows is ", std::to_string(max_rows),
+              "; it must be in [0, ", std::to_string(parents.size(0)), "]");
+  const int64_t row_bytes = values.numel() / std::max<int64_t>(values.size(0), 1) * values.element_size();
+  if (row_bytes == 0) return;
+  typename L::Guard guard(values.device());
+  CopyRowsKernel k;
+  k.rows = rows.data_ptr<int64_t>();
+  k.parents = parents.data_ptr<int64_t>();
+  k.row_bytes = row_bytes;
+  k.values = static_cast<uint8_t*>(values.data_ptr());
+  L::run(max_rows * row_bytes, k, L::kNodeBlock);
+}
+
 // Registers the device cut's ops of one backend (launcher L): cpu.cpp and cuda.cu.
 template <class L>
 void register_device_cutting_ops(torch::Library& m) {
   m.impl("cutting_cross_faces", &cutting_cross_faces<L>);
   m.impl("cutting_split_stars", &cutting_split_stars<L>);
   m.impl("cutting_repoint_stars", &cutting_repoint_stars<L>);
+  m.impl("cutting_move_lists", &cutting_move_lists<L>);
+  m.impl("cutting_copy_rows", &cutting_copy_rows<L>);
 }
 
 }  // namespace cutting

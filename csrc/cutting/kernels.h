@@ -309,5 +309,86 @@ struct RepointStarsKernel {
   }
 };
 
+// After RepointStarsKernel, a node an item (those with new_count > 0, where the cut was made): the
+// node's list (its column of node_slots) keeps the elements of rank 0 and the removed ones, in order,
+// and each copy's list (an empty column) gets the elements of its rank, in order: the lists a build
+// of the cut mesh makes, since a build lists each node's elements in id order. The lumped masses and
+// alive counts of the node and its copies are summed again from their lists (as
+// topology::RefreshNodesKernel: the shares of the alive elements in list order), and every node of
+// the star's elements is marked touched (the rows of the node graph that change: the node, its
+// copies and their neighbours; several items may write the same 1).
+template <int NN, typename S, typename I>
+struct MoveListsKernel {
+  const I* elements;         // [N, NN] after the cut
+  const int32_t* group;      // [num_slots, V]
+  const int32_t* new_count;  // [V]
+  const int64_t* offset;     // [V]
+  const int64_t* limits;     // [2]
+  int64_t num_parents;       // P: the cut was made only where it fit (RepointStarsKernel's test)
+  const S* element_share;    // [N] element mass / its node count
+  const bool* alive;         // [N]
+  I* node_slots;             // [num_slots, V]
+  int64_t num_slots;
+  int64_t num_nodes;
+  S* mass;                   // [V]
+  int32_t* node_elements;    // [V]
+  uint8_t* touched;          // [V]
+
+  TM_HD void operator()(int64_t i) const {
+    const int32_t copies = new_count[i];
+    if (copies == 0) return;
+    const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);
+    if (total > limits[1] || limits[0] + total > num_parents) return;
+    const int64_t base = limits[0] + offset[i];
+    I star[kMaxStar];
+    int32_t rank[kMaxStar];
+    int count = 0;
+    for (int64_t s = 0; s < num_slots; ++s) {
+      const I e = node_slots[s * num_nodes + i];
+      if (e < 0) break;
+      const int32_t g = group[s * num_nodes + i];
+      star[count] = e;
+      rank[count] = g < 0 ? 0 : g / NN;
+      ++count;
+      for (int a = 0; a < NN; ++a) touched[static_cast<int64_t>(elements[static_cast<int64_t>(e) * NN + a])] = 1;
+    }
+    for (int32_t r = 0; r <= copies; ++r) {
+      const int64_t node = r == 0 ? i : base + r - 1;
+      int64_t slot = 0;
+      S sum = S(0);
+      int32_t living = 0;
+      for (int j = 0; j < count; ++j) {
+        if (rank[j] != r) continue;
+        node_slots[slot * num_nodes + node] = star[j];
+        ++slot;
+        if (alive[star[j]]) {
+          sum += element_share[star[j]];
+          ++living;
+        }
+      }
+      for (; slot < num_slots; ++slot) node_slots[slot * num_nodes + node] = I(-1);
+      mass[node] = sum;
+      node_elements[node] = living;
+    }
+  }
+};
+
+// A byte of a new node's row an item: row first + r (r < count, rows = (first, count)) of a tensor
+// laid out by node rows gets its parent's row, byte for byte (any dtype; values of the new nodes a
+// cut made: positions, velocities, rest positions, flags).
+struct CopyRowsKernel {
+  const int64_t* rows;     // [2]: the first new node, how many
+  const int64_t* parents;  // [P]
+  int64_t row_bytes;
+  uint8_t* values;         // [P', row_bytes] bytes
+
+  TM_HD void operator()(int64_t item) const {
+    const int64_t r = item / row_bytes, b = item % row_bytes;
+    if (r >= rows[1]) return;
+    const int64_t node = rows[0] + r;
+    values[node * row_bytes + b] = values[parents[node] * row_bytes + b];
+  }
+};
+
 }  // namespace cutting
 }  // namespace tensormass

@@ -132,4 +132,22 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   (their total over room, or past P) nothing is written.
   m.def("cutting_repoint_stars(Tensor node_slots, Tensor group, Tensor new_count, Tensor offset, Tensor limits, "
         "Tensor(a!) elements, Tensor(b!) parents) -> ()");
+  // cutting_move_lists(elements [N, n], group [S, V] int32, new_count [V] int32, offset [V] int64,
+  //                    limits [2] int64, parents [P] int64, element_share [N], alive [N] bool,
+  //                    node_slots! [S, V], mass! [V], node_elements! [V] int32, touched! [V] uint8)
+  //     -> ()
+  //   After cutting_repoint_stars (the same group, new_count, offset, limits, parents; elements as
+  //   it left them), where the cut was made: each split node's list keeps its elements of rank 0
+  //   and its removed ones, each copy's (empty) list gets the elements of its rank, in order; the
+  //   mass of the node and its copies = the sum of element_share over their alive elements in list
+  //   order, node_elements = their number; touched = 1 at every node of their elements (the rest
+  //   of touched as it was: the caller zeroes it).
+  m.def("cutting_move_lists(Tensor elements, Tensor group, Tensor new_count, Tensor offset, Tensor limits, "
+        "Tensor parents, Tensor element_share, Tensor alive, Tensor(a!) node_slots, Tensor(b!) mass, "
+        "Tensor(c!) node_elements, Tensor(d!) touched) -> ()");
+  // cutting_copy_rows(rows [2] int64, parents [P] int64, max_rows, values! [P', ...]) -> ()
+  //   rows = (first, count), count <= max_rows: values[first + r] = values[parents[first + r]] for
+  //   r < count, row by row, byte for byte (any dtype): the state of the new nodes a cut made,
+  //   copied from their parents'. max_rows bounds the launch (the most new nodes a cut can add).
+  m.def("cutting_copy_rows(Tensor rows, Tensor parents, int max_rows, Tensor(a!) values) -> ()");
 }

@@ -59,6 +59,7 @@ import torch
 from .. import _backend
 from ..errors import CapacityError, MeshError
 from ..mesh import cutting as mesh_cutting
+from ..mesh.topology import sum_slots_in_order
 from . import library, topology
 from .library import OpDef
 
@@ -71,6 +72,8 @@ EDGE_TABLES = "cutting_edit_edge_tables"
 CROSS_FACES = "cutting_cross_faces"
 SPLIT_STARS = "cutting_split_stars"
 REPOINT_STARS = "cutting_repoint_stars"
+MOVE_LISTS = "cutting_move_lists"
+COPY_ROWS = "cutting_copy_rows"
 #: The results of the table edits by name, in the ops' order.
 ELEMENT_RESULTS = ("incidence_nodes", "incidences", "items", "force_index", "slot_nodes", "node_slot_lists", "both")
 EDGE_RESULTS = ("status", "refresh_rows", "dead", "graph_edges", "incidence_nodes", "incidences", "items",
@@ -416,6 +419,45 @@ def _ref_cutting_repoint_stars(node_slots, group, new_count, offset, limits, ele
     parents[first_new:first_new + total] = nodes
 
 
+def _ref_cutting_move_lists(elements, group, new_count, offset, limits, parents, element_share, alive, node_slots,
+                            mass, node_elements, touched):
+    n = elements.shape[1]
+    total = int(offset[-1]) + int(new_count[-1])
+    first_new, room = int(limits[0]), int(limits[1])
+    if total > room or first_new + total > parents.shape[0]:
+        return
+    for i in torch.nonzero(new_count).flatten().tolist():
+        column = node_slots[:, i].clone()
+        listed = column >= 0
+        ids, ranks = column[listed], group[:, i][listed].long()
+        ranks = torch.where(ranks < 0, torch.zeros_like(ranks), ranks // n)
+        touched[elements[ids.long()].reshape(-1).long()] = 1
+        base = first_new + int(offset[i])
+        for r in range(int(new_count[i]) + 1):
+            node = i if r == 0 else base + r - 1
+            mine = ids[ranks == r]
+            node_slots[:, node] = -1
+            node_slots[:mine.shape[0], node] = mine
+            living = mine.long()[alive[mine.long()]]
+            mass[node] = sum_slots_in_order(element_share[living][:, None])[0]
+            node_elements[node] = living.shape[0]
+
+
+def _ref_cutting_copy_rows(rows, parents, max_rows, values):
+    first, count = int(rows[0]), int(rows[1])
+    if count:
+        nodes = torch.arange(first, first + count, device=values.device)
+        values[nodes] = values[parents[nodes]]
+
+
+def _copy_rows_example(device, dtype):
+    """Nodes 5 and 6 of 8, copies of 1 and 3: their rows of a [8, 3] float tensor."""
+    parents = torch.arange(8, device=device)
+    parents[5], parents[6] = 1, 3
+    values = torch.arange(24, dtype=dtype, device=device).view(8, 3)
+    return (torch.tensor([5, 2], device=device), parents, 3, values), {}
+
+
 @torch.no_grad()
 def face_table(elements: torch.Tensor, slit: Optional[torch.Tensor] = None):
     """The interior faces of ``elements [N, n]`` (tetrahedra or membrane triangles), for the cut on
@@ -462,7 +504,8 @@ def cut_on_device(x: torch.Tensor, elements: torch.Tensor, node_slots: torch.Ten
     element_faces, parted)``, parted updated in place; ``node_slots [S, V']``: each node's elements
     (ids into elements, in any order); ``limits [2]`` int64: the first new node's id and how many
     new nodes fit; ``parents [P]`` int64: each new node's parent written there. ``scratch``: a
-    dict that keeps the passes' buffers between calls (made on the first).
+    dict that keeps the passes' buffers between calls (made on the first; ``offset``, the new
+    nodes' numbering, is left there for ``cutting_move_lists``).
 
     Returns ``(crossed [F] bool, total [] int64)``: the faces this blade crossed, and how many
     nodes the cut adds (made only where they fit: total <= limits[1]; else nothing changes but
@@ -481,8 +524,9 @@ def cut_on_device(x: torch.Tensor, elements: torch.Tensor, node_slots: torch.Ten
                                                            face_elements, parted, group, new_count, scratch["on_cut"])
     counts = new_count.long()
     ends = torch.cumsum(counts, 0)
-    library.op_or_reference(REPOINT_STARS, x.device, native)(node_slots, group, new_count, ends - counts, limits,
-                                                               elements, parents)
+    scratch["offset"] = ends - counts
+    library.op_or_reference(REPOINT_STARS, x.device, native)(node_slots, group, new_count, scratch["offset"], limits,
+                                                           elements, parents)
     return crossed, ends[-1]
 
 
@@ -521,7 +565,15 @@ def _device_example(name: str):
         offset = torch.cumsum(new_count.long(), 0) - new_count.long()
         limits = torch.tensor([mesh.num_vertices, spare], dtype=torch.int64, device=device)
         parents = torch.arange(nodes, dtype=torch.int64, device=device)
-        return (node_slots, group, new_count, offset, limits, elements.clone(), parents), {}
+        if name == "cutting_repoint_stars":
+            return (node_slots, group, new_count, offset, limits, elements.clone(), parents), {}
+        _ref_cutting_repoint_stars(node_slots, group, new_count, offset, limits, elements, parents)
+        share = torch.linspace(0.5, 1.5, elements.shape[0], dtype=dtype, device=device)
+        mass = torch.zeros(nodes, dtype=dtype, device=device)
+        counts = torch.zeros(nodes, dtype=torch.int32, device=device)
+        touched = torch.zeros(nodes, dtype=torch.uint8, device=device)
+        return (elements, group, new_count, offset, limits, parents, share, alive, node_slots, mass, counts,
+                touched), {}
 
     return example
 
@@ -537,7 +589,11 @@ OPS = (OpDef(NAME, _ref_cutting_cut_mesh, _fake_cutting_cut_mesh, differentiable
        OpDef(SPLIT_STARS, _ref_cutting_split_stars, None, differentiable=False, mutates=True,
              example=_device_example(SPLIT_STARS)),
        OpDef(REPOINT_STARS, _ref_cutting_repoint_stars, None, differentiable=False, mutates=True,
-             example=_device_example(REPOINT_STARS)))
+             example=_device_example(REPOINT_STARS)),
+       OpDef(MOVE_LISTS, _ref_cutting_move_lists, None, differentiable=False, mutates=True,
+             example=_device_example(MOVE_LISTS)),
+       OpDef(COPY_ROWS, _ref_cutting_copy_rows, None, differentiable=False, mutates=True,
+             example=_copy_rows_example))
 library.define(OPS, lambda: library.register(OPS))
 
 

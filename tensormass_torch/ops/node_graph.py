@@ -31,12 +31,13 @@ from typing import Optional
 import torch
 
 from .. import _backend
+from ..mesh import geometry
 from ..mesh.topology import sum_slots_in_order
 from . import cg as cg_family
 from . import library
 from .gather import system_epilogue
 from .library import OpDef, contiguous, model_name, plan_indices, slot_mask, supports, unchanged, wants_grad
-from .reference import corotational, stress_form
+from .reference import corotational, stress_form, tensor_form
 from .stress import stress_args
 from .variants import DEFAULT, KernelVariants
 
@@ -155,6 +156,46 @@ def _ref_node_graph_write_edges(edge_ids, edges, force_index, edge_k, node_k, ro
     node_k[slot_second, second] = blocks.transpose(1, 2)
 
 
+def _ref_node_graph_rebuild_hooke_rows(rest, elements, node_slots, alive, measure, young, poisson, touched, row_of,
+                                       max_slots, neighbor, node_k, incidences, status):
+    """Each touched node's row summed again from its alive elements in list order, the element's
+    pair tensors (a < b locally) oriented from the lower global node, read from the row's node:
+    neighbours in the order first met (elements in order, then their other local nodes in order)."""
+    n, dim = elements.shape[1], rest.shape[1]
+    for p in torch.nonzero(touched).flatten().tolist():
+        ids = node_slots[:, p].long()
+        ids = ids[ids >= 0]
+        ids = ids[alive[ids]]
+        rows = elements[ids].long()  # [k, n]
+        element_rest = rest[rows]
+        m, _ = geometry.shape_vectors(element_rest)
+        proj = geometry.tangent_projectors(element_rest) if geometry.needs_projector(n, dim) else None
+        lam, mu = stress_form.lame(young[ids], poisson[ids], plane_stress=n == 3)
+        element_k = tensor_form.element_stiffness(m, measure[ids], lam, mu, proj)  # [k, n, n, d, d]
+        others, blocks = [], []
+        for j in range(rows.shape[0]):
+            mine = int(torch.nonzero(rows[j] == p)[0])
+            for b in range(n):
+                if b == mine:
+                    continue
+                lo, hi = min(mine, b), max(mine, b)
+                block = element_k[j, lo, hi]
+                stored = block if rows[j, lo] < rows[j, hi] else block.t()  # lower -> higher node
+                q = int(rows[j, b])
+                if q not in others:
+                    others.append(q)
+                    blocks.append(torch.zeros_like(block))
+                blocks[others.index(q)] += stored if p < q else stored.t()
+        if len(others) > max_slots:
+            status[0] = 1
+            continue
+        row = p if row_of is None else int(row_of[p])
+        if others:
+            neighbor[:len(others), row] = torch.tensor(others, dtype=neighbor.dtype, device=neighbor.device)
+            node_k[:len(others), row] = torch.stack(blocks)
+        incidences[row] = len(others)
+
+
 def _fake_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
                             node_stiffness=None):
     return p.new_empty(p.shape), p.new_empty((p.shape[0],))
@@ -182,6 +223,23 @@ def _example(name):
             row_of = torch.empty_like(rows)
             row_of[by_row] = torch.arange(rows.shape[0], device=device, dtype=rows.dtype)
             return (edge_ids, ex.edges, ex.edge_force_index, changed, graph[1].clone(), row_of), {}
+        if name == "node_graph_rebuild_hooke_rows":
+            from .topology import incidence_table
+
+            elements = ex.elements.to(neighbor.dtype)
+            node_slots = incidence_table(elements.reshape(-1).long(), torch.arange(
+                elements.shape[0], dtype=elements.dtype, device=device).repeat_interleave(elements.shape[1]),
+                ex.num_nodes)
+            alive = torch.ones(elements.shape[0], dtype=torch.bool, device=device)
+            touched = torch.zeros(ex.num_nodes, dtype=torch.uint8, device=device)
+            touched[elements[0].long()] = 1
+            row_of = torch.empty_like(rows)
+            row_of[by_row] = torch.arange(rows.shape[0], device=device, dtype=rows.dtype)
+            status = torch.zeros(1, dtype=torch.int32, device=device)
+            # the example's lam = 2, mu = 1.5: E = 27 / 7, nu = 2 / 7
+            return (ex.rest, elements, node_slots, alive, ex.vol, torch.full_like(ex.vol, 27 / 7),
+                    torch.full_like(ex.vol, 2 / 7), touched, row_of.to(neighbor.dtype), neighbor.shape[0],
+                    graph[0].clone(), graph[1].clone(), graph[2].clone(), status), {}
         if name == "hooke_node_step_rhs":
             x = ex.rest + ex.u
             normals = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]], device=device, dtype=dtype)
@@ -215,6 +273,8 @@ OPS = (
           example=_example("hooke_node_step_rhs")),
     OpDef("node_graph_write_edges", _ref_node_graph_write_edges, None, differentiable=False, mutates=True,
           example=_example("node_graph_write_edges")),
+    OpDef("node_graph_rebuild_hooke_rows", _ref_node_graph_rebuild_hooke_rows, None, differentiable=False,
+          mutates=True, example=_example("node_graph_rebuild_hooke_rows")),
     OpDef("stress_tangent_node_k", _ref_stress_tangent_node_k, None, differentiable=False, mutates=True,
           example=_example("stress_tangent_node_k"), scratch=("edge_partial",)),
 )

@@ -35,6 +35,7 @@ from ..solver.implicit_euler import (
 )
 from ..solver.preconditioner import PRECONDITIONERS
 from . import memory
+from .device_cut import DeviceCuts
 from .diagnostics import ContactReport, InversionCheck, InversionReport, contact_report, interpenetration
 from .scalpel import Scalpel
 
@@ -180,7 +181,7 @@ class Simulator:
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
                  preconditioner: str = "auto", integrator: str = "backward_euler", warm_start=False,
-                 check_memory: bool = True):
+                 check_memory: bool = True, cut_on_device: bool = False):
         bodies = list(bodies)
         if not hasattr(self, "initial_bodies"):  # (a rebuild for a cut runs __init__ again: kept)
             #: the bodies this simulator was first built with (:meth:`rebuilt`)
@@ -193,7 +194,8 @@ class Simulator:
                                newton_iters=newton_iters, check_every=check_every, form=form, device=device,
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
                                substeps_on_failure=substeps_on_failure, tools=tools, contact=contact,
-                               preconditioner=preconditioner, integrator=integrator, warm_start=warm_start)
+                               preconditioner=preconditioner, integrator=integrator, warm_start=warm_start,
+                               cut_on_device=cut_on_device)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -242,6 +244,8 @@ class Simulator:
         self.dtype = dtype if dtype is not None else dtypes.pop()
         if not isinstance(check_memory, bool):
             raise SceneError(f"check_memory must be True or False, got {check_memory!r}")
+        if not isinstance(cut_on_device, bool):
+            raise SceneError(f"cut_on_device must be True or False, got {cut_on_device!r}")
         #: whether the scene's memory was checked against the device's before it was built
         self.check_memory = check_memory
         if check_memory:  # before anything is allocated on the device
@@ -250,7 +254,12 @@ class Simulator:
         if gravity.shape != (3,) or not bool(torch.isfinite(gravity).all()):
             raise SceneError(f"gravity must be 3 finite numbers, got {gravity.tolist()}")
 
-        self.bodies = bodies
+        self._bodies = bodies
+        #: whether scalpels cut on the device where they can (``sim.device_cut.DeviceCuts``)
+        self.cut_on_device = cut_on_device
+        self._device_cuts = None  # the DeviceCuts of body 0, made at the first scalpel's cut
+        self._device_cut_blades: list = []  # the blades cut on the device since the last settle
+        self._views_stale = False  # the bodies' meshes lag behind cuts made on the device
         if cg_max_iter is None:
             free_dofs = [3 * int((~(b.fixed | b.prescribed)).sum()) for b in bodies]
             cg_max_iter = auto_cg_max_iter(max(free_dofs))
@@ -338,7 +347,18 @@ class Simulator:
 
     @property
     def num_bodies(self) -> int:
-        return len(self.bodies)
+        return len(self._bodies)
+
+    @property
+    def bodies(self) -> List[Body]:
+        """The bodies as they are now (their meshes with the nodes cuts added)."""
+        if self._views_stale:
+            self._refresh_views()
+        return self._bodies
+
+    @bodies.setter
+    def bodies(self, bodies) -> None:
+        self._bodies = list(bodies)
 
     def _make_system(self):
         """The integrator's view of the model (masses, gravity, constraints; its solver caches
@@ -421,6 +441,7 @@ class Simulator:
             removed; nothing is changed.
         """
         i = self._body_index(body)
+        self._settle_topology()
         first, end = self.element_ptr[i], self.element_ptr[i + 1]
         removed = self.model.removed_host()
         ids = checked_element_ids(ids, None if removed is None else removed[first:end], end - first,
@@ -619,6 +640,8 @@ class Simulator:
             # One step on its own: the path that raises, retries in sub-steps and checks
             # inversions (after a chained step failed, it runs that step again and fails the same).
             x, v, report, inversion = self._advance()
+            if self._device_cuts is not None and self._device_cuts.pending and not self._settle_device_cuts():
+                x, v, report, inversion = self._advance()  # built again with room: the step again
             self._commit(x, v, 1, report, inversion)
             if self.check_inversion == "warn":
                 self._warn_new_inversions(inversion)
@@ -687,11 +710,85 @@ class Simulator:
 
     def _apply_scalpels(self) -> None:
         """The scalpels' cuts for the step from ``time`` to ``time + dt`` (sweeps from ``time - dt``:
-        strips that overlap, see ``sim.scalpel``)."""
+        strips that overlap, see ``sim.scalpel``): on the device where ``cut_on_device`` and
+        :class:`DeviceCuts` serve this simulator, else on the host (:meth:`cut`)."""
         for scalpel in self.scalpels:
             blade = scalpel.blade(self.time - self.options.dt, self.time + self.options.dt)
-            if blade is not None:
+            if blade is None:
+                continue
+            cuts = self._device_cutter(scalpel.body)
+            if cuts is None:
                 self.cut(scalpel.body, blade, missing_ok=True)
+            else:
+                cuts.cut(blade)
+                self._device_cut_blades.append(blade)
+
+    def _device_cutter(self, body) -> Optional[DeviceCuts]:
+        """The device cut of ``body`` where ``cut_on_device`` asks for it and it serves this
+        simulator (made at the first call), else None."""
+        if not self.cut_on_device or self._body_index(body) != 0:
+            return None
+        if self._device_cuts is None:
+            if DeviceCuts.unavailable(self) is not None:
+                return None
+            self._device_cuts = DeviceCuts(self)
+        return self._device_cuts
+
+    def _settle_device_cuts(self) -> bool:
+        """After a step that followed cuts on the device (its host synchronisation done): the nodes
+        they added join body 0 (``used_nodes``; its mesh made again when read: ``bodies``). False
+        where a cut did not fit: the simulator is then built again from the cut mesh with room and
+        the cuts that were not made are made on the host; the caller runs the step again."""
+        cuts = self._device_cuts
+        added, fitted = cuts.settle()
+        blades, self._device_cut_blades = self._device_cut_blades, []
+        if added:
+            self.used_nodes[0] += added
+            self._views_stale = True
+            self._history = None  # (BDF2's state before has no rows for the new nodes)
+        if fitted:
+            return True
+        self._rebuild_from_device(blades)
+        return False
+
+    def _settle_topology(self) -> None:
+        """Before a change of topology on the host (a cut, a removal): where cuts were made on the
+        device, the model's other tables (edges, plans, host copies) lag behind them, so the
+        simulator is built again from the cut mesh first (with room for the cuts to come)."""
+        if self._device_cuts is not None and (self._device_cuts.added or self._device_cuts.pending):
+            if self._device_cuts.pending:  # (settle() waits for the cuts' report)
+                self._settle_device_cuts()
+            if self._device_cuts is not None and self._device_cuts.added:
+                self._rebuild_from_device(())
+
+    def _refresh_views(self) -> None:
+        """Body 0 as the cuts on the device left it: its mesh (rest positions and elements of its
+        used rows, read back), constraints and slit (the parted faces whose elements still share
+        them), the host's copies of its elements dropped."""
+        self._views_stale = False
+        cuts = self._device_cuts
+        old = self._bodies[0]
+        used = self.used_nodes[0]
+        elements = cuts.group.elements.to("cpu")
+        vertices = self.model.rest[:used].to(old.mesh.vertices.dtype)
+        mesh = type(old.mesh)._trusted(vertices.to(old.mesh.vertices.device),
+                                       elements.to(device=old.mesh.elements.device, dtype=old.mesh.elements.dtype))
+        self._bodies[0] = Body._trusted(mesh, old.material, self.fixed[:used].to(old.fixed.device),
+                                        self.prescribed[:used].to(old.prescribed.device), None, old.name)
+        face_elements, _, parted = cuts.faces
+        pairs = face_elements[parted].long()
+        a, b = cuts.group.elements[pairs[:, 0]].long(), cuts.group.elements[pairs[:, 1]].long()
+        shared = (a[:, :, None] == b[:, None, :]).sum((1, 2)) == elements.shape[1] - 1
+        self._slits[0] = pairs[shared].to("cpu")
+        self._host_meshes.pop(0, None)
+
+    def _rebuild_from_device(self, blades) -> None:
+        """The simulator built again around body 0 as the cuts on the device left it, with room;
+        then ``blades``' cuts made on the host (those a cut on the device could not make)."""
+        self._refresh_views()
+        self._rebuild_with_room(0, None)
+        for blade in blades:
+            self.cut(0, blade, missing_ok=True)
 
     def cut(self, body, blade: Blade, missing_ok: bool = False) -> int:
         """Cut one body along ``blade`` between steps, where the body is now: the faces the blade
@@ -722,6 +819,9 @@ class Simulator:
                 ``missing_ok``.
         """
         i = self._body_index(body)
+        if not isinstance(blade, Blade):
+            raise SceneError(f"blade must be a tm.Blade, got {type(blade).__name__}")
+        self._settle_topology()
         old = self.bodies[i]
         if not isinstance(blade, Blade):
             raise SceneError(f"blade must be a tm.Blade, got {type(blade).__name__}")
@@ -863,17 +963,19 @@ class Simulator:
                     and node_graph.step_rhs_serves(groups[0], (), variants))
 
     def _rebuild_with_room(self, i: int, result) -> None:
-        """The simulator built again around body i cut (``result``), with spare rows for the cuts
-        to come (removed elements stay removed; positions, velocities, time carried over)."""
-        parents = result.parents
+        """The simulator built again around body i cut (``result``; None: body i as it is), with
+        spare rows for the cuts to come (removed elements stay removed; positions, velocities, time
+        carried over)."""
         bodies = list(self.bodies)
-        bodies[i] = self._cut_body(bodies[i], result)
+        if result is not None:
+            bodies[i] = self._cut_body(bodies[i], result)
         removed = [torch.nonzero(~self.alive_elements(k)).flatten() for k in range(self.num_bodies)]
         states = [(self.positions(k), self.velocities(k)) for k in range(self.num_bodies)]
-        states[i] = (states[i][0][parents], states[i][1][parents])
+        if result is not None:
+            states[i] = (states[i][0][result.parents], states[i][1][result.parents])
         spare = [self.ptr[k + 1] - self.ptr[k] - self.used_nodes[k] for k in range(self.num_bodies)]
-        spare[i] = max(MIN_SPARE_NODES, bodies[i].mesh.num_vertices // SPARE_FRACTION, 2 * result.new_nodes,
-                       2 * spare[i])
+        spare[i] = max(MIN_SPARE_NODES, bodies[i].mesh.num_vertices // SPARE_FRACTION,
+                       2 * (0 if result is None else result.new_nodes), 2 * spare[i])
         kept = (self.time, self.steps_done, self.removed_mass.clone(), self.last_report, self.last_inversion,
                 self.scalpels, self._slits)
         self.__init__(bodies, **self._init_args, spare_nodes=spare)

@@ -1,0 +1,191 @@
+"""Cuts made where the body is: a scalpel's cut of every step as a few kernels on the simulator's
+device, with no host synchronisation and, on CUDA, replayed from one captured graph.
+
+The host cut (``Simulator.cut``) reads the positions back, finds the cut on the host and edits host
+copies of the model's tables: a few milliseconds a cut whatever its size, so a scalpel that cuts
+before every step ran at a tenth of the uncut steps/s. Here the cut is the ``cutting`` ops' device
+passes (``ops.cutting.cut_on_device``: the faces the blade crosses, the split of the cut nodes'
+stars, the elements re-pointed into the body's spare rows), then the model's lists and lumped
+masses of the split nodes and their copies (``cutting_move_lists``), the node graph's rows of every
+node whose neighbours changed (``node_graph_rebuild_hooke_rows``), the new nodes' rest positions,
+constraints and state (``cutting_copy_rows``) and the gravity load: what the captured step reads,
+written in place.
+
+What it serves (``DeviceCuts.unavailable`` says why not, and the simulator then cuts on the host): a
+simulator of one body whose model is one hooke tensor-form group stepped over its node graph (the
+GPU's default for hooke), with spare rows, no prescribed motion, no warm start by projection, no BDF2
+history, no inversion check, no tools or body contact. Everything else the model holds about its topology (its
+edges and their plans, the host's copies of its tables, the bodies' meshes) is left as it was and
+made again from the device's elements when something reads it (``Simulator._settle_device_cuts``).
+
+A cut that does not fit (more new nodes than spare rows, a row or a chunk of the solve with more
+slots than it was given) is not made, or is made only in part: ``status`` says so after the step,
+and the simulator builds itself again from the cut mesh with room and runs the step again.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from ..ops import cutting as ops_cutting
+from ..ops import library, node_graph
+
+__all__ = ["DeviceCuts"]
+
+
+class DeviceCuts:
+    """The device cut of body 0 of ``sim`` (see the module docstring). ``cut(blade)`` queues a cut
+    (no host synchronisation); ``settle()`` reads, once the step after it has synchronised, how
+    many nodes it added and whether it fitted."""
+
+    @staticmethod
+    def unavailable(sim) -> Optional[str]:
+        """Why the cut on the device cannot serve ``sim``, or None where it can."""
+        model, variants = sim.model, sim.options.variants
+        if sim.num_bodies != 1:
+            return "more than one body"
+        if len(model.groups) != 1 or model.groups[0].form != "tensor" or model.groups[0].model != "hooke":
+            return "not one hooke tensor-form group"
+        if model.groups[0].nodes_per_element != 4 and sim.bodies[0].mesh.vertices.shape[1] != 3:
+            return "not a 3-D body"
+        if not (variants.hooke_matvec == "node" and node_graph.step_rhs_serves(model.groups[0], (), variants)):
+            return "the step does not run over the node graph"
+        if sim.ptr[1] - sim.used_nodes[0] <= 0:
+            return "no spare rows"
+        if sim._has_prescribed:
+            return "prescribed motion"
+        if sim.options.warm_start == "project":
+            return "warm_start='project'"
+        if sim.options.integrator == "bdf2":
+            return "the bdf2 integrator"
+        if sim._inversion is not None:
+            return "an inversion check"
+        if sim.tools is not None or sim.body_contact is not None:
+            return "tools or body contact"
+        return None
+
+    def __init__(self, sim):
+        model = sim.model
+        model._prepare_removals()
+        group = model.groups[0]
+        self.sim, self.model, self.group = sim, model, group
+        device = model.rest.device
+        self.device = device
+        self.faces = ops_cutting.face_table(group.elements, sim._slits[0])
+        neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group, sim.options.variants.node_graph_window)
+        self.graph = (neighbor, node_k, incidences)
+        self.row_of = None if rows is None else node_graph._row_of(group, rows)
+        # the solve's chunks and the slots their captured launches were given, where a solve ran
+        cached = group.__dict__.get("_solve_chunk_slots")
+        self.chunks = None if cached is None else (cached[0].chunk_start.to(device), int(cached[2]))
+        num_nodes = model.num_nodes
+        used, room = sim.used_nodes[0], sim.ptr[1] - sim.used_nodes[0]
+        self.max_rows = room
+        self.limits = torch.tensor([used, room], dtype=torch.int64, device=device)
+        self.last_cut = torch.zeros(2, dtype=torch.int64, device=device)  # (first new node, how many)
+        self.parents = torch.arange(num_nodes, device=device)
+        self.status = torch.zeros(1, dtype=torch.int32, device=device)
+        self.touched = torch.zeros(num_nodes, dtype=torch.uint8, device=device)
+        self.blade_vertices = torch.zeros(4, 3, dtype=model.rest.dtype, device=device)
+        self.blade_triangles = torch.tensor([[0, 1, 2], [0, 2, 3]], device=device)
+        self.scratch: dict = {}
+        self.alive = (~model.removed).contiguous()
+        self.positions = torch.empty_like(sim.x)
+        self.captured = None
+        self.pending = 0  # cuts queued since the last settle
+        pinned = device.type == "cuda"
+        self.report = torch.zeros(3, dtype=torch.int64, pin_memory=pinned)  # (first, added, status)
+        self.reported = torch.cuda.Event() if pinned else None
+        self.added = 0  # nodes the settled cuts added
+
+    def cut(self, blade) -> None:
+        """Queue the cut along ``blade`` (a two-triangle ``tm.Blade``: a scalpel's strip) at the
+        positions now."""
+        vertices = blade.vertices.to(dtype=self.blade_vertices.dtype)
+        if vertices.shape != (4, 3):
+            raise ValueError(f"the cut on the device takes a scalpel's strip (4 blade vertices), got "
+                             f"{tuple(vertices.shape)}")
+        cuda = self.device.type == "cuda"
+        self.blade_vertices.copy_(vertices.pin_memory() if cuda else vertices, non_blocking=True)
+        self.positions.copy_(self.sim.x)  # (the step replaces sim.x: the graph reads this copy)
+        if cuda and self.sim.options.cuda_graphs:
+            if self.captured is None:
+                graph = torch.cuda.CUDAGraph()
+                stream = torch.cuda.Stream(self.device)
+                stream.wait_stream(torch.cuda.current_stream(self.device))
+                with torch.cuda.stream(stream):  # warm-up before capture, as torch asks: not a cut
+                    self._passes(warm_up=True)
+                torch.cuda.current_stream(self.device).wait_stream(stream)
+                with torch.cuda.graph(graph):
+                    self._passes()
+                self.captured = graph
+            self.captured.replay()
+        else:
+            self._passes()
+        # the new nodes' state, in tensors the step replaces: outside the graph
+        copy = library.op_or_reference(ops_cutting.COPY_ROWS, self.device)
+        copy(self.last_cut, self.parents, self.max_rows, self.sim.x)
+        copy(self.last_cut, self.parents, self.max_rows, self.sim.v)
+        self.report[:2].copy_(self.last_cut, non_blocking=True)
+        self.report[2:].copy_(self.status.to(torch.int64), non_blocking=True)
+        if self.reported is not None:
+            self.reported.record()
+        self.pending += 1
+
+    def _passes(self, warm_up: bool = False) -> None:
+        """The cut's passes, in order (what the captured graph holds). ``warm_up``: run them on a
+        blade that crosses nothing (before a capture: kernels loaded, buffers made), changing
+        nothing."""
+        sim, model, group = self.sim, self.model, self.group
+        op = library.op_or_reference
+        vertices = self.blade_vertices
+        if warm_up:  # a blade far from the body: no face crossed, no node split
+            vertices = torch.full_like(vertices, 1e30)
+        _, total = ops_cutting.cut_on_device(self.positions, group.elements, model.node_slots, self.alive,
+                                             self.faces, vertices, self.blade_triangles, self.limits, self.parents,
+                                             self.scratch)
+        fits = total <= self.limits[1]
+        added = torch.where(fits, total, torch.zeros_like(total))
+        self.last_cut.copy_(torch.stack([self.limits[0], added]))
+        self.status.copy_(torch.where(fits, self.status, torch.ones_like(self.status)))
+        self.touched.zero_()
+        op(ops_cutting.MOVE_LISTS, self.device)(group.elements, self.scratch["group"], self.scratch["new_count"],
+                                                self.scratch["offset"], self.limits, self.parents,
+                                                model.element_share, self.alive, model.node_slots, model.mass,
+                                                model.node_elements, self.touched)
+        copy = op(ops_cutting.COPY_ROWS, self.device)
+        for values in (model.rest, sim.system.free, sim.fixed, sim.prescribed):
+            if values is not None:
+                copy(self.last_cut, self.parents, self.max_rows, values)
+        neighbor, node_k, incidences = self.graph
+        op("node_graph_rebuild_hooke_rows", self.device)(
+            model.rest, group.elements, model.node_slots, self.alive, group.measure, group.young, group.poisson,
+            self.touched, self.row_of, neighbor.shape[0], neighbor, node_k, incidences, self.status)
+        if self.chunks is not None:
+            over = _chunk_over(incidences, self.chunks)
+            self.status.copy_(torch.where(over, torch.ones_like(self.status), self.status))
+        torch.mul(model.mass[:, None], sim.gravity, out=sim.system.external)
+        self.limits.add_(torch.stack([added, -added]))
+
+    def settle(self):
+        """``(added, fitted)`` of the cuts queued since the last call, once the step after them
+        synchronised (reads the pinned report; waits for it only if the step did not)."""
+        if not self.pending:
+            return 0, True
+        if self.reported is not None:
+            self.reported.synchronize()
+        self.pending = 0
+        added, status = int(self.report[1]), int(self.report[2])
+        self.added += added
+        return added, status == 0
+
+
+def _chunk_over(incidences: torch.Tensor, chunks) -> torch.Tensor:
+    """``[]`` bool (device): whether a chunk of the solve now sums more slots than its launches
+    were given (``chunks``: its starts and that budget)."""
+    starts, budget = chunks
+    prefix = torch.zeros(incidences.numel() + 1, dtype=torch.int64, device=incidences.device)
+    torch.cumsum(incidences.long(), 0, out=prefix[1:])
+    return (prefix[starts[1:]] - prefix[starts[:-1]]).amax() > budget
+

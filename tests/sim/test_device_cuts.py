@@ -1,0 +1,125 @@
+"""Scalpels that cut on the device (``Simulator(cut_on_device=True)``, ``sim.device_cut.DeviceCuts``):
+each step equals the step of the same simulator cutting on the host (same nodes, same elements, the
+positions to 1e-10 in float64), which the cuts-in-place tests hold against simulators built from
+the cut meshes; through a whole section, with a slit left between strips, when the spare rows run
+out (the simulator is built again from the cut mesh and the step run again), and before a removal
+or a host cut (built again first). Where it cannot serve a simulator the host cuts. On CUDA the
+cut is replayed from a captured graph and its steps equal the CPU's."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.errors import SceneError
+from tensormass_torch.ops import library
+from tensormass_torch.sim.device_cut import DeviceCuts
+
+pytestmark = pytest.mark.skipif(not library.ensure_registered(), reason="the compiled extension is not available")
+
+MATERIAL = tm.Material(young=2e5, poisson=0.3, density=1000.0)
+
+
+def beam(device="cpu", spare=96, cut_on_device=True, dtype=torch.float64, material=MATERIAL, **kwargs):
+    mesh = tm.beam_mesh(8, 3, 3, size=(1.0, 0.3, 0.3), dtype=dtype)
+    fixed = mesh.vertices[:, 0] < 1e-9
+    body = tm.Body(mesh.to(device), material, fixed=fixed.to(device), name="beam")
+    cg_tol = 1e-10 if dtype == torch.float64 else 1e-5
+    return tm.Simulator([body], dt=0.005, gravity=(0.0, -9.81, 0.0), cg_tol=cg_tol, spare_nodes=spare,
+                        cut_on_device=cut_on_device, **kwargs)
+
+
+def scalpel(steps, x=0.53, top=0.35, bottom=-0.05, dt=0.005):
+    """An edge along z that goes down through the beam at x over ``steps`` steps."""
+    return tm.Scalpel("beam", times=[0.0, steps * dt], edges=[[[x, top, -1.0], [x, top, 1.3]],
+                                                             [[x, bottom, -1.0], [x, bottom, 1.3]]])
+
+
+def assert_same(sim, want, tol=1e-10):
+    assert sim.used_nodes == want.used_nodes
+    torch.testing.assert_close(sim.positions(0).cpu(), want.positions(0).cpu(), rtol=0, atol=tol)
+    torch.testing.assert_close(sim.velocities(0).cpu(), want.velocities(0).cpu(), rtol=0, atol=1e3 * tol)
+
+
+def run_both(steps, knife, **kwargs):
+    device_sim, host_sim = beam(**kwargs), beam(cut_on_device=False, **{k: v for k, v in kwargs.items()})
+    for sim in (device_sim, host_sim):
+        sim.add_scalpel(knife)
+    for _ in range(steps):
+        device_sim.step()
+        host_sim.step()
+        assert_same(device_sim, host_sim)
+    return device_sim, host_sim
+
+
+def test_a_scalpel_cut_on_the_device_steps_as_the_same_cut_on_the_host():
+    device_sim, host_sim = run_both(24, scalpel(20))
+    assert device_sim._device_cuts is not None and device_sim._device_cuts.added > 0
+    assert device_sim.used_nodes[0] > tm.beam_mesh(8, 3, 3).num_vertices  # the beam was cut through
+    # the meshes read back from the device are the host's
+    assert torch.equal(device_sim.bodies[0].mesh.elements.cpu(), host_sim.bodies[0].mesh.elements.cpu())
+    torch.testing.assert_close(device_sim.bodies[0].mesh.vertices, host_sim.bodies[0].mesh.vertices)
+    assert torch.equal(device_sim.mesh(0).elements.cpu(), host_sim.mesh(0).elements.cpu())
+
+
+def test_a_partial_cut_leaves_a_slit_that_the_next_strips_part():
+    knife = scalpel(30, top=0.35, bottom=0.1)  # stops inside the beam: a slit along its front
+    device_sim, host_sim = run_both(34, knife)
+    assert device_sim._device_cuts.added > 0
+
+
+def test_when_the_spare_rows_run_out_the_simulator_is_built_again_and_the_step_is_the_same():
+    device_sim, host_sim = run_both(24, scalpel(20), spare=6)
+    assert device_sim.ptr[1] - device_sim.used_nodes[0] > 6  # built again with room
+
+
+def test_a_removal_and_a_host_cut_after_cuts_on_the_device_build_the_simulator_again_first():
+    device_sim, host_sim = run_both(10, scalpel(20))
+    for sim in (device_sim, host_sim):
+        sim.remove_elements(0, [5, 17])
+        sim.cut(0, tm.Blade.swept((0.8, -1, -1), (0.8, 2, -1), (0.8, -1, 2), (0.8, 2, 2)))
+    for _ in range(6):
+        device_sim.step()
+        host_sim.step()
+        assert_same(device_sim, host_sim)
+
+
+def test_it_cuts_on_the_host_where_it_cannot_serve_the_simulator():
+    corotational = tm.Material(young=2e5, poisson=0.3, density=1000.0, model="corotational")
+    for sim, why in [(beam(material=corotational), "not one hooke tensor-form group"),
+                     (beam(warm_start="project"), "warm_start='project'"),
+                     (beam(integrator="bdf2"), "the bdf2 integrator")]:
+        assert DeviceCuts.unavailable(sim) == why
+        sim.add_scalpel(scalpel(4))
+        sim.step(3)
+        assert sim._device_cuts is None
+    assert DeviceCuts.unavailable(beam()) is None
+    # no spare rows: the first cut builds the simulator again with room on the host, the next
+    # ones are made on the device
+    sim = beam(spare=0)
+    assert DeviceCuts.unavailable(sim) == "no spare rows"
+    sim.add_scalpel(scalpel(4))
+    sim.step()
+    assert sim._device_cuts is None and DeviceCuts.unavailable(sim) is None
+    sim.step(2)
+    assert sim._device_cuts is not None
+
+
+def test_cut_on_device_must_be_a_bool():
+    with pytest.raises(SceneError, match="cut_on_device must be True or False"):
+        beam(cut_on_device="yes")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+def test_on_cuda_the_captured_cut_steps_as_the_cpu(dtype):
+    device_sim, cpu_sim = beam("cuda", dtype=dtype), beam("cpu", dtype=dtype)
+    knife = scalpel(20)
+    for sim in (device_sim, cpu_sim):
+        sim.add_scalpel(knife)
+    tol = 1e-9 if dtype == torch.float64 else 1e-4
+    for _ in range(24):
+        device_sim.step()
+        cpu_sim.step()
+        assert_same(device_sim, cpu_sim, tol)
+    assert device_sim._device_cuts.captured is not None and device_sim._device_cuts.added > 0
