@@ -14,7 +14,8 @@ captured: model, masses, gravity and constraints updated in place), against, in 
 of the remaining elements and building a ``Simulator`` of them up to its first step done (what a
 user would do without removals: node graph, captured graphs). Synchronised wall clock. Then the
 SOFA beam's steps/s without removals, with 10 elements removed before every step (one
-``sim.step()`` call per step in both), and with a scalpel crossing its middle over the steps.
+``sim.step()`` call per step in both), and with a scalpel crossing its middle over the steps, cut
+on the host and on the device (``Simulator(cut_on_device=True)``).
 Cuts: one ``Simulator.cut`` across the middle section, from the top down through each of
 ``--cut-depths`` of the height (in place, in spare rows, after a small untimed cut; the elements
 it re-points counted) against a simulator of the cut mesh up to its first step.
@@ -149,8 +150,9 @@ def measure_scene(results, scene_name, model_name, device, args):
         results.add(common.record(**same, removed=count, remove_ms=1e3 * remove_s, rebuild_ms=1e3 * rebuild_s,
                                   speedup=rebuild_s / remove_s, sim_remove_ms=1e3 * sim_remove_s,
                                   sim_rebuild_ms=1e3 * sim_rebuild_s, sim_speedup=sim_rebuild_s / sim_remove_s))
-    for depth in (float(d) for d in args.cut_depths.split(",") if d):
-        measure_cut(results, same, scene_name, model_name, device, args, middle, depth)
+    for on_device in (False, True):
+        for depth in (float(d) for d in args.cut_depths.split(",") if d):
+            measure_cut(results, same, scene_name, model_name, device, args, middle, depth, on_device)
     if scene_name != "sofa":
         return
     for per_step in (0, 10):
@@ -170,31 +172,50 @@ def measure_scene(results, scene_name, model_name, device, args):
         seconds = timed(lambda _: step(args.steps), device, repeat=1, warmup=0)
         results.add(common.record(**same, steps=args.steps, steps_per_s=args.steps / seconds,
                                   removed_per_step=per_step))
-    # a scalpel crossing the beam at its middle over the timed steps (edge along z, moving along y)
-    sim = scene_of(scene_name, model_name, device, args.scale).simulator
-    sim.step(3)
-    t0, t1 = sim.time, sim.time + args.steps * sim.options.dt
-    sim.add_scalpel(tm.Scalpel(0, times=[t0, t1], edges=[[[middle, 5.0, -3.0], [middle, 5.0, 3.0]],
-                                                         [[middle, 11.0, -3.0], [middle, 11.0, 3.0]]]))
-    nodes = sim.bodies[0].mesh.num_vertices
-    # the first cut finds no spare rows: it builds the simulator again with room (untimed)
-    first = timed(lambda _: sim.step(), device, repeat=1, warmup=0)
-    seconds = timed(lambda _: sim.step(args.steps), device, repeat=1, warmup=0)
-    added = sim.bodies[0].mesh.num_vertices - nodes
-    results.add(common.record(**same, steps=args.steps, steps_per_s=args.steps / seconds, removed_per_step=0,
-                              note=f"a scalpel across the middle over these steps: {added} nodes added, cuts in "
-                                   f"place (the first step's cut, untimed, {1e3 * first:.0f} ms, built the "
-                                   "simulator again with spare rows)"))
+    # a scalpel crossing the beam at its middle over the timed steps (edge along z, moving along y),
+    # cut on the host and on the device (Simulator(cut_on_device=True), where it serves the scene)
+    for on_device in (False, True):
+        built = scene_of(scene_name, model_name, device, args.scale).simulator
+        sim = tm.Simulator(built.bodies, **dict(built._init_args, cut_on_device=on_device))
+        sim.step(3)
+        t0, t1 = sim.time, sim.time + (args.steps + 2) * sim.options.dt
+        sim.add_scalpel(tm.Scalpel(0, times=[t0, t1], edges=[[[middle, 5.0, -3.0], [middle, 5.0, 3.0]],
+                                                             [[middle, 11.0, -3.0], [middle, 11.0, 3.0]]]))
+        nodes = sim.bodies[0].mesh.num_vertices
+        # the first cut finds no spare rows: it builds the simulator again with room; the second
+        # makes the cut on the device its tables and captures it (both untimed)
+        first = timed(lambda _: sim.step(), device, repeat=1, warmup=0)
+        second = timed(lambda _: sim.step(), device, repeat=1, warmup=0)
+        seconds = timed(lambda _: sim.step(args.steps), device, repeat=1, warmup=0)
+        added = sim.bodies[0].mesh.num_vertices - nodes
+        where = "on the device" if sim._device_cuts is not None else "on the host, in place"
+        results.add(common.record(**same, steps=args.steps, steps_per_s=args.steps / seconds, removed_per_step=0,
+                                  note=f"a scalpel across the middle over these steps: {added} nodes added, cuts "
+                                       f"{where} (untimed before them: the first step, {1e3 * first:.0f} ms, built "
+                                       f"the simulator again with spare rows; the second took {1e3 * second:.0f} "
+                                       "ms)"))
 
 
-def measure_cut(results, same, scene_name, model_name, device, args, middle, depth):
+def measure_cut(results, same, scene_name, model_name, device, args, middle, depth, on_device=False):
     """A cut across the beam's middle section from the top down through ``depth`` of its height
     (``Simulator.cut`` in place, in spare rows, between steps whose graphs are captured; a
     small cut near the free end before it, untimed, makes what cuts in place keep) against a
-    simulator of the cut mesh up to its first step."""
+    simulator of the cut mesh up to its first step. ``on_device``: the cut a scalpel makes on the
+    device instead (``DeviceCuts.cut``, synchronised; where it serves the scene, else not measured)."""
     scene = scene_of(scene_name, model_name, device, args.scale)
-    init, bodies = dict(scene.simulator._init_args), scene.simulator.bodies
+    init, bodies = dict(scene.simulator._init_args, cut_on_device=on_device), scene.simulator.bodies
     sim = tm.Simulator(bodies, **init, spare_nodes=4096)
+    cuts = sim._device_cutter(0) if on_device else None
+    if on_device and cuts is None:
+        return
+
+    def cut(blade):
+        if cuts is None:
+            sim.cut(0, blade)
+        else:
+            cuts.cut(blade.vertices)
+            sim.step()  # (settles the cut: its nodes join the body)
+
     sim.step(3)
     vertices = bodies[0].mesh.vertices
     bottom, top = float(vertices[:, 1].min()), float(vertices[:, 1].max())
@@ -202,8 +223,8 @@ def measure_cut(results, same, scene_name, model_name, device, args, middle, dep
     layers = torch.unique(vertices[:, 0])
     near_end = float(layers[-2:].mean())  # between the last two layers of nodes
     shallow = top - 0.3 * (top - bottom)
-    sim.cut(0, tm.Blade.swept((near_end, top + 1, z0), (near_end, top + 1, z1), (near_end, shallow, z0),
-                              (near_end, shallow, z1)))
+    cut(tm.Blade.swept((near_end, top + 1, z0), (near_end, top + 1, z1), (near_end, shallow, z0),
+                       (near_end, shallow, z1)))
     sim.step()
     before = sim.bodies[0].mesh
     lowest = top - depth * (top - bottom) - (0.01 * (top - bottom) if depth >= 1 else 0.0)
@@ -211,7 +232,11 @@ def measure_cut(results, same, scene_name, model_name, device, args, middle, dep
     # centroids, and a segment that only touches the blade is not cut
     x = middle + 0.1 * float(layers[1] - layers[0])
     blade = tm.Blade.swept((x, top + 1, z0), (x, top + 1, z1), (x, lowest, z0), (x, lowest, z1))
-    cut_s = timed(lambda _: sim.cut(0, blade), device, repeat=1, warmup=0)
+    if cuts is None:
+        cut_s = timed(lambda _: sim.cut(0, blade), device, repeat=1, warmup=0)
+    else:
+        cut_s = timed(lambda _: cuts.cut(blade.vertices), device, repeat=1, warmup=0)
+        sim.step()  # (settles it)
     after = sim.bodies[0].mesh
     changed = int((after.elements.to(before.elements.device) != before.elements).any(1).sum())
     added = after.num_vertices - before.num_vertices
@@ -227,7 +252,8 @@ def measure_cut(results, same, scene_name, model_name, device, args, middle, dep
     rebuild_s = timed(rebuilt, device, repeat=1)
     results.add(common.record(**same, cut_elements=changed, cut_nodes=added, cut_ms=1e3 * cut_s,
                               sim_rebuild_ms=1e3 * rebuild_s, sim_speedup=rebuild_s / cut_s,
-                              note=f"a cut down through {depth:g} of the height at the middle, in place"))
+                              note=f"a cut down through {depth:g} of the height at the middle, "
+                                   + ("on the device" if on_device else "in place")))
 
 
 if __name__ == "__main__":

@@ -264,24 +264,23 @@ constexpr int kMaxRebuiltSlots = 64;
 // A node an item (those marked touched: a cut on the device, cutting/kernels.h): the node's row of
 // a hooke tensor-form group's node graph summed again from its elements (its node_slots list, the
 // alive ones, in list order): for each element holding node p at local a and each other local b,
-// the Cotin tensor of the pair formed again from the rest shape (as topology's
-// RefreshHookeEdgesKernel: hooke_pair_tensor of the lower local first, oriented from the lower to the
-// higher global node) is added to the block of neighbour q = elements[b], transposed where p is the
-// higher node. So each block is, bit for bit, what the edge (p, q) of a build of these elements sums
-// (the same terms in the same element order) and its orientation the row's. The neighbours take the
-// slots in the order they are first met. A row that would need more slots than max_slots (the most
-// the captured solve's launch holds, at most the graph's N_n) is not written and sets status = 1.
+// the element's tensor of the pair (pair_k: K_lh of each local pair l < h, formed once from the rest
+// shape; a cut re-points elements but never changes their shape), oriented from the lower to the
+// higher global node as the edge stores it, is added to the block of neighbour q = elements[b],
+// transposed where p is the higher node. So each block is what the edge (p, q) of a build of these
+// elements sums (the same terms in the same element order) and its orientation the row's. The
+// neighbours take the slots in the order they are first met. A row that would need more slots than
+// max_slots (the most the captured solve's launch holds, at most the graph's N_n) is not written and
+// sets status = 1.
 template <int NN, int D, typename S, typename I>
 struct RebuildHookeRowsKernel {
-  const S* rest;             // [V, D]
+  static constexpr int P = NN * (NN - 1) / 2;
+  const S* pair_k;           // [N, P, D, D]
   const I* elements;         // [N, NN]
   const I* node_slots;       // [num_slots, V]
   int64_t num_slots;
   int64_t num_nodes;         // V
   const bool* alive;         // [N]
-  const S* measure;          // [N]
-  const S* young;            // [N]
-  const S* poisson;          // [N]
   const uint8_t* touched;    // [V]
   const I* row_of;           // [V] or nullptr (rows in node order)
   int64_t max_slots;
@@ -301,28 +300,22 @@ struct RebuildHookeRowsKernel {
       if (e < 0) break;
       if (!alive[e]) continue;
       I idx[NN];
-      S x0[NN][D];
       int mine = -1;
       TM_UNROLL for (int a = 0; a < NN; ++a) {
         idx[a] = elements[static_cast<int64_t>(e) * NN + a];
         if (static_cast<int64_t>(idx[a]) == p) mine = a;
-        TM_UNROLL for (int c = 0; c < D; ++c) x0[a][c] = rest[static_cast<int64_t>(idx[a]) * D + c];
       }
       if (mine < 0) continue;
-      S m[NN][D], proj[D][D];
-      rest_shape_vectors<NN, D, S>(x0, m, proj);
-      S lam, mu;
-      lame_of<NN, S>(young[e], poisson[e], lam, mu);
       for (int b = 0; b < NN; ++b) {
         if (b == mine) continue;
         const int lo = mine < b ? mine : b, hi = mine < b ? b : mine;
-        S k[D][D];
-        hooke_pair_tensor<NN, D, S>(m, proj, measure[e], lam, mu, lo, hi, k);
+        const int pair = lo * (2 * NN - lo - 1) / 2 + (hi - lo - 1);
+        const S* k = pair_k + (static_cast<int64_t>(e) * P + pair) * (D * D);
         // k is the pair's tensor from local lo to local hi; the edge stores it from the lower global
         // node to the higher, and the row of p holds it from p
         const bool edge_from_lo = idx[lo] < idx[hi];
         const bool p_is_low = static_cast<int64_t>(idx[b]) > p;
-        const bool transpose = edge_from_lo != p_is_low;  // stored (lower -> higher), read from p
+        const bool transpose = edge_from_lo != p_is_low;
         int slot = -1;
         for (int t = 0; t < count; ++t) {
           if (others[t] == idx[b]) slot = t;
@@ -339,7 +332,7 @@ struct RebuildHookeRowsKernel {
           }
         }
         TM_UNROLL for (int x = 0; x < D; ++x) {
-          TM_UNROLL for (int y = 0; y < D; ++y) blocks[slot][x][y] += transpose ? k[y][x] : k[x][y];
+          TM_UNROLL for (int y = 0; y < D; ++y) blocks[slot][x][y] += transpose ? k[y * D + x] : k[x * D + y];
         }
       }
     }

@@ -240,42 +240,38 @@ void node_graph_write_edges(const at::Tensor& edge_ids, const at::Tensor& edges,
 
 // node_graph_rebuild_hooke_rows: see schema.cpp.
 template <class L>
-void node_graph_rebuild_hooke_rows(const at::Tensor& rest, const at::Tensor& elements, const at::Tensor& node_slots,
-                                   const at::Tensor& alive, const at::Tensor& measure, const at::Tensor& young,
-                                   const at::Tensor& poisson, const at::Tensor& touched,
+void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& elements, const at::Tensor& node_slots,
+                                   const at::Tensor& alive, const at::Tensor& touched,
                                    const c10::optional<at::Tensor>& row_of, int64_t max_slots, at::Tensor neighbor,
                                    at::Tensor node_k, at::Tensor incidences, at::Tensor status) {
-  check_values(rest, "rest");
-  const int64_t dim = rest.size(1), num_nodes = rest.size(0);
+  TORCH_CHECK(node_k.defined() && node_k.dim() == 4, "tensormass: node_k must be [N_n, V, d, d]");
+  TORCH_CHECK(node_k.scalar_type() == at::kFloat || node_k.scalar_type() == at::kDouble,
+              "tensormass: node_k must be float32 or float64, got ", dtype_str(node_k.scalar_type()));
+  TORCH_CHECK(node_k.is_contiguous(), "tensormass: node_k must be contiguous (call .contiguous())");
+  const int64_t num_graph_slots = node_k.size(0), num_nodes = node_k.size(1), dim = node_k.size(2);
   const at::ScalarType index_type = index_type_of(elements, "elements");
   TORCH_CHECK(elements.dim() == 2 && (elements.size(1) == 3 || elements.size(1) == 4),
               "tensormass: elements must be [N, 4] (tetrahedra) or [N, 3] (triangles), got ",
               shape_str(elements.sizes()));
-  check_index_tensor(elements, "elements", rest, index_type, elements.sizes(), "rest");
+  check_index_tensor(elements, "elements", node_k, index_type, elements.sizes(), "node_k");
   const int64_t num_elements = elements.size(0), nn = elements.size(1);
+  check_float_tensor(pair_k, "pair_k", node_k, {num_elements, nn * (nn - 1) / 2, dim, dim});
   TORCH_CHECK(node_slots.dim() == 2 && node_slots.size(1) == num_nodes, "tensormass: node_slots must be [S, ",
-              std::to_string(num_nodes), "] (rest is [V, d]), got ", shape_str(node_slots.sizes()));
-  check_index_tensor(node_slots, "node_slots", rest, index_type, node_slots.sizes(), "rest");
+              std::to_string(num_nodes), "] (node_k is [N_n, V, d, d]), got ", shape_str(node_slots.sizes()));
+  check_index_tensor(node_slots, "node_slots", node_k, index_type, node_slots.sizes(), "node_k");
   TORCH_CHECK(alive.scalar_type() == at::kBool && alive.dim() == 1 && alive.size(0) == num_elements &&
-                  alive.device() == rest.device() && alive.is_contiguous(),
-              "tensormass: alive must be a contiguous [N] bool tensor on rest's device");
-  check_float_tensor(measure, "measure", rest, {num_elements});
-  check_float_tensor(young, "young", rest, {num_elements});
-  check_float_tensor(poisson, "poisson", rest, {num_elements});
-  check_index_tensor(touched, "touched", rest, at::kByte, {num_nodes}, "rest");
-  TORCH_CHECK(neighbor.dim() == 2 && neighbor.size(1) == num_nodes, "tensormass: neighbor must be [N_n, ",
-              std::to_string(num_nodes), "], got ", shape_str(neighbor.sizes()));
-  check_index_tensor(neighbor, "neighbor", rest, index_type, neighbor.sizes(), "rest");
-  const int64_t num_graph_slots = neighbor.size(0);
-  check_float_tensor(node_k, "node_k", rest, {num_graph_slots, num_nodes, dim, dim});
-  check_index_tensor(incidences, "incidences", rest, index_type, {num_nodes}, "rest");
-  check_index_tensor(status, "status", rest, at::kInt, {1}, "rest");
+                  alive.device() == node_k.device() && alive.is_contiguous(),
+              "tensormass: alive must be a contiguous [N] bool tensor on node_k's device");
+  check_index_tensor(touched, "touched", node_k, at::kByte, {num_nodes}, "node_k");
+  check_index_tensor(neighbor, "neighbor", node_k, index_type, {num_graph_slots, num_nodes}, "node_k");
+  check_index_tensor(incidences, "incidences", node_k, index_type, {num_nodes}, "node_k");
+  check_index_tensor(status, "status", node_k, at::kInt, {1}, "node_k");
   const bool by_rows = row_of.has_value() && row_of->defined();
-  if (by_rows) check_index_tensor(*row_of, "row_of", rest, index_type, {num_nodes}, "rest");
+  if (by_rows) check_index_tensor(*row_of, "row_of", node_k, index_type, {num_nodes}, "node_k");
   TORCH_CHECK(max_slots >= 0 && max_slots <= num_graph_slots, "tensormass: max_slots is ", std::to_string(max_slots),
               "; it must be in [0, ", std::to_string(num_graph_slots), "] (neighbor's slots)");
-  typename L::Guard guard(rest.device());
-  dispatch_scalar(rest.scalar_type(), [&](auto s_tag) {
+  typename L::Guard guard(node_k.device());
+  dispatch_scalar(node_k.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
     dispatch_index(index_type, [&](auto i_tag) {
       using I = decltype(i_tag);
@@ -283,15 +279,12 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& rest, const at::Tensor& ele
         constexpr int NN = decltype(nn_c)::value;
         constexpr int D = decltype(d_c)::value;
         RebuildHookeRowsKernel<NN, D, S, I> k;
-        k.rest = rest.data_ptr<S>();
+        k.pair_k = pair_k.data_ptr<S>();
         k.elements = elements.data_ptr<I>();
         k.node_slots = node_slots.data_ptr<I>();
         k.num_slots = node_slots.size(0);
         k.num_nodes = num_nodes;
         k.alive = alive.data_ptr<bool>();
-        k.measure = measure.data_ptr<S>();
-        k.young = young.data_ptr<S>();
-        k.poisson = poisson.data_ptr<S>();
         k.touched = touched.data_ptr<uint8_t>();
         k.row_of = by_rows ? row_of->data_ptr<I>() : nullptr;
         k.max_slots = max_slots;

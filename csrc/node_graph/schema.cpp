@@ -64,18 +64,20 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   type. The graph's storage is kept, so captured CUDA graphs that read it stay valid.
   m.def("node_graph_write_edges(Tensor edge_ids, Tensor edges, Tensor force_index, Tensor edge_k, "
         "Tensor(a!) node_k, Tensor? row_of) -> ()");
-  // node_graph_rebuild_hooke_rows(rest [V, d], elements [N, n], node_slots [S, V], alive [N] bool,
-  //                               measure [N], young [N], poisson [N], touched [V] uint8,
-  //                               row_of [V]?, max_slots, neighbor! [N_n, V], node_k! [N_n, V, d, d],
-  //                               incidences! [V], status! [1] int32) -> ()
+  // node_graph_rebuild_hooke_rows(pair_k [N, P, d, d], elements [N, n], node_slots [S, V],
+  //                               alive [N] bool, touched [V] uint8, row_of [V]?, max_slots,
+  //                               neighbor! [N_n, V], node_k! [N_n, V, d, d], incidences! [V],
+  //                               status! [1] int32) -> ()
   //   A hooke tensor-form group's node graph (by rows: row_of, the inverse of its row_node; None:
   //   node order) after its elements changed at the touched nodes (a cut on the device): each
   //   touched node's row summed again from its elements (node_slots: each node's element rows in
-  //   id order, -1 past the last; the alive ones), the Cotin tensors formed again from rest; the
-  //   neighbours in the order first met, incidences = their number. A row that needs more than
-  //   max_slots slots (at most N_n) is left as it was and status[0] = 1 (else status unchanged).
-  //   The graph's storage is kept, so captured CUDA graphs that read it stay valid.
-  m.def("node_graph_rebuild_hooke_rows(Tensor rest, Tensor elements, Tensor node_slots, Tensor alive, "
-        "Tensor measure, Tensor young, Tensor poisson, Tensor touched, Tensor? row_of, int max_slots, "
+  //   id order, -1 past the last; the alive ones) and their pair tensors (pair_k: Cotin's K_ab of
+  //   each local pair a < b in the order (0,1), (0,2), ..., formed from the rest shape), oriented as
+  //   the edges store them; the neighbours in the order first met, incidences = their number. A
+  //   row that needs more than max_slots slots (at most N_n) is left as it was and status[0] = 1
+  //   (else status unchanged). The graph's storage is kept, so captured CUDA graphs that read it
+  //   stay valid.
+  m.def("node_graph_rebuild_hooke_rows(Tensor pair_k, Tensor elements, Tensor node_slots, Tensor alive, "
+        "Tensor touched, Tensor? row_of, int max_slots, "
         "Tensor(a!) neighbor, Tensor(b!) node_k, Tensor(c!) incidences, Tensor(d!) status) -> ()");
 }

@@ -471,7 +471,14 @@ def face_table(elements: torch.Tensor, slit: Optional[torch.Tensor] = None):
     device = elements.device
     local = torch.tensor(mesh_cutting._FACES[n], device=device)  # [n, n - 1]
     keys = torch.sort(elements.long()[:, local], dim=-1).values.reshape(-1, n - 1)  # [N n, n - 1]
-    _, inverse = torch.unique(keys, dim=0, return_inverse=True)
+    base = int(elements.max()) + 1 if elements.numel() else 1
+    if base ** (n - 1) < 2 ** 62:  # one integer a face (a sort of [N n], not of rows): the same order
+        flat = keys[:, 0]
+        for k in range(1, n - 1):
+            flat = flat * base + keys[:, k]
+        _, inverse = torch.unique(flat, return_inverse=True)
+    else:
+        _, inverse = torch.unique(keys, dim=0, return_inverse=True)
     order = torch.argsort(inverse, stable=True)
     sorted_ids = inverse[order]
     pair = sorted_ids[1:] == sorted_ids[:-1]

@@ -41,7 +41,7 @@ from .reference import corotational, stress_form, tensor_form
 from .stress import stress_args
 from .variants import DEFAULT, KernelVariants
 
-__all__ = ["edges_changed", "has_cached_graph", "topology_changed",
+__all__ = ["edges_changed", "has_cached_graph", "topology_changed", "hooke_pair_tensors",
            "hooke_node_graph", "hooke_rows_graph", "node_graph_rows", "set_objects", "tangent_graph",
            "tangent_serves", "tangent_node_k", "graph_of_edges", "node_graph_of", "step_rhs_serves", "step_rhs",
            "planes_serve"]
@@ -156,22 +156,18 @@ def _ref_node_graph_write_edges(edge_ids, edges, force_index, edge_k, node_k, ro
     node_k[slot_second, second] = blocks.transpose(1, 2)
 
 
-def _ref_node_graph_rebuild_hooke_rows(rest, elements, node_slots, alive, measure, young, poisson, touched, row_of,
-                                       max_slots, neighbor, node_k, incidences, status):
-    """Each touched node's row summed again from its alive elements in list order, the element's
-    pair tensors (a < b locally) oriented from the lower global node, read from the row's node:
+def _ref_node_graph_rebuild_hooke_rows(pair_k, elements, node_slots, alive, touched, row_of, max_slots, neighbor,
+                                       node_k, incidences, status):
+    """Each touched node's row summed again from its alive elements in list order, each element's
+    pair tensor (a < b locally) oriented from the lower global node, read from the row's node:
     neighbours in the order first met (elements in order, then their other local nodes in order)."""
-    n, dim = elements.shape[1], rest.shape[1]
+    n = elements.shape[1]
+    pair_of = {(a, b): k for k, (a, b) in enumerate((a, b) for a in range(n) for b in range(a + 1, n))}
     for p in torch.nonzero(touched).flatten().tolist():
         ids = node_slots[:, p].long()
         ids = ids[ids >= 0]
         ids = ids[alive[ids]]
         rows = elements[ids].long()  # [k, n]
-        element_rest = rest[rows]
-        m, _ = geometry.shape_vectors(element_rest)
-        proj = geometry.tangent_projectors(element_rest) if geometry.needs_projector(n, dim) else None
-        lam, mu = stress_form.lame(young[ids], poisson[ids], plane_stress=n == 3)
-        element_k = tensor_form.element_stiffness(m, measure[ids], lam, mu, proj)  # [k, n, n, d, d]
         others, blocks = [], []
         for j in range(rows.shape[0]):
             mine = int(torch.nonzero(rows[j] == p)[0])
@@ -179,7 +175,7 @@ def _ref_node_graph_rebuild_hooke_rows(rest, elements, node_slots, alive, measur
                 if b == mine:
                     continue
                 lo, hi = min(mine, b), max(mine, b)
-                block = element_k[j, lo, hi]
+                block = pair_k[ids[j], pair_of[(lo, hi)]]
                 stored = block if rows[j, lo] < rows[j, hi] else block.t()  # lower -> higher node
                 q = int(rows[j, b])
                 if q not in others:
@@ -194,6 +190,26 @@ def _ref_node_graph_rebuild_hooke_rows(rest, elements, node_slots, alive, measur
             neighbor[:len(others), row] = torch.tensor(others, dtype=neighbor.dtype, device=neighbor.device)
             node_k[:len(others), row] = torch.stack(blocks)
         incidences[row] = len(others)
+
+
+def hooke_pair_tensors(rest: torch.Tensor, elements: torch.Tensor, measure: torch.Tensor, young: torch.Tensor,
+                       poisson: torch.Tensor, chunk: int = 1 << 16) -> torch.Tensor:
+    """Cotin's tensor K_ab of each local pair a < b of each element ``[N, P, d, d]`` (pairs in the
+    order (0, 1), (0, 2), ...; of rest's dtype and device), formed from the rest shape ``rest
+    [V, d]``, ``measure``, ``young`` and ``poisson`` ``[N]`` (plane stress for triangles), in chunks
+    of ``chunk`` elements: what ``node_graph_rebuild_hooke_rows`` sums."""
+    n, dim = elements.shape[1], rest.shape[1]
+    pairs = torch.tensor([(a, b) for a in range(n) for b in range(a + 1, n)], device=rest.device)
+    out = rest.new_empty((elements.shape[0], pairs.shape[0], dim, dim))
+    for begin in range(0, elements.shape[0], chunk):
+        rows = elements[begin:begin + chunk].long()
+        element_rest = rest[rows]
+        m, _ = geometry.shape_vectors(element_rest)
+        proj = geometry.tangent_projectors(element_rest) if geometry.needs_projector(n, dim) else None
+        lam, mu = stress_form.lame(young[begin:begin + chunk], poisson[begin:begin + chunk], plane_stress=n == 3)
+        k = tensor_form.element_stiffness(m, measure[begin:begin + chunk], lam, mu, proj)
+        out[begin:begin + chunk] = k[:, pairs[:, 0], pairs[:, 1]]
+    return out
 
 
 def _fake_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
@@ -237,8 +253,9 @@ def _example(name):
             row_of[by_row] = torch.arange(rows.shape[0], device=device, dtype=rows.dtype)
             status = torch.zeros(1, dtype=torch.int32, device=device)
             # the example's lam = 2, mu = 1.5: E = 27 / 7, nu = 2 / 7
-            return (ex.rest, elements, node_slots, alive, ex.vol, torch.full_like(ex.vol, 27 / 7),
-                    torch.full_like(ex.vol, 2 / 7), touched, row_of.to(neighbor.dtype), neighbor.shape[0],
+            pair_k = hooke_pair_tensors(ex.rest, elements, ex.vol, torch.full_like(ex.vol, 27 / 7),
+                                        torch.full_like(ex.vol, 2 / 7))
+            return (pair_k, elements, node_slots, alive, touched, row_of.to(neighbor.dtype), neighbor.shape[0],
                     graph[0].clone(), graph[1].clone(), graph[2].clone(), status), {}
         if name == "hooke_node_step_rhs":
             x = ex.rest + ex.u

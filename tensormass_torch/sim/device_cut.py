@@ -35,7 +35,7 @@ __all__ = ["DeviceCuts"]
 
 
 class DeviceCuts:
-    """The device cut of body 0 of ``sim`` (see the module docstring). ``cut(blade)`` queues a cut
+    """The device cut of body 0 of ``sim`` (see the module docstring). ``cut(corners)`` queues a scalpel strip's cut
     (no host synchronisation); ``settle()`` reads, once the step after it has synchronised, how
     many nodes it added and whether it fitted."""
 
@@ -75,6 +75,9 @@ class DeviceCuts:
         self.faces = ops_cutting.face_table(group.elements, sim._slits[0])
         neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group, sim.options.variants.node_graph_window)
         self.graph = (neighbor, node_k, incidences)
+        # each element's pair tensors, formed once: a cut re-points elements, never reshapes them
+        self.pair_k = node_graph.hooke_pair_tensors(model.rest, group.elements, group.measure, group.young,
+                                                    group.poisson).to(node_k.dtype)
         self.row_of = None if rows is None else node_graph._row_of(group, rows)
         # the solve's chunks and the slots their captured launches were given, where a solve ran
         cached = group.__dict__.get("_solve_chunk_slots")
@@ -95,19 +98,24 @@ class DeviceCuts:
         self.captured = None
         self.pending = 0  # cuts queued since the last settle
         pinned = device.type == "cuda"
-        self.report = torch.zeros(3, dtype=torch.int64, pin_memory=pinned)  # (first, added, status)
+        # (first new node, nodes added, status) on the device, and its copy on the host
+        self.outcome = torch.zeros(3, dtype=torch.int64, device=device)
+        self.report = torch.zeros(3, dtype=torch.int64, pin_memory=pinned)
+        # the strip's corners on their way to the device (written once the previous copy is done:
+        # the step after each cut synchronises)
+        self.staging = torch.zeros(4, 3, dtype=model.rest.dtype, pin_memory=pinned)
         self.reported = torch.cuda.Event() if pinned else None
         self.added = 0  # nodes the settled cuts added
 
-    def cut(self, blade) -> None:
-        """Queue the cut along ``blade`` (a two-triangle ``tm.Blade``: a scalpel's strip) at the
-        positions now."""
-        vertices = blade.vertices.to(dtype=self.blade_vertices.dtype)
-        if vertices.shape != (4, 3):
-            raise ValueError(f"the cut on the device takes a scalpel's strip (4 blade vertices), got "
-                             f"{tuple(vertices.shape)}")
+    def cut(self, corners: torch.Tensor) -> None:
+        """Queue the cut along a scalpel's strip (``corners [4, 3]``, ``Scalpel.strip``: the two
+        triangles (0, 1, 2) and (0, 2, 3)) at the positions now."""
+        if corners.shape != (4, 3):
+            raise ValueError(f"the cut on the device takes a scalpel's strip (corners [4, 3]), got "
+                             f"{tuple(corners.shape)}")
         cuda = self.device.type == "cuda"
-        self.blade_vertices.copy_(vertices.pin_memory() if cuda else vertices, non_blocking=True)
+        self.staging.copy_(corners)
+        self.blade_vertices.copy_(self.staging, non_blocking=True)
         self.positions.copy_(self.sim.x)  # (the step replaces sim.x: the graph reads this copy)
         if cuda and self.sim.options.cuda_graphs:
             if self.captured is None:
@@ -127,8 +135,7 @@ class DeviceCuts:
         copy = library.op_or_reference(ops_cutting.COPY_ROWS, self.device)
         copy(self.last_cut, self.parents, self.max_rows, self.sim.x)
         copy(self.last_cut, self.parents, self.max_rows, self.sim.v)
-        self.report[:2].copy_(self.last_cut, non_blocking=True)
-        self.report[2:].copy_(self.status.to(torch.int64), non_blocking=True)
+        self.report.copy_(self.outcome, non_blocking=True)
         if self.reported is not None:
             self.reported.record()
         self.pending += 1
@@ -160,13 +167,14 @@ class DeviceCuts:
                 copy(self.last_cut, self.parents, self.max_rows, values)
         neighbor, node_k, incidences = self.graph
         op("node_graph_rebuild_hooke_rows", self.device)(
-            model.rest, group.elements, model.node_slots, self.alive, group.measure, group.young, group.poisson,
-            self.touched, self.row_of, neighbor.shape[0], neighbor, node_k, incidences, self.status)
+            self.pair_k, group.elements, model.node_slots, self.alive, self.touched, self.row_of, neighbor.shape[0],
+            neighbor, node_k, incidences, self.status)
         if self.chunks is not None:
             over = _chunk_over(incidences, self.chunks)
             self.status.copy_(torch.where(over, torch.ones_like(self.status), self.status))
         torch.mul(model.mass[:, None], sim.gravity, out=sim.system.external)
         self.limits.add_(torch.stack([added, -added]))
+        self.outcome.copy_(torch.cat([self.last_cut, self.status.to(torch.int64)]))
 
     def settle(self):
         """``(added, fitted)`` of the cuts queued since the last call, once the step after them

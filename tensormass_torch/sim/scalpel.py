@@ -16,6 +16,7 @@ slower scalpel, or a smaller dt. Outside the keyframes' times the scalpel cuts n
 """
 from __future__ import annotations
 
+import bisect
 from typing import Optional, Sequence, Union
 
 import torch
@@ -57,22 +58,33 @@ class Scalpel:
 
     def edge(self, t: float) -> torch.Tensor:
         """The edge's end points at time t ``[2, 3]`` (float64), clamped to the first and last keyframes."""
-        t = min(max(float(t), float(self.times[0])), float(self.times[-1]))
-        k = min(int(torch.searchsorted(self.times, torch.tensor(t, dtype=torch.float64), right=True)) - 1,
-                self.times.numel() - 2)
-        s = (t - float(self.times[k])) / float(self.times[k + 1] - self.times[k])
+        times = self.__dict__.get("_time_list")
+        if times is None:  # (a scalpel cuts before every step: its keyframes searched on the host)
+            times = self.__dict__["_time_list"] = self.times.tolist()
+        t = min(max(float(t), times[0]), times[-1])
+        k = min(bisect.bisect_right(times, t) - 1, len(times) - 2)
+        s = (t - times[k]) / (times[k + 1] - times[k])
         return (1 - s) * self.edges[k] + s * self.edges[k + 1]
 
-    def blade(self, t0: float, t1: float) -> Optional[Blade]:
-        """The surface the edge sweeps from time t0 to t1 (within the keyframes' times), or None
-        where it sweeps nothing (outside them, or the edge stands still)."""
+    def strip(self, t0: float, t1: float) -> Optional[torch.Tensor]:
+        """The corners ``[4, 3]`` (float64) of the surface the edge sweeps from time t0 to t1 (within
+        the keyframes' times), in :meth:`Blade.swept`'s order (the edge at the start, then at the
+        end reversed), or None where it sweeps nothing (outside them, or the edge stands still)."""
         start, end = max(float(t0), float(self.times[0])), min(float(t1), float(self.times[-1]))
         if end <= start:
             return None
         a, b = self.edge(start), self.edge(end)
         if torch.equal(a, b):
             return None
-        return Blade.swept(a[0], a[1], b[0], b[1])
+        return torch.stack([a[0], a[1], b[1], b[0]])
+
+    def blade(self, t0: float, t1: float) -> Optional[Blade]:
+        """The surface the edge sweeps from time t0 to t1 (:meth:`strip`) as a ``Blade`` (two
+        triangles), or None where it sweeps nothing."""
+        corners = self.strip(t0, t1)
+        if corners is None:
+            return None
+        return Blade.swept(corners[0], corners[1], corners[3], corners[2])
 
     def __repr__(self) -> str:
         return (f"Scalpel(body={self.body!r}, times=[{float(self.times[0]):g} .. {float(self.times[-1]):g}], "

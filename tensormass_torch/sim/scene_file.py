@@ -28,6 +28,8 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     warm_start = false                # true / "extrapolate": each CG from the last steps' extrapolated
                                       # solution; "project": their span's projection (hooke: best)
     check_memory = true               # on a GPU: refuse at once a scene whose estimated peak does not fit
+    cut_on_device = false             # scalpels ([[cuts]]) cut with kernels on the device where they can
+                                      # (one hooke body: docs/topology-changes.md)
 
     [distributed]                     # under torchrun --nproc-per-node N (docs/distributed.md)
     split = "bodies"                  # the bodies dealt over the processes; "mesh": the one body's
@@ -766,6 +768,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
         integrator=_choice(solver, "integrator", list(INTEGRATORS), "backward_euler", "integrator"),
         warm_start=_warm_start(solver),
         check_memory=solver.get("check_memory", "bool", True),
+        cut_on_device=solver.get("cut_on_device", "bool", False),
     )
     solver.done()
 

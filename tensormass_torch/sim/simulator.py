@@ -350,6 +350,12 @@ class Simulator:
         return len(self._bodies)
 
     @property
+    def device_cuts_active(self) -> bool:
+        """Whether the scalpels' cuts run on the device (``cut_on_device`` asked for it and
+        ``sim.device_cut.DeviceCuts`` serves this simulator, from its first cut in spare rows)."""
+        return self._device_cuts is not None
+
+    @property
     def bodies(self) -> List[Body]:
         """The bodies as they are now (their meshes with the nodes cuts added)."""
         if self._views_stale:
@@ -713,15 +719,15 @@ class Simulator:
         strips that overlap, see ``sim.scalpel``): on the device where ``cut_on_device`` and
         :class:`DeviceCuts` serve this simulator, else on the host (:meth:`cut`)."""
         for scalpel in self.scalpels:
-            blade = scalpel.blade(self.time - self.options.dt, self.time + self.options.dt)
-            if blade is None:
+            corners = scalpel.strip(self.time - self.options.dt, self.time + self.options.dt)
+            if corners is None:
                 continue
             cuts = self._device_cutter(scalpel.body)
             if cuts is None:
-                self.cut(scalpel.body, blade, missing_ok=True)
+                self.cut(scalpel.body, Blade.swept(corners[0], corners[1], corners[3], corners[2]), missing_ok=True)
             else:
-                cuts.cut(blade)
-                self._device_cut_blades.append(blade)
+                cuts.cut(corners)
+                self._device_cut_blades.append(corners)
 
     def _device_cutter(self, body) -> Optional[DeviceCuts]:
         """The device cut of ``body`` where ``cut_on_device`` asks for it and it serves this
@@ -784,11 +790,12 @@ class Simulator:
 
     def _rebuild_from_device(self, blades) -> None:
         """The simulator built again around body 0 as the cuts on the device left it, with room;
-        then ``blades``' cuts made on the host (those a cut on the device could not make)."""
+        then the cuts of ``blades`` (a scalpel's strips, ``Scalpel.strip``) made on the host (those
+        a cut on the device could not make)."""
         self._refresh_views()
         self._rebuild_with_room(0, None)
-        for blade in blades:
-            self.cut(0, blade, missing_ok=True)
+        for corners in blades:
+            self.cut(0, Blade.swept(corners[0], corners[1], corners[3], corners[2]), missing_ok=True)
 
     def cut(self, body, blade: Blade, missing_ok: bool = False) -> int:
         """Cut one body along ``blade`` between steps, where the body is now: the faces the blade

@@ -3,9 +3,12 @@ each step equals the step of the same simulator cutting on the host (same nodes,
 positions to 1e-10 in float64), which the cuts-in-place tests hold against simulators built from
 the cut meshes; through a whole section, with a slit left between strips, when the spare rows run
 out (the simulator is built again from the cut mesh and the step run again), and before a removal
-or a host cut (built again first). Where it cannot serve a simulator the host cuts. On CUDA the
-cut is replayed from a captured graph and its steps equal the CPU's."""
+or a host cut (built again first). Where it cannot serve a simulator the host cuts. The scene file's
+``[solver] cut_on_device``. On CUDA the cut is replayed from a captured graph and its steps equal
+the CPU's."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 import torch
@@ -14,6 +17,7 @@ import tensormass_torch as tm
 from tensormass_torch.errors import SceneError
 from tensormass_torch.ops import library
 from tensormass_torch.sim.device_cut import DeviceCuts
+from tensormass_torch.sim.scene_file import load_scene
 
 pytestmark = pytest.mark.skipif(not library.ensure_registered(), reason="the compiled extension is not available")
 
@@ -123,3 +127,17 @@ def test_on_cuda_the_captured_cut_steps_as_the_cpu(dtype):
         cpu_sim.step()
         assert_same(device_sim, cpu_sim, tol)
     assert device_sim._device_cuts.captured is not None and device_sim._device_cuts.added > 0
+
+
+def test_the_scene_file_key(tmp_path):
+    text = Path("scenes/cut.toml").read_text().replace('model = "corotational"', 'model = "hooke"')
+    path = tmp_path / "cut.toml"
+    path.write_text(text.replace("[solver]\n", "[solver]\ncut_on_device = true\n"))
+    scene = load_scene(path, dtype="float64")
+    sim = scene.simulator
+    assert sim.cut_on_device
+    sim.step(40)  # the scalpel reaches the ball at 0.1 s and cuts on the device from there
+    assert sim._device_cuts is not None and sim._device_cuts.added > 0
+    path.write_text(text.replace("[solver]\n", '[solver]\ncut_on_device = "yes"\n'))
+    with pytest.raises(SceneError, match="cut_on_device"):
+        load_scene(path)
