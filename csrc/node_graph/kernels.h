@@ -257,25 +257,28 @@ struct WriteEdgesKernel {
   }
 };
 
-// The most neighbours a row rebuilt by RebuildHookeRowsKernel may hold (its sums run in the
+// The most neighbours a row rebuilt by RebuildRowNeighborsKernel may hold (its list runs in the
 // thread's local memory).
 constexpr int kMaxRebuiltSlots = 64;
 
-// A node an item (those marked touched: a cut on the device, cutting/kernels.h): the node's row of
-// a hooke tensor-form group's node graph summed again from its elements (its node_slots list, the
-// alive ones, in list order): for each element holding node p at local a and each other local b,
-// the element's tensor of the pair (pair_k: K_lh of each local pair l < h, formed once from the rest
-// shape; a cut re-points elements but never changes their shape), oriented from the lower to the
-// higher global node as the edge stores it, is added to the block of neighbour q = elements[b],
-// transposed where p is the higher node. So each block is what the edge (p, q) of a build of these
-// elements sums (the same terms in the same element order) and its orientation the row's. The
-// neighbours take the slots in the order they are first met. A row that would need more slots than
-// max_slots (the most the captured solve's launch holds, at most the graph's N_n) is not written and
-// sets status = 1.
-template <int NN, int D, typename S, typename I>
-struct RebuildHookeRowsKernel {
-  static constexpr int P = NN * (NN - 1) / 2;
-  const S* pair_k;           // [N, P, D, D]
+// The row of a touched node of a hooke tensor-form group's node graph, rebuilt after its elements
+// changed (a cut on the device, cutting/kernels.h), in two passes so that no thread carries a row of
+// blocks:
+//   RebuildRowNeighborsKernel, a node an item (the touched ones): the neighbours of node p in the
+//     order first met over its alive elements (its node_slots list, in list order) and their other
+//     local nodes in order, written into neighbor[:, row] with incidences[row] = their number. A row
+//     that would need more slots than max_slots (the most the captured solve's launch holds, at most
+//     the graph's N_n) is not written and sets status = 1.
+//   RebuildRowBlocksKernel, a (node, slot) an item, after it: the block of the slot's neighbour q,
+//     summed over the node's alive elements holding q in list order, each element's pair tensor
+//     (pair_k: K_lh of each local pair l < h, formed once from the rest shape; a cut re-points
+//     elements but never changes their shape) oriented from the lower to the higher global node as
+//     the edge stores it, and transposed where p is the higher node. So each block is what the edge
+//     (p, q) of a build of these elements sums (the same terms in the same element order) and its
+//     orientation the row's.
+// Each item writes only its own row or slot: deterministic, no atomics.
+template <int NN, typename I>
+struct RebuildRowNeighborsKernel {
   const I* elements;         // [N, NN]
   const I* node_slots;       // [num_slots, V]
   int64_t num_slots;
@@ -285,70 +288,94 @@ struct RebuildHookeRowsKernel {
   const I* row_of;           // [V] or nullptr (rows in node order)
   int64_t max_slots;
   I* neighbor;               // [N_n, V]
-  S* node_k;                 // [N_n, V, D, D]
   I* incidences;             // [V] by row
   int32_t* status;           // [1]
 
   TM_HD void operator()(int64_t p) const {
     if (!touched[p]) return;
     I others[kMaxRebuiltSlots];
-    S blocks[kMaxRebuiltSlots][D][D];
     int count = 0;
-    bool overflow = false;
-    for (int64_t s = 0; s < num_slots && !overflow; ++s) {
+    for (int64_t s = 0; s < num_slots; ++s) {
       const I e = node_slots[s * num_nodes + p];
       if (e < 0) break;
       if (!alive[e]) continue;
       I idx[NN];
-      int mine = -1;
+      bool mine = false;
+      TM_UNROLL for (int a = 0; a < NN; ++a) {
+        idx[a] = elements[static_cast<int64_t>(e) * NN + a];
+        mine = mine || static_cast<int64_t>(idx[a]) == p;
+      }
+      if (!mine) continue;
+      for (int b = 0; b < NN; ++b) {
+        if (static_cast<int64_t>(idx[b]) == p) continue;
+        bool known = false;
+        for (int t = 0; t < count; ++t) known = known || others[t] == idx[b];
+        if (known) continue;
+        if (count >= kMaxRebuiltSlots || count >= max_slots) {
+          status[0] = 1;
+          return;
+        }
+        others[count++] = idx[b];
+      }
+    }
+    const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
+    for (int t = 0; t < count; ++t) neighbor[t * num_nodes + row] = others[t];
+    incidences[row] = static_cast<I>(count);
+  }
+};
+
+template <int NN, int D, typename S, typename I>
+struct RebuildRowBlocksKernel {
+  static constexpr int P = NN * (NN - 1) / 2;
+  const S* pair_k;           // [N, P, D, D]
+  const I* elements;         // [N, NN]
+  const I* node_slots;       // [num_slots, V]
+  int64_t num_slots;
+  int64_t num_nodes;         // V
+  const bool* alive;         // [N]
+  const uint8_t* touched;    // [V]
+  const I* row_of;           // [V] or nullptr
+  int64_t graph_slots;       // N_n
+  const I* neighbor;         // [N_n, V]
+  const I* incidences;       // [V] by row
+  S* node_k;                 // [N_n, V, D, D]
+
+  TM_HD void operator()(int64_t item) const {
+    const int64_t p = item / graph_slots, t = item % graph_slots;
+    if (!touched[p]) return;
+    const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
+    if (t >= static_cast<int64_t>(incidences[row])) return;
+    const I q = neighbor[t * num_nodes + row];
+    S block[D][D];
+    TM_UNROLL for (int x = 0; x < D; ++x) {
+      TM_UNROLL for (int y = 0; y < D; ++y) block[x][y] = S(0);
+    }
+    for (int64_t s = 0; s < num_slots; ++s) {
+      const I e = node_slots[s * num_nodes + p];
+      if (e < 0) break;
+      if (!alive[e]) continue;
+      I idx[NN];
+      int mine = -1, other = -1;
       TM_UNROLL for (int a = 0; a < NN; ++a) {
         idx[a] = elements[static_cast<int64_t>(e) * NN + a];
         if (static_cast<int64_t>(idx[a]) == p) mine = a;
+        if (idx[a] == q) other = a;
       }
-      if (mine < 0) continue;
-      for (int b = 0; b < NN; ++b) {
-        if (b == mine) continue;
-        const int lo = mine < b ? mine : b, hi = mine < b ? b : mine;
-        const int pair = lo * (2 * NN - lo - 1) / 2 + (hi - lo - 1);
-        const S* k = pair_k + (static_cast<int64_t>(e) * P + pair) * (D * D);
-        // k is the pair's tensor from local lo to local hi; the edge stores it from the lower global
-        // node to the higher, and the row of p holds it from p
-        const bool edge_from_lo = idx[lo] < idx[hi];
-        const bool p_is_low = static_cast<int64_t>(idx[b]) > p;
-        const bool transpose = edge_from_lo != p_is_low;
-        int slot = -1;
-        for (int t = 0; t < count; ++t) {
-          if (others[t] == idx[b]) slot = t;
-        }
-        if (slot < 0) {
-          if (count >= kMaxRebuiltSlots || count >= max_slots) {
-            overflow = true;
-            break;
-          }
-          slot = count++;
-          others[slot] = idx[b];
-          TM_UNROLL for (int x = 0; x < D; ++x) {
-            TM_UNROLL for (int y = 0; y < D; ++y) blocks[slot][x][y] = S(0);
-          }
-        }
-        TM_UNROLL for (int x = 0; x < D; ++x) {
-          TM_UNROLL for (int y = 0; y < D; ++y) blocks[slot][x][y] += transpose ? k[y * D + x] : k[x * D + y];
-        }
-      }
-    }
-    if (overflow) {
-      status[0] = 1;
-      return;
-    }
-    const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
-    for (int t = 0; t < count; ++t) {
-      neighbor[t * num_nodes + row] = others[t];
-      S* out = node_k + (t * num_nodes + row) * (D * D);
+      if (mine < 0 || other < 0) continue;
+      const int lo = mine < other ? mine : other, hi = mine < other ? other : mine;
+      const int pair = lo * (2 * NN - lo - 1) / 2 + (hi - lo - 1);
+      const S* k = pair_k + (static_cast<int64_t>(e) * P + pair) * (D * D);
+      // k runs from local lo to local hi; the edge stores it from the lower global node to the
+      // higher, and the row of p holds it from p
+      const bool transpose = (idx[lo] < idx[hi]) != (static_cast<int64_t>(q) > p);
       TM_UNROLL for (int x = 0; x < D; ++x) {
-        TM_UNROLL for (int y = 0; y < D; ++y) out[x * D + y] = blocks[t][x][y];
+        TM_UNROLL for (int y = 0; y < D; ++y) block[x][y] += transpose ? k[y * D + x] : k[x * D + y];
       }
     }
-    incidences[row] = static_cast<I>(count);
+    S* out = node_k + (t * num_nodes + row) * (D * D);
+    TM_UNROLL for (int x = 0; x < D; ++x) {
+      TM_UNROLL for (int y = 0; y < D; ++y) out[x * D + y] = block[x][y];
+    }
   }
 };
 

@@ -238,7 +238,8 @@ void node_graph_write_edges(const at::Tensor& edge_ids, const at::Tensor& edges,
   });
 }
 
-// node_graph_rebuild_hooke_rows: see schema.cpp.
+// node_graph_rebuild_hooke_rows: see schema.cpp. Two launches (kernels.h): the touched rows'
+// neighbours, then their blocks a slot an item.
 template <class L>
 void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& elements, const at::Tensor& node_slots,
                                    const at::Tensor& alive, const at::Tensor& touched,
@@ -278,7 +279,20 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
       dispatch_kind(nn, dim, [&](auto nn_c, auto d_c) {
         constexpr int NN = decltype(nn_c)::value;
         constexpr int D = decltype(d_c)::value;
-        RebuildHookeRowsKernel<NN, D, S, I> k;
+        RebuildRowNeighborsKernel<NN, I> rows;
+        rows.elements = elements.data_ptr<I>();
+        rows.node_slots = node_slots.data_ptr<I>();
+        rows.num_slots = node_slots.size(0);
+        rows.num_nodes = num_nodes;
+        rows.alive = alive.data_ptr<bool>();
+        rows.touched = touched.data_ptr<uint8_t>();
+        rows.row_of = by_rows ? row_of->data_ptr<I>() : nullptr;
+        rows.max_slots = max_slots;
+        rows.neighbor = neighbor.data_ptr<I>();
+        rows.incidences = incidences.data_ptr<I>();
+        rows.status = status.data_ptr<int32_t>();
+        L::run(num_nodes, rows, L::kNodeBlock);
+        RebuildRowBlocksKernel<NN, D, S, I> k;
         k.pair_k = pair_k.data_ptr<S>();
         k.elements = elements.data_ptr<I>();
         k.node_slots = node_slots.data_ptr<I>();
@@ -287,12 +301,11 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
         k.alive = alive.data_ptr<bool>();
         k.touched = touched.data_ptr<uint8_t>();
         k.row_of = by_rows ? row_of->data_ptr<I>() : nullptr;
-        k.max_slots = max_slots;
+        k.graph_slots = num_graph_slots;
         k.neighbor = neighbor.data_ptr<I>();
-        k.node_k = node_k.data_ptr<S>();
         k.incidences = incidences.data_ptr<I>();
-        k.status = status.data_ptr<int32_t>();
-        L::run(num_nodes, k, L::kNodeBlock);
+        k.node_k = node_k.data_ptr<S>();
+        L::run(num_nodes * num_graph_slots, k, L::kNodeBlock);
       });
     });
   });

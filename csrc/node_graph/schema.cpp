@@ -74,8 +74,9 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   id order, -1 past the last; the alive ones) and their pair tensors (pair_k: Cotin's K_ab of
   //   each local pair a < b in the order (0,1), (0,2), ..., formed from the rest shape), oriented as
   //   the edges store them; the neighbours in the order first met, incidences = their number. A
-  //   row that needs more than max_slots slots (at most N_n) is left as it was and status[0] = 1
-  //   (else status unchanged). The graph's storage is kept, so captured CUDA graphs that read it
+  //   row that needs more than max_slots slots (at most N_n) sets status[0] = 1 (else status is
+  //   unchanged) and is not to be used: its neighbours stay, its blocks may change (the caller
+  //   builds the graph again). The graph's storage is kept, so captured CUDA graphs that read it
   //   stay valid.
   m.def("node_graph_rebuild_hooke_rows(Tensor pair_k, Tensor elements, Tensor node_slots, Tensor alive, "
         "Tensor touched, Tensor? row_of, int max_slots, "

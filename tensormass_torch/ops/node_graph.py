@@ -182,7 +182,7 @@ def _ref_node_graph_rebuild_hooke_rows(pair_k, elements, node_slots, alive, touc
                     others.append(q)
                     blocks.append(torch.zeros_like(block))
                 blocks[others.index(q)] += stored if p < q else stored.t()
-        if len(others) > max_slots:
+        if len(others) > max_slots:  # (the op may also write the row's blocks: not to be used)
             status[0] = 1
             continue
         row = p if row_of is None else int(row_of[p])
