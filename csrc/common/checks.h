@@ -49,6 +49,18 @@ inline void check_index_tensor(const at::Tensor& t, const char* name, const at::
   TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
 }
 
+// A [size] bool tensor of flags on like's device (named like_name in messages), contiguous.
+inline void check_flags(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t size,
+                        const char* like_name) {
+  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
+  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but ", like_name,
+              " is on ", like.device().str());
+  TORCH_CHECK(t.scalar_type() == at::kBool, "tensormass: ", name, " must be bool, got ", dtype_str(t.scalar_type()));
+  TORCH_CHECK(t.dim() == 1 && t.size(0) == size, "tensormass: ", name, " has shape ", shape_str(t.sizes()),
+              "; expected [", std::to_string(size), "]");
+  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
+}
+
 inline void check_values(const at::Tensor& u, const char* name) {
   TORCH_CHECK(u.defined(), "tensormass: ", name, " is undefined");
   TORCH_CHECK(u.dim() == 2, "tensormass: ", name, " must be [V, d], got shape ", shape_str(u.sizes()));

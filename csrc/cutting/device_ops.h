@@ -24,16 +24,6 @@ inline void check_index(const at::Tensor& t, const char* name, const at::Tensor&
   check_index_tensor(t, name, like, type, shape, like_name);
 }
 
-inline void check_bool(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t size,
-                       const char* like_name) {
-  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
-  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but ", like_name,
-              " is on ", like.device().str());
-  TORCH_CHECK(t.scalar_type() == at::kBool, "tensormass: ", name, " must be bool, got ", dtype_str(t.scalar_type()));
-  TORCH_CHECK(t.dim() == 1 && t.size(0) == size, "tensormass: ", name, " has shape ", shape_str(t.sizes()),
-              "; expected [", std::to_string(size), "]");
-  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
-}
 
 inline int64_t element_nodes(const at::Tensor& elements) {
   TORCH_CHECK(elements.defined() && elements.dim() == 2 && (elements.size(1) == 3 || elements.size(1) == 4),
@@ -65,7 +55,7 @@ void cutting_cross_faces(const at::Tensor& x, const at::Tensor& elements, const 
               "tensormass: face_elements must be [F, 2]");
   check_index(face_elements, "face_elements", x, index_type, face_elements.sizes(), "x");
   const int64_t num_faces = face_elements.size(0);
-  check_bool(alive, "alive", x, elements.size(0), "x");
+  check_flags(alive, "alive", x, elements.size(0), "x");
   TORCH_CHECK(blade_vertices.defined() && blade_vertices.dim() == 2 && blade_vertices.size(1) == 3 &&
                   blade_vertices.size(0) >= 1,
               "tensormass: blade_vertices must be [B >= 1, 3]");
@@ -73,8 +63,8 @@ void cutting_cross_faces(const at::Tensor& x, const at::Tensor& elements, const 
   TORCH_CHECK(blade_triangles.defined() && blade_triangles.dim() == 2 && blade_triangles.size(1) == 3,
               "tensormass: blade_triangles must be [T, 3]");
   check_index(blade_triangles, "blade_triangles", x, at::kLong, blade_triangles.sizes(), "x");
-  check_bool(parted, "parted", x, num_faces, "x");
-  check_bool(crossed, "crossed", x, num_faces, "x");
+  check_flags(parted, "parted", x, num_faces, "x");
+  check_flags(crossed, "crossed", x, num_faces, "x");
   typename L::Guard guard(x.device());
   dispatch_scalar(x.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
@@ -114,12 +104,12 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
   TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
               " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
   const int64_t num_nodes = node_slots.size(1);
-  check_bool(alive, "alive", elements, elements.size(0), "elements");
+  check_flags(alive, "alive", elements, elements.size(0), "elements");
   check_index(element_faces, "element_faces", elements, index_type, elements.sizes(), "elements");
   TORCH_CHECK(face_elements.defined() && face_elements.dim() == 2 && face_elements.size(1) == 2,
               "tensormass: face_elements must be [F, 2]");
   check_index(face_elements, "face_elements", elements, index_type, face_elements.sizes(), "elements");
-  check_bool(parted, "parted", elements, face_elements.size(0), "elements");
+  check_flags(parted, "parted", elements, face_elements.size(0), "elements");
   check_index(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
   check_index(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
   check_index(on_cut, "on_cut", elements, at::kByte, {num_nodes}, "elements");
@@ -222,7 +212,7 @@ void cutting_move_lists(const at::Tensor& elements, const at::Tensor& group, con
   TORCH_CHECK(element_share.defined() && element_share.dim() == 1 && element_share.size(0) == elements.size(0),
               "tensormass: element_share must be [N] (", std::to_string(elements.size(0)), " elements)");
   check_float_tensor(element_share, "element_share", mass, element_share.sizes());
-  check_bool(alive, "alive", elements, elements.size(0), "elements");
+  check_flags(alive, "alive", elements, elements.size(0), "elements");
   check_index(node_elements, "node_elements", elements, at::kInt, {num_nodes}, "elements");
   check_index(touched, "touched", elements, at::kByte, {num_nodes}, "elements");
   typename L::Guard guard(elements.device());

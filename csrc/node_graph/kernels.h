@@ -277,6 +277,20 @@ constexpr int kMaxRebuiltSlots = 64;
 //     (p, q) of a build of these elements sums (the same terms in the same element order) and its
 //     orientation the row's.
 // Each item writes only its own row or slot: deterministic, no atomics.
+// Element e's node ids into idx; returns the local index of node p in it (-1 where it has none)
+// and, through other, that of node q (-1 where none; q < 0: not looked for).
+template <int NN, typename I>
+TM_HD int element_locals(const I* elements, I e, int64_t p, int64_t q, I (&idx)[NN], int& other) {
+  int mine = -1;
+  other = -1;
+  TM_UNROLL for (int a = 0; a < NN; ++a) {
+    idx[a] = elements[static_cast<int64_t>(e) * NN + a];
+    if (static_cast<int64_t>(idx[a]) == p) mine = a;
+    if (static_cast<int64_t>(idx[a]) == q) other = a;
+  }
+  return mine;
+}
+
 template <int NN, typename I>
 struct RebuildRowNeighborsKernel {
   const I* elements;         // [N, NN]
@@ -300,12 +314,8 @@ struct RebuildRowNeighborsKernel {
       if (e < 0) break;
       if (!alive[e]) continue;
       I idx[NN];
-      bool mine = false;
-      TM_UNROLL for (int a = 0; a < NN; ++a) {
-        idx[a] = elements[static_cast<int64_t>(e) * NN + a];
-        mine = mine || static_cast<int64_t>(idx[a]) == p;
-      }
-      if (!mine) continue;
+      int unused;
+      if (element_locals<NN, I>(elements, e, p, -1, idx, unused) < 0) continue;
       for (int b = 0; b < NN; ++b) {
         if (static_cast<int64_t>(idx[b]) == p) continue;
         bool known = false;
@@ -355,12 +365,8 @@ struct RebuildRowBlocksKernel {
       if (e < 0) break;
       if (!alive[e]) continue;
       I idx[NN];
-      int mine = -1, other = -1;
-      TM_UNROLL for (int a = 0; a < NN; ++a) {
-        idx[a] = elements[static_cast<int64_t>(e) * NN + a];
-        if (static_cast<int64_t>(idx[a]) == p) mine = a;
-        if (idx[a] == q) other = a;
-      }
+      int other;
+      const int mine = element_locals<NN, I>(elements, e, p, static_cast<int64_t>(q), idx, other);
       if (mine < 0 || other < 0) continue;
       const int lo = mine < other ? mine : other, hi = mine < other ? other : mine;
       const int pair = lo * (2 * NN - lo - 1) / 2 + (hi - lo - 1);

@@ -24,17 +24,6 @@ inline void check_index_dims(const at::Tensor& t, const char* name, const at::Te
   check_index_tensor(t, name, like, index_type, t.sizes(), like_name);
 }
 
-inline void check_flags(const at::Tensor& t, const char* name, const at::Tensor& like, int64_t size,
-                        const char* like_name) {
-  TORCH_CHECK(t.defined(), "tensormass: ", name, " is undefined");
-  TORCH_CHECK(t.device() == like.device(), "tensormass: ", name, " is on ", t.device().str(), " but ", like_name,
-              " is on ", like.device().str());
-  TORCH_CHECK(t.scalar_type() == at::kBool, "tensormass: ", name, " must be bool, got ", dtype_str(t.scalar_type()));
-  TORCH_CHECK(t.dim() == 1 && t.size(0) == size, "tensormass: ", name, " has shape ", shape_str(t.sizes()),
-              "; expected [", std::to_string(size), "]");
-  TORCH_CHECK(t.is_contiguous(), "tensormass: ", name, " must be contiguous (call .contiguous())");
-}
-
 // topology_refresh_nodes: see schema.cpp.
 template <class L>
 void topology_refresh_nodes(const at::Tensor& elements, const at::Tensor& rows, const at::Tensor& node_slots,

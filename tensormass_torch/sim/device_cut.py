@@ -98,9 +98,11 @@ class DeviceCuts:
         self.captured = None
         self.pending = 0  # cuts queued since the last settle
         pinned = device.type == "cuda"
-        # (first new node, nodes added, status) on the device, and its copy on the host
-        self.outcome = torch.zeros(3, dtype=torch.int64, device=device)
-        self.report = torch.zeros(3, dtype=torch.int64, pin_memory=pinned)
+        # (the rows in use after the cuts so far, status: 1 once a cut did not fit) on the device,
+        # and its copy on the host: several cuts queued before one step add up
+        self.outcome = torch.zeros(2, dtype=torch.int64, device=device)
+        self.report = torch.zeros(2, dtype=torch.int64, pin_memory=pinned)
+        self.used = used  # the rows in use at the last settle
         # the strip's corners on their way to the device (written once the previous copy is done:
         # the step after each cut synchronises)
         self.staging = torch.zeros(4, 3, dtype=model.rest.dtype, pin_memory=pinned)
@@ -174,7 +176,7 @@ class DeviceCuts:
             self.status.copy_(torch.where(over, torch.ones_like(self.status), self.status))
         torch.mul(model.mass[:, None], sim.gravity, out=sim.system.external)
         self.limits.add_(torch.stack([added, -added]))
-        self.outcome.copy_(torch.cat([self.last_cut, self.status.to(torch.int64)]))
+        self.outcome.copy_(torch.cat([self.limits[:1], self.status.to(torch.int64)]))
 
     def settle(self):
         """``(added, fitted)`` of the cuts queued since the last call, once the step after them
@@ -184,7 +186,8 @@ class DeviceCuts:
         if self.reported is not None:
             self.reported.synchronize()
         self.pending = 0
-        added, status = int(self.report[1]), int(self.report[2])
+        used, status = int(self.report[0]), int(self.report[1])
+        added, self.used = used - self.used, used
         self.added += added
         return added, status == 0
 

@@ -141,3 +141,34 @@ def test_the_scene_file_key(tmp_path):
     path.write_text(text.replace("[solver]\n", '[solver]\ncut_on_device = "yes"\n'))
     with pytest.raises(SceneError, match="cut_on_device"):
         load_scene(path)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_scalpels_cut_on_the_device_as_on_the_host(seed):
+    """Scalpels of random position, tilt and speed, two of them crossing, with a removal between
+    their cuts: every step equal to the host's."""
+    gen = torch.Generator().manual_seed(seed)
+
+    def rand(low, high):
+        return low + (high - low) * float(torch.rand((), generator=gen, dtype=torch.float64))
+
+    def knife():
+        x0, x1 = rand(0.2, 0.9), rand(0.2, 0.9)
+        steps = int(rand(8, 30))
+        return tm.Scalpel("beam", times=[rand(0.0, 0.05), rand(0.0, 0.05) + steps * 0.005],
+                          edges=[[[x0, 0.4, -1.0], [x0 + rand(-0.1, 0.1), 0.4, 1.3]],
+                                 [[x1, rand(-0.1, 0.2), -1.0], [x1 + rand(-0.1, 0.1), rand(-0.1, 0.2), 1.3]]])
+
+    knives = [knife(), knife()]
+    device_sim, host_sim = beam(spare=int(rand(8, 200))), beam(cut_on_device=False)
+    for sim in (device_sim, host_sim):
+        for k in knives:
+            sim.add_scalpel(k)
+    removed = int(rand(0, device_sim.model.num_elements - 1))
+    for step in range(40):
+        if step == 20:
+            for sim in (device_sim, host_sim):
+                sim.remove_elements(0, [removed])
+        device_sim.step()
+        host_sim.step()
+        assert_same(device_sim, host_sim)
