@@ -13,10 +13,11 @@ written in place.
 
 What it serves (``DeviceCuts.unavailable`` says why not, and the simulator then cuts on the host): a
 simulator of one body whose model is one hooke tensor-form group stepped over its node graph (the
-GPU's default for hooke), with spare rows, no prescribed motion, no warm start by projection, no BDF2
-history, no inversion check, no tools or body contact. Everything else the model holds about its topology (its
-edges and their plans, the host's copies of its tables, the bodies' meshes) is left as it was and
-made again from the device's elements when something reads it (``Simulator._settle_device_cuts``).
+GPU's default for hooke), with spare rows, no prescribed motion or held nodes, no warm start by
+projection, no BDF2 history, no inversion check, no tools or body contact. Everything else the
+model holds about its topology (its edges and their plans, the host's copies of its tables, the
+bodies' meshes) is left as it was and made again from the device's elements when something reads
+it (``Simulator._refresh_views``, ``Simulator._settle_topology``).
 
 A cut that does not fit (more new nodes than spare rows, a row or a chunk of the solve with more
 slots than it was given) is not made, or is made only in part: ``status`` says so after the step,
@@ -55,6 +56,8 @@ class DeviceCuts:
             return "no spare rows"
         if sim._has_prescribed:
             return "prescribed motion"
+        if sim._held is not None:
+            return "held nodes"
         if sim.options.warm_start == "project":
             return "warm_start='project'"
         if sim.options.integrator == "bdf2":

@@ -760,12 +760,20 @@ class Simulator:
     def _settle_topology(self) -> None:
         """Before a change of topology on the host (a cut, a removal): where cuts were made on the
         device, the model's other tables (edges, plans, host copies) lag behind them, so the
-        simulator is built again from the cut mesh first (with room for the cuts to come)."""
-        if self._device_cuts is not None and (self._device_cuts.added or self._device_cuts.pending):
-            if self._device_cuts.pending:  # (settle() waits for the cuts' report)
-                self._settle_device_cuts()
-            if self._device_cuts is not None and self._device_cuts.added:
-                self._rebuild_from_device(())
+        simulator is built again from the cut mesh first (with room for the cuts to come); where
+        none split a node yet, the cut on the device is only made again at its next cut."""
+        if self._device_cuts is None:
+            return
+        if self._device_cuts.pending:  # (settle() waits for the cuts' report)
+            self._settle_device_cuts()
+        if self._device_cuts is not None and self._device_cuts.added:
+            self._rebuild_from_device(())
+        elif self._device_cuts is not None:
+            # no node split yet: the model's tables are current, but the cut's own (the alive
+            # elements, the system's buffers it captured) are made again at the next cut, and the
+            # faces it parted stay parted as the body's slit
+            self._refresh_views()
+            self._device_cuts = None
 
     def _refresh_views(self) -> None:
         """Body 0 as the cuts on the device left it: its mesh (rest positions and elements of its

@@ -172,3 +172,26 @@ def test_random_scalpels_cut_on_the_device_as_on_the_host(seed):
         device_sim.step()
         host_sim.step()
         assert_same(device_sim, host_sim)
+
+
+def test_a_removal_before_any_node_split_on_the_device_is_seen_by_the_next_cut():
+    """The cut on the device made (its tables, alive elements, captured buffers), no node split yet,
+    then elements removed: the next cuts skip them as the host's do."""
+    device_sim, host_sim = beam(), beam(cut_on_device=False)
+    knife = scalpel(20)
+    assert device_sim._device_cutter(0) is not None
+    for sim in (device_sim, host_sim):
+        sim.remove_elements(0, list(range(100, 160)))
+        sim.add_scalpel(knife)
+    assert device_sim._device_cuts is None  # made again at the next cut
+    for _ in range(24):
+        device_sim.step()
+        host_sim.step()
+        assert_same(device_sim, host_sim)
+    assert device_sim._device_cuts is not None and device_sim._device_cuts.added > 0
+
+
+def test_held_nodes_cut_on_the_host():
+    sim = beam()
+    sim.hold_nodes(0, [40], sim.positions(0)[40:41].clone())
+    assert DeviceCuts.unavailable(sim) == "held nodes"
