@@ -19,12 +19,6 @@
 namespace tensormass {
 namespace cutting {
 
-inline void check_index(const at::Tensor& t, const char* name, const at::Tensor& like, at::ScalarType type,
-                        at::IntArrayRef shape, const char* like_name) {
-  check_index_tensor(t, name, like, type, shape, like_name);
-}
-
-
 inline int64_t element_nodes(const at::Tensor& elements) {
   TORCH_CHECK(elements.defined() && elements.dim() == 2 && (elements.size(1) == 3 || elements.size(1) == 4),
               "tensormass: elements must be [N, 4] (tetrahedra) or [N, 3] (membrane triangles), got ",
@@ -50,10 +44,10 @@ void cutting_cross_faces(const at::Tensor& x, const at::Tensor& elements, const 
   TORCH_CHECK(x.size(1) == 3, "tensormass: x must be [V, 3], got ", shape_str(x.sizes()));
   const int64_t nn = element_nodes(elements);
   const at::ScalarType index_type = index_type_of(elements, "elements");
-  check_index(elements, "elements", x, index_type, elements.sizes(), "x");
+  check_index_tensor(elements, "elements", x, index_type, elements.sizes(), "x");
   TORCH_CHECK(face_elements.defined() && face_elements.dim() == 2 && face_elements.size(1) == 2,
               "tensormass: face_elements must be [F, 2]");
-  check_index(face_elements, "face_elements", x, index_type, face_elements.sizes(), "x");
+  check_index_tensor(face_elements, "face_elements", x, index_type, face_elements.sizes(), "x");
   const int64_t num_faces = face_elements.size(0);
   check_flags(alive, "alive", x, elements.size(0), "x");
   TORCH_CHECK(blade_vertices.defined() && blade_vertices.dim() == 2 && blade_vertices.size(1) == 3 &&
@@ -62,7 +56,7 @@ void cutting_cross_faces(const at::Tensor& x, const at::Tensor& elements, const 
   check_float_tensor(blade_vertices, "blade_vertices", x, blade_vertices.sizes());
   TORCH_CHECK(blade_triangles.defined() && blade_triangles.dim() == 2 && blade_triangles.size(1) == 3,
               "tensormass: blade_triangles must be [T, 3]");
-  check_index(blade_triangles, "blade_triangles", x, at::kLong, blade_triangles.sizes(), "x");
+  check_index_tensor(blade_triangles, "blade_triangles", x, at::kLong, blade_triangles.sizes(), "x");
   check_flags(parted, "parted", x, num_faces, "x");
   check_flags(crossed, "crossed", x, num_faces, "x");
   typename L::Guard guard(x.device());
@@ -100,19 +94,19 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
   const at::ScalarType index_type = index_type_of(elements, "elements");
   TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
   TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
-  check_index(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
+  check_index_tensor(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
   TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
               " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
   const int64_t num_nodes = node_slots.size(1);
   check_flags(alive, "alive", elements, elements.size(0), "elements");
-  check_index(element_faces, "element_faces", elements, index_type, elements.sizes(), "elements");
+  check_index_tensor(element_faces, "element_faces", elements, index_type, elements.sizes(), "elements");
   TORCH_CHECK(face_elements.defined() && face_elements.dim() == 2 && face_elements.size(1) == 2,
               "tensormass: face_elements must be [F, 2]");
-  check_index(face_elements, "face_elements", elements, index_type, face_elements.sizes(), "elements");
+  check_index_tensor(face_elements, "face_elements", elements, index_type, face_elements.sizes(), "elements");
   check_flags(parted, "parted", elements, face_elements.size(0), "elements");
-  check_index(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
-  check_index(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
-  check_index(on_cut, "on_cut", elements, at::kByte, {num_nodes}, "elements");
+  check_index_tensor(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
+  check_index_tensor(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
+  check_index_tensor(on_cut, "on_cut", elements, at::kByte, {num_nodes}, "elements");
   typename L::Guard guard(elements.device());
   on_cut.zero_();
   dispatch_index(index_type, [&](auto i_tag) {
@@ -152,15 +146,15 @@ void cutting_repoint_stars(const at::Tensor& node_slots, const at::Tensor& group
   const at::ScalarType index_type = index_type_of(elements, "elements");
   TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
   TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
-  check_index(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
+  check_index_tensor(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
   const int64_t num_nodes = node_slots.size(1);
   TORCH_CHECK(num_nodes >= 1, "tensormass: node_slots must have at least one node");
-  check_index(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
-  check_index(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
-  check_index(offset, "offset", elements, at::kLong, {num_nodes}, "elements");
-  check_index(limits, "limits", elements, at::kLong, {2}, "elements");
+  check_index_tensor(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
+  check_index_tensor(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
+  check_index_tensor(offset, "offset", elements, at::kLong, {num_nodes}, "elements");
+  check_index_tensor(limits, "limits", elements, at::kLong, {2}, "elements");
   TORCH_CHECK(parents.defined() && parents.dim() == 1, "tensormass: parents must be [P]");
-  check_index(parents, "parents", elements, at::kLong, parents.sizes(), "elements");
+  check_index_tensor(parents, "parents", elements, at::kLong, parents.sizes(), "elements");
   typename L::Guard guard(elements.device());
   dispatch_index(index_type, [&](auto i_tag) {
     using I = decltype(i_tag);
@@ -192,17 +186,17 @@ void cutting_move_lists(const at::Tensor& elements, const at::Tensor& group, con
   const at::ScalarType index_type = index_type_of(elements, "elements");
   TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
   TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
-  check_index(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
+  check_index_tensor(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
   TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
               " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
   const int64_t num_nodes = node_slots.size(1);
   TORCH_CHECK(num_nodes >= 1, "tensormass: node_slots must have at least one node");
-  check_index(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
-  check_index(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
-  check_index(offset, "offset", elements, at::kLong, {num_nodes}, "elements");
-  check_index(limits, "limits", elements, at::kLong, {2}, "elements");
+  check_index_tensor(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
+  check_index_tensor(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
+  check_index_tensor(offset, "offset", elements, at::kLong, {num_nodes}, "elements");
+  check_index_tensor(limits, "limits", elements, at::kLong, {2}, "elements");
   TORCH_CHECK(parents.defined() && parents.dim() == 1, "tensormass: parents must be [P]");
-  check_index(parents, "parents", elements, at::kLong, parents.sizes(), "elements");
+  check_index_tensor(parents, "parents", elements, at::kLong, parents.sizes(), "elements");
   TORCH_CHECK(mass.defined() && mass.dim() == 1 && mass.size(0) == num_nodes, "tensormass: mass must be [V] (",
               std::to_string(num_nodes), " nodes: node_slots' columns)");
   TORCH_CHECK(mass.scalar_type() == at::kFloat || mass.scalar_type() == at::kDouble,
@@ -213,8 +207,8 @@ void cutting_move_lists(const at::Tensor& elements, const at::Tensor& group, con
               "tensormass: element_share must be [N] (", std::to_string(elements.size(0)), " elements)");
   check_float_tensor(element_share, "element_share", mass, element_share.sizes());
   check_flags(alive, "alive", elements, elements.size(0), "elements");
-  check_index(node_elements, "node_elements", elements, at::kInt, {num_nodes}, "elements");
-  check_index(touched, "touched", elements, at::kByte, {num_nodes}, "elements");
+  check_index_tensor(node_elements, "node_elements", elements, at::kInt, {num_nodes}, "elements");
+  check_index_tensor(touched, "touched", elements, at::kByte, {num_nodes}, "elements");
   typename L::Guard guard(elements.device());
   dispatch_scalar(mass.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
@@ -248,9 +242,9 @@ template <class L>
 void cutting_copy_rows(const at::Tensor& rows, const at::Tensor& parents, int64_t max_rows, at::Tensor values) {
   TORCH_CHECK(values.defined() && values.dim() >= 1 && values.is_contiguous(),
               "tensormass: values must be a contiguous tensor of node rows [P', ...]");
-  check_index(rows, "rows", values, at::kLong, {2}, "values");
+  check_index_tensor(rows, "rows", values, at::kLong, {2}, "values");
   TORCH_CHECK(parents.defined() && parents.dim() == 1, "tensormass: parents must be [P]");
-  check_index(parents, "parents", values, at::kLong, parents.sizes(), "values");
+  check_index_tensor(parents, "parents", values, at::kLong, parents.sizes(), "values");
   TORCH_CHECK(values.size(0) >= parents.size(0), "tensormass: values has ", std::to_string(values.size(0)),
               " rows; it needs one per parents entry (", std::to_string(parents.size(0)), ")");
   TORCH_CHECK(max_rows >= 0 && max_rows <= parents.size(0), "tensormass: max_rows is ", std::to_string(max_rows),

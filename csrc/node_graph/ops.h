@@ -260,9 +260,7 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
   TORCH_CHECK(node_slots.dim() == 2 && node_slots.size(1) == num_nodes, "tensormass: node_slots must be [S, ",
               std::to_string(num_nodes), "] (node_k is [N_n, V, d, d]), got ", shape_str(node_slots.sizes()));
   check_index_tensor(node_slots, "node_slots", node_k, index_type, node_slots.sizes(), "node_k");
-  TORCH_CHECK(alive.scalar_type() == at::kBool && alive.dim() == 1 && alive.size(0) == num_elements &&
-                  alive.device() == node_k.device() && alive.is_contiguous(),
-              "tensormass: alive must be a contiguous [N] bool tensor on node_k's device");
+  check_flags(alive, "alive", node_k, num_elements, "node_k");
   check_index_tensor(touched, "touched", node_k, at::kByte, {num_nodes}, "node_k");
   check_index_tensor(neighbor, "neighbor", node_k, index_type, {num_graph_slots, num_nodes}, "node_k");
   check_index_tensor(incidences, "incidences", node_k, index_type, {num_nodes}, "node_k");

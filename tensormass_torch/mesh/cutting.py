@@ -31,6 +31,8 @@ import torch
 
 from ..errors import MeshError
 
+#: The two triangles of a swept edge's strip over its corners (:meth:`Blade.swept`'s order).
+STRIP_TRIANGLES = ((0, 1, 2), (0, 2, 3))
 #: The faces of an element (local node ids): a tetrahedron's triangles, a triangle's edges.
 _FACES = {4: ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2)), 3: ((1, 2), (0, 2), (0, 1))}
 
@@ -60,25 +62,47 @@ class Blade:
         triangles (a scalpel's edge between two poses)."""
         vertices = torch.tensor([list(map(float, p)) for p in (start_a, start_b, end_b, end_a)], dtype=dtype,
                                 device=device)
-        return cls(vertices, torch.tensor([[0, 1, 2], [0, 2, 3]], device=device))
+        return cls(vertices, torch.tensor(STRIP_TRIANGLES, device=device))
+
+    @classmethod
+    def strip(cls, corners: torch.Tensor) -> "Blade":
+        """The two triangles (0, 1, 2), (0, 2, 3) over ``corners [4, 3]`` in :meth:`swept`'s order
+        (a scalpel's strip: ``Scalpel.strip``)."""
+        return cls(corners, torch.tensor(STRIP_TRIANGLES, device=corners.device))
 
     def to(self, like: torch.Tensor) -> "Blade":
         return Blade(self.vertices.to(like), self.triangles.to(like.device))
+
+
+def shared_face_incidences(elements: torch.Tensor):
+    """The faces two elements share, as incidences (``element * n + k``: the face of the element
+    opposite its local node k): ``(first, second)`` ``[F]`` each, first < second, faces in the
+    order of their sorted node ids; and every incidence's sorted node ids ``[N n, n - 1]``. Faces
+    on the boundary (one element) are left out; a face held by more than two elements pairs its
+    holders in order."""
+    n = elements.shape[1]
+    local = torch.tensor(_FACES[n], device=elements.device)  # [n, n - 1]
+    faces = torch.sort(elements.long()[:, local], dim=-1).values.reshape(-1, n - 1)  # [N n, n - 1]
+    base = int(elements.max()) + 1 if elements.numel() else 1
+    if base ** (n - 1) < 2 ** 62:  # one integer a face (a sort of [N n], not of rows): the same order
+        flat = faces[:, 0]
+        for k in range(1, n - 1):
+            flat = flat * base + faces[:, k]
+        _, inverse = torch.unique(flat, return_inverse=True)
+    else:
+        _, inverse = torch.unique(faces, dim=0, return_inverse=True)
+    order = torch.argsort(inverse, stable=True)
+    sorted_ids = inverse[order]
+    pair = sorted_ids[1:] == sorted_ids[:-1]  # a face met twice: shared by two elements
+    return order[:-1][pair], order[1:][pair], faces
 
 
 def interior_faces(elements: torch.Tensor):
     """The faces two elements share: ``(first, second)`` element ids ``[F]`` each, and the faces'
     node ids ``[F, n - 1]`` (sorted). Faces on the boundary (one element) are left out."""
     n = elements.shape[1]
-    local = torch.tensor(_FACES[n], device=elements.device)  # [n, n - 1]
-    faces = torch.sort(elements[:, local], dim=-1).values.reshape(-1, n - 1)  # [N n, n - 1]
-    owner = torch.arange(elements.shape[0], device=elements.device).repeat_interleave(n)
-    keys, inverse = torch.unique(faces, dim=0, return_inverse=True)
-    order = torch.argsort(inverse, stable=True)
-    sorted_ids = inverse[order]
-    pair = sorted_ids[1:] == sorted_ids[:-1]  # a face met twice: shared by two elements
-    first, second = owner[order][:-1][pair], owner[order][1:][pair]
-    return first, second, keys[sorted_ids[1:][pair]]
+    first, second, faces = shared_face_incidences(elements)
+    return first // n, second // n, faces[second].to(elements.dtype)
 
 
 def _segments_cross(p: torch.Tensor, q: torch.Tensor, blade: Blade) -> torch.Tensor:

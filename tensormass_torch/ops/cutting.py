@@ -345,10 +345,9 @@ def _table_example(model_name: str):
 
 
 def _ref_cutting_cross_faces(x, elements, face_elements, alive, blade_vertices, blade_triangles, parted, crossed):
-    n = elements.shape[1]
     first, second = face_elements[:, 0].long(), face_elements[:, 1].long()
     a, b = elements[first].long(), elements[second].long()
-    shared = (a[:, :, None] == b[:, None, :]).sum((1, 2)) == n - 1
+    shared = mesh_cutting.still_joined(elements.long(), face_elements.long())
     p, q = x[a].mean(1), x[b].mean(1)
     low, high = blade_vertices.amin(0), blade_vertices.amax(0)
     close = ((torch.minimum(p, q) <= high) & (torch.maximum(p, q) >= low)).all(1)
@@ -469,20 +468,7 @@ def face_table(elements: torch.Tensor, slit: Optional[torch.Tensor] = None):
     (a mesh that is not a manifold) pairs its holders in order, as the reference does."""
     n = elements.shape[1]
     device = elements.device
-    local = torch.tensor(mesh_cutting._FACES[n], device=device)  # [n, n - 1]
-    keys = torch.sort(elements.long()[:, local], dim=-1).values.reshape(-1, n - 1)  # [N n, n - 1]
-    base = int(elements.max()) + 1 if elements.numel() else 1
-    if base ** (n - 1) < 2 ** 62:  # one integer a face (a sort of [N n], not of rows): the same order
-        flat = keys[:, 0]
-        for k in range(1, n - 1):
-            flat = flat * base + keys[:, k]
-        _, inverse = torch.unique(flat, return_inverse=True)
-    else:
-        _, inverse = torch.unique(keys, dim=0, return_inverse=True)
-    order = torch.argsort(inverse, stable=True)
-    sorted_ids = inverse[order]
-    pair = sorted_ids[1:] == sorted_ids[:-1]
-    first, second = order[:-1][pair], order[1:][pair]  # incidences (element n + k), first < second
+    first, second, _ = mesh_cutting.shared_face_incidences(elements)  # incidences (element n + k)
     num_faces = first.shape[0]
     element_faces = torch.full((elements.shape[0] * n,), -1, dtype=elements.dtype, device=device)
     faces = torch.arange(num_faces, dtype=elements.dtype, device=device)

@@ -300,14 +300,28 @@ def chunk_slots(group, plan, incidences: Optional[torch.Tensor] = None) -> int:
     return value
 
 
-def _chunk_need(plan, incidences: torch.Tensor, starts: Optional[torch.Tensor] = None) -> int:
-    """The most slots of a chunk of ``plan`` (sum of ``incidences [V]`` over its nodes; ``starts``:
-    the plan's ``chunk_start`` on the device of ``incidences``, when the caller has it); a host
-    read where ``incidences`` is on the device."""
+def most_chunk_slots(incidences: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
+    """``[]`` int64 on incidences' device: the most slots of a chunk (the sum of ``incidences [V]``
+    over its nodes; ``starts``: the chunks' first nodes and the end, ``[C + 1]``, on that device),
+    with no host read."""
     prefix = torch.zeros(incidences.numel() + 1, dtype=torch.int64, device=incidences.device)
     torch.cumsum(incidences.long(), 0, out=prefix[1:])
+    return (prefix[starts[1:]] - prefix[starts[:-1]]).amax()
+
+
+def _chunk_need(plan, incidences: torch.Tensor, starts: Optional[torch.Tensor] = None) -> int:
+    """The most slots of a chunk of ``plan`` (:func:`most_chunk_slots`; ``starts``: the plan's
+    ``chunk_start`` on the device of ``incidences``, when the caller has it); a host read where
+    ``incidences`` is on the device."""
     starts = plan.chunk_start.to(incidences.device) if starts is None else starts
-    return int((prefix[starts[1:]] - prefix[starts[:-1]]).max()) if plan.num_chunks else 0
+    return int(most_chunk_slots(incidences, starts)) if plan.num_chunks else 0
+
+
+def captured_chunk_slots(group):
+    """``(chunk_start, slots)`` of the plan whose chunk slots :func:`chunk_slots` cached for
+    ``group`` (the value its captured launches hold), or None where no solve asked yet."""
+    cache = group.__dict__.get("_solve_chunk_slots")
+    return None if cache is None else (cache[0].chunk_start, cache[2])
 
 
 def chunk_slots_grew(group, incidences: Optional[torch.Tensor] = None) -> bool:

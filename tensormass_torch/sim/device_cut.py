@@ -2,8 +2,8 @@
 device, with no host synchronisation and, on CUDA, replayed from one captured graph.
 
 The host cut (``Simulator.cut``) reads the positions back, finds the cut on the host and edits host
-copies of the model's tables: a few milliseconds a cut whatever its size, so a scalpel that cuts
-before every step ran at a tenth of the uncut steps/s. Here the cut is the ``cutting`` ops' device
+copies of the model's tables: its cost is host work, whatever the cut's size, and a step after it
+cannot be queued before it is done. Here the cut is the ``cutting`` ops' device
 passes (``ops.cutting.cut_on_device``: the faces the blade crosses, the split of the cut nodes'
 stars, the elements re-pointed into the body's spare rows), then the model's lists and lumped
 masses of the split nodes and their copies (``cutting_move_lists``), the node graph's rows of every
@@ -29,15 +29,17 @@ from typing import Optional
 
 import torch
 
+from ..mesh.cutting import STRIP_TRIANGLES
 from ..ops import cutting as ops_cutting
 from ..ops import library, node_graph
+from ..ops import solve as ops_solve
 
 __all__ = ["DeviceCuts"]
 
 
 class DeviceCuts:
-    """The device cut of body 0 of ``sim`` (see the module docstring). ``cut(corners)`` queues a scalpel strip's cut
-    (no host synchronisation); ``settle()`` reads, once the step after it has synchronised, how
+    """The device cut of body 0 of ``sim`` (see the module docstring). ``cut(corners)`` queues a scalpel
+    strip's cut (no host synchronisation); ``settle()`` reads, once the step after it has synchronised, how
     many nodes it added and whether it fitted."""
 
     @staticmethod
@@ -48,8 +50,6 @@ class DeviceCuts:
             return "more than one body"
         if len(model.groups) != 1 or model.groups[0].form != "tensor" or model.groups[0].model != "hooke":
             return "not one hooke tensor-form group"
-        if model.groups[0].nodes_per_element != 4 and sim.bodies[0].mesh.vertices.shape[1] != 3:
-            return "not a 3-D body"
         if not (variants.hooke_matvec == "node" and node_graph.step_rhs_serves(model.groups[0], (), variants)):
             return "the step does not run over the node graph"
         if sim.ptr[1] - sim.used_nodes[0] <= 0:
@@ -83,8 +83,8 @@ class DeviceCuts:
                                                     group.poisson).to(node_k.dtype)
         self.row_of = None if rows is None else node_graph._row_of(group, rows)
         # the solve's chunks and the slots their captured launches were given, where a solve ran
-        cached = group.__dict__.get("_solve_chunk_slots")
-        self.chunks = None if cached is None else (cached[0].chunk_start.to(device), int(cached[2]))
+        captured = ops_solve.captured_chunk_slots(group)
+        self.chunks = None if captured is None else (captured[0].to(device), int(captured[1]))
         num_nodes = model.num_nodes
         used, room = sim.used_nodes[0], sim.ptr[1] - sim.used_nodes[0]
         self.max_rows = room
@@ -94,8 +94,9 @@ class DeviceCuts:
         self.status = torch.zeros(1, dtype=torch.int32, device=device)
         self.touched = torch.zeros(num_nodes, dtype=torch.uint8, device=device)
         self.blade_vertices = torch.zeros(4, 3, dtype=model.rest.dtype, device=device)
-        self.blade_triangles = torch.tensor([[0, 1, 2], [0, 2, 3]], device=device)
+        self.blade_triangles = torch.tensor(STRIP_TRIANGLES, device=device)
         self.scratch: dict = {}
+        self.copy_rows = library.op_or_reference(ops_cutting.COPY_ROWS, device)
         self.alive = (~model.removed).contiguous()
         self.positions = torch.empty_like(sim.x)
         self.captured = None
@@ -137,9 +138,8 @@ class DeviceCuts:
         else:
             self._passes()
         # the new nodes' state, in tensors the step replaces: outside the graph
-        copy = library.op_or_reference(ops_cutting.COPY_ROWS, self.device)
-        copy(self.last_cut, self.parents, self.max_rows, self.sim.x)
-        copy(self.last_cut, self.parents, self.max_rows, self.sim.v)
+        self.copy_rows(self.last_cut, self.parents, self.max_rows, self.sim.x)
+        self.copy_rows(self.last_cut, self.parents, self.max_rows, self.sim.v)
         self.report.copy_(self.outcome, non_blocking=True)
         if self.reported is not None:
             self.reported.record()
@@ -166,16 +166,14 @@ class DeviceCuts:
                                                 self.scratch["offset"], self.limits, self.parents,
                                                 model.element_share, self.alive, model.node_slots, model.mass,
                                                 model.node_elements, self.touched)
-        copy = op(ops_cutting.COPY_ROWS, self.device)
         for values in (model.rest, sim.system.free, sim.fixed, sim.prescribed):
-            if values is not None:
-                copy(self.last_cut, self.parents, self.max_rows, values)
+            self.copy_rows(self.last_cut, self.parents, self.max_rows, values)
         neighbor, node_k, incidences = self.graph
         op("node_graph_rebuild_hooke_rows", self.device)(
             self.pair_k, group.elements, model.node_slots, self.alive, self.touched, self.row_of, neighbor.shape[0],
             neighbor, node_k, incidences, self.status)
-        if self.chunks is not None:
-            over = _chunk_over(incidences, self.chunks)
+        if self.chunks is not None:  # a chunk of the solve now holding more slots than its launches
+            over = ops_solve.most_chunk_slots(incidences, self.chunks[0]) > self.chunks[1]
             self.status.copy_(torch.where(over, torch.ones_like(self.status), self.status))
         torch.mul(model.mass[:, None], sim.gravity, out=sim.system.external)
         self.limits.add_(torch.stack([added, -added]))
@@ -193,13 +191,4 @@ class DeviceCuts:
         added, self.used = used - self.used, used
         self.added += added
         return added, status == 0
-
-
-def _chunk_over(incidences: torch.Tensor, chunks) -> torch.Tensor:
-    """``[]`` bool (device): whether a chunk of the solve now sums more slots than its launches
-    were given (``chunks``: its starts and that budget)."""
-    starts, budget = chunks
-    prefix = torch.zeros(incidences.numel() + 1, dtype=torch.int64, device=incidences.device)
-    torch.cumsum(incidences.long(), 0, out=prefix[1:])
-    return (prefix[starts[1:]] - prefix[starts[:-1]]).amax() > budget
 

@@ -82,9 +82,7 @@ class Scalpel:
         """The surface the edge sweeps from time t0 to t1 (:meth:`strip`) as a ``Blade`` (two
         triangles), or None where it sweeps nothing."""
         corners = self.strip(t0, t1)
-        if corners is None:
-            return None
-        return Blade.swept(corners[0], corners[1], corners[3], corners[2])
+        return None if corners is None else Blade.strip(corners)
 
     def __repr__(self) -> str:
         return (f"Scalpel(body={self.body!r}, times=[{float(self.times[0]):g} .. {float(self.times[-1]):g}], "

@@ -9,7 +9,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import torch
 
 from ..errors import CapacityError, MeshError, SceneError, SolverError
-from ..mesh.cutting import Blade
+from ..mesh.cutting import Blade, still_joined
 from ..mesh.meshes import Mesh
 from ..mesh.topology import boundary_faces
 from ..ops import node_graph
@@ -724,7 +724,7 @@ class Simulator:
                 continue
             cuts = self._device_cutter(scalpel.body)
             if cuts is None:
-                self.cut(scalpel.body, Blade.swept(corners[0], corners[1], corners[3], corners[2]), missing_ok=True)
+                self.cut(scalpel.body, Blade.strip(corners), missing_ok=True)
             else:
                 cuts.cut(corners)
                 self._device_cut_blades.append(corners)
@@ -762,13 +762,13 @@ class Simulator:
         device, the model's other tables (edges, plans, host copies) lag behind them, so the
         simulator is built again from the cut mesh first (with room for the cuts to come); where
         none split a node yet, the cut on the device is only made again at its next cut."""
-        if self._device_cuts is None:
-            return
-        if self._device_cuts.pending:  # (settle() waits for the cuts' report)
+        if self._device_cuts is not None and self._device_cuts.pending:  # (settle() waits for the report)
             self._settle_device_cuts()
-        if self._device_cuts is not None and self._device_cuts.added:
+        if self._device_cuts is None:  # (none, or a cut that did not fit built the simulator again)
+            return
+        if self._device_cuts.added:
             self._rebuild_from_device(())
-        elif self._device_cuts is not None:
+        else:
             # no node split yet: the model's tables are current, but the cut's own (the alive
             # elements, the system's buffers it captured) are made again at the next cut, and the
             # faces it parted stay parted as the body's slit
@@ -783,17 +783,16 @@ class Simulator:
         cuts = self._device_cuts
         old = self._bodies[0]
         used = self.used_nodes[0]
-        elements = cuts.group.elements.to("cpu")
-        vertices = self.model.rest[:used].to(old.mesh.vertices.dtype)
-        mesh = type(old.mesh)._trusted(vertices.to(old.mesh.vertices.device),
-                                       elements.to(device=old.mesh.elements.device, dtype=old.mesh.elements.dtype))
+        # copies: the cuts to come write the model's elements and rest positions in place
+        elements = cuts.group.elements.to(device=old.mesh.elements.device, dtype=old.mesh.elements.dtype, copy=True)
+        vertices = self.model.rest[:used].to(device=old.mesh.vertices.device, dtype=old.mesh.vertices.dtype,
+                                             copy=True)
+        mesh = type(old.mesh)._trusted(vertices, elements)
         self._bodies[0] = Body._trusted(mesh, old.material, self.fixed[:used].to(old.fixed.device),
                                         self.prescribed[:used].to(old.prescribed.device), None, old.name)
         face_elements, _, parted = cuts.faces
         pairs = face_elements[parted].long()
-        a, b = cuts.group.elements[pairs[:, 0]].long(), cuts.group.elements[pairs[:, 1]].long()
-        shared = (a[:, :, None] == b[:, None, :]).sum((1, 2)) == elements.shape[1] - 1
-        self._slits[0] = pairs[shared].to("cpu")
+        self._slits[0] = pairs[still_joined(cuts.group.elements.long(), pairs)].to("cpu")
         self._host_meshes.pop(0, None)
 
     def _rebuild_from_device(self, blades) -> None:
@@ -803,7 +802,7 @@ class Simulator:
         self._refresh_views()
         self._rebuild_with_room(0, None)
         for corners in blades:
-            self.cut(0, Blade.swept(corners[0], corners[1], corners[3], corners[2]), missing_ok=True)
+            self.cut(0, Blade.strip(corners), missing_ok=True)
 
     def cut(self, body, blade: Blade, missing_ok: bool = False) -> int:
         """Cut one body along ``blade`` between steps, where the body is now: the faces the blade
@@ -838,8 +837,6 @@ class Simulator:
             raise SceneError(f"blade must be a tm.Blade, got {type(blade).__name__}")
         self._settle_topology()
         old = self.bodies[i]
-        if not isinstance(blade, Blade):
-            raise SceneError(f"blade must be a tm.Blade, got {type(blade).__name__}")
         if old.mesh.vertices.shape[1] != 3:
             raise SceneError(f"body {i} is 2-D: cutting needs a 3-D body (tetrahedra or membranes)")
         # the cut is found on the host: the body's elements and removed flags kept there, its
