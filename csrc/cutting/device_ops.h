@@ -260,6 +260,52 @@ void cutting_copy_rows(const at::Tensor& rows, const at::Tensor& parents, int64_
   L::run(max_rows * row_bytes, k, L::kNodeBlock);
 }
 
+// cutting_count_new_nodes: see schema.cpp.
+template <class L>
+void cutting_count_new_nodes(const at::Tensor& ends, const at::Tensor& limits, at::Tensor rows, at::Tensor status) {
+  TORCH_CHECK(ends.defined() && ends.dim() == 1 && ends.size(0) >= 1, "tensormass: ends must be [V + 1]");
+  check_index_tensor(ends, "ends", ends, at::kLong, ends.sizes(), "ends");
+  check_index_tensor(limits, "limits", ends, at::kLong, {2}, "ends");
+  check_index_tensor(rows, "rows", ends, at::kLong, {2}, "ends");
+  check_index_tensor(status, "status", ends, at::kInt, {1}, "ends");
+  typename L::Guard guard(ends.device());
+  CountNewNodesKernel k;
+  k.ends = ends.data_ptr<int64_t>();
+  k.num_nodes = ends.size(0) - 1;
+  k.limits = limits.data_ptr<int64_t>();
+  k.rows = rows.data_ptr<int64_t>();
+  k.status = status.data_ptr<int32_t>();
+  L::run(1, k, 1);
+}
+
+// cutting_close_cut: see schema.cpp. Two launches: the chunks checked, then the cut closed.
+template <class L>
+void cutting_close_cut(const at::Tensor& rows, const at::Tensor& incidences, const at::Tensor& chunk_start,
+                       int64_t chunk_slots, at::Tensor limits, at::Tensor status, at::Tensor outcome) {
+  TORCH_CHECK(incidences.defined() && incidences.dim() == 1, "tensormass: incidences must be [V]");
+  check_index_tensor(incidences, "incidences", incidences, at::kInt, incidences.sizes(), "incidences");
+  check_index_tensor(rows, "rows", incidences, at::kLong, {2}, "incidences");
+  TORCH_CHECK(chunk_start.defined() && chunk_start.dim() == 1 && chunk_start.size(0) >= 1,
+              "tensormass: chunk_start must be [C + 1]");
+  check_index_tensor(chunk_start, "chunk_start", incidences, at::kLong, chunk_start.sizes(), "incidences");
+  check_index_tensor(limits, "limits", incidences, at::kLong, {2}, "incidences");
+  check_index_tensor(status, "status", incidences, at::kInt, {1}, "incidences");
+  check_index_tensor(outcome, "outcome", incidences, at::kLong, {2}, "incidences");
+  typename L::Guard guard(incidences.device());
+  CheckChunksKernel check;
+  check.incidences = incidences.data_ptr<int32_t>();
+  check.chunk_start = chunk_start.data_ptr<int64_t>();
+  check.chunk_slots = chunk_slots;
+  check.status = status.data_ptr<int32_t>();
+  L::run(chunk_start.size(0) - 1, check, L::kNodeBlock);
+  CloseCutKernel close;
+  close.rows = rows.data_ptr<int64_t>();
+  close.limits = limits.data_ptr<int64_t>();
+  close.status = status.data_ptr<int32_t>();
+  close.outcome = outcome.data_ptr<int64_t>();
+  L::run(1, close, 1);
+}
+
 // Registers the device cut's ops of one backend (launcher L): cpu.cpp and cuda.cu.
 template <class L>
 void register_device_cutting_ops(torch::Library& m) {
@@ -268,6 +314,8 @@ void register_device_cutting_ops(torch::Library& m) {
   m.impl("cutting_repoint_stars", &cutting_repoint_stars<L>);
   m.impl("cutting_move_lists", &cutting_move_lists<L>);
   m.impl("cutting_copy_rows", &cutting_copy_rows<L>);
+  m.impl("cutting_count_new_nodes", &cutting_count_new_nodes<L>);
+  m.impl("cutting_close_cut", &cutting_close_cut<L>);
 }
 
 }  // namespace cutting

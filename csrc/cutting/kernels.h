@@ -390,5 +390,55 @@ struct CopyRowsKernel {
   }
 };
 
+// One item, after the new nodes were numbered (ends = the inclusive prefix sum of new_count, after a
+// leading 0): the cut's rows (its first new node, how many it added: 0 where they do not fit, as
+// RepointStarsKernel decides) and the status set to 1 where they do not fit.
+struct CountNewNodesKernel {
+  const int64_t* ends;    // [V + 1]
+  int64_t num_nodes;      // V
+  const int64_t* limits;  // [2]: the first new node's id, the room
+  int64_t* rows;          // [2]
+  int32_t* status;        // [1]
+
+  TM_HD void operator()(int64_t) const {
+    const int64_t total = ends[num_nodes];
+    const bool fits = total <= limits[1];
+    rows[0] = limits[0];
+    rows[1] = fits ? total : 0;
+    if (!fits) status[0] = 1;
+  }
+};
+
+// A chunk of the solve an item: status set to 1 where its nodes now hold more slots (the sum of
+// their incidences) than its captured launches were given (several items may write the same 1).
+struct CheckChunksKernel {
+  const int32_t* incidences;   // [V]
+  const int64_t* chunk_start;  // [C + 1]: each chunk's first node, then the end
+  int64_t chunk_slots;
+  int32_t* status;             // [1]
+
+  TM_HD void operator()(int64_t c) const {
+    int64_t slots = 0;
+    for (int64_t i = chunk_start[c]; i < chunk_start[c + 1]; ++i) slots += incidences[i];
+    if (slots > chunk_slots) status[0] = 1;
+  }
+};
+
+// One item, last: the cut's rows taken from the room (limits), and the outcome the host reads (the
+// rows in use, the status).
+struct CloseCutKernel {
+  const int64_t* rows;    // [2]
+  int64_t* limits;        // [2]
+  const int32_t* status;  // [1]
+  int64_t* outcome;       // [2]
+
+  TM_HD void operator()(int64_t) const {
+    limits[0] += rows[1];
+    limits[1] -= rows[1];
+    outcome[0] = limits[0];
+    outcome[1] = status[0];
+  }
+};
+
 }  // namespace cutting
 }  // namespace tensormass

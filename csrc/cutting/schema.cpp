@@ -150,4 +150,16 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   r < count, row by row, byte for byte (any dtype): the state of the new nodes a cut made,
   //   copied from their parents'. max_rows bounds the launch (the most new nodes a cut can add).
   m.def("cutting_copy_rows(Tensor rows, Tensor parents, int max_rows, Tensor(a!) values) -> ()");
+  // cutting_count_new_nodes(ends [V + 1] int64, limits [2] int64, rows! [2] int64, status! [1] int32) -> ()
+  //   After the new nodes are numbered (ends: 0, then the inclusive prefix sum of new_count), with
+  //   total = ends[V]: rows = (limits[0], total where total <= limits[1], else 0) (the rows
+  //   cutting_copy_rows fills), and status = 1 where total > limits[1] (else as it was).
+  m.def("cutting_count_new_nodes(Tensor ends, Tensor limits, Tensor(a!) rows, Tensor(b!) status) -> ()");
+  // cutting_close_cut(rows [2] int64, incidences [V] int32, chunk_start [C + 1] int64, chunk_slots,
+  //                   limits! [2] int64, status! [1] int32, outcome! [2] int64) -> ()
+  //   The end of a cut: status = 1 where a chunk of nodes [chunk_start[c], chunk_start[c + 1])
+  //   holds more than chunk_slots slots (the sum of their incidences; C may be 0); then limits =
+  //   (limits[0] + rows[1], limits[1] - rows[1]) and outcome = (limits[0], status) (after).
+  m.def("cutting_close_cut(Tensor rows, Tensor incidences, Tensor chunk_start, int chunk_slots, "
+        "Tensor(a!) limits, Tensor(b!) status, Tensor(c!) outcome) -> ()");
 }

@@ -74,6 +74,8 @@ SPLIT_STARS = "cutting_split_stars"
 REPOINT_STARS = "cutting_repoint_stars"
 MOVE_LISTS = "cutting_move_lists"
 COPY_ROWS = "cutting_copy_rows"
+COUNT_NEW_NODES = "cutting_count_new_nodes"
+CLOSE_CUT = "cutting_close_cut"
 #: The results of the table edits by name, in the ops' order.
 ELEMENT_RESULTS = ("incidence_nodes", "incidences", "items", "force_index", "slot_nodes", "node_slot_lists", "both")
 EDGE_RESULTS = ("status", "refresh_rows", "dead", "graph_edges", "incidence_nodes", "incidences", "items",
@@ -457,6 +459,36 @@ def _copy_rows_example(device, dtype):
     return (torch.tensor([5, 2], device=device), parents, 3, values), {}
 
 
+def _ref_cutting_count_new_nodes(ends, limits, rows, status):
+    total = ends[-1]
+    fits = total <= limits[1]
+    rows.copy_(torch.stack([limits[0], torch.where(fits, total, torch.zeros_like(total))]))
+    status.copy_(torch.where(fits, status, torch.ones_like(status)))
+
+
+def _count_new_nodes_example(device, dtype):
+    """7 new nodes numbered (after nodes holding 2, 0, 1, 4) against a room of 6: they do not fit."""
+    ends = torch.tensor([0, 2, 2, 3, 7], device=device)
+    return (ends, torch.tensor([20, 6], device=device), torch.zeros(2, dtype=torch.int64, device=device),
+            torch.zeros(1, dtype=torch.int32, device=device)), {}
+
+
+def _ref_cutting_close_cut(rows, incidences, chunk_start, chunk_slots, limits, status, outcome):
+    prefix = torch.cat([incidences.new_zeros(1, dtype=torch.int64), torch.cumsum(incidences.long(), 0)])
+    over = ((prefix[chunk_start[1:]] - prefix[chunk_start[:-1]]) > chunk_slots).any()
+    status.copy_(torch.where(over, torch.ones_like(status), status))
+    limits.copy_(torch.stack([limits[0] + rows[1], limits[1] - rows[1]]))
+    outcome.copy_(torch.cat([limits[:1], status.long()]))
+
+
+def _close_cut_example(device, dtype):
+    """3 new nodes taken from a room of 10; chunks of 3 and 2 nodes holding 9 and 11 slots, given 10."""
+    incidences = torch.tensor([3, 4, 2, 5, 6], dtype=torch.int32, device=device)
+    return (torch.tensor([20, 3], device=device), incidences, torch.tensor([0, 3, 5], device=device), 10,
+            torch.tensor([20, 10], device=device), torch.zeros(1, dtype=torch.int32, device=device),
+            torch.zeros(2, dtype=torch.int64, device=device)), {}
+
+
 @torch.no_grad()
 def face_table(elements: torch.Tensor, slit: Optional[torch.Tensor] = None):
     """The interior faces of ``elements [N, n]`` (tetrahedra or membrane triangles), for the cut on
@@ -498,7 +530,8 @@ def cut_on_device(x: torch.Tensor, elements: torch.Tensor, node_slots: torch.Ten
     (ids into elements, in any order); ``limits [2]`` int64: the first new node's id and how many
     new nodes fit; ``parents [P]`` int64: each new node's parent written there. ``scratch``: a
     dict that keeps the passes' buffers between calls (made on the first; ``offset``, the new
-    nodes' numbering, is left there for ``cutting_move_lists``).
+    nodes' numbering, is left there for ``cutting_move_lists``, and ``ends [V + 1]``: 0, then the
+    inclusive prefix sum of the new nodes, for ``cutting_count_new_nodes``).
 
     Returns ``(crossed [F] bool, total [] int64)``: the faces this blade crossed, and how many
     nodes the cut adds (made only where they fit: total <= limits[1]; else nothing changes but
@@ -510,14 +543,15 @@ def cut_on_device(x: torch.Tensor, elements: torch.Tensor, node_slots: torch.Ten
         scratch["new_count"] = torch.empty(node_slots.shape[1], dtype=torch.int32, device=x.device)
         scratch["on_cut"] = torch.empty(node_slots.shape[1], dtype=torch.uint8, device=x.device)
         scratch["crossed"] = torch.empty(parted.shape, dtype=torch.bool, device=x.device)
+        scratch["ends"] = torch.zeros(node_slots.shape[1] + 1, dtype=torch.int64, device=x.device)
+        scratch["offset"] = scratch["ends"][:-1]
     group, new_count, crossed = scratch["group"], scratch["new_count"], scratch["crossed"]
     library.op_or_reference(CROSS_FACES, x.device, native)(x, elements, face_elements, alive, blade_vertices,
                                                              blade_triangles, parted, crossed)
     library.op_or_reference(SPLIT_STARS, x.device, native)(elements, node_slots, alive, element_faces,
                                                            face_elements, parted, group, new_count, scratch["on_cut"])
-    counts = new_count.long()
-    ends = torch.cumsum(counts, 0)
-    scratch["offset"] = ends - counts
+    ends = scratch["ends"]  # 0, then the inclusive prefix sum: offset is its first V entries
+    torch.cumsum(new_count, 0, dtype=torch.int64, out=ends[1:])
     library.op_or_reference(REPOINT_STARS, x.device, native)(node_slots, group, new_count, scratch["offset"], limits,
                                                            elements, parents)
     return crossed, ends[-1]
@@ -586,7 +620,11 @@ OPS = (OpDef(NAME, _ref_cutting_cut_mesh, _fake_cutting_cut_mesh, differentiable
        OpDef(MOVE_LISTS, _ref_cutting_move_lists, None, differentiable=False, mutates=True,
              example=_device_example(MOVE_LISTS)),
        OpDef(COPY_ROWS, _ref_cutting_copy_rows, None, differentiable=False, mutates=True,
-             example=_copy_rows_example))
+             example=_copy_rows_example),
+       OpDef(COUNT_NEW_NODES, _ref_cutting_count_new_nodes, None, differentiable=False, mutates=True,
+             example=_count_new_nodes_example),
+       OpDef(CLOSE_CUT, _ref_cutting_close_cut, None, differentiable=False, mutates=True,
+             example=_close_cut_example))
 library.define(OPS, lambda: library.register(OPS))
 
 

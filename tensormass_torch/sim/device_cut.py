@@ -84,12 +84,14 @@ class DeviceCuts:
         self.row_of = None if rows is None else node_graph._row_of(group, rows)
         # the solve's chunks and the slots their captured launches were given, where a solve ran
         captured = ops_solve.captured_chunk_slots(group)
-        self.chunks = None if captured is None else (captured[0].to(device), int(captured[1]))
+        # (no solve yet: no chunk to check)
+        self.chunks = ((torch.zeros(1, dtype=torch.int64, device=device), 0) if captured is None
+                       else (captured[0].to(device=device, dtype=torch.int64), int(captured[1])))
         num_nodes = model.num_nodes
         used, room = sim.used_nodes[0], sim.ptr[1] - sim.used_nodes[0]
         self.max_rows = room
         self.limits = torch.tensor([used, room], dtype=torch.int64, device=device)
-        self.last_cut = torch.zeros(2, dtype=torch.int64, device=device)  # (first new node, how many)
+        self.last_cut = torch.zeros(2, dtype=torch.int64, device=device)  # the cut's rows: (first new node, how many)
         self.parents = torch.arange(num_nodes, device=device)
         self.status = torch.zeros(1, dtype=torch.int32, device=device)
         self.touched = torch.zeros(num_nodes, dtype=torch.uint8, device=device)
@@ -98,7 +100,9 @@ class DeviceCuts:
         self.scratch: dict = {}
         self.copy_rows = library.op_or_reference(ops_cutting.COPY_ROWS, device)
         self.alive = (~model.removed).contiguous()
-        self.positions = torch.empty_like(sim.x)
+        # the state the cut reads and writes the new nodes' rows into, then the step starts from
+        # (the simulator's state tensors are replaced by each step: a captured graph needs these)
+        self.positions, self.velocities = torch.empty_like(sim.x), torch.empty_like(sim.v)
         self.captured = None
         self.pending = 0  # cuts queued since the last settle
         pinned = device.type == "cuda"
@@ -107,8 +111,8 @@ class DeviceCuts:
         self.outcome = torch.zeros(2, dtype=torch.int64, device=device)
         self.report = torch.zeros(2, dtype=torch.int64, pin_memory=pinned)
         self.used = used  # the rows in use at the last settle
-        # the strip's corners on their way to the device (written once the previous copy is done:
-        # the step after each cut synchronises)
+        # the strip's corners on their way to the device (the graph's first copy reads them; written
+        # once the cut before has read them)
         self.staging = torch.zeros(4, 3, dtype=model.rest.dtype, pin_memory=pinned)
         self.reported = torch.cuda.Event() if pinned else None
         self.added = 0  # nodes the settled cuts added
@@ -120,9 +124,11 @@ class DeviceCuts:
             raise ValueError(f"the cut on the device takes a scalpel's strip (corners [4, 3]), got "
                              f"{tuple(corners.shape)}")
         cuda = self.device.type == "cuda"
+        if self.pending and self.reported is not None:
+            self.reported.synchronize()  # (a cut queued before this one may not have read the staging buffer yet)
         self.staging.copy_(corners)
-        self.blade_vertices.copy_(self.staging, non_blocking=True)
-        self.positions.copy_(self.sim.x)  # (the step replaces sim.x: the graph reads this copy)
+        self.positions.copy_(self.sim.x)
+        self.velocities.copy_(self.sim.v)
         if cuda and self.sim.options.cuda_graphs:
             if self.captured is None:
                 graph = torch.cuda.CUDAGraph()
@@ -137,10 +143,7 @@ class DeviceCuts:
             self.captured.replay()
         else:
             self._passes()
-        # the new nodes' state, in tensors the step replaces: outside the graph
-        self.copy_rows(self.last_cut, self.parents, self.max_rows, self.sim.x)
-        self.copy_rows(self.last_cut, self.parents, self.max_rows, self.sim.v)
-        self.report.copy_(self.outcome, non_blocking=True)
+        self.sim._replace_state(self.positions, self.velocities)
         if self.reported is not None:
             self.reported.record()
         self.pending += 1
@@ -154,30 +157,27 @@ class DeviceCuts:
         vertices = self.blade_vertices
         if warm_up:  # a blade far from the body: no face crossed, no node split
             vertices = torch.full_like(vertices, 1e30)
-        _, total = ops_cutting.cut_on_device(self.positions, group.elements, model.node_slots, self.alive,
-                                             self.faces, vertices, self.blade_triangles, self.limits, self.parents,
-                                             self.scratch)
-        fits = total <= self.limits[1]
-        added = torch.where(fits, total, torch.zeros_like(total))
-        self.last_cut.copy_(torch.stack([self.limits[0], added]))
-        self.status.copy_(torch.where(fits, self.status, torch.ones_like(self.status)))
+        else:  # (captured: the host writes the staging buffer before each replay)
+            vertices.copy_(self.staging, non_blocking=True)
+        ops_cutting.cut_on_device(self.positions, group.elements, model.node_slots, self.alive, self.faces, vertices,
+                                  self.blade_triangles, self.limits, self.parents, self.scratch)
+        op(ops_cutting.COUNT_NEW_NODES, self.device)(self.scratch["ends"], self.limits, self.last_cut, self.status)
         self.touched.zero_()
         op(ops_cutting.MOVE_LISTS, self.device)(group.elements, self.scratch["group"], self.scratch["new_count"],
                                                 self.scratch["offset"], self.limits, self.parents,
                                                 model.element_share, self.alive, model.node_slots, model.mass,
                                                 model.node_elements, self.touched)
-        for values in (model.rest, sim.system.free, sim.fixed, sim.prescribed):
+        for values in (model.rest, sim.system.free, sim.fixed, sim.prescribed, self.positions, self.velocities):
             self.copy_rows(self.last_cut, self.parents, self.max_rows, values)
         neighbor, node_k, incidences = self.graph
         op("node_graph_rebuild_hooke_rows", self.device)(
             self.pair_k, group.elements, model.node_slots, self.alive, self.touched, self.row_of, neighbor.shape[0],
             neighbor, node_k, incidences, self.status)
-        if self.chunks is not None:  # a chunk of the solve now holding more slots than its launches
-            over = ops_solve.most_chunk_slots(incidences, self.chunks[0]) > self.chunks[1]
-            self.status.copy_(torch.where(over, torch.ones_like(self.status), self.status))
         torch.mul(model.mass[:, None], sim.gravity, out=sim.system.external)
-        self.limits.add_(torch.stack([added, -added]))
-        self.outcome.copy_(torch.cat([self.limits[:1], self.status.to(torch.int64)]))
+        # (a chunk of the solve now holding more slots than its launches sets the status too)
+        op(ops_cutting.CLOSE_CUT, self.device)(self.last_cut, incidences, self.chunks[0], self.chunks[1], self.limits,
+                                               self.status, self.outcome)
+        self.report.copy_(self.outcome, non_blocking=True)
 
     def settle(self):
         """``(added, fitted)`` of the cuts queued since the last call, once the step after them

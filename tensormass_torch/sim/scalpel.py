@@ -19,6 +19,7 @@ from __future__ import annotations
 import bisect
 from typing import Optional, Sequence, Union
 
+import numpy as np
 import torch
 
 from ..errors import SceneError
@@ -56,27 +57,37 @@ class Scalpel:
         self.times = times
         self.edges = edges
 
-    def edge(self, t: float) -> torch.Tensor:
-        """The edge's end points at time t ``[2, 3]`` (float64), clamped to the first and last keyframes."""
-        times = self.__dict__.get("_time_list")
-        if times is None:  # (a scalpel cuts before every step: its keyframes searched on the host)
-            times = self.__dict__["_time_list"] = self.times.tolist()
+    def _keyframes(self):
+        """The keyframes as a list of times and an ``[K, 2, 3]`` numpy array (made once: a scalpel is
+        read before every step, and a few numpy operations on the host cost less than torch's)."""
+        keyframes = self.__dict__.get("_keyframes_on_host")
+        if keyframes is None:
+            keyframes = self.__dict__["_keyframes_on_host"] = (self.times.tolist(), self.edges.numpy().copy())
+        return keyframes
+
+    def _edge(self, t: float) -> np.ndarray:
+        times, edges = self._keyframes()
         t = min(max(float(t), times[0]), times[-1])
         k = min(bisect.bisect_right(times, t) - 1, len(times) - 2)
         s = (t - times[k]) / (times[k + 1] - times[k])
-        return (1 - s) * self.edges[k] + s * self.edges[k + 1]
+        return (1 - s) * edges[k] + s * edges[k + 1]
+
+    def edge(self, t: float) -> torch.Tensor:
+        """The edge's end points at time t ``[2, 3]`` (float64), clamped to the first and last keyframes."""
+        return torch.from_numpy(self._edge(t))
 
     def strip(self, t0: float, t1: float) -> Optional[torch.Tensor]:
         """The corners ``[4, 3]`` (float64) of the surface the edge sweeps from time t0 to t1 (within
         the keyframes' times), in :meth:`Blade.swept`'s order (the edge at the start, then at the
         end reversed), or None where it sweeps nothing (outside them, or the edge stands still)."""
-        start, end = max(float(t0), float(self.times[0])), min(float(t1), float(self.times[-1]))
+        times, _ = self._keyframes()
+        start, end = max(float(t0), times[0]), min(float(t1), times[-1])
         if end <= start:
             return None
-        a, b = self.edge(start), self.edge(end)
-        if torch.equal(a, b):
+        a, b = self._edge(start), self._edge(end)
+        if np.array_equal(a, b):
             return None
-        return torch.stack([a[0], a[1], b[1], b[0]])
+        return torch.from_numpy(np.stack([a[0], a[1], b[1], b[0]]))
 
     def blade(self, t0: float, t1: float) -> Optional[Blade]:
         """The surface the edge sweeps from time t0 to t1 (:meth:`strip`) as a ``Blade`` (two

@@ -682,6 +682,18 @@ class Simulator:
             return []
         return solutions
 
+    def _replace_state(self, x: torch.Tensor, v: torch.Tensor) -> None:
+        """The state ``x, v [V', d]`` moved into other tensors, unchanged but for rows no element
+        held before (a cut on the device writes its new nodes' rows there): what was kept with the
+        state (warm start's solutions, BDF2's state before) stays the current state's."""
+        committed = (self.x, self.v)
+        if self._solutions is not None and self._solutions[1][0] is committed[0] \
+                and self._solutions[1][1] is committed[1]:
+            self._solutions = (self._solutions[0], (x, v))
+        if self._history is not None and self._history[1][0] is committed[0] and self._history[1][1] is committed[1]:
+            self._history = (self._history[0], (x, v))
+        self.x, self.v = x, v
+
     def _commit(self, x, v, steps: int, report: StepReport, inversion):
         single = steps == 1 and report.substeps == 1
         one_step = single and self.options.integrator == "bdf2"

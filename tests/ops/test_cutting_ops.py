@@ -31,6 +31,8 @@ from tensormass_torch.ops import cutting as ops_cutting
 from tensormass_torch.ops import library, topology
 from tensormass_torch.physics.groups import _edge_pool
 
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
 pytestmark = pytest.mark.skipif(not library.ensure_registered(), reason="the compiled extension is not available")
 FIELDS = ("elements", "parents", "cut_first", "cut_second", "slit")
 DTYPES = [torch.float64, torch.float32]
@@ -816,6 +818,9 @@ def _device_args(name):
     (ops_cutting.SPLIT_STARS, dict(parted=lambda a: a["parted"][1:]), "parted has shape"),
     (ops_cutting.REPOINT_STARS, dict(limits=lambda a: a["limits"][:1]), r"limits has shape \[1\]"),
     (ops_cutting.REPOINT_STARS, dict(elements=lambda a: a["elements"][:, :2].contiguous()), r"elements must be"),
+    (ops_cutting.COUNT_NEW_NODES, dict(rows=lambda a: torch.zeros(3, dtype=torch.int64)), r"rows has shape \[3\]"),
+    (ops_cutting.CLOSE_CUT, dict(incidences=lambda a: a["incidences"].long()), "incidences is Long"),
+    (ops_cutting.CLOSE_CUT, dict(chunk_start=lambda a: a["chunk_start"].int()), "chunk_start is Int"),
 ])
 def test_bad_arguments_of_the_device_passes_raise_naming_them_and_write_nothing(name, change, message):
     args = _device_args(name)
@@ -826,6 +831,30 @@ def test_bad_arguments_of_the_device_passes_raise_naming_them_and_write_nothing(
         library.op(name)(*args.values())
     for k, v in before.items():
         assert torch.equal(args[k], v), k
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("room,chunk_slots", [(6, 11), (7, 11), (7, 10), (0, 100)])
+def test_the_cut_is_counted_and_closed_as_the_references(device, room, chunk_slots):
+    """Where the new nodes fit (or not), where a chunk holds more slots than given (or not), and
+    with no chunk at all: the ops write what their references write."""
+    incidences = torch.tensor([3, 4, 2, 5, 6], dtype=torch.int32, device=device)
+    for chunk_start in (torch.tensor([0, 3, 5], device=device), torch.zeros(1, dtype=torch.int64, device=device)):
+        written = []
+        for count, close in [(library.op(ops_cutting.COUNT_NEW_NODES), library.op(ops_cutting.CLOSE_CUT)),
+                             (ops_cutting._ref_cutting_count_new_nodes, ops_cutting._ref_cutting_close_cut)]:
+            limits = torch.tensor([20, room], device=device)
+            rows, outcome = torch.zeros(2, dtype=torch.int64, device=device), torch.zeros(2, dtype=torch.int64,
+                                                                                          device=device)
+            status = torch.zeros(1, dtype=torch.int32, device=device)
+            count(torch.tensor([0, 2, 2, 3, 7], device=device), limits, rows, status)
+            close(rows, incidences, chunk_start, chunk_slots, limits, status, outcome)
+            written.append((rows, limits, status, outcome))
+        for ours, want in zip(*written):
+            assert torch.equal(ours, want)
+        fits = room >= 7
+        assert written[0][0].tolist() == [20, 7 if fits else 0]
+        assert written[0][3].tolist() == [27 if fits else 20, int(not fits or (chunk_slots < 11 and chunk_start.numel() > 1))]
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")

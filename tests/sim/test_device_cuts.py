@@ -109,6 +109,11 @@ def test_it_cuts_on_the_host_where_it_cannot_serve_the_simulator():
     assert sim._device_cuts is not None
 
 
+def test_the_warm_start_of_the_steps_is_kept_across_cuts_on_the_device():
+    device_sim, host_sim = run_both(16, scalpel(12), warm_start="extrapolate")
+    assert device_sim._device_cuts.added > 0 and device_sim._solutions_before()
+
+
 def test_cut_on_device_must_be_a_bool():
     with pytest.raises(SceneError, match="cut_on_device must be True or False"):
         beam(cut_on_device="yes")
@@ -118,9 +123,9 @@ def test_cut_on_device_must_be_a_bool():
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
 def test_on_cuda_the_captured_cut_steps_as_the_cpu(dtype):
     device_sim, cpu_sim = beam("cuda", dtype=dtype), beam("cpu", dtype=dtype)
-    knife = scalpel(20)
-    for sim in (device_sim, cpu_sim):
-        sim.add_scalpel(knife)
+    for sim in (device_sim, cpu_sim):  # two scalpels: two cuts queued before each step
+        sim.add_scalpel(scalpel(20))
+        sim.add_scalpel(scalpel(16, x=0.28))
     tol = 1e-9 if dtype == torch.float64 else 1e-4
     for _ in range(24):
         device_sim.step()

@@ -1,0 +1,126 @@
+"""Where a scalpel step's time goes: the SOFA beam stepped one ``sim.step()`` at a time, uncut and
+while a scalpel crosses its middle (cut on the host and on the device), with the host's time split
+into the scalpel's cut, the step and the settling of the cut, the GPU time of the device cut's
+replayed graph, and (``--profile``) the host functions that take the most time.
+
+    python benchmarks/probes/scalpel_step_probe.py [--steps 60] [--warm 40] [--span 200] [--profile]
+
+The scalpel's edge (along z) goes up from y = 6.1 (inside the beam) to y = 11 over ``--span``
+steps at the beam's middle; ``--warm`` steps are untimed (the rebuild with spare rows, the device
+cut's tables and capture), then ``--steps`` are timed, synchronised at the end.
+"""
+import argparse
+import cProfile
+import io
+import pstats
+import time
+
+import torch
+
+import tensormass_torch as tm
+from tensormass_torch.sim import builtin
+
+
+def beam(on_device: bool):
+    built = builtin.sofa_beam(model="hooke", device="cuda").simulator
+    return tm.Simulator(built.bodies, **dict(built._init_args, cut_on_device=on_device))
+
+
+def timed_steps(sim, steps):
+    torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(steps):
+        sim.step()
+    torch.cuda.synchronize()
+    return time.perf_counter() - start
+
+
+def add_scalpel(sim, span):
+    vertices = sim.bodies[0].mesh.vertices
+    middle = float(vertices[:, 0].min() + vertices[:, 0].max()) / 2
+    t0, t1 = sim.time, sim.time + span * sim.options.dt
+    sim.add_scalpel(tm.Scalpel(0, times=[t0, t1], edges=[[[middle, 6.1, -3.0], [middle, 6.1, 3.0]],
+                                                         [[middle, 11.0, -3.0], [middle, 11.0, 3.0]]]))
+
+
+def split_host_time(sim, steps):
+    """Host seconds a step in the scalpel's cut, the step itself and the settling (wrapped methods)."""
+    spent = {"cut": 0.0, "advance": 0.0, "settle": 0.0}
+    originals = {}
+
+    def wrap(name, key):
+        original = getattr(sim, name)
+        originals[name] = original
+
+        def timed_call(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                spent[key] += time.perf_counter() - start
+        setattr(sim, name, timed_call)
+
+    wrap("_apply_scalpels", "cut")
+    wrap("_advance", "advance")
+    wrap("_settle_device_cuts", "settle")
+    total = timed_steps(sim, steps)
+    for name in originals:
+        delattr(sim, name)
+    return total, {key: value / steps for key, value in spent.items()}
+
+
+def replay_gpu_us(cuts, repeats=50):
+    """GPU microseconds of one replay of the device cut's graph (a strip that crosses no new face)."""
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    torch.cuda.synchronize()
+    start.record()
+    for _ in range(repeats):
+        cuts.captured.replay()
+    end.record()
+    torch.cuda.synchronize()
+    return 1e3 * start.elapsed_time(end) / repeats
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--warm", type=int, default=40)
+    parser.add_argument("--span", type=int, default=200)
+    parser.add_argument("--profile", action="store_true")
+    args = parser.parse_args()
+
+    sim = beam(False)
+    sim.step(3)
+    uncut = timed_steps(sim, args.steps)
+    print(f"uncut: {args.steps / uncut:.1f} steps/s, one sim.step() a step "
+          f"({1e6 * uncut / args.steps:.0f} us a step)")
+    for on_device in (False, True):
+        sim = beam(on_device)
+        sim.step(3)
+        add_scalpel(sim, args.span)
+        nodes = sim.used_nodes[0]
+        timed_steps(sim, args.warm)
+        total, split = split_host_time(sim, args.steps)
+        where = "device" if sim.device_cuts_active else "host"
+        parts = ", ".join(f"{key} {1e6 * value:.0f} us" for key, value in split.items())
+        print(f"scalpel cut on the {where}: {args.steps / total:.1f} steps/s ({1e6 * total / args.steps:.0f} us a "
+              f"step; host: {parts}); {sim.used_nodes[0] - nodes} nodes added over {args.warm + args.steps} steps")
+        if on_device and sim.device_cuts_active:
+            cuts = sim._device_cuts
+            if cuts.captured is not None:
+                print(f"  the device cut's graph, replayed alone: {replay_gpu_us(cuts):.1f} us of GPU time")
+            if args.profile:
+                profiler = cProfile.Profile()
+                profiler.enable()
+                timed_steps(sim, args.steps)
+                profiler.disable()
+                text = io.StringIO()
+                pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(30)
+                print(text.getvalue())
+    sim = beam(False)
+    sim.step(3)
+    print(f"uncut again: {args.steps / timed_steps(sim, args.steps):.1f} steps/s")
+
+
+if __name__ == "__main__":
+    main()
