@@ -1,6 +1,7 @@
 """Where a scalpel step's time goes: the SOFA beam stepped one ``sim.step()`` at a time, uncut and
 while a scalpel crosses its middle (cut on the host and on the device), with the host's time split
-into the scalpel's cut, the step and the settling of the cut, the GPU time of the device cut's
+into the scalpel's cut, the step and the settling of the cut (and the median and slowest step, and
+the rebuilds with room a cut that did not fit made), the GPU time of the device cut's
 replayed graph, and (``--profile``) the host functions that take the most time.
 
     python benchmarks/probes/scalpel_step_probe.py [--steps 60] [--warm 40] [--span 200] [--profile]
@@ -63,10 +64,27 @@ def split_host_time(sim, steps):
     wrap("_apply_scalpels", "cut")
     wrap("_advance", "advance")
     wrap("_settle_device_cuts", "settle")
-    total = timed_steps(sim, steps)
-    for name in originals:
+    rebuilds = [0]
+    rebuild = sim._rebuild_from_device
+
+    def counted(*args, **kwargs):
+        rebuilds[0] += 1
+        return rebuild(*args, **kwargs)
+    sim._rebuild_from_device = counted
+    each = []
+    torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(steps):
+        sim.step()
+        each.append(time.perf_counter())
+    torch.cuda.synchronize()
+    total = time.perf_counter() - start
+    for name in list(originals) + ["_rebuild_from_device"]:
         delattr(sim, name)
-    return total, {key: value / steps for key, value in spent.items()}
+    gaps = sorted(b - a for a, b in zip([start] + each[:-1], each))
+    split = {key: value / steps for key, value in spent.items()}
+    split.update(median=gaps[len(gaps) // 2], slowest=gaps[-1])
+    return total, split, rebuilds[0]
 
 
 def replay_gpu_us(cuts, repeats=50):
@@ -100,11 +118,12 @@ def main():
         add_scalpel(sim, args.span)
         nodes = sim.used_nodes[0]
         timed_steps(sim, args.warm)
-        total, split = split_host_time(sim, args.steps)
+        total, split, rebuilds = split_host_time(sim, args.steps)
         where = "device" if sim.device_cuts_active else "host"
         parts = ", ".join(f"{key} {1e6 * value:.0f} us" for key, value in split.items())
         print(f"scalpel cut on the {where}: {args.steps / total:.1f} steps/s ({1e6 * total / args.steps:.0f} us a "
-              f"step; host: {parts}); {sim.used_nodes[0] - nodes} nodes added over {args.warm + args.steps} steps")
+              f"step; host: {parts}); {sim.used_nodes[0] - nodes} nodes added over {args.warm + args.steps} steps; "
+              f"{rebuilds} rebuilds with room in the timed steps")
         if on_device and sim.device_cuts_active:
             cuts = sim._device_cuts
             if cuts.captured is not None:
