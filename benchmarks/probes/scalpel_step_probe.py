@@ -4,7 +4,7 @@ into the scalpel's cut, the step and the settling of the cut (and the median and
 the rebuilds with room a cut that did not fit made), the GPU time of the device cut's
 replayed graph, and (``--profile``) the host functions that take the most time.
 
-    python benchmarks/probes/scalpel_step_probe.py [--steps 60] [--warm 40] [--span 200] [--profile]
+    python benchmarks/probes/scalpel_step_probe.py [--steps 60] [--warm 40] [--span 200] [--profile] [--kernels]
 
 The scalpel's edge (along z) goes up from y = 6.1 (inside the beam) to y = 11 over ``--span``
 steps at the beam's middle; ``--warm`` steps are untimed (the rebuild with spare rows, the device
@@ -81,9 +81,13 @@ def split_host_time(sim, steps):
     total = time.perf_counter() - start
     for name in list(originals) + ["_rebuild_from_device"]:
         delattr(sim, name)
-    gaps = sorted(b - a for a, b in zip([start] + each[:-1], each))
+    in_order = [b - a for a, b in zip([start] + each[:-1], each)]
+    gaps = sorted(in_order)
     split = {key: value / steps for key, value in spent.items()}
     split.update(median=gaps[len(gaps) // 2], slowest=gaps[-1])
+    slow = [f"{k}: {1e3 * t:.1f} ms" for k, t in enumerate(in_order) if t > 4 * split["median"]]
+    if slow:
+        print("  steps over 4x the median (index in the timed steps):", ", ".join(slow))
     return total, split, rebuilds[0]
 
 
@@ -105,6 +109,7 @@ def main():
     parser.add_argument("--warm", type=int, default=40)
     parser.add_argument("--span", type=int, default=200)
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--kernels", action="store_true", help="the device cut's kernels (torch.profiler)")
     args = parser.parse_args()
 
     sim = beam(False)
@@ -128,6 +133,12 @@ def main():
             cuts = sim._device_cuts
             if cuts.captured is not None:
                 print(f"  the device cut's graph, replayed alone: {replay_gpu_us(cuts):.1f} us of GPU time")
+            if args.kernels:  # the device cut's passes once more, eagerly, kernel by kernel
+                from torch.profiler import ProfilerActivity, profile
+                with profile(activities=[ProfilerActivity.CUDA]) as prof:
+                    cuts._passes()
+                    torch.cuda.synchronize()
+                print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14, max_name_column_width=60))
             if args.profile:
                 profiler = cProfile.Profile()
                 profiler.enable()

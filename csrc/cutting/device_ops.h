@@ -89,7 +89,8 @@ void cutting_cross_faces(const at::Tensor& x, const at::Tensor& elements, const 
 template <class L>
 void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slots, const at::Tensor& alive,
                          const at::Tensor& element_faces, const at::Tensor& face_elements, const at::Tensor& parted,
-                         at::Tensor group, at::Tensor new_count, at::Tensor on_cut) {
+                         const at::Tensor& crossed, at::Tensor recheck, at::Tensor group, at::Tensor new_count,
+                         at::Tensor on_cut) {
   const int64_t nn = element_nodes(elements);
   const at::ScalarType index_type = index_type_of(elements, "elements");
   TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
@@ -104,6 +105,8 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
               "tensormass: face_elements must be [F, 2]");
   check_index_tensor(face_elements, "face_elements", elements, index_type, face_elements.sizes(), "elements");
   check_flags(parted, "parted", elements, face_elements.size(0), "elements");
+  check_flags(crossed, "crossed", elements, face_elements.size(0), "elements");
+  check_flags(recheck, "recheck", elements, face_elements.size(0), "elements");
   check_index_tensor(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
   check_index_tensor(new_count, "new_count", elements, at::kInt, {num_nodes}, "elements");
   check_index_tensor(on_cut, "on_cut", elements, at::kByte, {num_nodes}, "elements");
@@ -118,6 +121,8 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
       mark.face_elements = face_elements.data_ptr<I>();
       mark.alive = alive.data_ptr<bool>();
       mark.parted = parted.data_ptr<bool>();
+      mark.crossed = crossed.data_ptr<bool>();
+      mark.recheck = recheck.data_ptr<bool>();
       mark.on_cut = on_cut.data_ptr<uint8_t>();
       L::run(face_elements.size(0), mark, L::kNodeBlock);
       SplitStarsKernel<NN, I> k;

@@ -156,19 +156,26 @@ struct CrossFacesKernel {
   }
 };
 
-// A face an item: a parted face whose two elements are alive and still share it marks its n - 1
-// shared nodes (on_cut, zeroed by the caller). Several faces may mark one node: each writes the same
-// 1, so the result does not depend on their order.
+// A face an item: a parted face that this blade crossed (or that recheck names) whose two elements
+// are alive and still share it marks its n - 1 shared nodes (on_cut, zeroed by the caller). Several
+// faces may mark one node: each writes the same 1, so the result does not depend on their order.
+// Only these nodes can split: a node's elements are joined through its faces that are not parted,
+// and only a face crossed now became parted since the last cut (recheck: the parted faces a cut
+// before this table did not examine, each cleared once read).
 template <int NN, typename I>
 struct MarkCutNodesKernel {
   const I* elements;       // [N, NN]
   const I* face_elements;  // [F, 2]
   const bool* alive;       // [N]
   const bool* parted;      // [F]
+  const bool* crossed;     // [F]
+  bool* recheck;           // [F]
   uint8_t* on_cut;         // [V]
 
   TM_HD void operator()(int64_t f) const {
-    if (!parted[f]) return;
+    const bool again = recheck[f];
+    if (again) recheck[f] = false;
+    if (!parted[f] || !(crossed[f] || again)) return;
     const I e1 = face_elements[2 * f], e2 = face_elements[2 * f + 1];
     if (!alive[e1] || !alive[e2]) return;
     const I* a = elements + static_cast<int64_t>(e1) * NN;

@@ -113,16 +113,19 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   m.def("cutting_cross_faces(Tensor x, Tensor elements, Tensor face_elements, Tensor alive, Tensor blade_vertices, "
         "Tensor blade_triangles, Tensor(a!) parted, Tensor(b!) crossed) -> ()");
   // cutting_split_stars(elements [N, n], node_slots [S, V], alive [N] bool, element_faces [N, n],
-  //                     face_elements [F, 2], parted [F] bool, group! [S, V] int32,
-  //                     new_count! [V] int32, on_cut! [V] uint8) -> ()
+  //                     face_elements [F, 2], parted [F] bool, crossed [F] bool, recheck! [F] bool,
+  //                     group! [S, V] int32, new_count! [V] int32, on_cut! [V] uint8) -> ()
   //   node_slots: each node's elements (ids into elements), -1 past the last, S <= 64. For each
-  //   node held by a parted face that is still shared: its alive elements grouped through the
+  //   node held by a parted face that is still shared and that this blade crossed or recheck
+  //   names (recheck: the parted faces no cut examined yet, cleared on return; the nodes of
+  //   other parted faces cannot split: their stars did not change): its alive elements grouped through the
   //   faces holding it that are joined (shared, not parted, both alive), the groups ranked by
   //   their smallest element id; group[s, i] = rank * n + the node's local index in its s-th
   //   element (-1 for a removed element and past the last), new_count[i] = groups - 1 (on_cut[i]
   //   = 1). Every other node: new_count 0, on_cut 0, group -1.
   m.def("cutting_split_stars(Tensor elements, Tensor node_slots, Tensor alive, Tensor element_faces, "
-        "Tensor face_elements, Tensor parted, Tensor(a!) group, Tensor(b!) new_count, Tensor(c!) on_cut) -> ()");
+        "Tensor face_elements, Tensor parted, Tensor crossed, Tensor(d!) recheck, Tensor(a!) group, "
+        "Tensor(b!) new_count, Tensor(c!) on_cut) -> ()");
   // cutting_repoint_stars(node_slots [S, V], group [S, V] int32, new_count [V] int32,
   //                       offset [V] int64, limits [2] int64, elements! [N, n], parents! [P] int64)
   //     -> ()

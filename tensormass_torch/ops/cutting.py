@@ -362,8 +362,8 @@ def _ref_cutting_cross_faces(x, elements, face_elements, alive, blade_vertices, 
     parted |= hit
 
 
-def _ref_cutting_split_stars(elements, node_slots, alive, element_faces, face_elements, parted, group, new_count,
-                             on_cut):
+def _ref_cutting_split_stars(elements, node_slots, alive, element_faces, face_elements, parted, crossed, recheck,
+                             group, new_count, on_cut):
     num_slots, num_nodes = node_slots.shape
     n = elements.shape[1]
     device = elements.device
@@ -385,7 +385,9 @@ def _ref_cutting_split_stars(elements, node_slots, alive, element_faces, face_el
             & shared)
     cut = link & parted[faces.clamp(min=0)]
     joined = link & ~cut
-    marked = cut.any(-1).any(0)  # [V]
+    examined = (crossed | recheck)[faces.clamp(min=0)]
+    marked = (cut & examined).any(-1).any(0)  # [V]
+    recheck.zero_()
     big = torch.iinfo(torch.int64).max
     labels = torch.where(member, element, torch.full_like(element, big))
     s_idx, v_idx, _ = torch.nonzero(joined, as_tuple=True)
@@ -531,7 +533,10 @@ def cut_on_device(x: torch.Tensor, elements: torch.Tensor, node_slots: torch.Ten
     new nodes fit; ``parents [P]`` int64: each new node's parent written there. ``scratch``: a
     dict that keeps the passes' buffers between calls (made on the first; ``offset``, the new
     nodes' numbering, is left there for ``cutting_move_lists``, and ``ends [V + 1]``: 0, then the
-    inclusive prefix sum of the new nodes, for ``cutting_count_new_nodes``).
+    inclusive prefix sum of the new nodes, for ``cutting_count_new_nodes``). The first call with a
+    scratch examines the nodes of every parted face; later ones only those of the faces their blade
+    crosses (no other node's star changed). A cut that did not fit leaves its faces parted but its
+    nodes unsplit: cut again with a new scratch.
 
     Returns ``(crossed [F] bool, total [] int64)``: the faces this blade crossed, and how many
     nodes the cut adds (made only where they fit: total <= limits[1]; else nothing changes but
@@ -545,11 +550,14 @@ def cut_on_device(x: torch.Tensor, elements: torch.Tensor, node_slots: torch.Ten
         scratch["crossed"] = torch.empty(parted.shape, dtype=torch.bool, device=x.device)
         scratch["ends"] = torch.zeros(node_slots.shape[1] + 1, dtype=torch.int64, device=x.device)
         scratch["offset"] = scratch["ends"][:-1]
+    if scratch.get("recheck") is None:  # the first cut examines the nodes of every parted face
+        scratch["recheck"] = parted.clone()
     group, new_count, crossed = scratch["group"], scratch["new_count"], scratch["crossed"]
     library.op_or_reference(CROSS_FACES, x.device, native)(x, elements, face_elements, alive, blade_vertices,
                                                              blade_triangles, parted, crossed)
-    library.op_or_reference(SPLIT_STARS, x.device, native)(elements, node_slots, alive, element_faces,
-                                                           face_elements, parted, group, new_count, scratch["on_cut"])
+    library.op_or_reference(SPLIT_STARS, x.device, native)(elements, node_slots, alive, element_faces, face_elements,
+                                                           parted, crossed, scratch["recheck"], group, new_count,
+                                                           scratch["on_cut"])
     ends = scratch["ends"]  # 0, then the inclusive prefix sum: offset is its first V entries
     torch.cumsum(new_count, 0, dtype=torch.int64, out=ends[1:])
     library.op_or_reference(REPOINT_STARS, x.device, native)(node_slots, group, new_count, scratch["offset"], limits,
@@ -573,6 +581,7 @@ def _device_example(name: str):
         alive[-1] = False
         first, second, _ = mesh_cutting.interior_faces(mesh.elements)
         face_elements, element_faces, parted = face_table(elements, torch.stack([first, second], 1)[:1])
+        slit = parted.clone()
         x = torch.cat([mesh.vertices, mesh.vertices[:1].expand(spare, 3)]).to(device=device, dtype=dtype)
         blade = mesh_cutting.Blade.swept((0.51, -1, -1), (0.51, 0.2, -1), (0.51, -1, 2), (0.51, 0.2, 2))
         blade_vertices, blade_triangles = blade.vertices.to(x), blade.triangles.to(device)
@@ -585,10 +594,12 @@ def _device_example(name: str):
         group = torch.zeros(node_slots.shape, dtype=torch.int32, device=device)
         new_count = torch.zeros(nodes, dtype=torch.int32, device=device)
         on_cut = torch.zeros(nodes, dtype=torch.uint8, device=device)
+        recheck = slit.clone()  # the earlier slit: its nodes examined again
         if name == "cutting_split_stars":
-            return (elements, node_slots, alive, element_faces, face_elements, parted, group, new_count, on_cut), {}
-        _ref_cutting_split_stars(elements, node_slots, alive, element_faces, face_elements, parted, group, new_count,
-                                 on_cut)
+            return (elements, node_slots, alive, element_faces, face_elements, parted, crossed, recheck, group,
+                    new_count, on_cut), {}
+        _ref_cutting_split_stars(elements, node_slots, alive, element_faces, face_elements, parted, crossed, recheck,
+                                 group, new_count, on_cut)
         offset = torch.cumsum(new_count.long(), 0) - new_count.long()
         limits = torch.tensor([mesh.num_vertices, spare], dtype=torch.int64, device=device)
         parents = torch.arange(nodes, dtype=torch.int64, device=device)

@@ -97,7 +97,8 @@ class DeviceCuts:
         self.touched = torch.zeros(num_nodes, dtype=torch.uint8, device=device)
         self.blade_vertices = torch.zeros(4, 3, dtype=model.rest.dtype, device=device)
         self.blade_triangles = torch.tensor(STRIP_TRIANGLES, device=device)
-        self.scratch: dict = {}
+        # the first cut also examines the nodes of the faces parted before (the slit)
+        self.scratch: dict = {"recheck": self.faces[2].clone()}
         self.copy_rows = library.op_or_reference(ops_cutting.COPY_ROWS, device)
         self.alive = (~model.removed).contiguous()
         # the state the cut reads and writes the new nodes' rows into, then the step starts from
@@ -132,11 +133,16 @@ class DeviceCuts:
         if cuda and self.sim.options.cuda_graphs:
             if self.captured is None:
                 graph = torch.cuda.CUDAGraph()
+                # the warm-up examines no slit: it splits nothing (the first cut, replayed, does)
+                recheck = self.scratch["recheck"]
+                held = recheck.clone()
+                recheck.zero_()
                 stream = torch.cuda.Stream(self.device)
                 stream.wait_stream(torch.cuda.current_stream(self.device))
                 with torch.cuda.stream(stream):  # warm-up before capture, as torch asks: not a cut
                     self._passes(warm_up=True)
                 torch.cuda.current_stream(self.device).wait_stream(stream)
+                recheck.copy_(held)
                 with torch.cuda.graph(graph):
                     self._passes()
                 self.captured = graph
