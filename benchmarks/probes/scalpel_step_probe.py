@@ -4,16 +4,19 @@ into the scalpel's cut, the step and the settling of the cut (and the median and
 the rebuilds with room a cut that did not fit made), the GPU time of the device cut's
 replayed graph, and (``--profile``) the host functions that take the most time.
 
-    python benchmarks/probes/scalpel_step_probe.py [--steps 60] [--warm 40] [--span 200] [--profile] [--kernels]
+    python benchmarks/probes/scalpel_step_probe.py [--steps 60] [--warm 40] [--span 200] [--trials 3] [--profile] [--kernels]
 
 The scalpel's edge (along z) goes up from y = 6.1 (inside the beam) to y = 11 over ``--span``
 steps at the beam's middle; ``--warm`` steps are untimed (the rebuild with spare rows, the device
-cut's tables and capture), then ``--steps`` are timed, synchronised at the end.
+cut's tables and capture), then ``--steps`` are timed, synchronised at the end. The host cut runs
+once; then ``--trials`` times an uncut simulator and one cutting on the device, alternately (the
+host's speed drifts between runs: each ratio is of neighbouring runs).
 """
 import argparse
 import cProfile
 import io
 import pstats
+import statistics
 import time
 
 import torch
@@ -47,6 +50,7 @@ def add_scalpel(sim, span):
 def split_host_time(sim, steps):
     """Host seconds a step in the scalpel's cut, the step itself and the settling (wrapped methods)."""
     spent = {"cut": 0.0, "advance": 0.0, "settle": 0.0}
+    calls = {key: [] for key in spent}  # each call's seconds
     originals = {}
 
     def wrap(name, key):
@@ -59,6 +63,7 @@ def split_host_time(sim, steps):
                 return original(*args, **kwargs)
             finally:
                 spent[key] += time.perf_counter() - start
+                calls[key].append(time.perf_counter() - start)
         setattr(sim, name, timed_call)
 
     wrap("_apply_scalpels", "cut")
@@ -85,9 +90,12 @@ def split_host_time(sim, steps):
     gaps = sorted(in_order)
     split = {key: value / steps for key, value in spent.items()}
     split.update(median=gaps[len(gaps) // 2], slowest=gaps[-1])
-    slow = [f"{k}: {1e3 * t:.1f} ms" for k, t in enumerate(in_order) if t > 4 * split["median"]]
+    slow = [f"{k}: {1e3 * t:.1f} ms (cut {1e3 * calls['cut'][k]:.1f}, step {1e3 * calls['advance'][k]:.1f})"
+            for k, t in enumerate(in_order) if t > 4 * split["median"]]
     if slow:
         print("  steps over 4x the median (index in the timed steps):", ", ".join(slow))
+    print(f"  pipelined CG still on: {sim.options.pipelined}; CG statuses of the last step: "
+          f"{sim.last_report.cg[0].converged.tolist() if sim.last_report.cg else None} converged")
     return total, split, rebuilds[0]
 
 
@@ -103,53 +111,64 @@ def replay_gpu_us(cuts, repeats=50):
     return 1e3 * start.elapsed_time(end) / repeats
 
 
+def scalpel_run(on_device, args, last):
+    """One simulator cutting with the scalpel: its steps/s over the timed steps (printed with the
+    host's split); ``last``: also the graph's GPU time, the kernels and the profile asked for."""
+    sim = beam(on_device)
+    sim.step(3)
+    add_scalpel(sim, args.span)
+    nodes = sim.used_nodes[0]
+    timed_steps(sim, args.warm)
+    total, split, rebuilds = split_host_time(sim, args.steps)
+    where = "device" if sim.device_cuts_active else "host"
+    parts = ", ".join(f"{key} {1e6 * value:.0f} us" for key, value in split.items())
+    print(f"scalpel cut on the {where}: {args.steps / total:.1f} steps/s ({1e6 * total / args.steps:.0f} us a "
+          f"step; host: {parts}); {sim.used_nodes[0] - nodes} nodes added over {args.warm + args.steps} steps; "
+          f"{rebuilds} rebuilds with room in the timed steps")
+    if last and on_device and sim.device_cuts_active:
+        cuts = sim._device_cuts
+        if cuts.captured is not None:
+            print(f"  the device cut's graph, replayed alone: {replay_gpu_us(cuts):.1f} us of GPU time")
+        if args.kernels:  # the device cut's passes once more, eagerly, kernel by kernel
+            from torch.profiler import ProfilerActivity, profile
+            with profile(activities=[ProfilerActivity.CUDA]) as prof:
+                cuts._passes()
+                torch.cuda.synchronize()
+            print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14, max_name_column_width=60))
+        if args.profile:
+            profiler = cProfile.Profile()
+            profiler.enable()
+            timed_steps(sim, args.steps)
+            profiler.disable()
+            text = io.StringIO()
+            pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(25)
+            print(text.getvalue())
+    return args.steps / total
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--warm", type=int, default=40)
     parser.add_argument("--span", type=int, default=200)
+    parser.add_argument("--trials", type=int, default=3, help="uncut and cut on the device, alternately")
     parser.add_argument("--profile", action="store_true")
     parser.add_argument("--kernels", action="store_true", help="the device cut's kernels (torch.profiler)")
     args = parser.parse_args()
 
-    sim = beam(False)
-    sim.step(3)
-    uncut = timed_steps(sim, args.steps)
-    print(f"uncut: {args.steps / uncut:.1f} steps/s, one sim.step() a step "
-          f"({1e6 * uncut / args.steps:.0f} us a step)")
-    for on_device in (False, True):
-        sim = beam(on_device)
+    scalpel_run(False, args, last=False)  # the host cut, once
+    uncut_rates, cut_rates = [], []
+    for trial in range(args.trials):
+        sim = beam(False)
         sim.step(3)
-        add_scalpel(sim, args.span)
-        nodes = sim.used_nodes[0]
-        timed_steps(sim, args.warm)
-        total, split, rebuilds = split_host_time(sim, args.steps)
-        where = "device" if sim.device_cuts_active else "host"
-        parts = ", ".join(f"{key} {1e6 * value:.0f} us" for key, value in split.items())
-        print(f"scalpel cut on the {where}: {args.steps / total:.1f} steps/s ({1e6 * total / args.steps:.0f} us a "
-              f"step; host: {parts}); {sim.used_nodes[0] - nodes} nodes added over {args.warm + args.steps} steps; "
-              f"{rebuilds} rebuilds with room in the timed steps")
-        if on_device and sim.device_cuts_active:
-            cuts = sim._device_cuts
-            if cuts.captured is not None:
-                print(f"  the device cut's graph, replayed alone: {replay_gpu_us(cuts):.1f} us of GPU time")
-            if args.kernels:  # the device cut's passes once more, eagerly, kernel by kernel
-                from torch.profiler import ProfilerActivity, profile
-                with profile(activities=[ProfilerActivity.CUDA]) as prof:
-                    cuts._passes()
-                    torch.cuda.synchronize()
-                print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14, max_name_column_width=60))
-            if args.profile:
-                profiler = cProfile.Profile()
-                profiler.enable()
-                timed_steps(sim, args.steps)
-                profiler.disable()
-                text = io.StringIO()
-                pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(30)
-                print(text.getvalue())
-    sim = beam(False)
-    sim.step(3)
-    print(f"uncut again: {args.steps / timed_steps(sim, args.steps):.1f} steps/s")
+        uncut = timed_steps(sim, args.steps)
+        uncut_rates.append(args.steps / uncut)
+        print(f"uncut: {uncut_rates[-1]:.1f} steps/s, one sim.step() a step ({1e6 * uncut / args.steps:.0f} us a step)")
+        cut_rates.append(scalpel_run(True, args, last=trial == args.trials - 1))
+    ratios = ", ".join(f"{c / u:.2f}" for c, u in zip(cut_rates, uncut_rates))
+    print(f"cut on the device against uncut, trial by trial: {ratios}; medians: "
+          f"{statistics.median(cut_rates):.1f} / {statistics.median(uncut_rates):.1f} = "
+          f"{statistics.median(cut_rates) / statistics.median(uncut_rates):.2f}")
 
 
 if __name__ == "__main__":

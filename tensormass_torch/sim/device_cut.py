@@ -111,10 +111,12 @@ class DeviceCuts:
         # and its copy on the host: several cuts queued before one step add up
         self.outcome = torch.zeros(2, dtype=torch.int64, device=device)
         self.report = torch.zeros(2, dtype=torch.int64, pin_memory=pinned)
+        self.report_array = self.report.numpy()
         self.used = used  # the rows in use at the last settle
         # the strip's corners on their way to the device (the graph's first copy reads them; written
         # once the cut before has read them)
         self.staging = torch.zeros(4, 3, dtype=model.rest.dtype, pin_memory=pinned)
+        self.staging_array = self.staging.numpy()  # (written through numpy: cheaper than a torch copy)
         self.reported = torch.cuda.Event() if pinned else None
         self.added = 0  # nodes the settled cuts added
 
@@ -127,7 +129,7 @@ class DeviceCuts:
         cuda = self.device.type == "cuda"
         if self.pending and self.reported is not None:
             self.reported.synchronize()  # (a cut queued before this one may not have read the staging buffer yet)
-        self.staging.copy_(corners)
+        self.staging_array[...] = corners.detach().cpu().numpy()
         self.positions.copy_(self.sim.x)
         self.velocities.copy_(self.sim.v)
         if cuda and self.sim.options.cuda_graphs:
@@ -193,7 +195,7 @@ class DeviceCuts:
         if self.reported is not None:
             self.reported.synchronize()
         self.pending = 0
-        used, status = int(self.report[0]), int(self.report[1])
+        used, status = (int(value) for value in self.report_array)  # (numpy: no torch call on the host)
         added, self.used = used - self.used, used
         self.added += added
         return added, status == 0

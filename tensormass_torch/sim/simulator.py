@@ -410,14 +410,16 @@ class Simulator:
         self.system.free.masked_fill_(isolated[:, None], 0.0)
 
     def _body_index(self, body) -> int:
-        """The index of ``body``: an index, a ``Body`` of this simulator or a body's name."""
+        """The index of ``body``: an index, a ``Body`` of this simulator or a body's name. (Reads
+        the bodies as they are, not as cuts on the device left their meshes: a name or a ``Body``
+        does not change with a cut, and a scalpel looks its body up before every step.)"""
         if isinstance(body, Body):
-            for i, b in enumerate(self.bodies):
+            for i, b in enumerate(self._bodies):
                 if b is body:
                     return i
             raise SceneError("this Body is not one of the simulator's bodies")
         if isinstance(body, str):
-            names = [b.name for b in self.bodies]
+            names = [b.name for b in self._bodies]
             if names.count(body) != 1:
                 raise SceneError(f"no body named {body!r}" if body not in names else f"two bodies are named {body!r}")
             return names.index(body)
@@ -533,7 +535,7 @@ class Simulator:
         return inversion
 
     def _names(self):
-        return [b.name for b in self.bodies]
+        return [b.name for b in self._bodies]
 
     def _warn_new_inversions(self, inversion: InversionReport):
         """Warn when an object that had no inverted element has some now (once per episode, not

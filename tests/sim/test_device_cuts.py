@@ -66,6 +66,17 @@ def test_a_scalpel_cut_on_the_device_steps_as_the_same_cut_on_the_host():
     assert torch.equal(device_sim.mesh(0).elements.cpu(), host_sim.mesh(0).elements.cpu())
 
 
+def test_a_scalpel_that_names_its_body_does_not_read_the_meshes_back_each_step():
+    sim = beam()
+    sim.add_scalpel(scalpel(20))  # (its body given by name: "beam")
+    sim.step(12)
+    assert sim._device_cuts.added > 0 and sim._views_stale  # the mesh is read back only when asked for
+    before = sim.used_nodes[0]
+    sim.step()
+    assert sim._views_stale and sim.used_nodes[0] >= before
+    assert sim.bodies[0].mesh.num_vertices == sim.used_nodes[0] and not sim._views_stale
+
+
 def test_a_partial_cut_leaves_a_slit_that_the_next_strips_part():
     knife = scalpel(30, top=0.35, bottom=0.1)  # stops inside the beam: a slit along its front
     device_sim, host_sim = run_both(34, knife)
