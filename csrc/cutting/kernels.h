@@ -237,31 +237,49 @@ struct SplitStarsKernel {
       parent[count] = count;
       ++count;
     }
-    // joins through the faces holding i (those opposite another local node) that are not parted
+    // the star's slots by element id (insertion sort: lists are kept in id order, so it is about
+    // one pass), for a binary search of each face's other element
+    int order[kMaxStar];
+    for (int j = 0; j < count; ++j) {
+      int p = j;
+      while (p > 0 && star[order[p - 1]] > star[j]) {
+        order[p] = order[p - 1];
+        --p;
+      }
+      order[p] = j;
+    }
+    // joins through the faces holding i (those opposite another local node) that are not parted,
+    // each face once (from its element of smaller id: the same face, the same test from both)
     for (int j = 0; j < count; ++j) {
       if (local[j] >= NN) continue;
       const I e = star[j];
       for (int k = 0; k < NN; ++k) {
         if (k == local[j]) continue;
         const I f = element_faces[static_cast<int64_t>(e) * NN + k];
-        if (f < 0) continue;
+        if (f < 0 || parted[f]) continue;
         const I other = face_elements[2 * static_cast<int64_t>(f)] == e ? face_elements[2 * static_cast<int64_t>(f) + 1]
                                                                          : face_elements[2 * static_cast<int64_t>(f)];
-        int m = -1;
-        for (int l = 0; l < count; ++l) {
-          if (star[l] == other && local[l] < NN) m = l;
+        if (other < e) continue;
+        int lo = 0, hi = count;
+        while (lo < hi) {
+          const int mid = (lo + hi) / 2;
+          if (star[order[mid]] < other) {
+            lo = mid + 1;
+          } else {
+            hi = mid;
+          }
         }
-        if (m < 0) continue;  // removed, or no longer holding i: the face is not shared
+        const int m = lo < count && star[order[lo]] == other ? order[lo] : -1;
+        if (m < 0 || local[m] >= NN) continue;  // removed, or no longer holding i: the face is not shared
         if (!share_face<NN, I>(elements + static_cast<int64_t>(e) * NN, elements + static_cast<int64_t>(other) * NN)) {
           continue;
         }
-        if (!parted[f]) {
-          const int a = root(parent, j), b = root(parent, m);
-          if (a != b) parent[a < b ? b : a] = a < b ? a : b;
-        }
+        const int a = root(parent, j), b = root(parent, m);
+        if (a != b) parent[a < b ? b : a] = a < b ? a : b;
       }
     }
-    // the groups ranked by their smallest element id: least[r] for each root r
+    // the groups ranked by their smallest element id: least[r] for each root r, then those ids in
+    // order (a group's rank is its place there)
     I least[kMaxStar];
     for (int j = 0; j < count; ++j) least[j] = -1;
     for (int j = 0; j < count; ++j) {
@@ -269,14 +287,23 @@ struct SplitStarsKernel {
       const int r = root(parent, j);
       if (least[r] < 0 || star[j] < least[r]) least[r] = star[j];
     }
+    I ranked[kMaxStar];
     int groups = 0;
-    for (int j = 0; j < count; ++j) groups += least[j] >= 0 ? 1 : 0;
+    for (int j = 0; j < count; ++j) {
+      if (least[j] < 0) continue;
+      int p = groups++;
+      while (p > 0 && ranked[p - 1] > least[j]) {
+        ranked[p] = ranked[p - 1];
+        --p;
+      }
+      ranked[p] = least[j];
+    }
     for (int j = 0; j < count; ++j) {
       int32_t out = -1;
       if (local[j] < NN) {
-        int rank = 0;
         const I mine = least[root(parent, j)];
-        for (int r = 0; r < count; ++r) rank += least[r] >= 0 && least[r] < mine ? 1 : 0;
+        int rank = 0;
+        while (ranked[rank] != mine) ++rank;
         out = rank * NN + local[j];
       }
       group[static_cast<int64_t>(j) * num_nodes + i] = out;
