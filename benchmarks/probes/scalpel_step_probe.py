@@ -76,14 +76,25 @@ def split_host_time(sim, steps):
         rebuilds[0] += 1
         return rebuild(*args, **kwargs)
     sim._rebuild_from_device = counted
-    each = []
+    each, used = [], []
+    cuts = sim._device_cuts
+    replays = ReplayTimes(cuts) if cuts is not None and cuts.captured is not None else None
     torch.cuda.synchronize()
     start = time.perf_counter()
     for _ in range(steps):
         sim.step()
         each.append(time.perf_counter())
+        used.append(sim.used_nodes[0])
     torch.cuda.synchronize()
     total = time.perf_counter() - start
+    if replays is not None:  # the cut graph's GPU time, in steps that split nodes and in the others
+        gpu = replays.close()
+        splitting = [b > a for a, b in zip([used[0]] + used[:-1], used)][:len(gpu)]
+        for label, pick in (("splitting", True), ("not splitting", False)):
+            times = [t for t, split_now in zip(gpu, splitting) if split_now == pick]
+            if times:
+                print(f"  the cut graph's GPU time in {len(times)} steps {label}: median "
+                      f"{1e3 * statistics.median(times):.1f} us, most {1e3 * max(times):.1f} us")
     for name in list(originals) + ["_rebuild_from_device"]:
         delattr(sim, name)
     in_order = [b - a for a, b in zip([start] + each[:-1], each)]
@@ -97,6 +108,26 @@ def split_host_time(sim, steps):
     print(f"  pipelined CG still on: {sim.options.pipelined}; CG statuses of the last step: "
           f"{sim.last_report.cg[0].converged.tolist() if sim.last_report.cg else None} converged")
     return total, split, rebuilds[0]
+
+
+class ReplayTimes:
+    """CUDA events around each replay of a device cut's graph (``close()``: their milliseconds)."""
+
+    def __init__(self, cuts):
+        self.cuts, self.graph, self.events = cuts, cuts.captured, []
+        cuts.captured = self
+
+    def replay(self):
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        self.graph.replay()
+        end.record()
+        self.events.append((start, end))
+
+    def close(self):
+        self.cuts.captured = self.graph
+        torch.cuda.synchronize()
+        return [a.elapsed_time(b) for a, b in self.events]
 
 
 def replay_gpu_us(cuts, repeats=50):
