@@ -160,12 +160,19 @@ def scalpel_run(on_device, args, last):
         cuts = sim._device_cuts
         if cuts.captured is not None:
             print(f"  the device cut's graph, replayed alone: {replay_gpu_us(cuts):.1f} us of GPU time")
-        if args.kernels:  # the device cut's passes once more, eagerly, kernel by kernel
+        if args.kernels:  # the device cut's passes, eagerly, kernel by kernel: again, then a strip further
             from torch.profiler import ProfilerActivity, profile
-            with profile(activities=[ProfilerActivity.CUDA]) as prof:
-                cuts._passes()
-                torch.cuda.synchronize()
-            print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=14, max_name_column_width=60))
+            dt = sim.options.dt
+            further = sim.scalpels[0].strip(sim.time + dt, sim.time + 3 * dt)
+            for label, corners in (("the last strip again", None), ("the strip two steps further", further)):
+                if corners is not None:
+                    cuts.staging_array[...] = corners.numpy()
+                before = cuts.limits[0].item()
+                with profile(activities=[ProfilerActivity.CUDA]) as prof:
+                    cuts._passes()
+                    torch.cuda.synchronize()
+                print(f"{label}: {cuts.limits[0].item() - before} nodes added")
+                print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=10, max_name_column_width=60))
         if args.profile:
             profiler = cProfile.Profile()
             profiler.enable()

@@ -47,6 +47,8 @@ namespace cutting {
 // The most elements a node's star may hold (node_slots' rows): the union-find runs in registers /
 // local memory of one thread.
 constexpr int kMaxStar = 64;
+// the size of a star's table of its elements (SplitStarsKernel): a power of two, twice kMaxStar
+constexpr int kStarTable = 128;
 
 // The segment test's vector steps, on local arrays (element_math.h's cross3 and dot3).
 template <typename S>
@@ -237,45 +239,51 @@ struct SplitStarsKernel {
       parent[count] = count;
       ++count;
     }
-    // the star's slots by element id (insertion sort: lists are kept in id order, so it is about
-    // one pass), for a binary search of each face's other element
-    int order[kMaxStar];
+    // where each element of the star sits in it: an open-addressing table keyed by element id (ids
+    // of one star are near each other, so id mod kStarTable rarely collides), slot + 1, 0 = empty
+    uint8_t slot_of[kStarTable];
+    for (int h = 0; h < kStarTable; ++h) slot_of[h] = 0;
     for (int j = 0; j < count; ++j) {
-      int p = j;
-      while (p > 0 && star[order[p - 1]] > star[j]) {
-        order[p] = order[p - 1];
-        --p;
-      }
-      order[p] = j;
+      int h = static_cast<int>(static_cast<int64_t>(star[j]) & (kStarTable - 1));
+      while (slot_of[h] != 0) h = (h + 1) & (kStarTable - 1);
+      slot_of[h] = static_cast<uint8_t>(j + 1);
     }
     // joins through the faces holding i (those opposite another local node) that are not parted,
-    // each face once (from its element of smaller id: the same face, the same test from both)
+    // each face once (from its element of smaller id: the same face, the same test from both). A
+    // thread's time here is the latency of its loads: each element's faces, then their elements
+    // and flags, are loaded together (n at a time, then 3 n)
     for (int j = 0; j < count; ++j) {
       if (local[j] >= NN) continue;
       const I e = star[j];
+      I faces[NN], others[NN];
+      bool open[NN];
+      for (int k = 0; k < NN; ++k) faces[k] = element_faces[static_cast<int64_t>(e) * NN + k];
       for (int k = 0; k < NN; ++k) {
-        if (k == local[j]) continue;
-        const I f = element_faces[static_cast<int64_t>(e) * NN + k];
-        if (f < 0 || parted[f]) continue;
-        const I other = face_elements[2 * static_cast<int64_t>(f)] == e ? face_elements[2 * static_cast<int64_t>(f) + 1]
-                                                                         : face_elements[2 * static_cast<int64_t>(f)];
-        if (other < e) continue;
-        int lo = 0, hi = count;
-        while (lo < hi) {
-          const int mid = (lo + hi) / 2;
-          if (star[order[mid]] < other) {
-            lo = mid + 1;
-          } else {
-            hi = mid;
+        const I f = faces[k];
+        open[k] = false;
+        others[k] = -1;
+        if (f < 0 || k == local[j]) continue;
+        const I a = face_elements[2 * static_cast<int64_t>(f)], b = face_elements[2 * static_cast<int64_t>(f) + 1];
+        open[k] = !parted[f];
+        others[k] = a == e ? b : a;
+      }
+      for (int k = 0; k < NN; ++k) {
+        const I other = others[k];
+        if (!open[k] || other < e) continue;
+        int h = static_cast<int>(static_cast<int64_t>(other) & (kStarTable - 1)), m = -1;
+        while (slot_of[h] != 0) {
+          if (star[slot_of[h] - 1] == other) {
+            m = slot_of[h] - 1;
+            break;
           }
+          h = (h + 1) & (kStarTable - 1);
         }
-        const int m = lo < count && star[order[lo]] == other ? order[lo] : -1;
         if (m < 0 || local[m] >= NN) continue;  // removed, or no longer holding i: the face is not shared
         if (!share_face<NN, I>(elements + static_cast<int64_t>(e) * NN, elements + static_cast<int64_t>(other) * NN)) {
           continue;
         }
-        const int a = root(parent, j), b = root(parent, m);
-        if (a != b) parent[a < b ? b : a] = a < b ? a : b;
+        const int ra = root(parent, j), rb = root(parent, m);
+        if (ra != rb) parent[ra < rb ? rb : ra] = ra < rb ? ra : rb;
       }
     }
     // the groups ranked by their smallest element id: least[r] for each root r, then those ids in
