@@ -163,8 +163,9 @@ def scalpel_run(on_device, args, last):
         if args.kernels:  # the device cut's passes, eagerly, kernel by kernel: again, then a strip further
             from torch.profiler import ProfilerActivity, profile
             dt = sim.options.dt
-            further = sim.scalpels[0].strip(sim.time + dt, sim.time + 3 * dt)
-            for label, corners in (("the last strip again", None), ("the strip two steps further", further)):
+            scalpel = sim.scalpels[0]
+            further = scalpel.strip(sim.time - dt, float(scalpel.times[-1]))
+            for label, corners in (("the last strip again", None), ("the rest of the scalpel's path at once", further)):
                 if corners is not None:
                     cuts.staging_array[...] = corners.numpy()
                 before = cuts.limits[0].item()
