@@ -40,6 +40,7 @@
 #include <cstdint>
 
 #include "common/element_math.h"
+#include "common/star.h"
 
 namespace tensormass {
 namespace cutting {
@@ -47,8 +48,7 @@ namespace cutting {
 // The most elements a node's star may hold (node_slots' rows): the union-find runs in registers /
 // local memory of one thread.
 constexpr int kMaxStar = 64;
-// the size of a star's table of its elements (SplitStarsKernel): a power of two, twice kMaxStar
-constexpr int kStarTable = 128;
+static_assert(kMaxStar < kIdTable, "a star's elements must fit an IdTable");
 
 // The segment test's vector steps, on local arrays (element_math.h's cross3 and dot3).
 template <typename S>
@@ -230,24 +230,16 @@ struct SplitStarsKernel {
     }
     I star[kMaxStar];
     int local[kMaxStar], parent[kMaxStar];
-    int count = 0;
-    for (int64_t s = 0; s < num_slots; ++s) {
-      const I e = node_slots[s * num_nodes + i];
-      if (e < 0) break;
-      star[count] = e;
-      local[count] = alive[e] ? local_of(e, i) : NN;  // NN: takes no part (removed)
-      parent[count] = count;
-      ++count;
-    }
-    // where each element of the star sits in it: an open-addressing table keyed by element id (ids
-    // of one star are near each other, so id mod kStarTable rarely collides), slot + 1, 0 = empty
-    uint8_t slot_of[kStarTable];
-    for (int h = 0; h < kStarTable; ++h) slot_of[h] = 0;
+    const int count = load_star(node_slots, num_slots, num_nodes, i, star);
+    bool living[kMaxStar];
+    for (int j = 0; j < count; ++j) living[j] = alive[star[j]];
     for (int j = 0; j < count; ++j) {
-      int h = static_cast<int>(static_cast<int64_t>(star[j]) & (kStarTable - 1));
-      while (slot_of[h] != 0) h = (h + 1) & (kStarTable - 1);
-      slot_of[h] = static_cast<uint8_t>(j + 1);
+      local[j] = living[j] ? local_of(star[j], i) : NN;  // NN: takes no part (removed)
+      parent[j] = j;
     }
+    IdTable slot_of;  // where each element of the star sits in it
+    slot_of.clear();
+    for (int j = 0; j < count; ++j) slot_of.add(star[j], j);
     // joins through the faces holding i (those opposite another local node) that are not parted,
     // each face once (from its element of smaller id: the same face, the same test from both). A
     // thread's time here is the latency of its loads: each element's faces, then their elements
@@ -270,14 +262,7 @@ struct SplitStarsKernel {
       for (int k = 0; k < NN; ++k) {
         const I other = others[k];
         if (!open[k] || other < e) continue;
-        int h = static_cast<int>(static_cast<int64_t>(other) & (kStarTable - 1)), m = -1;
-        while (slot_of[h] != 0) {
-          if (star[slot_of[h] - 1] == other) {
-            m = slot_of[h] - 1;
-            break;
-          }
-          h = (h + 1) & (kStarTable - 1);
-        }
+        const int m = slot_of.find(star, other);
         if (m < 0 || local[m] >= NN) continue;  // removed, or no longer holding i: the face is not shared
         if (!share_face<NN, I>(elements + static_cast<int64_t>(e) * NN, elements + static_cast<int64_t>(other) * NN)) {
           continue;

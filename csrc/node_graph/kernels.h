@@ -10,6 +10,7 @@
 #include "common/element_math.h"
 #include "common/kernel_io.h"
 #include "common/node_graph.h"
+#include "common/star.h"
 #include "common/step_rhs.h"
 #include "common/stress_args.h"
 
@@ -260,6 +261,7 @@ struct WriteEdgesKernel {
 // The most neighbours a row rebuilt by RebuildRowNeighborsKernel may hold (its list runs in the
 // thread's local memory).
 constexpr int kMaxRebuiltSlots = 64;
+static_assert(kMaxRebuiltSlots < kIdTable, "a rebuilt row's neighbours must fit an IdTable");
 
 // The row of a touched node of a hooke tensor-form group's node graph, rebuilt after its elements
 // changed (a cut on the device, cutting/kernels.h), in two passes so that no thread carries a row of
@@ -308,25 +310,34 @@ struct RebuildRowNeighborsKernel {
   TM_HD void operator()(int64_t p) const {
     if (!touched[p]) return;
     I others[kMaxRebuiltSlots];
+    IdTable known;  // where each neighbour sits in others
+    known.clear();
     int count = 0;
-    for (int64_t s = 0; s < num_slots; ++s) {
-      const I e = node_slots[s * num_nodes + p];
-      if (e < 0) break;
-      if (!alive[e]) continue;
-      I idx[NN];
-      int unused;
-      if (element_locals<NN, I>(elements, e, p, -1, idx, unused) < 0) continue;
-      for (int b = 0; b < NN; ++b) {
-        if (static_cast<int64_t>(idx[b]) == p) continue;
-        bool known = false;
-        for (int t = 0; t < count; ++t) known = known || others[t] == idx[b];
-        if (known) continue;
-        if (count >= kMaxRebuiltSlots || count >= max_slots) {
-          status[0] = 1;
-          return;
+    // the node's elements eight at a time, each eight's ids then flags loaded together (a thread's
+    // time here is the latency of its loads)
+    for (int64_t s0 = 0; s0 < num_slots; s0 += 8) {
+      I batch[8];
+      bool living[8];
+      for (int k = 0; k < 8; ++k) batch[k] = s0 + k < num_slots ? node_slots[(s0 + k) * num_nodes + p] : I(-1);
+      for (int k = 0; k < 8; ++k) living[k] = batch[k] >= 0 && alive[batch[k]];
+      for (int k = 0; k < 8; ++k) {
+        const I e = batch[k];
+        if (e < 0) break;
+        if (!living[k]) continue;
+        I idx[NN];
+        int unused;
+        if (element_locals<NN, I>(elements, e, p, -1, idx, unused) < 0) continue;
+        for (int b = 0; b < NN; ++b) {
+          if (static_cast<int64_t>(idx[b]) == p || known.find(others, idx[b]) >= 0) continue;
+          if (count >= kMaxRebuiltSlots || count >= max_slots) {
+            status[0] = 1;
+            return;
+          }
+          known.add(idx[b], count);
+          others[count++] = idx[b];
         }
-        others[count++] = idx[b];
       }
+      if (batch[7] < 0) break;
     }
     const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
     for (int t = 0; t < count; ++t) neighbor[t * num_nodes + row] = others[t];
