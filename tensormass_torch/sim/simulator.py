@@ -647,7 +647,12 @@ class Simulator:
                     continue
             # One step on its own: the path that raises, retries in sub-steps and checks
             # inversions (after a chained step failed, it runs that step again and fails the same).
-            x, v, report, inversion = self._advance()
+            try:
+                x, v, report, inversion = self._advance()
+            except SolverError:
+                if self._device_cuts is not None:  # the state stays the cut's; not its buffers
+                    self._replace_state(self.x.clone(), self.v.clone())
+                raise
             if self._device_cuts is not None and self._device_cuts.pending and not self._settle_device_cuts():
                 x, v, report, inversion = self._advance()  # built again with room: the step again
             self._commit(x, v, 1, report, inversion)

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.errors import SceneError
+from tensormass_torch.errors import SceneError, SolverError
 from tensormass_torch.ops import library
 from tensormass_torch.sim.device_cut import DeviceCuts
 from tensormass_torch.sim.scene_file import load_scene
@@ -123,6 +123,26 @@ def test_it_cuts_on_the_host_where_it_cannot_serve_the_simulator():
 def test_the_warm_start_of_the_steps_is_kept_across_cuts_on_the_device():
     device_sim, host_sim = run_both(16, scalpel(12), warm_start="extrapolate")
     assert device_sim._device_cuts.added > 0 and device_sim._solutions_before()
+
+
+def test_a_failed_step_after_a_cut_on_the_device_leaves_the_cut_state_in_tensors_of_its_own(monkeypatch):
+    sim = beam()
+    sim.add_scalpel(scalpel(20))
+    sim.step(12)
+    cuts = sim._device_cuts
+    assert cuts is not None and cuts.added > 0
+
+    def failing():
+        raise SolverError("a failed solve", ["breakdown"])
+    monkeypatch.setattr(sim, "_advance", failing)
+    with pytest.raises(SolverError):
+        sim.step()
+    assert sim.x is not cuts.positions and sim.v is not cuts.velocities
+    assert torch.equal(sim.x, cuts.positions) and torch.equal(sim.v, cuts.velocities)  # the cut, made
+    monkeypatch.undo()
+    held, kept = sim.x, sim.x.clone()
+    sim.step()  # cuts again: what the user held after the failure does not change
+    assert torch.equal(held, kept) and sim.x is not cuts.positions
 
 
 def test_cut_on_device_must_be_a_bool():
