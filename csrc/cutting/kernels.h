@@ -445,16 +445,8 @@ struct CheckChunksKernel {
   int32_t* status;             // [1]
 
   TM_HD void operator()(int64_t c) const {
-    const int64_t end = chunk_start[c + 1];
-    int64_t i = chunk_start[c], slots = 0;
-    // eight independent loads at a time: one thread sums a whole chunk, so its time is the loads'
-    // latency, not their bandwidth
-    for (; i + 8 <= end; i += 8) {
-      int64_t eight = 0;
-      for (int k = 0; k < 8; ++k) eight += incidences[i + k];
-      slots += eight;
-    }
-    for (; i < end; ++i) slots += incidences[i];
+    int64_t slots = 0;
+    for (int64_t i = chunk_start[c]; i < chunk_start[c + 1]; ++i) slots += incidences[i];
     if (slots > chunk_slots) status[0] = 1;
   }
 };

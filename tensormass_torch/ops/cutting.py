@@ -60,7 +60,7 @@ from .. import _backend
 from ..errors import CapacityError, MeshError
 from ..mesh import cutting as mesh_cutting
 from ..mesh.topology import sum_slots_in_order
-from . import library, topology
+from . import library, solve, topology
 from .library import OpDef
 
 __all__ = ["cut_mesh", "near_elements", "edit_cut_tables", "face_table", "cut_on_device", "ELEMENT_RESULTS",
@@ -476,9 +476,9 @@ def _count_new_nodes_example(device, dtype):
 
 
 def _ref_cutting_close_cut(rows, incidences, chunk_start, chunk_slots, limits, status, outcome):
-    prefix = torch.cat([incidences.new_zeros(1, dtype=torch.int64), torch.cumsum(incidences.long(), 0)])
-    over = ((prefix[chunk_start[1:]] - prefix[chunk_start[:-1]]) > chunk_slots).any()
-    status.copy_(torch.where(over, torch.ones_like(status), status))
+    if chunk_start.numel() > 1:  # (no chunk: nothing to check)
+        over = solve.most_chunk_slots(incidences, chunk_start) > chunk_slots
+        status.copy_(torch.where(over, torch.ones_like(status), status))
     limits.copy_(torch.stack([limits[0] + rows[1], limits[1] - rows[1]]))
     outcome.copy_(torch.cat([limits[:1], status.long()]))
 
