@@ -26,6 +26,12 @@ inline int64_t element_nodes(const at::Tensor& elements) {
   return elements.size(1);
 }
 
+// The passes over a node's star hold it in one thread's memory: at most kMaxStar slots.
+inline void check_star_slots(const at::Tensor& node_slots) {
+  TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
+              " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
+}
+
 template <class F>
 void dispatch_element_nodes(int64_t nn, F&& f) {
   if (nn == 4) {
@@ -84,8 +90,9 @@ void cutting_cross_faces(const at::Tensor& x, const at::Tensor& elements, const 
   });
 }
 
-// cutting_split_stars: see schema.cpp. Two launches: the nodes of parted faces marked, then their
-// stars split (every other node only writes new_count = 0).
+// cutting_split_stars: see schema.cpp. Three launches: the nodes of parted faces marked, the joins
+// of their stars' elements found, then their stars split (every other node only writes -1s and
+// new_count = 0).
 template <class L>
 void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slots, const at::Tensor& alive,
                          const at::Tensor& element_faces, const at::Tensor& face_elements, const at::Tensor& parted,
@@ -96,8 +103,7 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
   TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
   TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
   check_index_tensor(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
-  TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
-              " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
+  check_star_slots(node_slots);
   const int64_t num_nodes = node_slots.size(1);
   check_flags(alive, "alive", elements, elements.size(0), "elements");
   check_index_tensor(element_faces, "element_faces", elements, index_type, elements.sizes(), "elements");
@@ -125,15 +131,22 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
       mark.recheck = recheck.data_ptr<bool>();
       mark.on_cut = on_cut.data_ptr<uint8_t>();
       L::run(face_elements.size(0), mark, L::kNodeBlock);
+      StarJoinsKernel<NN, I> joins;
+      joins.elements = elements.data_ptr<I>();
+      joins.node_slots = node_slots.data_ptr<I>();
+      joins.num_slots = node_slots.size(0);
+      joins.num_nodes = num_nodes;
+      joins.alive = alive.data_ptr<bool>();
+      joins.element_faces = element_faces.data_ptr<I>();
+      joins.face_elements = face_elements.data_ptr<I>();
+      joins.parted = parted.data_ptr<bool>();
+      joins.on_cut = on_cut.data_ptr<uint8_t>();
+      joins.group = group.data_ptr<int32_t>();
+      L::run(node_slots.numel(), joins, L::kNodeBlock);
       SplitStarsKernel<NN, I> k;
-      k.elements = elements.data_ptr<I>();
       k.node_slots = node_slots.data_ptr<I>();
       k.num_slots = node_slots.size(0);
       k.num_nodes = num_nodes;
-      k.alive = alive.data_ptr<bool>();
-      k.element_faces = element_faces.data_ptr<I>();
-      k.face_elements = face_elements.data_ptr<I>();
-      k.parted = parted.data_ptr<bool>();
       k.on_cut = on_cut.data_ptr<uint8_t>();
       k.group = group.data_ptr<int32_t>();
       k.new_count = new_count.data_ptr<int32_t>();
@@ -152,6 +165,7 @@ void cutting_repoint_stars(const at::Tensor& node_slots, const at::Tensor& group
   TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
   TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
   check_index_tensor(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
+  check_star_slots(node_slots);
   const int64_t num_nodes = node_slots.size(1);
   TORCH_CHECK(num_nodes >= 1, "tensormass: node_slots must have at least one node");
   check_index_tensor(group, "group", elements, at::kInt, node_slots.sizes(), "elements");
@@ -192,8 +206,7 @@ void cutting_move_lists(const at::Tensor& elements, const at::Tensor& group, con
   TORCH_CHECK(elements.is_contiguous(), "tensormass: elements must be contiguous (call .contiguous())");
   TORCH_CHECK(node_slots.defined() && node_slots.dim() == 2, "tensormass: node_slots must be [S, V]");
   check_index_tensor(node_slots, "node_slots", elements, index_type, node_slots.sizes(), "elements");
-  TORCH_CHECK(node_slots.size(0) <= kMaxStar, "tensormass: node_slots has ", std::to_string(node_slots.size(0)),
-              " slots; a node may hold at most ", std::to_string(kMaxStar), " elements for the cut on the device");
+  check_star_slots(node_slots);
   const int64_t num_nodes = node_slots.size(1);
   TORCH_CHECK(num_nodes >= 1, "tensormass: node_slots must have at least one node");
   check_index_tensor(group, "group", elements, at::kInt, node_slots.sizes(), "elements");

@@ -21,18 +21,20 @@
 //    two centroids crosses a blade triangle (the reference's Moller-Trumbore, with its box test);
 //    parted |= crossed.
 // 2. MarkCutNodesKernel, a face an item, marks the nodes of the parted faces that are still
-//    shared; then SplitStarsKernel, a node an item: if the node is marked, its alive elements are
-//    grouped through the joined faces holding it (union-find over the star, at most kMaxStar
-//    elements), the groups ranked by their smallest element id (the rank-0
-//    group keeps the node), and each star slot gets group = rank * n + the node's local index
-//    (-1: an element removed, and every slot of a node not marked); new_count = groups - 1.
+//    shared; StarJoinsKernel, a (slot, node) an item, finds for each element of a marked node's
+//    star the joined faces holding the node and the slots of the elements across them; then
+//    SplitStarsKernel, a node an item: a marked node's alive elements are grouped through those
+//    joins (union-find over the star, at most kMaxStar elements), the groups ranked by their
+//    smallest element id (the rank-0 group keeps the node), and each star slot gets
+//    group = rank * n + the node's local index (-1: an element removed, and every slot of a node
+//    not marked); new_count = groups - 1.
 // 3. The caller numbers the new nodes: offset = exclusive prefix sum of new_count (a node's copies
 //    are numbered consecutively, nodes in order: the reference's (node, group) order).
 // 4. RepointStarsKernel, a node an item: elements of rank r >= 1 get node first_new + offset + r - 1,
 //    and parents of those new nodes = the node; nothing is written where the copies do not fit
 //    (total > room).
 // Each item writes only its own entries (a face its flags, or a 1 into its nodes' marks, the same
-// value whichever face writes it; a node its column of group, its count,
+// value whichever face writes it; a (slot, node) its entry of group; a node its column of group, its count,
 // its new nodes' parents, and in each of its elements the column that holds it), so the results do
 // not depend on the order of items: deterministic, no atomics.
 #pragma once
@@ -191,8 +193,18 @@ struct MarkCutNodesKernel {
   }
 };
 
+// SplitStarsKernel's first pass, a (slot s, node i) an item (item = s V + i), for the nodes
+// MarkCutNodesKernel marked: the joins of the s-th element e of i's star through the faces holding
+// i, packed into group[s, i] (the second pass reads and overwrites them):
+//   bits 0-2           e's local index of i, or NN where e is removed or does not hold i;
+//   bits 3 + 7k .. +6  for the face opposite e's local node k: 1 + the slot of the element across it
+//                      in i's star where the face is joined and that element's id is above e's (each
+//                      face once, from its element of smaller id), 0 otherwise.
+// (3 + 7 NN <= 31 bits: non-negative in an int32.) Every other item writes -1. So a thread follows
+// one element's few loads, and the star's elements are examined side by side rather than one after
+// another in one thread (the latency of those loads was the cut's largest cost).
 template <int NN, typename I>
-struct SplitStarsKernel {
+struct StarJoinsKernel {
   const I* elements;       // [N, NN]
   const I* node_slots;     // [num_slots, V]
   int64_t num_slots;
@@ -203,15 +215,91 @@ struct SplitStarsKernel {
   const bool* parted;      // [F]
   const uint8_t* on_cut;   // [V] MarkCutNodesKernel's
   int32_t* group;          // [num_slots, V]
-  int32_t* new_count;      // [V]
 
-  // The local index of node i in element e (NN if it does not hold it).
-  TM_HD int local_of(I e, int64_t i) const {
-    for (int a = 0; a < NN; ++a) {
-      if (static_cast<int64_t>(elements[static_cast<int64_t>(e) * NN + a]) == i) return a;
+  static constexpr int kField = 7;
+  static_assert(3 + kField * NN <= 31, "the packed joins must fit a non-negative int32");
+  static_assert(kMaxStar < (1 << kField), "a slot + 1 must fit a field");
+
+  TM_HD int32_t joins(int64_t i, I e) const {
+    I row[NN], faces[NN];
+    TM_UNROLL for (int a = 0; a < NN; ++a) {
+      row[a] = elements[static_cast<int64_t>(e) * NN + a];
+      faces[a] = element_faces[static_cast<int64_t>(e) * NN + a];
     }
-    return NN;
+    const bool living = alive[e];
+    int local = NN;
+    TM_UNROLL for (int a = 0; a < NN; ++a) local = static_cast<int64_t>(row[a]) == i ? a : local;
+    if (!living || local == NN) return NN;
+    // the faces holding i (opposite another local node), not parted, to an element of larger id
+    I others[NN];
+    TM_UNROLL for (int k = 0; k < NN; ++k) {
+      const I f = faces[k];
+      others[k] = -1;
+      if (f < 0 || k == local) continue;
+      const I a = face_elements[2 * static_cast<int64_t>(f)], b = face_elements[2 * static_cast<int64_t>(f) + 1];
+      const I other = a == e ? b : a;
+      if (!parted[f] && other > e) others[k] = other;
+    }
+    // still shared: the element across holds the same NN - 1 nodes (rows loaded together)
+    I across[NN][NN];
+    TM_UNROLL for (int k = 0; k < NN; ++k) {
+      TM_UNROLL for (int a = 0; a < NN; ++a) {
+        across[k][a] = others[k] >= 0 ? elements[static_cast<int64_t>(others[k]) * NN + a] : I(-1);
+      }
+    }
+    TM_UNROLL for (int k = 0; k < NN; ++k) {
+      if (others[k] >= 0 && !share_face<NN, I>(row, across[k])) others[k] = -1;
+    }
+    // their slots in i's star (an element not there does not hold i: the face is not shared)
+    int slot[NN];
+    int wanted = 0;
+    TM_UNROLL for (int k = 0; k < NN; ++k) {
+      slot[k] = -1;
+      wanted += others[k] >= 0 ? 1 : 0;
+    }
+    for (int64_t s0 = 0; wanted > 0 && s0 < num_slots; s0 += 8) {
+      I eight[8];
+      TM_UNROLL for (int k = 0; k < 8; ++k) eight[k] = s0 + k < num_slots ? node_slots[(s0 + k) * num_nodes + i] : I(-1);
+      TM_UNROLL for (int k = 0; k < 8; ++k) {
+        TM_UNROLL for (int c = 0; c < NN; ++c) {
+          if (others[c] >= 0 && slot[c] < 0 && eight[k] == others[c]) {
+            slot[c] = static_cast<int>(s0 + k);
+            --wanted;
+          }
+        }
+      }
+      if (eight[7] < 0) break;
+    }
+    int32_t packed = local;
+    TM_UNROLL for (int k = 0; k < NN; ++k) {
+      if (slot[k] >= 0) packed |= static_cast<int32_t>(slot[k] + 1) << (3 + kField * k);
+    }
+    return packed;
   }
+
+  TM_HD void operator()(int64_t item) const {
+    const int64_t i = item % num_nodes;
+    int32_t out = -1;
+    if (on_cut[i]) {
+      const I e = node_slots[item];
+      if (e >= 0) out = joins(i, e);
+    }
+    group[item] = out;
+  }
+};
+
+// SplitStarsKernel, a node an item, after StarJoinsKernel: a marked node's alive elements grouped
+// through the joins its column of group holds (union-find over the star), the groups ranked by
+// their smallest element id, each slot's group written over its joins; new_count = groups - 1
+// (0 for every other node, whose column StarJoinsKernel left -1).
+template <int NN, typename I>
+struct SplitStarsKernel {
+  const I* node_slots;     // [num_slots, V]
+  int64_t num_slots;
+  int64_t num_nodes;       // V
+  const uint8_t* on_cut;   // [V] MarkCutNodesKernel's
+  int32_t* group;          // [num_slots, V]: StarJoinsKernel's joins in, the groups out
+  int32_t* new_count;      // [V]
 
   TM_HD static int root(int* parent, int j) {
     while (parent[j] != j) {
@@ -222,51 +310,24 @@ struct SplitStarsKernel {
   }
 
   TM_HD void operator()(int64_t i) const {
-    // a node no parted face holds keeps its elements: only a cut's few nodes go on
     if (!on_cut[i]) {
-      for (int64_t s = 0; s < num_slots; ++s) group[s * num_nodes + i] = -1;
       new_count[i] = 0;
       return;
     }
     I star[kMaxStar];
-    int local[kMaxStar], parent[kMaxStar];
+    int32_t packed[kMaxStar];
     const int count = load_star(node_slots, num_slots, num_nodes, i, star);
-    bool living[kMaxStar];
-    for (int j = 0; j < count; ++j) living[j] = alive[star[j]];
+    load_column(group, num_slots, num_nodes, i, packed);
+    int local[kMaxStar], parent[kMaxStar];
     for (int j = 0; j < count; ++j) {
-      local[j] = living[j] ? local_of(star[j], i) : NN;  // NN: takes no part (removed)
+      local[j] = packed[j] & 7;  // NN: takes no part (removed)
       parent[j] = j;
     }
-    IdTable slot_of;  // where each element of the star sits in it
-    slot_of.clear();
-    for (int j = 0; j < count; ++j) slot_of.add(star[j], j);
-    // joins through the faces holding i (those opposite another local node) that are not parted,
-    // each face once (from its element of smaller id: the same face, the same test from both). A
-    // thread's time here is the latency of its loads: each element's faces, then their elements
-    // and flags, are loaded together (n at a time, then 3 n)
     for (int j = 0; j < count; ++j) {
       if (local[j] >= NN) continue;
-      const I e = star[j];
-      I faces[NN], others[NN];
-      bool open[NN];
-      for (int k = 0; k < NN; ++k) faces[k] = element_faces[static_cast<int64_t>(e) * NN + k];
-      for (int k = 0; k < NN; ++k) {
-        const I f = faces[k];
-        open[k] = false;
-        others[k] = -1;
-        if (f < 0 || k == local[j]) continue;
-        const I a = face_elements[2 * static_cast<int64_t>(f)], b = face_elements[2 * static_cast<int64_t>(f) + 1];
-        open[k] = !parted[f];
-        others[k] = a == e ? b : a;
-      }
-      for (int k = 0; k < NN; ++k) {
-        const I other = others[k];
-        if (!open[k] || other < e) continue;
-        const int m = slot_of.find(star, other);
-        if (m < 0 || local[m] >= NN) continue;  // removed, or no longer holding i: the face is not shared
-        if (!share_face<NN, I>(elements + static_cast<int64_t>(e) * NN, elements + static_cast<int64_t>(other) * NN)) {
-          continue;
-        }
+      TM_UNROLL for (int k = 0; k < NN; ++k) {
+        const int m = ((packed[j] >> (3 + StarJoinsKernel<NN, I>::kField * k)) & ((1 << StarJoinsKernel<NN, I>::kField) - 1)) - 1;
+        if (m < 0 || m >= count || local[m] >= NN) continue;  // no join, or across to a removed element
         const int ra = root(parent, j), rb = root(parent, m);
         if (ra != rb) parent[ra < rb ? rb : ra] = ra < rb ? ra : rb;
       }
@@ -301,7 +362,6 @@ struct SplitStarsKernel {
       }
       group[static_cast<int64_t>(j) * num_nodes + i] = out;
     }
-    for (int64_t s = count; s < num_slots; ++s) group[s * num_nodes + i] = -1;
     new_count[i] = groups - 1 > 0 ? groups - 1 : 0;
   }
 };
@@ -325,12 +385,14 @@ struct RepointStarsKernel {
     const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);
     if (total > limits[1] || limits[0] + total > num_parents) return;  // no room: the cut is not made
     const int64_t base = limits[0] + offset[i];
-    for (int64_t s = 0; s < num_slots; ++s) {
-      const int32_t g = group[s * num_nodes + i];
-      const I e = node_slots[s * num_nodes + i];
-      if (e < 0) break;
+    I star[kMaxStar];
+    int32_t groups[kMaxStar];
+    const int count = load_star(node_slots, num_slots, num_nodes, i, star);
+    load_column(group, num_slots, num_nodes, i, groups);
+    for (int j = 0; j < count; ++j) {
+      const int32_t g = groups[j];
       if (g < NN) continue;  // removed (-1), or rank 0: keeps the node
-      elements[static_cast<int64_t>(e) * NN + g % NN] = static_cast<I>(base + g / NN - 1);
+      elements[static_cast<int64_t>(star[j]) * NN + g % NN] = static_cast<I>(base + g / NN - 1);
     }
     for (int32_t r = 0; r < copies; ++r) parents[base + r] = i;
   }
@@ -367,35 +429,49 @@ struct MoveListsKernel {
     const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);
     if (total > limits[1] || limits[0] + total > num_parents) return;
     const int64_t base = limits[0] + offset[i];
+    // the star eight elements at a time (ids, flags, rows, groups and mass shares loaded together)
     I star[kMaxStar];
     int32_t rank[kMaxStar];
+    bool living[kMaxStar];
+    S share[kMaxStar];
     int count = 0;
-    for (int64_t s = 0; s < num_slots; ++s) {
-      const I e = node_slots[s * num_nodes + i];
-      if (e < 0) break;
-      const int32_t g = group[s * num_nodes + i];
-      star[count] = e;
-      rank[count] = g < 0 ? 0 : g / NN;
-      ++count;
-      for (int a = 0; a < NN; ++a) touched[static_cast<int64_t>(elements[static_cast<int64_t>(e) * NN + a])] = 1;
+    for (int64_t s0 = 0; s0 < num_slots; s0 += 8) {
+      EightElements<NN, I> eight;
+      eight.load(node_slots, num_slots, num_nodes, i, s0, alive, elements);
+      int32_t groups[8];
+      S shares[8];
+      TM_UNROLL for (int k = 0; k < 8; ++k) {
+        groups[k] = s0 + k < num_slots ? group[(s0 + k) * num_nodes + i] : -1;
+        shares[k] = eight.ids[k] >= 0 ? element_share[eight.ids[k]] : S(0);
+      }
+      for (int k = 0; k < 8; ++k) {
+        if (eight.ids[k] < 0) break;
+        star[count] = eight.ids[k];
+        rank[count] = groups[k] < 0 ? 0 : groups[k] / NN;
+        living[count] = eight.living[k];
+        share[count] = shares[k];
+        ++count;
+        TM_UNROLL for (int a = 0; a < NN; ++a) touched[static_cast<int64_t>(eight.rows[k][a])] = 1;
+      }
+      if (eight.last()) break;
     }
     for (int32_t r = 0; r <= copies; ++r) {
       const int64_t node = r == 0 ? i : base + r - 1;
       int64_t slot = 0;
       S sum = S(0);
-      int32_t living = 0;
+      int32_t alive_here = 0;
       for (int j = 0; j < count; ++j) {
         if (rank[j] != r) continue;
         node_slots[slot * num_nodes + node] = star[j];
         ++slot;
-        if (alive[star[j]]) {
-          sum += element_share[star[j]];
-          ++living;
+        if (living[j]) {
+          sum += share[j];
+          ++alive_here;
         }
       }
       for (; slot < num_slots; ++slot) node_slots[slot * num_nodes + node] = I(-1);
       mass[node] = sum;
-      node_elements[node] = living;
+      node_elements[node] = alive_here;
     }
   }
 };

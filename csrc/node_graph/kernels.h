@@ -279,20 +279,6 @@ static_assert(kMaxRebuiltSlots < kIdTable, "a rebuilt row's neighbours must fit 
 //     (p, q) of a build of these elements sums (the same terms in the same element order) and its
 //     orientation the row's.
 // Each item writes only its own row or slot: deterministic, no atomics.
-// Element e's node ids into idx; returns the local index of node p in it (-1 where it has none)
-// and, through other, that of node q (-1 where none; q < 0: not looked for).
-template <int NN, typename I>
-TM_HD int element_locals(const I* elements, I e, int64_t p, int64_t q, I (&idx)[NN], int& other) {
-  int mine = -1;
-  other = -1;
-  TM_UNROLL for (int a = 0; a < NN; ++a) {
-    idx[a] = elements[static_cast<int64_t>(e) * NN + a];
-    if (static_cast<int64_t>(idx[a]) == p) mine = a;
-    if (static_cast<int64_t>(idx[a]) == q) other = a;
-  }
-  return mine;
-}
-
 template <int NN, typename I>
 struct RebuildRowNeighborsKernel {
   const I* elements;         // [N, NN]
@@ -313,31 +299,24 @@ struct RebuildRowNeighborsKernel {
     IdTable known;  // where each neighbour sits in others
     known.clear();
     int count = 0;
-    // the node's elements eight at a time, each eight's ids then flags loaded together (a thread's
-    // time here is the latency of its loads)
+    // the node's elements eight at a time (a thread's time here is the latency of its loads)
     for (int64_t s0 = 0; s0 < num_slots; s0 += 8) {
-      I batch[8];
-      bool living[8];
-      for (int k = 0; k < 8; ++k) batch[k] = s0 + k < num_slots ? node_slots[(s0 + k) * num_nodes + p] : I(-1);
-      for (int k = 0; k < 8; ++k) living[k] = batch[k] >= 0 && alive[batch[k]];
-      for (int k = 0; k < 8; ++k) {
-        const I e = batch[k];
-        if (e < 0) break;
-        if (!living[k]) continue;
-        I idx[NN];
-        int unused;
-        if (element_locals<NN, I>(elements, e, p, -1, idx, unused) < 0) continue;
+      EightElements<NN, I> eight;
+      eight.load(node_slots, num_slots, num_nodes, p, s0, alive, elements);
+      TM_UNROLL for (int k = 0; k < 8; ++k) {  // (unrolled: eight stays in registers)
+        if (eight.ids[k] < 0 || !eight.living[k] || eight.local_of(k, p) < 0) continue;
         for (int b = 0; b < NN; ++b) {
-          if (static_cast<int64_t>(idx[b]) == p || known.find(others, idx[b]) >= 0) continue;
+          const I node = eight.rows[k][b];
+          if (static_cast<int64_t>(node) == p || known.find(others, node) >= 0) continue;
           if (count >= kMaxRebuiltSlots || count >= max_slots) {
             status[0] = 1;
             return;
           }
-          known.add(idx[b], count);
-          others[count++] = idx[b];
+          known.add(node, count);
+          others[count++] = node;
         }
       }
-      if (batch[7] < 0) break;
+      if (eight.last()) break;
     }
     const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
     for (int t = 0; t < count; ++t) neighbor[t * num_nodes + row] = others[t];
@@ -371,23 +350,26 @@ struct RebuildRowBlocksKernel {
     TM_UNROLL for (int x = 0; x < D; ++x) {
       TM_UNROLL for (int y = 0; y < D; ++y) block[x][y] = S(0);
     }
-    for (int64_t s = 0; s < num_slots; ++s) {
-      const I e = node_slots[s * num_nodes + p];
-      if (e < 0) break;
-      if (!alive[e]) continue;
-      I idx[NN];
-      int other;
-      const int mine = element_locals<NN, I>(elements, e, p, static_cast<int64_t>(q), idx, other);
-      if (mine < 0 || other < 0) continue;
-      const int lo = mine < other ? mine : other, hi = mine < other ? other : mine;
-      const int pair = lo * (2 * NN - lo - 1) / 2 + (hi - lo - 1);
-      const S* k = pair_k + (static_cast<int64_t>(e) * P + pair) * (D * D);
-      // k runs from local lo to local hi; the edge stores it from the lower global node to the
-      // higher, and the row of p holds it from p
-      const bool transpose = (idx[lo] < idx[hi]) != (static_cast<int64_t>(q) > p);
-      TM_UNROLL for (int x = 0; x < D; ++x) {
-        TM_UNROLL for (int y = 0; y < D; ++y) block[x][y] += transpose ? k[y * D + x] : k[x * D + y];
+    // the node's elements eight at a time, then the pair tensors of those holding q (a thread's
+    // time here is the latency of its loads)
+    for (int64_t s0 = 0; s0 < num_slots; s0 += 8) {
+      EightElements<NN, I> eight;
+      eight.load(node_slots, num_slots, num_nodes, p, s0, alive, elements);
+      TM_UNROLL for (int k = 0; k < 8; ++k) {  // (unrolled: eight stays in registers)
+        if (eight.ids[k] < 0 || !eight.living[k]) continue;
+        const int mine = eight.local_of(k, p), other = eight.local_of(k, static_cast<int64_t>(q));
+        if (mine < 0 || other < 0) continue;
+        const int lo = mine < other ? mine : other, hi = mine < other ? other : mine;
+        const int pair = lo * (2 * NN - lo - 1) / 2 + (hi - lo - 1);
+        const S* k_pair = pair_k + (static_cast<int64_t>(eight.ids[k]) * P + pair) * (D * D);
+        // k_pair runs from local lo to local hi and the row of p holds it from p (the orientation
+        // of the edge, from its lower global node, cancels out of both)
+        const bool transpose = mine > other;
+        TM_UNROLL for (int x = 0; x < D; ++x) {
+          TM_UNROLL for (int y = 0; y < D; ++y) block[x][y] += transpose ? k_pair[y * D + x] : k_pair[x * D + y];
+        }
       }
+      if (eight.last()) break;
     }
     S* out = node_k + (t * num_nodes + row) * (D * D);
     TM_UNROLL for (int x = 0; x < D; ++x) {
