@@ -90,6 +90,16 @@ struct EightElements {
   TM_HD bool last() const { return ids[7] < 0; }
 };
 
+// The place of the lowest set bit of a non-zero mask (a star's elements as the bits of a 64-bit
+// word: kMaxStar <= 64).
+TM_HD int lowest_bit(uint64_t mask) {
+#if defined(__CUDA_ARCH__)
+  return __ffsll(static_cast<long long>(mask)) - 1;
+#else
+  return __builtin_ctzll(mask);
+#endif
+}
+
 // Where each id of a list sits in it: open addressing over kIdTable entries of place + 1 (0: empty),
 // at most kIdTable - 1 ids. Ids of one star or one row are near each other, so id mod kIdTable
 // rarely collides.

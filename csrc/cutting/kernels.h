@@ -289,11 +289,13 @@ struct StarJoinsKernel {
 };
 
 // SplitStarsKernel, a node an item, after StarJoinsKernel: a marked node's alive elements grouped
-// through the joins its column of group holds (union-find over the star), the groups ranked by
-// their smallest element id, each slot's group written over its joins; new_count = groups - 1
-// (0 for every other node, whose column StarJoinsKernel left -1).
+// through the joins its column of group holds (the star's elements as the bits of a 64-bit word:
+// each element's joined ones as a mask, each group flooded from its first element), the groups
+// ranked by their smallest element id, each slot's group written over its joins;
+// new_count = groups - 1 (0 for every other node, whose column StarJoinsKernel left -1).
 template <int NN, typename I>
 struct SplitStarsKernel {
+  static_assert(kMaxStar <= 64, "a star's elements are the bits of a 64-bit word");
   const I* node_slots;     // [num_slots, V]
   int64_t num_slots;
   int64_t num_nodes;       // V
@@ -301,66 +303,60 @@ struct SplitStarsKernel {
   int32_t* group;          // [num_slots, V]: StarJoinsKernel's joins in, the groups out
   int32_t* new_count;      // [V]
 
-  TM_HD static int root(int* parent, int j) {
-    while (parent[j] != j) {
-      parent[j] = parent[parent[j]];
-      j = parent[j];
-    }
-    return j;
-  }
-
   TM_HD void operator()(int64_t i) const {
     if (!on_cut[i]) {
       new_count[i] = 0;
       return;
     }
+    using Joins = StarJoinsKernel<NN, I>;
     I star[kMaxStar];
     int32_t packed[kMaxStar];
     const int count = load_star(node_slots, num_slots, num_nodes, i, star);
     load_column(group, num_slots, num_nodes, i, packed);
-    int local[kMaxStar], parent[kMaxStar];
+    uint64_t living = 0;  // the elements that take part (alive, holding i)
+    for (int j = 0; j < count; ++j) living |= (packed[j] & 7) < NN ? uint64_t(1) << j : uint64_t(0);
+    uint64_t joined[kMaxStar];
+    for (int j = 0; j < count; ++j) joined[j] = 0;
     for (int j = 0; j < count; ++j) {
-      local[j] = packed[j] & 7;  // NN: takes no part (removed)
-      parent[j] = j;
-    }
-    for (int j = 0; j < count; ++j) {
-      if (local[j] >= NN) continue;
+      if (!((living >> j) & 1)) continue;
       TM_UNROLL for (int k = 0; k < NN; ++k) {
-        const int m = ((packed[j] >> (3 + StarJoinsKernel<NN, I>::kField * k)) & ((1 << StarJoinsKernel<NN, I>::kField) - 1)) - 1;
-        if (m < 0 || m >= count || local[m] >= NN) continue;  // no join, or across to a removed element
-        const int ra = root(parent, j), rb = root(parent, m);
-        if (ra != rb) parent[ra < rb ? rb : ra] = ra < rb ? ra : rb;
+        const int m = ((packed[j] >> (3 + Joins::kField * k)) & ((1 << Joins::kField) - 1)) - 1;
+        if (m < 0 || m >= count || !((living >> m) & 1)) continue;  // no join, or to a removed element
+        joined[j] |= uint64_t(1) << m;
+        joined[m] |= uint64_t(1) << j;
       }
     }
-    // the groups ranked by their smallest element id: least[r] for each root r, then those ids in
-    // order (a group's rank is its place there)
+    // the groups, each with its smallest element id, in the order of their first elements
+    uint64_t members[kMaxStar];
     I least[kMaxStar];
-    for (int j = 0; j < count; ++j) least[j] = -1;
-    for (int j = 0; j < count; ++j) {
-      if (local[j] >= NN) continue;
-      const int r = root(parent, j);
-      if (least[r] < 0 || star[j] < least[r]) least[r] = star[j];
-    }
-    I ranked[kMaxStar];
     int groups = 0;
-    for (int j = 0; j < count; ++j) {
-      if (least[j] < 0) continue;
-      int p = groups++;
-      while (p > 0 && ranked[p - 1] > least[j]) {
-        ranked[p] = ranked[p - 1];
-        --p;
+    for (uint64_t left = living; left != 0; ++groups) {
+      const int seed = lowest_bit(left);
+      uint64_t found = uint64_t(1) << seed, frontier = found;
+      I smallest = star[seed];
+      while (frontier != 0) {
+        const int b = lowest_bit(frontier);
+        frontier &= frontier - 1;
+        smallest = star[b] < smallest ? star[b] : smallest;
+        const uint64_t more = joined[b] & ~found;
+        found |= more;
+        frontier |= more;
       }
-      ranked[p] = least[j];
+      left &= ~found;
+      members[groups] = found;
+      least[groups] = smallest;
     }
+    // each group's rank: its place among the smallest ids
     for (int j = 0; j < count; ++j) {
-      int32_t out = -1;
-      if (local[j] < NN) {
-        const I mine = least[root(parent, j)];
-        int rank = 0;
-        while (ranked[rank] != mine) ++rank;
-        out = rank * NN + local[j];
+      if (!((living >> j) & 1)) group[static_cast<int64_t>(j) * num_nodes + i] = -1;
+    }
+    for (int g = 0; g < groups; ++g) {
+      int rank = 0;
+      for (int h = 0; h < groups; ++h) rank += least[h] < least[g] ? 1 : 0;
+      for (uint64_t bits = members[g]; bits != 0; bits &= bits - 1) {
+        const int j = lowest_bit(bits);
+        group[static_cast<int64_t>(j) * num_nodes + i] = rank * NN + (packed[j] & 7);
       }
-      group[static_cast<int64_t>(j) * num_nodes + i] = out;
     }
     new_count[i] = groups - 1 > 0 ? groups - 1 : 0;
   }
