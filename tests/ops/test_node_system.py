@@ -354,6 +354,55 @@ def test_simulator_node_layout_equals_padded_bitwise(monkeypatch, dtype, contact
 # --------------------------------------------------------------------- checks, autograd, opcheck
 
 
+@pytest.mark.parametrize("index_dtype", INDEX_DTYPES, ids=["i64", "i32"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rebuilt_rows_equal_their_reference_on_a_beam_with_removed_elements(seed, index_dtype):
+    """``node_graph_rebuild_hooke_rows`` on a beam of 270 tetrahedra with a fifth of them removed,
+    a third of its rows touched, in windowed row order: neighbours (first met over the alive
+    elements in list order), blocks and counts as its reference's; rows with more neighbours than
+    ``max_slots`` are left as they were and set the status, the others written."""
+    from tensormass_torch.ops.topology import incidence_table
+
+    gen = torch.Generator().manual_seed(seed)
+    mesh = tm.beam_mesh(3, 3, 3, dtype=torch.float64)
+    rest = mesh.vertices + 0.02 * torch.randn(mesh.vertices.shape, generator=gen, dtype=torch.float64)
+    elements = mesh.elements.to(index_dtype).contiguous()
+    num_nodes, num_elements = rest.shape[0], elements.shape[0]
+    node_slots = incidence_table(elements.reshape(-1).long(), torch.arange(
+        num_elements, dtype=index_dtype).repeat_interleave(4), num_nodes)
+    alive = torch.rand(num_elements, generator=gen) > 0.2
+    touched = (torch.rand(num_nodes, generator=gen) < 0.35).to(torch.uint8)
+    row_of = torch.randperm(num_nodes, generator=gen).to(index_dtype)
+    a, b, c, d = (rest[elements[:, k].long()] for k in range(4))
+    volume = torch.linalg.det(torch.stack([b - a, c - a, d - a], 1)).abs() / 6
+    pair_k = node_graph.hooke_pair_tensors(rest, elements, volume, torch.full_like(volume, 3.0),
+                                           torch.full_like(volume, 0.3))
+    slots = 30
+    fits = None  # the rows whose rebuilt neighbours fit max_slots
+    for max_slots in (slots, 9):
+        outputs = []
+        for rebuild in (library.op_or_reference("node_graph_rebuild_hooke_rows", torch.device("cpu")),
+                        node_graph._ref_node_graph_rebuild_hooke_rows):
+            neighbor = torch.full((slots, num_nodes), -7, dtype=index_dtype)
+            node_k = torch.full((slots, num_nodes, 3, 3), 0.5, dtype=torch.float64)
+            incidences = torch.full((num_nodes,), 3, dtype=index_dtype)
+            status = torch.zeros(1, dtype=torch.int32)
+            rebuild(pair_k, elements, node_slots, alive, touched, row_of, max_slots, neighbor, node_k, incidences,
+                    status)
+            outputs.append((neighbor, node_k, incidences, status))
+        (neighbor, node_k, incidences, status), want = outputs
+        assert torch.equal(incidences, want[2]) and torch.equal(status, want[3])
+        assert bool((incidences[row_of[touched.bool()].long()] != 3).any())  # rows were written
+        if fits is None:
+            counts = incidences.clone()
+        fits = (counts <= max_slots) | ~touched.bool()[torch.argsort(row_of.long())]  # by row
+        used = torch.arange(slots)[:, None] < incidences.long()[None, :]  # the slots the rows use
+        assert torch.equal(neighbor[used], want[0][used])
+        used &= fits[None, :]  # (a row that does not fit may have its old slots' blocks written: unused)
+        torch.testing.assert_close(node_k[used], want[1][used], rtol=1e-14, atol=1e-14)
+        assert int(status) == (0 if max_slots == slots else 1) and not bool(fits.all()) == bool(status)
+
+
 def test_input_checks():
     group, p, mass, free, stiffness = make_case(8, "tet", torch.float64)
     neighbor, node_k = node_graph.hooke_node_graph(group)
