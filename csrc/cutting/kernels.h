@@ -214,6 +214,7 @@ struct StarJoinsKernel {
   const bool* parted;      // [F]
   const uint8_t* on_cut;   // [V] MarkCutNodesKernel's
   int32_t* group;          // [num_slots, V]
+  NodeSpread spread;       // which node an item's column is
 
   static constexpr int kField = 7;
   static_assert(3 + kField * NN <= 31, "the packed joins must fit a non-negative int32");
@@ -277,13 +278,13 @@ struct StarJoinsKernel {
   }
 
   TM_HD void operator()(int64_t item) const {
-    const int64_t i = item % num_nodes;
+    const int64_t i = spread.node(item % num_nodes), at = item - item % num_nodes + i;  // (slot, node i)
     int32_t out = -1;
     if (on_cut[i]) {
-      const I e = node_slots[item];
+      const I e = node_slots[at];
       if (e >= 0) out = joins(i, e);
     }
-    group[item] = out;
+    group[at] = out;
   }
 };
 
@@ -301,8 +302,10 @@ struct SplitStarsKernel {
   const uint8_t* on_cut;   // [V] MarkCutNodesKernel's
   int32_t* group;          // [num_slots, V]: StarJoinsKernel's joins in, the groups out
   int32_t* new_count;      // [V]
+  NodeSpread spread;       // which node an item is
 
-  TM_HD void operator()(int64_t i) const {
+  TM_HD void operator()(int64_t item) const {
+    const int64_t i = spread.node(item);
     if (!on_cut[i]) {
       new_count[i] = 0;
       return;
@@ -373,8 +376,10 @@ struct RepointStarsKernel {
   I* elements;               // [N, NN]
   int64_t* parents;          // [P] node ids
   int64_t num_parents;       // P
+  NodeSpread spread;         // which node an item is
 
-  TM_HD void operator()(int64_t i) const {
+  TM_HD void operator()(int64_t item) const {
+    const int64_t i = spread.node(item);
     const int32_t copies = new_count[i];
     if (copies == 0) return;
     const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);
@@ -417,8 +422,10 @@ struct MoveListsKernel {
   S* mass;                   // [V]
   int32_t* node_elements;    // [V]
   uint8_t* touched;          // [V]
+  NodeSpread spread;         // which node an item is
 
-  TM_HD void operator()(int64_t i) const {
+  TM_HD void operator()(int64_t item) const {
+    const int64_t i = spread.node(item);
     const int32_t copies = new_count[i];
     if (copies == 0) return;
     const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);

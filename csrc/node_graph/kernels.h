@@ -291,8 +291,10 @@ struct RebuildRowNeighborsKernel {
   I* neighbor;               // [N_n, V]
   I* incidences;             // [V] by row
   int32_t* status;           // [1]
+  NodeSpread spread;         // which node an item is (common/star.h)
 
-  TM_HD void operator()(int64_t p) const {
+  TM_HD void operator()(int64_t item) const {
+    const int64_t p = spread.node(item);
     if (!touched[p]) return;
     // the node's elements (their rows, and whether each takes part: alive and holding p), read
     // eight at a time (a thread's time here is the latency of its loads)
@@ -361,9 +363,10 @@ struct RebuildRowBlocksKernel {
   const I* neighbor;         // [N_n, V]
   const I* incidences;       // [V] by row
   S* node_k;                 // [N_n, V, D, D]
+  NodeSpread spread;         // which node an item's row is (common/star.h)
 
   TM_HD void operator()(int64_t item) const {
-    const int64_t p = item / graph_slots, t = item % graph_slots;
+    const int64_t p = spread.node(item / graph_slots), t = item % graph_slots;
     if (!touched[p]) return;
     const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
     if (t >= static_cast<int64_t>(incidences[row])) return;

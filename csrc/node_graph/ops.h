@@ -292,6 +292,7 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
         rows.neighbor = neighbor.data_ptr<I>();
         rows.incidences = incidences.data_ptr<I>();
         rows.status = status.data_ptr<int32_t>();
+        rows.spread = NodeSpread::of(num_nodes);
         L::run(num_nodes, rows, L::kNodeBlock);
         RebuildRowBlocksKernel<NN, D, S, I> k;
         k.pair_k = pair_k.data_ptr<S>();
@@ -306,6 +307,7 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
         k.neighbor = neighbor.data_ptr<I>();
         k.incidences = incidences.data_ptr<I>();
         k.node_k = node_k.data_ptr<S>();
+        k.spread = NodeSpread::of(num_nodes);
         L::run(num_nodes * num_graph_slots, k, L::kNodeBlock);
       });
     });
