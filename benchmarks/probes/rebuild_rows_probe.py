@@ -2,8 +2,9 @@
 RebuildRowBlocks) scale with the rows a cut touches: the SOFA beam cut on the device by a scalpel
 for ``--steps`` steps, then the op run again on its current elements with 1, 10, 100, ... of the
 touched rows (and every row), each kernel's GPU time (torch.profiler, the mean of ``--repeats``
-calls). A time that stays flat as the rows grow is one thread's latency; one that grows with them
-is throughput.
+calls). The rows nearest the cut come first. The slowest thread sets a kernel's time, so this
+shows how the time follows the rows' star sizes and how the threads of neighbouring rows interfere
+(docs/performance-history.md: what three versions of the neighbours' pass measured).
 
     python benchmarks/probes/rebuild_rows_probe.py [--steps 40] [--repeats 20]
 """

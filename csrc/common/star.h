@@ -1,11 +1,9 @@
 // A node's column of a [S, V] table (node_slots: the elements that hold it, -1 past the last; or a
-// table beside it, as a cut's group) read into one thread's memory. For the kernels that run a
-// thread per node over its star (the cut on the device, the node graph's rebuilt rows): such a
-// thread's time is the latency of its loads, so a column is read whole, eight independent loads
-// at a time, and elements' rows and flags eight elements at a time, rather than entry by entry.
-// (The nodes a cut touches are numbered near each other, so their threads share warps: what they
-// do with the star should branch alike in each, or the warp runs the branches one after another:
-// docs/performance-history.md.)
+// table beside it, as a cut's group) read into one thread's memory, and a small table of ids for
+// membership tests in it. For the kernels that run a thread per node over its star (the cut on the
+// device, the node graph's rebuilt rows): such a thread's time is the latency of its loads, so a
+// column is read whole, eight independent loads at a time, and an element's row (or flag) is read
+// for eight elements at a time, rather than entry by entry.
 #pragma once
 
 #include <cstdint>
@@ -13,10 +11,6 @@
 #include "common/element_math.h"
 
 namespace tensormass {
-
-// The most elements a node's star may hold where a thread reads it whole (node_slots' rows for the
-// cut on the device and the node graph's rebuilt rows).
-constexpr int kMaxStarElements = 64;
 
 // The column `node` of table [num_slots, num_nodes] into column [num_slots] (the caller checked
 // num_slots against its capacity).
@@ -67,30 +61,6 @@ TM_HD void load_flags(const T* flags, const I* ids, int count, T* out) {
   }
 }
 
-// Which node an item of a per-node star kernel runs: item i runs node (i * stride) mod n, stride a
-// prime that does not divide n (a permutation of the nodes). The nodes a cut touches are numbered
-// near each other; run in node order they fill a few blocks, so a few SMs, whose L1 then cannot
-// hold those threads' stars (local memory) and every access goes to L2: a row rebuilt alone took
-// 4 us, a hundred neighbouring rows 117 us. Spread, each SM gets one or two of them.
-struct NodeSpread {
-  int64_t num_nodes = 1;
-  int64_t stride = 1;
-
-  static NodeSpread of(int64_t num_nodes) {
-    NodeSpread spread;
-    spread.num_nodes = num_nodes > 0 ? num_nodes : 1;
-    for (int64_t prime : {257, 263, 269, 271}) {  // (no n has all four as factors below 2^32)
-      if (spread.num_nodes % prime != 0) {
-        spread.stride = prime;
-        break;
-      }
-    }
-    return spread;
-  }
-
-  TM_HD int64_t node(int64_t item) const { return (item * stride) % num_nodes; }
-};
-
 // Slots s0 .. s0 + 7 of a node's column of node_slots read together: the element ids (-1 past the
 // column and past the list), then their alive flags and rows, all eight elements' loads issued
 // before any is used.
@@ -121,7 +91,7 @@ struct EightElements {
 };
 
 // The place of the lowest set bit of a non-zero mask (a star's elements as the bits of a 64-bit
-// word: kMaxStarElements <= 64).
+// word: kMaxStar <= 64).
 TM_HD int lowest_bit(uint64_t mask) {
 #if defined(__CUDA_ARCH__)
   return __ffsll(static_cast<long long>(mask)) - 1;
@@ -129,5 +99,37 @@ TM_HD int lowest_bit(uint64_t mask) {
   return __builtin_ctzll(mask);
 #endif
 }
+
+// Where each id of a list sits in it: open addressing over kIdTable entries of place + 1 (0: empty),
+// at most kIdTable - 1 ids. Ids of one star or one row are near each other, so id mod kIdTable
+// rarely collides.
+constexpr int kIdTable = 128;
+
+struct IdTable {
+  uint8_t place[kIdTable];
+
+  TM_HD void clear() {
+    for (int h = 0; h < kIdTable; ++h) place[h] = 0;
+  }
+
+  // The place of id in list (list[place] == id), or -1.
+  template <typename I>
+  TM_HD int find(const I* list, I id) const {
+    int h = static_cast<int>(static_cast<int64_t>(id) & (kIdTable - 1));
+    while (place[h] != 0) {
+      if (list[place[h] - 1] == id) return place[h] - 1;
+      h = (h + 1) & (kIdTable - 1);
+    }
+    return -1;
+  }
+
+  // Records that the list holds id (not yet recorded) at place `at` < kIdTable - 1.
+  template <typename I>
+  TM_HD void add(I id, int at) {
+    int h = static_cast<int>(static_cast<int64_t>(id) & (kIdTable - 1));
+    while (place[h] != 0) h = (h + 1) & (kIdTable - 1);
+    place[h] = static_cast<uint8_t>(at + 1);
+  }
+};
 
 }  // namespace tensormass

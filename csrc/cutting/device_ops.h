@@ -142,7 +142,6 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
       joins.parted = parted.data_ptr<bool>();
       joins.on_cut = on_cut.data_ptr<uint8_t>();
       joins.group = group.data_ptr<int32_t>();
-      joins.spread = NodeSpread::of(num_nodes);
       L::run(node_slots.numel(), joins, L::kNodeBlock);
       SplitStarsKernel<NN, I> k;
       k.node_slots = node_slots.data_ptr<I>();
@@ -151,7 +150,6 @@ void cutting_split_stars(const at::Tensor& elements, const at::Tensor& node_slot
       k.on_cut = on_cut.data_ptr<uint8_t>();
       k.group = group.data_ptr<int32_t>();
       k.new_count = new_count.data_ptr<int32_t>();
-      k.spread = NodeSpread::of(num_nodes);
       L::run(num_nodes, k, L::kNodeBlock);
     });
   });
@@ -192,7 +190,6 @@ void cutting_repoint_stars(const at::Tensor& node_slots, const at::Tensor& group
       k.elements = elements.data_ptr<I>();
       k.parents = parents.data_ptr<int64_t>();
       k.num_parents = parents.size(0);
-      k.spread = NodeSpread::of(num_nodes);
       L::run(num_nodes, k, L::kNodeBlock);
     });
   });
@@ -252,7 +249,6 @@ void cutting_move_lists(const at::Tensor& elements, const at::Tensor& group, con
         k.mass = mass.data_ptr<S>();
         k.node_elements = node_elements.data_ptr<int32_t>();
         k.touched = touched.data_ptr<uint8_t>();
-        k.spread = NodeSpread::of(num_nodes);
         L::run(num_nodes, k, L::kNodeBlock);
       });
     });

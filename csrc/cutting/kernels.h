@@ -49,7 +49,8 @@ namespace cutting {
 
 // The most elements a node's star may hold (node_slots' rows): the union-find runs in registers /
 // local memory of one thread.
-constexpr int kMaxStar = kMaxStarElements;
+constexpr int kMaxStar = 64;
+static_assert(kMaxStar < kIdTable, "a star's elements must fit an IdTable");
 
 // The segment test's vector steps, on local arrays (element_math.h's cross3 and dot3).
 template <typename S>
@@ -214,7 +215,6 @@ struct StarJoinsKernel {
   const bool* parted;      // [F]
   const uint8_t* on_cut;   // [V] MarkCutNodesKernel's
   int32_t* group;          // [num_slots, V]
-  NodeSpread spread;       // which node an item's column is
 
   static constexpr int kField = 7;
   static_assert(3 + kField * NN <= 31, "the packed joins must fit a non-negative int32");
@@ -278,13 +278,13 @@ struct StarJoinsKernel {
   }
 
   TM_HD void operator()(int64_t item) const {
-    const int64_t i = spread.node(item % num_nodes), at = item - item % num_nodes + i;  // (slot, node i)
+    const int64_t i = item % num_nodes;
     int32_t out = -1;
     if (on_cut[i]) {
-      const I e = node_slots[at];
+      const I e = node_slots[item];
       if (e >= 0) out = joins(i, e);
     }
-    group[at] = out;
+    group[item] = out;
   }
 };
 
@@ -302,10 +302,8 @@ struct SplitStarsKernel {
   const uint8_t* on_cut;   // [V] MarkCutNodesKernel's
   int32_t* group;          // [num_slots, V]: StarJoinsKernel's joins in, the groups out
   int32_t* new_count;      // [V]
-  NodeSpread spread;       // which node an item is
 
-  TM_HD void operator()(int64_t item) const {
-    const int64_t i = spread.node(item);
+  TM_HD void operator()(int64_t i) const {
     if (!on_cut[i]) {
       new_count[i] = 0;
       return;
@@ -376,10 +374,8 @@ struct RepointStarsKernel {
   I* elements;               // [N, NN]
   int64_t* parents;          // [P] node ids
   int64_t num_parents;       // P
-  NodeSpread spread;         // which node an item is
 
-  TM_HD void operator()(int64_t item) const {
-    const int64_t i = spread.node(item);
+  TM_HD void operator()(int64_t i) const {
     const int32_t copies = new_count[i];
     if (copies == 0) return;
     const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);
@@ -422,10 +418,8 @@ struct MoveListsKernel {
   S* mass;                   // [V]
   int32_t* node_elements;    // [V]
   uint8_t* touched;          // [V]
-  NodeSpread spread;         // which node an item is
 
-  TM_HD void operator()(int64_t item) const {
-    const int64_t i = spread.node(item);
+  TM_HD void operator()(int64_t i) const {
     const int32_t copies = new_count[i];
     if (copies == 0) return;
     const int64_t total = offset[num_nodes - 1] + static_cast<int64_t>(new_count[num_nodes - 1]);

@@ -261,6 +261,7 @@ struct WriteEdgesKernel {
 // The most neighbours a row rebuilt by RebuildRowNeighborsKernel may hold (its list runs in the
 // thread's local memory).
 constexpr int kMaxRebuiltSlots = 64;
+static_assert(kMaxRebuiltSlots < kIdTable, "a rebuilt row's neighbours must fit an IdTable");
 
 // The row of a touched node of a hooke tensor-form group's node graph, rebuilt after its elements
 // changed (a cut on the device, cutting/kernels.h), in two passes so that no thread carries a row of
@@ -291,60 +292,35 @@ struct RebuildRowNeighborsKernel {
   I* neighbor;               // [N_n, V]
   I* incidences;             // [V] by row
   int32_t* status;           // [1]
-  NodeSpread spread;         // which node an item is (common/star.h)
 
-  TM_HD void operator()(int64_t item) const {
-    const int64_t p = spread.node(item);
+  TM_HD void operator()(int64_t p) const {
     if (!touched[p]) return;
-    // the node's elements (their rows, and whether each takes part: alive and holding p), read
-    // eight at a time (a thread's time here is the latency of its loads)
-    I rows[kMaxStarElements][NN];
-    bool takes[kMaxStarElements];
+    I others[kMaxRebuiltSlots];
+    IdTable known;  // where each neighbour sits in others
+    known.clear();
     int count = 0;
+    // the node's elements eight at a time (a thread's time here is the latency of its loads)
     for (int64_t s0 = 0; s0 < num_slots; s0 += 8) {
       EightElements<NN, I> eight;
       eight.load(node_slots, num_slots, num_nodes, p, s0, alive, elements);
-      TM_UNROLL for (int k = 0; k < 8; ++k) {
-        if (eight.ids[k] < 0) continue;  // (-1s only past the list's last element)
-        takes[s0 + k] = eight.living[k] && eight.local_of(k, p) >= 0;
-        TM_UNROLL for (int a = 0; a < NN; ++a) rows[s0 + k][a] = eight.rows[k][a];
-        count = static_cast<int>(s0 + k + 1);
+      TM_UNROLL for (int k = 0; k < 8; ++k) {  // (unrolled: eight stays in registers)
+        if (eight.ids[k] < 0 || !eight.living[k] || eight.local_of(k, p) < 0) continue;
+        for (int b = 0; b < NN; ++b) {
+          const I node = eight.rows[k][b];
+          if (static_cast<int64_t>(node) == p || known.find(others, node) >= 0) continue;
+          if (count >= kMaxRebuiltSlots || count >= max_slots) {
+            status[0] = 1;
+            return;
+          }
+          known.add(node, count);
+          others[count++] = node;
+        }
       }
       if (eight.last()) break;
     }
-    // each element's nodes that no element before it holds, in order. The rows of touched nodes
-    // sit side by side in a warp (a cut's nodes are numbered near each other), so the test is
-    // the same comparisons in every thread (each node against every earlier row) rather than a
-    // lookup table whose probes branch differently in each thread and run one after another.
-    I others[kMaxRebuiltSlots];
-    int found = 0;
-    for (int j = 0; j < count; ++j) {
-      if (!takes[j]) continue;
-      I node[NN];
-      bool fresh[NN];
-      TM_UNROLL for (int b = 0; b < NN; ++b) {
-        node[b] = rows[j][b];
-        fresh[b] = static_cast<int64_t>(node[b]) != p;
-      }
-      for (int h = 0; h < j; ++h) {
-        const bool before = takes[h];
-        TM_UNROLL for (int a = 0; a < NN; ++a) {
-          const I seen = rows[h][a];
-          TM_UNROLL for (int b = 0; b < NN; ++b) fresh[b] = fresh[b] && !(before && seen == node[b]);
-        }
-      }
-      TM_UNROLL for (int b = 0; b < NN; ++b) {
-        if (!fresh[b]) continue;
-        if (found >= kMaxRebuiltSlots || found >= max_slots) {
-          status[0] = 1;
-          return;
-        }
-        others[found++] = node[b];
-      }
-    }
     const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
-    for (int t = 0; t < found; ++t) neighbor[t * num_nodes + row] = others[t];
-    incidences[row] = static_cast<I>(found);
+    for (int t = 0; t < count; ++t) neighbor[t * num_nodes + row] = others[t];
+    incidences[row] = static_cast<I>(count);
   }
 };
 
@@ -363,10 +339,9 @@ struct RebuildRowBlocksKernel {
   const I* neighbor;         // [N_n, V]
   const I* incidences;       // [V] by row
   S* node_k;                 // [N_n, V, D, D]
-  NodeSpread spread;         // which node an item's row is (common/star.h)
 
   TM_HD void operator()(int64_t item) const {
-    const int64_t p = spread.node(item / graph_slots), t = item % graph_slots;
+    const int64_t p = item / graph_slots, t = item % graph_slots;
     if (!touched[p]) return;
     const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
     if (t >= static_cast<int64_t>(incidences[row])) return;

@@ -260,9 +260,6 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
   TORCH_CHECK(node_slots.dim() == 2 && node_slots.size(1) == num_nodes, "tensormass: node_slots must be [S, ",
               std::to_string(num_nodes), "] (node_k is [N_n, V, d, d]), got ", shape_str(node_slots.sizes()));
   check_index_tensor(node_slots, "node_slots", node_k, index_type, node_slots.sizes(), "node_k");
-  TORCH_CHECK(node_slots.size(0) <= kMaxStarElements, "tensormass: node_slots has ",
-              std::to_string(node_slots.size(0)), " slots; a rebuilt row's node may hold at most ",
-              std::to_string(kMaxStarElements), " elements");
   check_flags(alive, "alive", node_k, num_elements, "node_k");
   check_index_tensor(touched, "touched", node_k, at::kByte, {num_nodes}, "node_k");
   check_index_tensor(neighbor, "neighbor", node_k, index_type, {num_graph_slots, num_nodes}, "node_k");
@@ -292,7 +289,6 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
         rows.neighbor = neighbor.data_ptr<I>();
         rows.incidences = incidences.data_ptr<I>();
         rows.status = status.data_ptr<int32_t>();
-        rows.spread = NodeSpread::of(num_nodes);
         L::run(num_nodes, rows, L::kNodeBlock);
         RebuildRowBlocksKernel<NN, D, S, I> k;
         k.pair_k = pair_k.data_ptr<S>();
@@ -307,7 +303,6 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
         k.neighbor = neighbor.data_ptr<I>();
         k.incidences = incidences.data_ptr<I>();
         k.node_k = node_k.data_ptr<S>();
-        k.spread = NodeSpread::of(num_nodes);
         L::run(num_nodes * num_graph_slots, k, L::kNodeBlock);
       });
     });
