@@ -4,7 +4,8 @@ for ``--steps`` steps, then the op run again on its current elements with 1, 10,
 touched rows (and every row), each kernel's GPU time (torch.profiler, the mean of ``--repeats``
 calls). The rows nearest the cut come first. The slowest thread sets a kernel's time, so this
 shows how the time follows the rows' star sizes and how the threads of neighbouring rows interfere
-(docs/performance-history.md: what three versions of the neighbours' pass measured).
+(benchmarks/results/h100/device_cuts.md, fourth pass: what three versions of the neighbours'
+pass measured).
 
     python benchmarks/probes/rebuild_rows_probe.py [--steps 40] [--repeats 20]
 """
