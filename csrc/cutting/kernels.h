@@ -50,6 +50,7 @@ namespace cutting {
 // The most elements a node's star may hold (node_slots' rows): the union-find runs in registers /
 // local memory of one thread.
 constexpr int kMaxStar = 64;
+static_assert(kMaxStar < kIdTable, "a star's elements must fit an IdTable");
 
 // The segment test's vector steps, on local arrays (element_math.h's cross3 and dot3).
 template <typename S>
