@@ -816,6 +816,8 @@ def _device_args(name):
     (ops_cutting.SPLIT_STARS, dict(node_slots=lambda a: torch.cat([a["node_slots"]] * 20)), "at most 64 elements"),
     (ops_cutting.SPLIT_STARS, dict(group=lambda a: a["group"].long()), "group is Long; expected Int"),
     (ops_cutting.SPLIT_STARS, dict(parted=lambda a: a["parted"][1:]), "parted has shape"),
+    (ops_cutting.REPOINT_STARS, dict(node_slots=lambda a: torch.cat([a["node_slots"]] * 20)), "at most 64 elements"),
+    (ops_cutting.MOVE_LISTS, dict(node_slots=lambda a: torch.cat([a["node_slots"]] * 20)), "at most 64 elements"),
     (ops_cutting.REPOINT_STARS, dict(limits=lambda a: a["limits"][:1]), r"limits has shape \[1\]"),
     (ops_cutting.REPOINT_STARS, dict(elements=lambda a: a["elements"][:, :2].contiguous()), r"elements must be"),
     (ops_cutting.COUNT_NEW_NODES, dict(rows=lambda a: torch.zeros(3, dtype=torch.int64)), r"rows has shape \[3\]"),
