@@ -24,7 +24,7 @@
 //    shared; StarJoinsKernel, a (slot, node) an item, finds for each element of a marked node's
 //    star the joined faces holding the node and the slots of the elements across them; then
 //    SplitStarsKernel, a node an item: a marked node's alive elements are grouped through those
-//    joins (union-find over the star, at most kMaxStar elements), the groups ranked by their
+//    joins (the star, at most kMaxStar elements, as the bits of a 64-bit word), the groups ranked by their
 //    smallest element id (the rank-0 group keeps the node), and each star slot gets
 //    group = rank * n + the node's local index (-1: an element removed, and every slot of a node
 //    not marked); new_count = groups - 1.
@@ -47,10 +47,9 @@
 namespace tensormass {
 namespace cutting {
 
-// The most elements a node's star may hold (node_slots' rows): the union-find runs in registers /
-// local memory of one thread.
+// The most elements a node's star may hold (node_slots' rows): the per-node passes hold a star in
+// one thread's memory, and the groups' pass as the bits of a 64-bit word.
 constexpr int kMaxStar = 64;
-static_assert(kMaxStar < kIdTable, "a star's elements must fit an IdTable");
 
 // The segment test's vector steps, on local arrays (element_math.h's cross3 and dot3).
 template <typename S>
@@ -201,8 +200,8 @@ struct MarkCutNodesKernel {
 //                      in i's star where the face is joined and that element's id is above e's (each
 //                      face once, from its element of smaller id), 0 otherwise.
 // (3 + 7 NN <= 31 bits: non-negative in an int32.) Every other item writes -1. So a thread follows
-// one element's few loads, and the star's elements are examined side by side rather than one after
-// another in one thread (the latency of those loads was the cut's largest cost).
+// one element's few dependent loads, and a star's elements are examined side by side rather than
+// one after another in one thread, whose time would be the sum of their latencies.
 template <int NN, typename I>
 struct StarJoinsKernel {
   const I* elements;       // [N, NN]

@@ -259,9 +259,9 @@ class Simulator:
         self.cut_on_device = cut_on_device
         self._device_cuts = None  # the DeviceCuts of body 0, made at the first scalpel's cut
         self._device_cut_blades: list = []  # the blades cut on the device since the last settle
-        # each scalpel's strip for the next step (scalpel, t0, t1, corners), made while the device
-        # runs this step's cut (see _apply_scalpels)
-        self._next_strips: list = []
+        # each scalpel's strip for the next step {(scalpel, t0, t1): corners} (scalpels keyed by
+        # identity), made while the device runs this step's cut (see _apply_scalpels)
+        self._next_strips: dict = {}
         self._views_stale = False  # the bodies' meshes lag behind cuts made on the device
         if cg_max_iter is None:
             free_dofs = [3 * int((~(b.fixed | b.prescribed)).sum()) for b in bodies]
@@ -741,12 +741,11 @@ class Simulator:
         strips that overlap, see ``sim.scalpel``): on the device where ``cut_on_device`` and
         :class:`DeviceCuts` serve this simulator, else on the host (:meth:`cut`)."""
         dt = self.options.dt
-        made = {(id(scalpel), t0, t1): corners for scalpel, t0, t1, corners in self._next_strips}
         on_device = False
         for scalpel in self.scalpels:
             t0, t1 = self.time - dt, self.time + dt
-            key = (id(scalpel), t0, t1)
-            corners = made[key] if key in made else scalpel.strip(t0, t1)
+            key = (scalpel, t0, t1)
+            corners = self._next_strips[key] if key in self._next_strips else scalpel.strip(t0, t1)
             if corners is None:
                 continue
             cuts = self._device_cutter(scalpel.body)
@@ -759,8 +758,8 @@ class Simulator:
         # the next step's strips (its time as _commit will add it), made on the host while the
         # device runs these cuts rather than before the next ones while it waits
         following = self.time + dt
-        self._next_strips = [(s, following - dt, following + dt, s.strip(following - dt, following + dt))
-                             for s in self.scalpels] if on_device else []
+        t0, t1 = following - dt, following + dt
+        self._next_strips = {(s, t0, t1): s.strip(t0, t1) for s in self.scalpels} if on_device else {}
 
     def _device_cutter(self, body) -> Optional[DeviceCuts]:
         """The device cut of ``body`` where ``cut_on_device`` asks for it and it serves this
