@@ -1,9 +1,9 @@
 // A node's column of a [S, V] table (node_slots: the elements that hold it, -1 past the last; or a
-// table beside it, as a cut's group) read into one thread's memory, and a small table of ids for
-// membership tests in it. For the kernels that run a thread per node over its star (the cut on the
-// device, the node graph's rebuilt rows): such a thread's time is the latency of its loads, so a
-// column is read whole, eight independent loads at a time, and an element's row (or flag) is read
-// for eight elements at a time, rather than entry by entry.
+// table beside it, as a cut's group) read into one thread's memory, and a node's elements read
+// eight at a time. For the kernels of the cut on the device and the node graph's rebuilt rows that
+// walk a star in one thread: such a thread's time is the latency of its loads, so a column is read
+// whole, eight independent loads at a time, and the elements' rows and flags eight elements at a
+// time, rather than entry by entry.
 #pragma once
 
 #include <cstdint>
@@ -73,37 +73,5 @@ TM_HD int lowest_bit(uint64_t mask) {
   return __builtin_ctzll(mask);
 #endif
 }
-
-// Where each id of a list sits in it: open addressing over kIdTable entries of place + 1 (0: empty),
-// at most kIdTable - 1 ids. Ids of one star or one row are near each other, so id mod kIdTable
-// rarely collides.
-constexpr int kIdTable = 128;
-
-struct IdTable {
-  uint8_t place[kIdTable];
-
-  TM_HD void clear() {
-    for (int h = 0; h < kIdTable; ++h) place[h] = 0;
-  }
-
-  // The place of id in list (list[place] == id), or -1.
-  template <typename I>
-  TM_HD int find(const I* list, I id) const {
-    int h = static_cast<int>(static_cast<int64_t>(id) & (kIdTable - 1));
-    while (place[h] != 0) {
-      if (list[place[h] - 1] == id) return place[h] - 1;
-      h = (h + 1) & (kIdTable - 1);
-    }
-    return -1;
-  }
-
-  // Records that the list holds id (not yet recorded) at place `at` < kIdTable - 1.
-  template <typename I>
-  TM_HD void add(I id, int at) {
-    int h = static_cast<int>(static_cast<int64_t>(id) & (kIdTable - 1));
-    while (place[h] != 0) h = (h + 1) & (kIdTable - 1);
-    place[h] = static_cast<uint8_t>(at + 1);
-  }
-};
 
 }  // namespace tensormass

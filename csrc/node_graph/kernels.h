@@ -258,69 +258,130 @@ struct WriteEdgesKernel {
   }
 };
 
-// The most neighbours a row rebuilt by RebuildRowNeighborsKernel may hold (its list runs in the
-// thread's local memory).
+// The most neighbours a row rebuilt by RebuildRowNeighborsKernel may hold.
 constexpr int kMaxRebuiltSlots = 64;
-static_assert(kMaxRebuiltSlots < kIdTable, "a rebuilt row's neighbours must fit an IdTable");
 
 // The row of a touched node of a hooke tensor-form group's node graph, rebuilt after its elements
-// changed (a cut on the device, cutting/kernels.h), in two passes so that no thread carries a row of
-// blocks:
-//   RebuildRowNeighborsKernel, a node an item (the touched ones): the neighbours of node p in the
-//     order first met over its alive elements (its node_slots list, in list order) and their other
-//     local nodes in order, written into neighbor[:, row] with incidences[row] = their number. A row
-//     that would need more slots than max_slots (the most the captured solve's launch holds, at most
-//     the graph's N_n) is not written and sets status = 1.
-//   RebuildRowBlocksKernel, a (node, slot) an item, after it: the block of the slot's neighbour q,
+// changed (a cut on the device, cutting/kernels.h), in three passes, each item a (slot, node) or a
+// (node, slot), so that no thread walks a whole star (a thread per node took as long as the node
+// with the largest star, some 45 us for the rows of a cut in the SOFA beam:
+// benchmarks/results/h100/device_cuts.md):
+//   RebuildRowFirstsKernel, a (slot h, touched node p) an item: which of the other nodes of p's h-th
+//     element (if it is alive and holds p) no element before it in p's list holds, as a mask of its
+//     local indices in firsts[h, p] (the earlier elements read eight at a time).
+//   RebuildRowNeighborsKernel, a (slot h, touched node p) an item, after it: the neighbours of p in
+//     the order first met over its list and their local nodes in order: h's first nodes go to
+//     neighbor[t, row] from t = the firsts of the elements before h, and incidences[row] = all
+//     of them. A row that would need more slots than max_slots (the most the captured solve's
+//     launch holds, at most the graph's N_n) is not written and sets status = 1.
+//   RebuildRowBlocksKernel, a (node, slot) an item, after them: the block of the slot's neighbour q,
 //     summed over the node's alive elements holding q in list order, each element's pair tensor
 //     (pair_k: K_lh of each local pair l < h, formed once from the rest shape; a cut re-points
 //     elements but never changes their shape) oriented from the lower to the higher global node as
 //     the edge stores it, and transposed where p is the higher node. So each block is what the edge
 //     (p, q) of a build of these elements sums (the same terms in the same element order) and its
 //     orientation the row's.
-// Each item writes only its own row or slot: deterministic, no atomics.
+// Each item writes only its own entry, row or slot: deterministic, no atomics.
 template <int NN, typename I>
-struct RebuildRowNeighborsKernel {
+struct RebuildRowFirstsKernel {
   const I* elements;         // [N, NN]
   const I* node_slots;       // [num_slots, V]
   int64_t num_slots;
   int64_t num_nodes;         // V
   const bool* alive;         // [N]
   const uint8_t* touched;    // [V]
+  int32_t* firsts;           // [num_slots, V]
+
+  TM_HD void operator()(int64_t item) const {
+    const int64_t h = item / num_nodes, p = item % num_nodes;
+    if (!touched[p]) return;
+    const I e = node_slots[item];
+    if (e < 0) return;
+    I row[NN];
+    TM_UNROLL for (int a = 0; a < NN; ++a) row[a] = elements[static_cast<int64_t>(e) * NN + a];
+    bool fresh[NN];
+    bool holds = false;
+    TM_UNROLL for (int b = 0; b < NN; ++b) {
+      holds = holds || static_cast<int64_t>(row[b]) == p;
+      fresh[b] = static_cast<int64_t>(row[b]) != p;
+    }
+    if (!alive[e] || !holds) {
+      firsts[item] = 0;
+      return;
+    }
+    for (int64_t s0 = 0; s0 < h; s0 += 8) {
+      EightElements<NN, I> eight;
+      eight.load(node_slots, h, num_nodes, p, s0, alive, elements);  // (slots before h only)
+      TM_UNROLL for (int k = 0; k < 8; ++k) {
+        const bool before = eight.ids[k] >= 0 && eight.living[k] && eight.local_of(k, p) >= 0;
+        TM_UNROLL for (int a = 0; a < NN; ++a) {
+          TM_UNROLL for (int b = 0; b < NN; ++b) fresh[b] = fresh[b] && !(before && eight.rows[k][a] == row[b]);
+        }
+      }
+    }
+    int32_t mask = 0;
+    TM_UNROLL for (int b = 0; b < NN; ++b) mask |= fresh[b] ? 1 << b : 0;
+    firsts[item] = mask;
+  }
+};
+
+template <int NN, typename I>
+struct RebuildRowNeighborsKernel {
+  const I* elements;         // [N, NN]
+  const I* node_slots;       // [num_slots, V]
+  int64_t num_slots;
+  int64_t num_nodes;         // V
+  const uint8_t* touched;    // [V]
+  const int32_t* firsts;     // [num_slots, V] RebuildRowFirstsKernel's
   const I* row_of;           // [V] or nullptr (rows in node order)
   int64_t max_slots;
   I* neighbor;               // [N_n, V]
   I* incidences;             // [V] by row
   int32_t* status;           // [1]
 
-  TM_HD void operator()(int64_t p) const {
+  TM_HD static int count_bits(int32_t mask) {
+    int bits = 0;
+    TM_UNROLL for (int b = 0; b < NN; ++b) bits += (mask >> b) & 1;
+    return bits;
+  }
+
+  TM_HD void operator()(int64_t item) const {
+    const int64_t h = item / num_nodes, p = item % num_nodes;
     if (!touched[p]) return;
-    I others[kMaxRebuiltSlots];
-    IdTable known;  // where each neighbour sits in others
-    known.clear();
-    int count = 0;
-    // the node's elements eight at a time (a thread's time here is the latency of its loads)
+    const I e = node_slots[item];
+    if (e < 0) {
+      if (h == 0) incidences[row_of == nullptr ? p : static_cast<int64_t>(row_of[p])] = 0;  // (no element)
+      return;
+    }
+    // the firsts of the elements before h, and of all of them (the list's ids and masks read eight
+    // slots at a time)
+    int before = 0, total = 0;
     for (int64_t s0 = 0; s0 < num_slots; s0 += 8) {
-      EightElements<NN, I> eight;
-      eight.load(node_slots, num_slots, num_nodes, p, s0, alive, elements);
-      TM_UNROLL for (int k = 0; k < 8; ++k) {  // (unrolled: eight stays in registers)
-        if (eight.ids[k] < 0 || !eight.living[k] || eight.local_of(k, p) < 0) continue;
-        for (int b = 0; b < NN; ++b) {
-          const I node = eight.rows[k][b];
-          if (static_cast<int64_t>(node) == p || known.find(others, node) >= 0) continue;
-          if (count >= kMaxRebuiltSlots || count >= max_slots) {
-            status[0] = 1;
-            return;
-          }
-          known.add(node, count);
-          others[count++] = node;
-        }
+      I ids[8];
+      int32_t masks[8];
+      TM_UNROLL for (int k = 0; k < 8; ++k) {
+        const bool in = s0 + k < num_slots;
+        ids[k] = in ? node_slots[(s0 + k) * num_nodes + p] : I(-1);
+        masks[k] = in ? firsts[(s0 + k) * num_nodes + p] : 0;
       }
-      if (eight.last()) break;
+      TM_UNROLL for (int k = 0; k < 8; ++k) {
+        const int bits = ids[k] >= 0 ? count_bits(masks[k]) : 0;
+        total += bits;
+        before += s0 + k < h ? bits : 0;
+      }
+      if (ids[7] < 0) break;
+    }
+    if (total > max_slots || total > kMaxRebuiltSlots) {
+      if (h == 0) status[0] = 1;
+      return;
     }
     const int64_t row = row_of == nullptr ? p : static_cast<int64_t>(row_of[p]);
-    for (int t = 0; t < count; ++t) neighbor[t * num_nodes + row] = others[t];
-    incidences[row] = static_cast<I>(count);
+    const int32_t mine = firsts[item];
+    int t = before;
+    TM_UNROLL for (int b = 0; b < NN; ++b) {
+      if ((mine >> b) & 1) neighbor[static_cast<int64_t>(t++) * num_nodes + row] = elements[static_cast<int64_t>(e) * NN + b];
+    }
+    if (h == 0) incidences[row] = static_cast<I>(total);
   }
 };
 

@@ -238,13 +238,14 @@ void node_graph_write_edges(const at::Tensor& edge_ids, const at::Tensor& edges,
   });
 }
 
-// node_graph_rebuild_hooke_rows: see schema.cpp. Two launches (kernels.h): the touched rows'
-// neighbours, then their blocks a slot an item.
+// node_graph_rebuild_hooke_rows: see schema.cpp. Three launches (kernels.h): each touched row's
+// elements' first nodes, then its neighbours, a (slot, node) an item, then its blocks a (node,
+// slot) an item.
 template <class L>
 void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& elements, const at::Tensor& node_slots,
                                    const at::Tensor& alive, const at::Tensor& touched,
                                    const c10::optional<at::Tensor>& row_of, int64_t max_slots, at::Tensor neighbor,
-                                   at::Tensor node_k, at::Tensor incidences, at::Tensor status) {
+                                   at::Tensor node_k, at::Tensor incidences, at::Tensor status, at::Tensor firsts) {
   TORCH_CHECK(node_k.defined() && node_k.dim() == 4, "tensormass: node_k must be [N_n, V, d, d]");
   TORCH_CHECK(node_k.scalar_type() == at::kFloat || node_k.scalar_type() == at::kDouble,
               "tensormass: node_k must be float32 or float64, got ", dtype_str(node_k.scalar_type()));
@@ -265,6 +266,7 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
   check_index_tensor(neighbor, "neighbor", node_k, index_type, {num_graph_slots, num_nodes}, "node_k");
   check_index_tensor(incidences, "incidences", node_k, index_type, {num_nodes}, "node_k");
   check_index_tensor(status, "status", node_k, at::kInt, {1}, "node_k");
+  check_index_tensor(firsts, "firsts", node_k, at::kInt, node_slots.sizes(), "node_k");
   const bool by_rows = row_of.has_value() && row_of->defined();
   if (by_rows) check_index_tensor(*row_of, "row_of", node_k, index_type, {num_nodes}, "node_k");
   TORCH_CHECK(max_slots >= 0 && max_slots <= num_graph_slots, "tensormass: max_slots is ", std::to_string(max_slots),
@@ -277,19 +279,28 @@ void node_graph_rebuild_hooke_rows(const at::Tensor& pair_k, const at::Tensor& e
       dispatch_kind(nn, dim, [&](auto nn_c, auto d_c) {
         constexpr int NN = decltype(nn_c)::value;
         constexpr int D = decltype(d_c)::value;
+        RebuildRowFirstsKernel<NN, I> first;
+        first.elements = elements.data_ptr<I>();
+        first.node_slots = node_slots.data_ptr<I>();
+        first.num_slots = node_slots.size(0);
+        first.num_nodes = num_nodes;
+        first.alive = alive.data_ptr<bool>();
+        first.touched = touched.data_ptr<uint8_t>();
+        first.firsts = firsts.data_ptr<int32_t>();
+        L::run(node_slots.numel(), first, L::kNodeBlock);
         RebuildRowNeighborsKernel<NN, I> rows;
         rows.elements = elements.data_ptr<I>();
         rows.node_slots = node_slots.data_ptr<I>();
         rows.num_slots = node_slots.size(0);
         rows.num_nodes = num_nodes;
-        rows.alive = alive.data_ptr<bool>();
         rows.touched = touched.data_ptr<uint8_t>();
+        rows.firsts = firsts.data_ptr<int32_t>();
         rows.row_of = by_rows ? row_of->data_ptr<I>() : nullptr;
         rows.max_slots = max_slots;
         rows.neighbor = neighbor.data_ptr<I>();
         rows.incidences = incidences.data_ptr<I>();
         rows.status = status.data_ptr<int32_t>();
-        L::run(num_nodes, rows, L::kNodeBlock);
+        L::run(node_slots.numel(), rows, L::kNodeBlock);
         RebuildRowBlocksKernel<NN, D, S, I> k;
         k.pair_k = pair_k.data_ptr<S>();
         k.elements = elements.data_ptr<I>();

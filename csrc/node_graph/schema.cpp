@@ -67,7 +67,7 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   // node_graph_rebuild_hooke_rows(pair_k [N, P, d, d], elements [N, n], node_slots [S, V],
   //                               alive [N] bool, touched [V] uint8, row_of [V]?, max_slots,
   //                               neighbor! [N_n, V], node_k! [N_n, V, d, d], incidences! [V],
-  //                               status! [1] int32) -> ()
+  //                               status! [1] int32, firsts! [S, V] int32) -> ()
   //   A hooke tensor-form group's node graph (by rows: row_of, the inverse of its row_node; None:
   //   node order) after its elements changed at the touched nodes (a cut on the device): each
   //   touched node's row summed again from its elements (node_slots: each node's element rows in
@@ -77,8 +77,8 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   row that needs more than max_slots slots (at most N_n) sets status[0] = 1 (else status is
   //   unchanged) and is not to be used: its neighbours stay, its blocks may change (the caller
   //   builds the graph again). The graph's storage is kept, so captured CUDA graphs that read it
-  //   stay valid.
+  //   stay valid. firsts: scratch (the touched nodes' columns are overwritten).
   m.def("node_graph_rebuild_hooke_rows(Tensor pair_k, Tensor elements, Tensor node_slots, Tensor alive, "
         "Tensor touched, Tensor? row_of, int max_slots, "
-        "Tensor(a!) neighbor, Tensor(b!) node_k, Tensor(c!) incidences, Tensor(d!) status) -> ()");
+        "Tensor(a!) neighbor, Tensor(b!) node_k, Tensor(c!) incidences, Tensor(d!) status, Tensor(e!) firsts) -> ()");
 }

@@ -157,10 +157,11 @@ def _ref_node_graph_write_edges(edge_ids, edges, force_index, edge_k, node_k, ro
 
 
 def _ref_node_graph_rebuild_hooke_rows(pair_k, elements, node_slots, alive, touched, row_of, max_slots, neighbor,
-                                       node_k, incidences, status):
+                                       node_k, incidences, status, firsts):
     """Each touched node's row summed again from its alive elements in list order, each element's
     pair tensor (a < b locally) oriented from the lower global node, read from the row's node:
-    neighbours in the order first met (elements in order, then their other local nodes in order)."""
+    neighbours in the order first met (elements in order, then their other local nodes in order).
+    (``firsts [S, V]`` is the op's scratch: the reference leaves it.)"""
     n = elements.shape[1]
     pair_of = {(a, b): k for k, (a, b) in enumerate((a, b) for a in range(n) for b in range(a + 1, n))}
     for p in torch.nonzero(touched).flatten().tolist():
@@ -255,8 +256,9 @@ def _example(name):
             # the example's lam = 2, mu = 1.5: E = 27 / 7, nu = 2 / 7
             pair_k = hooke_pair_tensors(ex.rest, elements, ex.vol, torch.full_like(ex.vol, 27 / 7),
                                         torch.full_like(ex.vol, 2 / 7))
+            firsts = torch.zeros(node_slots.shape, dtype=torch.int32, device=device)
             return (pair_k, elements, node_slots, alive, touched, row_of.to(neighbor.dtype), neighbor.shape[0],
-                    graph[0].clone(), graph[1].clone(), graph[2].clone(), status), {}
+                    graph[0].clone(), graph[1].clone(), graph[2].clone(), status, firsts), {}
         if name == "hooke_node_step_rhs":
             x = ex.rest + ex.u
             normals = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]], device=device, dtype=dtype)
@@ -291,7 +293,7 @@ OPS = (
     OpDef("node_graph_write_edges", _ref_node_graph_write_edges, None, differentiable=False, mutates=True,
           example=_example("node_graph_write_edges")),
     OpDef("node_graph_rebuild_hooke_rows", _ref_node_graph_rebuild_hooke_rows, None, differentiable=False,
-          mutates=True, example=_example("node_graph_rebuild_hooke_rows")),
+          mutates=True, example=_example("node_graph_rebuild_hooke_rows"), scratch=("firsts",)),
     OpDef("stress_tangent_node_k", _ref_stress_tangent_node_k, None, differentiable=False, mutates=True,
           example=_example("stress_tangent_node_k"), scratch=("edge_partial",)),
 )

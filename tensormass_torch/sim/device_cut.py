@@ -180,7 +180,7 @@ class DeviceCuts:
         neighbor, node_k, incidences = self.graph
         op("node_graph_rebuild_hooke_rows", self.device)(
             self.pair_k, group.elements, model.node_slots, self.alive, self.touched, self.row_of, neighbor.shape[0],
-            neighbor, node_k, incidences, self.status)
+            neighbor, node_k, incidences, self.status, self.scratch["group"])  # (the ranks are read by now)
         torch.mul(model.mass[:, None], sim.gravity, out=sim.system.external)
         # (a chunk of the solve now holding more slots than its launches sets the status too)
         op(ops_cutting.CLOSE_CUT, self.device)(self.last_cut, incidences, self.chunks[0], self.chunks[1], self.limits,

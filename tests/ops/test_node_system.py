@@ -387,8 +387,9 @@ def test_rebuilt_rows_equal_their_reference_on_a_beam_with_removed_elements(seed
             node_k = torch.full((slots, num_nodes, 3, 3), 0.5, dtype=torch.float64)
             incidences = torch.full((num_nodes,), 3, dtype=index_dtype)
             status = torch.zeros(1, dtype=torch.int32)
+            firsts = torch.full(node_slots.shape, 5, dtype=torch.int32)  # (scratch)
             rebuild(pair_k, elements, node_slots, alive, touched, row_of, max_slots, neighbor, node_k, incidences,
-                    status)
+                    status, firsts)
             outputs.append((neighbor, node_k, incidences, status))
         (neighbor, node_k, incidences, status), want = outputs
         assert torch.equal(incidences, want[2]) and torch.equal(status, want[3])
