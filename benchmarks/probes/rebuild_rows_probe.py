@@ -42,13 +42,14 @@ def main():
     order = near[torch.argsort(distance)]
     print(f"rows {neighbor.shape[1]}, used {used}, slots {model.node_slots.shape[0]}, graph slots {neighbor.shape[0]}, "
           f"nodes added so far {cuts.added}")
+    firsts = torch.empty_like(model.node_slots, dtype=torch.int32)  # the op's scratch
     for count in (1, 10, 100, 300, 1000, 3000, int(order.numel())):
         touched = torch.zeros_like(cuts.touched)
         touched[order[:count]] = 1
 
         def run():
             rebuild(cuts.pair_k, group.elements, model.node_slots, cuts.alive, touched, cuts.row_of,
-                    neighbor.shape[0], neighbor, node_k, incidences, cuts.status)
+                    neighbor.shape[0], neighbor, node_k, incidences, cuts.status, firsts)
         for _ in range(3):
             run()
         torch.cuda.synchronize()

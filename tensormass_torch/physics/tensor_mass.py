@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Optional, Sequence
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -62,25 +63,26 @@ def checked_element_ids(ids, removed: Optional[torch.Tensor], count: int, owner:
     not 1-D integers, out of range of the ``count`` elements of ``owner`` (a label for the
     message), given twice, or already removed (``removed``: a CPU bool tensor ``[count]``, or None
     where none is). Checked on the host, against the host's copy of the removed mask, so that a
-    removal between GPU steps waits for nothing (ids given on the GPU are read back once)."""
+    removal between GPU steps waits for nothing (ids given on the GPU are read back once); in
+    numpy, whose calls on a few hundred ids cost the host a fraction of torch's."""
     ids = torch.as_tensor(ids)
     if ids.dim() != 1 or (ids.numel() and (ids.dtype.is_floating_point or ids.dtype == torch.bool)):
         raise MeshError(f"element ids must be a 1-D integer sequence, got {ids.dtype} of shape {tuple(ids.shape)}")
-    ids = torch.sort(ids.to(device="cpu", dtype=torch.int64)).values
     if ids.numel() == 0:
-        return ids
-    low, high = int(ids[0]), int(ids[-1])
+        return torch.zeros(0, dtype=torch.int64)
+    sorted_ids = np.sort(ids.detach().cpu().numpy().astype(np.int64, copy=False))
+    low, high = int(sorted_ids[0]), int(sorted_ids[-1])
     if low < 0 or high >= count:
         raise MeshError(f"element id {low if low < 0 else high} out of range: {owner} has {count} elements "
                         f"(0 .. {count - 1})")
-    twice = ids[1:] == ids[:-1]
-    if bool(twice.any()):
-        raise MeshError(f"element ids given twice: {torch.unique(ids[1:][twice])[:8].tolist()}")
+    twice = sorted_ids[1:] == sorted_ids[:-1]
+    if twice.any():
+        raise MeshError(f"element ids given twice: {np.unique(sorted_ids[1:][twice])[:8].tolist()}")
     if removed is not None:
-        gone = removed[ids]
-        if bool(gone.any()):
-            raise MeshError(f"elements already removed: {ids[gone][:8].tolist()}")
-    return ids
+        gone = removed.numpy()[sorted_ids]
+        if gone.any():
+            raise MeshError(f"elements already removed: {sorted_ids[gone][:8].tolist()}")
+    return torch.from_numpy(sorted_ids)
 
 
 class TensorMass(nn.Module):
@@ -192,23 +194,26 @@ class TensorMass(nn.Module):
         if ids.numel() == 0:
             return 0.0
         self._prepare_removals()
-        index = self.element_row.dtype  # the ops' one index dtype (the elements')
-        on_device = ids.to(device=self.rest.device, dtype=index, non_blocking=True)
-        self.removed.index_fill_(0, on_device.long(), True)  # first: the refreshes read the flags
+        buffers = self._buffers  # (read once: nn.Module's attribute lookup costs the host more)
+        removed, element_row = buffers["removed"], buffers["element_row"]
+        index = element_row.dtype  # the ops' one index dtype (the elements')
+        on_device = ids.to(device=self.rest.device, non_blocking=True)  # int64: what index_fill_ takes
+        removed.index_fill_(0, on_device, True)  # first: the refreshes read the flags
         for g, group in enumerate(self.groups):
             if len(self.groups) == 1:
                 picked = on_device  # one group: no mask, no host read
             else:
-                picked = on_device[self.element_group[on_device] == g]
+                picked = on_device[buffers["element_group"][on_device] == g]
                 if picked.numel() == 0:
                     continue
-            rows = self.element_row[picked]
+            rows = element_row[picked]  # (in the index dtype)
             elements = group.elements if group.elements.dtype == index else group.elements.to(index)
-            group.remove_rows(rows, self.rest, self.removed, self.element_row)
-            topology.refresh_nodes(elements, rows, self.node_slots, self.element_share, self.removed, self.mass,
-                                   self.node_elements)
-        self._removed_host[ids] = True
-        return float(self._element_mass_host[ids].sum())
+            group.remove_rows(rows, self.rest, removed, element_row)
+            topology.refresh_nodes(elements, rows, buffers["node_slots"], buffers["element_share"], removed,
+                                   buffers["mass"], buffers["node_elements"])
+        host_ids = ids.numpy()
+        self._removed_host.numpy()[host_ids] = True
+        return float(self._element_mass_host.numpy()[host_ids].sum())
 
     def _check_removal(self, ids) -> torch.Tensor:
         return checked_element_ids(ids, self.removed_host(), self.num_elements, "the model")

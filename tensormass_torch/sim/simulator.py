@@ -321,8 +321,9 @@ class Simulator:
         self.contact = contact
         #: contact between the bodies' surfaces (``physics.body_contact.SurfaceContact``) or None
         self.body_contact = None
-        #: the mass each body has lost to element removals ``[B]``
-        self.removed_mass = torch.zeros(len(bodies), dtype=self.dtype, device=self.device)
+        #: the mass each body has lost to element removals ``[B]`` (float64, on the CPU: summed from
+        #: the host's copy of the element masses, so that a removal launches nothing for it)
+        self.removed_mass = torch.zeros(len(bodies), dtype=torch.float64)
         self._make_system()
         self._surfaces_changed()
         self.x = rest.clone()
