@@ -12,13 +12,14 @@ removal, is measured on its own) and of ``Simulator.remove_elements`` between st
 successive removals of R elements, after one untimed, from a simulator whose step graphs are
 captured: model, masses, gravity and constraints updated in place), against, in the same run, building a ``TensorMass``
 of the remaining elements and building a ``Simulator`` of them up to its first step done (what a
-user would do without removals: node graph, captured graphs). Synchronised wall clock. Then the
+user would do without removals: node graph, captured graphs; median of 3 after one). Synchronised
+wall clock. Then the
 SOFA beam's steps/s without removals, with 10 elements removed before every step (one
 ``sim.step()`` call per step in both), and with a scalpel crossing its middle over the steps, cut
 on the host and on the device (``Simulator(cut_on_device=True)``).
 Cuts: one ``Simulator.cut`` across the middle section, from the top down through each of
 ``--cut-depths`` of the height (in place, in spare rows, after a small untimed cut; the elements
-it re-points counted) against a simulator of the cut mesh up to its first step.
+it re-points counted) against a simulator of the cut mesh up to its first step (median of 3 after one).
 """
 from __future__ import annotations
 
@@ -99,7 +100,7 @@ def main(argv=None):
                                              "`TensorMass` of the remaining elements; simulator: "
                                              "`Simulator.remove_elements` between steps (median of 3 successive "
                                              "removals after one) against a `Simulator` of the remaining elements "
-                                             "up to its first step; steps/s: the SOFA beam, one `sim.step()` per "
+                                             "up to its first step (median of 3 after one); steps/s: the SOFA beam, one `sim.step()` per "
                                              "step, with 10 elements removed before each step against none, and a "
                                              "scalpel across the middle over the steps."])
     for scene_name in args.scenes.split(","):
@@ -146,7 +147,7 @@ def measure_scene(results, scene_name, model_name, device, args):
             fresh = tm.Simulator([tm.Body(kept, material, fixed=holds, name=body.name)], **init)
             fresh.step()
 
-        sim_rebuild_s = timed(rebuilt, device, repeat=1)
+        sim_rebuild_s = timed(rebuilt, device, repeat=3)
         results.add(common.record(**same, removed=count, remove_ms=1e3 * remove_s, rebuild_ms=1e3 * rebuild_s,
                                   speedup=rebuild_s / remove_s, sim_remove_ms=1e3 * sim_remove_s,
                                   sim_rebuild_ms=1e3 * sim_rebuild_s, sim_speedup=sim_rebuild_s / sim_remove_s))
@@ -257,7 +258,7 @@ def measure_cut(results, same, scene_name, model_name, device, args, middle, dep
                 fresh.remove_elements(k, ids)
         fresh.step()
 
-    rebuild_s = timed(rebuilt, device, repeat=1)
+    rebuild_s = timed(rebuilt, device, repeat=3)
     results.add(common.record(**same, cut_elements=changed, cut_nodes=added, cut_ms=1e3 * cut_s,
                               sim_rebuild_ms=1e3 * rebuild_s, sim_speedup=rebuild_s / cut_s,
                               note=f"a cut down through {depth:g} of the height at the middle, "
