@@ -100,9 +100,10 @@ def main(argv=None):
                                              "`TensorMass` of the remaining elements; simulator: "
                                              "`Simulator.remove_elements` between steps (median of 3 successive "
                                              "removals after one) against a `Simulator` of the remaining elements "
-                                             "up to its first step (median of 3 after one); steps/s: the SOFA beam, one `sim.step()` per "
-                                             "step, with 10 elements removed before each step against none, and a "
-                                             "scalpel across the middle over the steps."])
+                                             "up to its first step (median of 3 after one); steps/s: the SOFA "
+                                             "beam, one `sim.step()` per step, with 10 elements removed before "
+                                             "each step against none, and a scalpel across the middle over the "
+                                             "steps."])
     for scene_name in args.scenes.split(","):
         for model_name in args.models.split(","):
             measure_scene(results, scene_name, model_name, device, args)

@@ -195,6 +195,9 @@ def refresh_nodes(elements, rows, node_slots, element_share, removed, mass, node
     """``topology_refresh_nodes`` through the op or its reference (see the module docstring)."""
     library.op_or_reference("topology_refresh_nodes", mass.device, native)(elements, rows, node_slots, element_share,
                                                                      removed, mass, node_elements)
+    # the op writes through data pointers: caches keyed on _version (the solver's, built from the
+    # masses) must see the change, as they see an in-place torch op's
+    torch.autograd.graph.increment_version((mass, node_elements))
 
 
 @torch.no_grad()
@@ -203,3 +206,6 @@ def refresh_hooke_edges(rest, elements, rows, element_edges, edge_slots, element
     """``topology_refresh_hooke_edges`` through the op or its reference (see the module docstring)."""
     library.op_or_reference("topology_refresh_hooke_edges", rest.device, native)(
         rest, elements, rows, element_edges, edge_slots, element_row, removed, measure, young, poisson, edge_k)
+    # (written through data pointers: the caches keyed on edge_k's version, the stiffness diagonal
+    # and its blocks among them, must see it)
+    torch.autograd.graph.increment_version((edge_k,))
