@@ -503,7 +503,16 @@ def edges_changed(group, edge_ids: torch.Tensor) -> None:
     rows = cache[3]
     _write_edges_op(edge_k.device)(edge_ids, index, force_index, edge_k, cache[2][1],
                                    None if rows is None else _row_of(group, rows))
-    group.__dict__["_native_hooke_graph"] = _stamped(cache[0], *cache[2:])
+    stamp_again(group)
+
+
+def stamp_again(group) -> None:
+    """The node graph cached on ``group`` (if any) stamped with its tensors' versions now: after
+    a write the caller made through their storage and told torch of (a replayed removal, whose
+    eager run :func:`edges_changed` stamps the same way), the cache stays current."""
+    if has_cached_graph(group):
+        cache = group.__dict__["_native_hooke_graph"]
+        group.__dict__["_native_hooke_graph"] = _stamped(cache[0], *cache[2:])
 
 
 @torch.no_grad()

@@ -188,22 +188,28 @@ class TensorMass(nn.Module):
 
     def _remove_checked(self, ids: torch.Tensor) -> float:
         """:meth:`remove_elements` of ids already checked (``checked_element_ids``: sorted int64 on
-        the CPU): the removed flags set, then each group's rows and the nodes they touch refreshed
-        (``ops.topology``), a few launches that never wait for the device. Returns the mass
-        removed (from the host's copy of the element masses)."""
+        the CPU): :meth:`_remove_on_device` then :meth:`_removed_on_host`, a few launches that
+        never wait for the device. Returns the mass removed."""
         if ids.numel() == 0:
             return 0.0
         self._prepare_removals()
+        self._remove_on_device(ids.to(device=self.rest.device, non_blocking=True))
+        return self._removed_on_host(ids)
+
+    def _remove_on_device(self, ids: torch.Tensor) -> None:
+        """The device's part of a removal of the checked ids ``[R]`` (int64, on the model's
+        device; repeats allowed: every write is idempotent): the removed flags set, then each
+        group's rows and the nodes they touch refreshed (``ops.topology``). Needs
+        :meth:`_prepare_removals` first."""
         buffers = self._buffers  # (read once: nn.Module's attribute lookup costs the host more)
         removed, element_row = buffers["removed"], buffers["element_row"]
         index = element_row.dtype  # the ops' one index dtype (the elements')
-        on_device = ids.to(device=self.rest.device, non_blocking=True)  # int64: what index_fill_ takes
-        removed.index_fill_(0, on_device, True)  # first: the refreshes read the flags
+        removed.index_fill_(0, ids, True)  # first: the refreshes read the flags
         for g, group in enumerate(self.groups):
             if len(self.groups) == 1:
-                picked = on_device  # one group: no mask, no host read
+                picked = ids  # one group: no mask, no host read
             else:
-                picked = on_device[buffers["element_group"][on_device] == g]
+                picked = ids[buffers["element_group"][ids] == g]
                 if picked.numel() == 0:
                     continue
             rows = element_row[picked]  # (in the index dtype)
@@ -211,6 +217,10 @@ class TensorMass(nn.Module):
             group.remove_rows(rows, self.rest, removed, element_row)
             topology.refresh_nodes(elements, rows, buffers["node_slots"], buffers["element_share"], removed,
                                    buffers["mass"], buffers["node_elements"])
+
+    def _removed_on_host(self, ids: torch.Tensor) -> float:
+        """The host's part of a removal of the checked ids (sorted int64 on the CPU): its copy of
+        the removed flags set. Returns the mass removed, from its copy of the element masses."""
         host_ids = ids.numpy()
         self._removed_host.numpy()[host_ids] = True
         return float(self._element_mass_host.numpy()[host_ids].sum())

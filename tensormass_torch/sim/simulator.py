@@ -35,6 +35,7 @@ from ..solver.implicit_euler import (
 )
 from ..solver.preconditioner import PRECONDITIONERS
 from . import memory
+from .captured_removal import CapturedRemovals
 from .device_cut import DeviceCuts
 from .diagnostics import ContactReport, InversionCheck, InversionReport, contact_report, interpenetration
 from .scalpel import Scalpel
@@ -258,6 +259,7 @@ class Simulator:
         #: whether scalpels cut on the device where they can (``sim.device_cut.DeviceCuts``)
         self.cut_on_device = cut_on_device
         self._device_cuts = None  # the DeviceCuts of body 0, made at the first scalpel's cut
+        self._captured_removals = None  # the CapturedRemovals, made at the first removal on CUDA
         self._device_cut_blades: list = []  # the blades cut on the device since the last settle
         # each scalpel's strip for the next step {(scalpel, t0, t1): corners} (scalpels keyed by
         # identity), made while the device runs this step's cut (see _apply_scalpels)
@@ -461,9 +463,16 @@ class Simulator:
         if ids.numel() == 0:
             return 0.0
         ids = ids + first  # checked once, as the body's ids
-        lost = self.model._remove_checked(ids)  # counted from the host's copy: no device read
+        self.model._prepare_removals()
+        if CapturedRemovals.unavailable(self) is None:  # (on CUDA: replayed from a graph)
+            if self._captured_removals is None:
+                self._captured_removals = CapturedRemovals(self)
+            self._captured_removals.remove(ids)
+            lost = self.model._removed_on_host(ids)
+        else:
+            lost = self.model._remove_checked(ids)  # counted from the host's copy: no device read
+            self._masses_changed()
         self.removed_mass[i] += lost
-        self._masses_changed()
         self._surfaces_changed()
         if self._inversion is not None:
             self._inversion = InversionCheck.for_simulator(self)
