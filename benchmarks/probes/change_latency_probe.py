@@ -15,6 +15,7 @@ import statistics
 import time
 
 import torch
+from cut_probe import section  # (this folder: the probes run as scripts)
 
 import tensormass_torch as tm
 from tensormass_torch.sim import builtin
@@ -51,15 +52,6 @@ def profiled(change, device, rows=25):
     kernels = sum(e.device_time_total for e in averages if e.device_type == torch.autograd.DeviceType.CUDA)
     print(f"  GPU time of its kernels: {kernels:.1f} us")
     print(averages.table(sort_by="cpu_time_total", row_limit=rows, max_name_column_width=50))
-
-
-def section(sim, x, depth):
-    v = sim.positions(0)
-    near = v[(v[:, 0] - x).abs() < 1.0]
-    bottom, top = float(near[:, 1].min()), float(near[:, 1].max())
-    z0, z1 = float(v[:, 2].min()) - 1.0, float(v[:, 2].max()) + 1.0
-    low = top - depth * (top - bottom)
-    return tm.Blade.swept((x, top + 1, z0), (x, top + 1, z1), (x, low, z0), (x, low, z1))
 
 
 def rebuild_ms(sim, init, repeats, device):
