@@ -1,9 +1,9 @@
 // A node's column of a [S, V] table (node_slots: the elements that hold it, -1 past the last; or a
 // table beside it, as a cut's group) read into one thread's memory, and a node's elements read
 // eight at a time. For the kernels of the cut on the device and the node graph's rebuilt rows that
-// walk a star in one thread: such a thread's time is the latency of its loads, so a column is read
-// whole, eight independent loads at a time, and the elements' rows and flags eight elements at a
-// time, rather than entry by entry.
+// read a star: such a thread's time is the latency of its loads, so a column is read eight
+// independent loads at a time, and the elements' rows and flags eight elements at a time, rather
+// than entry by entry.
 #pragma once
 
 #include <cstdint>

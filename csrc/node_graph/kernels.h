@@ -263,9 +263,8 @@ constexpr int kMaxRebuiltSlots = 64;
 
 // The row of a touched node of a hooke tensor-form group's node graph, rebuilt after its elements
 // changed (a cut on the device, cutting/kernels.h), in three passes, each item a (slot, node) or a
-// (node, slot), so that no thread walks a whole star (a thread per node took as long as the node
-// with the largest star, some 45 us for the rows of a cut in the SOFA beam:
-// benchmarks/results/h100/device_cuts.md):
+// (node, slot), so that no thread walks a whole star (a thread per node would take as long as the
+// node with the largest star, its loads one after another; docs/topology-changes.md):
 //   RebuildRowFirstsKernel, a (slot h, touched node p) an item: which of the other nodes of p's h-th
 //     element (if it is alive and holds p) no element before it in p's list holds, as a mask of its
 //     local indices in firsts[h, p] (the earlier elements read eight at a time).

@@ -1,8 +1,8 @@
 """Element removals between CUDA steps replayed from captured graphs.
 
 A removal in place (``TensorMass._remove_checked`` and the simulator's masses, gravity and
-constraints) is a dozen small launches: on an H100 their host time (about 0.45 ms) is all of its
-cost, several times their GPU time. Here those launches are captured once per capacity (a power of
+constraints) is a dozen small launches, each queued from Python: their host time, not their GPU
+work, is most of its cost (docs/topology-changes.md). Here those launches are captured once per capacity (a power of
 two, 16 ids and up) and replayed. Before each replay the ids, padded to the capacity by repeating
 the last id, are copied into the graph's input buffer: a copy from pageable memory, ordered on the
 stream, so the graph holds no copy node and nothing waits for an event. Repeating an id is
@@ -23,7 +23,7 @@ buffers, the cached node graph's, the system's loads and constraint mask: their 
 sizes) is taken at capture and compared before each replay; any change (a cut in place that grew a
 table, a system built again) drops the graphs and the next removal captures again.
 
-A capture that fails (none has in the tests) warns once and leaves the removals eager from then
+A capture that fails warns once and leaves the removals eager from then
 on: the removal that tried it was made eagerly before the capture.
 
 Serves a simulator on CUDA with CUDA graphs on, whose model is one element group (several groups
@@ -129,9 +129,8 @@ class CapturedRemovals:
         """The removal on the device, in place (what the graph holds)."""
         sim = self.sim
         sim.model._remove_on_device(capture.ids)
-        torch.eq(sim.model.node_elements, 0, out=capture.isolated)
-        torch.mul(sim.model.lumped_mass()[:, None], sim.gravity, out=sim.system.external)
-        sim.system.free.masked_fill_(capture.isolated[:, None], 0.0)
+        torch.eq(sim.model.node_elements, 0, out=capture.isolated)  # (TensorMass.isolated_nodes, into a kept buffer)
+        sim._loads_follow_masses(capture.isolated)
 
     def _capture(self, capacity: int, ids: torch.Tensor) -> _Capture:
         """A graph of the removal of ``capacity`` ids, made while removing ``ids`` eagerly (the

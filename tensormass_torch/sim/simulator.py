@@ -412,6 +412,12 @@ class Simulator:
         if self.system.free is None:
             self._make_system()
             return
+        self._loads_follow_masses(isolated)
+
+    def _loads_follow_masses(self, isolated: torch.Tensor) -> None:
+        """Gravity from the masses as they are and the nodes ``isolated [V]`` (bool: on no element)
+        out of the system, in place: the storage the solver's caches and captured graphs read (the
+        captured removals replay this too)."""
         torch.mul(self.model.lumped_mass()[:, None], self.gravity, out=self.system.external)
         self.system.free.masked_fill_(isolated[:, None], 0.0)
 
