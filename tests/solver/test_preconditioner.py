@@ -132,25 +132,52 @@ def test_the_system_blocks_are_the_step_matrix_blocks(friction):
     assert float(off.abs().max()) > 1e-6 * float(blocks.abs().max())  # the blocks are not diagonal
 
 
-def test_the_block_scaling_is_b_to_the_minus_half():
-    """With blocks, S = B^(-1/2): symmetric, S B S = I per node, S^-1 its inverse; the product is
-    S A S; a node whose block is zero stays unscaled."""
+def test_the_block_scaling_is_the_inverse_cholesky_factor():
+    """With blocks B = L L^T, S = L^-T: upper triangular, S^T B S = I per node, S^-1 = L^T its
+    inverse; the product is S^T A S (similar to B^-1 A); a node whose block is zero (or not
+    positive definite) stays unscaled."""
     gen = torch.Generator().manual_seed(5)
-    a = torch.randn(12, 12, generator=gen, dtype=DT)
-    a = a @ a.T + 12 * torch.eye(12, dtype=DT)
-    blocks = torch.stack([a[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(4)]).clone()
+    a = torch.randn(15, 15, generator=gen, dtype=DT)
+    a = a @ a.T + 12 * torch.eye(15, dtype=DT)
+    blocks = torch.stack([a[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(5)]).clone()
     blocks[2] = 0.0
+    blocks[4] = torch.diag(torch.tensor([1.0, -2.0, 3.0], dtype=DT))  # indefinite
     scaling = JacobiScaling().load(blocks)
     s = scaling.scale
-    torch.testing.assert_close(s, s.transpose(1, 2))
+    torch.testing.assert_close(s, torch.triu(s))
     for i in (0, 1, 3):
-        torch.testing.assert_close(s[i] @ blocks[i] @ s[i], torch.eye(3, dtype=DT))
-    torch.testing.assert_close(s[2], torch.eye(3, dtype=DT))
-    p = torch.randn(4, 3, generator=gen, dtype=DT)
+        torch.testing.assert_close(s[i].T @ blocks[i] @ s[i], torch.eye(3, dtype=DT))
+        torch.testing.assert_close(scaling.inverse[i].T @ scaling.inverse[i], blocks[i])
+    for i in (2, 4):
+        torch.testing.assert_close(s[i], torch.eye(3, dtype=DT))
+    p = torch.randn(5, 3, generator=gen, dtype=DT)
     torch.testing.assert_close(scaling.unapply(scaling.apply(p)), p)
     big = torch.block_diag(*s)
-    expected = (big @ a @ big) @ p.reshape(-1)
-    torch.testing.assert_close(scaling.product(lambda q: (a @ q.reshape(-1)).view(4, 3))(p).reshape(-1), expected)
+    expected = (big.T @ a @ big) @ p.reshape(-1)
+    torch.testing.assert_close(scaling.product(lambda q: (a @ q.reshape(-1)).view(5, 3))(p).reshape(-1), expected)
+    torch.testing.assert_close(scaling.apply_transpose(p).reshape(-1), big.T @ p.reshape(-1))
+    # the spectrum of B^-1 A, as the symmetric B^(-1/2) A B^(-1/2) has it
+    keep = [i for i in range(15) if i // 3 in (0, 1, 3)]
+    sub = big[keep][:, keep].T @ a[keep][:, keep] @ big[keep][:, keep]
+    values, vectors = torch.linalg.eigh(torch.block_diag(*(blocks[i] for i in (0, 1, 3))))
+    half = vectors @ torch.diag(values.rsqrt()) @ vectors.T
+    torch.testing.assert_close(torch.linalg.eigvalsh(sub), torch.linalg.eigvalsh(half @ a[keep][:, keep] @ half))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def test_block_scaling_of_many_blocks(dim, device):
+    """A pile's worth of blocks (200,000: cuSOLVER's batched eigendecomposition, which the block
+    scaling once used, failed past some tens of thousands on the GPU), float32, 2-D and 3-D:
+    S^T B S = I to float32's rounding."""
+    gen = torch.Generator().manual_seed(1)
+    g = torch.randn(200_000, dim, dim, generator=gen)
+    blocks = (g @ g.transpose(1, 2) + 0.1 * torch.eye(dim)).to(device)
+    scaling = JacobiScaling().load(blocks)
+    eye = torch.eye(dim, device=device).expand_as(blocks)
+    s = scaling.scale
+    torch.testing.assert_close(s.transpose(1, 2) @ blocks @ s, eye, rtol=0, atol=2e-3)
+    torch.testing.assert_close(scaling.inverse @ s, eye, rtol=0, atol=1e-4)
 
 
 def test_the_scaled_product_is_s_a_s():
