@@ -275,6 +275,8 @@ TM_HD void stress_dforces(const S (&u)[NN][D], const S (&du)[NN][D], const S (&m
 
 TM_HD float tm_sqrt(float x) { return sqrtf(x); }
 TM_HD double tm_sqrt(double x) { return sqrt(x); }
+TM_HD float tm_floor(float x) { return floorf(x); }
+TM_HD double tm_floor(double x) { return floor(x); }
 TM_HD float tm_abs(float x) { return fabsf(x); }
 TM_HD double tm_abs(double x) { return fabs(x); }
 

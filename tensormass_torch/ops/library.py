@@ -36,7 +36,8 @@ __all__ = ["FAMILIES", "OpDef", "REGISTRY", "define", "register", "ensure_regist
            "Example", "supports", "op_or_reference"]
 
 #: The op families, each a folder of csrc/ and a module of this package.
-FAMILIES = ("stress", "tensor_form", "gather", "node_graph", "cg", "solve", "topology", "cutting", "multigrid")
+FAMILIES = ("stress", "tensor_form", "gather", "node_graph", "cg", "solve", "topology", "cutting", "multigrid",
+            "contact")
 
 #: The ``model`` integer of the op schemas ("stvk_definite": stvk with ``tangent="definite"``,
 #: see ``reference.stress_form.kernel_model``).

@@ -65,6 +65,7 @@ import torch
 
 from ..errors import SceneError
 from ..mesh.distance import closest_point, closest_weights  # noqa: F401  (closest_weights: re-exported)
+from ..ops import contact as contact_ops
 from .contact import check_friction, coulomb_damping, tangential_part
 
 #: Bodies tested against all the others at a time by the swept broad phase (memory: BODY_ROWS x B).
@@ -142,26 +143,6 @@ def signed_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.
     w, diff, d, normal = closest_point(p, a, b, c)
     side = torch.where((normal * diff).sum(-1) >= 0, 1.0, -1.0).to(p.dtype)
     return side * d, _direction(diff, d, side, normal), w
-
-
-def _hash(cells: torch.Tensor) -> torch.Tensor:
-    """An int64 key of integer cells ``[..., 3]``: distinct cells may share one (the narrow phase
-    checks every candidate's distance, so a collision costs work, never a contact)."""
-    return (cells[..., 0] * 73856093) ^ (cells[..., 1] * 19349663) ^ (cells[..., 2] * 83492791)
-
-
-def _covered_cells(low: torch.Tensor, high: torch.Tensor, cell):
-    """The cells of size ``cell`` that boxes [low, high] ``[N, 3]`` cover: (box ids ``[E]``,
-    integer cells ``[E, 3]``), each box's cells in a row (one host read: their number)."""
-    first = torch.floor(low / cell).to(torch.int64)
-    span = torch.floor(high / cell).to(torch.int64) - first + 1  # [N, 3] cells per axis
-    count = span.prod(-1)
-    total = int(count.sum())
-    box = torch.repeat_interleave(torch.arange(len(low), device=low.device), count, output_size=total)
-    local = torch.arange(total, device=low.device) - (torch.cumsum(count, 0) - count)[box]
-    ny, nz = span[box, 1], span[box, 2]
-    offset = torch.stack([local // (ny * nz), (local // nz) % ny, local % nz], dim=-1)
-    return box, first[box] + offset
 
 
 def _sum_into(num_nodes: int, nodes: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -549,7 +530,8 @@ class SurfaceContact:
         A spatial hash of cell size c = the largest triangle box side at x + 2 reach (motion does
         not grow it: a still triangle covers at most 2 cells per axis, a moving one as many as
         its swept box does, and a vertex's segment likewise). A pair meets in every cell both
-        boxes cover; it is kept in one, the cell of the low corner of the boxes' intersection."""
+        boxes cover; it is kept in one, the cell of the low corner of the boxes' intersection
+        (``ops.contact.candidate_pairs``: the walk over the cells' entries is an op)."""
         device = x.device
         empty = torch.zeros(0, dtype=torch.int64, device=device)
         if len(self.triangles) == 0:
@@ -559,48 +541,27 @@ class SurfaceContact:
         reach = self.reach
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
         points = x[self.vertices]
-        swept = self.settings.swept and v is not None and dt > 0
-        if swept:  # in each body's moving frame, grown by what the bodies it may meet close on it
+        point_low = point_high = points  # (the same tensor: one query per vertex)
+        if self.settings.swept and v is not None and dt > 0:
+            # in each body's moving frame, grown by what the bodies it may meet close on it
             deviation, _, grow = self._motion(x, v, dt) if motion is None else motion
             moved = corners + deviation[self.triangles]
             low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
             ends = points + deviation[self.vertices]
             grow = grow[self.vertex_object][:, None]
             point_low, point_high = torch.minimum(points, ends) - grow, torch.maximum(points, ends) + grow
-        low, high = low - reach, high + reach
-        # (each count below is one host synchronisation: the sizes of what follows)
-        owners, cells = _covered_cells(low, high, cell)
-        keys, order = torch.sort(_hash(cells), stable=True)
-        owners, cells = owners[order], cells[order]
-        if swept:
-            query_vertex, query_cells = _covered_cells(point_low, point_high, cell)
-        else:
-            query_vertex = torch.arange(len(self.vertices), device=device)
-            query_cells = torch.floor(points / cell).to(torch.int64)
-        query_keys = _hash(query_cells)
-        start = torch.searchsorted(keys, query_keys, side="left")
-        counts = torch.searchsorted(keys, query_keys, side="right") - start
-        total = int(counts.sum())
-        query = torch.repeat_interleave(torch.arange(len(query_keys), device=device), counts, output_size=total)
-        first_of = torch.repeat_interleave(start - (torch.cumsum(counts, 0) - counts), counts, output_size=total)
-        entry = first_of + torch.arange(total, device=device)
-        triangle, vertex = owners[entry], query_vertex[query]
-        # an entry of another cell whose key collides is not a candidate (it would repeat a pair)
-        kept = (cells[entry] == query_cells[query]).all(-1)
-        if swept:  # boxes that meet, once: in the cell of their intersection's low corner
-            corner = torch.maximum(point_low[vertex], low[triangle])
-            meet = ((point_low[vertex] <= high[triangle]) & (point_high[vertex] >= low[triangle])).all(-1)
-            kept &= meet & (torch.floor(corner / cell).to(torch.int64) == query_cells[query]).all(-1)
-        same = self.vertex_object[vertex] == self.triangle_object[triangle]
+        vertex, triangle = contact_ops.candidate_pairs(cell, low - reach, high + reach, self.triangle_object,
+                                                       point_low, point_high, self.vertex_object,
+                                                       same_body=self.settings.self_contact)
         if not self.settings.self_contact:
-            other = (kept & ~same).nonzero().squeeze(1)
-            return vertex[other], triangle[other]
+            return vertex, triangle
         # self-contact: not the vertex's own triangles, nor those near it at rest
         node = self.vertices[vertex]
-        own = (self.triangles[triangle] == node[:, None]).any(1)
         tri = self.triangles[triangle]
+        own = (tri == node[:, None]).any(1)
+        same = self.vertex_object[vertex] == self.triangle_object[triangle]
         s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
-        keep = (kept & (~same | (~own & (s_rest.abs() > reach)))).nonzero().squeeze(1)
+        keep = (~same | (~own & (s_rest.abs() > reach))).nonzero().squeeze(1)
         return vertex[keep], triangle[keep]
 
     def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):

@@ -1,0 +1,99 @@
+"""Where a detection of the contact between bodies spends its time, with the broad phase's walk
+over the hash as the op (``ops.contact``) and as its tensor-op reference, at one state of a pile.
+
+    python benchmarks/probes/contact_detection_probe.py [--columns 4 10] [--steps 60] [--device cuda]
+                                                        [--cells 10 10 5] [--dtype float32]
+
+Each pile is ``contact_piles``' (columns x columns x columns blocks), stepped ``--steps`` steps
+with contact; at that state, the mean of 10 (after one): the broad phase
+(``SurfaceContact.candidates``, swept at the state's velocities) and a whole detection
+(``detect``) through the op and through the reference, whether both found the same candidates
+and pairs, then steps/s over 10 steps each way (from the same state). Prints one JSON line per
+pile.
+"""
+import argparse
+import json
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import common  # noqa: E402
+import contact_piles  # noqa: E402
+
+import tensormass_torch as tm  # noqa: E402
+from tensormass_torch.ops import contact as contact_ops  # noqa: E402
+from tensormass_torch.physics import body_contact  # noqa: E402
+
+
+class BroadPhase:
+    """Swaps the broad phase's walk for its reference while in use."""
+
+    def __init__(self, native: bool):
+        self.native = native
+
+    def __enter__(self):
+        self.saved = body_contact.contact_ops.candidate_pairs
+        body_contact.contact_ops.candidate_pairs = partial(contact_ops.candidate_pairs, native=self.native)
+
+    def __exit__(self, *exc):
+        body_contact.contact_ops.candidate_pairs = self.saved
+
+
+def mean_ms(fn, device, repeats=10):
+    fn()
+    common.sync(device)
+    start = time.perf_counter()
+    for _ in range(repeats):
+        out = fn()
+    common.sync(device)
+    return 1e3 * (time.perf_counter() - start) / repeats, out
+
+
+def probe(columns, cells, steps, device, dtype):
+    bodies, _ = contact_piles.pile(columns, cells, device, dtype)
+    sim = contact_piles.simulator(bodies, tm.Contact(), device, dtype)
+    sim.step(steps)
+    contact, x, v = sim.body_contact, sim.x.clone(), sim.v.clone()
+    row = dict(blocks=len(bodies), surface_triangles=len(contact.triangles), surface_vertices=len(contact.vertices),
+               steps=steps)
+    found = {}
+    for native in (True, False):
+        name = "op" if native else "reference"
+        with BroadPhase(native):
+            row[f"candidates_ms_{name}"], found[name] = mean_ms(lambda: contact.candidates(x, v, contact_piles.DT),
+                                                                device)
+            row[f"detect_ms_{name}"], pairs = mean_ms(lambda: contact.detect(x, v, contact_piles.DT), device)
+            found[name + "_pairs"] = pairs.nodes
+    row["candidates"] = len(found["op"][0])
+    row["same_candidates"] = all(torch.equal(a, b) for a, b in zip(found["op"], found["reference"]))
+    row["same_pairs"] = torch.equal(found["op_pairs"], found["reference_pairs"])
+    for native in (True, False):
+        name = "op" if native else "reference"
+        sim.x, sim.v = x.clone(), v.clone()
+        with BroadPhase(native):
+            sim.step(2)
+            row[f"steps_per_s_{name}"] = contact_piles.rate(sim, 10, device)
+            row[f"solves_last_step_{name}"] = len(sim.last_report.cg)
+    return row
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--columns", type=int, nargs="+", default=[4])
+    parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    args = parser.parse_args(argv)
+    for columns in args.columns:
+        print(json.dumps(probe(columns, tuple(args.cells), args.steps, args.device, getattr(torch, args.dtype))),
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
