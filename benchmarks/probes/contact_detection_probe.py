@@ -3,13 +3,17 @@ over the hash as the op (``ops.contact``) and as its tensor-op reference, at one
 
     python benchmarks/probes/contact_detection_probe.py [--columns 4 10] [--steps 60] [--device cuda]
                                                         [--cells 10 10 5] [--dtype float32]
+                                                        [--profile FILE]
 
 Each pile is ``contact_piles``' (columns x columns x columns blocks), stepped ``--steps`` steps
 with contact; at that state, the mean of 10 (after one): the broad phase
 (``SurfaceContact.candidates``, swept at the state's velocities) and a whole detection
 (``detect``) through the op and through the reference, whether both found the same candidates
 and pairs, then steps/s over 10 steps each way (from the same state). Prints one JSON line per
-pile.
+pile. ``--profile FILE``: then, for each pile, Python's profile of 3 steps (cumulative time,
+the functions a step spends its time under) and torch's of one step and of one detection
+(operators by self CUDA time on the GPU, by self CPU time on the CPU, with their calls),
+appended to FILE.
 """
 import argparse
 import json
@@ -54,7 +58,37 @@ def mean_ms(fn, device, repeats=10):
     return 1e3 * (time.perf_counter() - start) / repeats, out
 
 
-def probe(columns, cells, steps, device, dtype):
+def profiles(sim, out, label):
+    """Python's profile of 3 steps and torch's of one step and one detection, appended to ``out``."""
+    import cProfile
+    import io
+    import pstats
+
+    from torch.profiler import ProfilerActivity, profile
+
+    device = sim.x.device.type
+    profiler = cProfile.Profile()
+    profiler.enable()
+    sim.step(3)
+    common.sync(device)
+    profiler.disable()
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("cumulative").print_stats(40)
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
+    tables = []
+    for what, fn in (("one step", lambda: sim.step()),
+                     ("one detection", lambda: sim.body_contact.detect(sim.x, sim.v, contact_piles.DT))):
+        with profile(activities=activities) as prof:
+            fn()
+            common.sync(device)
+        key = "self_cuda_time_total" if device == "cuda" else "self_cpu_time_total"
+        tables.append(f"## {label}: {what}\n" + prof.key_averages().table(sort_by=key,
+                                                                         row_limit=30, max_name_column_width=50))
+    with open(out, "a") as f:
+        f.write(f"# {label}: 3 steps, cumulative\n{text.getvalue()}\n" + "\n".join(tables) + "\n")
+
+
+def probe(columns, cells, steps, device, dtype, profile_to=None):
     bodies, _ = contact_piles.pile(columns, cells, device, dtype)
     sim = contact_piles.simulator(bodies, tm.Contact(), device, dtype)
     sim.step(steps)
@@ -79,6 +113,8 @@ def probe(columns, cells, steps, device, dtype):
             sim.step(2)
             row[f"steps_per_s_{name}"] = contact_piles.rate(sim, 10, device)
             row[f"solves_last_step_{name}"] = len(sim.last_report.cg)
+    if profile_to:
+        profiles(sim, profile_to, f"{len(bodies)} blocks")
     return row
 
 
@@ -89,9 +125,11 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    parser.add_argument("--profile", default=None, help="append profiles of each pile's steps to this file")
     args = parser.parse_args(argv)
     for columns in args.columns:
-        print(json.dumps(probe(columns, tuple(args.cells), args.steps, args.device, getattr(torch, args.dtype))),
+        print(json.dumps(probe(columns, tuple(args.cells), args.steps, args.device, getattr(torch, args.dtype),
+                               args.profile)),
               flush=True)
 
 
