@@ -4,7 +4,8 @@ number of surface triangles, and the deepest interpenetration over the run.
 
     python benchmarks/studies/contact_piles.py [--columns 2 4 6] [--cells 10 10 5] [--steps 120]
                                                [--friction 0] [--no-swept] [--check-every 0]
-                                               [--preconditioners auto none] [--device cuda]
+                                               [--preconditioners auto none] [--rounds 4]
+                                               [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
 
@@ -15,7 +16,9 @@ floor plane of 1e5 N/m; dt = 5 ms, Rayleigh mass damping 1/s, cg_tol 1e-4. With 
 pile runs ``--steps`` steps (the deepest interpenetration over them is reported), then 10 more
 are timed, once for each of ``--preconditioners`` (the Simulator's ``preconditioner``); without
 contact, 10 steps after 10 of warm-up (the blocks fall through each other: only the rate is
-compared). Detection: ``SurfaceContact.detect`` at the final state, mean of 10.
+compared). Detection: ``SurfaceContact.detect`` at the final state, mean of 10. ``--rounds``: a
+run with contact for each ``Contact(rounds=...)`` (how many more solves a step may take to check
+its contact set: the trade of cost against transient interpenetration).
 No block may pass through another: besides the deepest interpenetration the steps report (over
 the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
 inside another block, whatever its depth) is measured at the end and every ``--check-every``
@@ -81,14 +84,14 @@ def without_contact(bodies, device, dtype) -> dict:
 
 def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
-            state: Optional[Path] = None, budget_s: Optional[float] = None) -> Optional[dict]:
+            state: Optional[Path] = None, budget_s: Optional[float] = None, rounds: int = 4) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None).
     With ``state`` (a folder), the run goes on from the state saved there (positions,
     velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
     have passed, saves it there and returns None: a run longer than one sitting of a machine
     resumes where it stopped, stepping the same states."""
     bodies, block = pile(columns, cells, device, dtype)
-    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept), device, dtype, preconditioner)
+    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, rounds=rounds), device, dtype, preconditioner)
     saved = state / "meta.json" if state is not None else None
     if saved is not None and saved.exists():
         progress = json.loads(saved.read_text())
@@ -128,7 +131,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     without = progress["steps_per_s_without"]
     return dict(blocks=len(bodies), tets=len(bodies) * block.num_elements, surface_triangles=len(contact.triangles),
                 pairs=len(pairs), steps=steps, run_s=progress["run_s"], deepest_m=progress["deepest"],
-                preconditioner=preconditioner, steps_per_s_without=without, steps_per_s_with=with_contact,
+                preconditioner=preconditioner, rounds=rounds, steps_per_s_without=without,
+                steps_per_s_with=with_contact,
                 cost_ratio=without / with_contact, detect_ms=detect_ms,
                 cg_iterations=max(int(c.iterations.max()) for c in report.cg),
                 cg_iterations_step=sum(int(c.iterations.max()) for c in report.cg),
@@ -162,6 +166,8 @@ def main(argv=None):
                         help="Contact(swept=...): pairs over each step's motion (the default) or at its start")
     parser.add_argument("--preconditioners", nargs="+", default=["auto"], choices=["auto", "none", "jacobi"],
                         help="a run with contact for each (the pile without contact is measured once)")
+    parser.add_argument("--rounds", type=int, nargs="+", default=[4],
+                        help="a run with contact for each Contact(rounds=...) (and each preconditioner)")
     parser.add_argument("--state", default=None,
                         help="a folder to save the run's state in when --budget-s runs out, and to go on from")
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
@@ -180,7 +186,7 @@ def main(argv=None):
                ("pairs", "pairs", ","), ("steps_per_s_without", "steps/s without", ".1f"),
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
                ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
-               ("preconditioner", "preconditioner", None),
+               ("preconditioner", "preconditioner", None), ("rounds", "rounds", None),
                ("cg_iterations", "CG iterations with (most of one solve)", None),
                ("cg_iterations_step", "CG iterations of the last step", None),
                ("solves", "solves in the last step", None),
@@ -194,10 +200,11 @@ def main(argv=None):
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
         baseline = None
-        for preconditioner in args.preconditioners:
-            state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}"
+        for preconditioner, rounds in [(p, r) for p in args.preconditioners for r in args.rounds]:
+            suffix = "" if args.rounds == [4] else f"_rounds{rounds}"
+            state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
-                             args.swept, preconditioner, baseline, state, args.budget_s)
+                             args.swept, preconditioner, baseline, state, args.budget_s, rounds)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()
                 return results.records

@@ -97,6 +97,12 @@ class Contact:
         friction: Coulomb coefficient mu between the bodies (0: frictionless, the default).
         friction_velocity: eps_v (m/s), the slip speed below which friction is viscous instead
             of Coulomb (the regularisation: a sticking contact creeps at less than this).
+        rounds: how many more solves a step may take to check its contact set against its
+            solution (``solver.implicit_euler.implicit_euler_step``: pairs the solution drives
+            into contact join the set, pairs it slides over a crease are linearised again; a step
+            that misses nothing is solved once). 0: the pairs found at the step's start only,
+            one solve a step; fewer rounds are faster and leave deeper transient
+            interpenetration (docs/contact.md measures the trade).
     """
 
     stiffness: float = 1e5
@@ -107,6 +113,7 @@ class Contact:
     tangent: str = "projected"
     friction: float = 0.0
     friction_velocity: float = 1e-3
+    rounds: int = 4
 
     def __post_init__(self):
         def number(value):
@@ -123,6 +130,8 @@ class Contact:
         if not isinstance(self.swept, bool):
             raise SceneError(f"contact swept must be true or false, got {self.swept!r}")
         check_friction(self.friction, self.friction_velocity, "contact")
+        if not isinstance(self.rounds, int) or isinstance(self.rounds, bool) or self.rounds < 0:
+            raise SceneError(f"contact rounds must be a non-negative integer, got {self.rounds!r}")
         if self.tangent not in TANGENTS:
             raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
                              f"got {self.tangent!r}")

@@ -67,6 +67,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     swept = true                      # find pairs over each step's motion (fast bodies)
     friction = 0.0                    # Coulomb coefficient between the bodies (0: none)
     friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
+    rounds = 4                        # more solves a step may take to check its contact set (0: none)
 
     [[bodies]]
     name = "beam"
@@ -246,11 +247,13 @@ def _check(value, kind: str, error: Callable[[str], SceneError]):
         if kind == "nonnegative" and not value >= 0:
             raise error(f"must be >= 0, got {value!r}")
         return float(value)
-    if kind in ("int", "posint"):
+    if kind in ("int", "posint", "nonnegative_int"):
         if not isinstance(value, int) or isinstance(value, bool):
             raise error(f"must be an integer, got {_describe(value)}")
         if kind == "posint" and value < 1:
             raise error(f"must be >= 1, got {value}")
+        if kind == "nonnegative_int" and value < 0:
+            raise error(f"must be >= 0, got {value}")
         return value
     if kind[:-1].endswith("vec"):  # vec2, vec3, posvec3, intvec3, posintvec2...
         length = int(kind[-1])
@@ -798,6 +801,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           swept=contact_table.get("swept", "bool", True),
                           friction=contact_table.get("friction", "nonnegative", 0.0),
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
+                          rounds=contact_table.get("rounds", "nonnegative_int", 4),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
     distributed_table = top.table("distributed") or _Table({}, "distributed", fail)

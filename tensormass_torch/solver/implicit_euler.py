@@ -834,10 +834,6 @@ def _raise_if_nonfinite(system: DynamicsSystem, norms: torch.Tensor, report):
 #: solve is a backward Euler one (:func:`bdf2_step`)
 INTEGRATORS = {"backward_euler": 1.0, "newmark": 0.5, "bdf2": 1.0}
 
-#: The most solves a step with body contact adds for pairs its first solve left out (see
-#: :func:`implicit_euler_step`): each adds every nearby pair the last solution drives into contact.
-CONTACT_SET_ROUNDS = 4
-
 #: The most steps chained with one host synchronisation (rows of StepGraphs' summary ring, for
 #: small batches; fewer for large ones: the ring holds at most 2^17 object summaries).
 MAX_CHAIN = 512
@@ -1225,8 +1221,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # the same tolerance. A (vertex, body) in the set stays
     # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
-    # once, and at most CONTACT_SET_ROUNDS more solves follow.
-    for _ in range(CONTACT_SET_ROUNDS if near is not None else 0):
+    # once, and at most Contact.rounds more solves follow.
+    for _ in range(system.body_contact.settings.rounds if near is not None else 0):
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
         missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,

@@ -369,9 +369,24 @@ def test_a_pair_the_solve_closes_joins_the_step():
     sim.v = torch.zeros_like(sim.v)
     sim.v[:, 2] = -1.0
     assert len(sim.body_contact.detect(sim.x, sim.v, sim.options.dt)) == 0
+    start = sim.v.clone()
     report = sim.step()
     assert float(report.contact.body_penetration.max()) < 0.1 * 1.0 * sim.options.dt
     assert len(report.cg) > 1  # solved again
+    # Contact(rounds=0): the pairs of the step's start only, one solve, the upper block inside
+    once = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
+                        planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(rounds=0), rayleigh_mass=1.0,
+                        dtype=DT)
+    once.v = start
+    alone = once.step()
+    assert len(alone.cg) == 1
+    assert float(once.interpenetration().max()) > 0.3 * 1.0 * sim.options.dt
+
+
+@pytest.mark.parametrize("rounds", [-1, 2.0, True, None])
+def test_contact_rounds_must_be_a_non_negative_integer(rounds):
+    with pytest.raises(tm.SceneError, match="contact rounds must be a non-negative integer"):
+        tm.Contact(rounds=rounds)
 
 
 def test_pairs_relinearised_where_the_step_ends(overlapping):

@@ -172,6 +172,8 @@ MISTAKES = {
     "unknown contact key": (BEAM + '[contact]\nfrictions = 0.3\n', "contact.frictions"),
     "negative contact friction": (BEAM + '[contact]\nfriction = -0.3\n', "contact.friction: must be >= 0"),
     "bad contact tangent": (BEAM + '[contact]\ntangent = "full"\n', "contact.tangent: unknown contact tangent"),
+    "negative contact rounds": (BEAM + '[contact]\nrounds = -1\n', "contact.rounds: must be >= 0"),
+    "fractional contact rounds": (BEAM + '[contact]\nrounds = 1.5\n', "contact.rounds: must be an integer"),
 }
 
 
@@ -225,8 +227,9 @@ def test_contact_reaches_the_simulator(tmp_path):
         swept = false
         friction = 0.4
         friction_velocity = 0.01
+        rounds = 2
         """)
     sim = load_scene(path).simulator
     assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True, swept=False,
-                                     friction=0.4, friction_velocity=0.01)
+                                     friction=0.4, friction_velocity=0.01, rounds=2)
     assert sim.body_contact is not None and sim.body_contact.search == 0.05
