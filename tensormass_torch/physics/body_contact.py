@@ -525,6 +525,39 @@ class SurfaceContact:
             grow.append(torch.where(meet, closing, torch.zeros_like(closing)).amax(1))
         return deviation, body_step, torch.cat(grow)
 
+    def cannot_meet(self, x: torch.Tensor, dx: torch.Tensor) -> bool:
+        """Whether no surface vertex can come within the thickness of another body's surface (or,
+        with self-contact, its own far parts) over the motion ``dx [V, 3]`` from ``x [V, 3]``,
+        given that :meth:`nearby` found no pair at ``x`` (every vertex at least :attr:`reach` from
+        every such triangle). Conservative, from the bodies alone: a pair of vertex p of body a
+        and triangle T of body b ends at least max(reach, the gap between a's and b's boxes at x)
+        minus dev_a + dev_b + |D_a - D_b| apart (D: a body's mean displacement, dev: the most any
+        of its surface vertices moves apart from it; the distance is unchanged by a common
+        translation), and so along the whole motion. True where that stays above the thickness
+        for every pair of bodies: the contact set's check then has nothing to find
+        (``implicit_euler_step`` skips its detection). One host read."""
+        objects = max(self.num_objects, 1)
+        counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(dx.dtype)
+        mean = dx.new_zeros(objects, 3).index_put_((self.node_object,), dx, accumulate=True) / counts[:, None]
+        apart = torch.linalg.vector_norm(dx[self.vertices] - mean[self.vertex_object], dim=-1)
+        dev = apart.new_zeros(objects).scatter_reduce(0, self.vertex_object, apart, "amax")
+        points = x[self.vertices]
+        lower = points.new_full((objects, 3), math.inf).scatter_reduce(
+            0, self.vertex_object[:, None].expand(-1, 3), points, "amin")
+        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(
+            0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
+        margins = []
+        for rows in torch.arange(objects, device=x.device).split(BODY_ROWS):  # [rows, B] at a time
+            box_gap = torch.linalg.vector_norm(torch.clamp(torch.maximum(lower[rows, None] - upper[None],
+                                                                         lower[None] - upper[rows, None]), min=0.0),
+                                               dim=-1)
+            closing = dev[rows, None] + dev[None] + torch.linalg.vector_norm(mean[rows, None] - mean[None], dim=-1)
+            margin = torch.clamp(box_gap, min=self.reach) - closing - self.settings.thickness
+            if not self.settings.self_contact:  # a body's own surface does not count
+                margin[torch.arange(len(rows), device=x.device), rows] = math.inf
+            margins.append(margin.amin(1))
+        return bool((torch.cat(margins) > 0).all())
+
     def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0, motion=None):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
         triangle ids ``[C]``), every vertex-triangle pair of different bodies (or allowed

@@ -1224,6 +1224,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # once, and at most Contact.rounds more solves follow.
     for _ in range(system.body_contact.settings.rounds if near is not None else 0):
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
+        if not len(near) and system.body_contact.cannot_meet(x, dx):
+            break  # nothing near at the start, and the solved motion cannot bring anything near
         missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
                                                               solution=len(report.contact_solves) - 1)

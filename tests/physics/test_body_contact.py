@@ -551,3 +551,45 @@ def test_cuda_matches_cpu():
     torch.testing.assert_close(a.dforces(dx), b.dforces(dx.cuda()).cpu(), rtol=1e-9, atol=1e-9)
     # deterministic on the device: the same bits twice
     assert torch.equal(b.forces(), gpu.detect(rest.cuda()).forces())
+
+
+def test_separate_bodies_skip_the_contact_sets_check_exactly():
+    """Bodies far apart (nothing near at a step's start): the check of the contact set after the
+    solve is skipped where the solved motion cannot bring any vertex near another body
+    (SurfaceContact.cannot_meet), and the steps are those of the check run in full, bit for bit;
+    bodies closing on each other fast are not skipped."""
+    from tensormass_torch.physics import body_contact as bc
+
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    meshes = [tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.4 * i, 0.0, 0.05 + 0.1 * i), dtype=DT)
+              for i in range(3)]
+
+    def run(skip: bool):
+        sim = tm.Simulator([tm.Body(m, material) for m in meshes], dt=0.005, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)],
+                           contact=tm.Contact(), rayleigh_mass=1.0, dtype=DT)
+        calls = []
+        original = bc.SurfaceContact.cannot_meet
+
+        def cannot_meet(self, x, dx):
+            calls.append(original(self, x, dx))
+            return calls[-1] if skip else False
+
+        bc.SurfaceContact.cannot_meet = cannot_meet
+        try:
+            solves = [len(sim.step().cg) for _ in range(30)]
+        finally:
+            bc.SurfaceContact.cannot_meet = original
+        return sim, solves, calls
+
+    skipped, solves, calls = run(True)
+    full, _, _ = run(False)
+    assert len(calls) == 30 and all(calls)  # every step: nothing near, and it was skipped
+    assert solves == [1] * 30
+    assert torch.equal(skipped.x, full.x) and torch.equal(skipped.v, full.v)
+    # closing fast: 1 cm apart (beyond the reach), the motion takes the gap
+    surface = skipped.body_contact
+    x = skipped.x.clone()
+    dx = torch.zeros_like(x)
+    assert surface.cannot_meet(x, dx)
+    dx[skipped.ptr[1]:skipped.ptr[2], 0] = -0.4  # body 1 onto body 0
+    assert not surface.cannot_meet(x, dx)
