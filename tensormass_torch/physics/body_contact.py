@@ -525,17 +525,23 @@ class SurfaceContact:
             grow.append(torch.where(meet, closing, torch.zeros_like(closing)).amax(1))
         return deviation, body_step, torch.cat(grow)
 
-    def cannot_meet(self, x: torch.Tensor, dx: torch.Tensor) -> bool:
-        """Whether no surface vertex can come within the thickness of another body's surface (or,
-        with self-contact, its own far parts) over the motion ``dx [V, 3]`` from ``x [V, 3]``,
-        given that :meth:`nearby` found no pair at ``x`` (every vertex at least :attr:`reach` from
-        every such triangle). Conservative, from the bodies alone: a pair of vertex p of body a
-        and triangle T of body b ends at least max(reach, the gap between a's and b's boxes at x)
-        minus dev_a + dev_b + |D_a - D_b| apart (D: a body's mean displacement, dev: the most any
-        of its surface vertices moves apart from it; the distance is unchanged by a common
-        translation), and so along the whole motion. True where that stays above the thickness
-        for every pair of bodies: the contact set's check then has nothing to find
-        (``implicit_euler_step`` skips its detection). One host read."""
+    def settled(self, x: torch.Tensor, dx: torch.Tensor, pairs: "ContactPairs", active: torch.Tensor) -> bool:
+        """Whether the contact set's first check after a solve (``implicit_euler_step``: the
+        missed pairs, then :meth:`relinearise` at ``x + dx``) can find nothing, so that its
+        detection may be skipped, for :meth:`nearby`'s ``pairs`` at ``x [V, 3]`` (linearised
+        there) and the ``active [P]`` ones the solve used, the solve having moved the nodes by
+        ``dx [V, 3]``. Conservative, from the bodies' motion: relative to body b's surface, a
+        vertex of body a moves by at most r = dev_a + dev_b + |D_a - D_b| (D: a body's mean
+        displacement; dev: the most any of its surface vertices moves apart from it), so its
+        signed distance to b's surface changes by at most r, and so does a pair's linear model
+        g + u . J dx: they differ by at most 2 r. Settled where
+        - every active pair has 2 r <= tolerance (no re-linearisation),
+        - every other pair's linear end gap is at least 2 r - tolerance (none missed),
+        - every two bodies (a body and itself with self-contact) are at least max(reach, the gap
+          between their boxes) - r - thickness > 0 apart at the end, for the vertices no pair
+          holds (each at least the reach from that body at ``x``).
+        One host read; the same pairs as the full check would find, so the step is bit for bit
+        the same."""
         objects = max(self.num_objects, 1)
         counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(dx.dtype)
         mean = dx.new_zeros(objects, 3).index_put_((self.node_object,), dx, accumulate=True) / counts[:, None]
@@ -556,7 +562,13 @@ class SurfaceContact:
             if not self.settings.self_contact:  # a body's own surface does not count
                 margin[torch.arange(len(rows), device=x.device), rows] = math.inf
             margins.append(margin.amin(1))
-        return bool((torch.cat(margins) > 0).all())
+        checks = [(torch.cat(margins) > 0).all()]
+        if len(pairs):
+            a, b = pairs.objects[:, 0], pairs.objects[:, 1]
+            twice = 2.0 * (dev[a] + dev[b] + torch.linalg.vector_norm(mean[a] - mean[b], dim=-1))
+            checks.append(torch.where(active, twice <= self.tolerance,
+                                      pairs.end_gap(dx) >= twice - self.tolerance).all())
+        return bool(torch.stack(checks).all())
 
     def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0, motion=None):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,

@@ -1222,10 +1222,10 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
     # once, and at most Contact.rounds more solves follow.
-    for _ in range(system.body_contact.settings.rounds if near is not None else 0):
+    for round_ in range(system.body_contact.settings.rounds if near is not None else 0):
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
-        if not len(near) and system.body_contact.cannot_meet(x, dx):
-            break  # nothing near at the start, and the solved motion cannot bring anything near
+        if round_ == 0 and system.body_contact.settled(x, dx, near, active):
+            break  # the bodies' motion provably leaves nothing for the check to find
         missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
                                                               solution=len(report.contact_solves) - 1)

@@ -553,43 +553,57 @@ def test_cuda_matches_cpu():
     assert torch.equal(b.forces(), gpu.detect(rest.cuda()).forces())
 
 
-def test_separate_bodies_skip_the_contact_sets_check_exactly():
-    """Bodies far apart (nothing near at a step's start): the check of the contact set after the
-    solve is skipped where the solved motion cannot bring any vertex near another body
-    (SurfaceContact.cannot_meet), and the steps are those of the check run in full, bit for bit;
-    bodies closing on each other fast are not skipped."""
+def test_settled_steps_skip_the_contact_sets_check_exactly():
+    """Where the bodies' motion provably leaves nothing for the contact set's check to find
+    (SurfaceContact.settled: bodies far apart, or resting on each other), its detection is
+    skipped, and the steps are those of the check run in full, bit for bit; a motion that closes
+    a gap, or slides a vertex along a pair, is not settled."""
     from tensormass_torch.physics import body_contact as bc
 
     material = tm.Material(young=1e5, poisson=0.3, density=1000)
-    meshes = [tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.4 * i, 0.0, 0.05 + 0.1 * i), dtype=DT)
-              for i in range(3)]
+    apart = [tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.4 * i, 0.0, 0.05 + 0.1 * i), dtype=DT)
+             for i in range(3)]
+    stacked = [tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.11 * i), dtype=DT) for i in range(2)]
 
-    def run(skip: bool):
+    def run(meshes, skip: bool, steps: int):
         sim = tm.Simulator([tm.Body(m, material) for m in meshes], dt=0.005, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)],
-                           contact=tm.Contact(), rayleigh_mass=1.0, dtype=DT)
+                           contact=tm.Contact(), rayleigh_mass=20.0, dtype=DT)
         calls = []
-        original = bc.SurfaceContact.cannot_meet
+        original = bc.SurfaceContact.settled
 
-        def cannot_meet(self, x, dx):
-            calls.append(original(self, x, dx))
+        def settled(self, x, dx, pairs, active):
+            calls.append(original(self, x, dx, pairs, active))
             return calls[-1] if skip else False
 
-        bc.SurfaceContact.cannot_meet = cannot_meet
+        bc.SurfaceContact.settled = settled
         try:
-            solves = [len(sim.step().cg) for _ in range(30)]
+            solves = [len(sim.step().cg) for _ in range(steps)]
         finally:
-            bc.SurfaceContact.cannot_meet = original
+            bc.SurfaceContact.settled = original
         return sim, solves, calls
 
-    skipped, solves, calls = run(True)
-    full, _, _ = run(False)
+    skipped, solves, calls = run(apart, True, 30)
+    full, _, _ = run(apart, False, 30)
     assert len(calls) == 30 and all(calls)  # every step: nothing near, and it was skipped
     assert solves == [1] * 30
     assert torch.equal(skipped.x, full.x) and torch.equal(skipped.v, full.v)
-    # closing fast: 1 cm apart (beyond the reach), the motion takes the gap
+    # a block dropped 1 cm onto another (heavily damped): settled once both are still
+    skipped, _, calls = run(stacked, True, 200)
+    full, _, _ = run(stacked, False, 200)
+    assert len(skipped.body_contact.detect(skipped.x)) > 0  # in contact
+    assert not all(calls) and all(calls[-20:])  # the upper block lands (1 cm), then both are still
+    assert torch.equal(skipped.x, full.x) and torch.equal(skipped.v, full.v)
+    # motions that are not settled: one block onto another across the gap; a vertex sliding
     surface = skipped.body_contact
     x = skipped.x.clone()
+    near, active = surface.nearby(x)
     dx = torch.zeros_like(x)
-    assert surface.cannot_meet(x, dx)
-    dx[skipped.ptr[1]:skipped.ptr[2], 0] = -0.4  # body 1 onto body 0
-    assert not surface.cannot_meet(x, dx)
+    assert surface.settled(x, dx, near, active)
+    dx[skipped.ptr[1]:, 2] = -0.01  # the upper block 1 cm into the lower
+    assert not surface.settled(x, dx, near, active)
+    far, _, _ = run(apart, True, 1)
+    x = far.x.clone()
+    empty, none_active = far.body_contact.nearby(x)
+    dx = torch.zeros_like(x)
+    dx[far.ptr[1]:far.ptr[2], 0] = -0.4  # body 1 onto body 0
+    assert not far.body_contact.settled(x, dx, empty, none_active)
