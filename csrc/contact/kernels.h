@@ -1,10 +1,9 @@
 // The per-query kernel of the contact broad phase (ops.h). The spatial hash itself is built by
-// tensor ops (body_contact.SurfaceContact.candidates): the surface triangles' boxes, grown by the
-// reach, each listed once in every cell they cover, sorted by the cells' hash key; each query is
-// a (surface vertex, one cell its box covers) and knows the run [start, stop) of the entries whose
-// key is its cell's. What this kernel does is the expansion that dominated the broad phase as
-// tensor ops (every entry of every query's run materialised, then filtered): it walks a query's
-// run and keeps a (vertex, triangle) candidate where
+// tensor ops (ops/contact.py: hash_queries): the surface triangles' boxes, grown by the reach,
+// each listed once in every cell they cover, sorted by the cells' hash key; each query is a
+// (surface vertex, one cell its box covers) and knows the run [start, stop) of the entries whose
+// key is its cell's. This kernel walks a query's run without materialising it (as tensor ops,
+// every entry of every run would be, then filtered) and keeps a (vertex, triangle) candidate where
 //   - the entry's cell is the query's cell (keys of distinct cells may collide),
 //   - the vertex's box meets the triangle's grown box,
 //   - the low corner of the boxes' intersection lies in the query's cell (a pair that meets in

@@ -20,8 +20,8 @@ the entries of its key. The ops walk each query's run and keep a candidate where
     contact_fill_candidates(the same, offsets, vertex!, triangle!)
             the candidates, query q's from offsets[q] in run order
 
-As tensor ops, that walk materialised every entry of every query's run before filtering it (most
-of a detection's time: the runs hold the vertex's own body's triangles). The ops' output is the
+Why ops: as tensor ops the walk materialises every entry of every query's run before filtering
+it, and the runs hold mostly the vertex's own body's triangles. The ops' output is the
 reference's, in its order, so the narrow phase that follows sees the same pairs either way.
 Not differentiable (indices).
 """

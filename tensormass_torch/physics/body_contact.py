@@ -498,6 +498,25 @@ class SurfaceContact:
         """Thickness plus search: the distance within which pairs are looked for."""
         return self.settings.thickness + self.search
 
+    def _bodies(self, x: torch.Tensor, rate: torch.Tensor, scale: float):
+        """Each body's motion and box for a motion ``scale * rate [V, 3]`` from ``x [V, 3]``: (each
+        node's motion apart from its body's mean ``[V, 3]``; each body's mean motion ``[B, 3]``;
+        the most any of its surface vertices moves apart from that mean ``[B]``; its surface's
+        box at ``x``, lower and upper corners ``[B, 3]``)."""
+        objects = max(self.num_objects, 1)
+        counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(rate.dtype)
+        mean = rate.new_zeros(objects, 3).index_put_((self.node_object,), rate, accumulate=True) / counts[:, None]
+        body_step = scale * mean
+        deviation = scale * rate - body_step[self.node_object]
+        spread = torch.linalg.vector_norm(deviation[self.vertices], dim=-1)
+        most = spread.new_zeros(objects).scatter_reduce(0, self.vertex_object, spread, "amax")
+        points = x[self.vertices]
+        lower = points.new_full((objects, 3), math.inf).scatter_reduce(
+            0, self.vertex_object[:, None].expand(-1, 3), points, "amin")
+        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(
+            0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
+        return deviation, body_step, most, lower, upper
+
     def _motion(self, x: torch.Tensor, v: torch.Tensor, dt: float):
         """The step's motion as the broad phase sweeps it: (each node's displacement apart from
         its body's mean, dt (v - V_body) ``[V, 3]``; each body's mean displacement dt V_body
@@ -506,17 +525,7 @@ class SurfaceContact:
         little: only their own deformation and turning, and what they close on each other.
         (The bodies' pairwise test runs BODY_ROWS bodies against all at a time.)"""
         objects = max(self.num_objects, 1)
-        counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(v.dtype)
-        mean = v.new_zeros(objects, 3).index_put_((self.node_object,), v, accumulate=True) / counts[:, None]
-        body_step = dt * mean
-        deviation = dt * v - body_step[self.node_object]
-        points = x[self.vertices]
-        spread = torch.linalg.vector_norm(deviation[self.vertices], dim=-1)
-        lower = points.new_full((objects, 3), math.inf).scatter_reduce(
-            0, self.vertex_object[:, None].expand(-1, 3), points, "amin")
-        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(
-            0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
-        turn = spread.new_zeros(objects).scatter_reduce(0, self.vertex_object, spread, "amax")
+        deviation, body_step, turn, lower, upper = self._bodies(x, v, dt)
         grow = []
         for rows in torch.arange(objects, device=x.device).split(BODY_ROWS):  # [rows, B] at a time
             closing = torch.linalg.vector_norm(body_step[rows, None] - body_step[None], dim=-1)
@@ -543,15 +552,7 @@ class SurfaceContact:
         One host read; the same pairs as the full check would find, so the step is bit for bit
         the same."""
         objects = max(self.num_objects, 1)
-        counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(dx.dtype)
-        mean = dx.new_zeros(objects, 3).index_put_((self.node_object,), dx, accumulate=True) / counts[:, None]
-        apart = torch.linalg.vector_norm(dx[self.vertices] - mean[self.vertex_object], dim=-1)
-        dev = apart.new_zeros(objects).scatter_reduce(0, self.vertex_object, apart, "amax")
-        points = x[self.vertices]
-        lower = points.new_full((objects, 3), math.inf).scatter_reduce(
-            0, self.vertex_object[:, None].expand(-1, 3), points, "amin")
-        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(
-            0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
+        _, mean, dev, lower, upper = self._bodies(x, dx, 1.0)
         margins = []
         for rows in torch.arange(objects, device=x.device).split(BODY_ROWS):  # [rows, B] at a time
             box_gap = torch.linalg.vector_norm(torch.clamp(torch.maximum(lower[rows, None] - upper[None],

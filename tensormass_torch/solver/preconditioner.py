@@ -28,12 +28,10 @@ block B instead. With B = L L^T (Cholesky), S = L^-T per node and CG runs on
 
 whose matrix is similar to B^-1 A, as B^(-1/2) A B^(-1/2) is: the same iterates x in exact
 arithmetic as the symmetric scaling. The factor is written out in tensor ops (a d x d Cholesky
-and its triangular inverse, elementwise over the nodes): no solver library and no host
-synchronisation. (The symmetric B^(-1/2) came from a batched eigendecomposition; cuSOLVER's
-batched routine fails past some tens of thousands of blocks, a pile of 216 blocks of 3,000
-tets, and checks its result on the host.) A penalty k n n^T along a tilted normal, a membrane's
-in-plane stiffness, a node of a thin body couple a node's axes; the block takes them in where
-the diagonal cannot.
+and its triangular inverse, elementwise over the nodes): no solver library, whose batched
+routines limit the batch and check their results on the host (docs/solver-defaults.md). A
+penalty k n n^T along a tilted normal, a membrane's in-plane stiffness, a node of a thin body
+couple a node's axes; the block takes them in where the diagonal cannot.
 """
 from __future__ import annotations
 
@@ -87,8 +85,8 @@ class JacobiScaling:
         return ("jacobi", self.scale.data_ptr())
 
     # The blocks' products are a broadcast multiply and a sum over [V, d, d]: memory-bound, two
-    # kernels. (einsum makes them a batched matrix product, one 3x3 by 3x1 product a batch entry,
-    # which the GPU runs tens of times slower: it was most of a CG iteration on large piles.)
+    # kernels. (einsum would make them a batched matrix product, one 3x3 by 3x1 product a batch
+    # entry, far slower on a GPU: docs/contact.md.)
     def apply(self, v: torch.Tensor) -> torch.Tensor:
         """S v ``[V, d]``."""
         if self.scale.dim() == 3:

@@ -167,9 +167,8 @@ def test_the_block_scaling_is_the_inverse_cholesky_factor():
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
 def test_block_scaling_of_many_blocks(dim, device):
-    """A pile's worth of blocks (200,000: cuSOLVER's batched eigendecomposition, which the block
-    scaling once used, failed past some tens of thousands on the GPU), float32, 2-D and 3-D:
-    S^T B S = I to float32's rounding."""
+    """A pile's worth of blocks (200,000: more than solver libraries' batched routines take),
+    float32, 2-D and 3-D: S^T B S = I to float32's rounding."""
     gen = torch.Generator().manual_seed(1)
     g = torch.randn(200_000, dim, dim, generator=gen)
     blocks = (g @ g.transpose(1, 2) + 0.1 * torch.eye(dim)).to(device)
