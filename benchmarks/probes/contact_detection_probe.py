@@ -1,5 +1,6 @@
 """Where a detection of the contact between bodies spends its time, with the broad phase's walk
-over the hash as the op (``ops.contact``) and as its tensor-op reference, at one state of a pile.
+over the hash and the narrow phase as the ops (``ops.contact``) and as their tensor-op
+references, at one state of a pile.
 
     python benchmarks/probes/contact_detection_probe.py [--columns 4 10] [--steps 60] [--device cuda]
                                                         [--cells 10 10 5] [--dtype float32]
@@ -8,7 +9,7 @@ over the hash as the op (``ops.contact``) and as its tensor-op reference, at one
 Each pile is ``contact_piles``' (columns x columns x columns blocks), stepped ``--steps`` steps
 with contact; at that state, the mean of 10 (after one): the broad phase
 (``SurfaceContact.candidates``, swept at the state's velocities) and a whole detection
-(``detect``) through the op and through the reference, whether both found the same candidates
+(``detect``) through the ops and through the references, whether both found the same candidates
 and pairs, then steps/s over 10 steps each way (from the same state). Prints one JSON line per
 pile. ``--profile FILE``: then, for each pile, Python's profile of 3 steps (cumulative time,
 the functions a step spends its time under) and torch's of one step and of one detection
@@ -34,18 +35,23 @@ from tensormass_torch.ops import contact as contact_ops  # noqa: E402
 from tensormass_torch.physics import body_contact  # noqa: E402
 
 
-class BroadPhase:
-    """Swaps the broad phase's walk for its reference while in use."""
+class Phases:
+    """Swaps the broad phase's walk and the narrow phase for their references while in use
+    (``native`` False)."""
+
+    NAMES = ("candidate_pairs", "nearest_pairs")
 
     def __init__(self, native: bool):
         self.native = native
 
     def __enter__(self):
-        self.saved = body_contact.contact_ops.candidate_pairs
-        body_contact.contact_ops.candidate_pairs = partial(contact_ops.candidate_pairs, native=self.native)
+        self.saved = {name: getattr(body_contact.contact_ops, name) for name in self.NAMES}
+        for name in self.NAMES:
+            setattr(body_contact.contact_ops, name, partial(getattr(contact_ops, name), native=self.native))
 
     def __exit__(self, *exc):
-        body_contact.contact_ops.candidate_pairs = self.saved
+        for name, fn in self.saved.items():
+            setattr(body_contact.contact_ops, name, fn)
 
 
 def mean_ms(fn, device, repeats=10):
@@ -98,7 +104,7 @@ def probe(columns, cells, steps, device, dtype, profile_to=None):
     found = {}
     for native in (True, False):
         name = "op" if native else "reference"
-        with BroadPhase(native):
+        with Phases(native):
             row[f"candidates_ms_{name}"], found[name] = mean_ms(lambda: contact.candidates(x, v, contact_piles.DT),
                                                                 device)
             row[f"detect_ms_{name}"], pairs = mean_ms(lambda: contact.detect(x, v, contact_piles.DT), device)
@@ -109,7 +115,7 @@ def probe(columns, cells, steps, device, dtype, profile_to=None):
     for native in (True, False):
         name = "op" if native else "reference"
         sim.x, sim.v = x.clone(), v.clone()
-        with BroadPhase(native):
+        with Phases(native):
             sim.step(2)
             row[f"steps_per_s_{name}"] = contact_piles.rate(sim, 10, device)
             row[f"solves_last_step_{name}"] = len(sim.last_report.cg)

@@ -75,4 +75,243 @@ struct CandidatesKernel {
   }
 };
 
+// ------------------------------------------------------------------------- narrow phase
+
+// The point of triangle (a, b, c) closest to p: its barycentric weights w, p minus it (diff), its
+// distance d and the triangle's unit normal (b - a) x (c - a). The projection onto the plane where
+// it falls inside the triangle, else the nearest of the three edges' closest points (a degenerate
+// triangle: its edges). The same formulas, in the same order, as mesh.distance.closest_point.
+template <typename S>
+struct TriangleClosest {
+  S w[3], diff[3], d, normal[3];
+};
+
+template <typename S>
+TM_HD S dot3_(const S* u, const S* v) {
+  return u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+}
+
+template <typename S>
+TM_HD void closest_on_edge(const S* p, const S* start, const S* end, S tiny, S& t, S& dist_sq) {
+  S e[3], ps[3];
+  TM_UNROLL for (int k = 0; k < 3; ++k) {
+    e[k] = end[k] - start[k];
+    ps[k] = p[k] - start[k];
+  }
+  const S ee = dot3_(e, e);
+  t = dot3_(ps, e) / (ee > tiny ? ee : tiny);
+  t = t < S(0) ? S(0) : (t > S(1) ? S(1) : t);
+  dist_sq = S(0);
+  TM_UNROLL for (int k = 0; k < 3; ++k) {
+    const S r = ps[k] - t * e[k];
+    dist_sq += r * r;
+  }
+}
+
+template <typename S>
+TM_HD TriangleClosest<S> triangle_closest(const S* p, const S* a, const S* b, const S* c, S tiny) {
+  TriangleClosest<S> out;
+  S ab[3], ac[3], ap[3];
+  TM_UNROLL for (int k = 0; k < 3; ++k) {
+    ab[k] = b[k] - a[k];
+    ac[k] = c[k] - a[k];
+    ap[k] = p[k] - a[k];
+  }
+  const S d00 = dot3_(ab, ab), d01 = dot3_(ab, ac), d11 = dot3_(ac, ac), d20 = dot3_(ap, ab), d21 = dot3_(ap, ac);
+  const S denom = d00 * d11 - d01 * d01;
+  const S safe = denom > S(0) ? denom : S(1);
+  const S wb = (d11 * d20 - d01 * d21) / safe;
+  const S wc = (d00 * d21 - d01 * d20) / safe;
+  const S wa = S(1) - wb - wc;
+  if (denom > S(1e-12) * d00 * d11 && wa >= S(0) && wb >= S(0) && wc >= S(0)) {
+    out.w[0] = wa;
+    out.w[1] = wb;
+    out.w[2] = wc;
+  } else {
+    S t_ab, d_ab, t_ac, d_ac, t_bc, d_bc;
+    closest_on_edge(p, a, b, tiny, t_ab, d_ab);
+    closest_on_edge(p, a, c, tiny, t_ac, d_ac);
+    closest_on_edge(p, b, c, tiny, t_bc, d_bc);
+    if (d_bc < (d_ab < d_ac ? d_ab : d_ac)) {
+      out.w[0] = S(0);
+      out.w[1] = S(1) - t_bc;
+      out.w[2] = t_bc;
+    } else if (d_ab <= d_ac) {
+      out.w[0] = S(1) - t_ab;
+      out.w[1] = t_ab;
+      out.w[2] = S(0);
+    } else {
+      out.w[0] = S(1) - t_ac;
+      out.w[1] = S(0);
+      out.w[2] = t_ac;
+    }
+  }
+  S cross[3] = {ab[1] * ac[2] - ab[2] * ac[1], ab[2] * ac[0] - ab[0] * ac[2], ab[0] * ac[1] - ab[1] * ac[0]};
+  const S norm = tm_sqrt(dot3_(cross, cross));
+  const S inv = S(1) / (norm > tiny ? norm : tiny);
+  S dist_sq = S(0);
+  TM_UNROLL for (int k = 0; k < 3; ++k) {
+    out.diff[k] = p[k] - (out.w[0] * a[k] + out.w[1] * b[k] + out.w[2] * c[k]);
+    out.normal[k] = cross[k] * inv;
+    dist_sq += out.diff[k] * out.diff[k];
+  }
+  out.d = tm_sqrt(dist_sq);
+  return out;
+}
+
+// What one surface vertex keeps of one other body: the nearest of its candidate triangles of that
+// body within the reach, the lowest triangle id among those tied with it (within `rounding`), and
+// the sum of the tied triangles' normals (the pseudonormal that decides the side).
+template <typename S>
+struct NearestSlot {
+  int64_t body, triangle, position;
+  S least, pseudo[3];
+  TriangleClosest<S> closest;
+};
+
+// The most bodies one surface vertex may be near at once; a vertex near more is reported (count
+// -1) and the caller takes the reference for the whole detection.
+constexpr int kNearestSlots = 8;
+
+// One surface vertex an item: over its run of candidates [first[s], first[s + 1]) (the broad
+// phase's, grouped by vertex), for each other body the nearest triangle within the reach
+// (body_contact.SurfaceContact.nearby: the reach grows by what the pair may close over the step
+// when `spread` is given), its side by the pseudonormal of the triangles tied with it, and, when
+// swept, only pairs within the plain reach or outside. Count pass (offsets == nullptr): how many
+// pairs the vertex keeps, -1 past kNearestSlots bodies. Fill pass: the pairs at offsets[s], in the
+// order of their chosen candidates in the run (the reference's order).
+template <typename S>
+struct NearestPairsKernel {
+  const S* x;                      // [V, 3]
+  const int64_t* vertices;         // [Sv] node ids
+  const int64_t* vertex_object;    // [Sv]
+  const int64_t* triangles;        // [F, 3] node ids
+  const int64_t* triangle_object;  // [F]
+  const int64_t* first;            // [Sv + 1] each vertex's run of candidates
+  const int64_t* candidate_triangle;  // [C]
+  const S* spread;                 // [V] each node's motion apart from its body's, or nullptr
+  const S* body_step;              // [B, 3] each body's mean motion (with spread)
+  S reach;                         // thickness + search
+  S eps;                           // the dtype's epsilon
+  S tiny;                          // the dtype's smallest normal number
+  const int64_t* offsets;          // [Sv] fill pass; nullptr: count pass
+  int64_t* counts;                 // [Sv] count pass
+  int64_t* pair_vertex;            // [P] fill pass: into the surface vertices
+  int64_t* pair_triangle;          // [P]
+  S* weights;                      // [P, 3]
+  S* diff;                         // [P, 3]
+  S* distance;                     // [P]
+  S* normal;                       // [P, 3]
+  S* side;                         // [P] +-1
+
+  TM_HD void load(int64_t node, S* out) const {
+    TM_UNROLL for (int k = 0; k < 3; ++k) out[k] = x[node * 3 + k];
+  }
+
+  // The candidate's closest point and whether it is within its reach.
+  TM_HD bool near(const S* p, int64_t node, int64_t body, int64_t t, TriangleClosest<S>& cp) const {
+    S a[3], b[3], c[3];
+    const int64_t* tri = triangles + t * 3;
+    load(tri[0], a);
+    load(tri[1], b);
+    load(tri[2], c);
+    cp = triangle_closest<S>(p, a, b, c, tiny);
+    S limit = reach;
+    if (spread != nullptr) {
+      const S s0 = spread[tri[0]], s1 = spread[tri[1]], s2 = spread[tri[2]];
+      const S most = s0 > s1 ? (s0 > s2 ? s0 : s2) : (s1 > s2 ? s1 : s2);
+      const int64_t other = triangle_object[t];
+      S between = S(0);
+      TM_UNROLL for (int k = 0; k < 3; ++k) {
+        const S gap = body_step[body * 3 + k] - body_step[other * 3 + k];
+        between += gap * gap;
+      }
+      limit = reach + spread[node] + most + tm_sqrt(between);
+    }
+    return cp.d < limit;
+  }
+
+  TM_HD void operator()(int64_t s) const {
+    const int64_t node = vertices[s], body = vertex_object[s];
+    S p[3];
+    load(node, p);
+    const S largest = tm_abs(p[0]) > tm_abs(p[1]) ? (tm_abs(p[0]) > tm_abs(p[2]) ? tm_abs(p[0]) : tm_abs(p[2]))
+                                                  : (tm_abs(p[1]) > tm_abs(p[2]) ? tm_abs(p[1]) : tm_abs(p[2]));
+    const S rounding = S(32) * eps * (largest + reach);
+    NearestSlot<S> slot[kNearestSlots];
+    int used = 0;
+    TriangleClosest<S> cp;
+    // pass 1: each body's least distance
+    for (int64_t i = first[s]; i < first[s + 1]; ++i) {
+      const int64_t t = candidate_triangle[i];
+      if (!near(p, node, body, t, cp)) continue;
+      const int64_t other = triangle_object[t];
+      int k = 0;
+      while (k < used && slot[k].body != other) ++k;
+      if (k == used) {
+        if (used == kNearestSlots) {
+          if (offsets == nullptr) counts[s] = -1;
+          return;
+        }
+        slot[k].body = other;
+        slot[k].least = cp.d;
+        slot[k].triangle = INT64_MAX;
+        slot[k].pseudo[0] = slot[k].pseudo[1] = slot[k].pseudo[2] = S(0);
+        ++used;
+      } else if (cp.d < slot[k].least) {
+        slot[k].least = cp.d;
+      }
+    }
+    // pass 2: the tied triangles' normals summed, the lowest tied triangle chosen
+    for (int64_t i = first[s]; i < first[s + 1]; ++i) {
+      const int64_t t = candidate_triangle[i];
+      if (!near(p, node, body, t, cp)) continue;
+      const int64_t other = triangle_object[t];
+      int k = 0;
+      while (slot[k].body != other) ++k;
+      if (!(cp.d <= slot[k].least + rounding)) continue;
+      TM_UNROLL for (int c = 0; c < 3; ++c) slot[k].pseudo[c] += cp.normal[c];
+      if (t < slot[k].triangle) {
+        slot[k].triangle = t;
+        slot[k].position = i;
+        slot[k].closest = cp;
+      }
+    }
+    int kept = 0;
+    bool keep[kNearestSlots];
+    S sides[kNearestSlots];
+    for (int k = 0; k < used; ++k) {
+      const TriangleClosest<S>& c = slot[k].closest;
+      sides[k] = dot3_(slot[k].pseudo, c.diff) >= S(0) ? S(1) : S(-1);
+      // swept: past the plain reach the candidates need not hold every nearer triangle, so a
+      // pair there is kept only outside (the reference's `trusted`)
+      keep[k] = spread == nullptr || c.d < reach || sides[k] > S(0);
+      kept += keep[k] ? 1 : 0;
+    }
+    if (offsets == nullptr) {
+      counts[s] = kept;
+      return;
+    }
+    int64_t at = offsets[s];
+    for (int written = 0; written < kept; ++written) {  // in the order of the chosen candidates
+      int best = -1;
+      for (int k = 0; k < used; ++k) {
+        if (keep[k] && (best < 0 || slot[k].position < slot[best].position)) best = k;
+      }
+      keep[best] = false;
+      const TriangleClosest<S>& c = slot[best].closest;
+      pair_vertex[at] = s;
+      pair_triangle[at] = slot[best].triangle;
+      TM_UNROLL for (int k = 0; k < 3; ++k) {
+        weights[at * 3 + k] = c.w[k];
+        diff[at * 3 + k] = c.diff[k];
+        normal[at * 3 + k] = c.normal[k];
+      }
+      distance[at] = c.d;
+      side[at] = sides[best];
+      ++at;
+    }
+  }
+};
+
 }  // namespace tensormass

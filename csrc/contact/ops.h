@@ -1,7 +1,7 @@
-// Host side of the contact ops (schemas: schema.cpp; kernel: kernels.h), written once for the CPU
+// Host side of the contact ops (schemas: schema.cpp; kernels: kernels.h), written once for the CPU
 // and CUDA: argument checks, dispatch and one launch through `L` (common/cpu_launcher.h,
-// common/cuda_launcher.cuh); cpu.cpp and cuda.cu register them (register_contact_ops). The count
-// allocates its output; neither op reads anything back to the host.
+// common/cuda_launcher.cuh); cpu.cpp and cuda.cu register them (register_contact_ops). The counts
+// allocate their outputs; no op reads anything back to the host.
 #pragma once
 
 #include <ATen/core/Tensor.h>
@@ -9,6 +9,7 @@
 #include <torch/library.h>
 
 #include <cstdint>
+#include <limits>
 #include <string>
 
 #include "common/checks.h"
@@ -115,12 +116,119 @@ void contact_fill_candidates(const at::Tensor& cell, const at::Tensor& point_low
   });
 }
 
+// The narrow phase's inputs, checked against each other (names as in schema.cpp).
+struct NearestArgs {
+  at::Tensor x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle;
+  c10::optional<at::Tensor> spread, body_step;
+  double reach;
+
+  bool swept() const { return spread.has_value() && spread->defined(); }
+
+  void check() const {
+    check_values(x, "x");
+    TORCH_CHECK(x.size(1) == 3, "tensormass: x must be [V, 3], got shape ", shape_str(x.sizes()));
+    const int64_t num_vertices = vertices.numel(), num_triangles = triangles.dim() == 2 ? triangles.size(0) : -1;
+    TORCH_CHECK(num_triangles >= 0, "tensormass: triangles must be [F, 3], got shape ", shape_str(triangles.sizes()));
+    check_index_tensor(vertices, "vertices", x, at::kLong, {num_vertices}, "x");
+    check_index_tensor(vertex_object, "vertex_object", x, at::kLong, {num_vertices}, "x");
+    check_index_tensor(triangles, "triangles", x, at::kLong, {num_triangles, 3}, "x");
+    check_index_tensor(triangle_object, "triangle_object", x, at::kLong, {num_triangles}, "x");
+    check_index_tensor(first, "first", x, at::kLong, {num_vertices + 1}, "x");
+    check_index_tensor(candidate_triangle, "candidate_triangle", x, at::kLong, {candidate_triangle.numel()}, "x");
+    TORCH_CHECK(reach > 0, "tensormass: reach must be > 0, got ", std::to_string(reach));
+    if (swept()) {
+      check_node_tensor(*spread, "spread", x, {x.size(0)}, "x");
+      TORCH_CHECK(body_step.has_value() && body_step->defined() && body_step->dim() == 2,
+                  "tensormass: body_step must be [B, 3] when spread is given");
+      check_node_tensor(*body_step, "body_step", x, {body_step->size(0), 3}, "x");
+    }
+  }
+
+  template <typename S>
+  NearestPairsKernel<S> kernel() const {
+    NearestPairsKernel<S> k{};
+    k.x = x.data_ptr<S>();
+    k.vertices = vertices.data_ptr<int64_t>();
+    k.vertex_object = vertex_object.data_ptr<int64_t>();
+    k.triangles = triangles.data_ptr<int64_t>();
+    k.triangle_object = triangle_object.data_ptr<int64_t>();
+    k.first = first.data_ptr<int64_t>();
+    k.candidate_triangle = candidate_triangle.data_ptr<int64_t>();
+    k.spread = swept() ? spread->data_ptr<S>() : nullptr;
+    k.body_step = swept() ? body_step->data_ptr<S>() : nullptr;
+    k.reach = static_cast<S>(reach);
+    k.eps = std::numeric_limits<S>::epsilon();
+    k.tiny = std::numeric_limits<S>::min();
+    return k;
+  }
+};
+
+// contact_count_nearest: see schema.cpp.
+template <class L>
+at::Tensor contact_count_nearest(const at::Tensor& x, const at::Tensor& vertices, const at::Tensor& vertex_object,
+                                 const at::Tensor& triangles, const at::Tensor& triangle_object,
+                                 const at::Tensor& first, const at::Tensor& candidate_triangle,
+                                 const c10::optional<at::Tensor>& spread, const c10::optional<at::Tensor>& body_step,
+                                 double reach) {
+  const NearestArgs args{x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                         spread, body_step, reach};
+  args.check();
+  at::Tensor counts = at::empty({vertices.numel()}, vertices.options());
+  typename L::Guard guard(x.device());
+  dispatch_scalar(x.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    NearestPairsKernel<S> k = args.kernel<S>();
+    k.counts = counts.data_ptr<int64_t>();
+    L::run(vertices.numel(), k, L::kElementBlock);
+  });
+  return counts;
+}
+
+// contact_fill_nearest: see schema.cpp.
+template <class L>
+void contact_fill_nearest(const at::Tensor& x, const at::Tensor& vertices, const at::Tensor& vertex_object,
+                          const at::Tensor& triangles, const at::Tensor& triangle_object, const at::Tensor& first,
+                          const at::Tensor& candidate_triangle, const c10::optional<at::Tensor>& spread,
+                          const c10::optional<at::Tensor>& body_step, double reach, const at::Tensor& offsets,
+                          at::Tensor pair_vertex, at::Tensor pair_triangle, at::Tensor weights, at::Tensor diff,
+                          at::Tensor distance, at::Tensor normal, at::Tensor side) {
+  const NearestArgs args{x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                         spread, body_step, reach};
+  args.check();
+  check_index_tensor(offsets, "offsets", x, at::kLong, {vertices.numel()}, "x");
+  TORCH_CHECK(pair_vertex.defined() && pair_vertex.dim() == 1, "tensormass: pair_vertex must be [P]");
+  const int64_t num_pairs = pair_vertex.size(0);
+  check_index_tensor(pair_vertex, "pair_vertex", x, at::kLong, {num_pairs}, "x");
+  check_index_tensor(pair_triangle, "pair_triangle", x, at::kLong, {num_pairs}, "x");
+  check_node_tensor(weights, "weights", x, {num_pairs, 3}, "x");
+  check_node_tensor(diff, "diff", x, {num_pairs, 3}, "x");
+  check_node_tensor(distance, "distance", x, {num_pairs}, "x");
+  check_node_tensor(normal, "normal", x, {num_pairs, 3}, "x");
+  check_node_tensor(side, "side", x, {num_pairs}, "x");
+  typename L::Guard guard(x.device());
+  dispatch_scalar(x.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    NearestPairsKernel<S> k = args.kernel<S>();
+    k.offsets = offsets.data_ptr<int64_t>();
+    k.pair_vertex = pair_vertex.data_ptr<int64_t>();
+    k.pair_triangle = pair_triangle.data_ptr<int64_t>();
+    k.weights = weights.data_ptr<S>();
+    k.diff = diff.data_ptr<S>();
+    k.distance = distance.data_ptr<S>();
+    k.normal = normal.data_ptr<S>();
+    k.side = side.data_ptr<S>();
+    L::run(vertices.numel(), k, L::kElementBlock);
+  });
+}
+
 // Registers the implementations of the contact ops of one backend (launcher L) under its
 // TORCH_LIBRARY_IMPL (cpu.cpp, cuda.cu); the schemas: schema.cpp.
 template <class L>
 void register_contact_ops(torch::Library& m) {
   m.impl("contact_count_candidates", &contact_count_candidates<L>);
   m.impl("contact_fill_candidates", &contact_fill_candidates<L>);
+  m.impl("contact_count_nearest", &contact_count_nearest<L>);
+  m.impl("contact_fill_nearest", &contact_fill_nearest<L>);
 }
 
 }  // namespace tensormass

@@ -29,4 +29,29 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
         "Tensor query_vertex, Tensor query_cells, Tensor query_start, Tensor query_stop, Tensor entry_triangle, "
         "Tensor entry_cells, Tensor low, Tensor high, Tensor triangle_object, bool same_body, Tensor offsets, "
         "Tensor(a!) vertex, Tensor(b!) triangle) -> ()");
+  // The narrow phase (body_contact.SurfaceContact.nearby). For each surface vertex s (node
+  // vertices[s], body vertex_object[s]) over its run of candidate triangles
+  // candidate_triangle[first[s]:first[s + 1]] (the broad phase's, grouped by vertex), and each
+  // other body: the nearest triangle within the reach (with spread [V] and body_step [B, 3]: the
+  // reach grows by spread at the vertex, the triangle's largest spread and |body_step[a] -
+  // body_step[b]|), the lowest triangle id among those tied with it within 32 eps (max |p| +
+  // reach), and its side by the sum of the tied triangles' normals; with spread, a pair past the
+  // plain reach is kept only outside.
+  // contact_count_nearest(x [V, 3], vertices [Sv], vertex_object [Sv], triangles [F, 3],
+  //     triangle_object [F], first [Sv + 1], candidate_triangle [C], spread [V]?, body_step [B, 3]?,
+  //     reach) -> counts [Sv] int64
+  //   how many pairs each vertex keeps; -1 where a vertex is near more bodies than the kernel holds
+  //   (kernels.h: kNearestSlots; the caller then takes the reference).
+  m.def("contact_count_nearest(Tensor x, Tensor vertices, Tensor vertex_object, Tensor triangles, "
+        "Tensor triangle_object, Tensor first, Tensor candidate_triangle, Tensor? spread, Tensor? body_step, "
+        "float reach) -> Tensor");
+  // contact_fill_nearest(the same, offsets [Sv], pair_vertex! [P], pair_triangle! [P], weights! [P, 3],
+  //     diff! [P, 3], distance! [P], normal! [P, 3], side! [P]) -> ()
+  //   the pairs, vertex s's from offsets[s] in the order of their chosen candidates: the vertex
+  //   (into vertices), the triangle, the closest point's weights, p minus it, its distance, the
+  //   triangle's unit normal and the side (+-1).
+  m.def("contact_fill_nearest(Tensor x, Tensor vertices, Tensor vertex_object, Tensor triangles, "
+        "Tensor triangle_object, Tensor first, Tensor candidate_triangle, Tensor? spread, Tensor? body_step, "
+        "float reach, Tensor offsets, Tensor(a!) pair_vertex, Tensor(b!) pair_triangle, Tensor(c!) weights, "
+        "Tensor(d!) diff, Tensor(e!) distance, Tensor(f!) normal, Tensor(g!) side) -> ()");
 }

@@ -20,19 +20,31 @@ the entries of its key. The ops walk each query's run and keep a candidate where
     contact_fill_candidates(the same, offsets, vertex!, triangle!)
             the candidates, query q's from offsets[q] in run order
 
-Why ops: as tensor ops the walk materialises every entry of every query's run before filtering
-it, and the runs hold mostly the vertex's own body's triangles. The ops' output is the
+The narrow phase (:func:`nearest_pairs`): for each surface vertex and each other body, the nearest
+of its candidate triangles within the reach, the lowest triangle id among those tied with it
+(within the rounding of the distances), its side by the sum of the tied triangles' normals:
+
+    contact_count_nearest(x, vertices, vertex_object, triangles, triangle_object, first,
+        candidate_triangle, spread?, body_step?, reach) -> counts [Sv] (-1: too many bodies near)
+    contact_fill_nearest(the same, offsets, pair_vertex!, pair_triangle!, weights!, diff!,
+        distance!, normal!, side!)
+
+Why ops: as tensor ops the broad phase's walk materialises every entry of every query's run
+before filtering it, and the runs hold mostly the vertex's own body's triangles. The ops' output is the
 reference's, in its order, so the narrow phase that follows sees the same pairs either way.
 Not differentiable (indices).
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
+from ..mesh.distance import closest_point
 from . import library
 from .library import OpDef
 
-__all__ = ["hash_key", "covered_cells", "hash_queries", "candidate_pairs"]
+__all__ = ["hash_key", "covered_cells", "hash_queries", "candidate_pairs", "nearest_pairs"]
 
 
 def hash_key(cells: torch.Tensor) -> torch.Tensor:
@@ -119,6 +131,74 @@ def _ref_contact_fill_candidates(cell, point_low, point_high, vertex_object, que
     triangle.copy_(entry_triangle[entry])
 
 
+def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle, spread,
+                      body_step, reach):
+    """The narrow phase as tensor ops (the ops' oracle; see the module): (pair_vertex ``[P]``,
+    pair_triangle ``[P]``, weights ``[P, 3]``, diff ``[P, 3]``, distance ``[P]``, normal ``[P, 3]``,
+    side ``[P]``), the pairs in the order of their chosen candidates."""
+    per_vertex = first[1:] - first[:-1]
+    vertex = torch.repeat_interleave(torch.arange(len(vertices), device=x.device), per_vertex,
+                                     output_size=len(candidate_triangle))
+    triangle = candidate_triangle
+    tri = triangles[triangle]
+    node = vertices[vertex]
+    w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
+    limit = reach
+    if spread is not None:  # what the pair may close over the step joins its reach
+        between = body_step[vertex_object[vertex]] - body_step[triangle_object[triangle]]
+        limit = reach + spread[node] + spread[tri].amax(-1) + torch.linalg.vector_norm(between, dim=-1)
+    near = (d < limit).nonzero().squeeze(1)
+    vertex, triangle, node, w, diff, d, normal = (t[near] for t in (vertex, triangle, node, w, diff, d, normal))
+    # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic).
+    # Groups numbered by a sort of their keys, at most one per candidate (no host read).
+    key = vertex * (1 << 32) + triangle_object[triangle]  # (bodies and vertices < 2^31)
+    sorted_key, order = torch.sort(key)
+    starts = torch.ones_like(sorted_key, dtype=torch.bool)
+    starts[1:] = sorted_key[1:] != sorted_key[:-1]
+    group = torch.empty_like(key).scatter_(0, order, torch.cumsum(starts, 0) - 1)
+    groups = key.numel()
+    least = d.new_full((groups,), math.inf).scatter_reduce(0, group, d, "amin")
+    # The triangles whose closest point is the nearest one share it (an edge or a corner of the
+    # surface): the vertex is outside when it is on the outer side of their normals' sum (the
+    # side of one triangle's plane is wrong beyond a convex edge: outside the body, but behind
+    # the plane of the face the edge bounds). Tied: within the rounding of the distances, which
+    # two triangles compute differently for their shared edge (a few ulps of the coordinates: in
+    # float32 far more than any fixed fraction of the reach; a missed tie leaves one grazing face
+    # to decide the side).
+    rounding = 32.0 * torch.finfo(d.dtype).eps * (x[node].abs().amax(-1) + reach)
+    tied = d <= least[group] + rounding
+    pseudo = normal.new_zeros(groups, 3).index_put_((group,), normal * tied[:, None].to(d.dtype), accumulate=True)
+    big = torch.iinfo(torch.int64).max
+    lowest = torch.full((groups,), big, dtype=torch.int64, device=x.device).scatter_reduce(
+        0, group, torch.where(tied, triangle, big), "amin")
+    chosen = (tied & (triangle == lowest[group])).nonzero().squeeze(1)
+    vertex, triangle, w, diff, d, normal, group = (t[chosen] for t in (vertex, triangle, w, diff, d, normal, group))
+    side = torch.where((pseudo[group] * diff).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
+    if spread is not None:
+        # Past the reach the candidates need not hold every triangle nearer than the chosen one
+        # (only those whose boxes meet the vertex's), so its side may be wrong: there a pair is
+        # kept only outside (a vertex that deep inside is lost to the body anyway).
+        trusted = ((d < reach) | (side > 0)).nonzero().squeeze(1)
+        vertex, triangle, w, diff, d, normal, side = (t[trusted] for t in (vertex, triangle, w, diff, d, normal, side))
+    return vertex, triangle, w, diff, d, normal, side
+
+
+def _ref_contact_count_nearest(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                               spread, body_step, reach):
+    vertex = nearest_reference(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                               spread, body_step, reach)[0]
+    return torch.bincount(vertex, minlength=len(vertices))
+
+
+def _ref_contact_fill_nearest(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                              spread, body_step, reach, offsets, pair_vertex, pair_triangle, weights, diff, distance,
+                              normal, side):
+    found = nearest_reference(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                              spread, body_step, reach)
+    for out, value in zip((pair_vertex, pair_triangle, weights, diff, distance, normal, side), found):
+        out.copy_(value)
+
+
 # ---------------------------------------------------------------------------------------------
 # Fake kernels and examples
 # ---------------------------------------------------------------------------------------------
@@ -144,6 +224,43 @@ def _example_inputs(device, dtype):
             triangle_object, False)
 
 
+def _fake_contact_count_nearest(x, vertices, *rest):
+    return vertices.new_empty(vertices.shape)
+
+
+def _example_nearest_inputs(device, dtype, swept=True):
+    """Two touching tetrahedra's surfaces (bodies 0 and 1), every triangle a candidate of every
+    vertex of the other body."""
+    x = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1],
+                      [0.2, 0.2, 0.3], [1.2, 0.2, 0.3], [0.2, 1.2, 0.3], [0.2, 0.2, 1.3]], dtype=dtype, device=device)
+    faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], device=device)
+    triangles = torch.cat([faces, faces + 4])
+    triangle_object = torch.tensor([0] * 4 + [1] * 4, device=device)
+    vertices = torch.arange(8, device=device)
+    vertex_object = vertices // 4
+    candidate = [t for v in range(8) for t in range(8) if t // 4 != v // 4]
+    candidate_triangle = torch.tensor(candidate, device=device)
+    first = torch.arange(0, 8 * 4 + 1, 4, device=device)
+    spread = torch.full((8,), 0.01, dtype=dtype, device=device) if swept else None
+    body_step = torch.tensor([[0.0, 0, -0.01], [0, 0, 0.01]], dtype=dtype, device=device) if swept else None
+    return (x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle, spread, body_step, 0.5)
+
+
+def _example_count_nearest(device, dtype):
+    return _example_nearest_inputs(device, dtype), {}
+
+
+def _example_fill_nearest(device, dtype):
+    args = _example_nearest_inputs(device, dtype)
+    counts = _ref_contact_count_nearest(*args)
+    total = int(counts.sum())
+    offsets = torch.cumsum(counts, 0) - counts
+    index = torch.zeros(total, dtype=torch.int64, device=device)
+    values = torch.zeros(total, dtype=dtype, device=device)
+    vectors = torch.zeros(total, 3, dtype=dtype, device=device)
+    return (*args, offsets, index, index.clone(), vectors, vectors.clone(), values, vectors.clone(), values.clone()), {}
+
+
 def _example_count(device, dtype):
     return _example_inputs(device, dtype), {}
 
@@ -162,6 +279,10 @@ OPS = (
           differentiable=False, example=_example_count),
     OpDef("contact_fill_candidates", _ref_contact_fill_candidates, None, differentiable=False, mutates=True,
           example=_example_fill),
+    OpDef("contact_count_nearest", _ref_contact_count_nearest, _fake_contact_count_nearest, differentiable=False,
+          example=_example_count_nearest),
+    OpDef("contact_fill_nearest", _ref_contact_fill_nearest, None, differentiable=False, mutates=True,
+          example=_example_fill_nearest),
 )
 library.define(OPS, lambda: library.register(OPS))
 
@@ -195,3 +316,34 @@ def candidate_pairs(cell: torch.Tensor, low: torch.Tensor, high: torch.Tensor, t
     triangle = torch.empty_like(vertex)
     library.op("contact_fill_candidates")(*args, offsets, vertex, triangle)
     return vertex, triangle
+
+
+def nearest_pairs(x: torch.Tensor, vertices: torch.Tensor, vertex_object: torch.Tensor, triangles: torch.Tensor,
+                  triangle_object: torch.Tensor, candidate_vertex: torch.Tensor, candidate_triangle: torch.Tensor,
+                  spread: "torch.Tensor | None", body_step: "torch.Tensor | None", reach: float,
+                  native: bool = True):
+    """The narrow phase (see the module) over the broad phase's candidates ``candidate_vertex,
+    candidate_triangle [C]`` (grouped by vertex, ascending) at positions ``x [V, 3]``: (pair_vertex
+    into ``vertices``, pair_triangle, weights ``[P, 3]``, diff ``[P, 3]``, distance ``[P]``, normal
+    ``[P, 3]``, side ``[P]``). ``spread [V]`` and ``body_step [B, 3]`` (both or neither): the swept
+    reach. Through the ops where the extension serves the device (``native``), else, or where a
+    vertex is near more bodies than the kernel holds, the reference. One host read (the pairs'
+    number, with the ops). Where ``x`` requires grad, the reference (the weights, diff, distance
+    and normal then carry the gradient: the energy's derivative flows through them)."""
+    first = torch.searchsorted(candidate_vertex, torch.arange(len(vertices) + 1, device=x.device))
+    args = (x.contiguous(), vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+            None if spread is None else spread.contiguous(), None if body_step is None else body_step.contiguous(),
+            float(reach))
+    count = library.op_or_reference("contact_count_nearest", x.device, native)
+    if count is not _ref_contact_count_nearest and not (x.requires_grad and torch.is_grad_enabled()):
+        counts = count(*args)
+        fewest = counts.amin() if len(counts) else counts.new_zeros(())
+        total, fewest = torch.stack([counts.sum(), fewest]).tolist()
+        if fewest >= 0:
+            offsets = torch.cumsum(counts, 0) - counts
+            index = torch.empty(total, dtype=torch.int64, device=x.device)
+            outputs = (index, torch.empty_like(index), x.new_empty(total, 3), x.new_empty(total, 3),
+                       x.new_empty(total), x.new_empty(total, 3), x.new_empty(total))
+            library.op("contact_fill_nearest")(*args, offsets, *outputs)
+            return outputs
+    return nearest_reference(*args)

@@ -629,52 +629,17 @@ class SurfaceContact:
         swept = self.settings.swept and v is not None and dt > 0
         motion = self._motion(x, v, dt) if swept else None
         vertex, triangle = self.candidates(x, v, dt, motion)
-        tri = self.triangles[triangle]
-        node = self.vertices[vertex]
-        w, diff, d, normal = closest_point(x[node], x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]])
-        reach = self.reach
+        spread = body_step = None
         if swept:  # what the pair may close over the step joins its reach
             deviation, body_step, _ = motion
             spread = torch.linalg.vector_norm(deviation, dim=-1)
-            between = body_step[self.vertex_object[vertex]] - body_step[self.triangle_object[triangle]]
-            reach = reach + spread[node] + spread[tri].amax(-1) + torch.linalg.vector_norm(between, dim=-1)
-        near = (d < reach).nonzero().squeeze(1)
-        vertex, triangle, node, tri, w, diff, d, normal = (
-            t[near] for t in (vertex, triangle, node, tri, w, diff, d, normal))
-        # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic).
-        # Groups numbered by a sort of their keys, at most one per candidate (no host read).
-        key = vertex * max(self.num_objects, 1) + self.triangle_object[triangle]
-        sorted_key, order = torch.sort(key)
-        starts = torch.ones_like(sorted_key, dtype=torch.bool)
-        starts[1:] = sorted_key[1:] != sorted_key[:-1]
-        group = torch.empty_like(key).scatter_(0, order, torch.cumsum(starts, 0) - 1)
-        groups = key.numel()
-        least = d.new_full((groups,), math.inf).scatter_reduce(0, group, d, "amin")
-        # The triangles whose closest point is the nearest one share it (an edge or a corner of the
-        # surface): the vertex is outside when it is on the outer side of their normals' sum (the
-        # side of one triangle's plane is wrong beyond a convex edge: outside the body, but
-        # behind the plane of the face the edge bounds).
-        # Tied: within the rounding of the distances, which two triangles compute differently for
-        # their shared edge (a few ulps of the coordinates: in float32 far more than any fixed
-        # fraction of the reach; a missed tie leaves one grazing face to decide the side).
-        rounding = 32.0 * torch.finfo(d.dtype).eps * (x[node].abs().amax(-1) + self.reach)
-        tied = d <= least[group] + rounding
-        pseudo = normal.new_zeros(groups, 3).index_put_((group,), normal * tied[:, None].to(d.dtype),
-                                                        accumulate=True)
-        big = torch.iinfo(torch.int64).max
-        first = torch.full((groups,), big, dtype=torch.int64, device=x.device).scatter_reduce(
-            0, group, torch.where(tied, triangle, big), "amin")
-        chosen = (tied & (triangle == first[group])).nonzero().squeeze(1)
-        vertex, triangle, node, tri, w, diff, d, normal, group = (
-            t[chosen] for t in (vertex, triangle, node, tri, w, diff, d, normal, group))
-        side = torch.where((pseudo[group] * diff).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
-        if swept:
-            # Past the reach the candidates need not hold every triangle nearer than the chosen
-            # one (only those whose boxes meet the vertex's), so its side may be wrong: there a
-            # pair is kept only outside (a vertex that deep inside is lost to the body anyway).
-            trusted = ((d < self.reach) | (side > 0)).nonzero().squeeze(1)
-            vertex, triangle, node, tri, w, diff, d, normal, side = (
-                t[trusted] for t in (vertex, triangle, node, tri, w, diff, d, normal, side))
+        # the nearest triangle per (vertex, body), its side by the pseudonormal of the triangles
+        # tied with it (ops.contact: the narrow phase as an op)
+        vertex, triangle, w, diff, d, normal, side = contact_ops.nearest_pairs(
+            x, self.vertices, self.vertex_object, self.triangles, self.triangle_object, vertex, triangle, spread,
+            body_step, self.reach)
+        node = self.vertices[vertex]
+        tri = self.triangles[triangle]
         gap = side * d - self.settings.thickness
         nodes = torch.cat([node[:, None], tri], dim=1)
         objects = torch.stack([self.vertex_object[vertex], self.triangle_object[triangle]], dim=1)

@@ -6,6 +6,8 @@ pairs; the candidate set equals a brute-force oracle (every pair of boxes that m
 CUDA equals the CPU; bad arguments raise naming them and write nothing."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -117,3 +119,92 @@ def test_bad_arguments_raise_naming_them_and_write_nothing():
     with pytest.raises(RuntimeError, match="triangle"):
         fill(*short)
     assert bool((vertex == -7).all()) and bool((triangle == -7).all())
+
+
+def pile_state(dtype, device, self_contact: bool = False):
+    """A SurfaceContact over 8 shaken blocks in two offset columns, its positions and velocities."""
+    from tensormass_torch.physics.body_contact import SurfaceContact
+
+    gen = torch.Generator().manual_seed(2)
+    block = tm.beam_mesh(3, 3, 2, size=(0.2, 0.2, 0.1), dtype=torch.float64)
+    faces = boundary_faces(block.elements)
+    nodes = block.vertices.shape[0]
+    x = torch.cat([block.vertices + torch.tensor([0.19 * (b % 2) + 0.03 * (b // 2), 0.0, 0.095 * (b // 2)],
+                                                 dtype=torch.float64)
+                   + 0.004 * torch.randn(nodes, 3, generator=gen, dtype=torch.float64) for b in range(8)])
+    v = 0.3 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    triangles = torch.cat([faces + b * nodes for b in range(8)])
+    node_object = torch.arange(8).repeat_interleave(nodes)
+    contact = SurfaceContact(triangles.to(device), node_object.to(device), x.to(device=device, dtype=dtype),
+                             tm.Contact(self_contact=self_contact))
+    return contact, x.to(device=device, dtype=dtype), v.to(device=device, dtype=dtype)
+
+
+@pytest.mark.parametrize("swept", [False, True])
+@pytest.mark.parametrize("self_contact", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("device", DEVICES)
+def test_nearest_pairs_equal_the_reference(swept, self_contact, dtype, device):
+    """The narrow phase op keeps the reference's pairs, in its order, with its sides, weights and
+    distances (to rounding: the op fuses what the reference does in separate kernels)."""
+    surface, x, v = pile_state(dtype, device, self_contact)
+    motion = surface._motion(x, v, 0.01) if swept else None
+    vertex, triangle = surface.candidates(x, v if swept else None, 0.01 if swept else 0.0, motion)
+    spread = body_step = None
+    if swept:
+        spread, body_step = torch.linalg.vector_norm(motion[0], dim=-1), motion[1]
+    args = (x, surface.vertices, surface.vertex_object, surface.triangles, surface.triangle_object, vertex, triangle,
+            spread, body_step, surface.reach)
+    ours = contact.nearest_pairs(*args)
+    theirs = contact.nearest_pairs(*args, native=False)
+    assert len(ours[0]) > 50  # the blocks touch: pairs to compare
+    assert torch.equal(ours[0], theirs[0]) and torch.equal(ours[1], theirs[1])
+    assert torch.equal(ours[6], theirs[6])  # the sides
+    tol = dict(rtol=0, atol=1e-5 if dtype == torch.float32 else 1e-12)
+    for a, b in zip(ours[2:6], theirs[2:6]):
+        torch.testing.assert_close(a, b, **tol)
+
+
+def test_a_vertex_near_too_many_bodies_takes_the_reference():
+    """Twelve tiny bodies around one vertex: more than the kernel's slots. The count reports it
+    (-1) and nearest_pairs gives the reference's pairs."""
+    x = [[0.0, 0.0, 0.0]]
+    triangles, triangle_object = [], []
+    for body in range(12):
+        angle = 2 * math.pi * body / 12
+        centre = torch.tensor([0.05 * math.cos(angle), 0.05 * math.sin(angle), 0.0])
+        base = len(x)
+        x += (centre + torch.tensor([[0.0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]])).tolist()
+        triangles.append([base, base + 1, base + 2])
+        triangle_object.append(body + 1)
+    x = torch.tensor(x, dtype=torch.float64)
+    triangles = torch.tensor(triangles)
+    vertices = torch.tensor([0])
+    candidate_vertex, candidate_triangle = torch.zeros(12, dtype=torch.int64), torch.arange(12)
+    args = (x, vertices, torch.tensor([0]), triangles, torch.tensor(triangle_object), candidate_vertex,
+            candidate_triangle, None, None, 0.2)
+    counts = library.op("contact_count_nearest")(x, vertices, torch.tensor([0]), triangles,
+                                                 torch.tensor(triangle_object), torch.tensor([0, 12]),
+                                                 candidate_triangle, None, None, 0.2)
+    assert counts.tolist() == [-1]
+    ours = contact.nearest_pairs(*args)
+    theirs = contact.nearest_pairs(*args, native=False)
+    assert len(ours[0]) == 12
+    for a, b in zip(ours, theirs):
+        assert torch.equal(a, b)
+
+
+def test_nearest_bad_arguments_raise_naming_them():
+    args = list(contact._example_nearest_inputs("cpu", torch.float64))
+    count = library.op("contact_count_nearest")
+    for position, wrong, name in [(1, args[1].int(), "vertices"), (3, args[3][:, :2].contiguous(), "triangles"),
+                                  (5, args[5][:-1], "first"), (7, args[7][:-1], "spread"),
+                                  (0, args[0].float(), "spread")]:
+        bad = list(args)
+        bad[position] = wrong
+        with pytest.raises(RuntimeError, match=name):
+            count(*bad)
+    bad = list(args)
+    bad[9] = -1.0
+    with pytest.raises(RuntimeError, match="reach"):
+        count(*bad)
