@@ -314,4 +314,55 @@ struct NearestPairsKernel {
   }
 };
 
+// ----------------------------------------------------------------------- the pairs' product
+
+// The pairs' part of a step's matrix times dx (body_contact.PairStiffness): per pair c,
+//   r = J dx = sum_i coef[c][i] dx[nodes[c][i]],  vector[c] = b r + (a - b) (u . r) u,
+// then each node sums coef[c][i] vector[c] over its entries (c, i), in the order `order` lists
+// them (sorted by node once per load: order[offsets[v]:offsets[v + 1]] are node v's, as 4 c + i).
+// Two kernels, no atomics: the sums are deterministic. Padding pairs (zero coefficients) give
+// zero vectors, and their entries lie past every node's run.
+template <typename S>
+struct PairVectorKernel {
+  const S* dx;         // [V, 3]
+  const int64_t* nodes;  // [C, 4]
+  const S* coef;       // [C, 4]
+  const S* direction;  // [C, 3]
+  const S* normal;     // [C] a
+  const S* friction;   // [C] b
+  S* vector;           // [C, 3]
+
+  TM_HD void operator()(int64_t c) const {
+    S r[3] = {S(0), S(0), S(0)};
+    TM_UNROLL for (int i = 0; i < 4; ++i) {
+      const S w = coef[c * 4 + i];
+      const int64_t n = nodes[c * 4 + i];
+      TM_UNROLL for (int k = 0; k < 3; ++k) r[k] += w * dx[n * 3 + k];
+    }
+    const S* u = direction + c * 3;
+    const S along = r[0] * u[0] + r[1] * u[1] + r[2] * u[2];
+    const S b = friction[c], a_minus_b = normal[c] - friction[c];
+    TM_UNROLL for (int k = 0; k < 3; ++k) vector[c * 3 + k] = b * r[k] + a_minus_b * along * u[k];
+  }
+};
+
+template <typename S>
+struct PairGatherKernel {
+  const S* coef;           // [C, 4]
+  const S* vector;         // [C, 3]
+  const int64_t* order;    // [4 C]
+  const int64_t* offsets;  // [V + 1]
+  S* out;                  // [V, 3]
+
+  TM_HD void operator()(int64_t v) const {
+    S sum[3] = {S(0), S(0), S(0)};
+    for (int64_t e = offsets[v]; e < offsets[v + 1]; ++e) {
+      const int64_t entry = order[e], c = entry / 4;
+      const S w = coef[entry];
+      TM_UNROLL for (int k = 0; k < 3; ++k) sum[k] += w * vector[c * 3 + k];
+    }
+    TM_UNROLL for (int k = 0; k < 3; ++k) out[v * 3 + k] = sum[k];
+  }
+};
+
 }  // namespace tensormass

@@ -221,6 +221,39 @@ void contact_fill_nearest(const at::Tensor& x, const at::Tensor& vertices, const
   });
 }
 
+// contact_pair_product: see schema.cpp.
+template <class L>
+void contact_pair_product(const at::Tensor& dx, const at::Tensor& nodes, const at::Tensor& coef,
+                          const at::Tensor& direction, const at::Tensor& normal, const at::Tensor& friction,
+                          const at::Tensor& order, const at::Tensor& offsets, at::Tensor vector, at::Tensor out) {
+  check_values(dx, "dx");
+  TORCH_CHECK(dx.size(1) == 3, "tensormass: dx must be [V, 3], got shape ", shape_str(dx.sizes()));
+  const int64_t num_nodes = dx.size(0);
+  TORCH_CHECK(nodes.defined() && nodes.dim() == 2 && nodes.size(1) == 4, "tensormass: nodes must be [C, 4]");
+  const int64_t capacity = nodes.size(0);
+  check_index_tensor(nodes, "nodes", dx, at::kLong, {capacity, 4}, "dx");
+  check_node_tensor(coef, "coef", dx, {capacity, 4}, "dx");
+  check_node_tensor(direction, "direction", dx, {capacity, 3}, "dx");
+  check_node_tensor(normal, "normal", dx, {capacity}, "dx");
+  check_node_tensor(friction, "friction", dx, {capacity}, "dx");
+  check_index_tensor(order, "order", dx, at::kLong, {4 * capacity}, "dx");
+  check_index_tensor(offsets, "offsets", dx, at::kLong, {num_nodes + 1}, "dx");
+  check_node_tensor(vector, "vector", dx, {capacity, 3}, "dx");
+  check_node_tensor(out, "out", dx, {num_nodes, 3}, "dx");
+  TORCH_CHECK(!out.is_same(dx), "tensormass: out must not be dx");
+  typename L::Guard guard(dx.device());
+  dispatch_scalar(dx.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    PairVectorKernel<S> pairs{dx.data_ptr<S>(), nodes.data_ptr<int64_t>(), coef.data_ptr<S>(),
+                              direction.data_ptr<S>(), normal.data_ptr<S>(), friction.data_ptr<S>(),
+                              vector.data_ptr<S>()};
+    L::run(capacity, pairs, L::kNodeBlock);
+    PairGatherKernel<S> gather{coef.data_ptr<S>(), vector.data_ptr<S>(), order.data_ptr<int64_t>(),
+                               offsets.data_ptr<int64_t>(), out.data_ptr<S>()};
+    L::run(num_nodes, gather, L::kNodeBlock);
+  });
+}
+
 // Registers the implementations of the contact ops of one backend (launcher L) under its
 // TORCH_LIBRARY_IMPL (cpu.cpp, cuda.cu); the schemas: schema.cpp.
 template <class L>
@@ -229,6 +262,7 @@ void register_contact_ops(torch::Library& m) {
   m.impl("contact_fill_candidates", &contact_fill_candidates<L>);
   m.impl("contact_count_nearest", &contact_count_nearest<L>);
   m.impl("contact_fill_nearest", &contact_fill_nearest<L>);
+  m.impl("contact_pair_product", &contact_pair_product<L>);
 }
 
 }  // namespace tensormass

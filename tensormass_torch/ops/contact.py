@@ -29,9 +29,14 @@ of its candidate triangles within the reach, the lowest triangle id among those 
     contact_fill_nearest(the same, offsets, pair_vertex!, pair_triangle!, weights!, diff!,
         distance!, normal!, side!)
 
+The pairs' part of a step's matrix times a vector, in two kernels (a pair each, then a node each
+over its entries in a fixed order):
+
+    contact_pair_product(dx, nodes, coef, direction, normal, friction, order, offsets, vector!, out!)
+
 Why ops: as tensor ops the broad phase's walk materialises every entry of every query's run
-before filtering it, and the runs hold mostly the vertex's own body's triangles. The ops' output is the
-reference's, in its order, so the narrow phase that follows sees the same pairs either way.
+before filtering it, and the runs hold mostly the vertex's own body's triangles. The ops' output is
+the reference's, in its order, so the narrow phase that follows sees the same pairs either way.
 Not differentiable (indices).
 """
 from __future__ import annotations
@@ -44,7 +49,7 @@ from ..mesh.distance import closest_point
 from . import library
 from .library import OpDef
 
-__all__ = ["hash_key", "covered_cells", "hash_queries", "candidate_pairs", "nearest_pairs"]
+__all__ = ["hash_key", "covered_cells", "hash_queries", "candidate_pairs", "nearest_pairs", "pair_product"]
 
 
 def hash_key(cells: torch.Tensor) -> torch.Tensor:
@@ -199,6 +204,15 @@ def _ref_contact_fill_nearest(x, vertices, vertex_object, triangles, triangle_ob
         out.copy_(value)
 
 
+def _ref_contact_pair_product(dx, nodes, coef, direction, normal, friction, order, offsets, vector, out):
+    relative = (coef[:, :, None] * dx[nodes]).sum(1)  # J dx [C, 3]
+    along = (relative * direction).sum(-1, keepdim=True)  # u . J dx [C, 1]
+    # a u (u . J dx) + b (J dx - u (u . J dx))
+    vector.copy_(friction[:, None] * relative + ((normal - friction)[:, None] * along) * direction)
+    per_entry = (coef[:, :, None] * vector[:, None, :]).reshape(-1, 3)
+    out.copy_(torch.segment_reduce(per_entry[order], "sum", offsets=offsets, axis=0, unsafe=True))
+
+
 # ---------------------------------------------------------------------------------------------
 # Fake kernels and examples
 # ---------------------------------------------------------------------------------------------
@@ -261,6 +275,25 @@ def _example_fill_nearest(device, dtype):
     return (*args, offsets, index, index.clone(), vectors, vectors.clone(), values, vectors.clone(), values.clone()), {}
 
 
+def _example_pair_product(device, dtype):
+    """Three pairs over 6 nodes and a padding row, sorted by node as PairStiffness sorts them."""
+    gen = torch.Generator().manual_seed(3)
+    nodes = torch.tensor([[0, 3, 4, 5], [1, 3, 5, 4], [2, 0, 1, 3], [0, 0, 0, 0]])
+    coef = torch.rand(4, 4, generator=gen, dtype=torch.float64)
+    coef[3] = 0.0
+    direction = torch.nn.functional.normalize(torch.randn(4, 3, generator=gen, dtype=torch.float64), dim=-1)
+    normal = torch.tensor([2.0, 3.0, 1.5, 0.0], dtype=torch.float64)
+    friction = torch.tensor([0.5, 0.0, 0.25, 0.0], dtype=torch.float64)
+    targets, order = torch.sort(nodes[:3].reshape(-1), stable=True)
+    order = torch.cat([order, torch.arange(12, 16)])
+    offsets = torch.searchsorted(targets, torch.arange(7))
+    dx = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+    floats = [t.to(device=device, dtype=dtype) for t in (dx, coef, direction, normal, friction)]
+    return (floats[0], nodes.to(device), floats[1], floats[2], floats[3], floats[4], order.to(device),
+            offsets.to(device), torch.zeros(4, 3, dtype=dtype, device=device),
+            torch.zeros(6, 3, dtype=dtype, device=device)), {}
+
+
 def _example_count(device, dtype):
     return _example_inputs(device, dtype), {}
 
@@ -283,6 +316,8 @@ OPS = (
           example=_example_count_nearest),
     OpDef("contact_fill_nearest", _ref_contact_fill_nearest, None, differentiable=False, mutates=True,
           example=_example_fill_nearest),
+    OpDef("contact_pair_product", _ref_contact_pair_product, None, differentiable=False, mutates=True,
+          example=_example_pair_product, scratch=("vector",)),
 )
 library.define(OPS, lambda: library.register(OPS))
 
@@ -347,3 +382,15 @@ def nearest_pairs(x: torch.Tensor, vertices: torch.Tensor, vertex_object: torch.
             library.op("contact_fill_nearest")(*args, offsets, *outputs)
             return outputs
     return nearest_reference(*args)
+
+
+def pair_product(dx: torch.Tensor, nodes: torch.Tensor, coef: torch.Tensor, direction: torch.Tensor,
+                 normal: torch.Tensor, friction: torch.Tensor, order: torch.Tensor, offsets: torch.Tensor,
+                 vector: torch.Tensor, native: bool = True) -> torch.Tensor:
+    """The pairs' product ``[V, 3]`` for ``dx [V, 3]`` (``contact_pair_product``; the buffers as
+    ``body_contact.PairStiffness`` holds them, ``vector [C, 3]`` scratch), through the op where
+    the extension serves the device (``native``), else its reference."""
+    out = torch.empty_like(dx)
+    library.op_or_reference("contact_pair_product", dx.device, native)(
+        dx.contiguous(), nodes, coef, direction, normal, friction, order, offsets, vector, out)
+    return out

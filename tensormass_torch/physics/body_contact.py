@@ -323,8 +323,9 @@ class PairStiffness:
     shrunk); rows past the step's pairs are zero and add nothing. The product is a gather, a
     few products per pair and a deterministic scatter: the entries (4 per pair) are sorted by
     the node they go to once per load, so that each product only permutes them and sums each
-    node's run in order (a segment reduction; no sort per CG iteration). The padding gathers
-    node 0 and sorts past every node's run: no node receives it.
+    node's run in order (no sort per CG iteration; ``ops.contact.pair_product``: two kernels, a
+    pair each, then a node each). The padding gathers node 0 and sorts past every node's run: no
+    node receives it.
     """
 
     def __init__(self):
@@ -336,6 +337,7 @@ class PairStiffness:
         self.direction: Optional[torch.Tensor] = None  # [C, 3] u
         self.normal: Optional[torch.Tensor] = None  # [C] a
         self.friction: Optional[torch.Tensor] = None  # [C] b (zeros without friction)
+        self.vector: Optional[torch.Tensor] = None  # [C, 3] the product's scratch
         self.num_nodes = 0
 
     def load(self, pairs: "ContactPairs", coefficient: float, damping: float = 0.0) -> bool:
@@ -355,6 +357,7 @@ class PairStiffness:
             self.direction = like.new_zeros(self.capacity, 3)
             self.normal = like.new_zeros(self.capacity)
             self.friction = like.new_zeros(self.capacity)
+            self.vector = like.new_zeros(self.capacity, 3)
         self.num_nodes = pairs.num_nodes
         self.nodes[:count].copy_(pairs.nodes)
         self.nodes[count:].zero_()
@@ -374,13 +377,9 @@ class PairStiffness:
         return grew
 
     def __call__(self, dx: torch.Tensor) -> torch.Tensor:
-        """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class)."""
-        relative = (self.coef[:, :, None] * dx[self.nodes]).sum(1)  # J dx [C, 3]
-        along = (relative * self.direction).sum(-1, keepdim=True)  # u . J dx [C, 1]
-        # a u (u . J dx) + b (J dx - u (u . J dx))
-        vector = self.friction[:, None] * relative + ((self.normal - self.friction)[:, None] * along) * self.direction
-        per_entry = (self.coef[:, :, None] * vector[:, None, :]).reshape(-1, 3)
-        return torch.segment_reduce(per_entry[self.order], "sum", offsets=self.offsets, axis=0, unsafe=True)
+        """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class; ``ops.contact.pair_product``)."""
+        return contact_ops.pair_product(dx, self.nodes, self.coef, self.direction, self.normal, self.friction,
+                                        self.order, self.offsets, self.vector)
 
 
 class HeldPairs:

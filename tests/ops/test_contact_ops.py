@@ -208,3 +208,49 @@ def test_nearest_bad_arguments_raise_naming_them():
     bad[9] = -1.0
     with pytest.raises(RuntimeError, match="reach"):
         count(*bad)
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.4])
+@pytest.mark.parametrize("device", DEVICES)
+def test_pair_product_equals_the_reference_and_the_pairs_matrix(friction, device):
+    """The pairs' product as the op equals its tensor-op reference and the assembled
+    sum over pairs of J^T (a u u^T + b P_t) J, on a shaken pile's pairs (float64)."""
+    from tensormass_torch.physics.body_contact import PairStiffness
+
+    surface, x, v = pile_state(torch.float64, device)
+    pairs = surface.detect(x, v, 0.01)
+    assert len(pairs) > 20
+    pairs.friction = None if friction == 0 else torch.full_like(pairs.gap, friction)
+    product = PairStiffness()
+    product.load(pairs, 2.0, 0.5)
+    dx = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(device)
+    args = (dx, product.nodes, product.coef, product.direction, product.normal, product.friction, product.order,
+            product.offsets)
+    ours = contact.pair_product(*args, product.vector.clone())
+    theirs = contact.pair_product(*args, product.vector.clone(), native=False)
+    torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
+    # the assembled matrix, pair by pair
+    count = len(pairs)
+    jac = torch.zeros(count, 3, x.shape[0], 3, dtype=torch.float64, device=device)
+    for i in range(4):
+        jac[torch.arange(count), :, pairs.nodes[:, i], :] += (pairs._coefficients()[:, i, None, None]
+                                                              * torch.eye(3, dtype=torch.float64, device=device))
+    u = pairs.direction
+    a = 2.0 * pairs.stiffness  # (a float: one stiffness for every pair)
+    b = 0.5 * (torch.zeros_like(pairs.gap) if pairs.friction is None else pairs.friction)
+    outer = u[:, :, None] * u[:, None, :]
+    block = a * outer + b[:, None, None] * (torch.eye(3, dtype=torch.float64, device=device) - outer)
+    matrix = torch.einsum("cavk,cab,cbwl->vkwl", jac, block, jac)
+    expected = torch.einsum("vkwl,wl->vk", matrix, dx)
+    torch.testing.assert_close(ours, expected, rtol=1e-10, atol=1e-10)
+
+
+def test_pair_product_bad_arguments_raise_naming_them():
+    args = list(contact._example_pair_product("cpu", torch.float64)[0])
+    op = library.op("contact_pair_product")
+    for position, wrong, name in [(1, args[1].int(), "nodes"), (2, args[2][:, :3].contiguous(), "coef"),
+                                  (7, args[7][:-1], "offsets"), (9, args[0], "out")]:
+        bad = list(args)
+        bad[position] = wrong
+        with pytest.raises(RuntimeError, match=name):
+            op(*bad)
