@@ -112,6 +112,11 @@ def probe(columns, cells, steps, device, dtype, profile_to=None):
     row["candidates"] = len(found["op"][0])
     row["same_candidates"] = all(torch.equal(a, b) for a, b in zip(found["op"], found["reference"]))
     row["same_pairs"] = torch.equal(found["op_pairs"], found["reference_pairs"])
+    # pairs one found and the other did not: a tie between two triangles within rounding, or a
+    # distance at the reach, decided the other way by the op's fused arithmetic
+    both = torch.cat([found["op_pairs"], found["reference_pairs"]])
+    row["pairs"] = len(found["op_pairs"])
+    row["pairs_differing"] = int((torch.unique(both, dim=0, return_counts=True)[1] == 1).sum())
     for native in (True, False):
         name = "op" if native else "reference"
         sim.x, sim.v = x.clone(), v.clone()
