@@ -41,6 +41,7 @@ import torch
 
 from ..errors import SceneError
 from ..ops import library
+from ..ops.multigrid import BsrMatrix, bsr_gemv
 
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
 #: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
@@ -59,13 +60,16 @@ class JacobiScaling:
     def __init__(self):
         self.scale: Optional[torch.Tensor] = None
         self.inverse: Optional[torch.Tensor] = None
+        # block Jacobi: S, S^T and S^-1 as block-diagonal BSR matrices (one d x d block a row) on
+        # the buffers above and S^T's own, for the BSR product op (ops.multigrid)
+        self._blocks: Optional[tuple] = None
 
     def load(self, diagonal: torch.Tensor) -> "JacobiScaling":
         """Take the system's diagonal ``[V, d]`` or diagonal blocks ``[V, d, d]``; rows (blocks)
         that are not positive (definite) (a node with no mass and no element left, whose row CG
         never moves) are left unscaled."""
         if diagonal.dim() == 3:
-            scale, inverse = block_cholesky_scaling(diagonal)
+            scale, inverse = (t.contiguous() for t in block_cholesky_scaling(diagonal))
         else:
             positive = diagonal > 0
             safe = diagonal.clamp(min=torch.finfo(diagonal.dtype).tiny)
@@ -74,9 +78,12 @@ class JacobiScaling:
         if self.scale is None or self.scale.shape != scale.shape or self.scale.dtype != scale.dtype \
                 or self.scale.device != scale.device:
             self.scale, self.inverse = scale, inverse
+            self._blocks = _block_diagonal(scale, inverse) if scale.dim() == 3 else None
         else:
             self.scale.copy_(scale)
             self.inverse.copy_(inverse)
+            if self._blocks is not None:
+                self._blocks[1].values.copy_(scale.transpose(-1, -2))
         return self
 
     @property
@@ -84,25 +91,27 @@ class JacobiScaling:
         """What a graph captured over :meth:`product` depends on: the buffer's storage."""
         return ("jacobi", self.scale.data_ptr())
 
-    # The blocks' products are a broadcast multiply and a sum over [V, d, d]: memory-bound, two
-    # kernels. (einsum would make them a batched matrix product, one 3x3 by 3x1 product a batch
-    # entry, far slower on a GPU: docs/contact.md.)
+    # The blocks' products are one launch of the BSR product op each (ops.multigrid: a block row a
+    # node, read once), where the extension serves the device; its reference otherwise. (Two CG
+    # products a CG iteration: as a broadcast multiply and a sum they were four memory-bound
+    # kernels over [V, d, d] temporaries, as einsum a batched matrix product far slower on a GPU:
+    # docs/contact.md.)
     def apply(self, v: torch.Tensor) -> torch.Tensor:
         """S v ``[V, d]``."""
-        if self.scale.dim() == 3:
-            return (self.scale * v[:, None, :]).sum(-1)
+        if self._blocks is not None:
+            return _block_product(self._blocks[0], v)
         return v * self.scale
 
     def apply_transpose(self, v: torch.Tensor) -> torch.Tensor:
         """S^T v ``[V, d]``."""
-        if self.scale.dim() == 3:
-            return (self.scale * v[:, :, None]).sum(-2)
+        if self._blocks is not None:
+            return _block_product(self._blocks[1], v)
         return v * self.scale
 
     def unapply(self, v: torch.Tensor) -> torch.Tensor:
         """S^-1 v ``[V, d]``."""
-        if self.inverse.dim() == 3:
-            return (self.inverse * v[:, None, :]).sum(-1)
+        if self._blocks is not None:
+            return _block_product(self._blocks[2], v)
         return v * self.inverse
 
     def product(self, matvec):
@@ -114,6 +123,23 @@ class JacobiScaling:
             return self.apply_transpose(out[0] if isinstance(out, tuple) else out)
 
         return scaled
+
+
+def _block_diagonal(scale: torch.Tensor, inverse: torch.Tensor) -> tuple:
+    """(S, S^T, S^-1) as block-diagonal ``multigrid.BsrMatrix`` es for ``scale`` and ``inverse``
+    ``[V, d, d]``: S and S^-1 on those very buffers, S^T on a buffer of its own (load refreshes
+    it), the index arrays shared."""
+    nodes, dim = scale.shape[0], scale.shape[-1]
+    rows = torch.arange(nodes + 1, dtype=torch.int32, device=scale.device)
+    block_rows = torch.arange(nodes, device=scale.device)
+    shape = (nodes * dim, nodes * dim)
+    return tuple(BsrMatrix(values, rows[:-1], rows, block_rows, shape)
+                 for values in (scale, scale.transpose(-1, -2).contiguous(), inverse))
+
+
+def _block_product(matrix: BsrMatrix, v: torch.Tensor) -> torch.Tensor:
+    """A block-diagonal ``matrix``'s product with ``v [V, d]`` (``[V, d]``)."""
+    return bsr_gemv(matrix, v.reshape(-1)).view_as(v)
 
 
 def block_cholesky_scaling(blocks: torch.Tensor):
