@@ -2,7 +2,7 @@
 deepest interpenetration against the contact stiffness and the step, and whether they come to rest.
 
     python benchmarks/studies/contact_penetration.py [--stiffness 1e4 1e5 1e6] [--dt 0.01 0.005 0.0025]
-                                                     [--seconds 0.6] [--rounds 4] [--device cpu]
+                                                     [--seconds 0.6] [--rounds R ...] [--device cpu]
                                                      [--dtype float64]
                                                      [--out benchmarks/results/contact] [--quick]
 
@@ -18,6 +18,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -27,7 +28,8 @@ import common  # noqa: E402
 import tensormass_torch as tm  # noqa: E402
 
 
-def drop(stiffness: float, dt: float, seconds: float, device, dtype, rounds: int = 4):
+def drop(stiffness: float, dt: float, seconds: float, device, dtype, rounds: Optional[int] = None):
+    rounds = tm.Contact().rounds if rounds is None else rounds
     material = tm.Material(young=1e5, poisson=0.3, density=1000)
     lower = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), dtype=dtype)
     upper = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.12), dtype=dtype)
@@ -53,7 +55,8 @@ def main(argv=None):
     parser.add_argument("--stiffness", type=float, nargs="+", default=[1e4, 1e5, 1e6])
     parser.add_argument("--dt", type=float, nargs="+", default=[0.01, 0.005, 0.0025])
     parser.add_argument("--seconds", type=float, default=0.6)
-    parser.add_argument("--rounds", type=int, nargs="+", default=[4], help="a run for each Contact(rounds=...)")
+    parser.add_argument("--rounds", type=int, nargs="+", default=[tm.Contact().rounds],
+                        help="a run for each Contact(rounds=...)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--dtype", default="float64", choices=["float32", "float64"])
     parser.add_argument("--out", default=str(Path(__file__).resolve().parent.parent / "results" / "contact"))

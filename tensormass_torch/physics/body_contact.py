@@ -103,6 +103,10 @@ class Contact:
             that misses nothing is solved once). 0: the pairs found at the step's start only,
             one solve a step; fewer rounds are faster and leave deeper transient
             interpenetration (docs/contact.md measures the trade).
+        tolerance: how much deeper than its pair's linear model (or, with no pair, than the
+            surface) a vertex may end a step before the step takes a round; None: 1/400 of the
+            search, 0.25 % of the mean surface edge by default (``SurfaceContact.tolerance``). A
+            larger tolerance leaves shallow misses to the next step, which finds them in contact.
     """
 
     stiffness: float = 1e5
@@ -114,6 +118,7 @@ class Contact:
     friction: float = 0.0
     friction_velocity: float = 1e-3
     rounds: int = 4
+    tolerance: Optional[float] = None
 
     def __post_init__(self):
         def number(value):
@@ -132,6 +137,8 @@ class Contact:
         check_friction(self.friction, self.friction_velocity, "contact")
         if not isinstance(self.rounds, int) or isinstance(self.rounds, bool) or self.rounds < 0:
             raise SceneError(f"contact rounds must be a non-negative integer, got {self.rounds!r}")
+        if self.tolerance is not None and (not number(self.tolerance) or self.tolerance <= 0):
+            raise SceneError(f"contact tolerance must be a positive finite number or None, got {self.tolerance!r}")
         if self.tangent not in TANGENTS:
             raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
                              f"got {self.tangent!r}")
@@ -718,10 +725,11 @@ class SurfaceContact:
     @property
     def tolerance(self) -> float:
         """How much deeper than its pair's linear model a vertex may end a step before the step
-        is solved again with the pair linearised where it ends (:meth:`relinearise`): 1/400 of
-        :attr:`search` (by default the mean surface edge length), a geometric error small against
-        the 1 % of an edge that the contact's interpenetration is held to."""
-        return 0.0025 * self.search
+        is solved again with the pair linearised where it ends (:meth:`relinearise`), and how
+        deep a vertex with no pair may end before its pair joins the step: ``Contact.tolerance``,
+        by default 1/400 of :attr:`search` (by default the mean surface edge length), a geometric
+        error small against the 1 % of an edge that the contact's interpenetration is held to."""
+        return 0.0025 * self.search if self.settings.tolerance is None else float(self.settings.tolerance)
 
     def detect(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0) -> ContactPairs:
         """The pairs in contact at ``x [V, 3]``: for each surface vertex and each body, the nearest

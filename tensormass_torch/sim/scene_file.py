@@ -68,6 +68,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     friction = 0.0                    # Coulomb coefficient between the bodies (0: none)
     friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
     rounds = 4                        # more solves a step may take to check its contact set (0: none)
+    # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
 
     [[bodies]]
     name = "beam"
@@ -802,6 +803,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           friction=contact_table.get("friction", "nonnegative", 0.0),
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
                           rounds=contact_table.get("rounds", "nonnegative_int", 4),
+                          tolerance=contact_table.get("tolerance", "positive", None),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
     distributed_table = top.table("distributed") or _Table({}, "distributed", fail)

@@ -383,6 +383,42 @@ def test_a_pair_the_solve_closes_joins_the_step():
     assert float(once.interpenetration().max()) > 0.3 * 1.0 * sim.options.dt
 
 
+def test_a_miss_within_the_tolerance_is_left_to_the_next_step():
+    """The scene above with Contact(tolerance) past the depth the missed pair would reach: the
+    step is solved once, as with rounds=0, bit for bit; the next step finds the pair in contact
+    (its start's gap negative) and the penalty pushes the block out over the steps after. The
+    default tolerance is 1/400 of the search."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    lower = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, -0.005), dtype=DT)
+    upper = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.0951), dtype=DT)
+
+    def falling(contact):
+        sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
+                           planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0, dtype=DT)
+        sim.v = torch.zeros_like(sim.v)
+        sim.v[:, 2] = -1.0
+        return sim
+
+    default = falling(tm.Contact())
+    assert default.body_contact.tolerance == pytest.approx(default.body_contact.search / 400)
+    assert len(default.step().cg) > 1
+    lenient, once = falling(tm.Contact(tolerance=0.01)), falling(tm.Contact(rounds=0))
+    assert lenient.body_contact.tolerance == 0.01
+    assert len(lenient.step().cg) == 1
+    once.step()
+    assert torch.equal(lenient.x, once.x) and torch.equal(lenient.v, once.v)
+    inside = float(lenient.interpenetration().max())
+    assert 0.3 * 1.0 * 0.005 < inside < 0.01  # much of the 5 mm travel: within the tolerance, left for later
+    lenient.step(25)  # the penalty pushes it out over the next steps (about 17 here)
+    assert float(lenient.interpenetration().max()) < 0.05 * inside
+
+
+@pytest.mark.parametrize("tolerance", [0.0, -1e-3, float("nan"), "0.1", True])
+def test_contact_tolerance_must_be_positive(tolerance):
+    with pytest.raises(tm.SceneError, match="contact tolerance must be a positive finite number or None"):
+        tm.Contact(tolerance=tolerance)
+
+
 @pytest.mark.parametrize("rounds", [-1, 2.0, True, None])
 def test_contact_rounds_must_be_a_non_negative_integer(rounds):
     with pytest.raises(tm.SceneError, match="contact rounds must be a non-negative integer"):

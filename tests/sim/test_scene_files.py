@@ -174,6 +174,7 @@ MISTAKES = {
     "bad contact tangent": (BEAM + '[contact]\ntangent = "full"\n', "contact.tangent: unknown contact tangent"),
     "negative contact rounds": (BEAM + '[contact]\nrounds = -1\n', "contact.rounds: must be >= 0"),
     "fractional contact rounds": (BEAM + '[contact]\nrounds = 1.5\n', "contact.rounds: must be an integer"),
+    "zero contact tolerance": (BEAM + '[contact]\ntolerance = 0.0\n', "contact.tolerance: must be > 0"),
 }
 
 
@@ -228,8 +229,10 @@ def test_contact_reaches_the_simulator(tmp_path):
         friction = 0.4
         friction_velocity = 0.01
         rounds = 2
+        tolerance = 2e-4
         """)
     sim = load_scene(path).simulator
     assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True, swept=False,
-                                     friction=0.4, friction_velocity=0.01, rounds=2)
+                                     friction=0.4, friction_velocity=0.01, rounds=2, tolerance=2e-4)
     assert sim.body_contact is not None and sim.body_contact.search == 0.05
+    assert sim.body_contact.tolerance == 2e-4
