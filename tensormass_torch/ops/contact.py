@@ -58,6 +58,12 @@ def hash_key(cells: torch.Tensor) -> torch.Tensor:
     return (cells[..., 0] * 73856093) ^ (cells[..., 1] * 19349663) ^ (cells[..., 2] * 83492791)
 
 
+def _run_starts(counts: torch.Tensor) -> torch.Tensor:
+    """Where each of the runs of ``counts [N]`` items starts when they are packed one after the
+    other (the exclusive prefix sum, ``[N]``): the ops' fill passes write each run there."""
+    return torch.cumsum(counts, 0) - counts
+
+
 def covered_cells(low: torch.Tensor, high: torch.Tensor, cell):
     """The cells of side ``cell`` that boxes [low, high] ``[N, 3]`` cover: (box ids ``[E]``,
     integer cells ``[E, 3]``), each box's cells in a row (one host read: their number)."""
@@ -66,7 +72,7 @@ def covered_cells(low: torch.Tensor, high: torch.Tensor, cell):
     count = span.prod(-1)
     total = int(count.sum())
     box = torch.repeat_interleave(torch.arange(len(low), device=low.device), count, output_size=total)
-    local = torch.arange(total, device=low.device) - (torch.cumsum(count, 0) - count)[box]
+    local = torch.arange(total, device=low.device) - _run_starts(count)[box]
     ny, nz = span[box, 1], span[box, 2]
     offset = torch.stack([local // (ny * nz), (local // nz) % ny, local % nz], dim=-1)
     return box, first[box] + offset
@@ -106,7 +112,7 @@ def _kept(cell, point_low, point_high, vertex_object, query_vertex, query_cells,
     total = int(counts.sum())
     device = query_start.device
     query = torch.repeat_interleave(torch.arange(len(query_start), device=device), counts, output_size=total)
-    first_of = torch.repeat_interleave(query_start - (torch.cumsum(counts, 0) - counts), counts, output_size=total)
+    first_of = torch.repeat_interleave(query_start - _run_starts(counts), counts, output_size=total)
     entry = first_of + torch.arange(total, device=device)
     triangle, vertex = entry_triangle[entry], query_vertex[query]
     cells = query_cells[query]
@@ -268,7 +274,7 @@ def _example_fill_nearest(device, dtype):
     args = _example_nearest_inputs(device, dtype)
     counts = _ref_contact_count_nearest(*args)
     total = int(counts.sum())
-    offsets = torch.cumsum(counts, 0) - counts
+    offsets = _run_starts(counts)
     index = torch.zeros(total, dtype=torch.int64, device=device)
     values = torch.zeros(total, dtype=dtype, device=device)
     vectors = torch.zeros(total, 3, dtype=dtype, device=device)
@@ -302,7 +308,7 @@ def _example_fill(device, dtype):
     args = _example_inputs(device, dtype)
     counts = _ref_contact_count_candidates(*args)
     total = int(counts.sum())
-    offsets = torch.cumsum(counts, 0) - counts
+    offsets = _run_starts(counts)
     vertex = torch.zeros(total, dtype=torch.int64, device=device)
     return (*args, offsets, vertex, torch.zeros_like(vertex)), {}
 
@@ -345,7 +351,7 @@ def candidate_pairs(cell: torch.Tensor, low: torch.Tensor, high: torch.Tensor, t
         query, entry = _kept(*args)
         return queries[0][query], queries[4][entry]
     counts = count(*args)
-    offsets = torch.cumsum(counts, 0) - counts
+    offsets = _run_starts(counts)
     total = int(counts.sum())
     vertex = torch.empty(total, dtype=torch.int64, device=low.device)
     triangle = torch.empty_like(vertex)
@@ -375,7 +381,7 @@ def nearest_pairs(x: torch.Tensor, vertices: torch.Tensor, vertex_object: torch.
         fewest = counts.amin() if len(counts) else counts.new_zeros(())
         total, fewest = torch.stack([counts.sum(), fewest]).tolist()
         if fewest >= 0:
-            offsets = torch.cumsum(counts, 0) - counts
+            offsets = _run_starts(counts)
             index = torch.empty(total, dtype=torch.int64, device=x.device)
             outputs = (index, torch.empty_like(index), x.new_empty(total, 3), x.new_empty(total, 3),
                        x.new_empty(total), x.new_empty(total, 3), x.new_empty(total))

@@ -102,7 +102,8 @@ class Contact:
             into contact join the set, pairs it slides over a crease are linearised again; a step
             that misses nothing is solved once). 0: the pairs found at the step's start only,
             one solve a step; fewer rounds are faster and leave deeper transient
-            interpenetration (docs/contact.md measures the trade).
+            interpenetration (docs/contact.md measures the trade; at scale a falling pile's
+            steps take every round they may, so each costs about one more solve).
         tolerance: how much deeper than its pair's linear model (or, with no pair, than the
             surface) a vertex may end a step before the step takes a round; None: 1/400 of the
             search, 0.25 % of the mean surface edge by default (``SurfaceContact.tolerance``). A
@@ -117,7 +118,7 @@ class Contact:
     tangent: str = "projected"
     friction: float = 0.0
     friction_velocity: float = 1e-3
-    rounds: int = 4
+    rounds: int = 2
     tolerance: Optional[float] = None
 
     def __post_init__(self):

@@ -67,7 +67,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     swept = true                      # find pairs over each step's motion (fast bodies)
     friction = 0.0                    # Coulomb coefficient between the bodies (0: none)
     friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
-    rounds = 4                        # more solves a step may take to check its contact set (0: none)
+    rounds = 2                        # more solves a step may take to check its contact set (0: none)
     # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
 
     [[bodies]]
@@ -802,7 +802,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           swept=contact_table.get("swept", "bool", True),
                           friction=contact_table.get("friction", "nonnegative", 0.0),
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
-                          rounds=contact_table.get("rounds", "nonnegative_int", 4),
+                          rounds=contact_table.get("rounds", "nonnegative_int", 2),
                           tolerance=contact_table.get("tolerance", "positive", None),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
