@@ -678,7 +678,7 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
     with_pairs = pairs is not None and len(pairs) > 0
     node_stiffness = None if fused.node_stiffness is None else stiffness_coef * fused.node_stiffness
     return system._multigrid_solve.load(matvec, node_stiffness, system.free,
-                                        pairs.stiffness_diagonal(stiffness_coef, opts.dt) if with_pairs else None)
+                                        pairs.stiffness_row_l1(stiffness_coef, opts.dt) if with_pairs else None)
 
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):

@@ -236,12 +236,13 @@ class MultigridSolve:
         self._with_pairs = True  # whether it had pairs (until the first load: nothing is loaded)
 
     def load(self, product, node_stiffness: Optional[torch.Tensor] = None, free: Optional[torch.Tensor] = None,
-             pair_diagonal: Optional[torch.Tensor] = None) -> "MultigridSolve":
+             pair_row_l1: Optional[torch.Tensor] = None) -> "MultigridSolve":
         """The solve's ``product`` (p -> A p, or a fused product's (A p, p . Ap)), its node
         stiffness ``[V, d, d]`` times c_K (or None: it goes into the coarse operators,
-        ``Multigrid.load``) and the body contact pairs' diagonal ``[V, d]`` (or None). The finest
-        level's scaling is the inverse of its rows' l1 norms: the rest matrix's, plus the node
-        stiffness's rows and the pairs' diagonal (a bound where the pairs couple nodes).
+        ``Multigrid.load``) and a bound of the body contact pairs' rows' l1 norms ``[V, d]``
+        (``ContactPairs.stiffness_row_l1``, or None). The finest level's scaling is the inverse
+        of a bound of its rows' l1 norms: the rest matrix's, plus the node stiffness's and the
+        pairs' (so that D^-1 A stays within the smoothers' interval, ``multigrid.CHEBYSHEV_TOP``).
 
         A load with what the last one had (no pairs, and the same node stiffness or none, as a
         floor's penalties while the same nodes touch it) changes nothing and is skipped."""
@@ -251,20 +252,20 @@ class MultigridSolve:
             return out[0] if isinstance(out, tuple) else out
 
         self.product = apply
-        if pair_diagonal is None and not self._with_pairs and (
+        if pair_row_l1 is None and not self._with_pairs and (
                 (node_stiffness is None and self._node_stiffness is None)
                 or (node_stiffness is not None and self._node_stiffness is not None
                     and node_stiffness.shape == self._node_stiffness.shape
                     and torch.equal(node_stiffness, self._node_stiffness))):
             return self
-        self._with_pairs = pair_diagonal is not None
+        self._with_pairs = pair_row_l1 is not None
         self._node_stiffness = None if node_stiffness is None else node_stiffness.clone()
         self.multigrid.load(node_stiffness, free)
         row_l1 = self.multigrid.fine_row_l1.view(-1, self.multigrid.dim)
         if node_stiffness is not None:
             row_l1 = row_l1 + node_stiffness.abs().sum(-1)
-        if pair_diagonal is not None:
-            row_l1 = row_l1 + pair_diagonal
+        if pair_row_l1 is not None:
+            row_l1 = row_l1 + pair_row_l1
         inverse = torch.where(row_l1 > 0, 1.0 / row_l1, 0.0)
         if self.inverse_diagonal is None or self.inverse_diagonal.shape != inverse.shape \
                 or self.inverse_diagonal.dtype != inverse.dtype or self.inverse_diagonal.device != inverse.device:
