@@ -289,6 +289,17 @@ class ContactPairs:
         per_entry = (self._coefficients() ** 2)[:, :, None] * per_axis[:, None, :]  # [P, 4, 3]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 3))
 
+    def _pair_matrices(self, coefficient: float, damping: float) -> torch.Tensor:
+        """``[P, 3, 3]``: each pair's M = a u u^T + b (I - u u^T), a = ``coefficient`` k, b =
+        ``damping`` c_p (its part of the step's matrix is J^T M J over its four nodes)."""
+        along = self.direction[:, :, None] * self.direction[:, None, :]  # [P, 3, 3]
+        stiffness = torch.as_tensor(coefficient * self.stiffness, dtype=along.dtype, device=along.device)
+        per_pair = (stiffness.reshape(-1, 1, 1) if stiffness.dim() else stiffness) * along
+        if self.friction is not None and damping:
+            eye = torch.eye(3, dtype=along.dtype, device=along.device)
+            per_pair = per_pair + (damping * self.friction)[:, None, None] * (eye - along)
+        return per_pair
+
     def stiffness_row_l1(self, coefficient: float, damping: float = 0.0) -> torch.Tensor:
         """``[V, 3]``: a bound of the l1 norms of the rows of the pairs' part of the step's matrix
         (as :meth:`stiffness_diagonal`): each pair's rows summed exactly, |coef_i| (sum_j |coef_j|)
@@ -296,26 +307,16 @@ class ContactPairs:
         inequality). A pair couples its four nodes: its diagonal alone does not bound its rows
         (the vertex's row is twice its diagonal, a triangle node's 2 / w of it), and an l1-Jacobi
         scaling built on the diagonal lets D^-1 A past 1 (``solver.multigrid``'s smoothers)."""
-        along = self.direction[:, :, None] * self.direction[:, None, :]  # [P, 3, 3]
-        stiffness = torch.as_tensor(coefficient * self.stiffness, dtype=along.dtype, device=along.device)
-        per_pair = (stiffness.reshape(-1, 1, 1) if stiffness.dim() else stiffness) * along
-        if self.friction is not None and damping:
-            eye = torch.eye(3, dtype=along.dtype, device=along.device)
-            per_pair = per_pair + (damping * self.friction)[:, None, None] * (eye - along)
         coefficients = self._coefficients().abs()  # [P, 4]
-        per_entry = (coefficients * coefficients.sum(1, keepdim=True))[:, :, None] * per_pair.abs().sum(-1)[:, None]
+        rows = self._pair_matrices(coefficient, damping).abs().sum(-1)  # [P, 3]
+        per_entry = (coefficients * coefficients.sum(1, keepdim=True))[:, :, None] * rows[:, None]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 3))
 
     def stiffness_blocks(self, coefficient: float, damping: float = 0.0) -> torch.Tensor:
         """The diagonal blocks ``[V, 3, 3]`` of the pairs' part of the step's matrix (as
         :meth:`stiffness_diagonal`, whose diagonals they hold): coef_i^2 (a u u^T + b (I - u u^T))
         at node i."""
-        along = self.direction[:, :, None] * self.direction[:, None, :]  # [P, 3, 3]
-        stiffness = torch.as_tensor(coefficient * self.stiffness, dtype=along.dtype, device=along.device)
-        per_pair = (stiffness.reshape(-1, 1, 1) if stiffness.dim() else stiffness) * along
-        if self.friction is not None and damping:
-            eye = torch.eye(3, dtype=along.dtype, device=along.device)
-            per_pair = per_pair + (damping * self.friction)[:, None, None] * (eye - along)
+        per_pair = self._pair_matrices(coefficient, damping)
         per_entry = (self._coefficients() ** 2)[:, :, None, None] * per_pair[:, None]  # [P, 4, 3, 3]
         return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 9)).view(-1, 3, 3)
 
