@@ -5,6 +5,7 @@ number of surface triangles, and the deepest interpenetration over the run.
     python benchmarks/studies/contact_piles.py [--columns 2 4 6] [--cells 10 10 5] [--steps 120]
                                                [--friction 0] [--no-swept] [--check-every 0]
                                                [--preconditioners auto none] [--rounds R ...] [--tolerance T]
+                                               [--check-tols C ...]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
@@ -20,7 +21,8 @@ compared). Detection: ``SurfaceContact.detect`` at the final state, mean of 10. 
 run with contact for each ``Contact(rounds=...)`` (how many more solves a step may take to check
 its contact set: the trade of cost against transient interpenetration); ``--tolerance``: the
 ``Contact(tolerance=...)`` of every run (how deep past its pair's model a vertex may end a step
-before the step takes a round).
+before the step takes a round); ``--check-tols``: a run for each ``Contact(check_tol=...)`` (the
+CG tolerance of the solves a contact-set check reads).
 No block may pass through another: besides the deepest interpenetration the steps report (over
 the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
 inside another block, whatever its depth) is measured at the end and every ``--check-every``
@@ -87,7 +89,8 @@ def without_contact(bodies, device, dtype) -> dict:
 def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None,
-            rounds: Optional[int] = None, tolerance: Optional[float] = None) -> Optional[dict]:
+            rounds: Optional[int] = None, tolerance: Optional[float] = None,
+            check_tol: Optional[float] = None) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None).
     With ``state`` (a folder), the run goes on from the state saved there (positions,
     velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
@@ -95,8 +98,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     resumes where it stopped, stepping the same states."""
     rounds = tm.Contact().rounds if rounds is None else rounds
     bodies, block = pile(columns, cells, device, dtype)
-    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, rounds=rounds, tolerance=tolerance), device,
-                    dtype, preconditioner)
+    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, rounds=rounds, tolerance=tolerance,
+                                       check_tol=check_tol), device, dtype, preconditioner)
     saved = state / "meta.json" if state is not None else None
     if saved is not None and saved.exists():
         progress = json.loads(saved.read_text())
@@ -137,6 +140,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     return dict(blocks=len(bodies), tets=len(bodies) * block.num_elements, surface_triangles=len(contact.triangles),
                 pairs=len(pairs), steps=steps, run_s=progress["run_s"], deepest_m=progress["deepest"],
                 preconditioner=preconditioner, rounds=rounds, tolerance_m=contact.tolerance,
+                check_tol=contact.settings.check_tol,
                 steps_per_s_without=without,
                 steps_per_s_with=with_contact,
                 cost_ratio=without / with_contact, detect_ms=detect_ms,
@@ -178,6 +182,9 @@ def main(argv=None):
     parser.add_argument("--tolerance", type=float, default=None,
                         help="Contact(tolerance=...) (m): how deep past its model a vertex may end before a round "
                              "(default: the library's, 1/400 of the mean surface edge)")
+    parser.add_argument("--check-tols", type=float, nargs="+", default=[None],
+                        help="a run with contact for each Contact(check_tol=...) (the CG tolerance of the solves "
+                             "a contact-set check reads; default: cg_tol for every solve)")
     parser.add_argument("--state", default=None,
                         help="a folder to save the run's state in when --budget-s runs out, and to go on from")
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
@@ -197,7 +204,7 @@ def main(argv=None):
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
                ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
                ("preconditioner", "preconditioner", None), ("rounds", "rounds", None),
-               ("tolerance_m", "tolerance (m)", ".2e"),
+               ("tolerance_m", "tolerance (m)", ".2e"), ("check_tol", "check_tol", None),
                ("cg_iterations", "CG iterations with (most of one solve)", None),
                ("cg_iterations_step", "CG iterations of the last step", None),
                ("solves", "solves in the last step", None),
@@ -211,11 +218,14 @@ def main(argv=None):
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
         baseline = None
-        for preconditioner, rounds in [(p, r) for p in args.preconditioners for r in args.rounds]:
+        for preconditioner, rounds, check_tol in [(p, r, t) for p in args.preconditioners for r in args.rounds
+                                                  for t in args.check_tols]:
             suffix = "" if args.rounds == [tm.Contact().rounds] else f"_rounds{rounds}"
+            suffix += "" if args.check_tols == [None] else f"_check{check_tol}"
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
-                             args.swept, preconditioner, baseline, state, args.budget_s, rounds, args.tolerance)
+                             args.swept, preconditioner, baseline, state, args.budget_s, rounds, args.tolerance,
+                             check_tol)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()
                 return results.records

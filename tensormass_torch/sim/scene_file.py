@@ -69,6 +69,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
     rounds = 2                        # more solves a step may take to check its contact set (0: none)
     # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
+    # check_tol = 1e-2                # CG tolerance of the solves a round's check reads (default: cg_tol)
 
     [[bodies]]
     name = "beam"
@@ -804,6 +805,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
                           rounds=contact_table.get("rounds", "nonnegative_int", 2),
                           tolerance=contact_table.get("tolerance", "positive", None),
+                          check_tol=contact_table.get("check_tol", "positive", None),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
     distributed_table = top.table("distributed") or _Table({}, "distributed", fail)

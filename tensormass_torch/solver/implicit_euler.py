@@ -1200,9 +1200,17 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         near, active, pairs = system.body_contact.at_state(x, v, h)
     rhs, dv_imposed, damping = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
     space = system.solution_space(opts, x) if opts.warm_start == "project" else None
+    # Contact(check_tol): the solves a contact-set check reads stop at check_tol, the step's last
+    # at cg_tol (from the check's solution where the check found nothing to add); where nothing
+    # is within reach at the start (a check then rarely adds a pair) the first goes to cg_tol
+    rounds = system.body_contact.settings.rounds if near is not None else 0
+    check_tol = system.body_contact.settings.check_tol if rounds else None
+    loose = dataclasses.replace(opts, cg_tol=check_tol) if check_tol is not None and check_tol > opts.cg_tol else opts
+    first = loose if rounds and len(near) else opts
     result = _solve(system, x, rhs if pairs is None or not len(pairs)
-                    else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs, damping, x0=guess,
+                    else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), first, loaded, pairs, damping, x0=guess,
                     space=space)
+    final = first is opts
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
@@ -1222,7 +1230,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
     # once, and at most Contact.rounds more solves follow.
-    for round_ in range(system.body_contact.settings.rounds if near is not None else 0):
+    for round_ in range(rounds):
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
         if round_ == 0 and system.body_contact.settled(x, dx, near, active):
             break  # the bodies' motion provably leaves nothing for the check to find
@@ -1232,12 +1240,22 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         if not moved and not bool(missed.any()):
             break
         pairs = system.body_contact.select(x, near, active.nonzero().squeeze(1))
-        result = _solve(system, x, rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs,
+        this = opts if round_ == rounds - 1 else loose
+        final = this is opts
+        result = _solve(system, x, rhs + _pairs_rhs(pairs, v, dv_imposed, opts), this, loaded, pairs,
                         damping, x0=result.solution)
         report.cg.append(result)
         _raise_if_failed(result, opts, "implicit Euler CG (contact set)")
         v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
         report.contact_solves.append((pairs, v_new))
+    if not final:  # the last solve was a check's (which found nothing more): on to cg_tol from it
+        result = _solve(system, x, rhs if pairs is None or not len(pairs)
+                        else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs, damping,
+                        x0=result.solution)
+        report.cg.append(result)
+        _raise_if_failed(result, opts, "implicit Euler CG")
+        v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
+        report.contact_solves[-1] = (pairs, v_new)
 
     for _ in range(opts.newton_iters - 1):
         x_new = torch.add(x, v_new, alpha=h)

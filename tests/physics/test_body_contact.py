@@ -413,6 +413,43 @@ def test_a_miss_within_the_tolerance_is_left_to_the_next_step():
     assert float(lenient.interpenetration().max()) < 0.05 * inside
 
 
+def test_checks_read_solves_stopped_at_check_tol():
+    """Contact(check_tol): the solves whose ends a contact-set check reads stop at check_tol, the
+    step's last goes to cg_tol (after a check that found nothing, from its solution). The scene
+    of the pair the solve closes, then the blocks in contact: every step ends converged to
+    cg_tol, at the state of the steps solved to cg_tol throughout (the same pairs: the check
+    sees a millimetre miss at a 1 % residual as at 1e-10)."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    lower = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, -0.005), dtype=DT)
+    upper = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.0951), dtype=DT)
+
+    def falling(contact):
+        sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
+                           planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0, dtype=DT,
+                           cg_tol=1e-10)
+        sim.v = torch.zeros_like(sim.v)
+        sim.v[:, 2] = -1.0
+        return sim
+
+    loose, full = falling(tm.Contact(check_tol=1e-2)), falling(tm.Contact())
+    for step in range(6):
+        report, reference = loose.step(), full.step()
+        *checked, last = report.cg
+        assert float(last.relative_residual.max()) <= 1e-10
+        assert all(float(c.relative_residual.max()) <= 1e-2 for c in checked)
+        if step == 0:  # the closing pair: a check, a round, and the last solve
+            assert len(report.cg) > 1 and float(checked[0].relative_residual.max()) > 1e-8
+            assert sum(int(c.iterations.max()) for c in report.cg) < sum(int(c.iterations.max()) for c in reference.cg)
+        torch.testing.assert_close(loose.x, full.x, rtol=0, atol=1e-9)
+        torch.testing.assert_close(loose.v, full.v, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("check_tol", [0.0, 1.0, -1e-3, float("nan"), "0.01", True])
+def test_contact_check_tol_must_be_in_zero_one(check_tol):
+    with pytest.raises(tm.SceneError, match=r"contact check_tol must be a number in \(0, 1\) or None"):
+        tm.Contact(check_tol=check_tol)
+
+
 @pytest.mark.parametrize("tolerance", [0.0, -1e-3, float("nan"), "0.1", True])
 def test_contact_tolerance_must_be_positive(tolerance):
     with pytest.raises(tm.SceneError, match="contact tolerance must be a positive finite number or None"):
