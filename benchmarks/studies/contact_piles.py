@@ -182,9 +182,9 @@ def main(argv=None):
     parser.add_argument("--tolerance", type=float, default=None,
                         help="Contact(tolerance=...) (m): how deep past its model a vertex may end before a round "
                              "(default: the library's, 1/400 of the mean surface edge)")
-    parser.add_argument("--check-tols", type=float, nargs="+", default=[None],
+    parser.add_argument("--check-tols", type=lambda t: None if t == "none" else float(t), nargs="+", default=[None],
                         help="a run with contact for each Contact(check_tol=...) (the CG tolerance of the solves "
-                             "a contact-set check reads; default: cg_tol for every solve)")
+                             "a contact-set check reads; none, the default: cg_tol for every solve)")
     parser.add_argument("--state", default=None,
                         help="a folder to save the run's state in when --budget-s runs out, and to go on from")
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
