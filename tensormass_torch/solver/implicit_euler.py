@@ -1207,13 +1207,18 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     check_tol = system.body_contact.settings.check_tol if rounds else None
     loose = dataclasses.replace(opts, cg_tol=check_tol) if check_tol is not None and check_tol > opts.cg_tol else opts
     first = loose if rounds and len(near) else opts
-    result = _solve(system, x, rhs if pairs is None or not len(pairs)
-                    else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), first, loaded, pairs, damping, x0=guess,
-                    space=space)
+
+    def with_pairs(pairs):  # the right-hand side with the pairs' terms
+        return rhs if pairs is None or not len(pairs) else rhs + _pairs_rhs(pairs, v, dv_imposed, opts)
+
+    def end_velocity(solution):
+        return v + solution if dv_imposed is None else v + dv_imposed + solution
+
+    result = _solve(system, x, with_pairs(pairs), first, loaded, pairs, damping, x0=guess, space=space)
     final = first is opts
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
-    v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
+    v_new = end_velocity(result.solution)
     if near is not None:
         report.contact_solves = [(pairs, v_new)]
 
@@ -1242,19 +1247,16 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         pairs = system.body_contact.select(x, near, active.nonzero().squeeze(1))
         this = opts if round_ == rounds - 1 else loose
         final = this is opts
-        result = _solve(system, x, rhs + _pairs_rhs(pairs, v, dv_imposed, opts), this, loaded, pairs,
-                        damping, x0=result.solution)
+        result = _solve(system, x, with_pairs(pairs), this, loaded, pairs, damping, x0=result.solution)
         report.cg.append(result)
         _raise_if_failed(result, opts, "implicit Euler CG (contact set)")
-        v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
+        v_new = end_velocity(result.solution)
         report.contact_solves.append((pairs, v_new))
     if not final:  # the last solve was a check's (which found nothing more): on to cg_tol from it
-        result = _solve(system, x, rhs if pairs is None or not len(pairs)
-                        else rhs + _pairs_rhs(pairs, v, dv_imposed, opts), opts, loaded, pairs, damping,
-                        x0=result.solution)
+        result = _solve(system, x, with_pairs(pairs), opts, loaded, pairs, damping, x0=result.solution)
         report.cg.append(result)
         _raise_if_failed(result, opts, "implicit Euler CG")
-        v_new = v + result.solution if dv_imposed is None else v + dv_imposed + result.solution
+        v_new = end_velocity(result.solution)
         report.contact_solves[-1] = (pairs, v_new)
 
     for _ in range(opts.newton_iters - 1):
