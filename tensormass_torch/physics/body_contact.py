@@ -112,9 +112,9 @@ class Contact:
             (each round's check looks at its solve's end positions; the step's last solve still
             goes to the simulator's ``cg_tol``, from the last check's solution where that check
             found nothing); None: every solve to ``cg_tol``. A check needs the end positions to
-            about the tolerance, not the velocities to cg_tol: 1e-2 took 38 % fewer CG iterations
-            a step on a falling pile (docs/contact.md). Solves stopped early are not roots of
-            their residuals: a differentiable step's gradient through them is approximate.
+            about the tolerance, not the velocities to cg_tol (docs/contact.md measures the
+            saving). Solves stopped early are not roots of their residuals: a differentiable
+            step's gradient through them is approximate.
     """
 
     stiffness: float = 1e5

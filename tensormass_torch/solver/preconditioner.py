@@ -92,10 +92,8 @@ class JacobiScaling:
         return ("jacobi", self.scale.data_ptr())
 
     # The blocks' products are one launch of the BSR product op each (ops.multigrid: a block row a
-    # node, read once), where the extension serves the device; its reference otherwise. (Two CG
-    # products a CG iteration: as a broadcast multiply and a sum they were four memory-bound
-    # kernels over [V, d, d] temporaries, as einsum a batched matrix product far slower on a GPU:
-    # docs/contact.md.)
+    # node, each block read once, no [V, d, d] temporaries), where the extension serves the
+    # device; its reference otherwise. Two of them run in every CG iteration.
     def apply(self, v: torch.Tensor) -> torch.Tensor:
         """S v ``[V, d]``."""
         if self._blocks is not None:

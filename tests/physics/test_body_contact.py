@@ -356,27 +356,33 @@ def test_a_body_faster_than_the_search_per_step_does_not_go_through():
     assert float(still.positions(1)[:, 2].min()) < float(still.positions(0)[:, 2].max())
 
 
+def falling_pair(contact, **options):
+    """Two blocks falling together at 1 m/s, 0.1 mm apart, the lower one at the floor (float64):
+    no pair is closing at the start, but the floor stops the lower block within the first step."""
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    lower = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, -0.005), dtype=DT)
+    upper = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.0951), dtype=DT)
+    sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
+                       planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0, dtype=DT,
+                       **options)
+    sim.v = torch.zeros_like(sim.v)
+    sim.v[:, 2] = -1.0
+    return sim
+
+
 def test_a_pair_the_solve_closes_joins_the_step():
     """Two blocks falling together at 1 m/s, 0.1 mm apart, the lower one on the floor: no pair is
     closing at the step's start (the same velocities), but the floor stops the lower block in the
     step and the upper one runs into it. The step is solved again with that pair: the upper
     block stops within the penalty's depth instead of most of its 5 mm travel inside the lower."""
-    material = tm.Material(young=1e5, poisson=0.3, density=1000)
-    lower = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, -0.005), dtype=DT)
-    upper = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.0951), dtype=DT)
-    sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
-                       planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(), rayleigh_mass=1.0, dtype=DT)
-    sim.v = torch.zeros_like(sim.v)
-    sim.v[:, 2] = -1.0
+    sim = falling_pair(tm.Contact())
     assert len(sim.body_contact.detect(sim.x, sim.v, sim.options.dt)) == 0
     start = sim.v.clone()
     report = sim.step()
     assert float(report.contact.body_penetration.max()) < 0.1 * 1.0 * sim.options.dt
     assert len(report.cg) > 1  # solved again
     # Contact(rounds=0): the pairs of the step's start only, one solve, the upper block inside
-    once = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
-                        planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(rounds=0), rayleigh_mass=1.0,
-                        dtype=DT)
+    once = falling_pair(tm.Contact(rounds=0))
     once.v = start
     alone = once.step()
     assert len(alone.cg) == 1
@@ -388,21 +394,10 @@ def test_a_miss_within_the_tolerance_is_left_to_the_next_step():
     step is solved once, as with rounds=0, bit for bit; the next step finds the pair in contact
     (its start's gap negative) and the penalty pushes the block out over the steps after. The
     default tolerance is 1/400 of the search."""
-    material = tm.Material(young=1e5, poisson=0.3, density=1000)
-    lower = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, -0.005), dtype=DT)
-    upper = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.0951), dtype=DT)
-
-    def falling(contact):
-        sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
-                           planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0, dtype=DT)
-        sim.v = torch.zeros_like(sim.v)
-        sim.v[:, 2] = -1.0
-        return sim
-
-    default = falling(tm.Contact())
+    default = falling_pair(tm.Contact())
     assert default.body_contact.tolerance == pytest.approx(default.body_contact.search / 400)
     assert len(default.step().cg) > 1
-    lenient, once = falling(tm.Contact(tolerance=0.01)), falling(tm.Contact(rounds=0))
+    lenient, once = falling_pair(tm.Contact(tolerance=0.01)), falling_pair(tm.Contact(rounds=0))
     assert lenient.body_contact.tolerance == 0.01
     assert len(lenient.step().cg) == 1
     once.step()
@@ -419,19 +414,7 @@ def test_checks_read_solves_stopped_at_check_tol():
     of the pair the solve closes, then the blocks in contact: every step ends converged to
     cg_tol, at the state of the steps solved to cg_tol throughout (the same pairs: the check
     sees a millimetre miss at a 1 % residual as at 1e-10)."""
-    material = tm.Material(young=1e5, poisson=0.3, density=1000)
-    lower = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, -0.005), dtype=DT)
-    upper = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.0951), dtype=DT)
-
-    def falling(contact):
-        sim = tm.Simulator([tm.Body(lower, material), tm.Body(upper, material)], dt=0.005,
-                           planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0, dtype=DT,
-                           cg_tol=1e-10)
-        sim.v = torch.zeros_like(sim.v)
-        sim.v[:, 2] = -1.0
-        return sim
-
-    loose, full = falling(tm.Contact(check_tol=1e-2)), falling(tm.Contact())
+    loose, full = falling_pair(tm.Contact(check_tol=1e-2), cg_tol=1e-10), falling_pair(tm.Contact(), cg_tol=1e-10)
     for step in range(6):
         report, reference = loose.step(), full.step()
         *checked, last = report.cg

@@ -177,8 +177,7 @@ def test_pairs_bound_their_rows_for_the_smoothers():
 def test_a_pile_in_contact_converges_with_multigrid():
     """Contact pairs couple nodes across bodies: with the pairs' diagonal in place of their rows'
     l1 norms in the finest smoother's scaling, D^-1 A left the Chebyshev interval and this pile's
-    CG stalled (at cg_tol 1e-4 in float32, 2,250 iterations at step 22). Now each solve
-    converges in a few tens of iterations (block Jacobi: about 100), and the steps are block
+    CG stalled. Now each solve converges in a few tens of iterations, and the steps are block
     Jacobi's to the solves' tolerance (solved to 1e-12: at 1e-8, the two trajectories part by
     millimetres within a few steps of contact, the stiff system amplifying the solves' error)."""
     steps = {}
