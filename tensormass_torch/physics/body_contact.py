@@ -113,8 +113,11 @@ class Contact:
             goes to the simulator's ``cg_tol``, from the last check's solution where that check
             found nothing); None: every solve to ``cg_tol``. A check needs the end positions to
             about the tolerance, not the velocities to cg_tol (docs/contact.md measures the
-            saving). Solves stopped early are not roots of their residuals: a differentiable
-            step's gradient through them is approximate.
+            saving). A solve a check reads pauses there, and goes on to ``cg_tol`` where the
+            check finds nothing to add; the step's last solve always reaches ``cg_tol``. A pair
+            re-linearised where a paused solve ended depends on that solve, so ``tm.rollout``
+            (``exact=True``, its default) solves every solve to ``cg_tol``; with ``exact=False``
+            its gradient through that dependence is approximate.
     """
 
     stiffness: float = 1e5
@@ -127,7 +130,7 @@ class Contact:
     friction_velocity: float = 1e-3
     rounds: int = 2
     tolerance: Optional[float] = None
-    check_tol: Optional[float] = None
+    check_tol: Optional[float] = 1e-2
 
     def __post_init__(self):
         def number(value):

@@ -68,8 +68,9 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
             gradient is that of each step with its contact pairs held: which vertex meets which
             triangle, on which side (``solver.adjoint``).
         exact: converge the forward and the adjoint solves (to ``cg_tol``, default the
-            simulator's): the gradient is that of the computed trajectory. False: the solves run
-            as the simulator's options say; with a fixed CG budget the gradient is then the
+            simulator's; every solve of a step's contact set too, ``tm.Contact``'s check_tol
+            aside): the gradient is that of the computed trajectory. False: the solves run as
+            the simulator's options say; with a fixed CG budget the gradient is then the
             adjoint of the converged steps along the truncated trajectory (``solver.adjoint``).
         checkpoint_every: keep the state every k steps only and recompute the steps in between
             during the backward (memory ~ steps / k + k states instead of ~ steps); None: keep all.
@@ -116,7 +117,8 @@ def rollout(sim, steps: int, *, x0: Optional[torch.Tensor] = None, v0: Optional[
     forward, adjoint = adjoint_options(stepping.options, exact, cg_tol, free_dofs)
     check_differentiable(stepping.system, forward)
     DifferentiableModel.check(stepping.model)  # also where the view was made by an earlier rollout
-    step = differentiable_step(stepping.system, forward, adjoint, lambda: DifferentiableModel(stepping.model))
+    step = differentiable_step(stepping.system, forward, adjoint, lambda: DifferentiableModel(stepping.model),
+                              exact)
     model = step.model
     young_all = model.per_element("young", young)
     poisson_all = model.per_element("poisson", poisson)

@@ -69,7 +69,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
     rounds = 2                        # more solves a step may take to check its contact set (0: none)
     # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
-    # check_tol = 1e-2                # CG tolerance of the solves a round's check reads (default: cg_tol)
+    check_tol = 1e-2                  # CG tolerance of the solves a round's check reads (false: cg_tol)
 
     [[bodies]]
     name = "beam"
@@ -286,6 +286,14 @@ def _warm_start(solver: _Table) -> str:
     if isinstance(solver.data.get("warm_start"), bool) or not solver.has("warm_start"):
         return warm_start_mode(solver.get("warm_start", "bool", False))
     return _choice(solver, "warm_start", WARM_STARTS, what="warm start")
+
+
+def _check_tol(contact: _Table) -> Optional[float]:
+    """``[contact] check_tol``: a number, or false for None (every solve to the solver's cg_tol)."""
+    if contact.data.get("check_tol") is False:
+        contact.seen.add("check_tol")
+        return None
+    return contact.get("check_tol", "positive", Contact.check_tol)
 
 
 def _choice(table: _Table, key: str, choices, default=_REQUIRED, what: str = "value") -> str:
@@ -805,7 +813,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
                           rounds=contact_table.get("rounds", "nonnegative_int", 2),
                           tolerance=contact_table.get("tolerance", "positive", None),
-                          check_tol=contact_table.get("check_tol", "positive", None),
+                          check_tol=_check_tol(contact_table),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
     distributed_table = top.table("distributed") or _Table({}, "distributed", fail)

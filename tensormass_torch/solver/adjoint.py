@@ -69,6 +69,9 @@ class DifferentiableStep:
     forward: StepOptions
     adjoint: StepOptions
     model: object
+    #: every solve of a contact set to the forward's cg_tol (the contact's check_tol off): the
+    #: backward takes each as the root of its residual, which a solve paused for a check is not
+    exact_contact_solves: bool = True
     _backward_graphs: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def step(self, x, v, imposed, external, contact: dict):
@@ -78,12 +81,27 @@ class DifferentiableStep:
         :data:`BODY_CONTACT_VALUES` in place of the system's, None where kept): ``(x', v',
         solves)``, solves: each solve of the step's contact set (``StepReport.contact_solves``:
         its pairs and end velocities), or None without body contact."""
-        with self._written(external, contact):
+        with self._written(external, contact), self._checks_converged():
             # (detached: the body contact keeps the state it last found pairs at, which must not
             # hold the rollout's autograd graph alive)
             x_new, v_new, report = implicit_euler_step(self.system, x.detach(), v.detach(), self.forward,
                                                        None if imposed is None else imposed.detach())
         return x_new, v_new, report.contact_solves
+
+    @contextlib.contextmanager
+    def _checks_converged(self):
+        """The body contact's ``check_tol`` off for the body of the ``with`` where
+        ``exact_contact_solves`` asks for it (its settings restored after, whatever happens)."""
+        body = self.system.body_contact
+        if not self.exact_contact_solves or body is None or body.settings.check_tol is None:
+            yield
+            return
+        settings = body.settings
+        body.settings = dataclasses.replace(settings, check_tol=None)
+        try:
+            yield
+        finally:
+            body.settings = settings
 
     @contextlib.contextmanager
     def _written(self, external, contact: dict):
@@ -425,14 +443,16 @@ _INPUTS = {"imposed": 3, "external": 4, "mass": 5, "young": 6, "poisson": 7,
 
 
 def differentiable_step(system: DynamicsSystem, forward: StepOptions, adjoint: StepOptions,
-                        make_model) -> DifferentiableStep:
+                        make_model, exact: bool = True) -> DifferentiableStep:
     """The system's :class:`DifferentiableStep` for these options, made once (``make_model()``:
     its differentiable model) and kept on the system: rollouts of one simulator then share its
-    captured backward graphs, which read the model's tensors and the options' numbers."""
-    key = (dataclasses.astuple(forward), dataclasses.astuple(adjoint))
+    captured backward graphs, which read the model's tensors and the options' numbers.
+    ``exact``: as :func:`adjoint_options`' (every solve of a contact set converged too)."""
+    key = (dataclasses.astuple(forward), dataclasses.astuple(adjoint), bool(exact))
     step = system._differentiable_steps.get(key)
     if step is None:
-        step = system._differentiable_steps[key] = DifferentiableStep(system, forward, adjoint, make_model())
+        step = system._differentiable_steps[key] = DifferentiableStep(system, forward, adjoint, make_model(),
+                                                                      bool(exact))
     return step
 
 

@@ -103,6 +103,7 @@ class CGSolver:
         self.graph_replays = 0
         self._pcg = None  # the preconditioned iteration's buffers, made at its first use
         self._rhs = None  # the right-hand side a captured start reads (preconditioned solves)
+        self._paused = None  # a paused solve's (iterations run, pause threshold [B]) (see solve)
 
     def _project(self, v):
         return v if self.free is None else v * self.free
@@ -254,20 +255,34 @@ class CGSolver:
             cg_ops.object_dot(s.r, z, self.plan, self._pcg_buffers().rz, s, self.native)
             s.p.copy_(z)
 
-    def any_active(self) -> bool:
-        """Whether some object is still iterating (a host synchronisation)."""
-        return bool((self.state.status == ACTIVE).any())
+    def any_active(self, pause_threshold: Optional[torch.Tensor] = None) -> bool:
+        """Whether some object is still iterating (a host synchronisation); with
+        ``pause_threshold [B]``, whether some object still iterates with r.r above it."""
+        active = self.state.status == ACTIVE
+        if pause_threshold is not None:
+            active = active & (self.state.rr > pause_threshold)
+        return bool(active.any())
 
     def result(self) -> CGResult:
-        """The outcome of the last solve (copies: the buffers are reused)."""
+        """The outcome of the last solve (copies: the buffers are reused). While the solve is
+        paused (:meth:`solve`'s ``pause_tol``), an object counts as converged once its residual is
+        within the pause's tolerance."""
         s = self.state
         status = s.status
+        converged = status == CONVERGED
+        if self._paused is not None:
+            converged = converged | ((status == ACTIVE) & (s.rr <= self._paused[1]))
         return CGResult(s.x.clone(), s.iterations.long(), torch.sqrt(torch.clamp(s.rr, min=0)),
-                        torch.sqrt(self.rhs_sq), status == CONVERGED, status == BREAKDOWN, status == NONFINITE)
+                        torch.sqrt(self.rhs_sq), converged, status == BREAKDOWN, status == NONFINITE)
+
+    @property
+    def paused(self) -> bool:
+        """Whether the last solve paused at its ``pause_tol`` (:meth:`resume` goes on)."""
+        return self._paused is not None
 
     def solve(self, matvec: Matvec, rhs: torch.Tensor, x0: Optional[torch.Tensor] = None, tol: float = 1e-6,
               max_iter: int = 200, check_every: int = 8, graph_key=None, done: int = 0,
-              preconditioner=None) -> CGResult:
+              preconditioner=None, pause_tol: Optional[float] = None) -> CGResult:
         """Solve A x = rhs for every object at once.
 
         Args:
@@ -287,11 +302,19 @@ class CGSolver:
                 operator acting on each object alone), or None (plain CG). Its ops are in the
                 captured iterations where ``graph_key`` is given: it must then also read only
                 tensors whose storage stays.
+            pause_tol: a relative residual above ``tol`` at which the solve pauses (None: none):
+                once no object iterates with a residual above it (looked at every
+                ``check_every`` iterations), the solve returns with the objects still short of
+                ``tol`` counted converged, and :meth:`resume` goes on from there to ``tol``. The
+                iterations are the same either way: a paused and resumed solve is the solve to
+                ``tol``, bit for bit, whatever ran on the device in between (on other buffers).
         """
         _check_settings(tol, max_iter, check_every)
+        self._paused = None
+        pausing = pause_tol is not None and pause_tol > tol
         if done == 0:
             # the whole solve in one op, the device deciding when to stop
-            if x0 is None and preconditioner is None and self.solves_in_one_op(matvec):
+            if x0 is None and preconditioner is None and not pausing and self.solves_in_one_op(matvec):
                 self.begin(matvec, rhs, tol, max_iter, max_iter)
                 done = max_iter
             elif x0 is None and preconditioner is not None and graph_key is not None and self.cuda_graphs:
@@ -303,17 +326,32 @@ class CGSolver:
                              lambda: self.start(matvec, self._rhs, None, tol, max_iter, preconditioner))
             else:
                 self.start(matvec, rhs, x0, tol, max_iter, preconditioner)
-        self.finish(matvec, max_iter, check_every, graph_key, done, preconditioner)
+        pause_threshold = self.rhs_sq * self._effective_tol(pause_tol, rhs.dtype) ** 2 if pausing else None
+        done = self.finish(matvec, max_iter, check_every, graph_key, done, preconditioner, pause_threshold)
+        if pause_threshold is not None and self.any_active():
+            self._paused = (done, pause_threshold)
+        return self.result()
+
+    def resume(self, matvec: Matvec, max_iter: int = 200, check_every: int = 8, graph_key=None,
+               preconditioner=None) -> CGResult:
+        """Go on with a paused solve (:meth:`solve`'s ``pause_tol``) to its ``tol``; the arguments
+        must be the paused solve's (its matvec's inputs unchanged). A solve that is not paused
+        is returned as it stands."""
+        if self._paused is not None:
+            done, self._paused = self._paused[0], None
+            self.finish(matvec, max_iter, check_every, graph_key, done, preconditioner)
         return self.result()
 
     def finish(self, matvec: Matvec, max_iter: int, check_every: int, graph_key=None, done: int = 0,
-               preconditioner=None):
-        """Iterate from the current state until no object is active or ``max_iter`` iterations
-        have run (``done`` of them already), looking at the host every ``check_every``."""
-        while done < max_iter and self.any_active():
+               preconditioner=None, pause_threshold: Optional[torch.Tensor] = None) -> int:
+        """Iterate from the current state until no object is active (or, with ``pause_threshold
+        [B]``, none with r.r above it) or ``max_iter`` iterations have run (``done`` of them
+        already), looking at the host every ``check_every``; returns the iterations run."""
+        while done < max_iter and self.any_active(pause_threshold):
             count = min(check_every, max_iter - done)
             self.run_iterations(matvec, count, max_iter, graph_key, preconditioner)
             done += count
+        return done
 
 
 def run_captured(graphs: dict, key, work: Callable[[], None]) -> bool:

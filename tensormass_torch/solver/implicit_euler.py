@@ -39,7 +39,7 @@ from ..ops import cg as cg_ops
 from ..ops import library, node_graph, solve
 from ..ops.segments import Segments
 from ..ops.variants import DEFAULT, KernelVariants
-from .cg import CGResult, CGSolver, batched_cg, run_captured
+from .cg import CGResult, CGSolver, run_captured
 from .guess import SolutionSpace, warm_start_mode
 from .preconditioner import (
     PRECONDITIONERS,
@@ -591,11 +591,22 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
     (``contact.NodeDamping``: h C joins the matrix) or None; ``x0``: the CG's initial guess (None:
     zeros); ``space``: a ``warm_start="project"`` space that gives the initial guess (in place of
     ``x0``) and takes the solution."""
+    return _solve_pausing(system, x, rhs, opts, loaded, pairs, damping, x0, space)[0]
+
+
+def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs=None, damping=None,
+                   x0=None, space: Optional[SolutionSpace] = None, pause_tol: Optional[float] = None):
+    """:func:`_solve` pausing at the relative residual ``pause_tol`` (``CGSolver.solve``'s): returns
+    (result, resume), resume None where the solve did not pause. Else ``resume(True)`` goes on to
+    ``opts.cg_tol`` and returns that result (the solve to cg_tol, bit for bit), and
+    ``resume(False)`` leaves the solve where it paused (``space`` then takes the paused solution);
+    either is valid only before the next solve of this system."""
     mass_coef, stiffness_coef = _coefficients(opts)
     if pairs is None and system.body_contact is not None:
         pairs = system.body_contact.detect(x)
     fused = (loaded if loaded is not None
              else system.system_matvec(mass_coef, stiffness_coef, opts.pipelined, opts.variants))
+    graph_key = None
     if fused is None:  # a model that is not a TensorMass: the composed product
         tangent = system.tangent(x, pairs)
 
@@ -634,23 +645,40 @@ def _solve(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=None, pairs
         graph_key = None if graph_key is None else (graph_key, scaling.key)
         rhs = scaling.apply_transpose(rhs)
         x0 = None if x0 is None else scaling.unapply(x0)
-    coupled = (_coupled_solve(system, matvec, rhs, opts, pairs, graph_key, x0, multigrid)
-               if pairs is not None and len(pairs) else None)
+    coupled = _coupled_solver(system, rhs, opts, pairs) if pairs is not None and len(pairs) else None
     if coupled is not None:
-        result = coupled
-    elif fused is None:
-        result = batched_cg(matvec, rhs, system.segments, system.free, x0=x0, tol=opts.cg_tol,
-                            max_iter=opts.cg_max_iter, check_every=opts.check_every)
+        solver, run = coupled
+    elif fused is None:  # a one-off solver (batched_cg's)
+        solver, run = CGSolver(system.segments, rhs.shape, rhs.dtype, rhs.device, system.free, cuda_graphs=False), None
     else:
-        result = system.cg_solver(rhs, opts.cuda_graphs).solve(matvec, rhs, x0=x0, tol=opts.cg_tol,
-                                                                max_iter=opts.cg_max_iter,
-                                                                check_every=opts.check_every, graph_key=graph_key,
-                                                                preconditioner=multigrid)
-    if scaling is not None:
-        result = dataclasses.replace(result, solution=scaling.apply(result.solution))
-    if space is not None:
-        space.add(result.solution, lambda p: _projected_product(product, p, system.free))
-    return result
+        solver, run = system.cg_solver(rhs, opts.cuda_graphs), None
+
+    def outcome(result: CGResult, final: bool) -> CGResult:
+        if run is not None:  # each object of a coupled run takes the run's outcome
+            result = CGResult(result.solution, *(t[run] for t in (result.iterations, result.residual_norm,
+                                                                  result.rhs_norm, result.converged,
+                                                                  result.breakdown, result.nonfinite)))
+        if scaling is not None:
+            result = dataclasses.replace(result, solution=scaling.apply(result.solution))
+        if space is not None and final:
+            space.add(result.solution, lambda p: _projected_product(product, p, system.free))
+        return result
+
+    result = solver.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
+                          graph_key=graph_key, preconditioner=multigrid, pause_tol=pause_tol)
+    if not solver.paused:
+        return outcome(result, True), None
+
+    paused = outcome(result, False)
+
+    def resume(go_on: bool) -> Optional[CGResult]:
+        if go_on:
+            return outcome(solver.resume(matvec, opts.cg_max_iter, opts.check_every, graph_key, multigrid), True)
+        if space is not None:
+            space.add(paused.solution, lambda p: _projected_product(product, p, system.free))
+        return None
+
+    return paused, resume
 
 
 def _projected_product(matvec, p: torch.Tensor, free: Optional[torch.Tensor]) -> torch.Tensor:
@@ -694,12 +722,10 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
                                                       pairs if with_pairs else None, opts.dt))
 
 
-def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs, graph_key=None,
-                   x0=None, preconditioner=None) -> CGResult | None:
-    """The solve when contact pairs join objects: one CG over each run of objects they join
-    (``body_contact.coupled_ranges``), its outcome given to each object of the run; None where no
-    pair has ever joined two objects (the per-object solve applies). ``graph_key``, ``x0``,
-    ``preconditioner``: as ``CGSolver.solve``.
+def _coupled_solver(system: DynamicsSystem, rhs, opts: StepOptions, pairs):
+    """The solver when contact pairs join objects: one CG over each run of objects they join
+    (``body_contact.coupled_ranges``), and ``run [B]``, each object's run (its outcome is its
+    run's); None where no pair has ever joined two objects (the per-object solver applies).
 
     Runs merge as bodies meet and stay merged when they part (the layout is the coarsest of
     this step's and the layouts before): the layout changes at most B - 1 times in a
@@ -724,12 +750,9 @@ def _coupled_solve(system: DynamicsSystem, matvec, rhs, opts: StepOptions, pairs
         solver = system._coupled_cg[tuple(ptr)] = CGSolver(Segments.from_lengths(lengths, rhs.device), rhs.shape,
                                                            rhs.dtype, rhs.device, system.free,
                                                            cuda_graphs=opts.cuda_graphs)
-    result = solver.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter,
-                          check_every=opts.check_every, graph_key=graph_key, preconditioner=preconditioner)
     run = torch.repeat_interleave(torch.arange(len(ptr) - 1, device=rhs.device),
                                   torch.tensor(ptr, device=rhs.device).diff())
-    return CGResult(result.solution, *(t[run] for t in (result.iterations, result.residual_norm, result.rhs_norm,
-                                                         result.converged, result.breakdown, result.nonfinite)))
+    return solver, run
 
 
 #: What to do about each way a step's solve fails (the end of SolverError's message).
@@ -1200,13 +1223,12 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         near, active, pairs = system.body_contact.at_state(x, v, h)
     rhs, dv_imposed, damping = _step_system(system, x, v, opts, imposed_velocity, loaded)  # loads it at x
     space = system.solution_space(opts, x) if opts.warm_start == "project" else None
-    # Contact(check_tol): the solves a contact-set check reads stop at check_tol, the step's last
-    # at cg_tol (from the check's solution where the check found nothing to add); where nothing
-    # is within reach at the start (a check then rarely adds a pair) the first goes to cg_tol
+    # Contact(check_tol): a solve whose end a contact-set check reads pauses at check_tol; where
+    # the check adds nothing, it goes on to cg_tol (the same iterations as one solve), else the
+    # round solves again from the paused solution. Where nothing is within reach at the start (a
+    # check then rarely adds a pair) and in the last round, no solve pauses.
     rounds = system.body_contact.settings.rounds if near is not None else 0
     check_tol = system.body_contact.settings.check_tol if rounds else None
-    loose = dataclasses.replace(opts, cg_tol=check_tol) if check_tol is not None and check_tol > opts.cg_tol else opts
-    first = loose if rounds and len(near) else opts
 
     def with_pairs(pairs):  # the right-hand side with the pairs' terms
         return rhs if pairs is None or not len(pairs) else rhs + _pairs_rhs(pairs, v, dv_imposed, opts)
@@ -1214,8 +1236,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     def end_velocity(solution):
         return v + solution if dv_imposed is None else v + dv_imposed + solution
 
-    result = _solve(system, x, with_pairs(pairs), first, loaded, pairs, damping, x0=guess, space=space)
-    final = first is opts
+    result, resume = _solve_pausing(system, x, with_pairs(pairs), opts, loaded, pairs, damping, x0=guess, space=space,
+                                    pause_tol=check_tol if rounds and len(near) else None)
     report.cg.append(result)
     _raise_if_failed(result, opts, "implicit Euler CG")
     v_new = end_velocity(result.solution)
@@ -1244,17 +1266,17 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
                                                               solution=len(report.contact_solves) - 1)
         if not moved and not bool(missed.any()):
             break
+        if resume is not None:
+            resume(False)
         pairs = system.body_contact.select(x, near, active.nonzero().squeeze(1))
-        this = opts if round_ == rounds - 1 else loose
-        final = this is opts
-        result = _solve(system, x, with_pairs(pairs), this, loaded, pairs, damping, x0=result.solution)
+        result, resume = _solve_pausing(system, x, with_pairs(pairs), opts, loaded, pairs, damping,
+                                        x0=result.solution, pause_tol=check_tol if round_ < rounds - 1 else None)
         report.cg.append(result)
         _raise_if_failed(result, opts, "implicit Euler CG (contact set)")
         v_new = end_velocity(result.solution)
         report.contact_solves.append((pairs, v_new))
-    if not final:  # the last solve was a check's (which found nothing more): on to cg_tol from it
-        result = _solve(system, x, with_pairs(pairs), opts, loaded, pairs, damping, x0=result.solution)
-        report.cg.append(result)
+    if resume is not None:  # the last solve paused for a check that found nothing: on to cg_tol
+        result = report.cg[-1] = resume(True)
         _raise_if_failed(result, opts, "implicit Euler CG")
         v_new = end_velocity(result.solution)
         report.contact_solves[-1] = (pairs, v_new)

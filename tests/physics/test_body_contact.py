@@ -391,7 +391,8 @@ def test_a_pair_the_solve_closes_joins_the_step():
 
 def test_a_miss_within_the_tolerance_is_left_to_the_next_step():
     """The scene above with Contact(tolerance) past the depth the missed pair would reach: the
-    step is solved once, as with rounds=0, bit for bit; the next step finds the pair in contact
+    step is solved once, as with rounds=0, bit for bit (its solve paused at check_tol for the
+    check, which found nothing, and went on to cg_tol); the next step finds the pair in contact
     (its start's gap negative) and the penalty pushes the block out over the steps after. The
     default tolerance is 1/400 of the search."""
     default = falling_pair(tm.Contact())
@@ -409,12 +410,13 @@ def test_a_miss_within_the_tolerance_is_left_to_the_next_step():
 
 
 def test_checks_read_solves_stopped_at_check_tol():
-    """Contact(check_tol): the solves whose ends a contact-set check reads stop at check_tol, the
-    step's last goes to cg_tol (after a check that found nothing, from its solution). The scene
-    of the pair the solve closes, then the blocks in contact: every step ends converged to
-    cg_tol, at the state of the steps solved to cg_tol throughout (the same pairs: the check
-    sees a millimetre miss at a 1 % residual as at 1e-10)."""
-    loose, full = falling_pair(tm.Contact(check_tol=1e-2), cg_tol=1e-10), falling_pair(tm.Contact(), cg_tol=1e-10)
+    """Contact(check_tol) (the default, 1e-2): a solve whose end a contact-set check reads pauses
+    at check_tol; the step's last goes to cg_tol (after a check that found nothing, the paused
+    solve goes on). The scene of the pair the solve closes, then the blocks in contact: every
+    step ends converged to cg_tol, at the state of the steps solved to cg_tol throughout (the
+    same pairs: the check sees a millimetre miss at a 1 % residual as at 1e-10)."""
+    assert tm.Contact().check_tol == 1e-2
+    loose, full = falling_pair(tm.Contact(), cg_tol=1e-10), falling_pair(tm.Contact(check_tol=None), cg_tol=1e-10)
     for step in range(6):
         report, reference = loose.step(), full.step()
         *checked, last = report.cg

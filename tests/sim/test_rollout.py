@@ -336,7 +336,8 @@ def test_bodies_in_contact(rng, monkeypatch):
 def test_a_pair_linearised_at_an_earlier_solve_carries_its_gradient_back(rng, monkeypatch):
     """A block spun onto another: a step's contact set takes a pair linearised where its first
     solve ended (the block turns over the other's surface), whose shift is that solve's motion;
-    the gradient goes back through both solves and matches central differences."""
+    the gradient goes back through both solves and matches central differences (the contact's
+    check_tol, on by default, is off for the rollout's steps: every solve converged)."""
     sim = _blocks_in_contact(rough=True)
     lower = sim.ptr[1]
     centre = sim.x[lower:].mean(0)
@@ -364,6 +365,7 @@ def test_a_pair_linearised_at_an_earlier_solve_carries_its_gradient_back(rng, mo
         with torch.no_grad():
             fd = float(loss(**{name: value + eps * direction}) - loss(**{name: value - eps * direction})) / (2 * eps)
         assert abs(float((grad * direction).sum()) - fd) <= 1e-6 * abs(fd), name
+    assert sim.body_contact.settings.check_tol == tm.Contact().check_tol is not None  # restored
 
 
 def test_a_rollout_with_contact_leaves_nothing_alive():

@@ -213,6 +213,25 @@ def test_tools_reach_the_simulator(tmp_path):
     assert sim.last_report.contact.tool_force.shape == (1, 3)
 
 
+@pytest.mark.parametrize("line, expected", [("", tm.Contact().check_tol), ("check_tol = 0.05", 0.05),
+                                            ("check_tol = false", None)])
+def test_contact_check_tol_defaults_to_the_library_and_false_turns_it_off(tmp_path, line, expected):
+    path = write(tmp_path, BEAM + f"""
+        [contact]
+        {line}
+        """)
+    assert load_scene(path).simulator.contact.check_tol == expected
+
+
+def test_contact_check_tol_true_is_an_error(tmp_path):
+    path = write(tmp_path, BEAM + """
+        [contact]
+        check_tol = true
+        """)
+    with pytest.raises(tm.SceneError, match="check_tol"):
+        load_scene(path)
+
+
 def test_missing_scene_file(tmp_path):
     with pytest.raises(tm.SceneError, match="scene file not found"):
         load_scene(tmp_path / "nope.toml")
@@ -230,11 +249,11 @@ def test_contact_reaches_the_simulator(tmp_path):
         friction_velocity = 0.01
         rounds = 2
         tolerance = 2e-4
-        check_tol = 0.01
+        check_tol = 0.03
         """)
     sim = load_scene(path).simulator
     assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True, swept=False,
                                      friction=0.4, friction_velocity=0.01, rounds=2, tolerance=2e-4,
-                                     check_tol=0.01)
+                                     check_tol=0.03)
     assert sim.body_contact is not None and sim.body_contact.search == 0.05
     assert sim.body_contact.tolerance == 2e-4

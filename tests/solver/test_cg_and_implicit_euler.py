@@ -4,6 +4,7 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch.solver import Segments, batched_cg
+from tensormass_torch.solver.cg import CGSolver
 
 DT = torch.float64
 
@@ -82,6 +83,38 @@ def test_cg_objects_are_independent():
     for k in (1, 3, 16):  # the host check period never changes the iterates
         again = batched_cg(matvec, rhs, seg, tol=1e-8, max_iter=400, check_every=k)
         assert torch.equal(again.solution, batch.solution)
+
+
+@pytest.mark.parametrize("preconditioned", [False, True])
+def test_cg_pauses_and_goes_on_bit_for_bit(preconditioned):
+    """CGSolver.solve(pause_tol): the solve returns once no object iterates with a residual above
+    pause_tol (those short of tol counted converged there), and other device work may run; resume
+    goes on to tol with the iterations of the solve that never paused, bit for bit. A pause_tol
+    at or below tol does not pause, and resuming a solve that is not paused changes nothing."""
+    sizes = [5, 6]
+    a, matvec = spd_blocks(sizes, seed=4, conditioning=(10.0, 1e4))
+    rhs = torch.randn(11, 3, dtype=DT, generator=torch.Generator().manual_seed(4))
+    segments = Segments.from_lengths(sizes)
+    diagonal = torch.diagonal(a).view(11, 3)
+    preconditioner = (lambda r: r / diagonal) if preconditioned else None
+
+    def solve(solver, pause_tol=None):
+        return solver.solve(matvec, rhs, tol=1e-10, max_iter=400, check_every=2, preconditioner=preconditioner,
+                            pause_tol=pause_tol)
+
+    straight = solve(CGSolver(segments, rhs.shape, DT, "cpu", cuda_graphs=False))
+    pausing = CGSolver(segments, rhs.shape, DT, "cpu", cuda_graphs=False)
+    paused = solve(pausing, pause_tol=1e-3)
+    assert pausing.paused and paused.converged.all() and bool((paused.relative_residual <= 1e-3).all())
+    assert bool((paused.relative_residual > 1e-10).any()) and bool((paused.iterations < straight.iterations).any())
+    matvec(torch.ones_like(rhs))  # other work while paused
+    went_on = pausing.resume(matvec, 400, 2, preconditioner=preconditioner)
+    assert not pausing.paused and went_on.converged.all()
+    assert torch.equal(went_on.solution, straight.solution) and torch.equal(went_on.iterations, straight.iterations)
+    as_it_stands = pausing.resume(matvec, 400, 2, preconditioner=preconditioner)
+    assert torch.equal(as_it_stands.solution, went_on.solution)
+    solve(pausing, pause_tol=1e-12)
+    assert not pausing.paused
 
 
 def test_cg_reports_breakdown_and_nonfinite():
