@@ -3,26 +3,27 @@ steps/s with body contact against without it in the same run, the detection's ti
 number of surface triangles, and the deepest interpenetration over the run.
 
     python benchmarks/studies/contact_piles.py [--columns 2 4 6] [--cells 10 10 5] [--steps 120]
-                                               [--friction 0] [--no-swept] [--check-every 0]
+                                               [--friction 0] [--model corotational] [--young 1e6]
+                                               [--no-swept] [--check-every 0]
                                                [--preconditioners auto none] [--rounds R ...] [--tolerance T]
                                                [--check-tols C ...]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
 
-Each pile is columns x columns stacks of ``columns`` blocks (0.2 x 0.2 x 0.1 m, E = 1e5 Pa,
-nu = 0.3, 1000 kg/m^3; ``--cells`` per block: 10 x 10 x 5 is 3,000 tets), the columns 5 cm
-apart, the blocks of a column 3 cm apart and shifted 1 cm sideways each (an offset stack), over a
-floor plane of 1e5 N/m; dt = 5 ms, Rayleigh mass damping 1/s, cg_tol 1e-4. With contact the
-pile runs ``--steps`` steps (the deepest interpenetration over them is reported), then 10 more
-are timed, once for each of ``--preconditioners`` (the Simulator's ``preconditioner``); without
-contact, 10 steps after 10 of warm-up (the blocks fall through each other: only the rate is
-compared). Detection: ``SurfaceContact.detect`` at the final state, mean of 10. ``--rounds``: a
-run with contact for each ``Contact(rounds=...)`` (how many more solves a step may take to check
-its contact set: the trade of cost against transient interpenetration); ``--tolerance``: the
-``Contact(tolerance=...)`` of every run (how deep past its pair's model a vertex may end a step
-before the step takes a round); ``--check-tols``: a run for each ``Contact(check_tol=...)`` (the
-CG tolerance of the solves a contact-set check reads).
+Each pile is columns x columns stacks of ``columns`` blocks (0.2 x 0.2 x 0.1 m, corotational, E =
+1e6 Pa (``--model``, ``--young``), nu = 0.3, 1000 kg/m^3; ``--cells`` per block: 10 x 10 x 5 is
+3,000 tets), the columns 5 cm apart, the blocks of a column 3 cm apart and shifted 1 cm sideways
+each (an offset stack), over a floor plane of 1e5 N/m; dt = 5 ms, Rayleigh mass damping 1/s,
+cg_tol 1e-4. With contact the pile runs ``--steps`` steps (the deepest interpenetration over them
+is reported), then 10 more are timed, once for each of ``--preconditioners`` (the Simulator's
+``preconditioner``); without contact, 10 steps after 10 of warm-up (the blocks fall through each
+other: only the rate is compared). Detection: ``SurfaceContact.detect`` at the final state, mean
+of 10. ``--rounds``: a run with contact for each ``Contact(rounds=...)`` (how many more solves a
+step may take to check its contact set: the trade of cost against transient interpenetration);
+``--tolerance``: the ``Contact(tolerance=...)`` of every run (how deep past its pair's model a
+vertex may end a step before the step takes a round); ``--check-tols``: a run for each
+``Contact(check_tol=...)`` (the CG tolerance of the solves a contact-set check reads).
 No block may pass through another: besides the deepest interpenetration the steps report (over
 the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
 inside another block, whatever its depth) is measured at the end and every ``--check-every``
@@ -49,9 +50,19 @@ import tensormass_torch as tm  # noqa: E402
 DT = 0.005
 
 
-def pile(columns: int, cells, device, dtype):
-    """The pile's bodies: columns x columns stacks of ``columns`` blocks."""
-    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+#: The blocks' model and Young's modulus (Pa). Tumbling blocks turn by tens of degrees, and the
+#: linear model (hooke) is not invariant under rotation: a block turned by theta about its normal
+#: settles stretched by 1 / cos(theta) in its plane, growing into its neighbours. Blocks of 1e5 Pa
+#: (a gel) falling a metre flatten their elements to a few per cent of their volume and invert
+#: them where they land, and an inverted element lets vertices through whatever the contact does
+#: (docs/contact.md, "The piles").
+MODEL, YOUNG = "corotational", 1e6
+
+
+def pile(columns: int, cells, device, dtype, model: str = MODEL, young: float = YOUNG):
+    """The pile's bodies: columns x columns stacks of ``columns`` blocks of material ``model``
+    with Young's modulus ``young``."""
+    material = tm.Material(young=young, poisson=0.3, density=1000, model=model)
     block = tm.beam_mesh(*cells, size=(0.2, 0.2, 0.1), dtype=dtype)
     bodies = []
     for i in range(columns):
@@ -90,14 +101,14 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None,
             rounds: Optional[int] = None, tolerance: Optional[float] = None,
-            check_tol: Optional[float] = None) -> Optional[dict]:
+            check_tol: Optional[float] = None, model: str = MODEL, young: float = YOUNG) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None).
     With ``state`` (a folder), the run goes on from the state saved there (positions,
     velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
     have passed, saves it there and returns None: a run longer than one sitting of a machine
     resumes where it stopped, stepping the same states."""
     rounds = tm.Contact().rounds if rounds is None else rounds
-    bodies, block = pile(columns, cells, device, dtype)
+    bodies, block = pile(columns, cells, device, dtype, model, young)
     sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, rounds=rounds, tolerance=tolerance,
                                        check_tol=check_tol), device, dtype, preconditioner)
     saved = state / "meta.json" if state is not None else None
@@ -172,6 +183,9 @@ def main(argv=None):
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
     parser.add_argument("--steps", type=int, default=120)
     parser.add_argument("--friction", type=float, default=0.0)
+    parser.add_argument("--model", default=MODEL, choices=list(tm.MODELS),
+                        help="the blocks' material model (default corotational: the blocks tumble)")
+    parser.add_argument("--young", type=float, default=YOUNG, help="the blocks' Young's modulus (Pa)")
     parser.add_argument("--swept", action=argparse.BooleanOptionalAction, default=True,
                         help="Contact(swept=...): pairs over each step's motion (the default) or at its start")
     parser.add_argument("--preconditioners", nargs="+", default=["auto"],
@@ -182,9 +196,10 @@ def main(argv=None):
     parser.add_argument("--tolerance", type=float, default=None,
                         help="Contact(tolerance=...) (m): how deep past its model a vertex may end before a round "
                              "(default: the library's, 1/400 of the mean surface edge)")
-    parser.add_argument("--check-tols", type=lambda t: None if t == "none" else float(t), nargs="+", default=[None],
+    parser.add_argument("--check-tols", type=lambda t: None if t == "none" else float(t), nargs="+",
+                        default=[tm.Contact().check_tol],
                         help="a run with contact for each Contact(check_tol=...) (the CG tolerance of the solves "
-                             "a contact-set check reads; none, the default: cg_tol for every solve)")
+                             "a contact-set check reads; default: the library's; none: cg_tol for every solve)")
     parser.add_argument("--state", default=None,
                         help="a folder to save the run's state in when --budget-s runs out, and to go on from")
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
@@ -198,7 +213,8 @@ def main(argv=None):
     if args.quick:
         args.columns, args.cells, args.steps = [2], [2, 2, 1], 3
     dtype = getattr(torch, args.dtype)
-    meta = common.metadata(args.device, dtype=args.dtype, cells=args.cells, friction=args.friction)
+    meta = common.metadata(args.device, dtype=args.dtype, cells=args.cells, friction=args.friction, model=args.model,
+                           young=args.young)
     columns = [("blocks", "blocks", None), ("tets", "tets", ","), ("surface_triangles", "surface triangles", ","),
                ("pairs", "pairs", ","), ("steps_per_s_without", "steps/s without", ".1f"),
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
@@ -212,7 +228,8 @@ def main(argv=None):
                ("interpenetration_m", "deepest inside another body (m)", ".2e"),
                ("out_of_order", "stacked blocks out of order", None),
                ("mean_edge_m", "mean surface edge (m)", ".2e")]
-    notes = [f"{args.dtype}, blocks of {args.cells} cells, friction {args.friction:g}, swept {args.swept}, dt {DT} s, "
+    notes = [f"{args.dtype}, {args.model} blocks of {args.cells} cells, E = {args.young:g} Pa, "
+             f"friction {args.friction:g}, swept {args.swept}, dt {DT} s, "
              f"{args.steps} steps with contact before the timed ones."]
     results = common.Results(args.out, "contact_piles", "Piles of blocks: steps/s with body contact against "
                              "without, detection time", meta, columns, notes)
@@ -221,11 +238,11 @@ def main(argv=None):
         for preconditioner, rounds, check_tol in [(p, r, t) for p in args.preconditioners for r in args.rounds
                                                   for t in args.check_tols]:
             suffix = "" if args.rounds == [tm.Contact().rounds] else f"_rounds{rounds}"
-            suffix += "" if args.check_tols == [None] else f"_check{check_tol}"
+            suffix += "" if args.check_tols == [tm.Contact().check_tol] else f"_check{check_tol}"
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baseline, state, args.budget_s, rounds, args.tolerance,
-                             check_tol)
+                             check_tol, args.model, args.young)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()
                 return results.records
