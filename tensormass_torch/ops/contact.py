@@ -367,10 +367,12 @@ def nearest_pairs(x: torch.Tensor, vertices: torch.Tensor, vertex_object: torch.
     candidate_triangle [C]`` (grouped by vertex, ascending) at positions ``x [V, 3]``: (pair_vertex
     into ``vertices``, pair_triangle, weights ``[P, 3]``, diff ``[P, 3]``, distance ``[P]``, normal
     ``[P, 3]``, side ``[P]``). ``spread [V]`` and ``body_step [B, 3]`` (both or neither): the swept
-    reach. Through the ops where the extension serves the device (``native``), else, or where a
-    vertex is near more bodies than the kernel holds, the reference. One host read (the pairs'
-    number, with the ops). Where ``x`` requires grad, the reference (the weights, diff, distance
-    and normal then carry the gradient: the energy's derivative flows through them)."""
+    reach. Through the ops where the extension serves the device (``native``), else the
+    reference; a vertex near more bodies than the kernel holds takes the reference, over its own
+    candidates only (the memory stays that of the few such vertices in a jammed pile). One host
+    read (the pairs' number, with the ops; two with such vertices). Where ``x`` requires grad, the
+    reference (the weights, diff, distance and normal then carry the gradient: the energy's
+    derivative flows through them)."""
     first = torch.searchsorted(candidate_vertex, torch.arange(len(vertices) + 1, device=x.device))
     args = (x.contiguous(), vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
             None if spread is None else spread.contiguous(), None if body_step is None else body_step.contiguous(),
@@ -380,14 +382,36 @@ def nearest_pairs(x: torch.Tensor, vertices: torch.Tensor, vertex_object: torch.
         counts = count(*args)
         fewest = counts.amin() if len(counts) else counts.new_zeros(())
         total, fewest = torch.stack([counts.sum(), fewest]).tolist()
-        if fewest >= 0:
-            offsets = _run_starts(counts)
-            index = torch.empty(total, dtype=torch.int64, device=x.device)
-            outputs = (index, torch.empty_like(index), x.new_empty(total, 3), x.new_empty(total, 3),
-                       x.new_empty(total), x.new_empty(total, 3), x.new_empty(total))
-            library.op("contact_fill_nearest")(*args, offsets, *outputs)
-            return outputs
+        over = None
+        if fewest < 0:  # (the fill pass writes nothing for a vertex past the kernel's slots)
+            over = (counts < 0).nonzero().squeeze(1)
+            counts = counts.clamp(min=0)
+            total = int(counts.sum())
+        offsets = _run_starts(counts)
+        index = torch.empty(total, dtype=torch.int64, device=x.device)
+        outputs = (index, torch.empty_like(index), x.new_empty(total, 3), x.new_empty(total, 3),
+                   x.new_empty(total), x.new_empty(total, 3), x.new_empty(total))
+        library.op("contact_fill_nearest")(*args, offsets, *outputs)
+        return outputs if over is None else _with_crowded_vertices(outputs, over, args)
     return nearest_reference(*args)
+
+
+def _with_crowded_vertices(outputs: tuple, over: torch.Tensor, args: tuple) -> tuple:
+    """:func:`nearest_pairs`' ``outputs`` of the op with the pairs of the surface vertices ``over``
+    (near more bodies than the kernel holds, which it left out) from the reference over their
+    runs of candidates alone, in the reference's order (by vertex, then candidate)."""
+    x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle, spread, body_step, reach = args
+    starts, lengths = first[over], first[over + 1] - first[over]
+    sub_first = torch.zeros(len(over) + 1, dtype=torch.int64, device=x.device)
+    sub_first[1:] = torch.cumsum(lengths, 0)
+    within = torch.arange(int(sub_first[-1]), device=x.device) - torch.repeat_interleave(sub_first[:-1], lengths)
+    candidates = candidate_triangle[torch.repeat_interleave(starts, lengths) + within]
+    crowded = nearest_reference(x, vertices[over], vertex_object[over], triangles, triangle_object, sub_first,
+                                candidates, spread, body_step, reach)
+    crowded = (over[crowded[0]], *crowded[1:])
+    merged = [torch.cat([ours, theirs]) for ours, theirs in zip(outputs, crowded)]
+    order = torch.sort(merged[0], stable=True)[1]
+    return tuple(t[order] for t in merged)
 
 
 def pair_product(dx: torch.Tensor, nodes: torch.Tensor, coef: torch.Tensor, direction: torch.Tensor,

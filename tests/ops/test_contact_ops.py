@@ -166,8 +166,9 @@ def test_nearest_pairs_equal_the_reference(swept, self_contact, dtype, device):
 
 
 def test_a_vertex_near_too_many_bodies_takes_the_reference():
-    """Twelve tiny bodies around one vertex: more than the kernel's slots. The count reports it
-    (-1) and nearest_pairs gives the reference's pairs."""
+    """Twelve tiny bodies around one vertex (more than the kernel's slots) and a vertex on each
+    side of it near two of them: the count reports the crowded one (-1), and nearest_pairs gives
+    the reference's pairs, in its order: the op's for the others, the reference's for it alone."""
     x = [[0.0, 0.0, 0.0]]
     triangles, triangle_object = [], []
     for body in range(12):
@@ -177,21 +178,26 @@ def test_a_vertex_near_too_many_bodies_takes_the_reference():
         x += (centre + torch.tensor([[0.0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]])).tolist()
         triangles.append([base, base + 1, base + 2])
         triangle_object.append(body + 1)
+    x += [[0.06, 0.0, 0.01], [-0.06, 0.0, 0.01]]
     x = torch.tensor(x, dtype=torch.float64)
     triangles = torch.tensor(triangles)
-    vertices = torch.tensor([0])
-    candidate_vertex, candidate_triangle = torch.zeros(12, dtype=torch.int64), torch.arange(12)
-    args = (x, vertices, torch.tensor([0]), triangles, torch.tensor(triangle_object), candidate_vertex,
+    vertices = torch.tensor([len(x) - 2, 0, len(x) - 1])
+    vertex_object = torch.tensor([0, 0, 0])
+    candidate_vertex = torch.tensor([0, 0] + [1] * 12 + [2, 2])
+    candidate_triangle = torch.tensor([0, 1] + list(range(12)) + [5, 6])
+    args = (x, vertices, vertex_object, triangles, torch.tensor(triangle_object), candidate_vertex,
             candidate_triangle, None, None, 0.2)
-    counts = library.op("contact_count_nearest")(x, vertices, torch.tensor([0]), triangles,
-                                                 torch.tensor(triangle_object), torch.tensor([0, 12]),
+    counts = library.op("contact_count_nearest")(x, vertices, vertex_object, triangles,
+                                                 torch.tensor(triangle_object), torch.tensor([0, 2, 14, 16]),
                                                  candidate_triangle, None, None, 0.2)
-    assert counts.tolist() == [-1]
+    assert counts.tolist() == [2, -1, 2]
     ours = contact.nearest_pairs(*args)
     theirs = contact.nearest_pairs(*args, native=False)
-    assert len(ours[0]) == 12
-    for a, b in zip(ours, theirs):
+    assert ours[0].tolist() == [0, 0] + [1] * 12 + [2, 2]
+    for a, b in zip(ours[:2] + ours[6:], theirs[:2] + theirs[6:]):  # the pairs and their sides
         assert torch.equal(a, b)
+    for a, b in zip(ours[2:6], theirs[2:6]):  # (the op fuses what the reference rounds apart)
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
 
 
 def test_nearest_bad_arguments_raise_naming_them():
