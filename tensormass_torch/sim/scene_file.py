@@ -290,10 +290,13 @@ def _warm_start(solver: _Table) -> str:
 
 def _check_tol(contact: _Table) -> Optional[float]:
     """``[contact] check_tol``: a number, or false for None (every solve to the solver's cg_tol)."""
-    if contact.data.get("check_tol") is False:
-        contact.seen.add("check_tol")
+    value = contact.data.get("check_tol", Contact.check_tol)
+    contact.seen.add("check_tol")
+    if value is False:
         return None
-    return contact.get("check_tol", "positive", Contact.check_tol)
+    if not _is_number(value) or not 0 < value < 1:
+        raise contact.error("check_tol", f"must be a number in (0, 1) or false, got {_describe(value)}")
+    return float(value)
 
 
 def _choice(table: _Table, key: str, choices, default=_REQUIRED, what: str = "value") -> str:

@@ -223,12 +223,13 @@ def test_contact_check_tol_defaults_to_the_library_and_false_turns_it_off(tmp_pa
     assert load_scene(path).simulator.contact.check_tol == expected
 
 
-def test_contact_check_tol_true_is_an_error(tmp_path):
-    path = write(tmp_path, BEAM + """
+@pytest.mark.parametrize("value", ["true", "0", "1.5", '"0.01"', "nan"])
+def test_contact_check_tol_must_be_in_zero_one_or_false(tmp_path, value):
+    path = write(tmp_path, BEAM + f"""
         [contact]
-        check_tol = true
+        check_tol = {value}
         """)
-    with pytest.raises(tm.SceneError, match="check_tol"):
+    with pytest.raises(tm.SceneError, match=r"contact\.check_tol: must be a number in \(0, 1\) or false"):
         load_scene(path)
 
 
