@@ -396,3 +396,24 @@ GROUP_CASES = [(kind, model, form) for kind in ("tet", "tri2d", "membrane")
                for model, form in (("hooke", "tensor"), ("hooke", "stress"), ("stvk", "tensor"), ("stvk", "stress"),
                                    ("corotational", "stress"))
                if not (kind == "membrane" and model == "corotational")]
+
+
+def shaken_pile_contact(dtype, device, settings):
+    """A ``SurfaceContact`` with ``settings`` (a ``tm.Contact``) over 8 shaken blocks of 3 x 3 x 2
+    cells in two offset columns, touching: (contact, positions ``[V, 3]``, velocities ``[V, 3]``,
+    0.3 m/s at random)."""
+    from tensormass_torch.mesh.topology import boundary_faces
+    from tensormass_torch.physics.body_contact import SurfaceContact
+
+    gen = torch.Generator().manual_seed(2)
+    block = beam_mesh(3, 3, 2, size=(0.2, 0.2, 0.1), dtype=torch.float64)
+    faces = boundary_faces(block.elements)
+    nodes = block.vertices.shape[0]
+    x = torch.cat([block.vertices + torch.tensor([0.19 * (b % 2) + 0.03 * (b // 2), 0.0, 0.095 * (b // 2)],
+                                                 dtype=torch.float64)
+                   + 0.004 * torch.randn(nodes, 3, generator=gen, dtype=torch.float64) for b in range(8)])
+    v = 0.3 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    triangles = torch.cat([faces + b * nodes for b in range(8)])
+    node_object = torch.arange(8).repeat_interleave(nodes)
+    contact = SurfaceContact(triangles.to(device), node_object.to(device), x.to(device=device, dtype=dtype), settings)
+    return contact, x.to(device=device, dtype=dtype), v.to(device=device, dtype=dtype)

@@ -23,7 +23,8 @@ of 10. ``--rounds``: a run with contact for each ``Contact(rounds=...)`` (how ma
 step may take to check its contact set: the trade of cost against transient interpenetration);
 ``--tolerance``: the ``Contact(tolerance=...)`` of every run (how deep past its pair's model a
 vertex may end a step before the step takes a round); ``--check-tols``: a run for each
-``Contact(check_tol=...)`` (the CG tolerance of the solves a contact-set check reads).
+``Contact(check_tol=...)`` (the CG tolerance of the solves a contact-set check reads); ``--skins``: a run
+for each ``Contact(skin=...)`` (the broad phase's candidates kept while the surfaces move less).
 No block may pass through another: besides the deepest interpenetration the steps report (over
 the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
 inside another block, whatever its depth) is measured at the end and every ``--check-every``
@@ -101,7 +102,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None,
             rounds: Optional[int] = None, tolerance: Optional[float] = None,
-            check_tol: Optional[float] = None, model: str = MODEL, young: float = YOUNG) -> Optional[dict]:
+            check_tol: Optional[float] = None, model: str = MODEL, young: float = YOUNG,
+            skin: Optional[float] = None) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None).
     With ``state`` (a folder), the run goes on from the state saved there (positions,
     velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
@@ -110,7 +112,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     rounds = tm.Contact().rounds if rounds is None else rounds
     bodies, block = pile(columns, cells, device, dtype, model, young)
     sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, rounds=rounds, tolerance=tolerance,
-                                       check_tol=check_tol), device, dtype, preconditioner)
+                                       check_tol=check_tol, skin=skin), device, dtype, preconditioner)
     saved = state / "meta.json" if state is not None else None
     if saved is not None and saved.exists():
         progress = json.loads(saved.read_text())
@@ -151,7 +153,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     return dict(blocks=len(bodies), tets=len(bodies) * block.num_elements, surface_triangles=len(contact.triangles),
                 pairs=len(pairs), steps=steps, run_s=progress["run_s"], deepest_m=progress["deepest"],
                 preconditioner=preconditioner, rounds=rounds, tolerance_m=contact.tolerance,
-                check_tol=contact.settings.check_tol,
+                check_tol=contact.settings.check_tol, skin=contact.settings.skin,
                 steps_per_s_without=without,
                 steps_per_s_with=with_contact,
                 cost_ratio=without / with_contact, detect_ms=detect_ms,
@@ -200,6 +202,9 @@ def main(argv=None):
                         default=[tm.Contact().check_tol],
                         help="a run with contact for each Contact(check_tol=...) (the CG tolerance of the solves "
                              "a contact-set check reads; default: the library's; none: cg_tol for every solve)")
+    parser.add_argument("--skins", type=lambda t: None if t == "none" else float(t), nargs="+",
+                        default=[tm.Contact().skin],
+                        help="a run with contact for each Contact(skin=...) (m; none: every detection searches)")
     parser.add_argument("--state", default=None,
                         help="a folder to save the run's state in when --budget-s runs out, and to go on from")
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
@@ -221,6 +226,7 @@ def main(argv=None):
                ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
                ("preconditioner", "preconditioner", None), ("rounds", "rounds", None),
                ("tolerance_m", "tolerance (m)", ".2e"), ("check_tol", "check_tol", None),
+               ("skin", "skin (m)", None),
                ("cg_iterations", "CG iterations with (most of one solve)", None),
                ("cg_iterations_step", "CG iterations of the last step", None),
                ("solves", "solves in the last step", None),
@@ -235,14 +241,15 @@ def main(argv=None):
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
         baseline = None
-        for preconditioner, rounds, check_tol in [(p, r, t) for p in args.preconditioners for r in args.rounds
-                                                  for t in args.check_tols]:
+        for preconditioner, rounds, check_tol, skin in [(p, r, t, k) for p in args.preconditioners for r in args.rounds
+                                                        for t in args.check_tols for k in args.skins]:
             suffix = "" if args.rounds == [tm.Contact().rounds] else f"_rounds{rounds}"
             suffix += "" if args.check_tols == [tm.Contact().check_tol] else f"_check{check_tol}"
+            suffix += "" if args.skins == [tm.Contact().skin] else f"_skin{skin}"
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baseline, state, args.budget_s, rounds, args.tolerance,
-                             check_tol, args.model, args.young)
+                             check_tol, args.model, args.young, skin)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()
                 return results.records

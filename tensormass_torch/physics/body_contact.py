@@ -118,6 +118,16 @@ class Contact:
             re-linearised where a paused solve ended depends on that solve, so ``tm.rollout``
             (``exact=True``, its default) solves every solve to ``cg_tol``; with ``exact=False``
             its gradient through that dependence is approximate.
+        skin: keep the broad phase's candidates and reuse them (m; None: every detection finds its
+            own). The candidates are found for triangles grown by twice the skin past the reach,
+            and a detection takes them where, since they were found, no surface vertex has moved
+            by more than the skin less what its query needs for the step's motion (a swept one:
+            the most any vertex moves apart from its body, plus half the most two bodies close
+            on each other; a contact-set check: nothing). Those candidates then hold every pair
+            a fresh broad phase would find (``SurfaceContact.candidates``), so every pair within
+            the reach is the fresh detection's; beyond the reach, where a swept detection keeps
+            pairs only outside, a pair may take a nearer triangle. A larger skin is reused longer
+            and gives the narrow phase more candidates (docs/contact.md).
     """
 
     stiffness: float = 1e5
@@ -131,6 +141,7 @@ class Contact:
     rounds: int = 2
     tolerance: Optional[float] = None
     check_tol: Optional[float] = 1e-2
+    skin: Optional[float] = None
 
     def __post_init__(self):
         def number(value):
@@ -153,6 +164,8 @@ class Contact:
             raise SceneError(f"contact tolerance must be a positive finite number or None, got {self.tolerance!r}")
         if self.check_tol is not None and (not number(self.check_tol) or not 0 < self.check_tol < 1):
             raise SceneError(f"contact check_tol must be a number in (0, 1) or None, got {self.check_tol!r}")
+        if self.skin is not None and (not number(self.skin) or self.skin <= 0):
+            raise SceneError(f"contact skin must be a positive finite number or None, got {self.skin!r}")
         if self.tangent not in TANGENTS:
             raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
                              f"got {self.tangent!r}")
@@ -530,6 +543,7 @@ class SurfaceContact:
         self.rest = rest
         self._last = None  # (x, its version, v, its version, dt, what at_state found there)
         self._static = None  # (x, its version, the pairs in contact there): see _pairs_at
+        self._kept = None  # Contact.skin: (surface vertices' positions [S, 3], reach, the candidates)
 
     @property
     def reach(self) -> float:
@@ -618,26 +632,72 @@ class SurfaceContact:
         it at x and at x + dt (v - V_body), a vertex's its segment likewise, grown by the most
         that a body its body may meet closes on it, dt |V_a - V_b| (a vertex arriving faster
         than the reach per step is found before it is inside); otherwise a vertex's box is its
-        point. ``motion``: :meth:`_motion` ``(x, v, dt)`` when the caller has it.
+        point. ``motion``: :meth:`_motion` ``(x, v, dt)`` when the caller has it. With
+        ``Contact.skin``, the kept candidates where they still hold these (:meth:`_kept_candidates`).
 
         A spatial hash of cell size c = the largest triangle box side at x + 2 reach (motion does
         not grow it: a still triangle covers at most 2 cells per axis, a moving one as many as
         its swept box does, and a vertex's segment likewise). A pair meets in every cell both
         boxes cover; it is kept in one, the cell of the low corner of the boxes' intersection
         (``ops.contact.candidate_pairs``: the walk over the cells' entries is an op)."""
+        if self.settings.swept and v is not None and dt > 0:
+            motion = self._motion(x, v, dt) if motion is None else motion
+        else:
+            motion = None
+        if self.settings.skin is not None and len(self.triangles):
+            kept = self._kept_candidates(x, motion)
+            if kept is not None:
+                return kept
+        return self._search(x, motion, self.reach)
+
+    def _kept_candidates(self, x: torch.Tensor, motion):
+        """``Contact.skin``'s candidates for a query at ``x [V, 3]`` (``motion``: a swept query's
+        :meth:`_motion`, or None), or None where a fresh search must answer.
+
+        Kept candidates, found at positions x_k for triangles grown by reach + 2 skin, hold
+        every pair a query at x meets when M + D + G / 2 <= skin, M the most a surface vertex
+        moved from x_k, D the most one moves apart from its body over the step and G the most
+        two bodies close on each other (a check's query: D = G = 0). A pair the query meets
+        has a point q in both boxes: q is within D + G of the vertex at x, so within M + D + G
+        of it at x_k, and within reach + D of the triangle's box at x, so within reach + D + M
+        of it at x_k; the vertex at x_k is then within reach + 2 (M + D) + G <= reach + 2 skin
+        of the triangle's box at x_k, which the kept search tested. Where the kept ones do not
+        hold them but the query's own motion fits the skin, the candidates are found again
+        at x (and kept); else the query's own search answers. One host read."""
+        skin = self.settings.skin
+        points = x[self.vertices]
+        need = points.new_zeros(())
+        if motion is not None:
+            deviation, _, grow = motion
+            need = torch.linalg.vector_norm(deviation[self.vertices], dim=-1).amax() + 0.5 * grow.amax()
+        kept = self._kept
+        usable = (kept is not None and kept[1] == self.reach and kept[0].shape == points.shape
+                  and kept[0].device == points.device and kept[0].dtype == points.dtype)
+        moved = torch.linalg.vector_norm(points - kept[0], dim=-1).amax() if usable else points.new_full((), math.inf)
+        moved, need = torch.stack([moved + need, need]).tolist()
+        if moved <= skin:
+            return kept[2]
+        if need > skin:
+            return None
+        found = self._search(x, None, self.reach + 2.0 * skin)
+        self._kept = (points.clone(), self.reach, found)
+        return found
+
+    def _search(self, x: torch.Tensor, motion, reach: float):
+        """:meth:`candidates`' hash search at ``x [V, 3]``, swept by ``motion`` (:meth:`_motion`'s,
+        or None), triangles grown by ``reach``; self-contact's exclusions by :attr:`reach`."""
         device = x.device
         empty = torch.zeros(0, dtype=torch.int64, device=device)
         if len(self.triangles) == 0:
             return empty, empty
         corners = x[self.triangles]  # [F, 3, 3]
         low, high = corners.amin(1), corners.amax(1)
-        reach = self.reach
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
         points = x[self.vertices]
         point_low = point_high = points  # (the same tensor: one query per vertex)
-        if self.settings.swept and v is not None and dt > 0:
+        if motion is not None:
             # in each body's moving frame, grown by what the bodies it may meet close on it
-            deviation, _, grow = self._motion(x, v, dt) if motion is None else motion
+            deviation, _, grow = motion
             moved = corners + deviation[self.triangles]
             low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
             ends = points + deviation[self.vertices]
@@ -654,7 +714,7 @@ class SurfaceContact:
         own = (tri == node[:, None]).any(1)
         same = self.vertex_object[vertex] == self.triangle_object[triangle]
         s_rest, _, _ = signed_distance(self.rest[node], *(self.rest[tri[:, i]] for i in range(3)))
-        keep = (~same | (~own & (s_rest.abs() > reach))).nonzero().squeeze(1)
+        keep = (~same | (~own & (s_rest.abs() > self.reach))).nonzero().squeeze(1)
         return vertex[keep], triangle[keep]
 
     def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
@@ -825,7 +885,7 @@ class SurfaceContact:
                    if value is not None}
         other = copy.copy(self)
         other.settings = dataclasses.replace(self.settings, **changes)
-        other._last = other._static = None
+        other._last = other._static = other._kept = None
         return other
 
     def to(self, device=None, dtype=None) -> "SurfaceContact":

@@ -70,6 +70,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     rounds = 2                        # more solves a step may take to check its contact set (0: none)
     # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
     check_tol = 1e-2                  # CG tolerance of the solves a round's check reads (false: cg_tol)
+    # skin = 0.005                    # reuse the broad phase's candidates while surfaces move less (default: off)
 
     [[bodies]]
     name = "beam"
@@ -817,6 +818,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           rounds=contact_table.get("rounds", "nonnegative_int", 2),
                           tolerance=contact_table.get("tolerance", "positive", None),
                           check_tol=_check_tol(contact_table),
+                          skin=contact_table.get("skin", "positive", None),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
     distributed_table = top.table("distributed") or _Table({}, "distributed", fail)

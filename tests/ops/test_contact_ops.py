@@ -14,6 +14,7 @@ import torch
 import tensormass_torch as tm
 from tensormass_torch.mesh.topology import boundary_faces
 from tensormass_torch.ops import contact, library
+from tests.conftest import shaken_pile_contact
 
 pytestmark = pytest.mark.skipif(not library.ensure_registered(), reason="the compiled extension is not available")
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -123,21 +124,7 @@ def test_bad_arguments_raise_naming_them_and_write_nothing():
 
 def pile_state(dtype, device, self_contact: bool = False):
     """A SurfaceContact over 8 shaken blocks in two offset columns, its positions and velocities."""
-    from tensormass_torch.physics.body_contact import SurfaceContact
-
-    gen = torch.Generator().manual_seed(2)
-    block = tm.beam_mesh(3, 3, 2, size=(0.2, 0.2, 0.1), dtype=torch.float64)
-    faces = boundary_faces(block.elements)
-    nodes = block.vertices.shape[0]
-    x = torch.cat([block.vertices + torch.tensor([0.19 * (b % 2) + 0.03 * (b // 2), 0.0, 0.095 * (b // 2)],
-                                                 dtype=torch.float64)
-                   + 0.004 * torch.randn(nodes, 3, generator=gen, dtype=torch.float64) for b in range(8)])
-    v = 0.3 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
-    triangles = torch.cat([faces + b * nodes for b in range(8)])
-    node_object = torch.arange(8).repeat_interleave(nodes)
-    contact = SurfaceContact(triangles.to(device), node_object.to(device), x.to(device=device, dtype=dtype),
-                             tm.Contact(self_contact=self_contact))
-    return contact, x.to(device=device, dtype=dtype), v.to(device=device, dtype=dtype)
+    return shaken_pile_contact(dtype, device, tm.Contact(self_contact=self_contact))
 
 
 @pytest.mark.parametrize("swept", [False, True])
