@@ -54,9 +54,8 @@ DT = 0.005
 #: The blocks' model and Young's modulus (Pa). Tumbling blocks turn by tens of degrees, and the
 #: linear model (hooke) is not invariant under rotation: a block turned by theta about its normal
 #: settles stretched by 1 / cos(theta) in its plane, growing into its neighbours. Blocks of 1e5 Pa
-#: (a gel) falling a metre flatten their elements to a few per cent of their volume and invert
-#: them where they land, and an inverted element lets vertices through whatever the contact does
-#: (docs/contact.md, "The piles").
+#: (a gel) falling a metre invert elements where they land, and an inverted element lets vertices
+#: through whatever the contact does (docs/contact.md, Limits).
 MODEL, YOUNG = "corotational", 1e6
 
 
