@@ -401,11 +401,13 @@ def _with_crowded_vertices(outputs: tuple, over: torch.Tensor, args: tuple) -> t
     (near more bodies than the kernel holds, which it left out) from the reference over their
     runs of candidates alone, in the reference's order (by vertex, then candidate)."""
     x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle, spread, body_step, reach = args
-    starts, lengths = first[over], first[over + 1] - first[over]
-    sub_first = torch.zeros(len(over) + 1, dtype=torch.int64, device=x.device)
-    sub_first[1:] = torch.cumsum(lengths, 0)
-    within = torch.arange(int(sub_first[-1]), device=x.device) - torch.repeat_interleave(sub_first[:-1], lengths)
-    candidates = candidate_triangle[torch.repeat_interleave(starts, lengths) + within]
+    lengths = first[over + 1] - first[over]
+    packed = _run_starts(lengths)  # where each run starts among the crowded vertices' candidates
+    total = int(lengths.sum())
+    sub_first = torch.cat([packed, packed.new_full((1,), total)])
+    entry = torch.repeat_interleave(first[over] - packed, lengths, output_size=total) + torch.arange(
+        total, device=x.device)
+    candidates = candidate_triangle[entry]
     crowded = nearest_reference(x, vertices[over], vertex_object[over], triangles, triangle_object, sub_first,
                                 candidates, spread, body_step, reach)
     crowded = (over[crowded[0]], *crowded[1:])

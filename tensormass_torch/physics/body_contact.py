@@ -108,13 +108,12 @@ class Contact:
             surface) a vertex may end a step before the step takes a round; None: 1/400 of the
             search, 0.25 % of the mean surface edge by default (``SurfaceContact.tolerance``). A
             larger tolerance leaves shallow misses to the next step, which finds them in contact.
-        check_tol: the relative residual at which the solves a contact-set check reads stop
-            (each round's check looks at its solve's end positions; the step's last solve still
-            goes to the simulator's ``cg_tol``, from the last check's solution where that check
-            found nothing); None: every solve to ``cg_tol``. A check needs the end positions to
+        check_tol: the relative residual at which a solve whose end positions a round's check
+            reads pauses; None: every solve to ``cg_tol``. A check needs the end positions to
             about the tolerance, not the velocities to cg_tol (docs/contact.md measures the
-            saving). A solve a check reads pauses there, and goes on to ``cg_tol`` where the
-            check finds nothing to add; the step's last solve always reaches ``cg_tol``. A pair
+            saving). Where the check finds nothing to add, the paused solve goes on to the
+            simulator's ``cg_tol``, else the round solves again from it; the step's last solve
+            always reaches ``cg_tol``. A pair
             re-linearised where a paused solve ended depends on that solve, so ``tm.rollout``
             (``exact=True``, its default) solves every solve to ``cg_tol``; with ``exact=False``
             its gradient through that dependence is approximate.

@@ -255,13 +255,19 @@ class CGSolver:
             cg_ops.object_dot(s.r, z, self.plan, self._pcg_buffers().rz, s, self.native)
             s.p.copy_(z)
 
-    def any_active(self, pause_threshold: Optional[torch.Tensor] = None) -> bool:
-        """Whether some object is still iterating (a host synchronisation); with
-        ``pause_threshold [B]``, whether some object still iterates with r.r above it."""
+    def any_active(self) -> bool:
+        """Whether some object is still iterating (a host synchronisation)."""
+        return bool((self.state.status == ACTIVE).any())
+
+    def _past_pause(self, pause_threshold: torch.Tensor) -> bool:
+        """Whether a solve pausing at r.r <= ``pause_threshold [B]`` goes on (some object still
+        iterates above it); where it stops with objects still iterating, it is paused (one host
+        synchronisation for both)."""
         active = self.state.status == ACTIVE
-        if pause_threshold is not None:
-            active = active & (self.state.rr > pause_threshold)
-        return bool(active.any())
+        above, left = torch.stack([(active & (self.state.rr > pause_threshold)).any(), active.any()]).tolist()
+        if not above and left:
+            self._paused = (None, pause_threshold)
+        return bool(above)
 
     def result(self) -> CGResult:
         """The outcome of the last solve (copies: the buffers are reused). While the solve is
@@ -328,7 +334,7 @@ class CGSolver:
                 self.start(matvec, rhs, x0, tol, max_iter, preconditioner)
         pause_threshold = self.rhs_sq * self._effective_tol(pause_tol, rhs.dtype) ** 2 if pausing else None
         done = self.finish(matvec, max_iter, check_every, graph_key, done, preconditioner, pause_threshold)
-        if pause_threshold is not None and self.any_active():
+        if self._paused is not None:
             self._paused = (done, pause_threshold)
         return self.result()
 
@@ -347,7 +353,7 @@ class CGSolver:
         """Iterate from the current state until no object is active (or, with ``pause_threshold
         [B]``, none with r.r above it) or ``max_iter`` iterations have run (``done`` of them
         already), looking at the host every ``check_every``; returns the iterations run."""
-        while done < max_iter and self.any_active(pause_threshold):
+        while done < max_iter and (self.any_active() if pause_threshold is None else self._past_pause(pause_threshold)):
             count = min(check_every, max_iter - done)
             self.run_iterations(matvec, count, max_iter, graph_key, preconditioner)
             done += count
