@@ -166,15 +166,17 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
 def out_of_order(sim, columns: int) -> int:
     """How many pairs of blocks of one column, still over each other in plan (centroids less than
     15 cm apart: the blocks are 20 cm wide), are no longer in their starting order from the floor
-    up: a block through the one under it, or a tumbling pile that stacked them again the other
-    way (blocks knocked off, one falling to the floor first); the interpenetration tells them
-    apart only while the first is still inside."""
+    up: the block that started above lies more than half a block's thickness (5 cm) below the
+    other. A block through the one under it, or a tumbling pile that stacked them again the
+    other way (blocks knocked off, one falling to the floor first); the interpenetration tells
+    them apart only while the first is still inside. (Two blocks side by side at one height, as
+    two knocked on their edges against each other, are not counted: the margin.)"""
     segments = sim.segments
     centroids = torch.stack([segments.sum(sim.x[:, i]) for i in range(3)], -1) / segments.lengths[:, None]
     stacks = centroids.reshape(columns * columns, columns, 3)  # [column, level from the floor, xyz]
     plan = torch.linalg.vector_norm(stacks[:, :, None, :2] - stacks[:, None, :, :2], dim=-1)
     below = torch.ones(columns, columns, dtype=torch.bool, device=sim.x.device).triu(1)  # level a under b
-    flipped = (stacks[:, :, None, 2] >= stacks[:, None, :, 2]) & (plan < 0.15) & below
+    flipped = (stacks[:, :, None, 2] > stacks[:, None, :, 2] + 0.05) & (plan < 0.15) & below
     return int(flipped.sum())
 
 
