@@ -43,7 +43,7 @@ from typing import List, Optional
 import numpy as np
 import torch
 
-from ..errors import SceneError
+from ..errors import SceneError, SolverError
 from ..ops.multigrid import BsrMatrix, bsr_gemv, chebyshev
 from .preconditioner import optional_module
 
@@ -269,7 +269,9 @@ class Multigrid:
         values are added where the coarse matrix already has entries. Rows of fixed nodes
         (``free [V, 1]`` zero) are left out, as the hierarchy's identity rows. Without the
         update the coarse corrections fight a penalty they do not know of, tens of times the
-        elastic diagonal of the rows it acts on (docs/preconditioners.md)."""
+        elastic diagonal of the rows it acts on (docs/preconditioners.md). Raises SolverError,
+        the levels back at the rest's, where a sparse product fails (cuSPARSE's SpGEMM runs out
+        of resources on the GPU piles of hundreds of blocks)."""
         acting = None
         if node_stiffness is not None:
             block_norm = node_stiffness.abs().amax(dim=(-2, -1))
@@ -292,14 +294,28 @@ class Multigrid:
             delta = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, (self.sizes[0], self.sizes[0]))
             delta = delta.to_sparse_csr()
             for depth, level in enumerate(self.levels):
-                prolong, restrict = level.sparse_transfers()
-                delta = restrict @ (delta @ prolong)
+                try:
+                    delta = self._galerkin(level, delta)
+                except RuntimeError as err:  # (cuSPARSE's SpGEMM runs out of resources on large piles)
+                    self._restore()  # (the levels above may hold part of this update)
+                    raise SolverError(
+                        f"preconditioner='multigrid' could not carry the floor's and tools' penalties into its "
+                        f"coarse levels: the sparse product P^T N P of level {depth} ({level.size} unknowns) failed "
+                        f"on {delta.device} ({str(err).splitlines()[0]}); use preconditioner='auto' (block Jacobi "
+                        f"where contact pairs join a solve) for this scene; the state was not changed") from err
                 if depth + 1 < len(self.levels):
                     self._add(self.levels[depth + 1], delta)
         factor, info = torch.linalg.cholesky_ex(self.coarse_rest + delta.to_dense().to(torch.float64))
         if int(info) == 0:  # (a penalty adds a positive semidefinite part: always, but for roundoff)
             self.coarse_inverse.copy_(torch.cholesky_inverse(factor))
         self._loaded = True
+
+    @staticmethod
+    def _galerkin(level: "_Level", delta: torch.Tensor) -> torch.Tensor:
+        """P^T ``delta`` P (CSR) for the level's prolongation P: the level below's part of a fine
+        node stiffness (torch's sparse products)."""
+        prolong, restrict = level.sparse_transfers()
+        return restrict @ (delta @ prolong)
 
     @staticmethod
     def _add(level: "_Level", delta: torch.Tensor) -> None:

@@ -194,6 +194,34 @@ def test_a_pile_in_contact_converges_with_multigrid():
     torch.testing.assert_close(steps["multigrid"][0], steps["auto"][0], rtol=0, atol=1e-10)
 
 
+def test_a_failed_coarse_update_is_one_clear_error_and_changes_nothing(monkeypatch):
+    """Where the sparse products that carry the floor's penalty into the coarse levels fail (cuSPARSE's
+    SpGEMM out of resources on a GPU pile of hundreds of blocks), the step raises one SolverError
+    that names the preconditioner and the way out, the state as it was and the levels at the
+    rest's; the next step without the failure is the step of a simulator that never failed, to the
+    solves' tolerance (two such simulators, neither failing, already differ by nanometres)."""
+    from tensormass_torch.solver.multigrid import Multigrid
+
+    sim, twin = contact_pile("multigrid"), contact_pile("multigrid")
+    sim.step(20)  # the lower blocks on the floor
+    twin.step(20)
+    x, v = sim.x.clone(), sim.v.clone()
+    galerkin = Multigrid._galerkin
+
+    def failing(level, delta):
+        raise RuntimeError("CUDA error: insufficient resources when calling `cusparseSpGEMM_compute(...)`")
+
+    monkeypatch.setattr(Multigrid, "_galerkin", staticmethod(failing))
+    with pytest.raises(tm.SolverError, match=r"preconditioner='multigrid' could not carry .* "
+                                             r"insufficient resources.*preconditioner='auto'"):
+        sim.step()
+    assert torch.equal(sim.x, x) and torch.equal(sim.v, v)
+    monkeypatch.setattr(Multigrid, "_galerkin", staticmethod(galerkin))
+    sim.step()
+    twin.step()
+    torch.testing.assert_close(sim.x, twin.x, rtol=0, atol=1e-6)
+
+
 def test_preconditioned_cg_matches_a_dense_solve_per_object():
     """Two objects of a packed batch (one soft, one 100x stiffer, different sizes) solved together:
     each matches its dense solve and needs a fraction of plain CG's iterations; an object whose
