@@ -218,6 +218,10 @@ def _smooth(matrix: Optional[BsrMatrix], product, inverse_diagonal: torch.Tensor
     return x
 
 
+#: The seed of the random start vectors pyamg's hierarchy build draws (its spectral radius estimates).
+HIERARCHY_SEED = 0
+
+
 class Multigrid:
     """A smoothed-aggregation V-cycle ``r [V, d] -> z [V, d]`` for the step's matrix at rest.
 
@@ -237,15 +241,24 @@ class Multigrid:
         #: unknowns per node
         self.dim = matrix.blocksize[0] if hasattr(matrix, "blocksize") else 1
         # pyamg counts a level's size in blocks; the coarse levels' blocks are the modes
-        hierarchy = pyamg.smoothed_aggregation_solver(matrix, B=modes, symmetry="symmetric",
-                                                      max_coarse=max(coarse_size // modes.shape[1], 1),
-                                                      max_levels=12, keep=False)
-        coarse = hierarchy.levels[-1].A
-        if coarse.shape[0] > MAX_DIRECT:
-            raise SceneError(f"multigrid: aggregation could not coarsen this mesh below {coarse.shape[0]} unknowns "
-                             f"(at most {MAX_DIRECT} are solved directly); use preconditioner='jacobi'")
-        self.levels: List[_Level] = [_Level(level, dtype, device, degree, self.dim, modes.shape[1])
-                                     for level in hierarchy.levels[:-1]]
+        # pyamg's spectral radius estimates (the prolongation's smoothing, each level's Chebyshev
+        # interval) start from random vectors of numpy's global generator: seeded here, so that one
+        # mesh gives one hierarchy (and a simulation its trajectory, bit for bit), the caller's
+        # generator state put back after
+        state = np.random.get_state()
+        np.random.seed(HIERARCHY_SEED)
+        try:
+            hierarchy = pyamg.smoothed_aggregation_solver(matrix, B=modes, symmetry="symmetric",
+                                                          max_coarse=max(coarse_size // modes.shape[1], 1),
+                                                          max_levels=12, keep=False)
+            coarse = hierarchy.levels[-1].A
+            if coarse.shape[0] > MAX_DIRECT:
+                raise SceneError(f"multigrid: aggregation could not coarsen this mesh below {coarse.shape[0]} "
+                                 f"unknowns (at most {MAX_DIRECT} are solved directly); use preconditioner='jacobi'")
+            self.levels: List[_Level] = [_Level(level, dtype, device, degree, self.dim, modes.shape[1])
+                                         for level in hierarchy.levels[:-1]]
+        finally:
+            np.random.set_state(state)
         dense = torch.from_numpy(coarse.toarray()).to(device=device, dtype=torch.float64)
         factor, info = torch.linalg.cholesky_ex(dense)
         if int(info) != 0:
