@@ -107,7 +107,10 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     With ``state`` (a folder), the run goes on from the state saved there (positions,
     velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
     have passed, saves it there and returns None: a run longer than one sitting of a machine
-    resumes where it stopped, stepping the same states."""
+    resumes where it stopped. From the saved positions and velocities only: the simulator's
+    carried state (the coupled solves' layout) starts afresh, so a resumed run matches the
+    uninterrupted one to roundoff at first, not bit for bit, and a tumbling pile then drifts
+    apart (``contact_pile_1000_corotational_2000_steps.md``)."""
     rounds = tm.Contact().rounds if rounds is None else rounds
     bodies, block = pile(columns, cells, device, dtype, model, young)
     sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, rounds=rounds, tolerance=tolerance,
