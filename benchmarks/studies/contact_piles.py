@@ -108,7 +108,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
     have passed, saves it there and returns None: a run longer than one sitting of a machine
     resumes where it stopped. From the saved positions and velocities only: the simulator's
-    carried state (the coupled solves' layout) starts afresh, so a resumed run matches the
+    carried state (such as the coupled solves' layout) starts afresh, so a resumed run matches the
     uninterrupted one to roundoff at first, not bit for bit, and a tumbling pile then drifts
     apart (``contact_pile_1000_corotational_2000_steps.md``)."""
     rounds = tm.Contact().rounds if rounds is None else rounds
