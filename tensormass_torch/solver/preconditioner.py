@@ -39,7 +39,7 @@ from typing import Optional
 
 import torch
 
-from ..errors import SceneError
+from ..errors import SceneError, SolverError
 from ..ops import library
 from ..ops.multigrid import BsrMatrix, bsr_gemv
 
@@ -256,9 +256,13 @@ class MultigridSolve:
                     and node_stiffness.shape == self._node_stiffness.shape
                     and torch.equal(node_stiffness, self._node_stiffness))):
             return self
+        try:
+            self.multigrid.load(node_stiffness, free)
+        except SolverError:  # the levels are back at the rest's: the next load must not be skipped
+            self._with_pairs, self._node_stiffness = True, None
+            raise
         self._with_pairs = pair_row_l1 is not None
         self._node_stiffness = None if node_stiffness is None else node_stiffness.clone()
-        self.multigrid.load(node_stiffness, free)
         row_l1 = self.multigrid.fine_row_l1.view(-1, self.multigrid.dim)
         if node_stiffness is not None:
             row_l1 = row_l1 + node_stiffness.abs().sum(-1)

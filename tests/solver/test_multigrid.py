@@ -221,6 +221,18 @@ def test_a_failed_coarse_update_is_one_clear_error_and_changes_nothing(monkeypat
     sim.step()
     twin.step()
     assert torch.equal(sim.x, twin.x)
+    # a load that failed is never taken for the last one: the same penalty loads again after it
+    solve = sim.system._multigrid_solve
+    doubled = 2.0 * solve._node_stiffness
+    solve.load(solve.product, doubled, sim.system.free)
+    expected = solve.multigrid.coarse_inverse.clone()
+    solve.load(solve.product, 0.5 * doubled, sim.system.free)
+    monkeypatch.setattr(Multigrid, "_galerkin", staticmethod(failing))
+    with pytest.raises(tm.SolverError):
+        solve.load(solve.product, doubled, sim.system.free)
+    monkeypatch.setattr(Multigrid, "_galerkin", staticmethod(galerkin))
+    solve.load(solve.product, doubled, sim.system.free)
+    assert torch.equal(solve.multigrid.coarse_inverse, expected)
 
 
 def test_one_scene_steps_the_same_with_multigrid_twice():
