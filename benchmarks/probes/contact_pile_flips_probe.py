@@ -43,7 +43,7 @@ def inside(x: torch.Tensor, nodes: torch.Tensor, faces: torch.Tensor) -> float:
     return float(torch.clamp(-signed, min=0.0).max())
 
 
-def main():
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--columns", type=int, default=10)
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
@@ -51,7 +51,7 @@ def main():
     parser.add_argument("--rounds", type=int, default=tm.Contact().rounds)
     parser.add_argument("--out", default="contact_pile_flips.json")
     parser.add_argument("--device", default=common.default_device())
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     n = args.columns
     bodies, _ = contact_piles.pile(n, args.cells, args.device, torch.float32)
     sim = contact_piles.simulator(bodies, tm.Contact(rounds=args.rounds), args.device, torch.float32)
@@ -92,6 +92,7 @@ def main():
     print(f"{len(events)} events, {len(final)} pairs, {sum(not e['b_above'] for e in final.values())} ending "
           f"reversed; the closest centroids at an event {min((e['space_m'] for e in events), default=float('nan')):.4f} m; "
           f"deepest inside the other at an event {max(depths, default=0.0):.2e} m")
+    return events
 
 
 if __name__ == "__main__":

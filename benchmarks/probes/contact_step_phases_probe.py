@@ -66,7 +66,7 @@ def timed(owner, name, device, times: dict):
     return original
 
 
-def main():
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--columns", type=int, default=10)
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
@@ -75,7 +75,7 @@ def main():
     parser.add_argument("--state", default=None, help="a folder of contact_piles.py --state (x.pt, v.pt)")
     parser.add_argument("--contact", type=json.loads, default={}, help="tm.Contact's keyword arguments, JSON")
     parser.add_argument("--device", default=common.default_device())
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     dtype = torch.float32
     bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype)
     sim = contact_piles.simulator(bodies, tm.Contact(**args.contact), args.device, dtype)
@@ -106,6 +106,7 @@ def main():
         if iterations:
             line += f"  {iterations / args.timed:6.1f} iterations a step, {1e3 * seconds / iterations:.3f} ms each"
         print(line)
+    return dict(steps_per_s=rate, timed_s=synced, phases=times)
 
 
 if __name__ == "__main__":

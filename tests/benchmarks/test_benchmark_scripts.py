@@ -16,7 +16,7 @@ import tensormass_torch as tm
 from tensormass_torch import ops
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-for folder in (BENCH, BENCH / "suite", BENCH / "studies"):  # the shared modules and the scripts
+for folder in (BENCH, BENCH / "suite", BENCH / "studies", BENCH / "probes"):  # the shared modules and the scripts
     sys.path.insert(0, str(folder))
 
 import assembled  # noqa: E402
@@ -238,6 +238,65 @@ def test_contact_piles_quick(tmp_path):
     (row,) = contact_piles.main(["--quick", "--device", "cpu", "--out", str(tmp_path)])
     assert row["blocks"] == 8 and row["steps_per_s_with"] > 0 and row["surface_triangles"] > 0
     assert (tmp_path / "contact_piles.md").exists() and (tmp_path / "contact_piles.json").exists()
+
+
+def test_out_of_order_counts_a_block_half_a_thickness_below_the_one_it_started_on():
+    """contact_piles.out_of_order: a pair of one column's blocks counts where the block that started
+    above lies more than 5 cm below the other, over it in plan; two blocks level, side by side as
+    two knocked on their edges, do not count, however the fraction of a millimetre falls."""
+    import contact_piles
+
+    bodies, block = contact_piles.pile(2, (2, 2, 1), "cpu", torch.float64)
+    sim = contact_piles.simulator(bodies, tm.Contact(), "cpu", torch.float64)
+    assert contact_piles.out_of_order(sim, 2) == 0
+    nodes = block.num_vertices
+    x = sim.x.clone()
+    x[nodes:2 * nodes, 2] -= 0.13 + 0.0001  # column 0's upper block level with the lower, 0.1 mm under
+    x[nodes:2 * nodes, 0] += 0.12  # beside it, 12 cm over in plan
+    sim.x = x
+    assert contact_piles.out_of_order(sim, 2) == 0
+    x[nodes:2 * nodes, 2] -= 0.06  # 6 cm under it: reversed
+    sim.x = x
+    assert contact_piles.out_of_order(sim, 2) == 1
+
+
+def test_contact_step_phases_probe_quick():
+    """The phases probe times a pile's step phase by phase and puts every function it wrapped back."""
+    import contact_step_phases_probe as probe
+
+    from tensormass_torch.physics.body_contact import SurfaceContact
+
+    nearby = SurfaceContact.nearby
+    out = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "30", "--timed", "2", "--device",
+                      "cpu"])
+    assert SurfaceContact.nearby is nearby
+    seconds, calls, iterations = out["phases"]["CGSolver.solve"]
+    assert calls >= 2 and iterations > 0 and seconds > 0 and out["steps_per_s"] > 0
+    assert out["phases"]["SurfaceContact.at_state"][1] >= 2
+
+
+def test_contact_pile_flips_probe_measures_a_pair_exactly(tmp_path):
+    """The flips probe's pair measure is the simulator's interpenetration for two blocks pushed 3 cm
+    into each other, 0 apart; the probe runs a pile end to end."""
+    import contact_pile_flips_probe as probe
+    import contact_piles
+
+    bodies, block = contact_piles.pile(2, (4, 4, 2), "cpu", torch.float64)
+    sim = contact_piles.simulator(bodies, tm.Contact(), "cpu", torch.float64)
+    faces = sim.surface_triangles()
+    surface = {body: torch.unique(f) for body, f in faces.items()}
+    assert probe.inside(sim.x, surface[1], faces[0]) == 0.0
+    nodes = block.num_vertices
+    x = sim.x.clone()
+    x[nodes:2 * nodes, 2] -= 0.16  # column 0's upper block 3 cm into the lower
+    sim.x = x
+    depth = sim.interpenetration()
+    assert probe.inside(sim.x, surface[1], faces[0]) == pytest.approx(float(depth[1]), abs=1e-12)
+    assert probe.inside(sim.x, surface[0], faces[1]) == pytest.approx(float(depth[0]), abs=1e-12)
+    assert float(depth[0]) == pytest.approx(0.03, abs=1e-9)
+    events = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "3", "--device", "cpu",
+                         "--out", str(tmp_path / "events.json")])
+    assert json.loads((tmp_path / "events.json").read_text()) == events
 
 
 def test_contact_piles_resumes_a_paused_run(tmp_path):
