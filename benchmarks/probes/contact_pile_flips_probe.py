@@ -28,19 +28,14 @@ import common  # noqa: E402
 import contact_piles  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
-from tensormass_torch.mesh.distance import surface_signed_distances  # noqa: E402
+from tensormass_torch.sim.diagnostics import depth_inside  # noqa: E402
 
 
 def inside(x: torch.Tensor, nodes: torch.Tensor, faces: torch.Tensor) -> float:
     """How deep the surface vertices ``nodes`` are inside the closed surface ``faces`` at ``x``
-    (0 where none is), those within its box measured exactly."""
-    corners = x[torch.unique(faces)]
-    points = x[nodes]
-    points = points[((points >= corners.amin(0)) & (points <= corners.amax(0))).all(-1)]
-    if len(points) == 0:
-        return 0.0
-    signed = surface_signed_distances(points.reshape(-1, 1, 1, 3), x, faces, block=1)
-    return float(torch.clamp(-signed, min=0.0).max())
+    (0 where none is)."""
+    depths = depth_inside(x, nodes, faces)[1]
+    return float(depths.max()) if len(depths) else 0.0
 
 
 def main(argv=None):
@@ -55,20 +50,15 @@ def main(argv=None):
     n = args.columns
     bodies, _ = contact_piles.pile(n, args.cells, args.device, torch.float32)
     sim = contact_piles.simulator(bodies, tm.Contact(rounds=args.rounds), args.device, torch.float32)
-    segments = sim.segments
     faces = {body: f.to(sim.x.device) for body, f in sim.surface_triangles().items()}
     surface = {body: torch.unique(f) for body, f in faces.items()}
     below = torch.ones(n, n, dtype=torch.bool, device=sim.x.device).triu(1)  # level a under level b
-
-    def stacks():  # [column, level, xyz] centroids
-        centroids = torch.stack([segments.sum(sim.x[:, i]) for i in range(3)], -1) / segments.lengths[:, None]
-        return centroids.reshape(n * n, n, 3)
 
     before, events = None, []
     start = time.perf_counter()
     for step in range(1, args.steps + 1):
         sim.step()
-        centroids = stacks()
+        centroids = contact_piles.column_centroids(sim, n)
         above = centroids[:, None, :, 2] > centroids[:, :, None, 2]  # [column, a, b]: b over a
         if before is not None:
             plan = torch.linalg.vector_norm(centroids[:, :, None, :2] - centroids[:, None, :, :2], dim=-1)

@@ -166,6 +166,13 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
                 out_of_order=out_of_order(sim, columns))
 
 
+def column_centroids(sim, columns: int) -> torch.Tensor:
+    """The blocks' centroids ``[column, level from the floor, 3]`` (the pile's bodies in order)."""
+    segments = sim.segments
+    centroids = torch.stack([segments.sum(sim.x[:, i]) for i in range(3)], -1) / segments.lengths[:, None]
+    return centroids.reshape(columns * columns, columns, 3)
+
+
 def out_of_order(sim, columns: int) -> int:
     """How many pairs of blocks of one column, still over each other in plan (centroids less than
     15 cm apart: the blocks are 20 cm wide), are no longer in their starting order from the floor
@@ -174,9 +181,7 @@ def out_of_order(sim, columns: int) -> int:
     other way (blocks knocked off, one falling to the floor first); the interpenetration tells
     them apart only while the first is still inside. (Two blocks side by side at one height, as
     two knocked on their edges against each other, are not counted: the margin.)"""
-    segments = sim.segments
-    centroids = torch.stack([segments.sum(sim.x[:, i]) for i in range(3)], -1) / segments.lengths[:, None]
-    stacks = centroids.reshape(columns * columns, columns, 3)  # [column, level from the floor, xyz]
+    stacks = column_centroids(sim, columns)
     plan = torch.linalg.vector_norm(stacks[:, :, None, :2] - stacks[:, None, :, :2], dim=-1)
     below = torch.ones(columns, columns, dtype=torch.bool, device=sim.x.device).triu(1)  # level a under b
     flipped = (stacks[:, :, None, 2] > stacks[:, None, :, 2] + 0.05) & (plan < 0.15) & below

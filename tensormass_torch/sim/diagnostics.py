@@ -100,15 +100,27 @@ def interpenetration(sim, x: Optional[torch.Tensor] = None) -> torch.Tensor:
     for k, neighbours in enumerate(overlap.tolist()):
         if not any(neighbours):
             continue
-        c = tet[k]
-        # the other bodies' surface vertices within c's box: the only ones that may be inside c
-        nodes = torch.cat([surface[j] for j, near in enumerate(neighbours) if near])
-        nodes = nodes[((x[nodes] >= lower[k]) & (x[nodes] <= upper[k])).all(-1)]
-        if nodes.numel() == 0:
-            continue
-        signed = surface_signed_distances(x[nodes].reshape(-1, 1, 1, 3), x, faces[c], block=1).reshape(-1)
-        depth.scatter_reduce_(0, sim.segments.node_object[nodes], torch.clamp(-signed, min=0.0), "amax")
+        # the other bodies' surface vertices within this body's box: the only ones that may be inside it
+        nodes, inside = depth_inside(x, torch.cat([surface[j] for j, near in enumerate(neighbours) if near]),
+                                     faces[tet[k]], lower[k], upper[k])
+        depth.scatter_reduce_(0, sim.segments.node_object[nodes], inside, "amax")
     return depth
+
+
+def depth_inside(x: torch.Tensor, nodes: torch.Tensor, faces: torch.Tensor, lower: Optional[torch.Tensor] = None,
+                 upper: Optional[torch.Tensor] = None):
+    """(the ``nodes`` within the box ``lower, upper [3]`` of the closed surface ``faces [F, 3]``
+    (default: its vertices' box) at positions ``x [V, 3]``, how deep each is inside the surface
+    ``[N]``, 0 outside): the exact signed distance to the whole surface, as
+    :func:`interpenetration` measures it."""
+    if lower is None or upper is None:
+        corners = x[torch.unique(faces)]
+        lower, upper = corners.amin(0), corners.amax(0)
+    nodes = nodes[((x[nodes] >= lower) & (x[nodes] <= upper)).all(-1)]
+    if nodes.numel() == 0:
+        return nodes, x.new_zeros(0)
+    signed = surface_signed_distances(x[nodes].reshape(-1, 1, 1, 3), x, faces, block=1).reshape(-1)
+    return nodes, torch.clamp(-signed, min=0.0)
 
 
 def signed_measures(x: torch.Tensor, elements: torch.Tensor,
@@ -360,5 +372,5 @@ def allocation_summary(sim) -> Dict[str, int]:
     return parts
 
 
-__all__ = ["InversionCheck", "InversionReport", "allocation_summary", "allocations", "best_rotations",
+__all__ = ["InversionCheck", "InversionReport", "allocation_summary", "allocations", "best_rotations", "depth_inside",
            "inversion_report", "signed_measures"]
