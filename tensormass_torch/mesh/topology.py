@@ -148,6 +148,17 @@ def sum_slots_in_order(buffer: torch.Tensor) -> torch.Tensor:
     return total
 
 
+def add_at(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``out[index[i]] += values[i]`` for every i (``index [M]``, ``values [M, ...]``), in place and
+    returned, summed in an order that does not change from run to run: on CUDA index_put_'s
+    accumulation (it sorts by index, where index_add_ uses atomics); elsewhere index_add_ (the
+    CPU's index_put_ accumulation splits the values among its threads, and its sums then change
+    with their timing: two runs of one pile parted after 20 steps with 2 threads)."""
+    if out.is_cuda:
+        return out.index_put_((index,), values, accumulate=True)
+    return out.index_add_(0, index, values)
+
+
 def node_element_lists(elements: torch.Tensor, num_nodes: int):
     """Node -> incident elements as CSR lists (the alternative to the padded layout).
 

@@ -46,6 +46,7 @@ import math
 import torch
 
 from ..mesh.distance import closest_point
+from ..mesh.topology import add_at
 from . import library
 from .library import OpDef
 
@@ -178,7 +179,7 @@ def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, fi
     # to decide the side).
     rounding = 32.0 * torch.finfo(d.dtype).eps * (x[node].abs().amax(-1) + reach)
     tied = d <= least[group] + rounding
-    pseudo = normal.new_zeros(groups, 3).index_put_((group,), normal * tied[:, None].to(d.dtype), accumulate=True)
+    pseudo = add_at(normal.new_zeros(groups, 3), group, normal * tied[:, None].to(d.dtype))
     big = torch.iinfo(torch.int64).max
     lowest = torch.full((groups,), big, dtype=torch.int64, device=x.device).scatter_reduce(
         0, group, torch.where(tied, triangle, big), "amin")

@@ -65,6 +65,7 @@ import torch
 
 from ..errors import SceneError
 from ..mesh.distance import closest_point, closest_weights  # noqa: F401  (closest_weights: re-exported)
+from ..mesh.topology import add_at
 from ..ops import contact as contact_ops
 from .contact import check_friction, coulomb_damping, tangential_part
 
@@ -189,9 +190,8 @@ def signed_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.
 
 def _sum_into(num_nodes: int, nodes: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """``[V, k]`` zeros plus ``values [M, k]`` summed at ``nodes [M]``, in an order that does not
-    depend on the run (index_put_'s accumulation sorts by index; index_add_ would use atomics)."""
-    out = values.new_zeros(num_nodes, values.shape[-1])
-    return out.index_put_((nodes,), values, accumulate=True)
+    depend on the run (``mesh.topology.add_at``)."""
+    return add_at(values.new_zeros(num_nodes, values.shape[-1]), nodes, values)
 
 
 def _relative(nodes: torch.Tensor, coefficients: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
@@ -556,7 +556,7 @@ class SurfaceContact:
         box at ``x``, lower and upper corners ``[B, 3]``)."""
         objects = max(self.num_objects, 1)
         counts = torch.bincount(self.node_object, minlength=objects).clamp(min=1).to(rate.dtype)
-        mean = rate.new_zeros(objects, 3).index_put_((self.node_object,), rate, accumulate=True) / counts[:, None]
+        mean = add_at(rate.new_zeros(objects, 3), self.node_object, rate) / counts[:, None]
         body_step = scale * mean
         deviation = scale * rate - body_step[self.node_object]
         spread = torch.linalg.vector_norm(deviation[self.vertices], dim=-1)

@@ -23,7 +23,7 @@ from torch import nn
 
 from ..errors import MaterialError
 from ..mesh import geometry
-from ..mesh.topology import GatherPlan, unique_edges
+from ..mesh.topology import GatherPlan, add_at, unique_edges
 from ..ops import cutting, library, node_graph, solve, topology
 from ..ops.reference import tensor_form
 from .materials import lame
@@ -363,7 +363,7 @@ class ElementGroup(nn.Module):
         corotational the rest value, which their tangents leave near it for moderate strain (a
         preconditioner needs only a positive diagonal of the right size). Removed elements hold
         zeros (:meth:`remove_rows`), so they add nothing. Summed in an order that does not depend
-        on the run (index_put_ sorts by index): the same preconditioner, the same iterates.
+        on the run (`mesh.topology.add_at`): the same preconditioner, the same iterates.
 
         Per node j and axis a, summed over the elements on j (Cotin's K_jj):
         measure ((lam + mu) m_ja^2 + mu |m_j|^2 P_aa), P the identity or the membrane's projector;
@@ -387,7 +387,7 @@ class ElementGroup(nn.Module):
                                                         * plane[:, None, :])
             nodes = self.elements.long()
         out = values.new_zeros(rows, values.shape[-1])
-        return out.index_put_((nodes.reshape(-1),), values.reshape(-1, values.shape[-1]), accumulate=True)
+        return add_at(out, nodes.reshape(-1), values.reshape(-1, values.shape[-1]))
 
     def rest_stiffness_edges(self):
         """The group's linear stiffness at rest as the node graph's off-diagonal blocks:

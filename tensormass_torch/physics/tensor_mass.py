@@ -9,7 +9,7 @@ from torch import nn
 
 from .. import ops
 from ..errors import MaterialError, MeshError, SceneError
-from ..mesh.topology import incidence_slots, padded_sum
+from ..mesh.topology import add_at, incidence_slots, padded_sum
 from ..ops import library, topology
 from ..ops.variants import DEFAULT, KernelVariants
 from .groups import FORMS, ElementGroup
@@ -489,7 +489,7 @@ class TensorMass(nn.Module):
             flat = blocks.reshape(blocks.shape[0], -1)
             both = torch.cat([-flat, -blocks.transpose(1, 2).reshape(flat.shape)])
             nodes = torch.cat([edges[:, 0], edges[:, 1]])
-            total = flat.new_zeros(self.num_nodes, flat.shape[1]).index_put_((nodes,), both, accumulate=True)
+            total = add_at(flat.new_zeros(self.num_nodes, flat.shape[1]), nodes, both)
             total = total.view(self.num_nodes, *blocks.shape[1:])
             cache = self.__dict__["_stiffness_blocks"] = (tensors, tuple(t._version for t in tensors), total)
         return cache[2]

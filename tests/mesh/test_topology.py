@@ -80,3 +80,21 @@ def test_boundary_faces_of_a_beam():
     x = mesh.vertices.double()[faces]
     volume = (torch.linalg.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]) * x[:, 0]).sum() / 6
     assert volume.item() == pytest.approx(1.0, rel=1e-12)
+
+
+def test_add_at_sums_the_same_every_run_with_threads():
+    """add_at: the sums of values at repeated indices, equal to a float64 sum, and the same bits
+    in every run with several threads (the CPU's index_put_ accumulation changed with its
+    threads' timing: two runs of one pile parted after 20 steps)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(threads, 2))
+    try:
+        gen = torch.Generator().manual_seed(0)
+        index = torch.randint(0, 5000, (200_000,), generator=gen)
+        values = torch.randn(200_000, 9, generator=gen)
+        runs = [topology.add_at(torch.zeros(5000, 9), index, values) for _ in range(10)]
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(runs[0], run) for run in runs[1:])
+    exact = torch.zeros(5000, 9, dtype=torch.float64).index_add_(0, index, values.double())
+    torch.testing.assert_close(runs[0].double(), exact, rtol=0, atol=1e-4)
