@@ -6,7 +6,7 @@ number of surface triangles, and the deepest interpenetration over the run.
                                                [--friction 0] [--model corotational] [--young 1e6]
                                                [--no-swept] [--check-every 0]
                                                [--preconditioners auto none] [--rounds R ...] [--tolerance T]
-                                               [--check-tols C ...]
+                                               [--check-tols C ...] [--skins S ...] [--check-margins M ...]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
@@ -24,7 +24,9 @@ step may take to check its contact set: the trade of cost against transient inte
 ``--tolerance``: the ``Contact(tolerance=...)`` of every run (how deep past its pair's model a
 vertex may end a step before the step takes a round); ``--check-tols``: a run for each
 ``Contact(check_tol=...)`` (the CG tolerance of the solves a contact-set check reads); ``--skins``: a run
-for each ``Contact(skin=...)`` (the broad phase's candidates kept while the surfaces move less).
+for each ``Contact(skin=...)`` (the broad phase's candidates kept while the surfaces move less);
+``--check-margins``: a run for each ``Contact(check_margin=...)`` (how far from the step's prediction
+a solve may leave the surfaces for the step's checks to take the step's own candidates).
 No block may pass through another: besides the deepest interpenetration the steps report (over
 the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
 inside another block, whatever its depth) is measured at the end and every ``--check-every``
@@ -100,10 +102,9 @@ def without_contact(bodies, device, dtype) -> dict:
 def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None,
-            rounds: Optional[int] = None, tolerance: Optional[float] = None,
-            check_tol: Optional[float] = None, model: str = MODEL, young: float = YOUNG,
-            skin: Optional[float] = None) -> Optional[dict]:
-    """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None).
+            model: str = MODEL, young: float = YOUNG, **settings) -> Optional[dict]:
+    """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None),
+    ``settings``: its ``tm.Contact``'s (the library's defaults for those not given).
     With ``state`` (a folder), the run goes on from the state saved there (positions,
     velocities, step and what was measured so far) and, when ``budget_s`` seconds of stepping
     have passed, saves it there and returns None: a run longer than one sitting of a machine
@@ -111,10 +112,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     carried state (such as the coupled solves' layout) starts afresh, so a resumed run matches the
     uninterrupted one to roundoff at first, not bit for bit, and a tumbling pile then drifts
     apart (``contact_pile_1000_corotational_2000_steps.md``)."""
-    rounds = tm.Contact().rounds if rounds is None else rounds
     bodies, block = pile(columns, cells, device, dtype, model, young)
-    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, rounds=rounds, tolerance=tolerance,
-                                       check_tol=check_tol, skin=skin), device, dtype, preconditioner)
+    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, **settings), device, dtype, preconditioner)
     saved = state / "meta.json" if state is not None else None
     if saved is not None and saved.exists():
         progress = json.loads(saved.read_text())
@@ -154,8 +153,9 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     without = progress["steps_per_s_without"]
     return dict(blocks=len(bodies), tets=len(bodies) * block.num_elements, surface_triangles=len(contact.triangles),
                 pairs=len(pairs), steps=steps, run_s=progress["run_s"], deepest_m=progress["deepest"],
-                preconditioner=preconditioner, rounds=rounds, tolerance_m=contact.tolerance,
+                preconditioner=preconditioner, rounds=contact.settings.rounds, tolerance_m=contact.tolerance,
                 check_tol=contact.settings.check_tol, skin=contact.settings.skin,
+                check_margin_m=contact.check_margin,
                 steps_per_s_without=without,
                 steps_per_s_with=with_contact,
                 cost_ratio=without / with_contact, detect_ms=detect_ms,
@@ -214,6 +214,10 @@ def main(argv=None):
     parser.add_argument("--skins", type=lambda t: None if t == "none" else float(t), nargs="+",
                         default=[tm.Contact().skin],
                         help="a run with contact for each Contact(skin=...) (m; none: every detection searches)")
+    parser.add_argument("--check-margins", type=lambda t: None if t == "none" else float(t), nargs="+",
+                        default=[tm.Contact().check_margin],
+                        help="a run with contact for each Contact(check_margin=...) (m; none: the library's, "
+                             "1/16 of the search; 0: every check searches)")
     parser.add_argument("--state", default=None,
                         help="a folder to save the run's state in when --budget-s runs out, and to go on from")
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
@@ -235,7 +239,7 @@ def main(argv=None):
                ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
                ("preconditioner", "preconditioner", None), ("rounds", "rounds", None),
                ("tolerance_m", "tolerance (m)", ".2e"), ("check_tol", "check_tol", None),
-               ("skin", "skin (m)", None),
+               ("skin", "skin (m)", None), ("check_margin_m", "check margin (m)", ".2e"),
                ("cg_iterations", "CG iterations with (most of one solve)", None),
                ("cg_iterations_step", "CG iterations of the last step", None),
                ("solves", "solves in the last step", None),
@@ -250,15 +254,18 @@ def main(argv=None):
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
         baseline = None
-        for preconditioner, rounds, check_tol, skin in [(p, r, t, k) for p in args.preconditioners for r in args.rounds
-                                                        for t in args.check_tols for k in args.skins]:
+        for preconditioner, rounds, check_tol, skin, margin in [
+                (p, r, t, k, m) for p in args.preconditioners for r in args.rounds for t in args.check_tols
+                for k in args.skins for m in args.check_margins]:
             suffix = "" if args.rounds == [tm.Contact().rounds] else f"_rounds{rounds}"
             suffix += "" if args.check_tols == [tm.Contact().check_tol] else f"_check{check_tol}"
             suffix += "" if args.skins == [tm.Contact().skin] else f"_skin{skin}"
+            suffix += "" if args.check_margins == [tm.Contact().check_margin] else f"_margin{margin}"
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
-                             args.swept, preconditioner, baseline, state, args.budget_s, rounds, args.tolerance,
-                             check_tol, args.model, args.young, skin)
+                             args.swept, preconditioner, baseline, state, args.budget_s, args.model, args.young,
+                             rounds=rounds, tolerance=args.tolerance, check_tol=check_tol, skin=skin,
+                             check_margin=margin)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()
                 return results.records

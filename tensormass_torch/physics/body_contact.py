@@ -128,6 +128,13 @@ class Contact:
             the reach is the fresh detection's; beyond the reach, where a swept detection keeps
             pairs only outside, a pair may take a nearer triangle. A larger skin is reused longer
             and gives the narrow phase more candidates (docs/contact.md).
+        check_margin: how far (m) a surface vertex may end a solve from where the step's starting
+            velocities put it, for the step's contact-set checks to take their candidates from
+            the step's own broad phase instead of searching again (whose triangles then grow by
+            twice the margin); None: 1/16 of the search; 0: every check searches on its own. The
+            pairs are the same either way (``SurfaceContact.nearby``); a larger margin serves more
+            checks (a bounce, an impact) and gives the narrow phases more candidates. Not used
+            with ``skin``, whose kept candidates serve the checks by their own bound.
     """
 
     stiffness: float = 1e5
@@ -142,6 +149,7 @@ class Contact:
     tolerance: Optional[float] = None
     check_tol: Optional[float] = 1e-2
     skin: Optional[float] = None
+    check_margin: Optional[float] = None
 
     def __post_init__(self):
         def number(value):
@@ -166,6 +174,9 @@ class Contact:
             raise SceneError(f"contact check_tol must be a number in (0, 1) or None, got {self.check_tol!r}")
         if self.skin is not None and (not number(self.skin) or self.skin <= 0):
             raise SceneError(f"contact skin must be a positive finite number or None, got {self.skin!r}")
+        if self.check_margin is not None and (not number(self.check_margin) or self.check_margin < 0):
+            raise SceneError(f"contact check_margin must be a non-negative finite number or None, "
+                             f"got {self.check_margin!r}")
         if self.tangent not in TANGENTS:
             raise SceneError(f"contact tangent must be one of {', '.join(map(repr, TANGENTS))}, "
                              f"got {self.tangent!r}")
@@ -543,11 +554,23 @@ class SurfaceContact:
         self._last = None  # (x, its version, v, its version, dt, what at_state found there)
         self._static = None  # (x, its version, the pairs in contact there): see _pairs_at
         self._kept = None  # Contact.skin: (surface vertices' positions [S, 3], reach, the candidates)
+        # Contact.check_margin: the step's start search, for its checks (nearby, relinearise):
+        # (x, its version, where the step's velocities put the surface vertices [S, 3], the
+        # margin, the candidates)
+        self._step_search = None
 
     @property
     def reach(self) -> float:
         """Thickness plus search: the distance within which pairs are looked for."""
         return self.settings.thickness + self.search
+
+    @property
+    def check_margin(self) -> float:
+        """``Contact.check_margin``, by default 1/16 of :attr:`search`; 0 with ``Contact.skin``."""
+        if self.settings.skin is not None:
+            return 0.0
+        margin = self.settings.check_margin
+        return self.search / 16.0 if margin is None else float(margin)
 
     def _bodies(self, x: torch.Tensor, rate: torch.Tensor, scale: float):
         """Each body's motion and box for a motion ``scale * rate [V, 3]`` from ``x [V, 3]``: (each
@@ -568,19 +591,21 @@ class SurfaceContact:
             0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
         return deviation, body_step, most, lower, upper
 
-    def _motion(self, x: torch.Tensor, v: torch.Tensor, dt: float):
+    def _motion(self, x: torch.Tensor, v: torch.Tensor, dt: float, reach: Optional[float] = None):
         """The step's motion as the broad phase sweeps it: (each node's displacement apart from
         its body's mean, dt (v - V_body) ``[V, 3]``; each body's mean displacement dt V_body
         ``[B, 3]``; per body, the largest dt |V_a - V_b| over the bodies b whose boxes may meet
-        its own over the step ``[B]``). Bodies moving together (a pile in free fall) sweep
-        little: only their own deformation and turning, and what they close on each other.
-        (The bodies' pairwise test runs BODY_ROWS bodies against all at a time.)"""
+        its own over the step, triangles grown by ``reach`` (None: :attr:`reach`) ``[B]``).
+        Bodies moving together (a pile in free fall) sweep little: only their own deformation
+        and turning, and what they close on each other. (The bodies' pairwise test runs
+        BODY_ROWS bodies against all at a time.)"""
+        reach = self.reach if reach is None else reach
         objects = max(self.num_objects, 1)
         deviation, body_step, turn, lower, upper = self._bodies(x, v, dt)
         grow = []
         for rows in torch.arange(objects, device=x.device).split(BODY_ROWS):  # [rows, B] at a time
             closing = torch.linalg.vector_norm(body_step[rows, None] - body_step[None], dim=-1)
-            margin = (self.reach + turn[rows, None] + turn[None] + closing)[..., None]
+            margin = (reach + turn[rows, None] + turn[None] + closing)[..., None]
             meet = ((lower[rows, None] <= upper[None] + margin) & (lower[None] <= upper[rows, None] + margin)).all(-1)
             grow.append(torch.where(meet, closing, torch.zeros_like(closing)).amax(1))
         return deviation, body_step, torch.cat(grow)
@@ -716,16 +741,30 @@ class SurfaceContact:
         keep = (~same | (~own & (s_rest.abs() > self.reach))).nonzero().squeeze(1)
         return vertex[keep], triangle[keep]
 
-    def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0):
+    def nearby(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0, found=None):
         """Every pair a step at ``x [V, 3]`` may need, and which of them :meth:`detect` keeps:
         (pairs, closing ``[P]`` bool). The pairs: for each surface vertex and each other body,
         the nearest of its candidate triangles within :attr:`reach`, whatever its gap (without
         the exact Hessians; :meth:`select` adds them). closing: the gap is negative or, given
         the velocities ``v [V, 3]`` and a step ``dt``, the gap the pair would have after the step
-        at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module)."""
+        at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module).
+
+        ``found``: the candidates to take instead of a search (:meth:`relinearise`'s, from the
+        step's start search). A step's start query (``v`` and ``dt`` given) searches with its
+        triangles grown by twice :attr:`check_margin` more and keeps its candidates for the
+        step's checks (:meth:`_step_candidates`); its pairs are the same (the narrow phase keeps
+        only those within the reach)."""
         swept = self.settings.swept and v is not None and dt > 0
-        motion = self._motion(x, v, dt) if swept else None
-        vertex, triangle = self.candidates(x, v, dt, motion)
+        margin = self.check_margin if found is None and v is not None and dt > 0 and len(self.triangles) else 0.0
+        motion = self._motion(x, v, dt, self.reach + 2.0 * margin) if swept else None
+        if found is not None:
+            vertex, triangle = found
+        elif margin > 0:
+            vertex, triangle = self._search(x, motion, self.reach + 2.0 * margin)
+            predicted = x[self.vertices] if motion is None else x[self.vertices] + dt * v[self.vertices]
+            self._step_search = (x, x._version, predicted, margin, (vertex, triangle))
+        else:
+            vertex, triangle = self.candidates(x, v, dt, motion)
         spread = body_step = None
         if swept:  # what the pair may close over the step joins its reach
             deviation, body_step, _ = motion
@@ -735,6 +774,13 @@ class SurfaceContact:
         vertex, triangle, w, diff, d, normal, side = contact_ops.nearest_pairs(
             x, self.vertices, self.vertex_object, self.triangles, self.triangle_object, vertex, triangle, spread,
             body_step, self.reach)
+        if swept or found is not None:
+            # a swept search's vertex may have candidates in several cells' runs, and its pairs
+            # come in the order of their cells (which the cell's size sets): in a point query's
+            # order (by triangle, so by body), whatever the search
+            order = torch.argsort(vertex * len(self.triangles) + triangle)
+            vertex, triangle, w, diff, d, normal, side = (t[order] for t in (vertex, triangle, w, diff, d, normal,
+                                                                             side))
         node = self.vertices[vertex]
         tri = self.triangles[triangle]
         gap = side * d - self.settings.thickness
@@ -775,7 +821,7 @@ class SurfaceContact:
         (vertex, body) has at most one pair (the new one replaces the old); ``v``: the
         velocities the friction coefficients are taken at (as :meth:`nearby`'s); ``solution``:
         which of the step's solves moved the nodes by ``dx`` (the new pairs' ``born``)."""
-        end, _ = self.nearby(x + dx)
+        end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx))
         objects = max(self.num_objects, 1)
         key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
         end_key = end.nodes[:, 0] * objects + end.objects[:, 1]
@@ -812,6 +858,23 @@ class SurfaceContact:
                                              else kept.born, fresh.born]))))
         active = torch.cat([active[keep], torch.ones_like(fresh.gap, dtype=torch.bool)])
         return merged, active, deeper.numel() > 0
+
+    def _step_candidates(self, x: torch.Tensor, dx: torch.Tensor):
+        """The candidates of the step's start search at ``x [V, 3]`` (:meth:`nearby`) for a check at
+        ``x + dx`` (``dx [V, 3]``), or None where they need not hold its pairs. One host read.
+
+        The start search swept each surface point from x to its predicted end x + dt v (in its
+        body's moving frame, grown by what the bodies it may meet close on it, :meth:`_motion`),
+        triangles grown by reach + 2 m (m: the margin). Where every surface vertex ends within m
+        (each axis) of its predicted end, e = dx - dt v, a pair within the reach at x + dx has
+        its vertex, at its predicted end, within reach + |e_p| + |e_T| <= reach + 2 m of the
+        triangle's nodes at theirs, which that search's boxes held: its candidates hold every
+        pair a fresh search at x + dx finds, and the narrow phase there picks the same ones."""
+        kept = self._step_search
+        if kept is None or kept[0] is not x or kept[1] != x._version:
+            return None
+        off = (x[self.vertices] + dx[self.vertices] - kept[2]).abs().amax()
+        return kept[4] if float(off) <= kept[3] else None
 
     @property
     def tolerance(self) -> float:
@@ -884,7 +947,7 @@ class SurfaceContact:
                    if value is not None}
         other = copy.copy(self)
         other.settings = dataclasses.replace(self.settings, **changes)
-        other._last = other._static = other._kept = None
+        other._last = other._static = other._kept = other._step_search = None
         return other
 
     def to(self, device=None, dtype=None) -> "SurfaceContact":

@@ -71,6 +71,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
     check_tol = 1e-2                  # CG tolerance of the solves a round's check reads (false: cg_tol)
     # skin = 0.005                    # reuse the broad phase's candidates while surfaces move less (default: off)
+    # check_margin = 0.002            # checks reuse the step's search near its prediction (default: search / 16)
 
     [[bodies]]
     name = "beam"
@@ -819,6 +820,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           tolerance=contact_table.get("tolerance", "positive", None),
                           check_tol=_check_tol(contact_table),
                           skin=contact_table.get("skin", "positive", None),
+                          check_margin=contact_table.get("check_margin", "nonnegative", None),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()
     distributed_table = top.table("distributed") or _Table({}, "distributed", fail)

@@ -485,6 +485,64 @@ def test_a_pile_with_kept_candidates_steps_as_without():
     assert runs[1][1] < runs[0][1] / 2
 
 
+@pytest.mark.parametrize("swept", [False, True])
+def test_checks_take_the_step_search_candidates_where_the_solve_kept_near_the_prediction(swept):
+    """Contact(check_margin): a step's start search grows its triangles by twice the margin and
+    keeps its candidates; a check at x + dx takes them where every surface vertex ends within the
+    margin of where the step's velocities put it (x + dt v; x where the search is not swept). They
+    hold every candidate of a fresh search at x + dx and give its pairs, bit for bit, in its
+    order; a vertex past the margin makes the check search on its own."""
+    dt = 0.005
+    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept))
+    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, check_margin=0.0))
+    margin = contact.check_margin
+    assert margin == pytest.approx(contact.search / 16) and fresh.check_margin == 0.0
+    start, fresh_start = contact.nearby(x, v, dt), fresh.nearby(x, v, dt)  # the step's start: the same pairs
+    assert torch.equal(start[0].nodes, fresh_start[0].nodes) and torch.equal(start[1], fresh_start[1])
+    assert fresh._step_search is None
+    predicted = x + dt * v if swept else x
+    gen = torch.Generator().manual_seed(5)
+    for _ in range(3):
+        end = predicted + 0.99 * margin * (2 * torch.rand(x.shape, generator=gen, dtype=DT) - 1)
+        found = contact._step_candidates(x, end - x)
+        assert found is not None
+        theirs = fresh.candidates(end)
+        assert set(zip(*(t.tolist() for t in theirs))) <= set(zip(*(t.tolist() for t in found)))
+        ours, reference = contact.nearby(end, found=found)[0], fresh.nearby(end)[0]
+        assert len(reference) > 50
+        for field in ("nodes", "weights", "direction", "signed", "gap", "objects"):
+            assert torch.equal(getattr(ours, field), getattr(reference, field)), field
+    end[contact.vertices[7]] += 2 * margin
+    assert contact._step_candidates(x, end - x) is None
+    assert contact._step_candidates(x.clone(), predicted - x) is None  # another state's
+
+
+def test_a_pile_whose_checks_take_the_step_search_steps_as_with_searches():
+    """Two blocks falling onto each other and a floor, the checks taking the step's candidates
+    (the default check_margin) or searching on their own (0): the same states bit for bit, in
+    fewer searches. The first step's floor stops the lower block (5 mm from where its velocity put
+    it): that check searches."""
+    runs = []
+    for margin in (0.0, None):
+        sim = falling_pair(tm.Contact(check_margin=margin))
+        searches, taken = [], []
+        search, step_candidates = sim.body_contact._search, sim.body_contact._step_candidates
+        sim.body_contact._search = lambda *a: searches.append(1) or search(*a)
+        sim.body_contact._step_candidates = lambda *a: (lambda found: taken.append(found is not None) or found)(
+            step_candidates(*a))
+        sim.step(20)
+        runs.append((sim.x.clone(), sim.v.clone(), len(searches), taken))
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+    assert not any(runs[0][3]) and runs[1][3][0] is False and sum(runs[1][3]) >= len(runs[1][3]) - 2
+    assert runs[1][2] <= runs[0][2] - sum(runs[1][3])
+
+
+@pytest.mark.parametrize("margin", [-1e-3, float("nan"), float("inf"), "0.01", True])
+def test_contact_check_margin_must_be_non_negative(margin):
+    with pytest.raises(tm.SceneError, match="contact check_margin must be a non-negative finite number or None"):
+        tm.Contact(check_margin=margin)
+
+
 @pytest.mark.parametrize("skin", [0.0, -1e-3, float("nan"), "0.01", True])
 def test_contact_skin_must_be_positive(skin):
     with pytest.raises(tm.SceneError, match="contact skin must be a positive finite number or None"):
