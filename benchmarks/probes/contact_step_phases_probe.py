@@ -34,8 +34,8 @@ from tensormass_torch.solver import cg, implicit_euler, preconditioner  # noqa: 
 
 #: (owner, attribute) of each phase timed; the label is the owner's short name and the attribute.
 PHASES = [(contact_ops, name) for name in ("candidate_pairs", "nearest_pairs")] + \
-    [(body_contact.SurfaceContact, name) for name in ("at_state", "nearby", "candidates", "settled", "relinearise",
-                                                      "select")] + \
+    [(body_contact.SurfaceContact, name) for name in ("at_state", "nearby", "candidates", "_search", "_motion",
+                                                      "_step_candidates", "settled", "relinearise", "select")] + \
     [(body_contact.ContactPairs, name) for name in ("forces", "dforces", "stiffness_blocks")] + \
     [(body_contact.PairStiffness, "load"), (body_contact, "coupled_ranges"), (preconditioner.JacobiScaling, "load"),
      (cg.CGSolver, "solve"), (cg.CGSolver, "resume")] + \
