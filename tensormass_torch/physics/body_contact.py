@@ -707,29 +707,41 @@ class SurfaceContact:
         self._kept = (points.clone(), self.reach, found)
         return found
 
-    def _search(self, x: torch.Tensor, motion, reach: float):
+    def _search(self, x: torch.Tensor, motion, reach: float, bodies: Optional[torch.Tensor] = None):
         """:meth:`candidates`' hash search at ``x [V, 3]``, swept by ``motion`` (:meth:`_motion`'s,
-        or None), triangles grown by ``reach``; self-contact's exclusions by :attr:`reach`."""
+        or None), triangles grown by ``reach``; self-contact's exclusions by :attr:`reach`.
+        ``bodies [B]`` (bool): among these bodies' surfaces only (unswept)."""
         device = x.device
         empty = torch.zeros(0, dtype=torch.int64, device=device)
         if len(self.triangles) == 0:
             return empty, empty
-        corners = x[self.triangles]  # [F, 3, 3]
+        triangles, triangle_object = self.triangles, self.triangle_object
+        vertices, vertex_object = self.vertices, self.vertex_object
+        if bodies is not None:
+            triangle_ids = bodies[triangle_object].nonzero().squeeze(1)
+            vertex_ids = bodies[vertex_object].nonzero().squeeze(1)
+            triangles, triangle_object = triangles[triangle_ids], triangle_object[triangle_ids]
+            vertices, vertex_object = vertices[vertex_ids], vertex_object[vertex_ids]
+            if len(triangles) == 0:
+                return empty, empty
+        corners = x[triangles]  # [F, 3, 3]
         low, high = corners.amin(1), corners.amax(1)
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
-        points = x[self.vertices]
+        points = x[vertices]
         point_low = point_high = points  # (the same tensor: one query per vertex)
         if motion is not None:
             # in each body's moving frame, grown by what the bodies it may meet close on it
             deviation, _, grow = motion
-            moved = corners + deviation[self.triangles]
+            moved = corners + deviation[triangles]
             low, high = torch.minimum(low, moved.amin(1)), torch.maximum(high, moved.amax(1))
-            ends = points + deviation[self.vertices]
-            grow = grow[self.vertex_object][:, None]
+            ends = points + deviation[vertices]
+            grow = grow[vertex_object][:, None]
             point_low, point_high = torch.minimum(points, ends) - grow, torch.maximum(points, ends) + grow
-        vertex, triangle = contact_ops.candidate_pairs(cell, low - reach, high + reach, self.triangle_object,
-                                                       point_low, point_high, self.vertex_object,
+        vertex, triangle = contact_ops.candidate_pairs(cell, low - reach, high + reach, triangle_object,
+                                                       point_low, point_high, vertex_object,
                                                        same_body=self.settings.self_contact)
+        if bodies is not None:  # back to the surface's ids (ascending, as the subsets are)
+            vertex, triangle = vertex_ids[vertex], triangle_ids[triangle]
         if not self.settings.self_contact:
             return vertex, triangle
         # self-contact: not the vertex's own triangles, nor those near it at rest
@@ -749,32 +761,35 @@ class SurfaceContact:
         the velocities ``v [V, 3]`` and a step ``dt``, the gap the pair would have after the step
         at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module).
 
-        ``found``: the candidates to take instead of a search (:meth:`relinearise`'s, from the
-        step's start search). A step's start query (``v`` and ``dt`` given) searches with its
-        triangles grown by twice :attr:`check_margin` more and keeps its candidates for the
-        step's checks (:meth:`_step_candidates`); its pairs are the same (the narrow phase keeps
-        only those within the reach)."""
+        ``found``: candidates to take instead of a search, a list of runs (vertex ids, triangle
+        ids), each grouped by vertex, a (vertex, body)'s candidates all in one run
+        (:meth:`relinearise`'s, from the step's start search: :meth:`_step_candidates`). A step's
+        start query (``v`` and ``dt`` given) searches with its triangles grown by twice
+        :attr:`check_margin` more and keeps its candidates for the step's checks; its pairs are
+        the same (the narrow phase keeps only those within the reach)."""
         swept = self.settings.swept and v is not None and dt > 0
         margin = self.check_margin if found is None and v is not None and dt > 0 and len(self.triangles) else 0.0
         motion = self._motion(x, v, dt, self.reach + 2.0 * margin) if swept else None
-        if found is not None:
-            vertex, triangle = found
-        elif margin > 0:
-            vertex, triangle = self._search(x, motion, self.reach + 2.0 * margin)
+        given = found is not None
+        if margin > 0:
+            candidates = self._search(x, motion, self.reach + 2.0 * margin)
             predicted = x[self.vertices] if motion is None else x[self.vertices] + dt * v[self.vertices]
-            self._step_search = (x, x._version, predicted, margin, (vertex, triangle))
-        else:
-            vertex, triangle = self.candidates(x, v, dt, motion)
+            self._step_search = (x, x._version, predicted, margin, candidates)
+            found = [candidates]
+        elif not given:
+            found = [self.candidates(x, v, dt, motion)]
         spread = body_step = None
         if swept:  # what the pair may close over the step joins its reach
             deviation, body_step, _ = motion
             spread = torch.linalg.vector_norm(deviation, dim=-1)
         # the nearest triangle per (vertex, body), its side by the pseudonormal of the triangles
-        # tied with it (ops.contact: the narrow phase as an op)
-        vertex, triangle, w, diff, d, normal, side = contact_ops.nearest_pairs(
-            x, self.vertices, self.vertex_object, self.triangles, self.triangle_object, vertex, triangle, spread,
-            body_step, self.reach)
-        if swept or found is not None:
+        # tied with it (ops.contact: the narrow phase as an op), over each run of candidates (a
+        # (vertex, body)'s candidates are all in one of them)
+        runs = [contact_ops.nearest_pairs(x, self.vertices, self.vertex_object, self.triangles, self.triangle_object,
+                                          run_vertex, run_triangle, spread, body_step, self.reach)
+                for run_vertex, run_triangle in found]
+        vertex, triangle, w, diff, d, normal, side = runs[0] if len(runs) == 1 else (torch.cat(t) for t in zip(*runs))
+        if swept or given:
             # a swept search's vertex may have candidates in several cells' runs, and its pairs
             # come in the order of their cells (which the cell's size sets): in a point query's
             # order (by triangle, so by body), whatever the search
@@ -860,21 +875,48 @@ class SurfaceContact:
         return merged, active, deeper.numel() > 0
 
     def _step_candidates(self, x: torch.Tensor, dx: torch.Tensor):
-        """The candidates of the step's start search at ``x [V, 3]`` (:meth:`nearby`) for a check at
-        ``x + dx`` (``dx [V, 3]``), or None where they need not hold its pairs. One host read.
+        """Candidates for a check at ``x + dx`` (``x, dx [V, 3]``) from the step's start search at
+        ``x`` (:meth:`nearby`): a list of (vertex ids, triangle ids) runs, each grouped by vertex,
+        which together hold every pair a fresh search at ``x + dx`` finds, each (vertex, body)'s
+        candidates in one run; None where a fresh search is the cheaper (or the step's search is
+        another state's). Two host reads.
 
         The start search swept each surface point from x to its predicted end x + dt v (in its
         body's moving frame, grown by what the bodies it may meet close on it, :meth:`_motion`),
-        triangles grown by reach + 2 m (m: the margin). Where every surface vertex ends within m
-        (each axis) of its predicted end, e = dx - dt v, a pair within the reach at x + dx has
-        its vertex, at its predicted end, within reach + |e_p| + |e_T| <= reach + 2 m of the
-        triangle's nodes at theirs, which that search's boxes held: its candidates hold every
-        pair a fresh search at x + dx finds, and the narrow phase there picks the same ones."""
+        triangles grown by reach + 2 m (m: the margin). Where a vertex p and a triangle T's nodes
+        end within m (each axis) of their predicted ends, e = dx - dt v, and the pair is within
+        the reach at x + dx, p at its predicted end is within reach + |e_p| + |e_T| <= reach + 2 m
+        of T's nodes at theirs, which that search's boxes held. So the kept candidates serve
+        every pair of two bodies whose surfaces all ended within the margin; the pairs of a body
+        that did not (a tumbling block the solve stopped) are searched again among the bodies
+        within the reach of it at x + dx."""
         kept = self._step_search
         if kept is None or kept[0] is not x or kept[1] != x._version:
             return None
-        off = (x[self.vertices] + dx[self.vertices] - kept[2]).abs().amax()
-        return kept[4] if float(off) <= kept[3] else None
+        _, _, predicted, margin, (vertex, triangle) = kept
+        points = x[self.vertices] + dx[self.vertices]
+        off = (points - predicted).abs().amax(-1)  # [S]
+        objects = max(self.num_objects, 1)
+        past = off.new_zeros(objects).scatter_reduce(0, self.vertex_object, off, "amax") > margin  # [B]
+        moved = past.nonzero().squeeze(1)
+        if len(moved) == 0:
+            return [(vertex, triangle)]
+        # the bodies within the reach of a moved one, at x + dx (boxes of their surfaces)
+        index = self.vertex_object[:, None].expand(-1, 3)
+        lower = points.new_full((objects, 3), math.inf).scatter_reduce(0, index, points, "amin")
+        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(0, index, points, "amax")
+        near = past.clone()
+        for rows in moved.split(BODY_ROWS):  # [rows, B] at a time
+            meet = ((lower[rows, None] <= upper[None] + self.reach)
+                    & (lower[None] <= upper[rows, None] + self.reach)).all(-1)
+            near |= meet.any(0)
+        if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
+            return None  # half the surfaces or more: one search of all is the cheaper
+        still = (~past[self.vertex_object[vertex]] & ~past[self.triangle_object[triangle]]).nonzero().squeeze(1)
+        again_vertex, again_triangle = self._search(x + dx, None, self.reach, near)
+        again = (past[self.vertex_object[again_vertex]] | past[self.triangle_object[again_triangle]]).nonzero()
+        again = again.squeeze(1)
+        return [(vertex[still], triangle[still]), (again_vertex[again], again_triangle[again])]
 
     @property
     def tolerance(self) -> float:

@@ -488,10 +488,12 @@ def test_a_pile_with_kept_candidates_steps_as_without():
 @pytest.mark.parametrize("swept", [False, True])
 def test_checks_take_the_step_search_candidates_where_the_solve_kept_near_the_prediction(swept):
     """Contact(check_margin): a step's start search grows its triangles by twice the margin and
-    keeps its candidates; a check at x + dx takes them where every surface vertex ends within the
-    margin of where the step's velocities put it (x + dt v; x where the search is not swept). They
-    hold every candidate of a fresh search at x + dx and give its pairs, bit for bit, in its
-    order; a vertex past the margin makes the check search on its own."""
+    keeps its candidates; a check at x + dx takes them for the bodies whose surface vertices all
+    ended within the margin of where the step's velocities put them (x + dt v; x where the search
+    is not swept), and searches again for the pairs of the others among the bodies near them.
+    Together they hold every candidate of a fresh search at x + dx and give its pairs, bit for
+    bit, in its order; where the bodies that moved off reach half the surfaces, None (a fresh
+    search)."""
     dt = 0.005
     contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept))
     fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, check_margin=0.0))
@@ -502,18 +504,23 @@ def test_checks_take_the_step_search_candidates_where_the_solve_kept_near_the_pr
     assert fresh._step_search is None
     predicted = x + dt * v if swept else x
     gen = torch.Generator().manual_seed(5)
-    for _ in range(3):
-        end = predicted + 0.99 * margin * (2 * torch.rand(x.shape, generator=gen, dtype=DT) - 1)
-        found = contact._step_candidates(x, end - x)
-        assert found is not None
-        theirs = fresh.candidates(end)
-        assert set(zip(*(t.tolist() for t in theirs))) <= set(zip(*(t.tolist() for t in found)))
-        ours, reference = contact.nearby(end, found=found)[0], fresh.nearby(end)[0]
-        assert len(reference) > 50
-        for field in ("nodes", "weights", "direction", "signed", "gap", "objects"):
-            assert torch.equal(getattr(ours, field), getattr(reference, field)), field
-    end[contact.vertices[7]] += 2 * margin
-    assert contact._step_candidates(x, end - x) is None
+    block = contact.node_object == 7  # the top block of a column: it and 3 others within its reach
+    for off_bodies in (0, 1):  # every body within the margin; one (block 7) 2.5 margins off
+        for _ in range(2):
+            end = predicted + 0.99 * margin * (2 * torch.rand(x.shape, generator=gen, dtype=DT) - 1)
+            end[block] += 2.5 * margin * off_bodies
+            found = contact._step_candidates(x, end - x)
+            assert found is not None and len(found) == 1 + off_bodies
+            theirs = set(zip(*(t.tolist() for t in fresh.candidates(end))))
+            ours = [set(zip(*(t.tolist() for t in run))) for run in found]
+            assert theirs <= set().union(*ours)
+            if off_bodies:
+                assert all(contact.triangle_object[t] == 7 or contact.vertex_object[v] == 7 for v, t in ours[1])
+            pairs, reference = contact.nearby(end, found=found)[0], fresh.nearby(end)[0]
+            assert len(reference) > 50 and bool((reference.objects == 7).any())
+            for field in ("nodes", "weights", "direction", "signed", "gap", "objects"):
+                assert torch.equal(getattr(pairs, field), getattr(reference, field)), field
+    assert contact._step_candidates(x, end + 2.5 * margin - x) is None  # every body off
     assert contact._step_candidates(x.clone(), predicted - x) is None  # another state's
 
 
