@@ -6,6 +6,7 @@ number of surface triangles, and the deepest interpenetration over the run.
                                                [--friction 0] [--model corotational] [--young 1e6]
                                                [--no-swept] [--check-every 0]
                                                [--preconditioners auto none] [--rounds R ...] [--tolerance T]
+                                               [--recheck-tolerance T]
                                                [--check-tols C ...] [--skins S ...] [--check-margins M ...]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
@@ -22,7 +23,8 @@ other: only the rate is compared). Detection: ``SurfaceContact.detect`` at the f
 of 10. ``--rounds``: a run with contact for each ``Contact(rounds=...)`` (how many more solves a
 step may take to check its contact set: the trade of cost against transient interpenetration);
 ``--tolerance``: the ``Contact(tolerance=...)`` of every run (how deep past its pair's model a
-vertex may end a step before the step takes a round); ``--check-tols``: a run for each
+vertex may end a step before the step takes a round), ``--recheck-tolerance`` its
+``Contact(recheck_tolerance=...)`` (the same after a round's solve); ``--check-tols``: a run for each
 ``Contact(check_tol=...)`` (the CG tolerance of the solves a contact-set check reads); ``--skins``: a run
 for each ``Contact(skin=...)`` (the broad phase's candidates kept while the surfaces move less);
 ``--check-margins``: a run for each ``Contact(check_margin=...)`` (how far from the step's prediction
@@ -154,6 +156,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     return dict(blocks=len(bodies), tets=len(bodies) * block.num_elements, surface_triangles=len(contact.triangles),
                 pairs=len(pairs), steps=steps, run_s=progress["run_s"], deepest_m=progress["deepest"],
                 preconditioner=preconditioner, rounds=contact.settings.rounds, tolerance_m=contact.tolerance,
+                recheck_tolerance_m=contact.recheck_tolerance,
                 check_tol=contact.settings.check_tol, skin=contact.settings.skin,
                 check_margin_m=contact.check_margin,
                 steps_per_s_without=without,
@@ -207,6 +210,9 @@ def main(argv=None):
     parser.add_argument("--tolerance", type=float, default=None,
                         help="Contact(tolerance=...) (m): how deep past its model a vertex may end before a round "
                              "(default: the library's, 1/400 of the mean surface edge)")
+    parser.add_argument("--recheck-tolerance", type=float, default=None,
+                        help="Contact(recheck_tolerance=...) (m): the same after a round's solve (default: the "
+                             "library's, 1/100 of the mean surface edge)")
     parser.add_argument("--check-tols", type=lambda t: None if t == "none" else float(t), nargs="+",
                         default=[tm.Contact().check_tol],
                         help="a run with contact for each Contact(check_tol=...) (the CG tolerance of the solves "
@@ -238,7 +244,8 @@ def main(argv=None):
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
                ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
                ("preconditioner", "preconditioner", None), ("rounds", "rounds", None),
-               ("tolerance_m", "tolerance (m)", ".2e"), ("check_tol", "check_tol", None),
+               ("tolerance_m", "tolerance (m)", ".2e"), ("recheck_tolerance_m", "recheck tolerance (m)", ".2e"),
+               ("check_tol", "check_tol", None),
                ("skin", "skin (m)", None), ("check_margin_m", "check margin (m)", ".2e"),
                ("cg_iterations", "CG iterations with (most of one solve)", None),
                ("cg_iterations_step", "CG iterations of the last step", None),
@@ -264,7 +271,8 @@ def main(argv=None):
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baseline, state, args.budget_s, args.model, args.young,
-                             rounds=rounds, tolerance=args.tolerance, check_tol=check_tol, skin=skin,
+                             rounds=rounds, tolerance=args.tolerance, recheck_tolerance=args.recheck_tolerance,
+                             check_tol=check_tol, skin=skin,
                              check_margin=margin)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()

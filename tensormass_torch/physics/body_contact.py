@@ -109,6 +109,13 @@ class Contact:
             surface) a vertex may end a step before the step takes a round; None: 1/400 of the
             search, 0.25 % of the mean surface edge by default (``SurfaceContact.tolerance``). A
             larger tolerance leaves shallow misses to the next step, which finds them in contact.
+        recheck_tolerance: the same for the solves of the rounds (the step's first solve takes
+            ``tolerance``): a round's solve is checked again, and one more round taken, only for a
+            vertex that ends deeper than this past its model; None: 1/100 of the search (the 1 %
+            of an edge the contact holds interpenetration to), and at least ``tolerance``. At rest
+            a round's solve leaves shallow misses of its own (vibrating vertices at the rim of
+            a contact patch), which the next step finds in contact; a fast body's are deep
+            (docs/contact.md).
         check_tol: the relative residual at which a solve whose end positions a round's check
             reads pauses; None: every solve to ``cg_tol``. A check needs the end positions to
             about the tolerance, not the velocities to cg_tol (docs/contact.md measures the
@@ -147,6 +154,7 @@ class Contact:
     friction_velocity: float = 1e-3
     rounds: int = 2
     tolerance: Optional[float] = None
+    recheck_tolerance: Optional[float] = None
     check_tol: Optional[float] = 1e-2
     skin: Optional[float] = None
     check_margin: Optional[float] = None
@@ -170,6 +178,9 @@ class Contact:
             raise SceneError(f"contact rounds must be a non-negative integer, got {self.rounds!r}")
         if self.tolerance is not None and (not number(self.tolerance) or self.tolerance <= 0):
             raise SceneError(f"contact tolerance must be a positive finite number or None, got {self.tolerance!r}")
+        if self.recheck_tolerance is not None and (not number(self.recheck_tolerance) or self.recheck_tolerance <= 0):
+            raise SceneError(f"contact recheck_tolerance must be a positive finite number or None, "
+                             f"got {self.recheck_tolerance!r}")
         if self.check_tol is not None and (not number(self.check_tol) or not 0 < self.check_tol < 1):
             raise SceneError(f"contact check_tol must be a number in (0, 1) or None, got {self.check_tol!r}")
         if self.skin is not None and (not number(self.skin) or self.skin <= 0):
@@ -762,7 +773,7 @@ class SurfaceContact:
         at those velocities, g + dt u . (v_p - sum w_i v_i), is (see the module).
 
         ``found``: candidates to take instead of a search, a list of runs (vertex ids, triangle
-        ids), each grouped by vertex, a (vertex, body)'s candidates all in one run
+        ids, the bodies whose pairs the run leaves to another or None), each grouped by vertex
         (:meth:`relinearise`'s, from the step's start search: :meth:`_step_candidates`). A step's
         start query (``v`` and ``dt`` given) searches with its triangles grown by twice
         :attr:`check_margin` more and keeps its candidates for the step's checks; its pairs are
@@ -775,19 +786,24 @@ class SurfaceContact:
             candidates = self._search(x, motion, self.reach + 2.0 * margin)
             predicted = x[self.vertices] if motion is None else x[self.vertices] + dt * v[self.vertices]
             self._step_search = (x, x._version, predicted, margin, candidates)
-            found = [candidates]
+            found = [(*candidates, None)]
         elif not given:
-            found = [self.candidates(x, v, dt, motion)]
+            found = [(*self.candidates(x, v, dt, motion), None)]
         spread = body_step = None
         if swept:  # what the pair may close over the step joins its reach
             deviation, body_step, _ = motion
             spread = torch.linalg.vector_norm(deviation, dim=-1)
         # the nearest triangle per (vertex, body), its side by the pseudonormal of the triangles
         # tied with it (ops.contact: the narrow phase as an op), over each run of candidates (a
-        # (vertex, body)'s candidates are all in one of them)
-        runs = [contact_ops.nearest_pairs(x, self.vertices, self.vertex_object, self.triangles, self.triangle_object,
-                                          run_vertex, run_triangle, spread, body_step, self.reach)
-                for run_vertex, run_triangle in found]
+        # (vertex, body)'s pair from the one run that gives it)
+        runs = []
+        for run_vertex, run_triangle, leaves in found:
+            run = contact_ops.nearest_pairs(x, self.vertices, self.vertex_object, self.triangles, self.triangle_object,
+                                            run_vertex, run_triangle, spread, body_step, self.reach)
+            if leaves is not None:
+                gives = (~leaves[self.vertex_object[run[0]]] & ~leaves[self.triangle_object[run[1]]]).nonzero()
+                run = tuple(t[gives.squeeze(1)] for t in run)
+            runs.append(run)
         vertex, triangle, w, diff, d, normal, side = runs[0] if len(runs) == 1 else (torch.cat(t) for t in zip(*runs))
         if swept or given:
             # a swept search's vertex may have candidates in several cells' runs, and its pairs
@@ -820,7 +836,7 @@ class SurfaceContact:
         return chosen
 
     def relinearise(self, x: torch.Tensor, dx: torch.Tensor, pairs: ContactPairs, active: torch.Tensor,
-                    v: Optional[torch.Tensor] = None, solution: int = -1):
+                    v: Optional[torch.Tensor] = None, solution: int = -1, tolerance: Optional[float] = None):
         """The pairs a step from ``x [V, 3]`` needs once its solve moved the nodes by ``dx [V, 3]``:
         (pairs, active ``[P']`` bool, whether any pair changed), from :meth:`nearby`'s ``pairs``
         and the ``active`` mask the solve used.
@@ -835,7 +851,8 @@ class SurfaceContact:
         the solution it was found from (written as a pair at x: gap g_e - u_e . J_e dx). A
         (vertex, body) has at most one pair (the new one replaces the old); ``v``: the
         velocities the friction coefficients are taken at (as :meth:`nearby`'s); ``solution``:
-        which of the step's solves moved the nodes by ``dx`` (the new pairs' ``born``)."""
+        which of the step's solves moved the nodes by ``dx`` (the new pairs' ``born``);
+        ``tolerance``: in place of :attr:`tolerance` (a round's solve: :attr:`recheck_tolerance`)."""
         end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx))
         objects = max(self.num_objects, 1)
         key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
@@ -851,7 +868,8 @@ class SurfaceContact:
             matched = sorted_key[position] == end_key
             index = order[position]
             model = torch.where(matched & active[index], pairs.end_gap(dx)[index], model)
-        deeper = (end.gap < torch.clamp(model, max=0.0) - self.tolerance).nonzero().squeeze(1)
+        tolerance = self.tolerance if tolerance is None else tolerance
+        deeper = (end.gap < torch.clamp(model, max=0.0) - tolerance).nonzero().squeeze(1)
         fresh = end.select(deeper)
         fresh.gap = fresh.end_gap(-dx)  # g_e - u_e . J_e dx
         fresh.signed = fresh.gap + self.settings.thickness
@@ -876,9 +894,10 @@ class SurfaceContact:
 
     def _step_candidates(self, x: torch.Tensor, dx: torch.Tensor):
         """Candidates for a check at ``x + dx`` (``x, dx [V, 3]``) from the step's start search at
-        ``x`` (:meth:`nearby`): a list of (vertex ids, triangle ids) runs, each grouped by vertex,
-        which together hold every pair a fresh search at ``x + dx`` finds, each (vertex, body)'s
-        candidates in one run; None where a fresh search is the cheaper (or the step's search is
+        ``x`` (:meth:`nearby`): a list of runs (vertex ids, triangle ids, bodies ``[B]`` bool whose
+        pairs the run does not give, or None), each grouped by vertex, which together hold every
+        pair a fresh search at ``x + dx`` finds, each (vertex, body)'s candidates in the one run
+        that gives its pair; None where a fresh search is the cheaper (or the step's search is
         another state's). Two host reads.
 
         The start search swept each surface point from x to its predicted end x + dt v (in its
@@ -900,7 +919,7 @@ class SurfaceContact:
         past = off.new_zeros(objects).scatter_reduce(0, self.vertex_object, off, "amax") > margin  # [B]
         moved = past.nonzero().squeeze(1)
         if len(moved) == 0:
-            return [(vertex, triangle)]
+            return [(vertex, triangle, None)]
         # the bodies within the reach of a moved one, at x + dx (boxes of their surfaces)
         index = self.vertex_object[:, None].expand(-1, 3)
         lower = points.new_full((objects, 3), math.inf).scatter_reduce(0, index, points, "amin")
@@ -912,11 +931,12 @@ class SurfaceContact:
             near |= meet.any(0)
         if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
             return None  # half the surfaces or more: one search of all is the cheaper
-        still = (~past[self.vertex_object[vertex]] & ~past[self.triangle_object[triangle]]).nonzero().squeeze(1)
         again_vertex, again_triangle = self._search(x + dx, None, self.reach, near)
         again = (past[self.vertex_object[again_vertex]] | past[self.triangle_object[again_triangle]]).nonzero()
         again = again.squeeze(1)
-        return [(vertex[still], triangle[still]), (again_vertex[again], again_triangle[again])]
+        # the kept candidates whole (filtering millions of them costs more than dropping the
+        # pairs of the bodies past the margin once the narrow phase found them)
+        return [(vertex, triangle, past), (again_vertex[again], again_triangle[again], None)]
 
     @property
     def tolerance(self) -> float:
@@ -926,6 +946,13 @@ class SurfaceContact:
         by default 1/400 of :attr:`search` (by default the mean surface edge length), a geometric
         error small against the 1 % of an edge that the contact's interpenetration is held to."""
         return 0.0025 * self.search if self.settings.tolerance is None else float(self.settings.tolerance)
+
+    @property
+    def recheck_tolerance(self) -> float:
+        """:attr:`tolerance` for the check of a round's solve: ``Contact.recheck_tolerance``, by
+        default 1/100 of :attr:`search`, and at least :attr:`tolerance`."""
+        recheck = self.settings.recheck_tolerance
+        return max(self.tolerance, 0.01 * self.search if recheck is None else float(recheck))
 
     def detect(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0) -> ContactPairs:
         """The pairs in contact at ``x [V, 3]``: for each surface vertex and each body, the nearest

@@ -69,6 +69,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     friction_velocity = 1e-3          # slip speed (m/s) below which friction is viscous
     rounds = 2                        # more solves a step may take to check its contact set (0: none)
     # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
+    # recheck_tolerance = 2e-4        # the same after a round's solve (default: search / 100)
     check_tol = 1e-2                  # CG tolerance of the solves a round's check reads (false: cg_tol)
     # skin = 0.005                    # reuse the broad phase's candidates while surfaces move less (default: off)
     # check_margin = 0.002            # checks reuse the step's search near its prediction (default: search / 16)
@@ -816,8 +817,9 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           swept=contact_table.get("swept", "bool", True),
                           friction=contact_table.get("friction", "nonnegative", 0.0),
                           friction_velocity=contact_table.get("friction_velocity", "positive", 1e-3),
-                          rounds=contact_table.get("rounds", "nonnegative_int", 2),
+                          rounds=contact_table.get("rounds", "nonnegative_int", Contact.rounds),
                           tolerance=contact_table.get("tolerance", "positive", None),
+                          recheck_tolerance=contact_table.get("recheck_tolerance", "positive", None),
                           check_tol=_check_tol(contact_table),
                           skin=contact_table.get("skin", "positive", None),
                           check_margin=contact_table.get("check_margin", "nonnegative", None),

@@ -1261,9 +1261,12 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
         if round_ == 0 and system.body_contact.settled(x, dx, near, active):
             break  # the bodies' motion provably leaves nothing for the check to find
-        missed = ~active & (near.end_gap(dx) < -system.body_contact.tolerance)
+        # a round's own solve is checked for deep misses only (Contact.recheck_tolerance)
+        tolerance = system.body_contact.tolerance if round_ == 0 else system.body_contact.recheck_tolerance
+        missed = ~active & (near.end_gap(dx) < -tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
-                                                              solution=len(report.contact_solves) - 1)
+                                                              solution=len(report.contact_solves) - 1,
+                                                              tolerance=tolerance)
         if not moved and not bool(missed.any()):
             break
         if resume is not None:

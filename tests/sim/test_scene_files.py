@@ -250,6 +250,7 @@ def test_contact_reaches_the_simulator(tmp_path):
         friction_velocity = 0.01
         rounds = 2
         tolerance = 2e-4
+        recheck_tolerance = 5e-4
         check_tol = 0.03
         skin = 0.004
         check_margin = 0.002
@@ -257,6 +258,7 @@ def test_contact_reaches_the_simulator(tmp_path):
     sim = load_scene(path).simulator
     assert sim.contact == tm.Contact(stiffness=2e4, thickness=0.01, search=0.05, self_contact=True, swept=False,
                                      friction=0.4, friction_velocity=0.01, rounds=2, tolerance=2e-4,
+                                     recheck_tolerance=5e-4,
                                      check_tol=0.03, skin=0.004, check_margin=0.002)
     assert sim.body_contact is not None and sim.body_contact.search == 0.05
     assert sim.body_contact.tolerance == 2e-4
