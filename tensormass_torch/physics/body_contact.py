@@ -135,13 +135,14 @@ class Contact:
             the reach is the fresh detection's; beyond the reach, where a swept detection keeps
             pairs only outside, a pair may take a nearer triangle. A larger skin is reused longer
             and gives the narrow phase more candidates (docs/contact.md).
-        check_margin: how far (m) a surface vertex may end a solve from where the step's starting
-            velocities put it, for the step's contact-set checks to take their candidates from
-            the step's own broad phase instead of searching again (whose triangles then grow by
-            twice the margin); None: 1/16 of the search; 0: every check searches on its own. The
-            pairs are the same either way (``SurfaceContact.nearby``); a larger margin serves more
-            checks (a bounce, an impact) and gives the narrow phases more candidates. Not used
-            with ``skin``, whose kept candidates serve the checks by their own bound.
+        check_margin: how far (m) a body's surface may end a solve from where the step's starting
+            velocities put it, for the step's contact-set checks to take its pairs' candidates
+            from the step's own broad phase (whose triangles then grow by twice the margin); a
+            body past it has its pairs searched again among the bodies near it. None: 1/16 of
+            the search; 0: every check searches on its own. The pairs are the same either way
+            (``SurfaceContact._step_candidates``); a larger margin serves more bodies (a bounce,
+            an impact) and gives the narrow phases more candidates. Not used with ``skin``, whose
+            kept candidates serve the checks by their own bound.
     """
 
     stiffness: float = 1e5
@@ -721,7 +722,7 @@ class SurfaceContact:
     def _search(self, x: torch.Tensor, motion, reach: float, bodies: Optional[torch.Tensor] = None):
         """:meth:`candidates`' hash search at ``x [V, 3]``, swept by ``motion`` (:meth:`_motion`'s,
         or None), triangles grown by ``reach``; self-contact's exclusions by :attr:`reach`.
-        ``bodies [B]`` (bool): among these bodies' surfaces only (unswept)."""
+        ``bodies [B]`` (bool): among these bodies' surfaces only."""
         device = x.device
         empty = torch.zeros(0, dtype=torch.int64, device=device)
         if len(self.triangles) == 0:
