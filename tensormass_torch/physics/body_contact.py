@@ -785,7 +785,8 @@ class SurfaceContact:
         given = found is not None
         if margin > 0:
             candidates = self._search(x, motion, self.reach + 2.0 * margin)
-            predicted = x[self.vertices] if motion is None else x[self.vertices] + dt * v[self.vertices]
+            with torch.no_grad():  # (kept across the step: no autograd graph with it)
+                predicted = x[self.vertices] if motion is None else x[self.vertices] + dt * v[self.vertices]
             self._step_search = (x, x._version, predicted, margin, candidates)
             found = [(*candidates, None)]
         elif not given:
@@ -893,6 +894,7 @@ class SurfaceContact:
         active = torch.cat([active[keep], torch.ones_like(fresh.gap, dtype=torch.bool)])
         return merged, active, deeper.numel() > 0
 
+    @torch.no_grad()
     def _step_candidates(self, x: torch.Tensor, dx: torch.Tensor):
         """Candidates for a check at ``x + dx`` (``x, dx [V, 3]``) from the step's start search at
         ``x`` (:meth:`nearby`): a list of runs (vertex ids, triangle ids, bodies ``[B]`` bool whose
@@ -914,14 +916,15 @@ class SurfaceContact:
         if kept is None or kept[0] is not x or kept[1] != x._version:
             return None
         _, _, predicted, margin, (vertex, triangle) = kept
-        points = x[self.vertices] + dx[self.vertices]
+        y = x + dx
+        points = y[self.vertices]
         off = (points - predicted).abs().amax(-1)  # [S]
         objects = max(self.num_objects, 1)
         past = off.new_zeros(objects).scatter_reduce(0, self.vertex_object, off, "amax") > margin  # [B]
         moved = past.nonzero().squeeze(1)
         if len(moved) == 0:
             return [(vertex, triangle, None)]
-        # the bodies within the reach of a moved one, at x + dx (boxes of their surfaces)
+        # the bodies within the reach of a moved one, at y (boxes of their surfaces)
         index = self.vertex_object[:, None].expand(-1, 3)
         lower = points.new_full((objects, 3), math.inf).scatter_reduce(0, index, points, "amin")
         upper = points.new_full((objects, 3), -math.inf).scatter_reduce(0, index, points, "amax")
@@ -932,7 +935,7 @@ class SurfaceContact:
             near |= meet.any(0)
         if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
             return None  # half the surfaces or more: one search of all is the cheaper
-        again_vertex, again_triangle = self._search(x + dx, None, self.reach, near)
+        again_vertex, again_triangle = self._search(y, None, self.reach, near)
         again = (past[self.vertex_object[again_vertex]] | past[self.triangle_object[again_triangle]]).nonzero()
         again = again.squeeze(1)
         # the kept candidates whole (filtering millions of them costs more than dropping the

@@ -525,6 +525,17 @@ def test_checks_take_the_step_search_candidates_where_the_solve_kept_near_the_pr
     assert contact._step_candidates(x.clone(), predicted - x) is None  # another state's
 
 
+def test_the_kept_step_search_holds_no_autograd_graph():
+    """A differentiable step's positions require grad: what the start search keeps for the checks
+    (the predicted positions) and what a check computes from it carry no graph."""
+    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact())
+    x = x.clone().requires_grad_(True)
+    contact.nearby(x, v, 0.005)
+    assert contact._step_search[2].grad_fn is None and not contact._step_search[2].requires_grad
+    found = contact._step_candidates(x, 0.005 * v)
+    assert found is not None and all(not t.requires_grad for run in found for t in run if t is not None)
+
+
 def test_a_pile_whose_checks_take_the_step_search_steps_as_with_searches():
     """Two blocks falling onto each other and a floor, the checks taking the step's candidates
     (the default check_margin) or searching on their own (0): the same states bit for bit, in
