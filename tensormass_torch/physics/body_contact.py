@@ -838,8 +838,7 @@ class SurfaceContact:
         return chosen
 
     def relinearise(self, x: torch.Tensor, dx: torch.Tensor, pairs: ContactPairs, active: torch.Tensor,
-                    v: Optional[torch.Tensor] = None, solution: int = -1, tolerance: Optional[float] = None,
-                    since: Optional[tuple] = None):
+                    v: Optional[torch.Tensor] = None, solution: int = -1, tolerance: Optional[float] = None):
         """The pairs a step from ``x [V, 3]`` needs once its solve moved the nodes by ``dx [V, 3]``:
         (pairs, active ``[P']`` bool, whether any pair changed), from :meth:`nearby`'s ``pairs``
         and the ``active`` mask the solve used.
@@ -855,13 +854,8 @@ class SurfaceContact:
         (vertex, body) has at most one pair (the new one replaces the old); ``v``: the
         velocities the friction coefficients are taken at (as :meth:`nearby`'s); ``solution``:
         which of the step's solves moved the nodes by ``dx`` (the new pairs' ``born``);
-        ``tolerance``: in place of :attr:`tolerance` (a round's solve: :attr:`recheck_tolerance`);
-        ``since``: (dx ``[V, 3]``, tolerance) of the step's check before this one, which left
-        ``pairs``: only the bodies that moved enough since to be found here are searched again
-        (:meth:`_moved_since`)."""
-        tolerance = self.tolerance if tolerance is None else tolerance
-        found = None if since is None else self._moved_since(x, dx, *since, tolerance)
-        end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx) if found is None else found)
+        ``tolerance``: in place of :attr:`tolerance` (a round's solve: :attr:`recheck_tolerance`)."""
+        end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx))
         objects = max(self.num_objects, 1)
         key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
         end_key = end.nodes[:, 0] * objects + end.objects[:, 1]
@@ -876,6 +870,7 @@ class SurfaceContact:
             matched = sorted_key[position] == end_key
             index = order[position]
             model = torch.where(matched & active[index], pairs.end_gap(dx)[index], model)
+        tolerance = self.tolerance if tolerance is None else tolerance
         deeper = (end.gap < torch.clamp(model, max=0.0) - tolerance).nonzero().squeeze(1)
         fresh = end.select(deeper)
         fresh.gap = fresh.end_gap(-dx)  # g_e - u_e . J_e dx
@@ -922,67 +917,30 @@ class SurfaceContact:
             return None
         _, _, predicted, margin, (vertex, triangle) = kept
         y = x + dx
-        past = self._per_body((y[self.vertices] - predicted).abs().amax(-1)) > margin  # [B]
-        if not bool(past.any()):
-            return [(vertex, triangle, None)]
-        again = self._pairs_of(y, past)
-        if again is None:
-            return None
-        # the kept candidates whole (filtering millions of them costs more than dropping the
-        # pairs of the bodies past the margin once the narrow phase found them)
-        return [(vertex, triangle, past), (*again, None)]
-
-    @torch.no_grad()
-    def _moved_since(self, x: torch.Tensor, dx: torch.Tensor, checked: torch.Tensor, checked_tolerance: float,
-                     tolerance: float):
-        """Candidates for a check at ``x + dx`` at ``tolerance`` (``x, dx [V, 3]``) after one at ``x +
-        checked`` at ``checked_tolerance``, as :meth:`_step_candidates` gives them, holding the
-        pairs of the bodies the check may find something for; None where every body's must be
-        searched. One host read, and :meth:`_pairs_of`'s.
-
-        The earlier check left every (vertex, body) within the reach no deeper than its
-        tolerance t0 past its pair's model min(g + u . J dx, 0) (or with a model exact there).
-        Where the two bodies' surfaces each moved by at most s_a, s_b since (|dx - checked| per
-        surface vertex), the vertex's signed distance to the other surface changed by at most
-        s_a + s_b, and so did its model (|u . J d| <= |d_p| + sum_i w_i |d_i|): it ends at most t0 +
-        2 (s_a + s_b) past the model, within this check's t where s_a, s_b <= (t - t0) / 4. So only
-        the pairs of the bodies that moved more are searched again (with a tenth of that
-        bound kept for rounding); where none did, nothing is."""
-        slack = 0.9 * (tolerance - checked_tolerance) / 4.0
-        if slack <= 0:
-            return None
-        moved = self._per_body(torch.linalg.vector_norm((dx - checked)[self.vertices], dim=-1)) > slack  # [B]
-        if not bool(moved.any()):
-            empty = torch.zeros(0, dtype=torch.int64, device=x.device)
-            return [(empty, empty, None)]
-        theirs = self._pairs_of(x + dx, moved)
-        return None if theirs is None else [(*theirs, None)]
-
-    def _per_body(self, values: torch.Tensor) -> torch.Tensor:
-        """``[B]`` the largest of the surface vertices' ``values [S]`` (>= 0) over each body."""
-        return values.new_zeros(max(self.num_objects, 1)).scatter_reduce(0, self.vertex_object, values, "amax")
-
-    def _pairs_of(self, y: torch.Tensor, bodies: torch.Tensor):
-        """The candidates at ``y [V, 3]`` of every pair a vertex or a triangle of ``bodies [B]``
-        (bool) is in: (vertex ids, triangle ids) grouped by vertex, a search among the bodies
-        within the reach of those (their surfaces' boxes); None where those hold half the
-        surfaces or more (one search of all is then the cheaper). One host read, and the
-        search's."""
         points = y[self.vertices]
+        off = (points - predicted).abs().amax(-1)  # [S]
         objects = max(self.num_objects, 1)
+        past = off.new_zeros(objects).scatter_reduce(0, self.vertex_object, off, "amax") > margin  # [B]
+        moved = past.nonzero().squeeze(1)
+        if len(moved) == 0:
+            return [(vertex, triangle, None)]
+        # the bodies within the reach of a moved one, at y (boxes of their surfaces)
         index = self.vertex_object[:, None].expand(-1, 3)
         lower = points.new_full((objects, 3), math.inf).scatter_reduce(0, index, points, "amin")
         upper = points.new_full((objects, 3), -math.inf).scatter_reduce(0, index, points, "amax")
-        near = bodies.clone()
-        for rows in bodies.nonzero().squeeze(1).split(BODY_ROWS):  # [rows, B] at a time
+        near = past.clone()
+        for rows in moved.split(BODY_ROWS):  # [rows, B] at a time
             meet = ((lower[rows, None] <= upper[None] + self.reach)
                     & (lower[None] <= upper[rows, None] + self.reach)).all(-1)
             near |= meet.any(0)
         if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
-            return None
-        vertex, triangle = self._search(y, None, self.reach, near)
-        theirs = (bodies[self.vertex_object[vertex]] | bodies[self.triangle_object[triangle]]).nonzero().squeeze(1)
-        return vertex[theirs], triangle[theirs]
+            return None  # half the surfaces or more: one search of all is the cheaper
+        again_vertex, again_triangle = self._search(y, None, self.reach, near)
+        again = (past[self.vertex_object[again_vertex]] | past[self.triangle_object[again_triangle]]).nonzero()
+        again = again.squeeze(1)
+        # the kept candidates whole (filtering millions of them costs more than dropping the
+        # pairs of the bodies past the margin once the narrow phase found them)
+        return [(vertex, triangle, past), (again_vertex[again], again_triangle[again], None)]
 
     @property
     def tolerance(self) -> float:

@@ -1257,7 +1257,6 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
     # once, and at most Contact.rounds more solves follow.
-    checked = None  # (dx, tolerance) of the step's last check: the next searches only what moved since
     for round_ in range(rounds):
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
         if round_ == 0 and system.body_contact.settled(x, dx, near, active):
@@ -1267,8 +1266,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         missed = ~active & (near.end_gap(dx) < -tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
                                                               solution=len(report.contact_solves) - 1,
-                                                              tolerance=tolerance, since=checked)
-        checked = (dx, tolerance)
+                                                              tolerance=tolerance)
         if not moved and not bool(missed.any()):
             break
         if resume is not None:

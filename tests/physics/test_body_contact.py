@@ -574,37 +574,6 @@ def test_a_rounds_solve_is_checked_again_for_deep_misses_only():
     assert falling_pair(tm.Contact(recheck_tolerance=1e-9)).body_contact.recheck_tolerance == contact.tolerance
 
 
-def test_a_rounds_check_searches_only_the_bodies_that_moved_since_the_last_check(monkeypatch):
-    """relinearise(since=...): after a check at x + dx1 at the tolerance t0, a check at x + dx2 at
-    t > t0 can only find pairs of bodies whose surfaces moved more than (t - t0) / 4 since: it
-    searches those bodies' pairs only (none where none moved), and its outcome (the pairs, their
-    activity, whether any changed) is the full check's, bit for bit."""
-    dt = 0.005
-    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact())
-    near, closing = contact.nearby(x, v, dt)
-    gen = torch.Generator().manual_seed(9)
-    dx1 = dt * v + 0.002 * (2 * torch.rand(x.shape, generator=gen, dtype=DT) - 1)
-    t0, t = contact.tolerance, contact.recheck_tolerance
-    pairs, active, _ = contact.relinearise(x, dx1, near, closing, tolerance=t0)
-    searched = []
-    pairs_of = contact._pairs_of
-    monkeypatch.setattr(contact, "_pairs_of", lambda y, bodies: searched.append(bodies.tolist()) or pairs_of(y, bodies))
-    slack = (t - t0) / 4
-    for moved in ([], [7]):  # (with block 7 and its neighbours, half the surfaces: any more, a full search)
-        dx2 = dx1 + 0.5 * slack * (2 * torch.rand(x.shape, generator=gen, dtype=DT) - 1) / 3 ** 0.5
-        for body in moved:
-            mask = contact.node_object == body
-            dx2[mask] += 0.007 * (2 * torch.rand(int(mask.sum()), 3, generator=gen, dtype=DT) - 1)  # 7 mm each way
-        searched.clear()
-        ours = contact.relinearise(x, dx2, pairs, active, tolerance=t, since=(dx1, t0))
-        assert searched == ([] if not moved else [[b in moved for b in range(8)]])
-        full = contact.relinearise(x, dx2, pairs, active, tolerance=t)
-        for field in ("nodes", "weights", "direction", "signed", "gap", "objects"):
-            assert torch.equal(getattr(ours[0], field), getattr(full[0], field)), field
-        assert torch.equal(ours[1], full[1]) and ours[2] == full[2]
-    assert ours[2]  # block 7's nodes past their models: new pairs
-
-
 @pytest.mark.parametrize("recheck", [0.0, -1e-3, float("nan"), "0.01", True])
 def test_contact_recheck_tolerance_must_be_positive(recheck):
     with pytest.raises(tm.SceneError, match="contact recheck_tolerance must be a positive finite number or None"):
