@@ -594,14 +594,27 @@ class SurfaceContact:
         mean = add_at(rate.new_zeros(objects, 3), self.node_object, rate) / counts[:, None]
         body_step = scale * mean
         deviation = scale * rate - body_step[self.node_object]
-        spread = torch.linalg.vector_norm(deviation[self.vertices], dim=-1)
-        most = spread.new_zeros(objects).scatter_reduce(0, self.vertex_object, spread, "amax")
-        points = x[self.vertices]
-        lower = points.new_full((objects, 3), math.inf).scatter_reduce(
-            0, self.vertex_object[:, None].expand(-1, 3), points, "amin")
-        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(
-            0, self.vertex_object[:, None].expand(-1, 3), points, "amax")
-        return deviation, body_step, most, lower, upper
+        most = self._per_body_max(torch.linalg.vector_norm(deviation[self.vertices], dim=-1))
+        return (deviation, body_step, most, *self._body_boxes(x[self.vertices]))
+
+    def _per_body_max(self, values: torch.Tensor) -> torch.Tensor:
+        """``[B]`` the largest of the surface vertices' ``values [S]`` (>= 0) over each body."""
+        return values.new_zeros(max(self.num_objects, 1)).scatter_reduce(0, self.vertex_object, values, "amax")
+
+    def _body_boxes(self, points: torch.Tensor):
+        """Each body's box of its surface vertices at ``points [S, 3]``: lower and upper corners
+        ``[B, 3]``."""
+        objects, index = max(self.num_objects, 1), self.vertex_object[:, None].expand(-1, 3)
+        lower = points.new_full((objects, 3), math.inf).scatter_reduce(0, index, points, "amin")
+        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(0, index, points, "amax")
+        return lower, upper
+
+    @staticmethod
+    def _boxes_meet(lower: torch.Tensor, upper: torch.Tensor, rows: torch.Tensor, margin) -> torch.Tensor:
+        """``[rows, B]`` whether body ``rows``' boxes come within ``margin`` (a number, or ``[rows,
+        B]``) of each body's, per axis (boxes ``lower, upper [B, 3]``)."""
+        margin = margin[..., None] if torch.is_tensor(margin) else margin
+        return ((lower[rows, None] <= upper[None] + margin) & (lower[None] <= upper[rows, None] + margin)).all(-1)
 
     def _motion(self, x: torch.Tensor, v: torch.Tensor, dt: float, reach: Optional[float] = None):
         """The step's motion as the broad phase sweeps it: (each node's displacement apart from
@@ -617,8 +630,7 @@ class SurfaceContact:
         grow = []
         for rows in torch.arange(objects, device=x.device).split(BODY_ROWS):  # [rows, B] at a time
             closing = torch.linalg.vector_norm(body_step[rows, None] - body_step[None], dim=-1)
-            margin = (reach + turn[rows, None] + turn[None] + closing)[..., None]
-            meet = ((lower[rows, None] <= upper[None] + margin) & (lower[None] <= upper[rows, None] + margin)).all(-1)
+            meet = self._boxes_meet(lower, upper, rows, reach + turn[rows, None] + turn[None] + closing)
             grow.append(torch.where(meet, closing, torch.zeros_like(closing)).amax(1))
         return deviation, body_step, torch.cat(grow)
 
@@ -918,21 +930,15 @@ class SurfaceContact:
         _, _, predicted, margin, (vertex, triangle) = kept
         y = x + dx
         points = y[self.vertices]
-        off = (points - predicted).abs().amax(-1)  # [S]
-        objects = max(self.num_objects, 1)
-        past = off.new_zeros(objects).scatter_reduce(0, self.vertex_object, off, "amax") > margin  # [B]
+        past = self._per_body_max((points - predicted).abs().amax(-1)) > margin  # [B]
         moved = past.nonzero().squeeze(1)
         if len(moved) == 0:
             return [(vertex, triangle, None)]
         # the bodies within the reach of a moved one, at y (boxes of their surfaces)
-        index = self.vertex_object[:, None].expand(-1, 3)
-        lower = points.new_full((objects, 3), math.inf).scatter_reduce(0, index, points, "amin")
-        upper = points.new_full((objects, 3), -math.inf).scatter_reduce(0, index, points, "amax")
+        lower, upper = self._body_boxes(points)
         near = past.clone()
         for rows in moved.split(BODY_ROWS):  # [rows, B] at a time
-            meet = ((lower[rows, None] <= upper[None] + self.reach)
-                    & (lower[None] <= upper[rows, None] + self.reach)).all(-1)
-            near |= meet.any(0)
+            near |= self._boxes_meet(lower, upper, rows, self.reach).any(0)
         if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
             return None  # half the surfaces or more: one search of all is the cheaper
         again_vertex, again_triangle = self._search(y, None, self.reach, near)
