@@ -13,6 +13,9 @@
 // Two passes: the count (counts[q]) and the fill at offsets[q] (an exclusive prefix sum of the
 // counts), each candidate written by its query's thread in run order. So the output is the
 // reference's order (query by query, entries in run order), deterministic, with no atomics.
+// Item i serves query query_order[i]: the caller orders the queries by their run, so that the
+// items of one warp walk the same entries together (one load serves them all) instead of as many
+// runs as lanes; where each query's output goes does not depend on it.
 #pragma once
 
 #include <cstdint>
@@ -31,6 +34,7 @@ struct CandidatesKernel {
   const int64_t* query_cells;      // [Q, 3] integer cells
   const int64_t* query_start;      // [Q] the first entry of the query's key
   const int64_t* query_stop;       // [Q] one past the last
+  const int64_t* query_order;      // [Q] the query each item serves (a permutation)
   const int64_t* entry_triangle;   // [E] the triangle of each entry (entries sorted by key)
   const int64_t* entry_cells;      // [E, 3]
   const S* low;                    // [F, 3] the triangles' boxes, grown by the reach
@@ -42,31 +46,46 @@ struct CandidatesKernel {
   int64_t* vertex_out;             // [C] fill pass
   int64_t* triangle_out;           // [C]
 
-  TM_HD bool kept(int64_t q, int64_t v, int64_t e) const {
+  // The query's own values, read once (a walk reads them for every entry otherwise).
+  struct Query {
+    int64_t cells[3];
+    S low[3], high[3];
+    int64_t object;
+  };
+
+  TM_HD bool kept(const Query& query, int64_t e) const {
     const int64_t t = entry_triangle[e];
-    if (!same_body && vertex_object[v] == triangle_object[t]) return false;
+    if (!same_body && query.object == triangle_object[t]) return false;
     bool ok = true;
     TM_UNROLL for (int k = 0; k < 3; ++k) {
-      const int64_t qc = query_cells[q * 3 + k];
-      const S pl = point_low[v * 3 + k], tl = low[t * 3 + k];
-      const S corner = pl > tl ? pl : tl;
-      ok = ok && entry_cells[e * 3 + k] == qc && pl <= high[t * 3 + k] && point_high[v * 3 + k] >= tl &&
-           static_cast<int64_t>(tm_floor(corner / cell[0])) == qc;
+      const S tl = low[t * 3 + k];
+      const S corner = query.low[k] > tl ? query.low[k] : tl;
+      ok = ok && entry_cells[e * 3 + k] == query.cells[k] && query.low[k] <= high[t * 3 + k] &&
+           query.high[k] >= tl && static_cast<int64_t>(tm_floor(corner / cell[0])) == query.cells[k];
     }
     return ok;
   }
 
-  TM_HD void operator()(int64_t q) const {
+  TM_HD void operator()(int64_t item) const {
+    const int64_t q = query_order[item];
     const int64_t v = query_vertex[q];
+    Query query;
+    TM_UNROLL for (int k = 0; k < 3; ++k) {
+      query.cells[k] = query_cells[q * 3 + k];
+      query.low[k] = point_low[v * 3 + k];
+      query.high[k] = point_high[v * 3 + k];
+    }
+    query.object = vertex_object[v];
+    const int64_t start = query_start[q], stop = query_stop[q];
     if (offsets == nullptr) {
       int64_t n = 0;
-      for (int64_t e = query_start[q]; e < query_stop[q]; ++e) n += kept(q, v, e) ? 1 : 0;
+      for (int64_t e = start; e < stop; ++e) n += kept(query, e) ? 1 : 0;
       counts[q] = n;
       return;
     }
     int64_t at = offsets[q];
-    for (int64_t e = query_start[q]; e < query_stop[q]; ++e) {
-      if (kept(q, v, e)) {
+    for (int64_t e = start; e < stop; ++e) {
+      if (kept(query, e)) {
         vertex_out[at] = v;
         triangle_out[at] = entry_triangle[e];
         ++at;

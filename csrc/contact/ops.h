@@ -21,7 +21,7 @@ namespace tensormass {
 // The broad phase's inputs, checked against each other (names as in schema.cpp).
 struct CandidateArgs {
   at::Tensor cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start, query_stop,
-      entry_triangle, entry_cells, low, high, triangle_object;
+      query_order, entry_triangle, entry_cells, low, high, triangle_object;
   bool same_body;
 
   void check() const {
@@ -41,6 +41,7 @@ struct CandidateArgs {
     check_index_tensor(query_cells, "query_cells", point_low, at::kLong, {num_queries, 3}, "point_low");
     check_index_tensor(query_start, "query_start", point_low, at::kLong, {num_queries}, "point_low");
     check_index_tensor(query_stop, "query_stop", point_low, at::kLong, {num_queries}, "point_low");
+    check_index_tensor(query_order, "query_order", point_low, at::kLong, {num_queries}, "point_low");
     check_index_tensor(entry_triangle, "entry_triangle", point_low, at::kLong, {num_entries}, "point_low");
     check_index_tensor(entry_cells, "entry_cells", point_low, at::kLong, {num_entries, 3}, "point_low");
     check_index_tensor(triangle_object, "triangle_object", point_low, at::kLong, {num_triangles}, "point_low");
@@ -57,6 +58,7 @@ struct CandidateArgs {
     k.query_cells = query_cells.data_ptr<int64_t>();
     k.query_start = query_start.data_ptr<int64_t>();
     k.query_stop = query_stop.data_ptr<int64_t>();
+    k.query_order = query_order.data_ptr<int64_t>();
     k.entry_triangle = entry_triangle.data_ptr<int64_t>();
     k.entry_cells = entry_cells.data_ptr<int64_t>();
     k.low = low.data_ptr<S>();
@@ -72,11 +74,12 @@ template <class L>
 at::Tensor contact_count_candidates(const at::Tensor& cell, const at::Tensor& point_low, const at::Tensor& point_high,
                                     const at::Tensor& vertex_object, const at::Tensor& query_vertex,
                                     const at::Tensor& query_cells, const at::Tensor& query_start,
-                                    const at::Tensor& query_stop, const at::Tensor& entry_triangle,
+                                    const at::Tensor& query_stop, const at::Tensor& query_order,
+                                    const at::Tensor& entry_triangle,
                                     const at::Tensor& entry_cells, const at::Tensor& low, const at::Tensor& high,
                                     const at::Tensor& triangle_object, bool same_body) {
   const CandidateArgs args{cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start,
-                           query_stop, entry_triangle, entry_cells, low, high, triangle_object, same_body};
+                           query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body};
   args.check();
   at::Tensor counts = at::empty({query_vertex.numel()}, query_vertex.options());
   typename L::Guard guard(point_low.device());
@@ -94,12 +97,13 @@ template <class L>
 void contact_fill_candidates(const at::Tensor& cell, const at::Tensor& point_low, const at::Tensor& point_high,
                              const at::Tensor& vertex_object, const at::Tensor& query_vertex,
                              const at::Tensor& query_cells, const at::Tensor& query_start,
-                             const at::Tensor& query_stop, const at::Tensor& entry_triangle,
+                             const at::Tensor& query_stop, const at::Tensor& query_order,
+                             const at::Tensor& entry_triangle,
                              const at::Tensor& entry_cells, const at::Tensor& low, const at::Tensor& high,
                              const at::Tensor& triangle_object, bool same_body, const at::Tensor& offsets,
                              at::Tensor vertex, at::Tensor triangle) {
   const CandidateArgs args{cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start,
-                           query_stop, entry_triangle, entry_cells, low, high, triangle_object, same_body};
+                           query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body};
   args.check();
   check_index_tensor(offsets, "offsets", point_low, at::kLong, {query_vertex.numel()}, "point_low");
   TORCH_CHECK(vertex.defined() && vertex.dim() == 1, "tensormass: vertex must be [C]");

@@ -105,16 +105,17 @@ def test_bad_arguments_raise_naming_them_and_write_nothing():
     for position, wrong, name in [
         (4, args[4].int(), "query_vertex"),
         (5, args[5][:, :2].contiguous(), "query_cells"),
-        (10, args[10].float(), "low"),
+        (8, args[8][:-1], "query_order"),
+        (11, args[11].float(), "low"),
         (1, args[1].t(), "point_low"),
-        (12, args[12][:-1], "triangle_object"),
+        (13, args[13][:-1], "triangle_object"),
     ]:
         bad = list(args)
         bad[position] = wrong
         with pytest.raises(RuntimeError, match=name):
             fill(*bad)
         with pytest.raises(RuntimeError, match=name):
-            count(*bad[:14])
+            count(*bad[:15])
     short = list(args)
     short[-1] = triangle[:-1].clone() if len(triangle) else torch.zeros(1, dtype=torch.int64)
     with pytest.raises(RuntimeError, match="triangle"):
@@ -247,3 +248,26 @@ def test_pair_product_bad_arguments_raise_naming_them():
         bad[position] = wrong
         with pytest.raises(RuntimeError, match=name):
             op(*bad)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_order_the_queries_are_taken_in_changes_no_output(device):
+    """``query_order`` only says which query each thread serves: any permutation gives the same
+    counts and the same candidates, each query's at its own offsets."""
+    cell, low, high, triangle_object, point_low, point_high, vertex_object = pile_boxes(torch.float32, device, True)
+    queries = list(contact.hash_queries(cell, low, high, point_low, point_high))
+    outputs = []
+    for order in (queries[4], torch.arange(len(queries[0]), device=device),
+                  torch.randperm(len(queries[0]), generator=torch.Generator().manual_seed(3)).to(device)):
+        queries[4] = order
+        args = (cell.reshape(1), point_low, point_high, vertex_object, *queries, low, high, triangle_object, False)
+        counts = library.op("contact_count_candidates")(*args)
+        offsets = torch.cumsum(counts, 0) - counts
+        vertex = torch.full((int(counts.sum()),), -1, dtype=torch.int64, device=device)
+        triangle = torch.full_like(vertex, -1)
+        library.op("contact_fill_candidates")(*args, offsets, vertex, triangle)
+        outputs.append((counts, vertex, triangle))
+    assert len(outputs[0][1]) > 100
+    for other in outputs[1:]:
+        for ours, theirs in zip(outputs[0], other):
+            assert torch.equal(ours, theirs)
