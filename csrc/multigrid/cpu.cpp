@@ -4,15 +4,13 @@
 #include <c10/core/Device.h>
 #include <torch/library.h>
 
+#include "common/cpu_launcher.h"
 #include "multigrid/ops.h"
 
 namespace tensormass {
 namespace {
 
-struct MultigridCpu {
-  struct Guard {
-    explicit Guard(const c10::Device&) {}
-  };
+struct MultigridCpu : CpuLauncher {  // (run: an item a thread, for the block scaling)
 
   template <class K>
   static void run_rows(int64_t rows, const K& k, int /*group*/) {

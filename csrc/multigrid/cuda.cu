@@ -7,6 +7,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <torch/library.h>
 
+#include "common/cuda_launcher.cuh"
 #include "multigrid/ops.h"
 
 namespace tensormass {
@@ -36,8 +37,7 @@ __global__ void __launch_bounds__(kRowsBlock) bsr_rows_kernel(const K k, int64_t
   if (lane == 0 && row < rows) k.finish(row, sum);
 }
 
-struct MultigridCuda {
-  using Guard = c10::cuda::CUDAGuard;
+struct MultigridCuda : CudaLauncher {  // (run: an item a thread, for the block scaling)
 
   template <int G, class K>
   static void launch(int64_t rows, const K& k) {

@@ -103,4 +103,59 @@ struct ChebyshevKernel {
   }
 };
 
+// Block Jacobi's scaling (solver/preconditioner.py, JacobiScaling): for each symmetric d x d block
+// A = L L^T (its lower triangle read), S = L^-T, S^T = L^-1 and S^-1 = L^T, the identity for all
+// three where a pivot is not positive (a node with no mass and no element, whose row CG never
+// moves). A column-by-column Cholesky, then L^-1 by forward substitution: the reference's
+// operations in its order (preconditioner.block_cholesky_scaling). One block an item.
+template <int D, typename S>
+struct BlockCholeskyKernel {
+  const S* blocks;  // [n, D, D]
+  S* scale;         // [n, D, D] S = L^-T
+  S* scale_t;       // [n, D, D] S^T = L^-1
+  S* inverse;       // [n, D, D] S^-1 = L^T
+  S tiny;           // the dtype's smallest normal number (a pivot's floor before its root)
+
+  TM_HD void operator()(int64_t n) const {
+    const S* a = blocks + n * (D * D);
+    S lower[D][D];
+    S inv[D][D];
+    bool positive = true;
+    TM_UNROLL for (int i = 0; i < D; ++i) {
+      TM_UNROLL for (int j = 0; j < D; ++j) lower[i][j] = inv[i][j] = S(0);
+    }
+    TM_UNROLL for (int j = 0; j < D; ++j) {
+      S squares = S(0);
+      TM_UNROLL for (int k = 0; k < j; ++k) squares += lower[j][k] * lower[j][k];
+      const S pivot = a[j * D + j] - squares;
+      positive = positive && pivot > S(0);
+      lower[j][j] = tm_sqrt(pivot > tiny ? pivot : tiny);
+      TM_UNROLL for (int i = j + 1; i < D; ++i) {
+        S sum = S(0);
+        TM_UNROLL for (int k = 0; k < j; ++k) sum += lower[i][k] * lower[j][k];
+        lower[i][j] = (a[i * D + j] - sum) / lower[j][j];
+      }
+    }
+    TM_UNROLL for (int j = 0; j < D; ++j) {
+      inv[j][j] = S(1) / lower[j][j];
+      TM_UNROLL for (int i = j + 1; i < D; ++i) {
+        S sum = S(0);
+        TM_UNROLL for (int k = j; k < i; ++k) sum += lower[i][k] * inv[k][j];
+        inv[i][j] = -sum / lower[i][i];
+      }
+    }
+    S* s = scale + n * (D * D);
+    S* st = scale_t + n * (D * D);
+    S* si = inverse + n * (D * D);
+    TM_UNROLL for (int r = 0; r < D; ++r) {
+      TM_UNROLL for (int c = 0; c < D; ++c) {
+        const S eye = r == c ? S(1) : S(0);
+        s[r * D + c] = positive ? inv[c][r] : eye;
+        st[r * D + c] = positive ? inv[r][c] : eye;
+        si[r * D + c] = positive ? lower[c][r] : eye;
+      }
+    }
+  }
+};
+
 }  // namespace tensormass

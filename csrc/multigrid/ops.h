@@ -1,7 +1,7 @@
 // Host side of the multigrid ops (schemas: schema.cpp; kernels: kernels.h), written once for the
 // CPU and CUDA: argument checks, dispatch on the dtype and the block shape, one launch through
 // `L` (cpu.cpp, cuda.cu: `L::run_rows(rows, kernel, group)` runs kernel.partial on `group` lanes
-// of each row and kernel.finish on their sum). No allocation, no host synchronisation: a V-cycle
+// of each row and kernel.finish on their sum; `L::run(n, kernel, block)` an item a thread). No allocation, no host synchronisation: a V-cycle
 // of these ops is captured in a CUDA graph.
 #pragma once
 
@@ -10,6 +10,7 @@
 #include <torch/library.h>
 
 #include <cstdint>
+#include <limits>
 #include <string>
 
 #include "common/checks.h"
@@ -166,12 +167,48 @@ void multigrid_chebyshev(const c10::optional<at::Tensor>& values, const c10::opt
   });
 }
 
+// multigrid_block_cholesky: see schema.cpp.
+template <class L>
+void multigrid_block_cholesky(const at::Tensor& blocks, at::Tensor scale, at::Tensor scale_t, at::Tensor inverse) {
+  check_float(blocks, "blocks");
+  TORCH_CHECK(blocks.dim() == 3 && blocks.size(1) == blocks.size(2) && (blocks.size(1) == 2 || blocks.size(1) == 3),
+              "tensormass: blocks must be [n, d, d] with d 2 or 3, got ", shape_str(blocks.sizes()));
+  check_node_tensor(blocks, "blocks", blocks, blocks.sizes(), "blocks");
+  check_node_tensor(scale, "scale", blocks, blocks.sizes(), "blocks");
+  check_node_tensor(scale_t, "scale_t", blocks, blocks.sizes(), "blocks");
+  check_node_tensor(inverse, "inverse", blocks, blocks.sizes(), "blocks");
+  TORCH_CHECK(scale.data_ptr() != scale_t.data_ptr() && scale.data_ptr() != inverse.data_ptr() &&
+                  scale_t.data_ptr() != inverse.data_ptr() && blocks.data_ptr() != scale.data_ptr() &&
+                  blocks.data_ptr() != scale_t.data_ptr() && blocks.data_ptr() != inverse.data_ptr(),
+              "tensormass: blocks, scale, scale_t and inverse must be four different tensors");
+  const int64_t d = blocks.size(1);
+  typename L::Guard guard(blocks.device());
+  dispatch_scalar(blocks.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    auto run = [&](auto d_c) {
+      BlockCholeskyKernel<decltype(d_c)::value, S> k;
+      k.blocks = blocks.data_ptr<S>();
+      k.scale = scale.data_ptr<S>();
+      k.scale_t = scale_t.data_ptr<S>();
+      k.inverse = inverse.data_ptr<S>();
+      k.tiny = std::numeric_limits<S>::min();
+      L::run(blocks.size(0), k, L::kNodeBlock);
+    };
+    if (d == 3) {
+      run(IC<3>{});
+    } else {
+      run(IC<2>{});
+    }
+  });
+}
+
 // Registers the implementations of the multigrid ops of one backend (launcher L) under its
 // TORCH_LIBRARY_IMPL (cpu.cpp, cuda.cu); the schemas: schema.cpp.
 template <class L>
 void register_multigrid_ops(torch::Library& m) {
   m.impl("multigrid_bsr_gemv", &multigrid_bsr_gemv<L>);
   m.impl("multigrid_chebyshev", &multigrid_chebyshev<L>);
+  m.impl("multigrid_block_cholesky", &multigrid_block_cholesky<L>);
 }
 
 }  // namespace tensormass

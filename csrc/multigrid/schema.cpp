@@ -24,4 +24,9 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   x_out may be x only where the matrix is not given.
   m.def("multigrid_chebyshev(Tensor? values, Tensor? block_cols, Tensor? row_ptr, Tensor? product, Tensor b, "
         "Tensor inverse_diagonal, Tensor? x, Tensor(a!) step, Tensor(b!) x_out, float a, float c) -> ()");
+  // multigrid_block_cholesky(blocks [n, d, d], scale! [n, d, d], scale_t! [n, d, d], inverse! [n, d, d]) -> ()
+  //   block Jacobi's scaling (d 2 or 3): for each symmetric block A = L L^T (its lower triangle
+  //   read), scale = L^-T, scale_t = L^-1 and inverse = L^T; the identity for the three where a
+  //   pivot is not positive. Four different tensors.
+  m.def("multigrid_block_cholesky(Tensor blocks, Tensor(a!) scale, Tensor(b!) scale_t, Tensor(c!) inverse) -> ()");
 }

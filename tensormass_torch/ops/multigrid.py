@@ -12,6 +12,10 @@ with the rest of a CG iteration):
         x_out!, a, c)
             one Chebyshev smoothing step: r = b - A x (or b - product, or b from x = 0),
             step = a step + c D^-1 r, x_out = x + step
+    multigrid_block_cholesky(blocks, scale!, scale_t!, inverse!)
+            block Jacobi's scaling of the finest level (``solver.preconditioner.JacobiScaling``):
+            S = L^-T, S^T and S^-1 = L^T of each diagonal block L L^T, in one launch (as tensor
+            ops, some seventy small kernels at every solve)
 
 Each block row is summed in a fixed order (deterministic, no atomics). The pure-torch references
 below are the tests' oracle and the path where the extension does not serve the device. Not
@@ -28,7 +32,7 @@ import torch
 from . import library
 from .library import OpDef
 
-__all__ = ["BsrMatrix", "bsr_gemv", "chebyshev"]
+__all__ = ["BsrMatrix", "bsr_gemv", "chebyshev", "block_scaling", "block_cholesky_scaling"]
 
 
 @dataclass
@@ -120,6 +124,39 @@ def _ref_multigrid_chebyshev(values, block_cols, row_ptr, product, b, inverse_di
     x_out.copy_(s if x is None else x + s)
 
 
+def _ref_multigrid_block_cholesky(blocks, scale, scale_t, inverse):
+    s, s_inverse = block_cholesky_scaling(blocks)
+    scale.copy_(s)
+    scale_t.copy_(s.transpose(-1, -2))
+    inverse.copy_(s_inverse)
+
+
+def block_cholesky_scaling(blocks: torch.Tensor):
+    """(S = L^-T, S^-1 = L^T), both ``[V, d, d]``, of symmetric blocks ``[V, d, d]`` = L L^T (the
+    lower triangle read), the identity for both where a block is not positive definite (a pivot
+    <= 0). Elementwise over the blocks: a column-by-column Cholesky, then L^-1 by forward
+    substitution (d is 2 or 3). The reference of ``multigrid_block_cholesky``."""
+    dim = blocks.shape[-1]
+    tiny = torch.finfo(blocks.dtype).tiny
+    lower = torch.zeros_like(blocks)
+    positive = torch.ones(blocks.shape[:-2], dtype=torch.bool, device=blocks.device)
+    for j in range(dim):
+        pivot = blocks[..., j, j] - (lower[..., j, :j] ** 2).sum(-1)
+        positive &= pivot > 0
+        lower[..., j, j] = torch.sqrt(pivot.clamp(min=tiny))
+        for i in range(j + 1, dim):
+            lower[..., i, j] = (blocks[..., i, j] - (lower[..., i, :j] * lower[..., j, :j]).sum(-1)) / lower[..., j, j]
+    inverse_lower = torch.zeros_like(blocks)
+    for j in range(dim):
+        inverse_lower[..., j, j] = 1.0 / lower[..., j, j]
+        for i in range(j + 1, dim):
+            inverse_lower[..., i, j] = -(lower[..., i, j:i] * inverse_lower[..., j:i, j]).sum(-1) / lower[..., i, i]
+    eye = torch.eye(dim, dtype=blocks.dtype, device=blocks.device)
+    keep = positive[..., None, None]
+    return (torch.where(keep, inverse_lower.transpose(-1, -2), eye),
+            torch.where(keep, lower.transpose(-1, -2), eye))
+
+
 def _example(name):
     def example(device, dtype):
         gen = torch.Generator().manual_seed(5)
@@ -131,6 +168,11 @@ def _example(name):
         block_cols = torch.tensor([0, 2, 1, 0, 1], dtype=torch.int32, device=device)
         if name == "multigrid_bsr_gemv":  # 3 x 3 block rows of 3 x 6 blocks
             return (rand(5, 3, 6), block_cols, row_ptr, rand(18), rand(9), 1.5, -0.5, rand(9)), {}
+        if name == "multigrid_block_cholesky":  # symmetric blocks, one of them not positive definite
+            half = rand(4, 3, 3)
+            blocks = half @ half.transpose(-1, -2) + 0.1 * torch.eye(3, dtype=dtype, device=device)
+            blocks[2] = -blocks[2]
+            return (blocks, rand(4, 3, 3), rand(4, 3, 3), rand(4, 3, 3)), {}
         values = rand(5, 3, 3)
         return (values, block_cols, row_ptr, None, rand(9), rand(9).abs(), rand(9), rand(9), rand(9), 0.3, 0.7), {}
 
@@ -142,6 +184,8 @@ OPS = (
           example=_example("multigrid_bsr_gemv")),
     OpDef("multigrid_chebyshev", _ref_multigrid_chebyshev, None, differentiable=False, mutates=True,
           example=_example("multigrid_chebyshev")),
+    OpDef("multigrid_block_cholesky", _ref_multigrid_block_cholesky, None, differentiable=False, mutates=True,
+          example=_example("multigrid_block_cholesky")),
 )
 library.define(OPS, lambda: library.register(OPS))
 
@@ -169,3 +213,12 @@ def chebyshev(b: torch.Tensor, inverse_diagonal: torch.Tensor, step: torch.Tenso
     library.op_or_reference("multigrid_chebyshev", b.device)(*arrays, product, b, inverse_diagonal, x, step, x_out,
                                                        float(a), float(c))
     return x_out
+
+
+def block_scaling(blocks: torch.Tensor, scale: torch.Tensor, scale_t: torch.Tensor, inverse: torch.Tensor):
+    """Block Jacobi's scaling of symmetric blocks ``[n, d, d]`` into ``scale`` (S = L^-T),
+    ``scale_t`` (S^T) and ``inverse`` (S^-1 = L^T), each ``[n, d, d]`` and written in place, the
+    identity where a block is not positive definite (``multigrid_block_cholesky``: one launch
+    where the extension serves the device, else its reference)."""
+    library.op_or_reference("multigrid_block_cholesky", blocks.device)(blocks.contiguous(), scale, scale_t, inverse)
+

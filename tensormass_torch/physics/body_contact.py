@@ -304,6 +304,17 @@ class ContactPairs:
         along = (_relative(self.nodes, coefficients, dx) * self.direction).sum(-1)
         return _along_normals(self.num_nodes, self.nodes, coefficients, self.direction, -self.stiffness * along)
 
+    def linear_forces(self, dx: torch.Tensor) -> torch.Tensor:
+        """:meth:`forces` plus :meth:`dforces` of ``dx [V, 3]`` ``[V, 3]``, the pairs' forces
+        linearised at x + dx: with the projected tangent J^T (-k (g + u . J dx) u), summed at the
+        nodes once."""
+        if self.hessians is not None:
+            return self.forces() + self.dforces(dx)
+        coefficients = self._coefficients()
+        along = (_relative(self.nodes, coefficients, dx) * self.direction).sum(-1)
+        return _along_normals(self.num_nodes, self.nodes, coefficients, self.direction,
+                              -self.stiffness * (self.gap + along))
+
     def relative(self, dx: torch.Tensor) -> torch.Tensor:
         """``[P, 3]`` J dx as a vector per pair: the vertex's motion less the closest point's,
         sum_i coef_i dx_i for node motions (or velocities) ``dx [V, 3]``."""

@@ -218,6 +218,7 @@ class DynamicsSystem:
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
+        self._diagonal_blocks = None  # preconditioner.system_diagonal_blocks' kept blocks without pairs
         self._rest_preconditioner = None  # (key, cache) of preconditioner.system_rest_preconditioner
         self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
         self._solution_spaces = {}  # step coefficients -> (tensors, versions, guess.SolutionSpace)
@@ -834,7 +835,7 @@ def _pairs_rhs(pairs, v, dv_imposed, opts: StepOptions):
     their stiffness and friction in the matrix make of it."""
     h = opts.dt
     _, stiffness_coef = _coefficients(opts)
-    rhs = h * (pairs.forces() + pairs.dforces(opts.velocity_coefficient * v))
+    rhs = h * pairs.linear_forces(opts.velocity_coefficient * v)
     if pairs.friction is not None:  # the damping -C v_new, implicit: -h C v here, h C in the matrix
         rhs = rhs + h * pairs.friction_forces(v)
     if dv_imposed is not None:

@@ -41,7 +41,7 @@ import torch
 
 from ..errors import SceneError, SolverError
 from ..ops import library
-from ..ops.multigrid import BsrMatrix, bsr_gemv
+from ..ops.multigrid import BsrMatrix, block_cholesky_scaling, block_scaling, bsr_gemv
 
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
 #: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
@@ -68,22 +68,23 @@ class JacobiScaling:
         """Take the system's diagonal ``[V, d]`` or diagonal blocks ``[V, d, d]``; rows (blocks)
         that are not positive (definite) (a node with no mass and no element left, whose row CG
         never moves) are left unscaled."""
-        if diagonal.dim() == 3:
-            scale, inverse = (t.contiguous() for t in block_cholesky_scaling(diagonal))
-        else:
-            positive = diagonal > 0
-            safe = diagonal.clamp(min=torch.finfo(diagonal.dtype).tiny)
-            scale = torch.where(positive, torch.rsqrt(safe), torch.ones_like(diagonal))
-            inverse = torch.where(positive, torch.sqrt(safe), torch.ones_like(diagonal))
+        if diagonal.dim() == 3:  # S, S^T and S^-1 written into the buffers in one op
+            if self.scale is None or self.scale.shape != diagonal.shape or self.scale.dtype != diagonal.dtype \
+                    or self.scale.device != diagonal.device:
+                self.scale, self.inverse = torch.empty_like(diagonal), torch.empty_like(diagonal)
+                self._blocks = _block_diagonal(self.scale, self.inverse)
+            block_scaling(diagonal, self.scale, self._blocks[1].values, self.inverse)
+            return self
+        positive = diagonal > 0
+        safe = diagonal.clamp(min=torch.finfo(diagonal.dtype).tiny)
+        scale = torch.where(positive, torch.rsqrt(safe), torch.ones_like(diagonal))
+        inverse = torch.where(positive, torch.sqrt(safe), torch.ones_like(diagonal))
         if self.scale is None or self.scale.shape != scale.shape or self.scale.dtype != scale.dtype \
                 or self.scale.device != scale.device:
-            self.scale, self.inverse = scale, inverse
-            self._blocks = _block_diagonal(scale, inverse) if scale.dim() == 3 else None
+            self.scale, self.inverse, self._blocks = scale, inverse, None
         else:
             self.scale.copy_(scale)
             self.inverse.copy_(inverse)
-            if self._blocks is not None:
-                self._blocks[1].values.copy_(scale.transpose(-1, -2))
         return self
 
     @property
@@ -138,32 +139,6 @@ def _block_diagonal(scale: torch.Tensor, inverse: torch.Tensor) -> tuple:
 def _block_product(matrix: BsrMatrix, v: torch.Tensor) -> torch.Tensor:
     """A block-diagonal ``matrix``'s product with ``v [V, d]`` (``[V, d]``)."""
     return bsr_gemv(matrix, v.reshape(-1)).view_as(v)
-
-
-def block_cholesky_scaling(blocks: torch.Tensor):
-    """(S = L^-T, S^-1 = L^T), both ``[V, d, d]``, of symmetric blocks ``[V, d, d]`` = L L^T (the
-    lower triangle read), the identity for both where a block is not positive definite (a pivot
-    <= 0). Elementwise over the blocks: a column-by-column Cholesky, then L^-1 by forward
-    substitution (d is 2 or 3)."""
-    dim = blocks.shape[-1]
-    tiny = torch.finfo(blocks.dtype).tiny
-    lower = torch.zeros_like(blocks)
-    positive = torch.ones(blocks.shape[:-2], dtype=torch.bool, device=blocks.device)
-    for j in range(dim):
-        pivot = blocks[..., j, j] - (lower[..., j, :j] ** 2).sum(-1)
-        positive &= pivot > 0
-        lower[..., j, j] = torch.sqrt(pivot.clamp(min=tiny))
-        for i in range(j + 1, dim):
-            lower[..., i, j] = (blocks[..., i, j] - (lower[..., i, :j] * lower[..., j, :j]).sum(-1)) / lower[..., j, j]
-    inverse_lower = torch.zeros_like(blocks)
-    for j in range(dim):
-        inverse_lower[..., j, j] = 1.0 / lower[..., j, j]
-        for i in range(j + 1, dim):
-            inverse_lower[..., i, j] = -(lower[..., i, j:i] * inverse_lower[..., j:i, j]).sum(-1) / lower[..., i, i]
-    eye = torch.eye(dim, dtype=blocks.dtype, device=blocks.device)
-    keep = positive[..., None, None]
-    return (torch.where(keep, inverse_lower.transpose(-1, -2), eye),
-            torch.where(keep, lower.transpose(-1, -2), eye))
 
 
 def optional_module(name: str, choice: str, does: str, extra: str):
@@ -289,13 +264,22 @@ def system_diagonal_blocks(system, mass_coef: float, stiffness_coef: float, node
                            pairs=None, pair_damping: float = 0.0) -> torch.Tensor:
     """The diagonal blocks ``[V, d, d]`` of a step's matrix, as :func:`system_diagonal` gives its
     diagonal: mass, the elastic stiffness's blocks at rest (``TensorMass.stiffness_diagonal_blocks``),
-    the node stiffness and the pairs' blocks."""
-    blocks = stiffness_coef * system.model.stiffness_diagonal_blocks()
-    d = blocks.shape[-1]
-    blocks = blocks + (mass_coef * system.mass.reshape(-1))[:, None, None] * torch.eye(
-        d, dtype=blocks.dtype, device=blocks.device)
-    if node_stiffness is not None:
-        blocks = blocks + stiffness_coef * node_stiffness
+    the node stiffness and the pairs' blocks. All but the pairs' are kept on ``system`` while
+    their tensors and coefficients are unchanged: a step's contact rounds change only the pairs.
+    Without pairs the kept tensor itself is returned: read it, never write it."""
+    rest = system.model.stiffness_diagonal_blocks()
+    tensors = (rest, system.mass) + (() if node_stiffness is None else (node_stiffness,))
+    cache = getattr(system, "_diagonal_blocks", None)
+    if not (library.unchanged(cache, tensors) and cache[2][0] == (mass_coef, stiffness_coef)):
+        blocks = stiffness_coef * rest
+        d = blocks.shape[-1]
+        blocks = blocks + (mass_coef * system.mass.reshape(-1))[:, None, None] * torch.eye(
+            d, dtype=blocks.dtype, device=blocks.device)
+        if node_stiffness is not None:
+            blocks = blocks + stiffness_coef * node_stiffness
+        cache = system._diagonal_blocks = (tensors, tuple(t._version for t in tensors),
+                                           ((mass_coef, stiffness_coef), blocks))
+    blocks = cache[2][1]
     if pairs is not None and len(pairs):
         blocks = blocks + pairs.stiffness_blocks(stiffness_coef, pair_damping)
     return blocks

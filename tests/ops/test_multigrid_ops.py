@@ -146,3 +146,54 @@ def test_bad_inputs_raise_naming_the_argument():
         ops.multigrid_chebyshev(None, None, None, x, x, x.abs(), None, step, out, 0.5, 0.5)
     with pytest.raises(RuntimeError, match="inverse_diagonal has shape"):
         ops.multigrid_chebyshev(None, None, None, None, x, x[:6].abs(), None, step, out, 0.0, 0.5)
+
+
+def spd_blocks(n, d, seed, device, dtype):
+    """``[n, d, d]`` symmetric blocks, every fifth one not positive definite (its negative)."""
+    gen = torch.Generator().manual_seed(seed)
+    half = torch.randn(n, d, d, generator=gen, dtype=torch.float64)
+    blocks = half @ half.transpose(-1, -2) + 0.05 * torch.eye(d, dtype=torch.float64)
+    blocks[::5] = -blocks[::5]
+    return blocks.to(device=device, dtype=dtype)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_block_cholesky_matches_its_reference_and_factors_the_blocks(device, d, dtype):
+    """S = L^-T, S^T and S^-1 = L^T of each block: the reference's (to rounding), S^T B S = I and
+    S S^-1 = I where the block is positive definite, the identity where it is not."""
+    ops = native(device)
+    blocks = spd_blocks(50, d, seed=d, device=device, dtype=dtype)
+    outputs = [torch.full_like(blocks, float("nan")) for _ in range(3)]
+    ops.multigrid_block_cholesky(blocks, *outputs)
+    expected = [torch.empty_like(blocks) for _ in range(3)]
+    library.REGISTRY["multigrid_block_cholesky"].reference(blocks, *expected)
+    tol = dict(rtol=1e-5, atol=1e-5) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-12)
+    for ours, theirs in zip(outputs, expected):
+        torch.testing.assert_close(ours, theirs, **tol)
+    scale, scale_t, inverse = (t.double() for t in outputs)
+    eye = torch.eye(d, dtype=torch.float64, device=device).expand(50, d, d)
+    positive = torch.ones(50, dtype=torch.bool, device=device)
+    positive[::5] = False
+    torch.testing.assert_close(scale_t, scale.transpose(-1, -2))
+    torch.testing.assert_close((scale_t @ blocks.double() @ scale)[positive], eye[positive], **tol)
+    torch.testing.assert_close(scale @ inverse, eye, **tol)
+    for t in (scale, scale_t, inverse):
+        assert torch.equal(t[~positive], eye[~positive])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_block_cholesky_bad_arguments_raise_naming_them_and_write_nothing(device):
+    ops = native(device)
+    blocks = spd_blocks(6, 3, seed=1, device=device, dtype=torch.float64)
+    outputs = [torch.full_like(blocks, -7.0) for _ in range(3)]
+    for args, match in [((blocks[:, :2], *outputs), "blocks"),
+                        ((spd_blocks(6, 4, 1, device, torch.float64), *outputs), "blocks"),
+                        ((blocks, outputs[0][:5], *outputs[1:]), "scale"),
+                        ((blocks, outputs[0], outputs[1].float(), outputs[2]), "scale_t"),
+                        ((blocks, outputs[0], outputs[1], outputs[0]), "different"),
+                        ((blocks, blocks, *outputs[1:]), "different")]:
+        with pytest.raises(RuntimeError, match=match):
+            ops.multigrid_block_cholesky(*args)
+    assert all(bool((t == -7.0).all()) for t in outputs)

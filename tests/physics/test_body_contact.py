@@ -168,6 +168,18 @@ def test_force_is_minus_the_energy_gradient(overlapping):
     torch.testing.assert_close(forces, -gradient, rtol=1e-10, atol=1e-10)
 
 
+def test_linear_forces_are_the_forces_plus_their_change(overlapping):
+    """ContactPairs.linear_forces(dx), the forces of the pairs' linear model at x + dx (a step's
+    right-hand side), equals forces() + dforces(dx), with either tangent."""
+    contact, x = overlapping
+    pairs = contact.detect(x)
+    dx = torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=DT)
+    for chosen in (pairs, dataclasses.replace(pairs, hessians=None)):
+        expected = chosen.forces() + chosen.dforces(dx)
+        assert float(expected.abs().max()) > 1.0
+        torch.testing.assert_close(chosen.linear_forces(dx), expected, rtol=1e-12, atol=1e-12)
+
+
 def test_forces_conserve_momentum(overlapping):
     """The forces sum to zero and so does their torque: linear and angular momentum."""
     contact, x = overlapping
