@@ -1058,11 +1058,8 @@ def coupled_ranges(pairs: ContactPairs, num_objects: int) -> List[int]:
         return [0] + ends
     lo = pairs.objects.amin(1)
     hi = pairs.objects.amax(1)
-    # reach[i]: the furthest object a run starting at or before i must cover
-    reach = torch.arange(num_objects, device=lo.device).scatter_reduce(0, lo, hi, "amax")
-    reach = torch.cummax(reach, 0).values.tolist()
-    ptr = [0]
-    for i in range(num_objects):
-        if reach[i] == i:  # nothing before or at i joins anything after it
-            ptr.append(i + 1)
-    return ptr
+    # reach[i]: the furthest object a run starting at or before i must cover; a run ends at i
+    # where nothing before or at i joins anything after it
+    objects = torch.arange(num_objects, device=lo.device)
+    reach = torch.cummax(objects.scatter_reduce(0, lo, hi, "amax"), 0).values
+    return [0] + ((reach == objects).nonzero().squeeze(1) + 1).tolist()

@@ -214,7 +214,7 @@ class DynamicsSystem:
         self._matvecs = {}  # (c_mass, c_stiff) -> SystemMatvec
         self._step_graphs = {}  # step options -> StepGraphs (CUDA)
         self._differentiable_steps = {}  # (forward, adjoint options) -> solver.adjoint.DifferentiableStep
-        self._coupled_cg = {}  # object ptr of coupled solves -> CGSolver
+        self._coupled_cg = {}  # object ptr of coupled solves -> (CGSolver, each object's run [B])
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
@@ -743,17 +743,17 @@ def _coupled_solver(system: DynamicsSystem, rhs, opts: StepOptions, pairs):
     system._coupled_ptr = ptr
     if len(ptr) == objects + 1:
         return None
-    solver = system._coupled_cg.get(tuple(ptr))
-    if solver is None:
+    kept = system._coupled_cg.get(tuple(ptr))
+    if kept is None:
         system._coupled_cg.clear()  # layouts only coarsen: an older one does not come back
         node_ptr = system.segments.ptr.tolist()
         lengths = [node_ptr[ptr[i + 1]] - node_ptr[ptr[i]] for i in range(len(ptr) - 1)]
-        solver = system._coupled_cg[tuple(ptr)] = CGSolver(Segments.from_lengths(lengths, rhs.device), rhs.shape,
-                                                           rhs.dtype, rhs.device, system.free,
-                                                           cuda_graphs=opts.cuda_graphs)
-    run = torch.repeat_interleave(torch.arange(len(ptr) - 1, device=rhs.device),
-                                  torch.tensor(ptr, device=rhs.device).diff())
-    return solver, run
+        solver = CGSolver(Segments.from_lengths(lengths, rhs.device), rhs.shape, rhs.dtype, rhs.device, system.free,
+                          cuda_graphs=opts.cuda_graphs)
+        run = torch.repeat_interleave(torch.arange(len(ptr) - 1, device=rhs.device),
+                                      torch.tensor(ptr, device=rhs.device).diff())
+        kept = system._coupled_cg[tuple(ptr)] = (solver, run)
+    return kept
 
 
 #: What to do about each way a step's solve fails (the end of SolverError's message).
