@@ -195,8 +195,8 @@ constexpr int kNearestSlots = 8;
 // One surface vertex an item: over its run of candidates [first[s], first[s + 1]) (the broad
 // phase's, grouped by vertex), for each other body the nearest triangle within the reach
 // (body_contact.SurfaceContact.nearby: the reach grows by what the pair may close over the step
-// when `spread` is given), its side by the pseudonormal of the triangles tied with it, and, when
-// swept, only pairs within the plain reach or outside. Count pass (offsets == nullptr): how many
+// when `spread` is given), its side by the pseudonormal of the triangles tied with it, and only
+// pairs nearer than the plain reach by the ties' rounding, or outside. Count pass (offsets == nullptr): how many
 // pairs the vertex keeps, -1 past kNearestSlots bodies. Fill pass: the pairs at offsets[s], in the
 // order of their chosen candidates in the run (the reference's order).
 template <typename S>
@@ -302,9 +302,11 @@ struct NearestPairsKernel {
     for (int k = 0; k < used; ++k) {
       const TriangleClosest<S>& c = slot[k].closest;
       sides[k] = dot3_(slot[k].pseudo, c.diff) >= S(0) ? S(1) : S(-1);
-      // swept: past the plain reach the candidates need not hold every nearer triangle, so a
-      // pair there is kept only outside (the reference's `trusted`)
-      keep[k] = spread == nullptr || c.d < reach || sides[k] > S(0);
+      // within the rounding of the reach a triangle tied with the chosen one may lie just past
+      // the limit and be left out of the pseudonormal, and past the reach (swept) the candidates
+      // need not hold every nearer triangle: there a pair is kept only outside (the reference's
+      // `trusted`)
+      keep[k] = c.d < reach - rounding || sides[k] > S(0);
       kept += keep[k] ? 1 : 0;
     }
     if (offsets == nullptr) {

@@ -38,8 +38,9 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   // other body: the nearest triangle within the reach (with spread [V] and body_step [B, 3]: the
   // reach grows by spread at the vertex, the triangle's largest spread and |body_step[a] -
   // body_step[b]|), the lowest triangle id among those tied with it within 32 eps (max |p| +
-  // reach), and its side by the sum of the tied triangles' normals; with spread, a pair past the
-  // plain reach is kept only outside.
+  // reach), and its side by the sum of the tied triangles' normals; a pair within that rounding of
+  // the plain reach or past it (with spread) is kept only outside (a triangle tied with it may
+  // lie past the limit).
   // contact_count_nearest(x [V, 3], vertices [Sv], vertex_object [Sv], triangles [F, 3],
   //     triangle_object [F], first [Sv + 1], candidate_triangle [C], spread [V]?, body_step [B, 3]?,
   //     reach) -> counts [Sv] int64

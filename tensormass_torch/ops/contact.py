@@ -192,14 +192,20 @@ def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, fi
     lowest = torch.full((groups,), big, dtype=torch.int64, device=x.device).scatter_reduce(
         0, group, torch.where(tied, triangle, big), "amin")
     chosen = (tied & (triangle == lowest[group])).nonzero().squeeze(1)
-    vertex, triangle, w, diff, d, normal, group = (t[chosen] for t in (vertex, triangle, w, diff, d, normal, group))
+    vertex, triangle, w, diff, d, normal, group, rounding = (
+        t[chosen] for t in (vertex, triangle, w, diff, d, normal, group, rounding))
     side = torch.where((pseudo[group] * diff).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
-    if spread is not None:
-        # Past the reach the candidates need not hold every triangle nearer than the chosen one
-        # (only those whose boxes meet the vertex's), so its side may be wrong: there a pair is
-        # kept only outside (a vertex that deep inside is lost to the body anyway).
-        trusted = ((d < reach) | (side > 0)).nonzero().squeeze(1)
-        vertex, triangle, w, diff, d, normal, side = (t[trusted] for t in (vertex, triangle, w, diff, d, normal, side))
+    # The side is trusted where every triangle tied with the chosen one is among those within the
+    # limit: where the chosen one is nearer than the reach by the rounding. Nearer the reach a
+    # tied triangle may lie just past it (its shared edge computed a few ulps farther) and be left
+    # out, and one face alone may put a vertex beside its edge behind its plane: "inside" by a
+    # whole search (seen on a settled pile: a vertex 22.76 mm beside a block, at the reach to
+    # 1e-8, read 22.76 mm inside it, and the penalty of that pair pulled its body 7 mm into the
+    # block). Past the reach (swept, the limit grown) the candidates need not hold every nearer
+    # triangle either. There a pair is kept only outside (a vertex that deep inside is lost to
+    # the body anyway).
+    trusted = ((d < reach - rounding) | (side > 0)).nonzero().squeeze(1)
+    vertex, triangle, w, diff, d, normal, side = (t[trusted] for t in (vertex, triangle, w, diff, d, normal, side))
     return vertex, triangle, w, diff, d, normal, side
 
 

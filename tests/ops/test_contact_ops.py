@@ -271,3 +271,25 @@ def test_the_order_the_queries_are_taken_in_changes_no_output(device):
     for other in outputs[1:]:
         for ours, theirs in zip(outputs[0], other):
             assert torch.equal(ours, theirs)
+
+
+@pytest.mark.parametrize("native", [True, False])
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_pair_at_the_reach_is_kept_only_outside(native, device):
+    """Within the ties' rounding of the reach a triangle tied with the nearest one may lie just
+    past it, left out of the pseudonormal: one face alone then puts a vertex beside its edge
+    behind its plane, "inside" by a whole search (seen on a settled pile). So there a pair is kept
+    only outside; nearer by more than the rounding, inside too."""
+    dtype, reach = torch.float64, 0.02
+    rounding = 32 * torch.finfo(dtype).eps * (0.5 + reach)  # the narrow phase's, for these vertices
+    heights = [reach - rounding / 4, reach - 4 * rounding, -(reach - rounding / 4)]  # above: inside
+    x = torch.tensor([[-1.0, -1.0, 0.0], [3.0, -1.0, 0.0], [-1.0, 3.0, 0.0]]
+                     + [[0.5, 0.5, z] for z in heights], dtype=dtype, device=device)
+    triangles = torch.tensor([[0, 2, 1]], device=device)  # its normal -z: the body lies above it
+    vertices = torch.tensor([3, 4, 5], device=device)
+    candidate_vertex = torch.arange(3, device=device)
+    pairs = contact.nearest_pairs(x, vertices, torch.zeros(3, dtype=torch.int64, device=device), triangles,
+                                  torch.ones(1, dtype=torch.int64, device=device), candidate_vertex,
+                                  torch.zeros(3, dtype=torch.int64, device=device), None, None, reach, native=native)
+    vertex, side = pairs[0].tolist(), pairs[6].tolist()
+    assert vertex == [1, 2] and side == [-1.0, 1.0]
