@@ -275,6 +275,24 @@ def test_contact_step_phases_probe_quick():
     assert out["phases"]["SurfaceContact.at_state"][1] >= 2
 
 
+def test_contact_rounds_probe_quick():
+    """The rounds probe counts each check's misses and re-linearisations as relinearise tests them,
+    and puts relinearise back."""
+    import contact_rounds_probe as probe
+
+    from tensormass_torch.physics.body_contact import SurfaceContact
+
+    relinearise = SurfaceContact.relinearise
+    steps = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "30", "--timed", "3", "--device",
+                        "cpu"])
+    assert SurfaceContact.relinearise is relinearise
+    assert len(steps) == 3 and all(len(s["iterations"]) >= 1 for s in steps)
+    for s in steps:  # a check for each solve but the last; every count past the check's tolerance
+        assert len(s["checks"]) >= len(s["iterations"]) - 1
+        for check in s["checks"]:
+            assert all(e > check["tolerance"] for e in check["misses"] + check["relinearised"])
+
+
 def test_contact_pile_flips_probe_measures_a_pair_exactly(tmp_path):
     """The flips probe's pair measure is the simulator's interpenetration for two blocks pushed 3 cm
     into each other, 0 apart; the probe runs a pile end to end."""
