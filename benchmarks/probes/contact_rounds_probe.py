@@ -16,8 +16,6 @@ the check's tolerance); the linear end-gap misses that ``implicit_euler_step`` a
 not counted here. Iteration counts are the device's arithmetic's, so the CPU's stand for the
 GPU's to rounding.
 """
-import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -26,10 +24,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
-import common  # noqa: E402
 import contact_piles  # noqa: E402
 
-import tensormass_torch as tm  # noqa: E402
 from tensormass_torch.physics import body_contact  # noqa: E402
 
 
@@ -64,22 +60,8 @@ def checked(log: list):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--columns", type=int, default=10)
-    parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
-    parser.add_argument("--steps", type=int, default=120, help="steps with contact before (without --state)")
-    parser.add_argument("--timed", type=int, default=12, help="steps looked at")
-    parser.add_argument("--state", default=None, help="a folder of contact_piles.py --state (x.pt, v.pt)")
-    parser.add_argument("--contact", type=json.loads, default={}, help="tm.Contact's keyword arguments, JSON")
-    parser.add_argument("--device", default=common.default_device())
-    args = parser.parse_args(argv)
-    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, torch.float32)
-    sim = contact_piles.simulator(bodies, tm.Contact(**args.contact), args.device, torch.float32)
-    if args.state is not None:
-        sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)
-        sim.v = torch.load(Path(args.state) / "v.pt").to(sim.v)
-    else:
-        sim.step(args.steps)
+    args = contact_piles.pile_arguments(argv, __doc__, timed=12)
+    sim = contact_piles.pile_simulator(args)
     log: list = []
     original = checked(log)
     steps, before = [], set()

@@ -13,21 +13,16 @@ then 10 steps more; ``--contact``: keyword arguments of its ``tm.Contact`` as JS
 serialise the device at each call, so the phases' sum exceeds the step's rate: they say where the
 time goes, not what it costs overlapped. Nested phases are each counted (a solve holds its CG).
 """
-import argparse
 import functools
-import json
 import sys
 import time
 from pathlib import Path
-
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import common  # noqa: E402
 import contact_piles  # noqa: E402
 
-import tensormass_torch as tm  # noqa: E402
 from tensormass_torch.ops import contact as contact_ops  # noqa: E402
 from tensormass_torch.physics import body_contact  # noqa: E402
 from tensormass_torch.solver import cg, implicit_euler, preconditioner  # noqa: E402
@@ -67,23 +62,8 @@ def timed(owner, name, device, times: dict):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--columns", type=int, default=10)
-    parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
-    parser.add_argument("--steps", type=int, default=120, help="steps with contact before (without --state)")
-    parser.add_argument("--timed", type=int, default=10)
-    parser.add_argument("--state", default=None, help="a folder of contact_piles.py --state (x.pt, v.pt)")
-    parser.add_argument("--contact", type=json.loads, default={}, help="tm.Contact's keyword arguments, JSON")
-    parser.add_argument("--device", default=common.default_device())
-    args = parser.parse_args(argv)
-    dtype = torch.float32
-    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype)
-    sim = contact_piles.simulator(bodies, tm.Contact(**args.contact), args.device, dtype)
-    if args.state is not None:
-        sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)
-        sim.v = torch.load(Path(args.state) / "v.pt").to(sim.v)
-    else:
-        sim.step(args.steps)
+    args = contact_piles.pile_arguments(argv, __doc__, timed=10)
+    sim = contact_piles.pile_simulator(args)
     sim.step(10)
     rate = contact_piles.rate(sim, args.timed, args.device)
     times: dict = {}
@@ -98,7 +78,7 @@ def main(argv=None):
         for owner, name, original in originals:
             setattr(owner, name, original)
     report = sim.last_report
-    print(f"{len(bodies)} blocks, contact {args.contact}: {1e3 / rate:.1f} ms a step ({rate:.1f} steps/s), "
+    print(f"{sim.num_bodies} blocks, contact {args.contact}: {1e3 / rate:.1f} ms a step ({rate:.1f} steps/s), "
           f"{1e3 * synced:.1f} ms timed; the last step's solves {[int(c.iterations.max()) for c in report.cg]}, "
           f"{len(report.contact_solves[-1][0])} pairs")
     for label, (seconds, calls, iterations) in sorted(times.items(), key=lambda item: -item[1][0]):

@@ -82,6 +82,34 @@ def simulator(bodies, contact, device, dtype, preconditioner="auto"):
                         device=device, dtype=dtype, cg_tol=1e-4, preconditioner=preconditioner)
 
 
+def pile_arguments(argv, description: str, timed: int):
+    """The probes' command line for a pile with contact (:func:`pile_simulator`): --columns,
+    --cells, --steps, --timed (``timed`` steps by default), --state, --contact and --device,
+    parsed from ``argv`` (None: the process's)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--columns", type=int, default=10)
+    parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
+    parser.add_argument("--steps", type=int, default=120, help="steps with contact before (without --state)")
+    parser.add_argument("--timed", type=int, default=timed, help="steps looked at")
+    parser.add_argument("--state", default=None, help="a folder of contact_piles.py --state (x.pt, v.pt)")
+    parser.add_argument("--contact", type=json.loads, default={}, help="tm.Contact's keyword arguments, JSON")
+    parser.add_argument("--device", default=common.default_device())
+    return parser.parse_args(argv)
+
+
+def pile_simulator(args, dtype=torch.float32):
+    """The pile of :func:`pile_arguments`' ``args`` with contact, stepped ``args.steps`` steps
+    or taken from the state ``args.state`` holds (``x.pt``, ``v.pt``, as ``--state`` saves it)."""
+    bodies, _ = pile(args.columns, args.cells, args.device, dtype)
+    sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype)
+    if args.state is not None:
+        sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)
+        sim.v = torch.load(Path(args.state) / "v.pt").to(sim.v)
+    else:
+        sim.step(args.steps)
+    return sim
+
+
 def rate(sim, steps: int, device) -> float:
     common.sync(device)
     start = time.perf_counter()
