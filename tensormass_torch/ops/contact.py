@@ -199,11 +199,9 @@ def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, fi
     # limit: where the chosen one is nearer than the reach by the rounding. Nearer the reach a
     # tied triangle may lie just past it (its shared edge computed a few ulps farther) and be left
     # out, and one face alone may put a vertex beside its edge behind its plane: "inside" by a
-    # whole search (seen on a settled pile: a vertex 22.76 mm beside a block, at the reach to
-    # 1e-8, read 22.76 mm inside it, and the penalty of that pair pulled its body 7 mm into the
-    # block). Past the reach (swept, the limit grown) the candidates need not hold every nearer
-    # triangle either. There a pair is kept only outside (a vertex that deep inside is lost to
-    # the body anyway).
+    # whole search, a penalty that pulls the bodies into each other (docs/contact.md). Past the
+    # reach (swept, the limit grown) the candidates need not hold every nearer triangle either.
+    # There a pair is kept only outside (a vertex that deep inside is lost to the body anyway).
     trusted = ((d < reach - rounding) | (side > 0)).nonzero().squeeze(1)
     vertex, triangle, w, diff, d, normal, side = (t[trusted] for t in (vertex, triangle, w, diff, d, normal, side))
     return vertex, triangle, w, diff, d, normal, side
