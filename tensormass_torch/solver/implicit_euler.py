@@ -218,7 +218,6 @@ class DynamicsSystem:
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
-        self._diagonal_blocks = None  # preconditioner.system_diagonal_blocks' kept blocks without pairs
         self._rest_preconditioner = None  # (key, cache) of preconditioner.system_rest_preconditioner
         self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
         self._solution_spaces = {}  # step coefficients -> (tensors, versions, guess.SolutionSpace)
@@ -366,6 +365,8 @@ class SystemMatvec:
         #: group: ``[node_k [N_n, V, d, d]]``), or None where the products run element by element
         self.tangents = None
         self.node_stiffness = None
+        self.loads = 0  # how many times load or load_step ran (what was derived from a load is kept by it)
+        self.diagonal_blocks = None  # (loads, coefficients, the step's diagonal blocks without pairs): _jacobi
         #: contact forces ``[V, d]`` at the loaded positions (None without planes)
         self.contact_forces = None
         self._ap = None  # A p of matvec_alpha (kept: a CUDA graph replays into it)
@@ -380,6 +381,7 @@ class SystemMatvec:
 
         system = self.system
         system.model._check_positions("x", x)
+        self.loads += 1
         torch.sub(x, system.model.rest, out=self.u)
         states = [ops.linearize(group, self.u) for group in system.model.groups]
         if self.states is None or [s is None for s in states] != [s is None for s in self.states]:
@@ -432,6 +434,7 @@ class SystemMatvec:
         self._node_rhs_buffers()
         model = system.model
         model._check_positions("x", x)
+        self.loads += 1
         # the op takes planes, not tools
         if system.tools is None and ops.step_rhs(model.groups, x, v, model.rest, system.mass, system.external,
                                                  system.planes, h, w_coef, rayleigh_mass, self.u, self._rhs,
@@ -719,8 +722,15 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
         return None
     if system._jacobi is None:
         system._jacobi = JacobiScaling()
-    return system._jacobi.load(system_diagonal_blocks(system, mass_coef, stiffness_coef, fused.node_stiffness,
-                                                      pairs if with_pairs else None, opts.dt))
+    # the blocks without pairs, kept for this load of the product: a step's contact rounds change
+    # only the pairs (a load counter, not tensor versions: the ops write the node stiffness in place)
+    key = (fused.loads, mass_coef, stiffness_coef)
+    if fused.diagonal_blocks is None or fused.diagonal_blocks[0] != key:
+        fused.diagonal_blocks = (key, system_diagonal_blocks(system, mass_coef, stiffness_coef, fused.node_stiffness))
+    blocks = fused.diagonal_blocks[1]
+    if with_pairs:
+        blocks = blocks + pairs.stiffness_blocks(stiffness_coef, opts.dt)
+    return system._jacobi.load(blocks)
 
 
 def _coupled_solver(system: DynamicsSystem, rhs, opts: StepOptions, pairs):

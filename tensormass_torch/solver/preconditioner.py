@@ -264,22 +264,13 @@ def system_diagonal_blocks(system, mass_coef: float, stiffness_coef: float, node
                            pairs=None, pair_damping: float = 0.0) -> torch.Tensor:
     """The diagonal blocks ``[V, d, d]`` of a step's matrix, as :func:`system_diagonal` gives its
     diagonal: mass, the elastic stiffness's blocks at rest (``TensorMass.stiffness_diagonal_blocks``),
-    the node stiffness and the pairs' blocks. All but the pairs' are kept on ``system`` while
-    their tensors and coefficients are unchanged: a step's contact rounds change only the pairs.
-    Without pairs the kept tensor itself is returned: read it, never write it."""
-    rest = system.model.stiffness_diagonal_blocks()
-    tensors = (rest, system.mass) + (() if node_stiffness is None else (node_stiffness,))
-    cache = getattr(system, "_diagonal_blocks", None)
-    if not (library.unchanged(cache, tensors) and cache[2][0] == (mass_coef, stiffness_coef)):
-        blocks = stiffness_coef * rest
-        d = blocks.shape[-1]
-        blocks = blocks + (mass_coef * system.mass.reshape(-1))[:, None, None] * torch.eye(
-            d, dtype=blocks.dtype, device=blocks.device)
-        if node_stiffness is not None:
-            blocks = blocks + stiffness_coef * node_stiffness
-        cache = system._diagonal_blocks = (tensors, tuple(t._version for t in tensors),
-                                           ((mass_coef, stiffness_coef), blocks))
-    blocks = cache[2][1]
+    the node stiffness and the pairs' blocks."""
+    blocks = stiffness_coef * system.model.stiffness_diagonal_blocks()
+    d = blocks.shape[-1]
+    blocks = blocks + (mass_coef * system.mass.reshape(-1))[:, None, None] * torch.eye(
+        d, dtype=blocks.dtype, device=blocks.device)
+    if node_stiffness is not None:
+        blocks = blocks + stiffness_coef * node_stiffness
     if pairs is not None and len(pairs):
         blocks = blocks + pairs.stiffness_blocks(stiffness_coef, pair_damping)
     return blocks
