@@ -231,7 +231,7 @@ def main(argv=None):
     parser.add_argument("--swept", action=argparse.BooleanOptionalAction, default=True,
                         help="Contact(swept=...): pairs over each step's motion (the default) or at its start")
     parser.add_argument("--preconditioners", nargs="+", default=["auto"],
-                        choices=["auto", "none", "jacobi", "multigrid"],
+                        choices=["auto", "none", "jacobi", "rigid", "multigrid"],
                         help="a run with contact for each (the pile without contact is measured once)")
     parser.add_argument("--rounds", type=int, nargs="+", default=[tm.Contact().rounds],
                         help="a run with contact for each Contact(rounds=...) (and each preconditioner)")

@@ -23,7 +23,8 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     rayleigh_mass = 0.5
     rayleigh_stiffness = 0.002
     form = "auto"                     # "stress", "tensor"
-    preconditioner = "auto"           # "none", "jacobi", "multigrid", "cholesky" (auto: Jacobi where bodies touch)
+    preconditioner = "auto"           # "none", "jacobi", "rigid", "multigrid", "cholesky"
+                                      # (auto: Jacobi where bodies touch)
     integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
     warm_start = false                # true / "extrapolate": each CG from the last steps' extrapolated
                                       # solution; "project": their span's projection (hooke: best)

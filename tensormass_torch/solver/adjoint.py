@@ -235,7 +235,7 @@ class DifferentiableStep:
     def _adjoint_matvec(self):
         """The step's fused system product (``SystemMatvec``) where the adjoint solve can use it
         directly (no preconditioner scaling), else None."""
-        if self.adjoint.preconditioner in ("jacobi", "multigrid", "cholesky"):
+        if self.adjoint.preconditioner in ("jacobi", "rigid", "multigrid", "cholesky"):
             return None
         return self.system.system_matvec(*_coefficients(self.adjoint), self.adjoint.pipelined, self.adjoint.variants)
 

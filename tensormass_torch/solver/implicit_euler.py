@@ -48,6 +48,7 @@ from .preconditioner import (
     system_diagonal_blocks,
     system_rest_preconditioner,
 )
+from .rigid_modes import RigidModeCorrection
 
 
 def auto_cg_max_iter(free_dofs: int) -> int:
@@ -82,11 +83,12 @@ class StepOptions:
             lose accuracy on ill-conditioned systems: more iterations, and at worst a false
             breakdown, where the classic CG converges (the Simulator retries such a step so).
         preconditioner: ``"auto"`` (default: Jacobi for the solves that body contact pairs join,
-            none elsewhere), ``"none"``, ``"jacobi"``, ``"multigrid"`` or ``"cholesky"`` (every
-            solve of a TensorMass; not the whole-solve op or the captured steps): see
-            ``solver.preconditioner``, ``solver.multigrid`` and ``solver.direct``. With Jacobi,
-            ``cg_tol`` holds the residual scaled by the diagonal's inverse square root; with the
-            others, the true residual.
+            none elsewhere), ``"none"``, ``"jacobi"``, ``"rigid"`` (block Jacobi with a coarse
+            correction over each body's rigid motions, coupled by the contact pairs: 3-D),
+            ``"multigrid"`` or ``"cholesky"`` (every solve of a TensorMass; not the whole-solve op
+            or the captured steps): see ``solver.preconditioner``, ``solver.rigid_modes``,
+            ``solver.multigrid`` and ``solver.direct``. With Jacobi and rigid, ``cg_tol`` holds the
+            residual scaled by the diagonal blocks' factors; with the others, the true residual.
         variants: the kernel variants the ops run (``ops.variants.KernelVariants``: equivalent
             kernels that differ in speed); the default reads the benchmarks' ``TENSORMASS_*``
             variables once (``KernelVariants.from_env``).
@@ -218,6 +220,7 @@ class DynamicsSystem:
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
+        self._rigid = None  # rigid_modes.RigidModeCorrection: its buffers kept (as _jacobi's)
         self._rest_preconditioner = None  # (key, cache) of preconditioner.system_rest_preconditioner
         self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
         self._solution_spaces = {}  # step coefficients -> (tensors, versions, guess.SolutionSpace)
@@ -649,6 +652,10 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
         graph_key = None if graph_key is None else (graph_key, scaling.key)
         rhs = scaling.apply_transpose(rhs)
         x0 = None if x0 is None else scaling.unapply(x0)
+    rigid = _rigid(system, opts, fused, pairs, mass_coef, stiffness_coef, scaling)
+    if rigid is not None:  # PCG on the scaled system with the rigid bodies' coarse correction
+        multigrid = rigid
+        graph_key = None if graph_key is None else (graph_key, rigid.key)
     coupled = _coupled_solver(system, rhs, opts, pairs) if pairs is not None and len(pairs) else None
     if coupled is not None:
         solver, run = coupled
@@ -715,10 +722,12 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):
     """The system's ``preconditioner.JacobiScaling`` loaded with this solve's 3x3 diagonal blocks where
-    ``opts.preconditioner`` asks for it (``"auto"``: where body contact ``pairs`` join the solve)
-    and the model has a loaded product ``fused`` (a TensorMass); None otherwise."""
+    ``opts.preconditioner`` asks for it (``"auto"``: where body contact ``pairs`` join the solve;
+    ``"rigid"``: under its coarse correction, :func:`_rigid`) and the model has a loaded product
+    ``fused`` (a TensorMass); None otherwise."""
     with_pairs = pairs is not None and len(pairs) > 0
-    if fused is None or not (opts.preconditioner == "jacobi" or (opts.preconditioner == "auto" and with_pairs)):
+    wanted = opts.preconditioner in ("jacobi", "rigid") or (opts.preconditioner == "auto" and with_pairs)
+    if fused is None or not wanted:
         return None
     if system._jacobi is None:
         system._jacobi = JacobiScaling()
@@ -731,6 +740,27 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
     if with_pairs:
         blocks = blocks + pairs.stiffness_blocks(stiffness_coef, opts.dt)
     return system._jacobi.load(blocks)
+
+
+def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float,
+           scaling):
+    """The system's ``rigid_modes.RigidModeCorrection`` loaded for this solve (on block Jacobi's
+    loaded ``scaling``) where ``opts.preconditioner`` is ``"rigid"`` and the bodies are 3-D; None
+    otherwise (a 2-D system keeps block Jacobi alone)."""
+    with_pairs = pairs is not None and len(pairs) > 0
+    if scaling is None or system.model.rest.shape[-1] != 3 or opts.preconditioner != "rigid":
+        return None
+    if system._rigid is None:
+        system._rigid = RigidModeCorrection()
+    eye = torch.eye(3, dtype=fused.u.dtype, device=fused.u.device)
+    weights = (mass_coef * system.mass)[:, :, None] * eye
+    if fused.node_stiffness is not None:
+        weights = weights + stiffness_coef * fused.node_stiffness
+    # a step's contact rounds solve at one load of the product: its modes and bodies' blocks stay
+    return system._rigid.load(fused.u + system.model.rest, system.mass.reshape(-1), system.segments, system.free,
+                              weights, scaling, pairs if with_pairs else None,
+                              pairs._pair_matrices(stiffness_coef, opts.dt) if with_pairs else None,
+                              kept=(id(fused), fused.loads, mass_coef, stiffness_coef))
 
 
 def _coupled_solver(system: DynamicsSystem, rhs, opts: StepOptions, pairs):
@@ -1161,7 +1191,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     # body contact's pairs change in number from step to step: its steps run eagerly
     if (not opts.cuda_graphs or opts.newton_iters != 1 or not isinstance(system.model, TensorMass)
             or opts.integrator == "bdf2"  # (bdf2_step's backward Euler steps have their own)
-            or system.body_contact is not None or opts.preconditioner in ("jacobi", "cholesky")
+            or system.body_contact is not None or opts.preconditioner in ("jacobi", "rigid", "cholesky")
             or system.model.rest.device.type != "cuda"
             or not hasattr(cg_ops.native_ops_for(system.model.rest), "euler_update")):
         return None

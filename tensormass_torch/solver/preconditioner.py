@@ -48,7 +48,7 @@ from ..ops.multigrid import BsrMatrix, block_cholesky_scaling, block_scaling, bs
 #: preconditioner), ``"auto"`` (jacobi for the solves body contact pairs join, none elsewhere),
 #: ``"multigrid"`` (preconditioned CG with a smoothed-aggregation V-cycle: ``solver.multigrid``),
 #: ``"cholesky"`` (with the rest matrix's sparse Cholesky factor: ``solver.direct``).
-PRECONDITIONERS = ("auto", "none", "jacobi", "multigrid", "cholesky")
+PRECONDITIONERS = ("auto", "none", "jacobi", "rigid", "multigrid", "cholesky")
 
 
 class JacobiScaling:

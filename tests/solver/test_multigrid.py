@@ -367,7 +367,7 @@ fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
     scene = tm.load_scene(path)
     assert scene.simulator.options.preconditioner == "multigrid"
     scene.simulator.step(2)
-    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'multigrid', 'cholesky', "
+    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'rigid', 'multigrid', 'cholesky', "
                                             "got 'amg'"):
         beam_sim(preconditioner="amg")
     sim = beam_sim(cells=(4, 1, 1))

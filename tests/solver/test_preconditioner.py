@@ -97,18 +97,27 @@ def loaded_step_matrix(sim):
     return loaded, pairs
 
 
+def loaded_step_with_pairs(friction=0.0, seed=1):
+    """The two blocks at random velocities (``seed``; None: at rest): (sim, its loaded
+    SystemMatvec, its pairs, the pairs' product PairStiffness loaded with the step's coefficient
+    and friction damping)."""
+    sim = two_blocks_in_contact(friction=friction)
+    if seed is not None:
+        gen = torch.Generator().manual_seed(seed)
+        sim.v = 0.05 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
+    loaded, pairs = loaded_step_matrix(sim)
+    stiffness = PairStiffness()
+    stiffness.load(pairs, _coefficients(sim.options)[1], sim.options.dt)
+    return sim, loaded, pairs, stiffness
+
+
 @pytest.mark.parametrize("friction", [0.0, 0.4])
 def test_the_system_diagonal_is_the_step_matrix_diagonal(friction):
     """system_diagonal equals the probed diagonal of the step's whole product: mass, elasticity,
     the floor's stiffness and friction, the pairs' stiffness and friction."""
-    sim = two_blocks_in_contact(friction=friction)
-    gen = torch.Generator().manual_seed(1)
-    sim.v = 0.05 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
-    loaded, pairs = loaded_step_matrix(sim)
+    sim, loaded, pairs, stiffness = loaded_step_with_pairs(friction)
     assert len(pairs) > 0 and (friction == 0) == (pairs.friction is None)
     mass_coef, stiffness_coef = _coefficients(sim.options)
-    stiffness = PairStiffness()
-    stiffness.load(pairs, stiffness_coef, sim.options.dt)
     expected = probed_diagonal(lambda e: loaded(e)[0] + stiffness(e), sim.x.shape)
     diagonal = system_diagonal(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness, pairs, sim.options.dt)
     torch.testing.assert_close(diagonal, expected, rtol=1e-12, atol=1e-14)
@@ -118,13 +127,8 @@ def test_the_system_diagonal_is_the_step_matrix_diagonal(friction):
 def test_the_system_blocks_are_the_step_matrix_blocks(friction):
     """system_diagonal_blocks equals the probed diagonal blocks of the step's whole product (the
     floor and pairs with their friction couple a node's axes)."""
-    sim = two_blocks_in_contact(friction=friction)
-    gen = torch.Generator().manual_seed(1)
-    sim.v = 0.05 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
-    loaded, pairs = loaded_step_matrix(sim)
+    sim, loaded, pairs, stiffness = loaded_step_with_pairs(friction)
     mass_coef, stiffness_coef = _coefficients(sim.options)
-    stiffness = PairStiffness()
-    stiffness.load(pairs, stiffness_coef, sim.options.dt)
     expected = probed_blocks(lambda e: loaded(e)[0] + stiffness(e), sim.x.shape)
     blocks = system_diagonal_blocks(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness, pairs,
                                     sim.options.dt)
@@ -233,11 +237,13 @@ def test_the_scaled_product_is_s_a_s():
 
 
 @pytest.mark.parametrize("friction", [0.0, 0.4])
-def test_preconditioned_and_plain_steps_agree(friction):
-    """The same step (contact pairs, floor and its friction) solved to 1e-13 with Jacobi and
-    without: the same velocities to 1e-9."""
+@pytest.mark.parametrize("preconditioned", ["jacobi", "rigid"])
+def test_preconditioned_and_plain_steps_agree(friction, preconditioned):
+    """The same step (contact pairs, floor and its friction) solved to 1e-13 with block Jacobi
+    (alone, and under the rigid motions' coarse correction) and without: the same velocities to
+    1e-9."""
     results = []
-    for preconditioner in ("jacobi", "none"):
+    for preconditioner in (preconditioned, "none"):
         sim = two_blocks_in_contact(preconditioner, friction)
         gen = torch.Generator().manual_seed(4)
         sim.v = 0.05 * torch.randn(sim.x.shape, generator=gen, dtype=DT)
@@ -277,7 +283,7 @@ def test_a_pile_with_jacobi_keeps_the_bodies_apart():
 
 def test_bad_preconditioner_raises_one_clear_error(tmp_path):
     mesh = tm.beam_mesh(1, 1, 1, dtype=DT)
-    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'multigrid', 'cholesky', "
+    with pytest.raises(tm.SceneError, match="preconditioner must be one of 'auto', 'none', 'jacobi', 'rigid', 'multigrid', 'cholesky', "
                                             "got 'ilu'"):
         tm.Simulator([tm.Body(mesh, tm.Material(young=1e5, poisson=0.3))], preconditioner="ilu")
     scene = tmp_path / "bad.toml"

@@ -1,0 +1,81 @@
+"""What the rigid bodies' coarse correction (``preconditioner="rigid"``) saves and costs on a pile
+with body contact: from one state, each preconditioner's ms a step and CG iterations a step, in
+turn and twice; then, with "rigid", the ms of a load of the correction (a synchronising timer
+around ``RigidModeCorrection.load``) and of one application, eager and captured in a CUDA graph.
+
+    python benchmarks/probes/rigid_modes_probe.py [--columns 10] [--steps 150] [--timed 5]
+                                                  [--state DIR] [--contact '{}'] [--device cuda]
+
+The pile is ``contact_piles``' (columns x columns x columns blocks), stepped ``--steps`` steps with
+contact (the default preconditioner), or taken from a state ``contact_piles.py --state`` saved; each
+preconditioner then starts from that state, steps twice (warm-up) and is timed over ``--timed``.
+"""
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+import common  # noqa: E402
+import contact_piles  # noqa: E402
+
+
+def main(argv=None):
+    args = contact_piles.pile_arguments(argv, __doc__, timed=5)
+    sim = contact_piles.pile_simulator(args)
+    device = args.device
+    start_x, start_v = sim.x.clone(), sim.v.clone()
+    print(f"{common.metadata(device)['device_name']}; {sim.x.shape[0]:,} nodes", flush=True)
+    for preconditioner in ("jacobi", "rigid", "jacobi", "rigid"):
+        sim.options = dataclasses.replace(sim.options, preconditioner=preconditioner)
+        sim.x, sim.v = start_x.clone(), start_v.clone()
+        sim.step(2)
+        common.sync(device)
+        began = time.perf_counter()
+        iterations = [sum(int(c.iterations.max()) for c in sim.step().cg) for _ in range(args.timed)]
+        common.sync(device)
+        print(f"{preconditioner}: {1e3 * (time.perf_counter() - began) / args.timed:.1f} ms a step, "
+              f"CG iterations a step {iterations}", flush=True)
+    correction = sim.system._rigid
+    loads = []
+    plain_load = correction.load
+
+    def timed_load(*a, **k):
+        common.sync(device)
+        began = time.perf_counter()
+        out = plain_load(*a, **k)
+        common.sync(device)
+        loads.append(time.perf_counter() - began)
+        return out
+
+    correction.load = timed_load
+    sim.step(args.timed)
+    del correction.load
+    print(f"load: {len(loads)} in {args.timed} steps, {1e3 * sum(loads) / len(loads):.2f} ms each", flush=True)
+    r = torch.randn_like(sim.x)
+    for _ in range(3):
+        correction(r)
+    common.sync(device)
+    began = time.perf_counter()
+    for _ in range(50):
+        correction(r)
+    common.sync(device)
+    print(f"one application, eager: {1e6 * (time.perf_counter() - began) / 50:.0f} us", flush=True)
+    if device.startswith("cuda"):
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            for _ in range(10):
+                correction(r)
+        common.sync(device)
+        began = time.perf_counter()
+        for _ in range(10):
+            graph.replay()
+        common.sync(device)
+        print(f"one application, captured: {1e6 * (time.perf_counter() - began) / 100:.0f} us", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,273 @@
+"""A coarse correction over each body's rigid motions, beside block Jacobi (``preconditioner="rigid"``).
+
+Why: contact pairs join bodies by penalties far stiffer than a body's nodes (``docs/contact.md``).
+Block Jacobi brings each stiff row back to the others' scale, but not the motions those rows
+do not resist: a stack of blocks moving together, each block turning on the one below. There the
+scaled matrix is near singular, and CG spends its iterations finding them one contact at a time.
+These motions are close to rigid per body, six per body: a space small enough to solve directly.
+
+The coarse space: Z ``[V d, 6 B]``, each body's three translations and three rotations about its
+centre of mass (the rotations' lever arms divided by the body's radius of gyration, so that the
+six columns have comparable norms), zero on fixed nodes. Its matrix
+
+    E = Z^T A Z = c_M Z^T M Z + c_K Z^T N Z + sum over pairs (J Z)^T M_p (J Z)
+
+(M the masses, N the planes' and tools' node stiffness, M_p a pair's a u u^T + b P_t, J its
+vertex-minus-closest-point operator) leaves out the bodies' elastic stiffness: a rigid motion
+does not strain a body, so Z^T K Z is zero at rest (tested) and small when it is deformed, and
+leaving it out saves six products of the elastic operator a load.
+
+The preconditioner, in the block-Jacobi-scaled system that the CG runs on (``JacobiScaling``:
+A' = S^T A S, S = L^-T per node), with Z' = S^-1 Z (so that Z'^T A' Z' = E):
+
+    z = r + w Z' E^-1 Z'^T r,
+
+the additive two-level form: the identity (block Jacobi, in the scaled space) plus the coarse
+solve, weighted by w = 1/2 (the two overlap on the coarse space; ``docs/preconditioners.md``).
+It is symmetric positive definite when E is, and E is a Galerkin product of the step's matrix.
+
+E is not solved whole. The bodies are ordered along a Morton curve of their centres of mass and
+taken in groups of ``group_bodies``; E is replaced by its principal blocks over the groups (each
+one symmetric positive definite, as principal blocks of E are): the pairs between two groups keep
+their diagonal terms and drop their coupling. Bodies in contact are near each other, so most
+couplings fall inside a group. Each group's block is inverted once per load, in float64; an
+iteration then costs six per-body dot products, one batched product of the small inverses, and
+one gather, with fixed shapes and no host synchronisation (a CUDA graph replays it with each
+load's values, in the buffers kept here). As tensor ops that is about twenty small kernels, each
+bound by its latency: what the correction saves in iterations it spends there on the GPU today
+(``benchmarks/results/contact/contact_pile_1000_rigid.md``), so ``"auto"`` does not use it.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from ..mesh.topology import add_at
+from ..ops import cg as cg_ops
+from ..ops.segments import ChunkPlan, Segments
+
+#: Bodies per group of the coarse solve (its matrices are 6 x this on a side).
+GROUP_BODIES = 32
+#: The coarse correction's weight w (z = r + w Z' E^-1 Z'^T r).
+WEIGHT = 0.5
+#: Morton code bits per axis of the bodies' order.
+_MORTON_BITS = 10
+
+
+class BodySums:
+    """Per-body dot products of per-node fields in float64 chunk order (``ops.cg.object_dot`` over a
+    plan of the bodies of ``segments``): deterministic, with no host synchronisation, so that they
+    can run inside a captured CG iteration."""
+
+    def __init__(self, segments: Segments, like: torch.Tensor):
+        self.segments = segments
+        self.plan = ChunkPlan.from_segments(segments)
+        self._state = cg_ops.CGState.empty(self.plan, (0,), like.dtype, like.device)
+        self._native = cg_ops.native_ops_for(like)
+        self.ones = torch.ones(like.shape[0], dtype=like.dtype, device=like.device)
+
+    def dot(self, a: torch.Tensor, b: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        """``out [B]`` (in place) = each body's sum of a . b over its nodes (``[V]`` or ``[V, d]``)."""
+        cg_ops.object_dot(a, b, self.plan, out, self._state, self._native)
+        return out
+
+    def sums(self, values: torch.Tensor) -> torch.Tensor:
+        """Each body's sums ``[B, n]`` of per-node ``values [V, n]``."""
+        out = values.new_zeros(values.shape[1], self.segments.num_objects)
+        for k in range(values.shape[1]):
+            self.dot(values[:, k].contiguous(), self.ones, out[k])
+        return out.t()
+
+
+def rigid_modes(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
+    """(modes ``[6, V, 3]``, centres ``[B, 3]``): at each node its body's three translations and
+    three rotations about the body's centre of mass (lever arms divided by the body's radius of
+    gyration, so that the six have comparable norms); and the centres. A massless body turns
+    about its nodes' mean. ``sums``: the bodies' :class:`BodySums`."""
+    index = sums.segments.node_object
+    tiny = torch.finfo(x.dtype).tiny
+    per_body = sums.sums(torch.cat([mass[:, None], mass[:, None] * x, x], 1))  # [B, 7]
+    body_mass = per_body[:, 0]
+    counts = sums.segments.lengths.clamp(min=1).to(x.dtype)
+    centres = torch.where(body_mass[:, None] > 0, per_body[:, 1:4] / body_mass.clamp(min=tiny)[:, None],
+                          per_body[:, 4:7] / counts[:, None])
+    arm = x - centres[index]
+    spread = sums.sums((mass * (arm * arm).sum(-1))[:, None])[:, 0]
+    gyration = torch.sqrt(spread / body_mass.clamp(min=tiny))
+    gyration = torch.where(gyration > tiny, gyration, torch.ones_like(gyration))
+    arm = arm / gyration[index, None]
+    modes = x.new_zeros(6, x.shape[0], 3)
+    modes[0, :, 0] = modes[1, :, 1] = modes[2, :, 2] = 1.0
+    ax, ay, az = arm.unbind(-1)
+    modes[3, :, 1], modes[3, :, 2] = -az, ay  # e_x x arm
+    modes[4, :, 0], modes[4, :, 2] = az, -ax  # e_y x arm
+    modes[5, :, 0], modes[5, :, 1] = -ay, ax  # e_z x arm
+    return modes, centres
+
+
+def morton_groups(centres: torch.Tensor, group_bodies: int) -> tuple:
+    """(each body's group ``[B]``, its slot in the group ``[B]``, the number of groups): the
+    bodies in the order of a Morton curve through their ``centres [B, 3]`` (ties by index), taken
+    ``group_bodies`` at a time."""
+    count, dim = centres.shape
+    low = centres.amin(0)
+    span = (centres.amax(0) - low).amax().clamp(min=torch.finfo(centres.dtype).tiny)
+    top = (1 << _MORTON_BITS) - 1
+    cells = ((centres - low) / span * top).round().to(torch.int64).clamp(0, top)  # [B, dim]
+    bits = torch.arange(_MORTON_BITS, device=centres.device)
+    axes = torch.arange(dim, device=centres.device)
+    code = (((cells[:, :, None] >> bits) & 1) << (dim * bits + axes[:, None])).sum((1, 2))
+    order = torch.argsort(code, stable=True)
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(count, device=centres.device)
+    return rank // group_bodies, rank % group_bodies, -(-count // group_bodies)
+
+
+def _gram(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a^T b ``[N, 6, 6]`` for ``a, b [N, 3, 6]``, elementwise (batched GEMMs of such small
+    matrices run far below the memory's speed on the GPU)."""
+    return (a[:, :, :, None] * b[:, :, None, :]).sum(1)
+
+
+def own_blocks(modes: torch.Tensor, node_weights: torch.Tensor, sums: BodySums) -> torch.Tensor:
+    """Each body's own block of the coarse matrix without pairs, Z_b^T W Z_b ``[B, 6, 6]`` float64
+    (``modes [6, V, 3]``: Z, :func:`rigid_modes`, fixed nodes zeroed; ``node_weights [V, 3, 3]``:
+    W = c_M m_i I + c_K N_i at each node): 21 per-body dots, the nodes' 6 x 6 blocks never formed."""
+    own = modes.new_zeros(6, 6, sums.segments.num_objects)
+    for j in range(6):
+        weighted = (node_weights * modes[j][:, None, :]).sum(-1)
+        for k in range(j + 1):
+            sums.dot(modes[k], weighted, own[k, j])
+            if k != j:
+                own[j, k].copy_(own[k, j])
+    return own.permute(2, 0, 1).to(torch.float64)
+
+
+def group_matrices(own: torch.Tensor, modes: torch.Tensor, group: torch.Tensor, slot: torch.Tensor, groups: int,
+                   size: int, pairs=None, pair_matrices: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The coarse matrix E = Z^T A Z without the elastic part, as its principal blocks over the
+    groups ``[groups, 6 size, 6 size]`` float64 (body b in block ``group[b]`` at ``slot[b]``; slots
+    without a body are zero).
+
+    ``own [B, 6, 6]``: the bodies' own blocks without pairs (:func:`own_blocks`); ``modes [6, V, 3]``:
+    Z; ``pairs``: ``ContactPairs`` (or None) with ``pair_matrices [P, 3, 3]`` their M_p. A pair
+    between two groups adds its terms on each body's own block and drops its coupling; a pair
+    within one body (self-contact) adds its coupling to the body's own block."""
+    place = group * size * size + slot * size + slot  # each body's own block
+    matrices = add_at(own.new_zeros(groups * size * size, 6, 6), place, own)
+    if pairs is not None and len(pairs):
+        nodes = pairs.nodes
+        coefficients = pairs._coefficients().to(modes.dtype)  # [P, 4]: 1, -w
+        vertex = modes[:, nodes[:, 0]].permute(1, 2, 0)  # [P, 3, 6]
+        triangle = sum(coefficients[:, i, None, None] * modes[:, nodes[:, i]].permute(1, 2, 0) for i in (1, 2, 3))
+        mp = pair_matrices.to(modes.dtype)
+
+        def weighted(g):
+            return (mp[:, :, :, None] * g[:, None, :, :]).sum(2)  # M_p g [P, 3, 6]
+
+        mv, mt = weighted(vertex), weighted(triangle)
+        bv, bt = pairs.objects[:, 0], pairs.objects[:, 1]
+        inside = (group[bv] == group[bt])[:, None, None]
+        vt = torch.where(inside, _gram(vertex, mt), 0.0)
+        cross_vt = group[bv] * size * size + slot[bv] * size + slot[bt]
+        cross_tv = group[bv] * size * size + slot[bt] * size + slot[bv]
+        index = torch.cat([place[bv], place[bt], cross_vt, cross_tv])
+        blocks = torch.cat([_gram(vertex, mv), _gram(triangle, mt), vt, vt.transpose(1, 2)])
+        matrices = add_at(matrices, index, blocks.to(torch.float64))
+    return matrices.view(groups, size, size, 6, 6).transpose(2, 3).reshape(groups, 6 * size, 6 * size)
+
+
+class RigidModeCorrection:
+    """The coarse correction z = r + w Z' E^-1 Z'^T r ``[V, 3]`` of block Jacobi's scaled system
+    (see the module), in buffers whose storage stays from load to load while the shapes do (a
+    CUDA graph captured over :meth:`__call__` replays with each load's values)."""
+
+    def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT):
+        if group_bodies < 1:
+            raise ValueError(f"group_bodies must be at least 1, got {group_bodies}")
+        self.group_bodies = int(group_bodies)
+        self.weight = float(weight)
+        self.basis: Optional[torch.Tensor] = None  # Z' [6, V, 3]
+        self.inverses: Optional[torch.Tensor] = None  # [G, 6 c, 6 c] float64
+        self.rank: Optional[torch.Tensor] = None  # each body's place group * c + slot [B]
+        self._sums: Optional[BodySums] = None
+        self._kept = None  # (key, modes, group, slot, groups, own blocks) of load's ``kept``
+        self._projections: Optional[torch.Tensor] = None  # Z'^T r [6, B]
+        self._grouped: Optional[torch.Tensor] = None  # [G c, 6] float64
+
+    def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
+             node_weights: torch.Tensor, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
+             kept=None) -> "RigidModeCorrection":
+        """Build the correction at positions ``x [V, 3]`` for the bodies of ``segments`` with node
+        masses ``mass [V]``, free-node mask ``free [V, 1]`` (or None), ``node_weights [V, 3, 3]``
+        (c_M m_i I + c_K N_i), block Jacobi's loaded ``scaling`` (``JacobiScaling``: Z' = S^-1 Z) and
+        the ``pairs`` with their ``pair_matrices [P, 3, 3]`` (c_K k u u^T + damping, or None).
+        ``kept``: a key that promises x, mass, free and the node weights are those of the last
+        load with the same key (a step's contact rounds: only the pairs and the scaling change),
+        whose modes, groups and own blocks are then reused; None: computed afresh.
+        No host synchronisation."""
+        if self._sums is None or self._sums.segments is not segments or self._sums.ones.dtype != x.dtype \
+                or self._sums.ones.device != x.device or self._sums.ones.shape[0] != x.shape[0]:
+            self._sums, self.basis, self._kept = BodySums(segments, x), None, None
+        if kept is None or self._kept is None or self._kept[0] != kept:
+            modes, centres = rigid_modes(x, mass, self._sums)
+            if free is not None:
+                modes = modes * free
+            group, slot, groups = morton_groups(centres, self.group_bodies)
+            own = own_blocks(modes, node_weights, self._sums)
+            self._kept = (kept, modes, group, slot, groups, own)
+        _, modes, group, slot, groups, own = self._kept
+        size = self.group_bodies
+        matrices = group_matrices(own, modes, group, slot, groups, size, pairs, pair_matrices)
+        # slots past the last body, and coarse unknowns no free node carries: the identity there
+        # (a rigid motion of fixed nodes is no motion); a relative 1e-10 on the diagonal keeps
+        # the factor finite where a body's free nodes leave a motion nearly unresisted
+        entries = torch.diagonal(matrices, dim1=-2, dim2=-1)
+        scale = entries.amax(-1, keepdim=True).clamp(min=torch.finfo(torch.float64).tiny)
+        empty = entries <= 1e-12 * scale
+        matrices = matrices + torch.diag_embed(empty.to(matrices.dtype) + 1e-10 * scale)
+        # E^-1 = L^-T L^-1 by triangular solves (torch's cholesky_inverse synchronised with the
+        # host in a profile on the H200: the loads must not)
+        factor, _ = torch.linalg.cholesky_ex(matrices)
+        eye = torch.eye(6 * size, dtype=matrices.dtype, device=matrices.device).expand_as(matrices)
+        lower_inverse = torch.linalg.solve_triangular(factor, eye, upper=False)
+        inverses = lower_inverse.transpose(1, 2) @ lower_inverse
+        basis = torch.stack([scaling.unapply(modes[k]) for k in range(6)])
+        rank = group * size + slot
+        if self.basis is None or self.basis.shape != basis.shape or self.inverses.shape != inverses.shape:
+            self.basis, self.inverses, self.rank = basis, inverses, rank
+            self._projections = x.new_zeros(6, segments.num_objects)
+            self._grouped = inverses.new_zeros(groups * size, 6)
+        else:
+            self.basis.copy_(basis)
+            self.inverses.copy_(inverses)
+            self.rank.copy_(rank)
+        return self
+
+    @property
+    def key(self) -> tuple:
+        """What a graph captured over :meth:`__call__` depends on: its buffers' storage."""
+        return ("rigid", self.basis.data_ptr(), self.inverses.data_ptr(), self.rank.data_ptr())
+
+    def coarse(self, r: torch.Tensor, weight: float = 1.0, out: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """``out`` (zeros where None) plus ``weight`` Z' E^-1 Z'^T r ``[V, 3]`` for a residual ``r [V, 3]``
+        of the scaled system."""
+        for k in range(6):
+            self._sums.dot(self.basis[k], r, self._projections[k])
+        grouped = self._grouped.index_copy_(0, self.rank, self._projections.t().to(torch.float64))
+        groups = self.inverses.shape[0]
+        solved = torch.bmm(self.inverses, grouped.view(groups, -1, 1)).view(-1, 6)
+        per_body = (weight * solved.index_select(0, self.rank)).to(r.dtype)  # [B, 6]
+        per_node = per_body.index_select(0, self._sums.segments.node_object)  # [V, 6]
+        out = torch.zeros_like(r) if out is None else out
+        for k in range(6):
+            out.addcmul_(self.basis[k], per_node[:, k:k + 1])
+        return out
+
+    def __call__(self, r: torch.Tensor) -> torch.Tensor:
+        return self.coarse(r, self.weight, r.clone())
+
+
+__all__ = ["GROUP_BODIES", "WEIGHT", "BodySums", "RigidModeCorrection", "group_matrices", "morton_groups",
+           "own_blocks", "rigid_modes"]

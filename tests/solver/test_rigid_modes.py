@@ -1,0 +1,245 @@
+"""The rigid bodies' coarse correction (solver.rigid_modes, ``preconditioner="rigid"``): its coarse
+matrix against the dense Galerkin product Z^T A Z of the step's probed operator (float64), its
+groups' principal blocks, the preconditioner symmetric positive definite, fewer iterations on a
+tower, and bad input (the step against the plain one: test_preconditioner)."""
+import pytest
+import torch
+from test_preconditioner import loaded_step_with_pairs, two_blocks_in_contact
+
+import tensormass_torch as tm
+from tensormass_torch.solver.implicit_euler import _coefficients
+from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagonal_blocks
+from tensormass_torch.solver.rigid_modes import (
+    BodySums,
+    RigidModeCorrection,
+    group_matrices,
+    morton_groups,
+    own_blocks,
+    rigid_modes,
+)
+
+DT = torch.float64
+
+
+def dense(product, size):
+    """The matrix ``[size, size]`` of a linear map on flat vectors."""
+    eye = torch.eye(size, dtype=DT)
+    return torch.stack([product(eye[i]) for i in range(size)], 1)
+
+
+def step_pieces(friction=0.0, velocities=True):
+    """The two blocks' step: (sim, loaded product, pairs, pairs' product, node weights c_M m I + c_K N)."""
+    sim, loaded, pairs, stiffness = loaded_step_with_pairs(friction, 3 if velocities else None)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    weights = (mass_coef * sim.system.mass)[:, :, None] * torch.eye(3, dtype=DT) + stiffness_coef * loaded.node_stiffness
+    return sim, loaded, pairs, stiffness, weights
+
+
+def coarse_reference(sim, loaded, stiffness, modes):
+    """Z^T (c_M M + c_K N + the pairs' part) Z ``[6 B, 6 B]`` (body-major) from the probed
+    operator without elasticity."""
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    shape = sim.x.shape
+
+    def without_elasticity(flat):
+        p = flat.view(shape)
+        nodes = mass_coef * sim.system.mass * p + stiffness_coef * (loaded.node_stiffness @ p[:, :, None])[:, :, 0]
+        return (nodes + stiffness(p)).reshape(-1)
+
+    operator = dense(without_elasticity, shape.numel())
+    bodies = sim.system.segments.num_objects
+    z = torch.zeros(shape.numel(), 6 * bodies, dtype=DT)
+    for b in range(bodies):
+        rows = (sim.system.segments.node_object == b).repeat_interleave(3)
+        for k in range(6):
+            z[rows, 6 * b + k] = modes[k].reshape(-1)[rows]
+    return z.T @ operator @ z
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.4])
+def test_the_coarse_matrix_is_the_galerkin_product(friction):
+    """One group of both bodies: E equals Z^T A Z without elasticity (mass, floor and its
+    friction, the pairs and theirs) to roundoff, in the groups' slot order."""
+    sim, loaded, pairs, stiffness, weights = step_pieces(friction)
+    sums = BodySums(sim.system.segments, sim.x)
+    modes, centres = rigid_modes(sim.x, sim.system.mass.reshape(-1), sums)
+    group, slot, groups = morton_groups(centres, 2)
+    assert groups == 1 and sorted(slot.tolist()) == [0, 1]
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    matrices = group_matrices(own_blocks(modes, weights, sums), modes, group, slot, groups, 2, pairs,
+                              pairs._pair_matrices(stiffness_coef, sim.options.dt))
+    reference = coarse_reference(sim, loaded, stiffness, modes)
+    order = torch.argsort(slot)
+    index = torch.cat([torch.arange(6) + 6 * int(b) for b in order])
+    torch.testing.assert_close(matrices[0], reference[index][:, index], rtol=1e-10, atol=1e-10 * float(reference.abs().max()))
+    coupling = reference[:6, 6:]
+    assert float(coupling.abs().max()) > 1e-3 * float(reference.abs().max())  # the pairs join the bodies
+
+
+def test_groups_keep_their_principal_blocks():
+    """Groups of one body: each body's own block of the whole E (its pairs' diagonal terms kept,
+    their coupling dropped)."""
+    sim, loaded, pairs, stiffness, weights = step_pieces()
+    sums = BodySums(sim.system.segments, sim.x)
+    modes, centres = rigid_modes(sim.x, sim.system.mass.reshape(-1), sums)
+    group, slot, groups = morton_groups(centres, 1)
+    assert groups == 2 and slot.tolist() == [0, 0]
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    matrices = group_matrices(own_blocks(modes, weights, sums), modes, group, slot, groups, 1, pairs,
+                              pairs._pair_matrices(stiffness_coef, sim.options.dt))
+    reference = coarse_reference(sim, loaded, stiffness, modes)
+    for b in range(2):
+        torch.testing.assert_close(matrices[int(group[b])], reference[6 * b:6 * b + 6, 6 * b:6 * b + 6],
+                                   rtol=1e-10, atol=1e-10 * float(reference.abs().max()))
+
+
+def test_the_modes_are_rigid_motions():
+    """The elastic product annihilates each mode at rest (hooke), the translations are unit and
+    the rotations turn each body about its centre of mass."""
+    sim = two_blocks_in_contact()
+    sums = BodySums(sim.system.segments, sim.x)
+    modes, centres = rigid_modes(sim.x, sim.system.mass.reshape(-1), sums)
+    tensor_mass = sim.system.model
+    for k in range(6):
+        forces = tensor_mass.dforce(tensor_mass.rest, modes[k])
+        assert float(forces.abs().max()) < 1e-9 * (1.0 + float(tensor_mass.dforce(tensor_mass.rest, sim.x).abs().max()))
+    assert torch.equal(modes[0], torch.tensor([1.0, 0.0, 0.0], dtype=DT).expand_as(modes[0]))
+    mass = sim.system.mass.reshape(-1)
+    for b in range(2):
+        rows = sim.system.segments.node_object == b
+        for k in range(3, 6):
+            torch.testing.assert_close((mass[rows, None] * modes[k][rows]).sum(0), torch.zeros(3, dtype=DT),
+                                       rtol=0, atol=1e-12)
+
+
+def loaded_correction(group_bodies=2):
+    """The correction loaded for the two blocks' step (with block Jacobi's scaling) and the
+    scaled step product p -> S^T A S p."""
+    sim, loaded, pairs, stiffness, weights = step_pieces(velocities=False)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    scaling = JacobiScaling().load(system_diagonal_blocks(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness,
+                                                          pairs, sim.options.dt))
+    correction = RigidModeCorrection(group_bodies).load(
+        sim.x, sim.system.mass.reshape(-1), sim.system.segments, sim.system.free, weights, scaling, pairs,
+        pairs._pair_matrices(stiffness_coef, sim.options.dt))
+    scaled = scaling.product(lambda p: loaded(p)[0] + stiffness(p))
+    return sim, correction, scaled
+
+
+def test_a_load_that_keeps_the_bodies_part_equals_a_fresh_one():
+    """A second load with the same ``kept`` key (a contact round: other pairs, another scaling)
+    reuses the modes and the bodies' own blocks and equals a fresh load, in the same buffers."""
+    sim, loaded, pairs, _, weights = step_pieces(velocities=False)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+
+    def arguments(chosen):
+        scaling = JacobiScaling().load(system_diagonal_blocks(sim.system, mass_coef, stiffness_coef,
+                                                              loaded.node_stiffness, chosen, sim.options.dt))
+        return (sim.x, sim.system.mass.reshape(-1), sim.system.segments, sim.system.free, weights, scaling, chosen,
+                chosen._pair_matrices(stiffness_coef, sim.options.dt))
+
+    fewer = pairs.select(torch.arange(0, len(pairs), 2))
+    kept = RigidModeCorrection(2).load(*arguments(pairs), kept="load 1")
+    storage = kept.inverses.data_ptr()
+    kept.load(*arguments(fewer), kept="load 1")
+    fresh = RigidModeCorrection(2).load(*arguments(fewer))
+    assert kept.inverses.data_ptr() == storage
+    torch.testing.assert_close(kept.inverses, fresh.inverses, rtol=1e-12, atol=0)
+    torch.testing.assert_close(kept.basis, fresh.basis, rtol=1e-12, atol=0)
+    r = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(6), dtype=DT)
+    torch.testing.assert_close(kept(r), fresh(r), rtol=1e-12, atol=1e-14)
+
+
+def test_the_correction_is_exact_on_the_coarse_space():
+    """At rest (hooke: a rigid motion strains nothing) Z'^T A' Z' = E for the scaled step matrix
+    A', so the coarse solve inverts A' on the span of Z': Z'^T A' (coarse(A' Z' c)) = Z'^T A' Z' c."""
+    sim, correction, scaled = loaded_correction()
+    shape = sim.x.shape
+    basis = correction.basis  # [6, V, 3]
+    images = [scaled(basis[k]) for k in range(6)]
+    gen = torch.Generator().manual_seed(5)
+    weights = torch.randn(2, 6, generator=gen, dtype=DT)
+    per_node = weights[sim.system.segments.node_object]  # [V, 6]
+    field = sum(per_node[:, k, None] * basis[k] for k in range(6))
+    image = scaled(field)
+    back = correction.coarse(image)
+    torch.testing.assert_close(back, field.view(shape), rtol=1e-8, atol=1e-8 * float(field.abs().max()))
+    assert len(images) == 6
+
+
+@pytest.mark.parametrize("group_bodies", [1, 2])
+def test_the_preconditioner_is_symmetric_positive_definite(group_bodies):
+    sim, correction, _ = loaded_correction(group_bodies)
+    shape = sim.x.shape
+    matrix = dense(lambda flat: correction(flat.view(shape)).reshape(-1), shape.numel())
+    torch.testing.assert_close(matrix, matrix.T, rtol=1e-10, atol=1e-10 * float(matrix.abs().max()))
+    assert float(torch.linalg.eigvalsh(matrix).min()) > 0.5  # the identity plus a positive part
+
+
+def tower(preconditioner, dtype=DT, device="cpu"):
+    """Four blocks (1e6 Pa, the piles' stiffness) stacked on a floor, each resting in the one
+    below's contact layer."""
+    material = tm.Material(young=1e6, poisson=0.3, density=1000)
+    block = tm.beam_mesh(3, 3, 2, size=(0.2, 0.2, 0.1), dtype=dtype)
+    bodies = [tm.Body(tm.TetMesh(block.vertices + torch.tensor([0.01 * k, 0.0, 0.001 + 0.1015 * k], dtype=dtype),
+                                 block.elements), material) for k in range(4)]
+    return tm.Simulator(bodies, dt=0.005, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(),
+                        rayleigh_mass=1.0, cg_tol=1e-6, preconditioner=preconditioner, dtype=dtype, device=device)
+
+
+def test_a_tower_takes_fewer_iterations_with_the_rigid_correction():
+    """A stack of four blocks whose contacts carry the weight above: the coarse space takes a
+    stack's near-rigid motions off the CG (the same solution to the tolerance)."""
+    counts, ends = {}, {}
+    for preconditioner in ("jacobi", "rigid"):
+        sim = tower(preconditioner)
+        sim.step(10)  # the blocks settle into their contacts
+        total = 0
+        for _ in range(10):
+            report = sim.step()
+            total += sum(int(c.iterations.max()) for c in report.cg)
+        assert int(report.contact.body_contacts.sum()) > 0
+        counts[preconditioner], ends[preconditioner] = total, sim.x.clone()
+    assert counts["rigid"] < 0.8 * counts["jacobi"], counts
+    torch.testing.assert_close(ends["rigid"], ends["jacobi"], rtol=0, atol=1e-5)
+
+
+def test_morton_groups_partition_the_bodies():
+    gen = torch.Generator().manual_seed(2)
+    centres = torch.rand(37, 3, generator=gen, dtype=DT)
+    group, slot, groups = morton_groups(centres, 8)
+    assert groups == 5
+    places = (group * 8 + slot).tolist()
+    assert sorted(places) == list(range(37))
+    near = morton_groups(torch.tensor([[0.0, 0, 0], [5.0, 5, 5], [0.01, 0, 0], [5.0, 5, 5.01]], dtype=DT), 2)[0]
+    assert near[0] == near[2] and near[1] == near[3] and near[0] != near[1]
+
+
+def test_bad_group_size_raises_one_clear_error():
+    with pytest.raises(ValueError, match="group_bodies must be at least 1, got 0"):
+        RigidModeCorrection(group_bodies=0)
+
+
+def test_the_scene_file_takes_rigid(tmp_path):
+    scene = tmp_path / "rigid.toml"
+    scene.write_text('[solver]\npreconditioner = "rigid"\n\n[[bodies]]\nmesh = { generator = "beam", cells = [1, 1, 1] }\n'
+                     'material = { young = 1e5, poisson = 0.3, density = 1000 }\n')
+    assert tm.load_scene(scene).simulator.options.preconditioner == "rigid"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a GPU")
+def test_a_captured_correction_replays_each_load():
+    """The correction inside a CUDA graph: replayed after a new load, it gives the new load's
+    eager result (its buffers keep their storage)."""
+    sim = tower("rigid", torch.float32, "cuda")
+    sim.step(12)
+    correction = sim.system._rigid
+    r = torch.randn_like(sim.x)
+    out = torch.empty_like(r)
+    correction(r)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out.copy_(correction(r))
+    sim.step()  # a new load into the same buffers
+    graph.replay()
+    torch.testing.assert_close(out, correction(r), rtol=1e-6, atol=1e-6 * float(out.abs().max()))
