@@ -30,12 +30,15 @@ E is not solved whole. The bodies are ordered along a Morton curve of their cent
 taken in groups of ``group_bodies``; E is replaced by its principal blocks over the groups (each
 one symmetric positive definite, as principal blocks of E are): the pairs between two groups keep
 their diagonal terms and drop their coupling. Bodies in contact are near each other, so most
-couplings fall inside a group. Each group's block is inverted once per load, in float64; an
-iteration then costs six per-body dot products, one batched product of the small inverses, and
-one gather, with fixed shapes and no host synchronisation (a CUDA graph replays it with each
-load's values, in the buffers kept here). As tensor ops that is about twenty small kernels, each
-bound by its latency: what the correction saves in iterations it spends there on the GPU today
-(``benchmarks/results/contact/contact_pile_1000_rigid.md``), so ``"auto"`` does not use it.
+couplings fall inside a group. Each group's block is inverted once per load, in float64.
+
+An iteration applies it as three block-sparse products (``ops.multigrid.bsr_gemv``, the
+multigrid's op): the restriction Z'^T, the groups' inverses written as a block row a body, and
+the prolongation Z', which also adds r. Fixed shapes, no host synchronisation, deterministic
+sums: a CUDA graph replays it with each load's values, in the buffers kept here. (Its first
+form, about twenty small tensor ops, cost half a CG iteration on the GPU and more than the third
+of the iterations it saved: ``benchmarks/results/contact/contact_pile_1000_rigid.md``. So
+``"auto"`` does not use it until the three products are measured there.)
 """
 from __future__ import annotations
 
@@ -45,6 +48,7 @@ import torch
 
 from ..mesh.topology import add_at
 from ..ops import cg as cg_ops
+from ..ops.multigrid import BsrMatrix, bsr_gemv
 from ..ops.segments import ChunkPlan, Segments
 
 #: Bodies per group of the coarse solve (its matrices are 6 x this on a side).
@@ -180,21 +184,24 @@ def group_matrices(own: torch.Tensor, modes: torch.Tensor, group: torch.Tensor, 
 
 class RigidModeCorrection:
     """The coarse correction z = r + w Z' E^-1 Z'^T r ``[V, 3]`` of block Jacobi's scaled system
-    (see the module), in buffers whose storage stays from load to load while the shapes do (a
-    CUDA graph captured over :meth:`__call__` replays with each load's values)."""
+    (see the module) as three block-sparse products (``ops.multigrid.bsr_gemv``): the restriction
+    Z'^T (a block row a body, a 6 x 3 block a node), the groups' inverses (a block row a body, a
+    6 x 6 block for each body of its group) and the prolongation Z' (a block row a node, one 3 x 6
+    block: its body's), the last adding r. Its buffers keep their storage from load to load while
+    the shapes do (a CUDA graph captured over :meth:`__call__` replays with each load's values)."""
 
     def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT):
         if group_bodies < 1:
             raise ValueError(f"group_bodies must be at least 1, got {group_bodies}")
+        if not weight > 0:
+            raise ValueError(f"weight must be positive, got {weight}")
         self.group_bodies = int(group_bodies)
         self.weight = float(weight)
-        self.basis: Optional[torch.Tensor] = None  # Z' [6, V, 3]
-        self.inverses: Optional[torch.Tensor] = None  # [G, 6 c, 6 c] float64
-        self.rank: Optional[torch.Tensor] = None  # each body's place group * c + slot [B]
+        self.restriction: Optional[BsrMatrix] = None  # Z'^T [6 B, 3 V]
+        self.inverses: Optional[BsrMatrix] = None  # the groups' E^-1 [6 B, 6 B]
+        self.prolongation: Optional[BsrMatrix] = None  # w Z' [3 V, 6 B]
         self._sums: Optional[BodySums] = None
         self._kept = None  # (key, modes, group, slot, groups, own blocks) of load's ``kept``
-        self._projections: Optional[torch.Tensor] = None  # Z'^T r [6, B]
-        self._grouped: Optional[torch.Tensor] = None  # [G c, 6] float64
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights: torch.Tensor, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
@@ -209,7 +216,7 @@ class RigidModeCorrection:
         No host synchronisation."""
         if self._sums is None or self._sums.segments is not segments or self._sums.ones.dtype != x.dtype \
                 or self._sums.ones.device != x.device or self._sums.ones.shape[0] != x.shape[0]:
-            self._sums, self.basis, self._kept = BodySums(segments, x), None, None
+            self._sums, self.restriction, self._kept = BodySums(segments, x), None, None
         if kept is None or self._kept is None or self._kept[0] != kept:
             modes, centres = rigid_modes(x, mass, self._sums)
             if free is not None:
@@ -232,41 +239,63 @@ class RigidModeCorrection:
         factor, _ = torch.linalg.cholesky_ex(matrices)
         eye = torch.eye(6 * size, dtype=matrices.dtype, device=matrices.device).expand_as(matrices)
         lower_inverse = torch.linalg.solve_triangular(factor, eye, upper=False)
-        inverses = lower_inverse.transpose(1, 2) @ lower_inverse
-        basis = torch.stack([scaling.unapply(modes[k]) for k in range(6)])
-        rank = group * size + slot
-        if self.basis is None or self.basis.shape != basis.shape or self.inverses.shape != inverses.shape:
-            self.basis, self.inverses, self.rank = basis, inverses, rank
-            self._projections = x.new_zeros(6, segments.num_objects)
-            self._grouped = inverses.new_zeros(groups * size, 6)
+        inverses = lower_inverse.transpose(1, 2) @ lower_inverse  # [G, 6 c, 6 c]
+        # each body's row of its group's inverse: a 6 x 6 block for each slot (an empty slot's
+        # block is zero: the inverse keeps the padding's identity apart), columns the slots' bodies
+        bodies = segments.num_objects
+        members = torch.zeros(groups * size, dtype=torch.int64, device=x.device)
+        members[group * size + slot] = torch.arange(bodies, device=x.device)
+        filled = torch.zeros(groups * size, dtype=torch.bool, device=x.device)
+        filled[group * size + slot] = True
+        rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
+        rows = torch.where(filled.view(groups, size)[group][:, :, None, None], rows, 0.0).to(x.dtype)
+        columns = members.view(groups, size)[group].to(torch.int32)  # [B, c]
+        basis = torch.stack([scaling.unapply(modes[k]) for k in range(6)], -1)  # Z' per node [V, 3, 6]
+        blocks = rows.reshape(-1, 6, 6)
+        if self.restriction is None or self.inverses.values.shape != blocks.shape \
+                or self.restriction.values.shape[0] != basis.shape[0] or self.restriction.values.dtype != x.dtype \
+                or self.restriction.values.device != x.device:
+            self._build(basis, blocks, columns.reshape(-1), segments)
         else:
-            self.basis.copy_(basis)
-            self.inverses.copy_(inverses)
-            self.rank.copy_(rank)
+            self.restriction.values.copy_(basis.transpose(1, 2))
+            self.prolongation.values.copy_(self.weight * basis)
+            self.inverses.values.copy_(blocks)
+            self.inverses.block_cols.copy_(columns.reshape(-1))
         return self
+
+    def _build(self, basis: torch.Tensor, rows: torch.Tensor, columns: torch.Tensor, segments: Segments):
+        """The three matrices on new buffers: ``basis [V, 3, 6]`` Z' per node, the inverses' blocks
+        ``rows [B c, 6, 6]`` and their block columns ``[B c]`` int32."""
+        nodes, bodies = basis.shape[0], segments.num_objects
+        device = basis.device
+        per_row = rows.shape[0] // bodies
+        node_rows = torch.arange(nodes, device=device)
+        body_ptr = segments.ptr.to(device=device, dtype=torch.int32)
+        self.restriction = BsrMatrix(basis.transpose(1, 2).contiguous(), node_rows.to(torch.int32), body_ptr,
+                                     segments.node_object.to(device), (6 * bodies, 3 * nodes))
+        self.prolongation = BsrMatrix((self.weight * basis).contiguous(), segments.node_object.to(device, torch.int32),
+                                      torch.arange(nodes + 1, dtype=torch.int32, device=device), node_rows,
+                                      (3 * nodes, 6 * bodies))
+        self.inverses = BsrMatrix(rows.contiguous(), columns.contiguous(),
+                                  torch.arange(bodies + 1, dtype=torch.int32, device=device) * per_row,
+                                  torch.arange(bodies, device=device).repeat_interleave(per_row),
+                                  (6 * bodies, 6 * bodies))
 
     @property
     def key(self) -> tuple:
         """What a graph captured over :meth:`__call__` depends on: its buffers' storage."""
-        return ("rigid", self.basis.data_ptr(), self.inverses.data_ptr(), self.rank.data_ptr())
+        return ("rigid", self.restriction.values.data_ptr(), self.prolongation.values.data_ptr(),
+                self.inverses.values.data_ptr(), self.inverses.block_cols.data_ptr())
 
-    def coarse(self, r: torch.Tensor, weight: float = 1.0, out: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """``out`` (zeros where None) plus ``weight`` Z' E^-1 Z'^T r ``[V, 3]`` for a residual ``r [V, 3]``
-        of the scaled system."""
-        for k in range(6):
-            self._sums.dot(self.basis[k], r, self._projections[k])
-        grouped = self._grouped.index_copy_(0, self.rank, self._projections.t().to(torch.float64))
-        groups = self.inverses.shape[0]
-        solved = torch.bmm(self.inverses, grouped.view(groups, -1, 1)).view(-1, 6)
-        per_body = (weight * solved.index_select(0, self.rank)).to(r.dtype)  # [B, 6]
-        per_node = per_body.index_select(0, self._sums.segments.node_object)  # [V, 6]
-        out = torch.zeros_like(r) if out is None else out
-        for k in range(6):
-            out.addcmul_(self.basis[k], per_node[:, k:k + 1])
-        return out
+    def coarse(self, r: torch.Tensor) -> torch.Tensor:
+        """Z' E^-1 Z'^T r ``[V, 3]`` for a residual ``r [V, 3]`` of the scaled system (unweighted)."""
+        solved = bsr_gemv(self.inverses, bsr_gemv(self.restriction, r.reshape(-1)))
+        return bsr_gemv(self.prolongation, solved, alpha=1.0 / self.weight).view_as(r)
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
-        return self.coarse(r, self.weight, r.clone())
+        """z = r + w Z' E^-1 Z'^T r ``[V, 3]``: three block-sparse products, the last adding r."""
+        solved = bsr_gemv(self.inverses, bsr_gemv(self.restriction, r.reshape(-1)))
+        return bsr_gemv(self.prolongation, solved, r.reshape(-1)).view_as(r)
 
 
 __all__ = ["GROUP_BODIES", "WEIGHT", "BodySums", "RigidModeCorrection", "group_matrices", "morton_groups",
