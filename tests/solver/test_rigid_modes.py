@@ -4,6 +4,7 @@ groups' principal blocks, the preconditioner symmetric positive definite, fewer 
 tower, and bad input (the step against the plain one: test_preconditioner)."""
 import pytest
 import torch
+from conftest import group_meshes
 from test_preconditioner import loaded_step_with_pairs, two_blocks_in_contact
 
 import tensormass_torch as tm
@@ -244,3 +245,18 @@ def test_a_captured_correction_replays_each_load():
     sim.step()  # a new load into the same buffers
     graph.replay()
     torch.testing.assert_close(out, correction(r), rtol=1e-6, atol=1e-6 * float(out.abs().max()))
+
+
+@pytest.mark.parametrize("kind", ["tri2d", "membrane"])
+def test_rigid_on_triangle_bodies_steps_as_jacobi(kind):
+    """Triangle bodies (a planar mesh, which the simulator moves in 3-D, and a membrane) take the
+    correction and step as "jacobi" does, to the tolerance."""
+    mesh = group_meshes()[kind]
+    out = {}
+    for preconditioner in ("rigid", "jacobi"):
+        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000), fixed=mesh.vertices[:, 0] < 1e-9)
+        sim = tm.Simulator([body], dt=0.01, cg_tol=1e-12, preconditioner=preconditioner)
+        sim.step(3)
+        out[preconditioner] = (sim.v.clone(), sim.system._rigid)
+    torch.testing.assert_close(out["rigid"][0], out["jacobi"][0], rtol=1e-8, atol=1e-9)
+    assert out["rigid"][1] is not None and out["jacobi"][1] is None
