@@ -189,7 +189,6 @@ class Viewer:
             self.server.stop()
             raise ViewerError(f"cannot serve on {host}:{port}: the port is in use; choose another with --port / port=")
         self.host, self.port = host, self.server.get_port()
-        self._clients_seen = 0
         try:
             self._build_scene()
             self._build_gui()
@@ -373,7 +372,11 @@ class Viewer:
         """Stop the viewer once a page has connected and every page has closed."""
         @self.server.on_client_disconnect
         def _(client):
-            if self._clients_seen and not self.server.get_clients():
+            # a disconnect is itself the page that connected: viser runs the connect and disconnect
+            # callbacks on its own threads, so a page closed at once may be seen leaving before
+            # it is counted in (a full CI run once waited 60 s for the command to exit)
+            others = [c for c in self.server.get_clients().values() if c.client_id != client.client_id]
+            if not others:
                 self._stop.set()
 
     def close(self) -> None:
@@ -744,10 +747,6 @@ class Viewer:
         def _(event):
             if coloring.value != self.coloring:
                 self.set_coloring(coloring.value)
-
-        @self.server.on_client_connect
-        def _(client):
-            self._clients_seen += 1
 
 
 def view(scene, *, host: str = "127.0.0.1", port: int = 8080, block: bool = True, exit_on_close: bool = False,
