@@ -374,7 +374,7 @@ class Viewer:
         def _(client):
             # a disconnect is itself the page that connected: viser runs the connect and disconnect
             # callbacks on its own threads, so a page closed at once may be seen leaving before
-            # it is counted in (a full CI run once waited 60 s for the command to exit)
+            # a connect callback could count it in
             others = [c for c in self.server.get_clients().values() if c.client_id != client.client_id]
             if not others:
                 self._stop.set()

@@ -752,10 +752,12 @@ def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: f
         return None
     if system._rigid is None:
         system._rigid = RigidModeCorrection()
-    eye = torch.eye(3, dtype=fused.u.dtype, device=fused.u.device)
-    weights = (mass_coef * system.mass)[:, :, None] * eye
-    if fused.node_stiffness is not None:
-        weights = weights + stiffness_coef * fused.node_stiffness
+
+    def weights():  # c_M m_i I + c_K N_i [V, 3, 3], made only where the bodies' part is
+        eye = torch.eye(3, dtype=fused.u.dtype, device=fused.u.device)
+        node = (mass_coef * system.mass)[:, :, None] * eye
+        return node if fused.node_stiffness is None else node + stiffness_coef * fused.node_stiffness
+
     # a step's contact rounds solve at one load of the product: its modes and bodies' blocks stay
     return system._rigid.load(fused.u + system.model.rest, system.mass.reshape(-1), system.segments, system.free,
                               weights, scaling, pairs if with_pairs else None,

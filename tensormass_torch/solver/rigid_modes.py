@@ -35,10 +35,9 @@ couplings fall inside a group. Each group's block is inverted once per load, in 
 An iteration applies it as three block-sparse products (``ops.multigrid.bsr_gemv``, the
 multigrid's op): the restriction Z'^T, the groups' inverses written as a block row a body, and
 the prolongation Z', which also adds r. Fixed shapes, no host synchronisation, deterministic
-sums: a CUDA graph replays it with each load's values, in the buffers kept here. (Its first
-form, about twenty small tensor ops, cost half a CG iteration on the GPU and more than the third
-of the iterations it saved: ``benchmarks/results/contact/contact_pile_1000_rigid.md``. So
-``"auto"`` does not use it until the three products are measured there.)
+sums: a CUDA graph replays it with each load's values, in the buffers kept here. Whether the
+iterations it saves pay for it is measured, not assumed: ``"auto"`` does not use it
+(``docs/preconditioners.md``).
 """
 from __future__ import annotations
 
@@ -61,8 +60,8 @@ _MORTON_BITS = 10
 
 class BodySums:
     """Per-body dot products of per-node fields in float64 chunk order (``ops.cg.object_dot`` over a
-    plan of the bodies of ``segments``): deterministic, with no host synchronisation, so that they
-    can run inside a captured CG iteration."""
+    plan of the bodies of ``segments``): deterministic, with no host synchronisation (a load runs
+    between a step's captured iterations without draining the device's queue)."""
 
     def __init__(self, segments: Segments, like: torch.Tensor):
         self.segments = segments
@@ -158,8 +157,8 @@ def group_matrices(own: torch.Tensor, modes: torch.Tensor, group: torch.Tensor, 
     Z; ``pairs``: ``ContactPairs`` (or None) with ``pair_matrices [P, 3, 3]`` their M_p. A pair
     between two groups adds its terms on each body's own block and drops its coupling; a pair
     within one body (self-contact) adds its coupling to the body's own block."""
-    place = group * size * size + slot * size + slot  # each body's own block
-    matrices = add_at(own.new_zeros(groups * size * size, 6, 6), place, own)
+    place = group * size * size + slot * size + slot  # each body's own block (one a body)
+    matrices = own.new_zeros(groups * size * size, 6, 6).index_copy_(0, place, own)
     if pairs is not None and len(pairs):
         nodes = pairs.nodes
         coefficients = pairs._coefficients().to(modes.dtype)  # [P, 4]: 1, -w
@@ -204,12 +203,13 @@ class RigidModeCorrection:
         self._kept = None  # (key, modes, group, slot, groups, own blocks) of load's ``kept``
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
-             node_weights: torch.Tensor, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
+             node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
              kept=None) -> "RigidModeCorrection":
         """Build the correction at positions ``x [V, 3]`` for the bodies of ``segments`` with node
         masses ``mass [V]``, free-node mask ``free [V, 1]`` (or None), ``node_weights [V, 3, 3]``
-        (c_M m_i I + c_K N_i), block Jacobi's loaded ``scaling`` (``JacobiScaling``: Z' = S^-1 Z) and
-        the ``pairs`` with their ``pair_matrices [P, 3, 3]`` (c_K k u u^T + damping, or None).
+        (c_M m_i I + c_K N_i, or a function that returns them: called only where the bodies' part
+        is computed), block Jacobi's loaded ``scaling`` (``JacobiScaling``: Z' = S^-1 Z) and the
+        ``pairs`` with their ``pair_matrices [P, 3, 3]`` (c_K k u u^T + damping, or None).
         ``kept``: a key that promises x, mass, free and the node weights are those of the last
         load with the same key (a step's contact rounds: only the pairs and the scaling change),
         whose modes, groups and own blocks are then reused; None: computed afresh.
@@ -222,7 +222,7 @@ class RigidModeCorrection:
             if free is not None:
                 modes = modes * free
             group, slot, groups = morton_groups(centres, self.group_bodies)
-            own = own_blocks(modes, node_weights, self._sums)
+            own = own_blocks(modes, node_weights() if callable(node_weights) else node_weights, self._sums)
             self._kept = (kept, modes, group, slot, groups, own)
         _, modes, group, slot, groups, own = self._kept
         size = self.group_bodies
@@ -234,21 +234,21 @@ class RigidModeCorrection:
         scale = entries.amax(-1, keepdim=True).clamp(min=torch.finfo(torch.float64).tiny)
         empty = entries <= 1e-12 * scale
         matrices = matrices + torch.diag_embed(empty.to(matrices.dtype) + 1e-10 * scale)
-        # E^-1 = L^-T L^-1 by triangular solves (torch's cholesky_inverse synchronised with the
-        # host in a profile on the H200: the loads must not)
+        # E^-1 = L^-T L^-1 by triangular solves (torch's cholesky_inverse synchronises with the
+        # host; the loads must not)
         factor, _ = torch.linalg.cholesky_ex(matrices)
         eye = torch.eye(6 * size, dtype=matrices.dtype, device=matrices.device).expand_as(matrices)
         lower_inverse = torch.linalg.solve_triangular(factor, eye, upper=False)
         inverses = lower_inverse.transpose(1, 2) @ lower_inverse  # [G, 6 c, 6 c]
         # each body's row of its group's inverse: a 6 x 6 block for each slot (an empty slot's
         # block is zero: the inverse keeps the padding's identity apart), columns the slots' bodies
+        # (the Morton ranks group * c + slot are 0 .. B - 1: the slots past them are the empty ones)
         bodies = segments.num_objects
         members = torch.zeros(groups * size, dtype=torch.int64, device=x.device)
         members[group * size + slot] = torch.arange(bodies, device=x.device)
-        filled = torch.zeros(groups * size, dtype=torch.bool, device=x.device)
-        filled[group * size + slot] = True
+        filled = torch.arange(groups * size, device=x.device).view(groups, size) < bodies
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
-        rows = torch.where(filled.view(groups, size)[group][:, :, None, None], rows, 0.0).to(x.dtype)
+        rows = torch.where(filled[group][:, :, None, None], rows, 0.0).to(x.dtype)
         columns = members.view(groups, size)[group].to(torch.int32)  # [B, c]
         basis = torch.stack([scaling.unapply(modes[k]) for k in range(6)], -1)  # Z' per node [V, 3, 6]
         blocks = rows.reshape(-1, 6, 6)
@@ -287,15 +287,17 @@ class RigidModeCorrection:
         return ("rigid", self.restriction.values.data_ptr(), self.prolongation.values.data_ptr(),
                 self.inverses.values.data_ptr(), self.inverses.block_cols.data_ptr())
 
+    def _coarse_solution(self, r: torch.Tensor) -> torch.Tensor:
+        """E^-1 Z'^T r ``[6 B]`` (the groups' blocks) for a residual ``r [V, 3]``."""
+        return bsr_gemv(self.inverses, bsr_gemv(self.restriction, r.reshape(-1)))
+
     def coarse(self, r: torch.Tensor) -> torch.Tensor:
         """Z' E^-1 Z'^T r ``[V, 3]`` for a residual ``r [V, 3]`` of the scaled system (unweighted)."""
-        solved = bsr_gemv(self.inverses, bsr_gemv(self.restriction, r.reshape(-1)))
-        return bsr_gemv(self.prolongation, solved, alpha=1.0 / self.weight).view_as(r)
+        return bsr_gemv(self.prolongation, self._coarse_solution(r), alpha=1.0 / self.weight).view_as(r)
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
         """z = r + w Z' E^-1 Z'^T r ``[V, 3]``: three block-sparse products, the last adding r."""
-        solved = bsr_gemv(self.inverses, bsr_gemv(self.restriction, r.reshape(-1)))
-        return bsr_gemv(self.prolongation, solved, r.reshape(-1)).view_as(r)
+        return bsr_gemv(self.prolongation, self._coarse_solution(r), r.reshape(-1)).view_as(r)
 
 
 __all__ = ["GROUP_BODIES", "WEIGHT", "BodySums", "RigidModeCorrection", "group_matrices", "morton_groups",
