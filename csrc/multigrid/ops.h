@@ -49,11 +49,12 @@ void dispatch_scalar_block(at::ScalarType t, int64_t r, int64_t c, F&& f) {
 }
 
 // Lanes summing one block row: a warp where rows hold many blocks (a coarse level's ~50), fewer
-// where they hold few (a prolongator's ~4), one on the CPU. A function of the matrix alone, so
-// one matrix always sums in one order.
+// where they hold few (a prolongator's ~4), one where they hold one (block Jacobi's factors, a
+// rigid-mode prolongation: more lanes would only add zeros), one on the CPU. A function of the
+// matrix alone, so one matrix always sums in one order.
 inline int row_group(int64_t blocks, int64_t rows) {
   const int64_t per_row = rows > 0 ? blocks / rows : 0;
-  return per_row >= 16 ? 32 : per_row >= 4 ? 8 : 4;
+  return per_row >= 16 ? 32 : per_row >= 4 ? 8 : per_row >= 2 ? 4 : 1;
 }
 
 // A BSR matrix's arrays: values [nb, R, C] floating, block_cols [nb] and row_ptr [Rb + 1] int32,
