@@ -23,6 +23,9 @@ struct CandidateArgs {
   at::Tensor cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start, query_stop,
       query_order, entry_triangle, entry_cells, low, high, triangle_object;
   bool same_body;
+  c10::optional<at::Tensor> triangle_first;
+
+  bool skips_own() const { return !same_body && triangle_first.has_value() && triangle_first->defined(); }
 
   void check() const {
     TORCH_CHECK(point_low.defined() && point_low.dim() == 2 && point_low.size(1) == 3,
@@ -45,6 +48,12 @@ struct CandidateArgs {
     check_index_tensor(entry_triangle, "entry_triangle", point_low, at::kLong, {num_entries}, "point_low");
     check_index_tensor(entry_cells, "entry_cells", point_low, at::kLong, {num_entries, 3}, "point_low");
     check_index_tensor(triangle_object, "triangle_object", point_low, at::kLong, {num_triangles}, "point_low");
+    if (triangle_first.has_value() && triangle_first->defined()) {
+      TORCH_CHECK(triangle_first->dim() == 1 && triangle_first->size(0) >= 1,
+                  "tensormass: triangle_first must be [B + 1], got shape ", shape_str(triangle_first->sizes()));
+      check_index_tensor(*triangle_first, "triangle_first", point_low, at::kLong, {triangle_first->size(0)},
+                         "point_low");
+    }
   }
 
   template <typename S>
@@ -64,6 +73,7 @@ struct CandidateArgs {
     k.low = low.data_ptr<S>();
     k.high = high.data_ptr<S>();
     k.triangle_object = triangle_object.data_ptr<int64_t>();
+    k.triangle_first = skips_own() ? triangle_first->data_ptr<int64_t>() : nullptr;
     k.same_body = same_body;
     return k;
   }
@@ -77,9 +87,11 @@ at::Tensor contact_count_candidates(const at::Tensor& cell, const at::Tensor& po
                                     const at::Tensor& query_stop, const at::Tensor& query_order,
                                     const at::Tensor& entry_triangle,
                                     const at::Tensor& entry_cells, const at::Tensor& low, const at::Tensor& high,
-                                    const at::Tensor& triangle_object, bool same_body) {
+                                    const at::Tensor& triangle_object, bool same_body,
+                                    const c10::optional<at::Tensor>& triangle_first) {
   const CandidateArgs args{cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start,
-                           query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body};
+                           query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object,
+                           same_body, triangle_first};
   args.check();
   at::Tensor counts = at::empty({query_vertex.numel()}, query_vertex.options());
   typename L::Guard guard(point_low.device());
@@ -100,10 +112,12 @@ void contact_fill_candidates(const at::Tensor& cell, const at::Tensor& point_low
                              const at::Tensor& query_stop, const at::Tensor& query_order,
                              const at::Tensor& entry_triangle,
                              const at::Tensor& entry_cells, const at::Tensor& low, const at::Tensor& high,
-                             const at::Tensor& triangle_object, bool same_body, const at::Tensor& offsets,
+                             const at::Tensor& triangle_object, bool same_body,
+                             const c10::optional<at::Tensor>& triangle_first, const at::Tensor& offsets,
                              at::Tensor vertex, at::Tensor triangle) {
   const CandidateArgs args{cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start,
-                           query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body};
+                           query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object,
+                           same_body, triangle_first};
   args.check();
   check_index_tensor(offsets, "offsets", point_low, at::kLong, {query_vertex.numel()}, "point_low");
   TORCH_CHECK(vertex.defined() && vertex.dim() == 1, "tensormass: vertex must be [C]");

@@ -17,21 +17,23 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   // contact_count_candidates(cell [1], point_low [Sv, 3], point_high [Sv, 3], vertex_object [Sv],
   //     query_vertex [Q], query_cells [Q, 3], query_start [Q], query_stop [Q], query_order [Q],
   //     entry_triangle [E], entry_cells [E, 3], low [F, 3], high [F, 3], triangle_object [F],
-  //     same_body) -> counts [Q] int64
+  //     same_body, triangle_first [B + 1]?) -> counts [Q] int64
   //   how many candidates each query keeps. query_order: a permutation of the queries, the order
   //   the kernel takes them in (by run: the lanes that walk one run share its loads); it changes
-  //   no output.
+  //   no output. triangle_first (or None): the triangles are in body order, body b's from
+  //   triangle_first[b] to triangle_first[b + 1] - 1, and each run lists its entries in triangle
+  //   order; a query then skips its own body's entries (unless same_body): no output changes.
   m.def("contact_count_candidates(Tensor cell, Tensor point_low, Tensor point_high, Tensor vertex_object, "
         "Tensor query_vertex, Tensor query_cells, Tensor query_start, Tensor query_stop, Tensor query_order, "
-        "Tensor entry_triangle, Tensor entry_cells, Tensor low, Tensor high, Tensor triangle_object, bool same_body) "
-        "-> Tensor");
-  // contact_fill_candidates(the same, offsets [Q], vertex! [C], triangle! [C]) -> ()
+        "Tensor entry_triangle, Tensor entry_cells, Tensor low, Tensor high, Tensor triangle_object, bool same_body, "
+        "Tensor? triangle_first) -> Tensor");
+  // contact_fill_candidates(the same, triangle_first?, offsets [Q], vertex! [C], triangle! [C]) -> ()
   //   the candidates, query q's from offsets[q] (the exclusive prefix sum of the counts; C their
   //   total) in run order: vertex (into the surface vertices) and triangle ids.
   m.def("contact_fill_candidates(Tensor cell, Tensor point_low, Tensor point_high, Tensor vertex_object, "
         "Tensor query_vertex, Tensor query_cells, Tensor query_start, Tensor query_stop, Tensor query_order, "
         "Tensor entry_triangle, Tensor entry_cells, Tensor low, Tensor high, Tensor triangle_object, bool same_body, "
-        "Tensor offsets, Tensor(a!) vertex, Tensor(b!) triangle) -> ()");
+        "Tensor? triangle_first, Tensor offsets, Tensor(a!) vertex, Tensor(b!) triangle) -> ()");
   // The narrow phase (body_contact.SurfaceContact.nearby). For each surface vertex s (node
   // vertices[s], body vertex_object[s]) over its run of candidate triangles
   // candidate_triangle[first[s]:first[s + 1]] (the broad phase's, grouped by vertex), and each

@@ -16,12 +16,15 @@ the entries of its key. The ops walk each query's run and keep a candidate where
 
     contact_count_candidates(cell, point_low, point_high, vertex_object, query_vertex, query_cells,
         query_start, query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object,
-        same_body) -> counts [Q]: how many candidates each query keeps
+        same_body, triangle_first?) -> counts [Q]: how many candidates each query keeps
     contact_fill_candidates(the same, offsets, vertex!, triangle!)
             the candidates, query q's from offsets[q] in run order
 
 (``query_order``: the order the kernel takes the queries in, by run, so that the threads of one
-warp walk one run together; it changes no output.)
+warp walk one run together; it changes no output. ``triangle_first [B + 1]`` or None: the
+triangles are in body order, body b's from ``triangle_first[b]`` to ``triangle_first[b + 1] - 1``;
+a query then skips its own body's entries, one stretch of its run (a run lists its entries in
+triangle order), found by binary search; no output changed.)
 
 The narrow phase (:func:`nearest_pairs`): for each surface vertex and each other body, the nearest
 of its candidate triangles within the reach, the lowest triangle id among those tied with it
@@ -114,8 +117,9 @@ def hash_queries(cell: torch.Tensor, low: torch.Tensor, high: torch.Tensor, poin
 
 
 def _kept(cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start, query_stop,
-          query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body):
-    """(query ``[C]``, entry ``[C]``) of the kept candidates in the ops' order."""
+          query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body, triangle_first=None):
+    """(query ``[C]``, entry ``[C]``) of the kept candidates in the ops' order (``triangle_first``
+    only says where the ops may skip: it changes nothing here)."""
     counts = query_stop - query_start
     total = int(counts.sum())
     device = query_start.device
@@ -136,7 +140,7 @@ def _kept(cell, point_low, point_high, vertex_object, query_vertex, query_cells,
 
 def _ref_contact_count_candidates(cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start,
                                   query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object,
-                                  same_body):
+                                  same_body, triangle_first):
     query, _ = _kept(cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start, query_stop,
                      query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body)
     return torch.bincount(query, minlength=len(query_vertex))
@@ -144,7 +148,7 @@ def _ref_contact_count_candidates(cell, point_low, point_high, vertex_object, qu
 
 def _ref_contact_fill_candidates(cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start,
                                  query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object,
-                                 same_body, offsets, vertex, triangle):
+                                 same_body, triangle_first, offsets, vertex, triangle):
     query, entry = _kept(cell, point_low, point_high, vertex_object, query_vertex, query_cells, query_start,
                          query_stop, query_order, entry_triangle, entry_cells, low, high, triangle_object, same_body)
     vertex.copy_(query_vertex[query])
@@ -253,7 +257,7 @@ def _example_inputs(device, dtype):
     low, high, points, point_high = (t.to(device=device, dtype=dtype) for t in (low, high, points, point_high))
     cell = (high - low).amax()
     queries = hash_queries(cell, low, high, points, point_high)
-    return (cell.reshape(1), points, point_high, vertex_object, *queries, low, high, triangle_object, False)
+    return (cell.reshape(1), points, point_high, vertex_object, *queries, low, high, triangle_object, False, None)
 
 
 def _fake_contact_count_nearest(x, vertices, *rest):
@@ -347,17 +351,19 @@ library.define(OPS, lambda: library.register(OPS))
 @torch.no_grad()
 def candidate_pairs(cell: torch.Tensor, low: torch.Tensor, high: torch.Tensor, triangle_object: torch.Tensor,
                     point_low: torch.Tensor, point_high: torch.Tensor, vertex_object: torch.Tensor, same_body: bool,
-                    native: bool = True):
+                    native: bool = True, triangle_first: "torch.Tensor | None" = None):
     """The broad phase (see the module): (vertex ids into the surface vertices ``[C]``, triangle
     ids ``[C]``), every candidate pair of a vertex box ``point_low, point_high [Sv, 3]`` (the same
     tensor twice for points) and a grown triangle box ``low, high [F, 3]`` of bodies
     ``vertex_object [Sv]``, ``triangle_object [F]`` (int64), through the ops where the extension
     serves the device (``native``), else their reference. ``cell``: the hash cell's side, a 0-dim
-    tensor of the boxes' dtype, at least the largest grown triangle box's side. Two host reads
-    (the entries' number, the candidates')."""
+    tensor of the boxes' dtype, at least the largest grown triangle box's side. ``triangle_first
+    [B + 1]`` (or None): where each body's triangles start, the triangles being in body order (the
+    ops then skip each vertex's own body's entries; the same output). Two host reads (the
+    entries' number, the candidates')."""
     queries = hash_queries(cell, low, high, point_low, point_high)
     args = (cell.reshape(1), point_low.contiguous(), point_high.contiguous(), vertex_object, *queries,
-            low.contiguous(), high.contiguous(), triangle_object, bool(same_body))
+            low.contiguous(), high.contiguous(), triangle_object, bool(same_body), triangle_first)
     count = library.op_or_reference("contact_count_candidates", low.device, native)
     if count is _ref_contact_count_candidates:  # one pass of the reference does both
         query, entry = _kept(*args)

@@ -568,6 +568,10 @@ class SurfaceContact:
         self.vertex_object = self.node_object[self.vertices]
         self.num_nodes = rest.shape[0]
         self.num_objects = int(self.node_object.max()) + 1 if self.node_object.numel() else 0
+        # where each body's triangles start, where they come in body order (the packed bodies' do):
+        # the broad phase's ops then skip a vertex's own body in its walks (no output changes)
+        in_order = len(self.triangle_object) < 2 or bool((self.triangle_object[1:] >= self.triangle_object[:-1]).all())
+        self._triangle_first = self._first_triangles(self.triangle_object) if in_order else None
         if settings.search is not None:
             self.search = float(settings.search)
         else:
@@ -742,6 +746,12 @@ class SurfaceContact:
         self._kept = (points.clone(), self.reach, found)
         return found
 
+    def _first_triangles(self, triangle_object: torch.Tensor) -> torch.Tensor:
+        """Where each body's triangles start ``[B + 1]`` among triangles in body order (``triangle_object``
+        ascending)."""
+        bodies = torch.arange(self.num_objects + 1, device=triangle_object.device)
+        return torch.searchsorted(triangle_object, bodies)
+
     def _search(self, x: torch.Tensor, motion, reach: float, bodies: Optional[torch.Tensor] = None):
         """:meth:`candidates`' hash search at ``x [V, 3]``, swept by ``motion`` (:meth:`_motion`'s,
         or None), triangles grown by ``reach``; self-contact's exclusions by :attr:`reach`.
@@ -752,6 +762,7 @@ class SurfaceContact:
             return empty, empty
         triangles, triangle_object = self.triangles, self.triangle_object
         vertices, vertex_object = self.vertices, self.vertex_object
+        first = None if self.settings.self_contact else self._triangle_first
         if bodies is not None:
             triangle_ids = bodies[triangle_object].nonzero().squeeze(1)
             vertex_ids = bodies[vertex_object].nonzero().squeeze(1)
@@ -759,6 +770,7 @@ class SurfaceContact:
             vertices, vertex_object = vertices[vertex_ids], vertex_object[vertex_ids]
             if len(triangles) == 0:
                 return empty, empty
+            first = None if first is None else self._first_triangles(triangle_object)  # (a subset keeps the order)
         corners = x[triangles]  # [F, 3, 3]
         low, high = corners.amin(1), corners.amax(1)
         cell = (high - low).amax() + 2.0 * reach  # a 0-dim tensor: no host read
@@ -774,7 +786,7 @@ class SurfaceContact:
             point_low, point_high = torch.minimum(points, ends) - grow, torch.maximum(points, ends) + grow
         vertex, triangle = contact_ops.candidate_pairs(cell, low - reach, high + reach, triangle_object,
                                                        point_low, point_high, vertex_object,
-                                                       same_body=self.settings.self_contact)
+                                                       same_body=self.settings.self_contact, triangle_first=first)
         if bodies is not None:  # back to the surface's ids (ascending, as the subsets are)
             vertex, triangle = vertex_ids[vertex], triangle_ids[triangle]
         if not self.settings.self_contact:

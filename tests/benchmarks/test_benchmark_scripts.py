@@ -446,3 +446,32 @@ def test_memory_parts_quick_are_the_estimate_s_parts(tmp_path):
         measured = (sum(row["element"]), sum(row["node"]))
         for got, table in zip(measured, (sum(element), sum(node))):
             assert abs(got / table - 1) < 0.15, (row, element, node)
+
+
+def test_contact_step_kernels_probe_gives_each_wait_to_the_frame_that_launched_next():
+    """The kernels probe's trace reading (the probe itself needs CUDA): kernel time is the kernels'
+    durations; each idle gap goes to the innermost library frame open at the launch of the kernel
+    after it; a launch outside any library frame, or unknown, to its own row."""
+    import contact_step_kernels_probe as probe
+
+    def frame(start, end, name):
+        return {"ph": "X", "cat": "python_function", "ts": start, "dur": end - start, "name": f"tensormass_torch/{name}"}
+
+    def kernel(start, end, correlation):
+        return {"ph": "X", "cat": "kernel", "ts": start, "dur": end - start, "name": "k", "args": {"correlation": correlation}}
+
+    def launch(at, correlation):
+        return {"ph": "X", "cat": "cuda_runtime", "ts": at, "dur": 1, "name": "cudaLaunchKernel",
+                "args": {"correlation": correlation}}
+
+    events = [frame(0, 100, "step"), frame(10, 40, "detect"), frame(50, 90, "solve"), frame(55, 60, "load"),
+              kernel(20, 30, 1), launch(12, 1),     # the first kernel: no gap before it
+              kernel(45, 50, 2), launch(35, 2),     # idle 15, launched in detect
+              kernel(60, 70, 3), launch(57, 3),     # idle 10, launched in load (inside solve)
+              kernel(75, 80, 4), launch(95, 4),     # idle 5, launched in step only
+              kernel(90, 95, 5), launch(120, 5),    # idle 10, launched outside the library
+              kernel(99, 100, 6)]                   # idle 4, no launch recorded
+    busy, idle, by_frame = probe.gaps_by_frame(events)
+    assert busy == 10 + 5 + 10 + 5 + 5 + 1
+    assert idle == 15 + 10 + 5 + 10 + 4
+    assert by_frame == {"detect": 15, "load": 10, "step": 5, "(no library frame)": 14}

@@ -2,8 +2,9 @@
 the broad phase of the contact between bodies): the ops' candidates equal their pure-torch
 reference, in its order (the narrow phase then sees the same pairs), on the hash of a real pile
 of bodies, with points and with swept boxes, float32 and float64, with and without same-body
-pairs; the candidate set equals a brute-force oracle (every pair of boxes that meet, once);
-CUDA equals the CPU; bad arguments raise naming them and write nothing."""
+pairs, with and without the own body's entries skipped (``triangle_first``); the candidate set
+equals a brute-force oracle (every pair of boxes that meet, once); CUDA equals the CPU; bad
+arguments raise naming them and write nothing."""
 from __future__ import annotations
 
 import math
@@ -64,16 +65,24 @@ def brute_force(low, high, triangle_object, point_low, point_high, vertex_object
     return sorted(zip(vertex.tolist(), triangle.tolist()))
 
 
+def first_triangles(triangle_object):
+    """Where each body's triangles start ``[B + 1]`` (triangles in body order)."""
+    return torch.searchsorted(triangle_object, torch.arange(int(triangle_object.max()) + 2,
+                                                            device=triangle_object.device))
+
+
+@pytest.mark.parametrize("skip_own", [False, True])
 @pytest.mark.parametrize("swept", [False, True])
 @pytest.mark.parametrize("same_body", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("device", DEVICES)
-def test_candidates_equal_the_reference_in_order_and_a_brute_force_search(swept, same_body, dtype, device):
+def test_candidates_equal_the_reference_in_order_and_a_brute_force_search(skip_own, swept, same_body, dtype,
+                                                                           device):
     cell, low, high, triangle_object, point_low, point_high, vertex_object = pile_boxes(dtype, device, swept)
     if not swept:
         assert point_low is point_high
     native = contact.candidate_pairs(cell, low, high, triangle_object, point_low, point_high, vertex_object,
-                                     same_body)
+                                     same_body, triangle_first=first_triangles(triangle_object) if skip_own else None)
     reference = contact.candidate_pairs(cell, low, high, triangle_object, point_low, point_high, vertex_object,
                                         same_body, native=False)
     assert len(native[0]) > 100  # the pile's columns touch: a test with candidates
@@ -86,12 +95,15 @@ def test_candidates_equal_the_reference_in_order_and_a_brute_force_search(swept,
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("skip_own", [False, True])
 @pytest.mark.parametrize("swept", [False, True])
-def test_cuda_candidates_equal_the_cpu(swept):
+def test_cuda_candidates_equal_the_cpu(swept, skip_own):
     on_cpu = pile_boxes(torch.float32, "cpu", swept, seed=4)
     on_cuda = pile_boxes(torch.float32, "cuda", swept, seed=4)
-    for ours, theirs in zip(contact.candidate_pairs(*on_cuda, False), contact.candidate_pairs(*on_cpu, False)):
-        assert torch.equal(ours.cpu(), theirs)
+    first = first_triangles(on_cpu[3]) if skip_own else None
+    ours = contact.candidate_pairs(*on_cuda, False, triangle_first=None if first is None else first.cuda())
+    for mine, theirs in zip(ours, contact.candidate_pairs(*on_cpu, False, triangle_first=first)):
+        assert torch.equal(mine.cpu(), theirs)
 
 
 def test_bad_arguments_raise_naming_them_and_write_nothing():
@@ -109,13 +121,15 @@ def test_bad_arguments_raise_naming_them_and_write_nothing():
         (11, args[11].float(), "low"),
         (1, args[1].t(), "point_low"),
         (13, args[13][:-1], "triangle_object"),
+        (15, torch.tensor([0, 6, 12], dtype=torch.int32), "triangle_first"),
+        (15, torch.zeros(2, 3, dtype=torch.int64), "triangle_first"),
     ]:
         bad = list(args)
         bad[position] = wrong
         with pytest.raises(RuntimeError, match=name):
             fill(*bad)
         with pytest.raises(RuntimeError, match=name):
-            count(*bad[:15])
+            count(*bad[:16])
     short = list(args)
     short[-1] = triangle[:-1].clone() if len(triangle) else torch.zeros(1, dtype=torch.int64)
     with pytest.raises(RuntimeError, match="triangle"):
@@ -260,7 +274,8 @@ def test_the_order_the_queries_are_taken_in_changes_no_output(device):
     for order in (queries[4], torch.arange(len(queries[0]), device=device),
                   torch.randperm(len(queries[0]), generator=torch.Generator().manual_seed(3)).to(device)):
         queries[4] = order
-        args = (cell.reshape(1), point_low, point_high, vertex_object, *queries, low, high, triangle_object, False)
+        args = (cell.reshape(1), point_low, point_high, vertex_object, *queries, low, high, triangle_object, False,
+                first_triangles(triangle_object))
         counts = library.op("contact_count_candidates")(*args)
         offsets = torch.cumsum(counts, 0) - counts
         vertex = torch.full((int(counts.sum()),), -1, dtype=torch.int64, device=device)
@@ -293,3 +308,26 @@ def test_a_pair_at_the_reach_is_kept_only_outside(native, device):
                                   torch.zeros(3, dtype=torch.int64, device=device), None, None, reach, native=native)
     vertex, side = pairs[0].tolist(), pairs[6].tolist()
     assert vertex == [1, 2] and side == [-1.0, 1.0]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_surface_in_body_order_skips_its_own_body_and_finds_the_same_candidates(device):
+    """SurfaceContact passes where each body's triangles start when they come in body order (the
+    packed bodies'), and nothing otherwise (triangles shuffled): the searches' pairs
+    are the same either way, over all bodies and over a subset."""
+    from tensormass_torch.physics.body_contact import SurfaceContact
+
+    surface, x, _ = pile_state(torch.float64, device)
+    assert surface._triangle_first is not None and len(surface._triangle_first) == surface.num_objects + 1
+    some = torch.zeros(surface.num_objects, dtype=torch.bool, device=device)
+    some[[1, 2, 5]] = True
+    searches = [surface._search(x, None, surface.reach), surface._search(x, None, surface.reach, some)]
+    first, surface._triangle_first = surface._triangle_first, None
+    assert len(searches[0][0]) > 100
+    for bodies, (vertex, triangle) in zip((None, some), searches):
+        whole = surface._search(x, None, surface.reach, bodies)
+        assert torch.equal(vertex, whole[0]) and torch.equal(triangle, whole[1])
+    surface._triangle_first = first
+    shuffled = torch.randperm(len(surface.triangles), generator=torch.Generator().manual_seed(0)).to(device)
+    other = SurfaceContact(surface.triangles[shuffled], surface.node_object, x, tm.Contact())
+    assert other._triangle_first is None
