@@ -370,13 +370,32 @@ class Viewer:
 
     def exit_on_close(self) -> None:
         """Stop the viewer once a page has connected and every page has closed."""
-        @self.server.on_client_disconnect
+        # viser counts a page as a client only once its first camera message has come, and runs
+        # no client callback for a page that closes before that (a page closed at once, a loaded
+        # machine): so the pages are counted by their connections, whose opening and closing
+        # viser's connection server reports in order, one connection at a time
+        connections = getattr(self.server, "_websock_server", None)
+        if callable(getattr(connections, "on_client_connect", None)) \
+                and callable(getattr(connections, "on_client_disconnect", None)):
+            live, lock = set(), threading.Lock()
+
+            def opened(connection):
+                with lock:
+                    live.add(connection.client_id)
+
+            def closed(connection):
+                with lock:
+                    live.discard(connection.client_id)
+                    if not live:
+                        self._stop.set()
+
+            connections.on_client_connect(opened)
+            connections.on_client_disconnect(closed)
+            return
+
+        @self.server.on_client_disconnect  # (a viser without that server: its clients, as above)
         def _(client):
-            # a disconnect is itself the page that connected: viser runs the connect and disconnect
-            # callbacks on its own threads, so a page closed at once may be seen leaving before
-            # a connect callback could count it in
-            others = [c for c in self.server.get_clients().values() if c.client_id != client.client_id]
-            if not others:
+            if not any(c.client_id != client.client_id for c in self.server.get_clients().values()):
                 self._stop.set()
 
     def close(self) -> None:

@@ -2,7 +2,7 @@
 software WebGL) loads the page, the body shows in its pixels, a click on the page's Step button
 and a tool moved through the viewer's API change the simulation; the actions (cut, reset,
 materials, options, colours, recording); closing the page stops ``tensormass view
---exit-on-close``; a port in use and an unknown scene give one clear error.
+--exit-on-close``, also a page that closes before viser counts it as a client; a port in use and an unknown scene give one clear error.
 
 The browser tests skip, saying why, where no Chromium is installed (CI installs Debian's
 chromium-headless-shell). ``TENSORMASS_SCREENSHOTS=DIR`` keeps the screenshot (the README's).
@@ -138,6 +138,26 @@ def test_closing_the_page_stops_the_command(tmp_path):
         if process.poll() is None:
             process.kill()
             process.wait()
+
+
+def test_a_page_that_closes_before_its_first_camera_message_stops_the_viewer():
+    """``exit_on_close`` counts the pages by their connections: viser counts a page as a client only
+    once its first camera message has come and runs no client callback for one that closes
+    before (a page closed at once on a loaded machine: the command then never exited). Here a
+    connection that says viser's protocol and closes at once, without a browser: the viewer
+    serves until it closes, then stops."""
+    from websockets.sync.client import connect
+
+    viewer = Viewer(press_scene(), port=free_port(), playing=False)
+    try:
+        viewer.exit_on_close()
+        assert not viewer._stop.wait(0.5)  # no page yet: serving
+        with connect(f"ws://127.0.0.1:{viewer.port}", subprotocols=[f"viser-v{viser.__version__}"]):
+            time.sleep(0.2)
+            assert not viewer._stop.is_set()  # a page open
+        assert viewer._stop.wait(10)  # closed before any camera message: stopped
+    finally:
+        viewer.close()
 
 
 def test_actions_without_a_browser(tmp_path):
