@@ -200,7 +200,7 @@ class RigidModeCorrection:
         self.inverses: Optional[BsrMatrix] = None  # the groups' E^-1 [6 B, 6 B]
         self.prolongation: Optional[BsrMatrix] = None  # w Z' [3 V, 6 B]
         self._sums: Optional[BodySums] = None
-        self._kept = None  # (key, modes, group, slot, groups, own blocks) of load's ``kept``
+        self._kept = None  # (key, modes, group, slot, groups, own blocks, filled, columns) of load's ``kept``
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
@@ -217,15 +217,24 @@ class RigidModeCorrection:
         if self._sums is None or self._sums.segments is not segments or self._sums.ones.dtype != x.dtype \
                 or self._sums.ones.device != x.device or self._sums.ones.shape[0] != x.shape[0]:
             self._sums, self.restriction, self._kept = BodySums(segments, x), None, None
-        if kept is None or self._kept is None or self._kept[0] != kept:
+        size, bodies = self.group_bodies, segments.num_objects
+        fresh = kept is None or self._kept is None or self._kept[0] != kept
+        if fresh:
             modes, centres = rigid_modes(x, mass, self._sums)
             if free is not None:
                 modes = modes * free
-            group, slot, groups = morton_groups(centres, self.group_bodies)
+            group, slot, groups = morton_groups(centres, size)
             own = own_blocks(modes, node_weights() if callable(node_weights) else node_weights, self._sums)
-            self._kept = (kept, modes, group, slot, groups, own)
-        _, modes, group, slot, groups, own = self._kept
-        size = self.group_bodies
+            # each body's row of its group's inverse takes a block for each slot of the group, its
+            # columns the slots' bodies; the Morton ranks group * c + slot are 0 .. B - 1, so the
+            # slots past them are the empty ones (their blocks zero: the inverse keeps the
+            # padding's identity apart)
+            members = torch.zeros(groups * size, dtype=torch.int64, device=x.device)
+            members[group * size + slot] = torch.arange(bodies, device=x.device)
+            filled = (torch.arange(groups * size, device=x.device).view(groups, size) < bodies)[group]  # [B, c]
+            columns = members.view(groups, size)[group].to(torch.int32).reshape(-1)  # [B c]
+            self._kept = (kept, modes, group, slot, groups, own, filled[:, :, None, None], columns)
+        _, modes, group, slot, groups, own, filled, columns = self._kept
         matrices = group_matrices(own, modes, group, slot, groups, size, pairs, pair_matrices)
         # slots past the last body, and coarse unknowns no free node carries: the identity there
         # (a rigid motion of fixed nodes is no motion); a relative 1e-10 on the diagonal keeps
@@ -240,27 +249,19 @@ class RigidModeCorrection:
         eye = torch.eye(6 * size, dtype=matrices.dtype, device=matrices.device).expand_as(matrices)
         lower_inverse = torch.linalg.solve_triangular(factor, eye, upper=False)
         inverses = lower_inverse.transpose(1, 2) @ lower_inverse  # [G, 6 c, 6 c]
-        # each body's row of its group's inverse: a 6 x 6 block for each slot (an empty slot's
-        # block is zero: the inverse keeps the padding's identity apart), columns the slots' bodies
-        # (the Morton ranks group * c + slot are 0 .. B - 1: the slots past them are the empty ones)
-        bodies = segments.num_objects
-        members = torch.zeros(groups * size, dtype=torch.int64, device=x.device)
-        members[group * size + slot] = torch.arange(bodies, device=x.device)
-        filled = torch.arange(groups * size, device=x.device).view(groups, size) < bodies
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
-        rows = torch.where(filled[group][:, :, None, None], rows, 0.0).to(x.dtype)
-        columns = members.view(groups, size)[group].to(torch.int32)  # [B, c]
+        blocks = torch.where(filled, rows, 0.0).to(x.dtype).reshape(-1, 6, 6)
         basis = torch.stack([scaling.unapply(modes[k]) for k in range(6)], -1)  # Z' per node [V, 3, 6]
-        blocks = rows.reshape(-1, 6, 6)
         if self.restriction is None or self.inverses.values.shape != blocks.shape \
                 or self.restriction.values.shape[0] != basis.shape[0] or self.restriction.values.dtype != x.dtype \
                 or self.restriction.values.device != x.device:
-            self._build(basis, blocks, columns.reshape(-1), segments)
+            self._build(basis, blocks, columns, segments)
         else:
             self.restriction.values.copy_(basis.transpose(1, 2))
             self.prolongation.values.copy_(self.weight * basis)
             self.inverses.values.copy_(blocks)
-            self.inverses.block_cols.copy_(columns.reshape(-1))
+            if fresh:  # (a kept load's groups are the last load's)
+                self.inverses.block_cols.copy_(columns)
         return self
 
     def _build(self, basis: torch.Tensor, rows: torch.Tensor, columns: torch.Tensor, segments: Segments):
@@ -276,7 +277,7 @@ class RigidModeCorrection:
         self.prolongation = BsrMatrix((self.weight * basis).contiguous(), segments.node_object.to(device, torch.int32),
                                       torch.arange(nodes + 1, dtype=torch.int32, device=device), node_rows,
                                       (3 * nodes, 6 * bodies))
-        self.inverses = BsrMatrix(rows.contiguous(), columns.contiguous(),
+        self.inverses = BsrMatrix(rows.contiguous(), columns.clone(),  # (its own: later loads write it)
                                   torch.arange(bodies + 1, dtype=torch.int32, device=device) * per_row,
                                   torch.arange(bodies, device=device).repeat_interleave(per_row),
                                   (6 * bodies, 6 * bodies))

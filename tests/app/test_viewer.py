@@ -2,7 +2,8 @@
 software WebGL) loads the page, the body shows in its pixels, a click on the page's Step button
 and a tool moved through the viewer's API change the simulation; the actions (cut, reset,
 materials, options, colours, recording); closing the page stops ``tensormass view
---exit-on-close``, also a page that closes before viser counts it as a client; a port in use and an unknown scene give one clear error.
+--exit-on-close``, also a page that closes before viser counts it as a client; a port in use
+and an unknown scene give one clear error.
 
 The browser tests skip, saying why, where no Chromium is installed (CI installs Debian's
 chromium-headless-shell). ``TENSORMASS_SCREENSHOTS=DIR`` keeps the screenshot (the README's).
