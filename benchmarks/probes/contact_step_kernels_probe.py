@@ -3,6 +3,7 @@ host: torch's profiler over a few steps (CUDA only), then
 
 - the kernels' time a step, by kernel (the device's own work, which timers around phases cannot
   separate from the waits), against the step's untimed rate;
+- the kernels' time by the library frame that launched them (innermost, and every open frame);
 - the idle gaps between kernels, each given to the innermost ``tensormass_torch`` Python frame
   that was running when the kernel after it was launched (the host work the GPU waited for: its
   reads, its launches, the Python between them).
@@ -51,18 +52,11 @@ def library_frames(events: list) -> list:
     return sorted(frames)
 
 
-def gaps_by_frame(events: list) -> tuple:
-    """(kernel time, idle time, idle time by the innermost library frame at the next launch) in µs."""
-    work = sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0)), e.get("args", {}).get("correlation"))
-                  for e in events if e.get("cat") in DEVICE_WORK)
-    launched = {e.get("args", {}).get("correlation"): float(e["ts"]) for e in events if e.get("cat") in LAUNCHES}
-    waits, end = [], None
-    for start, stop, correlation in work:
-        if end is not None and start > end:
-            waits.append((launched.get(correlation, -1.0), start - end))
-        end = stop if end is None else max(end, stop)
-    frames, by_frame, stack, i = library_frames(events), collections.Counter(), [], 0
-    for at, idle in sorted(waits):  # frames nest (one thread): a sweep keeps the open ones
+def _open_frames(frames: list, times: list) -> list:
+    """For each of ``times`` (µs, ascending), the library frames open then, outermost first (a list
+    of names; frames nest on one thread, so a sweep keeps the open ones)."""
+    opened, stack, i = [], [], 0
+    for at in times:
         while i < len(frames) and frames[i][0] <= at:
             while stack and stack[-1][1] < frames[i][0]:
                 stack.pop()
@@ -70,8 +64,43 @@ def gaps_by_frame(events: list) -> tuple:
             i += 1
         while stack and stack[-1][1] < at:
             stack.pop()
-        by_frame[stack[-1][2] if at >= 0 and stack else "(no library frame)"] += idle
+        opened.append([name for _, _, name in stack] if at >= 0 else [])
+    return opened
+
+
+def _device_work(events: list) -> tuple:
+    """(device work as (start, end, launch time or -1) sorted by start, in µs)."""
+    launched = {e.get("args", {}).get("correlation"): float(e["ts"]) for e in events if e.get("cat") in LAUNCHES}
+    return sorted((float(e["ts"]), float(e["ts"]) + float(e.get("dur", 0)),
+                   launched.get(e.get("args", {}).get("correlation"), -1.0))
+                  for e in events if e.get("cat") in DEVICE_WORK)
+
+
+def gaps_by_frame(events: list) -> tuple:
+    """(kernel time, idle time, idle time by the innermost library frame at the next launch) in µs."""
+    work = _device_work(events)
+    waits, end = [], None
+    for start, stop, launch in work:
+        if end is not None and start > end:
+            waits.append((launch, start - end))
+        end = stop if end is None else max(end, stop)
+    waits.sort()
+    by_frame = collections.Counter()
+    for (_, idle), stack in zip(waits, _open_frames(library_frames(events), [at for at, _ in waits])):
+        by_frame[stack[-1] if stack else "(no library frame)"] += idle
     return sum(stop - start for start, stop, _ in work), sum(idle for _, idle in waits), by_frame
+
+
+def kernels_by_frame(events: list) -> tuple:
+    """The device's work by the library frame that launched it, in µs: (by the innermost frame open
+    at the launch, by every frame open then: a frame's own and its callees' work)."""
+    work = sorted((launch, stop - start) for start, stop, launch in _device_work(events))
+    inner, inclusive = collections.Counter(), collections.Counter()
+    for (_, busy), stack in zip(work, _open_frames(library_frames(events), [at for at, _ in work])):
+        inner[stack[-1] if stack else "(no library frame)"] += busy
+        for name in set(stack):  # a recursive frame counts once
+            inclusive[name] += busy
+    return inner, inclusive
 
 
 def main(argv=None):
@@ -99,11 +128,18 @@ def main(argv=None):
     print("kernels (ms a step):")
     for name, us in per_kernel.most_common(TOP):
         print(f"  {us / n / 1e3:7.2f}  {name}")
+    inner, inclusive = kernels_by_frame(events)
+    for title, table in (("kernels launched by the innermost library frame (ms a step):", inner),
+                         ("kernels launched within a library frame, its callees' too (ms a step):", inclusive)):
+        print(title)
+        for frame, us in table.most_common(TOP):
+            print(f"  {us / n / 1e3:7.2f}  {frame}")
     print("the GPU idle before a launch from (ms a step, profiled):")
     for frame, us in by_frame.most_common(TOP):
         print(f"  {us / n / 1e3:7.2f}  {frame}")
     return dict(ms_untimed=1e3 / rate, kernels_ms=busy / n / 1e3, idle_ms=idle / n / 1e3,
-                kernels=dict(per_kernel), waits=dict(by_frame))
+                kernels=dict(per_kernel), waits=dict(by_frame), kernels_inner=dict(inner),
+                kernels_inclusive=dict(inclusive))
 
 
 if __name__ == "__main__":

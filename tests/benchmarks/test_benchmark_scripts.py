@@ -451,7 +451,8 @@ def test_memory_parts_quick_are_the_estimate_s_parts(tmp_path):
 def test_contact_step_kernels_probe_gives_each_wait_to_the_frame_that_launched_next():
     """The kernels probe's trace reading (the probe itself needs CUDA): kernel time is the kernels'
     durations; each idle gap goes to the innermost library frame open at the launch of the kernel
-    after it; a launch outside any library frame, or unknown, to its own row."""
+    after it; a launch outside any library frame, or unknown, to its own row; each kernel's time to
+    the innermost frame open at its launch, and to every frame open then."""
     import contact_step_kernels_probe as probe
 
     def frame(start, end, name):
@@ -475,3 +476,6 @@ def test_contact_step_kernels_probe_gives_each_wait_to_the_frame_that_launched_n
     assert busy == 10 + 5 + 10 + 5 + 5 + 1
     assert idle == 15 + 10 + 5 + 10 + 4
     assert by_frame == {"detect": 15, "load": 10, "step": 5, "(no library frame)": 14}
+    inner, inclusive = probe.kernels_by_frame(events)  # each kernel's time to the frames open at its launch
+    assert inner == {"detect": 10 + 5, "load": 10, "step": 5, "(no library frame)": 5 + 1}
+    assert inclusive == {"step": 10 + 5 + 10 + 5, "detect": 10 + 5, "solve": 10, "load": 10}
