@@ -4,6 +4,7 @@ host: torch's profiler over a few steps (CUDA only), then
 - the kernels' time a step, by kernel (the device's own work, which timers around phases cannot
   separate from the waits), against the step's untimed rate;
 - the kernels' time by the library frame that launched them (innermost, and every open frame);
+- the host's own time by library frame (nested frames left out), less its waits for the device;
 - the idle gaps between kernels, each given to the innermost ``tensormass_torch`` Python frame
   that was running when the kernel after it was launched (the host work the GPU waited for: its
   reads, its launches, the Python between them).
@@ -17,6 +18,7 @@ rate); they say where the waits are, not what they cost. The kernel times are th
 """
 import collections
 import json
+import math
 import os
 import sys
 import tempfile
@@ -103,6 +105,33 @@ def kernels_by_frame(events: list) -> tuple:
     return inner, inclusive
 
 
+#: host calls that wait for the device (a read back, a synchronisation)
+WAITS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cudaMemcpyAsync", "cudaMemcpy")
+
+
+def host_by_frame(events: list) -> tuple:
+    """The host's time by the innermost library frame, in µs: (its own time, frames nested in it
+    left out; of that, the time in calls that wait for the device). Their difference is the
+    host's work there: Python, launches, allocations."""
+    frames = library_frames(events)
+    own, waited = collections.Counter(), collections.Counter()
+    stack = []
+    for start, end, name in frames + [(math.inf, math.inf, None)]:  # nested frames take their time off their parent's
+        while stack and stack[-1][1] <= start:
+            done = stack.pop()
+            own[done[2]] += done[1] - done[0] - done[3]
+        if name is None:
+            break
+        if stack:
+            stack[-1][3] += end - start
+        stack.append([start, end, name, 0.0])
+    calls = sorted((float(e["ts"]), float(e.get("dur", 0))) for e in events
+                   if e.get("cat") in LAUNCHES and e["name"] in WAITS)
+    for (_, wait), opened in zip(calls, _open_frames(frames, [at for at, _ in calls])):
+        waited[opened[-1] if opened else "(no library frame)"] += wait
+    return own, waited
+
+
 def main(argv=None):
     args = contact_piles.pile_arguments(argv, __doc__, timed=3)
     if not str(args.device).startswith("cuda"):
@@ -134,12 +163,16 @@ def main(argv=None):
         print(title)
         for frame, us in table.most_common(TOP):
             print(f"  {us / n / 1e3:7.2f}  {frame}")
+    own, waited = host_by_frame(events)
+    print("the host's own time by the innermost library frame, less its waits for the device (ms a step, profiled):")
+    for frame, us in sorted(own.items(), key=lambda item: waited[item[0]] - item[1])[:TOP]:
+        print(f"  {(us - waited[frame]) / n / 1e3:7.2f}  (waits {waited[frame] / n / 1e3:5.2f})  {frame}")
     print("the GPU idle before a launch from (ms a step, profiled):")
     for frame, us in by_frame.most_common(TOP):
         print(f"  {us / n / 1e3:7.2f}  {frame}")
     return dict(ms_untimed=1e3 / rate, kernels_ms=busy / n / 1e3, idle_ms=idle / n / 1e3,
                 kernels=dict(per_kernel), waits=dict(by_frame), kernels_inner=dict(inner),
-                kernels_inclusive=dict(inclusive))
+                kernels_inclusive=dict(inclusive), host_own=dict(own), host_waits=dict(waited))
 
 
 if __name__ == "__main__":

@@ -273,6 +273,9 @@ class ContactPairs:
 
     def select(self, index: torch.Tensor) -> "ContactPairs":
         """The pairs at ``index`` (indices ``[Q]`` or a mask ``[P]``), in that order."""
+        if index.dtype == torch.bool:  # one host read for every field, not one each
+            index = index.nonzero().squeeze(1)
+
         def take(t):
             return None if t is None else t[index]
 
@@ -580,6 +583,9 @@ class SurfaceContact:
         self.rest = rest
         self._last = None  # (x, its version, v, its version, dt, what at_state found there)
         self._static = None  # (x, its version, the pairs in contact there): see _pairs_at
+        #: whether the last step's first contact-set check found pairs (implicit_euler_step then
+        #: skips the next step's settled test: it decides nothing that the check would not)
+        self.first_check_found = False
         self._kept = None  # Contact.skin: (surface vertices' positions [S, 3], reach, the candidates)
         # Contact.check_margin: the step's start search, for its checks (nearby, relinearise):
         # (x, its version, where the step's velocities put the surface vertices [S, 3], the
@@ -914,8 +920,11 @@ class SurfaceContact:
         fresh.born = torch.full_like(fresh.gap, solution, dtype=torch.int64)
         if self.settings.friction > 0 and v is not None:
             fresh.friction = self._friction(fresh, v)
-        keep = torch.ones_like(key, dtype=torch.bool)
-        keep[index[deeper][matched[deeper]]] = False
+        # the pairs the fresh ones replace (an unmatched one's index goes to a spare slot, P: no
+        # host read for the matched ones)
+        keep = torch.ones(len(key) + 1, dtype=torch.bool, device=key.device)
+        keep[torch.where(matched[deeper], index[deeper], len(key))] = False
+        keep = keep[:-1].nonzero().squeeze(1)
         kept = pairs.select(keep)
         merged = ContactPairs(*(torch.cat([getattr(kept, f), getattr(fresh, f)])
                                 for f in ("nodes", "weights", "direction", "signed", "gap", "objects")),
@@ -1050,6 +1059,7 @@ class SurfaceContact:
         other = copy.copy(self)
         other.settings = dataclasses.replace(self.settings, **changes)
         other._last = other._static = other._kept = other._step_search = None
+        other.first_check_found = False
         return other
 
     def to(self, device=None, dtype=None) -> "SurfaceContact":

@@ -1300,9 +1300,14 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # in it (a pair whose end gap comes out positive keeps its force, as a predicted pair does;
     # re-linearising replaces its pair, never removes it); a step that misses nothing is solved
     # once, and at most Contact.rounds more solves follow.
+    # The settled test (one host read, a detection's worth of reductions) only skips a check that
+    # would find nothing, so whether it runs changes no result; after a step whose first check
+    # found pairs (a pile still jostling) it nearly always fails, and that step goes straight to
+    # the check (SurfaceContact.first_check_found).
     for round_ in range(rounds):
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
-        if round_ == 0 and system.body_contact.settled(x, dx, near, active):
+        if (round_ == 0 and not system.body_contact.first_check_found
+                and system.body_contact.settled(x, dx, near, active)):
             break  # the bodies' motion provably leaves nothing for the check to find
         # a round's own solve is checked for deep misses only (Contact.recheck_tolerance)
         tolerance = system.body_contact.tolerance if round_ == 0 else system.body_contact.recheck_tolerance
@@ -1310,7 +1315,10 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
                                                               solution=len(report.contact_solves) - 1,
                                                               tolerance=tolerance)
-        if not moved and not bool(missed.any()):
+        found = moved or bool(missed.any())
+        if round_ == 0:
+            system.body_contact.first_check_found = found
+        if not found:
             break
         if resume is not None:
             resume(False)

@@ -452,7 +452,8 @@ def test_contact_step_kernels_probe_gives_each_wait_to_the_frame_that_launched_n
     """The kernels probe's trace reading (the probe itself needs CUDA): kernel time is the kernels'
     durations; each idle gap goes to the innermost library frame open at the launch of the kernel
     after it; a launch outside any library frame, or unknown, to its own row; each kernel's time to
-    the innermost frame open at its launch, and to every frame open then."""
+    the innermost frame open at its launch, and to every frame open then; the host's own time by
+    frame, nested frames left out, and its waits for the device."""
     import contact_step_kernels_probe as probe
 
     def frame(start, end, name):
@@ -479,3 +480,8 @@ def test_contact_step_kernels_probe_gives_each_wait_to_the_frame_that_launched_n
     inner, inclusive = probe.kernels_by_frame(events)  # each kernel's time to the frames open at its launch
     assert inner == {"detect": 10 + 5, "load": 10, "step": 5, "(no library frame)": 5 + 1}
     assert inclusive == {"step": 10 + 5 + 10 + 5, "detect": 10 + 5, "solve": 10, "load": 10}
+    waits = [{"ph": "X", "cat": "cuda_runtime", "ts": at, "dur": wait, "name": name, "args": {}}
+             for at, wait, name in ((15, 5, "cudaStreamSynchronize"), (56, 2, "cudaMemcpyAsync"))]
+    own, waited = probe.host_by_frame(events + waits)  # each frame's time less its nested frames'
+    assert own == {"step": 100 - 30 - 40, "detect": 30, "solve": 40 - 5, "load": 5}
+    assert waited == {"detect": 5, "load": 2}

@@ -786,6 +786,30 @@ def test_cuda_matches_cpu():
     assert torch.equal(b.forces(), gpu.detect(rest.cuda()).forces())
 
 
+def test_a_step_after_one_whose_check_found_pairs_skips_the_settled_test():
+    """SurfaceContact.first_check_found: after a step whose first contact-set check found pairs,
+    the next step goes straight to its check without the settled test (which only skips a check
+    that would find nothing): the states are those of steps that test every time, bit for bit,
+    in fewer tests; a step whose check found nothing tests again."""
+    from tensormass_torch.physics import body_contact as bc
+
+    runs = []
+    for always in (True, False):
+        sim = falling_pair(tm.Contact())
+        tests = []
+        settled = sim.body_contact.settled
+        sim.body_contact.settled = lambda *a: tests.append(1) or settled(*a)
+        for _ in range(40):
+            if always:
+                sim.body_contact.first_check_found = False
+            sim.step()
+        runs.append((sim.x, sim.v, len(tests)))
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+    assert runs[1][2] < runs[0][2] <= 40
+    sim.body_contact.first_check_found = True  # another contact's steps start afresh
+    assert bc.SurfaceContact.with_values(sim.body_contact, stiffness=2e5).first_check_found is False
+
+
 def test_settled_steps_skip_the_contact_sets_check_exactly():
     """Where the bodies' motion provably leaves nothing for the contact set's check to find
     (SurfaceContact.settled: bodies far apart, or resting on each other), its detection is
