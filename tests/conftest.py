@@ -398,10 +398,11 @@ GROUP_CASES = [(kind, model, form) for kind in ("tet", "tri2d", "membrane")
                if not (kind == "membrane" and model == "corotational")]
 
 
-def shaken_pile_contact(dtype, device, settings):
+def shaken_pile_contact(dtype, device, settings, rows: int = 1):
     """A ``SurfaceContact`` with ``settings`` (a ``tm.Contact``) over 8 shaken blocks of 3 x 3 x 2
     cells in two offset columns, touching: (contact, positions ``[V, 3]``, velocities ``[V, 3]``,
-    0.3 m/s at random)."""
+    0.3 m/s at random). ``rows``: that many such piles, 0.5 m apart along y (blocks 8 r to 8 r + 7
+    the r-th)."""
     from tensormass_torch.mesh.topology import boundary_faces
     from tensormass_torch.physics.body_contact import SurfaceContact
 
@@ -409,11 +410,12 @@ def shaken_pile_contact(dtype, device, settings):
     block = beam_mesh(3, 3, 2, size=(0.2, 0.2, 0.1), dtype=torch.float64)
     faces = boundary_faces(block.elements)
     nodes = block.vertices.shape[0]
-    x = torch.cat([block.vertices + torch.tensor([0.19 * (b % 2) + 0.03 * (b // 2), 0.0, 0.095 * (b // 2)],
-                                                 dtype=torch.float64)
-                   + 0.004 * torch.randn(nodes, 3, generator=gen, dtype=torch.float64) for b in range(8)])
+    count = 8 * rows
+    x = torch.cat([block.vertices + torch.tensor([0.19 * (b % 2) + 0.03 * (b % 8 // 2), 0.5 * (b // 8),
+                                                  0.095 * (b % 8 // 2)], dtype=torch.float64)
+                   + 0.004 * torch.randn(nodes, 3, generator=gen, dtype=torch.float64) for b in range(count)])
     v = 0.3 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
-    triangles = torch.cat([faces + b * nodes for b in range(8)])
-    node_object = torch.arange(8).repeat_interleave(nodes)
+    triangles = torch.cat([faces + b * nodes for b in range(count)])
+    node_object = torch.arange(count).repeat_interleave(nodes)
     contact = SurfaceContact(triangles.to(device), node_object.to(device), x.to(device=device, dtype=dtype), settings)
     return contact, x.to(device=device, dtype=dtype), v.to(device=device, dtype=dtype)

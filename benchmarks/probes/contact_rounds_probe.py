@@ -33,8 +33,8 @@ def checked(log: list):
     """``SurfaceContact.relinearise`` wrapped to add, for each call, what its test finds to ``log``."""
     original = body_contact.SurfaceContact.relinearise
 
-    def relinearise(self, x, dx, pairs, active, v=None, solution=-1, tolerance=None):
-        end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx))
+    def relinearise(self, x, dx, pairs, active, v=None, solution=-1, tolerance=None, later=False):
+        end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx, later))
         objects = max(self.num_objects, 1)
         key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
         end_key = end.nodes[:, 0] * objects + end.objects[:, 1]
@@ -53,7 +53,7 @@ def checked(log: list):
                         misses=sorted((excess[deeper & ~held]).tolist(), reverse=True),
                         relinearised=sorted((excess[deeper & held]).tolist(), reverse=True),
                         keys=set(end_key[deeper].tolist())))
-        return original(self, x, dx, pairs, active, v, solution, tolerance)
+        return original(self, x, dx, pairs, active, v, solution, tolerance, later)
 
     body_contact.SurfaceContact.relinearise = relinearise
     return original

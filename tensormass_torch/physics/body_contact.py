@@ -591,6 +591,11 @@ class SurfaceContact:
         # (x, its version, where the step's velocities put the surface vertices [S, 3], the
         # margin, the candidates)
         self._step_search = None
+        # the search of a step's first check among the bodies near those past the margin, for the
+        # step's later checks (_step_candidates): (the step's start search it was made under, the
+        # surface vertices' positions at that check [S, 3], the bodies past the margin there [B],
+        # the candidates)
+        self._check_search = None
 
     @property
     def reach(self) -> float:
@@ -829,6 +834,7 @@ class SurfaceContact:
             with torch.no_grad():  # (kept across the step: no autograd graph with it)
                 predicted = x[self.vertices] if motion is None else x[self.vertices] + dt * v[self.vertices]
             self._step_search = (x, x._version, predicted, margin, candidates)
+            self._check_search = None  # (the last step's)
             found = [(*candidates, None)]
         elif not given:
             found = [(*self.candidates(x, v, dt, motion), None)]
@@ -879,7 +885,8 @@ class SurfaceContact:
         return chosen
 
     def relinearise(self, x: torch.Tensor, dx: torch.Tensor, pairs: ContactPairs, active: torch.Tensor,
-                    v: Optional[torch.Tensor] = None, solution: int = -1, tolerance: Optional[float] = None):
+                    v: Optional[torch.Tensor] = None, solution: int = -1, tolerance: Optional[float] = None,
+                    later: bool = False):
         """The pairs a step from ``x [V, 3]`` needs once its solve moved the nodes by ``dx [V, 3]``:
         (pairs, active ``[P']`` bool, whether any pair changed), from :meth:`nearby`'s ``pairs``
         and the ``active`` mask the solve used.
@@ -895,8 +902,10 @@ class SurfaceContact:
         (vertex, body) has at most one pair (the new one replaces the old); ``v``: the
         velocities the friction coefficients are taken at (as :meth:`nearby`'s); ``solution``:
         which of the step's solves moved the nodes by ``dx`` (the new pairs' ``born``);
-        ``tolerance``: in place of :attr:`tolerance` (a round's solve: :attr:`recheck_tolerance`)."""
-        end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx))
+        ``tolerance``: in place of :attr:`tolerance` (a round's solve: :attr:`recheck_tolerance`);
+        ``later``: the step checks a later solve too (its search may serve that check,
+        :meth:`_step_candidates`)."""
+        end, _ = self.nearby(x + dx, found=self._step_candidates(x, dx, later))
         objects = max(self.num_objects, 1)
         key = pairs.nodes[:, 0] * objects + pairs.objects[:, 1]
         end_key = end.nodes[:, 0] * objects + end.objects[:, 1]
@@ -939,13 +948,14 @@ class SurfaceContact:
         return merged, active, deeper.numel() > 0
 
     @torch.no_grad()
-    def _step_candidates(self, x: torch.Tensor, dx: torch.Tensor):
+    def _step_candidates(self, x: torch.Tensor, dx: torch.Tensor, later: bool = False):
         """Candidates for a check at ``x + dx`` (``x, dx [V, 3]``) from the step's start search at
         ``x`` (:meth:`nearby`): a list of runs (vertex ids, triangle ids, bodies ``[B]`` bool whose
         pairs the run does not give, or None), each grouped by vertex, which together hold every
         pair a fresh search at ``x + dx`` finds, each (vertex, body)'s candidates in the one run
         that gives its pair; None where a fresh search is the cheaper (or the step's search is
-        another state's). Two host reads.
+        another state's). One host read where no body ended past the margin, three where a later
+        check takes the first's search, a search's more otherwise.
 
         The start search swept each surface point from x to its predicted end x + dt v (in its
         body's moving frame, grown by what the bodies it may meet close on it, :meth:`_motion`),
@@ -955,25 +965,43 @@ class SurfaceContact:
         of T's nodes at theirs, which that search's boxes held. So the kept candidates serve
         every pair of two bodies whose surfaces all ended within the margin; the pairs of a body
         that did not (a tumbling block the solve stopped) are searched again among the bodies
-        within the reach of it at x + dx."""
-        kept = self._step_search
-        if kept is None or kept[0] is not x or kept[1] != x._version:
+        within the reach of it at x + dx.
+
+        With ``later`` (the step checks a later solve too), that search is grown and kept for it:
+        it holds the pairs within reach + 4 m at x + dx_1, among the bodies whose boxes come within
+        reach + 4 m of one past the margin there. A later check at x + dx_2 whose bodies past the
+        margin were all past at x + dx_1, and moved at most 2 m since (each axis), takes it as it
+        is: every other body ended both checks within m of its prediction, so it moved at most 2 m
+        too, and a pair within the reach at x + dx_2 was within reach + 4 m at x + dx_1."""
+        start = self._step_search
+        if start is None or start[0] is not x or start[1] != x._version:
             return None
-        _, _, predicted, margin, (vertex, triangle) = kept
+        _, _, predicted, margin, (vertex, triangle) = start
         y = x + dx
         points = y[self.vertices]
         past = self._per_body_max((points - predicted).abs().amax(-1)) > margin  # [B]
         moved = past.nonzero().squeeze(1)
         if len(moved) == 0:
             return [(vertex, triangle, None)]
-        # the bodies within the reach of a moved one, at y (boxes of their surfaces)
+        held = self._check_search
+        if held is not None and held[0] is start:
+            _, first_points, first_past, (near_vertex, near_triangle) = held
+            drift = self._per_body_max((points - first_points).abs().amax(-1))
+            if bool(~(past & ~first_past).any() & (torch.where(first_past, drift, 0.0).amax() <= 2.0 * margin)):
+                again = (past[self.vertex_object[near_vertex]] | past[self.triangle_object[near_triangle]]).nonzero()
+                again = again.squeeze(1)
+                return [(vertex, triangle, past), (near_vertex[again], near_triangle[again], None)]
+        # the bodies within the reach (grown for a later check) of a moved one, at y (boxes of
+        # their surfaces)
+        grown = self.reach + 4.0 * margin if later else self.reach
         lower, upper = self._body_boxes(points)
         near = past.clone()
         for rows in moved.split(BODY_ROWS):  # [rows, B] at a time
-            near |= self._boxes_meet(lower, upper, rows, self.reach).any(0)
+            near |= self._boxes_meet(lower, upper, rows, grown).any(0)
         if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
             return None  # half the surfaces or more: one search of all is the cheaper
-        again_vertex, again_triangle = self._search(y, None, self.reach, near)
+        again_vertex, again_triangle = self._search(y, None, grown, near)
+        self._check_search = (start, points, past, (again_vertex, again_triangle)) if later else None
         again = (past[self.vertex_object[again_vertex]] | past[self.triangle_object[again_triangle]]).nonzero()
         again = again.squeeze(1)
         # the kept candidates whole (filtering millions of them costs more than dropping the
@@ -1058,7 +1086,7 @@ class SurfaceContact:
                    if value is not None}
         other = copy.copy(self)
         other.settings = dataclasses.replace(self.settings, **changes)
-        other._last = other._static = other._kept = other._step_search = None
+        other._last = other._static = other._kept = other._step_search = other._check_search = None
         other.first_check_found = False
         return other
 

@@ -1314,7 +1314,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         missed = ~active & (near.end_gap(dx) < -tolerance)
         near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
                                                               solution=len(report.contact_solves) - 1,
-                                                              tolerance=tolerance)
+                                                              tolerance=tolerance, later=round_ < rounds - 1)
         found = moved or bool(missed.any())
         if round_ == 0:
             system.body_contact.first_check_found = found

@@ -537,6 +537,56 @@ def test_checks_take_the_step_search_candidates_where_the_solve_kept_near_the_pr
     assert contact._step_candidates(x.clone(), predicted - x) is None  # another state's
 
 
+@pytest.mark.parametrize("swept", [False, True])
+def test_a_later_check_takes_the_first_checks_search(swept):
+    """_step_candidates(later=True): a check whose bodies past the margin have their neighbourhood
+    searched grows that search by 4 margins and keeps it; a later check of the step whose bodies
+    past the margin were all past at the first, and moved at most 2 margins since, takes it with
+    no search and finds a fresh search's pairs bit for bit; a body past the margin only at the
+    later check, or one that moved further, takes a search of its own, and a check without
+    ``later`` keeps nothing. (Two piles of 8 blocks 0.5 m apart: block 7's grown neighbourhood is
+    under half the surfaces.)"""
+    dt = 0.005
+    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept), rows=2)
+    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, check_margin=0.0), rows=2)
+    margin = contact.check_margin
+    contact.nearby(x, v, dt)
+    searches = []
+    search = contact._search
+    contact._search = lambda *a, **k: searches.append(a[3] if len(a) > 3 else None) or search(*a, **k)
+    predicted = x + dt * v if swept else x
+    gen = torch.Generator().manual_seed(7)
+
+    def ends(shifts):  # every body within half a margin of its prediction, but those shifted
+        end = predicted + 0.49 * margin * (2 * torch.rand(x.shape, generator=gen, dtype=DT) - 1)
+        for body, shift in shifts.items():
+            end[contact.node_object == body] += shift * margin
+        return end
+
+    def check(end, later):
+        found = contact._step_candidates(x, end - x, later)
+        pairs, reference = contact.nearby(end, found=found)[0], fresh.nearby(end)[0]
+        assert bool((reference.objects == 7).any())
+        for field in ("nodes", "weights", "direction", "signed", "gap", "objects"):
+            assert torch.equal(getattr(pairs, field), getattr(reference, field)), field
+        return found
+
+    found = check(ends({7: 2.5}), later=True)  # block 7 past: its neighbourhood searched, grown
+    assert len(searches) == 1 and len(found) == 2 and found[0][2].tolist() == [b == 7 for b in range(16)]
+    assert 0 < int(searches[0].sum()) < 8  # within its own pile
+    for shifts in ({7: 3.5}, {7: 1.5}, {}):  # block 7 moved at most 2 margins: the kept search serves
+        found = check(ends(shifts), later=False)
+        assert len(searches) == 1 and len(found) == 1 + bool(shifts)
+    check(ends({7: 2.5, 1: 2.5}), later=False)  # block 1 past only now: searched (and nothing kept)
+    assert len(searches) == 2 and contact._check_search is None
+    check(ends({7: 2.5}), later=True)
+    check(ends({7: 5.5}), later=False)  # block 7 more than 2 margins from the first check: searched
+    assert len(searches) == 4 and contact._check_search is None
+    check(ends({7: 2.5}), later=True)
+    contact.nearby(x, v, dt)  # a new start search: the checks' kept search goes with the old one
+    assert contact._check_search is None
+
+
 def test_the_kept_step_search_holds_no_autograd_graph():
     """A differentiable step's positions require grad: what the start search keeps for the checks
     (the predicted positions) and what a check computes from it carry no graph."""
