@@ -984,29 +984,30 @@ class SurfaceContact:
         if len(moved) == 0:
             return [(vertex, triangle, None)]
         held = self._check_search
+        found = None
         if held is not None and held[0] is start:
-            _, first_points, first_past, (near_vertex, near_triangle) = held
+            _, first_points, first_past, found = held
             drift = self._per_body_max((points - first_points).abs().amax(-1))
-            if bool(~(past & ~first_past).any() & (torch.where(first_past, drift, 0.0).amax() <= 2.0 * margin)):
-                again = (past[self.vertex_object[near_vertex]] | past[self.triangle_object[near_triangle]]).nonzero()
-                again = again.squeeze(1)
-                return [(vertex, triangle, past), (near_vertex[again], near_triangle[again], None)]
-        # the bodies within the reach (grown for a later check) of a moved one, at y (boxes of
-        # their surfaces)
-        grown = self.reach + 4.0 * margin if later else self.reach
-        lower, upper = self._body_boxes(points)
-        near = past.clone()
-        for rows in moved.split(BODY_ROWS):  # [rows, B] at a time
-            near |= self._boxes_meet(lower, upper, rows, grown).any(0)
-        if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
-            return None  # half the surfaces or more: one search of all is the cheaper
-        again_vertex, again_triangle = self._search(y, None, grown, near)
-        self._check_search = (start, points, past, (again_vertex, again_triangle)) if later else None
-        again = (past[self.vertex_object[again_vertex]] | past[self.triangle_object[again_triangle]]).nonzero()
+            if not bool(~(past & ~first_past).any() & (torch.where(first_past, drift, 0.0).amax() <= 2.0 * margin)):
+                found = None
+        if found is None:
+            # the bodies within the reach (grown for a later check) of a moved one, at y (boxes
+            # of their surfaces)
+            grown = self.reach + 4.0 * margin if later else self.reach
+            lower, upper = self._body_boxes(points)
+            near = past.clone()
+            for rows in moved.split(BODY_ROWS):  # [rows, B] at a time
+                near |= self._boxes_meet(lower, upper, rows, grown).any(0)
+            if 2 * int(near[self.vertex_object].sum()) > len(self.vertices):
+                return None  # half the surfaces or more: one search of all is the cheaper
+            found = self._search(y, None, grown, near)
+            self._check_search = (start, points, past, found) if later else None
+        near_vertex, near_triangle = found
+        again = (past[self.vertex_object[near_vertex]] | past[self.triangle_object[near_triangle]]).nonzero()
         again = again.squeeze(1)
         # the kept candidates whole (filtering millions of them costs more than dropping the
         # pairs of the bodies past the margin once the narrow phase found them)
-        return [(vertex, triangle, past), (again_vertex[again], again_triangle[again], None)]
+        return [(vertex, triangle, past), (near_vertex[again], near_triangle[again], None)]
 
     @property
     def tolerance(self) -> float:
