@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -316,6 +317,21 @@ def test_contact_pile_flips_probe_measures_a_pair_exactly(tmp_path):
                          "--out", str(tmp_path / "events.json")])
     assert json.loads((tmp_path / "events.json").read_text()) == events
 
+
+
+def test_contact_pile_flips_probe_tilts():
+    """A block's tilt is the angle of its thin axis from the vertical, whatever its position,
+    its scale and the sense of the turn: 0, 30, 90 and 30 degrees (turned by 150) about x."""
+    import contact_pile_flips_probe as probe
+
+    rest = tm.beam_mesh(4, 4, 2, size=(0.2, 0.2, 0.1), dtype=torch.float64).vertices
+
+    def turned(degrees):
+        c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+        return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
+
+    x = torch.cat([rest, rest @ turned(30).T + 1.0, 1.1 * rest @ turned(90).T, rest @ turned(150).T])
+    assert probe.tilts(x, rest).tolist() == pytest.approx([0.0, 30.0, 90.0, 30.0], abs=1e-6)
 
 def test_contact_piles_resumes_a_paused_run(tmp_path):
     """--state with --budget-s 0 pauses after each step, saving the state; the same command goes
