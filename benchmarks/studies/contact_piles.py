@@ -4,7 +4,7 @@ number of surface triangles, and the deepest interpenetration over the run.
 
     python benchmarks/studies/contact_piles.py [--columns 2 4 6] [--cells 10 10 5] [--steps 120]
                                                [--friction 0] [--model corotational] [--young 1e6]
-                                               [--no-swept] [--check-every 0]
+                                               [--shift 0.01] [--no-swept] [--check-every 0]
                                                [--preconditioners auto none] [--rounds R ...] [--tolerance T]
                                                [--recheck-tolerance T]
                                                [--check-tols C ...] [--skins S ...] [--check-margins M ...]
@@ -15,9 +15,9 @@ number of surface triangles, and the deepest interpenetration over the run.
 Each pile is columns x columns stacks of ``columns`` blocks (0.2 x 0.2 x 0.1 m, corotational, E =
 1e6 Pa (``--model``, ``--young``), nu = 0.3, 1000 kg/m^3; ``--cells`` per block: 10 x 10 x 5 is
 3,000 tets), the columns 5 cm apart, the blocks of a column 3 cm apart and shifted 1 cm sideways
-each (an offset stack), over a floor plane of 1e5 N/m; dt = 5 ms, Rayleigh mass damping 1/s,
-cg_tol 1e-4. With contact the pile runs ``--steps`` steps (the deepest interpenetration over them
-is reported), then 10 more are timed, once for each of ``--preconditioners`` (the Simulator's
+each (an offset stack; ``--shift 0``: straight stacks), over a floor plane of 1e5 N/m; dt = 5 ms,
+Rayleigh mass damping 1/s, cg_tol 1e-4. With contact the pile runs ``--steps`` steps (the deepest
+interpenetration over them is reported), then 10 more are timed, once for each of ``--preconditioners`` (the Simulator's
 ``preconditioner``); without contact, 10 steps after 10 of warm-up (the blocks fall through each
 other: only the rate is compared). Detection: ``SurfaceContact.detect`` at the final state, mean
 of 10. ``--rounds``: a run with contact for each ``Contact(rounds=...)`` (how many more solves a
@@ -62,17 +62,22 @@ DT = 0.005
 #: through whatever the contact does (docs/contact.md, Limits).
 MODEL, YOUNG = "corotational", 1e6
 
+#: How far sideways (m) each block of a column starts from the one under it. Offset columns make a
+#: pile rather than stacks: they lean, and their blocks slide or tip off (frictionless offset
+#: columns never come to rest, docs/contact.md). 0 gives straight stacks, which can.
+SHIFT = 0.01
 
-def pile(columns: int, cells, device, dtype, model: str = MODEL, young: float = YOUNG):
+
+def pile(columns: int, cells, device, dtype, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT):
     """The pile's bodies: columns x columns stacks of ``columns`` blocks of material ``model``
-    with Young's modulus ``young``."""
+    with Young's modulus ``young``, each block ``shift`` (m) sideways from the one under it."""
     material = tm.Material(young=young, poisson=0.3, density=1000, model=model)
     block = tm.beam_mesh(*cells, size=(0.2, 0.2, 0.1), dtype=dtype)
     bodies = []
     for i in range(columns):
         for j in range(columns):
             for k in range(columns):
-                offset = torch.tensor([0.25 * i + 0.01 * k, 0.25 * j, 0.02 + 0.13 * k], dtype=dtype)
+                offset = torch.tensor([0.25 * i + shift * k, 0.25 * j, 0.02 + 0.13 * k], dtype=dtype)
                 bodies.append(tm.Body(tm.TetMesh(block.vertices + offset, block.elements, check=False), material))
     return bodies, block
 
@@ -84,11 +89,12 @@ def simulator(bodies, contact, device, dtype, preconditioner="auto"):
 
 def pile_arguments(argv, description: str, timed: int):
     """The probes' command line for a pile with contact (:func:`pile_simulator`): --columns,
-    --cells, --steps, --timed (``timed`` steps by default), --state, --contact and --device,
-    parsed from ``argv`` (None: the process's)."""
+    --cells, --shift, --steps, --timed (``timed`` steps by default), --state, --contact and
+    --device, parsed from ``argv`` (None: the process's)."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--columns", type=int, default=10)
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
+    parser.add_argument("--shift", type=float, default=SHIFT, help="each block's start sideways from the one under it")
     parser.add_argument("--steps", type=int, default=120, help="steps with contact before (without --state)")
     parser.add_argument("--timed", type=int, default=timed, help="steps looked at")
     parser.add_argument("--state", default=None, help="a folder of contact_piles.py --state (x.pt, v.pt)")
@@ -100,7 +106,7 @@ def pile_arguments(argv, description: str, timed: int):
 def pile_simulator(args, dtype=torch.float32):
     """The pile of :func:`pile_arguments`' ``args`` with contact, stepped ``args.steps`` steps
     or taken from the state ``args.state`` holds (``x.pt``, ``v.pt``, as ``--state`` saves it)."""
-    bodies, _ = pile(args.columns, args.cells, args.device, dtype)
+    bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift)
     sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype)
     if args.state is not None:
         sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)
@@ -132,7 +138,7 @@ def without_contact(bodies, device, dtype) -> dict:
 def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None,
-            model: str = MODEL, young: float = YOUNG, **settings) -> Optional[dict]:
+            model: str = MODEL, young: float = YOUNG, shift: float = SHIFT, **settings) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s, measured here when None),
     ``settings``: its ``tm.Contact``'s (the library's defaults for those not given).
     With ``state`` (a folder), the run goes on from the state saved there (positions,
@@ -142,7 +148,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     carried state (such as the coupled solves' layout) starts afresh, so a resumed run matches the
     uninterrupted one to roundoff at first, not bit for bit, and a tumbling pile then drifts
     apart (``contact_pile_1000_corotational_2000_steps.md``)."""
-    bodies, block = pile(columns, cells, device, dtype, model, young)
+    bodies, block = pile(columns, cells, device, dtype, model, young, shift)
     sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, **settings), device, dtype, preconditioner)
     saved = state / "meta.json" if state is not None else None
     if saved is not None and saved.exists():
@@ -228,6 +234,9 @@ def main(argv=None):
     parser.add_argument("--model", default=MODEL, choices=list(tm.MODELS),
                         help="the blocks' material model (default corotational: the blocks tumble)")
     parser.add_argument("--young", type=float, default=YOUNG, help="the blocks' Young's modulus (Pa)")
+    parser.add_argument("--shift", type=float, default=SHIFT,
+                        help="how far sideways (m) each block of a column starts from the one under it (0: straight "
+                             "stacks)")
     parser.add_argument("--swept", action=argparse.BooleanOptionalAction, default=True,
                         help="Contact(swept=...): pairs over each step's motion (the default) or at its start")
     parser.add_argument("--preconditioners", nargs="+", default=["auto"],
@@ -266,7 +275,7 @@ def main(argv=None):
         args.columns, args.cells, args.steps = [2], [2, 2, 1], 3
     dtype = getattr(torch, args.dtype)
     meta = common.metadata(args.device, dtype=args.dtype, cells=args.cells, friction=args.friction, model=args.model,
-                           young=args.young)
+                           young=args.young, shift=args.shift)
     columns = [("blocks", "blocks", None), ("tets", "tets", ","), ("surface_triangles", "surface triangles", ","),
                ("pairs", "pairs", ","), ("steps_per_s_without", "steps/s without", ".1f"),
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
@@ -283,7 +292,8 @@ def main(argv=None):
                ("out_of_order", "stacked blocks out of order", None),
                ("mean_edge_m", "mean surface edge (m)", ".2e")]
     notes = [f"{args.dtype}, {args.model} blocks of {args.cells} cells, E = {args.young:g} Pa, "
-             f"friction {args.friction:g}, swept {args.swept}, dt {DT} s, "
+             f"friction {args.friction:g}, each block {args.shift:g} m sideways from the one under it, "
+             f"swept {args.swept}, dt {DT} s, "
              f"{args.steps} steps with contact before the timed ones."]
     results = common.Results(args.out, "contact_piles", "Piles of blocks: steps/s with body contact against "
                              "without, detection time", meta, columns, notes)
@@ -299,8 +309,8 @@ def main(argv=None):
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baseline, state, args.budget_s, args.model, args.young,
-                             rounds=rounds, tolerance=args.tolerance, recheck_tolerance=args.recheck_tolerance,
-                             check_tol=check_tol, skin=skin,
+                             args.shift, rounds=rounds, tolerance=args.tolerance,
+                             recheck_tolerance=args.recheck_tolerance, check_tol=check_tol, skin=skin,
                              check_margin=margin)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()

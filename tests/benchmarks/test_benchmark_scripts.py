@@ -241,6 +241,18 @@ def test_contact_piles_quick(tmp_path):
     assert (tmp_path / "contact_piles.md").exists() and (tmp_path / "contact_piles.json").exists()
 
 
+
+def test_contact_piles_shift_sets_each_block_sideways_from_the_one_under_it():
+    """contact_piles.pile(shift=...): each block of a column starts ``shift`` sideways (x) from the
+    one under it, 13 cm above it; 0 gives straight stacks."""
+    import contact_piles
+
+    for shift in (0.0, contact_piles.SHIFT, 0.03):
+        bodies, _ = contact_piles.pile(3, (2, 2, 1), "cpu", torch.float64, shift=shift)
+        centroids = torch.stack([body.mesh.vertices.mean(0) for body in bodies]).reshape(9, 3, 3)
+        steps = centroids[:, 1:] - centroids[:, :-1]  # [column, level, 3]: from a block to the next up
+        assert torch.allclose(steps, torch.tensor([shift, 0.0, 0.13], dtype=torch.float64).expand_as(steps))
+
 def test_out_of_order_counts_a_block_half_a_thickness_below_the_one_it_started_on():
     """contact_piles.out_of_order: a pair of one column's blocks counts where the block that started
     above lies more than 5 cm below the other, over it in plan; two blocks level, side by side as
@@ -332,6 +344,33 @@ def test_contact_pile_flips_probe_tilts():
 
     x = torch.cat([rest, rest @ turned(30).T + 1.0, 1.1 * rest @ turned(90).T, rest @ turned(150).T])
     assert probe.tilts(x, rest).tolist() == pytest.approx([0.0, 30.0, 90.0, 30.0], abs=1e-6)
+
+
+def test_contact_host_reads_probe_counts_each_read_once():
+    """The host-reads probe counts a scalar read, a nonzero, a mask index, a repeat_interleave
+    without its output size and a tolist once each, and nothing for the same work without reads;
+    it runs a pile end to end, the detection's reads among its counts, ops in the CG's iterations
+    and outside them."""
+    import contact_host_reads_probe as probe
+
+    values = torch.arange(6.0)
+    reads = probe.HostReads()
+    with reads, probe.ListReads(reads.counts):
+        float(values.sum())
+        torch.nonzero(values > 2)
+        values[values > 2]
+        torch.repeat_interleave(torch.tensor([1, 2]))
+        values.tolist()
+        torch.repeat_interleave(values, torch.tensor([1, 1, 1, 1, 1, 1]), output_size=6)
+        values[torch.tensor([0, 2])] * 2
+        values.cumsum(0).clamp(max=3.0)
+    by_op = {op: n for (op, _), n in reads.counts.items()}
+    assert by_op == {"_local_scalar_dense": 1, "nonzero": 1, "index": 1, "repeat_interleave": 1, "tolist": 1}
+    counts, ops, iterations = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "3", "--timed", "1",
+                                          "--device", "cpu"])
+    assert len(iterations) == 1 and iterations[0]
+    assert any("covered_cells" in site for _, site in counts)
+    assert ops["in the CG's iterations"] > 0 and ops["outside"] > 0
 
 def test_contact_piles_resumes_a_paused_run(tmp_path):
     """--state with --budget-s 0 pauses after each step, saving the state; the same command goes
