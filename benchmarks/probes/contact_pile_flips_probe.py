@@ -9,8 +9,8 @@ the linear map that best carries its rest vertices to their positions (0: lying 
 on an edge).
 
     python benchmarks/probes/contact_pile_flips_probe.py [--columns 10] [--steps 1000] [--rounds 2]
-                                                         [--friction 0] [--out events.json]
-                                                         [--device cuda]
+                                                         [--friction 0] [--shift 0.01]
+                                                         [--out events.json] [--device cuda]
 
 A block passing through another crosses it with their volumes overlapping: at the crossing the
 centroids are level, and two blocks of 0.2 x 0.2 x 0.1 m that do not overlap have centroids at
@@ -60,11 +60,13 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--rounds", type=int, default=tm.Contact().rounds)
     parser.add_argument("--friction", type=float, default=0.0, help="Contact(friction=...)")
+    parser.add_argument("--shift", type=float, default=contact_piles.SHIFT,
+                        help="each block's start sideways from the one under it (m; 0: straight stacks)")
     parser.add_argument("--out", default="contact_pile_flips.json")
     parser.add_argument("--device", default=common.default_device())
     args = parser.parse_args(argv)
     n = args.columns
-    bodies, block = contact_piles.pile(n, args.cells, args.device, torch.float32)
+    bodies, block = contact_piles.pile(n, args.cells, args.device, torch.float32, shift=args.shift)
     contact = tm.Contact(rounds=args.rounds, friction=args.friction)
     sim = contact_piles.simulator(bodies, contact, args.device, torch.float32)
     rest = block.vertices.to(sim.x)

@@ -17,26 +17,26 @@ Each pile is columns x columns stacks of ``columns`` blocks (0.2 x 0.2 x 0.1 m, 
 3,000 tets), the columns 5 cm apart, the blocks of a column 3 cm apart and shifted 1 cm sideways
 each (an offset stack; ``--shift 0``: straight stacks), over a floor plane of 1e5 N/m; dt = 5 ms,
 Rayleigh mass damping 1/s, cg_tol 1e-4. With contact the pile runs ``--steps`` steps (the deepest
-interpenetration over them is reported), then 10 more are timed, once for each of ``--preconditioners`` (the Simulator's
-``preconditioner``); without contact, 10 steps after 10 of warm-up (the blocks fall through each
-other: only the rate is compared). Detection: ``SurfaceContact.detect`` at the final state, mean
-of 10. ``--rounds``: a run with contact for each ``Contact(rounds=...)`` (how many more solves a
-step may take to check its contact set: the trade of cost against transient interpenetration);
-``--tolerance``: the ``Contact(tolerance=...)`` of every run (how deep past its pair's model a
-vertex may end a step before the step takes a round), ``--recheck-tolerance`` its
-``Contact(recheck_tolerance=...)`` (the same after a round's solve); ``--check-tols``: a run for each
-``Contact(check_tol=...)`` (the CG tolerance of the solves a contact-set check reads); ``--skins``: a run
-for each ``Contact(skin=...)`` (the broad phase's candidates kept while the surfaces move less);
-``--check-margins``: a run for each ``Contact(check_margin=...)`` (how far from the step's prediction
-a solve may leave the surfaces for the step's checks to take the step's own candidates).
-No block may pass through another: besides the deepest interpenetration the steps report (over
-the pairs the contact finds), the exact one (``Simulator.interpenetration``: every surface vertex
-inside another block, whatever its depth) is measured at the end and every ``--check-every``
-steps (each check's step, interpenetration, kinetic energy and blocks out of order go to the
-JSON), and at the end the pairs of blocks of one column still over each other whose order from
-the floor up changed. A run longer than one sitting: ``--state DIR --budget-s S`` saves the state
-after S seconds of stepping and stops; the same command goes on from it.
-Writes ``contact_piles.md`` and ``.json`` to ``--out``.
+interpenetration over them is reported), then 10 more are timed, once for each of
+``--preconditioners`` (the Simulator's ``preconditioner``); without contact, 10 steps after 10 of
+warm-up (the blocks fall through each other: only the rate is compared). Detection:
+``SurfaceContact.detect`` at the final state, mean of 10. ``--rounds``: a run with contact for each
+``Contact(rounds=...)`` (how many more solves a step may take to check its contact set: the trade of
+cost against transient interpenetration); ``--tolerance``: the ``Contact(tolerance=...)`` of every
+run (how deep past its pair's model a vertex may end a step before the step takes a round),
+``--recheck-tolerance`` its ``Contact(recheck_tolerance=...)`` (the same after a round's solve);
+``--check-tols``: a run for each ``Contact(check_tol=...)`` (the CG tolerance of the solves a
+contact-set check reads); ``--skins``: a run for each ``Contact(skin=...)`` (the broad phase's
+candidates kept while the surfaces move less); ``--check-margins``: a run for each
+``Contact(check_margin=...)`` (how far from the step's prediction a solve may leave the surfaces for
+the step's checks to take the step's own candidates). No block may pass through another: besides the
+deepest interpenetration the steps report (over the pairs the contact finds), the exact one
+(``Simulator.interpenetration``: every surface vertex inside another block, whatever its depth) is
+measured at the end and every ``--check-every`` steps (each check's step, interpenetration, kinetic
+energy and blocks out of order go to the JSON), and at the end the pairs of blocks of one column
+still over each other whose order from the floor up changed. A run longer than one sitting:
+``--state DIR --budget-s S`` saves the state after S seconds of stepping and stops; the same command
+goes on from it. Writes ``contact_piles.md`` and ``.json`` to ``--out``.
 """
 import argparse
 import json
