@@ -241,7 +241,6 @@ def test_contact_piles_quick(tmp_path):
     assert (tmp_path / "contact_piles.md").exists() and (tmp_path / "contact_piles.json").exists()
 
 
-
 def test_contact_piles_shift_sets_each_block_sideways_from_the_one_under_it():
     """contact_piles.pile(shift=...): each block of a column starts ``shift`` sideways (x) from the
     one under it, 13 cm above it; 0 gives straight stacks."""
@@ -252,6 +251,7 @@ def test_contact_piles_shift_sets_each_block_sideways_from_the_one_under_it():
         centroids = torch.stack([body.mesh.vertices.mean(0) for body in bodies]).reshape(9, 3, 3)
         steps = centroids[:, 1:] - centroids[:, :-1]  # [column, level, 3]: from a block to the next up
         assert torch.allclose(steps, torch.tensor([shift, 0.0, 0.13], dtype=torch.float64).expand_as(steps))
+
 
 def test_out_of_order_counts_a_block_half_a_thickness_below_the_one_it_started_on():
     """contact_piles.out_of_order: a pair of one column's blocks counts where the block that started
@@ -330,7 +330,6 @@ def test_contact_pile_flips_probe_measures_a_pair_exactly(tmp_path):
     assert json.loads((tmp_path / "events.json").read_text()) == events
 
 
-
 def test_contact_pile_flips_probe_tilts():
     """A block's tilt is the angle of its thin axis from the vertical, whatever its position,
     its scale and the sense of the turn: 0, 30, 90 and 30 degrees (turned by 150) about x."""
@@ -371,6 +370,7 @@ def test_contact_host_reads_probe_counts_each_read_once():
     assert len(iterations) == 1 and iterations[0]
     assert any("covered_cells" in site for _, site in counts)
     assert ops["in the CG's iterations"] > 0 and ops["outside"] > 0
+
 
 def test_contact_piles_resumes_a_paused_run(tmp_path):
     """--state with --budget-s 0 pauses after each step, saving the state; the same command goes
