@@ -41,9 +41,10 @@ READS = {"_local_scalar_dense", "nonzero", "unique", "_unique", "_unique2", "uni
          "masked_select", "repeat_interleave", "index"}
 
 
-def _site() -> str:
-    """The innermost library function on the stack and its caller (``file:function``)."""
-    frames = [f for f in traceback.extract_stack() if "tensormass_torch" in f.filename][::-1][:2]
+def _site(stack) -> str:
+    """The innermost library function on ``stack`` (``traceback.extract_stack()``) and its caller
+    (``file:function``)."""
+    frames = [f for f in stack if "tensormass_torch" in f.filename][::-1][:2]
     return " <- ".join(f"{f.filename.rpartition('tensormass_torch/')[2]}:{f.name}" for f in frames) or "(outside)"
 
 
@@ -70,11 +71,14 @@ class HostReads(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         name = func.__name__.split(".")[0]
-        if name not in VIEWS:
-            iterating = any(f.name == "run_iterations" for f in traceback.extract_stack())
-            self.ops["in the CG's iterations" if iterating else "outside"] += 1
-        if _reads(func, args, kwargs):
-            self.counts[(name, _site())] += 1
+        reads = _reads(func, args, kwargs)
+        if name not in VIEWS or reads:
+            stack = traceback.extract_stack()  # (once for both counts: the probe's own cost)
+            if name not in VIEWS:
+                iterating = any(f.name == "run_iterations" for f in stack)
+                self.ops["in the CG's iterations" if iterating else "outside"] += 1
+            if reads:
+                self.counts[(name, _site(stack))] += 1
         return func(*args, **kwargs)
 
 
@@ -87,7 +91,7 @@ class ListReads(TorchFunctionMode):
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         if func is torch.Tensor.tolist:
-            self.counts[("tolist", _site())] += 1
+            self.counts[("tolist", _site(traceback.extract_stack()))] += 1
         return func(*args, **(kwargs or {}))
 
 
