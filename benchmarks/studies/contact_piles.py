@@ -87,11 +87,14 @@ def simulator(bodies, contact, device, dtype, preconditioner="auto"):
                         device=device, dtype=dtype, cg_tol=1e-4, preconditioner=preconditioner)
 
 
-def pile_arguments(argv, description: str, timed: int):
+def pile_arguments(argv, description: str, timed: int, extend=None):
     """The probes' command line for a pile with contact (:func:`pile_simulator`): --columns,
     --cells, --shift, --steps, --timed (``timed`` steps by default), --state, --contact and
-    --device, parsed from ``argv`` (None: the process's)."""
+    --device, and those ``extend`` (a function of the ``argparse.ArgumentParser``, or None) adds,
+    parsed from ``argv`` (None: the process's)."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    if extend is not None:
+        extend(parser)
     parser.add_argument("--columns", type=int, default=10)
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
     parser.add_argument("--shift", type=float, default=SHIFT, help="each block's start sideways from the one under it")

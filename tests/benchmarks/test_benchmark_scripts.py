@@ -288,6 +288,27 @@ def test_contact_step_phases_probe_quick():
     assert out["phases"]["SurfaceContact.at_state"][1] >= 2
 
 
+def test_contact_settings_probe_steps_each_setting_from_one_state(tmp_path):
+    """The settings probe starts every setting from the pile's state and alternates their blocks:
+    an exact alternative (skin) takes the default's iterations block by block; the state it keeps
+    is the one a later run starts from; a malformed setting is refused."""
+    import contact_settings_probe as probe
+
+    common_args = ["--columns", "2", "--cells", "2", "2", "1", "--timed", "2", "--repeats", "2", "--device", "cpu",
+                   "--contact", '{"friction": 0.5}']
+    blocks = probe.main(common_args + ["--steps", "20", "--save-state", str(tmp_path / "state"), "--out",
+                                       str(tmp_path / "settings.json"), "--setting", "default={}",
+                                       "--setting", 'skin={"skin": 0.005}'])
+    assert list(blocks) == ["without contact", "default", "skin"]
+    assert all(len(runs) == 2 and all(r["ms"] > 0 and r["solves"] >= 1 for r in runs) for runs in blocks.values())
+    assert [r["iterations"] for r in blocks["skin"]] == [r["iterations"] for r in blocks["default"]]
+    assert json.loads((tmp_path / "settings.json").read_text())["blocks"] == blocks
+    again = probe.main(common_args + ["--state", str(tmp_path / "state")])
+    assert [r["iterations"] for r in again["default"]] == [r["iterations"] for r in blocks["default"]]
+    with pytest.raises(SystemExit, match="NAME=JSON"):
+        probe.setting("no-equals-sign")
+
+
 def test_contact_rounds_probe_quick():
     """The rounds probe counts each check's misses and re-linearisations as relinearise tests them,
     and puts relinearise back."""
