@@ -3,22 +3,24 @@ started from the same state and stepped in alternated blocks of steps, beside th
 contact. Rates measured in separate processes differ by 10-15 % on the piles (the machine's
 state, not the setting); alternated blocks in one process put that drift on every setting alike.
 
-    python benchmarks/probes/contact_settings_probe.py [--columns 10] [--shift 0.01] [--steps 120]
-                                                       [--state DIR] [--contact '{"friction": 0.5}']
+    python benchmarks/probes/contact_settings_probe.py [--columns 10] [--levels L] [--shift 0.01]
+                                                       [--steps 120] [--state DIR]
+                                                       [--contact '{"friction": 0.5}']
                                                        [--setting NAME=JSON ...] [--timed 10]
                                                        [--repeats 3] [--save-state DIR]
                                                        [--out settings.json] [--device cuda]
 
-The pile is ``contact_piles``' (``pile_arguments``), stepped ``--steps`` steps with ``--contact``
-or taken from ``--state``; ``--save-state DIR`` keeps that state (``x.pt``, ``v.pt``) for later
-runs. Each ``--setting`` is a name and a JSON object: the keyword arguments of its
-``tm.Contact``, over ``--contact``'s, and ``"preconditioner"``, the Simulator's (default: one
-setting, ``default={}``). Every simulator takes two steps before the blocks, then ``--repeats``
-times each takes ``--timed`` steps in turn; the pile without contact (as ``contact_piles.py``
-times it: the blocks dropped from the start, falling through each other) takes its block first.
-For each block: ms a step, CG iterations a step (every solve's), solves a step, and at its end
-the kinetic energy and the deepest pair of the last step. Settings that are exact alternatives
-of each other (``skin``) take the same iterations.
+The pile is ``contact_piles``' (``pile_arguments``; ``--columns 1 --levels 10``: one stack of
+ten), stepped ``--steps`` steps with ``--contact`` or taken from ``--state``; ``--save-state
+DIR`` keeps that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` is a name and a
+JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s, and
+``"preconditioner"``, the Simulator's (default: one setting, ``default={}``). Every simulator
+takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
+the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
+falling through each other) takes its block first. For each block: ms a step, CG iterations a
+step (every solve's), solves a step, and at its end the kinetic energy and the deepest pair of
+the last step. Settings that are exact alternatives of each other (``skin``) take the same
+iterations.
 """
 import json
 import sys
@@ -83,7 +85,8 @@ def main(argv=None):
         folder.mkdir(parents=True, exist_ok=True)
         torch.save(x.cpu(), folder / "x.pt")
         torch.save(v.cpu(), folder / "v.pt")
-    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype, shift=args.shift)
+    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype, shift=args.shift,
+                                   levels=args.levels)
     without = contact_piles.simulator(bodies, None, args.device, dtype)
     without.step(10)
     sims = {}

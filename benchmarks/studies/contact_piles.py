@@ -68,15 +68,17 @@ MODEL, YOUNG = "corotational", 1e6
 SHIFT = 0.01
 
 
-def pile(columns: int, cells, device, dtype, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT):
-    """The pile's bodies: columns x columns stacks of ``columns`` blocks of material ``model``
-    with Young's modulus ``young``, each block ``shift`` (m) sideways from the one under it."""
+def pile(columns: int, cells, device, dtype, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT,
+         levels: Optional[int] = None):
+    """The pile's bodies: columns x columns stacks of ``levels`` blocks (None: ``columns``) of
+    material ``model`` with Young's modulus ``young``, each block ``shift`` (m) sideways from the
+    one under it."""
     material = tm.Material(young=young, poisson=0.3, density=1000, model=model)
     block = tm.beam_mesh(*cells, size=(0.2, 0.2, 0.1), dtype=dtype)
     bodies = []
     for i in range(columns):
         for j in range(columns):
-            for k in range(columns):
+            for k in range(columns if levels is None else levels):
                 offset = torch.tensor([0.25 * i + shift * k, 0.25 * j, 0.02 + 0.13 * k], dtype=dtype)
                 bodies.append(tm.Body(tm.TetMesh(block.vertices + offset, block.elements, check=False), material))
     return bodies, block
@@ -89,13 +91,14 @@ def simulator(bodies, contact, device, dtype, preconditioner="auto"):
 
 def pile_arguments(argv, description: str, timed: int, extend=None):
     """The probes' command line for a pile with contact (:func:`pile_simulator`): --columns,
-    --cells, --shift, --steps, --timed (``timed`` steps by default), --state, --contact and
-    --device, and those ``extend`` (a function of the ``argparse.ArgumentParser``, or None) adds,
+    --levels, --cells, --shift, --steps, --timed (``timed`` steps by default), --state, --contact
+    and --device, and those ``extend`` (a function of the ``argparse.ArgumentParser``, or None) adds,
     parsed from ``argv`` (None: the process's)."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     if extend is not None:
         extend(parser)
     parser.add_argument("--columns", type=int, default=10)
+    parser.add_argument("--levels", type=int, default=None, help="blocks a stack (default: --columns)")
     parser.add_argument("--cells", type=int, nargs=3, default=[10, 10, 5])
     parser.add_argument("--shift", type=float, default=SHIFT, help="each block's start sideways from the one under it")
     parser.add_argument("--steps", type=int, default=120, help="steps with contact before (without --state)")
@@ -109,7 +112,7 @@ def pile_arguments(argv, description: str, timed: int, extend=None):
 def pile_simulator(args, dtype=torch.float32):
     """The pile of :func:`pile_arguments`' ``args`` with contact, stepped ``args.steps`` steps
     or taken from the state ``args.state`` holds (``x.pt``, ``v.pt``, as ``--state`` saves it)."""
-    bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift)
+    bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift, levels=args.levels)
     sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype)
     if args.state is not None:
         sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)

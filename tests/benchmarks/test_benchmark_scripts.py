@@ -243,12 +243,15 @@ def test_contact_piles_quick(tmp_path):
 
 def test_contact_piles_shift_sets_each_block_sideways_from_the_one_under_it():
     """contact_piles.pile(shift=...): each block of a column starts ``shift`` sideways (x) from the
-    one under it, 13 cm above it; 0 gives straight stacks."""
+    one under it, 13 cm above it; 0 gives straight stacks; ``levels`` blocks a column (by default
+    as many as the columns a side)."""
     import contact_piles
 
-    for shift in (0.0, contact_piles.SHIFT, 0.03):
-        bodies, _ = contact_piles.pile(3, (2, 2, 1), "cpu", torch.float64, shift=shift)
-        centroids = torch.stack([body.mesh.vertices.mean(0) for body in bodies]).reshape(9, 3, 3)
+    for shift, columns, levels in ((0.0, 3, None), (contact_piles.SHIFT, 3, None), (0.03, 3, None), (0.0, 1, 10),
+                                   (0.01, 2, 4)):
+        bodies, _ = contact_piles.pile(columns, (2, 2, 1), "cpu", torch.float64, shift=shift, levels=levels)
+        levels = columns if levels is None else levels
+        centroids = torch.stack([body.mesh.vertices.mean(0) for body in bodies]).reshape(columns ** 2, levels, 3)
         steps = centroids[:, 1:] - centroids[:, :-1]  # [column, level, 3]: from a block to the next up
         assert torch.allclose(steps, torch.tensor([shift, 0.0, 0.13], dtype=torch.float64).expand_as(steps))
 
