@@ -21,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import common  # noqa: E402
 import contact_piles  # noqa: E402
+import contact_settings_probe  # noqa: E402
 
 
 def main(argv=None):
@@ -33,12 +34,9 @@ def main(argv=None):
         sim.options = dataclasses.replace(sim.options, preconditioner=preconditioner)
         sim.x, sim.v = start_x.clone(), start_v.clone()
         sim.step(2)
-        common.sync(device)
-        began = time.perf_counter()
-        iterations = [sum(int(c.iterations.max()) for c in sim.step().cg) for _ in range(args.timed)]
-        common.sync(device)
-        print(f"{preconditioner}: {1e3 * (time.perf_counter() - began) / args.timed:.1f} ms a step, "
-              f"CG iterations a step {iterations}", flush=True)
+        figures = contact_settings_probe.block(sim, args.timed, device)
+        print(f"{preconditioner}: {figures['ms']:.1f} ms a step, {figures['iterations']:.1f} CG iterations a step",
+              flush=True)
     correction = sim.system._rigid
     loads = []
     plain_load = correction.load
