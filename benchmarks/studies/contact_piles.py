@@ -197,7 +197,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
                 pairs=len(pairs), steps=steps, run_s=progress["run_s"], deepest_m=progress["deepest"],
                 preconditioner=preconditioner, rounds=contact.settings.rounds, tolerance_m=contact.tolerance,
                 recheck_tolerance_m=contact.recheck_tolerance,
-                check_tol=contact.settings.check_tol, skin=contact.settings.skin,
+                check_tol=contact.settings.check_tol, skin=contact.skin,
                 check_margin_m=contact.check_margin,
                 steps_per_s_without=without,
                 steps_per_s_with=with_contact,
@@ -262,7 +262,8 @@ def main(argv=None):
                              "a contact-set check reads; default: the library's; none: cg_tol for every solve)")
     parser.add_argument("--skins", type=lambda t: None if t == "none" else float(t), nargs="+",
                         default=[tm.Contact().skin],
-                        help="a run with contact for each Contact(skin=...) (m; none: every detection searches)")
+                        help="a run with contact for each Contact(skin=...) (m; none: the library's, 1/10 of the "
+                             "search; 0: every detection searches)")
     parser.add_argument("--check-margins", type=lambda t: None if t == "none" else float(t), nargs="+",
                         default=[tm.Contact().check_margin],
                         help="a run with contact for each Contact(check_margin=...) (m; none: the library's, "

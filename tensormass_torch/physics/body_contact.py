@@ -125,24 +125,25 @@ class Contact:
             re-linearised where a paused solve ended depends on that solve, so ``tm.rollout``
             (``exact=True``, its default) solves every solve to ``cg_tol``; with ``exact=False``
             its gradient through that dependence is approximate.
-        skin: keep the broad phase's candidates and reuse them (m; None: every detection finds its
-            own). The candidates are found for triangles grown by twice the skin past the reach,
-            and a detection takes them where, since they were found, no surface vertex has moved
-            by more than the skin less what its query needs for the step's motion (a swept one:
-            the most any vertex moves apart from its body, plus half the most two bodies close
-            on each other; a contact-set check: nothing). Those candidates then hold every pair
-            a fresh broad phase would find (``SurfaceContact.candidates``), so every pair within
-            the reach is the fresh detection's; beyond the reach, where a swept detection keeps
-            pairs only outside, a pair may take a nearer triangle. A larger skin is reused longer
-            and gives the narrow phase more candidates (docs/contact.md).
+        skin: keep the broad phase's candidates and reuse them (m; None: 1/10 of the search; 0:
+            every detection finds its own). The candidates are found for triangles grown by
+            twice the skin past the reach, and a detection takes them where, since they were
+            found, no surface vertex has moved by more than the skin less what its query needs for
+            the step's motion (a swept one: the most any vertex moves apart from its body, plus
+            half the most two bodies close on each other; a contact-set check: nothing). Those
+            candidates then hold every pair a fresh broad phase would find
+            (``SurfaceContact.candidates``), so every pair within the reach is the fresh
+            detection's; beyond the reach, where a swept detection keeps pairs only outside, a
+            pair may take a nearer triangle. A larger skin is reused longer and gives the narrow
+            phase more candidates (docs/contact.md measures the trade).
         check_margin: how far (m) a body's surface may end a solve from where the step's starting
             velocities put it, for the step's contact-set checks to take its pairs' candidates
             from the step's own broad phase (whose triangles then grow by twice the margin); a
             body past it has its pairs searched again among the bodies near it. None: 1/16 of
             the search; 0: every check searches on its own. The pairs are the same either way
             (``SurfaceContact._step_candidates``); a larger margin serves more bodies (a bounce,
-            an impact) and gives the narrow phases more candidates. Not used with ``skin``, whose
-            kept candidates serve the checks by their own bound.
+            an impact) and gives the narrow phases more candidates. Used only with ``skin=0``: the
+            kept candidates of a skin serve the checks by their own bound.
     """
 
     stiffness: float = 1e5
@@ -184,8 +185,8 @@ class Contact:
                              f"got {self.recheck_tolerance!r}")
         if self.check_tol is not None and (not number(self.check_tol) or not 0 < self.check_tol < 1):
             raise SceneError(f"contact check_tol must be a number in (0, 1) or None, got {self.check_tol!r}")
-        if self.skin is not None and (not number(self.skin) or self.skin <= 0):
-            raise SceneError(f"contact skin must be a positive finite number or None, got {self.skin!r}")
+        if self.skin is not None and (not number(self.skin) or self.skin < 0):
+            raise SceneError(f"contact skin must be a non-negative finite number or None, got {self.skin!r}")
         if self.check_margin is not None and (not number(self.check_margin) or self.check_margin < 0):
             raise SceneError(f"contact check_margin must be a non-negative finite number or None, "
                              f"got {self.check_margin!r}")
@@ -603,9 +604,15 @@ class SurfaceContact:
         return self.settings.thickness + self.search
 
     @property
+    def skin(self) -> float:
+        """``Contact.skin`` (m), by default 1/10 of :attr:`search`; 0: no kept candidates."""
+        skin = self.settings.skin
+        return self.search / 10.0 if skin is None else float(skin)
+
+    @property
     def check_margin(self) -> float:
-        """``Contact.check_margin``, by default 1/16 of :attr:`search`; 0 with ``Contact.skin``."""
-        if self.settings.skin is not None:
+        """``Contact.check_margin``, by default 1/16 of :attr:`search`; 0 with a skin (:attr:`skin`)."""
+        if self.skin > 0:
             return 0.0
         margin = self.settings.check_margin
         return self.search / 16.0 if margin is None else float(margin)
@@ -718,7 +725,7 @@ class SurfaceContact:
             motion = self._motion(x, v, dt) if motion is None else motion
         else:
             motion = None
-        if self.settings.skin is not None and len(self.triangles):
+        if self.skin > 0 and len(self.triangles):
             kept = self._kept_candidates(x, motion)
             if kept is not None:
                 return kept
@@ -738,7 +745,7 @@ class SurfaceContact:
         of the triangle's box at x_k, which the kept search tested. Where the kept ones do not
         hold them but the query's own motion fits the skin, the candidates are found again
         at x (and kept); else the query's own search answers. One host read."""
-        skin = self.settings.skin
+        skin = self.skin
         points = x[self.vertices]
         need = points.new_zeros(())
         if motion is not None:

@@ -822,7 +822,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
                           tolerance=contact_table.get("tolerance", "positive", None),
                           recheck_tolerance=contact_table.get("recheck_tolerance", "positive", None),
                           check_tol=_check_tol(contact_table),
-                          skin=contact_table.get("skin", "positive", None),
+                          skin=contact_table.get("skin", "nonnegative", None),
                           check_margin=contact_table.get("check_margin", "nonnegative", None),
                           tangent=_choice(contact_table, "tangent", CONTACT_TANGENTS, "projected", "contact tangent"))
         contact_table.done()

@@ -389,8 +389,9 @@ def test_contact_host_reads_probe_counts_each_read_once():
         values.cumsum(0).clamp(max=3.0)
     by_op = {op: n for (op, _), n in reads.counts.items()}
     assert by_op == {"_local_scalar_dense": 1, "nonzero": 1, "index": 1, "repeat_interleave": 1, "tolist": 1}
+    # (no skin: the step's detection searches, its reads among the counts)
     counts, ops, iterations = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "3", "--timed", "1",
-                                          "--device", "cpu"])
+                                          "--contact", '{"skin": 0}', "--device", "cpu"])
     assert len(iterations) == 1 and iterations[0]
     assert any("covered_cells" in site for _, site in counts)
     assert ops["in the CG's iterations"] > 0 and ops["outside"] > 0

@@ -456,7 +456,7 @@ def test_kept_candidates_hold_every_pair_a_fresh_search_finds(swept, monkeypatch
     more than the skin makes a new one."""
     skin = 0.01
     kept, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(skin=skin))
-    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact())
+    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(skin=0.0))
     searches = []
     search = type(kept)._search
     monkeypatch.setattr(type(kept), "_search", lambda self, *a: searches.append(self) or search(self, *a))
@@ -483,18 +483,21 @@ def test_kept_candidates_hold_every_pair_a_fresh_search_finds(swept, monkeypatch
 
 
 def test_a_pile_with_kept_candidates_steps_as_without():
-    """Two blocks falling onto each other and a floor, with Contact(skin) and without: the same
-    states (to rounding: the pairs' order within a vertex may differ), in fewer searches."""
+    """Two blocks falling onto each other and a floor, with Contact(skin) (the default, 1/10 of
+    the search, and 5 mm) and without (0): the same states (to rounding: the pairs' order within
+    a vertex may differ), in fewer searches."""
     runs = []
-    for skin in (None, 0.005):
+    for skin in (0.0, None, 0.005):
         sim = falling_pair(tm.Contact(skin=skin))
         searches = []
         search = sim.body_contact._search
         sim.body_contact._search = lambda *a, searches=searches, search=search: searches.append(1) or search(*a)
         sim.step(20)
-        runs.append((sim.x.clone(), len(searches)))
-    torch.testing.assert_close(runs[1][0], runs[0][0], rtol=0, atol=1e-10)
-    assert runs[1][1] < runs[0][1] / 2
+        runs.append((sim.x.clone(), len(searches), sim.body_contact.skin))
+    assert runs[0][2] == 0.0 and runs[1][2] == pytest.approx(sim.body_contact.search / 10) and runs[2][2] == 0.005
+    for kept in runs[1:]:
+        torch.testing.assert_close(kept[0], runs[0][0], rtol=0, atol=1e-10)
+        assert kept[1] < runs[0][1] / 2
 
 
 @pytest.mark.parametrize("swept", [False, True])
@@ -507,10 +510,11 @@ def test_checks_take_the_step_search_candidates_where_the_solve_kept_near_the_pr
     bit, in its order; where the bodies that moved off reach half the surfaces, None (a fresh
     search)."""
     dt = 0.005
-    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept))
-    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, check_margin=0.0))
+    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, skin=0.0))
+    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, check_margin=0.0, skin=0.0))
     margin = contact.check_margin
     assert margin == pytest.approx(contact.search / 16) and fresh.check_margin == 0.0
+    assert shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept))[0].check_margin == 0.0  # a skin serves the checks
     start, fresh_start = contact.nearby(x, v, dt), fresh.nearby(x, v, dt)  # the step's start: the same pairs
     assert torch.equal(start[0].nodes, fresh_start[0].nodes) and torch.equal(start[1], fresh_start[1])
     assert fresh._step_search is None
@@ -547,8 +551,8 @@ def test_a_later_check_takes_the_first_checks_search(swept):
     ``later`` keeps nothing. (Two piles of 8 blocks 0.5 m apart: block 7's grown neighbourhood is
     under half the surfaces.)"""
     dt = 0.005
-    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept), rows=2)
-    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, check_margin=0.0), rows=2)
+    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, skin=0.0), rows=2)
+    fresh, _, _ = shaken_pile_contact(DT, "cpu", tm.Contact(swept=swept, check_margin=0.0, skin=0.0), rows=2)
     margin = contact.check_margin
     contact.nearby(x, v, dt)
     searches = []
@@ -590,7 +594,7 @@ def test_a_later_check_takes_the_first_checks_search(swept):
 def test_the_kept_step_search_holds_no_autograd_graph():
     """A differentiable step's positions require grad: what the start search keeps for the checks
     (the predicted positions) and what a check computes from it carry no graph."""
-    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact())
+    contact, x, v = shaken_pile_contact(DT, "cpu", tm.Contact(skin=0.0))
     x = x.clone().requires_grad_(True)
     contact.nearby(x, v, 0.005)
     assert contact._step_search[2].grad_fn is None and not contact._step_search[2].requires_grad
@@ -599,13 +603,13 @@ def test_the_kept_step_search_holds_no_autograd_graph():
 
 
 def test_a_pile_whose_checks_take_the_step_search_steps_as_with_searches():
-    """Two blocks falling onto each other and a floor, the checks taking the step's candidates
-    (the default check_margin) or searching on their own (0): the same states bit for bit, in
-    fewer searches. The first step's floor stops the lower block (5 mm from where its velocity put
-    it): that check searches."""
+    """Two blocks falling onto each other and a floor without a skin, the checks taking the step's
+    candidates (the default check_margin) or searching on their own (0): the same states bit for
+    bit, in fewer searches. The first step's floor stops the lower block (5 mm from where its
+    velocity put it): that check searches."""
     runs = []
     for margin in (0.0, None):
-        sim = falling_pair(tm.Contact(check_margin=margin))
+        sim = falling_pair(tm.Contact(check_margin=margin, skin=0.0))
         searches, taken = [], []
         search, step_candidates = sim.body_contact._search, sim.body_contact._step_candidates
         sim.body_contact._search = lambda *a: searches.append(1) or search(*a)
@@ -648,9 +652,9 @@ def test_contact_check_margin_must_be_non_negative(margin):
         tm.Contact(check_margin=margin)
 
 
-@pytest.mark.parametrize("skin", [0.0, -1e-3, float("nan"), "0.01", True])
-def test_contact_skin_must_be_positive(skin):
-    with pytest.raises(tm.SceneError, match="contact skin must be a positive finite number or None"):
+@pytest.mark.parametrize("skin", [-1e-3, float("nan"), float("inf"), "0.01", True])
+def test_contact_skin_must_be_non_negative(skin):
+    with pytest.raises(tm.SceneError, match="contact skin must be a non-negative finite number or None"):
         tm.Contact(skin=skin)
 
 
