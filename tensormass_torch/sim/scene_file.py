@@ -72,8 +72,8 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     # tolerance = 5e-5                # how deep past its model a vertex may end before a round (default: search / 400)
     # recheck_tolerance = 2e-4        # the same after a round's solve (default: search / 100)
     check_tol = 1e-2                  # CG tolerance of the solves a round's check reads (false: cg_tol)
-    # skin = 0.005                    # reuse the broad phase's candidates while surfaces move less (default: off)
-    # check_margin = 0.002            # checks reuse the step's search near its prediction (default: search / 16)
+    # skin = 0.005                    # keep the broad phase's candidates while surfaces move less (search / 10; 0: off)
+    # check_margin = 0.002            # with skin = 0: checks take the step's search near its prediction (search / 16)
 
     [[bodies]]
     name = "beam"
