@@ -77,7 +77,9 @@ def main(argv=None):
     args = contact_piles.pile_arguments(argv, __doc__, timed=10, extend=extend)
     settings = dict(args.setting or [("default", {})])
     dtype = torch.float32
-    start = contact_piles.pile_simulator(args, dtype)
+    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype, shift=args.shift,
+                                   levels=args.levels)
+    start = contact_piles.pile_simulator(args, dtype, bodies)
     x, v = start.x.clone(), start.v.clone()
     del start
     if args.save_state is not None:
@@ -85,8 +87,6 @@ def main(argv=None):
         folder.mkdir(parents=True, exist_ok=True)
         torch.save(x.cpu(), folder / "x.pt")
         torch.save(v.cpu(), folder / "v.pt")
-    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype, shift=args.shift,
-                                   levels=args.levels)
     without = contact_piles.simulator(bodies, None, args.device, dtype)
     without.step(10)
     sims = {}

@@ -109,10 +109,12 @@ def pile_arguments(argv, description: str, timed: int, extend=None):
     return parser.parse_args(argv)
 
 
-def pile_simulator(args, dtype=torch.float32):
+def pile_simulator(args, dtype=torch.float32, bodies=None):
     """The pile of :func:`pile_arguments`' ``args`` with contact, stepped ``args.steps`` steps
-    or taken from the state ``args.state`` holds (``x.pt``, ``v.pt``, as ``--state`` saves it)."""
-    bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift, levels=args.levels)
+    or taken from the state ``args.state`` holds (``x.pt``, ``v.pt``, as ``--state`` saves it);
+    ``bodies``: the pile's, where the caller made them already (None: made here)."""
+    if bodies is None:
+        bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift, levels=args.levels)
     sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype)
     if args.state is not None:
         sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)
