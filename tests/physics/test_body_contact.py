@@ -116,6 +116,38 @@ def overlapping(request):
     return contact, rest
 
 
+def test_per_body_reductions_in_packed_and_shuffled_node_orders():
+    """The bodies' motion and boxes (``SurfaceContact._bodies``): segment reductions where the bodies
+    own contiguous node ranges, sorted sums and scatters where they do not; both against dense
+    per-body references, bit for bit between the two orders (sums up to roundoff)."""
+    _, rest, triangles, objects = two_blocks()
+    gen = torch.Generator().manual_seed(3)
+    rate = torch.randn(rest.shape, generator=gen, dtype=DT)
+    packed = SurfaceContact(triangles, objects, rest, Contact())
+    assert packed._vertex_counts is not None
+    # the same bodies with their nodes renumbered so that they interleave
+    perm = torch.randperm(len(rest), generator=gen)
+    new_id = torch.empty_like(perm)
+    new_id[perm] = torch.arange(len(rest))
+    shuffled = SurfaceContact(new_id[triangles], objects[perm], rest[perm], Contact())
+    assert shuffled._vertex_counts is None
+    a = packed._bodies(rest, rate, 0.5)
+    b = shuffled._bodies(rest[perm], rate[perm], 0.5)
+    mean = torch.stack([rate[objects == k].mean(0) for k in (0, 1)])
+    torch.testing.assert_close(a[1], 0.5 * mean, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(b[1], 0.5 * mean, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(a[0][perm], b[0], rtol=1e-12, atol=1e-14)
+    surface = torch.unique(triangles)
+    deviation = torch.linalg.vector_norm(0.5 * rate[surface] - 0.5 * mean[objects[surface]], dim=-1)
+    for k in (0, 1):
+        on = objects[surface] == k
+        torch.testing.assert_close(a[2][k], deviation[on].max(), rtol=1e-12, atol=1e-14)
+        assert torch.equal(a[3][k], rest[surface][on].amin(0)) and torch.equal(a[4][k], rest[surface][on].amax(0))
+    for got, want in zip(a[2:], b[2:]):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
+    assert torch.equal(packed._per_body_max(torch.zeros(len(packed.vertices), dtype=DT)), torch.zeros(2, dtype=DT))
+
+
 def test_pairs_are_found_both_ways(overlapping):
     contact, x = overlapping
     pairs = contact.detect(x)
