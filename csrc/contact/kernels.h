@@ -130,6 +130,10 @@ struct CandidatesKernel {
 // distance d and the triangle's unit normal (b - a) x (c - a). The projection onto the plane where
 // it falls inside the triangle, else the nearest of the three edges' closest points (a degenerate
 // triangle: its edges). The same formulas, in the same order, as mesh.distance.closest_point.
+// diff is (p - a) - w_b (b - a) - w_c (c - a) (w_a = 1 - w_b - w_c): differences of nearby points
+// are exact, so its error is the rounding's of the triangle's size, not of the coordinates' (p -
+// sum w_i x_i lost all of a resting pair's micrometre in float32 a metre from the origin, and the
+// pair's direction diff / d with it).
 template <typename S>
 struct TriangleClosest {
   S w[3], diff[3], d, normal[3];
@@ -200,7 +204,7 @@ TM_HD TriangleClosest<S> triangle_closest(const S* p, const S* a, const S* b, co
   const S inv = S(1) / (norm > tiny ? norm : tiny);
   S dist_sq = S(0);
   TM_UNROLL for (int k = 0; k < 3; ++k) {
-    out.diff[k] = p[k] - (out.w[0] * a[k] + out.w[1] * b[k] + out.w[2] * c[k]);
+    out.diff[k] = ap[k] - (out.w[1] * ab[k] + out.w[2] * ac[k]);
     out.normal[k] = cross[k] * inv;
     dist_sq += out.diff[k] * out.diff[k];
   }

@@ -66,10 +66,14 @@ def closest_weights(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.
 def closest_point(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
     """From p to triangle (a, b, c) (all ``[..., 3]``): the closest point's weights w ``[..., 3]``,
     p minus that point ``[..., 3]``, its length d ``[...]`` and the triangle's unit normal
-    (b - a) x (c - a) ``[..., 3]`` (outward for an outward-wound surface)."""
+    (b - a) x (c - a) ``[..., 3]`` (outward for an outward-wound surface). The difference is taken
+    from the triangle's corner, (p - a) - w_b (b - a) - w_c (c - a) (the weights sum to 1): its
+    rounding is the triangle's size's, not the coordinates' (a pair a micrometre apart a metre from
+    the origin keeps its direction in float32)."""
     w = closest_weights(p, a, b, c)
-    diff = p - (w[..., 0:1] * a + w[..., 1:2] * b + w[..., 2:3] * c)
-    normal = torch.linalg.cross(b - a, c - a)
+    ab, ac = b - a, c - a
+    diff = (p - a) - (w[..., 1:2] * ab + w[..., 2:3] * ac)
+    normal = torch.linalg.cross(ab, ac)
     normal = normal / torch.clamp(torch.linalg.vector_norm(normal, dim=-1, keepdim=True),
                                   min=torch.finfo(p.dtype).tiny)
     return w, diff, torch.linalg.vector_norm(diff, dim=-1), normal
