@@ -578,8 +578,8 @@ class SurfaceContact:
         # on the 1,000-block pile (benchmarks/results/contact/contact_pile_1000_body_reductions.md)
         objects = max(self.num_objects, 1)
         self._node_counts = torch.bincount(self.node_object, minlength=objects)
-        contiguous = len(self.node_object) < 2 or bool((self.node_object[1:] >= self.node_object[:-1]).all())
-        self._vertex_counts = torch.bincount(self.vertex_object, minlength=objects) if contiguous else None
+        self._vertex_counts = torch.bincount(self.vertex_object, minlength=objects)
+        self._contiguous = len(self.node_object) < 2 or bool((self.node_object[1:] >= self.node_object[:-1]).all())
         # where each body's triangles start, where they come in body order (the packed bodies' do):
         # the broad phase's ops then skip a vertex's own body in its walks (no output changes)
         in_order = len(self.triangle_object) < 2 or bool((self.triangle_object[1:] >= self.triangle_object[:-1]).all())
@@ -630,7 +630,7 @@ class SurfaceContact:
         node's motion apart from its body's mean ``[V, 3]``; each body's mean motion ``[B, 3]``;
         the most any of its surface vertices moves apart from that mean ``[B]``; its surface's
         box at ``x``, lower and upper corners ``[B, 3]``)."""
-        if self._vertex_counts is not None:
+        if self._contiguous:
             total = torch.segment_reduce(rate, "sum", lengths=self._node_counts)
         else:
             total = add_at(rate.new_zeros(max(self.num_objects, 1), 3), self.node_object, rate)
@@ -642,14 +642,14 @@ class SurfaceContact:
     def _per_body_max(self, values: torch.Tensor) -> torch.Tensor:
         """``[B]`` the largest of the surface vertices' ``values [S]`` (>= 0) over each body (0 for a
         body without any)."""
-        if self._vertex_counts is not None:
+        if self._contiguous:
             return torch.segment_reduce(values, "max", lengths=self._vertex_counts, unsafe=True, initial=0.0)
         return values.new_zeros(max(self.num_objects, 1)).scatter_reduce(0, self.vertex_object, values, "amax")
 
     def _body_boxes(self, points: torch.Tensor):
         """Each body's box of its surface vertices at ``points [S, 3]``: lower and upper corners
         ``[B, 3]`` (+inf and -inf for a body without any)."""
-        if self._vertex_counts is not None:
+        if self._contiguous:
             return (torch.segment_reduce(points, "min", lengths=self._vertex_counts, unsafe=True, initial=math.inf),
                     torch.segment_reduce(points, "max", lengths=self._vertex_counts, unsafe=True, initial=-math.inf))
         objects, index = max(self.num_objects, 1), self.vertex_object[:, None].expand(-1, 3)

@@ -124,13 +124,13 @@ def test_per_body_reductions_in_packed_and_shuffled_node_orders():
     gen = torch.Generator().manual_seed(3)
     rate = torch.randn(rest.shape, generator=gen, dtype=DT)
     packed = SurfaceContact(triangles, objects, rest, Contact())
-    assert packed._vertex_counts is not None
+    assert packed._contiguous
     # the same bodies with their nodes renumbered so that they interleave
     perm = torch.randperm(len(rest), generator=gen)
     new_id = torch.empty_like(perm)
     new_id[perm] = torch.arange(len(rest))
     shuffled = SurfaceContact(new_id[triangles], objects[perm], rest[perm], Contact())
-    assert shuffled._vertex_counts is None
+    assert not shuffled._contiguous
     a = packed._bodies(rest, rate, 0.5)
     b = shuffled._bodies(rest[perm], rate[perm], 0.5)
     mean = torch.stack([rate[objects == k].mean(0) for k in (0, 1)])
