@@ -26,11 +26,15 @@ the additive two-level form: the identity (block Jacobi, in the scaled space) pl
 solve, weighted by w = 1/2 (the two overlap on the coarse space; ``docs/preconditioners.md``).
 It is symmetric positive definite when E is, and E is a Galerkin product of the step's matrix.
 
-E is not solved whole. The bodies are ordered along a Morton curve of their centres of mass and
-taken in groups of ``group_bodies``; E is replaced by its principal blocks over the groups (each
-one symmetric positive definite, as principal blocks of E are): the pairs between two groups keep
-their diagonal terms and drop their coupling. Bodies in contact are near each other, so most
-couplings fall inside a group. Each group's block is inverted once per load, in float64.
+E is not solved whole. The bodies are ordered and taken in groups of ``group_bodies``; E is
+replaced by its principal blocks over the groups (each one symmetric positive definite, as
+principal blocks of E are): the pairs between two groups keep their diagonal terms and drop their
+coupling. The order (``grouping``) puts the bodies the step's pairs join most next to each other
+(``"contact"``: clusters by heavy-edge matching on the bodies' contact graph, along a Morton curve
+of their centres), or follows the Morton curve alone (``"morton"``): a stack of blocks is one
+cluster, where the curve's groups, small cubes of a pile, cut it into three or four and the
+correction misses its blocks' motions against each other. Each group's block is inverted once per
+load, in float64.
 
 An iteration applies it as three block-sparse products (``ops.multigrid.bsr_gemv``, the
 multigrid's op): the restriction Z'^T, the groups' inverses written as a block row a body, and
@@ -56,6 +60,9 @@ GROUP_BODIES = 32
 WEIGHT = 0.5
 #: Morton code bits per axis of the bodies' order.
 _MORTON_BITS = 10
+#: How the bodies are taken into the coarse solve's groups: along the Morton curve of their centres,
+#: or with the bodies the step's pairs join most together first (:func:`contact_groups`).
+GROUPINGS = ("contact", "morton")
 
 
 class BodySums:
@@ -109,22 +116,82 @@ def rigid_modes(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
     return modes, centres
 
 
-def morton_groups(centres: torch.Tensor, group_bodies: int) -> tuple:
-    """(each body's group ``[B]``, its slot in the group ``[B]``, the number of groups): the
-    bodies in the order of a Morton curve through their ``centres [B, 3]`` (ties by index), taken
-    ``group_bodies`` at a time."""
-    count, dim = centres.shape
+def _morton_codes(centres: torch.Tensor) -> torch.Tensor:
+    """``[B]`` int64: each of ``centres [B, dim]``'s cell on a grid of 2^10 a side over their box,
+    its bits interleaved (the position along a Morton curve)."""
+    dim = centres.shape[1]
     low = centres.amin(0)
     span = (centres.amax(0) - low).amax().clamp(min=torch.finfo(centres.dtype).tiny)
     top = (1 << _MORTON_BITS) - 1
     cells = ((centres - low) / span * top).round().to(torch.int64).clamp(0, top)  # [B, dim]
     bits = torch.arange(_MORTON_BITS, device=centres.device)
     axes = torch.arange(dim, device=centres.device)
-    code = (((cells[:, :, None] >> bits) & 1) << (dim * bits + axes[:, None])).sum((1, 2))
-    order = torch.argsort(code, stable=True)
+    return (((cells[:, :, None] >> bits) & 1) << (dim * bits + axes[:, None])).sum((1, 2))
+
+
+def _groups_of(order: torch.Tensor, group_bodies: int) -> tuple:
+    """(group ``[B]``, slot ``[B]``, groups) of the bodies taken ``group_bodies`` at a time in
+    ``order [B]`` (body ids)."""
+    count = order.numel()
     rank = torch.empty_like(order)
-    rank[order] = torch.arange(count, device=centres.device)
+    rank[order] = torch.arange(count, device=order.device)
     return rank // group_bodies, rank % group_bodies, -(-count // group_bodies)
+
+
+def morton_groups(centres: torch.Tensor, group_bodies: int) -> tuple:
+    """(each body's group ``[B]``, its slot in the group ``[B]``, the number of groups): the
+    bodies in the order of a Morton curve through their ``centres [B, 3]`` (ties by index), taken
+    ``group_bodies`` at a time."""
+    return _groups_of(torch.argsort(_morton_codes(centres), stable=True), group_bodies)
+
+
+def contact_clusters(pair_objects: torch.Tensor, bodies: int, most: int, rounds: int) -> torch.Tensor:
+    """``[B]`` int64: a label for each of ``bodies`` bodies, the bodies that the contact pairs join
+    most (``pair_objects [P, 2]``: each pair's two bodies; an edge's weight is the number of pairs
+    between its two bodies) in clusters of at most ``most`` bodies. Heavy-edge matching, as graph
+    partitioners coarsen: ``rounds`` times, each cluster picks its heaviest edge to a cluster that
+    fits beside it (ties broken by a hash of the edge), and two clusters that pick each other's
+    edge merge. One host read (the number of edges); the rounds' arrays are an edge long."""
+    device = pair_objects.device
+    label = torch.arange(bodies, device=device)
+    if pair_objects.numel() == 0 or most < 2:
+        return label
+    lo, hi = pair_objects.amin(1), pair_objects.amax(1)
+    edges, weight = torch.unique((lo * bodies + hi)[lo != hi], return_counts=True)  # (self-contact joins nothing)
+    u, v = edges // bodies, edges % bodies
+    # the priority of an edge: its weight, then a hash of its bodies (a path of equal weights then
+    # matches about a third of its edges a round, where a fixed order would match one)
+    score = weight * (1 << 31) + (u * 2654435761 + v * 40503) % (1 << 31)
+    for _ in range(rounds):
+        size = torch.bincount(label, minlength=bodies)
+        cu, cv = label[u], label[v]
+        offer = torch.where((cu != cv) & (size[cu] + size[cv] <= most), score, -1)
+        best = torch.full((bodies,), -1, dtype=offer.dtype, device=device)
+        best = best.scatter_reduce(0, cu, offer, "amax").scatter_reduce(0, cv, offer, "amax")
+        chosen = (offer >= 0) & (offer == best[cu]) & (offer == best[cv])
+        joined = torch.minimum(cu, cv)
+        relabel = torch.arange(bodies, device=device)
+        relabel = relabel.scatter_reduce(0, cu, torch.where(chosen, joined, cu), "amin")
+        relabel = relabel.scatter_reduce(0, cv, torch.where(chosen, joined, cv), "amin")
+        label = relabel[label]
+    return label
+
+
+def contact_groups(centres: torch.Tensor, pair_objects: torch.Tensor, group_bodies: int) -> tuple:
+    """As :func:`morton_groups`, with the bodies that the contact pairs (``pair_objects [P, 2]``)
+    join most next to each other: :func:`contact_clusters` of at most ``group_bodies`` bodies,
+    ordered along the Morton curve by their first body, each cluster's bodies along it. A cluster
+    may still straddle two groups (its coupling there is dropped, as the Morton groups drop theirs);
+    on stacks of blocks the Morton groups cut every stack, these one stack in three or four."""
+    count = centres.shape[0]
+    code = _morton_codes(centres)
+    rounds = 2 * max(1, (group_bodies - 1).bit_length()) + 2
+    label = contact_clusters(pair_objects, count, group_bodies, rounds)
+    first = torch.full_like(code, torch.iinfo(torch.int64).max).scatter_reduce(0, label, code, "amin")
+    by_body = torch.argsort(code, stable=True)
+    cluster_key = first[label] * count + label  # (the codes have 30 bits, the labels < B)
+    order = by_body[torch.argsort(cluster_key[by_body], stable=True)]
+    return _groups_of(order, group_bodies)
 
 
 def _gram(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -189,13 +256,16 @@ class RigidModeCorrection:
     block: its body's), the last adding r. Its buffers keep their storage from load to load while
     the shapes do (a CUDA graph captured over :meth:`__call__` replays with each load's values)."""
 
-    def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT):
+    def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT, grouping: str = "contact"):
         if group_bodies < 1:
             raise ValueError(f"group_bodies must be at least 1, got {group_bodies}")
         if not weight > 0:
             raise ValueError(f"weight must be positive, got {weight}")
+        if grouping not in GROUPINGS:
+            raise ValueError(f"grouping must be one of {GROUPINGS}, got {grouping!r}")
         self.group_bodies = int(group_bodies)
         self.weight = float(weight)
+        self.grouping = grouping
         self.restriction: Optional[BsrMatrix] = None  # Z'^T [6 B, 3 V]
         self.inverses: Optional[BsrMatrix] = None  # the groups' E^-1 [6 B, 6 B]
         self.prolongation: Optional[BsrMatrix] = None  # w Z' [3 V, 6 B]
@@ -213,7 +283,8 @@ class RigidModeCorrection:
         ``kept``: a key that promises x, mass, free and the node weights are those of the last
         load with the same key (a step's contact rounds: only the pairs and the scaling change),
         whose modes, groups and own blocks are then reused; None: computed afresh.
-        No host synchronisation."""
+        No host synchronisation, but one where a fresh load groups the bodies by their pairs
+        (``grouping="contact"``: :func:`contact_clusters`' edges)."""
         if self._sums is None or self._sums.segments is not segments or self._sums.ones.dtype != x.dtype \
                 or self._sums.ones.device != x.device or self._sums.ones.shape[0] != x.shape[0]:
             self._sums, self.restriction, self._kept = BodySums(segments, x), None, None
@@ -223,7 +294,10 @@ class RigidModeCorrection:
             modes, centres = rigid_modes(x, mass, self._sums)
             if free is not None:
                 modes = modes * free
-            group, slot, groups = morton_groups(centres, size)
+            if self.grouping == "contact" and pairs is not None and len(pairs):
+                group, slot, groups = contact_groups(centres, pairs.objects, size)
+            else:
+                group, slot, groups = morton_groups(centres, size)
             own = own_blocks(modes, node_weights() if callable(node_weights) else node_weights, self._sums)
             # each body's row of its group's inverse takes a block for each slot of the group, its
             # columns the slots' bodies; the Morton ranks group * c + slot are 0 .. B - 1, so the
@@ -301,5 +375,5 @@ class RigidModeCorrection:
         return bsr_gemv(self.prolongation, self._coarse_solution(r), r.reshape(-1)).view_as(r)
 
 
-__all__ = ["GROUP_BODIES", "WEIGHT", "BodySums", "RigidModeCorrection", "group_matrices", "morton_groups",
-           "own_blocks", "rigid_modes"]
+__all__ = ["GROUPINGS", "GROUP_BODIES", "WEIGHT", "BodySums", "RigidModeCorrection", "contact_clusters",
+           "contact_groups", "group_matrices", "morton_groups", "own_blocks", "rigid_modes"]

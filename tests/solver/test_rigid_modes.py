@@ -13,6 +13,8 @@ from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagona
 from tensormass_torch.solver.rigid_modes import (
     BodySums,
     RigidModeCorrection,
+    contact_clusters,
+    contact_groups,
     group_matrices,
     morton_groups,
     own_blocks,
@@ -260,3 +262,70 @@ def test_rigid_on_triangle_bodies_steps_as_jacobi(kind):
         out[preconditioner] = (sim.v.clone(), sim.system._rigid)
     torch.testing.assert_close(out["rigid"][0], out["jacobi"][0], rtol=1e-8, atol=1e-9)
     assert out["rigid"][1] is not None and out["jacobi"][1] is None
+
+
+def chains(count=4, length=10):
+    """``count`` chains of ``length`` bodies side by side (columns 0.25 apart, bodies 0.13 above
+    each other): consecutive bodies of a chain joined by 200-202 pairs, neighbours across two
+    chains by 5; the pairs' bodies ``[P, 2]`` (shuffled) and the bodies' centres ``[B, 3]``."""
+    pairs = []
+    for c in range(count):
+        for k in range(length - 1):
+            pairs += [[c * length + k, c * length + k + 1]] * (200 + k % 3)
+        if c < count - 1:
+            for k in range(length):
+                pairs += [[c * length + k, (c + 1) * length + k]] * 5
+    objects = torch.tensor(pairs)
+    objects = objects[torch.randperm(len(objects), generator=torch.Generator().manual_seed(0))]
+    centres = torch.tensor([[0.25 * (b // length), 0.0, 0.13 * (b % length)] for b in range(count * length)], dtype=DT)
+    return objects, centres
+
+
+@pytest.mark.parametrize("most", [32, 10, 8, 4])
+def test_contact_clusters_join_the_heaviest_edges_up_to_the_size(most):
+    """Heavy-edge matching on the bodies' contact graph: no cluster above the size; chains of ten
+    whose links outweigh their neighbours' each fall whole in one cluster where they fit."""
+    objects, _ = chains()
+    rounds = 2 * (most - 1).bit_length() + 2
+    label = contact_clusters(objects, 40, most, rounds)
+    assert int(torch.bincount(label).max()) <= most
+    if most >= 10:
+        assert all(len(set(label[10 * c:10 * c + 10].tolist())) == 1 for c in range(4))
+    else:
+        assert len(set(label.tolist())) <= 40 // (most // 2)  # (clusters of at least half the size, about)
+    assert torch.equal(label, contact_clusters(objects, 40, most, rounds))
+    assert torch.equal(contact_clusters(objects[:0], 40, most, 4), torch.arange(40))
+
+
+def test_contact_groups_keep_the_chains_the_morton_curve_cuts():
+    objects, centres = chains()
+    group, slot, groups = contact_groups(centres, objects, 10)
+    assert groups == 4 and sorted((group * 10 + slot).tolist()) == list(range(40))
+    assert all(len(set(group[10 * c:10 * c + 10].tolist())) == 1 for c in range(4))
+    morton = morton_groups(centres, 10)[0]
+    assert any(len(set(morton[10 * c:10 * c + 10].tolist())) > 1 for c in range(4))
+
+
+def test_bad_grouping_raises_one_clear_error():
+    with pytest.raises(ValueError, match="grouping must be one of"):
+        RigidModeCorrection(grouping="metis")
+
+
+def test_two_towers_take_fewer_iterations_with_contact_groups():
+    """Two towers of four blocks in groups of four bodies: the contact groups hold each tower, the
+    Morton curve's mix them (the same solution to the tolerance)."""
+    counts, ends = {}, {}
+    for grouping in ("morton", "contact"):
+        material = tm.Material(young=1e6, poisson=0.3, density=1000)
+        block = tm.beam_mesh(3, 3, 2, size=(0.2, 0.2, 0.1), dtype=DT)
+        bodies = [tm.Body(tm.TetMesh(block.vertices + torch.tensor([0.25 * i + 0.01 * k, 0.0, 0.001 + 0.1015 * k],
+                                                                   dtype=DT), block.elements), material)
+                  for i in range(2) for k in range(4)]
+        sim = tm.Simulator(bodies, dt=0.005, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(),
+                           rayleigh_mass=1.0, cg_tol=1e-6, preconditioner="rigid", dtype=DT)
+        sim.system._rigid = RigidModeCorrection(4, grouping=grouping)
+        sim.step(10)
+        counts[grouping] = sum(sum(int(c.iterations.max()) for c in sim.step().cg) for _ in range(10))
+        ends[grouping] = sim.x.clone()
+    assert counts["contact"] < counts["morton"], counts
+    torch.testing.assert_close(ends["contact"], ends["morton"], rtol=0, atol=1e-5)
