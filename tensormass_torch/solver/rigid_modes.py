@@ -157,15 +157,17 @@ def contact_clusters(pair_objects: torch.Tensor, bodies: int, most: int, rounds:
     if pair_objects.numel() == 0 or most < 2:
         return label
     lo, hi = pair_objects.amin(1), pair_objects.amax(1)
-    edges, weight = torch.unique((lo * bodies + hi)[lo != hi], return_counts=True)  # (self-contact joins nothing)
-    u, v = edges // bodies, edges % bodies
+    none = bodies * bodies  # the key of a pair within one body (self-contact): it joins nothing
+    edges, weight = torch.unique(torch.where(lo != hi, lo * bodies + hi, none), return_counts=True)
+    real = edges != none
+    u, v = torch.where(real, edges // bodies, 0), torch.where(real, edges % bodies, 0)
     # the priority of an edge: its weight, then a hash of its bodies (a path of equal weights then
     # matches about a third of its edges a round, where a fixed order would match one)
-    score = weight * (1 << 31) + (u * 2654435761 + v * 40503) % (1 << 31)
+    score = torch.where(real, weight * (1 << 31) + (u * 2654435761 + v * 40503) % (1 << 31), -1)
     for _ in range(rounds):
         size = torch.bincount(label, minlength=bodies)
         cu, cv = label[u], label[v]
-        offer = torch.where((cu != cv) & (size[cu] + size[cv] <= most), score, -1)
+        offer = torch.where((cu != cv) & (size[cu] + size[cv] <= most), score, -1)  # (u = v = 0: not real)
         best = torch.full((bodies,), -1, dtype=offer.dtype, device=device)
         best = best.scatter_reduce(0, cu, offer, "amax").scatter_reduce(0, cv, offer, "amax")
         chosen = (offer >= 0) & (offer == best[cu]) & (offer == best[cv])

@@ -267,7 +267,8 @@ def test_rigid_on_triangle_bodies_steps_as_jacobi(kind):
 def chains(count=4, length=10):
     """``count`` chains of ``length`` bodies side by side (columns 0.25 apart, bodies 0.13 above
     each other): consecutive bodies of a chain joined by 200-202 pairs, neighbours across two
-    chains by 5; the pairs' bodies ``[P, 2]`` (shuffled) and the bodies' centres ``[B, 3]``."""
+    chains by 5, and 500 pairs of body 3 with itself; the pairs' bodies ``[P, 2]`` (shuffled) and
+    the bodies' centres ``[B, 3]``."""
     pairs = []
     for c in range(count):
         for k in range(length - 1):
@@ -275,6 +276,7 @@ def chains(count=4, length=10):
         if c < count - 1:
             for k in range(length):
                 pairs += [[c * length + k, (c + 1) * length + k]] * 5
+    pairs += [[3, 3]] * 500  # self-contact: joins nothing, however many
     objects = torch.tensor(pairs)
     objects = objects[torch.randperm(len(objects), generator=torch.Generator().manual_seed(0))]
     centres = torch.tensor([[0.25 * (b // length), 0.0, 0.13 * (b % length)] for b in range(count * length)], dtype=DT)
