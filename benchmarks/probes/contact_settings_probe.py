@@ -13,8 +13,10 @@ state, not the setting); alternated blocks in one process put that drift on ever
 The pile is ``contact_piles``' (``pile_arguments``; ``--columns 1 --levels 10``: one stack of
 ten), stepped ``--steps`` steps with ``--contact`` or taken from ``--state``; ``--save-state
 DIR`` keeps that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` is a name and a
-JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s, and
-``"preconditioner"``, the Simulator's (default: one setting, ``default={}``). Every simulator
+JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s,
+``"preconditioner"``, the Simulator's, and ``"rigid_grouping"``, the groups of
+``preconditioner="rigid"``'s coarse solve (``"contact"``, its default, or ``"morton"``) (default:
+one setting, ``default={}``). Every simulator
 takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
 the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
 falling through each other) takes its block first. For each block: ms a step, CG iterations a
@@ -35,6 +37,7 @@ import common  # noqa: E402
 import contact_piles  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
+from tensormass_torch.solver.rigid_modes import RigidModeCorrection  # noqa: E402
 
 
 def setting(text: str):
@@ -50,7 +53,7 @@ def setting(text: str):
 
 def extend(parser):
     parser.add_argument("--setting", type=setting, action="append", default=None,
-                        help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner')")
+                        help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner', 'rigid_grouping')")
     parser.add_argument("--repeats", type=int, default=3, help="blocks of --timed steps for each setting")
     parser.add_argument("--save-state", default=None, help="a folder to keep the pile's starting state in")
     parser.add_argument("--out", default=None, help="a JSON file for the blocks' figures")
@@ -93,8 +96,11 @@ def main(argv=None):
     for name, options in settings.items():
         options = dict(options)
         preconditioner = options.pop("preconditioner", "auto")
+        grouping = options.pop("rigid_grouping", None)
         sim = contact_piles.simulator(bodies, tm.Contact(**{**args.contact, **options}), args.device, dtype,
                                       preconditioner)
+        if grouping is not None:  # the rigid correction's groups (its default: "contact")
+            sim.system._rigid = RigidModeCorrection(grouping=grouping)
         sim.x, sim.v = x.clone(), v.clone()
         sim.step(2)
         sims[name] = sim
