@@ -145,13 +145,17 @@ def morton_groups(centres: torch.Tensor, group_bodies: int) -> tuple:
     return _groups_of(torch.argsort(_morton_codes(centres), stable=True), group_bodies)
 
 
-def contact_clusters(pair_objects: torch.Tensor, bodies: int, most: int, rounds: int) -> torch.Tensor:
+def contact_clusters(pair_objects: torch.Tensor, bodies: int, most: int, rounds: Optional[int] = None) -> torch.Tensor:
     """``[B]`` int64: a label for each of ``bodies`` bodies, the bodies that the contact pairs join
     most (``pair_objects [P, 2]``: each pair's two bodies; an edge's weight is the number of pairs
     between its two bodies) in clusters of at most ``most`` bodies. Heavy-edge matching, as graph
     partitioners coarsen: ``rounds`` times, each cluster picks its heaviest edge to a cluster that
     fits beside it (ties broken by a hash of the edge), and two clusters that pick each other's
-    edge merge. One host read (the number of edges); the rounds' arrays are an edge long."""
+    edge merge (None: 2 log2(most) + 2 rounds, enough for clusters to double up to ``most`` where
+    a round matches a third of a chain's links). One host read (the number of edges); the rounds'
+    arrays are an edge long."""
+    if rounds is None:
+        rounds = 2 * max(1, (most - 1).bit_length()) + 2
     device = pair_objects.device
     label = torch.arange(bodies, device=device)
     if pair_objects.numel() == 0 or most < 2:
@@ -187,8 +191,7 @@ def contact_groups(centres: torch.Tensor, pair_objects: torch.Tensor, group_bodi
     on stacks of blocks the Morton groups cut every stack, these one stack in three or four."""
     count = centres.shape[0]
     code = _morton_codes(centres)
-    rounds = 2 * max(1, (group_bodies - 1).bit_length()) + 2
-    label = contact_clusters(pair_objects, count, group_bodies, rounds)
+    label = contact_clusters(pair_objects, count, group_bodies)
     first = torch.full_like(code, torch.iinfo(torch.int64).max).scatter_reduce(0, label, code, "amin")
     by_body = torch.argsort(code, stable=True)
     cluster_key = first[label] * count + label  # (the codes have 30 bits, the labels < B)

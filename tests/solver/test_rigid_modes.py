@@ -288,14 +288,13 @@ def test_contact_clusters_join_the_heaviest_edges_up_to_the_size(most):
     """Heavy-edge matching on the bodies' contact graph: no cluster above the size; chains of ten
     whose links outweigh their neighbours' each fall whole in one cluster where they fit."""
     objects, _ = chains()
-    rounds = 2 * (most - 1).bit_length() + 2
-    label = contact_clusters(objects, 40, most, rounds)
+    label = contact_clusters(objects, 40, most)
     assert int(torch.bincount(label).max()) <= most
     if most >= 10:
         assert all(len(set(label[10 * c:10 * c + 10].tolist())) == 1 for c in range(4))
     else:
         assert len(set(label.tolist())) <= 40 // (most // 2)  # (clusters of at least half the size, about)
-    assert torch.equal(label, contact_clusters(objects, 40, most, rounds))
+    assert torch.equal(label, contact_clusters(objects, 40, most))
     assert torch.equal(contact_clusters(objects[:0], 40, most, 4), torch.arange(40))
 
 
