@@ -158,4 +158,83 @@ struct BlockCholeskyKernel {
   }
 };
 
+// Heavy-edge matching of a graph's nodes into clusters of at most `most` nodes (multigrid_match_clusters,
+// solver/rigid_modes.py: the coarse correction's groups). Each round, every cluster offers its
+// highest-keyed edge to another cluster that fits beside it, and two clusters whose offers are the
+// same edge merge into the smaller root (a cluster's label: its smallest node). Four kernels a
+// round, each item writing only its own entries (no atomics): the result does not depend on
+// timing or threads. The keys are distinct, so a cluster's offer is one edge and a round merges
+// each cluster at most once. A cluster's members are a list (next, -1 at its tail) from its root.
+struct MatchClusters {
+  const int64_t* keys;            // [E] distinct, >= 0
+  const int64_t* ends;            // [E, 2]
+  const int64_t* incident_ptr;    // [B + 1]
+  const int64_t* incident_edges;  // [2 E]: each node's edges
+  int64_t most;
+  int64_t* label;      // [B] each node's root
+  int64_t* size;       // [B] a root's cluster's size
+  int64_t* best;       // [B] a root's offer: the largest key of its members' node offers
+  int64_t* node_best;  // [B] the largest key of a node's edges to a cluster that fits
+  int64_t* next;       // [B] the next member of a node's cluster, -1 at the tail
+  int64_t* tail;       // [B] a root's cluster's last member
+  int64_t* merged;     // [B] the root a root merges into this round (itself if none)
+
+  TM_HD int64_t offer(int64_t e) const {
+    const int64_t cu = label[ends[2 * e]], cv = label[ends[2 * e + 1]];
+    return cu != cv && size[cu] + size[cv] <= most ? keys[e] : int64_t(-1);
+  }
+};
+
+struct MatchInitKernel {  // per node: a cluster of its own
+  MatchClusters m;
+  TM_HD void operator()(int64_t b) const {
+    m.label[b] = b;
+    m.size[b] = 1;
+    m.next[b] = -1;
+    m.tail[b] = b;
+  }
+};
+
+struct MatchNodeOfferKernel {  // per node
+  MatchClusters m;
+  TM_HD void operator()(int64_t b) const {
+    int64_t top = -1;
+    for (int64_t k = m.incident_ptr[b]; k < m.incident_ptr[b + 1]; ++k) {
+      const int64_t o = m.offer(m.incident_edges[k]);
+      top = o > top ? o : top;
+    }
+    m.node_best[b] = top;
+  }
+};
+
+struct MatchClusterOfferKernel {  // per node; roots only
+  MatchClusters m;
+  TM_HD void operator()(int64_t c) const {
+    if (m.label[c] != c) return;
+    int64_t top = -1;
+    for (int64_t n = c; n >= 0; n = m.next[n]) top = m.node_best[n] > top ? m.node_best[n] : top;
+    m.best[c] = top;
+    m.merged[c] = c;
+  }
+};
+
+struct MatchMergeKernel {  // per edge: the edge both its clusters offer joins them
+  MatchClusters m;
+  TM_HD void operator()(int64_t e) const {
+    const int64_t cu = m.label[m.ends[2 * e]], cv = m.label[m.ends[2 * e + 1]];
+    const int64_t key = m.keys[e];
+    if (cu == cv || m.best[cu] != key || m.best[cv] != key) return;  // (a best is a valid offer's key)
+    const int64_t a = cu < cv ? cu : cv, b = cu < cv ? cv : cu;
+    m.next[m.tail[a]] = b;
+    m.tail[a] = m.tail[b];
+    m.size[a] += m.size[b];
+    m.merged[b] = a;
+  }
+};
+
+struct MatchRelabelKernel {  // per node
+  MatchClusters m;
+  TM_HD void operator()(int64_t b) const { m.label[b] = m.merged[m.label[b]]; }
+};
+
 }  // namespace tensormass

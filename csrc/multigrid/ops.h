@@ -203,6 +203,49 @@ void multigrid_block_cholesky(const at::Tensor& blocks, at::Tensor scale, at::Te
   });
 }
 
+// multigrid_match_clusters: see schema.cpp.
+template <class L>
+void multigrid_match_clusters(const at::Tensor& edge_keys, const at::Tensor& edge_ends, const at::Tensor& incident_ptr,
+                              const at::Tensor& incident_edges, int64_t most, int64_t rounds, at::Tensor label,
+                              at::Tensor work) {
+  TORCH_CHECK(label.defined() && label.dim() == 1, "tensormass: label must be [B]");
+  const int64_t nodes = label.size(0);
+  check_index_tensor(label, "label", label, at::kLong, {nodes}, "label");
+  TORCH_CHECK(edge_keys.defined() && edge_keys.dim() == 1, "tensormass: edge_keys must be [E]");
+  const int64_t edges = edge_keys.size(0);
+  check_index_tensor(edge_keys, "edge_keys", label, at::kLong, {edges}, "label");
+  check_index_tensor(edge_ends, "edge_ends", label, at::kLong, {edges, 2}, "label");
+  check_index_tensor(incident_ptr, "incident_ptr", label, at::kLong, {nodes + 1}, "label");
+  check_index_tensor(incident_edges, "incident_edges", label, at::kLong, {2 * edges}, "label");
+  check_index_tensor(work, "work", label, at::kLong, {6, nodes}, "label");
+  TORCH_CHECK(most >= 1, "tensormass: most must be at least 1, got ", std::to_string(most));
+  TORCH_CHECK(rounds >= 0, "tensormass: rounds must not be negative, got ", std::to_string(rounds));
+  TORCH_CHECK(!label.is_same(work) && label.data_ptr() != work.data_ptr(), "tensormass: label must not be work");
+  if (nodes == 0) return;
+  typename L::Guard guard(label.device());
+  MatchClusters m;
+  m.keys = edge_keys.data_ptr<int64_t>();
+  m.ends = edge_ends.data_ptr<int64_t>();
+  m.incident_ptr = incident_ptr.data_ptr<int64_t>();
+  m.incident_edges = incident_edges.data_ptr<int64_t>();
+  m.most = most;
+  m.label = label.data_ptr<int64_t>();
+  int64_t* w = work.data_ptr<int64_t>();
+  m.size = w;
+  m.best = w + nodes;
+  m.node_best = w + 2 * nodes;
+  m.next = w + 3 * nodes;
+  m.tail = w + 4 * nodes;
+  m.merged = w + 5 * nodes;
+  L::run(nodes, MatchInitKernel{m}, L::kNodeBlock);
+  for (int64_t round = 0; round < rounds && edges > 0; ++round) {
+    L::run(nodes, MatchNodeOfferKernel{m}, L::kNodeBlock);
+    L::run(nodes, MatchClusterOfferKernel{m}, L::kNodeBlock);
+    L::run(edges, MatchMergeKernel{m}, L::kNodeBlock);
+    L::run(nodes, MatchRelabelKernel{m}, L::kNodeBlock);
+  }
+}
+
 // Registers the implementations of the multigrid ops of one backend (launcher L) under its
 // TORCH_LIBRARY_IMPL (cpu.cpp, cuda.cu); the schemas: schema.cpp.
 template <class L>
@@ -210,6 +253,7 @@ void register_multigrid_ops(torch::Library& m) {
   m.impl("multigrid_bsr_gemv", &multigrid_bsr_gemv<L>);
   m.impl("multigrid_chebyshev", &multigrid_chebyshev<L>);
   m.impl("multigrid_block_cholesky", &multigrid_block_cholesky<L>);
+  m.impl("multigrid_match_clusters", &multigrid_match_clusters<L>);
 }
 
 }  // namespace tensormass

@@ -29,4 +29,13 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   read), scale = L^-T, scale_t = L^-1 and inverse = L^T; the identity for the three where a
   //   pivot is not positive. Four different tensors.
   m.def("multigrid_block_cholesky(Tensor blocks, Tensor(a!) scale, Tensor(b!) scale_t, Tensor(c!) inverse) -> ()");
+  // multigrid_match_clusters(edge_keys [E] int64, edge_ends [E, 2] int64, incident_ptr [B + 1] int64,
+  //                          incident_edges [2 E] int64, most, rounds, label! [B] int64, work! [6, B] int64) -> ()
+  //   heavy-edge matching of a graph of B nodes into clusters of at most `most`: `rounds` times,
+  //   each cluster offers its edge of largest key (keys distinct, >= 0) to a cluster it fits
+  //   beside, and two clusters offering each other one edge merge. label = each node's cluster's
+  //   smallest node. incident_edges lists each node's edges (incident_ptr: its range); an edge
+  //   whose two ends are one node never offers. work: scratch.
+  m.def("multigrid_match_clusters(Tensor edge_keys, Tensor edge_ends, Tensor incident_ptr, Tensor incident_edges, "
+        "int most, int rounds, Tensor(a!) label, Tensor(b!) work) -> ()");
 }

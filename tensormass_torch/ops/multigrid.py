@@ -16,6 +16,11 @@ with the rest of a CG iteration):
             block Jacobi's scaling of the finest level (``solver.preconditioner.JacobiScaling``):
             S = L^-T, S^T and S^-1 = L^T of each diagonal block L L^T, in one launch (as tensor
             ops, some seventy small kernels at every solve)
+    multigrid_match_clusters(edge_keys, edge_ends, incident_ptr, incident_edges, most, rounds,
+        label!, work!)
+            heavy-edge matching of a graph's nodes into clusters of at most ``most`` (the rigid
+            correction's groups, ``solver.rigid_modes.contact_clusters``): one call of 4 launches a
+            round where the tensor ops take some thirty small kernels a round
 
 Each block row is summed in a fixed order (deterministic, no atomics). The pure-torch references
 below are the tests' oracle and the path where the extension does not serve the device. Not
@@ -32,7 +37,8 @@ import torch
 from . import library
 from .library import OpDef
 
-__all__ = ["BsrMatrix", "bsr_gemv", "chebyshev", "block_scaling", "block_cholesky_scaling"]
+__all__ = ["BsrMatrix", "bsr_gemv", "chebyshev", "block_scaling", "block_cholesky_scaling", "match_clusters",
+           "incident_lists"]
 
 
 @dataclass
@@ -131,6 +137,27 @@ def _ref_multigrid_block_cholesky(blocks, scale, scale_t, inverse):
     inverse.copy_(s_inverse)
 
 
+def _ref_multigrid_match_clusters(edge_keys, edge_ends, incident_ptr, incident_edges, most, rounds, label, work):
+    """The matching as whole-array rounds: each cluster's offer by a scatter of the edges' keys."""
+    nodes = label.numel()
+    device = label.device
+    clusters = torch.arange(nodes, device=device)
+    u, v = edge_ends[:, 0], edge_ends[:, 1]
+    for _ in range(rounds if edge_keys.numel() else 0):
+        size = torch.bincount(clusters, minlength=nodes)
+        cu, cv = clusters[u], clusters[v]
+        offer = torch.where((cu != cv) & (size[cu] + size[cv] <= most), edge_keys, -1)
+        best = torch.full((nodes,), -1, dtype=offer.dtype, device=device)
+        best = best.scatter_reduce(0, cu, offer, "amax").scatter_reduce(0, cv, offer, "amax")
+        chosen = (offer >= 0) & (offer == best[cu]) & (offer == best[cv])
+        root = torch.minimum(cu, cv)
+        relabel = torch.arange(nodes, device=device)
+        relabel = relabel.scatter_reduce(0, cu, torch.where(chosen, root, cu), "amin")
+        relabel = relabel.scatter_reduce(0, cv, torch.where(chosen, root, cv), "amin")
+        clusters = relabel[clusters]
+    label.copy_(clusters)
+
+
 def block_cholesky_scaling(blocks: torch.Tensor):
     """(S = L^-T, S^-1 = L^T), both ``[V, d, d]``, of symmetric blocks ``[V, d, d]`` = L L^T (the
     lower triangle read), the identity for both where a block is not positive definite (a pivot
@@ -173,6 +200,12 @@ def _example(name):
             blocks = half @ half.transpose(-1, -2) + 0.1 * torch.eye(3, dtype=dtype, device=device)
             blocks[2] = -blocks[2]
             return (blocks, rand(4, 3, 3), rand(4, 3, 3), rand(4, 3, 3)), {}
+        if name == "multigrid_match_clusters":  # a path 0-1-2-3-4 and a triangle 5-6-7, clusters of 3
+            ends = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 4], [5, 6], [6, 7], [5, 7]], device=device)
+            keys = torch.tensor([4, 6, 1, 5, 2, 3, 0], device=device) * 8 + torch.arange(7, device=device)
+            ptr, incident = incident_lists(ends, 8)
+            return (keys, ends, ptr, incident, 3, 4, torch.zeros(8, dtype=torch.int64, device=device),
+                    torch.zeros(6, 8, dtype=torch.int64, device=device)), {}
         values = rand(5, 3, 3)
         return (values, block_cols, row_ptr, None, rand(9), rand(9).abs(), rand(9), rand(9), rand(9), 0.3, 0.7), {}
 
@@ -186,6 +219,8 @@ OPS = (
           example=_example("multigrid_chebyshev")),
     OpDef("multigrid_block_cholesky", _ref_multigrid_block_cholesky, None, differentiable=False, mutates=True,
           example=_example("multigrid_block_cholesky")),
+    OpDef("multigrid_match_clusters", _ref_multigrid_match_clusters, None, differentiable=False, mutates=True,
+          example=_example("multigrid_match_clusters"), scratch=("work",)),
 )
 library.define(OPS, lambda: library.register(OPS))
 
@@ -222,3 +257,30 @@ def block_scaling(blocks: torch.Tensor, scale: torch.Tensor, scale_t: torch.Tens
     where the extension serves the device, else its reference)."""
     library.op_or_reference("multigrid_block_cholesky", blocks.device)(blocks.contiguous(), scale, scale_t, inverse)
 
+
+
+def incident_lists(edge_ends: torch.Tensor, nodes: int) -> tuple:
+    """(``incident_ptr [B + 1]``, ``incident_edges [2 E]``) int64: each of ``nodes`` nodes' edges
+    (``edge_ends [E, 2]``), in edge order, its range ``incident_ptr[b] .. incident_ptr[b + 1]``; a
+    loop (both ends one node, which never offers) is in no list (the entries past ``incident_ptr[B]``).
+    No host synchronisation (a search of the sorted ends, not a count)."""
+    edges = edge_ends.shape[0]
+    loop = (edge_ends[:, 0] == edge_ends[:, 1])[:, None]
+    ends = torch.where(loop, nodes, edge_ends).t().reshape(-1)
+    listed, order = torch.sort(ends, stable=True)
+    ptr = torch.searchsorted(listed, torch.arange(nodes + 1, device=ends.device))
+    return ptr, order % max(edges, 1)
+
+
+def match_clusters(edge_keys: torch.Tensor, edge_ends: torch.Tensor, nodes: int, most: int,
+                   rounds: int) -> torch.Tensor:
+    """``[B]`` int64: each of ``nodes`` nodes' cluster (its smallest node) after ``rounds`` rounds
+    of heavy-edge matching (``multigrid_match_clusters``) over the edges ``edge_ends [E, 2]``
+    int64 with distinct keys ``edge_keys [E]`` (>= 0; an edge from a node to itself never joins),
+    clusters of at most ``most`` nodes. No host synchronisation."""
+    label = torch.empty(nodes, dtype=torch.int64, device=edge_keys.device)
+    work = torch.empty(6, nodes, dtype=torch.int64, device=edge_keys.device)
+    ptr, incident = incident_lists(edge_ends, nodes)
+    library.op_or_reference("multigrid_match_clusters", label.device)(
+        edge_keys.contiguous(), edge_ends.contiguous(), ptr, incident, int(most), int(rounds), label, work)
+    return label

@@ -631,7 +631,7 @@ class SurfaceContact:
         the most any of its surface vertices moves apart from that mean ``[B]``; its surface's
         box at ``x``, lower and upper corners ``[B, 3]``)."""
         if self._contiguous:
-            total = torch.segment_reduce(rate, "sum", lengths=self._node_counts)
+            total = torch.segment_reduce(rate, "sum", lengths=self._node_counts, unsafe=True)
         else:
             total = add_at(rate.new_zeros(max(self.num_objects, 1), 3), self.node_object, rate)
         body_step = scale * total / self._node_counts.clamp(min=1).to(rate.dtype)[:, None]

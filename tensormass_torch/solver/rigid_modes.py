@@ -50,9 +50,8 @@ from typing import Optional
 import torch
 
 from ..mesh.topology import add_at
-from ..ops import cg as cg_ops
-from ..ops.multigrid import BsrMatrix, bsr_gemv
-from ..ops.segments import ChunkPlan, Segments
+from ..ops.multigrid import BsrMatrix, bsr_gemv, match_clusters
+from ..ops.segments import Segments
 
 #: Bodies per group of the coarse solve (its matrices are 6 x this on a side).
 GROUP_BODIES = 32
@@ -66,28 +65,23 @@ GROUPINGS = ("contact", "morton")
 
 
 class BodySums:
-    """Per-body dot products of per-node fields in float64 chunk order (``ops.cg.object_dot`` over a
-    plan of the bodies of ``segments``): deterministic, with no host synchronisation (a load runs
-    between a step's captured iterations without draining the device's queue)."""
+    """Per-body sums of per-node values in float64: one ``segment_reduce`` over the bodies' node
+    ranges (``segments``), each body summed in node order (deterministic), with no host
+    synchronisation (a load runs between a step's captured iterations without draining the
+    device's queue; the ranges are checked against the nodes once, here)."""
 
     def __init__(self, segments: Segments, like: torch.Tensor):
+        lengths = segments.lengths.to(like.device)
+        if int(lengths.sum()) != like.shape[0]:
+            raise ValueError(f"the bodies' segments hold {int(lengths.sum())} nodes, the positions {like.shape[0]}")
         self.segments = segments
-        self.plan = ChunkPlan.from_segments(segments)
-        self._state = cg_ops.CGState.empty(self.plan, (0,), like.dtype, like.device)
-        self._native = cg_ops.native_ops_for(like)
-        self.ones = torch.ones(like.shape[0], dtype=like.dtype, device=like.device)
-
-    def dot(self, a: torch.Tensor, b: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-        """``out [B]`` (in place) = each body's sum of a . b over its nodes (``[V]`` or ``[V, d]``)."""
-        cg_ops.object_dot(a, b, self.plan, out, self._state, self._native)
-        return out
+        self.lengths = lengths
+        self.num_nodes = like.shape[0]
+        self.device = like.device
 
     def sums(self, values: torch.Tensor) -> torch.Tensor:
-        """Each body's sums ``[B, n]`` of per-node ``values [V, n]``."""
-        out = values.new_zeros(values.shape[1], self.segments.num_objects)
-        for k in range(values.shape[1]):
-            self.dot(values[:, k].contiguous(), self.ones, out[k])
-        return out.t()
+        """Each body's sums ``[B, n]`` float64 of per-node ``values [V, n]``."""
+        return torch.segment_reduce(values.to(torch.float64), "sum", lengths=self.lengths, unsafe=True)
 
 
 def rigid_modes(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
@@ -95,24 +89,22 @@ def rigid_modes(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
     three rotations about the body's centre of mass (lever arms divided by the body's radius of
     gyration, so that the six have comparable norms); and the centres. A massless body turns
     about its nodes' mean. ``sums``: the bodies' :class:`BodySums`."""
-    index = sums.segments.node_object
-    tiny = torch.finfo(x.dtype).tiny
+    index = sums.segments.node_object.to(x.device)
+    tiny = torch.finfo(torch.float64).tiny
     per_body = sums.sums(torch.cat([mass[:, None], mass[:, None] * x, x], 1))  # [B, 7]
     body_mass = per_body[:, 0]
-    counts = sums.segments.lengths.clamp(min=1).to(x.dtype)
+    counts = sums.lengths.clamp(min=1).to(torch.float64)
     centres = torch.where(body_mass[:, None] > 0, per_body[:, 1:4] / body_mass.clamp(min=tiny)[:, None],
-                          per_body[:, 4:7] / counts[:, None])
+                          per_body[:, 4:7] / counts[:, None]).to(x.dtype)
     arm = x - centres[index]
     spread = sums.sums((mass * (arm * arm).sum(-1))[:, None])[:, 0]
     gyration = torch.sqrt(spread / body_mass.clamp(min=tiny))
-    gyration = torch.where(gyration > tiny, gyration, torch.ones_like(gyration))
-    arm = arm / gyration[index, None]
-    modes = x.new_zeros(6, x.shape[0], 3)
-    modes[0, :, 0] = modes[1, :, 1] = modes[2, :, 2] = 1.0
-    ax, ay, az = arm.unbind(-1)
-    modes[3, :, 1], modes[3, :, 2] = -az, ay  # e_x x arm
-    modes[4, :, 0], modes[4, :, 2] = az, -ax  # e_y x arm
-    modes[5, :, 0], modes[5, :, 1] = -ay, ax  # e_z x arm
+    gyration = torch.where(gyration > tiny, gyration, torch.ones_like(gyration)).to(x.dtype)
+    ax, ay, az = (arm / gyration[index, None]).unbind(-1)
+    zero, one = torch.zeros_like(ax), torch.ones_like(ax)
+    # the translations, then e_x x arm, e_y x arm, e_z x arm: one stack of 18 per-node components
+    modes = torch.stack([one, zero, zero, zero, one, zero, zero, zero, one,
+                         zero, -az, ay, az, zero, -ax, -ay, ax, zero]).view(6, 3, -1).transpose(1, 2)
     return modes, centres
 
 
@@ -145,42 +137,48 @@ def morton_groups(centres: torch.Tensor, group_bodies: int) -> tuple:
     return _groups_of(torch.argsort(_morton_codes(centres), stable=True), group_bodies)
 
 
+def _edge_keys(u: torch.Tensor, v: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``[E]`` int64, distinct and >= 0: the matching's priority of the edges (u, v) ``[E]`` each:
+    their ``weight`` (saturating at 2^16 - 1), then a hash of their two ends, then their index.
+    The hash (an integer mix of 32 bits, no int64 overflow) breaks a path of equal weights into
+    local maxima about every third edge, where an order by index would match one edge a round."""
+    x = (u * 40503 + v) & 0xFFFFFFFF
+    x = (((x >> 16) ^ x) * 0x45D9F3B) & 0xFFFFFFFF
+    x = (((x >> 16) ^ x) * 0x45D9F3B) & 0xFFFFFFFF
+    x = (x >> 16) ^ x
+    index = torch.arange(u.numel(), device=u.device)
+    return (weight.clamp(max=(1 << 16) - 1) << 47) | ((x & 0xFFFF) << 31) | index
+
+
 def contact_clusters(pair_objects: torch.Tensor, bodies: int, most: int, rounds: Optional[int] = None) -> torch.Tensor:
-    """``[B]`` int64: a label for each of ``bodies`` bodies, the bodies that the contact pairs join
-    most (``pair_objects [P, 2]``: each pair's two bodies; an edge's weight is the number of pairs
-    between its two bodies) in clusters of at most ``most`` bodies. Heavy-edge matching, as graph
-    partitioners coarsen: ``rounds`` times, each cluster picks its heaviest edge to a cluster that
-    fits beside it (ties broken by a hash of the edge), and two clusters that pick each other's
-    edge merge (None: 2 log2(most) + 2 rounds, enough for clusters to double up to ``most`` where
-    a round matches a third of a chain's links). One host read (the number of edges); the rounds'
-    arrays are an edge long."""
+    """``[B]`` int64: a label for each of ``bodies`` bodies (its cluster's smallest body), the
+    bodies that the contact pairs join most (``pair_objects [P, 2]``: each pair's two bodies; an
+    edge's weight is the number of pairs between its two bodies) in clusters of at most ``most``
+    bodies. Heavy-edge matching, as graph partitioners coarsen (``ops.multigrid.match_clusters``):
+    ``rounds`` times, each cluster offers its heaviest edge to a cluster that fits beside it (ties
+    by :func:`_edge_keys`' hash), and two clusters that offer each other one edge merge (None:
+    2 log2(most) + 2 rounds, enough for clusters to double up to ``most`` where a round matches a
+    third of a chain's links). No host synchronisation: the edges are a pair long (one a run of
+    equal pairs, the others loops that never join)."""
     if rounds is None:
         rounds = 2 * max(1, (most - 1).bit_length()) + 2
     device = pair_objects.device
-    label = torch.arange(bodies, device=device)
     if pair_objects.numel() == 0 or most < 2:
-        return label
+        return torch.arange(bodies, device=device)
+    # the edges, without a host read of their number: the pairs' codes sorted, an edge at the first
+    # pair of each run, its weight the run's length; every other slot (and a pair within one
+    # body, self-contact) a loop (0, 0), which never joins
     lo, hi = pair_objects.amin(1), pair_objects.amax(1)
-    none = bodies * bodies  # the key of a pair within one body (self-contact): it joins nothing
-    edges, weight = torch.unique(torch.where(lo != hi, lo * bodies + hi, none), return_counts=True)
-    real = edges != none
-    u, v = torch.where(real, edges // bodies, 0), torch.where(real, edges % bodies, 0)
-    # the priority of an edge: its weight, then a hash of its bodies (a path of equal weights then
-    # matches about a third of its edges a round, where a fixed order would match one)
-    score = torch.where(real, weight * (1 << 31) + (u * 2654435761 + v * 40503) % (1 << 31), -1)
-    for _ in range(rounds):
-        size = torch.bincount(label, minlength=bodies)
-        cu, cv = label[u], label[v]
-        offer = torch.where((cu != cv) & (size[cu] + size[cv] <= most), score, -1)  # (u = v = 0: not real)
-        best = torch.full((bodies,), -1, dtype=offer.dtype, device=device)
-        best = best.scatter_reduce(0, cu, offer, "amax").scatter_reduce(0, cv, offer, "amax")
-        chosen = (offer >= 0) & (offer == best[cu]) & (offer == best[cv])
-        joined = torch.minimum(cu, cv)
-        relabel = torch.arange(bodies, device=device)
-        relabel = relabel.scatter_reduce(0, cu, torch.where(chosen, joined, cu), "amin")
-        relabel = relabel.scatter_reduce(0, cv, torch.where(chosen, joined, cv), "amin")
-        label = relabel[label]
-    return label
+    none = bodies * bodies
+    codes = torch.sort(torch.where(lo != hi, lo * bodies + hi, none)).values  # [P]
+    count = codes.numel()
+    index = torch.arange(count, device=device)
+    first = torch.cat([codes.new_ones(1, dtype=torch.bool), codes[1:] != codes[:-1]])
+    later = torch.cummin(torch.where(first, index, count).flip(0), 0).values.flip(0)  # the next run's start, from p on
+    weight = torch.cat([later[1:], later.new_full((1,), count)]) - index
+    real = first & (codes != none)
+    u, v = torch.where(real, codes // bodies, 0), torch.where(real, codes % bodies, 0)
+    return match_clusters(_edge_keys(u, v, weight), torch.stack([u, v], 1), bodies, most, rounds)
 
 
 def contact_groups(centres: torch.Tensor, pair_objects: torch.Tensor, group_bodies: int) -> tuple:
@@ -208,15 +206,12 @@ def _gram(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def own_blocks(modes: torch.Tensor, node_weights: torch.Tensor, sums: BodySums) -> torch.Tensor:
     """Each body's own block of the coarse matrix without pairs, Z_b^T W Z_b ``[B, 6, 6]`` float64
     (``modes [6, V, 3]``: Z, :func:`rigid_modes`, fixed nodes zeroed; ``node_weights [V, 3, 3]``:
-    W = c_M m_i I + c_K N_i at each node): 21 per-body dots, the nodes' 6 x 6 blocks never formed."""
-    own = modes.new_zeros(6, 6, sums.segments.num_objects)
-    for j in range(6):
-        weighted = (node_weights * modes[j][:, None, :]).sum(-1)
-        for k in range(j + 1):
-            sums.dot(modes[k], weighted, own[k, j])
-            if k != j:
-                own[j, k].copy_(own[k, j])
-    return own.permute(2, 0, 1).to(torch.float64)
+    W = c_M m_i I + c_K N_i at each node): the nodes' 6 x 6 products, elementwise, summed per body
+    in one reduction."""
+    z = modes.permute(1, 2, 0)  # [V, 3, 6]
+    weighted = (node_weights[:, :, :, None] * z[:, None, :, :]).sum(2)  # W Z [V, 3, 6]
+    per_node = _gram(z, weighted)  # [V, 6, 6]
+    return sums.sums(per_node.reshape(-1, 36)).view(-1, 6, 6)
 
 
 def group_matrices(own: torch.Tensor, modes: torch.Tensor, group: torch.Tensor, slot: torch.Tensor, groups: int,
@@ -288,10 +283,9 @@ class RigidModeCorrection:
         ``kept``: a key that promises x, mass, free and the node weights are those of the last
         load with the same key (a step's contact rounds: only the pairs and the scaling change),
         whose modes, groups and own blocks are then reused; None: computed afresh.
-        No host synchronisation, but one where a fresh load groups the bodies by their pairs
-        (``grouping="contact"``: :func:`contact_clusters`' edges)."""
-        if self._sums is None or self._sums.segments is not segments or self._sums.ones.dtype != x.dtype \
-                or self._sums.ones.device != x.device or self._sums.ones.shape[0] != x.shape[0]:
+        No host synchronisation (but where the bodies' node ranges are checked, the first load)."""
+        if self._sums is None or self._sums.segments is not segments or self._sums.device != x.device \
+                or self._sums.num_nodes != x.shape[0]:
             self._sums, self.restriction, self._kept = BodySums(segments, x), None, None
         size, bodies = self.group_bodies, segments.num_objects
         fresh = kept is None or self._kept is None or self._kept[0] != kept
@@ -330,7 +324,7 @@ class RigidModeCorrection:
         inverses = lower_inverse.transpose(1, 2) @ lower_inverse  # [G, 6 c, 6 c]
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
         blocks = torch.where(filled, rows, 0.0).to(x.dtype).reshape(-1, 6, 6)
-        basis = torch.stack([scaling.unapply(modes[k]) for k in range(6)], -1)  # Z' per node [V, 3, 6]
+        basis = scaling.unapply_columns(modes.permute(1, 2, 0))  # Z' per node [V, 3, 6]
         if self.restriction is None or self.inverses.values.shape != blocks.shape \
                 or self.restriction.values.shape[0] != basis.shape[0] or self.restriction.values.dtype != x.dtype \
                 or self.restriction.values.device != x.device:

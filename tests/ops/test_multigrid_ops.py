@@ -1,7 +1,8 @@
 """The multigrid op family (csrc/multigrid/, ops/multigrid.py): the block-sparse product and the
 Chebyshev step against their pure-torch references and a dense product (float64), for every
 block shape and on rows of many and of few blocks (the lane groups of the CUDA kernel), on the
-CPU extension and CUDA; deterministic; the aliasing rules and bad inputs."""
+CPU extension and CUDA; deterministic; the aliasing rules and bad inputs. The heavy-edge matching
+against its reference, its clusters within their size."""
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -9,7 +10,7 @@ import torch
 
 from tensormass_torch import _backend
 from tensormass_torch.ops import library
-from tensormass_torch.ops.multigrid import BsrMatrix, bsr_gemv, chebyshev
+from tensormass_torch.ops.multigrid import BsrMatrix, bsr_gemv, chebyshev, incident_lists, match_clusters
 
 BLOCKS = [(6, 6), (3, 6), (6, 3), (3, 3), (2, 3), (3, 2), (2, 2), (1, 1)]
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -197,3 +198,82 @@ def test_block_cholesky_bad_arguments_raise_naming_them_and_write_nothing(device
         with pytest.raises(RuntimeError, match=match):
             ops.multigrid_block_cholesky(*args)
     assert all(bool((t == -7.0).all()) for t in outputs)
+
+
+def random_graph(nodes, edges, seed, device, loops=True):
+    """(keys ``[E]``, ends ``[E, 2]``) of a random graph with distinct keys, with a few edges from a
+    node to itself (which never join) and repeated weights (ties broken by the keys' low bits)."""
+    gen = torch.Generator().manual_seed(seed)
+    ends = torch.randint(0, nodes, (edges, 2), generator=gen)
+    if loops:
+        ends[::17, 1] = ends[::17, 0]
+    weights = torch.randint(0, 4, (edges,), generator=gen)
+    keys = weights * (1 << 31) + torch.randperm(edges, generator=gen)
+    return keys.to(device), ends.to(device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("most", [2, 5, 32])
+def test_match_clusters_matches_its_reference_and_keeps_the_size(device, most):
+    """The op's clusters are the reference's; each cluster holds at most ``most`` nodes, is labelled
+    by its smallest node and is joined by the graph's edges; with rounds enough every edge
+    between two clusters that fit beside each other has been taken."""
+    native(device)
+    for seed, (nodes, edges) in enumerate([(40, 60), (300, 1200), (1000, 2500)]):
+        keys, ends = random_graph(nodes, edges, seed, device)
+        label = match_clusters(keys, ends, nodes, most, rounds=12)
+        ptr, incident = incident_lists(ends, nodes)
+        expected = torch.full((nodes,), -1, dtype=torch.int64, device=device)
+        library.REGISTRY["multigrid_match_clusters"].reference(keys, ends, ptr, incident, most, 12, expected, None)
+        assert torch.equal(label, expected)
+        size = torch.bincount(label, minlength=nodes)
+        assert int(size.max()) <= most and int(size.sum()) == nodes
+        smallest = torch.full((nodes,), nodes, device=device).scatter_reduce(0, label, torch.arange(nodes, device=device),
+                                                                              "amin")
+        assert torch.equal(smallest[label], label)
+        assert int((size > 1).sum()) > 0
+        done = match_clusters(keys, ends, nodes, most, rounds=200)
+        cu, cv = done[ends[:, 0]], done[ends[:, 1]]
+        grown = torch.bincount(done, minlength=nodes)
+        assert not bool(((cu != cv) & (grown[cu] + grown[cv] <= most)).any())
+
+
+def test_match_clusters_takes_the_heaviest_edges_first():
+    """A path 0-1-2-3 whose middle edge is heaviest, clusters of two: {1, 2} and the ends alone."""
+    native("cpu")
+    ends = torch.tensor([[0, 1], [1, 2], [2, 3]])
+    keys = torch.tensor([1, 5, 2]) * (1 << 31) + torch.arange(3)
+    assert match_clusters(keys, ends, 4, 2, rounds=4).tolist() == [0, 1, 1, 3]
+    assert match_clusters(keys, ends, 4, 4, rounds=4).tolist() == [0, 0, 0, 0]
+    assert match_clusters(keys, ends, 4, 4, rounds=0).tolist() == [0, 1, 2, 3]
+    assert match_clusters(keys[:0], ends[:0], 4, 4, rounds=4).tolist() == [0, 1, 2, 3]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_match_clusters_cuda_matches_the_cpu():
+    labels = []
+    for device in ("cpu", "cuda"):
+        native(device)
+        keys, ends = random_graph(5000, 20000, 3, device)
+        labels.append(match_clusters(keys, ends, 5000, 32, rounds=12).cpu())
+    assert torch.equal(labels[0], labels[1])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_match_clusters_bad_arguments_raise_naming_them_and_write_nothing(device):
+    ops = native(device)
+    keys, ends = random_graph(10, 20, 1, device)
+    ptr, incident = incident_lists(ends, 10)
+    label = torch.full((10,), -7, dtype=torch.int64, device=device)
+    work = torch.zeros(6, 10, dtype=torch.int64, device=device)
+    for args, match in [((keys.int(), ends, ptr, incident, 3, 4, label, work), "edge_keys"),
+                        ((keys, ends[:5], ptr, incident, 3, 4, label, work), "edge_ends"),
+                        ((keys, ends, ptr[:5], incident, 3, 4, label, work), "incident_ptr"),
+                        ((keys, ends, ptr, incident[:5], 3, 4, label, work), "incident_edges"),
+                        ((keys, ends, ptr, incident, 0, 4, label, work), "most"),
+                        ((keys, ends, ptr, incident, 3, -1, label, work), "rounds"),
+                        ((keys, ends, ptr, incident, 3, 4, label, work[:5]), "work"),
+                        ((keys, ends, ptr, incident, 3, 4, label.float(), work), "label")]:
+        with pytest.raises(RuntimeError, match=match):
+            ops.multigrid_match_clusters(*args)
+    assert bool((label == -7).all())
