@@ -158,6 +158,71 @@ struct BlockCholeskyKernel {
   }
 };
 
+// The rigid correction's transfers with its basis formed on the fly (solver/rigid_modes.py): at
+// node i, Z'_i = N_i [I | -[a_i]x] (3 x 6), N_i = S^-1_i (block Jacobi's inverse scaling; 0 on a
+// fixed node), a_i the node's lever arm about its body's centre; a body's six coarse unknowns are
+// its translation t and rotation w. Reading N and a (12 values a node) where a stored Z' reads 18.
+//
+// multigrid_rigid_restrict: out_b = sum over the body's nodes of Z'_i^T r_i = (u, a x u), u = N^T r;
+// a body a row, summed by lanes as BsrRows does (deterministic).
+template <typename S>
+struct RigidRestrictKernel {
+  static constexpr int kRows = 6;
+  using Scalar = S;
+  const S* node_inverse;     // [V, 3, 3] N
+  const S* arm;              // [V, 3]
+  const int32_t* body_ptr;   // [B + 1]: body b's nodes body_ptr[b] .. body_ptr[b + 1] - 1
+  const S* r;                // [V 3]
+  S* out;                    // [B 6]
+
+  TM_HD void partial(int64_t row, int lane, int stride, S (&sum)[6]) const {
+    TM_UNROLL for (int k = 0; k < 6; ++k) sum[k] = S(0);
+    const int32_t end = body_ptr[row + 1];
+    for (int32_t i = body_ptr[row] + lane; i < end; i += stride) {
+      const S* n = node_inverse + static_cast<int64_t>(i) * 9;
+      const S* ri = r + static_cast<int64_t>(i) * 3;
+      const S* a = arm + static_cast<int64_t>(i) * 3;
+      S u[3];
+      TM_UNROLL for (int k = 0; k < 3; ++k) u[k] = n[k] * ri[0] + n[3 + k] * ri[1] + n[6 + k] * ri[2];
+      sum[0] += u[0];
+      sum[1] += u[1];
+      sum[2] += u[2];
+      sum[3] += a[1] * u[2] - a[2] * u[1];
+      sum[4] += a[2] * u[0] - a[0] * u[2];
+      sum[5] += a[0] * u[1] - a[1] * u[0];
+    }
+  }
+
+  TM_HD void finish(int64_t row, const S (&sum)[6]) const {
+    TM_UNROLL for (int k = 0; k < 6; ++k) out[row * 6 + k] = sum[k];
+  }
+};
+
+// multigrid_rigid_prolong: out_i = r_i + weight Z'_i c_b = r_i + weight N_i (t + w x a_i) (no r: 0);
+// a node an item. out may be r.
+template <typename S>
+struct RigidProlongKernel {
+  const S* node_inverse;     // [V, 3, 3]
+  const S* arm;              // [V, 3]
+  const int32_t* node_body;  // [V]
+  const S* coarse;           // [B 6]: t, w a body
+  const S* r;                // [V 3] or nullptr
+  S weight;
+  S* out;                    // [V 3]
+
+  TM_HD void operator()(int64_t i) const {
+    const S* c = coarse + static_cast<int64_t>(node_body[i]) * 6;
+    const S* a = arm + i * 3;
+    const S v[3] = {c[0] + c[4] * a[2] - c[5] * a[1], c[1] + c[5] * a[0] - c[3] * a[2],
+                    c[2] + c[3] * a[1] - c[4] * a[0]};
+    const S* n = node_inverse + i * 9;
+    TM_UNROLL for (int k = 0; k < 3; ++k) {
+      const S moved = weight * (n[3 * k] * v[0] + n[3 * k + 1] * v[1] + n[3 * k + 2] * v[2]);
+      out[i * 3 + k] = r != nullptr ? r[i * 3 + k] + moved : moved;
+    }
+  }
+};
+
 // Heavy-edge matching of a graph's nodes into clusters of at most `most` nodes (multigrid_match_clusters,
 // solver/rigid_modes.py: the coarse correction's groups). Each round, every cluster offers its
 // highest-keyed edge to another cluster that fits beside it, and two clusters whose offers are the

@@ -203,6 +203,71 @@ void multigrid_block_cholesky(const at::Tensor& blocks, at::Tensor scale, at::Te
   });
 }
 
+// The rigid transfers' shared arguments: node_inverse [V, 3, 3] floating and arm [V, 3] of its dtype
+// and device, contiguous. Returns V.
+inline int64_t check_rigid_nodes(const at::Tensor& node_inverse, const at::Tensor& arm) {
+  check_float(node_inverse, "node_inverse");
+  TORCH_CHECK(node_inverse.dim() == 3 && node_inverse.size(1) == 3 && node_inverse.size(2) == 3,
+              "tensormass: node_inverse must be [V, 3, 3], got ", shape_str(node_inverse.sizes()));
+  check_node_tensor(node_inverse, "node_inverse", node_inverse, node_inverse.sizes(), "node_inverse");
+  const int64_t nodes = node_inverse.size(0);
+  check_node_tensor(arm, "arm", node_inverse, {nodes, 3}, "node_inverse");
+  return nodes;
+}
+
+// multigrid_rigid_restrict: see schema.cpp.
+template <class L>
+void multigrid_rigid_restrict(const at::Tensor& node_inverse, const at::Tensor& arm, const at::Tensor& body_ptr,
+                              const at::Tensor& r, at::Tensor out) {
+  const int64_t nodes = check_rigid_nodes(node_inverse, arm);
+  TORCH_CHECK(body_ptr.defined() && body_ptr.dim() == 1 && body_ptr.size(0) >= 1, "tensormass: body_ptr must be [B + 1]");
+  check_index_tensor(body_ptr, "body_ptr", node_inverse, at::kInt, {body_ptr.size(0)}, "node_inverse");
+  const int64_t bodies = body_ptr.size(0) - 1;
+  check_vector(r, "r", node_inverse, 3 * nodes, "node_inverse");
+  check_vector(out, "out", node_inverse, 6 * bodies, "node_inverse");
+  TORCH_CHECK(out.data_ptr() != r.data_ptr(), "tensormass: out must not be r");
+  typename L::Guard guard(out.device());
+  dispatch_scalar(out.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    RigidRestrictKernel<S> k;
+    k.node_inverse = node_inverse.data_ptr<S>();
+    k.arm = arm.data_ptr<S>();
+    k.body_ptr = body_ptr.data_ptr<int32_t>();
+    k.r = r.data_ptr<S>();
+    k.out = out.data_ptr<S>();
+    L::run_rows(bodies, k, row_group(nodes, bodies));
+  });
+}
+
+// multigrid_rigid_prolong: see schema.cpp.
+template <class L>
+void multigrid_rigid_prolong(const at::Tensor& node_inverse, const at::Tensor& arm, const at::Tensor& node_body,
+                             const at::Tensor& coarse, const c10::optional<at::Tensor>& r, double weight,
+                             at::Tensor out) {
+  const int64_t nodes = check_rigid_nodes(node_inverse, arm);
+  check_index_tensor(node_body, "node_body", node_inverse, at::kInt, {nodes}, "node_inverse");
+  TORCH_CHECK(coarse.defined() && coarse.dim() == 1 && coarse.numel() % 6 == 0,
+              "tensormass: coarse must be 1-D of six values a body");
+  check_node_tensor(coarse, "coarse", node_inverse, {coarse.numel()}, "node_inverse");
+  const bool with_r = r.has_value() && r->defined();
+  if (with_r) check_vector(*r, "r", node_inverse, 3 * nodes, "node_inverse");
+  check_vector(out, "out", node_inverse, 3 * nodes, "node_inverse");
+  TORCH_CHECK(out.data_ptr() != coarse.data_ptr(), "tensormass: out must not be coarse");
+  typename L::Guard guard(out.device());
+  dispatch_scalar(out.scalar_type(), [&](auto s_tag) {
+    using S = decltype(s_tag);
+    RigidProlongKernel<S> k;
+    k.node_inverse = node_inverse.data_ptr<S>();
+    k.arm = arm.data_ptr<S>();
+    k.node_body = node_body.data_ptr<int32_t>();
+    k.coarse = coarse.data_ptr<S>();
+    k.r = with_r ? r->data_ptr<S>() : nullptr;
+    k.weight = static_cast<S>(weight);
+    k.out = out.data_ptr<S>();
+    L::run(nodes, k, L::kNodeBlock);
+  });
+}
+
 // multigrid_match_clusters: see schema.cpp.
 template <class L>
 void multigrid_match_clusters(const at::Tensor& edge_keys, const at::Tensor& edge_ends, const at::Tensor& incident_ptr,
@@ -253,6 +318,8 @@ void register_multigrid_ops(torch::Library& m) {
   m.impl("multigrid_bsr_gemv", &multigrid_bsr_gemv<L>);
   m.impl("multigrid_chebyshev", &multigrid_chebyshev<L>);
   m.impl("multigrid_block_cholesky", &multigrid_block_cholesky<L>);
+  m.impl("multigrid_rigid_restrict", &multigrid_rigid_restrict<L>);
+  m.impl("multigrid_rigid_prolong", &multigrid_rigid_prolong<L>);
   m.impl("multigrid_match_clusters", &multigrid_match_clusters<L>);
 }
 

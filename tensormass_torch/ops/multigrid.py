@@ -16,6 +16,11 @@ with the rest of a CG iteration):
             block Jacobi's scaling of the finest level (``solver.preconditioner.JacobiScaling``):
             S = L^-T, S^T and S^-1 = L^T of each diagonal block L L^T, in one launch (as tensor
             ops, some seventy small kernels at every solve)
+    multigrid_rigid_restrict(node_inverse, arm, body_ptr, r, out!)
+    multigrid_rigid_prolong(node_inverse, arm, node_body, coarse, r?, weight, out!)
+            the rigid correction's transfers (``solver.rigid_modes``) with its basis
+            Z'_i = N_i [I | -[a_i]x] formed at each node from N_i (3 x 3) and the lever arm a_i:
+            a body's (u, a x u) summed over its nodes (u = N^T r), and r + weight N (t + w x a)
     multigrid_match_clusters(edge_keys, edge_ends, incident_ptr, incident_edges, most, rounds,
         label!, work!)
             heavy-edge matching of a graph's nodes into clusters of at most ``most`` (the rigid
@@ -38,7 +43,7 @@ from . import library
 from .library import OpDef
 
 __all__ = ["BsrMatrix", "bsr_gemv", "chebyshev", "block_scaling", "block_cholesky_scaling", "match_clusters",
-           "incident_lists"]
+           "incident_lists", "rigid_restrict", "rigid_prolong"]
 
 
 @dataclass
@@ -137,6 +142,19 @@ def _ref_multigrid_block_cholesky(blocks, scale, scale_t, inverse):
     inverse.copy_(s_inverse)
 
 
+def _ref_multigrid_rigid_restrict(node_inverse, arm, body_ptr, r, out):
+    u = (node_inverse * r.view(-1, 3, 1)).sum(1)  # N^T r [V, 3]
+    per_node = torch.cat([u, torch.linalg.cross(arm, u, dim=-1)], 1)  # [V, 6]
+    out.copy_(torch.segment_reduce(per_node, "sum", lengths=body_ptr.long().diff(), unsafe=True).reshape(-1))
+
+
+def _ref_multigrid_rigid_prolong(node_inverse, arm, node_body, coarse, r, weight, out):
+    per_body = coarse.view(-1, 6)[node_body.long()]  # [V, 6]
+    moved = per_body[:, :3] + torch.linalg.cross(per_body[:, 3:], arm, dim=-1)
+    moved = weight * (node_inverse * moved[:, None, :]).sum(-1)
+    out.copy_((moved if r is None else r.view(-1, 3) + moved).reshape(-1))
+
+
 def _ref_multigrid_match_clusters(edge_keys, edge_ends, incident_ptr, incident_edges, most, rounds, label, work):
     """The matching as whole-array rounds: each cluster's offer by a scatter of the edges' keys."""
     nodes = label.numel()
@@ -200,6 +218,13 @@ def _example(name):
             blocks = half @ half.transpose(-1, -2) + 0.1 * torch.eye(3, dtype=dtype, device=device)
             blocks[2] = -blocks[2]
             return (blocks, rand(4, 3, 3), rand(4, 3, 3), rand(4, 3, 3)), {}
+        if name in ("multigrid_rigid_restrict", "multigrid_rigid_prolong"):  # bodies of 3, 0 and 4 nodes
+            node_inverse, arm = rand(7, 3, 3), rand(7, 3)
+            if name == "multigrid_rigid_restrict":
+                ptr = torch.tensor([0, 3, 3, 7], dtype=torch.int32, device=device)
+                return (node_inverse, arm, ptr, rand(21), rand(18)), {}
+            body = torch.tensor([0, 0, 0, 2, 2, 2, 2], dtype=torch.int32, device=device)
+            return (node_inverse, arm, body, rand(18), rand(21), 0.5, rand(21)), {}
         if name == "multigrid_match_clusters":  # a path 0-1-2-3-4 and a triangle 5-6-7, clusters of 3
             ends = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 4], [5, 6], [6, 7], [5, 7]], device=device)
             keys = torch.tensor([4, 6, 1, 5, 2, 3, 0], device=device) * 8 + torch.arange(7, device=device)
@@ -219,6 +244,10 @@ OPS = (
           example=_example("multigrid_chebyshev")),
     OpDef("multigrid_block_cholesky", _ref_multigrid_block_cholesky, None, differentiable=False, mutates=True,
           example=_example("multigrid_block_cholesky")),
+    OpDef("multigrid_rigid_restrict", _ref_multigrid_rigid_restrict, None, differentiable=False, mutates=True,
+          example=_example("multigrid_rigid_restrict")),
+    OpDef("multigrid_rigid_prolong", _ref_multigrid_rigid_prolong, None, differentiable=False, mutates=True,
+          example=_example("multigrid_rigid_prolong")),
     OpDef("multigrid_match_clusters", _ref_multigrid_match_clusters, None, differentiable=False, mutates=True,
           example=_example("multigrid_match_clusters"), scratch=("work",)),
 )
@@ -257,6 +286,30 @@ def block_scaling(blocks: torch.Tensor, scale: torch.Tensor, scale_t: torch.Tens
     where the extension serves the device, else its reference)."""
     library.op_or_reference("multigrid_block_cholesky", blocks.device)(blocks.contiguous(), scale, scale_t, inverse)
 
+
+
+def rigid_restrict(node_inverse: torch.Tensor, arm: torch.Tensor, body_ptr: torch.Tensor, r: torch.Tensor,
+                   out: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Each body's Z'^T r ``[6 B]`` for ``r [3 V]`` (``multigrid_rigid_restrict``; Z'_i = N_i
+    [I | -[a_i]x], ``node_inverse [V, 3, 3]`` N, ``arm [V, 3]`` a, ``body_ptr [B + 1]`` int32 the
+    bodies' node ranges), into ``out`` (None: a new tensor)."""
+    if out is None:
+        out = torch.empty(6 * (body_ptr.shape[0] - 1), dtype=r.dtype, device=r.device)
+    library.op_or_reference("multigrid_rigid_restrict", r.device)(node_inverse, arm, body_ptr, r, out)
+    return out
+
+
+def rigid_prolong(node_inverse: torch.Tensor, arm: torch.Tensor, node_body: torch.Tensor, coarse: torch.Tensor,
+                  r: Optional[torch.Tensor] = None, weight: float = 1.0,
+                  out: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``r + weight Z' coarse`` ``[3 V]`` (no ``r``: ``weight Z' coarse``; ``multigrid_rigid_prolong``,
+    ``node_body [V]`` int32 each node's body, ``coarse [6 B]`` each body's t and w), into ``out``
+    (may be ``r``; None: a new tensor)."""
+    if out is None:
+        out = torch.empty(3 * node_inverse.shape[0], dtype=coarse.dtype, device=coarse.device)
+    library.op_or_reference("multigrid_rigid_prolong", coarse.device)(node_inverse, arm, node_body, coarse, r,
+                                                                      float(weight), out)
+    return out
 
 
 def incident_lists(edge_ends: torch.Tensor, nodes: int) -> tuple:

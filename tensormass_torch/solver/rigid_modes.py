@@ -36,12 +36,13 @@ cluster, where the curve's groups, small cubes of a pile, cut it into three or f
 correction misses its blocks' motions against each other. Each group's block is inverted once per
 load, in float64.
 
-An iteration applies it as three block-sparse products (``ops.multigrid.bsr_gemv``, the
-multigrid's op): the restriction Z'^T, the groups' inverses written as a block row a body, and
-the prolongation Z', which also adds r. Fixed shapes, no host synchronisation, deterministic
-sums: a CUDA graph replays it with each load's values, in the buffers kept here. Whether the
-iterations it saves pay for it is measured, not assumed: ``"auto"`` does not use it
-(``docs/preconditioners.md``).
+An iteration applies it as three ops of the multigrid family: the restriction Z'^T (a body's
+sum over its nodes), the groups' inverses (a block-sparse product, a block row a body) and the
+prolongation Z', which also adds r. Z'_i = N_i [I | -[a_i]x] is formed at each node from the
+scaling's inverse N (3 x 3) and the lever arm a, 12 values a node where a stored basis reads 18.
+Fixed shapes, no host synchronisation, deterministic sums: a CUDA graph replays it with each
+load's values, in the buffers kept here. Whether the iterations it saves pay for it is measured,
+not assumed: ``"auto"`` does not use it (``docs/preconditioners.md``).
 """
 from __future__ import annotations
 
@@ -50,7 +51,7 @@ from typing import Optional
 import torch
 
 from ..mesh.topology import add_at
-from ..ops.multigrid import BsrMatrix, bsr_gemv, match_clusters
+from ..ops.multigrid import BsrMatrix, bsr_gemv, match_clusters, rigid_prolong, rigid_restrict
 from ..ops.segments import Segments
 
 #: Bodies per group of the coarse solve (its matrices are 6 x this on a side).
@@ -84,11 +85,10 @@ class BodySums:
         return torch.segment_reduce(values.to(torch.float64), "sum", lengths=self.lengths, unsafe=True)
 
 
-def rigid_modes(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
-    """(modes ``[6, V, 3]``, centres ``[B, 3]``): at each node its body's three translations and
-    three rotations about the body's centre of mass (lever arms divided by the body's radius of
-    gyration, so that the six have comparable norms); and the centres. A massless body turns
-    about its nodes' mean. ``sums``: the bodies' :class:`BodySums`."""
+def lever_arms(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
+    """(arms ``[V, 3]``, centres ``[B, 3]``): each node's lever arm about its body's centre of mass
+    divided by the body's radius of gyration (so that the rotations' modes and the translations'
+    have comparable norms), and the centres. A massless body turns about its nodes' mean."""
     index = sums.segments.node_object.to(x.device)
     tiny = torch.finfo(torch.float64).tiny
     per_body = sums.sums(torch.cat([mass[:, None], mass[:, None] * x, x], 1))  # [B, 7]
@@ -100,12 +100,24 @@ def rigid_modes(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
     spread = sums.sums((mass * (arm * arm).sum(-1))[:, None])[:, 0]
     gyration = torch.sqrt(spread / body_mass.clamp(min=tiny))
     gyration = torch.where(gyration > tiny, gyration, torch.ones_like(gyration)).to(x.dtype)
-    ax, ay, az = (arm / gyration[index, None]).unbind(-1)
+    return arm / gyration[index, None], centres
+
+
+def modes_of(arms: torch.Tensor) -> torch.Tensor:
+    """The six modes ``[6, V, 3]`` at nodes of lever ``arms [V, 3]``: the translations, then
+    e_x x a, e_y x a, e_z x a (Z_i = [I | -[a_i]x]), one stack of 18 per-node components."""
+    ax, ay, az = arms.unbind(-1)
     zero, one = torch.zeros_like(ax), torch.ones_like(ax)
-    # the translations, then e_x x arm, e_y x arm, e_z x arm: one stack of 18 per-node components
-    modes = torch.stack([one, zero, zero, zero, one, zero, zero, zero, one,
-                         zero, -az, ay, az, zero, -ax, -ay, ax, zero]).view(6, 3, -1).transpose(1, 2)
-    return modes, centres
+    return torch.stack([one, zero, zero, zero, one, zero, zero, zero, one,
+                        zero, -az, ay, az, zero, -ax, -ay, ax, zero]).view(6, 3, -1).transpose(1, 2)
+
+
+def rigid_modes(x: torch.Tensor, mass: torch.Tensor, sums: BodySums) -> tuple:
+    """(modes ``[6, V, 3]``, centres ``[B, 3]``): at each node its body's three translations and
+    three rotations about the body's centre of mass (:func:`lever_arms`, :func:`modes_of`).
+    ``sums``: the bodies' :class:`BodySums`."""
+    arms, centres = lever_arms(x, mass, sums)
+    return modes_of(arms), centres
 
 
 def _morton_codes(centres: torch.Tensor) -> torch.Tensor:
@@ -250,11 +262,13 @@ def group_matrices(own: torch.Tensor, modes: torch.Tensor, group: torch.Tensor, 
 
 class RigidModeCorrection:
     """The coarse correction z = r + w Z' E^-1 Z'^T r ``[V, 3]`` of block Jacobi's scaled system
-    (see the module) as three block-sparse products (``ops.multigrid.bsr_gemv``): the restriction
-    Z'^T (a block row a body, a 6 x 3 block a node), the groups' inverses (a block row a body, a
-    6 x 6 block for each body of its group) and the prolongation Z' (a block row a node, one 3 x 6
-    block: its body's), the last adding r. Its buffers keep their storage from load to load while
-    the shapes do (a CUDA graph captured over :meth:`__call__` replays with each load's values)."""
+    (see the module) as three ops: the restriction Z'^T r (``ops.multigrid.rigid_restrict``: a
+    body's sum over its nodes), the groups' inverses (``ops.multigrid.bsr_gemv``: a block row a
+    body, a 6 x 6 block for each body of its group) and the prolongation adding r
+    (``ops.multigrid.rigid_prolong``: a node an item). Z'_i = N_i [I | -[a_i]x] is formed at each
+    node from N = S^-1 (zero on fixed nodes) and the lever arm a, never stored. Its buffers keep
+    their storage from load to load while the shapes do (a CUDA graph captured over
+    :meth:`__call__` replays with each load's values)."""
 
     def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT, grouping: str = "contact"):
         if group_bodies < 1:
@@ -266,11 +280,13 @@ class RigidModeCorrection:
         self.group_bodies = int(group_bodies)
         self.weight = float(weight)
         self.grouping = grouping
-        self.restriction: Optional[BsrMatrix] = None  # Z'^T [6 B, 3 V]
+        self.node_inverse: Optional[torch.Tensor] = None  # N = S^-1, zero on fixed nodes [V, 3, 3]
+        self.arms: Optional[torch.Tensor] = None  # a [V, 3]
         self.inverses: Optional[BsrMatrix] = None  # the groups' E^-1 [6 B, 6 B]
-        self.prolongation: Optional[BsrMatrix] = None  # w Z' [3 V, 6 B]
+        self._body_ptr: Optional[torch.Tensor] = None  # [B + 1] int32
+        self._node_body: Optional[torch.Tensor] = None  # [V] int32
         self._sums: Optional[BodySums] = None
-        self._kept = None  # (key, modes, group, slot, groups, own blocks, filled, columns) of load's ``kept``
+        self._kept = None  # (key, arms, modes, group, slot, groups, own blocks, filled, columns) of load's ``kept``
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
@@ -286,11 +302,12 @@ class RigidModeCorrection:
         No host synchronisation (but where the bodies' node ranges are checked, the first load)."""
         if self._sums is None or self._sums.segments is not segments or self._sums.device != x.device \
                 or self._sums.num_nodes != x.shape[0]:
-            self._sums, self.restriction, self._kept = BodySums(segments, x), None, None
+            self._sums, self.node_inverse, self._kept = BodySums(segments, x), None, None
         size, bodies = self.group_bodies, segments.num_objects
         fresh = kept is None or self._kept is None or self._kept[0] != kept
         if fresh:
-            modes, centres = rigid_modes(x, mass, self._sums)
+            arms, centres = lever_arms(x, mass, self._sums)
+            modes = modes_of(arms)
             if free is not None:
                 modes = modes * free
             if self.grouping == "contact" and pairs is not None and len(pairs):
@@ -299,15 +316,15 @@ class RigidModeCorrection:
                 group, slot, groups = morton_groups(centres, size)
             own = own_blocks(modes, node_weights() if callable(node_weights) else node_weights, self._sums)
             # each body's row of its group's inverse takes a block for each slot of the group, its
-            # columns the slots' bodies; the Morton ranks group * c + slot are 0 .. B - 1, so the
-            # slots past them are the empty ones (their blocks zero: the inverse keeps the
-            # padding's identity apart)
+            # columns the slots' bodies; the ranks group * c + slot are 0 .. B - 1, so the slots
+            # past them are the empty ones (their blocks zero: the inverse keeps the padding's
+            # identity apart)
             members = torch.zeros(groups * size, dtype=torch.int64, device=x.device)
             members[group * size + slot] = torch.arange(bodies, device=x.device)
             filled = (torch.arange(groups * size, device=x.device).view(groups, size) < bodies)[group]  # [B, c]
             columns = members.view(groups, size)[group].to(torch.int32).reshape(-1)  # [B c]
-            self._kept = (kept, modes, group, slot, groups, own, filled[:, :, None, None], columns)
-        _, modes, group, slot, groups, own, filled, columns = self._kept
+            self._kept = (kept, arms, modes, group, slot, groups, own, filled[:, :, None, None], columns)
+        _, arms, modes, group, slot, groups, own, filled, columns = self._kept
         matrices = group_matrices(own, modes, group, slot, groups, size, pairs, pair_matrices)
         # slots past the last body, and coarse unknowns no free node carries: the identity there
         # (a rigid motion of fixed nodes is no motion); a relative 1e-10 on the diagonal keeps
@@ -324,32 +341,31 @@ class RigidModeCorrection:
         inverses = lower_inverse.transpose(1, 2) @ lower_inverse  # [G, 6 c, 6 c]
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
         blocks = torch.where(filled, rows, 0.0).to(x.dtype).reshape(-1, 6, 6)
-        basis = scaling.unapply_columns(modes.permute(1, 2, 0))  # Z' per node [V, 3, 6]
-        if self.restriction is None or self.inverses.values.shape != blocks.shape \
-                or self.restriction.values.shape[0] != basis.shape[0] or self.restriction.values.dtype != x.dtype \
-                or self.restriction.values.device != x.device:
-            self._build(basis, blocks, columns, segments)
+        node_inverse = scaling.inverse if scaling.inverse.dim() == 3 else torch.diag_embed(scaling.inverse)
+        if free is not None:
+            node_inverse = node_inverse * free[:, :, None]
+        if self.node_inverse is None or self.inverses.values.shape != blocks.shape \
+                or self.node_inverse.shape[0] != x.shape[0] or self.node_inverse.dtype != x.dtype \
+                or self.node_inverse.device != x.device:
+            self._build(node_inverse, arms, blocks, columns, segments)
         else:
-            self.restriction.values.copy_(basis.transpose(1, 2))
-            self.prolongation.values.copy_(self.weight * basis)
+            self.node_inverse.copy_(node_inverse)
             self.inverses.values.copy_(blocks)
-            if fresh:  # (a kept load's groups are the last load's)
+            if fresh:  # (a kept load's arms and groups are the last load's)
+                self.arms.copy_(arms)
                 self.inverses.block_cols.copy_(columns)
         return self
 
-    def _build(self, basis: torch.Tensor, rows: torch.Tensor, columns: torch.Tensor, segments: Segments):
-        """The three matrices on new buffers: ``basis [V, 3, 6]`` Z' per node, the inverses' blocks
-        ``rows [B c, 6, 6]`` and their block columns ``[B c]`` int32."""
-        nodes, bodies = basis.shape[0], segments.num_objects
-        device = basis.device
+    def _build(self, node_inverse: torch.Tensor, arms: torch.Tensor, rows: torch.Tensor, columns: torch.Tensor,
+               segments: Segments):
+        """The buffers, new: ``node_inverse [V, 3, 3]``, ``arms [V, 3]``, the inverses' blocks
+        ``rows [B c, 6, 6]`` and their block columns ``[B c]`` int32, the bodies' node ranges."""
+        bodies, device = segments.num_objects, arms.device
         per_row = rows.shape[0] // bodies
-        node_rows = torch.arange(nodes, device=device)
-        body_ptr = segments.ptr.to(device=device, dtype=torch.int32)
-        self.restriction = BsrMatrix(basis.transpose(1, 2).contiguous(), node_rows.to(torch.int32), body_ptr,
-                                     segments.node_object.to(device), (6 * bodies, 3 * nodes))
-        self.prolongation = BsrMatrix((self.weight * basis).contiguous(), segments.node_object.to(device, torch.int32),
-                                      torch.arange(nodes + 1, dtype=torch.int32, device=device), node_rows,
-                                      (3 * nodes, 6 * bodies))
+        self.node_inverse = node_inverse.contiguous().clone()
+        self.arms = arms.contiguous().clone()
+        self._body_ptr = segments.ptr.to(device=device, dtype=torch.int32)
+        self._node_body = segments.node_object.to(device=device, dtype=torch.int32)
         self.inverses = BsrMatrix(rows.contiguous(), columns.clone(),  # (its own: later loads write it)
                                   torch.arange(bodies + 1, dtype=torch.int32, device=device) * per_row,
                                   torch.arange(bodies, device=device).repeat_interleave(per_row),
@@ -358,21 +374,27 @@ class RigidModeCorrection:
     @property
     def key(self) -> tuple:
         """What a graph captured over :meth:`__call__` depends on: its buffers' storage."""
-        return ("rigid", self.restriction.values.data_ptr(), self.prolongation.values.data_ptr(),
-                self.inverses.values.data_ptr(), self.inverses.block_cols.data_ptr())
+        return ("rigid", self.node_inverse.data_ptr(), self.arms.data_ptr(), self.inverses.values.data_ptr(),
+                self.inverses.block_cols.data_ptr())
+
+    def basis(self) -> torch.Tensor:
+        """Z' ``[V, 3, 6]`` as the ops form it at each node (N [I | -[a]x]), for tests and inspection."""
+        return (self.node_inverse[:, :, :, None] * modes_of(self.arms).permute(1, 2, 0)[:, None, :, :]).sum(2)
 
     def _coarse_solution(self, r: torch.Tensor) -> torch.Tensor:
         """E^-1 Z'^T r ``[6 B]`` (the groups' blocks) for a residual ``r [V, 3]``."""
-        return bsr_gemv(self.inverses, bsr_gemv(self.restriction, r.reshape(-1)))
+        restricted = rigid_restrict(self.node_inverse, self.arms, self._body_ptr, r.reshape(-1))
+        return bsr_gemv(self.inverses, restricted)
 
     def coarse(self, r: torch.Tensor) -> torch.Tensor:
         """Z' E^-1 Z'^T r ``[V, 3]`` for a residual ``r [V, 3]`` of the scaled system (unweighted)."""
-        return bsr_gemv(self.prolongation, self._coarse_solution(r), alpha=1.0 / self.weight).view_as(r)
+        return rigid_prolong(self.node_inverse, self.arms, self._node_body, self._coarse_solution(r)).view_as(r)
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
-        """z = r + w Z' E^-1 Z'^T r ``[V, 3]``: three block-sparse products, the last adding r."""
-        return bsr_gemv(self.prolongation, self._coarse_solution(r), r.reshape(-1)).view_as(r)
+        """z = r + w Z' E^-1 Z'^T r ``[V, 3]``: three ops, the last adding r."""
+        return rigid_prolong(self.node_inverse, self.arms, self._node_body, self._coarse_solution(r), r.reshape(-1),
+                             self.weight).view_as(r)
 
 
 __all__ = ["GROUPINGS", "GROUP_BODIES", "WEIGHT", "BodySums", "RigidModeCorrection", "contact_clusters",
-           "contact_groups", "group_matrices", "morton_groups", "own_blocks", "rigid_modes"]
+           "contact_groups", "group_matrices", "lever_arms", "modes_of", "morton_groups", "own_blocks", "rigid_modes"]

@@ -2,7 +2,8 @@
 Chebyshev step against their pure-torch references and a dense product (float64), for every
 block shape and on rows of many and of few blocks (the lane groups of the CUDA kernel), on the
 CPU extension and CUDA; deterministic; the aliasing rules and bad inputs. The heavy-edge matching
-against its reference, its clusters within their size."""
+against its reference, its clusters within their size; the rigid transfers against the dense
+basis."""
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -10,7 +11,15 @@ import torch
 
 from tensormass_torch import _backend
 from tensormass_torch.ops import library
-from tensormass_torch.ops.multigrid import BsrMatrix, bsr_gemv, chebyshev, incident_lists, match_clusters
+from tensormass_torch.ops.multigrid import (
+    BsrMatrix,
+    bsr_gemv,
+    chebyshev,
+    incident_lists,
+    match_clusters,
+    rigid_prolong,
+    rigid_restrict,
+)
 
 BLOCKS = [(6, 6), (3, 6), (6, 3), (3, 3), (2, 3), (3, 2), (2, 2), (1, 1)]
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -277,3 +286,83 @@ def test_match_clusters_bad_arguments_raise_naming_them_and_write_nothing(device
         with pytest.raises(RuntimeError, match=match):
             ops.multigrid_match_clusters(*args)
     assert bool((label == -7).all())
+
+
+def rigid_nodes(bodies, seed, device, dtype=torch.float64):
+    """(node_inverse ``[V, 3, 3]``, arm ``[V, 3]``, body_ptr ``[B + 1]`` int32, node_body ``[V]`` int32)
+    for bodies of 0 to 60 nodes, the first body empty, a few nodes' N zero (fixed nodes)."""
+    gen = torch.Generator().manual_seed(seed)
+    lengths = torch.randint(1, 60, (bodies,), generator=gen)
+    lengths[0] = 0
+    nodes = int(lengths.sum())
+    node_inverse = torch.randn(nodes, 3, 3, generator=gen, dtype=torch.float64)
+    node_inverse[::7] = 0.0
+    arm = torch.randn(nodes, 3, generator=gen, dtype=torch.float64)
+    body_ptr = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(lengths, 0)]).int()
+    node_body = torch.repeat_interleave(torch.arange(bodies), lengths).int()
+    return (node_inverse.to(device, dtype), arm.to(device, dtype), body_ptr.to(device), node_body.to(device))
+
+
+def dense_basis(node_inverse, arm, node_body, bodies):
+    """Z' ``[3 V, 6 B]``: Z'_i = N_i [I | -[a_i]x] in body b's six columns."""
+    nodes = arm.shape[0]
+    ax, ay, az = arm.double().unbind(-1)
+    zero, one = torch.zeros_like(ax), torch.ones_like(ax)
+    z = torch.stack([torch.stack([one, zero, zero, zero, az, -ay], -1),
+                     torch.stack([zero, one, zero, -az, zero, ax], -1),
+                     torch.stack([zero, zero, one, ay, -ax, zero], -1)], 1)  # [V, 3, 6]
+    local = node_inverse.double() @ z
+    out = torch.zeros(3 * nodes, 6 * bodies, dtype=torch.float64, device=arm.device)
+    for i in range(nodes):
+        b = int(node_body[i])
+        out[3 * i:3 * i + 3, 6 * b:6 * b + 6] = local[i]
+    return out
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_rigid_transfers_are_the_dense_basis_products(device, dtype):
+    """The restriction is Z'^T r and the prolongation r + w Z' c for the dense Z' (column k of a
+    rotation: e_k x a), in both dtypes; the references agree."""
+    native(device)
+    node_inverse, arm, body_ptr, node_body = rigid_nodes(12, 3, device, dtype)
+    basis = dense_basis(node_inverse, arm, node_body, 12)
+    r, c = vec(basis.shape[0], 4, device, dtype), vec(basis.shape[1], 5, device, dtype)
+    tol = dict(rtol=1e-5, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-12)
+    restricted = rigid_restrict(node_inverse, arm, body_ptr, r)
+    torch.testing.assert_close(restricted.double(), basis.T @ r.double(), **tol)
+    prolonged = rigid_prolong(node_inverse, arm, node_body, c, r, 0.5)
+    torch.testing.assert_close(prolonged.double(), r.double() + 0.5 * basis @ c.double(), **tol)
+    torch.testing.assert_close(rigid_prolong(node_inverse, arm, node_body, c).double(), basis @ c.double(), **tol)
+    in_place = r.clone()
+    rigid_prolong(node_inverse, arm, node_body, c, in_place, 0.5, out=in_place)
+    torch.testing.assert_close(in_place, prolonged, rtol=0, atol=0)
+    for name, args in (("multigrid_rigid_restrict", (node_inverse, arm, body_ptr, r)),
+                       ("multigrid_rigid_prolong", (node_inverse, arm, node_body, c, r, 0.5))):
+        out = torch.empty(restricted.shape if name.endswith("restrict") else prolonged.shape, dtype=dtype, device=device)
+        library.REGISTRY[name].reference(*args, out)
+        torch.testing.assert_close(out, restricted if name.endswith("restrict") else prolonged, **tol)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_rigid_transfers_bad_arguments_raise_naming_them_and_write_nothing(device):
+    ops = native(device)
+    node_inverse, arm, body_ptr, node_body = rigid_nodes(4, 1, device)
+    nodes = arm.shape[0]
+    r, c = vec(3 * nodes, 1, device), vec(24, 2, device)
+    out_c, out_r = torch.full((24,), -7.0, dtype=torch.float64, device=device), torch.full_like(r, -7.0)
+    for args, match in [((node_inverse[:, :2], arm, body_ptr, r, out_c), "node_inverse"),
+                        ((node_inverse, arm[:-1], body_ptr, r, out_c), "arm"),
+                        ((node_inverse, arm, body_ptr.long(), r, out_c), "body_ptr"),
+                        ((node_inverse, arm, body_ptr, r[:-1], out_c), "r"),
+                        ((node_inverse, arm, body_ptr, r, out_c[:-6]), "out"),
+                        ((node_inverse, arm.float(), body_ptr, r, out_c), "arm")]:
+        with pytest.raises(RuntimeError, match=match):
+            ops.multigrid_rigid_restrict(*args)
+    for args, match in [((node_inverse, arm, node_body.long(), c, r, 0.5, out_r), "node_body"),
+                        ((node_inverse, arm, node_body, c[:-1], r, 0.5, out_r), "coarse"),
+                        ((node_inverse, arm, node_body, c, r[:-3], 0.5, out_r), "r"),
+                        ((node_inverse, arm, node_body, c, r, 0.5, out_r[:-3]), "out")]:
+        with pytest.raises(RuntimeError, match=match):
+            ops.multigrid_rigid_prolong(*args)
+    assert bool((out_c == -7.0).all()) and bool((out_r == -7.0).all())
