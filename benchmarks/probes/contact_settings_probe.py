@@ -14,9 +14,10 @@ The pile is ``contact_piles``' (``pile_arguments``; ``--columns 1 --levels 10``:
 ten), stepped ``--steps`` steps with ``--contact`` or taken from ``--state``; ``--save-state
 DIR`` keeps that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` is a name and a
 JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s,
-``"preconditioner"``, the Simulator's, and ``"rigid_grouping"``, the groups of
-``preconditioner="rigid"``'s coarse solve (``"contact"``, its default, or ``"morton"``) (default:
-one setting, ``default={}``). Every simulator
+``"preconditioner"``, the Simulator's, ``"rigid_grouping"``, the groups of
+``preconditioner="rigid"``'s coarse solve (``"contact"``, its default, or ``"morton"``), and
+``"rigid_refresh"``, the loads between two computations of its bodies' part (by default one
+setting, ``default={}``). Every simulator
 takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
 the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
 falling through each other) takes its block first. For each block: ms a step, CG iterations a
@@ -37,7 +38,7 @@ import common  # noqa: E402
 import contact_piles  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
-from tensormass_torch.solver.rigid_modes import RigidModeCorrection  # noqa: E402
+from tensormass_torch.solver.rigid_modes import REFRESH, RigidModeCorrection  # noqa: E402
 
 
 def setting(text: str):
@@ -53,7 +54,8 @@ def setting(text: str):
 
 def extend(parser):
     parser.add_argument("--setting", type=setting, action="append", default=None,
-                        help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner', 'rigid_grouping')")
+                        help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner', 'rigid_grouping', "
+                             "'rigid_refresh')")
     parser.add_argument("--repeats", type=int, default=3, help="blocks of --timed steps for each setting")
     parser.add_argument("--save-state", default=None, help="a folder to keep the pile's starting state in")
     parser.add_argument("--out", default=None, help="a JSON file for the blocks' figures")
@@ -97,10 +99,11 @@ def main(argv=None):
         options = dict(options)
         preconditioner = options.pop("preconditioner", "auto")
         grouping = options.pop("rigid_grouping", None)
+        refresh = options.pop("rigid_refresh", None)
         sim = contact_piles.simulator(bodies, tm.Contact(**{**args.contact, **options}), args.device, dtype,
                                       preconditioner)
-        if grouping is not None:  # the rigid correction's groups (its default: "contact")
-            sim.system._rigid = RigidModeCorrection(grouping=grouping)
+        if grouping is not None or refresh is not None:  # the rigid correction's groups and lag
+            sim.system._rigid = RigidModeCorrection(grouping=grouping or "contact", refresh=refresh or REFRESH)
         sim.x, sim.v = x.clone(), v.clone()
         sim.step(2)
         sims[name] = sim

@@ -762,7 +762,8 @@ def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: f
     return system._rigid.load(fused.u + system.model.rest, system.mass.reshape(-1), system.segments, system.free,
                               weights, scaling, pairs if with_pairs else None,
                               pairs._pair_matrices(stiffness_coef, opts.dt) if with_pairs else None,
-                              kept=(id(fused), fused.loads, mass_coef, stiffness_coef))
+                              kept=(id(fused), fused.loads, mass_coef, stiffness_coef),
+                              lag=(mass_coef, stiffness_coef))
 
 
 def _coupled_solver(system: DynamicsSystem, rhs, opts: StepOptions, pairs):

@@ -58,6 +58,13 @@ from ..ops.segments import Segments
 GROUP_BODIES = 32
 #: The coarse correction's weight w (z = r + w Z' E^-1 Z'^T r).
 WEIGHT = 0.5
+#: Loads of new products between two computations of the bodies' part (their modes, groups and
+#: own blocks; 1: every load). In between it is lagged: the pairs' part and the scaling are the
+#: load's, the bodies' part the last one computed (see :meth:`RigidModeCorrection.load`).
+REFRESH = 1
+#: Nodes a lane group of the restriction sums (a body's nodes are taken in runs of this many, then
+#: the runs' sums added per body): enough lanes for the GPU where a group a body left it idle.
+RESTRICTION_RUN = 64
 #: Morton code bits per axis of the bodies' order.
 _MORTON_BITS = 10
 #: How the bodies are taken into the coarse solve's groups: along the Morton curve of their centres,
@@ -262,17 +269,20 @@ def group_matrices(own: torch.Tensor, modes: torch.Tensor, group: torch.Tensor, 
 
 class RigidModeCorrection:
     """The coarse correction z = r + w Z' E^-1 Z'^T r ``[V, 3]`` of block Jacobi's scaled system
-    (see the module) as three ops: the restriction Z'^T r (``ops.multigrid.rigid_restrict``: a
-    body's sum over its nodes), the groups' inverses (``ops.multigrid.bsr_gemv``: a block row a
-    body, a 6 x 6 block for each body of its group) and the prolongation adding r
-    (``ops.multigrid.rigid_prolong``: a node an item). Z'_i = N_i [I | -[a_i]x] is formed at each
-    node from N = S^-1 (zero on fixed nodes) and the lever arm a, never stored. Its buffers keep
-    their storage from load to load while the shapes do (a CUDA graph captured over
-    :meth:`__call__` replays with each load's values)."""
+    (see the module) as three ops and a sum: the restriction Z'^T r
+    (``ops.multigrid.rigid_restrict`` over runs of a body's nodes, the runs then summed per body),
+    the groups' inverses (``ops.multigrid.bsr_gemv``: a block row a body, a 6 x 6 block for each
+    body of its group) and the prolongation adding r (``ops.multigrid.rigid_prolong``: a node an
+    item). Z'_i = N_i [I | -[a_i]x] is formed at each node from N = S^-1 (zero on fixed nodes)
+    and the lever arm a, never stored. Its buffers keep their storage from load to load while the
+    shapes do (a CUDA graph captured over :meth:`__call__` replays with each load's values)."""
 
-    def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT, grouping: str = "contact"):
+    def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT, grouping: str = "contact",
+                 refresh: int = REFRESH):
         if group_bodies < 1:
             raise ValueError(f"group_bodies must be at least 1, got {group_bodies}")
+        if refresh < 1:
+            raise ValueError(f"refresh must be at least 1, got {refresh}")
         if not weight > 0:
             raise ValueError(f"weight must be positive, got {weight}")
         if grouping not in GROUPINGS:
@@ -280,17 +290,21 @@ class RigidModeCorrection:
         self.group_bodies = int(group_bodies)
         self.weight = float(weight)
         self.grouping = grouping
+        self.refresh = int(refresh)
+        self._age = 0  # loads of new products since the bodies' part was computed
+        self._lag = None  # the ``lag`` key it was computed under
         self.node_inverse: Optional[torch.Tensor] = None  # N = S^-1, zero on fixed nodes [V, 3, 3]
         self.arms: Optional[torch.Tensor] = None  # a [V, 3]
         self.inverses: Optional[BsrMatrix] = None  # the groups' E^-1 [6 B, 6 B]
-        self._body_ptr: Optional[torch.Tensor] = None  # [B + 1] int32
+        self._run_ptr: Optional[torch.Tensor] = None  # [R + 1] int32: the restriction's runs of nodes
+        self._runs: Optional[torch.Tensor] = None  # [B] each body's runs
         self._node_body: Optional[torch.Tensor] = None  # [V] int32
         self._sums: Optional[BodySums] = None
         self._kept = None  # (key, arms, modes, group, slot, groups, own blocks, filled, columns) of load's ``kept``
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
-             kept=None) -> "RigidModeCorrection":
+             kept=None, lag=None) -> "RigidModeCorrection":
         """Build the correction at positions ``x [V, 3]`` for the bodies of ``segments`` with node
         masses ``mass [V]``, free-node mask ``free [V, 1]`` (or None), ``node_weights [V, 3, 3]``
         (c_M m_i I + c_K N_i, or a function that returns them: called only where the bodies' part
@@ -298,14 +312,25 @@ class RigidModeCorrection:
         ``pairs`` with their ``pair_matrices [P, 3, 3]`` (c_K k u u^T + damping, or None).
         ``kept``: a key that promises x, mass, free and the node weights are those of the last
         load with the same key (a step's contact rounds: only the pairs and the scaling change),
-        whose modes, groups and own blocks are then reused; None: computed afresh.
+        whose modes, groups and own blocks are then reused; None: computed afresh. ``lag``: a key
+        that promises the node weights' parts that do not change from step to step (the step's
+        coefficients); under the same key the bodies' part of the last computation is reused for
+        up to ``refresh`` - 1 loads of new products (the correction stays symmetric positive
+        definite with any modes and any positive definite own blocks: lagged, they only match the
+        bodies' present rigid motions and node weights less exactly). None: never lagged.
         No host synchronisation (but where the bodies' node ranges are checked, the first load)."""
         if self._sums is None or self._sums.segments is not segments or self._sums.device != x.device \
                 or self._sums.num_nodes != x.shape[0]:
             self._sums, self.node_inverse, self._kept = BodySums(segments, x), None, None
         size, bodies = self.group_bodies, segments.num_objects
         fresh = kept is None or self._kept is None or self._kept[0] != kept
-        if fresh:
+        if fresh and lag is not None and self._kept is not None and lag == self._lag \
+                and self._age + 1 < self.refresh:
+            self._age += 1
+            self._kept = (kept, *self._kept[1:])
+            fresh = False
+        elif fresh:
+            self._age, self._lag = 0, lag
             arms, centres = lever_arms(x, mass, self._sums)
             modes = modes_of(arms)
             if free is not None:
@@ -364,7 +389,15 @@ class RigidModeCorrection:
         per_row = rows.shape[0] // bodies
         self.node_inverse = node_inverse.contiguous().clone()
         self.arms = arms.contiguous().clone()
-        self._body_ptr = segments.ptr.to(device=device, dtype=torch.int32)
+        # the restriction sums runs of at most RESTRICTION_RUN nodes within a body, then each
+        # body's runs in order (deterministic): the runs' ranges and each body's count of them
+        lengths = segments.lengths.to(device)
+        self._runs = (lengths + RESTRICTION_RUN - 1) // RESTRICTION_RUN  # [B]
+        run_body = torch.repeat_interleave(torch.arange(bodies, device=device), self._runs)
+        first_run = torch.cumsum(self._runs, 0) - self._runs
+        starts = segments.ptr.to(device)[run_body] + RESTRICTION_RUN * (torch.arange(run_body.numel(), device=device)
+                                                                        - first_run[run_body])
+        self._run_ptr = torch.cat([starts, starts.new_full((1,), arms.shape[0])]).to(torch.int32)
         self._node_body = segments.node_object.to(device=device, dtype=torch.int32)
         self.inverses = BsrMatrix(rows.contiguous(), columns.clone(),  # (its own: later loads write it)
                                   torch.arange(bodies + 1, dtype=torch.int32, device=device) * per_row,
@@ -383,8 +416,9 @@ class RigidModeCorrection:
 
     def _coarse_solution(self, r: torch.Tensor) -> torch.Tensor:
         """E^-1 Z'^T r ``[6 B]`` (the groups' blocks) for a residual ``r [V, 3]``."""
-        restricted = rigid_restrict(self.node_inverse, self.arms, self._body_ptr, r.reshape(-1))
-        return bsr_gemv(self.inverses, restricted)
+        per_run = rigid_restrict(self.node_inverse, self.arms, self._run_ptr, r.reshape(-1)).view(-1, 6)
+        restricted = torch.segment_reduce(per_run, "sum", lengths=self._runs, unsafe=True)  # [B, 6]
+        return bsr_gemv(self.inverses, restricted.reshape(-1))
 
     def coarse(self, r: torch.Tensor) -> torch.Tensor:
         """Z' E^-1 Z'^T r ``[V, 3]`` for a residual ``r [V, 3]`` of the scaled system (unweighted)."""

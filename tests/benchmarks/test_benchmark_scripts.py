@@ -306,8 +306,9 @@ def test_contact_settings_probe_steps_each_setting_from_one_state(tmp_path):
     assert all(len(runs) == 2 and all(r["ms"] > 0 and r["solves"] >= 1 for r in runs) for runs in blocks.values())
     assert [r["iterations"] for r in blocks["skin"]] == [r["iterations"] for r in blocks["default"]]
     assert json.loads((tmp_path / "settings.json").read_text())["blocks"] == blocks
+    rigid = 'rigid={"preconditioner": "rigid", "rigid_grouping": "morton", "rigid_refresh": 3}'
     again = probe.main(common_args + ["--state", str(tmp_path / "state"), "--setting", "default={}",
-                                      "--setting", 'rigid={"preconditioner": "rigid", "rigid_grouping": "morton"}'])
+                                      "--setting", rigid])
     assert [r["iterations"] for r in again["default"]] == [r["iterations"] for r in blocks["default"]]
     assert all(r["iterations"] > 0 for r in again["rigid"])
     with pytest.raises(SystemExit, match="NAME=JSON"):

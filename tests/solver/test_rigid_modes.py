@@ -8,6 +8,7 @@ from conftest import group_meshes
 from test_preconditioner import loaded_step_with_pairs, two_blocks_in_contact
 
 import tensormass_torch as tm
+from tensormass_torch.solver import rigid_modes as rigid_modes_module
 from tensormass_torch.solver.implicit_euler import _coefficients
 from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagonal_blocks
 from tensormass_torch.solver.rigid_modes import (
@@ -155,6 +156,41 @@ def test_a_load_that_keeps_the_bodies_part_equals_a_fresh_one():
     torch.testing.assert_close(kept(r), fresh(r), rtol=1e-12, atol=1e-14)
 
 
+def test_a_lagged_load_keeps_the_bodies_part_until_its_refresh():
+    """Under one ``lag`` key the bodies' part (their arms and groups) of the first load is kept for
+    ``refresh`` - 1 loads of new products at moved positions, then made again; the lagged
+    correction is still symmetric positive definite, and without a key every load makes it."""
+    sim, loaded, pairs, _, weights = step_pieces(velocities=False)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    scaling = JacobiScaling().load(system_diagonal_blocks(sim.system, mass_coef, stiffness_coef,
+                                                          loaded.node_stiffness, pairs, sim.options.dt))
+    angle = torch.tensor(0.05, dtype=DT)
+    turn = torch.tensor([[torch.cos(angle), -torch.sin(angle), 0.0], [torch.sin(angle), torch.cos(angle), 0.0],
+                         [0.0, 0.0, 1.0]], dtype=DT)
+
+    def load(correction, x, key, lag):
+        return correction.load(x, sim.system.mass.reshape(-1), sim.system.segments, sim.system.free, weights,
+                               scaling, pairs, pairs._pair_matrices(stiffness_coef, sim.options.dt), kept=key, lag=lag)
+
+    lagged, fresh = RigidModeCorrection(2, refresh=3), RigidModeCorrection(2, refresh=3)
+    positions = [sim.x, sim.x @ turn.T, sim.x @ (turn @ turn).T, sim.x @ (turn @ turn @ turn).T]
+    arms = []
+    for k, x in enumerate(positions):
+        load(lagged, x, ("product", k), (mass_coef, stiffness_coef))
+        load(fresh, x, ("product", k), None)
+        arms.append((lagged.arms.clone(), fresh.arms.clone()))
+    assert torch.equal(arms[1][0], arms[0][0]) and torch.equal(arms[2][0], arms[0][0])
+    torch.testing.assert_close(arms[3][0], arms[3][1], rtol=0, atol=0)
+    assert not torch.allclose(arms[1][1], arms[0][1])  # (the positions turned: fresh arms differ)
+    load(lagged, positions[0], ("product", 4), (mass_coef, stiffness_coef))  # lagged: the arms at positions[3]
+    shape = sim.x.shape
+    matrix = dense(lambda flat: lagged(flat.view(shape)).reshape(-1), shape.numel())
+    torch.testing.assert_close(matrix, matrix.T, rtol=1e-10, atol=1e-10 * float(matrix.abs().max()))
+    assert float(torch.linalg.eigvalsh(matrix).min()) > 0.5
+    with pytest.raises(ValueError, match="refresh"):
+        RigidModeCorrection(refresh=0)
+
+
 def test_the_correction_is_exact_on_the_coarse_space():
     """At rest (hooke: a rigid motion strains nothing) Z'^T A' Z' = E for the scaled step matrix
     A', so the coarse solve inverts A' on the span of Z': Z'^T A' (coarse(A' Z' c)) = Z'^T A' Z' c."""
@@ -170,6 +206,18 @@ def test_the_correction_is_exact_on_the_coarse_space():
     back = correction.coarse(image)
     torch.testing.assert_close(back, field.view(shape), rtol=1e-8, atol=1e-8 * float(field.abs().max()))
     assert len(images) == 6
+
+
+def test_the_restriction_in_runs_equals_one_sum_a_body(monkeypatch):
+    """The restriction sums runs of a body's nodes, then the runs: runs of 5 nodes (each body's
+    last one shorter) give the correction of runs longer than the bodies, to rounding."""
+    sim, whole, _ = loaded_correction()
+    assert int(sim.system.segments.lengths.max()) <= rigid_modes_module.RESTRICTION_RUN
+    monkeypatch.setattr(rigid_modes_module, "RESTRICTION_RUN", 5)
+    _, runs, _ = loaded_correction()
+    assert runs._run_ptr.numel() - 1 == int(((sim.system.segments.lengths + 4) // 5).sum())
+    r = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(8), dtype=DT)
+    torch.testing.assert_close(runs(r), whole(r), rtol=1e-12, atol=1e-13)
 
 
 @pytest.mark.parametrize("group_bodies", [1, 2])
