@@ -222,34 +222,47 @@ def _gram(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a[:, :, :, None] * b[:, :, None, :]).sum(1)
 
 
-def own_blocks(modes: torch.Tensor, node_weights: torch.Tensor, sums: BodySums) -> torch.Tensor:
+def own_blocks(arms: torch.Tensor, node_weights: torch.Tensor, sums: BodySums,
+               free: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Each body's own block of the coarse matrix without pairs, Z_b^T W Z_b ``[B, 6, 6]`` float64
-    (``modes [6, V, 3]``: Z, :func:`rigid_modes`, fixed nodes zeroed; ``node_weights [V, 3, 3]``:
-    W = c_M m_i I + c_K N_i at each node): the nodes' 6 x 6 products, elementwise, summed per body
-    in one reduction."""
-    z = modes.permute(1, 2, 0)  # [V, 3, 6]
-    weighted = (node_weights[:, :, :, None] * z[:, None, :, :]).sum(2)  # W Z [V, 3, 6]
-    per_node = _gram(z, weighted)  # [V, 6, 6]
-    return sums.sums(per_node.reshape(-1, 36)).view(-1, 6, 6)
+    (Z_i = [I | -A_i] at nodes of lever ``arms [V, 3]`` (:func:`lever_arms`; A_i = [a_i]x), zero
+    where ``free [V, 1]`` is 0; ``node_weights [V, 3, 3]``: W = c_M m_i I + c_K N_i, symmetric).
+    A node's block [[W, -W A], [A W, -A W A]] from two cross products a row (W A's rows are W's
+    rows x a; -A W A's columns are W A's columns x a), summed per body in one reduction (in the
+    dtype of the nodes: a body's few thousand terms)."""
+    weights = node_weights if free is None else node_weights * free[:, :, None]
+    lever = arms[:, None, :].expand_as(weights)
+    wa = torch.linalg.cross(weights, lever, dim=-1)  # W A [V, 3, 3]
+    awa = torch.linalg.cross(wa.transpose(1, 2), lever, dim=-1).transpose(1, 2)  # -A W A
+    per_node = torch.cat([torch.cat([weights, -wa], 2), torch.cat([-wa.transpose(1, 2), awa], 2)], 1)  # [V, 6, 6]
+    lengths = sums.lengths
+    return torch.segment_reduce(per_node.reshape(-1, 36), "sum", lengths=lengths, unsafe=True).view(-1, 6, 6).to(
+        torch.float64)
 
 
-def group_matrices(own: torch.Tensor, modes: torch.Tensor, group: torch.Tensor, slot: torch.Tensor, groups: int,
-                   size: int, pairs=None, pair_matrices: Optional[torch.Tensor] = None) -> torch.Tensor:
+def group_matrices(own: torch.Tensor, arms: torch.Tensor, group: torch.Tensor, slot: torch.Tensor, groups: int,
+                   size: int, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
+                   free: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The coarse matrix E = Z^T A Z without the elastic part, as its principal blocks over the
     groups ``[groups, 6 size, 6 size]`` float64 (body b in block ``group[b]`` at ``slot[b]``; slots
     without a body are zero).
 
-    ``own [B, 6, 6]``: the bodies' own blocks without pairs (:func:`own_blocks`); ``modes [6, V, 3]``:
-    Z; ``pairs``: ``ContactPairs`` (or None) with ``pair_matrices [P, 3, 3]`` their M_p. A pair
+    ``own [B, 6, 6]``: the bodies' own blocks without pairs (:func:`own_blocks`); ``arms [V, 3]``
+    and ``free [V, 1]`` (or None): Z (:func:`modes_of`, zero on fixed nodes), formed at the pairs'
+    nodes only; ``pairs``: ``ContactPairs`` (or None) with ``pair_matrices [P, 3, 3]`` their M_p. A pair
     between two groups adds its terms on each body's own block and drops its coupling; a pair
     within one body (self-contact) adds its coupling to the body's own block."""
     place = group * size * size + slot * size + slot  # each body's own block (one a body)
     matrices = own.new_zeros(groups * size * size, 6, 6).index_copy_(0, place, own)
     if pairs is not None and len(pairs):
         nodes = pairs.nodes
+        modes = modes_of(arms[nodes.reshape(-1)])  # [6, 4 P, 3]
+        if free is not None:
+            modes = modes * free[nodes.reshape(-1)]
+        modes = modes.view(6, -1, 4, 3)  # the pair's vertex and its triangle's corners
         coefficients = pairs._coefficients().to(modes.dtype)  # [P, 4]: 1, -w
-        vertex = modes[:, nodes[:, 0]].permute(1, 2, 0)  # [P, 3, 6]
-        triangle = sum(coefficients[:, i, None, None] * modes[:, nodes[:, i]].permute(1, 2, 0) for i in (1, 2, 3))
+        vertex = modes[:, :, 0].permute(1, 2, 0)  # [P, 3, 6]
+        triangle = sum(coefficients[:, i, None, None] * modes[:, :, i].permute(1, 2, 0) for i in (1, 2, 3))
         mp = pair_matrices.to(modes.dtype)
 
         def weighted(g):
@@ -300,7 +313,7 @@ class RigidModeCorrection:
         self._runs: Optional[torch.Tensor] = None  # [B] each body's runs
         self._node_body: Optional[torch.Tensor] = None  # [V] int32
         self._sums: Optional[BodySums] = None
-        self._kept = None  # (key, arms, modes, group, slot, groups, own blocks, filled, columns) of load's ``kept``
+        self._kept = None  # (key, arms, free, group, slot, groups, own blocks, filled, columns) of load's ``kept``
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
@@ -332,14 +345,11 @@ class RigidModeCorrection:
         elif fresh:
             self._age, self._lag = 0, lag
             arms, centres = lever_arms(x, mass, self._sums)
-            modes = modes_of(arms)
-            if free is not None:
-                modes = modes * free
             if self.grouping == "contact" and pairs is not None and len(pairs):
                 group, slot, groups = contact_groups(centres, pairs.objects, size)
             else:
                 group, slot, groups = morton_groups(centres, size)
-            own = own_blocks(modes, node_weights() if callable(node_weights) else node_weights, self._sums)
+            own = own_blocks(arms, node_weights() if callable(node_weights) else node_weights, self._sums, free)
             # each body's row of its group's inverse takes a block for each slot of the group, its
             # columns the slots' bodies; the ranks group * c + slot are 0 .. B - 1, so the slots
             # past them are the empty ones (their blocks zero: the inverse keeps the padding's
@@ -348,9 +358,9 @@ class RigidModeCorrection:
             members[group * size + slot] = torch.arange(bodies, device=x.device)
             filled = (torch.arange(groups * size, device=x.device).view(groups, size) < bodies)[group]  # [B, c]
             columns = members.view(groups, size)[group].to(torch.int32).reshape(-1)  # [B c]
-            self._kept = (kept, arms, modes, group, slot, groups, own, filled[:, :, None, None], columns)
-        _, arms, modes, group, slot, groups, own, filled, columns = self._kept
-        matrices = group_matrices(own, modes, group, slot, groups, size, pairs, pair_matrices)
+            self._kept = (kept, arms, free, group, slot, groups, own, filled[:, :, None, None], columns)
+        _, arms, kept_free, group, slot, groups, own, filled, columns = self._kept
+        matrices = group_matrices(own, arms, group, slot, groups, size, pairs, pair_matrices, kept_free)
         # slots past the last body, and coarse unknowns no free node carries: the identity there
         # (a rigid motion of fixed nodes is no motion); a relative 1e-10 on the diagonal keeps
         # the factor finite where a body's free nodes leave a motion nearly unresisted

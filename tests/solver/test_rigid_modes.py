@@ -17,6 +17,7 @@ from tensormass_torch.solver.rigid_modes import (
     contact_clusters,
     contact_groups,
     group_matrices,
+    lever_arms,
     morton_groups,
     own_blocks,
     rigid_modes,
@@ -61,17 +62,25 @@ def coarse_reference(sim, loaded, stiffness, modes):
 
 
 @pytest.mark.parametrize("friction", [0.0, 0.4])
-def test_the_coarse_matrix_is_the_galerkin_product(friction):
+@pytest.mark.parametrize("fixed", [False, True])
+def test_the_coarse_matrix_is_the_galerkin_product(friction, fixed):
     """One group of both bodies: E equals Z^T A Z without elasticity (mass, floor and its
-    friction, the pairs and theirs) to roundoff, in the groups' slot order."""
+    friction, the pairs and theirs) to roundoff, in the groups' slot order; with every third
+    node fixed (Z zero there), of the masked modes."""
     sim, loaded, pairs, stiffness, weights = step_pieces(friction)
     sums = BodySums(sim.system.segments, sim.x)
     modes, centres = rigid_modes(sim.x, sim.system.mass.reshape(-1), sums)
+    free = None
+    if fixed:
+        free = torch.ones(sim.x.shape[0], 1, dtype=DT)
+        free[::3] = 0.0
+        modes = modes * free
     group, slot, groups = morton_groups(centres, 2)
     assert groups == 1 and sorted(slot.tolist()) == [0, 1]
     mass_coef, stiffness_coef = _coefficients(sim.options)
-    matrices = group_matrices(own_blocks(modes, weights, sums), modes, group, slot, groups, 2, pairs,
-                              pairs._pair_matrices(stiffness_coef, sim.options.dt))
+    arms = lever_arms(sim.x, sim.system.mass.reshape(-1), sums)[0]
+    matrices = group_matrices(own_blocks(arms, weights, sums, free), arms, group, slot, groups, 2, pairs,
+                              pairs._pair_matrices(stiffness_coef, sim.options.dt), free)
     reference = coarse_reference(sim, loaded, stiffness, modes)
     order = torch.argsort(slot)
     index = torch.cat([torch.arange(6) + 6 * int(b) for b in order])
@@ -89,7 +98,8 @@ def test_groups_keep_their_principal_blocks():
     group, slot, groups = morton_groups(centres, 1)
     assert groups == 2 and slot.tolist() == [0, 0]
     mass_coef, stiffness_coef = _coefficients(sim.options)
-    matrices = group_matrices(own_blocks(modes, weights, sums), modes, group, slot, groups, 1, pairs,
+    arms = lever_arms(sim.x, sim.system.mass.reshape(-1), sums)[0]
+    matrices = group_matrices(own_blocks(arms, weights, sums), arms, group, slot, groups, 1, pairs,
                               pairs._pair_matrices(stiffness_coef, sim.options.dt))
     reference = coarse_reference(sim, loaded, stiffness, modes)
     for b in range(2):
