@@ -164,7 +164,8 @@ struct BlockCholeskyKernel {
 // its translation t and rotation w. Reading N and a (12 values a node) where a stored Z' reads 18.
 //
 // multigrid_rigid_restrict: out_b = sum over the body's nodes of Z'_i^T r_i = (u, a x u), u = N^T r;
-// a body a row, summed by lanes as BsrRows does (deterministic).
+// a range of nodes (a body, or a run of its nodes) a row, summed by lanes as BsrRows does
+// (deterministic).
 template <typename S>
 struct RigidRestrictKernel {
   static constexpr int kRows = 6;

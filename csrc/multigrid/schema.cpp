@@ -30,8 +30,9 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   pivot is not positive. Four different tensors.
   m.def("multigrid_block_cholesky(Tensor blocks, Tensor(a!) scale, Tensor(b!) scale_t, Tensor(c!) inverse) -> ()");
   // multigrid_rigid_restrict(node_inverse [V, 3, 3], arm [V, 3], body_ptr [B + 1] int32, r [3 V], out! [6 B]) -> ()
-  //   the rigid correction's restriction with its basis formed on the fly: for each body b (nodes
-  //   body_ptr[b] .. body_ptr[b + 1] - 1), out_b = sum of (u_i, arm_i x u_i), u_i = node_inverse_i^T r_i.
+  //   the rigid correction's restriction with its basis formed on the fly: for each range b of
+  //   nodes body_ptr[b] .. body_ptr[b + 1] - 1 (a body, or a run of one's nodes), out_b = the sum
+  //   of (u_i, arm_i x u_i), u_i = node_inverse_i^T r_i.
   m.def("multigrid_rigid_restrict(Tensor node_inverse, Tensor arm, Tensor body_ptr, Tensor r, Tensor(a!) out) -> ()");
   // multigrid_rigid_prolong(node_inverse, arm, node_body [V] int32, coarse [6 B], r? [3 V], weight, out! [3 V]) -> ()
   //   its prolongation: out_i = r_i + weight node_inverse_i (t + w x arm_i), (t, w) = coarse's six

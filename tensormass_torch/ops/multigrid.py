@@ -292,7 +292,7 @@ def rigid_restrict(node_inverse: torch.Tensor, arm: torch.Tensor, body_ptr: torc
                    out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Each body's Z'^T r ``[6 B]`` for ``r [3 V]`` (``multigrid_rigid_restrict``; Z'_i = N_i
     [I | -[a_i]x], ``node_inverse [V, 3, 3]`` N, ``arm [V, 3]`` a, ``body_ptr [B + 1]`` int32 the
-    bodies' node ranges), into ``out`` (None: a new tensor)."""
+    bodies' node ranges, or runs within them), into ``out`` (None: a new tensor)."""
     if out is None:
         out = torch.empty(6 * (body_ptr.shape[0] - 1), dtype=r.dtype, device=r.device)
     library.op_or_reference("multigrid_rigid_restrict", r.device)(node_inverse, arm, body_ptr, r, out)
