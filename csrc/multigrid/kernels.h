@@ -163,7 +163,7 @@ struct BlockCholeskyKernel {
 // fixed node), a_i the node's lever arm about its body's centre; a body's six coarse unknowns are
 // its translation t and rotation w. Reading N and a (12 values a node) where a stored Z' reads 18.
 //
-// multigrid_rigid_restrict: out_b = sum over the body's nodes of Z'_i^T r_i = (u, a x u), u = N^T r;
+// multigrid_rigid_restrict: out_b = sum over range b's nodes of Z'_i^T r_i = (u, a x u), u = N^T r;
 // a range of nodes (a body, or a run of its nodes) a row, summed by lanes as BsrRows does
 // (deterministic).
 template <typename S>
@@ -172,14 +172,14 @@ struct RigidRestrictKernel {
   using Scalar = S;
   const S* node_inverse;     // [V, 3, 3] N
   const S* arm;              // [V, 3]
-  const int32_t* body_ptr;   // [B + 1]: body b's nodes body_ptr[b] .. body_ptr[b + 1] - 1
+  const int32_t* range_ptr;  // [R + 1]: range b's nodes range_ptr[b] .. range_ptr[b + 1] - 1
   const S* r;                // [V 3]
-  S* out;                    // [B 6]
+  S* out;                    // [R 6]
 
   TM_HD void partial(int64_t row, int lane, int stride, S (&sum)[6]) const {
     TM_UNROLL for (int k = 0; k < 6; ++k) sum[k] = S(0);
-    const int32_t end = body_ptr[row + 1];
-    for (int32_t i = body_ptr[row] + lane; i < end; i += stride) {
+    const int32_t end = range_ptr[row + 1];
+    for (int32_t i = range_ptr[row] + lane; i < end; i += stride) {
       const S* n = node_inverse + static_cast<int64_t>(i) * 9;
       const S* ri = r + static_cast<int64_t>(i) * 3;
       const S* a = arm + static_cast<int64_t>(i) * 3;

@@ -217,14 +217,15 @@ inline int64_t check_rigid_nodes(const at::Tensor& node_inverse, const at::Tenso
 
 // multigrid_rigid_restrict: see schema.cpp.
 template <class L>
-void multigrid_rigid_restrict(const at::Tensor& node_inverse, const at::Tensor& arm, const at::Tensor& body_ptr,
+void multigrid_rigid_restrict(const at::Tensor& node_inverse, const at::Tensor& arm, const at::Tensor& range_ptr,
                               const at::Tensor& r, at::Tensor out) {
   const int64_t nodes = check_rigid_nodes(node_inverse, arm);
-  TORCH_CHECK(body_ptr.defined() && body_ptr.dim() == 1 && body_ptr.size(0) >= 1, "tensormass: body_ptr must be [B + 1]");
-  check_index_tensor(body_ptr, "body_ptr", node_inverse, at::kInt, {body_ptr.size(0)}, "node_inverse");
-  const int64_t bodies = body_ptr.size(0) - 1;
+  TORCH_CHECK(range_ptr.defined() && range_ptr.dim() == 1 && range_ptr.size(0) >= 1,
+              "tensormass: range_ptr must be [R + 1]");
+  check_index_tensor(range_ptr, "range_ptr", node_inverse, at::kInt, {range_ptr.size(0)}, "node_inverse");
+  const int64_t ranges = range_ptr.size(0) - 1;
   check_vector(r, "r", node_inverse, 3 * nodes, "node_inverse");
-  check_vector(out, "out", node_inverse, 6 * bodies, "node_inverse");
+  check_vector(out, "out", node_inverse, 6 * ranges, "node_inverse");
   TORCH_CHECK(out.data_ptr() != r.data_ptr(), "tensormass: out must not be r");
   typename L::Guard guard(out.device());
   dispatch_scalar(out.scalar_type(), [&](auto s_tag) {
@@ -232,10 +233,10 @@ void multigrid_rigid_restrict(const at::Tensor& node_inverse, const at::Tensor& 
     RigidRestrictKernel<S> k;
     k.node_inverse = node_inverse.data_ptr<S>();
     k.arm = arm.data_ptr<S>();
-    k.body_ptr = body_ptr.data_ptr<int32_t>();
+    k.range_ptr = range_ptr.data_ptr<int32_t>();
     k.r = r.data_ptr<S>();
     k.out = out.data_ptr<S>();
-    L::run_rows(bodies, k, row_group(nodes, bodies));
+    L::run_rows(ranges, k, row_group(nodes, ranges));
   });
 }
 

@@ -29,11 +29,11 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   read), scale = L^-T, scale_t = L^-1 and inverse = L^T; the identity for the three where a
   //   pivot is not positive. Four different tensors.
   m.def("multigrid_block_cholesky(Tensor blocks, Tensor(a!) scale, Tensor(b!) scale_t, Tensor(c!) inverse) -> ()");
-  // multigrid_rigid_restrict(node_inverse [V, 3, 3], arm [V, 3], body_ptr [B + 1] int32, r [3 V], out! [6 B]) -> ()
+  // multigrid_rigid_restrict(node_inverse [V, 3, 3], arm [V, 3], range_ptr [R + 1] int32, r [3 V], out! [6 R]) -> ()
   //   the rigid correction's restriction with its basis formed on the fly: for each range b of
-  //   nodes body_ptr[b] .. body_ptr[b + 1] - 1 (a body, or a run of one's nodes), out_b = the sum
+  //   nodes range_ptr[b] .. range_ptr[b + 1] - 1 (a body, or a run of one's nodes), out_b = the sum
   //   of (u_i, arm_i x u_i), u_i = node_inverse_i^T r_i.
-  m.def("multigrid_rigid_restrict(Tensor node_inverse, Tensor arm, Tensor body_ptr, Tensor r, Tensor(a!) out) -> ()");
+  m.def("multigrid_rigid_restrict(Tensor node_inverse, Tensor arm, Tensor range_ptr, Tensor r, Tensor(a!) out) -> ()");
   // multigrid_rigid_prolong(node_inverse, arm, node_body [V] int32, coarse [6 B], r? [3 V], weight, out! [3 V]) -> ()
   //   its prolongation: out_i = r_i + weight node_inverse_i (t + w x arm_i), (t, w) = coarse's six
   //   values of the node's body (no r: 0 in its place). out may be r, never coarse.

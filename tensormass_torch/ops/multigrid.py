@@ -16,7 +16,7 @@ with the rest of a CG iteration):
             block Jacobi's scaling of the finest level (``solver.preconditioner.JacobiScaling``):
             S = L^-T, S^T and S^-1 = L^T of each diagonal block L L^T, in one launch (as tensor
             ops, some seventy small kernels at every solve)
-    multigrid_rigid_restrict(node_inverse, arm, body_ptr, r, out!)
+    multigrid_rigid_restrict(node_inverse, arm, range_ptr, r, out!)
     multigrid_rigid_prolong(node_inverse, arm, node_body, coarse, r?, weight, out!)
             the rigid correction's transfers (``solver.rigid_modes``) with its basis
             Z'_i = N_i [I | -[a_i]x] formed at each node from N_i (3 x 3) and the lever arm a_i:
@@ -142,10 +142,10 @@ def _ref_multigrid_block_cholesky(blocks, scale, scale_t, inverse):
     inverse.copy_(s_inverse)
 
 
-def _ref_multigrid_rigid_restrict(node_inverse, arm, body_ptr, r, out):
+def _ref_multigrid_rigid_restrict(node_inverse, arm, range_ptr, r, out):
     u = (node_inverse * r.view(-1, 3, 1)).sum(1)  # N^T r [V, 3]
     per_node = torch.cat([u, torch.linalg.cross(arm, u, dim=-1)], 1)  # [V, 6]
-    out.copy_(torch.segment_reduce(per_node, "sum", lengths=body_ptr.long().diff(), unsafe=True).reshape(-1))
+    out.copy_(torch.segment_reduce(per_node, "sum", lengths=range_ptr.long().diff(), unsafe=True).reshape(-1))
 
 
 def _ref_multigrid_rigid_prolong(node_inverse, arm, node_body, coarse, r, weight, out):
@@ -288,14 +288,14 @@ def block_scaling(blocks: torch.Tensor, scale: torch.Tensor, scale_t: torch.Tens
 
 
 
-def rigid_restrict(node_inverse: torch.Tensor, arm: torch.Tensor, body_ptr: torch.Tensor, r: torch.Tensor,
+def rigid_restrict(node_inverse: torch.Tensor, arm: torch.Tensor, range_ptr: torch.Tensor, r: torch.Tensor,
                    out: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Each body's Z'^T r ``[6 B]`` for ``r [3 V]`` (``multigrid_rigid_restrict``; Z'_i = N_i
-    [I | -[a_i]x], ``node_inverse [V, 3, 3]`` N, ``arm [V, 3]`` a, ``body_ptr [B + 1]`` int32 the
-    bodies' node ranges, or runs within them), into ``out`` (None: a new tensor)."""
+    """Each range's Z'^T r ``[6 R]`` for ``r [3 V]`` (``multigrid_rigid_restrict``; Z'_i = N_i
+    [I | -[a_i]x], ``node_inverse [V, 3, 3]`` N, ``arm [V, 3]`` a, ``range_ptr [R + 1]`` int32 the
+    ranges of nodes: the bodies', or runs within them), into ``out`` (None: a new tensor)."""
     if out is None:
-        out = torch.empty(6 * (body_ptr.shape[0] - 1), dtype=r.dtype, device=r.device)
-    library.op_or_reference("multigrid_rigid_restrict", r.device)(node_inverse, arm, body_ptr, r, out)
+        out = torch.empty(6 * (range_ptr.shape[0] - 1), dtype=r.dtype, device=r.device)
+    library.op_or_reference("multigrid_rigid_restrict", r.device)(node_inverse, arm, range_ptr, r, out)
     return out
 
 

@@ -353,7 +353,7 @@ def test_rigid_transfers_bad_arguments_raise_naming_them_and_write_nothing(devic
     out_c, out_r = torch.full((24,), -7.0, dtype=torch.float64, device=device), torch.full_like(r, -7.0)
     for args, match in [((node_inverse[:, :2], arm, body_ptr, r, out_c), "node_inverse"),
                         ((node_inverse, arm[:-1], body_ptr, r, out_c), "arm"),
-                        ((node_inverse, arm, body_ptr.long(), r, out_c), "body_ptr"),
+                        ((node_inverse, arm, body_ptr.long(), r, out_c), "range_ptr"),
                         ((node_inverse, arm, body_ptr, r[:-1], out_c), "r"),
                         ((node_inverse, arm, body_ptr, r, out_c[:-6]), "out"),
                         ((node_inverse, arm.float(), body_ptr, r, out_c), "arm")]:
