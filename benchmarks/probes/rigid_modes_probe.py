@@ -1,7 +1,9 @@
 """What the rigid bodies' coarse correction (``preconditioner="rigid"``) saves and costs on a pile
 with body contact: from one state, each preconditioner's ms a step and CG iterations a step, in
-turn and twice; then, with "rigid", the ms of a load of the correction (a synchronising timer
-around ``RigidModeCorrection.load``) and of one application, eager and captured in a CUDA graph.
+turn and twice; then, with "rigid", the ms of a load of the correction and of its pieces (a
+synchronising timer around ``RigidModeCorrection.load`` and around ``solver.rigid_modes``' lever arms,
+contact groups (the matching within them), own blocks and group matrices; medians over the loads
+of ``--timed`` steps) and of one application, eager and captured in a CUDA graph.
 
     python benchmarks/probes/rigid_modes_probe.py [--columns 10] [--steps 150] [--timed 5]
                                                   [--state DIR] [--contact '{}'] [--device cuda]
@@ -23,6 +25,11 @@ import common  # noqa: E402
 import contact_piles  # noqa: E402
 import contact_settings_probe  # noqa: E402
 
+from tensormass_torch.solver import rigid_modes  # noqa: E402
+
+#: the load's pieces timed (functions of ``solver.rigid_modes``, patched while the load is timed)
+PIECES = ("lever_arms", "contact_groups", "contact_clusters", "own_blocks", "group_matrices")
+
 
 def main(argv=None):
     args = contact_piles.pile_arguments(argv, __doc__, timed=5)
@@ -38,21 +45,32 @@ def main(argv=None):
         print(f"{preconditioner}: {figures['ms']:.1f} ms a step, {figures['iterations']:.1f} CG iterations a step",
               flush=True)
     correction = sim.system._rigid
-    loads = []
-    plain_load = correction.load
+    times = {name: [] for name in ("load", *PIECES)}
 
-    def timed_load(*a, **k):
-        common.sync(device)
-        began = time.perf_counter()
-        out = plain_load(*a, **k)
-        common.sync(device)
-        loads.append(time.perf_counter() - began)
-        return out
+    def timed(name, function):
+        def run(*a, **k):
+            common.sync(device)
+            began = time.perf_counter()
+            out = function(*a, **k)
+            common.sync(device)
+            times[name].append(time.perf_counter() - began)
+            return out
 
-    correction.load = timed_load
-    sim.step(args.timed)
-    del correction.load
-    print(f"load: {len(loads)} in {args.timed} steps, {1e3 * sum(loads) / len(loads):.2f} ms each", flush=True)
+        return run
+
+    plain = {name: getattr(rigid_modes, name) for name in PIECES}
+    correction.load = timed("load", correction.load)
+    for name in PIECES:
+        setattr(rigid_modes, name, timed(name, plain[name]))
+    try:
+        sim.step(args.timed)
+    finally:
+        del correction.load
+        for name in PIECES:
+            setattr(rigid_modes, name, plain[name])
+    medians = {name: 1e3 * sorted(t)[len(t) // 2] for name, t in times.items() if t}
+    print(f"load: {len(times['load'])} in {args.timed} steps; ms each (median): "
+          + ", ".join(f"{name} {ms:.2f}" for name, ms in medians.items()), flush=True)
     r = torch.randn_like(sim.x)
     for _ in range(3):
         correction(r)
@@ -73,6 +91,7 @@ def main(argv=None):
             graph.replay()
         common.sync(device)
         print(f"one application, captured: {1e6 * (time.perf_counter() - began) / 100:.0f} us", flush=True)
+    return medians
 
 
 if __name__ == "__main__":

@@ -568,3 +568,19 @@ def test_contact_step_kernels_probe_gives_each_wait_to_the_frame_that_launched_n
     own, waited = probe.host_by_frame(events + waits)  # each frame's time less its nested frames'
     assert own == {"step": 100 - 30 - 40, "detect": 30, "solve": 40 - 5, "load": 5}
     assert waited == {"detect": 5, "load": 2}
+
+
+def test_rigid_modes_probe_times_the_load_and_its_pieces():
+    """The rigid correction's probe times its loads and their pieces (the pieces within the load)
+    and puts the library's functions back."""
+    import rigid_modes_probe as probe
+
+    from tensormass_torch.solver import rigid_modes
+
+    plain = {name: getattr(rigid_modes, name) for name in probe.PIECES}
+    medians = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "20", "--timed", "2",
+                          "--device", "cpu", "--contact", '{"friction": 0.5}'])
+    assert {"load", "lever_arms", "own_blocks", "group_matrices"} <= set(medians)
+    assert all(ms > 0 for ms in medians.values())
+    assert medians["own_blocks"] < medians["load"]
+    assert all(getattr(rigid_modes, name) is function for name, function in plain.items())
