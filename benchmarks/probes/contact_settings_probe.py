@@ -38,7 +38,7 @@ import common  # noqa: E402
 import contact_piles  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
-from tensormass_torch.solver.rigid_modes import REFRESH, RigidModeCorrection  # noqa: E402
+from tensormass_torch.solver.rigid_modes import RigidModeCorrection  # noqa: E402
 
 
 def setting(text: str):
@@ -98,12 +98,11 @@ def main(argv=None):
     for name, options in settings.items():
         options = dict(options)
         preconditioner = options.pop("preconditioner", "auto")
-        grouping = options.pop("rigid_grouping", None)
-        refresh = options.pop("rigid_refresh", None)
+        rigid = {key: options.pop(f"rigid_{key}") for key in ("grouping", "refresh") if f"rigid_{key}" in options}
         sim = contact_piles.simulator(bodies, tm.Contact(**{**args.contact, **options}), args.device, dtype,
                                       preconditioner)
-        if grouping is not None or refresh is not None:  # the rigid correction's groups and lag
-            sim.system._rigid = RigidModeCorrection(grouping=grouping or "contact", refresh=refresh or REFRESH)
+        if rigid:  # the rigid correction's groups and lag (the others its defaults)
+            sim.system._rigid = RigidModeCorrection(**rigid)
         sim.x, sim.v = x.clone(), v.clone()
         sim.step(2)
         sims[name] = sim

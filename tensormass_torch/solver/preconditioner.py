@@ -113,13 +113,6 @@ class JacobiScaling:
             return _block_product(self._blocks[2], v)
         return v * self.inverse
 
-    def unapply_columns(self, columns: torch.Tensor) -> torch.Tensor:
-        """S^-1 c for each of the k columns of ``columns [V, d, k]`` (``[V, d, k]``): elementwise,
-        the blocks read once for all k (a coarse space's basis, ``solver.rigid_modes``)."""
-        if self.inverse.dim() == 3:
-            return (self.inverse[:, :, :, None] * columns[:, None, :, :]).sum(2)
-        return self.inverse[:, :, None] * columns
-
     def product(self, matvec):
         """p -> S^T A (S p) ``[V, d]`` for the product ``matvec`` (A p, or a fused product's
         (A p, p . Ap) whose dots are dropped: the CG takes its own on the scaled vectors)."""
