@@ -16,8 +16,9 @@ DIR`` keeps that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` i
 JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s,
 ``"preconditioner"``, the Simulator's, ``"rigid_grouping"``, the groups of
 ``preconditioner="rigid"``'s coarse solve (``"contact"``, its default, or ``"morton"``), and
-``"rigid_refresh"``, the loads between two computations of its bodies' part (by default one
-setting, ``default={}``). Every simulator
+``"rigid_refresh"``, the loads between two computations of its bodies' part, and
+``"check_ahead"``, the stretches of a paused solve its contact check runs beside on the GPU
+(``DynamicsSystem.check_ahead``; 0: after the solve) (by default one setting, ``default={}``). Every simulator
 takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
 the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
 falling through each other) takes its block first. For each block: ms a step, CG iterations a
@@ -55,7 +56,7 @@ def setting(text: str):
 def extend(parser):
     parser.add_argument("--setting", type=setting, action="append", default=None,
                         help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner', 'rigid_grouping', "
-                             "'rigid_refresh')")
+                             "'rigid_refresh', 'check_ahead')")
     parser.add_argument("--repeats", type=int, default=3, help="blocks of --timed steps for each setting")
     parser.add_argument("--save-state", default=None, help="a folder to keep the pile's starting state in")
     parser.add_argument("--out", default=None, help="a JSON file for the blocks' figures")
@@ -99,10 +100,13 @@ def main(argv=None):
         options = dict(options)
         preconditioner = options.pop("preconditioner", "auto")
         rigid = {key: options.pop(f"rigid_{key}") for key in ("grouping", "refresh") if f"rigid_{key}" in options}
+        check_ahead = options.pop("check_ahead", None)
         sim = contact_piles.simulator(bodies, tm.Contact(**{**args.contact, **options}), args.device, dtype,
                                       preconditioner)
         if rigid:  # the rigid correction's groups and lag (the others its defaults)
             sim.system._rigid = RigidModeCorrection(**rigid)
+        if check_ahead is not None:
+            sim.system.check_ahead = int(check_ahead)
         sim.x, sim.v = x.clone(), v.clone()
         sim.step(2)
         sims[name] = sim

@@ -348,6 +348,26 @@ class CGSolver:
             self.finish(matvec, max_iter, check_every, graph_key, done, preconditioner)
         return self.result()
 
+    def run_ahead(self, matvec: Matvec, max_iter: int = 200, check_every: int = 8, graph_key=None,
+                  preconditioner=None, stretches: int = 1) -> None:
+        """Launch up to ``stretches`` stretches of a paused solve's iterations (``check_every``
+        each) without reading anything back, so that the device has them to run while the host
+        does other work (a contact check); :meth:`resume` then goes on after them. The arguments
+        must be the paused solve's. Bit for bit the same solve: a paused solve still has an
+        object iterating (:meth:`_past_pause`), so resume's first stretch would run anyway, and a
+        stretch after every object stopped leaves the state as it is (it only costs its time).
+        Nothing where the solve is not paused."""
+        if self._paused is None:
+            return
+        done, pause_threshold = self._paused
+        for _ in range(stretches):
+            if done >= max_iter:
+                break
+            count = min(check_every, max_iter - done)
+            self.run_iterations(matvec, count, max_iter, graph_key, preconditioner)
+            done += count
+        self._paused = (done, pause_threshold)
+
     def finish(self, matvec: Matvec, max_iter: int, check_every: int, graph_key=None, done: int = 0,
                preconditioner=None, pause_threshold: Optional[torch.Tensor] = None) -> int:
         """Iterate from the current state until no object is active (or, with ``pause_threshold

@@ -27,6 +27,7 @@ BDF2 (``integrator="bdf2"``) is backward Euler from an extrapolated state with a
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass, field
 from typing import List, Optional
@@ -221,6 +222,10 @@ class DynamicsSystem:
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
         self._rigid = None  # rigid_modes.RigidModeCorrection: its buffers kept (as _jacobi's)
+        self._check_stream = None  # the CUDA stream contact checks run on beside the CG (_check_beside)
+        #: stretches of a paused solve launched before its contact check on the GPU (0: the check
+        #: runs after the solve, not beside it; :func:`_check_beside`)
+        self.check_ahead = CHECK_AHEAD_STRETCHES
         self._rest_preconditioner = None  # (key, cache) of preconditioner.system_rest_preconditioner
         self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
         self._solution_spaces = {}  # step coefficients -> (tensors, versions, guess.SolutionSpace)
@@ -607,7 +612,9 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
     (result, resume), resume None where the solve did not pause. Else ``resume(True)`` goes on to
     ``opts.cg_tol`` and returns that result (the solve to cg_tol, bit for bit), and
     ``resume(False)`` leaves the solve where it paused (``space`` then takes the paused solution);
-    either is valid only before the next solve of this system."""
+    either is valid only before the next solve of this system. ``resume.ahead(k)`` launches k
+    stretches of the resumed iterations with no host read (``CGSolver.run_ahead``), for the
+    device to run while the host checks the paused solution; either resume then is unchanged."""
     mass_coef, stiffness_coef = _coefficients(opts)
     if pairs is None and system.body_contact is not None:
         pairs = system.body_contact.detect(x)
@@ -689,6 +696,10 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
             space.add(paused.solution, lambda p: _projected_product(product, p, system.free))
         return None
 
+    def ahead(stretches: int) -> None:  # (CGSolver.run_ahead: the same solve whatever resume then does)
+        solver.run_ahead(matvec, opts.cg_max_iter, opts.check_every, graph_key, multigrid, stretches)
+
+    resume.ahead = ahead
     return paused, resume
 
 
@@ -1187,6 +1198,51 @@ def _first_failure(summaries: np.ndarray, require_convergence: bool) -> int:
     return int(failed[0]) if failed.size else summaries.shape[0]
 
 
+#: Stretches (``check_every`` iterations each) of a paused solve launched before a contact check
+#: that runs beside them (:func:`_check_beside`): enough to keep the device busy while the host
+#: launches the check, few enough that a check that finds pairs wastes little.
+CHECK_AHEAD_STRETCHES = 2
+
+
+def _checks_beside(x: torch.Tensor) -> bool:
+    """Whether a contact check runs beside its paused solve's next iterations (on the GPU: a
+    stream of its own; the CPU gains nothing from launching them first)."""
+    return x.device.type == "cuda"
+
+
+@contextlib.contextmanager
+def _check_beside(system: DynamicsSystem, paused, x: torch.Tensor):
+    """Run the body of the ``with`` (a contact check of a paused solve) beside ``paused``'s next
+    ``system.check_ahead`` stretches of iterations (``resume`` of :func:`_solve_pausing`; None, or
+    no stretches: the body runs as it stands). The iterations are launched first
+    (``resume.ahead``) on the current stream; the body's device work runs on the system's side
+    stream, which first waits for what was launched before them (the solve's end positions).
+    When the body ends the host waits for the side stream, so that what the check made is ready
+    for the current stream's later work; and since that stream allocates nothing while the
+    check runs, no memory the check reads is reused under it. The check reads nothing the
+    iterations write and writes nothing they read. (Where the device is not a GPU, taken only
+    when a test asks for it: the iterations first, then the body, in order.)"""
+    if paused is None or system.check_ahead < 1 or not _checks_beside(x):
+        yield
+        return
+    if x.device.type != "cuda":
+        paused.ahead(system.check_ahead)
+        yield
+        return
+    ready = torch.cuda.Event()
+    ready.record(torch.cuda.current_stream(x.device))
+    paused.ahead(system.check_ahead)
+    if system._check_stream is None or system._check_stream.device != x.device:
+        system._check_stream = torch.cuda.Stream(x.device)
+    side = system._check_stream
+    side.wait_event(ready)
+    try:
+        with torch.cuda.stream(side):
+            yield
+    finally:
+        side.synchronize()
+
+
 def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
     """The system's :class:`StepGraphs` for these options, or None where they do not apply."""
     from ..physics.tensor_mass import TensorMass
@@ -1305,18 +1361,25 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # would find nothing, so whether it runs changes no result; after a step whose first check
     # found pairs (a pile still jostling) it nearly always fails, and that step goes straight to
     # the check (SurfaceContact.first_check_found).
+    # The check beside the resumed solve: where the last step's first check found nothing (a
+    # pile at rest, whose checks nearly always find nothing), the paused solve's next iterations
+    # are launched before the check, which runs on a side stream (_check_beside): the device
+    # iterates while the host launches the check's many small ops and reads its outcome. The
+    # same solve and the same check either way; a check that does find pairs wastes those
+    # iterations.
     for round_ in range(rounds):
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
-        if (round_ == 0 and not system.body_contact.first_check_found
-                and system.body_contact.settled(x, dx, near, active)):
-            break  # the bodies' motion provably leaves nothing for the check to find
-        # a round's own solve is checked for deep misses only (Contact.recheck_tolerance)
-        tolerance = system.body_contact.tolerance if round_ == 0 else system.body_contact.recheck_tolerance
-        missed = ~active & (near.end_gap(dx) < -tolerance)
-        near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
-                                                              solution=len(report.contact_solves) - 1,
-                                                              tolerance=tolerance, later=round_ < rounds - 1)
-        found = moved or bool(missed.any())
+        at_rest = round_ == 0 and not system.body_contact.first_check_found
+        with _check_beside(system, resume if at_rest else None, x):
+            if at_rest and system.body_contact.settled(x, dx, near, active):
+                break  # the bodies' motion provably leaves nothing for the check to find
+            # a round's own solve is checked for deep misses only (Contact.recheck_tolerance)
+            tolerance = system.body_contact.tolerance if round_ == 0 else system.body_contact.recheck_tolerance
+            missed = ~active & (near.end_gap(dx) < -tolerance)
+            near, active, moved = system.body_contact.relinearise(x, dx, near, active | missed, v,
+                                                                  solution=len(report.contact_solves) - 1,
+                                                                  tolerance=tolerance, later=round_ < rounds - 1)
+            found = moved or bool(missed.any())
         if round_ == 0:
             system.body_contact.first_check_found = found
         if not found:

@@ -301,10 +301,11 @@ def test_contact_settings_probe_steps_each_setting_from_one_state(tmp_path):
                    "--contact", '{"friction": 0.5}']
     blocks = probe.main(common_args + ["--steps", "20", "--save-state", str(tmp_path / "state"), "--out",
                                        str(tmp_path / "settings.json"), "--setting", "default={}",
-                                       "--setting", 'skin={"skin": 0.005}'])
-    assert list(blocks) == ["without contact", "default", "skin"]
+                                       "--setting", 'skin={"skin": 0.005}', "--setting", 'after={"check_ahead": 0}'])
+    assert list(blocks) == ["without contact", "default", "skin", "after"]
     assert all(len(runs) == 2 and all(r["ms"] > 0 and r["solves"] >= 1 for r in runs) for runs in blocks.values())
     assert [r["iterations"] for r in blocks["skin"]] == [r["iterations"] for r in blocks["default"]]
+    assert [r["iterations"] for r in blocks["after"]] == [r["iterations"] for r in blocks["default"]]
     assert json.loads((tmp_path / "settings.json").read_text())["blocks"] == blocks
     rigid = 'rigid={"preconditioner": "rigid", "rigid_grouping": "morton", "rigid_refresh": 3}'
     again = probe.main(common_args + ["--state", str(tmp_path / "state"), "--setting", "default={}",

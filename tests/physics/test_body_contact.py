@@ -496,6 +496,29 @@ def test_checks_read_solves_stopped_at_check_tol():
         torch.testing.assert_close(loose.v, full.v, rtol=0, atol=1e-7)
 
 
+def test_a_check_beside_the_resumed_solve_changes_nothing(monkeypatch):
+    """On the GPU a step's first contact check, where the last step's found nothing, runs on a side
+    stream beside the paused solve's next iterations, launched before it
+    (``implicit_euler._check_beside``). Taken here on the CPU in the same order (the iterations
+    first): the same states bit for bit and the same iterations, through a step whose check finds
+    a pair (the iterations launched ahead are dropped, the round solves from the paused solution)
+    and steps whose checks find nothing (the solve goes on after them)."""
+    from tensormass_torch.solver import cg, implicit_euler
+
+    plain, beside = falling_pair(tm.Contact()), falling_pair(tm.Contact())
+    plain_reports = [plain.step() for _ in range(6)]
+    ahead = []
+    run_ahead = cg.CGSolver.run_ahead
+    monkeypatch.setattr(implicit_euler, "_checks_beside", lambda x: True)
+    monkeypatch.setattr(cg.CGSolver, "run_ahead", lambda self, *a, **k: ahead.append(self.paused) or run_ahead(self, *a, **k))
+    for reference in plain_reports:
+        report = beside.step()
+        assert [c.iterations.tolist() for c in report.cg] == [c.iterations.tolist() for c in reference.cg]
+    assert torch.equal(beside.x, plain.x) and torch.equal(beside.v, plain.v)
+    assert len(plain_reports[0].cg) > 1 and ahead[0]  # the first step's check found the closing pair
+    assert len(ahead) > 1 and all(ahead)  # later steps' checks too, each beside a paused solve
+
+
 def pairs_by_vertex_and_body(pairs):
     """{(vertex node, other body): (the pair's four nodes, signed distance, weights)}."""
     return {(int(n[0]), int(o[1])): (n.tolist(), float(d), w)

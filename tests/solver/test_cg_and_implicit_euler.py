@@ -115,6 +115,17 @@ def test_cg_pauses_and_goes_on_bit_for_bit(preconditioned):
     assert torch.equal(as_it_stands.solution, went_on.solution)
     solve(pausing, pause_tol=1e-12)
     assert not pausing.paused
+    # stretches launched ahead (CGSolver.run_ahead) while paused, as many as there are or more:
+    # the same solve when it goes on, and the paused solution is the result's copy
+    for stretches in (1, 3, 1000):
+        paused = solve(pausing, pause_tol=1e-3)
+        kept = paused.solution.clone()
+        pausing.run_ahead(matvec, 400, 2, preconditioner=preconditioner, stretches=stretches)
+        assert pausing.paused and torch.equal(paused.solution, kept)
+        went_on = pausing.resume(matvec, 400, 2, preconditioner=preconditioner)
+        assert torch.equal(went_on.solution, straight.solution) and torch.equal(went_on.iterations, straight.iterations)
+    pausing.run_ahead(matvec, 400, 2, preconditioner=preconditioner)  # not paused: nothing
+    assert torch.equal(pausing.result().solution, straight.solution)
 
 
 def test_cg_reports_breakdown_and_nonfinite():
