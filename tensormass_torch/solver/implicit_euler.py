@@ -769,12 +769,18 @@ def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: f
         node = (mass_coef * system.mass)[:, :, None] * eye
         return node if fused.node_stiffness is None else node + stiffness_coef * fused.node_stiffness
 
-    # a step's contact rounds solve at one load of the product: its modes and bodies' blocks stay
+    # A step's contact rounds solve at one load of the product: its modes and bodies' blocks stay.
+    # Across steps they are lagged (RigidModeCorrection.refresh) only while the bodies' contacts
+    # hold still: where the last step's first contact check found nothing to add (a pile at
+    # rest). A step whose check found pairs (bodies still moving into each other) computes them
+    # afresh: lagged there, the groups miss the new pairs and the iterations grow.
+    body_contact = system.body_contact
+    settled = body_contact is not None and not body_contact.first_check_found
     return system._rigid.load(fused.u + system.model.rest, system.mass.reshape(-1), system.segments, system.free,
                               weights, scaling, pairs if with_pairs else None,
                               pairs._pair_matrices(stiffness_coef, opts.dt) if with_pairs else None,
                               kept=(id(fused), fused.loads, mass_coef, stiffness_coef),
-                              lag=(mass_coef, stiffness_coef))
+                              lag=(mass_coef, stiffness_coef), renew=not settled)
 
 
 def _coupled_solver(system: DynamicsSystem, rhs, opts: StepOptions, pairs):

@@ -60,8 +60,13 @@ GROUP_BODIES = 32
 WEIGHT = 0.5
 #: Loads of new products between two computations of the bodies' part (their modes, groups and
 #: own blocks; 1: every load). In between it is lagged: the pairs' part and the scaling are the
-#: load's, the bodies' part the last one computed (see :meth:`RigidModeCorrection.load`).
-REFRESH = 1
+#: load's, the bodies' part the last one computed (see :meth:`RigidModeCorrection.load`). The step
+#: lags it only while the bodies' contacts hold still (``solver.implicit_euler._rigid``), so the
+#: lag costs no iterations where they change and saves the bodies' part at rest.
+REFRESH = 16
+#: The most the number of contact pairs may change (relative) for the bodies' part to stay lagged:
+#: the groups follow the pairs (a pile that was found without pairs, then lands, is grouped again).
+LAG_PAIRS_CHANGE = 0.1
 #: Nodes a lane group of the restriction sums (a body's nodes are taken in runs of this many, then
 #: the runs' sums added per body): enough lanes for the GPU where a group a body left it idle.
 RESTRICTION_RUN = 64
@@ -306,6 +311,7 @@ class RigidModeCorrection:
         self.refresh = int(refresh)
         self._age = 0  # loads of new products since the bodies' part was computed
         self._lag = None  # the ``lag`` key it was computed under
+        self._lag_pairs = 0  # the number of pairs it was computed with
         self.node_inverse: Optional[torch.Tensor] = None  # N = S^-1, zero on fixed nodes [V, 3, 3]
         self.arms: Optional[torch.Tensor] = None  # a [V, 3]
         self.inverses: Optional[BsrMatrix] = None  # the groups' E^-1 [6 B, 6 B]
@@ -317,7 +323,7 @@ class RigidModeCorrection:
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
-             kept=None, lag=None) -> "RigidModeCorrection":
+             kept=None, lag=None, renew: bool = False) -> "RigidModeCorrection":
         """Build the correction at positions ``x [V, 3]`` for the bodies of ``segments`` with node
         masses ``mass [V]``, free-node mask ``free [V, 1]`` (or None), ``node_weights [V, 3, 3]``
         (c_M m_i I + c_K N_i, or a function that returns them: called only where the bodies' part
@@ -328,22 +334,26 @@ class RigidModeCorrection:
         whose modes, groups and own blocks are then reused; None: computed afresh. ``lag``: a key
         that promises the node weights' parts that do not change from step to step (the step's
         coefficients); under the same key the bodies' part of the last computation is reused for
-        up to ``refresh`` - 1 loads of new products (the correction stays symmetric positive
+        up to ``refresh`` - 1 loads of new products, while the number of pairs stays within
+        ``LAG_PAIRS_CHANGE`` of the one it was computed with (the correction stays symmetric positive
         definite with any modes and any positive definite own blocks: lagged, they only match the
         bodies' present rigid motions and node weights less exactly). None: never lagged.
-        No host synchronisation (but where the bodies' node ranges are checked, the first load)."""
+        ``renew``: compute the bodies' part afresh at this load whatever the lag (later loads
+        under the same ``lag`` key may then lag it). No host synchronisation (but where the bodies' node ranges are checked, the first load)."""
         if self._sums is None or self._sums.segments is not segments or self._sums.device != x.device \
                 or self._sums.num_nodes != x.shape[0]:
             self._sums, self.node_inverse, self._kept = BodySums(segments, x), None, None
         size, bodies = self.group_bodies, segments.num_objects
         fresh = kept is None or self._kept is None or self._kept[0] != kept
-        if fresh and lag is not None and self._kept is not None and lag == self._lag \
-                and self._age + 1 < self.refresh:
+        count = len(pairs) if pairs is not None else 0
+        if fresh and not renew and lag is not None and self._kept is not None and lag == self._lag \
+                and self._age + 1 < self.refresh \
+                and abs(count - self._lag_pairs) <= LAG_PAIRS_CHANGE * max(self._lag_pairs, 1):
             self._age += 1
             self._kept = (kept, *self._kept[1:])
             fresh = False
         elif fresh:
-            self._age, self._lag = 0, lag
+            self._age, self._lag, self._lag_pairs = 0, lag, count
             arms, centres = lever_arms(x, mass, self._sums)
             if self.grouping == "contact" and pairs is not None and len(pairs):
                 group, slot, groups = contact_groups(centres, pairs.objects, size)

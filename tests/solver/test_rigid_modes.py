@@ -267,6 +267,24 @@ def test_a_tower_takes_fewer_iterations_with_the_rigid_correction():
     torch.testing.assert_close(ends["rigid"], ends["jacobi"], rtol=0, atol=1e-5)
 
 
+def test_the_step_lags_the_bodies_part_only_while_the_contacts_hold_still():
+    """implicit_euler._rigid: after a step whose first contact check found pairs the correction's
+    bodies' part is computed afresh at the next step's first load; after one whose check found
+    nothing it is lagged (up to RigidModeCorrection.refresh loads), the same tower either way."""
+    sim = tower("rigid")
+    sim.step(10)
+    correction = sim.system._rigid
+    assert correction.refresh == rigid_modes_module.REFRESH > 1
+    ages = []
+    for found in (True, False, False, True, False):
+        sim.system.body_contact.first_check_found = found  # what the last step's check found
+        arms = correction.arms.clone()
+        sim.step()
+        ages.append(correction._age)
+        assert torch.equal(correction.arms, arms) == (not found)  # lagged: the arms kept
+    assert ages == [0, 1, 2, 0, 1]
+
+
 def test_morton_groups_partition_the_bodies():
     gen = torch.Generator().manual_seed(2)
     centres = torch.rand(37, 3, generator=gen, dtype=DT)
