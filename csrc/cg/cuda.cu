@@ -140,6 +140,24 @@ void cg_alpha_cuda(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, co
   });
 }
 
+void cg_alpha_dot_cuda(const at::Tensor& p, at::Tensor ap, const c10::optional<at::Tensor>& free,
+                       const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                       const at::Tensor& rr, at::Tensor status, at::Tensor alpha, at::Tensor scratch,
+                       at::Tensor counter) {
+  const CGPlan plan = check_cg_alpha_dot(p, ap, free, chunk_start, chunk_object, object_chunk, rr, status, alpha,
+                                         scratch, counter);
+  if (plan.num_chunks == 0) return;
+  c10::cuda::CUDAGuard guard(p.device());
+  const bool masked = free.has_value() && free->defined();
+  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_alpha_dot", [&] {
+    const ProjectedDots<scalar_t> dots{p.data_ptr<scalar_t>(), ap.data_ptr<scalar_t>(),
+                                       masked ? free->data_ptr<scalar_t>() : nullptr, values_per_node(p)};
+    launch_chunk_alpha<ProjectedDots<scalar_t>, scalar_t>(plan, dots, rr.data_ptr<scalar_t>(),
+                                                         status.data_ptr<int32_t>(), alpha.data_ptr<scalar_t>(),
+                                                         scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+  });
+}
+
 void cg_update_cuda(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Tensor& ap, const at::Tensor& alpha,
                     const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
                     const at::Tensor& threshold, int64_t max_iter, at::Tensor rr, at::Tensor status, at::Tensor beta,
@@ -229,6 +247,7 @@ TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
   m.impl("cg_dot", &tensormass::cg_dot_cuda);
   m.impl("cg_dot_beta", &tensormass::cg_dot_beta_cuda);
   m.impl("cg_alpha", &tensormass::cg_alpha_cuda);
+  m.impl("cg_alpha_dot", &tensormass::cg_alpha_dot_cuda);
   m.impl("cg_update", &tensormass::cg_update_cuda);
   m.impl("cg_direction", &tensormass::cg_direction_cuda);
 }

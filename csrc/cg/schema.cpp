@@ -15,6 +15,14 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   alpha = rr / the object's sum of p . Ap (or the object stops: breakdown, non-finite).
   m.def("cg_alpha(Tensor p_dot_ap, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, Tensor rr, "
         "Tensor(a!) status, Tensor(b!) alpha, Tensor(c!) scratch, Tensor(d!) counter) -> ()");
+  // cg_alpha_dot(p, ap! [V] or [V, d], free? [V, 1], <chunk plan>, rr [B], status!, alpha!, scratch!, counter!)
+  //   cg_alpha from the vectors, for a product that is not fused with its dots: on the nodes of
+  //   active objects Ap is projected in place (Ap *= free) and p . Ap per node summed per object
+  //   as cg_alpha sums its per-node dots; one pass where the projection, the dots and cg_alpha
+  //   took four.
+  m.def("cg_alpha_dot(Tensor p, Tensor(a!) ap, Tensor? free, Tensor chunk_start, Tensor chunk_object, "
+        "Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, Tensor(d!) scratch, "
+        "Tensor(e!) counter) -> ()");
   // cg_update(x!, r!, p, ap [V, d], alpha [B], <chunk plan>, threshold [B], max_iter, rr!, status!,
   //           beta!, iterations!, scratch!, counter!)
   //   x += alpha p, r -= alpha Ap, rr_new = r . r per object; the object stops (converged: rr_new <=

@@ -84,6 +84,29 @@ TM_HD int32_t cg_start_status(S rr, S threshold, int64_t max_iter) {
   return max_iter == 0 ? kCapped : kActive;
 }
 
+// cg_alpha_dot's node kernel (cg/schema.cpp), for chunk_alpha_cpu / chunk_alpha_kernel: node i's
+// Ap_i projected in place (times free_i where a mask is given) and p_i . Ap_i, summed over its d
+// values in order.
+template <typename S>
+struct ProjectedDots {
+  using Scalar = S;
+  const S* p;     // [V, d]
+  S* ap;          // [V, d]
+  const S* free;  // [V] or nullptr
+  int64_t d;
+
+  TM_HD S apply(int64_t i) const {
+    const S mask = free != nullptr ? free[i] : S(1);
+    S dot = S(0);
+    for (int64_t k = 0; k < d; ++k) {
+      const S value = free != nullptr ? ap[i * d + k] * mask : ap[i * d + k];
+      if (free != nullptr) ap[i * d + k] = value;
+      dot += p[i * d + k] * value;
+    }
+    return dot;
+  }
+};
+
 // What every whole-solve op writes: the iterates [V, d] and the per-object scalars [B], with the
 // start's inputs (the right-hand side and tolerance) and the cap.
 template <typename S>

@@ -75,6 +75,24 @@ inline CGPlan check_cg_alpha(const at::Tensor& p_dot_ap, const at::Tensor& chunk
   return plan;
 }
 
+// cg_alpha_dot: the direction p and the product ap [V] or [V, d], the free-node mask free [V, 1]
+// (optional, p's dtype), then cg_alpha's scalars.
+inline CGPlan check_cg_alpha_dot(const at::Tensor& p, const at::Tensor& ap, const c10::optional<at::Tensor>& free,
+                                 const at::Tensor& chunk_start, const at::Tensor& chunk_object,
+                                 const at::Tensor& object_chunk, const at::Tensor& rr, const at::Tensor& status,
+                                 const at::Tensor& alpha, const at::Tensor& scratch, const at::Tensor& counter) {
+  cg_check_values(p, "p");
+  CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p, p.size(0));
+  cg_check(ap, "ap", p, p.scalar_type(), p.sizes());
+  if (free.has_value() && free->defined()) cg_check(*free, "free", p, p.scalar_type(), {p.size(0), 1});
+  cg_check_scalars(rr, "rr", p, plan.num_objects);
+  cg_check_scalars(alpha, "alpha", p, plan.num_objects);
+  cg_check_state(status, "status", p, plan.num_objects);
+  cg_check(scratch, "scratch", p, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", p, plan.num_objects);
+  return plan;
+}
+
 inline CGPlan check_cg_update(const at::Tensor& x, const at::Tensor& r, const at::Tensor& p, const at::Tensor& ap,
                               const at::Tensor& alpha, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
                               const at::Tensor& object_chunk, const at::Tensor& threshold, int64_t max_iter,

@@ -9,7 +9,9 @@
 Each runs the compiled op ``torch.ops.tensormass.cg_*`` (the cg family, ``csrc/cg/``: one GPU
 block per chunk of a :class:`ChunkPlan`, deterministic sums, no host synchronisation: capturable in
 a CUDA graph) when the extension serves the device, else the pure-torch reference below, which is
-the tests' oracle. Objects that are not active are left untouched by every step. The family also
+the tests' oracle. Objects that are not active are left untouched by every step. ``cg_alpha_dot``
+is the first step for a product that does not give its per-node dots: Ap projected on the free
+nodes in place and p.Ap summed in the same pass. The family also
 has ``cg_dot`` (per-object dot products), ``cg_dot_beta`` (preconditioned CG's r.z and beta) and
 ``euler_update`` (the end of an implicit Euler step after its solve). The ops write into their
 arguments and return nothing (fake kernels: none).
@@ -149,6 +151,15 @@ def cg_alpha(p_dot_ap: torch.Tensor, plan: ChunkPlan, s: CGState, native=None):
     native.cg_alpha(p_dot_ap.contiguous(), *plan.tensors(), s.rr, s.status, s.alpha, s.scratch, s.counter)
 
 
+def cg_alpha_dot(ap: torch.Tensor, free, plan: ChunkPlan, s: CGState, native=None):
+    """Step 1 for a product without its dots: ``ap [V, d]`` projected in place on the nodes of the
+    active objects (times ``free [V, 1]``, or None: every node free), then p.Ap per object ->
+    ``s.alpha``, ``s.status`` as :func:`cg_alpha`."""
+    if native is None:
+        return _ref_cg_alpha_dot(s.p, ap, free, *plan.tensors(), s.rr, s.status, s.alpha, None, None)
+    native.cg_alpha_dot(s.p, ap, free, *plan.tensors(), s.rr, s.status, s.alpha, s.scratch, s.counter)
+
+
 def cg_update(ap: torch.Tensor, plan: ChunkPlan, s: CGState, max_iter: int, native=None):
     """Step 2: ``ap [V, d]`` -> ``s.x``, ``s.r``, ``s.rr``, ``s.beta``, ``s.status``, ``s.iterations``."""
     if native is None:
@@ -205,6 +216,15 @@ def _op_state(**fields):
 def _ref_cg_alpha(p_dot_ap, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch, counter):
     _ref_alpha(p_dot_ap, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk),
                _op_state(rr=rr, status=status, alpha=alpha))
+
+
+def _ref_cg_alpha_dot(p, ap, free, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch, counter):
+    plan = ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)
+    if free is not None:  # (on the active objects' nodes: the others are left as they are)
+        active = plan.segments.spread((status == ACTIVE).to(ap.dtype)).reshape(-1, *[1] * (ap.dim() - 1)) > 0
+        ap.copy_(torch.where(active, ap * free.reshape(-1, *[1] * (ap.dim() - 1)), ap))
+    dots = p * ap if ap.dim() == 1 else (p * ap).sum(-1)
+    _ref_alpha(dots, plan, _op_state(rr=rr, status=status, alpha=alpha))
 
 
 def _ref_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter, rr, status,
@@ -272,6 +292,10 @@ def _example(name):
         per_node = (field * field).sum(-1) + 0.1
         if name == "cg_alpha":
             return (per_node, *tensors, s.rr, s.status, s.alpha, s.scratch, s.counter), {}
+        if name == "cg_alpha_dot":
+            s.status[1] = CONVERGED  # skipped: its ap stays as it is
+            free = torch.tensor([[1.0], [0.0], [1.0], [1.0], [0.0]], dtype=dtype, device=device)
+            return (s.p, field, free, *tensors, s.rr, s.status, s.alpha, s.scratch, s.counter), {}
         if name == "cg_update":
             return (s.x, s.r, s.p, field, s.alpha, *tensors, s.threshold, 10, s.rr, s.status, s.beta, s.iterations,
                     s.scratch, s.counter), {}
@@ -293,7 +317,7 @@ def _example(name):
     return example
 
 
-_REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_update": _ref_cg_update, "cg_direction": _ref_cg_direction,
+_REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_alpha_dot": _ref_cg_alpha_dot, "cg_update": _ref_cg_update, "cg_direction": _ref_cg_direction,
                "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta, "euler_update": _ref_euler_update}
 OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
                   scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())

@@ -125,10 +125,32 @@ class CGSolver:
         fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
         ap = fused(s.p, self.plan, s) if fused is not None else None
         if ap is None:
-            ap, p_dot_ap = self._apply(matvec, s.p)
-            cg_ops.cg_alpha(p_dot_ap, self.plan, s, self.native)
+            ap = self._step_length(matvec, s)
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
         cg_ops.cg_direction(self.plan, s, self.native)
+
+    def _projects_in_one_op(self, out: torch.Tensor) -> bool:
+        """Whether ``cg_alpha_dot`` takes a product ``out``: the compiled ops serve the solver,
+        and ``out`` is a plain tensor of the state's shape (no autograd history to write over)
+        and the mask, if any, of its dtype."""
+        free = self.free
+        return (self.native is not None and not out.requires_grad and out.is_contiguous()
+                and out.shape == self.state.p.shape and out.dtype == self.state.p.dtype
+                and (free is None or (free.dtype == out.dtype and free.shape == (out.shape[0], 1)
+                                      and free.is_contiguous())))
+
+    def _step_length(self, matvec: Matvec, s) -> torch.Tensor:
+        """Ap ``[V, d]`` projected on the free nodes, and the step length alpha = r.r / p.Ap into
+        ``s`` (``s.rr`` read as r.r: the preconditioned iteration's state holds r.z there). A
+        product that gives its per-node dots takes ``cg_alpha``; one that does not is projected in
+        place and its dots summed in one op (``cg_alpha_dot``: its output is the CG's to change)."""
+        out = matvec(s.p)
+        if isinstance(out, tuple) or not self._projects_in_one_op(out):
+            ap, p_dot_ap = out if isinstance(out, tuple) else self._apply(lambda _: out, s.p)
+            cg_ops.cg_alpha(p_dot_ap, self.plan, s, self.native)
+            return ap
+        cg_ops.cg_alpha_dot(out, self.free, self.plan, s, self.native)
+        return out
 
     def _pcg_buffers(self):
         """The preconditioned iteration's own per-object buffer ``[B]`` (made at its first use):
@@ -157,8 +179,7 @@ class CGSolver:
         fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
         ap = fused(s.p, self.plan, b.scaled) if fused is not None else None
         if ap is None:
-            ap, p_dot_ap = self._apply(matvec, s.p)
-            cg_ops.cg_alpha(p_dot_ap, self.plan, b.scaled, self.native)
+            ap = self._step_length(matvec, b.scaled)
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native)
         z = self._precondition(preconditioner)
         cg_ops.pcg_beta(s.r, z, self.plan, b.rz, s, self.native)

@@ -81,6 +81,73 @@ def test_ops_match_reference(dtype, chunk):
     assert int(ext.counter.abs().sum()) == 0
 
 
+def alpha_dot_inputs(plan: ChunkPlan, dtype, device="cpu", seed=2):
+    """(ap [V, 3], free [V, 1]) for cg_alpha_dot: object 2's p.Ap negative (breakdown), object 3's
+    non-finite, every third node fixed."""
+    g = torch.Generator().manual_seed(seed)
+    v = int(plan.segments.lengths.sum())
+    ap = torch.randn(v, 3, generator=g, dtype=dtype)
+    free = (torch.arange(v) % 3 != 0).to(dtype).unsqueeze(1)
+    return ap.to(device), free.to(device)
+
+
+@needs_ext
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("chunk", [1, 4, 512])
+@pytest.mark.parametrize("masked", [True, False], ids=["free", "all-free"])
+def test_alpha_dot_matches_reference_and_cg_alpha(dtype, chunk, masked):
+    """cg_alpha_dot = its reference = the projection, the per-node dots and cg_alpha as three
+    steps: Ap projected on the active objects' nodes only, the same step lengths and stops."""
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), chunk)
+    s = random_state(plan, dtype)
+    ap, free = alpha_dot_inputs(plan, dtype)
+    s.p.copy_(ap)  # p . Ap > 0 but where made otherwise below
+    node_object = plan.segments.node_object
+    s.p[node_object == 2] *= -1  # breakdown
+    ap[node_object == 3, 0] = float("nan")  # non-finite
+    free = free if masked else None
+    ref, ext, steps = clone_state(s), clone_state(s), clone_state(s)
+    ap_ref, ap_ext = ap.clone(), ap.clone()
+    cg_ops.cg_alpha_dot(ap_ref, free, plan, ref)
+    cg_ops.cg_alpha_dot(ap_ext, free, plan, ext, OPS)
+    assert_states_close(ref, ext, dtype)
+    torch.testing.assert_close(ap_ext, ap_ref, rtol=0, atol=0, equal_nan=True)
+    projected = ap if free is None else ap * free
+    cg_ops.cg_alpha((steps.p * projected).sum(-1), plan, steps)
+    assert_states_close(ref, steps, dtype)
+    assert ref.status.tolist() == [ACTIVE, CONVERGED, BREAKDOWN, NONFINITE, BREAKDOWN]
+    active = (s.status == ACTIVE)[node_object].unsqueeze(1)  # objects 0, 2 and 3 at the start
+    torch.testing.assert_close(ap_ext, torch.where(active, projected, ap), rtol=0, atol=0, equal_nan=True)
+    assert int(ext.counter.abs().sum()) == 0
+
+
+@needs_ext
+def test_solver_takes_unfused_products_in_one_op(monkeypatch):
+    """A product without its dots goes through cg_alpha_dot (not the projection, dots and
+    cg_alpha), with the reference's iterates; one with autograd history, or a mask of another
+    dtype, takes the three steps."""
+    sizes = [6, 4]
+    a = spd_blocks(sizes, torch.float64, seed=5)
+    seg = Segments.from_lengths(sizes)
+    rhs = torch.randn(10, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    free = torch.ones(10, 1, dtype=torch.float64)
+    free[[0, 7]] = 0
+    calls = []
+    alpha_dot = cg_ops.cg_alpha_dot
+    monkeypatch.setattr(cg_ops, "cg_alpha_dot", lambda *a, **k: calls.append(1) or alpha_dot(*a, **k))
+    matvec = lambda p: (a @ p.reshape(-1)).view_as(p)  # noqa: E731
+    native_run = batched_cg(matvec, rhs, seg, free=free, tol=1e-10, max_iter=300)
+    assert calls
+    monkeypatch.setenv("TENSORMASS_BACKEND", "torch")
+    reference = batched_cg(matvec, rhs, seg, free=free, tol=1e-10, max_iter=300)
+    torch.testing.assert_close(native_run.solution, reference.solution, rtol=1e-9, atol=1e-12)
+    assert torch.equal(native_run.iterations, reference.iterations)
+    monkeypatch.setenv("TENSORMASS_BACKEND", "auto")
+    calls.clear()
+    batched_cg(matvec, rhs, seg, free=free.float(), tol=1e-10, max_iter=300)
+    assert not calls
+
+
 @needs_ext
 def test_update_detects_convergence_and_nonfinite_residual():
     plan = ChunkPlan.from_segments(Segments.from_lengths([3, 3]), 2)
@@ -151,6 +218,10 @@ def test_opcheck():
                                                   50, s.rr, s.status, s.beta, s.iterations, s.scratch, s.counter),
                           test_utils=utils)
     torch.library.opcheck(OPS.cg_direction.default, (s.p, s.r, s.beta, s.status, *plan.tensors()), test_utils=utils)
+    ap, free = alpha_dot_inputs(plan, torch.float64)
+    for mask in (free, None):
+        torch.library.opcheck(OPS.cg_alpha_dot.default, (s.p, ap.clone(), mask, *plan.tensors(), s.rr, s.status,
+                                                         s.alpha, s.scratch, s.counter), test_utils=utils)
 
 
 @needs_ext
@@ -164,6 +235,12 @@ def test_input_checks():
     with pytest.raises(RuntimeError, match="ap has shape"):
         OPS.cg_update(s.x, s.r, s.p, s.p[:2], s.alpha, *plan.tensors(), s.threshold, 5, s.rr, s.status, s.beta,
                       s.iterations, s.scratch, s.counter)
+    ap, free = alpha_dot_inputs(plan, torch.float64)
+    with pytest.raises(RuntimeError, match="free has shape"):
+        OPS.cg_alpha_dot(s.p, ap, free[:, 0].contiguous(), *plan.tensors(), s.rr, s.status, s.alpha, s.scratch,
+                         s.counter)
+    with pytest.raises(RuntimeError, match="ap is"):
+        OPS.cg_alpha_dot(s.p, ap.float(), free, *plan.tensors(), s.rr, s.status, s.alpha, s.scratch, s.counter)
     with pytest.raises(ValueError, match="chunk_nodes"):
         ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), 0)
 
@@ -203,6 +280,12 @@ def test_cuda_ops_match_cpu(dtype, chunk):
         cg_ops.cg_direction(gplan, gpu, OPS)
     assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
     assert int(gpu.counter.abs().sum()) == 0
+    ap, free = alpha_dot_inputs(plan, dtype)
+    ap_gpu = ap.cuda()
+    cg_ops.cg_alpha_dot(ap, free, plan, cpu, OPS)
+    cg_ops.cg_alpha_dot(ap_gpu, free.cuda(), gplan, gpu, OPS)
+    assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
+    torch.testing.assert_close(ap_gpu.cpu(), ap, rtol=0, atol=0)
 
 
 @needs_cuda
