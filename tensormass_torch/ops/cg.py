@@ -317,8 +317,9 @@ def _example(name):
     return example
 
 
-_REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_alpha_dot": _ref_cg_alpha_dot, "cg_update": _ref_cg_update, "cg_direction": _ref_cg_direction,
-               "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta, "euler_update": _ref_euler_update}
+_REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_alpha_dot": _ref_cg_alpha_dot, "cg_update": _ref_cg_update,
+               "cg_direction": _ref_cg_direction, "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta,
+               "euler_update": _ref_euler_update}
 OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
                   scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())
 library.define(OPS, lambda: library.register(OPS))

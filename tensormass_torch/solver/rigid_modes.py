@@ -335,11 +335,12 @@ class RigidModeCorrection:
         that promises the node weights' parts that do not change from step to step (the step's
         coefficients); under the same key the bodies' part of the last computation is reused for
         up to ``refresh`` - 1 loads of new products, while the number of pairs stays within
-        ``LAG_PAIRS_CHANGE`` of the one it was computed with (the correction stays symmetric positive
-        definite with any modes and any positive definite own blocks: lagged, they only match the
-        bodies' present rigid motions and node weights less exactly). None: never lagged.
-        ``renew``: compute the bodies' part afresh at this load whatever the lag (later loads
-        under the same ``lag`` key may then lag it). No host synchronisation (but where the bodies' node ranges are checked, the first load)."""
+        ``LAG_PAIRS_CHANGE`` of the one it was computed with (the correction stays symmetric
+        positive definite with any modes and any positive definite own blocks: lagged, they only
+        match the bodies' present rigid motions and node weights less exactly). None: never
+        lagged. ``renew``: compute the bodies' part afresh at this load whatever the lag (later
+        loads under the same ``lag`` key may then lag it). No host synchronisation (but where the
+        bodies' node ranges are checked, the first load)."""
         if self._sums is None or self._sums.segments is not segments or self._sums.device != x.device \
                 or self._sums.num_nodes != x.shape[0]:
             self._sums, self.node_inverse, self._kept = BodySums(segments, x), None, None
