@@ -408,15 +408,18 @@ struct PairGatherKernel {
   const int64_t* order;    // [4 C]
   const int64_t* offsets;  // [V + 1]
   S* out;                  // [V, 3]
+  bool accumulate;         // out[v] += the sum (a node with no entry left as it is), else out[v] = it
 
   TM_HD void operator()(int64_t v) const {
+    const int64_t begin = offsets[v], end = offsets[v + 1];
+    if (accumulate && begin == end) return;
     S sum[3] = {S(0), S(0), S(0)};
-    for (int64_t e = offsets[v]; e < offsets[v + 1]; ++e) {
+    for (int64_t e = begin; e < end; ++e) {
       const int64_t entry = order[e], c = entry / 4;
       const S w = coef[entry];
       TM_UNROLL for (int k = 0; k < 3; ++k) sum[k] += w * vector[c * 3 + k];
     }
-    TM_UNROLL for (int k = 0; k < 3; ++k) out[v * 3 + k] = sum[k];
+    TM_UNROLL for (int k = 0; k < 3; ++k) out[v * 3 + k] = accumulate ? out[v * 3 + k] + sum[k] : sum[k];
   }
 };
 

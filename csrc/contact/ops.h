@@ -243,7 +243,8 @@ void contact_fill_nearest(const at::Tensor& x, const at::Tensor& vertices, const
 template <class L>
 void contact_pair_product(const at::Tensor& dx, const at::Tensor& nodes, const at::Tensor& coef,
                           const at::Tensor& direction, const at::Tensor& normal, const at::Tensor& friction,
-                          const at::Tensor& order, const at::Tensor& offsets, at::Tensor vector, at::Tensor out) {
+                          const at::Tensor& order, const at::Tensor& offsets, at::Tensor vector, at::Tensor out,
+                          bool accumulate) {
   check_values(dx, "dx");
   TORCH_CHECK(dx.size(1) == 3, "tensormass: dx must be [V, 3], got shape ", shape_str(dx.sizes()));
   const int64_t num_nodes = dx.size(0);
@@ -267,7 +268,7 @@ void contact_pair_product(const at::Tensor& dx, const at::Tensor& nodes, const a
                               vector.data_ptr<S>()};
     L::run(capacity, pairs, L::kNodeBlock);
     PairGatherKernel<S> gather{coef.data_ptr<S>(), vector.data_ptr<S>(), order.data_ptr<int64_t>(),
-                               offsets.data_ptr<int64_t>(), out.data_ptr<S>()};
+                               offsets.data_ptr<int64_t>(), out.data_ptr<S>(), accumulate};
     L::run(num_nodes, gather, L::kNodeBlock);
   });
 }

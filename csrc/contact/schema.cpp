@@ -61,11 +61,14 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
         "float reach, Tensor offsets, Tensor(a!) pair_vertex, Tensor(b!) pair_triangle, Tensor(c!) weights, "
         "Tensor(d!) diff, Tensor(e!) distance, Tensor(f!) normal, Tensor(g!) side) -> ()");
   // contact_pair_product(dx [V, 3], nodes [C, 4], coef [C, 4], direction [C, 3], normal [C],
-  //     friction [C], order [4 C], offsets [V + 1], vector! [C, 3], out! [V, 3]) -> ()
+  //     friction [C], order [4 C], offsets [V + 1], vector! [C, 3], out! [V, 3], accumulate) -> ()
   //   the pairs' part of the step's matrix times dx (body_contact.PairStiffness): per pair
   //   vector = b J dx + (a - b) (u . J dx) u (a = normal, b = friction, u = direction, J dx =
   //   sum_i coef_i dx[node_i]); out[v] = the sum of coef_i vector over node v's entries, in the
-  //   order order[offsets[v]:offsets[v + 1]] lists them (4 c + i). vector is scratch.
+  //   order order[offsets[v]:offsets[v + 1]] lists them (4 c + i); with accumulate, out[v] plus that
+  //   sum (a node with no entry left as it is: the pairs' product added to another's in place,
+  //   with no pass of its own). vector is scratch.
   m.def("contact_pair_product(Tensor dx, Tensor nodes, Tensor coef, Tensor direction, Tensor normal, "
-        "Tensor friction, Tensor order, Tensor offsets, Tensor(a!) vector, Tensor(b!) out) -> ()");
+        "Tensor friction, Tensor order, Tensor offsets, Tensor(a!) vector, Tensor(b!) out, "
+        "bool accumulate=False) -> ()");
 }

@@ -38,7 +38,8 @@ of its candidate triangles within the reach, the lowest triangle id among those 
 The pairs' part of a step's matrix times a vector, in two kernels (a pair each, then a node each
 over its entries in a fixed order):
 
-    contact_pair_product(dx, nodes, coef, direction, normal, friction, order, offsets, vector!, out!)
+    contact_pair_product(dx, nodes, coef, direction, normal, friction, order, offsets, vector!, out!,
+        accumulate=False)   (accumulate: added to out, another product's, in place)
 
 Why ops: as tensor ops the broad phase's walk materialises every entry of every query's run
 before filtering it, and the runs hold mostly the vertex's own body's triangles. The ops' output is
@@ -48,6 +49,7 @@ Not differentiable (indices).
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 
@@ -227,13 +229,18 @@ def _ref_contact_fill_nearest(x, vertices, vertex_object, triangles, triangle_ob
         out.copy_(value)
 
 
-def _ref_contact_pair_product(dx, nodes, coef, direction, normal, friction, order, offsets, vector, out):
+def _ref_contact_pair_product(dx, nodes, coef, direction, normal, friction, order, offsets, vector, out,
+                              accumulate=False):
     relative = (coef[:, :, None] * dx[nodes]).sum(1)  # J dx [C, 3]
     along = (relative * direction).sum(-1, keepdim=True)  # u . J dx [C, 1]
     # a u (u . J dx) + b (J dx - u (u . J dx))
     vector.copy_(friction[:, None] * relative + ((normal - friction)[:, None] * along) * direction)
     per_entry = (coef[:, :, None] * vector[:, None, :]).reshape(-1, 3)
-    out.copy_(torch.segment_reduce(per_entry[order], "sum", offsets=offsets, axis=0, unsafe=True))
+    sums = torch.segment_reduce(per_entry[order], "sum", offsets=offsets, axis=0, unsafe=True)
+    if accumulate:  # (a node with no entry keeps its value)
+        out.copy_(torch.where((offsets[1:] > offsets[:-1])[:, None], out + sums, out))
+    else:
+        out.copy_(sums)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -436,11 +443,13 @@ def _with_crowded_vertices(outputs: tuple, over: torch.Tensor, args: tuple) -> t
 
 def pair_product(dx: torch.Tensor, nodes: torch.Tensor, coef: torch.Tensor, direction: torch.Tensor,
                  normal: torch.Tensor, friction: torch.Tensor, order: torch.Tensor, offsets: torch.Tensor,
-                 vector: torch.Tensor, native: bool = True) -> torch.Tensor:
+                 vector: torch.Tensor, native: bool = True,
+                 add_to: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The pairs' product ``[V, 3]`` for ``dx [V, 3]`` (``contact_pair_product``; the buffers as
     ``body_contact.PairStiffness`` holds them, ``vector [C, 3]`` scratch), through the op where
-    the extension serves the device (``native``), else its reference."""
-    out = torch.empty_like(dx)
+    the extension serves the device (``native``), else its reference. ``add_to``: a contiguous
+    ``[V, 3]`` product (not ``dx``) the pairs' is added to in place and returned."""
+    out = torch.empty_like(dx) if add_to is None else add_to
     library.op_or_reference("contact_pair_product", dx.device, native)(
-        dx.contiguous(), nodes, coef, direction, normal, friction, order, offsets, vector, out)
+        dx.contiguous(), nodes, coef, direction, normal, friction, order, offsets, vector, out, add_to is not None)
     return out

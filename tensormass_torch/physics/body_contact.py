@@ -465,10 +465,11 @@ class PairStiffness:
             buffer[count:].zero_()
         return grew
 
-    def __call__(self, dx: torch.Tensor) -> torch.Tensor:
-        """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class; ``ops.contact.pair_product``)."""
+    def __call__(self, dx: torch.Tensor, add_to: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class; ``ops.contact.pair_product``),
+        or ``add_to [V, 3]`` (another product, not ``dx``) plus it, in place."""
         return contact_ops.pair_product(dx, self.nodes, self.coef, self.direction, self.normal, self.friction,
-                                        self.order, self.offsets, self.vector)
+                                        self.order, self.offsets, self.vector, add_to=add_to)
 
 
 class HeldPairs:

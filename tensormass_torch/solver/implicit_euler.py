@@ -638,8 +638,8 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
             stiffness = system.pair_stiffness(pairs, stiffness_coef, opts.dt)
             graph_key = (fused.graph_key, "pairs", stiffness.capacity)
 
-            def matvec(p):
-                return fused(p)[0] + stiffness(p)
+            def matvec(p):  # (the pairs' product added to the fused one's output in place)
+                return stiffness(p, add_to=fused(p)[0])
         elif pairs is not None and len(pairs):  # the exact tangent: each step's own Hessians, eager
             graph_key = None
 

@@ -237,6 +237,16 @@ def test_pair_product_equals_the_reference_and_the_pairs_matrix(friction, device
     ours = contact.pair_product(*args, product.vector.clone())
     theirs = contact.pair_product(*args, product.vector.clone(), native=False)
     torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
+    # added to another product in place (accumulate): that product plus it, the nodes no pair
+    # touches left as they were, bit for bit, by the op and the reference alike
+    other = torch.randn(x.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64).to(device)
+    for native in (True, False):
+        target = other.clone()
+        added = contact.pair_product(*args, product.vector.clone(), native=native, add_to=target)
+        assert added is target
+        torch.testing.assert_close(added, other + ours, rtol=1e-12, atol=1e-12)
+        untouched = product.offsets[1:] == product.offsets[:-1]
+        assert bool(untouched.any()) and torch.equal(added[untouched], other[untouched])
     # the assembled matrix, pair by pair
     count = len(pairs)
     jac = torch.zeros(count, 3, x.shape[0], 3, dtype=torch.float64, device=device)
