@@ -37,10 +37,8 @@ void cg_alpha_dot_cpu(const at::Tensor& p, at::Tensor ap, const c10::optional<at
                       at::Tensor counter) {
   const CGPlan plan = check_cg_alpha_dot(p, ap, free, chunk_start, chunk_object, object_chunk, rr, status, alpha,
                                          scratch, counter);
-  const bool masked = free.has_value() && free->defined();
   AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_alpha_dot", [&] {
-    const ProjectedDots<scalar_t> dots{p.data_ptr<scalar_t>(), ap.data_ptr<scalar_t>(),
-                                       masked ? free->data_ptr<scalar_t>() : nullptr, values_per_node(p)};
+    const ProjectedDots<scalar_t> dots = projected_dots<scalar_t>(p, ap, free);
     chunk_alpha_cpu(plan, dots, rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), alpha.data_ptr<scalar_t>(),
                     scratch.data_ptr<double>());
   });

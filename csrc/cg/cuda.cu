@@ -148,10 +148,8 @@ void cg_alpha_dot_cuda(const at::Tensor& p, at::Tensor ap, const c10::optional<a
                                          scratch, counter);
   if (plan.num_chunks == 0) return;
   c10::cuda::CUDAGuard guard(p.device());
-  const bool masked = free.has_value() && free->defined();
   AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_alpha_dot", [&] {
-    const ProjectedDots<scalar_t> dots{p.data_ptr<scalar_t>(), ap.data_ptr<scalar_t>(),
-                                       masked ? free->data_ptr<scalar_t>() : nullptr, values_per_node(p)};
+    const ProjectedDots<scalar_t> dots = projected_dots<scalar_t>(p, ap, free);
     launch_chunk_alpha<ProjectedDots<scalar_t>, scalar_t>(plan, dots, rr.data_ptr<scalar_t>(),
                                                          status.data_ptr<int32_t>(), alpha.data_ptr<scalar_t>(),
                                                          scratch.data_ptr<double>(), counter.data_ptr<int32_t>());

@@ -61,17 +61,25 @@ inline void cg_check_values(const at::Tensor& t, const char* name) {
 }
 
 // The checks of each op, written once for both backends; each returns the plan.
+// The step length's per-object scalars and sums (cg_alpha, cg_alpha_dot), against ``like``'s
+// device and dtype.
+inline void check_alpha_scalars(const CGPlan& plan, const at::Tensor& like, const at::Tensor& rr,
+                                const at::Tensor& status, const at::Tensor& alpha, const at::Tensor& scratch,
+                                const at::Tensor& counter) {
+  cg_check_scalars(rr, "rr", like, plan.num_objects);
+  cg_check_scalars(alpha, "alpha", like, plan.num_objects);
+  cg_check_state(status, "status", like, plan.num_objects);
+  cg_check(scratch, "scratch", like, at::kDouble, {plan.num_chunks});
+  cg_check_state(counter, "counter", like, plan.num_objects);
+}
+
 inline CGPlan check_cg_alpha(const at::Tensor& p_dot_ap, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
                              const at::Tensor& object_chunk, const at::Tensor& rr, const at::Tensor& status,
                              const at::Tensor& alpha, const at::Tensor& scratch, const at::Tensor& counter) {
   cg_check_values(p_dot_ap, "p_dot_ap");
   TORCH_CHECK(p_dot_ap.dim() == 1, "tensormass: p_dot_ap must be [V] (p . Ap per node)");
   CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p_dot_ap, p_dot_ap.size(0));
-  cg_check_scalars(rr, "rr", p_dot_ap, plan.num_objects);
-  cg_check_scalars(alpha, "alpha", p_dot_ap, plan.num_objects);
-  cg_check_state(status, "status", p_dot_ap, plan.num_objects);
-  cg_check(scratch, "scratch", p_dot_ap, at::kDouble, {plan.num_chunks});
-  cg_check_state(counter, "counter", p_dot_ap, plan.num_objects);
+  check_alpha_scalars(plan, p_dot_ap, rr, status, alpha, scratch, counter);
   return plan;
 }
 
@@ -85,11 +93,7 @@ inline CGPlan check_cg_alpha_dot(const at::Tensor& p, const at::Tensor& ap, cons
   CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, p, p.size(0));
   cg_check(ap, "ap", p, p.scalar_type(), p.sizes());
   if (free.has_value() && free->defined()) cg_check(*free, "free", p, p.scalar_type(), {p.size(0), 1});
-  cg_check_scalars(rr, "rr", p, plan.num_objects);
-  cg_check_scalars(alpha, "alpha", p, plan.num_objects);
-  cg_check_state(status, "status", p, plan.num_objects);
-  cg_check(scratch, "scratch", p, at::kDouble, {plan.num_chunks});
-  cg_check_state(counter, "counter", p, plan.num_objects);
+  check_alpha_scalars(plan, p, rr, status, alpha, scratch, counter);
   return plan;
 }
 
@@ -187,6 +191,14 @@ inline CGPlan check_euler_update(const at::Tensor& x, const at::Tensor& v, const
 
 // Values per node of a [V] or [V, d] tensor.
 inline int64_t values_per_node(const at::Tensor& t) { return t.size(0) ? t.numel() / t.size(0) : 1; }
+
+// cg_alpha_dot's node kernel over its (checked) tensors.
+template <typename S>
+ProjectedDots<S> projected_dots(const at::Tensor& p, at::Tensor& ap, const c10::optional<at::Tensor>& free) {
+  const bool masked = free.has_value() && free->defined();
+  return ProjectedDots<S>{p.data_ptr<S>(), ap.data_ptr<S>(), masked ? free->data_ptr<S>() : nullptr,
+                          values_per_node(p)};
+}
 
 // The ops' structs over their tensors (checked by check_euler_update).
 template <typename S>
