@@ -58,7 +58,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import List, Optional
 
 import torch
@@ -268,6 +268,8 @@ class ContactPairs:
     friction: Optional[torch.Tensor] = None
     shift: Optional[torch.Tensor] = None
     born: Optional[torch.Tensor] = None
+    #: (weights, their coefficients) once computed (a step asks for them about eight times)
+    _coefficient_cache: Optional[tuple] = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self):
         return self.gap.numel()
@@ -290,8 +292,15 @@ class ContactPairs:
         return self.gap + (self.relative(dx) * self.direction).sum(-1)
 
     def _coefficients(self) -> torch.Tensor:
-        """``[P, 4]``: the vertex's 1 and the triangle's -w (J = coefficient x u per node)."""
-        return torch.cat([torch.ones_like(self.weights[:, :1]), -self.weights], dim=1)
+        """``[P, 4]``: the vertex's 1 and the triangle's -w (J = coefficient x u per node); kept
+        for these weights (not where they carry autograd history: each graph makes its own)."""
+        cached = self._coefficient_cache
+        if cached is not None and cached[0] is self.weights:
+            return cached[1]
+        coefficients = torch.cat([torch.ones_like(self.weights[:, :1]), -self.weights], dim=1)
+        if not (self.weights.requires_grad and torch.is_grad_enabled()):
+            self._coefficient_cache = (self.weights, coefficients)
+        return coefficients
 
     def forces(self) -> torch.Tensor:
         """The penalty forces ``[V, 3]``: -k g u on the vertex, k g w_i u on the triangle's nodes."""
