@@ -316,6 +316,27 @@ def test_contact_settings_probe_steps_each_setting_from_one_state(tmp_path):
         probe.setting("no-equals-sign")
 
 
+def test_cg_fusions_probe_quick():
+    """The fusions probe steps the old and the new path from one state in alternated blocks: the
+    accumulate is exact (the same iterations), and the old paths are taken out again."""
+    import cg_fusions_probe as probe
+
+    from tensormass_torch.ops import contact as contact_ops
+    from tensormass_torch.solver.cg import CGSolver
+
+    kept = (CGSolver._projects_in_one_op, contact_ops.pair_product)
+    common_args = ["--columns", "2", "--cells", "2", "2", "1", "--steps", "20", "--timed", "2", "--repeats", "2",
+                   "--device", "cpu", "--contact", '{"friction": 0.5}']
+    for change in probe.CHANGES:
+        blocks = probe.main(common_args + ["--change", change])
+        assert list(blocks) == ["old", "new"] and all(r["ms"] > 0 for runs in blocks.values() for r in runs)
+        if change == "accumulate":
+            assert [r["iterations"] for r in blocks["old"]] == [r["iterations"] for r in blocks["new"]]
+    assert (CGSolver._projects_in_one_op, contact_ops.pair_product) == kept
+    with pytest.raises(SystemExit):
+        probe.main(common_args + ["--change", "nothing"])
+
+
 def test_contact_rounds_probe_quick():
     """The rounds probe counts each check's misses and re-linearisations as relinearise tests them,
     and puts relinearise back."""

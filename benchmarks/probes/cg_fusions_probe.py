@@ -1,0 +1,104 @@
+"""The CG's fused steps under body contact against the paths they replaced, in one process: two
+simulators of the same pile from the same state, stepped in alternated blocks, one of them with
+the old path put back while it steps (rates of separate processes differ by 10-15 %).
+
+    python benchmarks/probes/cg_fusions_probe.py --change alpha_dot|accumulate [--columns 10]
+                                                 [--shift 0.01] [--steps 120] [--state DIR]
+                                                 [--contact '{"friction": 0.5}']
+                                                 [--preconditioner auto] [--timed 10]
+                                                 [--repeats 4] [--out fusions.json] [--device cuda]
+
+``--change``:
+    alpha_dot    the step length of a product without its dots in one op (``ops.cg.cg_alpha_dot``)
+                 against the projection, the per-node dots and ``cg_alpha``;
+    accumulate   the pairs' product added to the fused product's output in place
+                 (``contact_pair_product``'s accumulate) against its own output plus an add.
+
+The pile is ``contact_piles``' (``pile_arguments``), stepped ``--steps`` steps with ``--contact``
+or taken from ``--state``. For each block: ms a step and CG iterations a step (the accumulate is
+exact: the same iterations; the dots of alpha_dot are summed in another order).
+"""
+import contextlib
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import common  # noqa: E402
+import contact_piles  # noqa: E402
+from contact_settings_probe import block  # noqa: E402
+
+import tensormass_torch as tm  # noqa: E402
+from tensormass_torch.physics import body_contact  # noqa: E402
+from tensormass_torch.solver.cg import CGSolver  # noqa: E402
+
+CHANGES = ("alpha_dot", "accumulate")
+
+
+@contextlib.contextmanager
+def old_path(change: str):
+    """The path ``change`` replaced, put back for the ``with`` (and taken out again after it)."""
+    if change == "alpha_dot":
+        kept = CGSolver._projects_in_one_op
+        CGSolver._projects_in_one_op = lambda self, out: False
+        try:
+            yield
+        finally:
+            CGSolver._projects_in_one_op = kept
+        return
+    kept = body_contact.contact_ops.pair_product
+
+    def pair_product(*args, add_to=None, **kwargs):  # its own output, then the sum
+        out = kept(*args, **kwargs)
+        return out if add_to is None else add_to + out
+
+    body_contact.contact_ops.pair_product = pair_product
+    try:
+        yield
+    finally:
+        body_contact.contact_ops.pair_product = kept
+
+
+def extend(parser):
+    parser.add_argument("--change", choices=CHANGES, required=True)
+    parser.add_argument("--preconditioner", default="auto")
+    parser.add_argument("--repeats", type=int, default=4, help="blocks of --timed steps for each path")
+    parser.add_argument("--out", default=None, help="a JSON file for the blocks' figures")
+
+
+def main(argv=None):
+    args = contact_piles.pile_arguments(argv, __doc__, timed=10, extend=extend)
+    dtype = torch.float32
+    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype, shift=args.shift,
+                                   levels=args.levels)
+    start = contact_piles.pile_simulator(args, dtype, bodies)
+    x, v = start.x.clone(), start.v.clone()
+    del start
+    sims = {}
+    for name in ("old", "new"):
+        sim = contact_piles.simulator(bodies, tm.Contact(**args.contact), args.device, dtype, args.preconditioner)
+        sim.x, sim.v = x.clone(), v.clone()
+        with old_path(args.change) if name == "old" else contextlib.nullcontext():
+            sim.step(2)
+        sims[name] = sim
+    blocks = {name: [] for name in sims}
+    for _ in range(args.repeats):
+        for name, sim in sims.items():
+            with old_path(args.change) if name == "old" else contextlib.nullcontext():
+                blocks[name].append(block(sim, args.timed, args.device))
+    print(f"{len(bodies)} blocks, --change {args.change}, --preconditioner {args.preconditioner}; "
+          f"ms a step / CG iterations a step, {args.repeats} blocks of {args.timed} steps each:")
+    for name, runs in blocks.items():
+        print(f"  {name:4s} " + "   ".join(f"{r['ms']:6.1f} / {r['iterations']:5.1f}" for r in runs))
+    if args.out is not None:
+        Path(args.out).write_text(json.dumps(dict(meta=common.metadata(args.device), args=vars(args), blocks=blocks),
+                                             indent=1, default=str))
+    return blocks
+
+
+if __name__ == "__main__":
+    main()
