@@ -212,6 +212,14 @@ def metadata(device, **extra) -> Dict[str, object]:
     return meta
 
 
+def write_blocks(path, args, blocks) -> None:
+    """A probe's blocks of steps as JSON at ``path`` (None: nothing), with the run's metadata and
+    its command line's ``args`` (an ``argparse.Namespace`` with ``device``)."""
+    if path is not None:
+        Path(path).write_text(json.dumps(dict(meta=metadata(args.device), args=vars(args), blocks=blocks), indent=1,
+                                         default=str))
+
+
 def record(**fields) -> Dict[str, object]:
     """One measurement: every field of ``RECORD_FIELDS`` (None unless given) plus the extras."""
     rec = {name: None for name in RECORD_FIELDS}

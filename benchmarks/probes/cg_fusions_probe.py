@@ -19,7 +19,6 @@ or taken from ``--state``. For each block: ms a step and CG iterations a step (t
 exact: the same iterations; the dots of alpha_dot are summed in another order).
 """
 import contextlib
-import json
 import sys
 from pathlib import Path
 
@@ -73,11 +72,7 @@ def extend(parser):
 def main(argv=None):
     args = contact_piles.pile_arguments(argv, __doc__, timed=10, extend=extend)
     dtype = torch.float32
-    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype, shift=args.shift,
-                                   levels=args.levels)
-    start = contact_piles.pile_simulator(args, dtype, bodies)
-    x, v = start.x.clone(), start.v.clone()
-    del start
+    bodies, x, v = contact_piles.pile_start(args, dtype)
     sims = {}
     for name in ("old", "new"):
         sim = contact_piles.simulator(bodies, tm.Contact(**args.contact), args.device, dtype, args.preconditioner)
@@ -94,9 +89,7 @@ def main(argv=None):
           f"ms a step / CG iterations a step, {args.repeats} blocks of {args.timed} steps each:")
     for name, runs in blocks.items():
         print(f"  {name:4s} " + "   ".join(f"{r['ms']:6.1f} / {r['iterations']:5.1f}" for r in runs))
-    if args.out is not None:
-        Path(args.out).write_text(json.dumps(dict(meta=common.metadata(args.device), args=vars(args), blocks=blocks),
-                                             indent=1, default=str))
+    common.write_blocks(args.out, args, blocks)
     return blocks
 
 

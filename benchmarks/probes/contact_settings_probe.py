@@ -83,11 +83,7 @@ def main(argv=None):
     args = contact_piles.pile_arguments(argv, __doc__, timed=10, extend=extend)
     settings = dict(args.setting or [("default", {})])
     dtype = torch.float32
-    bodies, _ = contact_piles.pile(args.columns, args.cells, args.device, dtype, shift=args.shift,
-                                   levels=args.levels)
-    start = contact_piles.pile_simulator(args, dtype, bodies)
-    x, v = start.x.clone(), start.v.clone()
-    del start
+    bodies, x, v = contact_piles.pile_start(args, dtype)
     if args.save_state is not None:
         folder = Path(args.save_state)
         folder.mkdir(parents=True, exist_ok=True)
@@ -120,9 +116,7 @@ def main(argv=None):
     for name, runs in blocks.items():
         print(f"  {name:24s} " + "   ".join(f"{r['ms']:6.1f} / {r['iterations']:5.1f} / {r['solves']:.1f}"
                                            for r in runs))
-    if args.out is not None:
-        Path(args.out).write_text(json.dumps(dict(meta=common.metadata(args.device), args=vars(args), blocks=blocks),
-                                             indent=1, default=str))
+    common.write_blocks(args.out, args, blocks)
     return blocks
 
 

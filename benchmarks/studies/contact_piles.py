@@ -124,6 +124,14 @@ def pile_simulator(args, dtype=torch.float32, bodies=None):
     return sim
 
 
+def pile_start(args, dtype=torch.float32):
+    """(bodies, x, v): the pile of :func:`pile_arguments`' ``args`` and the state its simulators
+    start from (:func:`pile_simulator`'s, stepped or loaded), for probes that make several."""
+    bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift, levels=args.levels)
+    start = pile_simulator(args, dtype, bodies)
+    return bodies, start.x.clone(), start.v.clone()
+
+
 def rate(sim, steps: int, device) -> float:
     common.sync(device)
     start = time.perf_counter()
