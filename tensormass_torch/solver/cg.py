@@ -110,7 +110,11 @@ class CGSolver:
 
     def _apply(self, matvec: Matvec, v: torch.Tensor):
         """(A v projected ``[V, d]``, v . Av per node ``[V]``); v is already projected."""
-        out = matvec(v)
+        return self._with_dots(matvec(v), v)
+
+    def _with_dots(self, out, v: torch.Tensor):
+        """A product's ``out`` for ``v`` as (A v projected, v . Av per node): a fused product's
+        pair as it is, a plain one projected (a new tensor) with its dots."""
         if isinstance(out, tuple):  # a fused matvec: projected, with the per-node dot
             return out
         av = self._project(out)
@@ -146,7 +150,7 @@ class CGSolver:
         place and its dots summed in one op (``cg_alpha_dot``: its output is the CG's to change)."""
         out = matvec(s.p)
         if isinstance(out, tuple) or not self._projects_in_one_op(out):
-            ap, p_dot_ap = out if isinstance(out, tuple) else self._apply(lambda _: out, s.p)
+            ap, p_dot_ap = self._with_dots(out, s.p)
             cg_ops.cg_alpha(p_dot_ap, self.plan, s, self.native)
             return ap
         cg_ops.cg_alpha_dot(out, self.free, self.plan, s, self.native)

@@ -775,12 +775,12 @@ def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: f
     # rest). A step whose check found pairs (bodies still moving into each other) computes them
     # afresh: lagged there, the groups miss the new pairs and the iterations grow.
     body_contact = system.body_contact
-    settled = body_contact is not None and not body_contact.first_check_found
+    contacts_still = body_contact is not None and not body_contact.first_check_found
     return system._rigid.load(fused.u + system.model.rest, system.mass.reshape(-1), system.segments, system.free,
                               weights, scaling, pairs if with_pairs else None,
                               pairs._pair_matrices(stiffness_coef, opts.dt) if with_pairs else None,
                               kept=(id(fused), fused.loads, mass_coef, stiffness_coef),
-                              lag=(mass_coef, stiffness_coef), renew=not settled)
+                              lag=(mass_coef, stiffness_coef), renew=not contacts_still)
 
 
 def _coupled_solver(system: DynamicsSystem, rhs, opts: StepOptions, pairs):
