@@ -2,7 +2,7 @@
 simulators of the same pile from the same state, stepped in alternated blocks, one of them with
 the old path put back while it steps (rates of separate processes differ by 10-15 %).
 
-    python benchmarks/probes/cg_fusions_probe.py --change alpha_dot|accumulate [--columns 10]
+    python benchmarks/probes/cg_fusions_probe.py --change alpha_dot|accumulate|block_jacobi [--columns 10]
                                                  [--shift 0.01] [--steps 120] [--state DIR]
                                                  [--contact '{"friction": 0.5}']
                                                  [--preconditioner auto] [--timed 10]
@@ -12,15 +12,20 @@ the old path put back while it steps (rates of separate processes differ by 10-1
     alpha_dot    the step length of a product without its dots in one op (``ops.cg.cg_alpha_dot``)
                  against the projection, the per-node dots and ``cg_alpha``;
     accumulate   the pairs' product added to the fused product's output in place
-                 (``contact_pair_product``'s accumulate) against its own output plus an add.
+                 (``contact_pair_product``'s accumulate) against its own output plus an add;
+    block_jacobi block Jacobi applied inside the CG's update (``preconditioner.BlockJacobi``)
+                 against CG on the scaled system S^T A S (``JacobiScaling``: two block products
+                 an iteration).
 
 The pile is ``contact_piles``' (``pile_arguments``), stepped ``--steps`` steps with ``--contact``
 or taken from ``--state``. For each block: ms a step and CG iterations a step (the accumulate is
-exact: the same iterations; the dots of alpha_dot are summed in another order).
+exact: the same iterations; the dots of alpha_dot and block_jacobi's r.z are summed in another
+order).
 """
 import contextlib
 import sys
 from pathlib import Path
+from unittest import mock
 
 import torch
 
@@ -33,33 +38,30 @@ from contact_settings_probe import block  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
 from tensormass_torch.physics import body_contact  # noqa: E402
+from tensormass_torch.solver import implicit_euler  # noqa: E402
 from tensormass_torch.solver.cg import CGSolver  # noqa: E402
+from tensormass_torch.solver.preconditioner import JacobiScaling  # noqa: E402
 
-CHANGES = ("alpha_dot", "accumulate")
+CHANGES = ("alpha_dot", "accumulate", "block_jacobi")
 
 
-@contextlib.contextmanager
-def old_path(change: str):
-    """The path ``change`` replaced, put back for the ``with`` (and taken out again after it)."""
-    if change == "alpha_dot":
-        kept = CGSolver._projects_in_one_op
-        CGSolver._projects_in_one_op = lambda self, out: False
-        try:
-            yield
-        finally:
-            CGSolver._projects_in_one_op = kept
-        return
-    kept = body_contact.contact_ops.pair_product
-
+def _own_output_then_add(kept):
     def pair_product(*args, add_to=None, **kwargs):  # its own output, then the sum
         out = kept(*args, **kwargs)
         return out if add_to is None else add_to + out
 
-    body_contact.contact_ops.pair_product = pair_product
-    try:
-        yield
-    finally:
-        body_contact.contact_ops.pair_product = kept
+    return pair_product
+
+
+def old_path(change: str):
+    """The path ``change`` replaced, put back for a ``with`` (and taken out again after it)."""
+    if change == "alpha_dot":
+        return mock.patch.object(CGSolver, "_projects_in_one_op", lambda self, out: False)
+    if change == "accumulate":
+        return mock.patch.object(body_contact.contact_ops, "pair_product",
+                                 _own_output_then_add(body_contact.contact_ops.pair_product))
+    # block_jacobi: a system made while it is in place keeps the scaled system's JacobiScaling
+    return mock.patch.object(implicit_euler, "BlockJacobi", JacobiScaling)
 
 
 def extend(parser):

@@ -47,10 +47,18 @@ void cg_alpha_dot_cpu(const at::Tensor& p, at::Tensor ap, const c10::optional<at
 void cg_update_cpu(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Tensor& ap, const at::Tensor& alpha,
                    const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
                    const at::Tensor& threshold, int64_t max_iter, at::Tensor rr, at::Tensor status, at::Tensor beta,
-                   at::Tensor iterations, at::Tensor scratch, at::Tensor counter) {
+                   at::Tensor iterations, at::Tensor scratch, at::Tensor counter,
+                   const c10::optional<at::Tensor>& inverse_blocks, const c10::optional<at::Tensor>& z) {
   const CGPlan plan = check_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter,
-                                      rr, status, beta, iterations, scratch, counter);
+                                      rr, status, beta, iterations, scratch, counter, inverse_blocks, z);
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cg_update", [&] {
+    const BlockUpdate<scalar_t> blocks = block_update_of<scalar_t>(x, r, p, ap, inverse_blocks, z);
+    if (blocks.inverse != nullptr) {
+      block_update_cpu<scalar_t>(plan, blocks, alpha.data_ptr<scalar_t>(), threshold.data_ptr<scalar_t>(), max_iter,
+                                 rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), beta.data_ptr<scalar_t>(),
+                                 iterations.data_ptr<int32_t>(), scratch.data_ptr<double>());
+      return;
+    }
     update_cpu<scalar_t>(plan, values_per_node(x), x.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(),
                          p.data_ptr<scalar_t>(), ap.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
                          threshold.data_ptr<scalar_t>(), max_iter, rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(),

@@ -34,16 +34,23 @@ __global__ void __launch_bounds__(kBlock) cg_update_kernel(S* __restrict__ x, S*
                                                            const S* __restrict__ alpha, CGPlan plan, int64_t d,
                                                            const S* __restrict__ threshold, int64_t max_iter, S* rr,
                                                            int32_t* status, S* beta, int32_t* iterations,
-                                                           double* scratch, int32_t* counter) {
+                                                           double* scratch, int32_t* counter,
+                                                           const BlockUpdate<S> blocks) {
   const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
   if (status[object] != kActive) return;
   const S a = alpha[object];
   double acc = 0.0;
-  for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
-    x[j] += a * p[j];
-    const S rj = r[j] - a * ap[j];
-    r[j] = rj;
-    acc += static_cast<double>(rj) * static_cast<double>(rj);
+  if (blocks.inverse != nullptr) {  // preconditioned: a node a thread, r.z (BlockUpdate)
+    for (int64_t i = plan.chunk_start[chunk] + threadIdx.x; i < plan.chunk_start[chunk + 1]; i += kBlock) {
+      acc += blocks.apply(i, a);
+    }
+  } else {
+    for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
+      x[j] += a * p[j];
+      const S rj = r[j] - a * ap[j];
+      r[j] = rj;
+      acc += static_cast<double>(rj) * static_cast<double>(rj);
+    }
   }
   const double chunk_total = block_sum(acc);
   double total = 0.0;
@@ -159,9 +166,10 @@ void cg_alpha_dot_cuda(const at::Tensor& p, at::Tensor ap, const c10::optional<a
 void cg_update_cuda(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Tensor& ap, const at::Tensor& alpha,
                     const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
                     const at::Tensor& threshold, int64_t max_iter, at::Tensor rr, at::Tensor status, at::Tensor beta,
-                    at::Tensor iterations, at::Tensor scratch, at::Tensor counter) {
+                    at::Tensor iterations, at::Tensor scratch, at::Tensor counter,
+                    const c10::optional<at::Tensor>& inverse_blocks, const c10::optional<at::Tensor>& z) {
   const CGPlan plan = check_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter,
-                                      rr, status, beta, iterations, scratch, counter);
+                                      rr, status, beta, iterations, scratch, counter, inverse_blocks, z);
   if (plan.num_chunks == 0) return;
   c10::cuda::CUDAGuard guard(x.device());
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cg_update", [&] {
@@ -169,7 +177,8 @@ void cg_update_cuda(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::T
         x.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(), p.data_ptr<scalar_t>(), ap.data_ptr<scalar_t>(),
         alpha.data_ptr<scalar_t>(), plan, values_per_node(x), threshold.data_ptr<scalar_t>(), max_iter,
         rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), beta.data_ptr<scalar_t>(),
-        iterations.data_ptr<int32_t>(), scratch.data_ptr<double>(), counter.data_ptr<int32_t>());
+        iterations.data_ptr<int32_t>(), scratch.data_ptr<double>(), counter.data_ptr<int32_t>(),
+        block_update_of<scalar_t>(x, r, p, ap, inverse_blocks, z));
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
 }

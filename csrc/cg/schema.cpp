@@ -27,9 +27,13 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //           beta!, iterations!, scratch!, counter!)
   //   x += alpha p, r -= alpha Ap, rr_new = r . r per object; the object stops (converged: rr_new <=
   //   threshold, non-finite, the iteration cap) or beta = rr_new / rr.
+  //   With inverse_blocks [V, d, d] (B^-1, one block a node, d <= 3) and z! [V, d]: the update
+  //   preconditioned by the block diagonal B, in the same pass: z = B^-1 r and rr_new = r . z
+  //   (common/cg.h: BlockUpdate); the CG's direction is then p = z + beta p.
   m.def("cg_update(Tensor(a!) x, Tensor(b!) r, Tensor p, Tensor ap, Tensor alpha, Tensor chunk_start, "
         "Tensor chunk_object, Tensor object_chunk, Tensor threshold, int max_iter, Tensor(c!) rr, "
-        "Tensor(d!) status, Tensor(e!) beta, Tensor(f!) iterations, Tensor(g!) scratch, Tensor(h!) counter) -> ()");
+        "Tensor(d!) status, Tensor(e!) beta, Tensor(f!) iterations, Tensor(g!) scratch, Tensor(h!) counter, "
+        "Tensor? inverse_blocks=None, Tensor(i!)? z=None) -> ()");
   // cg_direction(p!, r, beta [B], status, <chunk plan>)
   //   p = r + beta p.
   m.def("cg_direction(Tensor(a!) p, Tensor r, Tensor beta, Tensor status, Tensor chunk_start, "

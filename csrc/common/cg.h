@@ -107,6 +107,43 @@ struct ProjectedDots {
   }
 };
 
+// cg_update preconditioned by a block diagonal (its inverse_blocks and z, cg/schema.cpp): node i's
+// x_i += a p_i, r_i -= a Ap_i, z_i = B_i^-1 r_i with B_i^-1 its inverse block [d, d] (row-major),
+// and r_i . z_i summed over its d values in order. The CG that runs on it is preconditioned CG
+// whose "rr" is r.z (the B^-1 norm of the residual): the step length rr / p.Ap and the stopping rule
+// rr <= threshold read it as they read r.r, and the direction is p = z + beta p. d <= kMaxBlock.
+constexpr int64_t kMaxBlock = 3;
+
+template <typename S>
+struct BlockUpdate {
+  S* x;              // [V, d]
+  S* r;              // [V, d]
+  const S* p;        // [V, d]
+  const S* ap;       // [V, d]
+  const S* inverse;  // [V, d, d]
+  S* z;              // [V, d]
+  int64_t d;
+
+  TM_HD double apply(int64_t i, S a) const {
+    S ri[kMaxBlock];
+    for (int64_t k = 0; k < d; ++k) {
+      const int64_t j = i * d + k;
+      x[j] += a * p[j];
+      ri[k] = r[j] - a * ap[j];
+      r[j] = ri[k];
+    }
+    const S* block = inverse + i * d * d;
+    double dot = 0.0;
+    for (int64_t k = 0; k < d; ++k) {
+      S zk = S(0);
+      for (int64_t m = 0; m < d; ++m) zk += block[k * d + m] * ri[m];
+      z[i * d + k] = zk;
+      dot += static_cast<double>(ri[k]) * static_cast<double>(zk);
+    }
+    return dot;
+  }
+};
+
 // What every whole-solve op writes: the iterates [V, d] and the per-object scalars [B], with the
 // start's inputs (the right-hand side and tolerance) and the cap.
 template <typename S>

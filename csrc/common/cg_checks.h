@@ -101,7 +101,8 @@ inline CGPlan check_cg_update(const at::Tensor& x, const at::Tensor& r, const at
                               const at::Tensor& alpha, const at::Tensor& chunk_start, const at::Tensor& chunk_object,
                               const at::Tensor& object_chunk, const at::Tensor& threshold, int64_t max_iter,
                               const at::Tensor& rr, const at::Tensor& status, const at::Tensor& beta,
-                              const at::Tensor& iterations, const at::Tensor& scratch, const at::Tensor& counter) {
+                              const at::Tensor& iterations, const at::Tensor& scratch, const at::Tensor& counter,
+                              const c10::optional<at::Tensor>& inverse_blocks, const c10::optional<at::Tensor>& z) {
   cg_check_values(x, "x");
   TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
   CGPlan plan = cg_plan(chunk_start, chunk_object, object_chunk, x, x.size(0));
@@ -116,6 +117,16 @@ inline CGPlan check_cg_update(const at::Tensor& x, const at::Tensor& r, const at
   cg_check_state(iterations, "iterations", x, plan.num_objects);
   cg_check(scratch, "scratch", x, at::kDouble, {plan.num_chunks});
   cg_check_state(counter, "counter", x, plan.num_objects);
+  const bool blocks = inverse_blocks.has_value() && inverse_blocks->defined();
+  TORCH_CHECK(blocks == (z.has_value() && z->defined()),
+              "tensormass: cg_update takes inverse_blocks and z together (the preconditioned update) or neither");
+  if (blocks) {
+    TORCH_CHECK(x.dim() == 2 && x.size(1) >= 1 && x.size(1) <= kMaxBlock, "tensormass: x must be [V, d] with d <= ",
+                std::to_string(kMaxBlock), " for inverse_blocks, got ", cg_shape_str(x.sizes()));
+    cg_check(*inverse_blocks, "inverse_blocks", x, x.scalar_type(), {x.size(0), x.size(1), x.size(1)});
+    cg_check(*z, "z", x, x.scalar_type(), x.sizes());
+    TORCH_CHECK(!z->is_same(r) && !z->is_same(x), "tensormass: z must be a buffer of its own, not r or x");
+  }
   return plan;
 }
 
@@ -198,6 +209,17 @@ ProjectedDots<S> projected_dots(const at::Tensor& p, at::Tensor& ap, const c10::
   const bool masked = free.has_value() && free->defined();
   return ProjectedDots<S>{p.data_ptr<S>(), ap.data_ptr<S>(), masked ? free->data_ptr<S>() : nullptr,
                           values_per_node(p)};
+}
+
+// cg_update's preconditioned node update over its (checked) tensors; inverse null where the
+// update is the plain one.
+template <typename S>
+BlockUpdate<S> block_update_of(at::Tensor& x, at::Tensor& r, const at::Tensor& p, const at::Tensor& ap,
+                               const c10::optional<at::Tensor>& inverse_blocks, const c10::optional<at::Tensor>& z) {
+  const bool blocks = inverse_blocks.has_value() && inverse_blocks->defined();
+  return BlockUpdate<S>{x.data_ptr<S>(), r.data_ptr<S>(), p.data_ptr<S>(), ap.data_ptr<S>(),
+                        blocks ? inverse_blocks->data_ptr<S>() : nullptr, blocks ? z->data_ptr<S>() : nullptr,
+                        values_per_node(x)};
 }
 
 // The ops' structs over their tensors (checked by check_euler_update).

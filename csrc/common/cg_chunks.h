@@ -90,6 +90,24 @@ void update_cpu(const CGPlan& plan, int64_t d, S* x, S* r, const S* p, const S* 
   }
 }
 
+// cg_update with inverse blocks (BlockUpdate): node by node, then each active object's r.z,
+// convergence, iteration cap and beta as update_cpu's.
+template <typename S>
+void block_update_cpu(const CGPlan& plan, const BlockUpdate<S>& update, const S* alpha, const S* threshold,
+                      int64_t max_iter, S* rr, int32_t* status, S* beta, int32_t* iterations, double* sums) {
+  for_each_chunk(plan, update.d * (update.d + 2), status, [&](int64_t c, int64_t begin, int64_t end) {
+    const S a = alpha[plan.chunk_object[c]];
+    double acc = 0.0;
+    for (int64_t i = begin; i < end; ++i) acc += update.apply(i, a);
+    sums[c] = acc;
+  });
+  for (int64_t b = 0; b < plan.num_objects; ++b) {
+    if (status[b] != kActive) continue;
+    beta[b] = cg_beta_step<S>(object_sum(sums, plan.object_chunk, b), rr[b], threshold[b], max_iter, status[b],
+                              iterations[b]);
+  }
+}
+
 // cg_direction: p = r + beta p on the active objects' chunks.
 template <typename S>
 void direction_cpu(const CGPlan& plan, int64_t d, S* p, const S* r, const S* beta, const int32_t* status) {

@@ -4,6 +4,8 @@
                                             stops (breakdown: p.Ap <= 0; non-finite)
     cg_update(ap [V, d], plan, state, ...)   x += alpha p; r -= alpha Ap; rr_new = r.r per object;
                                             converged / non-finite / iteration cap; beta
+                                            (with a block diagonal B^-1: also z = B^-1 r, and
+                                            r.z in place of r.r)
     cg_direction(plan, state)                p = r + beta p
 
 Each runs the compiled op ``torch.ops.tensormass.cg_*`` (the cg family, ``csrc/cg/``: one GPU
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from types import SimpleNamespace
+from typing import Optional
 
 import torch
 
@@ -116,13 +119,17 @@ def _ref_alpha(p_dot_ap, plan: ChunkPlan, s: CGState):
     s.alpha.copy_(torch.where(active, step, s.alpha))
 
 
-def _ref_update(ap, plan: ChunkPlan, s: CGState, max_iter: int):
+def _ref_update(ap, plan: ChunkPlan, s: CGState, max_iter: int, inverse_blocks=None, z=None):
     active = s.status == ACTIVE
     node_active = plan.segments.spread(active.to(s.x.dtype)) > 0
     a = plan.segments.spread(s.alpha)
     s.x.copy_(torch.where(node_active, s.x + a * s.p, s.x))
     s.r.copy_(torch.where(node_active, s.r - a * ap, s.r))
-    rr_new = _object_sums(s.r * s.r, plan).to(s.rr.dtype)
+    if inverse_blocks is None:
+        rr_new = _object_sums(s.r * s.r, plan).to(s.rr.dtype)
+    else:  # z = B^-1 r on the active objects' nodes; rr is r.z
+        z.copy_(torch.where(node_active, (inverse_blocks @ s.r[..., None])[..., 0], z))
+        rr_new = _object_sums(s.r * z, plan).to(s.rr.dtype)
     iterations = s.iterations + active.to(torch.int32)
     finite = torch.isfinite(rr_new)
     converged = finite & (rr_new <= s.threshold)
@@ -160,12 +167,15 @@ def cg_alpha_dot(ap: torch.Tensor, free, plan: ChunkPlan, s: CGState, native=Non
     native.cg_alpha_dot(s.p, ap, free, *plan.tensors(), s.rr, s.status, s.alpha, s.scratch, s.counter)
 
 
-def cg_update(ap: torch.Tensor, plan: ChunkPlan, s: CGState, max_iter: int, native=None):
-    """Step 2: ``ap [V, d]`` -> ``s.x``, ``s.r``, ``s.rr``, ``s.beta``, ``s.status``, ``s.iterations``."""
+def cg_update(ap: torch.Tensor, plan: ChunkPlan, s: CGState, max_iter: int, native=None,
+              inverse_blocks: Optional[torch.Tensor] = None, z: Optional[torch.Tensor] = None):
+    """Step 2: ``ap [V, d]`` -> ``s.x``, ``s.r``, ``s.rr``, ``s.beta``, ``s.status``, ``s.iterations``.
+    With ``inverse_blocks [V, d, d]`` (a block diagonal preconditioner's B^-1) and ``z [V, d]``: also
+    z = B^-1 r, and ``s.rr`` is r.z (block-preconditioned CG's; its direction is then p = z + beta p)."""
     if native is None:
-        return _ref_update(ap, plan, s, max_iter)
+        return _ref_update(ap, plan, s, max_iter, inverse_blocks, z)
     native.cg_update(s.x, s.r, s.p, ap.contiguous(), s.alpha, *plan.tensors(), s.threshold, int(max_iter), s.rr,
-                     s.status, s.beta, s.iterations, s.scratch, s.counter)
+                     s.status, s.beta, s.iterations, s.scratch, s.counter, inverse_blocks, z)
 
 
 def cg_direction(plan: ChunkPlan, s: CGState, native=None):
@@ -228,10 +238,10 @@ def _ref_cg_alpha_dot(p, ap, free, chunk_start, chunk_object, object_chunk, rr, 
 
 
 def _ref_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, threshold, max_iter, rr, status,
-                   beta, iterations, scratch, counter):
+                   beta, iterations, scratch, counter, inverse_blocks=None, z=None):
     s = _op_state(x=x, r=r, p=p, alpha=alpha, threshold=threshold, rr=rr, status=status, beta=beta,
                   iterations=iterations)
-    _ref_update(ap, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk), s, max_iter)
+    _ref_update(ap, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk), s, max_iter, inverse_blocks, z)
 
 
 def _ref_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk):
@@ -296,9 +306,13 @@ def _example(name):
             s.status[1] = CONVERGED  # skipped: its ap stays as it is
             free = torch.tensor([[1.0], [0.0], [1.0], [1.0], [0.0]], dtype=dtype, device=device)
             return (s.p, field, free, *tensors, s.rr, s.status, s.alpha, s.scratch, s.counter), {}
-        if name == "cg_update":
+        if name == "cg_update":  # preconditioned by blocks; object 1 skipped (its z stays)
+            s.status[1] = CONVERGED
+            half = torch.randn((5, 3, 3), generator=gen).to(device=device, dtype=dtype)
+            inverse = half @ half.transpose(-1, -2) + torch.eye(3, dtype=dtype, device=device)
+            z = torch.randn((5, 3), generator=gen).to(device=device, dtype=dtype)
             return (s.x, s.r, s.p, field, s.alpha, *tensors, s.threshold, 10, s.rr, s.status, s.beta, s.iterations,
-                    s.scratch, s.counter), {}
+                    s.scratch, s.counter, inverse, z), {}
         if name == "cg_direction":
             return (s.p, s.r, s.beta, s.status, *tensors), {}
         if name == "cg_dot":

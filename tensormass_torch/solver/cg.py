@@ -27,6 +27,12 @@ stopping rule still on the true residual ||r_b||. It runs through the same ops (
 length's op reads r.z where it reads r.r, the direction's reads z where it reads r) with r.z
 and beta beside them: no host synchronisation either, so its iterations are captured the same
 way (where the preconditioner's own ops can be).
+
+A block diagonal preconditioner B (one d x d block a node: block Jacobi) is applied inside
+``cg_update`` instead (z = B^-1 r with the update, no launch of its own), and the iteration keeps
+r.z where the plain one keeps r.r: the step length, the stopping rule and beta read it, so the
+tolerance holds the residual in B^-1's norm, sqrt(r.B^-1 r) <= tol sqrt(b.B^-1 b) (the rows a
+penalty makes stiff weigh less: their residual costs the least motion).
 """
 from __future__ import annotations
 
@@ -102,6 +108,7 @@ class CGSolver:
         self._graphs: Dict[tuple, object] = {}
         self.graph_replays = 0
         self._pcg = None  # the preconditioned iteration's buffers, made at its first use
+        self._block = None  # the block-preconditioned iteration's (_block_buffers)
         self._rhs = None  # the right-hand side a captured start reads (preconditioned solves)
         self._paused = None  # a paused solve's (iterations run, pause threshold [B]) (see solve)
 
@@ -121,6 +128,8 @@ class CGSolver:
         return av, (v * av).sum(-1)
 
     def _iterate(self, matvec: Matvec, max_iter: int, preconditioner=None):
+        if _inverse_blocks(preconditioner) is not None:
+            return self._block_iterate(matvec, max_iter, preconditioner.inverse_blocks)
         if preconditioner is not None:
             return self._pcg_iterate(matvec, max_iter, preconditioner)
         s = self.state
@@ -172,6 +181,28 @@ class CGSolver:
         if self.free is not None:
             z = z.mul_(self.free) if z is not self.state.r else z * self.free
         return z.contiguous()
+
+    def _block_buffers(self):
+        """The block-preconditioned iteration's z ``[V, d]`` and the state as ``cg_direction`` takes
+        it there (z for r: p = z + beta p), made at its first use."""
+        if self._block is None:
+            z = torch.zeros_like(self.state.r)
+            self._block = SimpleNamespace(z=z, direction=dataclasses.replace(self.state, r=z))
+        return self._block
+
+    def _block_iterate(self, matvec: Matvec, max_iter: int, inverse_blocks: torch.Tensor):
+        """One iteration preconditioned by a block diagonal B (``inverse_blocks`` B^-1 ``[V, d, d]``),
+        which is applied inside the update: the state's r.r is r.z there, so the step length
+        alpha = r.z / p.Ap (the fused product's or ``_step_length``), then ``cg_update`` with the
+        blocks (x, r, z = B^-1 r, r.z, the stopping rule on r.z, beta = r'.z' / r.z) and
+        p = z + beta p (``cg_direction`` on z): the plain iteration's launches."""
+        s, b = self.state, self._block_buffers()
+        fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
+        ap = fused(s.p, self.plan, s) if fused is not None else None
+        if ap is None:
+            ap = self._step_length(matvec, s)
+        cg_ops.cg_update(ap, self.plan, s, max_iter, self.native, inverse_blocks, b.z)
+        cg_ops.cg_direction(self.plan, b.direction, self.native)
 
     def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
         """One preconditioned iteration through the plain CG's ops: the step length from r.z
@@ -260,11 +291,21 @@ class CGSolver:
         else:
             s.x.copy_(x0)
             s.r.copy_(b - self._apply(matvec, self._project(x0))[0])
-        cg_ops.object_dot(b, b, self.plan, self.rhs_sq, s, self.native)
-        if x0 is None:  # r = b
-            s.rr.copy_(self.rhs_sq)
+        inverse_blocks = _inverse_blocks(preconditioner)
+        if inverse_blocks is not None:  # the norms are B^-1's: b.B^-1 b, r.z with z = B^-1 r
+            z = self._block_buffers().z
+            z.copy_(_block_product(inverse_blocks, s.r))
+            cg_ops.object_dot(s.r, z, self.plan, s.rr, s, self.native)
+            if x0 is None:  # r = b
+                self.rhs_sq.copy_(s.rr)
+            else:
+                cg_ops.object_dot(b, _block_product(inverse_blocks, b), self.plan, self.rhs_sq, s, self.native)
         else:
-            cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
+            cg_ops.object_dot(b, b, self.plan, self.rhs_sq, s, self.native)
+            if x0 is None:  # r = b
+                s.rr.copy_(self.rhs_sq)
+            else:
+                cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
         tol = self._effective_tol(tol, rhs.dtype)
         torch.mul(self.rhs_sq, tol * tol, out=s.threshold)
         status = torch.where(~torch.isfinite(s.rr), NONFINITE,
@@ -275,6 +316,8 @@ class CGSolver:
         s.beta.zero_()
         if preconditioner is None:
             s.p.copy_(s.r)
+        elif inverse_blocks is not None:
+            s.p.copy_(self._block.z)
         else:
             z = self._precondition(preconditioner)
             cg_ops.object_dot(s.r, z, self.plan, self._pcg_buffers().rz, s, self.native)
@@ -332,7 +375,9 @@ class CGSolver:
             preconditioner: r ``[V, d]`` -> M^-1 r ``[V, d]`` (a symmetric positive definite
                 operator acting on each object alone), or None (plain CG). Its ops are in the
                 captured iterations where ``graph_key`` is given: it must then also read only
-                tensors whose storage stays.
+                tensors whose storage stays. One with ``inverse_blocks`` (B^-1 ``[V, d, d]``, a
+                block diagonal: ``preconditioner.BlockJacobi``) is applied inside the update
+                instead, and ``tol`` then holds the residual in B^-1's norm (see the module).
             pause_tol: a relative residual above ``tol`` at which the solve pauses (None: none):
                 once no object iterates with a residual above it (looked at every
                 ``check_every`` iterations), the solve returns with the objects still short of
@@ -403,6 +448,17 @@ class CGSolver:
             self.run_iterations(matvec, count, max_iter, graph_key, preconditioner)
             done += count
         return done
+
+
+def _inverse_blocks(preconditioner) -> Optional[torch.Tensor]:
+    """A block diagonal preconditioner's B^-1 ``[V, d, d]`` (its ``inverse_blocks``: the CG applies
+    it inside its update), or None (none, or one the CG calls)."""
+    return getattr(preconditioner, "inverse_blocks", None)
+
+
+def _block_product(inverse_blocks: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """B^-1 v ``[V, d]``, node by node."""
+    return torch.matmul(inverse_blocks, v[..., None])[..., 0]
 
 
 def run_captured(graphs: dict, key, work: Callable[[], None]) -> bool:

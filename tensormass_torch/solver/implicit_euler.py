@@ -44,6 +44,7 @@ from .cg import CGResult, CGSolver, run_captured
 from .guess import SolutionSpace, warm_start_mode
 from .preconditioner import (
     PRECONDITIONERS,
+    BlockJacobi,
     JacobiScaling,
     MultigridSolve,
     system_diagonal_blocks,
@@ -221,6 +222,7 @@ class DynamicsSystem:
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
         self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
+        self._block_jacobi = None  # preconditioner.BlockJacobi: its B^-1 kept (as _jacobi's)
         self._rigid = None  # rigid_modes.RigidModeCorrection: its buffers kept (as _jacobi's)
         self._check_stream = None  # the CUDA stream contact checks run on beside the CG (_check_beside)
         #: stretches of a paused solve launched before its contact check on the GPU (0: the check
@@ -653,12 +655,17 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
     if multigrid is not None:
         key = getattr(multigrid, "key", None)  # None: not capturable (cholespy's solves)
         graph_key = None if graph_key is None or key is None else (graph_key, key)
-    scaling = _jacobi(system, opts, fused, pairs, mass_coef, stiffness_coef)
-    if scaling is not None:  # CG on S^T A S y = S^T b, x = S y (solver.preconditioner)
+    scaling = None
+    jacobi = _jacobi(system, opts, fused, pairs, mass_coef, stiffness_coef)
+    if isinstance(jacobi, JacobiScaling):  # CG on S^T A S y = S^T b, x = S y (solver.preconditioner)
+        scaling = jacobi
         matvec = scaling.product(matvec)
         graph_key = None if graph_key is None else (graph_key, scaling.key)
         rhs = scaling.apply_transpose(rhs)
         x0 = None if x0 is None else scaling.unapply(x0)
+    elif jacobi is not None:  # BlockJacobi: B^-1 applied inside the CG's update
+        multigrid = jacobi
+        graph_key = None if graph_key is None else (graph_key, jacobi.key)
     rigid = _rigid(system, opts, fused, pairs, mass_coef, stiffness_coef, scaling)
     if rigid is not None:  # PCG on the scaled system with the rigid bodies' coarse correction
         multigrid = rigid
@@ -732,16 +739,24 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
 
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):
-    """The system's ``preconditioner.JacobiScaling`` loaded with this solve's 3x3 diagonal blocks where
-    ``opts.preconditioner`` asks for it (``"auto"``: where body contact ``pairs`` join the solve;
-    ``"rigid"``: under its coarse correction, :func:`_rigid`) and the model has a loaded product
-    ``fused`` (a TensorMass); None otherwise."""
+    """Block Jacobi loaded with this solve's diagonal blocks where ``opts.preconditioner`` asks for
+    it (``"auto"``: where body contact ``pairs`` join the solve; ``"rigid"``) and the model has a
+    loaded product ``fused`` (a TensorMass); None otherwise. The system's
+    ``preconditioner.BlockJacobi`` (B^-1, applied in the CG's update), or under the rigid bodies'
+    coarse correction (``"rigid"`` on 3-D bodies, :func:`_rigid`, which works in the scaled system)
+    its ``preconditioner.JacobiScaling``."""
     with_pairs = pairs is not None and len(pairs) > 0
     wanted = opts.preconditioner in ("jacobi", "rigid") or (opts.preconditioner == "auto" and with_pairs)
     if fused is None or not wanted:
         return None
-    if system._jacobi is None:
-        system._jacobi = JacobiScaling()
+    if _takes_rigid(system, opts):
+        if system._jacobi is None:
+            system._jacobi = JacobiScaling()
+        jacobi = system._jacobi
+    else:
+        if system._block_jacobi is None:
+            system._block_jacobi = BlockJacobi()
+        jacobi = system._block_jacobi
     # the blocks without pairs, kept for this load of the product: a step's contact rounds change
     # only the pairs (a load counter, not tensor versions: the ops write the node stiffness in place)
     key = (fused.loads, mass_coef, stiffness_coef)
@@ -750,7 +765,12 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
     blocks = fused.diagonal_blocks[1]
     if with_pairs:
         blocks = blocks + pairs.stiffness_blocks(stiffness_coef, opts.dt)
-    return system._jacobi.load(blocks)
+    return jacobi.load(blocks)
+
+
+def _takes_rigid(system: DynamicsSystem, opts: StepOptions) -> bool:
+    """Whether the step's solve takes the rigid bodies' coarse correction (3-D bodies only)."""
+    return opts.preconditioner == "rigid" and system.model.rest.shape[-1] == 3
 
 
 def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float,
@@ -759,7 +779,7 @@ def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: f
     loaded ``scaling``) where ``opts.preconditioner`` is ``"rigid"`` and the bodies are 3-D; None
     otherwise (a 2-D system keeps block Jacobi alone)."""
     with_pairs = pairs is not None and len(pairs) > 0
-    if scaling is None or system.model.rest.shape[-1] != 3 or opts.preconditioner != "rigid":
+    if scaling is None or not _takes_rigid(system, opts):
         return None
     if system._rigid is None:
         system._rigid = RigidModeCorrection()

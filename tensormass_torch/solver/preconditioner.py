@@ -124,6 +124,41 @@ class JacobiScaling:
         return scaled
 
 
+class BlockJacobi:
+    """Block Jacobi as preconditioned CG's M = B, each node's d x d diagonal block, for the CG to
+    apply inside its update (``CGSolver``: ``inverse_blocks`` B^-1 ``[V, d, d]``, in a buffer whose
+    storage stays from load to load, so that graphs captured over the iterations replay with each
+    solve's blocks). The same iterates in exact arithmetic as the scaled system of
+    :class:`JacobiScaling` (x = S y), and the same tolerance (on sqrt(r.B^-1 r) = |S^T r|), without
+    its two block products an iteration: z = B^-1 r is computed in the update's pass."""
+
+    def __init__(self):
+        self.inverse_blocks: Optional[torch.Tensor] = None
+        self._factors: Optional[tuple] = None  # block_scaling's outputs (S, S^T, S^-1)
+
+    def load(self, blocks: torch.Tensor) -> "BlockJacobi":
+        """Take the system's diagonal blocks ``[V, d, d]``; a block that is not positive definite
+        (a node with no mass and no element left, whose row CG never moves) gives the identity.
+        B^-1 = L^-T L^-1 = S S^T from the blocks' Cholesky factor (``block_scaling``)."""
+        if self.inverse_blocks is None or self.inverse_blocks.shape != blocks.shape \
+                or self.inverse_blocks.dtype != blocks.dtype or self.inverse_blocks.device != blocks.device:
+            self.inverse_blocks = torch.empty_like(blocks)
+            self._factors = tuple(torch.empty_like(blocks) for _ in range(3))
+        scale, scale_t, inverse = self._factors
+        block_scaling(blocks, scale, scale_t, inverse)
+        torch.matmul(scale, scale_t, out=self.inverse_blocks)
+        return self
+
+    @property
+    def key(self) -> tuple:
+        """What a graph captured over the iterations depends on: the buffer's storage."""
+        return ("block_jacobi", self.inverse_blocks.data_ptr())
+
+    def __call__(self, r: torch.Tensor) -> torch.Tensor:
+        """z = B^-1 r ``[V, d]`` (for callers that apply it themselves)."""
+        return torch.matmul(self.inverse_blocks, r[..., None])[..., 0]
+
+
 def _block_diagonal(scale: torch.Tensor, inverse: torch.Tensor) -> tuple:
     """(S, S^T, S^-1) as block-diagonal ``multigrid.BsrMatrix`` es for ``scale`` and ``inverse``
     ``[V, d, d]``: S and S^-1 on those very buffers, S^T on a buffer of its own (load refreshes
@@ -276,5 +311,5 @@ def system_diagonal_blocks(system, mass_coef: float, stiffness_coef: float, node
     return blocks
 
 
-__all__ = ["PRECONDITIONERS", "JacobiScaling", "block_cholesky_scaling", "MultigridSolve", "system_diagonal",
-           "system_diagonal_blocks", "system_multigrid", "system_rest_preconditioner"]
+__all__ = ["PRECONDITIONERS", "BlockJacobi", "JacobiScaling", "block_cholesky_scaling", "MultigridSolve",
+           "system_diagonal", "system_diagonal_blocks", "system_multigrid", "system_rest_preconditioner"]

@@ -81,6 +81,51 @@ def test_ops_match_reference(dtype, chunk):
     assert int(ext.counter.abs().sum()) == 0
 
 
+def inverse_blocks_of(v: int, dtype, seed=3):
+    """Symmetric positive definite blocks ``[V, 3, 3]`` (a block diagonal's B^-1)."""
+    g = torch.Generator().manual_seed(seed)
+    half = torch.randn(v, 3, 3, generator=g, dtype=torch.float64)
+    return (half @ half.transpose(1, 2) + 0.5 * torch.eye(3, dtype=torch.float64)).to(dtype)
+
+
+@needs_ext
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("chunk", [1, 4, 512])
+def test_block_update_matches_reference(dtype, chunk):
+    """cg_update with inverse blocks = its reference: x and r as the plain update's, z = B^-1 r on
+    the active objects' nodes (the others' z untouched), rr = r.z per object, and the stops and
+    beta from r.z."""
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), chunk)
+    s = random_state(plan, dtype)
+    v = s.x.shape[0]
+    ap = torch.randn(v, 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    inverse = inverse_blocks_of(v, dtype)
+    node_object = plan.segments.node_object
+    for max_iter in (100, 4):  # object 0 has done 3: the cap of 4 stops it
+        ref, ext, plain = clone_state(s), clone_state(s), clone_state(s)
+        z_ref, z_ext = torch.full_like(s.x, 7.0), torch.full_like(s.x, 7.0)
+        cg_ops.cg_update(ap, plan, ref, max_iter, None, inverse, z_ref)
+        cg_ops.cg_update(ap, plan, ext, max_iter, OPS, inverse, z_ext)
+        cg_ops.cg_update(ap, plan, plain, max_iter, OPS)
+        assert_states_close(ref, ext, dtype)
+        tol = 1e-12 if dtype == torch.float64 else 1e-5
+        torch.testing.assert_close(z_ext, z_ref, rtol=tol, atol=tol)
+        torch.testing.assert_close(ext.x, plain.x, rtol=0, atol=0)
+        torch.testing.assert_close(ext.r, plain.r, rtol=0, atol=0)
+        active = (s.status == ACTIVE)[node_object]
+        expected_z = (inverse.double() @ ext.r.double()[..., None])[..., 0]
+        torch.testing.assert_close(z_ext[active].double(), expected_z[active], rtol=tol, atol=tol)
+        assert bool((z_ext[~active] == 7.0).all())
+        rz = torch.zeros(plan.segments.num_objects, dtype=torch.float64).index_add_(
+            0, node_object, (ext.r.double() * expected_z).sum(-1))
+        was_active = s.status == ACTIVE
+        torch.testing.assert_close(ext.rr[was_active].double(), rz[was_active], rtol=tol, atol=tol)
+        assert ext.status[0] == (ACTIVE if max_iter == 100 else CAPPED)
+        if max_iter == 100:  # beta = r'.z' / r.z
+            torch.testing.assert_close(ext.beta[0].double(), rz[0] / s.rr[0].double(), rtol=tol, atol=tol)
+    assert int(ext.counter.abs().sum()) == 0
+
+
 def alpha_dot_inputs(plan: ChunkPlan, dtype, device="cpu", seed=2):
     """(ap [V, 3], free [V, 1]) for cg_alpha_dot: object 2's p.Ap negative (breakdown), object 3's
     non-finite, every third node fixed."""
@@ -218,6 +263,11 @@ def test_opcheck():
                                                   50, s.rr, s.status, s.beta, s.iterations, s.scratch, s.counter),
                           test_utils=utils)
     torch.library.opcheck(OPS.cg_direction.default, (s.p, s.r, s.beta, s.status, *plan.tensors()), test_utils=utils)
+    z = torch.zeros_like(s.x)
+    torch.library.opcheck(OPS.cg_update.default, (s.x, s.r, s.p, s.p.clone(), s.alpha, *plan.tensors(), s.threshold,
+                                                  50, s.rr, s.status, s.beta, s.iterations, s.scratch, s.counter,
+                                                  inverse_blocks_of(s.x.shape[0], torch.float64), z),
+                          test_utils=utils)
     ap, free = alpha_dot_inputs(plan, torch.float64)
     for mask in (free, None):
         torch.library.opcheck(OPS.cg_alpha_dot.default, (s.p, ap.clone(), mask, *plan.tensors(), s.rr, s.status,
@@ -235,6 +285,17 @@ def test_input_checks():
     with pytest.raises(RuntimeError, match="ap has shape"):
         OPS.cg_update(s.x, s.r, s.p, s.p[:2], s.alpha, *plan.tensors(), s.threshold, 5, s.rr, s.status, s.beta,
                       s.iterations, s.scratch, s.counter)
+    update = (s.x, s.r, s.p, s.p.clone(), s.alpha, *plan.tensors(), s.threshold, 5, s.rr, s.status, s.beta,
+              s.iterations, s.scratch, s.counter)
+    inverse = inverse_blocks_of(s.x.shape[0], torch.float64)
+    before = clone_state(s)
+    with pytest.raises(RuntimeError, match="inverse_blocks and z together"):
+        OPS.cg_update(*update, inverse, None)
+    with pytest.raises(RuntimeError, match="inverse_blocks has shape"):
+        OPS.cg_update(*update, inverse[:, :2, :2].contiguous(), torch.zeros_like(s.x))
+    with pytest.raises(RuntimeError, match="z must be a buffer of its own"):
+        OPS.cg_update(*update, inverse, s.r)
+    assert_states_close(s, before, torch.float64)  # nothing changed
     ap, free = alpha_dot_inputs(plan, torch.float64)
     with pytest.raises(RuntimeError, match="free has shape"):
         OPS.cg_alpha_dot(s.p, ap, free[:, 0].contiguous(), *plan.tensors(), s.rr, s.status, s.alpha, s.scratch,
@@ -286,6 +347,13 @@ def test_cuda_ops_match_cpu(dtype, chunk):
     cg_ops.cg_alpha_dot(ap_gpu, free.cuda(), gplan, gpu, OPS)
     assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
     torch.testing.assert_close(ap_gpu.cpu(), ap, rtol=0, atol=0)
+    inverse = inverse_blocks_of(v, dtype)
+    z_cpu, z_gpu = torch.zeros_like(ap), torch.zeros_like(ap_gpu)
+    cg_ops.cg_update(ap, plan, cpu, 50, OPS, inverse, z_cpu)
+    cg_ops.cg_update(ap_gpu, gplan, gpu, 50, OPS, inverse.cuda(), z_gpu)
+    assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(z_gpu.cpu(), z_cpu, rtol=tol, atol=tol)
 
 
 @needs_cuda

@@ -9,9 +9,11 @@ import torch
 from conftest import GROUP_CASES, group_meshes
 
 import tensormass_torch as tm
+from tensormass_torch.ops.segments import Segments
 from tensormass_torch.physics.body_contact import Contact, PairStiffness, SurfaceContact
+from tensormass_torch.solver.cg import CGSolver
 from tensormass_torch.solver.implicit_euler import _coefficients, implicit_euler_step
-from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagonal, system_diagonal_blocks
+from tensormass_torch.solver.preconditioner import BlockJacobi, JacobiScaling, system_diagonal, system_diagonal_blocks
 
 DT = torch.float64
 
@@ -234,6 +236,60 @@ def test_the_scaled_product_is_s_a_s():
     torch.testing.assert_close(fused(p).reshape(-1), expected)
     scaling.load(2.0 * torch.diagonal(a).reshape(4, 3))
     assert scaling.scale.data_ptr() == storage
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+@pytest.mark.parametrize("guess", [False, True], ids=["x0=0", "x0"])
+def test_block_jacobi_in_the_update_is_the_scaled_cg(monkeypatch, backend, guess):
+    """CG preconditioned by BlockJacobi inside its update makes the iterates of CG on the scaled
+    system S^T A S (JacobiScaling, x = S y), in float64 to roundoff: the same iteration counts and
+    residual norms (both in B^-1's norm), the same solutions, and a dense solve's to its tolerance;
+    a fixed node stays where x0 puts it, and the storage of B^-1 stays across loads."""
+    monkeypatch.setenv("TENSORMASS_BACKEND", backend)
+    gen = torch.Generator().manual_seed(6)
+    sizes = [9, 5, 14]
+    nodes = sum(sizes)
+    blocks = []
+    for n in sizes:  # SPD with a few stiff rows (a penalty's), coupled within each object
+        q = torch.randn(3 * n, 3 * n, generator=gen, dtype=DT)
+        stiff = torch.ones(3 * n, dtype=DT)
+        stiff[:6] = 300.0
+        blocks.append(torch.diag(stiff.sqrt()) @ (q @ q.T + 3 * n * torch.eye(3 * n, dtype=DT)) @ torch.diag(
+            stiff.sqrt()))
+    a = torch.block_diag(*blocks)
+    free = torch.ones(nodes, 1, dtype=DT)
+    free[[3, 20]] = 0.0
+    project = torch.diag(free.repeat(1, 3).reshape(-1))
+    a_free = project @ a @ project + torch.diag(1.0 - free.repeat(1, 3).reshape(-1))
+    rhs = torch.randn(nodes, 3, generator=gen, dtype=DT)
+    x0 = torch.randn(nodes, 3, generator=gen, dtype=DT) if guess else None
+    diagonal_blocks = torch.stack([a[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(nodes)])
+    segments = Segments.from_lengths(sizes)
+    matvec = lambda p: (a @ p.reshape(-1)).view_as(p)  # noqa: E731
+
+    block_jacobi = BlockJacobi().load(diagonal_blocks)
+    storage = block_jacobi.inverse_blocks.data_ptr()
+    torch.testing.assert_close(block_jacobi.inverse_blocks, torch.linalg.inv(diagonal_blocks))
+    solver = CGSolver(segments, rhs.shape, DT, "cpu", free)
+    in_update = solver.solve(matvec, rhs, x0, tol=1e-10, max_iter=500, preconditioner=block_jacobi)
+
+    scaling = JacobiScaling().load(diagonal_blocks)
+    scaled_solver = CGSolver(segments, rhs.shape, DT, "cpu", free)
+    scaled = scaled_solver.solve(scaling.product(matvec), scaling.apply_transpose(rhs),
+                                 None if x0 is None else scaling.unapply(x0), tol=1e-10, max_iter=500)
+    assert bool(in_update.converged.all())
+    assert in_update.iterations.tolist() == scaled.iterations.tolist()
+    torch.testing.assert_close(in_update.residual_norm, scaled.residual_norm, rtol=1e-6, atol=1e-14)
+    torch.testing.assert_close(in_update.rhs_norm, scaled.rhs_norm, rtol=1e-12, atol=0)
+    torch.testing.assert_close(in_update.solution, scaling.apply(scaled.solution), rtol=1e-9, atol=1e-12)
+    fixed = free[:, 0] == 0
+    start = torch.zeros_like(rhs) if x0 is None else x0
+    assert torch.equal(in_update.solution[fixed], start[fixed])
+    # the solve on the free nodes (the fixed ones' x0 does not enter the product), x0 on the fixed
+    exact = torch.linalg.solve(a_free, torch.where(fixed[:, None], start, rhs).reshape(-1))
+    assert float((in_update.solution.reshape(-1) - exact).abs().max()) < 1e-7 * float(exact.abs().max())
+    block_jacobi.load(2.0 * diagonal_blocks)
+    assert block_jacobi.inverse_blocks.data_ptr() == storage
 
 
 @pytest.mark.parametrize("friction", [0.0, 0.4])
