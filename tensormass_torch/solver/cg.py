@@ -47,6 +47,7 @@ import torch
 from ..ops import cg as cg_ops
 from ..ops.cg import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE, STATUS_WORDS, CGState
 from ..ops.segments import ChunkPlan, Segments
+from .preconditioner import block_diagonal_product
 
 Matvec = Callable[[torch.Tensor], Union[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]]
 
@@ -129,7 +130,7 @@ class CGSolver:
 
     def _iterate(self, matvec: Matvec, max_iter: int, preconditioner=None):
         if _inverse_blocks(preconditioner) is not None:
-            return self._block_iterate(matvec, max_iter, preconditioner.inverse_blocks)
+            return self._block_iterate(matvec, max_iter, preconditioner)
         if preconditioner is not None:
             return self._pcg_iterate(matvec, max_iter, preconditioner)
         s = self.state
@@ -183,25 +184,36 @@ class CGSolver:
         return z.contiguous()
 
     def _block_buffers(self):
-        """The block-preconditioned iteration's z ``[V, d]`` and the state as ``cg_direction`` takes
-        it there (z for r: p = z + beta p), made at its first use."""
+        """The block-preconditioned iteration's z ``[V, d]``, the state as ``cg_direction`` takes
+        it there (z for r: p = z + beta p), and for a corrected preconditioner r.z ``[B]`` and the
+        state as the step length takes it (r.z for r.r), made at their first use."""
         if self._block is None:
             z = torch.zeros_like(self.state.r)
-            self._block = SimpleNamespace(z=z, direction=dataclasses.replace(self.state, r=z))
+            rz = torch.zeros_like(self.state.rr)
+            self._block = SimpleNamespace(z=z, direction=dataclasses.replace(self.state, r=z), rz=rz,
+                                          step=dataclasses.replace(self.state, rr=rz))
         return self._block
 
-    def _block_iterate(self, matvec: Matvec, max_iter: int, inverse_blocks: torch.Tensor):
-        """One iteration preconditioned by a block diagonal B (``inverse_blocks`` B^-1 ``[V, d, d]``),
-        which is applied inside the update: the state's r.r is r.z there, so the step length
-        alpha = r.z / p.Ap (the fused product's or ``_step_length``), then ``cg_update`` with the
-        blocks (x, r, z = B^-1 r, r.z, the stopping rule on r.z, beta = r'.z' / r.z) and
-        p = z + beta p (``cg_direction`` on z): the plain iteration's launches."""
+    def _block_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
+        """One iteration preconditioned by a block diagonal B (the preconditioner's
+        ``inverse_blocks`` B^-1 ``[V, d, d]``), applied inside the update: the state's r.r is
+        r.B^-1 r there. The step length alpha = r.z / p.Ap (the fused product's or
+        ``_step_length``), then ``cg_update`` with the blocks (x, r, z = B^-1 r, r.B^-1 r and the
+        stopping rule on it, beta = r'.z' / r.z) and p = z + beta p (``cg_direction`` on z): the
+        plain iteration's launches. A preconditioner with a ``correct(r, z)`` (a coarse part added
+        to z in place: M^-1 r = B^-1 r + C r) takes it after the update, and r.z and beta are then
+        taken again (``pcg_beta``); the stopping rule stays on r.B^-1 r."""
         s, b = self.state, self._block_buffers()
+        correct = getattr(preconditioner, "correct", None)
+        step = s if correct is None else b.step
         fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
-        ap = fused(s.p, self.plan, s) if fused is not None else None
+        ap = fused(s.p, self.plan, step) if fused is not None else None
         if ap is None:
-            ap = self._step_length(matvec, s)
-        cg_ops.cg_update(ap, self.plan, s, max_iter, self.native, inverse_blocks, b.z)
+            ap = self._step_length(matvec, step)
+        cg_ops.cg_update(ap, self.plan, s, max_iter, self.native, preconditioner.inverse_blocks, b.z)
+        if correct is not None:
+            correct(s.r, b.z)
+            cg_ops.pcg_beta(s.r, b.z, self.plan, b.rz, s, self.native)
         cg_ops.cg_direction(self.plan, b.direction, self.native)
 
     def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
@@ -294,12 +306,12 @@ class CGSolver:
         inverse_blocks = _inverse_blocks(preconditioner)
         if inverse_blocks is not None:  # the norms are B^-1's: b.B^-1 b, r.z with z = B^-1 r
             z = self._block_buffers().z
-            z.copy_(_block_product(inverse_blocks, s.r))
+            z.copy_(block_diagonal_product(inverse_blocks, s.r))
             cg_ops.object_dot(s.r, z, self.plan, s.rr, s, self.native)
             if x0 is None:  # r = b
                 self.rhs_sq.copy_(s.rr)
             else:
-                cg_ops.object_dot(b, _block_product(inverse_blocks, b), self.plan, self.rhs_sq, s, self.native)
+                cg_ops.object_dot(b, block_diagonal_product(inverse_blocks, b), self.plan, self.rhs_sq, s, self.native)
         else:
             cg_ops.object_dot(b, b, self.plan, self.rhs_sq, s, self.native)
             if x0 is None:  # r = b
@@ -317,6 +329,10 @@ class CGSolver:
         if preconditioner is None:
             s.p.copy_(s.r)
         elif inverse_blocks is not None:
+            correct = getattr(preconditioner, "correct", None)
+            if correct is not None:  # z = B^-1 r + C r, and r.z for the step length
+                correct(s.r, self._block.z)
+                cg_ops.object_dot(s.r, self._block.z, self.plan, self._block.rz, s, self.native)
             s.p.copy_(self._block.z)
         else:
             z = self._precondition(preconditioner)
@@ -454,11 +470,6 @@ def _inverse_blocks(preconditioner) -> Optional[torch.Tensor]:
     """A block diagonal preconditioner's B^-1 ``[V, d, d]`` (its ``inverse_blocks``: the CG applies
     it inside its update), or None (none, or one the CG calls)."""
     return getattr(preconditioner, "inverse_blocks", None)
-
-
-def _block_product(inverse_blocks: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """B^-1 v ``[V, d]``, node by node."""
-    return torch.matmul(inverse_blocks, v[..., None])[..., 0]
 
 
 def run_captured(graphs: dict, key, work: Callable[[], None]) -> bool:

@@ -221,9 +221,8 @@ class DynamicsSystem:
         self._coupled_cg = {}  # object ptr of coupled solves -> (CGSolver, each object's run [B])
         self._coupled_ptr = None  # the coupled solves' layout so far (runs only merge; None: none yet)
         self._pair_stiffness = None  # body_contact.PairStiffness: the pairs' product, its buffers kept
-        self._jacobi = None  # preconditioner.JacobiScaling: its scale kept (graphs replay with each diagonal)
-        self._block_jacobi = None  # preconditioner.BlockJacobi: its B^-1 kept (as _jacobi's)
-        self._rigid = None  # rigid_modes.RigidModeCorrection: its buffers kept (as _jacobi's)
+        self._block_jacobi = None  # preconditioner.BlockJacobi: its B^-1 kept (graphs replay with each load's)
+        self._rigid = None  # rigid_modes.RigidModeCorrection: its buffers kept (as _block_jacobi's)
         self._check_stream = None  # the CUDA stream contact checks run on beside the CG (_check_beside)
         #: stretches of a paused solve launched before its contact check on the GPU (0: the check
         #: runs after the solve, not beside it; :func:`_check_beside`)
@@ -666,8 +665,8 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
     elif jacobi is not None:  # BlockJacobi: B^-1 applied inside the CG's update
         multigrid = jacobi
         graph_key = None if graph_key is None else (graph_key, jacobi.key)
-    rigid = _rigid(system, opts, fused, pairs, mass_coef, stiffness_coef, scaling)
-    if rigid is not None:  # PCG on the scaled system with the rigid bodies' coarse correction
+    rigid = _rigid(system, opts, fused, pairs, mass_coef, stiffness_coef, jacobi)
+    if rigid is not None:  # block Jacobi with the rigid bodies' coarse correction
         multigrid = rigid
         graph_key = None if graph_key is None else (graph_key, rigid.key)
     coupled = _coupled_solver(system, rhs, opts, pairs) if pairs is not None and len(pairs) else None
@@ -739,24 +738,18 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
 
 
 def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):
-    """Block Jacobi loaded with this solve's diagonal blocks where ``opts.preconditioner`` asks for
-    it (``"auto"``: where body contact ``pairs`` join the solve; ``"rigid"``) and the model has a
-    loaded product ``fused`` (a TensorMass); None otherwise. The system's
-    ``preconditioner.BlockJacobi`` (B^-1, applied in the CG's update), or under the rigid bodies'
-    coarse correction (``"rigid"`` on 3-D bodies, :func:`_rigid`, which works in the scaled system)
-    its ``preconditioner.JacobiScaling``."""
+    """The system's ``preconditioner.BlockJacobi`` (B^-1, applied in the CG's update) loaded with
+    this solve's diagonal blocks where ``opts.preconditioner`` asks for it (``"auto"``: where body
+    contact ``pairs`` join the solve; ``"rigid"``: under its coarse correction, :func:`_rigid`) and
+    the model has a loaded product ``fused`` (a TensorMass); None otherwise. (A
+    ``preconditioner.JacobiScaling`` put in its place makes the solve CG on the scaled system.)"""
     with_pairs = pairs is not None and len(pairs) > 0
     wanted = opts.preconditioner in ("jacobi", "rigid") or (opts.preconditioner == "auto" and with_pairs)
     if fused is None or not wanted:
         return None
-    if _takes_rigid(system, opts):
-        if system._jacobi is None:
-            system._jacobi = JacobiScaling()
-        jacobi = system._jacobi
-    else:
-        if system._block_jacobi is None:
-            system._block_jacobi = BlockJacobi()
-        jacobi = system._block_jacobi
+    if system._block_jacobi is None:
+        system._block_jacobi = BlockJacobi()
+    jacobi = system._block_jacobi
     # the blocks without pairs, kept for this load of the product: a step's contact rounds change
     # only the pairs (a load counter, not tensor versions: the ops write the node stiffness in place)
     key = (fused.loads, mass_coef, stiffness_coef)
@@ -776,8 +769,8 @@ def _takes_rigid(system: DynamicsSystem, opts: StepOptions) -> bool:
 def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float,
            scaling):
     """The system's ``rigid_modes.RigidModeCorrection`` loaded for this solve (on block Jacobi's
-    loaded ``scaling``) where ``opts.preconditioner`` is ``"rigid"`` and the bodies are 3-D; None
-    otherwise (a 2-D system keeps block Jacobi alone)."""
+    loaded ``scaling``: a ``BlockJacobi``, or a ``JacobiScaling``) where ``opts.preconditioner`` is
+    ``"rigid"`` and the bodies are 3-D; None otherwise (a 2-D system keeps block Jacobi alone)."""
     with_pairs = pairs is not None and len(pairs) > 0
     if scaling is None or not _takes_rigid(system, opts):
         return None

@@ -17,14 +17,18 @@ vertex-minus-closest-point operator) leaves out the bodies' elastic stiffness: a
 does not strain a body, so Z^T K Z is zero at rest (tested) and small when it is deformed, and
 leaving it out saves six products of the elastic operator a load.
 
-The preconditioner, in the block-Jacobi-scaled system that the CG runs on (``JacobiScaling``:
-A' = S^T A S, S = L^-T per node), with Z' = S^-1 Z (so that Z'^T A' Z' = E):
+The preconditioner, the additive two-level form: block Jacobi (B, each node's diagonal block)
+plus the coarse solve, weighted by w = 1/2 (the two overlap on the coarse space;
+``docs/preconditioners.md``):
 
-    z = r + w Z' E^-1 Z'^T r,
+    z = M^-1 r = B^-1 r + w Z E^-1 Z^T r.
 
-the additive two-level form: the identity (block Jacobi, in the scaled space) plus the coarse
-solve, weighted by w = 1/2 (the two overlap on the coarse space; ``docs/preconditioners.md``).
 It is symmetric positive definite when E is, and E is a Galerkin product of the step's matrix.
+The CG applies B^-1 inside its update (``preconditioner.BlockJacobi``) and :meth:`correct` adds
+the coarse part; its stopping rule stays on r.B^-1 r. Loaded on a ``JacobiScaling`` instead, it
+is the same preconditioner of the scaled system A' = S^T A S (S = L^-T per node, B = L L^T) that
+the CG then runs on: with Z' = S^-1 Z (so that Z'^T A' Z' = E), M'^-1 = I + w Z' E^-1 Z'^T,
+and S M'^-1 S^T = M^-1: the same iterates in exact arithmetic (x = S y).
 
 E is not solved whole. The bodies are ordered and taken in groups of ``group_bodies``; E is
 replaced by its principal blocks over the groups (each one symmetric positive definite, as
@@ -36,10 +40,11 @@ cluster, where the curve's groups, small cubes of a pile, cut it into three or f
 correction misses its blocks' motions against each other. Each group's block is inverted once per
 load, in float64.
 
-An iteration applies it as three ops of the multigrid family: the restriction Z'^T (a body's
-sum over its nodes), the groups' inverses (a block-sparse product, a block row a body) and the
-prolongation Z', which also adds r. Z'_i = N_i [I | -[a_i]x] is formed at each node from the
-scaling's inverse N (3 x 3) and the lever arm a, 12 values a node where a stored basis reads 18.
+An iteration applies the coarse part as three ops of the multigrid family: the restriction Z^T
+(a body's sum over its nodes), the groups' inverses (a block-sparse product, a block row a body)
+and the prolongation Z, which also adds what z holds. Z_i = N_i [I | -[a_i]x] is formed at each
+node from N (3 x 3: the identity on free nodes, zero on fixed ones; on a ``JacobiScaling``, its
+inverse S^-1) and the lever arm a, 12 values a node where a stored basis reads 18.
 Fixed shapes, no host synchronisation, deterministic sums: a CUDA graph replays it with each
 load's values, in the buffers kept here. Whether the iterations it saves pay for it is measured,
 not assumed: ``"auto"`` does not use it (``docs/preconditioners.md``).
@@ -53,6 +58,7 @@ import torch
 from ..mesh.topology import add_at
 from ..ops.multigrid import BsrMatrix, bsr_gemv, match_clusters, rigid_prolong, rigid_restrict
 from ..ops.segments import Segments
+from .preconditioner import block_diagonal_product
 
 #: Bodies per group of the coarse solve (its matrices are 6 x this on a side).
 GROUP_BODIES = 32
@@ -286,14 +292,16 @@ def group_matrices(own: torch.Tensor, arms: torch.Tensor, group: torch.Tensor, s
 
 
 class RigidModeCorrection:
-    """The coarse correction z = r + w Z' E^-1 Z'^T r ``[V, 3]`` of block Jacobi's scaled system
-    (see the module) as three ops and a sum: the restriction Z'^T r
-    (``ops.multigrid.rigid_restrict`` over runs of a body's nodes, the runs then summed per body),
-    the groups' inverses (``ops.multigrid.bsr_gemv``: a block row a body, a 6 x 6 block for each
-    body of its group) and the prolongation adding r (``ops.multigrid.rigid_prolong``: a node an
-    item). Z'_i = N_i [I | -[a_i]x] is formed at each node from N = S^-1 (zero on fixed nodes)
-    and the lever arm a, never stored. Its buffers keep their storage from load to load while the
-    shapes do (a CUDA graph captured over :meth:`__call__` replays with each load's values)."""
+    """The coarse correction w Z E^-1 Z^T r ``[V, 3]`` beside block Jacobi (see the module) as three
+    ops and a sum: the restriction Z^T r (``ops.multigrid.rigid_restrict`` over runs of a body's
+    nodes, the runs then summed per body), the groups' inverses (``ops.multigrid.bsr_gemv``: a
+    block row a body, a 6 x 6 block for each body of its group) and the prolongation adding to z
+    (``ops.multigrid.rigid_prolong``: a node an item). Z_i = N_i [I | -[a_i]x] is formed at each
+    node from N (zero on fixed nodes) and the lever arm a, never stored. Loaded on a
+    ``BlockJacobi`` (the step's) N is the identity and the CG takes :attr:`inverse_blocks` and
+    :meth:`correct`; on a ``JacobiScaling``, N = S^-1 and :meth:`__call__` is the scaled system's
+    preconditioner. Its buffers keep their storage from load to load while the shapes do (a CUDA
+    graph captured over the iterations replays with each load's values)."""
 
     def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT, grouping: str = "contact",
                  refresh: int = REFRESH):
@@ -320,6 +328,7 @@ class RigidModeCorrection:
         self._node_body: Optional[torch.Tensor] = None  # [V] int32
         self._sums: Optional[BodySums] = None
         self._kept = None  # (key, arms, free, group, slot, groups, own blocks, filled, columns) of load's ``kept``
+        self._blocks: Optional[torch.Tensor] = None  # a BlockJacobi's B^-1 [V, 3, 3] (None: a JacobiScaling's)
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
@@ -387,7 +396,11 @@ class RigidModeCorrection:
         inverses = lower_inverse.transpose(1, 2) @ lower_inverse  # [G, 6 c, 6 c]
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
         blocks = torch.where(filled, rows, 0.0).to(x.dtype).reshape(-1, 6, 6)
-        node_inverse = scaling.inverse if scaling.inverse.dim() == 3 else torch.diag_embed(scaling.inverse)
+        self._blocks = getattr(scaling, "inverse_blocks", None)
+        if self._blocks is not None:  # BlockJacobi: Z in the system's own unknowns, N = I
+            node_inverse = torch.eye(3, dtype=x.dtype, device=x.device).expand(x.shape[0], 3, 3)
+        else:
+            node_inverse = scaling.inverse if scaling.inverse.dim() == 3 else torch.diag_embed(scaling.inverse)
         if free is not None:
             node_inverse = node_inverse * free[:, :, None]
         if self.node_inverse is None or self.inverses.values.shape != blocks.shape \
@@ -446,9 +459,25 @@ class RigidModeCorrection:
         return rigid_prolong(self.node_inverse, self.arms, self._node_body, self._coarse_solution(r)).view_as(r)
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
-        """z = r + w Z' E^-1 Z'^T r ``[V, 3]``: three ops, the last adding r."""
+        """z = r + w Z' E^-1 Z'^T r ``[V, 3]`` of the scaled system (loaded on a JacobiScaling):
+        three ops, the last adding r; on a BlockJacobi, z = B^-1 r + w Z E^-1 Z^T r."""
+        if self._blocks is not None:
+            return self.correct(r, block_diagonal_product(self._blocks, r))
         return rigid_prolong(self.node_inverse, self.arms, self._node_body, self._coarse_solution(r), r.reshape(-1),
                              self.weight).view_as(r)
+
+    @property
+    def inverse_blocks(self) -> Optional[torch.Tensor]:
+        """Loaded on a ``BlockJacobi``: its B^-1 ``[V, 3, 3]``, which the CG applies inside its
+        update before :meth:`correct` adds the coarse part (``CGSolver``); else None."""
+        return self._blocks
+
+    def correct(self, r: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """z += w Z E^-1 Z^T r ``[V, 3]`` in place (loaded on a ``BlockJacobi``: Z in the system's
+        own unknowns): with z = B^-1 r, the preconditioner's z = M^-1 r. Returns z."""
+        rigid_prolong(self.node_inverse, self.arms, self._node_body, self._coarse_solution(r), z.reshape(-1),
+                      self.weight, out=z.reshape(-1))
+        return z
 
 
 __all__ = ["GROUPINGS", "GROUP_BODIES", "WEIGHT", "BodySums", "RigidModeCorrection", "contact_clusters",

@@ -9,8 +9,9 @@ from test_preconditioner import loaded_step_with_pairs, two_blocks_in_contact
 
 import tensormass_torch as tm
 from tensormass_torch.solver import rigid_modes as rigid_modes_module
+from tensormass_torch.solver.cg import CGSolver
 from tensormass_torch.solver.implicit_euler import _coefficients
-from tensormass_torch.solver.preconditioner import JacobiScaling, system_diagonal_blocks
+from tensormass_torch.solver.preconditioner import BlockJacobi, JacobiScaling, system_diagonal_blocks
 from tensormass_torch.solver.rigid_modes import (
     BodySums,
     RigidModeCorrection,
@@ -138,6 +139,40 @@ def loaded_correction(group_bodies=2):
         pairs._pair_matrices(stiffness_coef, sim.options.dt))
     scaled = scaling.product(lambda p: loaded(p)[0] + stiffness(p))
     return sim, correction, scaled
+
+
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_the_correction_on_block_jacobi_is_the_scaled_systems(monkeypatch, backend):
+    """Loaded on a BlockJacobi (B^-1 in the CG's update, Z in the system's own unknowns, the
+    coarse part added by ``correct``), the preconditioner is B^-1 + w Z E^-1 Z^T = S (I + w Z'
+    E^-1 Z'^T) S^T, and the CG makes the scaled system's iterates (float64, to roundoff): the same
+    iteration counts and residual norms, the same solution, converged."""
+    monkeypatch.setenv("TENSORMASS_BACKEND", backend)
+    sim, loaded, pairs, stiffness, weights = step_pieces(velocities=False)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    blocks = system_diagonal_blocks(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness, pairs,
+                                    sim.options.dt)
+    arguments = (sim.x, sim.system.mass.reshape(-1), sim.system.segments, sim.system.free, weights)
+    matrices = pairs._pair_matrices(stiffness_coef, sim.options.dt)
+    scaling = JacobiScaling().load(blocks)
+    on_scaling = RigidModeCorrection(2).load(*arguments, scaling, pairs, matrices)
+    on_blocks = RigidModeCorrection(2).load(*arguments, BlockJacobi().load(blocks), pairs, matrices)
+    assert on_scaling.inverse_blocks is None and on_blocks.inverse_blocks is not None
+    product = lambda p: loaded(p)[0] + stiffness(p)  # noqa: E731
+    r = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(2), dtype=DT)
+    torch.testing.assert_close(on_blocks(r), scaling.apply(on_scaling(scaling.apply_transpose(r))), rtol=1e-10,
+                               atol=1e-12 * float(on_blocks(r).abs().max()))
+    rhs = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(3), dtype=DT)
+    segments, free = sim.system.segments, sim.system.free
+    direct = CGSolver(segments, rhs.shape, DT, "cpu", free).solve(product, rhs, tol=1e-10, max_iter=500,
+                                                                  preconditioner=on_blocks)
+    scaled = CGSolver(segments, rhs.shape, DT, "cpu", free).solve(scaling.product(product), scaling.apply_transpose(rhs),
+                                                                  tol=1e-10, max_iter=500, preconditioner=on_scaling)
+    assert bool(direct.converged.all())
+    assert direct.iterations.tolist() == scaled.iterations.tolist()
+    torch.testing.assert_close(direct.residual_norm, scaled.residual_norm, rtol=1e-5, atol=1e-14)
+    torch.testing.assert_close(direct.solution, scaling.apply(scaled.solution), rtol=1e-8,
+                               atol=1e-10 * float(direct.solution.abs().max()))
 
 
 def test_a_load_that_keeps_the_bodies_part_equals_a_fresh_one():
