@@ -46,6 +46,7 @@ from ..ops.multigrid import BsrMatrix, block_cholesky_scaling, block_scaling, bs
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
 #: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
 #: preconditioner), ``"auto"`` (jacobi for the solves body contact pairs join, none elsewhere),
+#: ``"rigid"`` (block Jacobi and the rigid bodies' coarse correction: ``solver.rigid_modes``),
 #: ``"multigrid"`` (preconditioned CG with a smoothed-aggregation V-cycle: ``solver.multigrid``),
 #: ``"cholesky"`` (with the rest matrix's sparse Cholesky factor: ``solver.direct``).
 PRECONDITIONERS = ("auto", "none", "jacobi", "rigid", "multigrid", "cholesky")
