@@ -160,8 +160,24 @@ struct BlockCholeskyKernel {
 
 // The rigid correction's transfers with its basis formed on the fly (solver/rigid_modes.py): at
 // node i, Z'_i = N_i [I | -[a_i]x] (3 x 6), N_i = S^-1_i (block Jacobi's inverse scaling; 0 on a
-// fixed node), a_i the node's lever arm about its body's centre; a body's six coarse unknowns are
-// its translation t and rotation w. Reading N and a (12 values a node) where a stored Z' reads 18.
+// fixed node) or N_i = n_i I (a value a node: `scalar`; the free-node mask where the CG applies
+// block Jacobi itself), a_i the node's lever arm about its body's centre; a body's six coarse
+// unknowns are its translation t and rotation w. Reading N and a (12 values a node, 4 with a
+// scalar N) where a stored Z' reads 18.
+template <typename S>
+TM_HD void rigid_node_apply(const S* node_inverse, bool scalar, int64_t i, const S (&v)[3], bool transpose,
+                            S (&out)[3]) {
+  if (scalar) {
+    const S n = node_inverse[i];
+    TM_UNROLL for (int k = 0; k < 3; ++k) out[k] = n * v[k];
+    return;
+  }
+  const S* n = node_inverse + i * 9;
+  TM_UNROLL for (int k = 0; k < 3; ++k) {
+    out[k] = transpose ? n[k] * v[0] + n[3 + k] * v[1] + n[6 + k] * v[2]
+                       : n[3 * k] * v[0] + n[3 * k + 1] * v[1] + n[3 * k + 2] * v[2];
+  }
+}
 //
 // multigrid_rigid_restrict: out_b = sum over range b's nodes of Z'_i^T r_i = (u, a x u), u = N^T r;
 // a range of nodes (a body, or a run of its nodes) a row, summed by lanes as BsrRows does
@@ -170,7 +186,8 @@ template <typename S>
 struct RigidRestrictKernel {
   static constexpr int kRows = 6;
   using Scalar = S;
-  const S* node_inverse;     // [V, 3, 3] N
+  const S* node_inverse;     // [V, 3, 3] N, or [V] (scalar)
+  bool scalar;
   const S* arm;              // [V, 3]
   const int32_t* range_ptr;  // [R + 1]: range b's nodes range_ptr[b] .. range_ptr[b + 1] - 1
   const S* r;                // [V 3]
@@ -180,11 +197,11 @@ struct RigidRestrictKernel {
     TM_UNROLL for (int k = 0; k < 6; ++k) sum[k] = S(0);
     const int32_t end = range_ptr[row + 1];
     for (int32_t i = range_ptr[row] + lane; i < end; i += stride) {
-      const S* n = node_inverse + static_cast<int64_t>(i) * 9;
       const S* ri = r + static_cast<int64_t>(i) * 3;
       const S* a = arm + static_cast<int64_t>(i) * 3;
+      const S rv[3] = {ri[0], ri[1], ri[2]};
       S u[3];
-      TM_UNROLL for (int k = 0; k < 3; ++k) u[k] = n[k] * ri[0] + n[3 + k] * ri[1] + n[6 + k] * ri[2];
+      rigid_node_apply(node_inverse, scalar, i, rv, true, u);
       sum[0] += u[0];
       sum[1] += u[1];
       sum[2] += u[2];
@@ -203,7 +220,8 @@ struct RigidRestrictKernel {
 // a node an item. out may be r.
 template <typename S>
 struct RigidProlongKernel {
-  const S* node_inverse;     // [V, 3, 3]
+  const S* node_inverse;     // [V, 3, 3], or [V] (scalar)
+  bool scalar;
   const S* arm;              // [V, 3]
   const int32_t* node_body;  // [V]
   const S* coarse;           // [B 6]: t, w a body
@@ -216,9 +234,10 @@ struct RigidProlongKernel {
     const S* a = arm + i * 3;
     const S v[3] = {c[0] + c[4] * a[2] - c[5] * a[1], c[1] + c[5] * a[0] - c[3] * a[2],
                     c[2] + c[3] * a[1] - c[4] * a[0]};
-    const S* n = node_inverse + i * 9;
+    S nv[3];
+    rigid_node_apply(node_inverse, scalar, i, v, false, nv);
     TM_UNROLL for (int k = 0; k < 3; ++k) {
-      const S moved = weight * (n[3 * k] * v[0] + n[3 * k + 1] * v[1] + n[3 * k + 2] * v[2]);
+      const S moved = weight * nv[k];
       out[i * 3 + k] = r != nullptr ? r[i * 3 + k] + moved : moved;
     }
   }

@@ -203,12 +203,13 @@ void multigrid_block_cholesky(const at::Tensor& blocks, at::Tensor scale, at::Te
   });
 }
 
-// The rigid transfers' shared arguments: node_inverse [V, 3, 3] floating and arm [V, 3] of its dtype
-// and device, contiguous. Returns V.
+// The rigid transfers' shared arguments: node_inverse [V, 3, 3] or [V] (N_i = n_i I) floating and
+// arm [V, 3] of its dtype and device, contiguous. Returns V.
 inline int64_t check_rigid_nodes(const at::Tensor& node_inverse, const at::Tensor& arm) {
   check_float(node_inverse, "node_inverse");
-  TORCH_CHECK(node_inverse.dim() == 3 && node_inverse.size(1) == 3 && node_inverse.size(2) == 3,
-              "tensormass: node_inverse must be [V, 3, 3], got ", shape_str(node_inverse.sizes()));
+  TORCH_CHECK(node_inverse.dim() == 1 || (node_inverse.dim() == 3 && node_inverse.size(1) == 3 &&
+                                          node_inverse.size(2) == 3),
+              "tensormass: node_inverse must be [V, 3, 3] or [V], got ", shape_str(node_inverse.sizes()));
   check_node_tensor(node_inverse, "node_inverse", node_inverse, node_inverse.sizes(), "node_inverse");
   const int64_t nodes = node_inverse.size(0);
   check_node_tensor(arm, "arm", node_inverse, {nodes, 3}, "node_inverse");
@@ -232,6 +233,7 @@ void multigrid_rigid_restrict(const at::Tensor& node_inverse, const at::Tensor& 
     using S = decltype(s_tag);
     RigidRestrictKernel<S> k;
     k.node_inverse = node_inverse.data_ptr<S>();
+    k.scalar = node_inverse.dim() == 1;
     k.arm = arm.data_ptr<S>();
     k.range_ptr = range_ptr.data_ptr<int32_t>();
     k.r = r.data_ptr<S>();
@@ -259,6 +261,7 @@ void multigrid_rigid_prolong(const at::Tensor& node_inverse, const at::Tensor& a
     using S = decltype(s_tag);
     RigidProlongKernel<S> k;
     k.node_inverse = node_inverse.data_ptr<S>();
+    k.scalar = node_inverse.dim() == 1;
     k.arm = arm.data_ptr<S>();
     k.node_body = node_body.data_ptr<int32_t>();
     k.coarse = coarse.data_ptr<S>();

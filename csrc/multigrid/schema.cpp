@@ -32,7 +32,8 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   // multigrid_rigid_restrict(node_inverse [V, 3, 3], arm [V, 3], range_ptr [R + 1] int32, r [3 V], out! [6 R]) -> ()
   //   the rigid correction's restriction with its basis formed on the fly: for each range b of
   //   nodes range_ptr[b] .. range_ptr[b + 1] - 1 (a body, or a run of one's nodes), out_b = the sum
-  //   of (u_i, arm_i x u_i), u_i = node_inverse_i^T r_i.
+  //   of (u_i, arm_i x u_i), u_i = node_inverse_i^T r_i (node_inverse [V]: u_i = node_inverse_i r_i,
+  //   a value a node, N_i = n_i I).
   m.def("multigrid_rigid_restrict(Tensor node_inverse, Tensor arm, Tensor range_ptr, Tensor r, Tensor(a!) out) -> ()");
   // multigrid_rigid_prolong(node_inverse, arm, node_body [V] int32, coarse [6 B], r? [3 V], weight, out! [3 V]) -> ()
   //   its prolongation: out_i = r_i + weight node_inverse_i (t + w x arm_i), (t, w) = coarse's six

@@ -142,8 +142,15 @@ def _ref_multigrid_block_cholesky(blocks, scale, scale_t, inverse):
     inverse.copy_(s_inverse)
 
 
+def _node_inverse(node_inverse):
+    """N ``[V, 3, 3]`` of the rigid transfers' ``node_inverse`` ``[V, 3, 3]`` or ``[V]`` (n_i I)."""
+    if node_inverse.dim() == 3:
+        return node_inverse
+    return node_inverse[:, None, None] * torch.eye(3, dtype=node_inverse.dtype, device=node_inverse.device)
+
+
 def _ref_multigrid_rigid_restrict(node_inverse, arm, range_ptr, r, out):
-    u = (node_inverse * r.view(-1, 3, 1)).sum(1)  # N^T r [V, 3]
+    u = (_node_inverse(node_inverse) * r.view(-1, 3, 1)).sum(1)  # N^T r [V, 3]
     per_node = torch.cat([u, torch.linalg.cross(arm, u, dim=-1)], 1)  # [V, 6]
     out.copy_(torch.segment_reduce(per_node, "sum", lengths=range_ptr.long().diff(), unsafe=True).reshape(-1))
 
@@ -151,7 +158,7 @@ def _ref_multigrid_rigid_restrict(node_inverse, arm, range_ptr, r, out):
 def _ref_multigrid_rigid_prolong(node_inverse, arm, node_body, coarse, r, weight, out):
     per_body = coarse.view(-1, 6)[node_body.long()]  # [V, 6]
     moved = per_body[:, :3] + torch.linalg.cross(per_body[:, 3:], arm, dim=-1)
-    moved = weight * (node_inverse * moved[:, None, :]).sum(-1)
+    moved = weight * (_node_inverse(node_inverse) * moved[:, None, :]).sum(-1)
     out.copy_((moved if r is None else r.view(-1, 3) + moved).reshape(-1))
 
 
@@ -291,7 +298,8 @@ def block_scaling(blocks: torch.Tensor, scale: torch.Tensor, scale_t: torch.Tens
 def rigid_restrict(node_inverse: torch.Tensor, arm: torch.Tensor, range_ptr: torch.Tensor, r: torch.Tensor,
                    out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Each range's Z'^T r ``[6 R]`` for ``r [3 V]`` (``multigrid_rigid_restrict``; Z'_i = N_i
-    [I | -[a_i]x], ``node_inverse [V, 3, 3]`` N, ``arm [V, 3]`` a, ``range_ptr [R + 1]`` int32 the
+    [I | -[a_i]x], ``node_inverse [V, 3, 3]`` N or ``[V]`` (N_i = n_i I), ``arm [V, 3]`` a,
+    ``range_ptr [R + 1]`` int32 the
     ranges of nodes: the bodies', or runs within them), into ``out`` (None: a new tensor)."""
     if out is None:
         out = torch.empty(6 * (range_ptr.shape[0] - 1), dtype=r.dtype, device=r.device)

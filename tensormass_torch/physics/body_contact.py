@@ -474,6 +474,20 @@ class PairStiffness:
             buffer[count:].zero_()
         return grew
 
+    def stiffness_blocks(self) -> torch.Tensor:
+        """The diagonal blocks ``[V, 3, 3]`` of the loaded pairs' part of the step's matrix
+        (``ContactPairs.stiffness_blocks`` with the load's coefficient and damping): coef_i^2 M at
+        node i, M = a u u^T + b (I - u u^T), each node's entries summed in the order the load
+        sorted them (one gather and one segment sum: no sort of its own; the padding's entries,
+        zero, sort past every node's run)."""
+        u = self.direction
+        along = u[:, :, None] * u[:, None, :]  # [C, 3, 3]
+        eye = torch.eye(3, dtype=u.dtype, device=u.device)
+        per_pair = self.normal[:, None, None] * along + self.friction[:, None, None] * (eye - along)
+        per_entry = (self.coef ** 2)[:, :, None, None] * per_pair[:, None]  # [C, 4, 3, 3]
+        sorted_entries = per_entry.reshape(-1, 9)[self.order]
+        return torch.segment_reduce(sorted_entries, "sum", offsets=self.offsets, unsafe=True).view(-1, 3, 3)
+
     def __call__(self, dx: torch.Tensor, add_to: Optional[torch.Tensor] = None) -> torch.Tensor:
         """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class; ``ops.contact.pair_product``),
         or ``add_to [V, 3]`` (another product, not ``dx``) plus it, in place."""

@@ -622,6 +622,7 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
     fused = (loaded if loaded is not None
              else system.system_matvec(mass_coef, stiffness_coef, opts.pipelined, opts.variants))
     graph_key = None
+    stiffness = None  # the pairs' PairStiffness, where their product is one
     if fused is None:  # a model that is not a TensorMass: the composed product
         tangent = system.tangent(x, pairs)
 
@@ -646,7 +647,7 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
 
             def matvec(p):  # (with friction, its damping h C: minus h times its forces)
                 return fused(p)[0] - stiffness_coef * pairs.dforces(p) - opts.dt * pairs.friction_forces(p)
-    product = matvec  # the system's own (Jacobi below scales it)
+    product = matvec  # the system's own, for the warm-start space (a JacobiScaling below scales matvec)
     if space is not None:
         space.watch(None if fused is None else fused.node_stiffness, changing=pairs is not None and len(pairs) > 0)
         x0 = space.guess(rhs if system.free is None else rhs * system.free)
@@ -655,7 +656,7 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
         key = getattr(multigrid, "key", None)  # None: not capturable (cholespy's solves)
         graph_key = None if graph_key is None or key is None else (graph_key, key)
     scaling = None
-    jacobi = _jacobi(system, opts, fused, pairs, mass_coef, stiffness_coef)
+    jacobi = _jacobi(system, opts, fused, pairs, mass_coef, stiffness_coef, stiffness)
     if isinstance(jacobi, JacobiScaling):  # CG on S^T A S y = S^T b, x = S y (solver.preconditioner)
         scaling = jacobi
         matvec = scaling.product(matvec)
@@ -737,12 +738,14 @@ def _rest_preconditioner(system: DynamicsSystem, opts: StepOptions, fused, matve
                                         pairs.stiffness_row_l1(stiffness_coef, opts.dt) if with_pairs else None)
 
 
-def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float):
+def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float,
+            pair_stiffness=None):
     """The system's ``preconditioner.BlockJacobi`` (B^-1, applied in the CG's update) loaded with
     this solve's diagonal blocks where ``opts.preconditioner`` asks for it (``"auto"``: where body
     contact ``pairs`` join the solve; ``"rigid"``: under its coarse correction, :func:`_rigid`) and
-    the model has a loaded product ``fused`` (a TensorMass); None otherwise. (A
-    ``preconditioner.JacobiScaling`` put in its place makes the solve CG on the scaled system.)"""
+    the model has a loaded product ``fused`` (a TensorMass); None otherwise. ``pair_stiffness``:
+    the pairs' loaded ``PairStiffness`` or None. (A ``preconditioner.JacobiScaling`` put in its
+    place makes the solve CG on the scaled system.)"""
     with_pairs = pairs is not None and len(pairs) > 0
     wanted = opts.preconditioner in ("jacobi", "rigid") or (opts.preconditioner == "auto" and with_pairs)
     if fused is None or not wanted:
@@ -756,8 +759,9 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
     if fused.diagonal_blocks is None or fused.diagonal_blocks[0] != key:
         fused.diagonal_blocks = (key, system_diagonal_blocks(system, mass_coef, stiffness_coef, fused.node_stiffness))
     blocks = fused.diagonal_blocks[1]
-    if with_pairs:
-        blocks = blocks + pairs.stiffness_blocks(stiffness_coef, opts.dt)
+    if with_pairs:  # (from the loaded PairStiffness where there is one: its entries are sorted already)
+        blocks = blocks + (pair_stiffness.stiffness_blocks() if pair_stiffness is not None
+                           else pairs.stiffness_blocks(stiffness_coef, opts.dt))
     return jacobi.load(blocks)
 
 

@@ -43,8 +43,9 @@ load, in float64.
 An iteration applies the coarse part as three ops of the multigrid family: the restriction Z^T
 (a body's sum over its nodes), the groups' inverses (a block-sparse product, a block row a body)
 and the prolongation Z, which also adds what z holds. Z_i = N_i [I | -[a_i]x] is formed at each
-node from N (3 x 3: the identity on free nodes, zero on fixed ones; on a ``JacobiScaling``, its
-inverse S^-1) and the lever arm a, 12 values a node where a stored basis reads 18.
+node from N (the identity on free nodes, zero on fixed ones: one value a node; on a
+``JacobiScaling``, its inverse S^-1, 3 x 3) and the lever arm a, 4 or 12 values a node where a
+stored basis reads 18.
 Fixed shapes, no host synchronisation, deterministic sums: a CUDA graph replays it with each
 load's values, in the buffers kept here. Whether the iterations it saves pay for it is measured,
 not assumed: ``"auto"`` does not use it (``docs/preconditioners.md``).
@@ -320,7 +321,7 @@ class RigidModeCorrection:
         self._age = 0  # loads of new products since the bodies' part was computed
         self._lag = None  # the ``lag`` key it was computed under
         self._lag_pairs = 0  # the number of pairs it was computed with
-        self.node_inverse: Optional[torch.Tensor] = None  # N = S^-1, zero on fixed nodes [V, 3, 3]
+        self.node_inverse: Optional[torch.Tensor] = None  # N = S^-1 [V, 3, 3] or the free mask [V] (N = I)
         self.arms: Optional[torch.Tensor] = None  # a [V, 3]
         self.inverses: Optional[BsrMatrix] = None  # the groups' E^-1 [6 B, 6 B]
         self._run_ptr: Optional[torch.Tensor] = None  # [R + 1] int32: the restriction's runs of nodes
@@ -397,14 +398,14 @@ class RigidModeCorrection:
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
         blocks = torch.where(filled, rows, 0.0).to(x.dtype).reshape(-1, 6, 6)
         self._blocks = getattr(scaling, "inverse_blocks", None)
-        if self._blocks is not None:  # BlockJacobi: Z in the system's own unknowns, N = I
-            node_inverse = torch.eye(3, dtype=x.dtype, device=x.device).expand(x.shape[0], 3, 3)
+        if self._blocks is not None:  # BlockJacobi: Z in the system's own unknowns, N = I (a value a node)
+            node_inverse = free[:, 0].to(x.dtype) if free is not None else x.new_ones(x.shape[0])
         else:
             node_inverse = scaling.inverse if scaling.inverse.dim() == 3 else torch.diag_embed(scaling.inverse)
-        if free is not None:
-            node_inverse = node_inverse * free[:, :, None]
+            if free is not None:
+                node_inverse = node_inverse * free[:, :, None]
         if self.node_inverse is None or self.inverses.values.shape != blocks.shape \
-                or self.node_inverse.shape[0] != x.shape[0] or self.node_inverse.dtype != x.dtype \
+                or self.node_inverse.shape != node_inverse.shape or self.node_inverse.dtype != x.dtype \
                 or self.node_inverse.device != x.device:
             self._build(node_inverse, arms, blocks, columns, segments)
         else:
@@ -417,7 +418,7 @@ class RigidModeCorrection:
 
     def _build(self, node_inverse: torch.Tensor, arms: torch.Tensor, rows: torch.Tensor, columns: torch.Tensor,
                segments: Segments):
-        """The buffers, new: ``node_inverse [V, 3, 3]``, ``arms [V, 3]``, the inverses' blocks
+        """The buffers, new: ``node_inverse [V, 3, 3] or [V]``, ``arms [V, 3]``, the inverses' blocks
         ``rows [B c, 6, 6]`` and their block columns ``[B c]`` int32, the bodies' node ranges."""
         bodies, device = segments.num_objects, arms.device
         per_row = rows.shape[0] // bodies
@@ -446,7 +447,10 @@ class RigidModeCorrection:
 
     def basis(self) -> torch.Tensor:
         """Z' ``[V, 3, 6]`` as the ops form it at each node (N [I | -[a]x]), for tests and inspection."""
-        return (self.node_inverse[:, :, :, None] * modes_of(self.arms).permute(1, 2, 0)[:, None, :, :]).sum(2)
+        modes = modes_of(self.arms).permute(1, 2, 0)  # [V, 3, 6]
+        if self.node_inverse.dim() == 1:  # N = n_i I
+            return self.node_inverse[:, None, None] * modes
+        return (self.node_inverse[:, :, :, None] * modes[:, None, :, :]).sum(2)
 
     def _coarse_solution(self, r: torch.Tensor) -> torch.Tensor:
         """E^-1 Z'^T r ``[6 B]`` (the groups' blocks) for a residual ``r [V, 3]``."""

@@ -311,7 +311,7 @@ def dense_basis(node_inverse, arm, node_body, bodies):
     z = torch.stack([torch.stack([one, zero, zero, zero, az, -ay], -1),
                      torch.stack([zero, one, zero, -az, zero, ax], -1),
                      torch.stack([zero, zero, one, ay, -ax, zero], -1)], 1)  # [V, 3, 6]
-    local = node_inverse.double() @ z
+    local = node_inverse.double()[:, None, None] * z if node_inverse.dim() == 1 else node_inverse.double() @ z
     out = torch.zeros(3 * nodes, 6 * bodies, dtype=torch.float64, device=arm.device)
     for i in range(nodes):
         b = int(node_body[i])
@@ -321,11 +321,15 @@ def dense_basis(node_inverse, arm, node_body, bodies):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_rigid_transfers_are_the_dense_basis_products(device, dtype):
+@pytest.mark.parametrize("form", ["blocks", "scalar"])
+def test_rigid_transfers_are_the_dense_basis_products(device, dtype, form):
     """The restriction is Z'^T r and the prolongation r + w Z' c for the dense Z' (column k of a
-    rotation: e_k x a), in both dtypes; the references agree."""
+    rotation: e_k x a), N_i a 3 x 3 block or a value a node (n_i I: the free mask's form, here with
+    other values too), in both dtypes; the references agree."""
     native(device)
     node_inverse, arm, body_ptr, node_body = rigid_nodes(12, 3, device, dtype)
+    if form == "scalar":
+        node_inverse = node_inverse[:, 0, 0].contiguous()
     basis = dense_basis(node_inverse, arm, node_body, 12)
     r, c = vec(basis.shape[0], 4, device, dtype), vec(basis.shape[1], 5, device, dtype)
     tol = dict(rtol=1e-5, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-12)
@@ -352,6 +356,7 @@ def test_rigid_transfers_bad_arguments_raise_naming_them_and_write_nothing(devic
     r, c = vec(3 * nodes, 1, device), vec(24, 2, device)
     out_c, out_r = torch.full((24,), -7.0, dtype=torch.float64, device=device), torch.full_like(r, -7.0)
     for args, match in [((node_inverse[:, :2], arm, body_ptr, r, out_c), "node_inverse"),
+                        ((node_inverse[:, :, 0], arm, body_ptr, r, out_c), "node_inverse"),
                         ((node_inverse, arm[:-1], body_ptr, r, out_c), "arm"),
                         ((node_inverse, arm, body_ptr.long(), r, out_c), "range_ptr"),
                         ((node_inverse, arm, body_ptr, r[:-1], out_c), "r"),

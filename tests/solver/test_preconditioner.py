@@ -137,6 +137,11 @@ def test_the_system_blocks_are_the_step_matrix_blocks(friction):
     torch.testing.assert_close(blocks, expected, rtol=1e-12, atol=1e-14)
     off = blocks - torch.diag_embed(torch.diagonal(blocks, dim1=-2, dim2=-1))
     assert float(off.abs().max()) > 1e-6 * float(blocks.abs().max())  # the blocks are not diagonal
+    # the loaded PairStiffness's blocks (the step's: its entries sorted at the load) are the pairs'
+    mass_only = system_diagonal_blocks(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness)
+    torch.testing.assert_close(mass_only + stiffness.stiffness_blocks(), expected, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(stiffness.stiffness_blocks(), pairs.stiffness_blocks(stiffness_coef, sim.options.dt),
+                               rtol=1e-13, atol=0)
 
 
 def test_the_block_scaling_is_the_inverse_cholesky_factor():
