@@ -299,8 +299,8 @@ def rigid_restrict(node_inverse: torch.Tensor, arm: torch.Tensor, range_ptr: tor
                    out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Each range's Z'^T r ``[6 R]`` for ``r [3 V]`` (``multigrid_rigid_restrict``; Z'_i = N_i
     [I | -[a_i]x], ``node_inverse [V, 3, 3]`` N or ``[V]`` (N_i = n_i I), ``arm [V, 3]`` a,
-    ``range_ptr [R + 1]`` int32 the
-    ranges of nodes: the bodies', or runs within them), into ``out`` (None: a new tensor)."""
+    ``range_ptr [R + 1]`` int32 the ranges of nodes: the bodies', or runs within them), into
+    ``out`` (None: a new tensor)."""
     if out is None:
         out = torch.empty(6 * (range_ptr.shape[0] - 1), dtype=r.dtype, device=r.device)
     library.op_or_reference("multigrid_rigid_restrict", r.device)(node_inverse, arm, range_ptr, r, out)
