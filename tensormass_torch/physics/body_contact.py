@@ -231,6 +231,24 @@ def _along_normals(num_nodes: int, nodes: torch.Tensor, coefficients: torch.Tens
     return _sum_into(num_nodes, nodes.reshape(-1), per_pair.reshape(-1, 3))
 
 
+def _pair_blocks(direction: torch.Tensor, normal, tangential: Optional[torch.Tensor]) -> torch.Tensor:
+    """``[P, 3, 3]``: each pair's M = a u u^T + b (I - u u^T) for its direction u ``[P, 3]``, a =
+    ``normal`` (a number, or ``[P]``) and b = ``tangential`` ``[P]`` (None: 0)."""
+    along = direction[:, :, None] * direction[:, None, :]  # [P, 3, 3]
+    normal = torch.as_tensor(normal, dtype=along.dtype, device=along.device)
+    per_pair = (normal.reshape(-1, 1, 1) if normal.dim() else normal) * along
+    if tangential is not None:
+        eye = torch.eye(3, dtype=along.dtype, device=along.device)
+        per_pair = per_pair + tangential[:, None, None] * (eye - along)
+    return per_pair
+
+
+def _entry_blocks(coefficients: torch.Tensor, per_pair: torch.Tensor) -> torch.Tensor:
+    """``[4 P, 9]``: coefficient_i^2 M, each pair's diagonal block at its node i (``coefficients
+    [P, 4]``, M ``[P, 3, 3]``), in the pairs' entry order."""
+    return ((coefficients ** 2)[:, :, None, None] * per_pair[:, None]).reshape(-1, 9)
+
+
 @dataclass
 class ContactPairs:
     """The vertex-triangle pairs in contact at one state (what a step linearises).
@@ -364,13 +382,8 @@ class ContactPairs:
     def _pair_matrices(self, coefficient: float, damping: float) -> torch.Tensor:
         """``[P, 3, 3]``: each pair's M = a u u^T + b (I - u u^T), a = ``coefficient`` k, b =
         ``damping`` c_p (its part of the step's matrix is J^T M J over its four nodes)."""
-        along = self.direction[:, :, None] * self.direction[:, None, :]  # [P, 3, 3]
-        stiffness = torch.as_tensor(coefficient * self.stiffness, dtype=along.dtype, device=along.device)
-        per_pair = (stiffness.reshape(-1, 1, 1) if stiffness.dim() else stiffness) * along
-        if self.friction is not None and damping:
-            eye = torch.eye(3, dtype=along.dtype, device=along.device)
-            per_pair = per_pair + (damping * self.friction)[:, None, None] * (eye - along)
-        return per_pair
+        return _pair_blocks(self.direction, coefficient * self.stiffness,
+                            damping * self.friction if self.friction is not None and damping else None)
 
     def stiffness_row_l1(self, coefficient: float, damping: float = 0.0) -> torch.Tensor:
         """``[V, 3]``: a bound of the l1 norms of the rows of the pairs' part of the step's matrix
@@ -388,9 +401,8 @@ class ContactPairs:
         """The diagonal blocks ``[V, 3, 3]`` of the pairs' part of the step's matrix (as
         :meth:`stiffness_diagonal`, whose diagonals they hold): coef_i^2 (a u u^T + b (I - u u^T))
         at node i."""
-        per_pair = self._pair_matrices(coefficient, damping)
-        per_entry = (self._coefficients() ** 2)[:, :, None, None] * per_pair[:, None]  # [P, 4, 3, 3]
-        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 9)).view(-1, 3, 3)
+        per_entry = _entry_blocks(self._coefficients(), self._pair_matrices(coefficient, damping))
+        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry).view(-1, 3, 3)
 
     def energy(self) -> torch.Tensor:
         """The penalty energy (0-dim): sum over pairs of k/2 g^2."""
@@ -480,13 +492,8 @@ class PairStiffness:
         node i, M = a u u^T + b (I - u u^T), each node's entries summed in the order the load
         sorted them (one gather and one segment sum: no sort of its own; the padding's entries,
         zero, sort past every node's run)."""
-        u = self.direction
-        along = u[:, :, None] * u[:, None, :]  # [C, 3, 3]
-        eye = torch.eye(3, dtype=u.dtype, device=u.device)
-        per_pair = self.normal[:, None, None] * along + self.friction[:, None, None] * (eye - along)
-        per_entry = (self.coef ** 2)[:, :, None, None] * per_pair[:, None]  # [C, 4, 3, 3]
-        sorted_entries = per_entry.reshape(-1, 9)[self.order]
-        return torch.segment_reduce(sorted_entries, "sum", offsets=self.offsets, unsafe=True).view(-1, 3, 3)
+        per_entry = _entry_blocks(self.coef, _pair_blocks(self.direction, self.normal, self.friction))
+        return torch.segment_reduce(per_entry[self.order], "sum", offsets=self.offsets, unsafe=True).view(-1, 3, 3)
 
     def __call__(self, dx: torch.Tensor, add_to: Optional[torch.Tensor] = None) -> torch.Tensor:
         """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class; ``ops.contact.pair_product``),

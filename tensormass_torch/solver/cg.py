@@ -184,14 +184,13 @@ class CGSolver:
         return z.contiguous()
 
     def _block_buffers(self):
-        """The block-preconditioned iteration's z ``[V, d]``, the state as ``cg_direction`` takes
-        it there (z for r: p = z + beta p), and for a corrected preconditioner r.z ``[B]`` and the
-        state as the step length takes it (r.z for r.r), made at their first use."""
+        """The block-preconditioned iteration's z ``[V, d]`` and the state as ``cg_direction`` takes
+        it there (z for r: p = z + beta p), made at their first use. (A corrected preconditioner's
+        r.z and the state its step length reads are the preconditioned iteration's:
+        :meth:`_pcg_buffers`.)"""
         if self._block is None:
             z = torch.zeros_like(self.state.r)
-            rz = torch.zeros_like(self.state.rr)
-            self._block = SimpleNamespace(z=z, direction=dataclasses.replace(self.state, r=z), rz=rz,
-                                          step=dataclasses.replace(self.state, rr=rz))
+            self._block = SimpleNamespace(z=z, direction=dataclasses.replace(self.state, r=z))
         return self._block
 
     def _block_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
@@ -205,7 +204,7 @@ class CGSolver:
         taken again (``pcg_beta``); the stopping rule stays on r.B^-1 r."""
         s, b = self.state, self._block_buffers()
         correct = getattr(preconditioner, "correct", None)
-        step = s if correct is None else b.step
+        step = s if correct is None else self._pcg_buffers().scaled
         fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
         ap = fused(s.p, self.plan, step) if fused is not None else None
         if ap is None:
@@ -213,7 +212,7 @@ class CGSolver:
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native, preconditioner.inverse_blocks, b.z)
         if correct is not None:
             correct(s.r, b.z)
-            cg_ops.pcg_beta(s.r, b.z, self.plan, b.rz, s, self.native)
+            cg_ops.pcg_beta(s.r, b.z, self.plan, self._pcg_buffers().rz, s, self.native)
         cg_ops.cg_direction(self.plan, b.direction, self.native)
 
     def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
@@ -332,7 +331,7 @@ class CGSolver:
             correct = getattr(preconditioner, "correct", None)
             if correct is not None:  # z = B^-1 r + C r, and r.z for the step length
                 correct(s.r, self._block.z)
-                cg_ops.object_dot(s.r, self._block.z, self.plan, self._block.rz, s, self.native)
+                cg_ops.object_dot(s.r, self._block.z, self.plan, self._pcg_buffers().rz, s, self.native)
             s.p.copy_(self._block.z)
         else:
             z = self._precondition(preconditioner)

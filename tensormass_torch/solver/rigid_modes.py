@@ -337,8 +337,9 @@ class RigidModeCorrection:
         """Build the correction at positions ``x [V, 3]`` for the bodies of ``segments`` with node
         masses ``mass [V]``, free-node mask ``free [V, 1]`` (or None), ``node_weights [V, 3, 3]``
         (c_M m_i I + c_K N_i, or a function that returns them: called only where the bodies' part
-        is computed), block Jacobi's loaded ``scaling`` (``JacobiScaling``: Z' = S^-1 Z) and the
-        ``pairs`` with their ``pair_matrices [P, 3, 3]`` (c_K k u u^T + damping, or None).
+        is computed), block Jacobi loaded (``scaling``: a ``BlockJacobi``, N = I and the CG
+        applies B^-1; or a ``JacobiScaling``, Z' = S^-1 Z) and the ``pairs`` with their
+        ``pair_matrices [P, 3, 3]`` (c_K k u u^T + damping, or None).
         ``kept``: a key that promises x, mass, free and the node weights are those of the last
         load with the same key (a step's contact rounds: only the pairs and the scaling change),
         whose modes, groups and own blocks are then reused; None: computed afresh. ``lag``: a key
