@@ -2,7 +2,8 @@
 simulators of the same pile from the same state, stepped in alternated blocks, one of them with
 the old path put back while it steps (rates of separate processes differ by 10-15 %).
 
-    python benchmarks/probes/cg_fusions_probe.py --change alpha_dot|accumulate|block_jacobi [--columns 10]
+    python benchmarks/probes/cg_fusions_probe.py --change alpha_dot|accumulate|block_jacobi|coarse_direction
+                                                 [--columns 10]
                                                  [--shift 0.01] [--steps 120] [--state DIR]
                                                  [--contact '{"friction": 0.5}']
                                                  [--preconditioner auto] [--timed 10]
@@ -15,12 +16,15 @@ the old path put back while it steps (rates of separate processes differ by 10-1
                  (``contact_pair_product``'s accumulate) against its own output plus an add;
     block_jacobi block Jacobi applied inside the CG's update (``preconditioner.BlockJacobi``)
                  against CG on the scaled system S^T A S (``JacobiScaling``: two block products
-                 an iteration).
+                 an iteration);
+    coarse_direction  the rigid correction's coarse part added by the CG's direction, r.z from the
+                 coarse vectors (``cg_coarse_beta``), against the prolongation adding it to z and
+                 r.z over the nodes (``cg_dot_beta``) (with ``--preconditioner rigid``).
 
 The pile is ``contact_piles``' (``pile_arguments``), stepped ``--steps`` steps with ``--contact``
 or taken from ``--state``. For each block: ms a step and CG iterations a step (the accumulate is
-exact: the same iterations; the dots of alpha_dot and block_jacobi's r.z are summed in another
-order).
+exact: the same iterations; the dots of alpha_dot, block_jacobi's and coarse_direction's r.z are
+summed in another order).
 """
 import contextlib
 import sys
@@ -37,12 +41,13 @@ import contact_piles  # noqa: E402
 from contact_settings_probe import block  # noqa: E402
 
 import tensormass_torch as tm  # noqa: E402
+from tensormass_torch.ops import cg as cg_ops  # noqa: E402
 from tensormass_torch.physics import body_contact  # noqa: E402
 from tensormass_torch.solver import implicit_euler  # noqa: E402
 from tensormass_torch.solver.cg import CGSolver  # noqa: E402
 from tensormass_torch.solver.preconditioner import JacobiScaling  # noqa: E402
 
-CHANGES = ("alpha_dot", "accumulate", "block_jacobi")
+CHANGES = ("alpha_dot", "accumulate", "block_jacobi", "coarse_direction")
 
 
 def _own_output_then_add(kept):
@@ -53,6 +58,21 @@ def _own_output_then_add(kept):
     return pair_product
 
 
+def _corrected_z_iterate(self, matvec, max_iter, preconditioner):
+    """The block iteration as it was before the direction took the coarse part: z += w Z' E^-1 Z'^T r
+    (``correct``, the prolongation op), r.z over the nodes (``pcg_beta``), p = z + beta p."""
+    s, b = self.state, self._block_buffers()
+    step = self._pcg_buffers().scaled
+    fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
+    ap = fused(s.p, self.plan, step) if fused is not None else None
+    if ap is None:
+        ap = self._step_length(matvec, step)
+    cg_ops.cg_update(ap, self.plan, s, max_iter, self.native, preconditioner.inverse_blocks, b.z)
+    preconditioner.correct(s.r, b.z)
+    cg_ops.pcg_beta(s.r, b.z, self.plan, self._pcg_buffers().rz, s, self.native)
+    cg_ops.cg_direction(self.plan, b.direction, self.native)
+
+
 def old_path(change: str):
     """The path ``change`` replaced, put back for a ``with`` (and taken out again after it)."""
     if change == "alpha_dot":
@@ -60,6 +80,15 @@ def old_path(change: str):
     if change == "accumulate":
         return mock.patch.object(body_contact.contact_ops, "pair_product",
                                  _own_output_then_add(body_contact.contact_ops.pair_product))
+    if change == "coarse_direction":
+        kept = CGSolver._block_iterate
+
+        def block_iterate(self, matvec, max_iter, preconditioner):
+            if getattr(preconditioner, "coarse_terms", None) is None:
+                return kept(self, matvec, max_iter, preconditioner)
+            return _corrected_z_iterate(self, matvec, max_iter, preconditioner)
+
+        return mock.patch.object(CGSolver, "_block_iterate", block_iterate)
     # block_jacobi: a system made while it is in place keeps the scaled system's JacobiScaling
     return mock.patch.object(implicit_euler, "BlockJacobi", JacobiScaling)
 

@@ -67,11 +67,37 @@ void cg_update_cpu(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::Te
 }
 
 void cg_direction_cpu(at::Tensor p, const at::Tensor& r, const at::Tensor& beta, const at::Tensor& status,
-                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
+                      const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                      const c10::optional<at::Tensor>& node_inverse, const c10::optional<at::Tensor>& arm,
+                      const c10::optional<at::Tensor>& node_body, const c10::optional<at::Tensor>& coarse,
+                      double weight) {
   const CGPlan plan = check_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk);
+  const bool with_coarse = check_coarse_term(p, node_inverse, arm, node_body, coarse);
   AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_direction", [&] {
+    const RigidMotion<scalar_t> motion =
+        with_coarse ? rigid_motion_of<scalar_t>(node_inverse, arm, node_body, coarse, weight) : RigidMotion<scalar_t>{};
     direction_cpu<scalar_t>(plan, values_per_node(p), p.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(),
-                            beta.data_ptr<scalar_t>(), status.data_ptr<int32_t>());
+                            beta.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), with_coarse ? &motion : nullptr);
+  });
+}
+
+void cg_coarse_beta_cpu(const at::Tensor& rr, const at::Tensor& u, const at::Tensor& v, const at::Tensor& item_ptr,
+                        double weight, const at::Tensor& status, at::Tensor rz, at::Tensor beta) {
+  const int64_t objects = check_cg_coarse_beta(rr, u, v, item_ptr, status, rz, beta);
+  const int64_t k = u.size(1);
+  AT_DISPATCH_FLOATING_TYPES(rr.scalar_type(), "cg_coarse_beta", [&] {
+    const scalar_t* a = u.data_ptr<scalar_t>();
+    const scalar_t* b = v.data_ptr<scalar_t>();
+    const int64_t* ptr = item_ptr.data_ptr<int64_t>();
+    const int32_t* st = status.data_ptr<int32_t>();
+    const scalar_t* rr_b = rr.data_ptr<scalar_t>();
+    scalar_t* rz_b = rz.data_ptr<scalar_t>();
+    scalar_t* beta_b = beta.data_ptr<scalar_t>();
+    for (int64_t o = 0; o < objects; ++o) {
+      if (st[o] != kActive) continue;
+      const double dot = chunk_dot(a, b, ptr[o] * k, ptr[o + 1] * k);
+      beta_b[o] = pcg_beta_step<scalar_t>(coarse_rz<scalar_t>(rr_b[o], dot, weight), rz_b[o]);
+    }
   });
 }
 
@@ -152,4 +178,5 @@ TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
   m.impl("cg_alpha_dot", &tensormass::cg_alpha_dot_cpu);
   m.impl("cg_update", &tensormass::cg_update_cpu);
   m.impl("cg_direction", &tensormass::cg_direction_cpu);
+  m.impl("cg_coarse_beta", &tensormass::cg_coarse_beta_cpu);
 }

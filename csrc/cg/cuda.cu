@@ -67,12 +67,40 @@ __global__ void __launch_bounds__(kBlock) cg_update_kernel(S* __restrict__ x, S*
 template <typename S>
 __global__ void __launch_bounds__(kBlock) cg_direction_kernel(S* __restrict__ p, const S* __restrict__ r,
                                                               const S* __restrict__ beta, const int32_t* status,
-                                                              CGPlan plan, int64_t d) {
+                                                              CGPlan plan, int64_t d, const RigidMotion<S> coarse) {
   const int64_t chunk = blockIdx.x, object = plan.chunk_object[chunk];
   if (status[object] != kActive) return;
   const S bt = beta[object];
+  if (coarse.coarse != nullptr) {  // p = z + weight Z' y + beta p, a node a thread (d = 3)
+    for (int64_t i = plan.chunk_start[chunk] + threadIdx.x; i < plan.chunk_start[chunk + 1]; i += kBlock) {
+      coarse_direction_node(i, r, bt, p, coarse);
+    }
+    return;
+  }
   for (int64_t j = plan.chunk_start[chunk] * d + threadIdx.x; j < plan.chunk_start[chunk + 1] * d; j += kBlock) {
     p[j] = r[j] + bt * p[j];
+  }
+}
+
+// cg_coarse_beta: a block an object sums u . v over its items (strided per-thread sums, then
+// block_sum: a fixed order) and takes beta (common/cg.h: coarse_rz, pcg_beta_step).
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_coarse_beta_kernel(const S* __restrict__ rr, const S* __restrict__ u,
+                                                                const S* __restrict__ v,
+                                                                const int64_t* __restrict__ item_ptr, int64_t k,
+                                                                double weight, const int32_t* status, S* rz,
+                                                                S* beta) {
+  const int64_t object = blockIdx.x;
+  if (status[object] != kActive) return;
+  double acc = 0.0;
+  for (int64_t j = item_ptr[object] * k + threadIdx.x; j < item_ptr[object + 1] * k; j += kBlock) {
+    acc += static_cast<double>(u[j]) * static_cast<double>(v[j]);
+  }
+  const double total = block_sum(acc);
+  if (threadIdx.x == 0) {
+    S rz_b = rz[object];
+    beta[object] = pcg_beta_step<S>(coarse_rz<S>(rr[object], total, weight), rz_b);
+    rz[object] = rz_b;
   }
 }
 
@@ -184,14 +212,34 @@ void cg_update_cuda(at::Tensor x, at::Tensor r, const at::Tensor& p, const at::T
 }
 
 void cg_direction_cuda(at::Tensor p, const at::Tensor& r, const at::Tensor& beta, const at::Tensor& status,
-                       const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
+                       const at::Tensor& chunk_start, const at::Tensor& chunk_object, const at::Tensor& object_chunk,
+                       const c10::optional<at::Tensor>& node_inverse, const c10::optional<at::Tensor>& arm,
+                       const c10::optional<at::Tensor>& node_body, const c10::optional<at::Tensor>& coarse,
+                       double weight) {
   const CGPlan plan = check_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk);
+  const bool with_coarse = check_coarse_term(p, node_inverse, arm, node_body, coarse);
   if (plan.num_chunks == 0) return;
   c10::cuda::CUDAGuard guard(p.device());
   AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "cg_direction", [&] {
+    const RigidMotion<scalar_t> motion =
+        with_coarse ? rigid_motion_of<scalar_t>(node_inverse, arm, node_body, coarse, weight) : RigidMotion<scalar_t>{};
     cg_direction_kernel<scalar_t><<<grid_of(plan), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
         p.data_ptr<scalar_t>(), r.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), plan,
-        values_per_node(p));
+        values_per_node(p), motion);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
+void cg_coarse_beta_cuda(const at::Tensor& rr, const at::Tensor& u, const at::Tensor& v, const at::Tensor& item_ptr,
+                         double weight, const at::Tensor& status, at::Tensor rz, at::Tensor beta) {
+  const int64_t objects = check_cg_coarse_beta(rr, u, v, item_ptr, status, rz, beta);
+  if (objects == 0) return;
+  c10::cuda::CUDAGuard guard(rr.device());
+  AT_DISPATCH_FLOATING_TYPES(rr.scalar_type(), "cg_coarse_beta", [&] {
+    cg_coarse_beta_kernel<scalar_t><<<static_cast<unsigned int>(objects), kBlock, 0,
+                                      at::cuda::getCurrentCUDAStream()>>>(
+        rr.data_ptr<scalar_t>(), u.data_ptr<scalar_t>(), v.data_ptr<scalar_t>(), item_ptr.data_ptr<int64_t>(),
+        u.size(1), weight, status.data_ptr<int32_t>(), rz.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>());
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
 }
@@ -257,4 +305,5 @@ TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
   m.impl("cg_alpha_dot", &tensormass::cg_alpha_dot_cuda);
   m.impl("cg_update", &tensormass::cg_update_cuda);
   m.impl("cg_direction", &tensormass::cg_direction_cuda);
+  m.impl("cg_coarse_beta", &tensormass::cg_coarse_beta_cuda);
 }

@@ -34,10 +34,13 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
         "Tensor chunk_object, Tensor object_chunk, Tensor threshold, int max_iter, Tensor(c!) rr, "
         "Tensor(d!) status, Tensor(e!) beta, Tensor(f!) iterations, Tensor(g!) scratch, Tensor(h!) counter, "
         "Tensor? inverse_blocks=None, Tensor(i!)? z=None) -> ()");
-  // cg_direction(p!, r, beta [B], status, <chunk plan>)
-  //   p = r + beta p.
+  // cg_direction(p!, r, beta [B], status, <chunk plan>, node_inverse?, arm?, node_body?, coarse?, weight)
+  //   p = r + beta p. With a coarse term (node_inverse [V] or [V, 3, 3], arm [V, 3], node_body [V]
+  //   int32, coarse [6 B]: the rigid correction's basis and coarse solution, common/rigid_modes.h)
+  //   p = r + weight Z' coarse + beta p (r: block Jacobi's z = B^-1 r; p [V, 3]).
   m.def("cg_direction(Tensor(a!) p, Tensor r, Tensor beta, Tensor status, Tensor chunk_start, "
-        "Tensor chunk_object, Tensor object_chunk) -> ()");
+        "Tensor chunk_object, Tensor object_chunk, Tensor? node_inverse=None, Tensor? arm=None, "
+        "Tensor? node_body=None, Tensor? coarse=None, float weight=1.0) -> ()");
   // cg_dot(a, b [V] or [V, d], <chunk plan>, out! [B], scratch!, counter!)
   //   per-object a . b (every object, active or not).
   m.def("cg_dot(Tensor a, Tensor b, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
@@ -47,6 +50,13 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   beta = rz_new / rz, rz = rz_new; objects that are not active are skipped.
   m.def("cg_dot_beta(Tensor r, Tensor z, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
         "Tensor status, Tensor(a!) rz, Tensor(b!) beta, Tensor(c!) scratch, Tensor(d!) counter) -> ()");
+  // cg_coarse_beta(rr [B], u, v [N, k], item_ptr [B + 1] int64, weight, status, rz! [B], beta! [B])
+  //   preconditioned CG's r.z and beta for z = B^-1 r + weight Z' y with a coarse correction's
+  //   vectors u = Z'^T r and v = y = E^-1 u (common/cg.h: coarse_rz): per active object
+  //   rz_new = rr + weight * the sum of u . v over its items item_ptr[b] .. item_ptr[b + 1] - 1
+  //   (float64, a fixed order), beta = rz_new / rz, rz = rz_new (rr: cg_update's r.B^-1 r).
+  m.def("cg_coarse_beta(Tensor rr, Tensor u, Tensor v, Tensor item_ptr, float weight, Tensor status, "
+        "Tensor(a!) rz, Tensor(b!) beta) -> ()");
   // euler_update(x!, v!, dv, dv_imposed?, h, x_new!, v_new!, <chunk plan>, status, iterations, rr, rhs_sq,
   //              norms!, summary!, scratch!, counter! [B + 1], ring!?, ring_pos!?, carry, h_old=0)
   //   the end of an implicit step after its CG (common/cg.h: EulerUpdate, StepSummary):

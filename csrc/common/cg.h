@@ -13,12 +13,15 @@
 //   cg_update     x += alpha p;  r -= alpha Ap;  rr_new_b = sum r.r;  beta_b = rr_new_b / rr_b
 //                 (or the object stops: converged, non-finite, iteration cap)
 //   cg_direction  p = r + beta p
+// (block-preconditioned: cg_update also z = B^-1 r, and the direction takes z for r; with a coarse
+// correction, cg_coarse_beta takes beta and cg_direction adds the coarse part: coarse_rz below).
 // Objects that are not active are skipped by every kernel: their iterates stay as they were.
 #pragma once
 
 #include <cstdint>
 
 #include "common/element_math.h"
+#include "common/rigid_modes.h"
 
 namespace tensormass {
 
@@ -73,6 +76,24 @@ TM_HD S pcg_beta_step(S rz_new, S& rz) {
   const S beta = rz_new / rz;
   rz = rz_new;
   return beta;
+}
+
+// A coarse correction beside block Jacobi (the rigid modes', solver/rigid_modes.py): M^-1 r = z +
+// weight Z' y, z = B^-1 r (cg_update's) and y = E^-1 g the coarse solution of g = Z'^T r. Its
+// r . M^-1 r = r.z + weight (Z'^T r) . y = rr + weight g . y, a sum over the bodies' six values
+// (cg_coarse_beta) where r . (M^-1 r) took a pass over the nodes; and the direction p = M^-1 r +
+// beta p adds the coarse part at each node (cg_direction with the coarse term), so the corrected
+// z is never stored.
+template <typename S>
+TM_HD S coarse_rz(S rr, double coarse_dot, double weight) {
+  return static_cast<S>(static_cast<double>(rr) + weight * coarse_dot);
+}
+
+template <typename S>
+TM_HD void coarse_direction_node(int64_t i, const S* z, S beta, S* p, const RigidMotion<S>& coarse) {
+  S moved[3];
+  coarse.at(i, moved);
+  TM_UNROLL for (int k = 0; k < 3; ++k) p[i * 3 + k] = (z[i * 3 + k] + moved[k]) + beta * p[i * 3 + k];
 }
 
 // The start of a solve from x0 = 0 (CGSolver.start): r = p = b, rr = b.b; the object is

@@ -130,6 +130,33 @@ inline CGPlan check_cg_update(const at::Tensor& x, const at::Tensor& r, const at
   return plan;
 }
 
+// cg_direction's coarse term (all four tensors or none): node_inverse [V] or [V, 3, 3], arm [V, 3],
+// node_body [V] int32 and coarse [6 B] (six values a body), p's dtype and device, p [V, 3].
+inline bool check_coarse_term(const at::Tensor& p, const c10::optional<at::Tensor>& node_inverse,
+                              const c10::optional<at::Tensor>& arm, const c10::optional<at::Tensor>& node_body,
+                              const c10::optional<at::Tensor>& coarse) {
+  auto given = [](const c10::optional<at::Tensor>& t) { return t.has_value() && t->defined(); };
+  const int count = given(node_inverse) + given(arm) + given(node_body) + given(coarse);
+  TORCH_CHECK(count == 0 || count == 4,
+              "tensormass: cg_direction takes node_inverse, arm, node_body and coarse together (a coarse term) or "
+              "none of them");
+  if (count == 0) return false;
+  const int64_t nodes = p.size(0);
+  TORCH_CHECK(p.dim() == 2 && p.size(1) == 3, "tensormass: p must be [V, 3] for a coarse term, got ",
+              cg_shape_str(p.sizes()));
+  if (node_inverse->dim() == 1) {
+    cg_check(*node_inverse, "node_inverse", p, p.scalar_type(), {nodes});
+  } else {
+    cg_check(*node_inverse, "node_inverse", p, p.scalar_type(), {nodes, 3, 3});
+  }
+  cg_check(*arm, "arm", p, p.scalar_type(), {nodes, 3});
+  cg_check(*node_body, "node_body", p, at::kInt, {nodes});
+  TORCH_CHECK(coarse->dim() == 1 && coarse->numel() % 6 == 0, "tensormass: coarse must be [6 B] (six values a body), "
+              "got ", cg_shape_str(coarse->sizes()));
+  cg_check(*coarse, "coarse", p, p.scalar_type(), coarse->sizes());
+  return true;
+}
+
 inline CGPlan check_cg_direction(const at::Tensor& p, const at::Tensor& r, const at::Tensor& beta,
                                  const at::Tensor& status, const at::Tensor& chunk_start,
                                  const at::Tensor& chunk_object, const at::Tensor& object_chunk) {
@@ -139,6 +166,25 @@ inline CGPlan check_cg_direction(const at::Tensor& p, const at::Tensor& r, const
   cg_check_scalars(beta, "beta", p, plan.num_objects);
   cg_check_state(status, "status", p, plan.num_objects);
   return plan;
+}
+
+// cg_coarse_beta: rr [B] (float), u and v [N, k] of its dtype, item_ptr [B + 1] int64, then the
+// per-object status, rz and beta.
+inline int64_t check_cg_coarse_beta(const at::Tensor& rr, const at::Tensor& u, const at::Tensor& v,
+                                    const at::Tensor& item_ptr, const at::Tensor& status, const at::Tensor& rz,
+                                    const at::Tensor& beta) {
+  cg_check_values(rr, "rr");
+  TORCH_CHECK(rr.dim() == 1, "tensormass: rr must be [B], got ", cg_shape_str(rr.sizes()));
+  const int64_t objects = rr.size(0);
+  TORCH_CHECK(u.defined() && u.dim() == 2, "tensormass: u must be [N, k]");
+  cg_check(u, "u", rr, rr.scalar_type(), u.sizes());
+  cg_check(v, "v", rr, rr.scalar_type(), u.sizes());
+  cg_check(item_ptr, "item_ptr", rr, at::kLong, {objects + 1});
+  cg_check_state(status, "status", rr, objects);
+  cg_check_scalars(rz, "rz", rr, objects);
+  cg_check_scalars(beta, "beta", rr, objects);
+  TORCH_CHECK(!rz.is_same(beta) && !rz.is_same(rr), "tensormass: rz must be a buffer of its own, not rr or beta");
+  return objects;
 }
 
 inline CGPlan check_cg_dot(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
@@ -220,6 +266,15 @@ BlockUpdate<S> block_update_of(at::Tensor& x, at::Tensor& r, const at::Tensor& p
   return BlockUpdate<S>{x.data_ptr<S>(), r.data_ptr<S>(), p.data_ptr<S>(), ap.data_ptr<S>(),
                         blocks ? inverse_blocks->data_ptr<S>() : nullptr, blocks ? z->data_ptr<S>() : nullptr,
                         values_per_node(x)};
+}
+
+// cg_direction's coarse term over its tensors (checked by check_coarse_term).
+template <typename S>
+RigidMotion<S> rigid_motion_of(const c10::optional<at::Tensor>& node_inverse, const c10::optional<at::Tensor>& arm,
+                               const c10::optional<at::Tensor>& node_body, const c10::optional<at::Tensor>& coarse,
+                               double weight) {
+  return RigidMotion<S>{node_inverse->data_ptr<S>(), node_inverse->dim() == 1, arm->data_ptr<S>(),
+                        node_body->data_ptr<int32_t>(), coarse->data_ptr<S>(), static_cast<S>(weight)};
 }
 
 // The ops' structs over their tensors (checked by check_euler_update).

@@ -108,11 +108,17 @@ void block_update_cpu(const CGPlan& plan, const BlockUpdate<S>& update, const S*
   }
 }
 
-// cg_direction: p = r + beta p on the active objects' chunks.
+// cg_direction: p = r + beta p on the active objects' chunks; with a coarse term, p = r + weight Z' c
+// + beta p (coarse_direction_node).
 template <typename S>
-void direction_cpu(const CGPlan& plan, int64_t d, S* p, const S* r, const S* beta, const int32_t* status) {
+void direction_cpu(const CGPlan& plan, int64_t d, S* p, const S* r, const S* beta, const int32_t* status,
+                   const RigidMotion<S>* coarse = nullptr) {
   for_each_chunk(plan, d, status, [&](int64_t c, int64_t begin, int64_t end) {
     const S bt = beta[plan.chunk_object[c]];
+    if (coarse != nullptr) {  // p = z + weight Z' y + beta p (d = 3)
+      for (int64_t i = begin; i < end; ++i) coarse_direction_node(i, r, bt, p, *coarse);
+      return;
+    }
     for (int64_t j = begin * d; j < end * d; ++j) p[j] = r[j] + bt * p[j];
   });
 }

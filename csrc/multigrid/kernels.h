@@ -12,6 +12,7 @@
 #include <cstdint>
 
 #include "common/element_math.h"
+#include "common/rigid_modes.h"
 
 namespace tensormass {
 
@@ -158,27 +159,7 @@ struct BlockCholeskyKernel {
   }
 };
 
-// The rigid correction's transfers with its basis formed on the fly (solver/rigid_modes.py): at
-// node i, Z'_i = N_i [I | -[a_i]x] (3 x 6), N_i = S^-1_i (block Jacobi's inverse scaling; 0 on a
-// fixed node) or N_i = n_i I (a value a node: `scalar`; the free-node mask where the CG applies
-// block Jacobi itself), a_i the node's lever arm about its body's centre; a body's six coarse
-// unknowns are its translation t and rotation w. Reading N and a (12 values a node, 4 with a
-// scalar N) where a stored Z' reads 18.
-template <typename S>
-TM_HD void rigid_node_apply(const S* node_inverse, bool scalar, int64_t i, const S (&v)[3], bool transpose,
-                            S (&out)[3]) {
-  if (scalar) {
-    const S n = node_inverse[i];
-    TM_UNROLL for (int k = 0; k < 3; ++k) out[k] = n * v[k];
-    return;
-  }
-  const S* n = node_inverse + i * 9;
-  TM_UNROLL for (int k = 0; k < 3; ++k) {
-    out[k] = transpose ? n[k] * v[0] + n[3 + k] * v[1] + n[6 + k] * v[2]
-                       : n[3 * k] * v[0] + n[3 * k + 1] * v[1] + n[3 * k + 2] * v[2];
-  }
-}
-//
+// The rigid correction's transfers: its basis at each node is common/rigid_modes.h's.
 // multigrid_rigid_restrict: out_b = sum over range b's nodes of Z'_i^T r_i = (u, a x u), u = N^T r;
 // a range of nodes (a body, or a run of its nodes) a row, summed by lanes as BsrRows does
 // (deterministic).
@@ -220,26 +201,14 @@ struct RigidRestrictKernel {
 // a node an item. out may be r.
 template <typename S>
 struct RigidProlongKernel {
-  const S* node_inverse;     // [V, 3, 3], or [V] (scalar)
-  bool scalar;
-  const S* arm;              // [V, 3]
-  const int32_t* node_body;  // [V]
-  const S* coarse;           // [B 6]: t, w a body
-  const S* r;                // [V 3] or nullptr
-  S weight;
-  S* out;                    // [V 3]
+  RigidMotion<S> motion;
+  const S* r;  // [V 3] or nullptr
+  S* out;      // [V 3]
 
   TM_HD void operator()(int64_t i) const {
-    const S* c = coarse + static_cast<int64_t>(node_body[i]) * 6;
-    const S* a = arm + i * 3;
-    const S v[3] = {c[0] + c[4] * a[2] - c[5] * a[1], c[1] + c[5] * a[0] - c[3] * a[2],
-                    c[2] + c[3] * a[1] - c[4] * a[0]};
-    S nv[3];
-    rigid_node_apply(node_inverse, scalar, i, v, false, nv);
-    TM_UNROLL for (int k = 0; k < 3; ++k) {
-      const S moved = weight * nv[k];
-      out[i * 3 + k] = r != nullptr ? r[i * 3 + k] + moved : moved;
-    }
+    S moved[3];
+    motion.at(i, moved);
+    TM_UNROLL for (int k = 0; k < 3; ++k) out[i * 3 + k] = r != nullptr ? r[i * 3 + k] + moved[k] : moved[k];
   }
 };
 

@@ -260,13 +260,9 @@ void multigrid_rigid_prolong(const at::Tensor& node_inverse, const at::Tensor& a
   dispatch_scalar(out.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
     RigidProlongKernel<S> k;
-    k.node_inverse = node_inverse.data_ptr<S>();
-    k.scalar = node_inverse.dim() == 1;
-    k.arm = arm.data_ptr<S>();
-    k.node_body = node_body.data_ptr<int32_t>();
-    k.coarse = coarse.data_ptr<S>();
+    k.motion = RigidMotion<S>{node_inverse.data_ptr<S>(), node_inverse.dim() == 1, arm.data_ptr<S>(),
+                              node_body.data_ptr<int32_t>(), coarse.data_ptr<S>(), static_cast<S>(weight)};
     k.r = with_r ? r->data_ptr<S>() : nullptr;
-    k.weight = static_cast<S>(weight);
     k.out = out.data_ptr<S>();
     L::run(nodes, k, L::kNodeBlock);
   });

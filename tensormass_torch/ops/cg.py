@@ -6,7 +6,8 @@
                                             converged / non-finite / iteration cap; beta
                                             (with a block diagonal B^-1: also z = B^-1 r, and
                                             r.z in place of r.r)
-    cg_direction(plan, state)                p = r + beta p
+    cg_direction(plan, state)                p = r + beta p (with a coarse term: p = r +
+                                            weight Z' c + beta p, the rigid correction's part)
 
 Each runs the compiled op ``torch.ops.tensormass.cg_*`` (the cg family, ``csrc/cg/``: one GPU
 block per chunk of a :class:`ChunkPlan`, deterministic sums, no host synchronisation: capturable in
@@ -14,8 +15,10 @@ a CUDA graph) when the extension serves the device, else the pure-torch referenc
 the tests' oracle. Objects that are not active are left untouched by every step. ``cg_alpha_dot``
 is the first step for a product that does not give its per-node dots: Ap projected on the free
 nodes in place and p.Ap summed in the same pass. The family also
-has ``cg_dot`` (per-object dot products), ``cg_dot_beta`` (preconditioned CG's r.z and beta) and
-``euler_update`` (the end of an implicit Euler step after its solve). The ops write into their
+has ``cg_dot`` (per-object dot products), ``cg_dot_beta`` (preconditioned CG's r.z and beta),
+``cg_coarse_beta`` (the same where a coarse correction adds to block Jacobi: r.z from cg_update's
+r.B^-1 r and the coarse vectors, no pass over the nodes) and ``euler_update`` (the end of an
+implicit Euler step after its solve). The ops write into their
 arguments and return nothing (fake kernels: none).
 """
 from __future__ import annotations
@@ -29,6 +32,7 @@ import torch
 from .. import _backend
 from . import library
 from .library import OpDef
+from .multigrid import rigid_motion_reference
 from .segments import ChunkPlan, Segments
 
 ACTIVE, CONVERGED, BREAKDOWN, NONFINITE, CAPPED = 0, 1, 2, 3, 4
@@ -88,6 +92,27 @@ class CGState:
                    torch.zeros(2 * k, dtype=torch.float64, device=device))
 
 
+@dataclass(frozen=True)
+class CoarseTerm:
+    """A coarse correction's part of the CG's direction (:func:`cg_direction`): weight Z' c ``[V, 3]``
+    with Z'_i = N_i [I | -[a_i]x] formed at each node (``common/rigid_modes.h``; the rigid
+    correction's, ``solver.rigid_modes``)."""
+
+    node_inverse: torch.Tensor  # N: [V] (n_i I) or [V, 3, 3]
+    arm: torch.Tensor  # a [V, 3]
+    node_body: torch.Tensor  # [V] int32
+    coarse: torch.Tensor  # c [6 B]: each body's t and w
+    weight: float
+
+    def tensors(self) -> tuple:
+        """(node_inverse, arm, node_body, coarse): the ops' arguments before ``weight``."""
+        return self.node_inverse, self.arm, self.node_body, self.coarse
+
+    def motion(self) -> torch.Tensor:
+        """weight Z' c ``[V, 3]`` in tensor ops (the reference's)."""
+        return rigid_motion_reference(*self.tensors(), self.weight)
+
+
 def _native_ops(device: torch.device):
     """``torch.ops.tensormass`` when the extension has the CG ops for this device, else None."""
     if not _backend.use_extension(device):
@@ -143,9 +168,10 @@ def _ref_update(ap, plan: ChunkPlan, s: CGState, max_iter: int, inverse_blocks=N
     s.iterations.copy_(iterations)
 
 
-def _ref_direction(plan: ChunkPlan, s: CGState):
+def _ref_direction(plan: ChunkPlan, s: CGState, coarse: Optional[CoarseTerm] = None):
     node_active = plan.segments.spread((s.status == ACTIVE).to(s.p.dtype)) > 0
-    s.p.copy_(torch.where(node_active, s.r + plan.segments.spread(s.beta) * s.p, s.p))
+    r = s.r if coarse is None else s.r + coarse.motion()
+    s.p.copy_(torch.where(node_active, r + plan.segments.spread(s.beta) * s.p, s.p))
 
 
 # ---------------------------------------------------------------- the steps
@@ -178,11 +204,16 @@ def cg_update(ap: torch.Tensor, plan: ChunkPlan, s: CGState, max_iter: int, nati
                      s.status, s.beta, s.iterations, s.scratch, s.counter, inverse_blocks, z)
 
 
-def cg_direction(plan: ChunkPlan, s: CGState, native=None):
-    """Step 3: ``s.p = s.r + beta s.p`` on active objects."""
+def cg_direction(plan: ChunkPlan, s: CGState, native=None, coarse: Optional[CoarseTerm] = None):
+    """Step 3: ``s.p = s.r + beta s.p`` on active objects; with a ``coarse`` term (``[V, 3]``
+    unknowns), ``s.p = s.r + weight Z' c + beta s.p`` (s.r: block Jacobi's z; the preconditioned z
+    is then never stored)."""
     if native is None:
-        return _ref_direction(plan, s)
-    native.cg_direction(s.p, s.r, s.beta, s.status, *plan.tensors())
+        return _ref_direction(plan, s, coarse)
+    if coarse is None:
+        native.cg_direction(s.p, s.r, s.beta, s.status, *plan.tensors())
+    else:
+        native.cg_direction(s.p, s.r, s.beta, s.status, *plan.tensors(), *coarse.tensors(), float(coarse.weight))
 
 
 def object_dot(a: torch.Tensor, b: torch.Tensor, plan: ChunkPlan, out: torch.Tensor, s: CGState, native=None):
@@ -207,6 +238,25 @@ def pcg_beta(r: torch.Tensor, z: torch.Tensor, plan: ChunkPlan, rz: torch.Tensor
     if native is None:
         return _ref_pcg_beta(_object_sums(r * z, plan).to(rz.dtype), s.status, rz, s.beta)
     native.cg_dot_beta(r.contiguous(), z.contiguous(), *plan.tensors(), s.status, rz, s.beta, s.scratch, s.counter)
+
+
+def _ref_coarse_beta(rr, u, v, item_ptr, weight, status, rz, beta):
+    per_item = (u.to(torch.float64) * v.to(torch.float64)).sum(-1)  # [N]
+    running = torch.cat([per_item.new_zeros(1), torch.cumsum(per_item, 0)])
+    sums = running[item_ptr[1:]] - running[item_ptr[:-1]]  # each object's items
+    _ref_pcg_beta((rr.to(torch.float64) + weight * sums).to(rz.dtype), status, rz, beta)
+
+
+def coarse_beta(u: torch.Tensor, v: torch.Tensor, item_ptr: torch.Tensor, weight: float, rz: torch.Tensor,
+                s: CGState, native=None):
+    """Preconditioned CG's direction coefficient where z = B^-1 r + weight Z' v, v = E^-1 u the coarse
+    solution of u = Z'^T r (``[N, k]`` each, an item a body): per active object rz_new = r.B^-1 r
+    (``s.rr``, cg_update's) + weight * the sum of u . v over its items ``item_ptr[b] ..
+    item_ptr[b + 1] - 1`` (``[B + 1]`` int64), ``s.beta = rz_new / rz``, ``rz = rz_new`` (``[B]``, in
+    place): r . Z' v = (Z'^T r) . v, so no pass over the nodes."""
+    if native is None:
+        return _ref_coarse_beta(s.rr, u, v, item_ptr, weight, s.status, rz, s.beta)
+    native.cg_coarse_beta(s.rr, u, v, item_ptr, float(weight), s.status, rz, s.beta)
 
 
 def native_ops_for(x: torch.Tensor):
@@ -244,9 +294,15 @@ def _ref_cg_update(x, r, p, ap, alpha, chunk_start, chunk_object, object_chunk, 
     _ref_update(ap, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk), s, max_iter, inverse_blocks, z)
 
 
-def _ref_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk):
+def _ref_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chunk, node_inverse=None, arm=None,
+                      node_body=None, coarse=None, weight=1.0):
+    term = None if coarse is None else CoarseTerm(node_inverse, arm, node_body, coarse, weight)
     _ref_direction(ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk),
-                   _op_state(p=p, r=r, beta=beta, status=status))
+                   _op_state(p=p, r=r, beta=beta, status=status), term)
+
+
+def _ref_cg_coarse_beta(rr, u, v, item_ptr, weight, status, rz, beta):
+    _ref_coarse_beta(rr, u, v, item_ptr, weight, status, rz, beta)
 
 
 def _ref_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter):
@@ -313,8 +369,17 @@ def _example(name):
             z = torch.randn((5, 3), generator=gen).to(device=device, dtype=dtype)
             return (s.x, s.r, s.p, field, s.alpha, *tensors, s.threshold, 10, s.rr, s.status, s.beta, s.iterations,
                     s.scratch, s.counter, inverse, z), {}
-        if name == "cg_direction":
-            return (s.p, s.r, s.beta, s.status, *tensors), {}
+        if name == "cg_direction":  # with a coarse term (two bodies); object 1 skipped
+            s.status[1] = CONVERGED
+            node_inverse = torch.tensor([1.0, 0.0, 1.0, 1.0, 1.0], dtype=dtype, device=device)
+            node_body = torch.tensor([0, 0, 0, 1, 1], dtype=torch.int32, device=device)
+            coarse = torch.randn(12, generator=gen).to(device=device, dtype=dtype)
+            return (s.p, s.r, s.beta, s.status, *tensors, node_inverse, field, node_body, coarse, 0.5), {}
+        if name == "cg_coarse_beta":  # object 0 two items, object 1 one (skipped)
+            s.status[1] = CONVERGED
+            u, v = (torch.randn((3, 6), generator=gen).to(device=device, dtype=dtype) for _ in range(2))
+            item_ptr = torch.tensor([0, 2, 3], dtype=torch.int64, device=device)
+            return (s.rr, u, v, item_ptr, 0.5, s.status, s.alpha, s.beta), {}
         if name == "cg_dot":
             return (field, s.p, *tensors, s.rr, s.scratch, s.counter), {}
         if name == "cg_dot_beta":
@@ -333,6 +398,7 @@ def _example(name):
 
 _REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_alpha_dot": _ref_cg_alpha_dot, "cg_update": _ref_cg_update,
                "cg_direction": _ref_cg_direction, "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta,
+               "cg_coarse_beta": _ref_cg_coarse_beta,
                "euler_update": _ref_euler_update}
 OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
                   scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())

@@ -43,7 +43,7 @@ from . import library
 from .library import OpDef
 
 __all__ = ["BsrMatrix", "bsr_gemv", "chebyshev", "block_scaling", "block_cholesky_scaling", "match_clusters",
-           "incident_lists", "rigid_restrict", "rigid_prolong"]
+           "incident_lists", "rigid_restrict", "rigid_prolong", "rigid_motion_reference"]
 
 
 @dataclass
@@ -155,10 +155,17 @@ def _ref_multigrid_rigid_restrict(node_inverse, arm, range_ptr, r, out):
     out.copy_(torch.segment_reduce(per_node, "sum", lengths=range_ptr.long().diff(), unsafe=True).reshape(-1))
 
 
-def _ref_multigrid_rigid_prolong(node_inverse, arm, node_body, coarse, r, weight, out):
+def rigid_motion_reference(node_inverse, arm, node_body, coarse, weight) -> torch.Tensor:
+    """weight Z' coarse ``[V, 3]``: each node's motion N_i (t + w x a_i) under its body's six coarse
+    values (``coarse [6 B]``, ``node_body [V]``), weighted, in tensor ops (``common/rigid_modes.h``:
+    the oracle of the rigid prolongation and of ``cg_direction``'s coarse term)."""
     per_body = coarse.view(-1, 6)[node_body.long()]  # [V, 6]
     moved = per_body[:, :3] + torch.linalg.cross(per_body[:, 3:], arm, dim=-1)
-    moved = weight * (_node_inverse(node_inverse) * moved[:, None, :]).sum(-1)
+    return weight * (_node_inverse(node_inverse) * moved[:, None, :]).sum(-1)
+
+
+def _ref_multigrid_rigid_prolong(node_inverse, arm, node_body, coarse, r, weight, out):
+    moved = rigid_motion_reference(node_inverse, arm, node_body, coarse, weight)
     out.copy_((moved if r is None else r.view(-1, 3) + moved).reshape(-1))
 
 

@@ -110,6 +110,7 @@ class CGSolver:
         self.graph_replays = 0
         self._pcg = None  # the preconditioned iteration's buffers, made at its first use
         self._block = None  # the block-preconditioned iteration's (_block_buffers)
+        self._items = None  # (bodies' node ranges, each object's range of bodies): _coarse_items
         self._rhs = None  # the right-hand side a captured start reads (preconditioned solves)
         self._paused = None  # a paused solve's (iterations run, pause threshold [B]) (see solve)
 
@@ -199,21 +200,36 @@ class CGSolver:
         r.B^-1 r there. The step length alpha = r.z / p.Ap (the fused product's or
         ``_step_length``), then ``cg_update`` with the blocks (x, r, z = B^-1 r, r.B^-1 r and the
         stopping rule on it, beta = r'.z' / r.z) and p = z + beta p (``cg_direction`` on z): the
-        plain iteration's launches. A preconditioner with a ``correct(r, z)`` (a coarse part added
-        to z in place: M^-1 r = B^-1 r + C r) takes it after the update, and r.z and beta are then
-        taken again (``pcg_beta``); the stopping rule stays on r.B^-1 r."""
+        plain iteration's launches. A preconditioner with a coarse part (M^-1 r = B^-1 r + w Z' y,
+        y = E^-1 Z'^T r: its ``coarse_terms(r)`` gives Z'^T r and y) adds it without storing the
+        corrected z: r.z = r.B^-1 r + w (Z'^T r) . y (``coarse_beta``, a sum over the bodies) and
+        p = z + w Z' y + beta p (``cg_direction`` with its ``direction_term``); the stopping rule
+        stays on r.B^-1 r."""
         s, b = self.state, self._block_buffers()
-        correct = getattr(preconditioner, "correct", None)
-        step = s if correct is None else self._pcg_buffers().scaled
+        coarse_terms = getattr(preconditioner, "coarse_terms", None)
+        step = s if coarse_terms is None else self._pcg_buffers().scaled
         fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
         ap = fused(s.p, self.plan, step) if fused is not None else None
         if ap is None:
             ap = self._step_length(matvec, step)
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native, preconditioner.inverse_blocks, b.z)
-        if correct is not None:
-            correct(s.r, b.z)
-            cg_ops.pcg_beta(s.r, b.z, self.plan, self._pcg_buffers().rz, s, self.native)
-        cg_ops.cg_direction(self.plan, b.direction, self.native)
+        if coarse_terms is None:
+            cg_ops.cg_direction(self.plan, b.direction, self.native)
+            return
+        restricted, solution = coarse_terms(s.r)
+        cg_ops.coarse_beta(restricted, solution, self._coarse_items(preconditioner.body_ptr), preconditioner.weight,
+                           self._pcg_buffers().rz, s, self.native)
+        cg_ops.cg_direction(self.plan, b.direction, self.native, preconditioner.direction_term(solution))
+
+    def _coarse_items(self, body_ptr: torch.Tensor) -> torch.Tensor:
+        """``[B + 1]`` int64: each object's range of bodies, for the bodies' node ranges ``body_ptr``
+        (every object is a run of whole bodies: one body, or a run of coupled ones). Kept while
+        ``body_ptr`` is the same tensor, so a captured iteration reads the first one made (made
+        in the eager run before the capture)."""
+        if self._items is None or self._items[0] is not body_ptr:
+            items = torch.searchsorted(body_ptr, self.segments.ptr.to(body_ptr.device))
+            self._items = (body_ptr, items)
+        return self._items[1]
 
     def _pcg_iterate(self, matvec: Matvec, max_iter: int, preconditioner):
         """One preconditioned iteration through the plain CG's ops: the step length from r.z

@@ -42,7 +42,10 @@ load, in float64.
 
 An iteration applies the coarse part as three ops of the multigrid family: the restriction Z^T
 (a body's sum over its nodes), the groups' inverses (a block-sparse product, a block row a body)
-and the prolongation Z, which also adds what z holds. Z_i = N_i [I | -[a_i]x] is formed at each
+and the prolongation Z, which also adds what z holds (in the step's CG, on a ``BlockJacobi``, the
+prolongation is no pass of its own: the CG's direction p = z + w Z y + beta p adds it at each node,
+``cg_direction``'s coarse term, and r.z = r.B^-1 r + w (Z^T r) . y comes from the coarse vectors,
+``cg_coarse_beta``: :meth:`coarse_terms`). Z_i = N_i [I | -[a_i]x] is formed at each
 node from N (the identity on free nodes, zero on fixed ones: one value a node; on a
 ``JacobiScaling``, its inverse S^-1, 3 x 3) and the lever arm a, 4 or 12 values a node where a
 stored basis reads 18.
@@ -57,6 +60,7 @@ from typing import Optional
 import torch
 
 from ..mesh.topology import add_at
+from ..ops.cg import CoarseTerm
 from ..ops.multigrid import BsrMatrix, bsr_gemv, match_clusters, rigid_prolong, rigid_restrict
 from ..ops.segments import Segments
 from .preconditioner import block_diagonal_product
@@ -327,6 +331,7 @@ class RigidModeCorrection:
         self._run_ptr: Optional[torch.Tensor] = None  # [R + 1] int32: the restriction's runs of nodes
         self._runs: Optional[torch.Tensor] = None  # [B] each body's runs
         self._node_body: Optional[torch.Tensor] = None  # [V] int32
+        self._body_ptr: Optional[torch.Tensor] = None  # [B + 1] int64
         self._sums: Optional[BodySums] = None
         self._kept = None  # (key, arms, free, group, slot, groups, own blocks, filled, columns) of load's ``kept``
         self._blocks: Optional[torch.Tensor] = None  # a BlockJacobi's B^-1 [V, 3, 3] (None: a JacobiScaling's)
@@ -435,6 +440,7 @@ class RigidModeCorrection:
                                                                         - first_run[run_body])
         self._run_ptr = torch.cat([starts, starts.new_full((1,), arms.shape[0])]).to(torch.int32)
         self._node_body = segments.node_object.to(device=device, dtype=torch.int32)
+        self._body_ptr = segments.ptr.to(device=device, dtype=torch.int64)
         self.inverses = BsrMatrix(rows.contiguous(), columns.clone(),  # (its own: later loads write it)
                                   torch.arange(bodies + 1, dtype=torch.int32, device=device) * per_row,
                                   torch.arange(bodies, device=device).repeat_interleave(per_row),
@@ -455,9 +461,24 @@ class RigidModeCorrection:
 
     def _coarse_solution(self, r: torch.Tensor) -> torch.Tensor:
         """E^-1 Z'^T r ``[6 B]`` (the groups' blocks) for a residual ``r [V, 3]``."""
+        return self.coarse_terms(r)[1].reshape(-1)
+
+    def coarse_terms(self, r: torch.Tensor) -> tuple:
+        """(g = Z'^T r, y = E^-1 g), ``[B, 6]`` each, for a residual ``r [V, 3]``: what the CG's
+        iteration takes where z = B^-1 r + w Z' y is applied in its own ops (``CGSolver``: r.z =
+        r.B^-1 r + w g . y by ``cg_ops.coarse_beta``, and w Z' y added in ``cg_direction``)."""
         per_run = rigid_restrict(self.node_inverse, self.arms, self._run_ptr, r.reshape(-1)).view(-1, 6)
         restricted = torch.segment_reduce(per_run, "sum", lengths=self._runs, unsafe=True)  # [B, 6]
-        return bsr_gemv(self.inverses, restricted.reshape(-1))
+        return restricted, bsr_gemv(self.inverses, restricted.reshape(-1)).view(-1, 6)
+
+    def direction_term(self, solution: torch.Tensor) -> CoarseTerm:
+        """w Z' y as ``cg_direction``'s coarse term, for the coarse solution ``y [B, 6]``."""
+        return CoarseTerm(self.node_inverse, self.arms, self._node_body, solution.reshape(-1), self.weight)
+
+    @property
+    def body_ptr(self) -> torch.Tensor:
+        """``[B + 1]`` int64 on the device: the bodies' node ranges (the coarse vectors' items)."""
+        return self._body_ptr
 
     def coarse(self, r: torch.Tensor) -> torch.Tensor:
         """Z' E^-1 Z'^T r ``[V, 3]`` for a residual ``r [V, 3]`` of the scaled system (unweighted)."""

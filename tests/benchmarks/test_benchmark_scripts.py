@@ -325,15 +325,18 @@ def test_cg_fusions_probe_quick():
     from tensormass_torch.solver import implicit_euler
     from tensormass_torch.solver.cg import CGSolver
 
-    kept = (CGSolver._projects_in_one_op, contact_ops.pair_product, implicit_euler.BlockJacobi)
+    kept = (CGSolver._projects_in_one_op, contact_ops.pair_product, implicit_euler.BlockJacobi,
+            CGSolver._block_iterate)
     common_args = ["--columns", "2", "--cells", "2", "2", "1", "--steps", "20", "--timed", "2", "--repeats", "2",
                    "--device", "cpu", "--contact", '{"friction": 0.5}']
     for change in probe.CHANGES:
-        blocks = probe.main(common_args + ["--change", change])
+        rigid = ["--preconditioner", "rigid"] if change == "coarse_direction" else []
+        blocks = probe.main(common_args + ["--change", change] + rigid)
         assert list(blocks) == ["old", "new"] and all(r["ms"] > 0 for runs in blocks.values() for r in runs)
         if change == "accumulate":
             assert [r["iterations"] for r in blocks["old"]] == [r["iterations"] for r in blocks["new"]]
-    assert (CGSolver._projects_in_one_op, contact_ops.pair_product, implicit_euler.BlockJacobi) == kept
+    assert (CGSolver._projects_in_one_op, contact_ops.pair_product, implicit_euler.BlockJacobi,
+            CGSolver._block_iterate) == kept
     with pytest.raises(SystemExit):
         probe.main(common_args + ["--change", "nothing"])
 

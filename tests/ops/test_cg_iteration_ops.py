@@ -126,6 +126,127 @@ def test_block_update_matches_reference(dtype, chunk):
     assert int(ext.counter.abs().sum()) == 0
 
 
+#: bodies splitting LENGTHS' objects (7 = 4 + 3, 1, 12 = 4 + 4 + 4, 5, 9 = 5 + 4): a coarse term's items
+BODY_LENGTHS = [4, 3, 1, 4, 4, 4, 5, 5, 4]
+BODY_ITEMS = [0, 2, 3, 6, 7, 9]  # each object's range of bodies
+
+
+def coarse_term_of(dtype, scalar=True, device="cpu", seed=5, weight=0.5) -> cg_ops.CoarseTerm:
+    """A rigid correction's coarse term over BODY_LENGTHS: N the free mask (node 2 fixed) or 3 x 3
+    blocks, random lever arms and coarse values."""
+    g = torch.Generator().manual_seed(seed)
+    v = sum(BODY_LENGTHS)
+    if scalar:
+        node_inverse = torch.ones(v, dtype=dtype)
+        node_inverse[2] = 0.0
+    else:
+        node_inverse = torch.randn(v, 3, 3, generator=g, dtype=torch.float64).to(dtype)
+    node_body = Segments.from_lengths(BODY_LENGTHS).node_object.to(torch.int32)
+    arm = torch.randn(v, 3, generator=g, dtype=torch.float64).to(dtype)
+    coarse = torch.randn(6 * len(BODY_LENGTHS), generator=g, dtype=torch.float64).to(dtype)
+    return cg_ops.CoarseTerm(*(t.to(device) for t in (node_inverse, arm, node_body, coarse)), weight)
+
+
+@needs_ext
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("chunk", [1, 4, 512])
+@pytest.mark.parametrize("scalar", [True, False], ids=["mask", "blocks"])
+def test_coarse_direction_matches_reference_and_the_prolongation(dtype, chunk, scalar):
+    """cg_direction with a coarse term = its reference = the rigid prolongation's z + w Z' c, then
+    p = z + beta p, on the active objects; the others' p untouched."""
+    from tensormass_torch.ops.multigrid import rigid_prolong
+
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), chunk)
+    s = random_state(plan, dtype)
+    term = coarse_term_of(dtype, scalar)
+    ref, ext = clone_state(s), clone_state(s)
+    cg_ops.cg_direction(plan, ref, None, term)
+    cg_ops.cg_direction(plan, ext, OPS, term)
+    assert_states_close(ref, ext, dtype)
+    corrected = rigid_prolong(*term.tensors(), s.r.reshape(-1), term.weight).view_as(s.r)
+    expected = clone_state(s)
+    expected.r.copy_(corrected)
+    cg_ops.cg_direction(plan, expected, OPS)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(ext.p, expected.p, rtol=tol, atol=tol)
+    active = (s.status == ACTIVE)[plan.segments.node_object]
+    assert torch.equal(ext.p[~active], s.p[~active]) and not torch.equal(ext.p[active], s.p[active])
+
+
+def coarse_vectors(dtype, seed=6):
+    """(r [V, 3], z = B^-1 r, g = Z'^T r [B, 6], y = E^-1 g [B, 6], the corrected z + w Z' y) for
+    the coarse term of :func:`coarse_term_of` (float64 maths, then ``dtype``)."""
+    from tensormass_torch.ops.multigrid import rigid_prolong, rigid_restrict
+
+    g = torch.Generator().manual_seed(seed)
+    term = coarse_term_of(torch.float64)
+    v, bodies = sum(BODY_LENGTHS), len(BODY_LENGTHS)
+    r = torch.randn(v, 3, generator=g, dtype=torch.float64)
+    z = (inverse_blocks_of(v, torch.float64) @ r[..., None])[..., 0]
+    body_ptr = Segments.from_lengths(BODY_LENGTHS).ptr.to(torch.int32)
+    restricted = rigid_restrict(term.node_inverse, term.arm, body_ptr, r.reshape(-1)).view(bodies, 6)
+    half = torch.randn(bodies, 6, 6, generator=g, dtype=torch.float64)
+    solution = ((half @ half.transpose(1, 2) + torch.eye(6, dtype=torch.float64)) @ restricted[..., None])[..., 0]
+    corrected = rigid_prolong(term.node_inverse, term.arm, term.node_body, solution.reshape(-1), z.reshape(-1),
+                              term.weight).view_as(z)
+    return tuple(t.to(dtype) for t in (r, z, restricted, solution, corrected)), term.weight
+
+
+@needs_ext
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+def test_coarse_beta_is_r_dot_the_corrected_z(dtype):
+    """cg_coarse_beta from r.B^-1 r and the coarse vectors (r.z = r.B^-1 r + w (Z'^T r) . y) =
+    cg_dot_beta over the nodes of the corrected z, and = its reference; objects that are not
+    active keep their rz and beta."""
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), 4)
+    s = random_state(plan, dtype)
+    (r, z, restricted, solution, corrected), weight = coarse_vectors(dtype)
+    items = torch.tensor(BODY_ITEMS, dtype=torch.int64)
+    cg_ops.object_dot(r, z, plan, s.rr, s, OPS)  # cg_update's r.B^-1 r
+    rz0 = torch.rand(plan.segments.num_objects, generator=torch.Generator().manual_seed(8), dtype=dtype) + 1.0
+    over_nodes, ref, ext = clone_state(s), clone_state(s), clone_state(s)
+    rz_nodes, rz_ref, rz_ext = rz0.clone(), rz0.clone(), rz0.clone()
+    cg_ops.pcg_beta(r, corrected, plan, rz_nodes, over_nodes, OPS)
+    cg_ops.coarse_beta(restricted, solution, items, weight, rz_ref, ref)
+    cg_ops.coarse_beta(restricted, solution, items, weight, rz_ext, ext, OPS)
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    for rz, state in ((rz_ref, ref), (rz_ext, ext)):
+        torch.testing.assert_close(rz, rz_nodes, rtol=tol, atol=tol)
+        torch.testing.assert_close(state.beta, over_nodes.beta, rtol=tol, atol=tol)
+    stopped = s.status != ACTIVE
+    assert torch.equal(rz_ext[stopped], rz0[stopped]) and torch.equal(ext.beta[stopped], s.beta[stopped])
+
+
+@needs_ext
+def test_coarse_term_input_checks():
+    """A coarse term given in part, or of the wrong shape or dtype, and cg_coarse_beta's bad
+    arguments raise one error naming them, and change nothing."""
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), 4)
+    s = random_state(plan, torch.float64)
+    term = coarse_term_of(torch.float64)
+    before = clone_state(s)
+    direction = (s.p, s.r, s.beta, s.status, *plan.tensors())
+    with pytest.raises(RuntimeError, match="node_inverse, arm, node_body and coarse together"):
+        OPS.cg_direction(*direction, term.node_inverse, term.arm, None, term.coarse, 0.5)
+    with pytest.raises(RuntimeError, match="node_body is"):
+        OPS.cg_direction(*direction, term.node_inverse, term.arm, term.node_body.long(), term.coarse, 0.5)
+    with pytest.raises(RuntimeError, match="coarse must be"):
+        OPS.cg_direction(*direction, term.node_inverse, term.arm, term.node_body, term.coarse[:5], 0.5)
+    with pytest.raises(RuntimeError, match="arm has shape"):
+        OPS.cg_direction(*direction, term.node_inverse, term.arm[:3], term.node_body, term.coarse, 0.5)
+    u = torch.randn(len(BODY_LENGTHS), 6, dtype=torch.float64)
+    items = torch.tensor(BODY_ITEMS, dtype=torch.int64)
+    rz = torch.ones_like(s.rr)
+    with pytest.raises(RuntimeError, match="item_ptr has shape"):
+        OPS.cg_coarse_beta(s.rr, u, u, items[:3], 0.5, s.status, rz, s.beta)
+    with pytest.raises(RuntimeError, match="v has shape"):
+        OPS.cg_coarse_beta(s.rr, u, u[:, :3].contiguous(), items, 0.5, s.status, rz, s.beta)
+    with pytest.raises(RuntimeError, match="rz must be a buffer of its own"):
+        OPS.cg_coarse_beta(s.rr, u, u, items, 0.5, s.status, s.beta, s.beta)
+    assert_states_close(s, before, torch.float64)
+    assert bool((rz == 1).all())
+
+
 def alpha_dot_inputs(plan: ChunkPlan, dtype, device="cpu", seed=2):
     """(ap [V, 3], free [V, 1]) for cg_alpha_dot: object 2's p.Ap negative (breakdown), object 3's
     non-finite, every third node fixed."""
@@ -354,6 +475,32 @@ def test_cuda_ops_match_cpu(dtype, chunk):
     assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
     tol = 1e-12 if dtype == torch.float64 else 1e-5
     torch.testing.assert_close(z_gpu.cpu(), z_cpu, rtol=tol, atol=tol)
+
+
+@needs_cuda
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("chunk", [1, 4, 512])
+def test_cuda_coarse_ops_match_cpu(dtype, chunk):
+    """cg_direction with a coarse term (both forms of N) and cg_coarse_beta: CUDA = CPU."""
+    plan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS), chunk)
+    gplan = ChunkPlan.from_segments(Segments.from_lengths(LENGTHS, device="cuda"), chunk)
+    s = random_state(plan, dtype)
+    for scalar in (True, False):
+        term, gterm = coarse_term_of(dtype, scalar), coarse_term_of(dtype, scalar, "cuda")
+        cpu, gpu = clone_state(s), CGState(*[t.cuda() for t in vars(s).values()])
+        cg_ops.cg_direction(plan, cpu, OPS, term)
+        cg_ops.cg_direction(gplan, gpu, OPS, gterm)
+        assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
+    (_, _, restricted, solution, _), weight = coarse_vectors(dtype)
+    items = torch.tensor(BODY_ITEMS, dtype=torch.int64)
+    cpu, gpu = clone_state(s), CGState(*[t.cuda() for t in vars(s).values()])
+    rz_cpu = torch.ones_like(s.rr)
+    rz_gpu = rz_cpu.cuda()
+    cg_ops.coarse_beta(restricted, solution, items, weight, rz_cpu, cpu, OPS)
+    cg_ops.coarse_beta(restricted.cuda(), solution.cuda(), items.cuda(), weight, rz_gpu, gpu, OPS)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(rz_gpu.cpu(), rz_cpu, rtol=tol, atol=tol)
+    assert_states_close(cpu, CGState(*[t.cpu() for t in vars(gpu).values()]), dtype)
 
 
 @needs_cuda

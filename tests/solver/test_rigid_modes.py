@@ -8,6 +8,7 @@ from conftest import group_meshes
 from test_preconditioner import loaded_step_with_pairs, two_blocks_in_contact
 
 import tensormass_torch as tm
+from tensormass_torch.ops.segments import Segments
 from tensormass_torch.solver import rigid_modes as rigid_modes_module
 from tensormass_torch.solver.cg import CGSolver
 from tensormass_torch.solver.implicit_euler import _coefficients
@@ -142,11 +143,14 @@ def loaded_correction(group_bodies=2):
 
 
 @pytest.mark.parametrize("backend", ["auto", "torch"])
-def test_the_correction_on_block_jacobi_is_the_scaled_systems(monkeypatch, backend):
+@pytest.mark.parametrize("coupled", [False, True], ids=["a-body-an-object", "one-object"])
+def test_the_correction_on_block_jacobi_is_the_scaled_systems(monkeypatch, backend, coupled):
     """Loaded on a BlockJacobi (B^-1 in the CG's update, Z in the system's own unknowns, the
-    coarse part added by ``correct``), the preconditioner is B^-1 + w Z E^-1 Z^T = S (I + w Z'
-    E^-1 Z'^T) S^T, and the CG makes the scaled system's iterates (float64, to roundoff): the same
-    iteration counts and residual norms, the same solution, converged."""
+    coarse part added by ``correct``, and in the iterations by the direction and r.z from the
+    coarse vectors), the preconditioner is B^-1 + w Z E^-1 Z^T = S (I + w Z' E^-1 Z'^T) S^T, and
+    the CG makes the scaled system's iterates (float64, to roundoff): the same iteration counts
+    and residual norms, the same solution, converged; with a body an object of the CG, and with
+    both bodies one object (the contact's coupled run: each object's r.z sums its bodies')."""
     monkeypatch.setenv("TENSORMASS_BACKEND", backend)
     sim, loaded, pairs, stiffness, weights = step_pieces(velocities=False)
     mass_coef, stiffness_coef = _coefficients(sim.options)
@@ -164,6 +168,8 @@ def test_the_correction_on_block_jacobi_is_the_scaled_systems(monkeypatch, backe
                                atol=1e-12 * float(on_blocks(r).abs().max()))
     rhs = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(3), dtype=DT)
     segments, free = sim.system.segments, sim.system.free
+    if coupled:
+        segments = Segments.from_lengths([int(segments.lengths.sum())])
     direct = CGSolver(segments, rhs.shape, DT, "cpu", free).solve(product, rhs, tol=1e-10, max_iter=500,
                                                                   preconditioner=on_blocks)
     scaled = CGSolver(segments, rhs.shape, DT, "cpu", free).solve(scaling.product(product), scaling.apply_transpose(rhs),
