@@ -11,6 +11,7 @@ host: torch's profiler over a few steps (CUDA only), then
 
     python benchmarks/probes/contact_step_kernels_probe.py [--columns 10] [--steps 150] [--timed 3]
                                                            [--state DIR] [--contact '{}']
+                                                           [--preconditioner auto]
 
 The pile is ``contact_piles``' (see ``contact_step_phases_probe.py``). The Python tracer the gaps
 need slows the host: the gaps are larger than untimed (their sum is reported beside the untimed
@@ -132,8 +133,12 @@ def host_by_frame(events: list) -> tuple:
     return own, waited
 
 
+def extend(parser):
+    parser.add_argument("--preconditioner", default="auto", help="the Simulator's preconditioner")
+
+
 def main(argv=None):
-    args = contact_piles.pile_arguments(argv, __doc__, timed=3)
+    args = contact_piles.pile_arguments(argv, __doc__, timed=3, extend=extend)
     if not str(args.device).startswith("cuda"):
         raise SystemExit("the kernels probe needs a CUDA device (--device cuda)")
     sim = contact_piles.pile_simulator(args)

@@ -109,13 +109,14 @@ def pile_arguments(argv, description: str, timed: int, extend=None):
     return parser.parse_args(argv)
 
 
-def pile_simulator(args, dtype=torch.float32, bodies=None):
+def pile_simulator(args, dtype=torch.float32, bodies=None, preconditioner=None):
     """The pile of :func:`pile_arguments`' ``args`` with contact, stepped ``args.steps`` steps
-    or taken from the state ``args.state`` holds (``x.pt``, ``v.pt``, as ``--state`` saves it);
-    ``bodies``: the pile's, where the caller made them already (None: made here)."""
+    or taken from the state ``args.state`` holds (``x.pt``, ``v.pt``, as ``--state`` saves it),
+    with ``preconditioner`` (None: ``args.preconditioner`` where the probe has that option, else
+    ``"auto"``); ``bodies``: the pile's, where the caller made them already (None: made here)."""
     if bodies is None:
         bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift, levels=args.levels)
-    sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype)
+    sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype, preconditioner or getattr(args, "preconditioner", "auto"))
     if args.state is not None:
         sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)
         sim.v = torch.load(Path(args.state) / "v.pt").to(sim.v)
@@ -128,7 +129,7 @@ def pile_start(args, dtype=torch.float32):
     """(bodies, x, v): the pile of :func:`pile_arguments`' ``args`` and the state its simulators
     start from (:func:`pile_simulator`'s, stepped or loaded), for probes that make several."""
     bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift, levels=args.levels)
-    start = pile_simulator(args, dtype, bodies)
+    start = pile_simulator(args, dtype, bodies, "auto")
     return bodies, start.x.clone(), start.v.clone()
 
 
