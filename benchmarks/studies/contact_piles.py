@@ -116,7 +116,8 @@ def pile_simulator(args, dtype=torch.float32, bodies=None, preconditioner=None):
     ``"auto"``); ``bodies``: the pile's, where the caller made them already (None: made here)."""
     if bodies is None:
         bodies, _ = pile(args.columns, args.cells, args.device, dtype, shift=args.shift, levels=args.levels)
-    sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype, preconditioner or getattr(args, "preconditioner", "auto"))
+    preconditioner = preconditioner or getattr(args, "preconditioner", "auto")
+    sim = simulator(bodies, tm.Contact(**args.contact), args.device, dtype, preconditioner)
     if args.state is not None:
         sim.x = torch.load(Path(args.state) / "x.pt").to(sim.x)
         sim.v = torch.load(Path(args.state) / "v.pt").to(sim.v)
