@@ -20,6 +20,7 @@ from tensormass_torch.solver.rigid_modes import (
     contact_groups,
     group_matrices,
     lever_arms,
+    modes_of,
     morton_groups,
     own_blocks,
     rigid_modes,
@@ -107,6 +108,65 @@ def test_groups_keep_their_principal_blocks():
     for b in range(2):
         torch.testing.assert_close(matrices[int(group[b])], reference[6 * b:6 * b + 6, 6 * b:6 * b + 6],
                                    rtol=1e-10, atol=1e-10 * float(reference.abs().max()))
+
+
+class _Pairs:
+    """The part of ``ContactPairs`` that ``group_matrices`` reads: nodes [P, 4] (vertex, triangle),
+    the bodies [P, 2] (vertex's, triangle's) and the coefficients [P, 4] (1, -w)."""
+
+    def __init__(self, nodes, objects, weights):
+        self.nodes, self.objects, self.weights = nodes, objects, weights
+
+    def __len__(self):
+        return self.nodes.shape[0]
+
+    def _coefficients(self):
+        return torch.cat([torch.ones_like(self.weights[:, :1]), -self.weights], 1)
+
+
+@pytest.mark.parametrize("size", [1, 2, 3])
+def test_group_matrices_equal_the_dense_sum_over_pairs(size):
+    """Five bodies in groups of ``size``, pairs in both orientations, repeated pairs of bodies,
+    self-contact and pairs between groups: E's principal blocks over the groups = the dense sum
+    over the pairs of (V + T)^T M_p (V + T) placed at the bodies' blocks (float64), the coupling of
+    two groups dropped and their own terms kept."""
+    g = torch.Generator().manual_seed(4)
+    lengths = [4, 3, 5, 4, 3]
+    segments = Segments.from_lengths(lengths)
+    bodies, v = len(lengths), sum(lengths)
+    arms = torch.randn(v, 3, generator=g, dtype=DT)
+    free = (torch.rand(v, 1, generator=g, dtype=DT) > 0.2).to(DT)
+    body_pairs = [(0, 1), (1, 0), (0, 1), (2, 2), (3, 4), (4, 1), (2, 3), (1, 1), (4, 3), (0, 4)]
+    first = segments.ptr.tolist()
+
+    def node_of(b):
+        return first[b] + int(torch.randint(lengths[b], (1,), generator=g))
+
+    nodes = torch.tensor([[node_of(a), node_of(b), node_of(b), node_of(b)] for a, b in body_pairs])
+    objects = torch.tensor(body_pairs)
+    pairs = _Pairs(nodes, objects, torch.rand(len(body_pairs), 3, generator=g, dtype=DT))
+    half = torch.randn(len(body_pairs), 3, 3, generator=g, dtype=DT)
+    pair_matrices = half @ half.transpose(1, 2)
+    half = torch.randn(bodies, 6, 6, generator=g, dtype=DT)
+    own = half @ half.transpose(1, 2)
+    group, slot, groups = morton_groups(torch.randn(bodies, 3, generator=g, dtype=DT), size)
+    matrices = group_matrices(own, arms, group, slot, groups, size, pairs, pair_matrices, free)
+    whole = torch.block_diag(*own)  # [6 B, 6 B]
+    modes = (modes_of(arms) * free).permute(1, 2, 0)  # [V, 3, 6]
+    for p, (a, b) in enumerate(body_pairs):
+        weights = pairs._coefficients()[p]
+        part = {a: weights[0] * modes[nodes[p, 0]]}
+        part[b] = part.get(b, 0) + sum(weights[i] * modes[nodes[p, i]] for i in (1, 2, 3))
+        for c in part:
+            for d in part:
+                if c == d or group[c] == group[d]:
+                    whole[6 * c:6 * c + 6, 6 * d:6 * d + 6] += part[c].T @ pair_matrices[p] @ part[d]
+    for k in range(groups):
+        members = sorted((int(slot[b]), b) for b in range(bodies) if int(group[b]) == k)
+        index = torch.cat([torch.arange(6) + 6 * b for _, b in members])
+        count = 6 * len(members)
+        torch.testing.assert_close(matrices[k][:count, :count], whole[index][:, index], rtol=1e-12, atol=1e-12)
+        assert bool((matrices[k][count:] == 0).all()) and bool((matrices[k][:, count:] == 0).all())
 
 
 def test_the_modes_are_rigid_motions():
