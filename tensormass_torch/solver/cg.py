@@ -223,11 +223,13 @@ class CGSolver:
 
     def _coarse_items(self, body_ptr: torch.Tensor) -> torch.Tensor:
         """``[B + 1]`` int64: each object's range of bodies, for the bodies' node ranges ``body_ptr``
-        (every object is a run of whole bodies: one body, or a run of coupled ones). Kept while
-        ``body_ptr`` is the same tensor, so a captured iteration reads the first one made (made
-        in the eager run before the capture)."""
+        (every object is a run of whole bodies: one body, or a run of coupled ones). Made at the
+        first call (the eager run before a capture) and kept in one buffer, written again where
+        another ``body_ptr`` comes: a captured iteration reads its storage."""
         if self._items is None or self._items[0] is not body_ptr:
             items = torch.searchsorted(body_ptr, self.segments.ptr.to(body_ptr.device))
+            if self._items is not None and self._items[1].shape == items.shape:
+                items = self._items[1].copy_(items)
             self._items = (body_ptr, items)
         return self._items[1]
 
