@@ -301,9 +301,6 @@ def _ref_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chun
                    _op_state(p=p, r=r, beta=beta, status=status), term)
 
 
-def _ref_cg_coarse_beta(rr, u, v, item_ptr, weight, status, rz, beta):
-    _ref_coarse_beta(rr, u, v, item_ptr, weight, status, rz, beta)
-
 
 def _ref_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter):
     out.copy_(_object_sums(a * b, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)))
@@ -398,7 +395,7 @@ def _example(name):
 
 _REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_alpha_dot": _ref_cg_alpha_dot, "cg_update": _ref_cg_update,
                "cg_direction": _ref_cg_direction, "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta,
-               "cg_coarse_beta": _ref_cg_coarse_beta,
+               "cg_coarse_beta": _ref_coarse_beta,
                "euler_update": _ref_euler_update}
 OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
                   scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())
