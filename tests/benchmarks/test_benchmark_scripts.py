@@ -239,6 +239,10 @@ def test_contact_piles_quick(tmp_path):
     (row,) = contact_piles.main(["--quick", "--device", "cpu", "--out", str(tmp_path)])
     assert row["blocks"] == 8 and row["steps_per_s_with"] > 0 and row["surface_triangles"] > 0
     assert (tmp_path / "contact_piles.md").exists() and (tmp_path / "contact_piles.json").exists()
+    # the stepping's windows cover the run's steps, each once, and leave the checks' time out
+    assert [w[:2] for w in row["windows"]] == [[0, 3]]
+    assert row["stepping_s"] == sum(w[2] for w in row["windows"]) and row["stepping_s"] + row["check_s"] <= row["run_s"]
+    assert row["steps_per_s_run"] == 3 / row["stepping_s"]
 
 
 def test_contact_piles_shift_sets_each_block_sideways_from_the_one_under_it():
@@ -428,14 +432,15 @@ def test_contact_host_reads_probe_counts_each_read_once():
 
 def test_contact_piles_resumes_a_paused_run(tmp_path):
     """--state with --budget-s 0 pauses after each step, saving the state; the same command goes
-    on from it to the end, at the state an uninterrupted run reaches; two preconditioners, the
-    pile without contact measured once."""
+    on from it to the end, at the state an uninterrupted run reaches; two preconditioners and two
+    rounds, the pile without contact measured once for each preconditioner."""
     import contact_piles
 
     whole = contact_piles.main(["--quick", "--device", "cpu", "--dtype", "float64", "--out", str(tmp_path / "a"),
-                                "--preconditioners", "auto", "none"])
-    assert [r["preconditioner"] for r in whole] == ["auto", "none"]
+                                "--preconditioners", "auto", "none", "--rounds", "2", "1"])
+    assert [(r["preconditioner"], r["rounds"]) for r in whole] == [("auto", 2), ("auto", 1), ("none", 2), ("none", 1)]
     assert whole[0]["steps_per_s_without"] == whole[1]["steps_per_s_without"]
+    assert whole[2]["steps_per_s_without"] == whole[3]["steps_per_s_without"]
     command = ["--quick", "--device", "cpu", "--dtype", "float64", "--out", str(tmp_path / "b"),
                "--state", str(tmp_path / "state"), "--budget-s", "0"]
     assert contact_piles.main(command) == []  # paused after step 1
@@ -610,3 +615,12 @@ def test_rigid_modes_probe_times_the_load_and_its_pieces():
     assert all(ms > 0 for ms in medians.values())
     assert medians["own_blocks"] < medians["load"]
     assert all(getattr(rigid_modes, name) is function for name, function in plain.items())
+
+
+def test_segment_reduce_probe_quick():
+    """The segment_reduce probe's columns laid end to end reduce as torch does (every case)."""
+    import segment_reduce_probe as probe
+
+    rows = probe.main(["--bodies", "3", "--nodes", "70", "--surface", "30", "--pairs", "40", "--repeats", "1",
+                       "--device", "cpu"])
+    assert len(rows) == 7 and all(row[3] < 1e-4 for row in rows)
