@@ -151,25 +151,74 @@ def surface_signed_distances(points: torch.Tensor, vertices: torch.Tensor, trian
     reach.scatter_reduce_(0, node, to_centroid + radius[tri], "amin")
     keep = to_centroid - radius[tri] <= reach[node]
     node, tri = node[keep], tri[keep]
+    return _signed_from_pairs(flat, node, tri, a, b, c, angles, half.amax()).reshape(shape)
+
+
+def _signed_from_pairs(points: torch.Tensor, node: torch.Tensor, tri: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
+                       c: torch.Tensor, angles: torch.Tensor, slack) -> torch.Tensor:
+    """The signed distance ``[N]`` of each of ``points [N, 3]`` to the nearest of its candidate
+    triangles: the pairs (``node [P]``, ``tri [P]``, every point's nearest triangle among them) of
+    triangles ``a, b, c [F, 3]`` with corner ``angles [F, 3]``; its sign the side of the
+    angle-weighted pseudonormal of the nearest feature (the pairs as near as the nearest, to
+    rounding, vote with their normals weighted by their angle at a shared corner). ``slack``: a
+    length added to the rounding's scale (the candidates' search bound). A point without any pair
+    gets the dtype's largest value."""
+    big = torch.finfo(points.dtype).max
     distance = torch.empty(node.shape[0], dtype=points.dtype, device=points.device)
     along = torch.empty_like(distance)  # the pair's vote for the side: weight x normal . (p - q)
     for start in range(0, node.shape[0], PAIRS_PER_BATCH):
         part = slice(start, start + PAIRS_PER_BATCH)
         t = tri[part]
-        w, diff, d, normal = closest_point(flat[node[part]], a[t], b[t], c[t])
+        w, diff, d, normal = closest_point(points[node[part]], a[t], b[t], c[t])
         at_corner = w >= 1.0 - 1e-9  # [P, 3]: the nearest point is that corner
         weight = torch.where(at_corner.any(-1), (angles[t] * at_corner).sum(-1), torch.ones_like(d))
         distance[part], along[part] = d, weight * (normal * diff).sum(-1)
-    nearest = torch.full((flat.shape[0],), big, dtype=points.dtype, device=points.device)
+    nearest = torch.full((points.shape[0],), big, dtype=points.dtype, device=points.device)
     nearest.scatter_reduce_(0, node, distance, "amin")
     # the faces sharing the nearest point are those as near, to the rounding of the distances,
     # which scales with the coordinates (two faces compute their shared edge's distance
     # differently by a few ulps of them), not with the distance: a point beside a crease, nearly
     # in one face's plane, would otherwise take that face's side alone
-    scale = flat[node].abs().amax(-1) + distance + half.amax()
+    scale = points[node].abs().amax(-1) + distance + slack
     tie = distance <= nearest[node] + 32 * torch.finfo(points.dtype).eps * scale
     side = torch.zeros_like(nearest).index_add_(0, node[tie], along[tie])
-    return torch.where(side < 0, -nearest, nearest).reshape(shape)
+    return torch.where(side < 0, -nearest, nearest)
+
+
+def signed_distances_to_surfaces(points: torch.Tensor, surfaces: torch.Tensor, vertices: torch.Tensor,
+                                 triangles: torch.Tensor, triangle_surface: torch.Tensor) -> torch.Tensor:
+    """The signed distance ``[N]`` (negative inside) from each of ``points [N, 3]`` to its own closed,
+    outward-wound surface ``surfaces [N]`` (int64) among several: the triangles ``[F, 3]`` of
+    ``vertices [V, 3]`` with their surface ``triangle_surface [F]`` (int64). Exact, as
+    :func:`surface_signed_distances` (the nearest triangle of the point's surface, the side of the
+    angle-weighted pseudonormal of the nearest feature), with every triangle of a point's surface
+    met: points taken in batches of at most ``PAIRS_PER_BATCH`` point-triangle pairs (one host read
+    of the surfaces' sizes). A point whose surface has no triangle gets the dtype's largest value.
+    What checks of many bodies inside each other need (``sim.diagnostics.interpenetration``): one
+    call for all of them."""
+    if points.shape[0] == 0:
+        return points.new_zeros(0)
+    order = torch.argsort(triangle_surface, stable=True)
+    triangles, triangle_surface = triangles[order], triangle_surface[order]
+    count = int(max(int(surfaces.max()), int(triangle_surface.max()) if triangle_surface.numel() else 0)) + 1
+    per_surface = torch.bincount(triangle_surface, minlength=count)
+    first = torch.cumsum(per_surface, 0) - per_surface  # each surface's first triangle
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    angles = _corner_angles(a, b, c)
+    pairs = per_surface[surfaces]  # [N] each point's triangles
+    ends = torch.cumsum(pairs, 0).cpu()
+    signed = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
+    start = 0
+    while start < points.shape[0]:  # batches of whole points
+        done = int(ends[start - 1]) if start else 0
+        stop = max(start + 1, int(torch.searchsorted(ends, done + PAIRS_PER_BATCH, right=True)))
+        part = slice(start, stop)
+        node = torch.repeat_interleave(torch.arange(stop - start, device=points.device), pairs[part])
+        local = torch.arange(node.shape[0], device=points.device) - (torch.cumsum(pairs[part], 0) - pairs[part])[node]
+        tri = first[surfaces[part]][node] + local
+        signed[part] = _signed_from_pairs(points[part], node, tri, a, b, c, angles, 0.0)
+        start = stop
+    return signed
 
 
 def check_closed(triangles: np.ndarray, what: str = "surface") -> None:

@@ -25,7 +25,7 @@ from typing import Dict, List, Optional, Sequence
 
 import torch
 
-from ..mesh.distance import surface_signed_distances
+from ..mesh.distance import signed_distances_to_surfaces, surface_signed_distances
 
 
 @dataclass
@@ -82,29 +82,43 @@ def interpenetration(sim, x: Optional[torch.Tensor] = None) -> torch.Tensor:
     folds are not counted).
 
     Exact and independent of the contact's search: every vertex inside another body's bounding
-    box is measured against its whole surface (nearest triangle, the side by angle-weighted
-    pseudonormals, as ``mesh.distance.surface_signed_distances``), so a body that went through
-    another, further than any contact pair reaches, shows here and not in ``ContactReport``.
-    Costs one distance query per body with neighbours (for checks, not for every step)."""
+    box is measured against that body's whole surface (nearest triangle, the side by
+    angle-weighted pseudonormals, ``mesh.distance.signed_distances_to_surfaces``), so a body that
+    went through another, further than any contact pair reaches, shows here and not in
+    ``ContactReport``. All bodies at once: the bodies' surfaces in one ``boundary_faces``
+    (``Simulator.surfaces``), the (vertex, body) candidates from the pairs of bodies whose boxes
+    meet, one batched distance query (for checks, not for every step)."""
     x = sim.x if x is None else x
     depth = x.new_zeros(sim.num_bodies)
-    faces = {i: f.to(x.device) for i, f in sim.surface_triangles().items()}
-    tet = list(faces)
-    if len(tet) < 2:
+    triangles, triangle_body = sim.surfaces()
+    triangles, triangle_body = triangles.to(x.device), triangle_body.to(x.device)
+    if triangles.shape[0] == 0 or int(triangle_body.unique().numel()) < 2:
         return depth
-    surface = [torch.unique(faces[i]) for i in tet]
-    lower = torch.stack([x[nodes].amin(0) for nodes in surface])  # [T, 3] the bodies' boxes
-    upper = torch.stack([x[nodes].amax(0) for nodes in surface])
+    node_body = sim.segments.node_object.to(x.device)
+    surface = torch.unique(triangles)  # [S] every tet body's surface vertices, body after body
+    surface_body = node_body[surface]
+    big = torch.finfo(x.dtype).max
+    index = surface_body[:, None].expand(-1, 3)
+    lower = x.new_full((sim.num_bodies, 3), big).scatter_reduce(0, index, x[surface], "amin")  # [B, 3]
+    upper = x.new_full((sim.num_bodies, 3), -big).scatter_reduce(0, index, x[surface], "amax")
+    # (container, other) pairs of bodies whose boxes meet (a body without a surface has an empty box)
     overlap = ((lower[:, None] <= upper[None]) & (lower[None] <= upper[:, None])).all(-1)
     overlap.fill_diagonal_(False)
-    for k, neighbours in enumerate(overlap.tolist()):
-        if not any(neighbours):
-            continue
-        # the other bodies' surface vertices within this body's box: the only ones that may be inside it
-        nodes, inside = depth_inside(x, torch.cat([surface[j] for j, near in enumerate(neighbours) if near]),
-                                     faces[tet[k]], lower[k], upper[k])
-        depth.scatter_reduce_(0, sim.segments.node_object[nodes], inside, "amax")
-    return depth
+    container, other = torch.nonzero(overlap, as_tuple=True)
+    # each pair's candidates: the other body's surface vertices, those inside the container's box
+    counts = torch.bincount(surface_body, minlength=sim.num_bodies)
+    first = torch.cumsum(counts, 0) - counts
+    per_pair = counts[other]
+    pair = torch.repeat_interleave(torch.arange(container.numel(), device=x.device), per_pair)
+    local = torch.arange(pair.numel(), device=x.device) - (torch.cumsum(per_pair, 0) - per_pair)[pair]
+    vertex = surface[first[other][pair] + local]
+    body = container[pair]
+    inside_box = ((x[vertex] >= lower[body]) & (x[vertex] <= upper[body])).all(-1)
+    vertex, body = vertex[inside_box], body[inside_box]
+    if vertex.numel() == 0:
+        return depth
+    signed = signed_distances_to_surfaces(x[vertex], body, x, triangles, triangle_body)
+    return depth.scatter_reduce_(0, node_body[vertex], torch.clamp(-signed, min=0.0), "amax")
 
 
 def depth_inside(x: torch.Tensor, nodes: torch.Tensor, faces: torch.Tensor, lower: Optional[torch.Tensor] = None,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
@@ -1142,14 +1142,30 @@ class Simulator:
 
     def surface_triangles(self) -> Dict[int, torch.Tensor]:
         """The surface of each tetrahedral body as it is now (cuts and removals included): body
-        index -> its boundary triangles ``[F_i, 3]``, outward-wound, in packed node ids."""
-        return {i: boundary_faces(self.mesh(i).elements.to(self.device)) + self.ptr[i]
-                for i, b in enumerate(self.bodies) if b.mesh.kind == "tet"}
+        index -> its boundary triangles ``[F_i, 3]``, outward-wound, in packed node ids (each
+        body's in the order of its own ``boundary_faces``)."""
+        triangles, body = self.surfaces()
+        sizes = torch.bincount(body, minlength=self.num_bodies).tolist()
+        parts = torch.split(triangles, sizes)
+        return {i: parts[i] for i, b in enumerate(self.bodies) if b.mesh.kind == "tet"}
+
+    def surfaces(self) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Every tetrahedral body's surface as it is now, packed: the boundary triangles ``[F, 3]``
+        (outward-wound, packed node ids, body after body) and each one's body ``[F]`` (int64). One
+        ``boundary_faces`` over all the bodies' elements: the bodies' node ranges are disjoint, so
+        a face is on the boundary of the union where it is on its body's."""
+        tet = [i for i, b in enumerate(self.bodies) if b.mesh.kind == "tet"]
+        if not tet:
+            return (torch.zeros(0, 3, dtype=torch.int64, device=self.device),
+                    torch.zeros(0, dtype=torch.int64, device=self.device))
+        elements = torch.cat([self.mesh(i).elements.to(self.device).long() + self.ptr[i] for i in tet])
+        triangles = boundary_faces(elements)
+        return triangles, self.segments.node_object[triangles[:, 0]]
 
     def interpenetration(self) -> torch.Tensor:
         """Per body ``[B]``, how deep its surface is inside other bodies now, measured exactly
         whatever the contact settings (``diagnostics.interpenetration``: for checks that no
-        body passed through another; one distance query per body with neighbours)."""
+        body passed through another; all bodies in one batched distance query)."""
         return interpenetration(self)
 
     def kinetic_energy(self) -> torch.Tensor:

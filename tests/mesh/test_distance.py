@@ -10,7 +10,15 @@ import torch
 from conftest import u_shape_surface
 
 import tensormass_torch as tm
-from tensormass_torch.mesh.distance import check_closed, closest_point, signed_distance_grid, surface_signed_distances
+from tensormass_torch.mesh import distance
+from tensormass_torch.mesh.distance import (
+    check_closed,
+    closest_point,
+    signed_distance_grid,
+    signed_distances_to_surfaces,
+    surface_signed_distances,
+)
+from tensormass_torch.mesh.topology import boundary_faces
 
 DT = torch.float64
 
@@ -54,6 +62,43 @@ def test_a_point_beside_a_crease_takes_both_faces_side_in_float32():
     point = torch.tensor([0.293433905, 0.95062077, 0.297405183]).reshape(1, 1, 1, 3)
     signed = float(surface_signed_distances(point, vertices, faces, block=1))
     assert signed == pytest.approx(1.3735e-3, rel=1e-3)
+
+
+@pytest.mark.parametrize("batch", [None, 50, 1])
+def test_distances_to_several_surfaces_are_each_surfaces_own(batch, monkeypatch):
+    """signed_distances_to_surfaces: each point's exact signed distance to its own surface among
+    three (the U shape and two turned copies of a box's boundary, their triangles interleaved),
+    the winding number's side and the dense nearest triangle's distance, in batches of whole points
+    (``batch`` point-triangle pairs; 1: each point alone, past the bound)."""
+    if batch is not None:
+        monkeypatch.setattr(distance, "PAIRS_PER_BATCH", batch)
+    gen = torch.Generator().manual_seed(5)
+    u_vertices, u_faces = u_shape_surface()
+    box = tm.beam_mesh(3, 2, 2, size=(0.3, 0.2, 0.25), dtype=DT)
+    box_faces = boundary_faces(box.elements)
+    surfaces, offset = [], 0
+    for k, (verts, faces) in enumerate([(u_vertices, u_faces), (box.vertices, box_faces),
+                                        (box.vertices * 0.5 + 0.1, box_faces)]):
+        surfaces.append((verts, faces + offset, k))
+        offset += verts.shape[0]
+    vertices = torch.cat([v for v, _, _ in surfaces])
+    triangles = torch.cat([f for _, f, _ in surfaces])
+    triangle_surface = torch.cat([torch.full((f.shape[0],), k) for _, f, k in surfaces])
+    shuffle = torch.randperm(triangles.shape[0], generator=gen)  # any order of the triangles
+    points = torch.rand(60, 3, generator=gen, dtype=DT) * 0.5 - 0.1
+    owner = torch.randint(0, 3, (60,), generator=gen)
+    signed = signed_distances_to_surfaces(points, owner, vertices, triangles[shuffle], triangle_surface[shuffle])
+    for k, (verts, faces, _) in enumerate(surfaces):
+        mine = owner == k
+        a, b, c = (vertices[faces[:, i]] for i in range(3))
+        _, _, d, _ = closest_point(points[mine][:, None], a, b, c)
+        inside = winding_numbers(points[mine], a, b, c).abs() > 0.5
+        torch.testing.assert_close(signed[mine], torch.where(inside, -d.amin(1), d.amin(1)), rtol=0, atol=1e-12)
+    assert bool((signed < 0).any()) and bool((signed > 0).any())
+    # a point of a surface without any triangle is infinitely far
+    far = signed_distances_to_surfaces(points[:2], torch.tensor([1, 3]), vertices, triangles, triangle_surface)
+    near = signed_distances_to_surfaces(points[:1], torch.tensor([1]), vertices, triangles, triangle_surface)
+    assert float(far[1]) == torch.finfo(DT).max and float(far[0]) == float(near[0])
 
 
 def test_sample_is_the_trilinear_interpolant_and_its_derivatives():

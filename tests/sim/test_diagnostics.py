@@ -10,7 +10,8 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tensormass_torch.sim.diagnostics import InversionCheck, allocations, inversion_report
+from tensormass_torch.mesh.topology import boundary_faces
+from tensormass_torch.sim.diagnostics import InversionCheck, allocations, depth_inside, inversion_report
 from tensormass_torch.sim.simulator import InvertedElementsWarning
 
 DT = torch.float64
@@ -287,3 +288,37 @@ def test_interpenetration_agrees_with_the_contact_report_within_reach():
     sim = _cubes([(0, 0, 0), (0.01, 0.02, 0.095)], contact=tm.Contact())
     torch.testing.assert_close(sim.interpenetration(), sim.contact_report().body_penetration)
     assert float(sim.interpenetration().min()) > 0
+
+
+def test_interpenetration_of_many_bodies_is_each_bodys_own_query():
+    """All bodies at once (one batched query) = each body measured alone against the surface
+    vertices of the bodies whose boxes meet its box (``depth_inside``, the per-body form): nine
+    cubes of three sizes dropped into each other at random, one far from all."""
+    gen = torch.Generator().manual_seed(3)
+    offsets = (torch.rand(9, 3, generator=gen, dtype=torch.float64) * 0.15).tolist()
+    offsets[4] = [2.0, 0.0, 0.0]
+    sizes = [0.1, 0.06, 0.12] * 3
+    sim = _cubes(offsets, sizes=sizes)
+    sim.x = sim.x + 0.004 * torch.randn(sim.x.shape, generator=gen, dtype=torch.float64)  # not axis-aligned
+    faces = sim.surface_triangles()
+    surface = {i: torch.unique(f) for i, f in faces.items()}
+    expected = torch.zeros(sim.num_bodies, dtype=torch.float64)
+    for k in faces:
+        others = torch.cat([surface[j] for j in faces if j != k])
+        nodes, inside = depth_inside(sim.x, others, faces[k])
+        expected.scatter_reduce_(0, sim.segments.node_object[nodes], inside, "amax")
+    depth = sim.interpenetration()
+    torch.testing.assert_close(depth, expected, rtol=0, atol=1e-12)
+    assert int((depth > 0).sum()) >= 6 and float(depth[4]) == 0.0
+
+
+def test_packed_surfaces_are_the_bodies_own():
+    """Simulator.surfaces (one boundary_faces over every body) = each body's boundary_faces, in its
+    order, after a removal changed one body's surface."""
+    sim = _cubes([(0, 0, 0), (0.3, 0, 0), (0.6, 0, 0)])
+    sim.remove_elements(1, torch.arange(10))
+    triangles, body = sim.surfaces()
+    for i in range(3):
+        own = boundary_faces(sim.mesh(i).elements) + sim.ptr[i]
+        assert torch.equal(triangles[body == i], own)
+        assert torch.equal(sim.surface_triangles()[i], own)
