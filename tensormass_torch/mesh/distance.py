@@ -142,16 +142,27 @@ def surface_signed_distances(points: torch.Tensor, vertices: torch.Tensor, trian
     tri = pair_triangles.repeat_interleave(block ** 3)
     keep = node >= 0
     node, tri = node[keep], tri[keep]
-    # each node meets only the triangles whose bounding spheres may hold its nearest point: no
-    # farther than the nearest sphere's far side
+    node, tri = _within_reach(flat, node, tri, *_spheres(a, b, c))
+    return _signed_from_pairs(flat, node, tri, a, b, c, angles, half.amax()).reshape(shape)
+
+
+def _spheres(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
+    """The triangles' bounding spheres about their centroids: centres ``[F, 3]``, radii ``[F]``."""
     centroid = (a + b + c) / 3.0
-    radius = torch.linalg.vector_norm(torch.stack([a, b, c]) - centroid, dim=-1).amax(0)
-    to_centroid = torch.linalg.vector_norm(flat[node] - centroid[tri], dim=-1)
-    reach = torch.full((flat.shape[0],), big, dtype=points.dtype, device=points.device)
+    return centroid, torch.linalg.vector_norm(torch.stack([a, b, c]) - centroid, dim=-1).amax(0)
+
+
+def _within_reach(points: torch.Tensor, node: torch.Tensor, tri: torch.Tensor, centroid: torch.Tensor,
+                  radius: torch.Tensor):
+    """The point-triangle pairs (``node [P]`` into ``points [N, 3]``, ``tri [P]``) that may hold
+    each point's nearest point: the triangle's bounding sphere no farther than the nearest
+    sphere's far side (an upper bound of the point's distance). Every triangle as near as the
+    nearest is kept, so the side's vote is unchanged."""
+    to_centroid = torch.linalg.vector_norm(points[node] - centroid[tri], dim=-1)
+    reach = torch.full((points.shape[0],), torch.finfo(points.dtype).max, dtype=points.dtype, device=points.device)
     reach.scatter_reduce_(0, node, to_centroid + radius[tri], "amin")
     keep = to_centroid - radius[tri] <= reach[node]
-    node, tri = node[keep], tri[keep]
-    return _signed_from_pairs(flat, node, tri, a, b, c, angles, half.amax()).reshape(shape)
+    return node[keep], tri[keep]
 
 
 def _signed_from_pairs(points: torch.Tensor, node: torch.Tensor, tri: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
@@ -191,8 +202,8 @@ def signed_distances_to_surfaces(points: torch.Tensor, surfaces: torch.Tensor, v
     outward-wound surface ``surfaces [N]`` (int64) among several: the triangles ``[F, 3]`` of
     ``vertices [V, 3]`` with their surface ``triangle_surface [F]`` (int64). Exact, as
     :func:`surface_signed_distances` (the nearest triangle of the point's surface, the side of the
-    angle-weighted pseudonormal of the nearest feature), with every triangle of a point's surface
-    met: points taken in batches of at most ``PAIRS_PER_BATCH`` point-triangle pairs (one host read
+    angle-weighted pseudonormal of the nearest feature): every triangle of a point's surface
+    bounded by its sphere, the exact distance taken to those that may be nearest; points taken in batches of at most ``PAIRS_PER_BATCH`` point-triangle pairs (one host read
     of the surfaces' sizes). A point whose surface has no triangle gets the dtype's largest value.
     What checks of many bodies inside each other need (``sim.diagnostics.interpenetration``): one
     call for all of them."""
@@ -204,7 +215,7 @@ def signed_distances_to_surfaces(points: torch.Tensor, surfaces: torch.Tensor, v
     per_surface = torch.bincount(triangle_surface, minlength=count)
     first = torch.cumsum(per_surface, 0) - per_surface  # each surface's first triangle
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    angles = _corner_angles(a, b, c)
+    angles, spheres = _corner_angles(a, b, c), _spheres(a, b, c)
     pairs = per_surface[surfaces]  # [N] each point's triangles
     ends = torch.cumsum(pairs, 0).cpu()
     signed = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
@@ -215,7 +226,7 @@ def signed_distances_to_surfaces(points: torch.Tensor, surfaces: torch.Tensor, v
         part = slice(start, stop)
         node = torch.repeat_interleave(torch.arange(stop - start, device=points.device), pairs[part])
         local = torch.arange(node.shape[0], device=points.device) - (torch.cumsum(pairs[part], 0) - pairs[part])[node]
-        tri = first[surfaces[part]][node] + local
+        node, tri = _within_reach(points[part], node, first[surfaces[part]][node] + local, *spheres)
         signed[part] = _signed_from_pairs(points[part], node, tri, a, b, c, angles, 0.0)
         start = stop
     return signed
