@@ -203,8 +203,9 @@ def signed_distances_to_surfaces(points: torch.Tensor, surfaces: torch.Tensor, v
     ``vertices [V, 3]`` with their surface ``triangle_surface [F]`` (int64). Exact, as
     :func:`surface_signed_distances` (the nearest triangle of the point's surface, the side of the
     angle-weighted pseudonormal of the nearest feature): every triangle of a point's surface
-    bounded by its sphere, the exact distance taken to those that may be nearest; points taken in batches of at most ``PAIRS_PER_BATCH`` point-triangle pairs (one host read
-    of the surfaces' sizes). A point whose surface has no triangle gets the dtype's largest value.
+    bounded by its sphere, the exact distance taken to those that may be nearest; points taken in
+    batches of at most ``PAIRS_PER_BATCH`` point-triangle pairs (one host read of the surfaces'
+    sizes). A point whose surface has no triangle gets the dtype's largest value.
     What checks of many bodies inside each other need (``sim.diagnostics.interpenetration``): one
     call for all of them."""
     if points.shape[0] == 0:
