@@ -8,7 +8,7 @@ number of surface triangles, and the deepest interpenetration over the run.
                                                [--preconditioners auto none] [--rounds R ...] [--tolerance T]
                                                [--recheck-tolerance T]
                                                [--check-tols C ...] [--skins S ...] [--check-margins M ...]
-                                               [--window 100]
+                                               [--window 100] [--warm-start none]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
@@ -91,9 +91,10 @@ def pile(columns: int, cells, device, dtype, model: str = MODEL, young: float = 
     return bodies, block
 
 
-def simulator(bodies, contact, device, dtype, preconditioner="auto"):
+def simulator(bodies, contact, device, dtype, preconditioner="auto", warm_start=False):
     return tm.Simulator(bodies, dt=DT, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0,
-                        device=device, dtype=dtype, cg_tol=1e-4, preconditioner=preconditioner)
+                        device=device, dtype=dtype, cg_tol=1e-4, preconditioner=preconditioner,
+                        warm_start=warm_start)
 
 
 def pile_arguments(argv, description: str, timed: int, extend=None):
@@ -149,10 +150,10 @@ def rate(sim, steps: int, device) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def without_contact(bodies, device, dtype, preconditioner: str = "auto") -> dict:
-    """The same pile without contact, with the same ``preconditioner`` as the run it is compared
-    with (the blocks fall through each other: only the rate counts)."""
-    free = simulator(bodies, None, device, dtype, preconditioner)
+def without_contact(bodies, device, dtype, preconditioner: str = "auto", warm_start=False) -> dict:
+    """The same pile without contact, with the same ``preconditioner`` and ``warm_start`` as the run
+    it is compared with (the blocks fall through each other: only the rate counts)."""
+    free = simulator(bodies, None, device, dtype, preconditioner, warm_start)
     free.step(10)
     without = rate(free, 10, device)
     iterations = max(int(c.iterations.max()) for c in free.last_report.cg)
@@ -164,7 +165,8 @@ def without_contact(bodies, device, dtype, preconditioner: str = "auto") -> dict
 def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None, window: int = 100,
-            model: str = MODEL, young: float = YOUNG, shift: float = SHIFT, **settings) -> Optional[dict]:
+            warm_start=False, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT,
+            **settings) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s with the same
     ``preconditioner``, measured here when None),
     ``settings``: its ``tm.Contact``'s (the library's defaults for those not given).
@@ -176,7 +178,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     uninterrupted one to roundoff at first, not bit for bit, and a tumbling pile then drifts
     apart (``contact_pile_1000_corotational_2000_steps.md``)."""
     bodies, block = pile(columns, cells, device, dtype, model, young, shift)
-    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, **settings), device, dtype, preconditioner)
+    sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, **settings), device, dtype, preconditioner,
+                    warm_start)
     saved = state / "meta.json" if state is not None else None
     if saved is not None and saved.exists():
         progress = json.loads(saved.read_text())
@@ -185,7 +188,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     else:
         progress = dict(step=0, deepest=0.0, checks=[], run_s=0.0,
                         **(baseline if baseline is not None else
-                           without_contact(bodies, device, dtype, preconditioner)))
+                           without_contact(bodies, device, dtype, preconditioner, warm_start)))
     progress.setdefault("windows", [])
     progress.setdefault("check_s", 0.0)
     deepest = torch.tensor(progress["deepest"], dtype=sim.x.dtype, device=sim.x.device)
@@ -248,7 +251,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
                 check_s=progress["check_s"], steps_per_s_run=steps / stepping_s,
                 cost_ratio_run=without * stepping_s / steps, windows=progress["windows"],
                 deepest_m=progress["deepest"],
-                preconditioner=preconditioner, rounds=contact.settings.rounds, tolerance_m=contact.tolerance,
+                preconditioner=preconditioner, warm_start=sim.options.warm_start, rounds=contact.settings.rounds,
+                tolerance_m=contact.tolerance,
                 recheck_tolerance_m=contact.recheck_tolerance,
                 check_tol=contact.settings.check_tol, skin=contact.skin,
                 check_margin_m=contact.check_margin,
@@ -326,6 +330,8 @@ def main(argv=None):
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
     parser.add_argument("--check-every", type=int, default=0,
                         help="measure the interpenetration every this many steps (0: at the end only)")
+    parser.add_argument("--warm-start", default=False, choices=["none", "extrapolate", "project"],
+                        help="the Simulator's warm_start, with contact and without")
     parser.add_argument("--window", type=int, default=100,
                         help="the run's stepping time is recorded every this many steps (and at each check)")
     parser.add_argument("--device", default=common.default_device())
@@ -373,7 +379,7 @@ def main(argv=None):
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baselines.get(preconditioner), state, args.budget_s,
-                             args.window, args.model, args.young,
+                             args.window, args.warm_start, args.model, args.young,
                              args.shift, rounds=rounds, tolerance=args.tolerance,
                              recheck_tolerance=args.recheck_tolerance, check_tol=check_tol, skin=skin,
                              check_margin=margin)
