@@ -624,3 +624,12 @@ def test_segment_reduce_probe_quick():
     rows = probe.main(["--bodies", "3", "--nodes", "70", "--surface", "30", "--pairs", "40", "--repeats", "1",
                        "--device", "cpu"])
     assert len(rows) == 7 and all(row[3] < 1e-4 for row in rows)
+
+
+def test_interpenetration_probe_quick():
+    """The interpenetration probe's batched check equals the body-by-body one on a small pile."""
+    import interpenetration_probe as probe
+
+    out = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "10", "--repeats", "1",
+                      "--device", "cpu"])
+    assert out["difference"] == 0.0 and len(out["batched_s"]) == 1
