@@ -8,7 +8,7 @@ number of surface triangles, and the deepest interpenetration over the run.
                                                [--preconditioners auto none] [--rounds R ...] [--tolerance T]
                                                [--recheck-tolerance T]
                                                [--check-tols C ...] [--skins S ...] [--check-margins M ...]
-                                               [--window 100] [--warm-start none]
+                                               [--window 100] [--warm-start none] [--without-steps 0]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
@@ -41,7 +41,9 @@ still over each other whose order from the floor up changed. The run's time is t
 (``stepping_s``, ``steps_per_s_run``, ``cost_ratio_run`` against the pile without contact), recorded
 every ``--window`` steps (``windows``: first step, last step, seconds, solves, CG iterations, the
 largest of a solve's objects summed over its solves) with the checks timed apart
-(``check_s``; ``run_s`` is both). A run longer than one sitting:
+(``check_s``; ``run_s`` is both). ``--without-steps N`` also times the pile without contact over N
+steps from the start (``steps_per_s_without_run``; the blocks fall through each other onto the
+floor) and gives the run's cost against that (``cost_ratio_run_against_run``). A run longer than one sitting:
 ``--state DIR --budget-s S`` saves the state after S seconds of stepping and stops; the same command
 goes on from it. Writes ``contact_piles.md`` and ``.json`` to ``--out``.
 """
@@ -150,22 +152,30 @@ def rate(sim, steps: int, device) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def without_contact(bodies, device, dtype, preconditioner: str = "auto", warm_start=False) -> dict:
+def without_contact(bodies, device, dtype, preconditioner: str = "auto", warm_start=False, steps: int = 0) -> dict:
     """The same pile without contact, with the same ``preconditioner`` and ``warm_start`` as the run
-    it is compared with (the blocks fall through each other: only the rate counts)."""
+    it is compared with (the blocks fall through each other: only the rate counts): 10 steps timed
+    after 10, and with ``steps`` > 0 the rate over that many steps from the start too
+    (``steps_per_s_without_run``: the blocks fall through each other onto the floor, whose penalty
+    rows the solves then carry, as the run with contact carries its pairs)."""
     free = simulator(bodies, None, device, dtype, preconditioner, warm_start)
     free.step(10)
     without = rate(free, 10, device)
     iterations = max(int(c.iterations.max()) for c in free.last_report.cg)
+    record = dict(steps_per_s_without=without, cg_iterations_without=iterations)
+    if steps > 0:
+        free = simulator(bodies, None, device, dtype, preconditioner, warm_start)
+        record["steps_per_s_without_run"] = rate(free, steps, device)
+        record["cg_iterations_without_end"] = max(int(c.iterations.max()) for c in free.last_report.cg)
     del free
     common.release(device)
-    return dict(steps_per_s_without=without, cg_iterations_without=iterations)
+    return record
 
 
 def measure(columns: int, cells, steps: int, friction: float, device, dtype, check_every: int = 0,
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None, window: int = 100,
-            warm_start=False, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT,
+            warm_start=False, without_steps: int = 0, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT,
             **settings) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s with the same
     ``preconditioner``, measured here when None),
@@ -188,7 +198,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     else:
         progress = dict(step=0, deepest=0.0, checks=[], run_s=0.0,
                         **(baseline if baseline is not None else
-                           without_contact(bodies, device, dtype, preconditioner, warm_start)))
+                           without_contact(bodies, device, dtype, preconditioner, warm_start, without_steps)))
     progress.setdefault("windows", [])
     progress.setdefault("check_s", 0.0)
     deepest = torch.tensor(progress["deepest"], dtype=sim.x.dtype, device=sim.x.device)
@@ -250,6 +260,10 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
                 pairs=len(pairs), steps=steps, run_s=progress["run_s"], stepping_s=stepping_s,
                 check_s=progress["check_s"], steps_per_s_run=steps / stepping_s,
                 cost_ratio_run=without * stepping_s / steps, windows=progress["windows"],
+                **({} if "steps_per_s_without_run" not in progress else dict(
+                    steps_per_s_without_run=progress["steps_per_s_without_run"],
+                    cg_iterations_without_end=progress["cg_iterations_without_end"],
+                    cost_ratio_run_against_run=progress["steps_per_s_without_run"] * stepping_s / steps)),
                 deepest_m=progress["deepest"],
                 preconditioner=preconditioner, warm_start=sim.options.warm_start, rounds=contact.settings.rounds,
                 tolerance_m=contact.tolerance,
@@ -332,6 +346,8 @@ def main(argv=None):
                         help="measure the interpenetration every this many steps (0: at the end only)")
     parser.add_argument("--warm-start", default=False, choices=["none", "extrapolate", "project"],
                         help="the Simulator's warm_start, with contact and without")
+    parser.add_argument("--without-steps", type=int, default=0,
+                        help="also time the pile without contact over this many steps from the start (0: not)")
     parser.add_argument("--window", type=int, default=100,
                         help="the run's stepping time is recorded every this many steps (and at each check)")
     parser.add_argument("--device", default=common.default_device())
@@ -349,6 +365,8 @@ def main(argv=None):
                ("steps_per_s_with", "steps/s with", ".1f"), ("cost_ratio", "cost (x)", ".1f"),
                ("steps_per_s_run", "steps/s over the run", ".1f"), ("cost_ratio_run", "cost over the run (x)", ".1f"),
                ("check_s", "checks (s)", ".1f"),
+               ("steps_per_s_without_run", "steps/s without over the run", ".1f"),
+               ("cost_ratio_run_against_run", "cost over the run against the run without (x)", ".2f"),
                ("detect_ms", "detection (ms)", ".2f"), ("cg_iterations_without", "CG iterations without", None),
                ("preconditioner", "preconditioner", None), ("rounds", "rounds", None),
                ("tolerance_m", "tolerance (m)", ".2e"), ("recheck_tolerance_m", "recheck tolerance (m)", ".2e"),
@@ -379,14 +397,16 @@ def main(argv=None):
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baselines.get(preconditioner), state, args.budget_s,
-                             args.window, args.warm_start, args.model, args.young,
+                             args.window, args.warm_start, args.without_steps, args.model, args.young,
                              args.shift, rounds=rounds, tolerance=args.tolerance,
                              recheck_tolerance=args.recheck_tolerance, check_tol=check_tol, skin=skin,
                              check_margin=margin)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()
                 return results.records
-            baselines[preconditioner] = {k: record[k] for k in ("steps_per_s_without", "cg_iterations_without")}
+            baselines[preconditioner] = {k: record[k] for k in ("steps_per_s_without", "cg_iterations_without",
+                                                                "steps_per_s_without_run", "cg_iterations_without_end")
+                                         if k in record}
             results.add(record, echo=False)
     results.finish()
     return results.records

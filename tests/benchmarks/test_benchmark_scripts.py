@@ -242,7 +242,11 @@ def test_contact_piles_quick(tmp_path):
     # the stepping's windows cover the run's steps, each once, and leave the checks' time out
     assert [w[:2] for w in row["windows"]] == [[0, 3]]
     assert row["stepping_s"] == sum(w[2] for w in row["windows"]) and row["stepping_s"] + row["check_s"] <= row["run_s"]
-    assert row["steps_per_s_run"] == 3 / row["stepping_s"]
+    assert row["steps_per_s_run"] == 3 / row["stepping_s"] and "steps_per_s_without_run" not in row
+    # --without-steps: the pile without contact over the run's steps too, and the run's cost against it
+    (row,) = contact_piles.main(["--quick", "--device", "cpu", "--out", str(tmp_path), "--without-steps", "3"])
+    assert row["steps_per_s_without_run"] > 0
+    assert row["cost_ratio_run_against_run"] == row["steps_per_s_without_run"] * row["stepping_s"] / 3
 
 
 def test_contact_piles_shift_sets_each_block_sideways_from_the_one_under_it():
