@@ -1,7 +1,7 @@
 """The exact interpenetration check of a pile (``Simulator.interpenetration``: all bodies in one
 batched distance query) against the same measure body by body (each body's surface against the
-surface vertices of the bodies whose boxes meet its box, ``sim.diagnostics.depth_inside``, as the
-check was written before): seconds a check (``--repeats`` of the batched one) and the largest
+surface vertices of the bodies whose boxes meet its box, ``sim.diagnostics.depth_inside``, a
+Python loop over the bodies): seconds a check (``--repeats`` of the batched one) and the largest
 difference between the two.
 
     python benchmarks/probes/interpenetration_probe.py [--columns 10] [--steps 120] [--state DIR]

@@ -2,9 +2,8 @@
 reduction, which torch's CUDA kernel hands to CUB's segmented reduction, a thread block a segment;
 with trailing dimensions it runs a thread a (segment, column)), at the sizes of the 1,000-block
 pile's per-body reductions: microseconds a call, CUDA events over ``--repeats`` calls after a
-warm-up (small calls are timed with their launches), and the largest difference between the two.
-Tried as a library change and not kept (docs/contact.md): CUB's block a segment loses where most
-segments are short or empty.
+warm-up (small calls are timed with their launches), and the largest difference between the two
+(the figures and what they decided: docs/contact.md).
 
     python benchmarks/probes/segment_reduce_probe.py [--bodies 1000] [--nodes 726] [--surface 402]
                                                      [--pairs 193720] [--repeats 50] [--device cuda]

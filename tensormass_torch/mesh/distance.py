@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from ..errors import MeshError
+from .topology import expand_ranges
 
 #: point-triangle evaluations per batch when building a grid (bounds the temporary memory)
 PAIRS_PER_BATCH = 1 << 22
@@ -212,7 +213,7 @@ def signed_distances_to_surfaces(points: torch.Tensor, surfaces: torch.Tensor, v
         return points.new_zeros(0)
     order = torch.argsort(triangle_surface, stable=True)
     triangles, triangle_surface = triangles[order], triangle_surface[order]
-    count = int(max(int(surfaces.max()), int(triangle_surface.max()) if triangle_surface.numel() else 0)) + 1
+    count = max(int(surfaces.max()), int(triangle_surface.max()) if triangle_surface.numel() else 0) + 1
     per_surface = torch.bincount(triangle_surface, minlength=count)
     first = torch.cumsum(per_surface, 0) - per_surface  # each surface's first triangle
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
@@ -225,9 +226,8 @@ def signed_distances_to_surfaces(points: torch.Tensor, surfaces: torch.Tensor, v
         done = int(ends[start - 1]) if start else 0
         stop = max(start + 1, int(torch.searchsorted(ends, done + PAIRS_PER_BATCH, right=True)))
         part = slice(start, stop)
-        node = torch.repeat_interleave(torch.arange(stop - start, device=points.device), pairs[part])
-        local = torch.arange(node.shape[0], device=points.device) - (torch.cumsum(pairs[part], 0) - pairs[part])[node]
-        node, tri = _within_reach(points[part], node, first[surfaces[part]][node] + local, *spheres)
+        node, tri = expand_ranges(first[surfaces[part]], pairs[part])  # every triangle of its surface
+        node, tri = _within_reach(points[part], node, tri, *spheres)
         signed[part] = _signed_from_pairs(points[part], node, tri, a, b, c, angles, 0.0)
         start = stop
     return signed

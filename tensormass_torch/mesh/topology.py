@@ -159,6 +159,14 @@ def add_at(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor) -> torc
     return out.index_add_(0, index, values)
 
 
+def expand_ranges(first: torch.Tensor, counts: torch.Tensor):
+    """The ranges ``first[i] .. first[i] + counts[i] - 1`` (``[N]`` each, int64) packed one after
+    the other: (each item's range ``[T]``, the item ``[T]``), T = counts.sum()."""
+    owner = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
+    start = torch.cumsum(counts, 0) - counts  # where each range's items begin in the packing
+    return owner, first[owner] + torch.arange(owner.numel(), device=counts.device) - start[owner]
+
+
 def node_element_lists(elements: torch.Tensor, num_nodes: int):
     """Node -> incident elements as CSR lists (the alternative to the padded layout).
 

@@ -301,7 +301,6 @@ def _ref_cg_direction(p, r, beta, status, chunk_start, chunk_object, object_chun
                    _op_state(p=p, r=r, beta=beta, status=status), term)
 
 
-
 def _ref_cg_dot(a, b, chunk_start, chunk_object, object_chunk, out, scratch, counter):
     out.copy_(_object_sums(a * b, ChunkPlan.from_tensors(chunk_start, chunk_object, object_chunk)))
 

@@ -26,6 +26,7 @@ from typing import Dict, List, Optional, Sequence
 import torch
 
 from ..mesh.distance import signed_distances_to_surfaces, surface_signed_distances
+from ..mesh.topology import expand_ranges
 
 
 @dataclass
@@ -108,11 +109,8 @@ def interpenetration(sim, x: Optional[torch.Tensor] = None) -> torch.Tensor:
     # each pair's candidates: the other body's surface vertices, those inside the container's box
     counts = torch.bincount(surface_body, minlength=sim.num_bodies)
     first = torch.cumsum(counts, 0) - counts
-    per_pair = counts[other]
-    pair = torch.repeat_interleave(torch.arange(container.numel(), device=x.device), per_pair)
-    local = torch.arange(pair.numel(), device=x.device) - (torch.cumsum(per_pair, 0) - per_pair)[pair]
-    vertex = surface[first[other][pair] + local]
-    body = container[pair]
+    pair, index = expand_ranges(first[other], counts[other])
+    vertex, body = surface[index], container[pair]
     inside_box = ((x[vertex] >= lower[body]) & (x[vertex] <= upper[body])).all(-1)
     vertex, body = vertex[inside_box], body[inside_box]
     if vertex.numel() == 0:

@@ -4,7 +4,7 @@ import torch
 
 import tensormass_torch as tm
 from tensormass_torch.mesh import topology
-from tensormass_torch.mesh.topology import GatherPlan, incidence_slots, node_element_lists, padded_sum
+from tensormass_torch.mesh.topology import GatherPlan, expand_ranges, incidence_slots, node_element_lists, padded_sum
 from tensormass_torch.ops.reference.gather import node_gather, scatter_partial_forces
 
 
@@ -98,3 +98,9 @@ def test_add_at_sums_the_same_every_run_with_threads():
     assert all(torch.equal(runs[0], run) for run in runs[1:])
     exact = torch.zeros(5000, 9, dtype=torch.float64).index_add_(0, index, values.double())
     torch.testing.assert_close(runs[0].double(), exact, rtol=0, atol=1e-4)
+
+
+def test_expand_ranges_packs_each_range_in_turn():
+    owner, item = expand_ranges(torch.tensor([5, 0, 9, 2]), torch.tensor([2, 0, 3, 1]))
+    assert owner.tolist() == [0, 0, 2, 2, 2, 3]
+    assert item.tolist() == [5, 6, 9, 10, 11, 2]
