@@ -14,7 +14,7 @@ The pile is ``contact_piles``' (``pile_arguments``; ``--columns 1 --levels 10``:
 ten), stepped ``--steps`` steps with ``--contact`` or taken from ``--state``; ``--save-state
 DIR`` keeps that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` is a name and a
 JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s,
-``"preconditioner"`` and ``"warm_start"``, the Simulator's, ``"rigid_grouping"``, the groups of
+``"preconditioner"``, ``"warm_start"`` and ``"paired_blocks"``, the Simulator's, ``"rigid_grouping"``, the groups of
 ``preconditioner="rigid"``'s coarse solve (``"contact"``, its default, or ``"morton"``), and
 ``"rigid_refresh"``, the loads between two computations of its bodies' part, and
 ``"check_ahead"``, the stretches of a paused solve its contact check runs beside on the GPU
@@ -56,7 +56,7 @@ def setting(text: str):
 def extend(parser):
     parser.add_argument("--setting", type=setting, action="append", default=None,
                         help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner', 'rigid_grouping', "
-                             "'warm_start', 'rigid_refresh', 'check_ahead')")
+                             "'warm_start', 'paired_blocks', 'rigid_refresh', 'check_ahead')")
     parser.add_argument("--repeats", type=int, default=3, help="blocks of --timed steps for each setting")
     parser.add_argument("--save-state", default=None, help="a folder to keep the pile's starting state in")
     parser.add_argument("--out", default=None, help="a JSON file for the blocks' figures")
@@ -98,8 +98,9 @@ def main(argv=None):
         rigid = {key: options.pop(f"rigid_{key}") for key in ("grouping", "refresh") if f"rigid_{key}" in options}
         check_ahead = options.pop("check_ahead", None)
         warm_start = options.pop("warm_start", False)
+        paired_blocks = options.pop("paired_blocks", True)
         sim = contact_piles.simulator(bodies, tm.Contact(**{**args.contact, **options}), args.device, dtype,
-                                      preconditioner, warm_start)
+                                      preconditioner, warm_start, paired_blocks)
         if rigid:  # the rigid correction's groups and lag (the others its defaults)
             sim.system._rigid = RigidModeCorrection(**rigid)
         if check_ahead is not None:

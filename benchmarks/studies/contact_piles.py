@@ -9,6 +9,7 @@ number of surface triangles, and the deepest interpenetration over the run.
                                                [--recheck-tolerance T]
                                                [--check-tols C ...] [--skins S ...] [--check-margins M ...]
                                                [--window 100] [--warm-start none] [--without-steps 0]
+                                               [--paired-blocks on off]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
                                                [--out benchmarks/results/contact] [--quick]
@@ -41,7 +42,9 @@ still over each other whose order from the floor up changed. The run's time is t
 (``stepping_s``, ``steps_per_s_run``, ``cost_ratio_run`` against the pile without contact), recorded
 every ``--window`` steps (``windows``: first step, last step, seconds, solves, CG iterations, the
 largest of a solve's objects summed over its solves) with the checks timed apart
-(``check_s``; ``run_s`` is both). ``--without-steps N`` also times the pile without contact over N
+(``check_s``; ``run_s`` is both). ``--paired-blocks on off``: a run for each
+``Simulator(paired_blocks=...)`` (block Jacobi with the nodes contact pairs couple merged, the
+default, or each node's own block). ``--without-steps N`` also times the pile without contact over N
 steps from the start (``steps_per_s_without_run``; the blocks fall through each other onto the
 floor) and gives the run's cost against that (``cost_ratio_run_against_run``). A run longer than one sitting:
 ``--state DIR --budget-s S`` saves the state after S seconds of stepping and stops; the same command
@@ -93,10 +96,10 @@ def pile(columns: int, cells, device, dtype, model: str = MODEL, young: float = 
     return bodies, block
 
 
-def simulator(bodies, contact, device, dtype, preconditioner="auto", warm_start=False):
+def simulator(bodies, contact, device, dtype, preconditioner="auto", warm_start=False, paired_blocks=True):
     return tm.Simulator(bodies, dt=DT, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=contact, rayleigh_mass=1.0,
                         device=device, dtype=dtype, cg_tol=1e-4, preconditioner=preconditioner,
-                        warm_start=warm_start)
+                        warm_start=warm_start, paired_blocks=paired_blocks)
 
 
 def pile_arguments(argv, description: str, timed: int, extend=None):
@@ -176,7 +179,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None, window: int = 100,
             warm_start=False, without_steps: int = 0, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT,
-            **settings) -> Optional[dict]:
+            paired_blocks: bool = True, **settings) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s with the same
     ``preconditioner``, measured here when None),
     ``settings``: its ``tm.Contact``'s (the library's defaults for those not given).
@@ -189,7 +192,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     apart (``contact_pile_1000_corotational_2000_steps.md``)."""
     bodies, block = pile(columns, cells, device, dtype, model, young, shift)
     sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, **settings), device, dtype, preconditioner,
-                    warm_start)
+                    warm_start, paired_blocks)
     saved = state / "meta.json" if state is not None else None
     if saved is not None and saved.exists():
         progress = json.loads(saved.read_text())
@@ -266,7 +269,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
                     cg_iterations_without_end=progress["cg_iterations_without_end"],
                     cost_ratio_run_against_run=progress["steps_per_s_without_run"] * stepping_s / steps)),
                 deepest_m=progress["deepest"],
-                preconditioner=preconditioner, warm_start=sim.options.warm_start, rounds=contact.settings.rounds,
+                preconditioner=preconditioner, paired_blocks=paired_blocks, warm_start=sim.options.warm_start,
+                rounds=contact.settings.rounds,
                 tolerance_m=contact.tolerance,
                 recheck_tolerance_m=contact.recheck_tolerance,
                 check_tol=contact.settings.check_tol, skin=contact.skin,
@@ -347,6 +351,9 @@ def main(argv=None):
                         help="measure the interpenetration every this many steps (0: at the end only)")
     parser.add_argument("--warm-start", default=False, choices=["none", "extrapolate", "project"],
                         help="the Simulator's warm_start, with contact and without")
+    parser.add_argument("--paired-blocks", nargs="+", default=["on"], choices=["on", "off"],
+                        help="a run with contact for each Simulator(paired_blocks=...) (block Jacobi's merged "
+                             "contact nodes)")
     parser.add_argument("--without-steps", type=int, default=0,
                         help="also time the pile without contact over this many steps from the start (0: not)")
     parser.add_argument("--window", type=int, default=100,
@@ -388,18 +395,19 @@ def main(argv=None):
                              "without, detection time", meta, columns, notes)
     for c in args.columns:  # written as each pile is measured: a later failure loses nothing
         baselines = {}  # the pile without contact, measured once for each preconditioner
-        for preconditioner, rounds, check_tol, skin, margin in [
-                (p, r, t, k, m) for p in args.preconditioners for r in args.rounds for t in args.check_tols
-                for k in args.skins for m in args.check_margins]:
+        for preconditioner, paired, rounds, check_tol, skin, margin in [
+                (p, q, r, t, k, m) for p in args.preconditioners for q in args.paired_blocks for r in args.rounds
+                for t in args.check_tols for k in args.skins for m in args.check_margins]:
             suffix = "" if args.rounds == [tm.Contact().rounds] else f"_rounds{rounds}"
             suffix += "" if args.check_tols == [tm.Contact().check_tol] else f"_check{check_tol}"
             suffix += "" if args.skins == [tm.Contact().skin] else f"_skin{skin}"
             suffix += "" if args.check_margins == [tm.Contact().check_margin] else f"_margin{margin}"
+            suffix += "" if paired == "on" else "_unpaired"
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baselines.get(preconditioner), state, args.budget_s,
                              args.window, args.warm_start, args.without_steps, args.model, args.young,
-                             args.shift, rounds=rounds, tolerance=args.tolerance,
+                             args.shift, paired == "on", rounds=rounds, tolerance=args.tolerance,
                              recheck_tolerance=args.recheck_tolerance, check_tol=check_tol, skin=skin,
                              check_margin=margin)
             if record is None:  # paused: the state is saved, the rest waits for the next run

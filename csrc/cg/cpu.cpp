@@ -101,6 +101,29 @@ void cg_coarse_beta_cpu(const at::Tensor& rr, const at::Tensor& u, const at::Ten
   });
 }
 
+void cg_pair_term_cpu(const at::Tensor& r, at::Tensor z, const at::Tensor& nodes, const at::Tensor& blocks,
+                      const at::Tensor& item_ptr, const at::Tensor& rr, const at::Tensor& status, at::Tensor rz,
+                      at::Tensor beta, bool step) {
+  const int64_t objects = check_cg_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta);
+  AT_DISPATCH_FLOATING_TYPES(r.scalar_type(), "cg_pair_term", [&] {
+    const int64_t* ptr = item_ptr.data_ptr<int64_t>();
+    const int64_t* pair_nodes = nodes.data_ptr<int64_t>();
+    const scalar_t* o = blocks.data_ptr<scalar_t>();
+    const scalar_t* rv = r.data_ptr<scalar_t>();
+    scalar_t* zv = z.data_ptr<scalar_t>();
+    const int32_t* st = status.data_ptr<int32_t>();
+    const scalar_t* rr_b = rr.data_ptr<scalar_t>();
+    scalar_t* rz_b = rz.data_ptr<scalar_t>();
+    scalar_t* beta_b = beta.data_ptr<scalar_t>();
+    for (int64_t b = 0; b < objects; ++b) {
+      if (st[b] != kActive) continue;
+      double dot = 0.0;
+      for (int64_t k = ptr[b]; k < ptr[b + 1]; ++k) dot += pair_term_item<scalar_t>(k, pair_nodes, o, rv, zv);
+      pair_rz_end<scalar_t>(rr_b[b], dot, step, rz_b[b], beta_b[b]);
+    }
+  });
+}
+
 void cg_dot_cpu(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
                 const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor out, at::Tensor scratch,
                 at::Tensor counter) {
@@ -179,4 +202,5 @@ TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
   m.impl("cg_update", &tensormass::cg_update_cpu);
   m.impl("cg_direction", &tensormass::cg_direction_cpu);
   m.impl("cg_coarse_beta", &tensormass::cg_coarse_beta_cpu);
+  m.impl("cg_pair_term", &tensormass::cg_pair_term_cpu);
 }

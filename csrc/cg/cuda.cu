@@ -104,6 +104,30 @@ __global__ void __launch_bounds__(kBlock) cg_coarse_beta_kernel(const S* __restr
   }
 }
 
+// cg_pair_term: a block an object, a pair a thread (strided), then block_sum (a fixed order) and
+// the object's end (common/cg.h: pair_term_item, pair_rz_end).
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_pair_term_kernel(const S* __restrict__ r, S* __restrict__ z,
+                                                              const int64_t* __restrict__ nodes,
+                                                              const S* __restrict__ blocks,
+                                                              const int64_t* __restrict__ item_ptr,
+                                                              const S* __restrict__ rr, const int32_t* status,
+                                                              S* rz, S* beta, bool step) {
+  const int64_t object = blockIdx.x;
+  if (status[object] != kActive) return;
+  double acc = 0.0;
+  for (int64_t k = item_ptr[object] + threadIdx.x; k < item_ptr[object + 1]; k += kBlock) {
+    acc += pair_term_item<S>(k, nodes, blocks, r, z);
+  }
+  const double total = block_sum(acc);
+  if (threadIdx.x == 0) {
+    S rz_b = rz[object], beta_b = beta[object];
+    pair_rz_end<S>(rr[object], total, step, rz_b, beta_b);
+    rz[object] = rz_b;
+    beta[object] = beta_b;
+  }
+}
+
 // This block's chunk of a . b (float64, the block's fixed order of sums), in every thread.
 template <typename S>
 __device__ double chunk_dot_sum(const S* __restrict__ a, const S* __restrict__ b, const CGPlan& plan, int64_t chunk,
@@ -244,6 +268,22 @@ void cg_coarse_beta_cuda(const at::Tensor& rr, const at::Tensor& u, const at::Te
   });
 }
 
+void cg_pair_term_cuda(const at::Tensor& r, at::Tensor z, const at::Tensor& nodes, const at::Tensor& blocks,
+                       const at::Tensor& item_ptr, const at::Tensor& rr, const at::Tensor& status, at::Tensor rz,
+                       at::Tensor beta, bool step) {
+  const int64_t objects = check_cg_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta);
+  if (objects == 0) return;
+  c10::cuda::CUDAGuard guard(r.device());
+  AT_DISPATCH_FLOATING_TYPES(r.scalar_type(), "cg_pair_term", [&] {
+    cg_pair_term_kernel<scalar_t><<<static_cast<unsigned int>(objects), kBlock, 0,
+                                    at::cuda::getCurrentCUDAStream()>>>(
+        r.data_ptr<scalar_t>(), z.data_ptr<scalar_t>(), nodes.data_ptr<int64_t>(), blocks.data_ptr<scalar_t>(),
+        item_ptr.data_ptr<int64_t>(), rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), rz.data_ptr<scalar_t>(),
+        beta.data_ptr<scalar_t>(), step);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
 void cg_dot_cuda(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
                  const at::Tensor& chunk_object, const at::Tensor& object_chunk, at::Tensor out, at::Tensor scratch,
                  at::Tensor counter) {
@@ -306,4 +346,5 @@ TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
   m.impl("cg_update", &tensormass::cg_update_cuda);
   m.impl("cg_direction", &tensormass::cg_direction_cuda);
   m.impl("cg_coarse_beta", &tensormass::cg_coarse_beta_cuda);
+  m.impl("cg_pair_term", &tensormass::cg_pair_term_cuda);
 }

@@ -96,6 +96,45 @@ TM_HD void coarse_direction_node(int64_t i, const S* z, S beta, S* p, const Rigi
   TM_UNROLL for (int k = 0; k < 3; ++k) p[i * 3 + k] = (z[i * 3 + k] + moved[k]) + beta * p[i * 3 + k];
 }
 
+// Paired blocks beside block Jacobi (solver/preconditioner.py: BlockJacobi with pairs): two nodes
+// i, j that a contact pair couples are one 6 x 6 block of the preconditioner, whose inverse holds
+// D_i, D_j on its diagonal (cg_update's B^-1 at i and j) and O, O^T off it (O the block (i, j)).
+// cg_pair_term adds the off-diagonal part to z = B^-1 r: z_i += O r_j, z_j += O^T r_i, and
+// returns its part of r . z, r_i . O r_j + r_j . O^T r_i. Every node is in at most one pair, so the
+// writes of two pairs never meet. nodes [K, 2], blocks [K, 3, 3] row-major.
+template <typename S>
+TM_HD double pair_term_item(int64_t k, const int64_t* nodes, const S* blocks, const S* r, S* z) {
+  const int64_t i = nodes[2 * k], j = nodes[2 * k + 1];
+  const S* o = blocks + 9 * k;
+  S ri[3], rj[3];
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    ri[a] = r[i * 3 + a];
+    rj[a] = r[j * 3 + a];
+  }
+  double dot = 0.0;
+  TM_UNROLL for (int a = 0; a < 3; ++a) {
+    const S at_i = o[3 * a] * rj[0] + o[3 * a + 1] * rj[1] + o[3 * a + 2] * rj[2];  // (O r_j)_a
+    const S at_j = o[a] * ri[0] + o[3 + a] * ri[1] + o[6 + a] * ri[2];              // (O^T r_i)_a
+    z[i * 3 + a] += at_i;
+    z[j * 3 + a] += at_j;
+    dot += static_cast<double>(ri[a]) * static_cast<double>(at_i) + static_cast<double>(rj[a]) * static_cast<double>(at_j);
+  }
+  return dot;
+}
+
+// The end of cg_pair_term for one object: rz_new = rr + its pairs' sum; with step, preconditioned
+// CG's beta = rz_new / rz and rz = rz_new (pcg_beta_step), else rz = rz_new only (a coarse
+// correction then takes rz for its rr: cg_coarse_beta).
+template <typename S>
+TM_HD void pair_rz_end(S rr, double pair_dot, bool step, S& rz, S& beta) {
+  const S rz_new = static_cast<S>(static_cast<double>(rr) + pair_dot);
+  if (step) {
+    beta = pcg_beta_step<S>(rz_new, rz);
+  } else {
+    rz = rz_new;
+  }
+}
+
 // The start of a solve from x0 = 0 (CGSolver.start): r = p = b, rr = b.b; the object is
 // non-finite, already converged (b.b <= tol^2 b.b, i.e. b = 0), capped (max_iter = 0) or active.
 template <typename S>

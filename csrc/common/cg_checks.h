@@ -187,6 +187,28 @@ inline int64_t check_cg_coarse_beta(const at::Tensor& rr, const at::Tensor& u, c
   return objects;
 }
 
+inline int64_t check_cg_pair_term(const at::Tensor& r, const at::Tensor& z, const at::Tensor& nodes,
+                                  const at::Tensor& blocks, const at::Tensor& item_ptr, const at::Tensor& rr,
+                                  const at::Tensor& status, const at::Tensor& rz, const at::Tensor& beta) {
+  cg_check_values(r, "r");
+  TORCH_CHECK(r.dim() == 2 && r.size(1) == 3, "tensormass: r must be [V, 3], got ", cg_shape_str(r.sizes()));
+  cg_check(z, "z", r, r.scalar_type(), r.sizes());
+  TORCH_CHECK(nodes.defined() && nodes.dim() == 2 && nodes.size(1) == 2, "tensormass: nodes must be [K, 2]");
+  const int64_t pairs = nodes.size(0);
+  cg_check(nodes, "nodes", r, at::kLong, {pairs, 2});
+  cg_check(blocks, "blocks", r, r.scalar_type(), {pairs, 3, 3});
+  TORCH_CHECK(rr.defined() && rr.dim() == 1, "tensormass: rr must be [B]");
+  const int64_t objects = rr.size(0);
+  cg_check_scalars(rr, "rr", r, objects);
+  cg_check(item_ptr, "item_ptr", r, at::kLong, {objects + 1});
+  cg_check_state(status, "status", r, objects);
+  cg_check_scalars(rz, "rz", r, objects);
+  cg_check_scalars(beta, "beta", r, objects);
+  TORCH_CHECK(!rz.is_same(beta) && !rz.is_same(rr), "tensormass: rz must be a buffer of its own, not rr or beta");
+  TORCH_CHECK(!z.is_same(r), "tensormass: z must be a buffer of its own, not r");
+  return objects;
+}
+
 inline CGPlan check_cg_dot(const at::Tensor& a, const at::Tensor& b, const at::Tensor& chunk_start,
                            const at::Tensor& chunk_object, const at::Tensor& object_chunk, const at::Tensor& out,
                            const at::Tensor& scratch, const at::Tensor& counter) {

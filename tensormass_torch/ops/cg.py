@@ -17,7 +17,8 @@ is the first step for a product that does not give its per-node dots: Ap project
 nodes in place and p.Ap summed in the same pass. The family also
 has ``cg_dot`` (per-object dot products), ``cg_dot_beta`` (preconditioned CG's r.z and beta),
 ``cg_coarse_beta`` (the same where a coarse correction adds to block Jacobi: r.z from cg_update's
-r.B^-1 r and the coarse vectors, no pass over the nodes) and ``euler_update`` (the end of an
+r.B^-1 r and the coarse vectors, no pass over the nodes), ``cg_pair_term`` (paired blocks' part of
+z and of r.z, a pair a thread) and ``euler_update`` (the end of an
 implicit Euler step after its solve). The ops write into their
 arguments and return nothing (fake kernels: none).
 """
@@ -259,6 +260,41 @@ def coarse_beta(u: torch.Tensor, v: torch.Tensor, item_ptr: torch.Tensor, weight
     native.cg_coarse_beta(s.rr, u, v, item_ptr, float(weight), s.status, rz, s.beta)
 
 
+def _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, step):
+    counts = item_ptr[1:] - item_ptr[:-1]
+    pair_object = torch.repeat_interleave(torch.arange(rr.shape[0], device=rr.device), counts)  # [item_ptr[B]]
+    count = pair_object.shape[0]
+    going = (status == ACTIVE)[pair_object]
+    i, j = nodes[:count, 0], nodes[:count, 1]
+    o = blocks[:count] * going[:, None, None].to(blocks.dtype)  # (an object that is not active: nothing)
+    at_i = (o * r[j][:, None, :]).sum(-1)  # O r_j
+    at_j = (o.transpose(1, 2) * r[i][:, None, :]).sum(-1)  # O^T r_i
+    dots = ((r[i].double() * at_i.double()).sum(-1) + (r[j].double() * at_j.double()).sum(-1))
+    z.index_add_(0, torch.cat([i, j]), torch.cat([at_i, at_j]))
+    running = torch.cat([dots.new_zeros(1), torch.cumsum(dots, 0)])
+    rz_new = (rr.double() + running[item_ptr[1:]] - running[item_ptr[:-1]]).to(rz.dtype)
+    if step:
+        _ref_pcg_beta(rz_new, status, rz, beta)
+    else:
+        rz.copy_(torch.where(status == ACTIVE, rz_new, rz))
+
+
+def pair_term(r: torch.Tensor, z: torch.Tensor, nodes: torch.Tensor, blocks: torch.Tensor, item_ptr: torch.Tensor,
+              rz: torch.Tensor, s: CGState, step: bool, native=None, rr: Optional[torch.Tensor] = None):
+    """Paired blocks beside block Jacobi (``solver.preconditioner.BlockJacobi`` with pairs): for
+    each active object's pairs ``item_ptr[b] .. item_ptr[b + 1] - 1`` (``[B + 1]`` int64), nodes
+    (i, j) = ``nodes[k]`` (``[K, 2]`` int64, no node in two pairs) and O = ``blocks[k]`` (``[K, 3,
+    3]``, the block (i, j) of the pair's inverse), z_i += O r_j and z_j += O^T r_i in place (``r``,
+    ``z`` ``[V, 3]``; z holds B^-1 r), and rz_new = ``rr`` (default ``s.rr``, cg_update's r.B^-1 r)
+    + the pairs' part of r.z. With ``step``, ``s.beta = rz_new / rz`` and ``rz = rz_new``; without,
+    ``rz = rz_new`` only (a coarse correction's ``coarse_beta`` then takes it for its rr). Objects
+    that are not active are left as they are."""
+    rr = s.rr if rr is None else rr
+    if native is None:
+        return _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, s.status, rz, s.beta, step)
+    native.cg_pair_term(r, z, nodes, blocks, item_ptr, rr, s.status, rz, s.beta, bool(step))
+
+
 def native_ops_for(x: torch.Tensor):
     """The compiled CG ops for ``x``'s device and dtype, or None (pure-torch reference)."""
     if x.dtype not in (torch.float32, torch.float64):
@@ -376,6 +412,13 @@ def _example(name):
             u, v = (torch.randn((3, 6), generator=gen).to(device=device, dtype=dtype) for _ in range(2))
             item_ptr = torch.tensor([0, 2, 3], dtype=torch.int64, device=device)
             return (s.rr, u, v, item_ptr, 0.5, s.status, s.alpha, s.beta), {}
+        if name == "cg_pair_term":  # a pair an object (object 1's skipped), then padding (not read)
+            s.status[1] = CONVERGED
+            nodes = torch.tensor([[0, 2], [3, 4], [-1, -1]], dtype=torch.int64, device=device)
+            blocks = torch.randn((3, 3, 3), generator=gen).to(device=device, dtype=dtype)
+            item_ptr = torch.tensor([0, 1, 2], dtype=torch.int64, device=device)
+            z = torch.randn((5, 3), generator=gen).to(device=device, dtype=dtype)
+            return (s.r, z, nodes, blocks, item_ptr, s.rr, s.status, s.alpha, s.beta, True), {}
         if name == "cg_dot":
             return (field, s.p, *tensors, s.rr, s.scratch, s.counter), {}
         if name == "cg_dot_beta":
@@ -394,7 +437,7 @@ def _example(name):
 
 _REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_alpha_dot": _ref_cg_alpha_dot, "cg_update": _ref_cg_update,
                "cg_direction": _ref_cg_direction, "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta,
-               "cg_coarse_beta": _ref_coarse_beta,
+               "cg_coarse_beta": _ref_coarse_beta, "cg_pair_term": _ref_pair_term,
                "euler_update": _ref_euler_update}
 OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
                   scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())

@@ -25,6 +25,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     form = "auto"                     # "stress", "tensor"
     preconditioner = "auto"           # "none", "jacobi", "rigid", "multigrid", "cholesky"
                                       # (auto: Jacobi where bodies touch)
+    paired_blocks = true              # Jacobi's blocks merge the two nodes a contact pair couples most
     integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
     warm_start = false                # true / "extrapolate": each CG from the last steps' extrapolated
                                       # solution; "project": their span's projection (hooke: best)
@@ -787,6 +788,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
         preconditioner=_choice(solver, "preconditioner", PRECONDITIONERS, "auto", "preconditioner"),
         integrator=_choice(solver, "integrator", list(INTEGRATORS), "backward_euler", "integrator"),
         warm_start=_warm_start(solver),
+        paired_blocks=solver.get("paired_blocks", "bool", True),
         check_memory=solver.get("check_memory", "bool", True),
         cut_on_device=solver.get("cut_on_device", "bool", False),
     )

@@ -143,7 +143,7 @@ class Simulator:
             ``sim.v`` were set, and sub-steps are backward Euler's and steps are not chained);
             all at backward Euler's cost per step (see ``solver.implicit_euler``).
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs,
-            preconditioner, warm_start: see ``StepOptions``. With ``warm_start=True`` (or
+            preconditioner, warm_start, paired_blocks: see ``StepOptions``. With ``warm_start=True`` (or
             ``"extrapolate"``) each step's CG starts from the extrapolation of the two steps
             before (2 dv_1 - dv_2; dv_1 after one step; zeros after a state set by hand, a cut
             that made room, sub-steps or a chain of steps, which keep no history); with
@@ -182,7 +182,7 @@ class Simulator:
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
                  preconditioner: str = "auto", integrator: str = "backward_euler", warm_start=False,
-                 check_memory: bool = True, cut_on_device: bool = False):
+                 check_memory: bool = True, cut_on_device: bool = False, paired_blocks: bool = True):
         bodies = list(bodies)
         if not hasattr(self, "initial_bodies"):  # (a rebuild for a cut runs __init__ again: kept)
             #: the bodies this simulator was first built with (:meth:`rebuilt`)
@@ -196,7 +196,7 @@ class Simulator:
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
                                substeps_on_failure=substeps_on_failure, tools=tools, contact=contact,
                                preconditioner=preconditioner, integrator=integrator, warm_start=warm_start,
-                               cut_on_device=cut_on_device)
+                               cut_on_device=cut_on_device, paired_blocks=paired_blocks)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -224,6 +224,8 @@ class Simulator:
         if INTEGRATORS[integrator] != 1.0 and newton_iters != 1:
             raise SceneError(f"newton_iters={newton_iters} needs integrator='backward_euler' or 'bdf2' (the "
                              f"{integrator!r} step is one linearisation)")
+        if not isinstance(paired_blocks, bool):
+            raise SceneError(f"paired_blocks must be True or False, got {paired_blocks!r}")
         try:
             warm_start_mode(warm_start)
         except ValueError as exc:
@@ -273,7 +275,8 @@ class Simulator:
                                    cg_max_iter=cg_max_iter, require_convergence=require_convergence,
                                    newton_iters=newton_iters, check_every=check_every,
                                    cuda_graphs=bool(cuda_graphs), preconditioner=preconditioner,
-                                   integrator=integrator, warm_start=warm_start)
+                                   integrator=integrator, warm_start=warm_start,
+                                   paired_blocks=bool(paired_blocks))
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
         # bodies on the host are packed on the host and moved once (a batch of many small bodies
         # would otherwise cost a dozen small copies and a synchronisation a body)

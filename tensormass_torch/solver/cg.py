@@ -111,6 +111,8 @@ class CGSolver:
         self._pcg = None  # the preconditioned iteration's buffers, made at its first use
         self._block = None  # the block-preconditioned iteration's (_block_buffers)
         self._items = None  # (bodies' node ranges, each object's range of bodies): _coarse_items
+        self._pair_items: Optional[torch.Tensor] = None  # each object's range of paired blocks (_load_pair_items)
+        self._pair_sums: Optional[torch.Tensor] = None  # r.D r + the pairs' part, before a coarse part
         self._rhs = None  # the right-hand side a captured start reads (preconditioned solves)
         self._paused = None  # a paused solve's (iterations run, pause threshold [B]) (see solve)
 
@@ -207,12 +209,22 @@ class CGSolver:
         stays on r.B^-1 r."""
         s, b = self.state, self._block_buffers()
         coarse_terms = getattr(preconditioner, "coarse_terms", None)
-        step = s if coarse_terms is None else self._pcg_buffers().scaled
+        paired = getattr(preconditioner, "paired", None)
+        step = s if coarse_terms is None and paired is None else self._pcg_buffers().scaled
         fused = getattr(matvec, "matvec_alpha", None) if self.native is not None else None
         ap = fused(s.p, self.plan, step) if fused is not None else None
         if ap is None:
             ap = self._step_length(matvec, step)
         cg_ops.cg_update(ap, self.plan, s, max_iter, self.native, preconditioner.inverse_blocks, b.z)
+        if paired is not None:  # z += the paired blocks' part; r.z = r.D r + its part
+            rz = self._pcg_buffers().rz
+            last = coarse_terms is None
+            target = rz if last else self._pair_rz()
+            cg_ops.pair_term(s.r, b.z, paired.nodes, paired.blocks, self._pair_items, target, s, last, self.native)
+            if last:
+                cg_ops.cg_direction(self.plan, b.direction, self.native)
+                return
+            s = dataclasses.replace(s, rr=target)  # (the coarse part adds to rr + the pairs')
         if coarse_terms is None:
             cg_ops.cg_direction(self.plan, b.direction, self.native)
             return
@@ -220,6 +232,24 @@ class CGSolver:
         cg_ops.coarse_beta(restricted, solution, self._coarse_items(preconditioner.body_ptr), preconditioner.weight,
                            self._pcg_buffers().rz, s, self.native)
         cg_ops.cg_direction(self.plan, b.direction, self.native, preconditioner.direction_term(solution))
+
+    def _pair_rz(self) -> torch.Tensor:
+        """``[B]``: r.D r plus the paired blocks' part, where a coarse correction adds its own
+        after (made at its first use)."""
+        if self._pair_sums is None:
+            self._pair_sums = torch.zeros_like(self.state.rr)
+        return self._pair_sums
+
+    def _load_pair_items(self, paired) -> None:
+        """Each object's range of the paired blocks' pairs (``[B + 1]`` int64, in one buffer that a
+        captured iteration reads), from their first nodes: the objects are ranges of nodes."""
+        ptr = self.segments.ptr.to(device=paired.first.device, dtype=torch.int64)
+        items = torch.searchsorted(paired.first, ptr)
+        if self._pair_items is None or self._pair_items.shape != items.shape \
+                or self._pair_items.device != items.device:
+            self._pair_items = items
+        else:
+            self._pair_items.copy_(items)
 
     def _coarse_items(self, body_ptr: torch.Tensor) -> torch.Tensor:
         """``[B + 1]`` int64: each object's range of bodies, for the bodies' node ranges ``body_ptr``
@@ -347,8 +377,14 @@ class CGSolver:
             s.p.copy_(s.r)
         elif inverse_blocks is not None:
             correct = getattr(preconditioner, "correct", None)
-            if correct is not None:  # z = B^-1 r + C r, and r.z for the step length
+            paired = getattr(preconditioner, "paired", None)
+            if paired is not None:  # z += the paired blocks' part (its r.z: the dot below)
+                self._load_pair_items(paired)
+                cg_ops.pair_term(s.r, self._block.z, paired.nodes, paired.blocks, self._pair_items,
+                                 self._pcg_buffers().rz, s, False, self.native)
+            if correct is not None:  # z = B^-1 r + C r
                 correct(s.r, self._block.z)
+            if correct is not None or paired is not None:  # r.z for the step length
                 cg_ops.object_dot(s.r, self._block.z, self.plan, self._pcg_buffers().rz, s, self.native)
             s.p.copy_(self._block.z)
         else:

@@ -40,6 +40,7 @@ from typing import Optional
 import torch
 
 from ..errors import SceneError, SolverError
+from ..mesh.topology import add_at
 from ..ops import library
 from ..ops.multigrid import BsrMatrix, block_cholesky_scaling, block_scaling, bsr_gemv
 
@@ -131,35 +132,201 @@ class BlockJacobi:
     storage stays from load to load, so that graphs captured over the iterations replay with each
     solve's blocks). The same iterates in exact arithmetic as the scaled system of
     :class:`JacobiScaling` (x = S y), and the same tolerance (on sqrt(r.B^-1 r) = |S^T r|), without
-    its two block products an iteration: z = B^-1 r is computed in the update's pass."""
+    its two block products an iteration: z = B^-1 r is computed in the update's pass.
+
+    With body contact pairs and ``paired=True`` (``StepOptions.paired_blocks``), B also takes the
+    block A_ij between two nodes i, j of different bodies that a pair couples most
+    (:func:`paired_nodes`): their 6 x 6 block is inverted whole, its diagonal blocks D_i, D_j go
+    into ``inverse_blocks`` and its off-diagonal block O into :attr:`paired` (a
+    :class:`PairedBlocks`, which the CG adds to z: ``ops.cg.pair_term``). A contact's stiffness k
+    dt^2 is tens of times a node's elastic diagonal, so Jacobi leaves the pair's two nodes moving
+    together as one of the solve's slowest modes; the merged block takes that mode in. The
+    stopping rule is then on r . D r (D: ``inverse_blocks``)."""
 
     def __init__(self):
         self.inverse_blocks: Optional[torch.Tensor] = None
         self._factors: Optional[tuple] = None  # block_scaling's outputs (S, S^T, S^-1)
+        self.paired: Optional[PairedBlocks] = None  # the loaded pairs (None: none this load)
+        self._pairs: Optional[PairedBlocks] = None  # their buffers, kept from load to load
 
-    def load(self, blocks: torch.Tensor) -> "BlockJacobi":
+    def load(self, blocks: torch.Tensor, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
+             free: Optional[torch.Tensor] = None) -> "BlockJacobi":
         """Take the system's diagonal blocks ``[V, d, d]``; a block that is not positive definite
         (a node with no mass and no element left, whose row CG never moves) gives the identity.
-        B^-1 = L^-T L^-1 = S S^T from the blocks' Cholesky factor (``block_scaling``)."""
+        B^-1 = L^-T L^-1 = S S^T from the blocks' Cholesky factor (``block_scaling``). ``pairs``
+        (a ``ContactPairs``, or None) with their ``pair_matrices [P, 3, 3]`` (their part of the
+        step's matrix is J^T M J over each pair's four nodes) and the free-node mask ``free [V, 1]``
+        (or None): the nodes :func:`paired_nodes` pairs are merged into 6 x 6 blocks (3-D)."""
         if self.inverse_blocks is None or self.inverse_blocks.shape != blocks.shape \
                 or self.inverse_blocks.dtype != blocks.dtype or self.inverse_blocks.device != blocks.device:
             self.inverse_blocks = torch.empty_like(blocks)
             self._factors = tuple(torch.empty_like(blocks) for _ in range(3))
+            self._pairs = None
         scale, scale_t, inverse = self._factors
         block_scaling(blocks, scale, scale_t, inverse)
         # S S^T elementwise: a batched matmul of 3 x 3 blocks goes to a GEMM kernel that took
         # 1.4 ms on the pile's 726,000 nodes (H200), against two elementwise launches
         torch.sum(scale[:, :, None, :] * scale[:, None, :, :], -1, out=self.inverse_blocks)
+        self.paired = None
+        if pairs is not None and len(pairs) and blocks.shape[-1] == 3:
+            if self._pairs is None:
+                self._pairs = PairedBlocks()
+            self.paired = self._pairs.load(blocks, self.inverse_blocks, pairs, pair_matrices, free)
         return self
 
     @property
     def key(self) -> tuple:
-        """What a graph captured over the iterations depends on: the buffer's storage."""
-        return ("block_jacobi", self.inverse_blocks.data_ptr())
+        """What a graph captured over the iterations depends on: the buffers' storage."""
+        return ("block_jacobi", self.inverse_blocks.data_ptr()) + (() if self.paired is None else self.paired.key)
 
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
-        """z = B^-1 r ``[V, d]`` (for callers that apply it themselves)."""
-        return block_diagonal_product(self.inverse_blocks, r)
+        """z = M^-1 r ``[V, d]`` (for callers that apply it themselves): B^-1 r, and the paired
+        blocks' part where there is one."""
+        z = block_diagonal_product(self.inverse_blocks, r)
+        return z if self.paired is None else self.paired.add_to(r, z)
+
+
+class PairedBlocks:
+    """The node pairs of a :class:`BlockJacobi` merged into 6 x 6 blocks, in buffers of a fixed
+    capacity (a power of two, at least the pairs' count) whose storage stays while the capacity
+    does: ``nodes [C, 2]`` int64 (i < j, in order of i; -1 past the pairs), ``blocks [C, 3, 3]``
+    (O = the block (i, j) of the merged block's inverse) and ``first [C]`` (i, or the node count
+    past the pairs: each CG object's pairs are then a range, ``CGSolver`` finds it by a search)."""
+
+    def __init__(self):
+        self.nodes: Optional[torch.Tensor] = None
+        self.blocks: Optional[torch.Tensor] = None
+        self.first: Optional[torch.Tensor] = None
+
+    def load(self, blocks: torch.Tensor, inverse_blocks: torch.Tensor, pairs, pair_matrices: torch.Tensor,
+             free: Optional[torch.Tensor]) -> "PairedBlocks":
+        """Merge the nodes :func:`paired_nodes` pairs: their blocks (the diagonal ``blocks [V, 3,
+        3]`` and the pairs' coupling) inverted whole, D_i and D_j written into ``inverse_blocks`` (in
+        place), O into :attr:`blocks`. No host synchronisation."""
+        num_nodes = blocks.shape[0]
+        first, second, count = paired_nodes(pairs, num_nodes, free)
+        capacity = max(1, 1 << (max(count, 1) - 1).bit_length())
+        if self.nodes is None or self.nodes.shape[0] != capacity or self.blocks.dtype != blocks.dtype \
+                or self.nodes.device != blocks.device:
+            self.nodes = torch.empty((capacity, 2), dtype=torch.int64, device=blocks.device)
+            self.blocks = torch.empty((capacity, 3, 3), dtype=blocks.dtype, device=blocks.device)
+            self.first = torch.empty(capacity, dtype=torch.int64, device=blocks.device)
+        valid = first < num_nodes  # [count]: the merged pairs first, in order of i, then none
+        i, j = torch.where(valid, first, 0), torch.where(valid, second, 0)
+        cross = _pair_coupling(pairs, pair_matrices, i, j, valid, num_nodes)  # Q = A_ij [count, 3, 3]
+        # The merged block [[P, Q], [Q^T, R]]'s inverse by its Schur complement S = R - Q^T P^-1 Q:
+        # D_j = S^-1, O = -P^-1 Q S^-1, D_i = P^-1 - O Q^T P^-1, with P^-1 the node's own inverse
+        # (3 x 3 products written elementwise: batched matmuls and factorisations of many small
+        # blocks go to library kernels many times slower)
+        p_inverse = inverse_blocks[i]
+        p_inverse_q = _products(p_inverse, cross)  # P^-1 Q
+        schur = blocks[j] - _products(cross.transpose(1, 2), p_inverse_q)
+        schur = torch.where(valid[:, None, None], schur, torch.eye(3, dtype=blocks.dtype, device=blocks.device))
+        scale, scale_t, schur_inverse = (torch.empty_like(schur) for _ in range(3))
+        block_scaling(0.5 * (schur + schur.transpose(1, 2)), scale, scale_t, schur_inverse)
+        d_j = _products(scale, scale_t)  # S^-1 = L^-T L^-1
+        off = -_products(p_inverse_q, d_j)  # O
+        d_i = p_inverse - _products(off, p_inverse_q.transpose(1, 2))  # P^-1 - O (P^-1 Q)^T
+        # D_i, D_j over the nodes' own inverses (other nodes' stay; an index past the pairs writes
+        # into a row that is then dropped)
+        rows = torch.cat([inverse_blocks, inverse_blocks.new_zeros((1, 3, 3))])
+        dummy = torch.full_like(i, num_nodes)
+        rows.index_copy_(0, torch.where(valid, i, dummy), d_i)
+        rows.index_copy_(0, torch.where(valid, j, dummy), d_j)
+        inverse_blocks.copy_(rows[:-1])
+        self.nodes.fill_(-1)
+        self.nodes[:count, 0] = torch.where(valid, i, -1)
+        self.nodes[:count, 1] = torch.where(valid, j, -1)
+        self.blocks.zero_()
+        self.blocks[:count] = torch.where(valid[:, None, None], off, 0.0)
+        self.first.fill_(num_nodes)
+        self.first[:count] = first
+        return self
+
+    @property
+    def key(self) -> tuple:
+        """The buffers' storage (what a captured graph reads)."""
+        return ("paired", self.nodes.data_ptr(), self.blocks.data_ptr())
+
+    def add_to(self, r: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """z += the off-diagonal part for ``r [V, 3]`` (z_i += O r_j, z_j += O^T r_i), in tensor
+        ops, in place; returns z."""
+        valid = self.nodes[:, 0] >= 0
+        i, j = torch.where(valid, self.nodes[:, 0], 0), torch.where(valid, self.nodes[:, 1], 0)
+        blocks = self.blocks  # (zero past the pairs)
+        at_i = (blocks * r[j][:, None, :]).sum(-1)
+        at_j = (blocks.transpose(1, 2) * r[i][:, None, :]).sum(-1)
+        return z.index_add_(0, torch.cat([i, j]), torch.cat([at_i, at_j]))
+
+
+def _products(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a b for 3 x 3 blocks ``[K, 3, 3]`` each, elementwise (see :meth:`PairedBlocks.load`)."""
+    return (a[:, :, :, None] * b[:, None, :, :]).sum(2)
+
+
+def paired_nodes(pairs, num_nodes: int, free: Optional[torch.Tensor] = None) -> tuple:
+    """The node pairs block Jacobi merges for contact ``pairs`` (a ``ContactPairs`` over
+    ``num_nodes`` nodes): (first, second, count), ``[count]`` int64 each, count = min(P, V // 2)
+    (P pairs: known on the host, so no synchronisation), the pairs in order of their first node,
+    then ``num_nodes`` in both past them. Each pair of contact links its vertex to its triangle's
+    node of largest weight (pairs between two bodies only: within one body the elastic coupling
+    would be left out of the block); each node takes its link of largest weight (ties: the
+    lowest other node), and two nodes are merged where each is the other's, both free. No node
+    is in two pairs."""
+    device = pairs.nodes.device
+    between = pairs.objects[:, 0] != pairs.objects[:, 1]
+    weight, slot = pairs.weights.max(1)
+    vertex, node = pairs.nodes[:, 0], pairs.nodes.gather(1, 1 + slot[:, None])[:, 0]
+    weight = torch.where(between, weight, -1.0)  # (a link within a body never wins)
+    ends = torch.cat([vertex, node])
+    others = torch.cat([node, vertex])
+    weights = torch.cat([weight, weight])
+    best_weight = torch.full((num_nodes,), -1.0, dtype=weights.dtype, device=device)
+    best_weight.scatter_reduce_(0, ends, weights, "amax")
+    candidate = torch.where((weights == best_weight[ends]) & (weights > 0), others, num_nodes)
+    best = torch.full((num_nodes + 1,), num_nodes, dtype=torch.int64, device=device)
+    best.scatter_reduce_(0, ends, candidate, "amin")
+    nodes = torch.arange(num_nodes, device=device)
+    partner = best[:num_nodes]
+    merged = (partner > nodes) & (best[partner] == nodes)
+    if free is not None:
+        held = free.reshape(num_nodes, -1).amin(1) <= 0
+        merged &= ~held & ~held[partner.clamp(max=num_nodes - 1)]
+    count = min(len(pairs), num_nodes // 2)
+    # the merged nodes in order, then num_nodes: a cumulative count places each (no host read)
+    place = torch.cumsum(merged, 0) - 1
+    first = torch.full((count + 1,), num_nodes, dtype=torch.int64, device=device)
+    first.scatter_(0, torch.where(merged, place, count), torch.where(merged, nodes, num_nodes))
+    first = first[:count]
+    second = torch.where(first < num_nodes, best[first.clamp(max=num_nodes)], num_nodes)
+    return first, second, count
+
+
+def _pair_coupling(pairs, pair_matrices: torch.Tensor, first: torch.Tensor, second: torch.Tensor,
+                   valid: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """A_ij ``[K, 3, 3]`` for the merged nodes (i, j) = (``first``, ``second``) where ``valid``: the
+    sum over the pairs' entries that join them (a pair's vertex and one of its triangle's nodes,
+    either way round) of coef_vertex coef_node M, M = ``pair_matrices`` (symmetric)."""
+    count = first.shape[0]
+    merge = torch.full((num_nodes + 1,), count, dtype=torch.int64, device=first.device)  # node -> its pair
+    merge[torch.where(valid, first, num_nodes)] = torch.arange(count, device=first.device)
+    merge[torch.where(valid, second, num_nodes)] = torch.arange(count, device=first.device)
+    merge[num_nodes] = count
+    partner = torch.full((num_nodes + 1,), -1, dtype=torch.int64, device=first.device)
+    partner[torch.where(valid, first, num_nodes)] = torch.where(valid, second, -1)
+    partner[torch.where(valid, second, num_nodes)] = torch.where(valid, first, -1)
+    partner[num_nodes] = -1
+    coefficients = pairs._coefficients()  # [P, 4]
+    vertex = pairs.nodes[:, :1].expand(-1, 3)  # [P, 3]
+    node = pairs.nodes[:, 1:]
+    joins = partner[vertex] == node  # the entry (vertex, node) is a merged pair's
+    # the other entries each into a row of their own past the pairs' (the accumulation sorts by
+    # row and sums each row's values in turn: one row for them all would be one long serial sum)
+    entry = torch.where(joins, merge[vertex], count + torch.arange(joins.numel(), device=joins.device).view_as(joins))
+    values = (coefficients[:, :1] * coefficients[:, 1:])[:, :, None, None] * pair_matrices[:, None]  # [P, 3, 3, 3]
+    cross = pair_matrices.new_zeros((count + joins.numel(), 3, 3))
+    add_at(cross, entry.reshape(-1), values.reshape(-1, 3, 3))
+    return cross[:count]
 
 
 def block_diagonal_product(blocks: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -320,6 +487,7 @@ def system_diagonal_blocks(system, mass_coef: float, stiffness_coef: float, node
     return blocks
 
 
-__all__ = ["PRECONDITIONERS", "BlockJacobi", "JacobiScaling", "block_cholesky_scaling", "block_diagonal_product",
+__all__ = ["PRECONDITIONERS", "BlockJacobi", "JacobiScaling", "PairedBlocks", "paired_nodes",
+           "block_cholesky_scaling", "block_diagonal_product",
            "MultigridSolve",
            "system_diagonal", "system_diagonal_blocks", "system_multigrid", "system_rest_preconditioner"]

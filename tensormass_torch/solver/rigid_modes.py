@@ -63,7 +63,6 @@ from ..mesh.topology import add_at
 from ..ops.cg import CoarseTerm
 from ..ops.multigrid import BsrMatrix, bsr_gemv, match_clusters, rigid_prolong, rigid_restrict
 from ..ops.segments import Segments
-from .preconditioner import block_diagonal_product
 
 #: Bodies per group of the coarse solve (its matrices are 6 x this on a side).
 GROUP_BODIES = 32
@@ -335,6 +334,7 @@ class RigidModeCorrection:
         self._sums: Optional[BodySums] = None
         self._kept = None  # (key, arms, free, group, slot, groups, own blocks, filled, columns) of load's ``kept``
         self._blocks: Optional[torch.Tensor] = None  # a BlockJacobi's B^-1 [V, 3, 3] (None: a JacobiScaling's)
+        self._scaling = None  # the BlockJacobi or JacobiScaling it was loaded on
 
     def load(self, x: torch.Tensor, mass: torch.Tensor, segments: Segments, free: Optional[torch.Tensor],
              node_weights, scaling, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
@@ -404,6 +404,7 @@ class RigidModeCorrection:
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
         blocks = torch.where(filled, rows, 0.0).to(x.dtype).reshape(-1, 6, 6)
         self._blocks = getattr(scaling, "inverse_blocks", None)
+        self._scaling = scaling
         if self._blocks is not None:  # BlockJacobi: Z in the system's own unknowns, N = I (a value a node)
             node_inverse = free[:, 0].to(x.dtype) if free is not None else x.new_ones(x.shape[0])
         else:
@@ -487,8 +488,8 @@ class RigidModeCorrection:
     def __call__(self, r: torch.Tensor) -> torch.Tensor:
         """z = r + w Z' E^-1 Z'^T r ``[V, 3]`` of the scaled system (loaded on a JacobiScaling):
         three ops, the last adding r; on a BlockJacobi, z = B^-1 r + w Z E^-1 Z^T r."""
-        if self._blocks is not None:
-            return self.correct(r, block_diagonal_product(self._blocks, r))
+        if self._blocks is not None:  # (the BlockJacobi's own z: its paired blocks too)
+            return self.correct(r, self._scaling(r))
         return rigid_prolong(self.node_inverse, self.arms, self._node_body, self._coarse_solution(r), r.reshape(-1),
                              self.weight).view_as(r)
 
@@ -497,6 +498,12 @@ class RigidModeCorrection:
         """Loaded on a ``BlockJacobi``: its B^-1 ``[V, 3, 3]``, which the CG applies inside its
         update before :meth:`correct` adds the coarse part (``CGSolver``); else None."""
         return self._blocks
+
+    @property
+    def paired(self):
+        """Loaded on a ``BlockJacobi``: its paired blocks (``preconditioner.PairedBlocks``, which
+        the CG adds to z before the coarse part), or None."""
+        return getattr(self._scaling, "paired", None) if self._blocks is not None else None
 
     def correct(self, r: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """z += w Z E^-1 Z^T r ``[V, 3]`` in place (loaded on a ``BlockJacobi``: Z in the system's
