@@ -767,7 +767,7 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
     if with_pairs:  # (from the loaded PairStiffness where there is one: its entries are sorted already)
         blocks = blocks + (pair_stiffness.stiffness_blocks() if pair_stiffness is not None
                            else pairs.stiffness_blocks(stiffness_coef, opts.dt))
-    if with_pairs and opts.paired_blocks:  # (a pair's part J^T M J, M its projected stiffness: SPD blocks)
+    if with_pairs and opts.paired_blocks and hasattr(jacobi, "paired"):  # (a JacobiScaling: each node alone)
         return jacobi.load(blocks, pairs, pairs._pair_matrices(stiffness_coef, opts.dt), system.free)
     return jacobi.load(blocks)
 
