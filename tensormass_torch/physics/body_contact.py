@@ -495,6 +495,16 @@ class PairStiffness:
         per_entry = _entry_blocks(self.coef, _pair_blocks(self.direction, self.normal, self.friction))
         return torch.segment_reduce(per_entry[self.order], "sum", offsets=self.offsets, unsafe=True).view(-1, 3, 3)
 
+    def pair_matrices(self) -> torch.Tensor:
+        """``[C, 3, 3]``: each loaded pair's M = a u u^T + b (I - u u^T) (zero past the pairs)."""
+        return _pair_blocks(self.direction, self.normal, self.friction)
+
+    @property
+    def key(self) -> tuple:
+        """The buffers' storage (what a graph captured over them reads)."""
+        return ("pair_stiffness", self.nodes.data_ptr(), self.coef.data_ptr(), self.direction.data_ptr(),
+                self.normal.data_ptr(), self.friction.data_ptr())
+
     def __call__(self, dx: torch.Tensor, add_to: Optional[torch.Tensor] = None) -> torch.Tensor:
         """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class; ``ops.contact.pair_product``),
         or ``add_to [V, 3]`` (another product, not ``dx``) plus it, in place."""

@@ -37,7 +37,6 @@ penalty makes stiff weigh less: their residual costs the least motion).
 from __future__ import annotations
 
 import dataclasses
-import gc
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Callable, Dict, List, Optional, Tuple, Union
@@ -47,6 +46,7 @@ import torch
 from ..ops import cg as cg_ops
 from ..ops.cg import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE, STATUS_WORDS, CGState
 from ..ops.segments import ChunkPlan, Segments
+from .capture import run_captured
 from .preconditioner import block_diagonal_product
 
 Matvec = Callable[[torch.Tensor], Union[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]]
@@ -523,40 +523,6 @@ def _inverse_blocks(preconditioner) -> Optional[torch.Tensor]:
     """A block diagonal preconditioner's B^-1 ``[V, d, d]`` (its ``inverse_blocks``: the CG applies
     it inside its update), or None (none, or one the CG calls)."""
     return getattr(preconditioner, "inverse_blocks", None)
-
-
-def run_captured(graphs: dict, key, work: Callable[[], None]) -> bool:
-    """Run ``work`` (device work on buffers that keep their storage) through a CUDA graph kept in
-    ``graphs[key]``: the first time eagerly (which warms every op up), then captured; replayed
-    from the next call on. A capture that fails (an op that cannot be captured) is remembered as
-    False and the work stays eager: the same arithmetic. Capturing runs nothing, so the buffers
-    keep their values. Returns whether a graph was replayed.
-
-    Python's cycle collector is paused while capturing: a collection there can free another
-    simulator's unreachable graphs and buffers, and destroying a graph during a capture
-    invalidates the capture (seen: a chained step's capture failing after an earlier simulator
-    of the same process became garbage)."""
-    graph = graphs.get(key)
-    if graph is None:
-        work()
-        graph = torch.cuda.CUDAGraph()
-        collecting = gc.isenabled()
-        gc.disable()
-        try:
-            with torch.cuda.graph(graph):
-                work()
-        except Exception:  # noqa: BLE001 (not capturable: the eager path is as correct)
-            graph = False
-        finally:
-            if collecting:
-                gc.enable()
-        graphs[key] = graph
-        return False
-    if graph is False:
-        work()
-        return False
-    graph.replay()
-    return True
 
 
 def batched_cg(matvec: Matvec, rhs: torch.Tensor, segments: Segments, free: Optional[torch.Tensor] = None,

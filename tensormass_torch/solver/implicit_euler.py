@@ -47,6 +47,7 @@ from .preconditioner import (
     BlockJacobi,
     JacobiScaling,
     MultigridSolve,
+    PairTerms,
     system_diagonal_blocks,
     system_rest_preconditioner,
 )
@@ -768,7 +769,13 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
         blocks = blocks + (pair_stiffness.stiffness_blocks() if pair_stiffness is not None
                            else pairs.stiffness_blocks(stiffness_coef, opts.dt))
     if with_pairs and opts.paired_blocks and hasattr(jacobi, "paired"):  # (a JacobiScaling: each node alone)
-        return jacobi.load(blocks, pairs, pairs._pair_matrices(stiffness_coef, opts.dt), system.free)
+        node_object = system.segments.node_object.to(blocks.device)
+        if pair_stiffness is not None:  # its buffers keep their storage: the load may be captured
+            terms = PairTerms(pair_stiffness.nodes, pair_stiffness.coef, pair_stiffness.pair_matrices,
+                              pair_stiffness.key)
+            return jacobi.load(blocks, terms, node_object, system.free, capture=opts.cuda_graphs)
+        terms = PairTerms(pairs.nodes, pairs._coefficients(), lambda: pairs._pair_matrices(stiffness_coef, opts.dt))
+        return jacobi.load(blocks, terms, node_object, system.free)
     return jacobi.load(blocks)
 
 

@@ -35,7 +35,8 @@ couple a node's axes; the block takes them in where the diagonal cannot.
 """
 from __future__ import annotations
 
-from typing import Optional
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import torch
 
@@ -43,6 +44,7 @@ from ..errors import SceneError, SolverError
 from ..mesh.topology import add_at
 from ..ops import library
 from ..ops.multigrid import BsrMatrix, block_cholesky_scaling, block_scaling, bsr_gemv
+from .capture import run_captured
 
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
 #: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
@@ -126,6 +128,25 @@ class JacobiScaling:
         return scaled
 
 
+@dataclass
+class PairTerms:
+    """A solve's contact pairs as block Jacobi's pairing reads them: ``nodes [P, 4]`` (vertex,
+    triangle) and ``coefficients [P, 4]`` (1, -w_a, -w_b, -w_c; rows of zeros are padding),
+    ``matrices()`` -> ``[P, 3, 3]`` each pair's M (its part of the step's matrix is J^T M J), and
+    ``key``: the storage of what it reads where that stays from load to load (a
+    ``PairStiffness``'s buffers), else None."""
+
+    nodes: torch.Tensor
+    coefficients: torch.Tensor
+    matrices: Callable[[], torch.Tensor]
+    key: Optional[tuple] = None
+
+
+def _capacity(count: int) -> int:
+    """A power of two, at least ``count`` and 1."""
+    return max(1, 1 << (max(count, 1) - 1).bit_length())
+
+
 class BlockJacobi:
     """Block Jacobi as preconditioned CG's M = B, each node's d x d diagonal block, for the CG to
     apply inside its update (``CGSolver``: ``inverse_blocks`` B^-1 ``[V, d, d]``, in a buffer whose
@@ -148,31 +169,49 @@ class BlockJacobi:
         self._factors: Optional[tuple] = None  # block_scaling's outputs (S, S^T, S^-1)
         self.paired: Optional[PairedBlocks] = None  # the loaded pairs (None: none this load)
         self._pairs: Optional[PairedBlocks] = None  # their buffers, kept from load to load
+        self._blocks: Optional[torch.Tensor] = None  # the blocks a captured load reads
+        self._graphs: dict = {}  # captured paired loads (CUDA), by the buffers they read
 
-    def load(self, blocks: torch.Tensor, pairs=None, pair_matrices: Optional[torch.Tensor] = None,
-             free: Optional[torch.Tensor] = None) -> "BlockJacobi":
+    def load(self, blocks: torch.Tensor, pairs: Optional[PairTerms] = None, node_object: Optional[torch.Tensor] = None,
+             free: Optional[torch.Tensor] = None, capture: bool = False) -> "BlockJacobi":
         """Take the system's diagonal blocks ``[V, d, d]``; a block that is not positive definite
         (a node with no mass and no element left, whose row CG never moves) gives the identity.
         B^-1 = L^-T L^-1 = S S^T from the blocks' Cholesky factor (``block_scaling``). ``pairs``
-        (a ``ContactPairs``, or None) with their ``pair_matrices [P, 3, 3]`` (their part of the
-        step's matrix is J^T M J over each pair's four nodes) and the free-node mask ``free [V, 1]``
-        (or None): the nodes :func:`paired_nodes` pairs are merged into 6 x 6 blocks (3-D)."""
+        (the solve's contact pairs as :class:`PairTerms`, or None) with the nodes' bodies
+        ``node_object [V]`` and the free-node mask ``free [V, 1]`` (or None): the nodes
+        :func:`paired_nodes` pairs are merged into 6 x 6 blocks (3-D). ``capture``: on a CUDA
+        device, with ``pairs`` on buffers that keep their storage (a ``PairStiffness``'s), the load
+        runs as a CUDA graph captured once for those buffers (``solver.cg.run_captured``): its
+        hundred small launches are then one."""
         if self.inverse_blocks is None or self.inverse_blocks.shape != blocks.shape \
                 or self.inverse_blocks.dtype != blocks.dtype or self.inverse_blocks.device != blocks.device:
             self.inverse_blocks = torch.empty_like(blocks)
             self._factors = tuple(torch.empty_like(blocks) for _ in range(3))
-            self._pairs = None
+            self._pairs, self._blocks, self._graphs = None, None, {}
+        paired = pairs is not None and pairs.nodes.shape[0] > 0 and blocks.shape[-1] == 3
+        if paired and self._pairs is None:
+            self._pairs = PairedBlocks()
+        self.paired = self._pairs if paired else None
+        if not (paired and capture and blocks.is_cuda):
+            self._load(blocks, pairs if paired else None, node_object, free)
+            return self
+        if self._blocks is None:
+            self._blocks = torch.empty_like(blocks)
+        self._blocks.copy_(blocks)
+        self._pairs.reserve(pairs.nodes.shape[0], blocks.shape[0], blocks.dtype, blocks.device)
+        key = (pairs.key, self._pairs.key, None if free is None else free.data_ptr(), node_object.data_ptr())
+        run_captured(self._graphs, key, lambda: self._load(self._blocks, pairs, node_object, free))
+        return self
+
+    def _load(self, blocks: torch.Tensor, pairs: Optional[PairTerms], node_object, free) -> None:
+        """The load's device work (see :meth:`load`), on the buffers."""
         scale, scale_t, inverse = self._factors
         block_scaling(blocks, scale, scale_t, inverse)
         # S S^T elementwise: a batched matmul of 3 x 3 blocks goes to a GEMM kernel that took
         # 1.4 ms on the pile's 726,000 nodes (H200), against two elementwise launches
         torch.sum(scale[:, :, None, :] * scale[:, None, :, :], -1, out=self.inverse_blocks)
-        self.paired = None
-        if pairs is not None and len(pairs) and blocks.shape[-1] == 3:
-            if self._pairs is None:
-                self._pairs = PairedBlocks()
-            self.paired = self._pairs.load(blocks, self.inverse_blocks, pairs, pair_matrices, free)
-        return self
+        if pairs is not None:
+            self._pairs.load(blocks, self.inverse_blocks, pairs, node_object, free)
 
     @property
     def key(self) -> tuple:
@@ -198,22 +237,27 @@ class PairedBlocks:
         self.blocks: Optional[torch.Tensor] = None
         self.first: Optional[torch.Tensor] = None
 
-    def load(self, blocks: torch.Tensor, inverse_blocks: torch.Tensor, pairs, pair_matrices: torch.Tensor,
-             free: Optional[torch.Tensor]) -> "PairedBlocks":
+    def reserve(self, pairs: int, num_nodes: int, dtype, device) -> None:
+        """Buffers for the merged pairs of ``pairs`` contact pairs over ``num_nodes`` nodes (kept
+        where they fit already)."""
+        capacity = _capacity(min(pairs, num_nodes // 2))
+        if self.nodes is None or self.nodes.shape[0] != capacity or self.blocks.dtype != dtype \
+                or self.nodes.device != torch.device(device):
+            self.nodes = torch.empty((capacity, 2), dtype=torch.int64, device=device)
+            self.blocks = torch.empty((capacity, 3, 3), dtype=dtype, device=device)
+            self.first = torch.empty(capacity, dtype=torch.int64, device=device)
+
+    def load(self, blocks: torch.Tensor, inverse_blocks: torch.Tensor, pairs: PairTerms,
+             node_object: torch.Tensor, free: Optional[torch.Tensor]) -> "PairedBlocks":
         """Merge the nodes :func:`paired_nodes` pairs: their blocks (the diagonal ``blocks [V, 3,
         3]`` and the pairs' coupling) inverted whole, D_i and D_j written into ``inverse_blocks`` (in
         place), O into :attr:`blocks`. No host synchronisation."""
         num_nodes = blocks.shape[0]
-        first, second, count = paired_nodes(pairs, num_nodes, free)
-        capacity = max(1, 1 << (max(count, 1) - 1).bit_length())
-        if self.nodes is None or self.nodes.shape[0] != capacity or self.blocks.dtype != blocks.dtype \
-                or self.nodes.device != blocks.device:
-            self.nodes = torch.empty((capacity, 2), dtype=torch.int64, device=blocks.device)
-            self.blocks = torch.empty((capacity, 3, 3), dtype=blocks.dtype, device=blocks.device)
-            self.first = torch.empty(capacity, dtype=torch.int64, device=blocks.device)
+        first, second, count = paired_nodes(pairs.nodes, pairs.coefficients, node_object, num_nodes, free)
+        self.reserve(pairs.nodes.shape[0], num_nodes, blocks.dtype, blocks.device)
         valid = first < num_nodes  # [count]: the merged pairs first, in order of i, then none
         i, j = torch.where(valid, first, 0), torch.where(valid, second, 0)
-        cross = _pair_coupling(pairs, pair_matrices, i, j, valid, num_nodes)  # Q = A_ij [count, 3, 3]
+        cross = _pair_coupling(pairs, i, j, valid, num_nodes)  # Q = A_ij [count, 3, 3]
         # The merged block [[P, Q], [Q^T, R]]'s inverse by its Schur complement S = R - Q^T P^-1 Q:
         # D_j = S^-1, O = -P^-1 Q S^-1, D_i = P^-1 - O Q^T P^-1, with P^-1 the node's own inverse
         # (3 x 3 products written elementwise: batched matmuls and factorisations of many small
@@ -246,7 +290,7 @@ class PairedBlocks:
     @property
     def key(self) -> tuple:
         """The buffers' storage (what a captured graph reads)."""
-        return ("paired", self.nodes.data_ptr(), self.blocks.data_ptr())
+        return ("paired", self.nodes.data_ptr(), self.blocks.data_ptr(), self.first.data_ptr())
 
     def add_to(self, r: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """z += the off-diagonal part for ``r [V, 3]`` (z_i += O r_j, z_j += O^T r_i), in tensor
@@ -264,20 +308,22 @@ def _products(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a[:, :, :, None] * b[:, None, :, :]).sum(2)
 
 
-def paired_nodes(pairs, num_nodes: int, free: Optional[torch.Tensor] = None) -> tuple:
-    """The node pairs block Jacobi merges for contact ``pairs`` (a ``ContactPairs`` over
-    ``num_nodes`` nodes): (first, second, count), ``[count]`` int64 each, count = min(P, V // 2)
-    (P pairs: known on the host, so no synchronisation), the pairs in order of their first node,
-    then ``num_nodes`` in both past them. Each pair of contact links its vertex to its triangle's
-    node of largest weight (pairs between two bodies only: within one body the elastic coupling
-    would be left out of the block); each node takes its link of largest weight (ties: the
-    lowest other node), and two nodes are merged where each is the other's, both free. No node
-    is in two pairs."""
-    device = pairs.nodes.device
-    between = pairs.objects[:, 0] != pairs.objects[:, 1]
-    weight, slot = pairs.weights.max(1)
-    vertex, node = pairs.nodes[:, 0], pairs.nodes.gather(1, 1 + slot[:, None])[:, 0]
-    weight = torch.where(between, weight, -1.0)  # (a link within a body never wins)
+def paired_nodes(nodes: torch.Tensor, coefficients: torch.Tensor, node_object: torch.Tensor, num_nodes: int,
+                 free: Optional[torch.Tensor] = None) -> tuple:
+    """The node pairs block Jacobi merges for contact pairs ``nodes [P, 4]`` (vertex, triangle)
+    with ``coefficients [P, 4]`` (1, -w_a, -w_b, -w_c; rows of zeros: no pair) over ``num_nodes``
+    nodes of bodies ``node_object [V]``: (first, second, count), ``[count]`` int64 each, count =
+    min(P, V // 2) (no host synchronisation), the pairs in order of their first node, then
+    ``num_nodes`` in both past them. Each pair of contact links its vertex to its triangle's node
+    of largest weight (pairs between two bodies only: within one body the elastic coupling would
+    be left out of the block); each node takes its link of largest weight (ties: the lowest other
+    node), and two nodes are merged where each is the other's, both free. No node is in two
+    pairs."""
+    device = nodes.device
+    weight, slot = (-coefficients[:, 1:]).max(1)
+    vertex, node = nodes[:, 0], nodes.gather(1, 1 + slot[:, None])[:, 0]
+    between = node_object[vertex] != node_object[node]
+    weight = torch.where(between & (weight > 0), weight, -1.0)  # (a link within a body never wins)
     ends = torch.cat([vertex, node])
     others = torch.cat([node, vertex])
     weights = torch.cat([weight, weight])
@@ -286,37 +332,37 @@ def paired_nodes(pairs, num_nodes: int, free: Optional[torch.Tensor] = None) -> 
     candidate = torch.where((weights == best_weight[ends]) & (weights > 0), others, num_nodes)
     best = torch.full((num_nodes + 1,), num_nodes, dtype=torch.int64, device=device)
     best.scatter_reduce_(0, ends, candidate, "amin")
-    nodes = torch.arange(num_nodes, device=device)
+    every = torch.arange(num_nodes, device=device)
     partner = best[:num_nodes]
-    merged = (partner > nodes) & (best[partner] == nodes)
+    merged = (partner > every) & (best[partner] == every)
     if free is not None:
         held = free.reshape(num_nodes, -1).amin(1) <= 0
         merged &= ~held & ~held[partner.clamp(max=num_nodes - 1)]
-    count = min(len(pairs), num_nodes // 2)
+    count = min(nodes.shape[0], num_nodes // 2)
     # the merged nodes in order, then num_nodes: a cumulative count places each (no host read)
     place = torch.cumsum(merged, 0) - 1
     first = torch.full((count + 1,), num_nodes, dtype=torch.int64, device=device)
-    first.scatter_(0, torch.where(merged, place, count), torch.where(merged, nodes, num_nodes))
+    first.scatter_(0, torch.where(merged, place, count), torch.where(merged, every, num_nodes))
     first = first[:count]
     second = torch.where(first < num_nodes, best[first.clamp(max=num_nodes)], num_nodes)
     return first, second, count
 
 
-def _pair_coupling(pairs, pair_matrices: torch.Tensor, first: torch.Tensor, second: torch.Tensor,
-                   valid: torch.Tensor, num_nodes: int) -> torch.Tensor:
+def _pair_coupling(pairs: PairTerms, first: torch.Tensor, second: torch.Tensor, valid: torch.Tensor,
+                   num_nodes: int) -> torch.Tensor:
     """A_ij ``[K, 3, 3]`` for the merged nodes (i, j) = (``first``, ``second``) where ``valid``: the
     sum over the pairs' entries that join them (a pair's vertex and one of its triangle's nodes,
-    either way round) of coef_vertex coef_node M, M = ``pair_matrices`` (symmetric)."""
+    either way round) of coef_vertex coef_node M, M the pairs' matrices (symmetric)."""
     count = first.shape[0]
     merge = torch.full((num_nodes + 1,), count, dtype=torch.int64, device=first.device)  # node -> its pair
     merge[torch.where(valid, first, num_nodes)] = torch.arange(count, device=first.device)
     merge[torch.where(valid, second, num_nodes)] = torch.arange(count, device=first.device)
-    merge[num_nodes] = count
+    merge[num_nodes:].fill_(count)  # (a view's fill: a tensor's item set from a number copies from the host)
     partner = torch.full((num_nodes + 1,), -1, dtype=torch.int64, device=first.device)
     partner[torch.where(valid, first, num_nodes)] = torch.where(valid, second, -1)
     partner[torch.where(valid, second, num_nodes)] = torch.where(valid, first, -1)
-    partner[num_nodes] = -1
-    coefficients = pairs._coefficients()  # [P, 4]
+    partner[num_nodes:].fill_(-1)
+    coefficients, pair_matrices = pairs.coefficients, pairs.matrices()  # [P, 4], [P, 3, 3]
     vertex = pairs.nodes[:, :1].expand(-1, 3)  # [P, 3]
     node = pairs.nodes[:, 1:]
     joins = partner[vertex] == node  # the entry (vertex, node) is a merged pair's
@@ -487,7 +533,7 @@ def system_diagonal_blocks(system, mass_coef: float, stiffness_coef: float, node
     return blocks
 
 
-__all__ = ["PRECONDITIONERS", "BlockJacobi", "JacobiScaling", "PairedBlocks", "paired_nodes",
+__all__ = ["PRECONDITIONERS", "BlockJacobi", "JacobiScaling", "PairTerms", "PairedBlocks", "paired_nodes",
            "block_cholesky_scaling", "block_diagonal_product",
            "MultigridSolve",
            "system_diagonal", "system_diagonal_blocks", "system_multigrid", "system_rest_preconditioner"]

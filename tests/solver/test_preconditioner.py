@@ -13,7 +13,13 @@ from tensormass_torch.ops.segments import Segments
 from tensormass_torch.physics.body_contact import Contact, PairStiffness, SurfaceContact
 from tensormass_torch.solver.cg import CGSolver
 from tensormass_torch.solver.implicit_euler import _coefficients, implicit_euler_step
-from tensormass_torch.solver.preconditioner import BlockJacobi, JacobiScaling, system_diagonal, system_diagonal_blocks
+from tensormass_torch.solver.preconditioner import (
+    BlockJacobi,
+    JacobiScaling,
+    PairTerms,
+    system_diagonal,
+    system_diagonal_blocks,
+)
 
 DT = torch.float64
 
@@ -412,12 +418,14 @@ def test_paired_blocks_invert_the_merged_blocks_of_the_step_matrix(friction):
     dense = dense_step_matrix(sim, loaded, stiffness)
     blocks = system_diagonal_blocks(sim.system, mass_coef, stiffness_coef, loaded.node_stiffness, pairs,
                                     sim.options.dt)
-    jacobi = BlockJacobi().load(blocks, pairs, pairs._pair_matrices(stiffness_coef, sim.options.dt), sim.system.free)
-    first, second, count = paired_nodes(pairs, sim.x.shape[0], sim.system.free)
+    node_object = sim.system.segments.node_object
+    terms = PairTerms(pairs.nodes, pairs._coefficients(), lambda: pairs._pair_matrices(stiffness_coef, sim.options.dt))
+    jacobi = BlockJacobi().load(blocks, terms, node_object, sim.system.free)
+    first, second, count = paired_nodes(pairs.nodes, pairs._coefficients(), node_object, sim.x.shape[0],
+                                        sim.system.free)
     merged = first < sim.x.shape[0]
     assert int(merged.sum()) >= 4 and count == min(len(pairs), sim.x.shape[0] // 2)
     i, j = first[merged], second[merged]
-    node_object = sim.system.segments.node_object
     assert bool((i < j).all()) and bool((node_object[i] != node_object[j]).all())
     assert torch.cat([i, j]).unique().numel() == 2 * i.numel()  # no node in two pairs
     paired = jacobi.paired
@@ -436,6 +444,14 @@ def test_paired_blocks_invert_the_merged_blocks_of_the_step_matrix(friction):
         torch.testing.assert_close(paired.blocks[k], expected[3 * a:3 * a + 3, 3 * b:3 * b + 3], rtol=1e-9, atol=tiny)
     torch.testing.assert_close(jacobi.inverse_blocks, torch.stack(
         [expected[3 * v:3 * v + 3, 3 * v:3 * v + 3] for v in range(sim.x.shape[0])]), rtol=1e-9, atol=tiny)
+    # the same from the loaded PairStiffness's buffers (padded to their capacity), as a step loads it
+    padded = BlockJacobi().load(blocks, PairTerms(stiffness.nodes, stiffness.coef, stiffness.pair_matrices,
+                                                  stiffness.key), node_object, sim.system.free, capture=True)
+    assert stiffness.capacity > len(pairs)
+    torch.testing.assert_close(padded.inverse_blocks, jacobi.inverse_blocks, rtol=1e-12, atol=tiny)
+    torch.testing.assert_close(padded.paired.blocks[:i.numel()], paired.blocks[:i.numel()], rtol=1e-12, atol=tiny)
+    assert torch.equal(padded.paired.nodes[:i.numel()], paired.nodes[:i.numel()])
+    assert bool((padded.paired.nodes[i.numel():] == -1).all())
     gen = torch.Generator().manual_seed(2)
     r = torch.randn(sim.x.shape, generator=gen, dtype=DT)
     want = (expected @ r.reshape(-1)).view_as(r)
