@@ -103,8 +103,8 @@ void cg_coarse_beta_cpu(const at::Tensor& rr, const at::Tensor& u, const at::Ten
 
 void cg_pair_term_cpu(const at::Tensor& r, at::Tensor z, const at::Tensor& nodes, const at::Tensor& blocks,
                       const at::Tensor& item_ptr, const at::Tensor& rr, const at::Tensor& status, at::Tensor rz,
-                      at::Tensor beta, bool step) {
-  const int64_t objects = check_cg_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta);
+                      at::Tensor beta, at::Tensor dots, bool step) {
+  const int64_t objects = check_cg_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, dots);
   AT_DISPATCH_FLOATING_TYPES(r.scalar_type(), "cg_pair_term", [&] {
     const int64_t* ptr = item_ptr.data_ptr<int64_t>();
     const int64_t* pair_nodes = nodes.data_ptr<int64_t>();
@@ -115,10 +115,14 @@ void cg_pair_term_cpu(const at::Tensor& r, at::Tensor z, const at::Tensor& nodes
     const scalar_t* rr_b = rr.data_ptr<scalar_t>();
     scalar_t* rz_b = rz.data_ptr<scalar_t>();
     scalar_t* beta_b = beta.data_ptr<scalar_t>();
+    double* pair_dots = dots.data_ptr<double>();
     for (int64_t b = 0; b < objects; ++b) {
       if (st[b] != kActive) continue;
       double dot = 0.0;
-      for (int64_t k = ptr[b]; k < ptr[b + 1]; ++k) dot += pair_term_item<scalar_t>(k, pair_nodes, o, rv, zv);
+      for (int64_t k = ptr[b]; k < ptr[b + 1]; ++k) {
+        pair_dots[k] = pair_term_item<scalar_t>(k, pair_nodes, o, rv, zv);
+        dot += pair_dots[k];
+      }
       pair_rz_end<scalar_t>(rr_b[b], dot, step, rz_b[b], beta_b[b]);
     }
   });

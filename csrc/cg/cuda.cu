@@ -104,21 +104,40 @@ __global__ void __launch_bounds__(kBlock) cg_coarse_beta_kernel(const S* __restr
   }
 }
 
-// cg_pair_term: a block an object, a pair a thread (strided), then block_sum (a fixed order) and
-// the object's end (common/cg.h: pair_term_item, pair_rz_end).
+// cg_pair_term in two passes: a thread a pair over every object's pairs (an object may hold
+// hundreds of thousands: one block an object would walk them one after another), each pair's
+// part of r.z into dots; then a block an object sums its pairs' dots (coalesced, block_sum: a fixed
+// order) and takes its end (common/cg.h: pair_term_item, pair_rz_end).
 template <typename S>
 __global__ void __launch_bounds__(kBlock) cg_pair_term_kernel(const S* __restrict__ r, S* __restrict__ z,
                                                               const int64_t* __restrict__ nodes,
                                                               const S* __restrict__ blocks,
-                                                              const int64_t* __restrict__ item_ptr,
-                                                              const S* __restrict__ rr, const int32_t* status,
-                                                              S* rz, S* beta, bool step) {
+                                                              const int64_t* __restrict__ item_ptr, int64_t objects,
+                                                              const int32_t* status, double* __restrict__ dots) {
+  const int64_t k = static_cast<int64_t>(blockIdx.x) * kBlock + threadIdx.x;
+  if (k >= item_ptr[objects]) return;
+  int64_t lo = 0, hi = objects;  // the pair's object: item_ptr[lo] <= k < item_ptr[hi]
+  while (hi - lo > 1) {
+    const int64_t mid = (lo + hi) / 2;
+    if (item_ptr[mid] <= k) {
+      lo = mid;
+    } else {
+      hi = mid;
+    }
+  }
+  if (status[lo] != kActive) return;
+  dots[k] = pair_term_item<S>(k, nodes, blocks, r, z);
+}
+
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_pair_rz_kernel(const double* __restrict__ dots,
+                                                            const int64_t* __restrict__ item_ptr,
+                                                            const S* __restrict__ rr, const int32_t* status, S* rz,
+                                                            S* beta, bool step) {
   const int64_t object = blockIdx.x;
   if (status[object] != kActive) return;
   double acc = 0.0;
-  for (int64_t k = item_ptr[object] + threadIdx.x; k < item_ptr[object + 1]; k += kBlock) {
-    acc += pair_term_item<S>(k, nodes, blocks, r, z);
-  }
+  for (int64_t k = item_ptr[object] + threadIdx.x; k < item_ptr[object + 1]; k += kBlock) acc += dots[k];
   const double total = block_sum(acc);
   if (threadIdx.x == 0) {
     S rz_b = rz[object], beta_b = beta[object];
@@ -270,16 +289,22 @@ void cg_coarse_beta_cuda(const at::Tensor& rr, const at::Tensor& u, const at::Te
 
 void cg_pair_term_cuda(const at::Tensor& r, at::Tensor z, const at::Tensor& nodes, const at::Tensor& blocks,
                        const at::Tensor& item_ptr, const at::Tensor& rr, const at::Tensor& status, at::Tensor rz,
-                       at::Tensor beta, bool step) {
-  const int64_t objects = check_cg_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta);
+                       at::Tensor beta, at::Tensor dots, bool step) {
+  const int64_t objects = check_cg_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, dots);
   if (objects == 0) return;
   c10::cuda::CUDAGuard guard(r.device());
+  const auto stream = at::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES(r.scalar_type(), "cg_pair_term", [&] {
-    cg_pair_term_kernel<scalar_t><<<static_cast<unsigned int>(objects), kBlock, 0,
-                                    at::cuda::getCurrentCUDAStream()>>>(
-        r.data_ptr<scalar_t>(), z.data_ptr<scalar_t>(), nodes.data_ptr<int64_t>(), blocks.data_ptr<scalar_t>(),
-        item_ptr.data_ptr<int64_t>(), rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), rz.data_ptr<scalar_t>(),
-        beta.data_ptr<scalar_t>(), step);
+    const int64_t pairs = nodes.size(0);
+    if (pairs > 0) {
+      cg_pair_term_kernel<scalar_t><<<static_cast<unsigned int>((pairs + kBlock - 1) / kBlock), kBlock, 0, stream>>>(
+          r.data_ptr<scalar_t>(), z.data_ptr<scalar_t>(), nodes.data_ptr<int64_t>(), blocks.data_ptr<scalar_t>(),
+          item_ptr.data_ptr<int64_t>(), objects, status.data_ptr<int32_t>(), dots.data_ptr<double>());
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    }
+    cg_pair_rz_kernel<scalar_t><<<static_cast<unsigned int>(objects), kBlock, 0, stream>>>(
+        dots.data_ptr<double>(), item_ptr.data_ptr<int64_t>(), rr.data_ptr<scalar_t>(), status.data_ptr<int32_t>(),
+        rz.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>(), step);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   });
 }

@@ -58,14 +58,15 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   m.def("cg_coarse_beta(Tensor rr, Tensor u, Tensor v, Tensor item_ptr, float weight, Tensor status, "
         "Tensor(a!) rz, Tensor(b!) beta) -> ()");
   // cg_pair_term(r [V, 3], z! [V, 3], nodes [K, 2] int64, blocks [K, 3, 3], item_ptr [B + 1] int64,
-  //              rr [B], status, rz! [B], beta! [B], step)
+  //              rr [B], status, rz! [B], beta! [B], dots! [K] float64, step)
   //   paired blocks beside block Jacobi (common/cg.h: pair_term_item): for the pairs
   //   item_ptr[b] .. item_ptr[b + 1] - 1 of each active object b, z_i += O r_j and z_j += O^T r_i
-  //   (O = blocks[k], (i, j) = nodes[k]; no node in two pairs), then rz_new = rr + the pairs'
-  //   r_i . O r_j + r_j . O^T r_i (float64, a fixed order); with step beta = rz_new / rz and
-  //   rz = rz_new, else rz = rz_new (beta untouched). Pairs past item_ptr[B] are not read.
+  //   (O = blocks[k], (i, j) = nodes[k]; no node in two pairs) and dots[k] = r_i . O r_j + r_j . O^T
+  //   r_i; then rz_new = rr + the object's sum of dots (float64, a fixed order); with step beta =
+  //   rz_new / rz and rz = rz_new, else rz = rz_new (beta untouched). Pairs past item_ptr[B] are
+  //   not read; the dots of skipped objects' pairs are left as they were.
   m.def("cg_pair_term(Tensor r, Tensor(a!) z, Tensor nodes, Tensor blocks, Tensor item_ptr, Tensor rr, "
-        "Tensor status, Tensor(b!) rz, Tensor(c!) beta, bool step) -> ()");
+        "Tensor status, Tensor(b!) rz, Tensor(c!) beta, Tensor(d!) dots, bool step) -> ()");
   // euler_update(x!, v!, dv, dv_imposed?, h, x_new!, v_new!, <chunk plan>, status, iterations, rr, rhs_sq,
   //              norms!, summary!, scratch!, counter! [B + 1], ring!?, ring_pos!?, carry, h_old=0)
   //   the end of an implicit step after its CG (common/cg.h: EulerUpdate, StepSummary):

@@ -189,7 +189,8 @@ inline int64_t check_cg_coarse_beta(const at::Tensor& rr, const at::Tensor& u, c
 
 inline int64_t check_cg_pair_term(const at::Tensor& r, const at::Tensor& z, const at::Tensor& nodes,
                                   const at::Tensor& blocks, const at::Tensor& item_ptr, const at::Tensor& rr,
-                                  const at::Tensor& status, const at::Tensor& rz, const at::Tensor& beta) {
+                                  const at::Tensor& status, const at::Tensor& rz, const at::Tensor& beta,
+                                  const at::Tensor& dots) {
   cg_check_values(r, "r");
   TORCH_CHECK(r.dim() == 2 && r.size(1) == 3, "tensormass: r must be [V, 3], got ", cg_shape_str(r.sizes()));
   cg_check(z, "z", r, r.scalar_type(), r.sizes());
@@ -197,6 +198,7 @@ inline int64_t check_cg_pair_term(const at::Tensor& r, const at::Tensor& z, cons
   const int64_t pairs = nodes.size(0);
   cg_check(nodes, "nodes", r, at::kLong, {pairs, 2});
   cg_check(blocks, "blocks", r, r.scalar_type(), {pairs, 3, 3});
+  cg_check(dots, "dots", r, at::kDouble, {pairs});
   TORCH_CHECK(rr.defined() && rr.dim() == 1, "tensormass: rr must be [B]");
   const int64_t objects = rr.size(0);
   cg_check_scalars(rr, "rr", r, objects);

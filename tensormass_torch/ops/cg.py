@@ -260,7 +260,7 @@ def coarse_beta(u: torch.Tensor, v: torch.Tensor, item_ptr: torch.Tensor, weight
     native.cg_coarse_beta(s.rr, u, v, item_ptr, float(weight), s.status, rz, s.beta)
 
 
-def _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, step):
+def _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, dots, step):
     counts = item_ptr[1:] - item_ptr[:-1]
     pair_object = torch.repeat_interleave(torch.arange(rr.shape[0], device=rr.device), counts)  # [item_ptr[B]]
     count = pair_object.shape[0]
@@ -269,9 +269,10 @@ def _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, step):
     o = blocks[:count] * going[:, None, None].to(blocks.dtype)  # (an object that is not active: nothing)
     at_i = (o * r[j][:, None, :]).sum(-1)  # O r_j
     at_j = (o.transpose(1, 2) * r[i][:, None, :]).sum(-1)  # O^T r_i
-    dots = ((r[i].double() * at_i.double()).sum(-1) + (r[j].double() * at_j.double()).sum(-1))
+    pair_dots = ((r[i].double() * at_i.double()).sum(-1) + (r[j].double() * at_j.double()).sum(-1))
+    dots[:count].copy_(torch.where(going, pair_dots, dots[:count]))
     z.index_add_(0, torch.cat([i, j]), torch.cat([at_i, at_j]))
-    running = torch.cat([dots.new_zeros(1), torch.cumsum(dots, 0)])
+    running = torch.cat([pair_dots.new_zeros(1), torch.cumsum(pair_dots, 0)])
     rz_new = (rr.double() + running[item_ptr[1:]] - running[item_ptr[:-1]]).to(rz.dtype)
     if step:
         _ref_pcg_beta(rz_new, status, rz, beta)
@@ -280,7 +281,8 @@ def _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, step):
 
 
 def pair_term(r: torch.Tensor, z: torch.Tensor, nodes: torch.Tensor, blocks: torch.Tensor, item_ptr: torch.Tensor,
-              rz: torch.Tensor, s: CGState, step: bool, native=None, rr: Optional[torch.Tensor] = None):
+              rz: torch.Tensor, dots: torch.Tensor, s: CGState, step: bool, native=None,
+              rr: Optional[torch.Tensor] = None):
     """Paired blocks beside block Jacobi (``solver.preconditioner.BlockJacobi`` with pairs): for
     each active object's pairs ``item_ptr[b] .. item_ptr[b + 1] - 1`` (``[B + 1]`` int64), nodes
     (i, j) = ``nodes[k]`` (``[K, 2]`` int64, no node in two pairs) and O = ``blocks[k]`` (``[K, 3,
@@ -288,11 +290,12 @@ def pair_term(r: torch.Tensor, z: torch.Tensor, nodes: torch.Tensor, blocks: tor
     ``z`` ``[V, 3]``; z holds B^-1 r), and rz_new = ``rr`` (default ``s.rr``, cg_update's r.B^-1 r)
     + the pairs' part of r.z. With ``step``, ``s.beta = rz_new / rz`` and ``rz = rz_new``; without,
     ``rz = rz_new`` only (a coarse correction's ``coarse_beta`` then takes it for its rr). Objects
-    that are not active are left as they are."""
+    that are not active are left as they are. ``dots [K]`` float64: scratch, each pair's part of
+    r.z (the GPU sums them per object in a second pass)."""
     rr = s.rr if rr is None else rr
     if native is None:
-        return _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, s.status, rz, s.beta, step)
-    native.cg_pair_term(r, z, nodes, blocks, item_ptr, rr, s.status, rz, s.beta, bool(step))
+        return _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, s.status, rz, s.beta, dots, step)
+    native.cg_pair_term(r, z, nodes, blocks, item_ptr, rr, s.status, rz, s.beta, dots, bool(step))
 
 
 def native_ops_for(x: torch.Tensor):
@@ -418,7 +421,8 @@ def _example(name):
             blocks = torch.randn((3, 3, 3), generator=gen).to(device=device, dtype=dtype)
             item_ptr = torch.tensor([0, 1, 2], dtype=torch.int64, device=device)
             z = torch.randn((5, 3), generator=gen).to(device=device, dtype=dtype)
-            return (s.r, z, nodes, blocks, item_ptr, s.rr, s.status, s.alpha, s.beta, True), {}
+            dots = torch.zeros(3, dtype=torch.float64, device=device)
+            return (s.r, z, nodes, blocks, item_ptr, s.rr, s.status, s.alpha, s.beta, dots, True), {}
         if name == "cg_dot":
             return (field, s.p, *tensors, s.rr, s.scratch, s.counter), {}
         if name == "cg_dot_beta":

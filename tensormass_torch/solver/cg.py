@@ -206,7 +206,9 @@ class CGSolver:
         y = E^-1 Z'^T r: its ``coarse_terms(r)`` gives Z'^T r and y) adds it without storing the
         corrected z: r.z = r.B^-1 r + w (Z'^T r) . y (``coarse_beta``, a sum over the bodies) and
         p = z + w Z' y + beta p (``cg_direction`` with its ``direction_term``); the stopping rule
-        stays on r.B^-1 r."""
+        stays on r.B^-1 r. A block Jacobi with paired blocks (its ``paired``,
+        ``preconditioner.PairedBlocks``) adds their off-diagonal part to z and its share of r.z in
+        one op (``cg_ops.pair_term``) after the update, before the coarse part where there is one."""
         s, b = self.state, self._block_buffers()
         coarse_terms = getattr(preconditioner, "coarse_terms", None)
         paired = getattr(preconditioner, "paired", None)
@@ -220,7 +222,8 @@ class CGSolver:
             rz = self._pcg_buffers().rz
             last = coarse_terms is None
             target = rz if last else self._pair_rz()
-            cg_ops.pair_term(s.r, b.z, paired.nodes, paired.blocks, self._pair_items, target, s, last, self.native)
+            cg_ops.pair_term(s.r, b.z, paired.nodes, paired.blocks, self._pair_items, target, paired.dots, s, last,
+                             self.native)
             if last:
                 cg_ops.cg_direction(self.plan, b.direction, self.native)
                 return
@@ -381,7 +384,7 @@ class CGSolver:
             if paired is not None:  # z += the paired blocks' part (its r.z: the dot below)
                 self._load_pair_items(paired)
                 cg_ops.pair_term(s.r, self._block.z, paired.nodes, paired.blocks, self._pair_items,
-                                 self._pcg_buffers().rz, s, False, self.native)
+                                 self._pcg_buffers().rz, paired.dots, s, False, self.native)
             if correct is not None:  # z = B^-1 r + C r
                 correct(s.r, self._block.z)
             if correct is not None or paired is not None:  # r.z for the step length

@@ -236,6 +236,7 @@ class PairedBlocks:
         self.nodes: Optional[torch.Tensor] = None
         self.blocks: Optional[torch.Tensor] = None
         self.first: Optional[torch.Tensor] = None
+        self.dots: Optional[torch.Tensor] = None
 
     def reserve(self, pairs: int, num_nodes: int, dtype, device) -> None:
         """Buffers for the merged pairs of ``pairs`` contact pairs over ``num_nodes`` nodes (kept
@@ -246,6 +247,7 @@ class PairedBlocks:
             self.nodes = torch.empty((capacity, 2), dtype=torch.int64, device=device)
             self.blocks = torch.empty((capacity, 3, 3), dtype=dtype, device=device)
             self.first = torch.empty(capacity, dtype=torch.int64, device=device)
+            self.dots = torch.zeros(capacity, dtype=torch.float64, device=device)  # the CG op's scratch
 
     def load(self, blocks: torch.Tensor, inverse_blocks: torch.Tensor, pairs: PairTerms,
              node_object: torch.Tensor, free: Optional[torch.Tensor]) -> "PairedBlocks":

@@ -464,7 +464,7 @@ def test_paired_blocks_invert_the_merged_blocks_of_the_step_matrix(friction):
     rz, item_ptr = torch.ones(1, dtype=DT), torch.tensor([0, i.numel()])
     for native in (None, cg_ops.native_ops_for(r)):
         out, rz_out = z.clone(), rz.clone()
-        cg_ops.pair_term(r, out, paired.nodes, paired.blocks, item_ptr, rz_out, s, True, native)
+        cg_ops.pair_term(r, out, paired.nodes, paired.blocks, item_ptr, rz_out, paired.dots, s, True, native)
         torch.testing.assert_close(out, want, rtol=1e-9, atol=1e-12)
         torch.testing.assert_close(rz_out, (r * want).sum().reshape(1), rtol=1e-9, atol=0)
         torch.testing.assert_close(s.beta, rz_out, rtol=1e-12, atol=0)  # beta = rz_new / 1
