@@ -155,7 +155,7 @@ class BlockJacobi:
     :class:`JacobiScaling` (x = S y), and the same tolerance (on sqrt(r.B^-1 r) = |S^T r|), without
     its two block products an iteration: z = B^-1 r is computed in the update's pass.
 
-    With body contact pairs and ``paired=True`` (``StepOptions.paired_blocks``), B also takes the
+    With body contact pairs (and ``StepOptions.paired_blocks``, the default), B also takes the
     block A_ij between two nodes i, j of different bodies that a pair couples most
     (:func:`paired_nodes`): their 6 x 6 block is inverted whole, its diagonal blocks D_i, D_j go
     into ``inverse_blocks`` and its off-diagonal block O into :attr:`paired` (a
@@ -181,8 +181,8 @@ class BlockJacobi:
         ``node_object [V]`` and the free-node mask ``free [V, 1]`` (or None): the nodes
         :func:`paired_nodes` pairs are merged into 6 x 6 blocks (3-D). ``capture``: on a CUDA
         device, with ``pairs`` on buffers that keep their storage (a ``PairStiffness``'s), the load
-        runs as a CUDA graph captured once for those buffers (``solver.cg.run_captured``): its
-        hundred small launches are then one."""
+        runs as a CUDA graph captured once for those buffers (``solver.capture.run_captured``):
+        its hundred small launches are then one."""
         if self.inverse_blocks is None or self.inverse_blocks.shape != blocks.shape \
                 or self.inverse_blocks.dtype != blocks.dtype or self.inverse_blocks.device != blocks.device:
             self.inverse_blocks = torch.empty_like(blocks)
@@ -192,7 +192,7 @@ class BlockJacobi:
         if paired and self._pairs is None:
             self._pairs = PairedBlocks()
         self.paired = self._pairs if paired else None
-        if not (paired and capture and blocks.is_cuda):
+        if not (paired and capture and blocks.is_cuda and pairs.key is not None):
             self._load(blocks, pairs if paired else None, node_object, free)
             return self
         if self._blocks is None:
