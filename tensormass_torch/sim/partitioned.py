@@ -174,7 +174,7 @@ class PartitionedSimulator:
         self.check_every = int(check_every)
         self.cuda_graphs = bool(cuda_graphs)
         self._cg_state = None  # the CG's buffers, kept across steps (a CUDA graph replays over them)
-        self._graphs = {}  # (matvec, iterations) -> captured iterations (solver.cg.run_captured)
+        self._graphs = {}  # (matvec, iterations) -> captured iterations (solver.capture.run_captured)
         self.x = rest.clone()
         self.v = torch.zeros_like(rest)
         if body.velocity is not None:
@@ -250,7 +250,7 @@ class PartitionedSimulator:
         breaks down, raises on every rank alike (the scalars are the same everywhere). Returns
         the solution ``[L, 3]``, a buffer overwritten by the next solve."""
         from ..errors import SolverError
-        from ..solver.cg import run_captured
+        from ..solver.capture import run_captured
 
         s = self._cg_state
         if s is None or s["x"].shape != rhs.shape or s["x"].dtype != rhs.dtype:

@@ -47,7 +47,8 @@ import torch
 
 from ..errors import SolverError
 from ..physics.body_contact import HeldPairs
-from .cg import BREAKDOWN, CONVERGED, NONFINITE, run_captured
+from .capture import run_captured
+from .cg import BREAKDOWN, CONVERGED, NONFINITE
 from .implicit_euler import (
     DynamicsSystem,
     StepOptions,
@@ -337,7 +338,7 @@ class DifferentiableStep:
 class _CapturedBackward:
     """:meth:`DifferentiableStep.backward` as a CUDA graph: its input buffers (the adjoint solve's
     right-hand side ``rhs`` and the step's tensors ``saved``), the solve's product and CG, the
-    graphs (``solver.cg.run_captured``'s) and the buffers ``out`` the graph writes its gradients
+    graphs (``solver.capture.run_captured``'s) and the buffers ``out`` the graph writes its gradients
     into."""
 
     step: "DifferentiableStep"

@@ -40,7 +40,8 @@ from ..ops import cg as cg_ops
 from ..ops import library, node_graph, solve
 from ..ops.segments import Segments
 from ..ops.variants import DEFAULT, KernelVariants
-from .cg import CGResult, CGSolver, run_captured
+from .capture import run_captured
+from .cg import CGResult, CGSolver
 from .guess import SolutionSpace, warm_start_mode
 from .preconditioner import (
     PRECONDITIONERS,

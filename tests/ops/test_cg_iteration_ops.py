@@ -526,7 +526,7 @@ def test_run_captured_runs_eagerly_then_replays(monkeypatch):
     torch.cuda's graphs (the real ones run in the CUDA tests)."""
     from contextlib import contextmanager
 
-    from tensormass_torch.solver.cg import run_captured
+    from tensormass_torch.solver.capture import run_captured
 
     class FakeGraph:
         def __init__(self):
