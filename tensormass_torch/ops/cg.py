@@ -241,10 +241,14 @@ def pcg_beta(r: torch.Tensor, z: torch.Tensor, plan: ChunkPlan, rz: torch.Tensor
     native.cg_dot_beta(r.contiguous(), z.contiguous(), *plan.tensors(), s.status, rz, s.beta, s.scratch, s.counter)
 
 
-def _ref_coarse_beta(rr, u, v, item_ptr, weight, status, rz, beta):
-    per_item = (u.to(torch.float64) * v.to(torch.float64)).sum(-1)  # [N]
+def _range_sums(per_item: torch.Tensor, item_ptr: torch.Tensor) -> torch.Tensor:
+    """Each object's sum of ``per_item [N]`` over its items ``item_ptr[b] .. item_ptr[b + 1] - 1``."""
     running = torch.cat([per_item.new_zeros(1), torch.cumsum(per_item, 0)])
-    sums = running[item_ptr[1:]] - running[item_ptr[:-1]]  # each object's items
+    return running[item_ptr[1:]] - running[item_ptr[:-1]]
+
+
+def _ref_coarse_beta(rr, u, v, item_ptr, weight, status, rz, beta):
+    sums = _range_sums((u.to(torch.float64) * v.to(torch.float64)).sum(-1), item_ptr)
     _ref_pcg_beta((rr.to(torch.float64) + weight * sums).to(rz.dtype), status, rz, beta)
 
 
@@ -272,8 +276,7 @@ def _ref_pair_term(r, z, nodes, blocks, item_ptr, rr, status, rz, beta, dots, st
     pair_dots = ((r[i].double() * at_i.double()).sum(-1) + (r[j].double() * at_j.double()).sum(-1))
     dots[:count].copy_(torch.where(going, pair_dots, dots[:count]))
     z.index_add_(0, torch.cat([i, j]), torch.cat([at_i, at_j]))
-    running = torch.cat([pair_dots.new_zeros(1), torch.cumsum(pair_dots, 0)])
-    rz_new = (rr.double() + running[item_ptr[1:]] - running[item_ptr[:-1]]).to(rz.dtype)
+    rz_new = (rr.double() + _range_sums(pair_dots, item_ptr)).to(rz.dtype)
     if step:
         _ref_pcg_beta(rz_new, status, rz, beta)
     else:
