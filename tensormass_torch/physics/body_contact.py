@@ -218,17 +218,31 @@ def _sum_into(num_nodes: int, nodes: torch.Tensor, values: torch.Tensor) -> torc
     return add_at(values.new_zeros(num_nodes, values.shape[-1]), nodes, values)
 
 
+def entry_runs(nodes: torch.Tensor, num_nodes: int):
+    """(order ``[M]``, offsets ``[V + 1]``): the entries ``nodes [M]`` stably sorted by the node
+    they go to, and where each node's run starts in that order (node i's entries are
+    ``order[offsets[i]:offsets[i + 1]]``): what :func:`sum_runs` sums by."""
+    targets, order = torch.sort(nodes, stable=True)
+    return order, torch.searchsorted(targets, torch.arange(num_nodes + 1, device=nodes.device))
+
+
+def sum_runs(values: torch.Tensor, order: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+    """``[V, k]``: ``values [M, k]`` summed over each node's run of :func:`entry_runs` (a gather and
+    a segment sum, each run in entry order: deterministic, no sort, no atomics)."""
+    return torch.segment_reduce(values[order], "sum", offsets=offsets, axis=0, unsafe=True)
+
+
 def _relative(nodes: torch.Tensor, coefficients: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
     """``[P, 3]`` J dx per pair: sum_i coefficient_i dx[node_i] (``nodes, coefficients [P, 4]``)."""
     return (coefficients[:, :, None] * dx[nodes]).sum(1)
 
 
-def _along_normals(num_nodes: int, nodes: torch.Tensor, coefficients: torch.Tensor, direction: torch.Tensor,
+def _along_normals(pairs: "ContactPairs", coefficients: torch.Tensor, direction: torch.Tensor,
                    magnitude: torch.Tensor) -> torch.Tensor:
     """``[V, 3]``: each pair's force ``magnitude [P]`` along its direction u ``[P, 3]``, J^T (magnitude
-    u): coefficient_i magnitude u on node i of ``nodes [P, 4]``, summed deterministically."""
+    u): coefficient_i magnitude u on node i of ``pairs``' nodes, summed deterministically."""
     per_pair = magnitude[:, None, None] * coefficients[:, :, None] * direction[:, None, :]  # [P, 4, 3]
-    return _sum_into(num_nodes, nodes.reshape(-1), per_pair.reshape(-1, 3))
+    return pairs.node_sums(per_pair.reshape(-1, 3))
 
 
 def _pair_blocks(direction: torch.Tensor, normal, tangential: Optional[torch.Tensor]) -> torch.Tensor:
@@ -288,6 +302,8 @@ class ContactPairs:
     born: Optional[torch.Tensor] = None
     #: (weights, their coefficients) once computed (a step asks for them about eight times)
     _coefficient_cache: Optional[tuple] = field(default=None, init=False, repr=False, compare=False)
+    #: (nodes, entry_runs of them) once formed, on CUDA (a step sums at the nodes several times)
+    _runs_cache: Optional[tuple] = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self):
         return self.gap.numel()
@@ -320,20 +336,38 @@ class ContactPairs:
             self._coefficient_cache = (self.weights, coefficients)
         return coefficients
 
+    def runs(self):
+        """(order ``[4 P]``, offsets ``[V + 1]``): the pairs' entries (``nodes`` flattened) by the
+        node they go to (:func:`entry_runs`), sorted once for these pairs."""
+        cached = self._runs_cache
+        if cached is None or cached[0] is not self.nodes:
+            cached = (self.nodes, entry_runs(self.nodes.reshape(-1), self.num_nodes))
+            self._runs_cache = cached
+        return cached[1]
+
+    def node_sums(self, per_entry: torch.Tensor, by_runs: Optional[bool] = None) -> torch.Tensor:
+        """``[V, k]``: ``per_entry [4 P, k]`` (each pair's four entries in node order, the vertex
+        first) summed at their nodes, in an order that does not change from run to run: on CUDA
+        by the entries' runs (:meth:`runs`; a gather and a segment sum a call, where ``add_at``'s
+        accumulation sorts at every call), elsewhere by ``add_at`` (``index_add_``). ``by_runs``:
+        one way or the other whatever the device (None: by the device)."""
+        if per_entry.is_cuda if by_runs is None else by_runs:
+            return sum_runs(per_entry, *self.runs())
+        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry)
+
     def forces(self) -> torch.Tensor:
         """The penalty forces ``[V, 3]``: -k g u on the vertex, k g w_i u on the triangle's nodes."""
-        return _along_normals(self.num_nodes, self.nodes, self._coefficients(), self.direction,
-                              -self.stiffness * self.gap)
+        return _along_normals(self, self._coefficients(), self.direction, -self.stiffness * self.gap)
 
     def dforces(self, dx: torch.Tensor) -> torch.Tensor:
         """(df/dx) dx ``[V, 3]`` with the chosen stiffness (minus the projected or exact Hessian)."""
         if self.hessians is not None:
             local = dx[self.nodes].reshape(-1, 12)  # [P, 12]
             per_pair = -(self.hessians @ local[:, :, None])[:, :, 0].reshape(-1, 4, 3)
-            return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+            return self.node_sums(per_pair.reshape(-1, 3))
         coefficients = self._coefficients()  # projected: -k (u . J dx) along each pair's normal
         along = (_relative(self.nodes, coefficients, dx) * self.direction).sum(-1)
-        return _along_normals(self.num_nodes, self.nodes, coefficients, self.direction, -self.stiffness * along)
+        return _along_normals(self, coefficients, self.direction, -self.stiffness * along)
 
     def linear_forces(self, dx: torch.Tensor) -> torch.Tensor:
         """:meth:`forces` plus :meth:`dforces` of ``dx [V, 3]`` ``[V, 3]``, the pairs' forces
@@ -343,8 +377,7 @@ class ContactPairs:
             return self.forces() + self.dforces(dx)
         coefficients = self._coefficients()
         along = (_relative(self.nodes, coefficients, dx) * self.direction).sum(-1)
-        return _along_normals(self.num_nodes, self.nodes, coefficients, self.direction,
-                              -self.stiffness * (self.gap + along))
+        return _along_normals(self, coefficients, self.direction, -self.stiffness * (self.gap + along))
 
     def relative(self, dx: torch.Tensor) -> torch.Tensor:
         """``[P, 3]`` J dx as a vector per pair: the vertex's motion less the closest point's,
@@ -364,7 +397,7 @@ class ContactPairs:
         if self.friction is None:
             return v.new_zeros(self.num_nodes, 3)
         per_pair = -(self.friction[:, None, None] * self._coefficients()[:, :, None]) * self.slip(v)[:, None, :]
-        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_pair.reshape(-1, 3))
+        return self.node_sums(per_pair.reshape(-1, 3))
 
     def stiffness_diagonal(self, coefficient: float, damping: float = 0.0) -> torch.Tensor:
         """The diagonal ``[V, 3]`` of the pairs' part of the step's matrix, sum over pairs of
@@ -377,7 +410,7 @@ class ContactPairs:
         if self.friction is not None and damping:
             per_axis = per_axis + (damping * self.friction)[:, None] * (1.0 - along)
         per_entry = (self._coefficients() ** 2)[:, :, None] * per_axis[:, None, :]  # [P, 4, 3]
-        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 3))
+        return self.node_sums(per_entry.reshape(-1, 3))
 
     def _pair_matrices(self, coefficient: float, damping: float) -> torch.Tensor:
         """``[P, 3, 3]``: each pair's M = a u u^T + b (I - u u^T), a = ``coefficient`` k, b =
@@ -395,14 +428,14 @@ class ContactPairs:
         coefficients = self._coefficients().abs()  # [P, 4]
         rows = self._pair_matrices(coefficient, damping).abs().sum(-1)  # [P, 3]
         per_entry = (coefficients * coefficients.sum(1, keepdim=True))[:, :, None] * rows[:, None]
-        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry.reshape(-1, 3))
+        return self.node_sums(per_entry.reshape(-1, 3))
 
     def stiffness_blocks(self, coefficient: float, damping: float = 0.0) -> torch.Tensor:
         """The diagonal blocks ``[V, 3, 3]`` of the pairs' part of the step's matrix (as
         :meth:`stiffness_diagonal`, whose diagonals they hold): coef_i^2 (a u u^T + b (I - u u^T))
         at node i."""
         per_entry = _entry_blocks(self._coefficients(), self._pair_matrices(coefficient, damping))
-        return _sum_into(self.num_nodes, self.nodes.reshape(-1), per_entry).view(-1, 3, 3)
+        return self.node_sums(per_entry).view(-1, 3, 3)
 
     def energy(self) -> torch.Tensor:
         """The penalty energy (0-dim): sum over pairs of k/2 g^2."""
@@ -414,7 +447,8 @@ class ContactPairs:
         another's, max(0, -s) (0 with none: the thickness layer's compression is not penetration)."""
         vertex = self.nodes[:, 0]
         counts = torch.zeros(num_objects, dtype=torch.int64, device=vertex.device)
-        counts.index_put_((node_object[vertex],), (self.gap < 0).to(torch.int64), accumulate=True)
+        # (integer sums: exact in any order, so atomics are deterministic here and need no sort)
+        counts.scatter_add_(0, node_object[vertex], (self.gap < 0).to(torch.int64))
         deepest = self.signed.new_zeros(num_objects)
         deepest.scatter_reduce_(0, node_object[vertex], torch.clamp(-self.signed, min=0.0), "amax")
         return counts, deepest
@@ -471,10 +505,10 @@ class PairStiffness:
         self.num_nodes = pairs.num_nodes
         self.nodes[:count].copy_(pairs.nodes)
         self.nodes[count:].zero_()
-        targets, order = torch.sort(pairs.nodes.reshape(-1), stable=True)
+        order, offsets = pairs.runs()  # (the pairs' own: their node sums in the step use them too)
         self.order[:4 * count].copy_(order)
         torch.arange(4 * count, 4 * self.capacity, out=self.order[4 * count:])
-        torch.searchsorted(targets, torch.arange(self.num_nodes + 1, device=like.device), out=self.offsets)
+        self.offsets.copy_(offsets)
         self.coef[:count].copy_(pairs._coefficients())
         self.direction[:count].copy_(pairs.direction)
         self.normal[:count].fill_(coefficient * pairs.stiffness)
@@ -567,14 +601,13 @@ class HeldPairs:
     def forces(self, x: torch.Tensor) -> torch.Tensor:
         """The pairs' forces ``[V, 3]`` at ``x [V, 3]``."""
         coefficients, direction, gap = self._model(x)
-        return _along_normals(self.pairs.num_nodes, self.pairs.nodes, coefficients, direction, -self.stiffness * gap)
+        return _along_normals(self.pairs, coefficients, direction, -self.stiffness * gap)
 
     def dforces(self, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
         """The pairs' projected force differential ``[V, 3]`` at ``x [V, 3]`` along ``dx [V, 3]``."""
         coefficients, direction, _ = self._model(x)
         along = (_relative(self.pairs.nodes, coefficients, dx) * direction).sum(-1)
-        return _along_normals(self.pairs.num_nodes, self.pairs.nodes, coefficients, direction,
-                              -self.stiffness * along)
+        return _along_normals(self.pairs, coefficients, direction, -self.stiffness * along)
 
 
 def _pair_energy_hessians(x: torch.Tensor, nodes: torch.Tensor, side: torch.Tensor, stiffness: float,

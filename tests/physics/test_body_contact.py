@@ -13,6 +13,7 @@ import tensormass_torch as tm
 from tensormass_torch.mesh.topology import boundary_faces
 from tensormass_torch.physics.body_contact import (
     Contact,
+    ContactPairs,
     PairStiffness,
     SurfaceContact,
     closest_weights,
@@ -233,6 +234,39 @@ def test_linear_forces_are_the_forces_plus_their_change(overlapping):
         expected = chosen.forces() + chosen.dforces(dx)
         assert float(expected.abs().max()) > 1.0
         torch.testing.assert_close(chosen.linear_forces(dx), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_node_sums_by_runs_equal_add_ats(overlapping):
+    """ContactPairs.node_sums: summed by the entries' runs (a sort once for the pairs, then a
+    gather and a segment sum: CUDA's way) equals add_at's sums (the CPU's), for every sum the
+    pairs form, and the runs are formed once per pairs; the pair stiffness loads the same runs."""
+    contact, x = overlapping
+    pairs = contact.detect(x)
+    pairs.friction = torch.rand(len(pairs), generator=torch.Generator().manual_seed(3), dtype=DT)
+    dx = torch.randn(x.shape, generator=torch.Generator().manual_seed(4), dtype=DT)
+    per_entry = torch.randn(4 * len(pairs), 5, generator=torch.Generator().manual_seed(5), dtype=DT)
+    by_runs = pairs.node_sums(per_entry, by_runs=True)
+    torch.testing.assert_close(by_runs, pairs.node_sums(per_entry, by_runs=False), rtol=1e-12, atol=1e-12)
+    assert pairs.runs() is pairs.runs()
+    order, offsets = pairs.runs()
+    assert torch.equal(pairs.nodes.reshape(-1)[order], torch.sort(pairs.nodes.reshape(-1)).values)
+    assert int(offsets[-1]) == 4 * len(pairs) and int(offsets[0]) == 0
+    projected = dataclasses.replace(pairs, hessians=None)
+    sums = lambda: [projected.forces(), projected.dforces(dx), projected.linear_forces(dx),  # noqa: E731
+                    projected.friction_forces(dx), projected.stiffness_diagonal(2.0, 0.5),
+                    projected.stiffness_row_l1(2.0, 0.5), projected.stiffness_blocks(2.0, 0.5)]
+    expected = sums()
+    original = ContactPairs.node_sums
+    try:
+        ContactPairs.node_sums = lambda self, values, by_runs=None: original(self, values, by_runs=True)
+        for got, want in zip(sums(), expected):
+            assert float(want.abs().max()) > 0
+            torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    finally:
+        ContactPairs.node_sums = original
+    stiffness = PairStiffness()
+    stiffness.load(projected, 2.0, 0.5)
+    torch.testing.assert_close(stiffness.stiffness_blocks(), expected[-1], rtol=1e-12, atol=1e-12)
 
 
 def test_forces_conserve_momentum(overlapping):
