@@ -12,6 +12,7 @@ number of surface triangles, and the deepest interpenetration over the run.
                                                [--paired-blocks on off]
                                                [--device cuda]
                                                [--dtype float32] [--state DIR --budget-s 540]
+                                               [--save-state DIR]
                                                [--out benchmarks/results/contact] [--quick]
 
 Each pile is columns x columns stacks of ``columns`` blocks (0.2 x 0.2 x 0.1 m, corotational, E =
@@ -48,7 +49,8 @@ default, or each node's own block). ``--without-steps N`` also times the pile wi
 steps from the start (``steps_per_s_without_run``; the blocks fall through each other onto the
 floor) and gives the run's cost against that (``cost_ratio_run_against_run``). A run longer than one sitting:
 ``--state DIR --budget-s S`` saves the state after S seconds of stepping and stops; the same command
-goes on from it. Writes ``contact_piles.md`` and ``.json`` to ``--out``.
+goes on from it. ``--save-state DIR`` keeps each run's end state (``DIR/columns{C}_{preconditioner}...``,
+``x.pt`` and ``v.pt``) for the probes' ``--state``. Writes ``contact_piles.md`` and ``.json`` to ``--out``.
 """
 import argparse
 import json
@@ -179,7 +181,7 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
             swept: bool = True, preconditioner: str = "auto", baseline: Optional[dict] = None,
             state: Optional[Path] = None, budget_s: Optional[float] = None, window: int = 100,
             warm_start=False, without_steps: int = 0, model: str = MODEL, young: float = YOUNG, shift: float = SHIFT,
-            paired_blocks: bool = True, **settings) -> Optional[dict]:
+            paired_blocks: bool = True, save_state: Optional[Path] = None, **settings) -> Optional[dict]:
     """One pile with contact (``baseline``: :func:`without_contact`'s with the same
     ``preconditioner``, measured here when None),
     ``settings``: its ``tm.Contact``'s (the library's defaults for those not given).
@@ -189,7 +191,8 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     resumes where it stopped. From the saved positions and velocities only: the simulator's
     carried state (such as the coupled solves' layout) starts afresh, so a resumed run matches the
     uninterrupted one to roundoff at first, not bit for bit, and a tumbling pile then drifts
-    apart (``contact_pile_1000_corotational_2000_steps.md``)."""
+    apart (``contact_pile_1000_corotational_2000_steps.md``). ``save_state`` (a folder): where
+    the run's end state goes (``x.pt``, ``v.pt``: the probes' ``--state``)."""
     bodies, block = pile(columns, cells, device, dtype, model, young, shift)
     sim = simulator(bodies, tm.Contact(friction=friction, swept=swept, **settings), device, dtype, preconditioner,
                     warm_start, paired_blocks)
@@ -250,6 +253,10 @@ def measure(columns: int, cells, steps: int, friction: float, device, dtype, che
     progress["run_s"] += time.perf_counter() - start
     stepping_s = sum(w[2] for w in progress["windows"])
     inside = max(c[1] for c in progress["checks"])
+    if save_state is not None:
+        save_state.mkdir(parents=True, exist_ok=True)
+        torch.save(sim.x.cpu(), save_state / "x.pt")
+        torch.save(sim.v.cpu(), save_state / "v.pt")
     with_contact = rate(sim, 10, device)
     contact = sim.body_contact
     common.sync(device)
@@ -347,6 +354,9 @@ def main(argv=None):
     parser.add_argument("--state", default=None,
                         help="a folder to save the run's state in when --budget-s runs out, and to go on from")
     parser.add_argument("--budget-s", type=float, default=None, help="seconds of stepping before saving (--state)")
+    parser.add_argument("--save-state", default=None,
+                        help="a folder to keep each run's end state in (x.pt, v.pt, in a folder a run: the "
+                             "probes' --state)")
     parser.add_argument("--check-every", type=int, default=0,
                         help="measure the interpenetration every this many steps (0: at the end only)")
     parser.add_argument("--warm-start", default=False, choices=["none", "extrapolate", "project"],
@@ -404,12 +414,14 @@ def main(argv=None):
             suffix += "" if args.check_margins == [tm.Contact().check_margin] else f"_margin{margin}"
             suffix += "" if paired == "on" else "_unpaired"
             state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
+            name = f"columns{c}_{preconditioner}{suffix}"
+            end_state = None if args.save_state is None else Path(args.save_state) / name
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baselines.get(preconditioner), state, args.budget_s,
                              args.window, args.warm_start, args.without_steps, args.model, args.young,
                              args.shift, paired == "on", rounds=rounds, tolerance=args.tolerance,
                              recheck_tolerance=args.recheck_tolerance, check_tol=check_tol, skin=skin,
-                             check_margin=margin)
+                             check_margin=margin, save_state=end_state)
             if record is None:  # paused: the state is saved, the rest waits for the next run
                 results.finish()
                 return results.records
