@@ -86,8 +86,9 @@ class StepOptions:
             iteration; the fastest); False: the classic CG. In float32 the pipelined recurrences
             lose accuracy on ill-conditioned systems: more iterations, and at worst a false
             breakdown, where the classic CG converges (the Simulator retries such a step so).
-        preconditioner: ``"auto"`` (default: Jacobi for the solves that body contact pairs join,
-            none elsewhere), ``"none"``, ``"jacobi"``, ``"rigid"`` (block Jacobi with a coarse
+        preconditioner: ``"auto"`` (default: for the solves that body contact pairs join, block
+            Jacobi with the rigid bodies' coarse correction (3-D; 2-D: block Jacobi alone), none
+            elsewhere), ``"none"``, ``"jacobi"``, ``"rigid"`` (block Jacobi with a coarse
             correction over each body's rigid motions, coupled by the contact pairs: 3-D),
             ``"multigrid"`` or ``"cholesky"`` (every solve of a TensorMass; not the whole-solve op
             or the captured steps): see ``solver.preconditioner``, ``solver.rigid_modes``,
@@ -749,7 +750,8 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
             pair_stiffness=None):
     """The system's ``preconditioner.BlockJacobi`` (B^-1, applied in the CG's update) loaded with
     this solve's diagonal blocks where ``opts.preconditioner`` asks for it (``"auto"``: where body
-    contact ``pairs`` join the solve; ``"rigid"``: under its coarse correction, :func:`_rigid`) and
+    contact ``pairs`` join the solve, under the coarse correction of :func:`_rigid` on 3-D bodies;
+    ``"rigid"``: under that correction always) and
     the model has a loaded product ``fused`` (a TensorMass); None otherwise. ``pair_stiffness``:
     the pairs' loaded ``PairStiffness`` or None. (A ``preconditioner.JacobiScaling`` put in its
     place makes the solve CG on the scaled system.)"""
@@ -780,18 +782,22 @@ def _jacobi(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: 
     return jacobi.load(blocks)
 
 
-def _takes_rigid(system: DynamicsSystem, opts: StepOptions) -> bool:
-    """Whether the step's solve takes the rigid bodies' coarse correction (3-D bodies only)."""
-    return opts.preconditioner == "rigid" and system.model.rest.shape[-1] == 3
+def _takes_rigid(system: DynamicsSystem, opts: StepOptions, with_pairs: bool) -> bool:
+    """Whether the step's solve takes the rigid bodies' coarse correction (3-D bodies only):
+    ``"rigid"``, and ``"auto"`` where body contact pairs join the solve (measured faster there
+    than block Jacobi alone: docs/preconditioners.md, "auto")."""
+    wanted = opts.preconditioner == "rigid" or (opts.preconditioner == "auto" and with_pairs)
+    return wanted and system.model.rest.shape[-1] == 3
 
 
 def _rigid(system: DynamicsSystem, opts: StepOptions, fused, pairs, mass_coef: float, stiffness_coef: float,
            scaling):
     """The system's ``rigid_modes.RigidModeCorrection`` loaded for this solve (on block Jacobi's
     loaded ``scaling``: a ``BlockJacobi``, or a ``JacobiScaling``) where ``opts.preconditioner`` is
-    ``"rigid"`` and the bodies are 3-D; None otherwise (a 2-D system keeps block Jacobi alone)."""
+    ``"rigid"``, or ``"auto"`` with body contact ``pairs``, and the bodies are 3-D; None otherwise
+    (a 2-D system keeps block Jacobi alone)."""
     with_pairs = pairs is not None and len(pairs) > 0
-    if scaling is None or not _takes_rigid(system, opts):
+    if scaling is None or not _takes_rigid(system, opts, with_pairs):
         return None
     if system._rigid is None:
         system._rigid = RigidModeCorrection()

@@ -15,7 +15,7 @@ of the nodes it acts on, tens of times the elastic diagonal at the stiffnesses t
 unpreconditioned CG spends its iterations on those few rows; dividing by the diagonal brings
 them back to the others' scale. On an elastic body alone the diagonal varies little and Jacobi
 saves little: :data:`PRECONDITIONERS`' ``"auto"`` uses it only where body contact pairs join a
-solve.
+solve (there under the rigid bodies' coarse correction, ``solver.rigid_modes``, on 3-D bodies).
 
 The diagonal is the system's own, c_M m + c_K (K_rest + node stiffness) + the pairs' part, with
 K_rest the elastic stiffness's diagonal at rest (``TensorMass.stiffness_diagonal``: exact for
@@ -48,7 +48,8 @@ from .capture import run_captured
 
 #: Choices of ``StepOptions.preconditioner``: ``"none"`` (plain CG), ``"jacobi"`` (every solve
 #: through a TensorMass's product, never the whole-solve op or the captured steps, which have no
-#: preconditioner), ``"auto"`` (jacobi for the solves body contact pairs join, none elsewhere),
+#: preconditioner), ``"auto"`` (for the solves body contact pairs join, block Jacobi under the
+#: rigid bodies' coarse correction on 3-D bodies, block Jacobi alone on 2-D ones; none elsewhere),
 #: ``"rigid"`` (block Jacobi and the rigid bodies' coarse correction: ``solver.rigid_modes``),
 #: ``"multigrid"`` (preconditioned CG with a smoothed-aggregation V-cycle: ``solver.multigrid``),
 #: ``"cholesky"`` (with the rest matrix's sparse Cholesky factor: ``solver.direct``).

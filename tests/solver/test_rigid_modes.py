@@ -368,6 +368,30 @@ def test_a_tower_takes_fewer_iterations_with_the_rigid_correction():
     torch.testing.assert_close(ends["rigid"], ends["jacobi"], rtol=0, atol=1e-5)
 
 
+def test_auto_takes_the_rigid_correction_where_body_contact_pairs_join_the_solve():
+    """``"auto"`` (the default): the rigid correction on block Jacobi for the solves body contact
+    pairs join, bit for bit ``"rigid"``'s steps where every solve has pairs (the tower settled in
+    its contacts); plain CG, with no correction, on the same tower before any pair exists and on a
+    body alone."""
+    settled = tower("rigid")
+    settled.step(10)  # every step from here has pairs
+    ends, corrections = {}, {}
+    for preconditioner in ("auto", "rigid"):
+        sim = tower(preconditioner)
+        sim.x, sim.v = settled.x.clone(), settled.v.clone()
+        sim.step(3)
+        assert int(sim.last_report.contact.body_contacts.sum()) > 0
+        ends[preconditioner], corrections[preconditioner] = sim.x.clone(), sim.system._rigid
+    assert corrections["auto"] is not None and corrections["rigid"] is not None
+    assert torch.equal(ends["auto"], ends["rigid"])
+    apart = tower("auto")  # lifted: the blocks fall a step without touching
+    apart.x = apart.x + torch.arange(4, dtype=DT).repeat_interleave(apart.x.shape[0] // 4)[:, None] * torch.tensor(
+        [0.0, 0.0, 0.1], dtype=DT)
+    apart.step()
+    assert int(apart.last_report.contact.body_contacts.sum()) == 0
+    assert apart.system._rigid is None and apart.system._block_jacobi is None
+
+
 def test_the_step_lags_the_bodies_part_only_while_the_contacts_hold_still():
     """implicit_euler._rigid: after a step whose first contact check found pairs the correction's
     bodies' part is computed afresh at the next step's first load; after one whose check found
