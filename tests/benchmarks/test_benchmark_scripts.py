@@ -637,3 +637,19 @@ def test_interpenetration_probe_quick():
     out = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "10", "--repeats", "1",
                       "--device", "cpu"])
     assert out["difference"] == 0.0 and len(out["batched_s"]) == 1
+
+
+def test_mixed_precision_probe_refines_every_step_to_the_tolerance(tmp_path):
+    """mixed_precision_probe: the float32 corrections with float64 residuals end every step at a
+    float64 relative residual of at most 1e-6, in as many float64 products as corrections plus one,
+    and the probe writes its JSON."""
+    import mixed_precision_probe
+
+    records = mixed_precision_probe.main(["--young", "1e5", "--elements", "300", "--steps", "6", "--settle", "2",
+                                          "--out", str(tmp_path)])
+    (record,) = records
+    assert record["worst_mixed_residual"] <= mixed_precision_probe.TOL
+    for row in record["steps_detail"]:
+        assert row["float64_products"] == len(row["float32_iterations"]) + 1
+        assert row["float64_iterations"] > 0 and sum(row["float32_iterations"]) > 0
+    assert json.loads((tmp_path / "mixed_precision.json").read_text())["records"][0]["young"] == 1e5
