@@ -413,8 +413,8 @@ def main(argv=None):
             suffix += "" if args.skins == [tm.Contact().skin] else f"_skin{skin}"
             suffix += "" if args.check_margins == [tm.Contact().check_margin] else f"_margin{margin}"
             suffix += "" if paired == "on" else "_unpaired"
-            state = None if args.state is None else Path(args.state) / f"columns{c}_{preconditioner}{suffix}"
             name = f"columns{c}_{preconditioner}{suffix}"
+            state = None if args.state is None else Path(args.state) / name
             end_state = None if args.save_state is None else Path(args.save_state) / name
             record = measure(c, args.cells, args.steps, args.friction, args.device, dtype, args.check_every,
                              args.swept, preconditioner, baselines.get(preconditioner), state, args.budget_s,

@@ -302,7 +302,8 @@ class ContactPairs:
     born: Optional[torch.Tensor] = None
     #: (weights, their coefficients) once computed (a step asks for them about eight times)
     _coefficient_cache: Optional[tuple] = field(default=None, init=False, repr=False, compare=False)
-    #: (nodes, entry_runs of them) once formed, on CUDA (a step sums at the nodes several times)
+    #: (nodes, entry_runs of them) once formed (a step sums at the nodes several times on CUDA,
+    #: and the pair stiffness loads them)
     _runs_cache: Optional[tuple] = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self):

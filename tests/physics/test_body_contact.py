@@ -251,6 +251,8 @@ def test_node_sums_by_runs_equal_add_ats(overlapping):
     order, offsets = pairs.runs()
     assert torch.equal(pairs.nodes.reshape(-1)[order], torch.sort(pairs.nodes.reshape(-1)).values)
     assert int(offsets[-1]) == 4 * len(pairs) and int(offsets[0]) == 0
+    values = per_entry[:, :2].clone().requires_grad_(True)  # the adjoint differentiates through them
+    assert torch.autograd.gradcheck(lambda t: pairs.node_sums(t, by_runs=True), (values,))
     projected = dataclasses.replace(pairs, hessians=None)
     sums = lambda: [projected.forces(), projected.dforces(dx), projected.linear_forces(dx),  # noqa: E731
                     projected.friction_forces(dx), projected.stiffness_diagonal(2.0, 0.5),

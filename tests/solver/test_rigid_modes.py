@@ -371,8 +371,8 @@ def test_a_tower_takes_fewer_iterations_with_the_rigid_correction():
 def test_auto_takes_the_rigid_correction_where_body_contact_pairs_join_the_solve():
     """``"auto"`` (the default): the rigid correction on block Jacobi for the solves body contact
     pairs join, bit for bit ``"rigid"``'s steps where every solve has pairs (the tower settled in
-    its contacts); plain CG, with no correction, on the same tower before any pair exists and on a
-    body alone."""
+    its contacts); plain CG, with neither block Jacobi nor the correction, on the same tower
+    lifted apart (no pair)."""
     settled = tower("rigid")
     settled.step(10)  # every step from here has pairs
     ends, corrections = {}, {}
