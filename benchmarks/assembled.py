@@ -349,15 +349,20 @@ class AssembledStepper:
         """CG on the current matrix: ``iterations`` (default: the simulator's budget)."""
         return self._solve(rhs, self.iterations if iterations is None else iterations)
 
+    def rhs(self) -> torch.Tensor:
+        """The step's right-hand side ``[V, 3]`` at the current state, on the matrix assembled last:
+        h (f + (h + r_K) K v - r_M M v) on the free rows."""
+        h = self.h
+        f = self.model(self.x) + self.external
+        kv = (self.c_mass * self.mass[:, None] * self.v - self._matvec(self.v)) / self.c_stiff
+        return h * (f + (h + self.r_stiff) * kv - self.r_mass * self.mass[:, None] * self.v) * self.free_col
+
     def step(self, n: int = 1) -> None:
         h = self.h
         for _ in range(int(n)):
             if self._matrix is None or self.reassemble:
                 self.assemble(self.x)
-            f = self.model(self.x) + self.external
-            av = self._matvec(self.v)
-            kv = (self.c_mass * self.mass[:, None] * self.v - av) / self.c_stiff
-            rhs = h * (f + (h + self.r_stiff) * kv - self.r_mass * self.mass[:, None] * self.v) * self.free_col
+            rhs = self.rhs()
             dv = self.solve(rhs)
             self.v = self.v + dv
             self.x = self.x + h * self.v

@@ -36,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import common  # noqa: E402
-from assembled import AssembledStepper  # noqa: E402
+from assembled import AssembledStepper, sparse_matvec  # noqa: E402
 
 from tensormass_torch.solver.guess import SolutionSpace  # noqa: E402
 
@@ -77,23 +77,15 @@ def measure(young: float, elements: int, steps: int, settle: int, inner_tol: flo
     sim, gravity = common.cantilever_sim("tet", "hooke", elements, "cpu", torch.float64, young=young)
     stepper = AssembledStepper(sim, gravity)
     stepper.assemble(stepper.x)
-    matrix64 = stepper._matrix
-    matrix32 = torch.sparse_csr_tensor(matrix64.crow_indices(), matrix64.col_indices(),
-                                       matrix64.values().to(torch.float32), matrix64.shape)
-
-    def product64(v):
-        return (matrix64 @ v.reshape(-1, 1)).reshape(v.shape)
-
-    def product32(v):
-        return (matrix32 @ v.reshape(-1, 1)).reshape(v.shape)
+    matrix64 = stepper._matrix  # hooke: assembled once
+    product64 = sparse_matvec(matrix64)
+    product32 = sparse_matvec(torch.sparse_csr_tensor(matrix64.crow_indices(), matrix64.col_indices(),
+                                                      matrix64.values().to(torch.float32), matrix64.shape))
 
     spaces = {way: SolutionSpace(stepper.x, sim.segments) for way in ("float64", "mixed")}
     h, rows = stepper.h, []
     for step in range(steps):
-        forces = stepper.model(stepper.x) + stepper.external
-        kv = (stepper.c_mass * stepper.mass[:, None] * stepper.v - product64(stepper.v)) / stepper.c_stiff
-        rhs = h * (forces + (h + stepper.r_stiff) * kv - stepper.r_mass * stepper.mass[:, None] * stepper.v)
-        rhs = rhs * stepper.free_col
+        rhs = stepper.rhs()
         norm = float(torch.linalg.vector_norm(rhs))
         guess64, guess_mixed = spaces["float64"].guess(rhs), spaces["mixed"].guess(rhs)
         solution64, iterations64 = cg(product64, rhs, guess64, TOL, norm)

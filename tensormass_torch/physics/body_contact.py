@@ -528,7 +528,7 @@ class PairStiffness:
         sorted them (one gather and one segment sum: no sort of its own; the padding's entries,
         zero, sort past every node's run)."""
         per_entry = _entry_blocks(self.coef, _pair_blocks(self.direction, self.normal, self.friction))
-        return torch.segment_reduce(per_entry[self.order], "sum", offsets=self.offsets, unsafe=True).view(-1, 3, 3)
+        return sum_runs(per_entry, self.order, self.offsets).view(-1, 3, 3)
 
     def pair_matrices(self) -> torch.Tensor:
         """``[C, 3, 3]``: each loaded pair's M = a u u^T + b (I - u u^T) (zero past the pairs)."""
