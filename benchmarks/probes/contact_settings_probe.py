@@ -16,7 +16,8 @@ DIR`` keeps that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` i
 JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s,
 ``"preconditioner"``, ``"warm_start"`` and ``"paired_blocks"``, the Simulator's, ``"rigid_grouping"``, the groups of
 ``preconditioner="rigid"``'s coarse solve (``"contact"``, its default, or ``"morton"``), and
-``"rigid_refresh"``, the loads between two computations of its bodies' part, and
+``"rigid_refresh"``, the loads between two computations of its bodies' part, ``"rigid_lag_pairs"``,
+whether its lagged loads keep the last coarse inverses whole, and
 ``"check_ahead"``, the stretches of a paused solve its contact check runs beside on the GPU
 (``DynamicsSystem.check_ahead``; 0: after the solve) (by default one setting, ``default={}``). Every simulator
 takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
@@ -56,7 +57,8 @@ def setting(text: str):
 def extend(parser):
     parser.add_argument("--setting", type=setting, action="append", default=None,
                         help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner', 'rigid_grouping', "
-                             "'warm_start', 'paired_blocks', 'rigid_refresh', 'check_ahead')")
+                             "'warm_start', 'paired_blocks', 'rigid_refresh', 'rigid_lag_pairs', "
+                             "'check_ahead')")
     parser.add_argument("--repeats", type=int, default=3, help="blocks of --timed steps for each setting")
     parser.add_argument("--save-state", default=None, help="a folder to keep the pile's starting state in")
     parser.add_argument("--out", default=None, help="a JSON file for the blocks' figures")
@@ -95,7 +97,8 @@ def main(argv=None):
     for name, options in settings.items():
         options = dict(options)
         preconditioner = options.pop("preconditioner", "auto")
-        rigid = {key: options.pop(f"rigid_{key}") for key in ("grouping", "refresh") if f"rigid_{key}" in options}
+        rigid = {key: options.pop(f"rigid_{key}") for key in ("grouping", "refresh", "lag_pairs")
+                 if f"rigid_{key}" in options}
         check_ahead = options.pop("check_ahead", None)
         warm_start = options.pop("warm_start", False)
         paired_blocks = options.pop("paired_blocks", True)

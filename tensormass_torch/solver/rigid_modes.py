@@ -71,10 +71,11 @@ GROUP_BODIES = 32
 #: The coarse correction's weight w (z = r + w Z' E^-1 Z'^T r).
 WEIGHT = 0.5
 #: Loads of new products between two computations of the bodies' part (their modes, groups and
-#: own blocks; 1: every load). In between it is lagged: the pairs' part and the scaling are the
-#: load's, the bodies' part the last one computed (see :meth:`RigidModeCorrection.load`). The step
-#: lags it only while the bodies' contacts hold still (``solver.implicit_euler._rigid``), so the
-#: lag costs no iterations where they change and saves the bodies' part at rest.
+#: own blocks; 1: every load). In between it is lagged: the scaling is the load's, the bodies'
+#: part the last one computed, and the pairs' part the last load's too where the correction is
+#: made with ``lag_pairs`` (its coarse inverses kept whole; see :meth:`RigidModeCorrection.load`).
+#: The step lags it only while the bodies' contacts hold still (``solver.implicit_euler._rigid``),
+#: so the lag costs no iterations where they change and saves the coarse solve's load at rest.
 REFRESH = 16
 #: The most the number of contact pairs may change (relative) for the bodies' part to stay lagged:
 #: the groups follow the pairs (a pile that was found without pairs, then lands, is grouped again).
@@ -307,10 +308,13 @@ class RigidModeCorrection:
     ``BlockJacobi`` (the step's) N is the identity and the CG takes :attr:`inverse_blocks` and
     :meth:`correct`; on a ``JacobiScaling``, N = S^-1 and :meth:`__call__` is the scaled system's
     preconditioner. Its buffers keep their storage from load to load while the shapes do (a CUDA
-    graph captured over the iterations replays with each load's values)."""
+    graph captured over the iterations replays with each load's values). ``group_bodies``,
+    ``grouping``, ``weight``: the coarse solve's (module); ``refresh``: :data:`REFRESH`'s;
+    ``lag_pairs``: where a load lags the bodies' part, keep the last load's coarse inverses whole
+    (False: their pairs' part made again at every load)."""
 
     def __init__(self, group_bodies: int = GROUP_BODIES, weight: float = WEIGHT, grouping: str = "contact",
-                 refresh: int = REFRESH):
+                 refresh: int = REFRESH, lag_pairs: bool = True):
         if group_bodies < 1:
             raise ValueError(f"group_bodies must be at least 1, got {group_bodies}")
         if refresh < 1:
@@ -323,6 +327,7 @@ class RigidModeCorrection:
         self.weight = float(weight)
         self.grouping = grouping
         self.refresh = int(refresh)
+        self.lag_pairs = bool(lag_pairs)
         self._age = 0  # loads of new products since the bodies' part was computed
         self._lag = None  # the ``lag`` key it was computed under
         self._lag_pairs = 0  # the number of pairs it was computed with
@@ -353,10 +358,11 @@ class RigidModeCorrection:
         that promises the node weights' parts that do not change from step to step (the step's
         coefficients); under the same key the bodies' part of the last computation is reused for
         up to ``refresh`` - 1 loads of new products, while the number of pairs stays within
-        ``LAG_PAIRS_CHANGE`` of the one it was computed with (the correction stays symmetric
-        positive definite with any modes and any positive definite own blocks: lagged, they only
-        match the bodies' present rigid motions and node weights less exactly). None: never
-        lagged. ``renew``: compute the bodies' part afresh at this load whatever the lag (later
+        ``LAG_PAIRS_CHANGE`` of the one it was computed with, and with ``lag_pairs`` the last
+        load's coarse inverses whole, its pairs' part too (the correction stays symmetric
+        positive definite with any modes and any positive definite coarse blocks: lagged, they
+        only match the bodies' present rigid motions, node weights and pairs less exactly). None:
+        never lagged. ``renew``: compute the bodies' part afresh at this load whatever the lag (later
         loads under the same ``lag`` key may then lag it). No host synchronisation (but where the
         bodies' node ranges are checked, the first load)."""
         if self._sums is None or self._sums.segments is not segments or self._sums.device != x.device \
@@ -365,12 +371,13 @@ class RigidModeCorrection:
         size, bodies = self.group_bodies, segments.num_objects
         fresh = kept is None or self._kept is None or self._kept[0] != kept
         count = len(pairs) if pairs is not None else 0
+        lagged = False
         if fresh and not renew and lag is not None and self._kept is not None and lag == self._lag \
                 and self._age + 1 < self.refresh \
                 and abs(count - self._lag_pairs) <= LAG_PAIRS_CHANGE * max(self._lag_pairs, 1):
             self._age += 1
             self._kept = (kept, *self._kept[1:])
-            fresh = False
+            fresh, lagged = False, True
         elif fresh:
             self._age, self._lag, self._lag_pairs = 0, lag, count
             arms, centres = lever_arms(x, mass, self._sums)
@@ -389,6 +396,14 @@ class RigidModeCorrection:
             columns = members.view(groups, size)[group].to(torch.int32).reshape(-1)  # [B c]
             self._kept = (kept, arms, free, group, slot, groups, own, filled[:, :, None, None], columns)
         _, arms, kept_free, group, slot, groups, own, filled, columns = self._kept
+        node_inverse = self._node_inverse(scaling, x, free)
+        if lagged and self.lag_pairs and self.node_inverse is not None \
+                and self.node_inverse.shape == node_inverse.shape and self.node_inverse.dtype == x.dtype:
+            # the last load's coarse inverses kept whole, its pairs' part too: E = Z^T A Z does not
+            # depend on the scaling, and what it lags is the pairs' change since that load (their
+            # number within LAG_PAIRS_CHANGE, over contacts that held still)
+            self.node_inverse.copy_(node_inverse)
+            return self
         matrices = group_matrices(own, arms, group, slot, groups, size, pairs, pair_matrices, kept_free)
         # slots past the last body, and coarse unknowns no free node carries: the identity there
         # (a rigid motion of fixed nodes is no motion); a relative 1e-10 on the diagonal keeps
@@ -405,14 +420,6 @@ class RigidModeCorrection:
         inverses = lower_inverse.transpose(1, 2) @ lower_inverse  # [G, 6 c, 6 c]
         rows = inverses.view(groups, size, 6, size, 6).transpose(2, 3)[group, slot]  # [B, c, 6, 6]
         blocks = torch.where(filled, rows, 0.0).to(x.dtype).reshape(-1, 6, 6)
-        self._blocks = getattr(scaling, "inverse_blocks", None)
-        self._scaling = scaling
-        if self._blocks is not None:  # BlockJacobi: Z in the system's own unknowns, N = I (a value a node)
-            node_inverse = free[:, 0].to(x.dtype) if free is not None else x.new_ones(x.shape[0])
-        else:
-            node_inverse = scaling.inverse if scaling.inverse.dim() == 3 else torch.diag_embed(scaling.inverse)
-            if free is not None:
-                node_inverse = node_inverse * free[:, :, None]
         if self.node_inverse is None or self.inverses.values.shape != blocks.shape \
                 or self.node_inverse.shape != node_inverse.shape or self.node_inverse.dtype != x.dtype \
                 or self.node_inverse.device != x.device:
@@ -424,6 +431,17 @@ class RigidModeCorrection:
                 self.arms.copy_(arms)
                 self.inverses.block_cols.copy_(columns)
         return self
+
+    def _node_inverse(self, scaling, x: torch.Tensor, free: Optional[torch.Tensor]) -> torch.Tensor:
+        """N at each node for block Jacobi loaded as ``scaling`` (kept as this load's): on a
+        ``BlockJacobi`` the free mask ``[V]`` (N = I, Z in the system's own unknowns), on a
+        ``JacobiScaling`` its S^-1 ``[V, 3, 3]``, zero on fixed nodes."""
+        self._blocks = getattr(scaling, "inverse_blocks", None)
+        self._scaling = scaling
+        if self._blocks is not None:
+            return free[:, 0].to(x.dtype) if free is not None else x.new_ones(x.shape[0])
+        node_inverse = scaling.inverse if scaling.inverse.dim() == 3 else torch.diag_embed(scaling.inverse)
+        return node_inverse if free is None else node_inverse * free[:, :, None]
 
     def _build(self, node_inverse: torch.Tensor, arms: torch.Tensor, rows: torch.Tensor, columns: torch.Tensor,
                segments: Segments):

@@ -302,6 +302,42 @@ def test_a_lagged_load_keeps_the_bodies_part_until_its_refresh():
         RigidModeCorrection(refresh=0)
 
 
+@pytest.mark.parametrize("lag_pairs", [True, False])
+def test_a_lagged_load_keeps_the_coarse_inverses_whole_with_lag_pairs(lag_pairs):
+    """With ``lag_pairs`` (the default) a lagged load keeps the last load's coarse inverses whole,
+    the pairs' part too (only N follows the load's block Jacobi); without it, the lagged load makes
+    the pairs' part again. A second load of the same product (a contact round) makes it from its
+    own pairs either way."""
+    sim, loaded, pairs, _, weights = step_pieces(velocities=False)
+    mass_coef, stiffness_coef = _coefficients(sim.options)
+    matrices = pairs._pair_matrices(stiffness_coef, sim.options.dt)
+
+    def scaling_of(scale):
+        return JacobiScaling().load(scale * system_diagonal_blocks(sim.system, mass_coef, stiffness_coef,
+                                                                   loaded.node_stiffness, pairs, sim.options.dt))
+
+    def arguments(scale, pair_scale):
+        return (sim.x, sim.system.mass.reshape(-1), sim.system.segments, sim.system.free, weights,
+                scaling_of(scale), pairs, pair_scale * matrices)
+
+    lag = (mass_coef, stiffness_coef)
+    correction = RigidModeCorrection(2, lag_pairs=lag_pairs).load(*arguments(1.0, 1.0), kept="product 0", lag=lag)
+    first = correction.inverses.values.clone()
+    correction.load(*arguments(2.0, 3.0), kept="product 1", lag=lag)  # lagged: stiffer pairs, another scaling
+    assert correction._age == 1
+    remade = RigidModeCorrection(2).load(*arguments(2.0, 3.0))
+    torch.testing.assert_close(correction.node_inverse, remade.node_inverse, rtol=1e-12, atol=0)
+    if lag_pairs:
+        assert torch.equal(correction.inverses.values, first)
+    else:
+        torch.testing.assert_close(correction.inverses.values, remade.inverses.values, rtol=1e-12, atol=0)
+        assert not torch.allclose(correction.inverses.values, first)
+    correction.load(*arguments(2.0, 3.0), kept="product 1", lag=lag)  # the same product's next round
+    torch.testing.assert_close(correction.inverses.values, remade.inverses.values, rtol=1e-12, atol=0)
+    r = torch.randn(sim.x.shape, generator=torch.Generator().manual_seed(8), dtype=DT)
+    torch.testing.assert_close(correction(r), remade(r), rtol=1e-12, atol=1e-14)
+
+
 def test_the_correction_is_exact_on_the_coarse_space():
     """At rest (hooke: a rigid motion strains nothing) Z'^T A' Z' = E for the scaled step matrix
     A', so the coarse solve inverts A' on the span of Z': Z'^T A' (coarse(A' Z' c)) = Z'^T A' Z' c."""
