@@ -299,6 +299,26 @@ def test_contact_step_phases_probe_quick():
     assert out["phases"]["SurfaceContact.at_state"][1] >= 2
 
 
+def test_contact_landing_probe_counts_what_the_steps_make(tmp_path):
+    """The landing probe times each step of a pile dropped from the start, counts the solvers and
+    the rigid correction's fresh loads the steps make (none before the blocks meet, some after),
+    writes its rows, and puts every function it wrapped back."""
+    import contact_landing_probe as probe
+
+    from tensormass_torch.solver import implicit_euler, rigid_modes
+
+    originals = (torch.cuda.CUDAGraph.capture_begin, implicit_euler.CGSolver, rigid_modes.lever_arms)
+    rows = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "0", "--timed", "30", "--window", "10",
+                       "--contact", '{"friction": 0.5}', "--device", "cpu", "--out", str(tmp_path / "landing.json")])
+    assert (torch.cuda.CUDAGraph.capture_begin, implicit_euler.CGSolver, rigid_modes.lever_arms) == originals
+    assert [r["step"] for r in rows] == list(range(30)) and all(r["ms"] > 0 and r["iterations"] for r in rows)
+    falling = [r for r in rows if r["pairs"] == 0]
+    assert falling and sum(r["fresh_loads"] for r in falling) == 0  # no pairs: no rigid correction
+    assert sum(r["fresh_loads"] for r in rows) > 0 and sum(r["solvers"] for r in rows) >= 1
+    assert all(r["captures"] == 0 for r in rows)  # (the CPU captures nothing)
+    assert len(json.loads((tmp_path / "landing.json").read_text())["blocks"]) == 30
+
+
 def test_contact_settings_probe_steps_each_setting_from_one_state(tmp_path):
     """The settings probe starts every setting from the pile's state and alternates their blocks:
     an exact alternative (skin) takes the default's iterations block by block; the state it keeps
