@@ -19,8 +19,9 @@ JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s,
 ``"rigid_refresh"``, the loads between two computations of its bodies' part, ``"rigid_lag_pairs"``,
 whether its lagged loads keep the last coarse inverses whole, and
 ``"check_ahead"``, the stretches of a paused solve its contact check runs beside on the GPU
-(``DynamicsSystem.check_ahead``; 0: after the solve) (by default one setting, ``default={}``). Every simulator
-takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
+(``DynamicsSystem.check_ahead``; 0: after the solve), ``"settled_wait"``, the most steps its
+settled test waits after failures (``SurfaceContact.settled_wait``; 0: it tests at every step)
+(by default one setting, ``default={}``). Every simulator takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
 the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
 falling through each other) takes its block first. For each block: ms a step, CG iterations a
 step (every solve's), solves a step, and at its end the kinetic energy and the deepest pair of
@@ -58,7 +59,7 @@ def extend(parser):
     parser.add_argument("--setting", type=setting, action="append", default=None,
                         help="NAME=JSON: tm.Contact's keyword arguments (and 'preconditioner', 'rigid_grouping', "
                              "'warm_start', 'paired_blocks', 'rigid_refresh', 'rigid_lag_pairs', "
-                             "'check_ahead')")
+                             "'check_ahead', 'settled_wait')")
     parser.add_argument("--repeats", type=int, default=3, help="blocks of --timed steps for each setting")
     parser.add_argument("--save-state", default=None, help="a folder to keep the pile's starting state in")
     parser.add_argument("--out", default=None, help="a JSON file for the blocks' figures")
@@ -100,6 +101,7 @@ def main(argv=None):
         rigid = {key: options.pop(f"rigid_{key}") for key in ("grouping", "refresh", "lag_pairs")
                  if f"rigid_{key}" in options}
         check_ahead = options.pop("check_ahead", None)
+        settled_wait = options.pop("settled_wait", None)
         warm_start = options.pop("warm_start", False)
         paired_blocks = options.pop("paired_blocks", True)
         sim = contact_piles.simulator(bodies, tm.Contact(**{**args.contact, **options}), args.device, dtype,
@@ -108,6 +110,8 @@ def main(argv=None):
             sim.system._rigid = RigidModeCorrection(**rigid)
         if check_ahead is not None:
             sim.system.check_ahead = int(check_ahead)
+        if settled_wait is not None:
+            sim.body_contact.settled_wait = int(settled_wait)
         sim.x, sim.v = x.clone(), v.clone()
         sim.step(2)
         sims[name] = sim

@@ -72,6 +72,13 @@ from .contact import check_friction, coulomb_damping, tangential_part
 #: Bodies tested against all the others at a time by the swept broad phase (memory: BODY_ROWS x B).
 BODY_ROWS = 2048
 
+#: After a settled test that failed (:meth:`SurfaceContact.settled_if_due`), the next one waits
+#: 1, 2, 4, ... steps, by default at most this many (``SurfaceContact.settled_wait``): a pile
+#: still creeping fails it step after step (each a detection's worth of reductions and a host
+#: read), and a step that leaves it out runs the check it would have skipped, so the wait changes
+#: no result.
+SETTLED_WAIT = 8
+
 #: the stiffness a body contact gives the implicit step (``Contact.tangent``)
 TANGENTS = ("projected", "exact")
 
@@ -670,6 +677,10 @@ class SurfaceContact:
         #: whether the last step's first contact-set check found pairs (implicit_euler_step then
         #: skips the next step's settled test: it decides nothing that the check would not)
         self.first_check_found = False
+        #: the most steps a settled test waits after failures (settled_if_due; 0: never waits)
+        self.settled_wait = SETTLED_WAIT
+        self._settled_failures = 0  # settled tests failed in a row (settled_if_due)
+        self._settled_wait = 0  # steps the settled test still waits
         self._kept = None  # Contact.skin: (surface vertices' positions [S, 3], reach, the candidates)
         # Contact.check_margin: the step's start search, for its checks (nearby, relinearise):
         # (x, its version, where the step's velocities put the surface vertices [S, 3], the
@@ -793,6 +804,22 @@ class SurfaceContact:
             checks.append(torch.where(active, twice <= self.tolerance,
                                       pairs.end_gap(dx) >= twice - self.tolerance).all())
         return bool(torch.stack(checks).all())
+
+    def settled_if_due(self, x: torch.Tensor, dx: torch.Tensor, pairs: "ContactPairs", active: torch.Tensor) -> bool:
+        """:meth:`settled`, where the test is due: after tests that failed in a row it waits
+        1, 2, 4, ... steps (at most ``SETTLED_WAIT``), answering False (not known settled) without
+        testing; a test that passes makes the next one due at once. One call a step.
+        ``settled_wait`` (``SETTLED_WAIT`` by default): the longest wait."""
+        if self._settled_wait > 0:
+            self._settled_wait -= 1
+            return False
+        if self.settled(x, dx, pairs, active):
+            self._settled_failures = 0
+            return True
+        self._settled_failures += 1
+        self._settled_wait = min(1 << min(self._settled_failures - 1, self.settled_wait.bit_length()),
+                                 self.settled_wait)
+        return False
 
     def candidates(self, x: torch.Tensor, v: Optional[torch.Tensor] = None, dt: float = 0.0, motion=None):
         """Broad phase at positions ``x [V, 3]``: (surface vertex ids into :attr:`vertices` ``[C]``,
@@ -1186,6 +1213,7 @@ class SurfaceContact:
         other.settings = dataclasses.replace(self.settings, **changes)
         other._last = other._static = other._kept = other._step_search = other._check_search = None
         other.first_check_found = False
+        other._settled_failures = other._settled_wait = 0
         return other
 
     def to(self, device=None, dtype=None) -> "SurfaceContact":

@@ -1404,7 +1404,8 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
     # The settled test (one host read, a detection's worth of reductions) only skips a check that
     # would find nothing, so whether it runs changes no result; after a step whose first check
     # found pairs (a pile still jostling) it nearly always fails, and that step goes straight to
-    # the check (SurfaceContact.first_check_found).
+    # the check (SurfaceContact.first_check_found); after tests that failed in a row (a pile
+    # still creeping) the next waits a few steps (SurfaceContact.settled_if_due).
     # The check beside the resumed solve: where the last step's first check found nothing (a
     # pile at rest, whose checks nearly always find nothing), the paused solve's next iterations
     # are launched before the check, which runs on a side stream (_check_beside): the device
@@ -1415,7 +1416,7 @@ def implicit_euler_step(system: DynamicsSystem, x, v, opts: StepOptions, imposed
         dx = h * v_new if opts.theta == 1.0 else _end_positions(x, v, v_new, opts) - x
         at_rest = round_ == 0 and not system.body_contact.first_check_found
         with _check_beside(system, resume if at_rest else None, x):
-            if at_rest and system.body_contact.settled(x, dx, near, active):
+            if at_rest and system.body_contact.settled_if_due(x, dx, near, active):
                 break  # the bodies' motion provably leaves nothing for the check to find
             # a round's own solve is checked for deep misses only (Contact.recheck_tolerance)
             tolerance = system.body_contact.tolerance if round_ == 0 else system.body_contact.recheck_tolerance

@@ -978,6 +978,54 @@ def test_a_step_after_one_whose_check_found_pairs_skips_the_settled_test():
     assert bc.SurfaceContact.with_values(sim.body_contact, stiffness=2e5).first_check_found is False
 
 
+def test_the_settled_test_waits_after_failures_and_changes_no_step(monkeypatch):
+    """SurfaceContact.settled_if_due: after settled tests that failed in a row the next waits 1, 2,
+    4, ... steps (at most ``settled_wait``, SETTLED_WAIT by default) and a test that passes makes
+    the next due at once; a block
+    landing on another, then resting, steps bit for bit as when the test runs at every step, in
+    fewer tests."""
+    from tensormass_torch.physics import body_contact as bc
+
+    material = tm.Material(young=1e5, poisson=0.3, density=1000)
+    stacked = [tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(0.0, 0.0, 0.11 * i), dtype=DT) for i in range(2)]
+
+    def run(wait: int):
+        sim = tm.Simulator([tm.Body(m, material) for m in stacked], dt=0.005, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)],
+                           contact=tm.Contact(friction=0.5), rayleigh_mass=2.0, dtype=DT)
+        sim.body_contact.settled_wait = wait
+        calls = []
+        original = bc.SurfaceContact.settled
+        monkeypatch.setattr(bc.SurfaceContact, "settled", lambda self, *a: calls.append(original(self, *a)) or calls[-1])
+        sim.step(200)
+        monkeypatch.setattr(bc.SurfaceContact, "settled", original)
+        return sim, calls
+
+    wait = bc.SETTLED_WAIT
+    assert wait == 8
+    waited, tested = run(wait)
+    every, all_tested = run(0)
+    assert torch.equal(waited.x, every.x) and torch.equal(waited.v, every.v)
+    assert len(all_tested) == 200 and not all(all_tested) and all(all_tested[-100:])
+    assert len(tested) < len(all_tested) and all(tested[-100:])
+    # the waits: tests that fail at steps 0, 2, 5, 10, 19 (waits 1, 2, 4, 8), then pass at each step
+    surface = waited.body_contact
+
+    def steps(answers, count):  # (the steps whose test ran, the steps found settled)
+        surface._settled_failures = surface._settled_wait = 0
+        ran = []
+        monkeypatch.setattr(bc.SurfaceContact, "settled", lambda self, *a: ran.append(step) or answers[len(ran) - 1])
+        settled = []
+        for step in range(count):
+            if surface.settled_if_due(None, None, None, None):
+                settled.append(step)
+        return ran, settled
+
+    assert steps([False] * 5 + [True] * 4, 32) == ([0, 2, 5, 10, 19, 28, 29, 30, 31], [28, 29, 30, 31])
+    assert steps([False] * 7, 46) == ([0, 2, 5, 10, 19, 28, 37], [])  # the wait stays at settled_wait
+    surface.settled_wait = 0
+    assert steps([False] * 3 + [True], 4) == ([0, 1, 2, 3], [3])
+
+
 def test_settled_steps_skip_the_contact_sets_check_exactly():
     """Where the bodies' motion provably leaves nothing for the contact set's check to find
     (SurfaceContact.settled: bodies far apart, or resting on each other), its detection is
