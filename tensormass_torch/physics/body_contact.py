@@ -680,7 +680,7 @@ class SurfaceContact:
         #: the most steps a settled test waits after failures (settled_if_due; 0: never waits)
         self.settled_wait = SETTLED_WAIT
         self._settled_failures = 0  # settled tests failed in a row (settled_if_due)
-        self._settled_wait = 0  # steps the settled test still waits
+        self._settled_left = 0  # steps the settled test still waits
         self._kept = None  # Contact.skin: (surface vertices' positions [S, 3], reach, the candidates)
         # Contact.check_margin: the step's start search, for its checks (nearby, relinearise):
         # (x, its version, where the step's velocities put the surface vertices [S, 3], the
@@ -807,17 +807,17 @@ class SurfaceContact:
 
     def settled_if_due(self, x: torch.Tensor, dx: torch.Tensor, pairs: "ContactPairs", active: torch.Tensor) -> bool:
         """:meth:`settled`, where the test is due: after tests that failed in a row it waits
-        1, 2, 4, ... steps (at most ``SETTLED_WAIT``), answering False (not known settled) without
-        testing; a test that passes makes the next one due at once. One call a step.
-        ``settled_wait`` (``SETTLED_WAIT`` by default): the longest wait."""
-        if self._settled_wait > 0:
-            self._settled_wait -= 1
+        1, 2, 4, ... steps (at most :attr:`settled_wait`, ``SETTLED_WAIT`` by default), answering
+        False (not known settled) without testing; a test that passes makes the next one due at
+        once. One call a step."""
+        if self._settled_left > 0:
+            self._settled_left -= 1
             return False
         if self.settled(x, dx, pairs, active):
             self._settled_failures = 0
             return True
         self._settled_failures += 1
-        self._settled_wait = min(1 << min(self._settled_failures - 1, self.settled_wait.bit_length()),
+        self._settled_left = min(1 << min(self._settled_failures - 1, self.settled_wait.bit_length()),
                                  self.settled_wait)
         return False
 
@@ -1213,7 +1213,7 @@ class SurfaceContact:
         other.settings = dataclasses.replace(self.settings, **changes)
         other._last = other._static = other._kept = other._step_search = other._check_search = None
         other.first_check_found = False
-        other._settled_failures = other._settled_wait = 0
+        other._settled_failures = other._settled_left = 0
         return other
 
     def to(self, device=None, dtype=None) -> "SurfaceContact":

@@ -981,9 +981,8 @@ def test_a_step_after_one_whose_check_found_pairs_skips_the_settled_test():
 def test_the_settled_test_waits_after_failures_and_changes_no_step(monkeypatch):
     """SurfaceContact.settled_if_due: after settled tests that failed in a row the next waits 1, 2,
     4, ... steps (at most ``settled_wait``, SETTLED_WAIT by default) and a test that passes makes
-    the next due at once; a block
-    landing on another, then resting, steps bit for bit as when the test runs at every step, in
-    fewer tests."""
+    the next due at once; a block landing on another, then resting, steps bit for bit as when the
+    test runs at every step, in fewer tests."""
     from tensormass_torch.physics import body_contact as bc
 
     material = tm.Material(young=1e5, poisson=0.3, density=1000)
@@ -1011,7 +1010,7 @@ def test_the_settled_test_waits_after_failures_and_changes_no_step(monkeypatch):
     surface = waited.body_contact
 
     def steps(answers, count):  # (the steps whose test ran, the steps found settled)
-        surface._settled_failures = surface._settled_wait = 0
+        surface._settled_failures = surface._settled_left = 0
         ran = []
         monkeypatch.setattr(bc.SurfaceContact, "settled", lambda self, *a: ran.append(step) or answers[len(ran) - 1])
         settled = []
