@@ -21,8 +21,8 @@ whether its lagged loads keep the last coarse inverses whole, and
 ``"check_ahead"``, the stretches of a paused solve its contact check runs beside on the GPU
 (``DynamicsSystem.check_ahead``; 0: after the solve), ``"settled_wait"``, the most steps its
 settled test waits after failures (``SurfaceContact.settled_wait``; 0: it tests at every step)
-(by default one setting, ``default={}``). Every simulator takes two steps before the blocks, then ``--repeats`` times each takes ``--timed`` steps in turn;
-the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
+(by default one setting, ``default={}``). Every simulator takes two steps before the blocks,
+then ``--repeats`` times each takes ``--timed`` steps in turn; the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
 falling through each other) takes its block first. For each block: ms a step, CG iterations a
 step (every solve's), solves a step, and at its end the kinetic energy and the deepest pair of
 the last step. Settings that are exact alternatives of each other (``skin``) take the same

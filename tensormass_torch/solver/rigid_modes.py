@@ -396,7 +396,7 @@ class RigidModeCorrection:
             columns = members.view(groups, size)[group].to(torch.int32).reshape(-1)  # [B c]
             self._kept = (kept, arms, free, group, slot, groups, own, filled[:, :, None, None], columns)
         _, arms, kept_free, group, slot, groups, own, filled, columns = self._kept
-        node_inverse = self._node_inverse(scaling, x, free)
+        node_inverse = self._take_scaling(scaling, x, free)
         if lagged and self.lag_pairs and self.node_inverse is not None \
                 and self.node_inverse.shape == node_inverse.shape and self.node_inverse.dtype == x.dtype:
             # the last load's coarse inverses kept whole, its pairs' part too: E = Z^T A Z does not
@@ -432,10 +432,11 @@ class RigidModeCorrection:
                 self.inverses.block_cols.copy_(columns)
         return self
 
-    def _node_inverse(self, scaling, x: torch.Tensor, free: Optional[torch.Tensor]) -> torch.Tensor:
-        """N at each node for block Jacobi loaded as ``scaling`` (kept as this load's): on a
-        ``BlockJacobi`` the free mask ``[V]`` (N = I, Z in the system's own unknowns), on a
-        ``JacobiScaling`` its S^-1 ``[V, 3, 3]``, zero on fixed nodes."""
+    def _take_scaling(self, scaling, x: torch.Tensor, free: Optional[torch.Tensor]) -> torch.Tensor:
+        """Take block Jacobi loaded as ``scaling`` for this load (:attr:`inverse_blocks` and
+        :attr:`paired` read it) and return N at each node: on a ``BlockJacobi`` the free mask
+        ``[V]`` (N = I, Z in the system's own unknowns), on a ``JacobiScaling`` its S^-1
+        ``[V, 3, 3]``; zero on fixed nodes."""
         self._blocks = getattr(scaling, "inverse_blocks", None)
         self._scaling = scaling
         if self._blocks is not None:
