@@ -10,23 +10,23 @@ state, not the setting); alternated blocks in one process put that drift on ever
                                                        [--repeats 3] [--save-state DIR]
                                                        [--out settings.json] [--device cuda]
 
-The pile is ``contact_piles``' (``pile_arguments``; ``--columns 1 --levels 10``: one stack of
-ten), stepped ``--steps`` steps with ``--contact`` or taken from ``--state``; ``--save-state
-DIR`` keeps that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` is a name and a
-JSON object: the keyword arguments of its ``tm.Contact``, over ``--contact``'s,
-``"preconditioner"``, ``"warm_start"`` and ``"paired_blocks"``, the Simulator's, ``"rigid_grouping"``, the groups of
+The pile is ``contact_piles``' (``pile_arguments``; ``--columns 1 --levels 10``: one stack of ten),
+stepped ``--steps`` steps with ``--contact`` or taken from ``--state``; ``--save-state DIR`` keeps
+that state (``x.pt``, ``v.pt``) for later runs. Each ``--setting`` is a name and a JSON object: the
+keyword arguments of its ``tm.Contact``, over ``--contact``'s, ``"preconditioner"``,
+``"warm_start"`` and ``"paired_blocks"``, the Simulator's, ``"rigid_grouping"``, the groups of
 ``preconditioner="rigid"``'s coarse solve (``"contact"``, its default, or ``"morton"``), and
 ``"rigid_refresh"``, the loads between two computations of its bodies' part, ``"rigid_lag_pairs"``,
-whether its lagged loads keep the last coarse inverses whole, and
-``"check_ahead"``, the stretches of a paused solve its contact check runs beside on the GPU
-(``DynamicsSystem.check_ahead``; 0: after the solve), ``"settled_wait"``, the most steps its
-settled test waits after failures (``SurfaceContact.settled_wait``; 0: it tests at every step)
-(by default one setting, ``default={}``). Every simulator takes two steps before the blocks,
-then ``--repeats`` times each takes ``--timed`` steps in turn; the pile without contact (as ``contact_piles.py`` times it: the blocks dropped from the start,
-falling through each other) takes its block first. For each block: ms a step, CG iterations a
-step (every solve's), solves a step, and at its end the kinetic energy and the deepest pair of
-the last step. Settings that are exact alternatives of each other (``skin``) take the same
-iterations.
+whether its lagged loads keep the last coarse inverses whole, and ``"check_ahead"``, the stretches
+of a paused solve its contact check runs beside on the GPU (``DynamicsSystem.check_ahead``; 0: after
+the solve), ``"settled_wait"``, the most steps its settled test waits after failures
+(``SurfaceContact.settled_wait``; 0: it tests at every step) (by default one setting,
+``default={}``). Every simulator takes two steps before the blocks, then ``--repeats`` times each
+takes ``--timed`` steps in turn; the pile without contact (as ``contact_piles.py`` times it: the
+blocks dropped from the start, falling through each other) takes its block first. For each block: ms
+a step, CG iterations a step (every solve's), solves a step, and at its end the kinetic energy and
+the deepest pair of the last step. Settings that are exact alternatives of each other (``skin``)
+take the same iterations.
 """
 import json
 import sys
