@@ -225,14 +225,25 @@ struct NearestSlot {
 // The most bodies one surface vertex may be near at once; a vertex near more is reported (count
 // -1) and the caller takes the reference for the whole detection.
 constexpr int kNearestSlots = 8;
+constexpr int64_t kNoPair = -1;
+constexpr int64_t kSeveralPairs = -2;
 
 // One surface vertex an item: over its run of candidates [first[s], first[s + 1]) (the broad
 // phase's, grouped by vertex), for each other body the nearest triangle within the reach
 // (body_contact.SurfaceContact.nearby: the reach grows by what the pair may close over the step
 // when `spread` is given), its side by the pseudonormal of the triangles tied with it, and only
 // pairs nearer than the plain reach by the ties' rounding, or outside. Count pass (offsets == nullptr): how many
-// pairs the vertex keeps, -1 past kNearestSlots bodies. Fill pass: the pairs at offsets[s], in the
-// order of their chosen candidates in the run (the reference's order).
+// pairs the vertex keeps, -1 past kNearestSlots bodies, and in `chosen` what the fill pass needs
+// not find again. Fill pass: the pairs at offsets[s], in the order of their chosen candidates in
+// the run (the reference's order).
+//
+// `chosen[s]` (written by the count pass, read by the fill pass): kNoPair where the vertex keeps
+// no pair (or is past the slots), 2 i + outside for a vertex that keeps one pair, i its chosen
+// candidate's index into candidate_triangle and outside 1 for the side +1, and kSeveralPairs
+// where it keeps more (the fill pass walks the run again). Most vertices keep none or one, so the
+// fill pass does one closest-point query where the count pass did two per candidate; the query
+// is the same call on the same inputs as the count pass's (`near`), so the pair is bit for bit
+// the one a walk would write.
 template <typename S>
 struct NearestPairsKernel {
   const S* x;                      // [V, 3]
@@ -249,6 +260,7 @@ struct NearestPairsKernel {
   S tiny;                          // the dtype's smallest normal number
   const int64_t* offsets;          // [Sv] fill pass; nullptr: count pass
   int64_t* counts;                 // [Sv] count pass
+  int64_t* chosen;                 // [Sv] written by the count pass, read by the fill pass (above)
   int64_t* pair_vertex;            // [P] fill pass: into the surface vertices
   int64_t* pair_triangle;          // [P]
   S* weights;                      // [P, 3]
@@ -291,9 +303,19 @@ struct NearestPairsKernel {
     const S largest = tm_abs(p[0]) > tm_abs(p[1]) ? (tm_abs(p[0]) > tm_abs(p[2]) ? tm_abs(p[0]) : tm_abs(p[2]))
                                                   : (tm_abs(p[1]) > tm_abs(p[2]) ? tm_abs(p[1]) : tm_abs(p[2]));
     const S rounding = S(32) * eps * (largest + reach);
+    TriangleClosest<S> cp;
+    if (offsets != nullptr) {
+      const int64_t pick = chosen[s];
+      if (pick == kNoPair) return;
+      if (pick >= 0) {  // one pair, its candidate and side known
+        const int64_t i = pick >> 1, t = candidate_triangle[i];
+        near(p, node, body, t, cp);
+        write(offsets[s], s, t, cp, (pick & 1) ? S(1) : S(-1));
+        return;
+      }
+    }
     NearestSlot<S> slot[kNearestSlots];
     int used = 0;
-    TriangleClosest<S> cp;
     // pass 1: each body's least distance
     for (int64_t i = first[s]; i < first[s + 1]; ++i) {
       const int64_t t = candidate_triangle[i];
@@ -303,7 +325,10 @@ struct NearestPairsKernel {
       while (k < used && slot[k].body != other) ++k;
       if (k == used) {
         if (used == kNearestSlots) {
-          if (offsets == nullptr) counts[s] = -1;
+          if (offsets == nullptr) {
+            counts[s] = -1;
+            chosen[s] = kNoPair;
+          }
           return;
         }
         slot[k].body = other;
@@ -345,6 +370,11 @@ struct NearestPairsKernel {
     }
     if (offsets == nullptr) {
       counts[s] = kept;
+      int64_t pick = kept == 0 ? kNoPair : kSeveralPairs;
+      for (int k = 0; k < used && kept == 1; ++k) {
+        if (keep[k]) pick = 2 * slot[k].position + (sides[k] > S(0) ? 1 : 0);
+      }
+      chosen[s] = pick;
       return;
     }
     int64_t at = offsets[s];
@@ -354,18 +384,22 @@ struct NearestPairsKernel {
         if (keep[k] && (best < 0 || slot[k].position < slot[best].position)) best = k;
       }
       keep[best] = false;
-      const TriangleClosest<S>& c = slot[best].closest;
-      pair_vertex[at] = s;
-      pair_triangle[at] = slot[best].triangle;
-      TM_UNROLL for (int k = 0; k < 3; ++k) {
-        weights[at * 3 + k] = c.w[k];
-        diff[at * 3 + k] = c.diff[k];
-        normal[at * 3 + k] = c.normal[k];
-      }
-      distance[at] = c.d;
-      side[at] = sides[best];
+      write(at, s, slot[best].triangle, slot[best].closest, sides[best]);
       ++at;
     }
+  }
+
+  // The fill pass's pair at `at`: vertex s, triangle t, its closest point c, its side.
+  TM_HD void write(int64_t at, int64_t s, int64_t t, const TriangleClosest<S>& c, S outside) const {
+    pair_vertex[at] = s;
+    pair_triangle[at] = t;
+    TM_UNROLL for (int k = 0; k < 3; ++k) {
+      weights[at * 3 + k] = c.w[k];
+      diff[at * 3 + k] = c.diff[k];
+      normal[at * 3 + k] = c.normal[k];
+    }
+    distance[at] = c.d;
+    side[at] = outside;
   }
 };
 

@@ -183,23 +183,24 @@ struct NearestArgs {
 
 // contact_count_nearest: see schema.cpp.
 template <class L>
-at::Tensor contact_count_nearest(const at::Tensor& x, const at::Tensor& vertices, const at::Tensor& vertex_object,
-                                 const at::Tensor& triangles, const at::Tensor& triangle_object,
-                                 const at::Tensor& first, const at::Tensor& candidate_triangle,
-                                 const c10::optional<at::Tensor>& spread, const c10::optional<at::Tensor>& body_step,
-                                 double reach) {
+std::tuple<at::Tensor, at::Tensor> contact_count_nearest(
+    const at::Tensor& x, const at::Tensor& vertices, const at::Tensor& vertex_object, const at::Tensor& triangles,
+    const at::Tensor& triangle_object, const at::Tensor& first, const at::Tensor& candidate_triangle,
+    const c10::optional<at::Tensor>& spread, const c10::optional<at::Tensor>& body_step, double reach) {
   const NearestArgs args{x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
                          spread, body_step, reach};
   args.check();
   at::Tensor counts = at::empty({vertices.numel()}, vertices.options());
+  at::Tensor chosen = at::empty({vertices.numel()}, vertices.options());
   typename L::Guard guard(x.device());
   dispatch_scalar(x.scalar_type(), [&](auto s_tag) {
     using S = decltype(s_tag);
     NearestPairsKernel<S> k = args.kernel<S>();
     k.counts = counts.data_ptr<int64_t>();
+    k.chosen = chosen.data_ptr<int64_t>();
     L::run(vertices.numel(), k, L::kElementBlock);
   });
-  return counts;
+  return {counts, chosen};
 }
 
 // contact_fill_nearest: see schema.cpp.
@@ -208,12 +209,13 @@ void contact_fill_nearest(const at::Tensor& x, const at::Tensor& vertices, const
                           const at::Tensor& triangles, const at::Tensor& triangle_object, const at::Tensor& first,
                           const at::Tensor& candidate_triangle, const c10::optional<at::Tensor>& spread,
                           const c10::optional<at::Tensor>& body_step, double reach, const at::Tensor& offsets,
-                          at::Tensor pair_vertex, at::Tensor pair_triangle, at::Tensor weights, at::Tensor diff,
+                          const at::Tensor& chosen, at::Tensor pair_vertex, at::Tensor pair_triangle, at::Tensor weights, at::Tensor diff,
                           at::Tensor distance, at::Tensor normal, at::Tensor side) {
   const NearestArgs args{x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
                          spread, body_step, reach};
   args.check();
   check_index_tensor(offsets, "offsets", x, at::kLong, {vertices.numel()}, "x");
+  check_index_tensor(chosen, "chosen", x, at::kLong, {vertices.numel()}, "x");
   TORCH_CHECK(pair_vertex.defined() && pair_vertex.dim() == 1, "tensormass: pair_vertex must be [P]");
   const int64_t num_pairs = pair_vertex.size(0);
   check_index_tensor(pair_vertex, "pair_vertex", x, at::kLong, {num_pairs}, "x");
@@ -228,6 +230,7 @@ void contact_fill_nearest(const at::Tensor& x, const at::Tensor& vertices, const
     using S = decltype(s_tag);
     NearestPairsKernel<S> k = args.kernel<S>();
     k.offsets = offsets.data_ptr<int64_t>();
+    k.chosen = const_cast<int64_t*>(chosen.data_ptr<int64_t>());  // (read only in the fill pass)
     k.pair_vertex = pair_vertex.data_ptr<int64_t>();
     k.pair_triangle = pair_triangle.data_ptr<int64_t>();
     k.weights = weights.data_ptr<S>();

@@ -45,20 +45,22 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   // lie past the limit).
   // contact_count_nearest(x [V, 3], vertices [Sv], vertex_object [Sv], triangles [F, 3],
   //     triangle_object [F], first [Sv + 1], candidate_triangle [C], spread [V]?, body_step [B, 3]?,
-  //     reach) -> counts [Sv] int64
+  //     reach) -> (counts [Sv] int64, chosen [Sv] int64)
   //   how many pairs each vertex keeps; -1 where a vertex is near more bodies than the kernel holds
-  //   (kernels.h: kNearestSlots; the caller then takes the reference).
+  //   (kernels.h: kNearestSlots; the caller then takes the reference). chosen: -1 where it keeps
+  //   none (or is past the slots), 2 i + (1 if outside) where it keeps one pair, its chosen
+  //   candidate candidate_triangle[i], -2 where it keeps more; for the fill.
   m.def("contact_count_nearest(Tensor x, Tensor vertices, Tensor vertex_object, Tensor triangles, "
         "Tensor triangle_object, Tensor first, Tensor candidate_triangle, Tensor? spread, Tensor? body_step, "
-        "float reach) -> Tensor");
-  // contact_fill_nearest(the same, offsets [Sv], pair_vertex! [P], pair_triangle! [P], weights! [P, 3],
-  //     diff! [P, 3], distance! [P], normal! [P, 3], side! [P]) -> ()
+        "float reach) -> (Tensor, Tensor)");
+  // contact_fill_nearest(the same, offsets [Sv], chosen [Sv], pair_vertex! [P], pair_triangle! [P],
+  //     weights! [P, 3], diff! [P, 3], distance! [P], normal! [P, 3], side! [P]) -> ()
   //   the pairs, vertex s's from offsets[s] in the order of their chosen candidates: the vertex
   //   (into vertices), the triangle, the closest point's weights, p minus it, its distance, the
-  //   triangle's unit normal and the side (+-1).
+  //   triangle's unit normal and the side (+-1). chosen: the count's, for the same inputs.
   m.def("contact_fill_nearest(Tensor x, Tensor vertices, Tensor vertex_object, Tensor triangles, "
         "Tensor triangle_object, Tensor first, Tensor candidate_triangle, Tensor? spread, Tensor? body_step, "
-        "float reach, Tensor offsets, Tensor(a!) pair_vertex, Tensor(b!) pair_triangle, Tensor(c!) weights, "
+        "float reach, Tensor offsets, Tensor chosen, Tensor(a!) pair_vertex, Tensor(b!) pair_triangle, Tensor(c!) weights, "
         "Tensor(d!) diff, Tensor(e!) distance, Tensor(f!) normal, Tensor(g!) side) -> ()");
   // contact_pair_product(dx [V, 3], nodes [C, 4], coef [C, 4], direction [C, 3], normal [C],
   //     friction [C], order [4 C], offsets [V + 1], vector! [C, 3], out! [V, 3], accumulate) -> ()

@@ -31,9 +31,13 @@ of its candidate triangles within the reach, the lowest triangle id among those 
 (within the rounding of the distances), its side by the sum of the tied triangles' normals:
 
     contact_count_nearest(x, vertices, vertex_object, triangles, triangle_object, first,
-        candidate_triangle, spread?, body_step?, reach) -> counts [Sv] (-1: too many bodies near)
-    contact_fill_nearest(the same, offsets, pair_vertex!, pair_triangle!, weights!, diff!,
+        candidate_triangle, spread?, body_step?, reach) -> (counts [Sv] (-1: too many bodies
+        near), chosen [Sv]: -1 no pair, 2 i + (1 if outside) one pair from candidate i, -2 more)
+    contact_fill_nearest(the same, offsets, chosen, pair_vertex!, pair_triangle!, weights!, diff!,
         distance!, normal!, side!)
+
+(``chosen`` spares the fill pass the walk for the vertices that keep no pair or one, most of
+them: it queries the one candidate the count chose.)
 
 The pairs' part of a step's matrix times a vector, in two kernels (a pair each, then a node each
 over its entries in a fixed order):
@@ -162,6 +166,14 @@ def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, fi
     """The narrow phase as tensor ops (the ops' oracle; see the module): (pair_vertex ``[P]``,
     pair_triangle ``[P]``, weights ``[P, 3]``, diff ``[P, 3]``, distance ``[P]``, normal ``[P, 3]``,
     side ``[P]``), the pairs in the order of their chosen candidates."""
+    return _nearest_with_candidates(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                                    spread, body_step, reach)[:7]
+
+
+def _nearest_with_candidates(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
+                             spread, body_step, reach):
+    """:func:`nearest_reference`'s pairs and each one's chosen candidate ``[P]`` (its index into
+    ``candidate_triangle``)."""
     per_vertex = first[1:] - first[:-1]
     vertex = torch.repeat_interleave(torch.arange(len(vertices), device=x.device), per_vertex,
                                      output_size=len(candidate_triangle))
@@ -175,6 +187,7 @@ def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, fi
         limit = reach + spread[node] + spread[tri].amax(-1) + torch.linalg.vector_norm(between, dim=-1)
     near = (d < limit).nonzero().squeeze(1)
     vertex, triangle, node, w, diff, d, normal = (t[near] for t in (vertex, triangle, node, w, diff, d, normal))
+    candidate = near  # each one's index into candidate_triangle
     # the nearest triangle per (vertex, body); ties to the lowest triangle id (deterministic).
     # Groups numbered by a sort of their keys, at most one per candidate (no host read).
     key = vertex * (1 << 32) + triangle_object[triangle]  # (bodies and vertices < 2^31)
@@ -198,8 +211,8 @@ def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, fi
     lowest = torch.full((groups,), big, dtype=torch.int64, device=x.device).scatter_reduce(
         0, group, torch.where(tied, triangle, big), "amin")
     chosen = (tied & (triangle == lowest[group])).nonzero().squeeze(1)
-    vertex, triangle, w, diff, d, normal, group, rounding = (
-        t[chosen] for t in (vertex, triangle, w, diff, d, normal, group, rounding))
+    vertex, triangle, w, diff, d, normal, group, rounding, candidate = (
+        t[chosen] for t in (vertex, triangle, w, diff, d, normal, group, rounding, candidate))
     side = torch.where((pseudo[group] * diff).sum(-1) >= 0, 1.0, -1.0).to(d.dtype)
     # The side is trusted where every triangle tied with the chosen one is among those within the
     # limit: where the chosen one is nearer than the reach by the rounding. Nearer the reach a
@@ -209,20 +222,24 @@ def nearest_reference(x, vertices, vertex_object, triangles, triangle_object, fi
     # reach (swept, the limit grown) the candidates need not hold every nearer triangle either.
     # There a pair is kept only outside (a vertex that deep inside is lost to the body anyway).
     trusted = ((d < reach - rounding) | (side > 0)).nonzero().squeeze(1)
-    vertex, triangle, w, diff, d, normal, side = (t[trusted] for t in (vertex, triangle, w, diff, d, normal, side))
-    return vertex, triangle, w, diff, d, normal, side
+    return tuple(t[trusted] for t in (vertex, triangle, w, diff, d, normal, side, candidate))
 
 
 def _ref_contact_count_nearest(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
                                spread, body_step, reach):
-    vertex = nearest_reference(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
-                               spread, body_step, reach)[0]
-    return torch.bincount(vertex, minlength=len(vertices))
+    found = _nearest_with_candidates(x, vertices, vertex_object, triangles, triangle_object, first,
+                                     candidate_triangle, spread, body_step, reach)
+    vertex, side, candidate = found[0], found[6], found[7]
+    counts = torch.bincount(vertex, minlength=len(vertices))
+    chosen = torch.where(counts == 0, -1, -2)
+    single = counts[vertex] == 1
+    chosen[vertex[single]] = 2 * candidate[single] + (side[single] > 0).to(torch.int64)
+    return counts, chosen
 
 
 def _ref_contact_fill_nearest(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
-                              spread, body_step, reach, offsets, pair_vertex, pair_triangle, weights, diff, distance,
-                              normal, side):
+                              spread, body_step, reach, offsets, chosen, pair_vertex, pair_triangle, weights, diff,
+                              distance, normal, side):
     found = nearest_reference(x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
                               spread, body_step, reach)
     for out, value in zip((pair_vertex, pair_triangle, weights, diff, distance, normal, side), found):
@@ -268,7 +285,7 @@ def _example_inputs(device, dtype):
 
 
 def _fake_contact_count_nearest(x, vertices, *rest):
-    return vertices.new_empty(vertices.shape)
+    return vertices.new_empty(vertices.shape), vertices.new_empty(vertices.shape)
 
 
 def _example_nearest_inputs(device, dtype, swept=True):
@@ -295,13 +312,14 @@ def _example_count_nearest(device, dtype):
 
 def _example_fill_nearest(device, dtype):
     args = _example_nearest_inputs(device, dtype)
-    counts = _ref_contact_count_nearest(*args)
+    counts, chosen = _ref_contact_count_nearest(*args)
     total = int(counts.sum())
     offsets = _run_starts(counts)
     index = torch.zeros(total, dtype=torch.int64, device=device)
     values = torch.zeros(total, dtype=dtype, device=device)
     vectors = torch.zeros(total, 3, dtype=dtype, device=device)
-    return (*args, offsets, index, index.clone(), vectors, vectors.clone(), values, vectors.clone(), values.clone()), {}
+    return (*args, offsets, chosen, index, index.clone(), vectors, vectors.clone(), values, vectors.clone(),
+            values.clone()), {}
 
 
 def _example_pair_product(device, dtype):
@@ -404,7 +422,7 @@ def nearest_pairs(x: torch.Tensor, vertices: torch.Tensor, vertex_object: torch.
             float(reach))
     count = library.op_or_reference("contact_count_nearest", x.device, native)
     if count is not _ref_contact_count_nearest and not (x.requires_grad and torch.is_grad_enabled()):
-        counts = count(*args)
+        counts, chosen = count(*args)
         fewest = counts.amin() if len(counts) else counts.new_zeros(())
         total, fewest = torch.stack([counts.sum(), fewest]).tolist()
         over = None
@@ -416,7 +434,7 @@ def nearest_pairs(x: torch.Tensor, vertices: torch.Tensor, vertex_object: torch.
         index = torch.empty(total, dtype=torch.int64, device=x.device)
         outputs = (index, torch.empty_like(index), x.new_empty(total, 3), x.new_empty(total, 3),
                    x.new_empty(total), x.new_empty(total, 3), x.new_empty(total))
-        library.op("contact_fill_nearest")(*args, offsets, *outputs)
+        library.op("contact_fill_nearest")(*args, offsets, chosen, *outputs)
         return outputs if over is None else _with_crowded_vertices(outputs, over, args)
     return nearest_reference(*args)
 

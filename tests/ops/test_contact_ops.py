@@ -167,6 +167,41 @@ def test_nearest_pairs_equal_the_reference(swept, self_contact, dtype, device):
         torch.testing.assert_close(a, b, **tol)
 
 
+@pytest.mark.parametrize("swept", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_fill_takes_the_counts_choice_bit_for_bit(swept, dtype, device):
+    """The count's ``chosen`` (a vertex's one pair: its candidate and side; none; several) is the
+    reference's, and the fill that takes it writes, bit for bit, what the fill that walks every
+    vertex's run again (``chosen`` -2 everywhere) writes."""
+    surface, x, v = pile_state(dtype, device)
+    motion = surface._motion(x, v, 0.01) if swept else None
+    vertex, triangle = surface.candidates(x, v if swept else None, 0.01 if swept else 0.0, motion)
+    spread = body_step = None
+    if swept:
+        spread, body_step = torch.linalg.vector_norm(motion[0], dim=-1), motion[1]
+    first = torch.searchsorted(vertex, torch.arange(len(surface.vertices) + 1, device=device))
+    args = (x, surface.vertices, surface.vertex_object, surface.triangles, surface.triangle_object, first, triangle,
+            spread, body_step, surface.reach)
+    counts, chosen = library.op("contact_count_nearest")(*args)
+    ref_counts, ref_chosen = contact._ref_contact_count_nearest(*args)
+    assert torch.equal(counts, ref_counts) and torch.equal(chosen, ref_chosen)
+    assert int((chosen >= 0).sum()) > 20 and int((chosen == -1).sum()) > 20  # one pair and none, both met
+    offsets = torch.cumsum(counts, 0) - counts
+    total = int(counts.sum())
+    fills = []
+    for choice in (chosen, torch.full_like(chosen, -2)):
+        outputs = (torch.full((total,), -1, dtype=torch.int64, device=device), torch.full((total,), -1, device=device),
+                   *(torch.full((total, 3), math.nan, dtype=dtype, device=device) for _ in range(2)),
+                   torch.full((total,), math.nan, dtype=dtype, device=device),
+                   torch.full((total, 3), math.nan, dtype=dtype, device=device),
+                   torch.full((total,), math.nan, dtype=dtype, device=device))
+        library.op("contact_fill_nearest")(*args, offsets, choice, *outputs)
+        fills.append(outputs)
+    for taken, walked in zip(*fills):
+        assert torch.equal(taken, walked)
+
+
 def test_a_vertex_near_too_many_bodies_takes_the_reference():
     """Twelve tiny bodies around one vertex (more than the kernel's slots) and a vertex on each
     side of it near two of them: the count reports the crowded one (-1), and nearest_pairs gives
@@ -189,10 +224,10 @@ def test_a_vertex_near_too_many_bodies_takes_the_reference():
     candidate_triangle = torch.tensor([0, 1] + list(range(12)) + [5, 6])
     args = (x, vertices, vertex_object, triangles, torch.tensor(triangle_object), candidate_vertex,
             candidate_triangle, None, None, 0.2)
-    counts = library.op("contact_count_nearest")(x, vertices, vertex_object, triangles,
-                                                 torch.tensor(triangle_object), torch.tensor([0, 2, 14, 16]),
-                                                 candidate_triangle, None, None, 0.2)
-    assert counts.tolist() == [2, -1, 2]
+    counts, chosen = library.op("contact_count_nearest")(x, vertices, vertex_object, triangles,
+                                                         torch.tensor(triangle_object), torch.tensor([0, 2, 14, 16]),
+                                                         candidate_triangle, None, None, 0.2)
+    assert counts.tolist() == [2, -1, 2] and chosen.tolist() == [-2, -1, -2]
     ours = contact.nearest_pairs(*args)
     theirs = contact.nearest_pairs(*args, native=False)
     assert ours[0].tolist() == [0, 0] + [1] * 12 + [2, 2]
@@ -216,6 +251,12 @@ def test_nearest_bad_arguments_raise_naming_them():
     bad[9] = -1.0
     with pytest.raises(RuntimeError, match="reach"):
         count(*bad)
+    fill_args = list(contact._example_fill_nearest("cpu", torch.float64)[0])
+    written = [t.clone() for t in fill_args[12:]]
+    fill_args[11] = fill_args[11][:-1]  # chosen
+    with pytest.raises(RuntimeError, match="chosen"):
+        library.op("contact_fill_nearest")(*fill_args)
+    assert all(torch.equal(a, b) for a, b in zip(fill_args[12:], written))
 
 
 @pytest.mark.parametrize("friction", [0.0, 0.4])
