@@ -838,6 +838,12 @@ class SurfaceContact:
         its swept box does, and a vertex's segment likewise). A pair meets in every cell both
         boxes cover; it is kept in one, the cell of the low corner of the boxes' intersection
         (``ops.contact.candidate_pairs``: the walk over the cells' entries is an op)."""
+        return self._candidates(x, v, dt, motion)[:2]
+
+    def _candidates(self, x: torch.Tensor, v: Optional[torch.Tensor], dt: float, motion):
+        """:meth:`candidates`, and whether they come in a point query's order (by vertex, then
+        triangle): a search without motion's, as the kept ones are, where a swept search lists a
+        vertex's candidates cell after cell."""
         if self.settings.swept and v is not None and dt > 0:
             motion = self._motion(x, v, dt) if motion is None else motion
         else:
@@ -845,8 +851,8 @@ class SurfaceContact:
         if self.skin > 0 and len(self.triangles):
             kept = self._kept_candidates(x, motion)
             if kept is not None:
-                return kept
-        return self._search(x, motion, self.reach)
+                return (*kept, True)
+        return (*self._search(x, motion, self.reach), motion is None)
 
     def _kept_candidates(self, x: torch.Tensor, motion):
         """``Contact.skin``'s candidates for a query at ``x [V, 3]`` (``motion``: a swept query's
@@ -952,16 +958,17 @@ class SurfaceContact:
         swept = self.settings.swept and v is not None and dt > 0
         margin = self.check_margin if found is None and v is not None and dt > 0 and len(self.triangles) else 0.0
         motion = self._motion(x, v, dt, self.reach + 2.0 * margin) if swept else None
-        given = found is not None
+        point_order = False  # whether the candidates come by vertex, then triangle (as a point query's)
         if margin > 0:
             candidates = self._search(x, motion, self.reach + 2.0 * margin)
             with torch.no_grad():  # (kept across the step: no autograd graph with it)
                 predicted = x[self.vertices] if motion is None else x[self.vertices] + dt * v[self.vertices]
             self._step_search = (x, x._version, predicted, margin, candidates)
             self._check_search = None  # (the last step's)
-            found = [(*candidates, None)]
-        elif not given:
-            found = [(*self.candidates(x, v, dt, motion), None)]
+            found, point_order = [(*candidates, None)], motion is None
+        elif found is None:
+            vertex, triangle, point_order = self._candidates(x, v, dt, motion)
+            found = [(vertex, triangle, None)]
         spread = body_step = None
         if swept:  # what the pair may close over the step joins its reach
             deviation, body_step, _ = motion
@@ -978,10 +985,11 @@ class SurfaceContact:
                 run = tuple(t[gives.squeeze(1)] for t in run)
             runs.append(run)
         vertex, triangle, w, diff, d, normal, side = runs[0] if len(runs) == 1 else (torch.cat(t) for t in zip(*runs))
-        if swept or given:
+        if not point_order:
             # a swept search's vertex may have candidates in several cells' runs, and its pairs
-            # come in the order of their cells (which the cell's size sets): in a point query's
-            # order (by triangle, so by body), whatever the search
+            # come in the order of their cells (which the cell's size sets), and given runs come
+            # one after another: in a point query's order (by triangle, so by body), whatever the
+            # search (the kept candidates, a point query's, are in it already)
             order = torch.argsort(vertex * len(self.triangles) + triangle)
             vertex, triangle, w, diff, d, normal, side = (t[order] for t in (vertex, triangle, w, diff, d, normal,
                                                                              side))

@@ -581,6 +581,10 @@ def test_kept_candidates_hold_every_pair_a_fresh_search_finds(swept, monkeypatch
         ours, theirs = kept.candidates(y, velocities, dt), fresh.candidates(y, velocities, dt)
         assert set(zip(*(t.tolist() for t in theirs))) <= set(zip(*(t.tolist() for t in ours)))
         assert len(ours[0]) > len(theirs[0]) > 100
+        # the kept ones come by vertex, then triangle (a point query's order, which nearby's pairs
+        # take without a sort of their own), even for a swept query
+        key = ours[0] * len(kept.triangles) + ours[1]
+        assert bool((key[1:] > key[:-1]).all())
         ours, theirs = (pairs_by_vertex_and_body(c.nearby(y, velocities, dt)[0]) for c in (kept, fresh))
         for key, (nodes, signed, weights) in theirs.items():
             if abs(signed) < fresh.reach:
