@@ -160,14 +160,15 @@ void set_hooke_node_graph(HookeNodeGraph<D, S, I>& graph, const at::Tensor& neig
 
 // The CG matvec of the hooke tensor form in one kernel (NodeHookeSystemKernel) over the node
 // graph: Ap [V, d] and the per-node dots p . Ap [V], with the epilogue of gather_system. Bitwise
-// equal to tensor_hooke_partial_forces + gather_system over the same plan.
+// equal to tensor_hooke_partial_forces + gather_system over the same plan. `add` [V, d] (or
+// nullopt): another product's rows added to Ap before the dots (SystemEpilogue::add).
 template <class L, class Launch>
 void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, const at::Tensor& node_k,
                            const at::Tensor& incidences, const c10::optional<at::Tensor>& row_node,
                            const at::Tensor& mass,
                            const c10::optional<at::Tensor>& free, double c_mass, double c_stiff,
                            const c10::optional<at::Tensor>& node_stiffness, at::Tensor& ap, at::Tensor& p_dot_ap,
-                           const Launch& launch) {
+                           const Launch& launch, const c10::optional<at::Tensor>& add = c10::nullopt) {
   check_values(p, "p");
   const int64_t num_nodes = p.size(0), dim = p.size(1);
   dispatch_dim(dim, [](auto) {});
@@ -175,6 +176,8 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
   check_node_tensor(mass, "mass", p, {num_nodes}, "p");
   at::Tensor fr, nk;
   std::tie(fr, nk) = optional_epilogue_inputs(free, node_stiffness, p, num_nodes, dim, "p");
+  const at::Tensor added = add.has_value() && add->defined() ? *add : at::Tensor();
+  if (added.defined()) check_node_tensor(added, "add", p, {num_nodes, dim}, "p");
   typename L::Guard guard(p.device());
   if (!ap.defined()) ap = at::empty({num_nodes, dim}, p.options());
   check_node_tensor(ap, "ap", p, {num_nodes, dim}, "p");
@@ -183,6 +186,7 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
     using Kernel = std::decay_t<decltype(k)>;
     using S = typename Kernel::Scalar;
     k.p = p.data_ptr<S>();
+    k.epilogue.add = added.defined() ? added.data_ptr<S>() : nullptr;
     set_hooke_node_graph(k.graph, neighbor, node_k, incidences, row_node);
     launch(k, num_nodes);
   });

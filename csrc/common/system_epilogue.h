@@ -33,6 +33,7 @@ struct SystemEpilogue {
   S c_stiff;
   S* ap;                    // [V, D]
   S* p_dot_ap;              // [V], or nullptr (the CG step-length kernels use the returned dot)
+  const S* add;             // [V, D] another product's rows added to Ap (projected likewise), or nullptr
 
   // Node i's inputs to the row: its own stiffness (HAS_NODE_K), c_M m_i and free_i (1 without).
   TM_HD void load_node(int64_t i, S (&k_own)[D][D], S& m, S& f) const {
@@ -65,6 +66,9 @@ struct SystemEpilogue {
     S k_own[D][D], m, f, out[D];
     load_node(i, k_own, m, f);
     row(k_own, m, f, c_stiff, pv, acc, out);
+    if (add != nullptr) {  // free_i (c_M m_i p_i - c_K (K p)_i) + free_i add_i (free_i is 0 or 1)
+      TM_UNROLL for (int a = 0; a < D; ++a) out[a] += HAS_FREE ? ld(add + i * D + a) * f : ld(add + i * D + a);
+    }
     S dot = S(0);
     TM_UNROLL for (int a = 0; a < D; ++a) {
       ap[i * D + a] = out[a];
@@ -86,6 +90,7 @@ void set_epilogue(SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K>& e, const at::Tenso
   e.c_stiff = static_cast<S>(c_stiff);
   e.ap = ap.data_ptr<S>();
   e.p_dot_ap = p_dot_ap.defined() ? p_dot_ap.data_ptr<S>() : nullptr;
+  e.add = nullptr;
 }
 
 // The optional epilogue inputs, checked against `like` ([V, d]): free [V], node_stiffness [V, d, d].

@@ -209,8 +209,9 @@ void contact_fill_nearest(const at::Tensor& x, const at::Tensor& vertices, const
                           const at::Tensor& triangles, const at::Tensor& triangle_object, const at::Tensor& first,
                           const at::Tensor& candidate_triangle, const c10::optional<at::Tensor>& spread,
                           const c10::optional<at::Tensor>& body_step, double reach, const at::Tensor& offsets,
-                          const at::Tensor& chosen, at::Tensor pair_vertex, at::Tensor pair_triangle, at::Tensor weights, at::Tensor diff,
-                          at::Tensor distance, at::Tensor normal, at::Tensor side) {
+                          const at::Tensor& chosen, at::Tensor pair_vertex, at::Tensor pair_triangle,
+                          at::Tensor weights, at::Tensor diff, at::Tensor distance, at::Tensor normal,
+                          at::Tensor side) {
   const NearestArgs args{x, vertices, vertex_object, triangles, triangle_object, first, candidate_triangle,
                          spread, body_step, reach};
   args.check();

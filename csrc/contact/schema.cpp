@@ -60,8 +60,8 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   triangle's unit normal and the side (+-1). chosen: the count's, for the same inputs.
   m.def("contact_fill_nearest(Tensor x, Tensor vertices, Tensor vertex_object, Tensor triangles, "
         "Tensor triangle_object, Tensor first, Tensor candidate_triangle, Tensor? spread, Tensor? body_step, "
-        "float reach, Tensor offsets, Tensor chosen, Tensor(a!) pair_vertex, Tensor(b!) pair_triangle, Tensor(c!) weights, "
-        "Tensor(d!) diff, Tensor(e!) distance, Tensor(f!) normal, Tensor(g!) side) -> ()");
+        "float reach, Tensor offsets, Tensor chosen, Tensor(a!) pair_vertex, Tensor(b!) pair_triangle, "
+        "Tensor(c!) weights, Tensor(d!) diff, Tensor(e!) distance, Tensor(f!) normal, Tensor(g!) side) -> ()");
   // contact_pair_product(dx [V, 3], nodes [C, 4], coef [C, 4], direction [C, 3], normal [C],
   //     friction [C], order [4 C], offsets [V + 1], vector! [C, 3], out! [V, 3], accumulate) -> ()
   //   the pairs' part of the step's matrix times dx (body_contact.PairStiffness): per pair

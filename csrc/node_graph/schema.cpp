@@ -21,13 +21,14 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   m.def("hooke_node_system(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, Tensor? free, "
         "float c_mass, float c_stiff, Tensor? node_stiffness=None) -> (Tensor, Tensor)");
   // hooke_node_system_alpha(<hooke_node_system's inputs>, ap!, chunk_start, chunk_object, object_chunk,
-  //                         rr, status!, alpha!, scratch!, counter!) -> ()
+  //                         rr, status!, alpha!, scratch!, counter!, add [V, d]?) -> ()
   //   hooke_node_system's Ap into ap in place, then each object's step length as cg_alpha does, in the
-  //   same kernel (as gather_system_alpha). Objects that are not active are skipped.
+  //   same kernel (as gather_system_alpha). Objects that are not active are skipped. add: another
+  //   product's rows (the contact pairs') added to Ap, projected likewise, before the dots.
   m.def("hooke_node_system_alpha(Tensor p, Tensor neighbor, Tensor node_k, Tensor incidences, Tensor? row_node, Tensor mass, "
         "Tensor? free, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor(a!) ap, Tensor chunk_start, "
         "Tensor chunk_object, Tensor object_chunk, Tensor rr, Tensor(b!) status, Tensor(c!) alpha, "
-        "Tensor(d!) scratch, Tensor(e!) counter) -> ()");
+        "Tensor(d!) scratch, Tensor(e!) counter, Tensor? add=None) -> ()");
   // stress_tangent_node_k(u [V, d], elements, shape_vectors, measure, lam, mu, projector?, model,
   //                       rotations [N, d, d]?, element_edges [N, P], edge_slots [N, P], num_edge_slots,
   //                       edge_counts [Ed], slot_edge [N_n, V], incidences [V], node_k!, edge_partial!) -> ()

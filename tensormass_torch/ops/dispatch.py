@@ -271,13 +271,16 @@ def system_matvec(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, 
 
 def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                         c_mass: float, c_stiff: float, states, node_stiffness: Optional[torch.Tensor],
-                        ap: torch.Tensor, plan, cg_state, tangents=None, variants: KernelVariants = DEFAULT) -> bool:
+                        ap: torch.Tensor, plan, cg_state, tangents=None, variants: KernelVariants = DEFAULT,
+                        add=None) -> bool:
     """:func:`system_matvec` fused with the CG step length where the extension has it: A p into
     ``ap [V, d]`` (in place) and, per object of the CG's chunk ``plan`` (``ChunkPlan``),
     ``cg_state.alpha`` and ``.status`` exactly as ``solver.cg_ops.cg_alpha`` sets them (one
-    kernel instead of two per CG iteration). Returns False, having done nothing, where there is no
-    fused path (several groups, the pure-torch backend, a gradient wanted): then the caller runs
-    :func:`system_matvec` and ``cg_alpha``."""
+    kernel instead of two per CG iteration; objects that stopped are skipped). ``add``: a
+    function returning another product's rows ``[V, d]`` added to A p before the step length
+    (``native.system_matvec_alpha``), or None. Returns False, having done nothing, where there is
+    no fused path (several groups, the pure-torch backend, a gradient wanted): then the caller
+    runs :func:`system_matvec` and ``cg_alpha``."""
     groups = list(groups)
     mass_v = mass.reshape(-1)
     free_v = None if free is None else free.reshape(-1)
@@ -286,7 +289,8 @@ def system_matvec_alpha(groups, u: torch.Tensor, p: torch.Tensor, mass: torch.Te
         return False
     state = linearize(groups[0], u) if states is None else states[0]
     return native.system_matvec_alpha(groups[0], u, p, mass_v, free_v, c_mass, c_stiff, state, node_stiffness, ap,
-                                      plan.tensors(), cg_state, node_k=_tangent_of(tangents), variants=variants)
+                                      plan.tensors(), cg_state, node_k=_tangent_of(tangents), variants=variants,
+                                      add=add)
 
 
 def _system_cg_native(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],

@@ -146,13 +146,17 @@ def system_matvec(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, f
 def system_matvec_alpha(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor],
                         c_mass: float, c_stiff: float, rotations: Optional[torch.Tensor],
                         node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, plan_tensors, cg_state,
-                        node_k: Optional[torch.Tensor] = None, variants: KernelVariants = DEFAULT) -> bool:
+                        node_k: Optional[torch.Tensor] = None, variants: KernelVariants = DEFAULT,
+                        add=None) -> bool:
     """:func:`system_matvec` fused with the CG step length (``gather_system_alpha`` /
     ``hooke_node_system_alpha``): Ap into ``ap [V, d]`` in place and ``cg_state.alpha`` /
     ``.status`` as ``cg_alpha`` would set them, one launch fewer per CG iteration. ``plan_tensors``:
     (chunk_start, chunk_object, object_chunk) of the CG's chunk plan; ``cg_state``: its
-    ``CGState``; ``node_k``: as in :func:`system_matvec`. Returns False (nothing done) where the
-    ops are missing or a gradient is wanted."""
+    ``CGState``; ``node_k``: as in :func:`system_matvec`. ``add``: a function returning another
+    product's rows ``[V, d]`` to add to Ap (projected likewise) before the step length, called
+    only where the fused path runs (the node graph's op; the gather path takes none), or None.
+    Returns False (nothing done, ``add`` not called) where the ops are missing or a gradient is
+    wanted."""
     ops_ns = torch.ops.tensormass
     if not hasattr(ops_ns, "gather_system_alpha") or wants_grad((p, mass, free, node_stiffness)):
         return False
@@ -163,9 +167,12 @@ def system_matvec_alpha(group, u: torch.Tensor, p: torch.Tensor, mass: torch.Ten
         graph = node_graph_of(group, variants, (), "hooke_node_system_alpha", node_k)
         if graph is None:
             return False
+        added = None if add is None else add().contiguous()
         ops_ns.hooke_node_system_alpha(p, *graph, mass, free, float(c_mass), float(c_stiff), node_stiffness, ap,
-                                       *cg_args)
+                                       *cg_args, added)
         return True
+    if add is not None:
+        return False
     partial, incidences = _partial_dforces(group, u, p, rotations)
     if wants_grad((partial,)):
         return False

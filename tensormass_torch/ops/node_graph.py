@@ -13,7 +13,9 @@ as many slots each.
 
     hooke_node_system(p, graph, mass, free?, c_M, c_K, node_stiffness?) -> (Ap [V, d], p . Ap [V])
         (K p)_i = sum_{s < incidences[r]} -node_k[s][r] (p[neighbor[s][r]] - p_i), i = row_node[r]
-    hooke_node_system_alpha(<the same>, ap!, chunk plan, rr, status!, alpha!, scratch!, counter!)
+    hooke_node_system_alpha(<the same>, ap!, chunk plan, rr, status!, alpha!, scratch!, counter!,
+        add?)   Ap (plus another product's rows ``add``, projected likewise) and the step length;
+                objects that stopped are skipped
     hooke_node_step_rhs(x, v, rest, graph, mass, external, planes?, h, w_coef, r_M, u!, rhs!,
         node_stiffness!?)   rhs = h (f((x - rest) + w_coef v) + external + contact(x)
                                   - Kc(x) w_coef v - r_M mass v), u = x - rest, Kc
@@ -69,9 +71,12 @@ def _ref_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free
 
 def _ref_hooke_node_system_alpha(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
                                  node_stiffness, ap, chunk_start, chunk_object, object_chunk, rr, status, alpha,
-                                 scratch, counter):
+                                 scratch, counter, add=None):
     product, p_dot_ap = _ref_hooke_node_system(p, neighbor, node_k, incidences, row_node, mass, free, c_mass,
                                                c_stiff, node_stiffness)
+    if add is not None:  # another product's rows, projected likewise
+        product = product + (add if free is None else add * free[:, None])
+        p_dot_ap = (p * product).sum(-1)
     ap.copy_(product)
     cg_family._ref_cg_alpha(p_dot_ap, chunk_start, chunk_object, object_chunk, rr, status, alpha, scratch, counter)
 
@@ -233,7 +238,9 @@ def _example(name):
         if name == "hooke_node_system_alpha":
             alpha_args, _ = cg_family.OPS[0].example(device, dtype)
             (_, *plan, rr, status, alpha, scratch, counter) = alpha_args
-            return (*system, torch.zeros_like(ex.du), *plan, rr, status, alpha, scratch, counter), {}
+            # (with another product's rows added: the contact pairs' in a step with body contact)
+            return (*system, torch.zeros_like(ex.du), *plan, rr, status, alpha, scratch, counter), {
+                "add": 0.5 * ex.du.flip(0)}
         if name == "node_graph_write_edges":
             changed = 2.0 * ex.edge_k  # the edges' new blocks
             edge_ids = torch.tensor([3, 0, 3], device=device)

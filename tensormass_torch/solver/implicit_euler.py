@@ -530,10 +530,12 @@ class SystemMatvec:
             total = total + self.contact_forces - (self.node_stiffness * w[:, None, :]).sum(-1)
         return total
 
-    def matvec_alpha(self, p: torch.Tensor, plan, cg_state):
+    def matvec_alpha(self, p: torch.Tensor, plan, cg_state, add=None):
         """A p into a buffer of this matvec and the CG step length (``cg_state.alpha``, ``.status``)
-        in one fused kernel: returns that buffer ``[V, d]``, or None where there is no fused path
-        (then nothing was done)."""
+        in one fused kernel (the objects that stopped skipped): returns that buffer ``[V, d]``, or
+        None where there is no fused path (then nothing was done). ``add``: a function returning
+        another product's rows ``[V, d]`` that A p takes in (``ops.system_matvec_alpha``), called
+        only where the fused path runs."""
         from .. import ops
 
         system = self.system
@@ -541,7 +543,7 @@ class SystemMatvec:
             self._ap = torch.empty_like(self.u)
         done = ops.system_matvec_alpha(system.model.groups, self.u, p, system.mass, system.free, self.mass_coef,
                                        self.stiffness_coef, self.states, self.node_stiffness, self._ap, plan, cg_state,
-                                       self.tangents, self.variants)
+                                       self.tangents, self.variants, add=add)
         return self._ap if done else None
 
     def _one_op_args(self, cg):
@@ -647,9 +649,7 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
             # buffers kept across steps: the iterations' graphs replay with each step's pairs
             stiffness = system.pair_stiffness(pairs, stiffness_coef, opts.dt)
             graph_key = (fused.graph_key, "pairs", stiffness.capacity)
-
-            def matvec(p):  # (the pairs' product added to the fused one's output in place)
-                return stiffness(p, add_to=fused(p)[0])
+            matvec = _WithPairs(fused, stiffness)
         elif pairs is not None and len(pairs):  # the exact tangent: each step's own Hessians, eager
             graph_key = None
 
@@ -716,6 +716,26 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
 
     resume.ahead = ahead
     return paused, resume
+
+
+class _WithPairs:
+    """The step's product with the body contact pairs' beside the fused one (``fused``, a
+    :class:`SystemMatvec`; ``stiffness``, the pairs' ``body_contact.PairStiffness``): called, A p
+    ``[V, d]`` (the pairs' product added to the fused one's output in place); in the CG's
+    iterations, :meth:`matvec_alpha`: the pairs' product first, then the fused product taking it
+    in and ending in the step length, which skips the objects (coupled runs of bodies) that have
+    stopped: the runs of a pile stop at different iterations (docs/contact.md). The same A p
+    either way (the same sums in the same order)."""
+
+    def __init__(self, fused: "SystemMatvec", stiffness):
+        self.fused = fused
+        self.stiffness = stiffness
+
+    def __call__(self, p: torch.Tensor) -> torch.Tensor:
+        return self.stiffness(p, add_to=self.fused(p)[0])
+
+    def matvec_alpha(self, p: torch.Tensor, plan, cg_state) -> Optional[torch.Tensor]:
+        return self.fused.matvec_alpha(p, plan, cg_state, add=lambda: self.stiffness(p))
 
 
 def _projected_product(matvec, p: torch.Tensor, free: Optional[torch.Tensor]) -> torch.Tensor:

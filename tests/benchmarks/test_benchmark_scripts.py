@@ -319,6 +319,21 @@ def test_contact_landing_probe_counts_what_the_steps_make(tmp_path):
     assert len(json.loads((tmp_path / "landing.json").read_text())["blocks"]) == 30
 
 
+def test_contact_pairs_step_length_probe_steps_both_paths_alike():
+    """The probe steps the pairs' product in the fused step length and called whole from one
+    state to the same state, and puts the method it swapped back."""
+    import contact_pairs_step_length_probe as probe
+
+    from tensormass_torch.solver import implicit_euler
+
+    fused = implicit_euler._WithPairs.matvec_alpha
+    blocks, apart, per_body = probe.main(["--columns", "2", "--cells", "2", "2", "1", "--steps", "20", "--timed", "2",
+                                          "--repeats", "2", "--contact", '{"friction": 0.5}', "--device", "cpu"])
+    assert implicit_euler._WithPairs.matvec_alpha is fused
+    assert all(len(times) == 2 and all(t > 0 for t in times) for times in blocks.values())
+    assert apart == 0.0 and per_body.shape == (8,) and int(per_body.max()) > 0
+
+
 def test_contact_settings_probe_steps_each_setting_from_one_state(tmp_path):
     """The settings probe starts every setting from the pile's state and alternates their blocks:
     an exact alternative (skin) takes the default's iterations block by block; the state it keeps

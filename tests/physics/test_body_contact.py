@@ -473,6 +473,47 @@ def falling_pair(contact, **options):
     return sim
 
 
+def test_the_pairs_product_in_the_step_length_skips_stopped_runs_and_steps_as_the_whole_product(monkeypatch):
+    """In the CG's iterations the pairs' product goes into the fused product that ends in the step
+    length (``_WithPairs.matvec_alpha``), which skips the objects (coupled runs of bodies) that
+    have stopped: two stacks falling at different speeds, each a run of two bodies, stop at
+    different iterations, and the steps are those of the product called whole (the same
+    iterations, the states to rounding)."""
+    from tensormass_torch.solver import implicit_euler
+
+    def two_stacks():
+        material = tm.Material(young=1e5, poisson=0.3, density=1000)
+        bodies = []
+        for x0 in (0.0, 1.0):
+            for z0 in (-0.005, 0.0951):
+                mesh = tm.beam_mesh(2, 2, 1, size=(0.2, 0.2, 0.1), origin=(x0, 0.0, z0), dtype=DT)
+                bodies.append(tm.Body(mesh, material))
+        sim = tm.Simulator(bodies, dt=0.005, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], contact=tm.Contact(),
+                           rayleigh_mass=1.0, dtype=DT)
+        sim.v = torch.zeros_like(sim.v)
+        sim.v[:, 2] = torch.where(sim.x[:, 0] < 0.5, -1.0, -0.3).to(DT)
+        return sim
+
+    calls = []
+    fused = implicit_euler._WithPairs.matvec_alpha
+    monkeypatch.setattr(implicit_euler._WithPairs, "matvec_alpha",
+                        lambda self, *a: calls.append(1) or fused(self, *a))
+    runs = []
+    for whole in (False, True):
+        if whole:  # (no fused path: the CG calls the product and takes its step length apart)
+            monkeypatch.setattr(implicit_euler._WithPairs, "matvec_alpha", lambda self, *a: None)
+        sim = two_stacks()
+        iterations = []
+        for _ in range(6):
+            report = sim.step()
+            iterations.append([c.iterations.tolist() for c in report.cg])
+        runs.append((sim.x.clone(), iterations))
+    assert calls, "the fused product with the pairs did not run"
+    assert any(len(set(solve)) > 1 for step in runs[0][1] for solve in step)  # the runs stop apart
+    assert runs[0][1] == runs[1][1]
+    torch.testing.assert_close(runs[0][0], runs[1][0], rtol=0, atol=1e-12)
+
+
 def test_a_pair_the_solve_closes_joins_the_step():
     """Two blocks falling together at 1 m/s, 0.1 mm apart, the lower one on the floor: no pair is
     closing at the step's start (the same velocities), but the floor stops the lower block in the
