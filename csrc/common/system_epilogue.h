@@ -21,6 +21,7 @@ namespace tensormass {
 // product's sum (K p)_i over the node's slots and pv = p_i:
 //   (K p)_i -= K_ii p_i  (node stiffness K_ii [V, D, D]: contact penalties k n n^T)
 //   Ap[i] = free_i * (c_M m_i p_i - c_K (K p)_i),   pAp[i] = sum_a p[i][a] Ap[i][a]
+//   (plus free_i add[i] where another product's rows are given: the contact pairs' in a step's CG)
 // The arithmetic follows the torch expression (c_M m_i) p_i - c_K (K p)_i, then the projection,
 // so that the result equals the composed path to rounding.
 template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K>
