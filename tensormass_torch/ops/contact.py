@@ -462,12 +462,14 @@ def _with_crowded_vertices(outputs: tuple, over: torch.Tensor, args: tuple) -> t
 def pair_product(dx: torch.Tensor, nodes: torch.Tensor, coef: torch.Tensor, direction: torch.Tensor,
                  normal: torch.Tensor, friction: torch.Tensor, order: torch.Tensor, offsets: torch.Tensor,
                  vector: torch.Tensor, native: bool = True,
-                 add_to: Optional[torch.Tensor] = None) -> torch.Tensor:
+                 add_to: Optional[torch.Tensor] = None, out: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The pairs' product ``[V, 3]`` for ``dx [V, 3]`` (``contact_pair_product``; the buffers as
     ``body_contact.PairStiffness`` holds them, ``vector [C, 3]`` scratch), through the op where
     the extension serves the device (``native``), else its reference. ``add_to``: a contiguous
-    ``[V, 3]`` product (not ``dx``) the pairs' is added to in place and returned."""
-    out = torch.empty_like(dx) if add_to is None else add_to
+    ``[V, 3]`` product (not ``dx``) the pairs' is added to in place and returned; else ``out``: a
+    contiguous ``[V, 3]`` buffer (not ``dx``) it is written into and returned (None: a new one)."""
+    accumulate = add_to is not None
+    out = add_to if accumulate else (torch.empty_like(dx) if out is None else out)
     library.op_or_reference("contact_pair_product", dx.device, native)(
-        dx.contiguous(), nodes, coef, direction, normal, friction, order, offsets, vector, out, add_to is not None)
+        dx.contiguous(), nodes, coef, direction, normal, friction, order, offsets, vector, out, accumulate)
     return out

@@ -490,6 +490,7 @@ class PairStiffness:
         self.normal: Optional[torch.Tensor] = None  # [C] a
         self.friction: Optional[torch.Tensor] = None  # [C] b (zeros without friction)
         self.vector: Optional[torch.Tensor] = None  # [C, 3] the product's scratch
+        self.rows: Optional[torch.Tensor] = None  # [V, 3] the product alone (rows_of), kept for the CG's graphs
         self.num_nodes = 0
 
     def load(self, pairs: "ContactPairs", coefficient: float, damping: float = 0.0) -> bool:
@@ -510,6 +511,7 @@ class PairStiffness:
             self.normal = like.new_zeros(self.capacity)
             self.friction = like.new_zeros(self.capacity)
             self.vector = like.new_zeros(self.capacity, 3)
+            self.rows = like.new_zeros(pairs.num_nodes, 3)
         self.num_nodes = pairs.num_nodes
         self.nodes[:count].copy_(pairs.nodes)
         self.nodes[count:].zero_()
@@ -552,6 +554,12 @@ class PairStiffness:
         or ``add_to [V, 3]`` (another product, not ``dx``) plus it, in place."""
         return contact_ops.pair_product(dx, self.nodes, self.coef, self.direction, self.normal, self.friction,
                                         self.order, self.offsets, self.vector, add_to=add_to)
+
+    def rows_of(self, dx: torch.Tensor) -> torch.Tensor:
+        """The product ``[V, 3]`` for ``dx [V, 3]`` alone, written into :attr:`rows` (kept with the
+        buffers: a CG iteration takes it every time with no allocation)."""
+        return contact_ops.pair_product(dx, self.nodes, self.coef, self.direction, self.normal, self.friction,
+                                        self.order, self.offsets, self.vector, out=self.rows)
 
 
 class HeldPairs:

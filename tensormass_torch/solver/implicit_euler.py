@@ -735,7 +735,7 @@ class _WithPairs:
         return self.stiffness(p, add_to=self.fused(p)[0])
 
     def matvec_alpha(self, p: torch.Tensor, plan, cg_state) -> Optional[torch.Tensor]:
-        return self.fused.matvec_alpha(p, plan, cg_state, add=lambda: self.stiffness(p))
+        return self.fused.matvec_alpha(p, plan, cg_state, add=lambda: self.stiffness.rows_of(p))
 
 
 def _projected_product(matvec, p: torch.Tensor, free: Optional[torch.Tensor]) -> torch.Tensor:
