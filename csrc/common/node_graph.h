@@ -95,14 +95,15 @@ struct HookeNodeGraph {
   }
 };
 
-template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
+template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K, bool HAS_ADD = false>
 struct NodeHookeSystemKernel {
   using Scalar = S;
   using Index = I;
   static constexpr int kDim = D;
+  static constexpr bool kHasAdd = HAS_ADD;
   const S* p;  // [V, D]
   HookeNodeGraph<D, S, I> graph;
-  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
+  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K, HAS_ADD> epilogue;
 
   // For the node i of row `row`: Ap_i, and p_i . Ap_i (returned): the CG step-length kernels call
   // this over rows (cg_reduce.cuh); load_p reads p (the persistent CG's DirectionLoader forms
@@ -161,8 +162,9 @@ void set_hooke_node_graph(HookeNodeGraph<D, S, I>& graph, const at::Tensor& neig
 // The CG matvec of the hooke tensor form in one kernel (NodeHookeSystemKernel) over the node
 // graph: Ap [V, d] and the per-node dots p . Ap [V], with the epilogue of gather_system. Bitwise
 // equal to tensor_hooke_partial_forces + gather_system over the same plan. `add` [V, d] (or
-// nullopt): another product's rows added to Ap before the dots (SystemEpilogue::add).
-template <class L, class Launch>
+// nullopt): another product's rows added to Ap before the dots (SystemEpilogue's HAS_ADD), taken
+// only where MAY_ADD (the ops without it instantiate no kernel that reads it).
+template <class L, bool MAY_ADD = false, class Launch>
 void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, const at::Tensor& node_k,
                            const at::Tensor& incidences, const c10::optional<at::Tensor>& row_node,
                            const at::Tensor& mass,
@@ -181,12 +183,12 @@ void run_hooke_node_system(const at::Tensor& p, const at::Tensor& neighbor, cons
   typename L::Guard guard(p.device());
   if (!ap.defined()) ap = at::empty({num_nodes, dim}, p.options());
   check_node_tensor(ap, "ap", p, {num_nodes, dim}, "p");
-  dispatch_system<NodeHookeSystemKernel>(p.scalar_type(), index_type, dim, mass, fr, nk, c_mass, c_stiff, ap,
-                                         p_dot_ap, [&](auto& k) {
+  dispatch_system<NodeHookeSystemKernel, MAY_ADD>(p.scalar_type(), index_type, dim, mass, fr, nk, c_mass, c_stiff,
+                                                  ap, p_dot_ap, added.defined(), [&](auto& k) {
     using Kernel = std::decay_t<decltype(k)>;
     using S = typename Kernel::Scalar;
     k.p = p.data_ptr<S>();
-    k.epilogue.add = added.defined() ? added.data_ptr<S>() : nullptr;
+    if (Kernel::kHasAdd) k.epilogue.add = added.data_ptr<S>();
     set_hooke_node_graph(k.graph, neighbor, node_k, incidences, row_node);
     launch(k, num_nodes);
   });

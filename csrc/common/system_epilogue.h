@@ -9,6 +9,7 @@
 
 #include <cstdint>
 #include <tuple>
+#include <type_traits>
 
 #include "common/checks.h"
 #include "common/dispatch.h"
@@ -21,10 +22,11 @@ namespace tensormass {
 // product's sum (K p)_i over the node's slots and pv = p_i:
 //   (K p)_i -= K_ii p_i  (node stiffness K_ii [V, D, D]: contact penalties k n n^T)
 //   Ap[i] = free_i * (c_M m_i p_i - c_K (K p)_i),   pAp[i] = sum_a p[i][a] Ap[i][a]
-//   (plus free_i add[i] where another product's rows are given: the contact pairs' in a step's CG)
+//   (plus free_i add[i] where another product's rows are given (HAS_ADD): the contact pairs' in a
+//   step's CG; a compile-time choice, so that the products without them compile as they did before)
 // The arithmetic follows the torch expression (c_M m_i) p_i - c_K (K p)_i, then the projection,
 // so that the result equals the composed path to rounding.
-template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K>
+template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K, bool HAS_ADD = false>
 struct SystemEpilogue {
   static constexpr bool kHasNodeK = HAS_NODE_K;
   const S* mass;            // [V]
@@ -34,7 +36,7 @@ struct SystemEpilogue {
   S c_stiff;
   S* ap;                    // [V, D]
   S* p_dot_ap;              // [V], or nullptr (the CG step-length kernels use the returned dot)
-  const S* add;             // [V, D] another product's rows added to Ap (projected likewise), or nullptr
+  const S* add;             // [V, D] another product's rows added to Ap, projected likewise (HAS_ADD)
 
   // Node i's inputs to the row: its own stiffness (HAS_NODE_K), c_M m_i and free_i (1 without).
   TM_HD void load_node(int64_t i, S (&k_own)[D][D], S& m, S& f) const {
@@ -67,7 +69,7 @@ struct SystemEpilogue {
     S k_own[D][D], m, f, out[D];
     load_node(i, k_own, m, f);
     row(k_own, m, f, c_stiff, pv, acc, out);
-    if (add != nullptr) {  // free_i (c_M m_i p_i - c_K (K p)_i) + free_i add_i (free_i is 0 or 1)
+    if (HAS_ADD) {  // free_i (c_M m_i p_i - c_K (K p)_i) + free_i add_i (free_i is 0 or 1)
       TM_UNROLL for (int a = 0; a < D; ++a) out[a] += HAS_FREE ? ld(add + i * D + a) * f : ld(add + i * D + a);
     }
     S dot = S(0);
@@ -81,8 +83,8 @@ struct SystemEpilogue {
 };
 
 // The epilogue's pointers and coefficients (fr, nk: undefined when absent).
-template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K>
-void set_epilogue(SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K>& e, const at::Tensor& mass, const at::Tensor& fr,
+template <int D, typename S, bool HAS_FREE, bool HAS_NODE_K, bool HAS_ADD>
+void set_epilogue(SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K, HAS_ADD>& e, const at::Tensor& mass, const at::Tensor& fr,
                   const at::Tensor& nk, double c_mass, double c_stiff, at::Tensor& ap, at::Tensor& p_dot_ap) {
   e.mass = mass.data_ptr<S>();
   e.free = HAS_FREE ? fr.data_ptr<S>() : nullptr;
@@ -111,12 +113,13 @@ inline std::tuple<at::Tensor, at::Tensor> optional_epilogue_inputs(
 }
 
 // The dispatch of the system kernels (K = SystemGatherKernel or NodeHookeSystemKernel): scalar S,
-// index I, dimension D and the epilogue's HAS_FREE / HAS_NODE_K (fr, nk defined or not); f gets
-// the kernel with its epilogue set, to fill in its own inputs and launch.
-template <template <int, typename, typename, bool, bool> class K, class F>
+// index I, dimension D and the epilogue's HAS_FREE / HAS_NODE_K (fr, nk defined or not) and
+// HAS_ADD (has_add; only where MAY_ADD: the other ops instantiate no kernel with it); f gets the
+// kernel with its epilogue set (add left null), to fill in its own inputs and launch.
+template <template <int, typename, typename, bool, bool, bool> class K, bool MAY_ADD = false, class F>
 void dispatch_system(at::ScalarType scalar, at::ScalarType index, int64_t dim, const at::Tensor& mass,
                      const at::Tensor& fr, const at::Tensor& nk, double c_mass, double c_stiff, at::Tensor& ap,
-                     at::Tensor& p_dot_ap, const F& f) {
+                     at::Tensor& p_dot_ap, bool has_add, const F& f) {
   dispatch_scalar(scalar, [&](auto s_tag) {
     using S = decltype(s_tag);
     dispatch_index(index, [&](auto i_tag) {
@@ -125,9 +128,17 @@ void dispatch_system(at::ScalarType scalar, at::ScalarType index, int64_t dim, c
         constexpr int D = decltype(d_c)::value;
         dispatch_bool(fr.defined(), [&](auto free_c) {
           dispatch_bool(nk.defined(), [&](auto node_k_c) {
-            K<D, S, I, decltype(free_c)::value, decltype(node_k_c)::value> k;
-            set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
-            f(k);
+            const auto with_add = [&](auto add_c) {
+              K<D, S, I, decltype(free_c)::value, decltype(node_k_c)::value, decltype(add_c)::value> k;
+              set_epilogue(k.epilogue, mass, fr, nk, c_mass, c_stiff, ap, p_dot_ap);
+              f(k);
+            };
+            if constexpr (MAY_ADD) {
+              dispatch_bool(has_add, with_add);
+            } else {
+              TORCH_CHECK(!has_add, "tensormass: this system product takes no add");
+              with_add(std::false_type{});
+            }
           });
         });
       });

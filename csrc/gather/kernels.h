@@ -15,7 +15,7 @@ namespace tensormass {
 // Kernel 2 with the system epilogue (the CG matvec of A = c_M M - c_K K, two kernels):
 // (K p)_i = sum_{s < incidences[i]} PartialForce[s][i], where PartialForce holds the partial
 // force differentials (dF/du) p of kernel 1.
-template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K>
+template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K, bool HAS_ADD = false>
 struct SystemGatherKernel {
   using Scalar = S;
   using Index = I;
@@ -23,7 +23,7 @@ struct SystemGatherKernel {
   const I* incidences;      // [V]
   const S* p;               // [V, D]
   int64_t num_nodes;
-  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K> epilogue;
+  SystemEpilogue<D, S, HAS_FREE, HAS_NODE_K, HAS_ADD> epilogue;
 
   // Ap_i and p_i . Ap_i (returned): the CG step-length kernels call this (cg_reduce.cuh).
   TM_HD S apply(int64_t i) const {

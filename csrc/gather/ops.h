@@ -159,7 +159,7 @@ void run_gather_system(const at::Tensor& partial, const at::Tensor& incidences, 
   if (!ap.defined()) ap = at::empty({num_nodes, dim}, partial.options());
   check_node_tensor(ap, "ap", partial, {num_nodes, dim});
   dispatch_system<SystemGatherKernel>(partial.scalar_type(), index_type, dim, mass, fr, nk, c_mass, c_stiff, ap,
-                                      p_dot_ap, [&](auto& k) {
+                                      p_dot_ap, false, [&](auto& k) {
     using Kernel = std::decay_t<decltype(k)>;
     using S = typename Kernel::Scalar;
     using I = typename Kernel::Index;

@@ -55,9 +55,10 @@ void hooke_node_system_alpha(const at::Tensor& p, const at::Tensor& neighbor, co
   check_values(p, "p");
   TORCH_CHECK(ap.defined(), "tensormass: ap is undefined");
   at::Tensor no_dots;
-  run_hooke_node_system<L>(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff, node_stiffness, ap,
-                           no_dots, alpha_launch<L>(p, chunk_start, chunk_object, object_chunk, rr, status, alpha,
-                                                    scratch, counter), add);
+  run_hooke_node_system<L, true>(p, neighbor, node_k, incidences, row_node, mass, free, c_mass, c_stiff,
+                                 node_stiffness, ap, no_dots,
+                                 alpha_launch<L>(p, chunk_start, chunk_object, object_chunk, rr, status, alpha,
+                                                 scratch, counter), add);
 }
 
 // hooke_node_step_rhs: the right-hand side of an implicit Euler step of the hooke tensor form in
