@@ -73,7 +73,15 @@ struct HookeNodeGraph {
   }
 
   // The same with the row's slot count and neighbours given (neighbors(s, row): the persistent CG
-  // keeps them in shared memory across its iterations).
+  // keeps them in shared memory across its iterations). k[q] of a slot past the count is never
+  // loaded and never read (the second loop breaks first); g++ cannot see that and warns at every
+  // instantiation, so its uninitialized-use warnings are off here (zeroing the batch would cost the
+  // GPU loop its registers' moves).
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wuninitialized"
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#endif
   template <class Neighbors, class LoadP>
   TM_HD void add_forces(int64_t row, int64_t i, int64_t count, const Neighbors& neighbors, const S* field,
                         const S (&wi)[D], const LoadP& load_p, S (&acc)[D]) const {
@@ -93,6 +101,9 @@ struct HookeNodeGraph {
       }
     }
   }
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif
 };
 
 template <int D, typename S, typename I, bool HAS_FREE, bool HAS_NODE_K, bool HAS_ADD = false>

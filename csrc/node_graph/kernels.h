@@ -219,7 +219,7 @@ struct NodeHookeStepRhsKernel {
     }
     step_rhs_node<D, S, HAS_PLANES>(planes, h, c_w, rayleigh_mass * ld(mass + i), xi, vi, external_i, total, k_contact,
                                     out);
-    if constexpr (HAS_PLANES) {
+    if constexpr (HAS_PLANES && D == 3) {  // step_rhs_node forms k_contact only then (planes are 3-D)
       TM_UNROLL for (int a = 0; a < D; ++a) {
         TM_UNROLL for (int b = 0; b < D; ++b) node_stiffness[(i * D + a) * D + b] = k_contact[a][b];
       }
