@@ -3,8 +3,11 @@ iterations from zero, from the extrapolation and from the projection, which of t
 step's phases replay a graph, and the host's time by function (cProfile) for the projected steps.
 
     python benchmarks/probes/warm_start_probe.py --device cuda [--dtype float32] [--settle 40]
+                                                 [--classic] [--no-profile]
 
-A probe (no results file): it prints what it measured.
+``--classic``: the warm starts also with ``pipelined=False`` (the classic persistent CG after the
+start, as before the pipelined CG went on from a guess), in the same process. A probe (no results
+file): it prints what it measured and returns it (``{name: (ms a step, iterations a step)}``).
 """
 from __future__ import annotations
 
@@ -29,12 +32,18 @@ def main(argv=None):
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--settle", type=int, default=40, help="steps before the timed ones")
     parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--classic", action="store_true", help="the warm starts with pipelined=False too")
+    parser.add_argument("--no-profile", action="store_true", help="no cProfile of the projected steps")
     args = parser.parse_args(argv)
     device, dtype = torch.device(args.device), getattr(torch, args.dtype)
-    for warm in ("none", "extrapolate", "project"):
+    runs = [("none", True), ("extrapolate", True), ("project", True)]
+    if args.classic:
+        runs += [("extrapolate", False), ("project", False)]
+    measured = {}
+    for warm, pipelined in runs:
         sim = sofa_beam(model="hooke", device=device, dtype=dtype, scale=1 if device.type == "cuda" else 5).simulator
         sim.options = dataclasses.replace(sim.options, cg_tol=1e-6, cg_max_iter=20000, require_convergence=False,
-                                          check_every=8, preconditioner="none", warm_start=warm)
+                                          check_every=8, preconditioner="none", warm_start=warm, pipelined=pipelined)
         for _ in range(args.settle):
             sim.step()
         common.sync(device)
@@ -44,11 +53,12 @@ def main(argv=None):
             sim.step()
             iterations.append(int(sim.last_report.cg[0].iterations.max()))
         common.sync(device)
-        print(f"{warm}: {(time.perf_counter() - start) / args.steps * 1e3:.2f} ms a step (one at a time); "
-              f"iterations {iterations[:6]}")
+        name = warm if pipelined else f"{warm}, classic CG"
+        measured[name] = ((time.perf_counter() - start) / args.steps * 1e3, iterations)
+        print(f"{name}: {measured[name][0]:.2f} ms a step (one at a time); iterations {iterations[:6]}")
         for graphs in sim.system._step_graphs.values():
             print("  phases", {str(k): ("eager" if g is False else "graph") for k, g in graphs._graphs.items()})
-        if warm == "project":
+        if warm == "project" and pipelined and not args.no_profile:
             profiler = cProfile.Profile()
             profiler.enable()
             for _ in range(10):
@@ -56,6 +66,7 @@ def main(argv=None):
             common.sync(device)
             profiler.disable()
             pstats.Stats(profiler).sort_stats("tottime").print_stats(14)
+    return measured
 
 
 if __name__ == "__main__":

@@ -362,6 +362,10 @@ struct PipelinedSolve : CGIterates<S> {
   StepEnd<S> end;       // the step's end, or none (end.update.x == nullptr)
   StepRhs<S> step_rhs;  // each step's right-hand side computed first, or none (step_rhs.rest == nullptr)
   int64_t steps = 1;    // with step_rhs: implicit Euler steps run back to back (end.update.carry)
+  // From the iterate a start left (hooke_node_solve's from_iterate): x0 = x, rhs = r0 = b - A x0 as
+  // CGSolver.start formed it (projected), threshold = tol^2 b.b as it set it (rhs_sq, threshold
+  // kept); false: from x0 = 0, rhs = b.
+  bool from_iterate = false;
 };
 
 // Chronopoulos-Gear's step length from the reduction that also gave r.r: with

@@ -517,6 +517,8 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
     }
 
     // Start: x = p = s = 0, r_0 = projected rhs, w_0 = A r_0 (the neighbours' r_0 read from rhs).
+    // From an iterate (s.from_iterate): x = the iterate, rhs its residual (CG from x0 is CG on
+    // A d = r0 from 0, plus x0; the threshold stays the start's, relative to b).
     double gamma_part = 0.0, delta_part = 0.0;
     S acc[D], r0[D], zero[D];
     TM_UNROLL for (int a = 0; a < D; ++a) acc[a] = r0[a] = zero[a] = S(0);
@@ -537,7 +539,8 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
         }
       }
       TM_UNROLL for (int a = 0; a < D; ++a) {
-        vec(kX, a) = vec(kP, a) = vec(kS, a) = S(0);
+        vec(kX, a) = s.from_iterate && own ? s.x[i * D + a] : S(0);  // own node's: written back at the end
+        vec(kP, a) = vec(kS, a) = S(0);
         vec(kR, a) = r0[a];
         vec(kW, a) = w0[a];
       }
@@ -566,9 +569,9 @@ __global__ void __launch_bounds__(kReduceBlock, 2) pipelined_cg_kernel(const K k
                                              s.sums + parity * 2 * K_chunks + K_chunks);
         if (it == 0) {
           rr = static_cast<S>(totals.x);
-          threshold = rr * s.tol_sq;
+          threshold = s.from_iterate ? s.threshold[object] : rr * s.tol_sq;  // the start wrote it, before the kernel
           status = cg_start_status<S>(rr, threshold, s.max_iter);
-          if (first_chunk && tid == 0) {
+          if (first_chunk && tid == 0 && !s.from_iterate) {
             s.rhs_sq[object] = rr;
             s.threshold[object] = threshold;
           }

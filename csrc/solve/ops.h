@@ -258,8 +258,11 @@ struct SolveInputs {
 // wave in either layout (or on the CPU, which has no such kernel).
 template <class L>
 void run_hooke_node_solve(const SolveInputs& in, const CGTensors& cg, const SolveBuffers& buffers, int64_t flags,
-                          int64_t cache_slots, const StepEndTensors* end, const StepRhsTensors* step_rhs = nullptr) {
+                          int64_t cache_slots, const StepEndTensors* end, const StepRhsTensors* step_rhs = nullptr,
+                          bool from_iterate = false) {
   const at::Tensor& rhs = in.rhs;
+  TORCH_CHECK(!from_iterate || (end == nullptr && step_rhs == nullptr),
+              "tensormass: a solve from the iterate (from_iterate) neither begins nor ends a step");
   TORCH_CHECK(cache_slots >= -1, "tensormass: cache_slots must be >= -1, got ", std::to_string(cache_slots));
   check_values(rhs, "rhs");
   TORCH_CHECK(in.chunk_nodes >= 1, "tensormass: chunk_nodes must be >= 1, got ", std::to_string(in.chunk_nodes));
@@ -315,6 +318,7 @@ void run_hooke_node_solve(const SolveInputs& in, const CGTensors& cg, const Solv
     s.chunk_slots = in.chunk_slots;
     s.max_slots = sys.neighbor.size(0);
     s.pair_rows = (flags & 2) != 0;
+    s.from_iterate = from_iterate;
     s.cache_slots = cache_slots;
     if (end != nullptr) {
       s.end.update = euler_update_of<S>(end->x, end->v, cg.x, end->dv_imposed, end->h, end->x_new, end->v_new,
@@ -351,27 +355,32 @@ void run_hooke_node_solve(const SolveInputs& in, const CGTensors& cg, const Solv
 }
 
 // hooke_node_solve: a whole CG solve from x0 = 0 of hooke_node_system's system (A = c_M M - c_K K
-// over the node graph, projected on `free`) by the pipelined CG (Chronopoulos-Gear: one
-// reduction an iteration; on the GPU one persistent kernel with one grid barrier an iteration,
-// cg_pipelined.cuh): the same iterates as CG in exact arithmetic, the same stopping rule
-// and statuses (relative tolerance tol_sq = tol^2 on r.r, max_iter, breakdown, non-finite), not
-// bitwise the two-reduction CG of hooke_node_cg. The plan's chunks must hold at most chunk_nodes
-// nodes and chunk_slots slots (the sum of incidences over a chunk's nodes): a chunk beyond that
-// ends its object as non-finite. chunk_nodes picks the layout: <= SOLVE_CHUNK_NODES (128) the
-// chunks' slots may sit in shared memory, <= STREAM_CHUNK_NODES (256) they are read from the
-// graph each iteration (chunk_slots unused). Raises NotImplementedError, having changed nothing,
-// where the solve does not fit the device in one wave in either layout, or chunk_nodes exceeds
-// both, or on the CPU (no such kernel): the caller then solves with hooke_node_cg.
+// over the node graph, projected on `free`), or with from_iterate from the iterate a start left in
+// cg (x = x0, r = rhs = b - A x0 projected, threshold = tol^2 b.b; rhs_sq and threshold kept,
+// tol_sq unused: CG from x0 is CG on A d = r0 from 0, plus x0: a warm start), by the pipelined CG
+// (Chronopoulos-Gear: one reduction an iteration; on the GPU one persistent kernel with one grid
+// barrier an iteration, cg_pipelined.cuh): the same iterates as CG in exact arithmetic, the same
+// stopping rule and statuses (relative tolerance tol_sq = tol^2 on r.r, max_iter, breakdown,
+// non-finite), not bitwise the two-reduction CG of hooke_node_cg. The plan's chunks must hold at
+// most chunk_nodes nodes and chunk_slots slots (the sum of incidences over a chunk's nodes): a
+// chunk beyond that ends its object as non-finite. chunk_nodes picks the layout: <=
+// SOLVE_CHUNK_NODES (128) the chunks' slots may sit in shared memory, <= STREAM_CHUNK_NODES (256)
+// they are read from the graph each iteration (chunk_slots unused). Raises NotImplementedError,
+// having changed nothing, where the solve does not fit the device in one wave in either layout, or
+// chunk_nodes exceeds both, or on the CPU (no such kernel): the caller then solves with
+// hooke_node_cg.
 template <class L>
 void hooke_node_solve(const OptionalTensorList& system, double c_mass, double c_stiff,
                       const c10::optional<at::Tensor>& node_stiffness, const at::Tensor& rhs, double tol_sq,
                       at::TensorList plan, int64_t chunk_nodes, int64_t chunk_slots, int64_t max_iter,
-                      at::TensorList cg, at::TensorList buffers, int64_t flags, int64_t cache_slots) {
+                      at::TensorList cg, at::TensorList buffers, int64_t flags, int64_t cache_slots,
+                      bool from_iterate) {
   const SystemTensors sys(system);
   const PlanTensors plan_tensors(plan);
   const SolveInputs in{sys, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan_tensors, chunk_nodes, chunk_slots,
                        max_iter};
-  run_hooke_node_solve<L>(in, CGTensors(cg), SolveBuffers(buffers), flags, cache_slots, nullptr);
+  run_hooke_node_solve<L>(in, CGTensors(cg), SolveBuffers(buffers), flags, cache_slots, nullptr, nullptr,
+                          from_iterate);
 }
 
 // hooke_node_solve_step: hooke_node_solve, then the step's end as euler_update does it with the

@@ -35,16 +35,17 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
         "int flags=3) -> ()");
   // hooke_node_solve(system, c_mass, c_stiff, node_stiffness?, rhs [V, d], tol_sq, plan, chunk_nodes,
   //                  chunk_slots, max_iter, cg!, buffers! = [exchange [2, V, 4d], sums [4K] float64,
-  //                  counters [3] int32], flags, cache_slots)
+  //                  counters [3] int32], flags, cache_slots, from_iterate)
   //   a whole solve from x0 = 0 by Chronopoulos-Gear's CG (one reduction and one grid barrier an
-  //   iteration): GPU only. chunk_nodes and chunk_slots: the nodes and slots of the plan's largest
-  //   chunk (<= 128 nodes, the slots may sit in shared memory; <= 256, streamed). Raises
-  //   NotImplementedError, having changed nothing, where the solve does not fit one wave of the
-  //   device, or on the CPU.
+  //   iteration), or (from_iterate) from the iterate a start left in cg (x0 = cg's x, rhs = its
+  //   residual b - A x0, its threshold kept): GPU only. chunk_nodes and chunk_slots: the nodes and
+  //   slots of the plan's largest chunk (<= 128 nodes, the slots may sit in shared memory; <= 256,
+  //   streamed). Raises NotImplementedError, having changed nothing, where the solve does not fit one
+  //   wave of the device, or on the CPU.
   m.def("hooke_node_solve(Tensor?[] system, float c_mass, float c_stiff, Tensor? node_stiffness, Tensor rhs, "
         "float tol_sq, Tensor[] plan, int chunk_nodes, int chunk_slots, int max_iter, Tensor(a!)[] cg, "
-        "Tensor(b!)[] buffers, int flags=3, int cache_slots=-1) -> ()");
-  // hooke_node_solve_step(<hooke_node_solve's arguments but the variants>, step!, dv_imposed? [V, d], h,
+        "Tensor(b!)[] buffers, int flags=3, int cache_slots=-1, bool from_iterate=False) -> ()");
+  // hooke_node_solve_step(<hooke_node_solve's but the last three>, step!, dv_imposed? [V, d], h,
   //                       ring! [R, 5, B]?, ring_pos! [1] int64?, carry, flags, cache_slots)
   //   the same solve, then euler_update (cg/schema.cpp) with its solution as dv, in the same kernel
   //   (the graphed step's last launch gone); raises where hooke_node_solve does, having done neither.

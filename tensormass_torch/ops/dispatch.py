@@ -319,7 +319,7 @@ def system_cg_serves(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional
 def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float,
               c_stiff: float, node_stiffness: Optional[torch.Tensor], ap: torch.Tensor, rhs: Optional[torch.Tensor],
               tol: float, plan, cg_state, max_iter: int, count: int, tangents=None, step_end=None,
-              pipelined: bool = True, variants: KernelVariants = DEFAULT) -> bool:
+              pipelined: bool = True, variants: KernelVariants = DEFAULT, started: bool = False) -> bool:
     """A CG solve of the :func:`system_matvec` system in ONE op where the extension has it (the
     hooke tensor form over the node graph: one persistent kernel on the GPU, convergence decided
     on the device): with ``rhs [V, d]``, the start from x0 = 0 (rhs projected on ``free``;
@@ -330,7 +330,10 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     CG fits (``solve.system_solve``: the same iterates in exact arithmetic, rounded otherwise;
     it also does ``step_end``, a ``solve.StepEnd``, where given, and sets its ``done``; a
     ``step_end`` whose ``rhs`` is set leaves ``rhs`` to that solve: nothing else runs;
-    ``pipelined=False`` never takes it).
+    ``pipelined=False`` never takes it). ``started`` (with ``rhs`` None): ``cg_state`` is what a
+    start from a guess left (``CGSolver.start`` with x0 and no preconditioner: p = r, no
+    iteration yet), so a whole solve may also go on by the pipelined CG from that iterate
+    (``solve.system_solve``'s ``from_iterate``); else the iterations go on as they are.
     Returns False, having done nothing, where there is no such op (then the caller iterates)."""
     groups = list(groups)
     native, mass_v, free_v = _system_cg_native(groups, u, mass, free, node_stiffness, cg_state, rhs)
@@ -343,6 +346,10 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
     if (pipelined and rhs is not None and count >= max_iter
             and solve.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
                                    cg_state, max_iter, node_k, step_end, variants)):
+        return True
+    if (pipelined and started and rhs is None and step_end is None and count >= max_iter
+            and solve.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, cg_state.r, tol, plan,
+                                   cg_state, max_iter, node_k, None, variants, from_iterate=True)):
         return True
     if step_end is not None and step_end.rhs is not None:  # rhs is the solve's to compute: nothing else can
         return False

@@ -3,7 +3,8 @@
     hooke_node_cg         the start (with rhs) and up to ``count`` iterations of the classic CG
                           with hooke_node_system's product: one persistent kernel on the GPU,
                           bitwise the op-by-op solve
-    hooke_node_solve      a whole solve from x0 = 0 by the pipelined CG (Chronopoulos-Gear: one
+    hooke_node_solve      a whole solve from x0 = 0 (or from the iterate a start left: a warm
+                          start) by the pipelined CG (Chronopoulos-Gear: one
                           reduction and one grid barrier an iteration); GPU only: raises
                           NotImplementedError, having done nothing, where it does not fit one
                           wave, or on the CPU
@@ -52,10 +53,21 @@ def _ref_start(rhs, free, tol_sq, plan, s, max_iter):
     """CG's start from x0 = 0 on the state ``s`` (as ``CGSolver.start``)."""
     b = rhs if free is None else rhs * free[:, None]
     s.x.zero_()
-    s.r.copy_(b)
     s.rhs_sq.copy_(cg_family._object_sums(b * b, plan).to(s.rhs_sq.dtype))
-    s.rr.copy_(s.rhs_sq)
     s.threshold.copy_(s.rhs_sq * tol_sq)
+    _ref_begin(b, plan, s, max_iter)
+
+
+def _ref_from_iterate(rhs, free, plan, s, max_iter):
+    """CG's start from the iterate a start left in ``s`` (x0 = s.x kept, r0 = ``rhs`` projected:
+    b - A x0; threshold and rhs_sq kept), as ``CGSolver.start`` with x0 leaves it."""
+    _ref_begin(rhs if free is None else rhs * free[:, None], plan, s, max_iter)
+
+
+def _ref_begin(r, plan, s, max_iter):
+    """The start's residual ``r`` into ``s``: r.r, the statuses against ``s.threshold``, p = r."""
+    s.r.copy_(r)
+    s.rr.copy_(cg_family._object_sums(r * r, plan).to(s.rr.dtype))
     status = torch.where(~torch.isfinite(s.rr), NONFINITE,
                          torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
     s.status.copy_(status.to(torch.int32))
@@ -103,18 +115,21 @@ def _ref_hooke_node_cg(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, pla
     _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, chunk_plan, s, max_iter, count)
 
 
-def _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg):
+def _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg, from_iterate=False):
     *graph, mass, free = system
     chunk_plan = ChunkPlan.from_tensors(*plan)
     s = _state(cg)
-    _ref_start(rhs, free, tol_sq, chunk_plan, s, max_iter)
+    if from_iterate:
+        _ref_from_iterate(rhs, free, chunk_plan, s, max_iter)
+    else:
+        _ref_start(rhs, free, tol_sq, chunk_plan, s, max_iter)
     _ref_iterations(graph, mass, free, c_mass, c_stiff, node_stiffness, chunk_plan, s, max_iter, max_iter)
     return s
 
 
 def _ref_hooke_node_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, chunk_nodes, chunk_slots,
-                          max_iter, cg, buffers, flags=3, cache_slots=-1):
-    _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg)
+                          max_iter, cg, buffers, flags=3, cache_slots=-1, from_iterate=False):
+    _ref_solve(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, max_iter, cg, from_iterate)
 
 
 def _ref_hooke_node_solve_step(system, c_mass, c_stiff, node_stiffness, rhs, tol_sq, plan, chunk_nodes, chunk_slots,
@@ -433,7 +448,7 @@ class _SolveWork:
 def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass: float, c_stiff: float,
                  node_stiffness: Optional[torch.Tensor], rhs: torch.Tensor, tol: float, plan, cg_state,
                  max_iter: int, node_k: Optional[torch.Tensor] = None, step_end: Optional[StepEnd] = None,
-                 variants: KernelVariants = DEFAULT) -> bool:
+                 variants: KernelVariants = DEFAULT, from_iterate: bool = False) -> bool:
     """A whole CG solve from x0 = 0 of :func:`system_matvec`'s system (rhs ``[V, d]`` projected on
     ``free``; relative tolerance ``tol``; at most ``max_iter`` iterations) by the pipelined CG
     (``hooke_node_solve``: Chronopoulos-Gear, one reduction and one grid barrier an iteration, one
@@ -446,10 +461,15 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
     same kernel (``hooke_node_solve_step``; its ``done`` set) where ``variants.fused_step_end``; with
     its ``rhs`` (a :class:`StepRhs`), ``rhs`` is this solve's output: its ``steps`` steps, each
     its right-hand side, solve and end, in one kernel (``hooke_node_steps``) where
-    :func:`steps_serve`, else nothing is done."""
+    :func:`steps_serve`, else nothing is done. ``from_iterate``: the solve goes on from the
+    iterate a start left in ``cg_state`` (``CGSolver.start`` from a guess x0: ``rhs`` is its
+    residual b - A x0, ``cg_state.r``; its threshold, relative to b, is kept and ``tol`` unused):
+    CG from x0, a warm start; no ``step_end``."""
     s = cg_state
     if not rhs.is_cuda:
         return False
+    if from_iterate and step_end is not None:
+        raise ValueError("system_solve: a solve from the iterate (from_iterate) takes no step_end")
     if step_end is not None and step_end.rhs is not None and not steps_serve(group, node_stiffness, node_k, step_end,
                                                                                variants):
         return False
@@ -490,7 +510,7 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
                     e.dv_imposed, float(e.h), e.ring, e.ring_pos, bool(e.carry), *kernel, float(e.h_old))
                 e.done = True
             else:
-                torch.ops.tensormass.hooke_node_solve(*system, node_stiffness, rhs, *solve, *kernel)
+                torch.ops.tensormass.hooke_node_solve(*system, node_stiffness, rhs, *solve, *kernel, bool(from_iterate))
             ran = True
         except NotImplementedError:  # does not fit one wave in this layout: nothing was changed
             ran = False

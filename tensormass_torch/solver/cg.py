@@ -283,23 +283,26 @@ class CGSolver:
         cg_ops.cg_direction(self.plan, dataclasses.replace(s, r=z), self.native)
 
     def _in_one_op(self, matvec: Matvec, rhs: Optional[torch.Tensor], tol: float, max_iter: int, count: int,
-                   step_end=None) -> bool:
+                   step_end=None, started: bool = False) -> bool:
         """The matvec's whole-solve op (``SystemMatvec.solve_in_one_op``: start when ``rhs`` is
         given, then up to ``count`` iterations, one persistent kernel on the GPU) where it has
         one and the compiled CG ops serve this solver; False (nothing done) otherwise.
-        ``step_end``: as :meth:`begin`."""
+        ``step_end``: as :meth:`begin`; ``started``: as :meth:`iterate`."""
         one_op = getattr(matvec, "solve_in_one_op", None) if self.native is not None else None
-        return one_op is not None and one_op(self, rhs, tol, max_iter, count, step_end)
+        return one_op is not None and one_op(self, rhs, tol, max_iter, count, step_end, started)
 
     def solves_in_one_op(self, matvec: Matvec) -> bool:
         """Whether :meth:`begin` and the iterations run as one op for this matvec."""
         serves = getattr(matvec, "solves_in_one_op", None) if self.native is not None else None
         return serves is not None and serves(self)
 
-    def iterate(self, matvec: Matvec, count: int, max_iter: int, preconditioner=None):
+    def iterate(self, matvec: Matvec, count: int, max_iter: int, preconditioner=None, started: bool = False):
         """Up to ``count`` iterations from the current state (objects that stopped stay as they
-        are); ``preconditioner``: as :meth:`solve`."""
-        if preconditioner is None and self._in_one_op(matvec, None, 0.0, max_iter, count):
+        are); ``preconditioner``: as :meth:`solve`. ``started``: the state is what :meth:`start`
+        left, from a guess and with no preconditioner, and no iteration ran since (p = r): a whole
+        solve (``count >= max_iter``) may then go on by the GPU's pipelined CG from that iterate
+        (the same iterates in exact arithmetic, rounded otherwise; ``ops.system_cg``)."""
+        if preconditioner is None and self._in_one_op(matvec, None, 0.0, max_iter, count, started=started):
             return
         for _ in range(count):
             self._iterate(matvec, max_iter, preconditioner)
@@ -462,8 +465,12 @@ class CGSolver:
         pausing = pause_tol is not None and pause_tol > tol
         if done == 0:
             # the whole solve in one op, the device deciding when to stop
-            if x0 is None and preconditioner is None and not pausing and self.solves_in_one_op(matvec):
-                self.begin(matvec, rhs, tol, max_iter, max_iter)
+            if preconditioner is None and not pausing and self.solves_in_one_op(matvec):
+                if x0 is None:
+                    self.begin(matvec, rhs, tol, max_iter, max_iter)
+                else:  # the start from the guess, then the rest in one op (the pipelined CG's on the GPU)
+                    self.start(matvec, rhs, x0, tol, max_iter)
+                    self.iterate(matvec, max_iter, max_iter, started=True)
                 done = max_iter
             elif x0 is None and preconditioner is not None and graph_key is not None and self.cuda_graphs:
                 # the start applies the preconditioner once: captured too, over a kept copy of rhs

@@ -560,12 +560,13 @@ class SystemMatvec:
             self._load_tangents()
         return same_free and ops.system_cg_serves(*args, self.node_stiffness, cg.state, self.tangents, self.variants)
 
-    def solve_in_one_op(self, cg, rhs, tol: float, max_iter: int, count: int, step_end=None) -> bool:
+    def solve_in_one_op(self, cg, rhs, tol: float, max_iter: int, count: int, step_end=None,
+                        started: bool = False) -> bool:
         """With ``rhs [V, d]``: start ``cg`` (a ``CGSolver`` over this system's objects) from x0 = 0,
         then (with or without rhs) up to ``count`` iterations, in ONE op (``ops.system_cg``: a
         persistent kernel on the GPU, stopping on the device once every object has stopped;
-        ``step_end``: as ``CGSolver.begin``). Returns False, having done nothing, where there is
-        no such op."""
+        ``step_end``: as ``CGSolver.begin``; ``started``: as ``CGSolver.iterate``). Returns False,
+        having done nothing, where there is no such op."""
         from .. import ops
 
         same_free, args = self._one_op_args(cg)
@@ -574,7 +575,8 @@ class SystemMatvec:
         if self._ap is None:
             self._ap = torch.empty_like(self.u)
         return ops.system_cg(*args, self.mass_coef, self.stiffness_coef, self.node_stiffness, self._ap, rhs, tol,
-                             cg.plan, cg.state, max_iter, count, self.tangents, step_end, self.pipelined, self.variants)
+                             cg.plan, cg.state, max_iter, count, self.tangents, step_end, self.pipelined, self.variants,
+                             started)
 
     def __call__(self, p: torch.Tensor):
         from .. import ops
@@ -1062,7 +1064,7 @@ class StepGraphs:
         if warm:
             self._project_guess(rhs)
             self.cg.start(self.matvec, rhs, self.guess, opts.cg_tol, opts.cg_max_iter)
-            self.cg.iterate(self.matvec, self.first, opts.cg_max_iter)
+            self.cg.iterate(self.matvec, self.first, opts.cg_max_iter, started=True)
             return False
         ring = (self.ring, self.ring_pos) if chained else (None, None)
         end = solve.StepEnd(self.x, self.v, self._dv_imposed(), float(opts.dt), self.x_new, self.v_new, self.norms,

@@ -688,3 +688,16 @@ def test_mixed_precision_probe_refines_every_step_to_the_tolerance(tmp_path):
         assert row["float64_products"] == len(row["float32_iterations"]) + 1
         assert row["float64_iterations"] > 0 and sum(row["float32_iterations"]) > 0
     assert json.loads((tmp_path / "mixed_precision.json").read_text())["records"][0]["young"] == 1e5
+
+
+def test_warm_start_probe_quick():
+    """The warm-start probe steps SOFA's beam cold and warm, and warm with the classic CG beside
+    (--classic): on the CPU (no pipelined kernel) both warm CGs are the same solve."""
+    import warm_start_probe as probe
+
+    measured = probe.main(["--device", "cpu", "--settle", "2", "--steps", "2", "--classic", "--no-profile"])
+    assert list(measured) == ["none", "extrapolate", "project", "extrapolate, classic CG", "project, classic CG"]
+    assert all(ms > 0 for ms, _ in measured.values())
+    for warm in ("extrapolate", "project"):
+        assert measured[warm][1] == measured[f"{warm}, classic CG"][1]
+        assert sum(measured[warm][1]) < sum(measured["none"][1])

@@ -15,6 +15,8 @@ The switches are the solver's configuration, passed down explicitly: the matvec'
 layouts tried, the streamed layout's cache and pairing, the step end in the solve, the rows' window)."""
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from conftest import with_variants
@@ -97,6 +99,80 @@ def test_float64_matches_the_two_reduction_cg(layout_variants, tol, max_iter):
     assert int((got["iterations"] - want["iterations"]).abs().max()) <= slack
     assert torch.allclose(got["rhs_sq"], want["rhs_sq"], rtol=1e-12)
     assert torch.allclose(got["threshold"], want["threshold"], rtol=1e-12)
+
+
+def started_from(system, matvec, rhs, guess, tol, max_iter):
+    """A solver that :meth:`CGSolver.start` left at ``guess`` (r = b - A guess, the threshold
+    relative to b)."""
+    cg = fresh_solver(system, rhs)
+    cg.start(matvec, rhs, guess, tol, max_iter)
+    return cg
+
+
+@gpu
+@pytest.mark.parametrize("guess_tol", [1e-2, 1e-12])
+@pytest.mark.parametrize("tol,max_iter", [(1e-8, 300), (0.0, 10)])
+def test_from_a_guess_matches_the_two_reduction_cg_from_it(layout_variants, tol, max_iter, guess_tol):
+    """A warm start (CGSolver.start from a guess, then iterate(started=True)) goes on by the
+    pipelined op from the start's iterate: float64, against the two-reduction CG from the same
+    start; the threshold and b.b are the start's (relative to b, not to the guess's residual). A
+    guess already within tol stops at the start (0 iterations, x the guess)."""
+    system, matvec, rhs = make_system(torch.float64, "cuda", contact=False, variants=layout_variants)
+    guess = op_by_op(system, matvec, rhs, guess_tol, 1000, (1000,))["x"]
+    cg = started_from(system, matvec, rhs, guess, tol, max_iter)
+    started = state_of(cg)
+    cg.iterate(matvec, max_iter, max_iter, started=True)
+    assert ran_layout(cg) is not None, "the warm solve did not take the pipelined op"
+    got = state_of(cg)
+    ref = started_from(system, matvec, rhs, guess, tol, max_iter)
+    for _ in range(max_iter):
+        ref._iterate(matvec, max_iter)
+    want = state_of(ref)
+    assert torch.equal(got["rhs_sq"], started["rhs_sq"]) and torch.equal(got["threshold"], started["threshold"])
+    assert torch.equal(got["status"], want["status"])
+    slack = 1 if tol else 0
+    assert int((got["iterations"] - want["iterations"]).abs().max()) <= slack
+    assert rel(got["x"], want["x"]) < (1e-7 if tol else 1e-10)
+    assert float((got["r"] - want["r"]).norm()) < (tol if tol else 1e-10) * float(want["rhs_sq"].sum().sqrt())
+    if tol and guess_tol < tol:  # within tol from the start
+        assert got["status"].tolist() == [cg_ops.CONVERGED] * 3 and int(got["iterations"].max()) == 0
+        assert torch.equal(got["x"], guess)
+
+
+@gpu
+@pytest.mark.parametrize("cuda_graphs", [True, False])
+@pytest.mark.parametrize("warm_start", ["extrapolate", "project"])
+def test_warm_steps_take_it_and_match_the_classic_cg(monkeypatch, warm_start, cuda_graphs):
+    """Implicit steps with a warm start on the GPU, captured or eager, run the pipelined op from
+    the guess: the same trajectory to the tolerance as the classic CG's (pipelined=False), in as
+    many iterations to one a step."""
+    original, warm_solves = solve.system_solve, []
+
+    def recorded(*args, **kwargs):
+        ran = original(*args, **kwargs)
+        if kwargs.get("from_iterate"):
+            warm_solves.append(ran)
+        return ran
+
+    monkeypatch.setattr(solve, "system_solve", recorded)
+    runs = []
+    for pipelined in (True, False):
+        warm_solves.clear()
+        mesh = tm.beam_mesh(12, 3, 3, size=(1.0, 0.25, 0.25), dtype=torch.float64, device="cuda")
+        body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="hooke"),
+                       fixed=mesh.vertices[:, 0] == 0)
+        sim = tm.Simulator([body], dt=0.01, warm_start=warm_start, cg_tol=1e-10, cuda_graphs=cuda_graphs,
+                           rayleigh_mass=0.1, device="cuda", dtype=torch.float64)
+        sim.options = dataclasses.replace(sim.options, pipelined=pipelined)
+        counts = []
+        for _ in range(8):
+            sim.step()
+            counts.append(int(sim.last_report.cg[0].iterations.max()))
+        assert (warm_solves and all(warm_solves)) if pipelined else not warm_solves, warm_solves
+        runs.append((sim.x.clone(), counts))
+    (x_pipelined, counts_pipelined), (x_classic, counts_classic) = runs
+    torch.testing.assert_close(x_pipelined, x_classic, rtol=0, atol=1e-8)
+    assert max(abs(a - b) for a, b in zip(counts_pipelined, counts_classic)) <= 1, (counts_pipelined, counts_classic)
 
 
 @gpu
@@ -204,10 +280,11 @@ def largest_chunk(plan):
     return int((plan.chunk_start[1:] - plan.chunk_start[:-1]).max())
 
 
-def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
+def direct_call(system, matvec, rhs, cg, plan, slots, reference=False, **changes):
     """hooke_node_solve on cg's state over ``plan`` (promising its largest chunk) with ``slots``;
-    keyword changes replace arguments (by name: library.pack packs them). Raises
-    NotImplementedError where the solve does not fit one wave."""
+    keyword changes replace arguments (by name: library.pack packs them); ``reference``: the op's
+    pure-torch reference in its place. Raises NotImplementedError where the solve does not fit
+    one wave."""
     group = system.model.groups[0]
     neighbor, node_k, incidences, rows = node_graph.hooke_rows_graph(group)
     s = cg.state
@@ -236,7 +313,31 @@ def direct_call(system, matvec, rhs, cg, plan, slots, **changes):
                 end_args[key] = changes.pop(key)
     args.update(changes)
     name = "hooke_node_solve_step" if end_args else "hooke_node_solve"
-    getattr(torch.ops.tensormass, name)(*library.pack(name, **args, **end_args))
+    op = getattr(solve, "_ref_" + name) if reference else getattr(torch.ops.tensormass, name)
+    op(*library.pack(name, **args, **end_args))
+
+
+def test_the_reference_from_a_guess_is_the_two_reduction_cg_from_it():
+    """The warm solve's oracle (the op's reference with from_iterate, on the CPU): from the iterate
+    a start from a guess left, the two-reduction CG op by op from that start; the start's threshold
+    and b.b kept."""
+    system, matvec, rhs = make_system(torch.float64, "cpu", contact=False)
+    guess = op_by_op(system, matvec, rhs, 1e-2, 1000, (1000,))["x"]
+    cg = started_from(system, matvec, rhs, guess, 1e-8, 300)
+    started = state_of(cg)
+    plan = solve.solve_plan(cg.plan)
+    direct_call(system, matvec, cg.state.r, cg, plan, 0, reference=True, max_iter=300, tol_sq=1.0, flags=3,
+                cache_slots=-1, from_iterate=True)
+    got = state_of(cg)
+    ref = started_from(system, matvec, rhs, guess, 1e-8, 300)
+    for _ in range(300):
+        ref._iterate(matvec, 300)
+    want = state_of(ref)
+    assert torch.equal(got["threshold"], started["threshold"]) and torch.equal(got["rhs_sq"], started["rhs_sq"])
+    assert got["status"].tolist() == want["status"].tolist() == [cg_ops.CONVERGED] * 3
+    assert 0 < int(want["iterations"].min())
+    assert int((got["iterations"] - want["iterations"]).abs().max()) <= 1
+    assert rel(got["x"], want["x"]) < 1e-7
 
 
 @gpu
