@@ -465,11 +465,11 @@ def system_solve(group, mass: torch.Tensor, free: Optional[torch.Tensor], c_mass
     iterate a start left in ``cg_state`` (``CGSolver.start`` from a guess x0: ``rhs`` is its
     residual b - A x0, ``cg_state.r``; its threshold, relative to b, is kept and ``tol`` unused):
     CG from x0, a warm start; no ``step_end``."""
+    if from_iterate and step_end is not None:
+        raise ValueError("system_solve: a solve from the iterate (from_iterate) takes no step_end")
     s = cg_state
     if not rhs.is_cuda:
         return False
-    if from_iterate and step_end is not None:
-        raise ValueError("system_solve: a solve from the iterate (from_iterate) takes no step_end")
     if step_end is not None and step_end.rhs is not None and not steps_serve(group, node_stiffness, node_k, step_end,
                                                                                variants):
         return False

@@ -452,6 +452,21 @@ def test_the_cpu_has_no_pipelined_kernel_and_changes_nothing():
         assert torch.equal(state_of(cg)[k], before[k]), k
 
 
+def test_a_solve_from_the_iterate_takes_no_step_end():
+    """from_iterate goes on from a start's iterate: it neither begins nor ends a step (one clear
+    error, on any device, nothing changed)."""
+    system, matvec, rhs = make_system(torch.float64, "cpu")
+    cg = fresh_solver(system, rhs)
+    before = state_of(cg)
+    end = solve.StepEnd(rhs, rhs, None, 0.01, torch.empty_like(rhs), torch.empty_like(rhs),
+                        torch.zeros(3, dtype=rhs.dtype), torch.zeros(5, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="from_iterate.*takes no step_end"):
+        solve.system_solve(system.model.groups[0], system.mass.reshape(-1), system.free.reshape(-1), 1.0, 1e-4, None,
+                           cg.state.r, 1e-6, cg.plan, cg.state, 10, step_end=end, from_iterate=True)
+    for k in FIELDS:
+        assert torch.equal(state_of(cg)[k], before[k]), k
+
+
 def test_packed_arguments_name_what_is_missing():
     """The solve ops take their tensors in lists (system, plan, cg, buffers, step): a list of the
     wrong length or with a missing tensor is one error naming the list and its members."""
