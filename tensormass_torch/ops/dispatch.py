@@ -343,13 +343,11 @@ def system_cg(groups, u: torch.Tensor, mass: torch.Tensor, free: Optional[torch.
 
     # A whole solve on the GPU: the pipelined CG where it fits (one grid barrier an iteration)
     node_k = _tangent_of(tangents)
-    if (pipelined and rhs is not None and count >= max_iter
-            and solve.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, rhs, tol, plan,
-                                   cg_state, max_iter, node_k, step_end, variants)):
-        return True
-    if (pipelined and started and rhs is None and step_end is None and count >= max_iter
-            and solve.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness, cg_state.r, tol, plan,
-                                   cg_state, max_iter, node_k, None, variants, from_iterate=True)):
+    from_iterate = rhs is None and started and step_end is None  # goes on from the start's residual
+    if (pipelined and count >= max_iter and (rhs is not None or from_iterate)
+            and solve.system_solve(groups[0], mass_v, free_v, c_mass, c_stiff, node_stiffness,
+                                   cg_state.r if from_iterate else rhs, tol, plan, cg_state, max_iter, node_k,
+                                   step_end, variants, from_iterate=from_iterate)):
         return True
     if step_end is not None and step_end.rhs is not None:  # rhs is the solve's to compute: nothing else can
         return False

@@ -552,14 +552,16 @@ class PairStiffness:
     def __call__(self, dx: torch.Tensor, add_to: Optional[torch.Tensor] = None) -> torch.Tensor:
         """The product ``[V, 3]`` for ``dx [V, 3]`` (see the class; ``ops.contact.pair_product``),
         or ``add_to [V, 3]`` (another product, not ``dx``) plus it, in place."""
-        return contact_ops.pair_product(dx, self.nodes, self.coef, self.direction, self.normal, self.friction,
-                                        self.order, self.offsets, self.vector, add_to=add_to)
+        return self._product(dx, add_to=add_to)
 
     def rows_of(self, dx: torch.Tensor) -> torch.Tensor:
         """The product ``[V, 3]`` for ``dx [V, 3]`` alone, written into :attr:`rows` (kept with the
         buffers: a CG iteration takes it every time with no allocation)."""
+        return self._product(dx, out=self.rows)
+
+    def _product(self, dx: torch.Tensor, **into) -> torch.Tensor:
         return contact_ops.pair_product(dx, self.nodes, self.coef, self.direction, self.normal, self.friction,
-                                        self.order, self.offsets, self.vector, out=self.rows)
+                                        self.order, self.offsets, self.vector, **into)
 
 
 class HeldPairs:
