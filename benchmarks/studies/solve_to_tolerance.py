@@ -9,7 +9,9 @@ Part 1 (solve_to_tolerance.md): on the paper's 307,200-tet beam (hooke, E = 1e5 
 solved to a relative residual of 1e-6 with each preconditioner (none, jacobi, multigrid, and
 cholesky: the rest matrix's sparse Cholesky factor, the direct-solver baseline; "+warm": each
 step's CG started from the extrapolation of the steps before, ``warm_start=True``; "+project":
-from the projection on the last steps' solutions, ``warm_start="project"``), and
+from the projection on the last steps' solutions, ``warm_start="project"``; "mixed": a float64
+state whose solves are iterative refinement with float32 corrections, ``precision="mixed"``,
+whatever ``--dtype`` says), and
 the same scene's fixed-budget steps of 25 and 10 CG iterations (tol 0: what the speed
 benchmarks time). Per row: CG iterations of the last timed step and their mean over the 5
 steps after, the last step's relative residual (the CG's own:
@@ -59,6 +61,11 @@ SOLVERS = {  # name -> StepOptions changes
                               preconditioner="multigrid", warm_start="project"),
     "cholesky": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=2,
                      preconditioner="cholesky"),
+    # a float64 state (whatever --dtype says) whose solves are float32 corrections (solver.refine)
+    "mixed": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=8, preconditioner="none",
+                  precision="mixed"),
+    "mixed+project": dict(cg_tol=1e-6, cg_max_iter=20000, require_convergence=False, check_every=8,
+                          preconditioner="none", warm_start="project", precision="mixed"),
 }
 
 COLUMNS = [("scene", "scene", None), ("young", "E", ".0e"), ("elements", "elements", None),
@@ -88,6 +95,8 @@ def last_report(sim):
 
 def measure(scene: str, elements: int, young: float, solver: str, device, dtype, steps: int, max_seconds: float,
             settle: int = 5):
+    if SOLVERS[solver].get("precision") == "mixed":  # (its residuals, state and right-hand side: float64)
+        dtype = torch.float64
     sim = make_scene(scene, elements, young, device, dtype)
     sim.options = dataclasses.replace(sim.options, **SOLVERS[solver])
     common.sync(device)

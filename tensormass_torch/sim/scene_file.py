@@ -29,6 +29,7 @@ The format (every key but ``bodies`` and the body's ``mesh`` / ``material`` is o
     integrator = "backward_euler"     # "newmark" (no numerical damping), "bdf2" (second order)
     warm_start = false                # true / "extrapolate": each CG from the last steps' extrapolated
                                       # solution; "project": their span's projection (hooke: best)
+    precision = "full"                # "mixed" (dtype "float64"): float64 residuals, float32 CG iterations
     check_memory = true               # on a GPU: refuse at once a scene whose estimated peak does not fit
     cut_on_device = false             # scalpels ([[cuts]]) cut with kernels on the device where they can
                                       # (one hooke body: docs/topology-changes.md)
@@ -132,6 +133,7 @@ from ..physics.tools import Box, Capsule, MeshTool, Sphere, Tool
 from ..solver.guess import WARM_STARTS, warm_start_mode
 from ..solver.implicit_euler import INTEGRATORS
 from ..solver.preconditioner import PRECONDITIONERS
+from ..solver.refine import PRECISIONS
 from .builtin import Scene
 from .scalpel import Scalpel
 from .simulator import MIN_SPARE_NODES, SPARE_FRACTION, Body, Simulator
@@ -660,7 +662,7 @@ def _check_mesh_split(bodies, options, planes, tools, contact, scalpels, select,
     if any(p.friction > 0 for p in planes):
         problems.append("friction on a plane")
     unsupported = {"newton_iters": 1, "integrator": "backward_euler", "warm_start": "none",
-                   "require_convergence": True}
+                   "require_convergence": True, "precision": "full"}
     problems += [f"[solver] {key} = {options[key]!r}" for key, value in unsupported.items()
                  if options[key] != value]
     if options["preconditioner"] not in ("auto", "none"):
@@ -789,6 +791,7 @@ def load_scene(path, *, device=None, dtype=None, model: Optional[str] = None,
         integrator=_choice(solver, "integrator", list(INTEGRATORS), "backward_euler", "integrator"),
         warm_start=_warm_start(solver),
         paired_blocks=solver.get("paired_blocks", "bool", True),
+        precision=_choice(solver, "precision", list(PRECISIONS), "full", "precision"),
         check_memory=solver.get("check_memory", "bool", True),
         cut_on_device=solver.get("cut_on_device", "bool", False),
     )

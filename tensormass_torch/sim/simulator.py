@@ -34,6 +34,7 @@ from ..solver.implicit_euler import (
     step_graphs_for,
 )
 from ..solver.preconditioner import PRECONDITIONERS
+from ..solver.refine import PRECISIONS
 from . import memory
 from .captured_removal import CapturedRemovals
 from .device_cut import DeviceCuts
@@ -143,7 +144,7 @@ class Simulator:
             ``sim.v`` were set, and sub-steps are backward Euler's and steps are not chained);
             all at backward Euler's cost per step (see ``solver.implicit_euler``).
         cg_tol, cg_max_iter, require_convergence, newton_iters, check_every, cuda_graphs,
-            preconditioner, warm_start, paired_blocks: see ``StepOptions``. With ``warm_start=True`` (or
+            preconditioner, warm_start, paired_blocks, precision: see ``StepOptions``. With ``warm_start=True`` (or
             ``"extrapolate"``) each step's CG starts from the extrapolation of the two steps
             before (2 dv_1 - dv_2; dv_1 after one step; zeros after a state set by hand, a cut
             that made room, sub-steps or a chain of steps, which keep no history); with
@@ -182,7 +183,8 @@ class Simulator:
                  cuda_graphs: bool = True, check_inversion: str = "off", substeps_on_failure: int = 0,
                  spare_nodes=0, tools: Sequence[Tool] = (), contact: Optional[Contact] = None,
                  preconditioner: str = "auto", integrator: str = "backward_euler", warm_start=False,
-                 check_memory: bool = True, cut_on_device: bool = False, paired_blocks: bool = True):
+                 check_memory: bool = True, cut_on_device: bool = False, paired_blocks: bool = True,
+                 precision: str = "full"):
         bodies = list(bodies)
         if not hasattr(self, "initial_bodies"):  # (a rebuild for a cut runs __init__ again: kept)
             #: the bodies this simulator was first built with (:meth:`rebuilt`)
@@ -196,7 +198,7 @@ class Simulator:
                                dtype=dtype, cuda_graphs=cuda_graphs, check_inversion=check_inversion,
                                substeps_on_failure=substeps_on_failure, tools=tools, contact=contact,
                                preconditioner=preconditioner, integrator=integrator, warm_start=warm_start,
-                               cut_on_device=cut_on_device, paired_blocks=paired_blocks)
+                               cut_on_device=cut_on_device, paired_blocks=paired_blocks, precision=precision)
         spare = _spare_rows(spare_nodes, len(bodies))
         if not bodies:
             raise SceneError("a simulator needs at least one body")
@@ -245,6 +247,7 @@ class Simulator:
             raise SceneError(f"bodies have mixed dtypes {sorted(map(str, dtypes))}; pass dtype=")
         self.device = torch.device(device) if device is not None else devices.pop()
         self.dtype = dtype if dtype is not None else dtypes.pop()
+        _check_precision(precision, self.dtype, preconditioner, tools, contact)
         if not isinstance(check_memory, bool):
             raise SceneError(f"check_memory must be True or False, got {check_memory!r}")
         if not isinstance(cut_on_device, bool):
@@ -276,7 +279,7 @@ class Simulator:
                                    newton_iters=newton_iters, check_every=check_every,
                                    cuda_graphs=bool(cuda_graphs), preconditioner=preconditioner,
                                    integrator=integrator, warm_start=warm_start,
-                                   paired_blocks=bool(paired_blocks))
+                                   paired_blocks=bool(paired_blocks), precision=precision)
         rest_parts, parts, fixed, prescribed, velocities = [], [], [], [], []
         # bodies on the host are packed on the host and moved once (a batch of many small bodies
         # would otherwise cost a dozen small copies and a synchronisation a body)
@@ -1174,3 +1177,21 @@ class Simulator:
     def kinetic_energy(self) -> torch.Tensor:
         """Kinetic energy per body ``[B]``."""
         return 0.5 * self.segments.sum(self.system.mass * self.v * self.v)
+
+
+def _check_precision(precision, dtype, preconditioner, tools, contact) -> None:
+    """Raise SceneError where ``precision`` is unknown or ``"mixed"`` (float64 residuals, float32
+    corrections: ``solver.refine``) cannot serve the scene."""
+    if precision not in PRECISIONS:
+        raise SceneError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
+    if precision != "mixed":
+        return
+    if dtype != torch.float64:
+        raise SceneError(f"precision='mixed' keeps a float64 state and iterates in float32: it needs "
+                         f"dtype=torch.float64, got {dtype} (a float32 simulator already iterates in float32)")
+    if preconditioner not in ("auto", "none"):
+        raise SceneError(f"precision='mixed' runs unpreconditioned float32 corrections: preconditioner must be "
+                         f"'auto' or 'none', got {preconditioner!r}")
+    if tools or contact is not None:
+        raise SceneError("precision='mixed' supports planes, not tools or body contact (yet): "
+                         "use precision='full'")

@@ -52,6 +52,7 @@ from .preconditioner import (
     system_diagonal_blocks,
     system_rest_preconditioner,
 )
+from .refine import MAX_ROUNDS, PRECISIONS, Refinement
 from .rigid_modes import RigidModeCorrection
 
 
@@ -114,6 +115,11 @@ class StepOptions:
             body contact pairs join, merge the two nodes of different bodies a pair couples most
             into one 6 x 6 block (``preconditioner.BlockJacobi``; 3-D): fewer iterations where
             contacts press (default True); False: each node's own block.
+        precision: ``"full"`` (default: every solve in the state's dtype) or ``"mixed"`` (a float64
+            state's solves by iterative refinement: float64 residuals, float32 CG corrections;
+            ``solver.refine``): the same stopping rule on the float64 residual at float32's cost
+            per iteration. TensorMass models, planes, no tools or body contact, no
+            preconditioner (:data:`refine.PRECISIONS`).
     """
 
     dt: float
@@ -131,9 +137,15 @@ class StepOptions:
     integrator: str = "backward_euler"
     warm_start: str = "none"
     paired_blocks: bool = True
+    precision: str = "full"
 
     def __post_init__(self):
         self.warm_start = warm_start_mode(self.warm_start)
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {self.precision!r}; known: {', '.join(map(repr, PRECISIONS))}")
+        if self.precision == "mixed" and self.preconditioner not in ("auto", "none"):
+            raise ValueError(f"precision='mixed' runs unpreconditioned float32 corrections: preconditioner must be "
+                             f"'auto' or 'none', got {self.preconditioner!r}")
         if self.preconditioner not in PRECONDITIONERS:
             raise ValueError(f"unknown preconditioner {self.preconditioner!r}; known: "
                              f"{', '.join(map(repr, PRECONDITIONERS))}")
@@ -238,6 +250,7 @@ class DynamicsSystem:
         self._rest_preconditioner = None  # (key, cache) of preconditioner.system_rest_preconditioner
         self._multigrid_solve = None  # preconditioner.MultigridSolve over it (its diagonal buffer kept)
         self._solution_spaces = {}  # step coefficients -> (tensors, versions, guess.SolutionSpace)
+        self._refinements = {}  # step product's key -> (tensors, versions, refine.Refinement)
 
     def solution_space(self, opts: "StepOptions", like: torch.Tensor) -> SolutionSpace:
         """The ``warm_start="project"`` space of the steps with these options' matrix (made at the
@@ -253,6 +266,28 @@ class DynamicsSystem:
             kept[2].reset()
             kept = (tensors, tuple(t._version for t in tensors), kept[2])
         self._solution_spaces[key] = kept
+        return kept[2]
+
+    def refinement(self, opts: "StepOptions") -> Refinement:
+        """The float32 side of this (float64) system's refined solves (``precision="mixed"``) for
+        these options' step matrix: made at the first call, and again (a new object: graphs over
+        the old one must be dropped) when the model's tensors, the masses or the constraints
+        change, as :meth:`solution_space`'s keys."""
+        from ..physics.tensor_mass import TensorMass
+
+        if not isinstance(self.model, TensorMass):
+            raise ValueError(f"precision='mixed' needs a TensorMass model, got a {type(self.model).__name__}")
+        if self.body_contact is not None or self.tools is not None:
+            raise ValueError("precision='mixed' supports planes, not tools or body contact")
+        if self.model.rest.dtype != torch.float64:
+            raise ValueError(f"precision='mixed' needs a float64 state (float32 corrections), got "
+                             f"{self.model.rest.dtype}")
+        tensors = self._matrix_tensors()
+        key = (*_coefficients(opts), opts.pipelined, opts.variants, opts.cuda_graphs)
+        kept = self._refinements.get(key)
+        if not library.unchanged(kept, tensors):
+            kept = self._refinements[key] = (tensors, tuple(t._version for t in tensors),
+                                             Refinement(self, *key))
         return kept[2]
 
     def _matrix_tensors(self) -> tuple:
@@ -699,6 +734,10 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
             space.add(result.solution, lambda p: _projected_product(product, p, system.free))
         return result
 
+    if opts.precision == "mixed":  # float64 residuals, float32 corrections (no preconditioner, no pairs, no pause)
+        refinement = system.refinement(opts)
+        result = refinement.solve(solver, matvec, x, rhs, x0, opts.cg_tol, opts.cg_max_iter, opts.check_every)
+        return outcome(result, True), None
     result = solver.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
                           graph_key=graph_key, preconditioner=multigrid, pause_tol=pause_tol)
     if not solver.paused:
@@ -1034,7 +1073,10 @@ class StepGraphs:
         # warm_start="project": the system's space (its guess formed in the captured start from
         # the step's right-hand side; the solution joined to it after the solve, in a graph)
         self.space = system.solution_space(opts, like) if opts.warm_start == "project" else None
-        self.rhs = torch.zeros_like(like) if self.preconditioned else None  # the step's right-hand side
+        #: the float32 side of refined solves (``precision="mixed"``: :meth:`_refined_solve`), or None
+        self.refinement = system.refinement(opts) if opts.precision == "mixed" else None
+        # the step's right-hand side, where the solve reads it after the phase that made it
+        self.rhs = torch.zeros_like(like) if self.preconditioned or self.refinement is not None else None
         self._predicted = None  # iterations of the last preconditioned solve
         # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
         # ``ring`` (a device counter: the captured graph needs no host index), and the new state
@@ -1159,12 +1201,52 @@ class StepGraphs:
                 self.cg.run_iterations(self.matvec, 1 << bit, opts.cg_max_iter, graph_key, preconditioner)
         self.cg.finish(self.matvec, opts.cg_max_iter, 1, graph_key, done=count, preconditioner=preconditioner)
 
+    def _refined_start(self, warm: bool):
+        """A refined step's right-hand side (float64), A_32 loaded where the step linearises, the
+        guess, the float64 start and, where a correction is one op, the first round."""
+        opts = self.opts
+        rhs, dv_imposed, _ = _step_system(self.system, self.x, self.v, opts, self.imposed, self.matvec)
+        if dv_imposed is not None:
+            self.dv_imposed.copy_(dv_imposed)
+        self.rhs.copy_(rhs)
+        self.refinement.load(self.x, self.matvec)
+        if warm:
+            self._project_guess(self.rhs)
+        self.cg.start(self.matvec, self.rhs, self.guess if warm else None, opts.cg_tol, opts.cg_max_iter)
+        if self.refinement.whole:
+            self.refinement.round(self.cg, self.matvec, self.rhs, opts.cg_tol, opts.cg_max_iter)
+
+    def _refined_solve(self, warm: bool):
+        """A mixed-precision step's solve (``solver.refine``): the start and first round as one graph,
+        then, while an object is still active (one host look a round), a round at a time, each a
+        graph where its correction is one op (else its float32 iterations with host looks between
+        two graphs)."""
+        opts = self.opts
+        refinement = self.system.refinement(opts)
+        if refinement is not self.refinement:  # the model changed (a cut): the graphs read the old copy
+            self.refinement = refinement
+            self._graphs.clear()
+        run_captured(self._graphs, ("refined", warm), lambda: self._refined_start(warm))
+        rounds = 1 if refinement.whole else 0
+        tol, max_iter = opts.cg_tol, opts.cg_max_iter
+        while rounds < MAX_ROUNDS and self.cg.any_active():
+            if refinement.whole:
+                run_captured(self._graphs, "round",
+                             lambda: refinement.round(self.cg, self.matvec, self.rhs, tol, max_iter))
+            else:
+                run_captured(self._graphs, "prepare", lambda: refinement.prepare(self.cg, tol, max_iter))
+                refinement.correct(max_iter, opts.check_every, refinement.matvec32.graph_key)
+                run_captured(self._graphs, "absorb", lambda: refinement.absorb(self.cg, self.matvec, self.rhs))
+            rounds += 1
+        refinement.cap(self.cg)
+
     @property
     def chainable(self) -> bool:
         """Whether whole steps run with no host decision inside (every CG iteration is in graph
         A: the whole CG is one op, or ``cg_max_iter <= check_every``) and no imposed velocity, so
         :meth:`run_steps` applies."""
-        return self.imposed is None and self.first >= self.opts.cg_max_iter and self.space is None
+        return (self.imposed is None and self.first >= self.opts.cg_max_iter and self.space is None
+                and self.refinement is None)
 
     @property
     def max_chain(self) -> int:
@@ -1232,7 +1314,9 @@ class StepGraphs:
             warm = self.system.solution_space(self.opts, self.x) is self.space
         opts = self.opts
         ends_step = False
-        if self.preconditioned:
+        if self.refinement is not None:
+            self._refined_solve(warm)
+        elif self.preconditioned:
             self._preconditioned_solve(warm)
         else:
             run_captured(self._graphs, ("A", warm), lambda: self._single_phase_a(warm))
@@ -1322,7 +1406,7 @@ def step_graphs_for(system: DynamicsSystem, opts: StepOptions, imposed: bool):
         return None
     key = (opts.dt, opts.rayleigh_mass, opts.rayleigh_stiffness, opts.cg_tol, opts.cg_max_iter,
            opts.require_convergence, opts.check_every, opts.pipelined, opts.variants, opts.integrator,
-           opts.preconditioner == "multigrid", opts.warm_start, imposed)
+           opts.preconditioner == "multigrid", opts.warm_start, opts.precision, imposed)
     graphs = system._step_graphs.get(key)
     if graphs is None:
         graphs = system._step_graphs[key] = StepGraphs(system, opts, imposed)
