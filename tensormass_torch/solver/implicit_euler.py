@@ -1216,11 +1216,14 @@ class StepGraphs:
         if self.refinement.whole:
             self.refinement.round(self.cg, self.matvec, self.rhs, opts.cg_tol, opts.cg_max_iter)
 
-    def _refined_solve(self, warm: bool):
-        """A mixed-precision step's solve (``solver.refine``): the start and first round as one graph,
-        then, while an object is still active (one host look a round), a round at a time, each a
-        graph where its correction is one op (else its float32 iterations with host looks between
-        two graphs)."""
+    def _refined_solve(self, warm: bool) -> torch.Tensor:
+        """A mixed-precision step's solve and end (``solver.refine``); returns the step's summary
+        ``[5, B]`` (host). The start and the first round are one graph, the step's end (phase C)
+        another, then the summary's read: a step the first round converges makes one host read,
+        as a float64 step does. While an object is still active a round follows, each a graph
+        where its correction is one op (else its float32 iterations with host looks between two
+        graphs), then the end and the read again; after ``MAX_ROUNDS`` the objects still active
+        are not converged."""
         opts = self.opts
         refinement = self.system.refinement(opts)
         if refinement is not self.refinement:  # the model changed (a cut): the graphs read the old copy
@@ -1229,8 +1232,14 @@ class StepGraphs:
         run_captured(self._graphs, ("refined", warm), lambda: self._refined_start(warm))
         rounds = 1 if refinement.whole else 0
         tol, max_iter = opts.cg_tol, opts.cg_max_iter
-        while rounds < MAX_ROUNDS and self.cg.any_active():
-            if refinement.whole:
+        while True:
+            run_captured(self._graphs, "C", self._phase_c)
+            summary = self.summary.cpu()
+            if not (summary[0].numpy() == cg_ops.ACTIVE).any():
+                return summary
+            if rounds >= MAX_ROUNDS:
+                refinement.cap(self.cg)
+            elif refinement.whole:
                 run_captured(self._graphs, "round",
                              lambda: refinement.round(self.cg, self.matvec, self.rhs, tol, max_iter))
             else:
@@ -1238,7 +1247,6 @@ class StepGraphs:
                 refinement.correct(max_iter, opts.check_every, refinement.matvec32.graph_key)
                 run_captured(self._graphs, "absorb", lambda: refinement.absorb(self.cg, self.matvec, self.rhs))
             rounds += 1
-        refinement.cap(self.cg)
 
     @property
     def chainable(self) -> bool:
@@ -1313,21 +1321,24 @@ class StepGraphs:
         if self.space is not None:  # (emptied, in place, where the model changed: the graphs stay valid)
             warm = self.system.solution_space(self.opts, self.x) is self.space
         opts = self.opts
-        ends_step = False
-        if self.refinement is not None:
-            self._refined_solve(warm)
-        elif self.preconditioned:
-            self._preconditioned_solve(warm)
+        if self.refinement is not None:  # (the step's end and its host reads are the solve's)
+            summary = self._refined_solve(warm)
+            if self.space is not None and warm:  # launched after the last read: nothing waits on it
+                run_captured(self._graphs, "add", self._add_solution)
         else:
-            run_captured(self._graphs, ("A", warm), lambda: self._single_phase_a(warm))
-            ends_step = self._a_ends[warm]
-            self.cg.finish(self.matvec, opts.cg_max_iter, opts.check_every, self.matvec.graph_key,
-                           done=self.first)
-        if self.space is not None and warm:
-            run_captured(self._graphs, "add", self._add_solution)
-        if not ends_step:  # also after a failed solve: its output is discarded
-            run_captured(self._graphs, "C", self._phase_c)
-        summary = self.summary.cpu()  # the step's one synchronisation
+            ends_step = False
+            if self.preconditioned:
+                self._preconditioned_solve(warm)
+            else:
+                run_captured(self._graphs, ("A", warm), lambda: self._single_phase_a(warm))
+                ends_step = self._a_ends[warm]
+                self.cg.finish(self.matvec, opts.cg_max_iter, opts.check_every, self.matvec.graph_key,
+                               done=self.first)
+            if self.space is not None and warm:
+                run_captured(self._graphs, "add", self._add_solution)
+            if not ends_step:  # also after a failed solve: its output is discarded
+                run_captured(self._graphs, "C", self._phase_c)
+            summary = self.summary.cpu()  # the step's one synchronisation
         report = self.report_of(summary)
         if self.preconditioned:
             self._predicted = max(1, int(summary[1].numpy().max()))
