@@ -701,3 +701,11 @@ def test_warm_start_probe_quick():
     for warm in ("extrapolate", "project"):
         assert measured[warm][1] == measured[f"{warm}, classic CG"][1]
         assert sum(measured[warm][1]) < sum(measured["none"][1])
+
+
+def test_mixed_step_probe_quick():
+    """The mixed-step probe times mixed and full steps of a small paper beam (CPU, eager)."""
+    import mixed_step_probe as probe
+
+    times = probe.main(["--device", "cpu", "--elements", "1200", "--young", "1e5", "--no-profile"])
+    assert set(times) == {(1e5, "mixed"), (1e5, "full")} and all(ms > 0 for ms in times.values())
