@@ -77,14 +77,15 @@ class MemoryEstimate:
 
 
 def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype = torch.float32,  # noqa: F821
-                    form: str = "auto", warm_start="none") -> MemoryEstimate:
+                    form: str = "auto", warm_start="none", precision: str = "full") -> MemoryEstimate:
     """The device memory a ``Simulator`` of ``bodies`` (a ``tm.Body`` or a list) needs, before it
     is built: a :class:`MemoryEstimate` (peak over construction and the first steps, and what it
     holds while stepping), from bytes an element and a node of each kind and model (``HELD``,
     ``PEAK_EXTRA``); on a GPU add ``FIXED_BYTES``.
     ``dtype``: the simulator's (float32 or float64); ``form``, ``warm_start``: as ``Simulator``'s
     (``"project"`` holds its basis, ``PROJECTION_VECTORS`` float64 vectors, and its operations
-    make one more of that size at their peak)."""
+    make one more of that size at their peak; ``precision="mixed"`` holds a float32 copy of the
+    model beside the float64 one, ``solver.refine``)."""
     from ..physics.tensor_mass import _resolve_form
     from ..solver.guess import PROJECTION_VECTORS, warm_start_mode
     from .simulator import Body
@@ -93,9 +94,11 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
         bodies = [bodies]
     if dtype not in (torch.float32, torch.float64):
         raise SceneError(f"estimate_memory: dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    if precision not in ("full", "mixed"):
+        raise SceneError(f"estimate_memory: precision must be 'full' or 'mixed', got {precision!r}")
     scale = torch.finfo(dtype).bits // 32  # floating-point parts are float32 bytes
 
-    def bytes_of(parts: Tuple[Parts, Parts], count: int, nodes: int) -> int:
+    def bytes_of(parts: Tuple[Parts, Parts], count: int, nodes: int, scale: int = scale) -> int:
         (element_index, element_float), (node_index, node_float) = parts
         return (count * (element_index + scale * element_float)
                 + nodes * (node_index + scale * node_float))
@@ -112,6 +115,8 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
         elements += count
         basis = basis_bytes * nodes * body.mesh.vertices.shape[1]
         body_held = bytes_of(HELD[key], count, nodes) + basis
+        if precision == "mixed":  # the float32 copy the corrections run on
+            body_held += bytes_of(HELD[key], count, nodes, 1)
         held += body_held
         peak += body_held + bytes_of(PEAK_EXTRA[key], count, nodes) + basis
     return MemoryEstimate(elements, peak, held, dtype)
@@ -124,14 +129,15 @@ def free_bytes(device: torch.device) -> int:
     return int(free + torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device))
 
 
-def check_fits(bodies, dtype: torch.dtype, device: torch.device, form: str = "auto", warm_start="none") -> None:
+def check_fits(bodies, dtype: torch.dtype, device: torch.device, form: str = "auto", warm_start="none",
+               precision: str = "full") -> None:
     """Raise ``SceneError`` before anything is allocated where a scene of ``bodies`` cannot fit on
     the CUDA ``device`` (its estimated peak over the free memory), saying the estimate, what is
     free and about how many elements would fit. Other devices: nothing (host memory is the
     operating system's to refuse)."""
     if device.type != "cuda" or not torch.cuda.is_available():
         return
-    estimate = estimate_memory(bodies, dtype, form, warm_start)
+    estimate = estimate_memory(bodies, dtype, form, warm_start, precision)
     free = free_bytes(device)
     room = max(int((free - FIXED_BYTES) / PEAK_MARGIN), 0)  # for the estimated peak
     if estimate.peak_bytes > room:

@@ -255,7 +255,7 @@ class Simulator:
         #: whether the scene's memory was checked against the device's before it was built
         self.check_memory = check_memory
         if check_memory:  # before anything is allocated on the device
-            memory.check_fits(bodies, self.dtype, self.device, form, warm_start)
+            memory.check_fits(bodies, self.dtype, self.device, form, warm_start, precision)
         gravity = torch.as_tensor(gravity, dtype=self.dtype, device=self.device)
         if gravity.shape != (3,) or not bool(torch.isfinite(gravity).all()):
             raise SceneError(f"gravity must be 3 finite numbers, got {gravity.tolist()}")

@@ -59,6 +59,23 @@ def test_estimate_is_what_a_simulator_holds(model, shape):
     assert 0.75 < held / estimate.held_bytes < 1.25, (held, estimate)
 
 
+@pytest.mark.parametrize("model", ["hooke", "corotational"])
+def test_mixed_precision_holds_a_float32_copy(model):
+    """precision="mixed" holds the float32 copy of the model its corrections run on: the estimate
+    adds it, and is what a float64 simulator with it holds after two steps to within 25 %."""
+    body = beam_body(model)
+    full = tm.estimate_memory(body, torch.float64)
+    mixed = tm.estimate_memory(body, torch.float64, precision="mixed")
+    assert mixed.held_bytes == full.held_bytes + tm.estimate_memory(body).held_bytes
+    before = live_tensors()[1]
+    sim = tm.Simulator([body], dt=0.01, dtype=torch.float64, precision="mixed", cg_tol=1e-4)
+    sim.step(2)
+    held = live_tensors()[1] - before
+    assert 0.75 < held / mixed.held_bytes < 1.25, (held, mixed)
+    with pytest.raises(tm.SceneError, match="precision must be 'full' or 'mixed', got 'half'"):
+        tm.estimate_memory(body, precision="half")
+
+
 def test_a_scene_that_cannot_fit_fails_at_once_with_the_estimate(monkeypatch):
     """On a CUDA device whose free memory is below the estimated peak: one SceneError with the
     estimate, the free bytes and the elements that would fit, before anything is allocated
