@@ -119,21 +119,33 @@ class SolutionSpace:
         """Per-object values ``[k, B]`` -> per node ``[k, V, 1]``."""
         return per_object[:, self._node_object].unsqueeze(-1)
 
-    def _coefficients(self, rows: torch.Tensor, field: torch.Tensor) -> torch.Tensor:
-        """rows_i . field per object ``[k, B]``: ``rows [k, V, d]``, ``field [V, d]`` (float64)."""
-        return self._object_sums((rows * field).sum(-1))
+    def _coefficients(self, field: torch.Tensor) -> torch.Tensor:
+        """w_i . field per object ``[k, B]`` for the basis rows w_i, ``field [V, d]`` (float64). One
+        object: one matrix-vector product (a pass over the basis); several: per-node products
+        summed per object."""
+        if self._objects == 1:
+            return torch.mv(self.basis.view(self.capacity, -1), field.reshape(-1)).unsqueeze(1)
+        return self._object_sums((self.basis * field).sum(-1))
+
+    def _combination(self, coefficients: torch.Tensor) -> torch.Tensor:
+        """sum_i w_i c_i ``[V, d]`` (float64) for per-object coefficients ``[k, B]``: one
+        matrix-vector product for one object (a pass over the basis)."""
+        if self._objects == 1:
+            return torch.mv(self.basis.view(self.capacity, -1).T, coefficients[:, 0]).view(self.basis.shape[1:])
+        return (self.basis * self._spread(coefficients)).sum(0)
 
     def guess(self, rhs: torch.Tensor) -> torch.Tensor:
         """The projected guess ``[V, d]`` (the solve's dtype) of the solution of A x = ``rhs [V, d]``
         (the right-hand side on the free nodes): sum_i w_i (w_i . rhs) per object; zeros while
         the space is empty. Notes each row's share of it (what :meth:`add` replaces)."""
-        coefficients = self._coefficients(self.basis, rhs.to(torch.float64)) * self.valid[:, None]
+        coefficients = self._coefficients(rhs.to(torch.float64)) * self.valid[:, None]
         energy = coefficients.square()
         share = (energy / energy.sum(0).clamp(min=torch.finfo(torch.float64).tiny)).sum(1)
         self.share.copy_(torch.where(self.valid > 0, share, -1.0))
-        return (self.basis * self._spread(coefficients)).sum(0).to(self.dtype)
+        return self._combination(coefficients).to(self.dtype)
 
-    def add(self, solution: torch.Tensor, product: Callable[[torch.Tensor], torch.Tensor]) -> None:
+    def add(self, solution: torch.Tensor, product: Callable[[torch.Tensor], torch.Tensor],
+            image: Optional[torch.Tensor] = None) -> None:
         """Join ``solution [V, d]`` (a solve's x) to the space; ``product``: p ``[V, d]`` -> A p
         ``[V, d]`` (the solve's dtype) with the matrix the guesses are for. Its part
         A-orthogonal to the basis, normalised, is written over the row the last guess used
@@ -143,13 +155,15 @@ class SolutionSpace:
         Gram-Schmidt twice (classical), each pass's coefficients w_i . A y from the product of
         y: the first pass's y is the solution, the second's what the first left, whose own
         product then also gives its norm (w . A w1 = w . A w to roundoff, w being A-orthogonal
-        to the basis). Two products, and no images A W kept: half the memory of keeping them."""
+        to the basis). Two products, and no images A W kept: half the memory of keeping them.
+        ``image``: A ``solution`` ``[V, d]`` where the caller has it exactly (a refined solve's
+        b - r, its residual being the true one: one product fewer), else None."""
         direction = solution.to(torch.float64)
-        image = product(solution).to(torch.float64)
+        image = (product(solution) if image is None else image).to(torch.float64)
         whole_sq = self._object_sums((direction * image).sum(-1))
         for first in (True, False):
-            along = self._spread(self._coefficients(self.basis, image) * self.valid[:, None])  # w_i . A y
-            direction = direction - (self.basis * along).sum(0)
+            along = self._coefficients(image) * self.valid[:, None]  # w_i . A y
+            direction = direction - self._combination(along)
             if first:
                 image = product(direction.to(self.dtype)).to(torch.float64)
         norm_sq = self._object_sums((direction * image).sum(-1))

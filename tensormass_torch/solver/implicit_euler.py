@@ -723,7 +723,7 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
     else:
         solver, run = system.cg_solver(rhs, opts.cuda_graphs), None
 
-    def outcome(result: CGResult, final: bool) -> CGResult:
+    def outcome(result: CGResult, final: bool, image: Optional[torch.Tensor] = None) -> CGResult:
         if run is not None:  # each object of a coupled run takes the run's outcome
             result = CGResult(result.solution, *(t[run] for t in (result.iterations, result.residual_norm,
                                                                   result.rhs_norm, result.converged,
@@ -731,13 +731,14 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
         if scaling is not None:
             result = dataclasses.replace(result, solution=scaling.apply(result.solution))
         if space is not None and final:
-            space.add(result.solution, lambda p: _projected_product(product, p, system.free))
+            space.add(result.solution, lambda p: _projected_product(product, p, system.free), image)
         return result
 
     if opts.precision == "mixed":  # float64 residuals, float32 corrections (no preconditioner, no pairs, no pause)
         refinement = system.refinement(opts)
         result = refinement.solve(solver, matvec, x, rhs, x0, opts.cg_tol, opts.cg_max_iter, opts.check_every)
-        return outcome(result, True), None
+        # (its residual is the true one: A x = b - r, one product fewer for the space)
+        return outcome(result, True, solver._project(rhs) - solver.state.r), None
     result = solver.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
                           graph_key=graph_key, preconditioner=multigrid, pause_tol=pause_tol)
     if not solver.paused:
@@ -1169,8 +1170,10 @@ class StepGraphs:
             self.guess.copy_(self.space.guess(self.cg._project(rhs)))
 
     def _add_solution(self):
-        """The solve's solution joined to the solution space (two products more)."""
-        self.space.add(self.cg.state.x, lambda p: self.cg._apply(self.matvec, p)[0])
+        """The solve's solution joined to the solution space (two products more; one after a refined
+        solve, whose residual is the true one: A x = b - r)."""
+        image = None if self.refinement is None else self.cg._project(self.rhs) - self.cg.state.r
+        self.space.add(self.cg.state.x, lambda p: self.cg._apply(self.matvec, p)[0], image)
 
     def _start_phase(self, preconditioner, warm: bool):
         """A preconditioned solve's start (from :attr:`guess` where ``warm``)."""

@@ -85,6 +85,9 @@ class Refinement:
         self.x32 = torch.zeros_like(like)  # the float64 positions rounded, where A_32 is linearised
         self.r32 = torch.zeros_like(like)  # a correction's right-hand side
         self._node_object = system.segments.node_object.to(like.device)
+        #: each correction's tolerance relative to the residual it corrects (read when a round is
+        #: captured: set it before the first step)
+        self.inner_tol = INNER_TOL
 
     @property
     def whole(self) -> bool:
@@ -102,12 +105,12 @@ class Refinement:
 
     def prepare(self, cg: CGSolver, tol: float, max_iter: int) -> None:
         """A correction's start: r_32 = r where the object is still active (zero elsewhere), its
-        threshold max(INNER_TOL^2 r.r, tol^2 b.b / 4) (no tighter than the float64 tolerance
+        threshold max(inner_tol^2 r.r, tol^2 b.b / 4) (no tighter than the float64 tolerance
         needs)."""
         s, t = cg.state, self.cg32.state
         active = (s.status == ACTIVE).to(s.r.dtype)[self._node_object].unsqueeze(-1)
         torch.mul(s.r, active, out=self.r32)
-        self.cg32.start(self.matvec32, self.r32, None, INNER_TOL, max_iter)
+        self.cg32.start(self.matvec32, self.r32, None, self.inner_tol, max_iter)
         floor = cg.rhs_sq.to(torch.float32) * (0.25 * tol * tol)
         torch.maximum(t.threshold, floor, out=t.threshold)
         t.status.copy_(torch.where((t.status == ACTIVE) & (t.rr <= t.threshold), CONVERGED, t.status))

@@ -67,6 +67,19 @@ def test_the_guess_is_the_galerkin_projection_on_the_solutions():
     assert float(space.guess(b).abs().max()) == 0.0
 
 
+def test_a_given_image_is_the_product_it_spares():
+    """add(x, product, image=A x) (a refined solve's b - r) makes the basis add(x, product) makes."""
+    a, segments = block_diagonal_system([10])
+    apply = product(a)
+    spaces = [SolutionSpace(torch.zeros(10, 3, dtype=DT), segments, capacity=3) for _ in range(2)]
+    for k in range(4):
+        x = random_field(10, k)
+        for given, space in zip((False, True), spaces):
+            space.guess(apply(x))
+            space.add(x, apply, apply(x) if given else None)
+    torch.testing.assert_close(spaces[1].basis, spaces[0].basis, rtol=0, atol=1e-14)
+
+
 def test_a_full_space_replaces_the_row_the_last_guess_used_least():
     a, segments = block_diagonal_system([8])
     apply = product(a)
