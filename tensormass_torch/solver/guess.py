@@ -34,7 +34,8 @@ whatever the guess, so the step means the same.
 
 Every operation is a tensor op of fixed shape on the solve's device, with no host
 synchronisation (the captured step graphs run them), and the per-object sums reduce in a fixed
-order (a cumulative sum), so results are reproducible.
+order (one object: matrix-vector products, one pass over the basis each; several: a cumulative
+sum), so results are reproducible.
 """
 from __future__ import annotations
 
