@@ -3,7 +3,7 @@ side, the projected warm start and the residuals in float64, the CG in float32 (
 refinement), against float64 CG from the same kind of guess.
 
     python benchmarks/probes/mixed_precision_probe.py [--young 1e5 1e7] [--elements 38400]
-                                                      [--steps 40] [--settle 10] [--inner-tol 1e-3]
+                                                      [--steps 40] [--settle 10] [--inner-tol 1e-3] [--vectors 32]
                                                       [--out benchmarks/results/preconditioners]
 
 Why: a float32 step cannot converge to 1e-6 of its float64 counterpart (its right-hand side, the
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import common  # noqa: E402
 from assembled import AssembledStepper, sparse_matvec  # noqa: E402
 
-from tensormass_torch.solver.guess import SolutionSpace  # noqa: E402
+from tensormass_torch.solver.guess import PROJECTION_VECTORS, SolutionSpace  # noqa: E402
 
 TOL = 1e-6
 
@@ -73,7 +73,8 @@ def refine(product64, product32, rhs: torch.Tensor, x: torch.Tensor, inner_tol: 
         x, _ = x + d.to(torch.float64), inner.append(k)
 
 
-def measure(young: float, elements: int, steps: int, settle: int, inner_tol: float) -> dict:
+def measure(young: float, elements: int, steps: int, settle: int, inner_tol: float,
+            vectors: int = PROJECTION_VECTORS) -> dict:
     sim, gravity = common.cantilever_sim("tet", "hooke", elements, "cpu", torch.float64, young=young)
     stepper = AssembledStepper(sim, gravity)
     stepper.assemble(stepper.x)
@@ -82,7 +83,7 @@ def measure(young: float, elements: int, steps: int, settle: int, inner_tol: flo
     product32 = sparse_matvec(torch.sparse_csr_tensor(matrix64.crow_indices(), matrix64.col_indices(),
                                                       matrix64.values().to(torch.float32), matrix64.shape))
 
-    spaces = {way: SolutionSpace(stepper.x, sim.segments) for way in ("float64", "mixed")}
+    spaces = {way: SolutionSpace(stepper.x, sim.segments, vectors) for way in ("float64", "mixed")}
     h, rows = stepper.h, []
     for step in range(steps):
         rhs = stepper.rhs()
@@ -105,6 +106,7 @@ def measure(young: float, elements: int, steps: int, settle: int, inner_tol: flo
     kept = rows[settle:]
     mean = lambda key: sum(key(r) for r in kept) / max(len(kept), 1)  # noqa: E731
     return dict(young=young, elements=sim.model.num_elements, steps=steps, settle=settle, inner_tol=inner_tol,
+                vectors=vectors,
                 float64_iterations=mean(lambda r: r["float64_iterations"]),
                 float32_iterations=mean(lambda r: sum(r["float32_iterations"])),
                 float64_products=mean(lambda r: r["float64_products"]),
@@ -118,11 +120,13 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--settle", type=int, default=10, help="steps left out of the means (the spaces fill)")
     parser.add_argument("--inner-tol", type=float, default=1e-3, help="the float32 corrections' relative tolerance")
+    parser.add_argument("--vectors", type=int, default=PROJECTION_VECTORS, help="the projection's basis vectors")
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "results" / "preconditioners"))
     args = parser.parse_args(argv)
     if args.settle >= args.steps:
         raise SystemExit(f"--settle ({args.settle}) must be less than --steps ({args.steps})")
-    records = [measure(young, args.elements, args.steps, args.settle, args.inner_tol) for young in args.young]
+    records = [measure(young, args.elements, args.steps, args.settle, args.inner_tol, args.vectors)
+               for young in args.young]
     for r in records:
         print(f"E = {r['young']:g}, {r['elements']} tets, steps {r['settle']}-{r['steps'] - 1}: float64 CG "
               f"{r['float64_iterations']:.1f} iterations a step; mixed {r['float32_iterations']:.1f} float32 "

@@ -704,8 +704,10 @@ def test_warm_start_probe_quick():
 
 
 def test_mixed_step_probe_quick():
-    """The mixed-step probe times mixed and full steps of a small paper beam (CPU, eager)."""
+    """The mixed-step probe times the float32 25-iteration, mixed and float64 steps of a small paper
+    beam, alternated (CPU, eager)."""
     import mixed_step_probe as probe
 
-    times = probe.main(["--device", "cpu", "--elements", "1200", "--young", "1e5", "--no-profile"])
-    assert set(times) == {(1e5, "mixed"), (1e5, "full")} and all(ms > 0 for ms in times.values())
+    medians = probe.main(["--device", "cpu", "--elements", "1200", "--young", "1e5", "--no-profile", "--repeats", "2"])
+    assert set(medians) == {(1e5, probe.BASELINE), (1e5, "mixed"), (1e5, "float64, full")}
+    assert all(ms > 0 for ms in medians.values())

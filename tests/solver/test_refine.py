@@ -184,3 +184,22 @@ def test_cuda_captured_steps_match_the_cpu(warm_start, model):
     torch.testing.assert_close(runs[1].x.cpu(), runs[0].x, rtol=0, atol=1e-8)
     (graphs,) = runs[1].system._step_graphs.values()
     assert graphs.refinement is not None and any(g not in (None, False) for g in graphs._graphs.values())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_captured_steps_after_removed_elements():
+    """Elements removed between captured mixed steps: the float32 copy is made again, the step's
+    graphs captured again over it, and the steps still equal the CPU's."""
+    runs = []
+    for device in ("cpu", "cuda"):
+        sim = tm.Simulator([beam()], dt=0.01, cg_tol=1e-8, device=device, precision="mixed", warm_start="project")
+        sim.step(5)
+        first = sim.system.refinement(sim.options)
+        sim.remove_elements(0, list(range(40, 60)))
+        sim.step(5)
+        assert sim.system.refinement(sim.options) is not first
+        if device == "cuda":
+            (graphs,) = sim.system._step_graphs.values()
+            assert graphs.refinement is sim.system.refinement(sim.options)
+        runs.append(sim.x.cpu())
+    torch.testing.assert_close(runs[1], runs[0], rtol=0, atol=1e-8)
