@@ -286,6 +286,23 @@ def deform(rng):
     return lambda scene, **kw: large_deformation(rng, scene, **kw)
 
 
+def beam_scene_file(path, solver: str, cells=(2, 1, 1), steps: int = 2, header: str = ""):
+    """Write a scene file at ``path`` of one clamped hooke beam (1 x 0.5 x 0.5, ``cells``) with the
+    ``[solver]`` table's lines ``solver`` (and top-level lines ``header``); returns ``path``."""
+    path.write_text(f"""
+dt = 0.01
+steps = {steps}
+{header}
+[solver]
+{solver}
+[[bodies]]
+mesh = {{ generator = "beam", cells = {list(cells)}, size = [1.0, 0.5, 0.5] }}
+material = {{ model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }}
+fixed = {{ box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }}
+""")
+    return path
+
+
 def live_tensors():
     """(count, bytes of distinct storages) of the tensors the Python heap holds (fake tensors,
     which have no storage, left out)."""

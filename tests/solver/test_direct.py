@@ -6,6 +6,7 @@ import sys
 
 import pytest
 import torch
+from conftest import beam_scene_file
 
 import tensormass_torch as tm
 from tensormass_torch.solver import direct, multigrid
@@ -79,17 +80,7 @@ def test_cuda_matches_the_cpu():
 
 
 def test_scene_file_and_bad_input(tmp_path, monkeypatch):
-    path = tmp_path / "cholesky.toml"
-    path.write_text("""
-dt = 0.01
-steps = 2
-[solver]
-preconditioner = "cholesky"
-[[bodies]]
-mesh = { generator = "beam", cells = [4, 1, 1], size = [1.0, 0.5, 0.5] }
-material = { model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }
-fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
-""")
+    path = beam_scene_file(tmp_path / "cholesky.toml", 'preconditioner = "cholesky"', cells=(4, 1, 1))
     scene = tm.load_scene(path)
     assert scene.simulator.options.preconditioner == "cholesky"
     scene.simulator.step(2)

@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from conftest import beam_scene_file
 
 import tensormass_torch as tm
 from tensormass_torch.solver.implicit_euler import implicit_euler_step
@@ -153,17 +154,7 @@ def test_cuda_matches_the_cpu(model, integrator):
 
 
 def test_scene_file_and_bad_input(tmp_path):
-    path = tmp_path / "newmark.toml"
-    path.write_text("""
-dt = 0.01
-steps = 3
-[solver]
-integrator = "newmark"
-[[bodies]]
-mesh = { generator = "beam", cells = [2, 1, 1], size = [1.0, 0.5, 0.5] }
-material = { model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }
-fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
-""")
+    path = beam_scene_file(tmp_path / "newmark.toml", 'integrator = "newmark"', steps=3)
     scene = tm.load_scene(path)
     assert scene.simulator.options.integrator == "newmark"
     with pytest.raises(tm.SceneError, match="integrator must be one of 'backward_euler', 'newmark', 'bdf2', got 'bdf3'"):

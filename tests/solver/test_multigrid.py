@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import GROUP_CASES, group_meshes
+from conftest import GROUP_CASES, beam_scene_file, group_meshes
 
 import tensormass_torch as tm
 from tensormass_torch.ops.segments import Segments
@@ -353,17 +353,7 @@ def test_the_hierarchy_follows_a_cut_and_the_coefficients():
 
 
 def test_scene_file_and_bad_input(tmp_path, monkeypatch):
-    path = tmp_path / "multigrid.toml"
-    path.write_text("""
-dt = 0.01
-steps = 2
-[solver]
-preconditioner = "multigrid"
-[[bodies]]
-mesh = { generator = "beam", cells = [6, 2, 2], size = [1.0, 0.5, 0.5] }
-material = { model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }
-fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
-""")
+    path = beam_scene_file(tmp_path / "multigrid.toml", 'preconditioner = "multigrid"', cells=(6, 2, 2))
     scene = tm.load_scene(path)
     assert scene.simulator.options.preconditioner == "multigrid"
     scene.simulator.step(2)

@@ -5,6 +5,7 @@ with friction, Newmark, warm starts and removed elements; the CPU extension agai
 CUDA's captured steps against the CPU; failures reported as a float64 solve's; bad input."""
 import pytest
 import torch
+from conftest import beam_scene_file
 
 import tensormass_torch as tm
 from tensormass_torch.solver import implicit_euler
@@ -138,18 +139,7 @@ def test_a_solve_short_of_the_tolerance_fails_as_a_float64_one():
 
 
 def test_scene_key_and_bad_input(tmp_path):
-    path = tmp_path / "mixed.toml"
-    path.write_text("""
-dt = 0.01
-steps = 2
-dtype = "float64"
-[solver]
-precision = "mixed"
-[[bodies]]
-mesh = { generator = "beam", cells = [2, 1, 1], size = [1.0, 0.5, 0.5] }
-material = { model = "hooke", young = 1e5, poisson = 0.3, density = 1000.0 }
-fixed = { box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }
-""")
+    path = beam_scene_file(tmp_path / "mixed.toml", 'precision = "mixed"', header='dtype = "float64"')
     scene = tm.load_scene(path)
     assert scene.simulator.options.precision == "mixed"
     scene.simulator.step(2)
