@@ -303,6 +303,20 @@ fixed = {{ box = [[0.0, 0.0, 0.0], [0.0, 0.5, 0.5]] }}
     return path
 
 
+def on_each_cpu_backend(monkeypatch, run):
+    """``[run() with the CPU extension's kernels, run() with the pure-torch ops]``
+    (``TENSORMASS_BACKEND``); skips the test where the CPU extension is not built."""
+    from tensormass_torch import _backend
+
+    if not _backend.use_extension("cpu"):
+        pytest.skip("the CPU extension is not built")
+    results = []
+    for mode in ("extension", "torch"):
+        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+        results.append(run())
+    return results
+
+
 def live_tensors():
     """(count, bytes of distinct storages) of the tensors the Python heap holds (fake tensors,
     which have no storage, left out)."""

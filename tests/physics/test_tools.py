@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import random_rotation, u_shape_surface
+from conftest import on_each_cpu_backend, random_rotation, u_shape_surface
 
 import tensormass_torch as tm
 from tensormass_torch.mesh.topology import boundary_faces
@@ -248,20 +248,17 @@ def test_bad_motion_and_tool_list_raise():
 
 def test_cpu_extension_and_pure_torch_agree(monkeypatch):
     """The same steps with the extension's kernels and with the pure-torch ops."""
-    from tensormass_torch import _backend
-
     mesh, mat = block(model="hooke")
     sphere = tm.Sphere(0.1, times=[0.0, 0.1], positions=[[0, 0, 0.3], [0, 0, 0.25]], stiffness=1e4)
-    runs = []
-    for mode in ("extension", "torch"):
-        if mode == "extension" and not _backend.use_extension("cpu"):
-            pytest.skip("the CPU extension is not built")
-        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+
+    def run():
         sim = tm.Simulator([tm.Body(mesh, mat)], dt=0.01, planes=[tm.Plane((0, 0, 1), 0.0, 1e5)], tools=[sphere],
                            cg_tol=1e-12, cg_max_iter=3000)
         sim.step(12)
-        runs.append(sim.x.clone())
-    torch.testing.assert_close(runs[0], runs[1], rtol=1e-9, atol=1e-11)
+        return sim.x.clone()
+
+    extension, pure = on_each_cpu_backend(monkeypatch, run)
+    torch.testing.assert_close(extension, pure, rtol=1e-9, atol=1e-11)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

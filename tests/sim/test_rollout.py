@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import tensormass_torch as tm
-from tests.conftest import build_scene, random_material
+from tests.conftest import build_scene, on_each_cpu_backend, random_material
 
 STEPS = 3
 
@@ -183,19 +183,14 @@ def test_gradients_from_rest_are_finite(model, rotation, kind):
 
 
 def test_the_cpu_extension_and_pure_torch_agree(rng, monkeypatch):
-    from tensormass_torch import _backend
-
-    if not _backend.use_extension("cpu"):
-        pytest.skip("the CPU extension is not built")
-    grads = []
-    for mode in ("extension", "torch"):
-        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+    def run():
         sim = _sim(np.random.default_rng(7), "tet", "corotational")
         young = torch.tensor(1e4, dtype=torch.float64, requires_grad=True)
         x0 = sim.x.clone().requires_grad_(True)
         tm.rollout(sim, STEPS, young=young, x0=x0).x.square().sum().backward()
-        grads.append((young.grad, x0.grad))
-    for a, b in zip(*grads):
+        return young.grad, x0.grad
+
+    for a, b in zip(*on_each_cpu_backend(monkeypatch, run)):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
 
 

@@ -8,7 +8,7 @@ import math
 
 import pytest
 import torch
-from conftest import beam_scene_file
+from conftest import beam_scene_file, on_each_cpu_backend
 
 import tensormass_torch as tm
 from tensormass_torch.solver.implicit_euler import implicit_euler_step
@@ -118,21 +118,17 @@ def test_orders_of_accuracy_in_frequency_and_amplitude():
 @pytest.mark.parametrize("integrator", ["newmark", "bdf2"])
 def test_the_cpu_extension_and_pure_torch_agree(monkeypatch, integrator):
     """Steps of a corotational beam with damping and a floor, extension against pure torch."""
-    from tensormass_torch import _backend
-
-    if not _backend.use_extension("cpu"):
-        pytest.skip("the CPU extension is not built")
-    runs = []
-    for mode in ("extension", "torch"):
-        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+    def run():
         mesh = tm.beam_mesh(4, 1, 1, size=(1.0, 0.25, 0.25), dtype=DT)
         body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0, model="corotational"),
                        fixed=mesh.vertices[:, 0] == 0)
         sim = tm.Simulator([body], dt=0.01, rayleigh_mass=0.1, rayleigh_stiffness=0.001, cg_tol=1e-12,
                            planes=[tm.Plane((0, 0, 1), -0.1, 1e4)], integrator=integrator, cuda_graphs=False)
         sim.step(20)
-        runs.append(sim.x.clone())
-    torch.testing.assert_close(runs[0], runs[1], rtol=0, atol=1e-10)
+        return sim.x.clone()
+
+    extension, pure = on_each_cpu_backend(monkeypatch, run)
+    torch.testing.assert_close(extension, pure, rtol=0, atol=1e-10)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import GROUP_CASES, beam_scene_file, group_meshes
+from conftest import GROUP_CASES, beam_scene_file, group_meshes, on_each_cpu_backend
 
 import tensormass_torch as tm
 from tensormass_torch.ops.segments import Segments
@@ -306,17 +306,13 @@ def test_a_multigrid_step_is_the_plain_step(model):
 
 
 def test_the_cpu_extension_and_pure_torch_agree(monkeypatch):
-    from tensormass_torch import _backend
-
-    if not _backend.use_extension("cpu"):
-        pytest.skip("the CPU extension is not built")
-    runs = []
-    for mode in ("extension", "torch"):
-        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+    def run():
         sim = beam_sim(model="corotational", planes=[tm.Plane((0, 0, 1), -0.02, 1e4)])
         sim.step(10)
-        runs.append(sim.x.clone())
-    torch.testing.assert_close(runs[0], runs[1], rtol=0, atol=1e-10)
+        return sim.x.clone()
+
+    extension, pure = on_each_cpu_backend(monkeypatch, run)
+    torch.testing.assert_close(extension, pure, rtol=0, atol=1e-10)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -5,7 +5,7 @@ with friction, Newmark, warm starts and removed elements; the CPU extension agai
 CUDA's captured steps against the CPU; failures reported as a float64 solve's; bad input."""
 import pytest
 import torch
-from conftest import beam_scene_file
+from conftest import beam_scene_file, on_each_cpu_backend
 
 import tensormass_torch as tm
 from tensormass_torch.solver import implicit_euler
@@ -111,18 +111,14 @@ def test_newmark_and_removed_elements():
 
 
 def test_the_cpu_extension_and_pure_torch_agree(monkeypatch):
-    from tensormass_torch import _backend
-
-    if not _backend.use_extension("cpu"):
-        pytest.skip("the CPU extension is not built")
-    runs = []
-    for mode in ("extension", "torch"):
-        monkeypatch.setenv("TENSORMASS_BACKEND", mode)
+    def run():
         sim = simulator("mixed", [beam(model="corotational")], planes=[tm.Plane((0, 0, 1), -0.02, 1e4)],
                         warm_start="project")
         sim.step(8)
-        runs.append(sim.x.clone())
-    torch.testing.assert_close(runs[0], runs[1], rtol=0, atol=1e-9)
+        return sim.x.clone()
+
+    extension, pure = on_each_cpu_backend(monkeypatch, run)
+    torch.testing.assert_close(extension, pure, rtol=0, atol=1e-9)
 
 
 def test_a_solve_short_of_the_tolerance_fails_as_a_float64_one():
