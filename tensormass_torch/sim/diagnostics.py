@@ -368,6 +368,11 @@ def allocations(sim) -> Dict[str, int]:
     for k, graphs in enumerate(system._step_graphs.values()):
         for name in ("x", "v", "imposed", "x_new", "v_new", "dv_imposed", "norms", "v_norms"):
             add(f"solver.step_graphs{k}.{name}", getattr(graphs, name, None))
+    for k, (_, _, refinement) in enumerate(system._refinements.values()):  # precision="mixed"'s float32 copy
+        for name, t in refinement.system32.model.named_buffers():
+            add(f"solver.refine{k}.model.{name}", t)
+        for name, t in vars(refinement.cg32.state).items():
+            add(f"solver.refine{k}.cg.{name}", t)
     for name in ("x", "v", "fixed", "prescribed"):
         add(f"state.{name}", getattr(sim, name))
     return out

@@ -232,7 +232,7 @@ def test_minimal_scene_allocates_only_what_it_needs():
     assert {"edges", "edge_k"} <= group
     assert sim.system.planes is None and sim.system.free is None
     for forbidden in ("tensor_b", "tensor_c", "tensor_d", "rest_elements", "rest_normals", "projector", "planes",
-                      "node_stiffness", "shape_vectors", ".tri."):
+                      "node_stiffness", "shape_vectors", ".tri.", "solver.refine"):
         assert not any(forbidden in n for n in names), forbidden
     # no linearisation state for a model whose stiffness does not depend on x
     assert all(s is None for m in sim.system._matvecs.values() for s in m.states)
@@ -251,6 +251,20 @@ def test_full_scene_holds_what_the_minimal_one_leaves_out():
     for wanted in ("projector", "rest_normals", "system.planes.normals", "node_stiffness", "system.free",
                    ".tri.", "shape_vectors"):
         assert any(wanted in n for n in names), wanted
+
+
+def test_a_mixed_precision_scene_lists_its_float32_copy():
+    """precision="mixed": the float32 copy of the model and its CG's buffers are in the
+    allocations (so allocation_summary counts them)."""
+    mesh = tm.beam_mesh(4, 1, 1, size=(1.0, 0.25, 0.25), dtype=torch.float64)
+    body = tm.Body(mesh, tm.Material(young=1e5, poisson=0.3, density=1000.0), fixed=mesh.vertices[:, 0] == 0)
+    sim = tm.Simulator([body], dt=0.01, precision="mixed", cg_tol=1e-4)
+    sim.step(2)
+    names = allocations(sim)
+    (refinement,) = [kept[2] for kept in sim.system._refinements.values()]
+    floats = [t for _, t in refinement.system32.model.named_buffers() if t.is_floating_point()]
+    assert floats and all(t.dtype == torch.float32 for t in floats)
+    assert any(n.startswith("solver.refine0.model.") for n in names) and "solver.refine0.cg.x" in names
 
 
 def _cubes(offsets, sizes=None, contact=None):
