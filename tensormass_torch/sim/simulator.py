@@ -247,7 +247,7 @@ class Simulator:
             raise SceneError(f"bodies have mixed dtypes {sorted(map(str, dtypes))}; pass dtype=")
         self.device = torch.device(device) if device is not None else devices.pop()
         self.dtype = dtype if dtype is not None else dtypes.pop()
-        _check_precision(precision, self.dtype, preconditioner, tools, contact)
+        _check_precision(precision, self.dtype, preconditioner, contact)
         if not isinstance(check_memory, bool):
             raise SceneError(f"check_memory must be True or False, got {check_memory!r}")
         if not isinstance(cut_on_device, bool):
@@ -1179,7 +1179,7 @@ class Simulator:
         return 0.5 * self.segments.sum(self.system.mass * self.v * self.v)
 
 
-def _check_precision(precision, dtype, preconditioner, tools, contact) -> None:
+def _check_precision(precision, dtype, preconditioner, contact) -> None:
     """Raise SceneError where ``precision`` is unknown or ``"mixed"`` (float64 residuals, float32
     corrections: ``solver.refine``) cannot serve the scene."""
     if precision not in PRECISIONS:
@@ -1192,6 +1192,5 @@ def _check_precision(precision, dtype, preconditioner, tools, contact) -> None:
     if preconditioner not in ("auto", "none"):
         raise SceneError(f"precision='mixed' runs unpreconditioned float32 corrections: preconditioner must be "
                          f"'auto' or 'none', got {preconditioner!r}")
-    if tools or contact is not None:
-        raise SceneError("precision='mixed' supports planes, not tools or body contact (yet): "
-                         "use precision='full'")
+    if contact is not None:
+        raise SceneError("precision='mixed' does not take contact between bodies (yet): use precision='full'")

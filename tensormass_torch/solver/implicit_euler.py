@@ -118,7 +118,7 @@ class StepOptions:
         precision: ``"full"`` (default: every solve in the state's dtype) or ``"mixed"`` (a float64
             state's solves by iterative refinement: float64 residuals, float32 CG corrections;
             ``solver.refine``): the same stopping rule on the float64 residual at float32's cost
-            per iteration. TensorMass models, planes, no tools or body contact, no
+            per iteration. TensorMass models, planes and tools, no body contact, no
             preconditioner (:data:`refine.PRECISIONS`).
     """
 
@@ -277,8 +277,9 @@ class DynamicsSystem:
 
         if not isinstance(self.model, TensorMass):
             raise ValueError(f"precision='mixed' needs a TensorMass model, got a {type(self.model).__name__}")
-        if self.body_contact is not None or self.tools is not None:
-            raise ValueError("precision='mixed' supports planes, not tools or body contact")
+        if self.body_contact is not None:
+            raise ValueError("precision='mixed' does not take body contact (its pairs' product is not in the "
+                             "float32 copy)")
         if self.model.rest.dtype != torch.float64:
             raise ValueError(f"precision='mixed' needs a float64 state (float32 corrections), got "
                              f"{self.model.rest.dtype}")

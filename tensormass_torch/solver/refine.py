@@ -28,9 +28,10 @@ Invariants:
 - Every round is device work on buffers that keep their storage, with no host read: the
   captured steps (``implicit_euler.StepGraphs``) replay it as a graph.
 
-Scope: TensorMass models with planes, unpreconditioned corrections (the float32 CG runs the
-pipelined whole-solve op on the GPU where it serves), no tools or body contact: the simulator
-refuses the rest with one error.
+Scope: TensorMass models with planes and tools (their penalties reach A_32 through the float64
+product's node stiffness), unpreconditioned corrections (the float32 CG runs the pipelined
+whole-solve op on the GPU where it serves), no body contact (its pairs' product is not in the
+float32 copy): the simulator refuses the rest with one error.
 """
 from __future__ import annotations
 
@@ -54,15 +55,15 @@ PRECISIONS = ("full", "mixed")
 
 def float32_system(system):
     """A ``DynamicsSystem`` like ``system`` (float64) in float32: a copy of its model, masses,
-    external forces, free-node mask and planes (the step matrix A_32 of the corrections)."""
+    external forces and free-node mask (the step matrix A_32 of the corrections). No contact terms:
+    their stiffness is the float64 product's, copied in (:meth:`Refinement.load`)."""
     from .implicit_euler import DynamicsSystem
 
     model = copy.deepcopy(system.model).to(torch.float32)
     constrained = (torch.zeros(system.mass.shape[0], dtype=torch.bool, device=system.mass.device)
                    if system.free is None else system.free[:, 0] == 0)
-    planes = None if system.planes is None else system.planes.to(dtype=torch.float32)
     return DynamicsSystem(model, system.mass[:, 0].to(torch.float32), system.external.to(torch.float32),
-                          system.segments, constrained, planes, keep_mask=system.free is not None)
+                          system.segments, constrained, keep_mask=system.free is not None)
 
 
 class Refinement:
@@ -96,11 +97,14 @@ class Refinement:
 
     def load(self, x: torch.Tensor, matvec) -> None:
         """Linearise A_32 at ``x [V, d]`` (float64) as ``matvec`` (the float64 product, loaded
-        there) is: its node stiffness (the planes' penalties and friction) is copied, so the two
-        matrices differ by rounding only."""
+        there) is: its node stiffness (the planes' and tools' penalties, friction) is copied into a
+        buffer of the float32 product (made at the first load, kept: graphs replay over it), so
+        the two matrices differ by rounding only."""
         self.x32.copy_(x)
         self.matvec32.load(self.x32)
         if matvec.node_stiffness is not None:
+            if self.matvec32.node_stiffness is None:
+                self.matvec32.node_stiffness = torch.empty_like(matvec.node_stiffness, dtype=torch.float32)
             self.matvec32.node_stiffness.copy_(matvec.node_stiffness)
 
     def prepare(self, cg: CGSolver, tol: float, max_iter: int) -> None:
