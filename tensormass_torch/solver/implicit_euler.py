@@ -739,7 +739,8 @@ def _solve_pausing(system: DynamicsSystem, x, rhs, opts: StepOptions, loaded=Non
         refinement = system.refinement(opts)
         result = refinement.solve(solver, matvec, x, rhs, x0, opts.cg_tol, opts.cg_max_iter, opts.check_every)
         # (its residual is the true one: A x = b - r, one product fewer for the space)
-        return outcome(result, True, solver._project(rhs) - solver.state.r), None
+        image = None if space is None else solver._project(rhs) - solver.state.r
+        return outcome(result, True, image), None
     result = solver.solve(matvec, rhs, x0=x0, tol=opts.cg_tol, max_iter=opts.cg_max_iter, check_every=opts.check_every,
                           graph_key=graph_key, preconditioner=multigrid, pause_tol=pause_tol)
     if not solver.paused:

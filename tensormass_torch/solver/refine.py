@@ -85,7 +85,6 @@ class Refinement:
         self.cg32: CGSolver = self.system32.cg_solver(like, cuda_graphs)
         self.x32 = torch.zeros_like(like)  # the float64 positions rounded, where A_32 is linearised
         self.r32 = torch.zeros_like(like)  # a correction's right-hand side
-        self._node_object = system.segments.node_object.to(like.device)
         #: each correction's tolerance relative to the residual it corrects (read when a round is
         #: captured: set it before the first step)
         self.inner_tol = INNER_TOL
@@ -112,8 +111,7 @@ class Refinement:
         threshold max(inner_tol^2 r.r, tol^2 b.b / 4) (no tighter than the float64 tolerance
         needs)."""
         s, t = cg.state, self.cg32.state
-        active = (s.status == ACTIVE).to(s.r.dtype)[self._node_object].unsqueeze(-1)
-        torch.mul(s.r, active, out=self.r32)
+        torch.mul(s.r, cg.plan.segments.spread((s.status == ACTIVE).to(s.r.dtype)), out=self.r32)
         self.cg32.start(self.matvec32, self.r32, None, self.inner_tol, max_iter)
         floor = cg.rhs_sq.to(torch.float32) * (0.25 * tol * tol)
         torch.maximum(t.threshold, floor, out=t.threshold)
