@@ -81,6 +81,45 @@ void cg_direction_cpu(at::Tensor p, const at::Tensor& r, const at::Tensor& beta,
   });
 }
 
+void cg_start_status_cpu(const at::Tensor& rr, const at::Tensor& rhs_sq, double tol_sq, int64_t max_iter,
+                         at::Tensor threshold, at::Tensor status, at::Tensor iterations, at::Tensor alpha,
+                         at::Tensor beta, const c10::optional<at::Tensor>& floor,
+                         const c10::optional<at::Tensor>& gate) {
+  const int64_t objects =
+      check_cg_start_status(rr, rhs_sq, max_iter, threshold, status, iterations, alpha, beta, floor, gate);
+  AT_DISPATCH_FLOATING_TYPES(rr.scalar_type(), "cg_start_status", [&] {
+    const scalar_t* floor_b = floor.has_value() && floor->defined() ? floor->data_ptr<scalar_t>() : nullptr;
+    const int32_t* gate_b = gate.has_value() && gate->defined() ? gate->data_ptr<int32_t>() : nullptr;
+    const scalar_t* rr_b = rr.data_ptr<scalar_t>();
+    const scalar_t* rhs_sq_b = rhs_sq.data_ptr<scalar_t>();
+    scalar_t* threshold_b = threshold.data_ptr<scalar_t>();
+    scalar_t* alpha_b = alpha.data_ptr<scalar_t>();
+    scalar_t* beta_b = beta.data_ptr<scalar_t>();
+    int32_t* st = status.data_ptr<int32_t>();
+    int32_t* it = iterations.data_ptr<int32_t>();
+    for (int64_t o = 0; o < objects; ++o) {
+      start_object<scalar_t>(rr_b[o], rhs_sq_b[o], static_cast<scalar_t>(tol_sq), max_iter, floor_b, gate_b, o,
+                             threshold_b[o], st[o], it[o], alpha_b[o], beta_b[o]);
+    }
+  });
+}
+
+void cg_round_end_cpu(const at::Tensor& rr, const at::Tensor& threshold, const at::Tensor& round_status,
+                      const at::Tensor& round_iterations, at::Tensor status, at::Tensor iterations) {
+  const int64_t objects = check_cg_round_end(rr, threshold, round_status, round_iterations, status, iterations);
+  AT_DISPATCH_FLOATING_TYPES(rr.scalar_type(), "cg_round_end", [&] {
+    const scalar_t* rr_b = rr.data_ptr<scalar_t>();
+    const scalar_t* threshold_b = threshold.data_ptr<scalar_t>();
+    const int32_t* round_st = round_status.data_ptr<int32_t>();
+    const int32_t* round_it = round_iterations.data_ptr<int32_t>();
+    int32_t* st = status.data_ptr<int32_t>();
+    int32_t* it = iterations.data_ptr<int32_t>();
+    for (int64_t o = 0; o < objects; ++o) {
+      round_end_object<scalar_t>(rr_b[o], threshold_b[o], round_st[o], round_it[o], st[o], it[o]);
+    }
+  });
+}
+
 void cg_coarse_beta_cpu(const at::Tensor& rr, const at::Tensor& u, const at::Tensor& v, const at::Tensor& item_ptr,
                         double weight, const at::Tensor& status, at::Tensor rz, at::Tensor beta) {
   const int64_t objects = check_cg_coarse_beta(rr, u, v, item_ptr, status, rz, beta);
@@ -206,5 +245,7 @@ TORCH_LIBRARY_IMPL(tensormass, CPU, m) {
   m.impl("cg_update", &tensormass::cg_update_cpu);
   m.impl("cg_direction", &tensormass::cg_direction_cpu);
   m.impl("cg_coarse_beta", &tensormass::cg_coarse_beta_cpu);
+  m.impl("cg_start_status", &tensormass::cg_start_status_cpu);
+  m.impl("cg_round_end", &tensormass::cg_round_end_cpu);
   m.impl("cg_pair_term", &tensormass::cg_pair_term_cpu);
 }

@@ -104,6 +104,29 @@ __global__ void __launch_bounds__(kBlock) cg_coarse_beta_kernel(const S* __restr
   }
 }
 
+// cg_start_status, cg_round_end: a thread an object (common/cg.h: start_object, round_end_object).
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_start_status_kernel(const S* __restrict__ rr, const S* __restrict__ rhs_sq,
+                                                                 S tol_sq, int64_t max_iter, const S* floor,
+                                                                 const int32_t* gate, int64_t objects, S* threshold,
+                                                                 int32_t* status, int32_t* iterations, S* alpha,
+                                                                 S* beta) {
+  const int64_t o = static_cast<int64_t>(blockIdx.x) * kBlock + threadIdx.x;
+  if (o >= objects) return;
+  start_object<S>(rr[o], rhs_sq[o], tol_sq, max_iter, floor, gate, o, threshold[o], status[o], iterations[o],
+                  alpha[o], beta[o]);
+}
+
+template <typename S>
+__global__ void __launch_bounds__(kBlock) cg_round_end_kernel(const S* __restrict__ rr, const S* __restrict__ threshold,
+                                                              const int32_t* __restrict__ round_status,
+                                                              const int32_t* __restrict__ round_iterations,
+                                                              int64_t objects, int32_t* status, int32_t* iterations) {
+  const int64_t o = static_cast<int64_t>(blockIdx.x) * kBlock + threadIdx.x;
+  if (o >= objects) return;
+  round_end_object<S>(rr[o], threshold[o], round_status[o], round_iterations[o], status[o], iterations[o]);
+}
+
 // cg_pair_term in two passes: a thread a pair over every object's pairs (an object may hold
 // hundreds of thousands: one block an object would walk them one after another), each pair's
 // part of r.z into dots; then a block an object sums its pairs' dots (coalesced, block_sum: a fixed
@@ -287,6 +310,40 @@ void cg_coarse_beta_cuda(const at::Tensor& rr, const at::Tensor& u, const at::Te
   });
 }
 
+unsigned int object_grid(int64_t objects) { return static_cast<unsigned int>((objects + kBlock - 1) / kBlock); }
+
+void cg_start_status_cuda(const at::Tensor& rr, const at::Tensor& rhs_sq, double tol_sq, int64_t max_iter,
+                          at::Tensor threshold, at::Tensor status, at::Tensor iterations, at::Tensor alpha,
+                          at::Tensor beta, const c10::optional<at::Tensor>& floor,
+                          const c10::optional<at::Tensor>& gate) {
+  const int64_t objects =
+      check_cg_start_status(rr, rhs_sq, max_iter, threshold, status, iterations, alpha, beta, floor, gate);
+  if (objects == 0) return;
+  c10::cuda::CUDAGuard guard(rr.device());
+  AT_DISPATCH_FLOATING_TYPES(rr.scalar_type(), "cg_start_status", [&] {
+    const scalar_t* floor_b = floor.has_value() && floor->defined() ? floor->data_ptr<scalar_t>() : nullptr;
+    const int32_t* gate_b = gate.has_value() && gate->defined() ? gate->data_ptr<int32_t>() : nullptr;
+    cg_start_status_kernel<scalar_t><<<object_grid(objects), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        rr.data_ptr<scalar_t>(), rhs_sq.data_ptr<scalar_t>(), static_cast<scalar_t>(tol_sq), max_iter, floor_b, gate_b,
+        objects, threshold.data_ptr<scalar_t>(), status.data_ptr<int32_t>(), iterations.data_ptr<int32_t>(),
+        alpha.data_ptr<scalar_t>(), beta.data_ptr<scalar_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
+void cg_round_end_cuda(const at::Tensor& rr, const at::Tensor& threshold, const at::Tensor& round_status,
+                       const at::Tensor& round_iterations, at::Tensor status, at::Tensor iterations) {
+  const int64_t objects = check_cg_round_end(rr, threshold, round_status, round_iterations, status, iterations);
+  if (objects == 0) return;
+  c10::cuda::CUDAGuard guard(rr.device());
+  AT_DISPATCH_FLOATING_TYPES(rr.scalar_type(), "cg_round_end", [&] {
+    cg_round_end_kernel<scalar_t><<<object_grid(objects), kBlock, 0, at::cuda::getCurrentCUDAStream()>>>(
+        rr.data_ptr<scalar_t>(), threshold.data_ptr<scalar_t>(), round_status.data_ptr<int32_t>(),
+        round_iterations.data_ptr<int32_t>(), objects, status.data_ptr<int32_t>(), iterations.data_ptr<int32_t>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+}
+
 void cg_pair_term_cuda(const at::Tensor& r, at::Tensor z, const at::Tensor& nodes, const at::Tensor& blocks,
                        const at::Tensor& item_ptr, const at::Tensor& rr, const at::Tensor& status, at::Tensor rz,
                        at::Tensor beta, at::Tensor dots, bool step) {
@@ -371,5 +428,7 @@ TORCH_LIBRARY_IMPL(tensormass, CUDA, m) {
   m.impl("cg_update", &tensormass::cg_update_cuda);
   m.impl("cg_direction", &tensormass::cg_direction_cuda);
   m.impl("cg_coarse_beta", &tensormass::cg_coarse_beta_cuda);
+  m.impl("cg_start_status", &tensormass::cg_start_status_cuda);
+  m.impl("cg_round_end", &tensormass::cg_round_end_cuda);
   m.impl("cg_pair_term", &tensormass::cg_pair_term_cuda);
 }

@@ -50,6 +50,21 @@ TORCH_LIBRARY_FRAGMENT(tensormass, m) {
   //   beta = rz_new / rz, rz = rz_new; objects that are not active are skipped.
   m.def("cg_dot_beta(Tensor r, Tensor z, Tensor chunk_start, Tensor chunk_object, Tensor object_chunk, "
         "Tensor status, Tensor(a!) rz, Tensor(b!) beta, Tensor(c!) scratch, Tensor(d!) counter) -> ()");
+  // cg_start_status(rr [B], rhs_sq [B], tol_sq, max_iter, threshold!, status!, iterations!, alpha!, beta!,
+  //                 floor? [B], gate? [B] int32)
+  //   the per-object start of a solve once its residual's r.r (rr) and b.b (rhs_sq) are known
+  //   (common/cg.h: start_object): threshold = tol_sq rhs_sq, raised to floor where given, infinite
+  //   where the gate (another solve's statuses) is not active; status non-finite, converged, capped
+  //   (max_iter 0) or active against it; iterations, alpha, beta zero. Every object.
+  m.def("cg_start_status(Tensor rr, Tensor rhs_sq, float tol_sq, int max_iter, Tensor(a!) threshold, "
+        "Tensor(b!) status, Tensor(c!) iterations, Tensor(d!) alpha, Tensor(e!) beta, Tensor? floor=None, "
+        "Tensor? gate=None) -> ()");
+  // cg_round_end(rr [B], threshold [B], round_status, round_iterations [B] int32, status!, iterations!)
+  //   the end of an iterative refinement's round (common/cg.h: round_end_object): an active object
+  //   takes the round's iterations and its failure (breakdown, non-finite), else the status of
+  //   its new r.r (non-finite, converged or still active); the others are left as they are.
+  m.def("cg_round_end(Tensor rr, Tensor threshold, Tensor round_status, Tensor round_iterations, "
+        "Tensor(a!) status, Tensor(b!) iterations) -> ()");
   // cg_coarse_beta(rr [B], u, v [N, k], item_ptr [B + 1] int64, weight, status, rz! [B], beta! [B])
   //   preconditioned CG's r.z and beta for z = B^-1 r + weight Z' y with a coarse correction's
   //   vectors u = Z'^T r and v = y = E^-1 u (common/cg.h: coarse_rz): per active object

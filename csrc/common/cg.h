@@ -19,6 +19,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 
 #include "common/element_math.h"
 #include "common/rigid_modes.h"
@@ -142,6 +143,42 @@ TM_HD int32_t cg_start_status(S rr, S threshold, int64_t max_iter) {
   if (!finite_value(rr)) return kNonfinite;
   if (rr <= threshold) return kConverged;
   return max_iter == 0 ? kCapped : kActive;
+}
+
+// cg_start_status for one object: the start of a solve from its residual's r.r once known. The
+// threshold is tol^2 b.b, raised to floor where one is given (a refinement's correction: no
+// tighter than the solve it corrects needs), and infinite where the gate (another solve's
+// statuses) holds the object stopped: it then starts converged (unless its r.r is not finite) and
+// does not iterate, its correction staying zero, also where a later start reads the threshold
+// again (the pipelined solve from an iterate). The status is cg_start_status's; the iteration
+// count and the step scalars start at zero.
+template <typename S>
+TM_HD void start_object(S rr, S rhs_sq, S tol_sq, int64_t max_iter, const S* floor, const int32_t* gate,
+                        int64_t b, S& threshold, int32_t& status, int32_t& iterations, S& alpha, S& beta) {
+  S t = rhs_sq * tol_sq;
+  if (floor != nullptr && t < floor[b]) t = floor[b];
+  if (gate != nullptr && gate[b] != kActive) t = std::numeric_limits<S>::infinity();
+  threshold = t;
+  status = cg_start_status<S>(rr, t, max_iter);
+  iterations = 0;
+  alpha = S(0);
+  beta = S(0);
+}
+
+// cg_round_end for one object: the end of a refinement round (solver/refine.py). An object still
+// active takes the round's iterations and the round's failure (breakdown, non-finite), else the
+// status of its new residual's r.r against its threshold (non-finite, converged or active: the
+// cap is the rounds', kept by the caller).
+template <typename S>
+TM_HD void round_end_object(S rr, S threshold, int32_t round_status, int32_t round_iterations, int32_t& status,
+                            int32_t& iterations) {
+  if (status != kActive) return;
+  iterations += round_iterations;
+  if (round_status == kBreakdown || round_status == kNonfinite) {
+    status = round_status;
+    return;
+  }
+  status = cg_start_status<S>(rr, threshold, 1);
 }
 
 // cg_alpha_dot's node kernel (cg/schema.cpp), for chunk_alpha_cpu / chunk_alpha_kernel: node i's

@@ -168,14 +168,57 @@ inline CGPlan check_cg_direction(const at::Tensor& p, const at::Tensor& r, const
   return plan;
 }
 
+// The per-object ops' first argument, rr [B] (float32 or float64): the object count B.
+inline int64_t cg_objects_of(const at::Tensor& rr) {
+  cg_check_values(rr, "rr");
+  TORCH_CHECK(rr.dim() == 1, "tensormass: rr must be [B], got ", cg_shape_str(rr.sizes()));
+  return rr.size(0);
+}
+
+// cg_start_status: rr [B] (float), rhs_sq, threshold, alpha, beta [B] of its dtype, status and
+// iterations [B] int32; floor [B] (rr's dtype) and gate [B] int32 optional.
+inline int64_t check_cg_start_status(const at::Tensor& rr, const at::Tensor& rhs_sq, int64_t max_iter,
+                                     const at::Tensor& threshold, const at::Tensor& status,
+                                     const at::Tensor& iterations, const at::Tensor& alpha, const at::Tensor& beta,
+                                     const c10::optional<at::Tensor>& floor, const c10::optional<at::Tensor>& gate) {
+  TORCH_CHECK(max_iter >= 0, "tensormass: max_iter must be >= 0, got ", std::to_string(max_iter));
+  const int64_t objects = cg_objects_of(rr);
+  cg_check_scalars(rhs_sq, "rhs_sq", rr, objects);
+  cg_check_scalars(threshold, "threshold", rr, objects);
+  cg_check_scalars(alpha, "alpha", rr, objects);
+  cg_check_scalars(beta, "beta", rr, objects);
+  cg_check_state(status, "status", rr, objects);
+  cg_check_state(iterations, "iterations", rr, objects);
+  if (floor.has_value() && floor->defined()) cg_check_scalars(*floor, "floor", rr, objects);
+  if (gate.has_value() && gate->defined()) {
+    cg_check_state(*gate, "gate", rr, objects);
+    TORCH_CHECK(!gate->is_same(status), "tensormass: gate must be another solve's statuses, not status");
+  }
+  return objects;
+}
+
+// cg_round_end: rr, threshold [B] (float), round_status, round_iterations, status, iterations [B]
+// int32.
+inline int64_t check_cg_round_end(const at::Tensor& rr, const at::Tensor& threshold, const at::Tensor& round_status,
+                                  const at::Tensor& round_iterations, const at::Tensor& status,
+                                  const at::Tensor& iterations) {
+  const int64_t objects = cg_objects_of(rr);
+  cg_check_scalars(threshold, "threshold", rr, objects);
+  cg_check_state(round_status, "round_status", rr, objects);
+  cg_check_state(round_iterations, "round_iterations", rr, objects);
+  cg_check_state(status, "status", rr, objects);
+  cg_check_state(iterations, "iterations", rr, objects);
+  TORCH_CHECK(!round_status.is_same(status) && !round_iterations.is_same(iterations),
+              "tensormass: round_status and round_iterations must be the round's, not status and iterations");
+  return objects;
+}
+
 // cg_coarse_beta: rr [B] (float), u and v [N, k] of its dtype, item_ptr [B + 1] int64, then the
 // per-object status, rz and beta.
 inline int64_t check_cg_coarse_beta(const at::Tensor& rr, const at::Tensor& u, const at::Tensor& v,
                                     const at::Tensor& item_ptr, const at::Tensor& status, const at::Tensor& rz,
                                     const at::Tensor& beta) {
-  cg_check_values(rr, "rr");
-  TORCH_CHECK(rr.dim() == 1, "tensormass: rr must be [B], got ", cg_shape_str(rr.sizes()));
-  const int64_t objects = rr.size(0);
+  const int64_t objects = cg_objects_of(rr);
   TORCH_CHECK(u.defined() && u.dim() == 2, "tensormass: u must be [N, k]");
   cg_check(u, "u", rr, rr.scalar_type(), u.sizes());
   cg_check(v, "v", rr, rr.scalar_type(), u.sizes());

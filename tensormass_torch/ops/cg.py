@@ -18,8 +18,11 @@ nodes in place and p.Ap summed in the same pass. The family also
 has ``cg_dot`` (per-object dot products), ``cg_dot_beta`` (preconditioned CG's r.z and beta),
 ``cg_coarse_beta`` (the same where a coarse correction adds to block Jacobi: r.z from cg_update's
 r.B^-1 r and the coarse vectors, no pass over the nodes), ``cg_pair_term`` (paired blocks' part of
-z and of r.z, a pair a thread) and ``euler_update`` (the end of an
-implicit Euler step after its solve). The ops write into their
+z and of r.z, a pair a thread), ``euler_update`` (the end of an implicit Euler step after its
+solve), and two ops on the per-object scalars alone, a thread an object, each in place of a dozen
+tensor ops on ``[B]`` tensors that cost a launch each: ``cg_start_status`` (a start's threshold,
+status and zeroed counts once its r.r is known) and ``cg_round_end`` (the end of an iterative
+refinement's round, ``solver.refine``). The ops write into their
 arguments and return nothing (fake kernels: none).
 """
 from __future__ import annotations
@@ -241,6 +244,61 @@ def pcg_beta(r: torch.Tensor, z: torch.Tensor, plan: ChunkPlan, rz: torch.Tensor
     native.cg_dot_beta(r.contiguous(), z.contiguous(), *plan.tensors(), s.status, rz, s.beta, s.scratch, s.counter)
 
 
+def _ref_start_status(rr, rhs_sq, tol_sq, max_iter, threshold, status, iterations, alpha, beta, floor=None,
+                      gate=None):
+    """The op's reference: see :func:`start_status`."""
+    limit = rhs_sq * tol_sq
+    if floor is not None:
+        limit = torch.maximum(limit, floor)
+    if gate is not None:
+        limit = torch.where(gate != ACTIVE, torch.inf, limit)
+    threshold.copy_(limit)
+    started = torch.where(~torch.isfinite(rr), NONFINITE,
+                          torch.where(rr <= threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
+    status.copy_(started.to(torch.int32))
+    iterations.zero_()
+    alpha.zero_()
+    beta.zero_()
+
+
+def start_status(s: CGState, tol_sq: float, max_iter: int, native=None, floor: Optional[torch.Tensor] = None,
+                 gate: Optional[torch.Tensor] = None):
+    """A solve's start once ``s.rr`` (r.r of its first residual) and ``s.rhs_sq`` (b.b) are known:
+    ``s.threshold = tol_sq * rhs_sq``, raised to ``floor [B]`` where given and infinite where
+    ``gate [B]`` int32 (another solve's statuses) is not active; each object's status against it
+    (non-finite, converged, capped where ``max_iter`` is 0, else active: an object the gate holds
+    starts converged and never iterates, also for a later start from the threshold, as the
+    pipelined solve's from an iterate); ``s.iterations``, ``s.alpha``, ``s.beta`` zero. One op (a
+    thread an object), in place; every object."""
+    args = (s.rr, s.rhs_sq, float(tol_sq), int(max_iter), s.threshold, s.status, s.iterations, s.alpha, s.beta,
+            floor, gate)
+    if native is None:
+        return _ref_start_status(*args)
+    native.cg_start_status(*args)
+
+
+def _ref_round_end(rr, threshold, round_status, round_iterations, status, iterations):
+    """The op's reference: see :func:`round_end`."""
+    active = status == ACTIVE
+    iterations.add_(torch.where(active, round_iterations, 0))
+    failed = (round_status == BREAKDOWN) | (round_status == NONFINITE)
+    ended = torch.where(failed, round_status,
+                        torch.where(~torch.isfinite(rr), NONFINITE, torch.where(rr <= threshold, CONVERGED, ACTIVE)))
+    status.copy_(torch.where(active, ended.to(torch.int32), status))
+
+
+def round_end(s: CGState, round_state: CGState, native=None):
+    """The end of an iterative refinement's round (``solver.refine``) for the solve ``s``, its
+    new r.r in ``s.rr``, corrected by the solve ``round_state``: each object still active in ``s``
+    adds the round's iterations and takes its failure (breakdown, non-finite), else the status of
+    its new r.r against ``s.threshold`` (non-finite, converged or still active). One op (a thread an
+    object), in place."""
+    args = (s.rr, s.threshold, round_state.status, round_state.iterations, s.status, s.iterations)
+    if native is None:
+        return _ref_round_end(*args)
+    native.cg_round_end(*args)
+
+
 def _range_sums(per_item: torch.Tensor, item_ptr: torch.Tensor) -> torch.Tensor:
     """Each object's sum of ``per_item [N]`` over its items ``item_ptr[b] .. item_ptr[b + 1] - 1``."""
     running = torch.cat([per_item.new_zeros(1), torch.cumsum(per_item, 0)])
@@ -428,6 +486,17 @@ def _example(name):
             return (s.r, z, nodes, blocks, item_ptr, s.rr, s.status, s.alpha, s.beta, dots, True), {}
         if name == "cg_dot":
             return (field, s.p, *tensors, s.rr, s.scratch, s.counter), {}
+        if name == "cg_start_status":  # object 0 converged by the floor, object 1 held by the gate
+            floor = torch.tensor([3.0, 0.5], dtype=dtype, device=device)
+            gate = torch.tensor([ACTIVE, CONVERGED], dtype=torch.int32, device=device)
+            return (s.rr, s.rhs_sq, 0.01, 10, s.threshold, s.status, s.iterations, s.alpha, s.beta, floor, gate), {}
+        if name == "cg_round_end":  # object 0 takes its new r.r's status, object 1 its round's failure
+            s.status.zero_()
+            s.iterations.fill_(3)
+            round_status = torch.tensor([CONVERGED, BREAKDOWN], dtype=torch.int32, device=device)
+            round_iterations = torch.tensor([4, 5], dtype=torch.int32, device=device)
+            s.threshold.copy_(torch.tensor([3.0, 3.0]))
+            return (s.rr, s.threshold, round_status, round_iterations, s.status, s.iterations), {}
         if name == "cg_dot_beta":
             s.status[1] = CONVERGED  # skipped
             return (field, s.p, *tensors, s.status, s.rr, s.beta, s.scratch, s.counter), {}
@@ -445,6 +514,7 @@ def _example(name):
 _REFERENCES = {"cg_alpha": _ref_cg_alpha, "cg_alpha_dot": _ref_cg_alpha_dot, "cg_update": _ref_cg_update,
                "cg_direction": _ref_cg_direction, "cg_dot": _ref_cg_dot, "cg_dot_beta": _ref_cg_dot_beta,
                "cg_coarse_beta": _ref_coarse_beta, "cg_pair_term": _ref_pair_term,
+               "cg_start_status": _ref_start_status, "cg_round_end": _ref_round_end,
                "euler_update": _ref_euler_update}
 OPS = tuple(OpDef(name, ref, None, differentiable=False, mutates=True, example=_example(name),
                   scratch=("scratch", "counter")) for name, ref in _REFERENCES.items())

@@ -373,6 +373,11 @@ def allocations(sim) -> Dict[str, int]:
             add(f"solver.refine{k}.model.{name}", t)
         for name, t in vars(refinement.cg32.state).items():
             add(f"solver.refine{k}.cg.{name}", t)
+    for k, (_, _, space) in enumerate(system._solution_spaces.values()):  # warm_start="project"'s basis
+        for name in ("basis", "share", "valid"):
+            add(f"solver.space{k}.{name}", getattr(space, name))
+        for name, t in zip(("basis", "share", "valid", "node_stiffness"), space._kept or ()):
+            add(f"solver.space{k}.kept.{name}", t)  # (the copy chained refined steps rewind to)
     for name in ("x", "v", "fixed", "prescribed"):
         add(f"state.{name}", getattr(sim, name))
     return out

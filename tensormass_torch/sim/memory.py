@@ -85,7 +85,8 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
     ``dtype``: the simulator's (float32 or float64); ``form``, ``warm_start``: as ``Simulator``'s
     (``"project"`` holds its basis, ``PROJECTION_VECTORS`` float64 vectors, and its operations
     make one more of that size at their peak; ``precision="mixed"`` holds a float32 copy of the
-    model beside the float64 one, ``solver.refine``)."""
+    model beside the float64 one, ``solver.refine``, and with ``"project"`` a copy of the basis
+    that chained steps go back to where one of them fails)."""
     from ..physics.tensor_mass import _resolve_form
     from ..solver.guess import PROJECTION_VECTORS, warm_start_mode
     from .simulator import Body
@@ -115,8 +116,8 @@ def estimate_memory(bodies: Union["Body", Sequence["Body"]], dtype: torch.dtype 
         elements += count
         basis = basis_bytes * nodes * body.mesh.vertices.shape[1]
         body_held = bytes_of(HELD[key], count, nodes) + basis
-        if precision == "mixed":  # the float32 copy the corrections run on
-            body_held += bytes_of(HELD[key], count, nodes, 1)
+        if precision == "mixed":  # the float32 copy the corrections run on; chained steps' copy of the basis
+            body_held += bytes_of(HELD[key], count, nodes, 1) + basis
         held += body_held
         peak += body_held + bytes_of(PEAK_EXTRA[key], count, nodes) + basis
     return MemoryEstimate(elements, peak, held, dtype)

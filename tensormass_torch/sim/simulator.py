@@ -653,8 +653,9 @@ class Simulator:
 
         On a CUDA device, when a whole step runs without a host decision (every CG iteration
         inside the captured step: the whole CG is one op that stops on the device, as for the
-        hooke tensor form, or ``cg_max_iter <= check_every``; no prescribed motion; no inversion
-        check), consecutive steps are chained: up to 64 run back to back with ONE host
+        hooke tensor form, or ``cg_max_iter <= check_every``, or with ``precision="mixed"`` one
+        round of refinement; no prescribed motion; no inversion check), consecutive steps are
+        chained: up to 64 run back to back with ONE host
         synchronisation, then every step's outcome is checked in order. Should one have failed, the
         steps before it are committed (run again: the kernels are deterministic) and it is run on
         its own, which raises (or retries in sub-steps) exactly as above.
@@ -1087,6 +1088,8 @@ class Simulator:
         one (if any) and returns how many were committed."""
         summaries = graphs.run_steps(self.x, self.v, count)
         ok = graphs.first_failure(summaries)
+        if ok < count:  # (the solution space as the chain found it)
+            graphs.rewind()
         if 0 < ok < count:  # the state before the failed step: the good steps again (deterministic)
             summaries = graphs.run_steps(self.x, self.v, ok)
         if ok:

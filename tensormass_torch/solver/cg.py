@@ -355,7 +355,7 @@ class CGSolver:
             s.r.copy_(b)
         else:
             s.x.copy_(x0)
-            s.r.copy_(b - self._apply(matvec, self._project(x0))[0])
+            torch.sub(b, self._apply(matvec, self._project(x0))[0], out=s.r)
         inverse_blocks = _inverse_blocks(preconditioner)
         if inverse_blocks is not None:  # the norms are B^-1's: b.B^-1 b, r.z with z = B^-1 r
             z = self._block_buffers().z
@@ -372,13 +372,7 @@ class CGSolver:
             else:
                 cg_ops.object_dot(s.r, s.r, self.plan, s.rr, s, self.native)
         tol = self._effective_tol(tol, rhs.dtype)
-        torch.mul(self.rhs_sq, tol * tol, out=s.threshold)
-        status = torch.where(~torch.isfinite(s.rr), NONFINITE,
-                             torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
-        s.status.copy_(status.to(torch.int32))
-        s.iterations.zero_()
-        s.alpha.zero_()
-        s.beta.zero_()
+        cg_ops.start_status(s, tol * tol, max_iter, self.native)  # threshold, statuses, zero counts
         if preconditioner is None:
             s.p.copy_(s.r)
         elif inverse_blocks is not None:

@@ -82,13 +82,16 @@ class SolutionSpace:
         self.capacity = int(capacity)
         #: the basis W ``[k, V, d]``, float64 (rows of zeros: unused)
         self.basis = torch.zeros((self.capacity,) + tuple(like.shape), dtype=torch.float64, device=like.device)
-        #: each row's share of the last guess, summed over the objects ``[k]`` (the least is replaced)
+        #: each row's share of the last guess ``[k]`` (the least is replaced; only the order is
+        #: read): its squared coefficient for one object, the sum of its fractions of each
+        #: object's guess for several
         self.share = torch.zeros(self.capacity, dtype=torch.float64, device=like.device)
         #: 1 for the rows that hold a vector of the current matrix, 0 for the others ``[k]``: a
         #: change of the matrix (:meth:`watch`) sets them all to 0 on the device, without a pass
         #: over the basis; invalid rows take no part in a guess or a Gram-Schmidt and go first
         self.valid = torch.zeros(self.capacity, dtype=torch.float64, device=like.device)
         self._node_stiffness = None  # the node stiffness the valid rows were made with (a copy)
+        self._kept = None  # [basis, share, valid, node stiffness or None] as keep() found them
         self.dtype = like.dtype
         segments = segments.to(like.device)
         self._node_object = segments.node_object
@@ -100,6 +103,41 @@ class SolutionSpace:
         # solution is already in the span to within roundoff, and its remainder is noise
         # (float64 arithmetic; the solution's own accuracy, 1e-6 in float32, is far above it)
         self._keep_sq = 1e-16
+
+    def keep(self) -> None:
+        """Copy the space as it is now, for :meth:`rewind` (a copy as large as the space, made at
+        the first call and kept)."""
+        now = (self.basis, self.share, self.valid)
+        if self._kept is None:
+            self._kept = [t.clone() for t in now] + [None]
+        else:
+            for kept, tensor in zip(self._kept, now):
+                kept.copy_(tensor)
+        stiffness = self._node_stiffness
+        if stiffness is None:
+            self._kept[3] = None
+        elif self._kept[3] is None or self._kept[3].shape != stiffness.shape:
+            self._kept[3] = stiffness.clone()
+        else:
+            self._kept[3].copy_(stiffness)
+
+    def rewind(self) -> None:
+        """The space as the last :meth:`keep` found it, in place (graphs captured over its tensors
+        stay valid), so that steps run again from there make the same guesses. Where it then had
+        no node stiffness and has one now, the copy of it is filled with NaN: the next
+        :meth:`watch` finds it changed and invalidates every row, as it does from none."""
+        if self._kept is None:
+            raise ValueError("SolutionSpace.rewind: keep() was never called")
+        for kept, tensor in zip(self._kept, (self.basis, self.share, self.valid)):
+            tensor.copy_(kept)
+        kept = self._kept[3]
+        if kept is None:
+            if self._node_stiffness is not None:
+                self._node_stiffness.fill_(float("nan"))
+        elif self._node_stiffness is not None and self._node_stiffness.shape == kept.shape:
+            self._node_stiffness.copy_(kept)
+        else:
+            self._node_stiffness = kept.clone()
 
     def reset(self) -> None:
         """Forget every solution (in place: captured graphs keep their addresses)."""
@@ -117,8 +155,18 @@ class SolutionSpace:
         return running[..., self._last] - before
 
     def _spread(self, per_object: torch.Tensor) -> torch.Tensor:
-        """Per-object values ``[k, B]`` -> per node ``[k, V, 1]``."""
+        """Per-object values ``[k, B]`` -> per node ``[k, V, 1]`` (one object: ``[k, 1, 1]``, which
+        broadcasts as that, with no gather)."""
+        if self._objects == 1:
+            return per_object.unsqueeze(-1)
         return per_object[:, self._node_object].unsqueeze(-1)
+
+    def _dot(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Per-object a . b ``[B]`` of two fields ``[V, d]`` (float64): one dot product for one
+        object."""
+        if self._objects == 1:
+            return torch.dot(a.reshape(-1), b.reshape(-1)).reshape(1)
+        return self._object_sums((a * b).sum(-1))
 
     def _coefficients(self, field: torch.Tensor) -> torch.Tensor:
         """w_i . field per object ``[k, B]`` for the basis rows w_i, ``field [V, d]`` (float64). One
@@ -141,7 +189,10 @@ class SolutionSpace:
         the space is empty. Notes each row's share of it (what :meth:`add` replaces)."""
         coefficients = self._coefficients(rhs.to(torch.float64)) * self.valid[:, None]
         energy = coefficients.square()
-        share = (energy / energy.sum(0).clamp(min=torch.finfo(torch.float64).tiny)).sum(1)
+        if self._objects == 1:  # (the fractions' order is the coefficients')
+            share = energy[:, 0]
+        else:
+            share = (energy / energy.sum(0).clamp(min=torch.finfo(torch.float64).tiny)).sum(1)
         self.share.copy_(torch.where(self.valid > 0, share, -1.0))
         return self._combination(coefficients).to(self.dtype)
 
@@ -161,15 +212,17 @@ class SolutionSpace:
         b - r, its residual being the true one: one product fewer), else None."""
         direction = solution.to(torch.float64)
         image = (product(solution) if image is None else image).to(torch.float64)
-        whole_sq = self._object_sums((direction * image).sum(-1))
+        whole_sq = self._dot(direction, image)
         for first in (True, False):
             along = self._coefficients(image) * self.valid[:, None]  # w_i . A y
             direction = direction - self._combination(along)
             if first:
                 image = product(direction.to(self.dtype)).to(torch.float64)
-        norm_sq = self._object_sums((direction * image).sum(-1))
-        keep = (norm_sq > self._keep_sq * whole_sq) & (norm_sq > 0) & torch.isfinite(norm_sq)
-        scale = torch.where(keep, norm_sq.clamp(min=torch.finfo(torch.float64).tiny).rsqrt(), 0.0)
+        norm_sq = self._dot(direction, image)
+        # kept above keep_sq of the solution's (and above 0): a NaN fails the test, and an
+        # infinite norm has the scale rsqrt(inf) = 0
+        least = (whole_sq * self._keep_sq).clamp_(min=torch.finfo(torch.float64).tiny)
+        scale = torch.where(norm_sq > least, norm_sq.rsqrt(), 0.0)
         scale = self._spread(scale[None])[0]
         slot = torch.argmin(self.share).reshape(1)  # (the first of equals: an unused row first)
         # (a zero scale writes zeros, also over a non-finite solution's NaN)

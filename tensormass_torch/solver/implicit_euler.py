@@ -1081,6 +1081,10 @@ class StepGraphs:
         # the step's right-hand side, where the solve reads it after the phase that made it
         self.rhs = torch.zeros_like(like) if self.preconditioned or self.refinement is not None else None
         self._predicted = None  # iterations of the last preconditioned solve
+        self._space_kept = False  # whether a chain kept a copy of the space (rewind)
+        # whether the last refined step run on its own took one round: a chained refined step
+        # has one, and one that needs more fails its chain, so steps chain only while one serves
+        self._one_round = True
         # Chained steps (:meth:`run_steps`): each step's summary lands in row ``ring_pos`` of
         # ``ring`` (a device counter: the captured graph needs no host index), and the new state
         # is copied back into x, v on the device, so steps follow each other with no host sync.
@@ -1147,7 +1151,14 @@ class StepGraphs:
                                *cg.plan.tensors(), s.status, s.iterations, s.rr, cg.rhs_sq, self.norms, self.summary,
                                s.scratch, self.update_counter, *ring, chained, self.opts.old_velocity_share)
 
-    def _chained_steps(self, count: int):
+    def _chained_steps(self, count: int, warm: bool = False):
+        if self.refinement is not None:  # (one round a step: a step that needs more fails the chain)
+            for _ in range(count):
+                self._refined_start(warm)
+                self._phase_c(chained=True)
+                if warm:
+                    self._add_solution()
+            return
         if self._steps_in_solve(count, chained=True):
             return
         for _ in range(count):
@@ -1221,6 +1232,15 @@ class StepGraphs:
         if self.refinement.whole:
             self.refinement.round(self.cg, self.matvec, self.rhs, opts.cg_tol, opts.cg_max_iter)
 
+    def _current_refinement(self) -> Refinement:
+        """The system's refinement for these options, the graphs dropped where it is a new one (the
+        model changed, a cut: they read the old float32 copy)."""
+        refinement = self.system.refinement(self.opts)
+        if refinement is not self.refinement:
+            self.refinement = refinement
+            self._graphs.clear()
+        return refinement
+
     def _refined_solve(self, warm: bool) -> torch.Tensor:
         """A mixed-precision step's solve and end (``solver.refine``); returns the step's summary
         ``[5, B]`` (host). The start and the first round are one graph, the step's end (phase C)
@@ -1230,10 +1250,7 @@ class StepGraphs:
         graphs), then the end and the read again; after ``MAX_ROUNDS`` the objects still active
         are not converged."""
         opts = self.opts
-        refinement = self.system.refinement(opts)
-        if refinement is not self.refinement:  # the model changed (a cut): the graphs read the old copy
-            self.refinement = refinement
-            self._graphs.clear()
+        refinement = self._current_refinement()
         run_captured(self._graphs, ("refined", warm), lambda: self._refined_start(warm))
         rounds = 1 if refinement.whole else 0
         tol, max_iter = opts.cg_tol, opts.cg_max_iter
@@ -1241,6 +1258,7 @@ class StepGraphs:
             run_captured(self._graphs, "C", self._phase_c)
             summary = self.summary.cpu()
             if not (summary[0].numpy() == cg_ops.ACTIVE).any():
+                self._one_round = rounds <= 1
                 return summary
             if rounds >= MAX_ROUNDS:
                 refinement.cap(self.cg)
@@ -1256,10 +1274,14 @@ class StepGraphs:
     @property
     def chainable(self) -> bool:
         """Whether whole steps run with no host decision inside (every CG iteration is in graph
-        A: the whole CG is one op, or ``cg_max_iter <= check_every``) and no imposed velocity, so
+        A: the whole CG is one op, or ``cg_max_iter <= check_every``; a refined step's correction
+        is one op and the last refined step run alone took one round) and no imposed velocity, so
         :meth:`run_steps` applies."""
-        return (self.imposed is None and self.first >= self.opts.cg_max_iter and self.space is None
-                and self.refinement is None)
+        if self.imposed is not None:
+            return False
+        if self.refinement is not None:  # one round a step in the chain (the first is one op)
+            return self.refinement.whole and self._one_round
+        return self.first >= self.opts.cg_max_iter and self.space is None
 
     @property
     def max_chain(self) -> int:
@@ -1271,23 +1293,46 @@ class StepGraphs:
         end (requires :attr:`chainable`; ``count <= max_chain``). The state after the last step
         is left in ``self.x, self.v`` whatever happened: the caller checks each step's summary
         (:meth:`failure`) before committing anything, and the kernels are deterministic, so
-        running the first k of these steps again gives the same state bit for bit.
+        running the first k of these steps again gives the same state bit for bit (after
+        :meth:`rewind` where the steps join their solutions to a projection's space). Refined
+        steps (``precision="mixed"``) make one round each: one that leaves an object active
+        fails (its summary's status is active) and runs alone, with its rounds.
 
         Returns the summaries ``[count, 5, B]`` (float64, host): status, iterations, r.r, b.b,
         |v|^2 per object."""
+        if self.refinement is not None:
+            self._current_refinement()
         if not self.chainable or not 1 <= count <= self.max_chain:
             raise ValueError(f"run_steps: count must be in [1, {self.max_chain}] on chainable step graphs")
         self.x.copy_(x)
         self.v.copy_(v)
         self.ring_pos.zero_()
+        warm = self._keep_space()
         done = 0
         while done < count:
             # STEPS_PER_GRAPH steps per graph launch where they fit, else one: a step is only 3
             # kernels, and a launch per phase cost the SOFA beam ~20% of its step time
             steps = STEPS_PER_GRAPH if count - done >= STEPS_PER_GRAPH else 1
-            run_captured(self._graphs, ("chain", steps), lambda steps=steps: self._chained_steps(steps))
+            run_captured(self._graphs, ("chain", steps, warm), lambda steps=steps: self._chained_steps(steps, warm))
             done += steps
         return self.ring[:count].cpu()
+
+    def _keep_space(self) -> bool:
+        """Before a chain: whether its steps start from the solution space's guesses (the space
+        emptied where the model changed, as :meth:`step` does), and a copy of the space as the
+        chain finds it (``SolutionSpace.keep``: for :meth:`rewind`)."""
+        if self.space is None or self.system.solution_space(self.opts, self.x) is not self.space:
+            return False
+        self.space.keep()
+        self._space_kept = True
+        return True
+
+    def rewind(self) -> None:
+        """After a chain in which a step failed: the solution space as the chain found it (every
+        chained step joined its solution to it), so that its good steps run again give the same
+        guesses, hence the same states, and the failed one runs on its own from there."""
+        if self._space_kept:
+            self.space.rewind()
 
     # The host-side reading of the summaries below is numpy, not torch: each torch CPU op on a
     # [B]-long vector wakes torch's intra-op thread pool, and on a many-core host that cost a batch
@@ -1357,7 +1402,8 @@ def _first_failure(summaries: np.ndarray, require_convergence: bool) -> int:
     """The index of the first failed step of the host summaries ``[n, 5, B]`` (rows: status,
     iterations, rr, rhs_sq, state norms), or n if none failed."""
     status, norms = summaries[:, 0], summaries[:, 4]
-    bad = (status == cg_ops.BREAKDOWN) | (status == cg_ops.NONFINITE) | ~np.isfinite(norms)
+    # (active: a chained refined step that one round left short of the tolerance; it runs alone)
+    bad = (status == cg_ops.BREAKDOWN) | (status == cg_ops.NONFINITE) | (status == cg_ops.ACTIVE) | ~np.isfinite(norms)
     if require_convergence:
         bad |= status != cg_ops.CONVERGED
     failed = np.flatnonzero(bad.any(axis=1))

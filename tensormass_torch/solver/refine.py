@@ -41,7 +41,7 @@ from typing import Optional
 import torch
 
 from ..ops import cg as cg_ops
-from ..ops.cg import ACTIVE, BREAKDOWN, CAPPED, CONVERGED, NONFINITE
+from ..ops.cg import ACTIVE, CAPPED
 from .cg import CGResult, CGSolver
 
 #: each float32 correction's tolerance relative to the float64 residual it corrects: a round cuts
@@ -84,15 +84,22 @@ class Refinement:
         self.matvec32 = self.system32.system_matvec(mass_coef, stiffness_coef, pipelined, variants)
         self.cg32: CGSolver = self.system32.cg_solver(like, cuda_graphs)
         self.x32 = torch.zeros_like(like)  # the float64 positions rounded, where A_32 is linearised
-        self.r32 = torch.zeros_like(like)  # a correction's right-hand side
+        # each correction's least threshold [B]: tol^2 b.b / 4 of the float64 solve, rounded
+        self.floor32 = torch.zeros_like(self.cg32.state.rr)
+        self._whole = None  # (node stiffness absent, whole) once asked: see whole
         #: each correction's tolerance relative to the residual it corrects (read when a round is
         #: captured: set it before the first step)
         self.inner_tol = INNER_TOL
 
     @property
     def whole(self) -> bool:
-        """Whether a correction is one op that stops on the device (then a round has no host read)."""
-        return self.cg32.solves_in_one_op(self.matvec32)
+        """Whether a correction is one op that stops on the device (then a round has no host read).
+        Asked once a step, answered once per form of the float32 product (with or without node
+        stiffness): the copy's other inputs are fixed for its life."""
+        form = self.matvec32.node_stiffness is None
+        if self._whole is None or self._whole[0] != form:
+            self._whole = (form, self.cg32.solves_in_one_op(self.matvec32))
+        return self._whole[1]
 
     def load(self, x: torch.Tensor, matvec) -> None:
         """Linearise A_32 at ``x [V, d]`` (float64) as ``matvec`` (the float64 product, loaded
@@ -107,15 +114,19 @@ class Refinement:
             self.matvec32.node_stiffness.copy_(matvec.node_stiffness)
 
     def prepare(self, cg: CGSolver, tol: float, max_iter: int) -> None:
-        """A correction's start: r_32 = r where the object is still active (zero elsewhere), its
-        threshold max(inner_tol^2 r.r, tol^2 b.b / 4) (no tighter than the float64 tolerance
-        needs)."""
+        """A correction's start, as ``CGSolver.start`` from x0 = 0 leaves it: x_32 = 0, r_32 = p_32 =
+        r (rounded; r is projected already), r_32.r_32 for its b.b and r.r, the threshold
+        max(inner_tol^2 r.r, tol^2 b.b / 4) (no tighter than the float64 tolerance needs) and
+        infinite for the objects the float64 solve stopped (they do not iterate: their
+        correction stays zero), the statuses (``cg_ops.start_status``: one op for them all)."""
         s, t = cg.state, self.cg32.state
-        torch.mul(s.r, cg.plan.segments.spread((s.status == ACTIVE).to(s.r.dtype)), out=self.r32)
-        self.cg32.start(self.matvec32, self.r32, None, self.inner_tol, max_iter)
-        floor = cg.rhs_sq.to(torch.float32) * (0.25 * tol * tol)
-        torch.maximum(t.threshold, floor, out=t.threshold)
-        t.status.copy_(torch.where((t.status == ACTIVE) & (t.rr <= t.threshold), CONVERGED, t.status))
+        t.x.zero_()
+        t.r.copy_(s.r)
+        cg_ops.object_dot(t.r, t.r, self.cg32.plan, t.rhs_sq, t, self.cg32.native)
+        t.rr.copy_(t.rhs_sq)
+        torch.mul(cg.rhs_sq, 0.25 * tol * tol, out=self.floor32)
+        cg_ops.start_status(t, self.inner_tol ** 2, max_iter, self.cg32.native, floor=self.floor32, gate=s.status)
+        t.p.copy_(t.r)
 
     def correct(self, max_iter: int, check_every: int, graph_key=None) -> None:
         """The correction's float32 CG: one op where it serves, else iterations with host looks."""
@@ -125,19 +136,15 @@ class Refinement:
             self.cg32.finish(self.matvec32, max_iter, check_every, graph_key)
 
     def absorb(self, cg: CGSolver, matvec, rhs: torch.Tensor) -> None:
-        """x += d; the correction's failures become the solve's; the new float64 residual, its
-        r.r and the statuses of the objects still active."""
-        s, t = cg.state, self.cg32.state
-        active = s.status == ACTIVE
-        s.x.add_(t.x)
-        s.iterations.add_(torch.where(active, t.iterations, 0))
-        failed = active & ((t.status == BREAKDOWN) | (t.status == NONFINITE))
-        s.status.copy_(torch.where(failed, t.status, s.status))
+        """x += d (zero for the objects that had stopped); the new float64 residual and its r.r;
+        for the objects still active, the correction's iterations and failures, else the status of
+        the new r.r (``cg_ops.round_end``: one op)."""
+        s = cg.state
+        s.x.add_(self.cg32.state.x)
         av = cg._apply(matvec, s.x)[0]
         torch.sub(cg._project(rhs), av, out=s.r)
         cg_ops.object_dot(s.r, s.r, cg.plan, s.rr, s, cg.native)
-        status = torch.where(~torch.isfinite(s.rr), NONFINITE, torch.where(s.rr <= s.threshold, CONVERGED, ACTIVE))
-        s.status.copy_(torch.where(s.status == ACTIVE, status.to(torch.int32), s.status))
+        cg_ops.round_end(s, self.cg32.state, cg.native)
 
     def round(self, cg: CGSolver, matvec, rhs: torch.Tensor, tol: float, max_iter: int, check_every: int = 8) -> None:
         """One correction of ``cg``'s solve of ``matvec`` x = ``rhs`` (float64)."""

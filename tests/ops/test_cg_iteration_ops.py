@@ -1,4 +1,5 @@
-"""The device-resident CG: ``tensormass::cg_alpha / cg_update / cg_direction`` and ``CGSolver``.
+"""The device-resident CG: ``tensormass::cg_alpha / cg_update / cg_direction``, the per-object
+``cg_start_status`` and ``cg_round_end``, and ``CGSolver``.
 
     1. each op = its pure-torch reference (solver.cg_ops), on objects in every status
     2. the solver with the ops = the solver with the reference = a dense solve; results do not
@@ -325,6 +326,84 @@ def test_update_detects_convergence_and_nonfinite_residual():
         ap[3:] = float("inf")  # ... and non-finite for object 1
         cg_ops.cg_update(ap, plan, s, 100, native_ops)
         assert s.status.tolist() == [CONVERGED, NONFINITE]
+
+
+def start_inputs(dtype, device="cpu"):
+    """Six objects, one of each start: non-finite r.r, converged by tol^2 b.b, converged by the
+    floor only, active, held by the gate (r.r above any threshold), non-finite and gated."""
+    plan = ChunkPlan.from_segments(Segments.from_lengths([1] * 6), 1)
+    s = CGState.empty(plan, (6, 3), dtype, device)
+    nan, inf = float("nan"), float("inf")
+    s.rr.copy_(torch.tensor([nan, 1e-6, 0.5, 2.0, 9.0, inf]))
+    s.rhs_sq.fill_(4.0)
+    s.iterations.fill_(7)
+    s.alpha.fill_(0.5)
+    s.beta.fill_(0.25)
+    floor = torch.tensor([0.0, 0.0, 1.0, 1.0, 1.0, 0.0], dtype=dtype, device=device)
+    gate = torch.tensor([ACTIVE, ACTIVE, ACTIVE, ACTIVE, CONVERGED, CAPPED], dtype=torch.int32, device=device)
+    return s, floor, gate
+
+
+@pytest.mark.parametrize("backend", [None, "ext"], ids=["torch", "ext"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+def test_start_status_takes_the_floor_and_the_gate(backend, dtype):
+    """cg_start_status: threshold tol^2 b.b raised to the floor, infinite where the gate holds the
+    object; statuses against it (also capped for max_iter 0); counts and step scalars zero."""
+    if backend == "ext" and OPS is None:
+        pytest.skip("the extension is not built")
+    ops = OPS if backend == "ext" else None
+    s, floor, gate = start_inputs(dtype)
+    cg_ops.start_status(s, 1e-4, 50, ops, floor=floor, gate=gate)
+    assert s.status.tolist() == [NONFINITE, CONVERGED, CONVERGED, ACTIVE, CONVERGED, NONFINITE]
+    assert s.threshold.tolist() == pytest.approx([4e-4, 4e-4, 1.0, 1.0, float("inf"), float("inf")])
+    assert s.iterations.tolist() == [0] * 6 and s.alpha.tolist() == [0.0] * 6 and s.beta.tolist() == [0.0] * 6
+    s, _, _ = start_inputs(dtype)
+    cg_ops.start_status(s, 1e-4, 0, ops)  # no floor, no gate; max_iter 0: the active ones are capped
+    assert s.status.tolist() == [NONFINITE, CONVERGED, CAPPED, CAPPED, CAPPED, NONFINITE]
+
+
+@pytest.mark.parametrize("backend", [None, "ext"], ids=["torch", "ext"])
+def test_round_end_takes_the_rounds_failures_and_the_new_residuals_status(backend):
+    """cg_round_end: active objects add the round's iterations and take its breakdown or
+    non-finite status, else their new r.r's status; stopped objects are left as they are."""
+    if backend == "ext" and OPS is None:
+        pytest.skip("the extension is not built")
+    ops = OPS if backend == "ext" else None
+    plan = ChunkPlan.from_segments(Segments.from_lengths([1] * 6), 1)
+    s, rounds = (CGState.empty(plan, (6, 3), torch.float64, "cpu") for _ in range(2))
+    s.rr.copy_(torch.tensor([0.5, 2.0, float("nan"), 0.5, 0.5, 2.0], dtype=torch.float64))
+    s.threshold.fill_(1.0)
+    s.status.copy_(torch.tensor([ACTIVE, ACTIVE, ACTIVE, ACTIVE, CONVERGED, CAPPED], dtype=torch.int32))
+    s.iterations.fill_(10)
+    rounds.status.copy_(torch.tensor([CONVERGED, CAPPED, CONVERGED, BREAKDOWN, NONFINITE, CONVERGED],
+                                     dtype=torch.int32))
+    rounds.iterations.copy_(torch.tensor([1, 2, 3, 4, 5, 6], dtype=torch.int32))
+    cg_ops.round_end(s, rounds, ops)
+    assert s.status.tolist() == [CONVERGED, ACTIVE, NONFINITE, BREAKDOWN, CONVERGED, CAPPED]
+    assert s.iterations.tolist() == [11, 12, 13, 14, 10, 10]
+
+
+@needs_ext
+def test_start_status_and_round_end_input_checks():
+    """Bad shapes, dtypes or aliases: one error naming the argument, nothing written."""
+    s, floor, gate = start_inputs(torch.float64)
+    s.rr.fill_(2.0)  # (finite: the comparison below)
+    before = clone_state(s)
+    start = (s.rr, s.rhs_sq, 1e-4, 50, s.threshold, s.status, s.iterations, s.alpha, s.beta)
+    with pytest.raises(RuntimeError, match="floor has shape"):
+        OPS.cg_start_status(*start, floor[:2], gate)
+    with pytest.raises(RuntimeError, match="gate is"):
+        OPS.cg_start_status(*start, floor, gate.long())
+    with pytest.raises(RuntimeError, match="gate must be another solve's statuses"):
+        OPS.cg_start_status(*start, floor, s.status)
+    with pytest.raises(RuntimeError, match="max_iter must be >= 0"):
+        OPS.cg_start_status(s.rr, s.rhs_sq, 1e-4, -1, *start[4:])
+    with pytest.raises(RuntimeError, match="threshold is"):
+        OPS.cg_round_end(s.rr, s.threshold.float(), s.status.clone(), s.iterations.clone(), s.status, s.iterations)
+    with pytest.raises(RuntimeError, match="must be the round's"):
+        OPS.cg_round_end(s.rr, s.threshold, s.status, s.iterations.clone(), s.status, s.iterations)
+    assert_states_close(s, before, torch.float64)
+    assert torch.equal(s.threshold, before.threshold)
 
 
 def spd_blocks(lengths, dtype, seed=0):

@@ -74,6 +74,11 @@ def test_mixed_precision_holds_a_float32_copy(model):
     assert 0.75 < held / mixed.held_bytes < 1.25, (held, mixed)
     with pytest.raises(tm.SceneError, match="precision must be 'full' or 'mixed', got 'half'"):
         tm.estimate_memory(body, precision="half")
+    # with the projection, also the copy of its basis that chained steps go back to
+    project = tm.estimate_memory(body, torch.float64, warm_start="project")
+    both = tm.estimate_memory(body, torch.float64, warm_start="project", precision="mixed")
+    basis = tm.estimate_memory(body, warm_start="project").held_bytes - tm.estimate_memory(body).held_bytes
+    assert both.held_bytes == project.held_bytes + tm.estimate_memory(body).held_bytes + basis
 
 
 def test_a_scene_that_cannot_fit_fails_at_once_with_the_estimate(monkeypatch):

@@ -161,3 +161,89 @@ def test_steps_with_a_tolerance_chain_where_the_cg_is_one_op(graphs_on_cpu):
     iterations = chained.last_report.cg_iterations
     assert torch.equal(iterations, single.last_report.cg_iterations)
     assert bool((iterations > 8).all() and (iterations < 200).all())  # past check_every, converged
+
+
+def make_mixed_sim(tol=1e-6):
+    """A clamped beam under gravity, float64 steps to ``tol`` in float32 iterations (precision
+    "mixed") from the projection's guesses: the first steps take two or three rounds each, the
+    later ones one (the space holds what the motion needs)."""
+    mesh = tm.beam_mesh(8, 3, 3, size=(1.0, 0.25, 0.25), dtype=torch.float64)
+    mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model="hooke")
+    return tm.Simulator([tm.Body(mesh, mat, fixed=mesh.vertices[:, 0] < 1e-9)], dt=0.01, gravity=(0, 0, -9.81),
+                        cg_tol=tol, cg_max_iter=500, precision="mixed", warm_start="project")
+
+
+def counting_chains(monkeypatch) -> list:
+    """The length of every chain run from now on (StepGraphs.first_failure's calls)."""
+    chains = []
+    real_first_failure = StepGraphs.first_failure
+
+    def first_failure(self, summaries):
+        chains.append(summaries.shape[0])
+        return real_first_failure(self, summaries)
+
+    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
+    return chains
+
+
+def test_mixed_steps_chain_and_equal_single_steps(graphs_on_cpu, monkeypatch):
+    """Refined steps chain (one round a step, on the device; the solution space joined after each)
+    once a step on its own took one round, and give the states of steps one at a time, bitwise."""
+    chained, single = make_mixed_sim(), make_mixed_sim()
+    for sim in (chained, single):
+        for _ in range(12):  # (one at a time: the space fills, one round serves)
+            sim.step()
+    chains = counting_chains(monkeypatch)
+    chained.step(9)
+    for _ in range(9):
+        single.step()
+    (graphs,) = chained.system._step_graphs.values()
+    assert chains == [9] and graphs.chainable and int(graphs.ring_pos) == 9  # the 9 steps ran as one chain
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    assert torch.equal(chained.last_report.cg_iterations, single.last_report.cg_iterations)
+    assert bool(chained.last_report.cg[0].converged.all())
+
+
+@pytest.mark.parametrize("inner_tol", [1e-3, 0.3], ids=["flagged", "short-rounds"])
+def test_a_failed_chained_mixed_step_rewinds_the_space(graphs_on_cpu, monkeypatch, inner_tol):
+    """A chained refined step that fails (flagged at the 4th step, or left active at the 1st by a
+    round whose correction stops short: inner tolerance 0.3): the space is rewound to the chain's
+    start, the good steps run again from it and the failed one alone, with its rounds; the chains
+    go on where a step on its own takes one round. The states of steps one at a time, bitwise
+    (without the rewind the good steps would start from guesses of a space that already holds
+    their solutions)."""
+    chained, single = make_mixed_sim(), make_mixed_sim()
+    for sim in (chained, single):
+        for _ in range(12):
+            sim.step()
+        sim.system.refinement(sim.options).inner_tol = inner_tol
+    chains = []
+    real_first_failure = StepGraphs.first_failure
+
+    def first_failure(self, summaries):
+        chains.append(summaries.shape[0])
+        found = real_first_failure(self, summaries)
+        return min(found, 3) if len(chains) == 1 else found
+
+    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
+    chained.step(8)
+    for _ in range(8):
+        single.step()
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    assert chained.steps_done == single.steps_done == 20
+    # flagged: 3 good steps, the 4th alone, a chain of the other 4; short rounds: the 1st alone
+    # (more than one round), then none chained
+    assert chains == ([8, 4] if inner_tol == 1e-3 else [8])
+
+
+def test_mixed_steps_that_need_rounds_stop_chaining(graphs_on_cpu, monkeypatch):
+    """Where one round does not serve (tolerance 1e-8 from the first step), the chain fails at
+    its first step, that step runs on its own with its rounds, and the next steps are not
+    chained while steps take more than one: the states of steps one at a time, bitwise."""
+    chained, single = make_mixed_sim(1e-8), make_mixed_sim(1e-8)
+    chains = counting_chains(monkeypatch)
+    chained.step(6)
+    for _ in range(6):
+        single.step()
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    assert chains == [6] and chained.steps_done == 6

@@ -106,7 +106,7 @@ def test_chained_steps_equal_single_steps(model):
         single.step()
     assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
     graphs = [g for g in chained.system._step_graphs.values() if g.chainable]
-    assert graphs and all(graphs[0]._graphs.get(("chain", k)) not in (None, False) for k in (1, 8))
+    assert graphs and all(graphs[0]._graphs.get(("chain", k, False)) not in (None, False) for k in (1, 8))
 
 
 def test_paired_block_jacobi_loads_are_captured_and_equal_eager_steps():
