@@ -2,7 +2,8 @@
 step: the paper beam (307,200 tets, hooke, tolerance 1e-6, warm_start="project"), a float64 state
 with ``precision="mixed"`` and ``"full"``, beside the float32 fixed-budget step (25 iterations,
 tol 0, what the speed benchmarks time), each a fresh simulator, ms a step over 20 steps after 40
-(``sim.step(20)``, as the benchmarks time them: the 25-iteration steps chained) and the
+(``sim.step(20)``, as the benchmarks time them: the 25-iteration steps and the mixed ones
+chained; the float64 projected steps are not) and the
 iterations of 20 steps after them (one at a time), the runs alternated ``--repeats`` times in one
 process (the medians and the ratio to the 25-iteration step at the end); which of the step's
 phases ran as CUDA graphs; and torch.profiler's tables of 5 steps (CUDA kernels, then host time)
@@ -44,7 +45,7 @@ def run(young: float, elements: int, device, label: str, inner, profiled: bool) 
     sim.step(40)
     common.sync(device)
     start, steps, iterations = time.perf_counter(), 20, []
-    sim.step(steps)  # (as the benchmarks time steps: the 25-iteration step chains 8 a graph, one read a chain)
+    sim.step(steps)  # (as the benchmarks time steps: chains of 8 a graph where they chain, one read a chain)
     common.sync(device)
     ms = (time.perf_counter() - start) / steps * 1e3
     for _ in range(steps):  # their iterations, one step at a time (untimed)
