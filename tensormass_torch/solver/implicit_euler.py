@@ -1280,7 +1280,9 @@ class StepGraphs:
         if self.imposed is not None:
             return False
         if self.refinement is not None:  # one round a step in the chain (the first is one op)
-            return self.refinement.whole and self._one_round
+            # (not from an extrapolated guess: the host makes it, a chained step would start from
+            # zero, need more rounds than the same step alone and fail every chain)
+            return self.refinement.whole and self._one_round and self.opts.warm_start != "extrapolate"
         return self.first >= self.opts.cg_max_iter and self.space is None
 
     @property

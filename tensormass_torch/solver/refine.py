@@ -24,7 +24,8 @@ Invariants:
   iterations); its reports, the step's end and the warm-start space read it as they read a plain
   solve's.
 - An object that stopped (converged, or failed: a correction's breakdown or NaN becomes its
-  status) gets a zero correction right-hand side, which its float32 solve stops on at once.
+  status) gets an infinite correction threshold (``cg_start_status``'s gate): its float32 solve
+  stops at once and its correction stays zero.
 - Every round is device work on buffers that keep their storage, with no host read: the
   captured steps (``implicit_euler.StepGraphs``) replay it as a graph.
 

@@ -247,3 +247,13 @@ def test_mixed_steps_that_need_rounds_stop_chaining(graphs_on_cpu, monkeypatch):
         single.step()
     assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
     assert chains == [6] and chained.steps_done == 6
+
+
+def test_mixed_steps_from_extrapolated_guesses_are_not_chained(graphs_on_cpu):
+    """warm_start="extrapolate" makes each step's guess on the host: a chained refined step would
+    start from zero instead, so those steps run one at a time."""
+    sim = make_mixed_sim()
+    sim.options.warm_start = "extrapolate"
+    sim.step(5)
+    (graphs,) = sim.system._step_graphs.values()
+    assert not graphs.chainable and int(graphs.ring_pos) == 0 and sim.steps_done == 5
