@@ -1159,6 +1159,12 @@ class StepGraphs:
                 if warm:
                     self._add_solution()
             return
+        if warm:  # (from the projection's guesses: each solution joins the space, as in step)
+            for _ in range(count):
+                self._phase_a(chained=True, warm=True)
+                self._add_solution()
+                self._phase_c(chained=True)
+            return
         if self._steps_in_solve(count, chained=True):
             return
         for _ in range(count):
@@ -1274,16 +1280,16 @@ class StepGraphs:
     @property
     def chainable(self) -> bool:
         """Whether whole steps run with no host decision inside (every CG iteration is in graph
-        A: the whole CG is one op, or ``cg_max_iter <= check_every``; a refined step's correction
-        is one op and the last refined step run alone took one round) and no imposed velocity, so
-        :meth:`run_steps` applies."""
+        A: the whole CG is one op, or ``cg_max_iter <= check_every``, with the projection's guess
+        where unpreconditioned; a refined step's correction is one op and the last refined step
+        run alone took one round) and no imposed velocity, so :meth:`run_steps` applies."""
         if self.imposed is not None:
             return False
         if self.refinement is not None:  # one round a step in the chain (the first is one op)
             # (not from an extrapolated guess: the host makes it, a chained step would start from
             # zero, need more rounds than the same step alone and fail every chain)
             return self.refinement.whole and self._one_round and self.opts.warm_start != "extrapolate"
-        return self.first >= self.opts.cg_max_iter and self.space is None
+        return self.first >= self.opts.cg_max_iter and (self.space is None or not self.preconditioned)
 
     @property
     def max_chain(self) -> int:

@@ -257,3 +257,36 @@ def test_mixed_steps_from_extrapolated_guesses_are_not_chained(graphs_on_cpu):
     sim.step(5)
     (graphs,) = sim.system._step_graphs.values()
     assert not graphs.chainable and int(graphs.ring_pos) == 0 and sim.steps_done == 5
+
+
+def test_projected_steps_chain_and_equal_single_steps(graphs_on_cpu, monkeypatch):
+    """Float64 steps to a tolerance from the projection's guesses (the whole CG one op) chain, each
+    joining its solution to the space, and give the states of steps one at a time, bitwise; a
+    failure in the chain rewinds the space as for refined steps."""
+    def projected():
+        sim = make_mixed_sim()
+        sim.options.precision = "full"
+        return sim
+
+    chained, single = projected(), projected()
+    chained.step(9)
+    for _ in range(9):
+        single.step()
+    (graphs,) = chained.system._step_graphs.values()
+    assert graphs.chainable and int(graphs.ring_pos) == 9
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    assert torch.equal(chained.last_report.cg_iterations, single.last_report.cg_iterations)
+    chains = []
+    real_first_failure = StepGraphs.first_failure
+
+    def first_failure(self, summaries):
+        chains.append(summaries.shape[0])
+        found = real_first_failure(self, summaries)
+        return min(found, 2) if len(chains) == 1 else found
+
+    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
+    chained.step(6)
+    for _ in range(6):
+        single.step()
+    assert chains == [6, 3]
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)

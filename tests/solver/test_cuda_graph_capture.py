@@ -109,6 +109,43 @@ def test_chained_steps_equal_single_steps(model):
     assert graphs and all(graphs[0]._graphs.get(("chain", k, False)) not in (None, False) for k in (1, 8))
 
 
+@pytest.mark.parametrize("precision", ["full", "mixed"])
+def test_projected_and_mixed_steps_chain_and_equal_single_steps(precision):
+    """Steps to a tolerance from the projection's guesses chain as captured graphs (float64 CG in
+    one op; or one refinement round a step), with the same states as steps one at a time; a chain
+    that fails at its 3rd step rewinds the space and gives them too."""
+    def projected():
+        mesh = tm.beam_mesh(10, 3, 3, size=(1.0, 0.25, 0.25), dtype=torch.float64, device="cuda")
+        mat = tm.Material(young=1e5, poisson=0.3, density=1000.0, model="hooke")
+        return tm.Simulator([tm.Body(mesh, mat, fixed=mesh.vertices[:, 0] < 1e-9)], dt=0.01, gravity=(0, 0, -9.81),
+                            cg_tol=1e-6, cg_max_iter=500, precision=precision, warm_start="project")
+
+    chained, single = projected(), projected()
+    for sim in (chained, single):
+        for _ in range(12):  # (one at a time: the space fills, one round serves)
+            sim.step()
+    chained.step(10)
+    for _ in range(10):
+        single.step()
+    (graphs,) = chained.system._step_graphs.values()
+    assert graphs.chainable and graphs._graphs.get(("chain", 8, True)) not in (None, False)
+    assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    real_first_failure = type(graphs).first_failure
+    calls = []
+
+    def first_failure(summaries):  # (the first chain's 3rd step flagged)
+        calls.append(summaries.shape[0])
+        found = real_first_failure(graphs, summaries)
+        return min(found, 2) if len(calls) == 1 else found
+
+    graphs.first_failure = first_failure
+    chained.step(6)
+    for _ in range(6):
+        single.step()
+    assert calls == [6, 3] and torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
+    assert bool(chained.last_report.cg[0].converged.all())
+
+
 def test_paired_block_jacobi_loads_are_captured_and_equal_eager_steps():
     """Two stacked blocks pressed on a floor, block Jacobi with paired blocks (the default with
     contact): the load over the pairs' kept buffers is captured (``BlockJacobi._graphs``), and
