@@ -36,6 +36,21 @@ def graphs_on_cpu(monkeypatch):
     monkeypatch.setattr(implicit_euler, "run_captured", eager)
 
 
+def watching_chains(monkeypatch, flag_first_at=None) -> list:
+    """The length of every chain run from now on (StepGraphs.first_failure's calls); with
+    ``flag_first_at`` k, the first chain's step k is reported failed (if none before it did)."""
+    chains = []
+    real_first_failure = StepGraphs.first_failure
+
+    def first_failure(self, summaries):
+        chains.append(summaries.shape[0])
+        found = real_first_failure(self, summaries)
+        return min(found, flag_first_at) if flag_first_at is not None and len(chains) == 1 else found
+
+    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
+    return chains
+
+
 def make_sim(model="hooke", cg_max_iter=12, check_every=1000, tol=0.0, require=False):
     bodies = []
     for k in range(2):
@@ -79,15 +94,7 @@ def test_failure_inside_a_chain_commits_the_steps_before_it(graphs_on_cpu, monke
     one at a time."""
     chained, single = make_sim(), make_sim()
     graphs = implicit_euler.step_graphs_for(chained.system, chained.options, False)
-    chains = []
-    real_first_failure = StepGraphs.first_failure
-
-    def first_failure(self, summaries):
-        chains.append(summaries.shape[0])
-        found = real_first_failure(self, summaries)
-        return min(found, 3) if len(chains) == 1 else found  # the 4th step of the first chain
-
-    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
+    chains = watching_chains(monkeypatch, flag_first_at=3)  # the 4th step of the first chain
     chained.step(8)
     for _ in range(8):
         single.step()
@@ -173,19 +180,6 @@ def make_mixed_sim(tol=1e-6):
                         cg_tol=tol, cg_max_iter=500, precision="mixed", warm_start="project")
 
 
-def counting_chains(monkeypatch) -> list:
-    """The length of every chain run from now on (StepGraphs.first_failure's calls)."""
-    chains = []
-    real_first_failure = StepGraphs.first_failure
-
-    def first_failure(self, summaries):
-        chains.append(summaries.shape[0])
-        return real_first_failure(self, summaries)
-
-    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
-    return chains
-
-
 def test_mixed_steps_chain_and_equal_single_steps(graphs_on_cpu, monkeypatch):
     """Refined steps chain (one round a step, on the device; the solution space joined after each)
     once a step on its own took one round, and give the states of steps one at a time, bitwise."""
@@ -193,7 +187,7 @@ def test_mixed_steps_chain_and_equal_single_steps(graphs_on_cpu, monkeypatch):
     for sim in (chained, single):
         for _ in range(12):  # (one at a time: the space fills, one round serves)
             sim.step()
-    chains = counting_chains(monkeypatch)
+    chains = watching_chains(monkeypatch)
     chained.step(9)
     for _ in range(9):
         single.step()
@@ -217,15 +211,7 @@ def test_a_failed_chained_mixed_step_rewinds_the_space(graphs_on_cpu, monkeypatc
         for _ in range(12):
             sim.step()
         sim.system.refinement(sim.options).inner_tol = inner_tol
-    chains = []
-    real_first_failure = StepGraphs.first_failure
-
-    def first_failure(self, summaries):
-        chains.append(summaries.shape[0])
-        found = real_first_failure(self, summaries)
-        return min(found, 3) if len(chains) == 1 else found
-
-    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
+    chains = watching_chains(monkeypatch, flag_first_at=3)
     chained.step(8)
     for _ in range(8):
         single.step()
@@ -241,7 +227,7 @@ def test_mixed_steps_that_need_rounds_stop_chaining(graphs_on_cpu, monkeypatch):
     its first step, that step runs on its own with its rounds, and the next steps are not
     chained while steps take more than one: the states of steps one at a time, bitwise."""
     chained, single = make_mixed_sim(1e-8), make_mixed_sim(1e-8)
-    chains = counting_chains(monkeypatch)
+    chains = watching_chains(monkeypatch)
     chained.step(6)
     for _ in range(6):
         single.step()
@@ -276,15 +262,7 @@ def test_projected_steps_chain_and_equal_single_steps(graphs_on_cpu, monkeypatch
     assert graphs.chainable and int(graphs.ring_pos) == 9
     assert torch.equal(chained.x, single.x) and torch.equal(chained.v, single.v)
     assert torch.equal(chained.last_report.cg_iterations, single.last_report.cg_iterations)
-    chains = []
-    real_first_failure = StepGraphs.first_failure
-
-    def first_failure(self, summaries):
-        chains.append(summaries.shape[0])
-        found = real_first_failure(self, summaries)
-        return min(found, 2) if len(chains) == 1 else found
-
-    monkeypatch.setattr(StepGraphs, "first_failure", first_failure)
+    chains = watching_chains(monkeypatch, flag_first_at=2)
     chained.step(6)
     for _ in range(6):
         single.step()
