@@ -244,6 +244,13 @@ def pcg_beta(r: torch.Tensor, z: torch.Tensor, plan: ChunkPlan, rz: torch.Tensor
     native.cg_dot_beta(r.contiguous(), z.contiguous(), *plan.tensors(), s.status, rz, s.beta, s.scratch, s.counter)
 
 
+def _ref_statuses(rr: torch.Tensor, threshold: torch.Tensor, max_iter: int) -> torch.Tensor:
+    """``[B]`` int32 statuses of a start from r.r ``rr`` (common/cg.h: cg_start_status): non-finite,
+    converged (rr <= threshold), capped where ``max_iter`` is 0, else active."""
+    return torch.where(~torch.isfinite(rr), NONFINITE,
+                       torch.where(rr <= threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE)).to(torch.int32)
+
+
 def _ref_start_status(rr, rhs_sq, tol_sq, max_iter, threshold, status, iterations, alpha, beta, floor=None,
                       gate=None):
     """The op's reference: see :func:`start_status`."""
@@ -253,9 +260,7 @@ def _ref_start_status(rr, rhs_sq, tol_sq, max_iter, threshold, status, iteration
     if gate is not None:
         limit = torch.where(gate != ACTIVE, torch.inf, limit)
     threshold.copy_(limit)
-    started = torch.where(~torch.isfinite(rr), NONFINITE,
-                          torch.where(rr <= threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
-    status.copy_(started.to(torch.int32))
+    status.copy_(_ref_statuses(rr, threshold, max_iter))
     iterations.zero_()
     alpha.zero_()
     beta.zero_()
@@ -282,8 +287,7 @@ def _ref_round_end(rr, threshold, round_status, round_iterations, status, iterat
     active = status == ACTIVE
     iterations.add_(torch.where(active, round_iterations, 0))
     failed = (round_status == BREAKDOWN) | (round_status == NONFINITE)
-    ended = torch.where(failed, round_status,
-                        torch.where(~torch.isfinite(rr), NONFINITE, torch.where(rr <= threshold, CONVERGED, ACTIVE)))
+    ended = torch.where(failed, round_status, _ref_statuses(rr, threshold, 1))
     status.copy_(torch.where(active, ended.to(torch.int32), status))
 
 

@@ -28,7 +28,7 @@ import torch
 
 from . import cg as cg_family
 from . import library
-from .cg import ACTIVE, CAPPED, CONVERGED, NONFINITE, CGState
+from .cg import ACTIVE, CGState
 from .library import OpDef, contiguous, plan_indices, unchanged
 from .node_graph import (
     _ref_hooke_node_step_rhs,
@@ -68,9 +68,7 @@ def _ref_begin(r, plan, s, max_iter):
     """The start's residual ``r`` into ``s``: r.r, the statuses against ``s.threshold``, p = r."""
     s.r.copy_(r)
     s.rr.copy_(cg_family._object_sums(r * r, plan).to(s.rr.dtype))
-    status = torch.where(~torch.isfinite(s.rr), NONFINITE,
-                         torch.where(s.rr <= s.threshold, CONVERGED, CAPPED if max_iter == 0 else ACTIVE))
-    s.status.copy_(status.to(torch.int32))
+    s.status.copy_(cg_family._ref_statuses(s.rr, s.threshold, max_iter))
     s.iterations.zero_()
     s.alpha.zero_()
     s.beta.zero_()
